@@ -1,0 +1,84 @@
+"""Bad input: one line on stderr, exit code 2, no traceback."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import pytest
+
+
+def run_cli(*args: str, timeout: float = 180) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "viewer.cli", *args], capture_output=True, text=True,
+                          timeout=timeout)
+
+
+def assert_one_line_error(proc: subprocess.CompletedProcess, needle: str) -> None:
+    assert proc.returncode == 2, (proc.returncode, proc.stderr)
+    lines = [ln for ln in proc.stderr.strip().splitlines() if ln.startswith("rtwalk: error")]
+    assert len(lines) == 1, proc.stderr
+    assert "Traceback" not in proc.stderr, proc.stderr
+    assert needle in lines[0], lines[0]
+
+
+def test_missing_scene_file(tmp_path):
+    missing = tmp_path / "nope.obj"
+    assert_one_line_error(run_cli("render", str(missing), "-o", str(tmp_path / "x.png")), "nope.obj")
+
+
+def test_corrupt_scene_file(tmp_path):
+    bad = tmp_path / "garbage.ply"
+    bad.write_bytes(b"ply\nformat binary_little_endian 1.0\nelement vertex 99\n\x00\x01garbage")
+    assert_one_line_error(run_cli("render", str(bad), "-o", str(tmp_path / "x.png")), "garbage.ply")
+
+
+def test_empty_mesh(tmp_path):
+    empty = tmp_path / "empty.obj"
+    empty.write_text("# nothing here\nv 0 0 0\n")
+    assert_one_line_error(run_cli("render", str(empty), "-o", str(tmp_path / "x.png")), "empty.obj")
+
+
+def test_nan_mesh(tmp_path):
+    nan = tmp_path / "nan.obj"
+    nan.write_text("v nan 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n")
+    assert_one_line_error(run_cli("render", str(nan), "-o", str(tmp_path / "x.png")), "nan.obj")
+
+
+@pytest.mark.parametrize("content", ["{not json", json.dumps({"format": "rtwalk-recording", "version": 99}),
+                                     json.dumps({"format": "other"})])
+def test_bad_recording(tmp_path, content):
+    rec = tmp_path / "bad.json"
+    rec.write_text(content)
+    assert_one_line_error(run_cli("bench", "room", "--recording", str(rec)), "bad.json")
+
+
+def test_missing_recording(tmp_path):
+    assert_one_line_error(run_cli("bench", "room", "--recording", str(tmp_path / "gone.json")), "gone.json")
+
+
+@pytest.mark.parametrize("args,needle", [
+    (["render", "room", "--size", "0x10"], "--size"),
+    (["render", "room", "--effects", "sparkles"], "sparkles"),
+    (["render", "room", "--backend", "magic"], "magic"),
+    (["render", "nosuchbuiltin"], "nosuchbuiltin"),
+    (["render", "room", "--camera", "1,2,3"], "--camera"),
+    (["render", "room", "--view", "xray"], "xray"),
+])
+def test_bad_arguments(tmp_path, args, needle):
+    assert_one_line_error(run_cli(*args, "-o", str(tmp_path / "x.png")), needle)
+
+
+def test_missing_egl_is_one_line(monkeypatch):
+    import moderngl
+
+    from viewer.errors import RtwalkError
+    from viewer.gpu import create_headless_context
+
+    def broken(*a, **k):
+        raise Exception("eglInitialize failed")
+
+    monkeypatch.setattr(moderngl, "create_context", broken)
+    with pytest.raises(RtwalkError) as exc:
+        create_headless_context()
+    assert "EGL" in str(exc.value) and "\n" not in str(exc.value)

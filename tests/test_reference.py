@@ -1,0 +1,445 @@
+"""The two CPU reference tracers (Embree via embreex, float64 watertight brute force) against each other
+and against hand-computed answers."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import trimesh
+
+from viewer.reference import (
+    EmbreeTracer,
+    compare_hits,
+    f32_ulp,
+    point_triangle_distance,
+    prepare_rays,
+    ray_edge_distance,
+    trace_float64,
+)
+
+F32 = np.float32
+INF = np.inf
+
+
+@pytest.fixture(scope="module")
+def embree_ok():
+    if not EmbreeTracer.available():
+        pytest.fail("embreex is not installed (it is a test dependency: pip install -e .[test])")
+    return True
+
+
+def f32(a):
+    return np.ascontiguousarray(np.asarray(a, dtype=F32))
+
+
+def random_soup(rng, n, size=0.3):
+    centres = rng.uniform(-1, 1, size=(n, 1, 3))
+    return f32(centres + rng.normal(scale=size, size=(n, 3, 3)))
+
+
+def random_rays(rng, n, spread=2.5):
+    o = rng.uniform(-spread, spread, size=(n, 3))
+    target = rng.uniform(-1, 1, size=(n, 3))
+    d = (target - o) * rng.uniform(0.05, 20.0, size=(n, 1))     # deliberately not unit length
+    return f32(o), f32(d)
+
+
+def closed_meshes():
+    ico = trimesh.creation.icosphere(subdivisions=3)
+    box = trimesh.creation.box(extents=(2.0, 1.0, 0.5))
+    return {"icosphere": f32(ico.triangles), "box": f32(box.triangles)}
+
+
+def both(tris, o, d, tmin, tmax, any_hit=False):
+    te, ie = EmbreeTracer(tris).trace(o, d, tmin, tmax, any_hit=any_hit)
+    tf, i_f = trace_float64(tris, o, d, tmin, tmax, any_hit=any_hit)
+    return te, ie, tf, i_f
+
+
+def stats_of(te, ie, tf, i_f, tris, o, d):
+    """compare_hits with t tolerance 1e-5 relative + 8 float32 ulps of the coordinates / |d| absolute
+    (a hit right next to the origin has a tiny t whose float32 error is relative to the coordinates)."""
+    scale = np.maximum(np.abs(o).max(axis=1), np.abs(tris).max())
+    abs_tol = 8 * f32_ulp(scale) / np.linalg.norm(d.astype(np.float64), axis=1)
+    return compare_hits(te, ie, tf, i_f, tris, rel_tol=1e-5, abs_tol=abs_tol)
+
+
+def assert_agreement(stats, min_hitmiss=0.999):
+    assert stats["hitmiss_agree"] >= min_hitmiss, stats
+    assert stats["n_id_mismatch"] <= max(1, int(1e-3 * stats["n_both_hit"])), stats
+    # float32 Embree: t error grows like 1/sin(angle) for grazing hits; allow 0.1 % beyond 1e-5
+    assert stats["n_t_exceed"] <= max(1, int(1e-3 * stats["n_both_hit"])), stats
+    assert stats["n_bad_id"] == 0, stats
+
+
+def check_contract(t, tri, ntri, tmin, tmax):
+    assert t.dtype == np.float32 and tri.dtype == np.int32
+    assert t.shape == tri.shape
+    hit = tri >= 0
+    assert np.all(tri < ntri)
+    assert np.all(np.isinf(t[~hit]) & (t[~hit] > 0))
+    assert np.all(np.isfinite(t[hit]))
+    tmin = np.broadcast_to(tmin, t.shape)
+    tmax = np.broadcast_to(tmax, t.shape)
+    th = t[hit].astype(np.float64)
+    assert np.all(th > tmin[hit]) and np.all(th < tmax[hit])          # strict, on the returned float32
+
+
+# ----------------------------------------------------------------------------------------------
+# float64 reference on hand-made cases
+# ----------------------------------------------------------------------------------------------
+
+def test_float64_known_answers():
+    tri = f32([[[0, 0, 0], [1, 0, 0], [0, 1, 0]]])
+    o = f32([[0.25, 0.25, 2], [0.25, 0.25, -2], [0.25, 0.25, 2], [2, 2, 2], [0.25, 0.25, 2]])
+    d = f32([[0, 0, -1], [0, 0, 4], [0, 0, -0.5], [0, 0, -1], [0, 0, 1]])
+    t, i = trace_float64(tri, o, d, np.zeros(5, F32), np.full(5, INF, F32))
+    np.testing.assert_array_equal(i, [0, 0, 0, -1, -1])
+    np.testing.assert_array_equal(t, F32([2.0, 0.5, 4.0, INF, INF]))    # t in units of |d|, back face hit
+    check_contract(t, i, 1, 0.0, INF)
+
+
+@pytest.mark.parametrize("tracer_name", ["float64", "embree"])
+def test_returned_t_stays_strictly_inside_the_range(tracer_name):
+    """t = 1/3 exactly; tmax = float32(1/3) > 1/3: a hit, but plain float32 rounding gives t == tmax."""
+    if tracer_name == "embree" and not EmbreeTracer.available():
+        pytest.fail("embreex is not installed")
+    tri = f32([[[-1, -1, 0], [2, -1, 0], [-1, 2, 0]]])
+    o, d = f32([[0, 0, 1]]), f32([[0, 0, -3]])
+    tmax = F32(1 / 3)
+    assert float(tmax) > 1 / 3
+    if tracer_name == "embree":
+        # Embree's own t is a float32 (it computes 1/3 -> tmax): it may call this a miss; never t == tmax
+        t, i = EmbreeTracer(tri).trace(o, d, F32(0), tmax)
+        assert i[0] == -1 or float(t[0]) < float(tmax)
+    else:
+        t, i = trace_float64(tri, o, d, F32(0), tmax)
+        assert i[0] == 0 and t[0] == np.nextafter(tmax, F32(0))
+
+
+def test_float64_ties_smallest_t_then_smallest_id():
+    a = [[0, 0, 0], [1, 0, 0], [0, 1, 0]]
+    far = [[0, 0, -1], [1, 0, -1], [0, 1, -1]]
+    tris = f32([far, a, a, far])                                    # 1 and 2 are duplicates
+    t, i = trace_float64(tris, f32([[0.2, 0.2, 1]]), f32([[0, 0, -1]]), F32(0), F32(INF))
+    assert i[0] == 1 and t[0] == 1.0
+
+
+def test_float64_degenerate_triangles_never_hit():
+    tris = f32([
+        [[0, 0, 0], [1, 0, 0], [0.5, 0, 0]],        # collinear
+        [[0, 0, 0], [0, 0, 0], [0, 1, 0]],          # repeated vertex
+        [[0.3, 0.3, 0], [0.3, 0.3, 0], [0.3, 0.3, 0]],
+        [[-1, -1, -1], [3, -1, -1], [-1, 3, -1]],   # real backdrop
+    ])
+    o = f32([[0.5, 0, 1], [0, 0.5, 1], [0.3, 0.3, 1], [0, 0, 1], [0.25, 0, 1]])
+    d = f32(np.tile([[0, 0, -1]], (5, 1)))
+    t, i = trace_float64(tris, o, d, F32(0), F32(INF))
+    np.testing.assert_array_equal(i, [3] * 5)
+    np.testing.assert_allclose(t, 2.0)
+
+
+def test_float64_inactive_rays_and_empty_inputs():
+    tri = f32([[[0, 0, 0], [1, 0, 0], [0, 1, 0]]])
+    o = f32([[0.2, 0.2, 1]] * 6)
+    d = f32([[0, 0, -1]] * 5 + [[0, 0, 0]])
+    o[3, 0] = np.nan
+    d[4, 2] = np.inf
+    tmin = f32([0, 0, 1, 0, 0, 0])
+    tmax = f32([1, 0, 1, INF, INF, INF])                          # ray 0: hit at t = 1 = tmax -> miss
+    t, i = trace_float64(tri, o, d, tmin, tmax)
+    np.testing.assert_array_equal(i, [-1] * 6)
+    assert np.all(np.isinf(t))
+    *_, active = prepare_rays(o, d, tmin, tmax)
+    np.testing.assert_array_equal(active, [True, False, False, False, False, False])
+    t, i = trace_float64(np.zeros((0, 3, 3), F32), o, d, tmin, tmax)
+    assert i.shape == (6,) and np.all(i == -1)
+    t, i = trace_float64(tri, np.zeros((0, 3), F32), np.zeros((0, 3), F32), np.zeros(0), np.zeros(0))
+    assert t.shape == (0,) and i.shape == (0,) and t.dtype == np.float32 and i.dtype == np.int32
+
+
+@pytest.mark.parametrize("tracer_name", ["float64", "embree"])
+def test_fan_is_watertight(tracer_name):
+    """Rays exactly through the shared vertex and shared edges of a fan (dyadic, exact in float32)."""
+    if tracer_name == "embree" and not EmbreeTracer.available():
+        pytest.fail("embreex is not installed")
+    rim = np.array([[1, 0, 0], [0.75, 0.75, 0], [0, 1, 0], [-0.75, 0.75, 0],
+                    [-1, 0, 0], [-0.75, -0.75, 0], [0, -1, 0], [0.75, -0.75, 0]])
+    tris = f32([[[0, 0, 0.25], rim[k], rim[(k + 1) % 8]] for k in range(8)])
+    pts = [[0, 0, 0.25]] + [np.array([0, 0, 0.25]) + (j / 64) * (rim[k] - [0, 0, 0.25])
+                            for k in range(8) for j in range(1, 64)]
+    pts = np.array(pts)
+    for dvec in ([0, 0, -1], [0.25, -0.5, -1], [-0.125, 0.375, 1]):
+        dvec = np.array(dvec, float)
+        o = f32(pts - 2 * dvec)
+        d = f32(np.broadcast_to(dvec, o.shape))
+        assert np.all(o.astype(np.float64) + 2 * dvec == pts)          # the rays pass exactly through pts
+        if tracer_name == "embree":
+            t, i = EmbreeTracer(tris).trace(o, d, F32(0), F32(INF))
+        else:
+            t, i = trace_float64(tris, o, d, F32(0), F32(INF))
+        assert np.all(i >= 0), np.flatnonzero(i < 0)
+        np.testing.assert_allclose(t, 2.0, rtol=1e-12 if tracer_name == "float64" else 1e-6)
+
+
+@pytest.mark.parametrize("origin", [[0, 0, 0], [0.3, -0.2, 0.1]])
+def test_closed_mesh_no_leak_through_vertices_and_edges(embree_ok, origin):
+    """Rays from inside an icosphere aimed exactly at its vertices and at points on its edges.
+
+    Embree needs its robust mode here: with ``robust=False`` about 10 % of these rays leak."""
+    m = trimesh.creation.icosphere(subdivisions=3)
+    tris = f32(m.triangles)
+    v = f32(m.vertices)
+    e = m.edges_unique
+    s = f32(np.random.default_rng(0).uniform(0, 1, (len(e), 1)))
+    targets = np.concatenate([v, f32(v[e[:, 0]] + s * (v[e[:, 1]] - v[e[:, 0]])),
+                              f32(0.5 * (v[e[:, 0]] + v[e[:, 1]]))])
+    org = f32(origin)
+    d = f32(targets - org)
+    o = f32(np.broadcast_to(org, d.shape))
+    te, ie, tf, i_f = both(tris, o, d, F32(0), F32(INF))
+    assert np.all(i_f >= 0) and np.all(ie >= 0)
+    s = stats_of(te, ie, tf, i_f, tris, o, d)
+    assert s["n_id_mismatch"] == 0 and s["n_t_exceed"] == 0, s
+
+
+# ----------------------------------------------------------------------------------------------
+# Embree against the float64 reference
+# ----------------------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_random_soup_embree_vs_float64(embree_ok, seed):
+    rng = np.random.default_rng(seed)
+    tris = random_soup(rng, 500)
+    o, d = random_rays(rng, 40000)
+    tmin = np.zeros(len(o), F32)
+    tmax = np.full(len(o), INF, F32)
+    te, ie, tf, i_f = both(tris, o, d, tmin, tmax)
+    check_contract(te, ie, len(tris), tmin, tmax)
+    check_contract(tf, i_f, len(tris), tmin, tmax)
+    s = stats_of(te, ie, tf, i_f, tris, o, d)
+    assert s["n_both_hit"] > 5000
+    assert_agreement(s)
+    # any disagreement must be explained by an edge within float32 rounding
+    bad = np.flatnonzero((ie >= 0) != (i_f >= 0))
+    if len(bad):
+        tid = np.where(ie[bad] >= 0, ie[bad], i_f[bad])
+        dist = ray_edge_distance(tris, tid, o[bad], d[bad])
+        assert np.all(dist <= 1e-6 * np.abs(o[bad]).max(axis=1).clip(1.0)), dist
+
+
+@pytest.mark.parametrize("name", ["icosphere", "box"])
+def test_closed_mesh_embree_vs_float64(embree_ok, name):
+    tris = closed_meshes()[name]
+    rng = np.random.default_rng(7)
+    n = 15000
+    o_out, d_out = random_rays(rng, n, spread=3.0)
+    # rays from inside must all hit (no leak)
+    o_in = f32(rng.uniform(-0.2, 0.2, size=(n, 3)))
+    d_in = f32(rng.normal(size=(n, 3)) * rng.uniform(0.1, 10, size=(n, 1)))
+    o = np.concatenate([o_out, o_in])
+    d = np.concatenate([d_out, d_in])
+    tmin = np.zeros(2 * n, F32)
+    tmax = np.full(2 * n, INF, F32)
+    te, ie, tf, i_f = both(tris, o, d, tmin, tmax)
+    s = stats_of(te, ie, tf, i_f, tris, o, d)
+    assert_agreement(s)
+    assert s["n_t_exceed"] == 0, s
+    assert np.all(i_f[n:] >= 0) and np.all(ie[n:] >= 0)
+    # hit points lie on the reported triangles
+    for t, i in ((te, ie), (tf, i_f)):
+        h = np.flatnonzero(i >= 0)
+        p = o[h].astype(np.float64) + t[h, None].astype(np.float64) * d[h]
+        assert np.all(point_triangle_distance(p, tris[i[h]]) <= 1e-5)
+
+
+def test_any_hit_consistent_with_closest_hit(embree_ok):
+    rng = np.random.default_rng(3)
+    tris = random_soup(rng, 300)
+    o, d = random_rays(rng, 10000)
+    tmin = f32(rng.uniform(0, 0.3, len(o)))
+    tmax = f32(rng.uniform(0.2, 1.5, len(o)))
+    tracer = EmbreeTracer(tris)
+    tc, ic = tracer.trace(o, d, tmin, tmax)
+    ta, ia = tracer.trace(o, d, tmin, tmax, any_hit=True)
+    tf, i_f = trace_float64(tris, o, d, tmin, tmax, any_hit=True)
+    check_contract(ta, ia, len(tris), tmin, tmax)
+    np.testing.assert_array_equal(ia >= 0, ic >= 0)
+    occl = compare_hits(ta, np.where(ia >= 0, 0, -1), tf, np.where(i_f >= 0, 0, -1))
+    assert occl["hitmiss_agree"] >= 0.999, occl
+    h = np.flatnonzero(ia >= 0)
+    assert np.all(ta[h] >= tc[h])                                    # never closer than the closest hit
+    p = o[h].astype(np.float64) + ta[h, None].astype(np.float64) * d[h]
+    assert np.all(point_triangle_distance(p, tris[ia[h]]) <= 1e-5)   # a genuine hit on that triangle
+
+
+@pytest.mark.parametrize("tracer_name", ["embree", "float64"])
+def test_tmin_tmax_honoured(embree_ok, tracer_name):
+    tris = closed_meshes()["icosphere"]
+    rng = np.random.default_rng(5)
+    n = 2000
+    o, d = random_rays(rng, n, spread=3.0)
+    if tracer_name == "embree":
+        tracer = EmbreeTracer(tris)
+
+        def run(tmin, tmax):
+            return tracer.trace(o, d, tmin, tmax)
+    else:
+        def run(tmin, tmax):
+            return trace_float64(tris, o, d, tmin, tmax)
+
+    zero = np.zeros(n, F32)
+    t, i = run(zero, np.full(n, INF, F32))
+    od = o.astype(np.float64)
+    dd = d.astype(np.float64)
+    line_dist = np.linalg.norm(np.cross(od, dd), axis=1) / np.linalg.norm(dd, axis=1)
+    outside = np.linalg.norm(od, axis=1) > 1.1
+    h = np.flatnonzero((i >= 0) & (line_dist < 0.8) & outside)   # chords long enough for the tmin step
+    assert len(h) > 200
+    th = t[h].astype(np.float64)
+    # tmax just below the hit -> miss (the sphere's first hit is its only hit before t)
+    below = np.full(n, INF, F32)
+    below[h] = f32(th * (1 - 1e-4))
+    t2, i2 = run(zero, below)
+    assert np.all(i2[h] == -1)
+    # tmax just above -> the same hit
+    above = np.full(n, INF, F32)
+    above[h] = f32(th * (1 + 1e-4))
+    t3, i3 = run(zero, above)
+    np.testing.assert_array_equal(i3[h], i[h])
+    # tmin just above the first hit -> the far side of the sphere (a different, farther hit)
+    tmin = zero.copy()
+    tmin[h] = f32(th * (1 + 1e-4))
+    t4, i4 = run(tmin, np.full(n, INF, F32))
+    assert np.all(i4[h] >= 0) and np.all(t4[h] > tmin[h]) and np.all(i4[h] != i[h])
+    # tmax <= tmin: inactive
+    t5, i5 = run(zero + 1, zero + 1)
+    assert np.all(i5 == -1) and np.all(np.isinf(t5))
+    t6, i6 = run(zero + 2, zero + 1)
+    assert np.all(i6 == -1)
+
+
+def test_tmin_offset_embree_matches_float64(embree_ok):
+    """Embree has no tnear in embreex: the origin is moved to o + tmin d. Results must still agree."""
+    tris = closed_meshes()["icosphere"]
+    rng = np.random.default_rng(11)
+    o, d = random_rays(rng, 6000, spread=3.0)
+    tmin = f32(rng.uniform(0, 1.5, len(o)))
+    tmax = f32(tmin + rng.uniform(0, 2.0, len(o)))
+    te, ie, tf, i_f = both(tris, o, d, tmin, tmax)
+    s = stats_of(te, ie, tf, i_f, tris, o, d)
+    assert_agreement(s)
+
+
+def test_axis_parallel_directions(embree_ok):
+    tris = np.concatenate([closed_meshes()["box"], random_soup(np.random.default_rng(2), 100)])
+    g = np.linspace(-1.3, 1.3, 23)
+    gx, gy = np.meshgrid(g, g)
+    rays_o, rays_d = [], []
+    for axis in range(3):
+        for sign in (1.0, -1.0):
+            o = np.zeros((gx.size, 3))
+            o[:, axis] = -3.0 * sign
+            o[:, (axis + 1) % 3] = gx.ravel()
+            o[:, (axis + 2) % 3] = gy.ravel()
+            dvec = np.zeros(3)
+            dvec[axis] = sign * 0.5
+            dvec[(axis + 1) % 3] = -0.0                   # negative zero on purpose
+            rays_o.append(o)
+            rays_d.append(np.broadcast_to(dvec, o.shape))
+    o = f32(np.concatenate(rays_o))
+    d = f32(np.concatenate(rays_d))
+    assert np.any(np.signbit(d) & (d == 0))
+    tmin = np.zeros(len(o), F32)
+    tmax = np.full(len(o), INF, F32)
+    te, ie, tf, i_f = both(tris, o, d, tmin, tmax)
+    s = stats_of(te, ie, tf, i_f, tris, o, d)
+    assert_agreement(s, min_hitmiss=0.999)
+    # rays aimed at the box (|coords| < extents/2 inside the grid) must hit it in both
+    box_half = np.array([1.0, 0.5, 0.25])
+    inside = np.ones(len(o), bool)
+    for k in range(3):
+        inside &= (np.abs(o[:, k]) < box_half[k] - 1e-3) | (d[:, k] != 0)
+    assert inside.sum() > 100
+    assert np.all(ie[inside] >= 0) and np.all(i_f[inside] >= 0)
+
+
+def test_embree_empty_inputs_and_inactive(embree_ok):
+    empty = EmbreeTracer(np.zeros((0, 3, 3), F32))
+    t, i = empty.trace(f32([[0, 0, 1]]), f32([[0, 0, -1]]), F32(0), F32(INF))
+    assert t.shape == (1,) and i[0] == -1 and np.isinf(t[0])
+    tri = f32([[[0, 0, 0], [1, 0, 0], [0, 1, 0]]])
+    tr = EmbreeTracer(tri)
+    t, i = tr.trace(np.zeros((0, 3), F32), np.zeros((0, 3), F32), np.zeros(0, F32), np.zeros(0, F32))
+    assert t.shape == (0,) and t.dtype == np.float32 and i.dtype == np.int32
+    o = f32([[0.2, 0.2, 1]] * 6)
+    d = f32([[0, 0, -1]] * 5 + [[0, 0, 0]])
+    o[3, 0] = np.nan
+    d[4, 2] = np.inf
+    tmin = f32([0, 0, 1, 0, 0, 0])
+    tmax = f32([1, 0, 1, INF, INF, INF])
+    t, i = tr.trace(o, d, tmin, tmax)
+    np.testing.assert_array_equal(i, [-1] * 6)
+    t, i = tr.trace(f32([[0.2, 0.2, 1]]), f32([[0, 0, -4]]), F32(0), F32(INF))
+    assert i[0] == 0 and t[0] == 0.25                                 # units of |d|
+
+
+@pytest.mark.parametrize("any_hit", [False, True])
+def test_ray_starting_on_a_surface(embree_ok, any_hit):
+    """tmin = 0 is strict: a ray starting exactly on a triangle does not hit it (robust Embree reports
+    t = 0 hits; EmbreeTracer re-traces those from a nudged start)."""
+    tris = f32([[[-1, -1, 0], [2, -1, 0], [-1, 2, 0]], [[-1, -1, -1], [2, -1, -1], [-1, 2, -1]]])
+    rng = np.random.default_rng(12)
+    p = np.c_[rng.integers(-16, 16, (200, 2)) / 64, np.zeros(200)]
+    d = np.c_[rng.uniform(-0.2, 0.2, (200, 2)), -rng.uniform(0.5, 2, 200)]
+    o, d = f32(p), f32(d)
+    tmax = f32(np.where(np.arange(200) % 2 == 0, INF, 0.5 / np.abs(d[:, 2])))   # odd rays stop short
+    te, ie, tf, i_f = both(tris, o, d, F32(0), tmax, any_hit=any_hit)
+    np.testing.assert_array_equal(i_f, np.where(np.arange(200) % 2 == 0, 1, -1))
+    np.testing.assert_array_equal(ie, i_f)
+    np.testing.assert_allclose(te, tf, rtol=1e-6)
+
+
+def test_embree_skips_degenerate_and_keeps_ids():
+    if not EmbreeTracer.available():
+        pytest.fail("embreex is not installed")
+    tris = f32([
+        [[0, 0, 0], [1, 0, 0], [0.5, 0, 0]],
+        [[-1, -1, -1], [3, -1, -1], [-1, 3, -1]],
+        [[0, 0, 0], [0, 0, 0], [0, 1, 0]],
+        [[-1, -1, -2], [3, -1, -2], [-1, 3, -2]],
+    ])
+    o = f32([[0.5, 0, 1], [0, 0.5, 1]])
+    d = f32([[0, 0, -1], [0, 0, -1]])
+    t, i = EmbreeTracer(tris).trace(o, d, F32(0), F32(INF))
+    np.testing.assert_array_equal(i, [1, 1])
+    t, i = EmbreeTracer(tris).trace(o, d, F32(2.5), F32(INF))
+    np.testing.assert_array_equal(i, [3, 3])
+    np.testing.assert_allclose(t, 3.0, rtol=1e-6)
+
+
+# ----------------------------------------------------------------------------------------------
+# compare_hits
+# ----------------------------------------------------------------------------------------------
+
+def test_compare_hits_counts():
+    tris = f32(np.arange(5 * 9).reshape(5, 3, 3))
+    tris[4] = tris[3][[2, 0, 1]]                                 # 4 duplicates 3 (rotated vertices)
+    t_a = F32([1.0, INF, 2.0, 3.0, 5.0, 5.0, 7.0, 1.0])
+    i_a = np.int32([0, -1, 1, 2, 3, 1, 4, 0])
+    t_b = F32([1.0, 1.0, INF, 3.0000001, 5.5, 5.0, 7.5, 1.000005])
+    i_b = np.int32([0, 2, -1, 1, 2, 1, 3, 0])
+    s = compare_hits(t_a, i_a, t_b, i_b, tris)
+    assert s["n_rays"] == 8
+    assert s["n_b_only"] == 1 and s["n_a_only"] == 1 and s["n_both_hit"] == 6
+    assert s["hitmiss_agree"] == 6 / 8
+    assert s["n_same_id"] == 3                                   # rays 0, 5, 7
+    assert s["n_tie"] == 2                                       # ray 3 (same t), ray 6 (duplicate)
+    assert s["n_id_mismatch"] == 1                               # ray 4
+    assert s["n_t_exceed"] == 2                                  # rays 4 and 6 (t differs by 10%/7%)
+    assert not s["ok"]
+    assert abs(s["max_rel_err"] - 0.5 / 5.5) < 1e-6
+    s2 = compare_hits(t_a, i_a, t_a, i_a, tris)
+    assert s2["ok"] and s2["max_rel_err"] == 0.0 and s2["id_agree"] == 1.0
+    s3 = compare_hits(F32([]), np.int32([]), F32([]), np.int32([]))
+    assert s3["ok"] and s3["n_rays"] == 0

@@ -1,0 +1,38 @@
+"""The GLSL baseline: a full-screen fragment shader traverses the whole BVH for every ray."""
+
+from __future__ import annotations
+
+from viewer.backends.base import BackendContext, HitBuffer, RayBatch, TraceResult
+from viewer.effects import RayType
+from viewer.gpu import FullscreenQuad
+
+
+class GlslBackend:
+    name = "glsl"
+    description = "full BVH traversal from the root per ray (CHC+RT Table 2 'GLSL' baseline)"
+
+    def __init__(self, bc: BackendContext):
+        self.bc = bc
+        self.program = bc.programs.get("fullscreen.vert", "trace_glsl.frag",
+                                       {"STACK_SIZE": bc.gpu_scene.stack_size})
+        self.program["rayOrigin"] = 0
+        self.program["rayDir"] = 1
+        self.quad = FullscreenQuad(bc.ctx)
+
+    def begin_frame(self, frame_index: int) -> None:
+        pass
+
+    def trace(self, rays: RayBatch, ray_type: RayType, sample: int, hits: HitBuffer) -> TraceResult:
+        ctx = self.bc.ctx
+        self.bc.gpu_scene.bind()
+        rays.origin.use(0)
+        rays.direction.use(1)
+        self.program["anyHit"] = int(ray_type.any_hit)
+        hits.fbo.use()
+        ctx.disable(ctx.BLEND | ctx.DEPTH_TEST)
+        with self.bc.profiler.phase(f"trace:{ray_type.label}"):
+            self.quad.render(self.program)
+        return TraceResult(stats={"draws": 1})
+
+    def release(self) -> None:
+        pass

@@ -1,0 +1,225 @@
+"""Deterministic replay benchmark: time per phase, rays per type, Mrays/s and error vs Embree.
+
+Frames are sampled from the recording at a fixed rate (never the wall clock). Timing frames are
+rendered without readbacks; frames checked against the reference are rendered a second time with
+capture on (same rays: the pipeline is deterministic), so error checks never pollute timings.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from tqdm import tqdm
+
+from viewer.effects import EffectSettings
+from viewer.recording import Recording
+from viewer.renderer import FrameReport, Renderer
+from viewer.session import PreparedScene
+
+
+@dataclass
+class BenchOptions:
+    backend: str = "glsl"
+    size: tuple[int, int] = (640, 360)
+    fps: float | None = None  # None: the recording's rate
+    max_frames: int | None = None
+    reference: str = "embree"  # or "none"
+    reference_every: int = 1
+    warmup: int = 1
+    frames_dir: Path | None = None  # write PNG frames here (every `frame_every` frames)
+    frame_every: int = 10
+
+
+def frame_numbers(rec: Recording, fps: float | None, max_frames: int | None) -> list[int]:
+    n = rec.frame_count(fps)
+    if max_frames is not None and max_frames < n:
+        # spread the frames over the whole path, still deterministic
+        return sorted({int(round(i * (n - 1) / max(max_frames - 1, 1))) for i in range(max_frames)})
+    return list(range(n))
+
+
+def _mrays(rep: FrameReport) -> dict[str, float]:
+    out = {}
+    for ray, count in rep.rays.items():
+        ms = rep.gpu_ms.get(f"trace:{ray}", 0.0)
+        out[ray] = count / (ms * 1e3) if ms > 0 else float("nan")
+    total_ms = rep.trace_ms
+    out["all"] = sum(rep.rays.values()) / (total_ms * 1e3) if total_ms > 0 else float("nan")
+    return out
+
+
+def reference_errors(renderer: Renderer, camera, tracer) -> dict:
+    """Per ray type: agreement of the backend's hits with Embree on exactly the same rays."""
+    from viewer.reference import compare_hits
+
+    rep = renderer.render(camera, capture=True)
+    image = renderer.read_image()
+    by_type: dict[str, list[dict]] = {}
+    for cp in rep.captured:
+        act = cp.rays.active
+        if not act.any():
+            continue
+        r = cp.rays
+        t_ref, id_ref = tracer.trace(r.origins[act], r.directions[act], r.tmin[act], r.tmax[act],
+                                     any_hit=cp.ray_type.any_hit)
+        st = compare_hits(cp.t[act], cp.tri[act], t_ref, id_ref, renderer.scene.triangles)
+        any_hit = cp.ray_type.any_hit  # only occluded-or-not is defined for any-hit rays
+        by_type.setdefault(cp.ray_type.label, []).append({
+            "rays": st["n_rays"], "hit_agreement": st["hitmiss_agree"],
+            "id_agreement": st["hitmiss_agree"] if any_hit else st["id_agree"],
+            "max_rel_t_error": 0.0 if any_hit else st["max_rel_err"]})
+    out = {}
+    for ray, items in by_type.items():
+        n = sum(i["rays"] for i in items)
+        out[ray] = {
+            "rays": n,
+            "hit_agreement": sum(i["hit_agreement"] * i["rays"] for i in items) / n,
+            "id_agreement": sum(i["id_agreement"] * i["rays"] for i in items) / n,
+            "max_rel_t_error": max(i["max_rel_t_error"] for i in items),
+        }
+    return {"rays": out, "image": image}
+
+
+def image_error(a: np.ndarray, b: np.ndarray) -> dict:
+    diff = np.abs(a.astype(np.float64) - b.astype(np.float64))
+    mse = float((diff ** 2).mean())
+    return {"mae": float(diff.mean()), "max": float(diff.max()),
+            "psnr_db": float(10 * np.log10(255.0 ** 2 / mse)) if mse > 0 else float("inf"),
+            "pixels_over_8": float((diff.max(axis=-1) > 8).mean())}
+
+
+def run_bench(prepared: PreparedScene, rec: Recording, settings: EffectSettings, opts: BenchOptions,
+              ctx, quiet: bool = False) -> dict:
+    renderer = Renderer(ctx, prepared.scene, prepared.bvh, opts.size, opts.backend, settings)
+    tracer = None
+    if opts.reference == "embree":
+        from viewer.reference import EmbreeTracer
+
+        if EmbreeTracer.available():
+            tracer = EmbreeTracer(prepared.scene.triangles)
+        else:
+            print("rtwalk: embreex is not installed: no error column (pip install embreex)", file=sys.stderr)
+    frames = frame_numbers(rec, opts.fps, opts.max_frames)
+    fps = opts.fps or rec.fps
+    for _ in range(opts.warmup):  # compile shaders, fault in buffers
+        renderer.render(rec.camera_for_frame(frames[0], opts.fps))
+    records = []
+    for k, n in enumerate(tqdm(frames, desc=f"bench {opts.backend}", unit="frame", disable=quiet,
+                               file=sys.stderr)):
+        cam = rec.camera_for_frame(n, opts.fps)
+        rep = renderer.render(cam)
+        row = {"frame": n, "time_s": float(rec.frame_times(opts.fps)[n]), "wall_ms": rep.wall_ms,
+               "gpu_ms": rep.gpu_ms, "cpu_ms": rep.cpu_ms, "trace_ms": rep.trace_ms, "rays": rep.rays,
+               "mrays_per_s": _mrays(rep), "backend_stats": rep.backend_stats}
+        image = None
+        if tracer is not None and k % max(opts.reference_every, 1) == 0:
+            err = reference_errors(renderer, cam, tracer)
+            image = err["image"]
+            row["error"] = err["rays"]
+            renderer.set_backend("embree")
+            renderer.render(cam)
+            ref_image = renderer.read_image()
+            renderer.set_backend(opts.backend)
+            row["image_error"] = image_error(image, ref_image)
+        if opts.frames_dir is not None and k % max(opts.frame_every, 1) == 0:
+            from PIL import Image
+
+            if image is None:
+                image = renderer.read_image()
+            opts.frames_dir.mkdir(parents=True, exist_ok=True)
+            Image.fromarray(image).save(opts.frames_dir / f"frame_{n:05d}.png")
+        records.append(row)
+    report = {
+        "format": "rtwalk-bench", "version": 1,
+        "scene": prepared.scene.identity, "scene_name": prepared.scene.name,
+        "triangles": prepared.scene.triangle_count, "bvh": prepared.bvh.stats.to_dict(),
+        "backend": opts.backend, "effects": settings.to_dict(), "size": list(opts.size),
+        "recording": str(rec.source) if getattr(rec, "source", None) else None, "fps": fps,
+        "device": {"renderer": ctx.info.get("GL_RENDERER"), "version": ctx.info.get("GL_VERSION")},
+        "frames": records, "summary": summarize(records),
+    }
+    renderer.release()
+    return report
+
+
+def _mean(values) -> float:
+    vals = [v for v in values if v is not None and np.isfinite(v)]
+    return float(np.mean(vals)) if vals else float("nan")
+
+
+def summarize(records: list[dict]) -> dict:
+    phases = sorted({p for r in records for p in r["gpu_ms"]})
+    rays = sorted({p for r in records for p in r["rays"]})
+    s = {"frames": len(records),
+         "gpu_ms_mean": {p: _mean(r["gpu_ms"].get(p, 0.0) for r in records) for p in phases},
+         "frame_gpu_ms_mean": _mean(sum(r["gpu_ms"].values()) for r in records),
+         "wall_ms_mean": _mean(r["wall_ms"] for r in records),
+         "rays_mean": {p: _mean(r["rays"].get(p, 0) for r in records) for p in rays},
+         "mrays_per_s_mean": {p: _mean(r["mrays_per_s"].get(p) for r in records) for p in rays + ["all"]}}
+    checked = [r for r in records if "error" in r]
+    if checked:
+        s["error"] = {p: {"hit_agreement_min": min(r["error"][p]["hit_agreement"] for r in checked if p in r["error"]),
+                          "id_agreement_min": min(r["error"][p]["id_agreement"] for r in checked if p in r["error"]),
+                          "max_rel_t_error": max(r["error"][p]["max_rel_t_error"] for r in checked if p in r["error"])}
+                      for p in rays if any(p in r["error"] for r in checked)}
+        s["image_mae_mean"] = _mean(r["image_error"]["mae"] for r in checked)
+        s["image_psnr_min_db"] = min(r["image_error"]["psnr_db"] for r in checked)
+    return s
+
+
+def print_summary(report: dict, out=sys.stdout) -> None:
+    s = report["summary"]
+    w, h = report["size"]
+    print(f"\n{report['scene_name']} ({report['triangles']:,} tris)  backend={report['backend']}  "
+          f"{w}x{h}  {s['frames']} frames  device: {report['device']['renderer']}", file=out)
+    print(f"  frame: GPU {s['frame_gpu_ms_mean']:.1f} ms   wall {s['wall_ms_mean']:.1f} ms", file=out)
+    print(f"  {'phase':<22}{'GPU ms':>10}", file=out)
+    for p, v in s["gpu_ms_mean"].items():
+        print(f"  {p:<22}{v:>10.2f}", file=out)
+    print(f"  {'ray type':<14}{'rays/frame':>12}{'Mrays/s':>10}{'hit agree':>11}{'id agree':>10}{'max rel t':>11}",
+          file=out)
+    err = s.get("error", {})
+    for p, n in s["rays_mean"].items():
+        e = err.get(p, {})
+        ha = f"{e['hit_agreement_min'] * 100:.3f}%" if e else "-"
+        ia = f"{e['id_agreement_min'] * 100:.3f}%" if e else "-"
+        te = f"{e['max_rel_t_error']:.1e}" if e else "-"
+        print(f"  {p:<14}{n:>12.0f}{s['mrays_per_s_mean'][p]:>10.2f}{ha:>11}{ia:>10}{te:>11}", file=out)
+    if "image_mae_mean" in s:
+        print(f"  image vs Embree: mean abs error {s['image_mae_mean']:.3f}/255, min PSNR "
+              f"{s['image_psnr_min_db']:.1f} dB", file=out)
+
+
+def write_report(report: dict, out_dir: Path, stem: str) -> tuple[Path, Path]:
+    out_dir.mkdir(parents=True, exist_ok=True)
+    json_path = out_dir / f"{stem}.json"
+    json_path.write_text(json.dumps(report, indent=1, default=float))
+    png_path = out_dir / f"{stem}.png"
+    plot_phases(report, png_path)
+    return json_path, png_path
+
+
+def plot_phases(report: dict, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    frames = [r["frame"] for r in report["frames"]]
+    phases = list(report["summary"]["gpu_ms_mean"])
+    data = np.array([[r["gpu_ms"].get(p, 0.0) for r in report["frames"]] for p in phases])
+    fig, ax = plt.subplots(figsize=(9, 4.5), dpi=110)
+    ax.stackplot(frames, data, labels=phases, step="mid")
+    w, h = report["size"]
+    ax.set_title(f"{report['scene_name']} - {report['backend']} - {w}x{h}: GPU time per phase")
+    ax.set_xlabel("frame")
+    ax.set_ylabel("ms")
+    ax.legend(loc="upper left", fontsize=7, ncol=2)
+    ax.grid(alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)

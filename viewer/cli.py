@@ -1,0 +1,273 @@
+"""Command line: `rtwalk [view|render|bench|bench-bvh|info] ...`. Bad input -> one line, exit 2."""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from viewer.errors import RtwalkError
+
+REPO_ROOT = Path(__file__).resolve().parents[1]
+RECORDINGS = REPO_ROOT / "recordings"
+DEFAULT_RECORDING = RECORDINGS / "city-near.json"
+
+
+def parse_size(text: str) -> tuple[int, int]:
+    try:
+        w, h = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise RtwalkError(f"bad --size '{text}': expected WIDTHxHEIGHT, e.g. 640x360") from None
+    if not (1 <= w <= 16384 and 1 <= h <= 16384):
+        raise RtwalkError(f"bad --size '{text}': each side must be in 1..16384")
+    return w, h
+
+
+def parse_camera(text: str):
+    from viewer.camera import Camera
+
+    try:
+        vals = [float(v) for v in text.split(",")]
+    except ValueError:
+        vals = []
+    if len(vals) not in (6, 7) or not np.all(np.isfinite(vals)):
+        raise RtwalkError(f"bad --camera '{text}': expected eye_x,eye_y,eye_z,target_x,target_y,target_z[,fov_deg]")
+    if np.allclose(vals[:3], vals[3:6]):
+        raise RtwalkError(f"bad --camera '{text}': eye and target coincide")
+    return Camera.look_at(vals[:3], vals[3:6], fov_y=vals[6] if len(vals) == 7 else 60.0)
+
+
+def add_scene_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("scene", nargs="?", default=None,
+                   help="scene file (OBJ/PLY/GLB/STL/OFF) or built-in name (city, room); default: city")
+    p.add_argument("--scene-size", type=int, default=None, help="triangles for procedural scenes (city)")
+    p.add_argument("--seed", type=int, default=1, help="seed for procedural scenes")
+    p.add_argument("--mirror", action="append", default=[], metavar="PATTERN",
+                   help="material name pattern made a mirror (repeatable, fnmatch, case-insensitive)")
+    p.add_argument("--quiet", action="store_true", help="no progress output")
+
+
+def add_effect_args(p: argparse.ArgumentParser, default: str) -> None:
+    p.add_argument("--effects", default=default,
+                   help="comma list of primary,shadows,soft,ao,diffuse,reflections (NAME:N = N samples), "
+                        "'all' or 'none'")
+    p.add_argument("--backend", default="glsl", help="tracing backend: glsl, embree")
+    p.add_argument("--size", default="640x360", help="WIDTHxHEIGHT")
+    p.add_argument("--perturb", type=float, default=36.0, help="per-pixel sample rotation, degrees")
+    p.add_argument("--ao-length", type=float, default=0.05, help="AO ray length, fraction of the scene diagonal")
+    p.add_argument("--exposure", type=float, default=1.0)
+
+
+def settings_from(args):
+    from viewer.effects import parse_effects
+
+    s = parse_effects(args.effects)
+    if not 0 <= args.perturb <= 180:
+        raise RtwalkError("--perturb must be within 0..180 degrees")
+    if not 0 < args.ao_length <= 10:
+        raise RtwalkError("--ao-length must be within (0, 10] (fraction of the scene diagonal)")
+    s.perturb_deg, s.ao_length, s.exposure = args.perturb, args.ao_length, args.exposure
+    return s
+
+
+def scene_from_args(args, recording=None):
+    """Scene named on the command line, else the recording's scene, else the default city."""
+    from viewer.session import prepare_scene
+
+    spec, size, seed = args.scene, args.scene_size, args.seed
+    if spec is None and recording is not None:
+        from viewer.recording import resolve_scene_spec
+
+        rs = resolve_scene_spec(recording)
+        spec = rs.spec
+        size = size if size is not None else rs.size
+        seed = rs.seed if rs.seed is not None else seed
+    return prepare_scene(spec, scene_size=size, seed=seed, mirror_patterns=args.mirror, quiet=args.quiet)
+
+
+def cmd_render(args) -> int:
+    from PIL import Image
+
+    from viewer.gpu import create_headless_context
+    from viewer.recording import load_recording
+    from viewer.renderer import Renderer
+    from viewer.passes.shade import VIEW_MODES
+
+    if args.view not in VIEW_MODES:
+        raise RtwalkError(f"unknown --view '{args.view}' (choose from {', '.join(VIEW_MODES)})")
+    rec = load_recording(args.recording) if args.recording else None
+    size = parse_size(args.size)
+    settings = settings_from(args)
+    prepared = scene_from_args(args, rec)
+    if args.camera:
+        camera = parse_camera(args.camera)
+    elif rec is not None:
+        camera = rec.camera_for_frame(args.frame)
+    else:
+        camera = prepared.scene.default_camera
+    ctx = create_headless_context()
+    renderer = Renderer(ctx, prepared.scene, prepared.bvh, size, args.backend, settings)
+    renderer.view = args.view
+    report = renderer.render(camera)
+    out = Path(args.output)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    Image.fromarray(renderer.read_image()).save(out)
+    if not args.quiet:
+        rays = ", ".join(f"{k} {v:,}" for k, v in report.rays.items()) or "none"
+        print(f"wrote {out} ({size[0]}x{size[1]}, GPU {sum(report.gpu_ms.values()):.1f} ms; rays: {rays})",
+              file=sys.stderr)
+    return 0
+
+
+def cmd_bench(args) -> int:
+    from viewer.bench import BenchOptions, print_summary, run_bench, write_report
+    from viewer.gpu import create_headless_context
+    from viewer.recording import load_recording
+
+    rec_path = args.recording or (DEFAULT_RECORDING if args.scene in (None, "city") else None)
+    if rec_path is None:
+        raise RtwalkError("bench needs --recording FILE for this scene (see recordings/)")
+    rec = load_recording(rec_path)
+    prepared = scene_from_args(args, rec)
+    opts = BenchOptions(backend=args.backend, size=parse_size(args.size), fps=args.fps,
+                        max_frames=args.frames, reference=args.reference, reference_every=args.reference_every,
+                        frames_dir=Path(args.save_frames) if args.save_frames else None,
+                        frame_every=args.frame_every)
+    ctx = create_headless_context()
+    report = run_bench(prepared, rec, settings_from(args), opts, ctx, quiet=args.quiet)
+    print_summary(report)
+    stem = args.name or f"{prepared.scene.name}-{Path(rec_path).stem}-{args.backend}-{opts.size[0]}x{opts.size[1]}"
+    json_path, png_path = write_report(report, Path(args.out), stem)
+    print(f"report: {json_path}\nplot:   {png_path}")
+    return 0
+
+
+def cmd_bench_bvh(args) -> int:
+    import json
+
+    from viewer.bvh import bench_build
+    from viewer.procedural import make_city
+
+    rows = []
+    for n in [int(v) for v in args.sizes.split(",")]:
+        scene = make_city(n, args.seed)
+        r = bench_build(scene.triangles)
+        r["target"] = n
+        rows.append(r)
+        print(f"city {scene.triangle_count:>10,} tris: build {r['build_time_s']:.2f} s "
+              f"({r['throughput_mtris_per_s']:.2f} Mtri/s), {r['nodes']:,} nodes, depth {r['depth']}, "
+              f"SAH {r['sah_cost']:.1f}", flush=True)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "bvh-build.json").write_text(json.dumps(rows, indent=1, default=float))
+    print(f"report: {out / 'bvh-build.json'}")
+    return 0
+
+
+def cmd_info(args) -> int:
+    prepared = scene_from_args(args)
+    s = prepared.scene
+    lo, hi = s.bounds
+    print(f"scene {s.name}: {s.triangle_count:,} triangles, bounds {lo.round(3).tolist()} .. {hi.round(3).tolist()}")
+    for m in s.materials:
+        print(f"  material {m.name}: albedo {np.round(m.albedo, 3).tolist()}{' (mirror)' if m.mirror else ''}")
+    for note in s.notes:
+        print(f"  note: {note}")
+    return 0
+
+
+def cmd_view(args) -> int:
+    from viewer.ui.app import run_viewer
+
+    return run_viewer(args)
+
+
+def cmd_demo(args) -> int:
+    """The main job: a window where there is a display, else a headless replay with a report."""
+    if os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY"):
+        return cmd_view(args)
+    print("rtwalk: no display: replaying recordings/city-near.json headless "
+          "(frames and report in out/demo/)", file=sys.stderr)
+    args.recording = str(DEFAULT_RECORDING)
+    args.save_frames = "out/demo/frames"
+    args.out = "out/demo"
+    args.name = "city-near"
+    return cmd_bench(args)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    ap = argparse.ArgumentParser(prog="rtwalk", description=__doc__.splitlines()[0])
+    sub = ap.add_subparsers(dest="command")
+
+    v = sub.add_parser("view", help="interactive window")
+    add_scene_args(v)
+    add_effect_args(v, "shadows,reflections")
+    v.add_argument("--recording", default=None, help="play this recording (P toggles)")
+    v.add_argument("--max-frames", type=int, default=None,
+                   help="quit after N frames (also RTWALK_VIEW_FRAMES; RTWALK_VIEW_SCREENSHOT=PNG saves the window)")
+
+    r = sub.add_parser("render", help="render one frame headless to PNG")
+    add_scene_args(r)
+    add_effect_args(r, "shadows,reflections")
+    r.add_argument("--camera", default=None, help="eye_x,eye_y,eye_z,target_x,target_y,target_z[,fov]")
+    r.add_argument("--recording", default=None)
+    r.add_argument("--frame", type=int, default=0)
+    r.add_argument("--view", default="final", help="final or one pass alone (albedo, normal, depth, shadows, ...)")
+    r.add_argument("-o", "--output", default="out/render.png")
+
+    b = sub.add_parser("bench", help="replay a recording and report speed and error")
+    add_scene_args(b)
+    add_effect_args(b, "shadows,ao:4,reflections")
+    b.add_argument("--recording", default=None, help="camera path (default: recordings/city-near.json for city)")
+    b.add_argument("--fps", type=float, default=None, help="sample the path at this rate (default: recording's)")
+    b.add_argument("--frames", type=int, default=None, help="at most this many frames, spread over the path")
+    b.add_argument("--reference", choices=["embree", "none"], default="embree")
+    b.add_argument("--reference-every", type=int, default=1, help="check every Nth frame against Embree")
+    b.add_argument("--save-frames", default=None, help="folder for PNG frames")
+    b.add_argument("--frame-every", type=int, default=10)
+    b.add_argument("--out", default="out/bench", help="folder for the JSON report and plot")
+    b.add_argument("--name", default=None, help="report file stem")
+
+    bb = sub.add_parser("bench-bvh", help="BVH build throughput on the city scene")
+    bb.add_argument("--sizes", default="1000000,5000000")
+    bb.add_argument("--seed", type=int, default=1)
+    bb.add_argument("--out", default="out/bench")
+
+    i = sub.add_parser("info", help="scene statistics")
+    add_scene_args(i)
+
+    d = sub.add_parser("demo", help="main job: window if a display exists, else headless replay + report")
+    add_scene_args(d)
+    add_effect_args(d, "shadows,ao:4,reflections")
+    d.add_argument("--frames", type=int, default=24)
+    return ap
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = build_parser()
+    args = ap.parse_args(argv)
+    handlers = {"view": cmd_view, "render": cmd_render, "bench": cmd_bench, "bench-bvh": cmd_bench_bvh,
+                "info": cmd_info, "demo": cmd_demo}
+    if args.command is None:
+        args = ap.parse_args(["demo"] + (argv if argv is not None else sys.argv[1:]))
+    if args.command == "demo":
+        # demo reuses bench/view; fill in what their parsers would have set
+        for key, val in {"recording": None, "fps": None, "reference": "embree", "reference_every": 6,
+                         "frame_every": 4, "save_frames": None, "out": "out/demo", "name": None}.items():
+            if not hasattr(args, key):
+                setattr(args, key, val)
+    try:
+        return handlers[args.command](args)
+    except RtwalkError as exc:
+        print(f"rtwalk: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("rtwalk: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

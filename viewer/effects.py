@@ -1,0 +1,89 @@
+"""Which secondary effects are on and their parameters; the ray types they generate."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, fields
+from enum import IntEnum
+
+from viewer.errors import RtwalkError
+
+
+class RayType(IntEnum):
+    """Ray types; values match the RAY_* constants in shaders/raygen.frag."""
+
+    PRIMARY = 0
+    SHADOW = 1
+    SOFT = 2
+    AO = 3
+    DIFFUSE = 4
+    REFLECT = 5
+
+    @property
+    def any_hit(self) -> bool:
+        """Shadow and AO rays only need to know whether anything is hit."""
+        return self in (RayType.SHADOW, RayType.SOFT, RayType.AO)
+
+    @property
+    def label(self) -> str:
+        return EFFECT_OF_RAY[self]
+
+
+# Command-line effect names, in composition order.
+EFFECT_OF_RAY = {RayType.PRIMARY: "primary", RayType.SHADOW: "shadows", RayType.SOFT: "soft",
+                 RayType.AO: "ao", RayType.DIFFUSE: "diffuse", RayType.REFLECT: "reflections"}
+EFFECT_NAMES = list(EFFECT_OF_RAY.values())
+
+
+@dataclass
+class EffectSettings:
+    """Effect toggles and parameters. Sample counts are rays per pixel (one pass each)."""
+
+    primary: bool = False  # also trace primary rays (raster gives the G-buffer either way)
+    shadows: bool = True
+    soft: bool = False
+    ao: bool = False
+    diffuse: bool = False
+    reflections: bool = True
+    soft_samples: int = 4
+    ao_samples: int = 4
+    diffuse_samples: int = 4
+    ao_length: float = 0.05  # fraction of the scene diagonal
+    perturb_deg: float = 36.0  # per-pixel random rotation of the shared sample direction
+    exposure: float = 1.0
+    ambient: float = 0.35
+
+    def enabled(self, ray: RayType) -> bool:
+        return bool(getattr(self, EFFECT_OF_RAY[ray]))
+
+    def samples(self, ray: RayType) -> int:
+        return {RayType.SOFT: self.soft_samples, RayType.AO: self.ao_samples,
+                RayType.DIFFUSE: self.diffuse_samples}.get(ray, 1)
+
+    def to_dict(self) -> dict:
+        return {f.name: getattr(self, f.name) for f in fields(self)}
+
+
+def parse_effects(text: str, base: EffectSettings | None = None) -> EffectSettings:
+    """'shadows,ao:20,diffuse:8' -> settings with exactly those effects on (':N' = samples)."""
+    s = base or EffectSettings()
+    for name in EFFECT_NAMES:
+        setattr(s, name, False)
+    if text.strip().lower() in ("", "none"):
+        return s
+    if text.strip().lower() == "all":
+        for name in EFFECT_NAMES:
+            setattr(s, name, name != "primary")
+        return s
+    for item in text.split(","):
+        name, _, count = item.strip().lower().partition(":")
+        name = {"shadow": "shadows", "hard": "shadows", "reflection": "reflections", "refl": "reflections",
+                "soft_shadows": "soft", "indirect": "diffuse"}.get(name, name)
+        if name not in EFFECT_NAMES:
+            raise RtwalkError(f"unknown effect '{name}' (choose from {', '.join(EFFECT_NAMES)}, all, none)")
+        setattr(s, name, True)
+        if count:
+            if not count.isdigit() or not 1 <= int(count) <= 1024:
+                raise RtwalkError(f"bad sample count '{count}' for effect {name} (1..1024)")
+            if name in ("soft", "ao", "diffuse"):
+                setattr(s, f"{name}_samples", int(count))
+    return s

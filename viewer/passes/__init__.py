@@ -1,0 +1,1 @@
+"""Render passes: G-buffer, ray generation, effect accumulation, shading."""

@@ -1,0 +1,59 @@
+"""Adds one traced pass to its effect's accumulator (float RGBA, additive blending)."""
+
+from __future__ import annotations
+
+import moderngl
+
+from viewer.backends.base import HitBuffer, RayBatch
+from viewer.effects import RayType
+from viewer.gpu import FullscreenQuad, ProgramCache, float_texture
+from viewer.passes.gbuffer import GBufferPass
+
+ACCUMULATED = (RayType.SHADOW, RayType.SOFT, RayType.AO, RayType.DIFFUSE, RayType.REFLECT)
+
+
+class AccumulatePass:
+    def __init__(self, ctx: moderngl.Context, programs: ProgramCache, quad: FullscreenQuad,
+                 size: tuple[int, int]):
+        self.ctx = ctx
+        self.quad = quad
+        self.program = programs.get("fullscreen.vert", "accumulate.frag")
+        for i, name in enumerate(["gPos", "gNormal", "rayOrigin", "rayDir", "hitT", "hitId"]):
+            self.program[name] = i
+        self.size = (0, 0)
+        self.resize(size)
+
+    def resize(self, size: tuple[int, int]) -> None:
+        if size == self.size:
+            return
+        if self.size != (0, 0):
+            self.release()
+        self.size = size
+        self.textures = {r: float_texture(self.ctx, size, 4) for r in ACCUMULATED}
+        self.fbos = {r: self.ctx.framebuffer(color_attachments=[t]) for r, t in self.textures.items()}
+
+    def clear(self) -> None:
+        for fbo in self.fbos.values():
+            fbo.clear(0.0, 0.0, 0.0, 0.0)
+
+    def add(self, ray_type: RayType, rays: RayBatch, hits: HitBuffer, gbuffer: GBufferPass,
+            light_index: int, weight: float) -> None:
+        p = self.program
+        p["effect"] = int(ray_type)
+        p["lightIndex"] = int(light_index)
+        p["weight"] = float(weight)
+        for i, tex in enumerate([gbuffer.position, gbuffer.normal, rays.origin, rays.direction, hits.t, hits.id]):
+            tex.use(i)
+        self.fbos[ray_type].use()
+        ctx = self.ctx
+        ctx.enable(ctx.BLEND)
+        ctx.blend_func = moderngl.ONE, moderngl.ONE
+        ctx.blend_equation = moderngl.FUNC_ADD
+        self.quad.render(p)
+        ctx.disable(ctx.BLEND)
+
+    def release(self) -> None:
+        for f in self.fbos.values():
+            f.release()
+        for t in self.textures.values():
+            t.release()

@@ -1,0 +1,77 @@
+"""G-buffer pass: rasterizes position, facing normal, albedo, triangle id and ray-distance depth."""
+
+from __future__ import annotations
+
+import moderngl
+import numpy as np
+
+from viewer.camera import Camera
+from viewer.gpu import GpuScene, ProgramCache, float_texture, int_texture
+from viewer.passes.uniforms import apply, camera_uniforms
+
+
+class GBufferPass:
+    def __init__(self, ctx: moderngl.Context, programs: ProgramCache, gpu_scene: GpuScene,
+                 size: tuple[int, int], depth_scale: float, scene_diagonal: float):
+        self.ctx = ctx
+        self.gpu_scene = gpu_scene
+        self.depth_scale = depth_scale
+        self.diagonal = scene_diagonal
+        self.program = programs.get("gbuffer.vert", "gbuffer.frag")
+        self.vao = ctx.vertex_array(self.program, [(gpu_scene.vertices, "3f", "in_pos")])
+        self.size = (0, 0)
+        self.resize(size)
+
+    def resize(self, size: tuple[int, int]) -> None:
+        if size == self.size:
+            return
+        if self.size != (0, 0):
+            self.release_targets()
+        self.size = size
+        self.position = float_texture(self.ctx, size, 4)
+        self.normal = float_texture(self.ctx, size, 4)
+        self.albedo = float_texture(self.ctx, size, 4)
+        self.tri_id = int_texture(self.ctx, size)
+        self.depth = self.ctx.depth_texture(size)
+        self.fbo = self.ctx.framebuffer(color_attachments=[self.position, self.normal, self.albedo, self.tri_id],
+                                        depth_attachment=self.depth)
+
+    def render(self, camera: Camera) -> None:
+        ctx = self.ctx
+        self.fbo.use()
+        self.fbo.clear(0.0, 0.0, 0.0, 0.0, depth=1.0)
+        # integer attachment: clear ids to -1 explicitly (glClear with a float colour is undefined)
+        self.tri_id.write(self._minus_ones())
+        ctx.enable(ctx.DEPTH_TEST)
+        ctx.disable(ctx.CULL_FACE | ctx.BLEND)
+        ctx.depth_func = "<"
+        w, h = self.size
+        pos = np.asarray(camera.position, np.float64)
+        lo_near = max(self.diagonal * 1e-5, 1e-6)
+        far = self.diagonal * 4 + float(np.linalg.norm(pos)) * 2
+        proj = camera.projection_matrix(w / h, lo_near, far)
+        view_rot = np.eye(4)
+        view_rot[:3, :3] = camera.rotation.T
+        vp = (proj @ view_rot).astype(np.float32)
+        self.program["viewProjRel"].write(vp.T.tobytes())  # GL expects column-major
+        self.program["camPosV"].value = tuple(float(x) for x in pos)
+        self.program["depthScale"].value = float(self.depth_scale)
+        apply(self.program, camera_uniforms(camera, self.size))
+        self.gpu_scene.bind()
+        self.vao.render(moderngl.TRIANGLES, vertices=self.gpu_scene.triangle_count * 3)
+        ctx.disable(ctx.DEPTH_TEST)
+
+    def _minus_ones(self) -> bytes:
+        cached = getattr(self, "_neg", None)
+        if cached is None or len(cached) != self.size[0] * self.size[1] * 4:
+            cached = np.full(self.size[0] * self.size[1], -1, np.int32).tobytes()
+            self._neg = cached
+        return cached
+
+    def release_targets(self) -> None:
+        for obj in (self.fbo, self.position, self.normal, self.albedo, self.tri_id, self.depth):
+            obj.release()
+
+    def release(self) -> None:
+        self.release_targets()
+        self.vao.release()

@@ -1,0 +1,60 @@
+"""Ray generation: one ray per pixel per pass into a RayBatch, counting active rays on the GPU."""
+
+from __future__ import annotations
+
+import moderngl
+import numpy as np
+
+from viewer.backends.base import RayBatch
+from viewer.camera import Camera
+from viewer.effects import RayType
+from viewer.gpu import BIND_COUNTERS, FullscreenQuad, ProgramCache
+from viewer.passes.gbuffer import GBufferPass
+
+
+def radical_inverse(base: int, index: int) -> float:
+    """Van der Corput radical inverse of `index` in `base` (Halton component)."""
+    inv, f, i = 0.0, 1.0 / base, index
+    while i > 0:
+        inv += f * (i % base)
+        i //= base
+        f /= base
+    return inv
+
+
+def halton2(index: int) -> tuple[float, float]:
+    """The index-th 2D Halton point (bases 2 and 3); index 0 is skipped (it is (0, 0))."""
+    return radical_inverse(2, index + 1), radical_inverse(3, index + 1)
+
+
+class RayGenPass:
+    MAX_COUNTERS = 8
+
+    def __init__(self, ctx: moderngl.Context, programs: ProgramCache, quad: FullscreenQuad):
+        self.ctx = ctx
+        self.program = programs.get("fullscreen.vert", "raygen.frag")
+        self.program["gId"] = 0
+        self.quad = quad
+        self.counters = ctx.buffer(reserve=4 * self.MAX_COUNTERS)
+        self._zero = bytes(4 * self.MAX_COUNTERS)
+
+    def generate(self, rays: RayBatch, gbuffer: GBufferPass, ray_type: RayType, sample: int,
+                 light_index: int, ray_length: float, perturb_rad: float) -> None:
+        p = self.program
+        p["rayType"] = int(ray_type)
+        p["lightIndex"] = int(light_index)
+        p["sampleUV"] = halton2(sample)
+        p["perturbAngle"] = float(perturb_rad)
+        p["rayLength"] = float(ray_length)
+        p["stream"] = int(ray_type) * 7919 + sample * 104729 + light_index * 15485863
+        gbuffer.tri_id.use(0)
+        self.counters.bind_to_storage_buffer(BIND_COUNTERS)
+        rays.fbo.use()
+        self.ctx.disable(self.ctx.BLEND | self.ctx.DEPTH_TEST)
+        self.quad.render(p)
+
+    def reset_count(self) -> None:
+        self.counters.write(self._zero)
+
+    def read_counts(self) -> np.ndarray:
+        return np.frombuffer(self.counters.read(), np.uint32).astype(np.int64)

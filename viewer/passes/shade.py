@@ -1,0 +1,66 @@
+"""Final composition (or one pass shown alone) into an RGBA8 image."""
+
+from __future__ import annotations
+
+import moderngl
+import numpy as np
+
+from viewer.effects import EffectSettings, RayType
+from viewer.gpu import FullscreenQuad, ProgramCache
+from viewer.passes.accumulate import AccumulatePass
+from viewer.passes.gbuffer import GBufferPass
+
+# Index = viewMode uniform in shade.frag.
+VIEW_MODES = ["final", "albedo", "normal", "depth", "shadows", "soft", "ao", "diffuse", "reflections",
+              "triangle_id"]
+
+
+class ShadePass:
+    def __init__(self, ctx: moderngl.Context, programs: ProgramCache, quad: FullscreenQuad,
+                 size: tuple[int, int]):
+        self.ctx = ctx
+        self.quad = quad
+        self.program = programs.get("fullscreen.vert", "shade.frag")
+        names = ["gPos", "gNormal", "gAlbedo", "gId", "accShadow", "accSoft", "accAO", "accDiffuse", "accReflect"]
+        for i, name in enumerate(names):
+            self.program[name] = i
+        self.size = (0, 0)
+        self.resize(size)
+
+    def resize(self, size: tuple[int, int]) -> None:
+        if size == self.size:
+            return
+        if self.size != (0, 0):
+            self.release()
+        self.size = size
+        self.color = self.ctx.texture(size, 4, dtype="f1")
+        self.fbo = self.ctx.framebuffer(color_attachments=[self.color])
+
+    def render(self, gbuffer: GBufferPass, acc: AccumulatePass, settings: EffectSettings, view: str,
+               n_shadow_lights: int, depth_scale: float) -> None:
+        p = self.program
+        for i, tex in enumerate([gbuffer.position, gbuffer.normal, gbuffer.albedo, gbuffer.tri_id]):
+            tex.use(i)
+        for i, r in enumerate([RayType.SHADOW, RayType.SOFT, RayType.AO, RayType.DIFFUSE, RayType.REFLECT]):
+            acc.textures[r].use(4 + i)
+        p["shadowOn"] = int(settings.shadows and n_shadow_lights > 0)
+        p["softOn"] = int(settings.soft)
+        p["aoOn"] = int(settings.ao)
+        p["diffuseOn"] = int(settings.diffuse)
+        p["reflectOn"] = int(settings.reflections)
+        p["numShadowLights"] = int(n_shadow_lights)
+        p["exposure"] = float(settings.exposure)
+        p["viewMode"] = VIEW_MODES.index(view)
+        p["depthScale"] = float(depth_scale)
+        self.fbo.use()
+        self.ctx.disable(self.ctx.BLEND | self.ctx.DEPTH_TEST)
+        self.quad.render(p)
+
+    def read_rgb(self) -> np.ndarray:
+        """uint8 (H, W, 3), top row first (ready for PNG)."""
+        data = np.frombuffer(self.color.read(), np.uint8).reshape(self.size[1], self.size[0], 4)
+        return np.ascontiguousarray(data[::-1, :, :3])
+
+    def release(self) -> None:
+        self.fbo.release()
+        self.color.release()

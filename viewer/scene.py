@@ -1,0 +1,104 @@
+"""Scene data passed between stages: flat float32 triangles, materials and lights.
+
+Triangles are stored as one array so that every stage (BVH build, GPU upload, Embree
+reference) sees exactly the same numbers; after the BVH build they are reordered into
+leaf order (`Scene.reordered`) and that order is the triangle id everywhere.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+from viewer.camera import Camera
+
+
+@dataclass
+class Material:
+    """Lambertian material; `mirror` materials get reflection rays instead."""
+
+    name: str
+    albedo: np.ndarray  # float32 (3,), linear RGB in [0, 1]
+    mirror: bool = False
+
+
+@dataclass
+class PointLight:
+    position: np.ndarray  # float32 (3,)
+    intensity: np.ndarray  # float32 (3,), radiant intensity (RGB), falls off with 1/r^2
+
+
+@dataclass
+class RectLight:
+    """One-sided rectangular area light: points corner + s*edge_u + t*edge_v, s,t in [0,1].
+
+    It emits on the side of normalize(cross(edge_u, edge_v)).
+    """
+
+    corner: np.ndarray  # float32 (3,)
+    edge_u: np.ndarray  # float32 (3,)
+    edge_v: np.ndarray  # float32 (3,)
+    radiance: np.ndarray  # float32 (3,), emitted radiance (RGB)
+
+    @property
+    def normal(self) -> np.ndarray:
+        n = np.cross(self.edge_u, self.edge_v)
+        return (n / np.linalg.norm(n)).astype(np.float32)
+
+    @property
+    def area(self) -> float:
+        return float(np.linalg.norm(np.cross(self.edge_u, self.edge_v)))
+
+    @property
+    def center(self) -> np.ndarray:
+        return (self.corner + 0.5 * self.edge_u + 0.5 * self.edge_v).astype(np.float32)
+
+
+@dataclass
+class Scene:
+    """A triangle soup ready for the GPU.
+
+    triangles:    float32 (N, 3, 3), [triangle, vertex, xyz], world space, finite, non-degenerate
+    material_ids: int32 (N,), index into `materials`
+    identity:     JSON-able dict naming the scene for recordings, e.g.
+                  {"builtin": "city", "size": 100000, "seed": 1} or {"file": "sponza/sponza.obj"}
+    """
+
+    name: str
+    triangles: np.ndarray
+    material_ids: np.ndarray
+    materials: list[Material]
+    point_lights: list[PointLight] = field(default_factory=list)
+    rect_lights: list[RectLight] = field(default_factory=list)
+    default_camera: Camera | None = None
+    identity: dict = field(default_factory=dict)
+    sky_color: np.ndarray = field(default_factory=lambda: np.array([0.55, 0.65, 0.8], np.float32))
+    notes: list[str] = field(default_factory=list)  # e.g. "dropped 53627 zero-area triangles"
+
+    @property
+    def triangle_count(self) -> int:
+        return int(self.triangles.shape[0])
+
+    @property
+    def bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        flat = self.triangles.reshape(-1, 3)
+        return flat.min(axis=0), flat.max(axis=0)
+
+    @property
+    def diagonal(self) -> float:
+        lo, hi = self.bounds
+        return float(np.linalg.norm(hi.astype(np.float64) - lo))
+
+    def albedo_table(self) -> np.ndarray:
+        """float32 (M, 4): albedo rgb + mirror flag, the GPU material table."""
+        table = np.zeros((max(1, len(self.materials)), 4), np.float32)
+        for i, m in enumerate(self.materials):
+            table[i, :3] = m.albedo
+            table[i, 3] = 1.0 if m.mirror else 0.0
+        return table
+
+    def reordered(self, order: np.ndarray) -> Scene:
+        """The same scene with triangles permuted: new triangle i is old triangle order[i]."""
+        return replace(self, triangles=np.ascontiguousarray(self.triangles[order]),
+                       material_ids=np.ascontiguousarray(self.material_ids[order]))

@@ -1,0 +1,144 @@
+// Ray/triangle and ray/box tests and full-BVH traversal.
+//  * Watertight ray/triangle test (Woop, Benthin, Wald 2013) with a double-precision fallback for
+//    edge values that are exactly zero, so rays through shared edges and vertices never leak.
+//  * Conservative slab test: the far distance is scaled by 1 + 2*gamma(3) (Ize 2013) and
+//    reciprocals of zero components are replaced by a huge finite value of the same sign
+//    (no 0 * inf = NaN for axis-parallel rays).
+#ifndef STACK_SIZE
+#define STACK_SIZE 64
+#endif
+
+struct RayPre {
+    vec3 o;
+    vec3 d;
+    vec3 invD;
+    int kx, ky, kz;
+    vec3 S;  // shear constants Sx, Sy, Sz
+};
+
+float safeRcp(float x) {
+    // keep the sign of -0.0: floatBitsToInt(-0.0) < 0
+    float s = floatBitsToInt(x) < 0 ? -1.0 : 1.0;
+    return abs(x) < 1e-30 ? s * 1e30 : 1.0 / x;
+}
+
+RayPre prepareRay(vec3 o, vec3 d) {
+    RayPre r;
+    r.o = o;
+    r.d = d;
+    r.invD = vec3(safeRcp(d.x), safeRcp(d.y), safeRcp(d.z));
+    vec3 ad = abs(d);
+    int kz = (ad.x > ad.y) ? ((ad.x > ad.z) ? 0 : 2) : ((ad.y > ad.z) ? 1 : 2);
+    int kx = (kz + 1) % 3;
+    int ky = (kx + 1) % 3;
+    if (d[kz] < 0.0) { int tmp = kx; kx = ky; ky = tmp; }
+    r.kx = kx; r.ky = ky; r.kz = kz;
+    r.S = vec3(d[kx] / d[kz], d[ky] / d[kz], 1.0 / d[kz]);
+    return r;
+}
+
+// Returns true and the distance t (tmin < t < tmax) on a hit; bary receives (u, v) weights of v1, v2.
+bool intersectTriangle(RayPre r, vec3 v0, vec3 v1, vec3 v2, float tmin, float tmax, out float t, out vec2 bary) {
+    vec3 A = v0 - r.o, B = v1 - r.o, C = v2 - r.o;
+    float Ax = A[r.kx] - r.S.x * A[r.kz], Ay = A[r.ky] - r.S.y * A[r.kz];
+    float Bx = B[r.kx] - r.S.x * B[r.kz], By = B[r.ky] - r.S.y * B[r.kz];
+    float Cx = C[r.kx] - r.S.x * C[r.kz], Cy = C[r.ky] - r.S.y * C[r.kz];
+    float U = Cx * By - Cy * Bx;
+    float V = Ax * Cy - Ay * Cx;
+    float W = Bx * Ay - By * Ax;
+    if (U == 0.0 || V == 0.0 || W == 0.0) {
+        double CxBy = double(Cx) * double(By), CyBx = double(Cy) * double(Bx);
+        double AxCy = double(Ax) * double(Cy), AyCx = double(Ay) * double(Cx);
+        double BxAy = double(Bx) * double(Ay), ByAx = double(By) * double(Ax);
+        U = float(CxBy - CyBx);
+        V = float(AxCy - AyCx);
+        W = float(BxAy - ByAx);
+    }
+    if ((U < 0.0 || V < 0.0 || W < 0.0) && (U > 0.0 || V > 0.0 || W > 0.0)) return false;
+    float det = U + V + W;
+    if (det == 0.0) return false;
+    float Az = r.S.z * A[r.kz], Bz = r.S.z * B[r.kz], Cz = r.S.z * C[r.kz];
+    float T = U * Az + V * Bz + W * Cz;
+    float sgn = det < 0.0 ? -1.0 : 1.0;
+    float Ts = T * sgn, dets = det * sgn;
+    if (Ts <= tmin * dets || Ts >= tmax * dets) return false;
+    float rcpDet = 1.0 / det;
+    t = T * rcpDet;
+    if (!(t > tmin && t < tmax)) return false;
+    bary = vec2(V, W) * rcpDet;
+    return true;
+}
+
+const float GAMMA3_SCALE = 1.0 + 2.0 * (3.0 * 5.960464477539063e-08) / (1.0 - 3.0 * 5.960464477539063e-08);
+
+// Conservative slab test; tEntry is the (clamped) entry distance.
+bool intersectBox(RayPre r, vec3 bmin, vec3 bmax, float tmin, float tmax, out float tEntry) {
+    vec3 t0 = (bmin - r.o) * r.invD;
+    vec3 t1 = (bmax - r.o) * r.invD;
+    vec3 tn = min(t0, t1), tf = max(t0, t1);
+    float enter = max(max(tn.x, tn.y), max(tn.z, tmin));
+    float exit = min(min(tf.x, tf.y), tf.z) * GAMMA3_SCALE;
+    exit = min(exit, tmax);
+    tEntry = enter;
+    return enter <= exit;
+}
+
+struct Hit { float t; int id; };
+
+// Intersect `count` triangles starting at slot `first`; updates hit, returns true if any was hit.
+bool intersectLeaf(RayPre r, int first, int count, float tmin, inout Hit hit) {
+    bool found = false;
+    for (int i = 0; i < count; ++i) {
+        Tri tri = tris[first + i];
+        float t; vec2 b;
+        if (intersectTriangle(r, tri.v0, tri.v1, tri.v2, tmin, hit.t, t, b)) {
+            hit.t = t;
+            hit.id = first + i;
+            found = true;
+        }
+    }
+    return found;
+}
+
+// Stack traversal of the subtree rooted at inner node `root` (nearer child first). With anyHit
+// it stops at the first hit (shadow and AO rays). hit.t must hold tmax on entry.
+void traverseBVH(RayPre r, int root, float tmin, bool anyHit, inout Hit hit) {
+    int stackNode[STACK_SIZE];
+    float stackT[STACK_SIZE];
+    int sp = 0;
+    int ni = root;
+    while (true) {
+        Node nd = nodes[ni];
+        float tl, tr;
+        bool hl = intersectBox(r, nd.lmin, nd.lmax, tmin, hit.t, tl);
+        bool hr = intersectBox(r, nd.rmin, nd.rmax, tmin, hit.t, tr);
+        if (hl && nd.left < 0) {
+            hl = false;
+            if (intersectLeaf(r, ~nd.left, nd.lcount, tmin, hit) && anyHit) return;
+        }
+        if (hr && nd.right < 0) {
+            hr = false;
+            if (intersectLeaf(r, ~nd.right, nd.rcount, tmin, hit) && anyHit) return;
+        }
+        hl = hl && tl <= hit.t;
+        hr = hr && tr <= hit.t;
+        if (hl && hr) {
+            bool leftFirst = tl <= tr;
+            stackNode[sp] = leftFirst ? nd.right : nd.left;
+            stackT[sp] = leftFirst ? tr : tl;
+            sp = min(sp + 1, STACK_SIZE - 1);
+            ni = leftFirst ? nd.left : nd.right;
+        } else if (hl) {
+            ni = nd.left;
+        } else if (hr) {
+            ni = nd.right;
+        } else {
+            bool found = false;
+            while (sp > 0) {
+                --sp;
+                if (stackT[sp] <= hit.t) { ni = stackNode[sp]; found = true; break; }
+            }
+            if (!found) return;
+        }
+    }
+}

@@ -1,0 +1,97 @@
+"""Trace arbitrary ray arrays with a GL backend: the entry point for tests and tools.
+
+Convention shared with viewer.reference: t is in units of |direction| (hit = o + t*d), +inf on a
+miss; tri is the index into the *input* triangle array, -1 on a miss; only tmin < t < tmax hit;
+rays with tmax <= tmin (or non-finite data) are inactive and miss.
+"""
+
+from __future__ import annotations
+
+import hashlib
+
+import moderngl
+import numpy as np
+
+from viewer.backends import create_backend
+from viewer.backends.base import BackendContext, HitBuffer, RayBatch
+from viewer.bvh import BVH, build_bvh
+from viewer.effects import RayType
+from viewer.gpu import GpuScene, ProgramCache, create_headless_context
+from viewer.profiler import GpuProfiler
+from viewer.scene import Material, Scene
+
+_CTX: moderngl.Context | None = None
+_CACHE: dict[str, tuple[Scene, BVH, GpuScene, ProgramCache]] = {}
+ROW = 1024  # rays are laid out in a texture ROW wide
+
+
+def shared_context() -> moderngl.Context:
+    global _CTX
+    if _CTX is None:
+        _CTX = create_headless_context()
+    return _CTX
+
+
+def _prepared(ctx: moderngl.Context, triangles: np.ndarray):
+    key = hashlib.sha1(triangles.tobytes()).hexdigest()
+    hit = _CACHE.get(key)
+    if hit is None:
+        if len(_CACHE) > 8:
+            for _, _, g, _ in _CACHE.values():
+                g.release()
+            _CACHE.clear()
+        bvh = build_bvh(triangles)
+        scene = Scene("rays", triangles, np.zeros(len(triangles), np.int32),
+                      [Material("grey", np.full(3, 0.7, np.float32))]).reordered(bvh.tri_order)
+        hit = (scene, bvh, GpuScene.upload(ctx, scene, bvh), ProgramCache(ctx))
+        _CACHE[key] = hit
+    return hit
+
+
+def trace_rays(triangles: np.ndarray, origins, directions, tmin, tmax, any_hit: bool = False,
+               backend: str = "glsl") -> tuple[np.ndarray, np.ndarray]:
+    tris = np.ascontiguousarray(triangles, np.float32).reshape(-1, 3, 3)
+    o = np.asarray(origins, np.float32).reshape(-1, 3)
+    d = np.asarray(directions, np.float32).reshape(-1, 3)
+    lo = np.asarray(tmin, np.float32).reshape(-1)
+    hi = np.asarray(tmax, np.float32).reshape(-1)
+    n = len(o)
+    t_out = np.full(n, np.inf, np.float32)
+    id_out = np.full(n, -1, np.int32)
+    if n == 0 or len(tris) == 0:
+        return t_out, id_out
+    finite = np.isfinite(o).all(1) & np.isfinite(d).all(1) & np.isfinite(lo) & ~np.isnan(hi) & (d != 0).any(1)
+    active = finite & (hi > lo)
+    ctx = shared_context()
+    scene, bvh, gpu_scene, programs = _prepared(ctx, tris)
+    width = min(n, ROW)
+    height = -(-n // width)
+    size = (width, height)
+    pad = width * height
+    org = np.zeros((pad, 4), np.float32)
+    dirs = np.zeros((pad, 4), np.float32)
+    dirs[:, 2] = 1.0
+    dirs[:, 3] = -1.0
+    org[:n, :3] = np.where(finite[:, None], o, 0)
+    org[:n, 3] = np.where(active, lo, 0)
+    dirs[:n, :3] = np.where(finite[:, None], d, 1)
+    dirs[:n, 3] = np.where(active, np.minimum(hi, np.float32(3.4e38)), -1.0)
+    rays = RayBatch(ctx, size)
+    hits = HitBuffer(ctx, size)
+    try:
+        rays.origin.write(org.tobytes())
+        rays.direction.write(dirs.tobytes())
+        bc = BackendContext(ctx, programs, GpuProfiler(ctx, enabled=False), gpu_scene, scene, bvh)
+        be = create_backend(backend, bc)
+        be.begin_frame(0)
+        be.trace(rays, RayType.SHADOW if any_hit else RayType.PRIMARY, 0, hits)
+        be.release()
+        t, slot = hits.read()
+    finally:
+        rays.release()
+        hits.release()
+    t, slot = t[:n], slot[:n]
+    hit = (slot >= 0) & active
+    t_out[hit] = t[hit]
+    id_out[hit] = bvh.tri_order[slot[hit]]
+    return t_out, id_out

@@ -1,0 +1,1 @@
+"""Interactive window of `rtwalk view` (moderngl-window + imgui)."""

@@ -1,0 +1,511 @@
+"""`rtwalk view`: the interactive window (moderngl-window, pyglet backend, imgui side panel).
+
+The scene is loaded and its BVH built before the window opens. Each frame: move the camera
+(keys/mouse, or a recording being played back), `Renderer.render`, draw the final texture over
+the window (at `render_scale` of the framebuffer size; llvmpipe is a CPU rasterizer), draw the
+panel. Keys: WASD/QE move, drag (left or right button) to look, wheel = speed, shift = x5,
+F12 screenshot, R record, P play back, F1 panel on/off, Esc quits.
+
+For tests and the README screenshot: `--max-frames N` or RTWALK_VIEW_FRAMES=N quits after N
+frames; RTWALK_VIEW_SCREENSHOT=path.png then saves the whole window, panel included.
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import moderngl
+import numpy as np
+
+from viewer.camera import Camera
+from viewer.errors import RtwalkError
+from viewer.ui.camera_controller import FlyCamera
+from viewer.ui.panel import PANEL_WIDTH, FrameHistory, draw_panel
+
+DEFAULT_RENDER_SCALE = 0.5
+SCREENSHOT_DIR = Path("screenshots")
+RECORDING_DIR = Path("recordings")
+MAX_DT = 0.25  # a stall (scene switch, screenshot) must not throw the camera across the scene
+NO_DISPLAY_HINT = "use `rtwalk render`/`rtwalk bench` or run under xvfb-run (e.g. xvfb-run -a rtwalk view)"
+
+_BLIT_VS = """
+#version 330 core
+out vec2 uv;
+void main() {
+    vec2 p = vec2(float((gl_VertexID << 1) & 2), float(gl_VertexID & 2));
+    uv = p;
+    gl_Position = vec4(p * 2.0 - 1.0, 0.0, 1.0);
+}
+"""
+_BLIT_FS = """
+#version 330 core
+uniform sampler2D image;
+in vec2 uv;
+out vec4 color;
+void main() { color = vec4(texture(image, uv).rgb, 1.0); }
+"""
+
+
+def log(msg: str) -> None:
+    print(msg, file=sys.stderr, flush=True)
+
+
+# --------------------------------------------------------------------------- entry point
+
+
+def frame_limit(args) -> int | None:
+    """--max-frames N, else RTWALK_VIEW_FRAMES=N, else None (run until closed)."""
+    n = getattr(args, "max_frames", None)
+    source = "--max-frames"
+    if n is None:
+        env = os.environ.get("RTWALK_VIEW_FRAMES", "").strip()
+        if not env:
+            return None
+        source = "RTWALK_VIEW_FRAMES"
+        try:
+            n = int(env)
+        except ValueError:
+            raise RtwalkError(f"{source}='{env}' is not an integer") from None
+    if n < 1:
+        raise RtwalkError(f"{source} must be >= 1, got {n}")
+    return int(n)
+
+
+def require_display() -> None:
+    if not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")):
+        raise RtwalkError(f"no display (DISPLAY is not set) for the `view` window; {NO_DISPLAY_HINT}")
+
+
+def open_window(size: tuple[int, int], title: str):
+    """A pyglet window with an OpenGL 4.5 core context (RtwalkError when there is none)."""
+    try:
+        import moderngl_window as mglw
+
+        window_cls = mglw.get_local_window_cls("pyglet")
+    except Exception as exc:  # pyglet connects to the X server on import (NoSuchDisplayException)
+        msg = _first_line(exc)
+        raise RtwalkError(f"no display: cannot connect to '{os.environ.get('DISPLAY', '')}' ({msg}); "
+                          f"{NO_DISPLAY_HINT}") from None
+    try:
+        window = window_cls(title=title, gl_version=(4, 5), size=size, resizable=True, vsync=False,
+                            aspect_ratio=None)
+    except Exception as exc:
+        raise RtwalkError(f"cannot open a window with an OpenGL 4.5 core context ({_first_line(exc)}); "
+                          f"{NO_DISPLAY_HINT}") from None
+    mglw.activate_context(window=window)
+    window.exit_key = None  # Esc is handled here so that it does not quit while typing in the panel
+    return window
+
+
+def _first_line(exc: BaseException) -> str:
+    text = str(exc).strip()
+    return text.splitlines()[0] if text else type(exc).__name__
+
+
+def run_viewer(args) -> int:
+    from viewer.backends import BACKENDS
+    from viewer.cli import parse_size, scene_from_args, settings_from
+    from viewer.recording import load_recording
+
+    max_frames = frame_limit(args)
+    shot = os.environ.get("RTWALK_VIEW_SCREENSHOT", "").strip() or None
+    require_display()
+    settings = settings_from(args)
+    size = parse_size(args.size)
+    if args.backend not in BACKENDS:
+        raise RtwalkError(f"unknown backend '{args.backend}' (choose from {', '.join(BACKENDS)})")
+    rec_path = getattr(args, "recording", None)
+    recording = load_recording(rec_path) if rec_path else None
+    quiet = bool(getattr(args, "quiet", False))
+    if not quiet:
+        log("rtwalk view: loading the scene before opening the window ...")
+    prepared = scene_from_args(args, recording)
+    window = open_window(size, f"rtwalk - {prepared.scene.name}")
+    app = None
+    try:
+        app = ViewerApp(window, prepared, settings, args.backend, recording=recording,
+                        scene_arg=getattr(args, "scene", None), max_frames=max_frames, window_shot=shot,
+                        quiet=quiet)
+        return app.run()
+    finally:
+        if app is not None:
+            app.release()
+        window.close()
+
+
+# --------------------------------------------------------------------------- the window
+
+
+class ViewerApp:
+    def __init__(self, window, prepared, settings, backend: str, recording=None, scene_arg: str | None = None,
+                 max_frames: int | None = None, window_shot: str | None = None, quiet: bool = False):
+        from imgui_bundle import imgui
+        from moderngl_window.integrations.imgui_bundle import ModernglWindowRenderer
+
+        from viewer.recording import Recorder
+        from viewer.renderer import Renderer
+
+        self.wnd = window
+        self.ctx: moderngl.Context = window.ctx
+        self.scene = prepared.scene
+        self.scene_arg = scene_arg
+        self.quiet = quiet
+        self.max_frames = max_frames
+        self.window_shot = window_shot
+        self.render_scale = DEFAULT_RENDER_SCALE
+        self.show_panel = True
+        self.status = ""
+        self.backend_error = ""
+        self.last_report = None
+        self.history = FrameHistory()
+        self.frames = 0
+        self._pending: list[Callable[[], None]] = []
+
+        self.renderer = Renderer(self.ctx, prepared.scene, prepared.bvh, self._render_size(), backend, settings)
+        start = self.scene.default_camera or _overview_camera(self.scene)
+        self.fly = FlyCamera.from_camera(start, self.renderer.diagonal)
+        self.camera: Camera = self.fly.camera()
+
+        self.recorder = Recorder()
+        self.cli_recording = recording
+        self.session_recording = None
+        self.playing = None  # the Recording being played back
+        self._play_t0 = 0.0
+        self._looking = False
+
+        # imgui: context, renderer, extra keys (ctrl+A/C for the read-only camera field)
+        imgui.create_context()
+        io = imgui.get_io()
+        io.set_ini_filename("")  # no imgui.ini in the working directory
+        self.imgui = ModernglWindowRenderer(window)
+        keys = window.keys
+        self.imgui.REVERSE_KEYMAP.update({keys.A: imgui.Key.a, keys.C: imgui.Key.c, keys.V: imgui.Key.v,
+                                          keys.X: imgui.Key.x, keys.Y: imgui.Key.y, keys.Z: imgui.Key.z,
+                                          keys.LEFT_CTRL: imgui.Key.left_ctrl,
+                                          keys.LEFT_SHIFT: imgui.Key.left_shift,
+                                          keys.RIGHT_SHIFT: imgui.Key.right_shift})
+
+        self.blit = self.ctx.program(vertex_shader=_BLIT_VS, fragment_shader=_BLIT_FS)
+        self.blit["image"] = 0
+        self.blit_vao = self.ctx.vertex_array(self.blit, [])
+        self.sampler = self.ctx.sampler(filter=(moderngl.LINEAR, moderngl.LINEAR), repeat_x=False,
+                                        repeat_y=False)
+
+        window.key_event_func = self.on_key
+        window.mouse_position_event_func = self.on_mouse_position
+        window.mouse_drag_event_func = self.on_mouse_drag
+        window.mouse_press_event_func = self.on_mouse_press
+        window.mouse_release_event_func = self.on_mouse_release
+        window.mouse_scroll_event_func = self.on_mouse_scroll
+        window.unicode_char_entered_func = self.imgui.unicode_char_entered
+        window.resize_func = self.on_resize
+
+    # -- helpers -------------------------------------------------------------------------------
+    def _render_size(self) -> tuple[int, int]:
+        w, h = self.wnd.buffer_size
+        s = float(np.clip(self.render_scale, 0.1, 1.0))
+        return max(1, int(round(w * s))), max(1, int(round(h * s)))
+
+    def say(self, msg: str) -> None:
+        """Show in the panel and print (the paths of saved files are wanted on the terminal too)."""
+        self.status = msg
+        if not self.quiet:
+            log(msg)
+
+    def current_camera(self) -> Camera:
+        return self.camera
+
+    def mode_line(self) -> str:
+        if self.playing is not None:
+            t = min(time.perf_counter() - self._play_t0, self.playing.duration)
+            return f"PLAYING {t:5.1f} / {self.playing.duration:.1f} s (P stops)"
+        if self.recorder.recording:
+            return f"RECORDING {self.recorder.keyframe_count} keyframes (R stops and saves)"
+        return ""
+
+    def copy_to_clipboard(self, text: str) -> None:
+        from imgui_bundle import imgui
+
+        imgui.set_clipboard_text(text)
+        try:
+            self.wnd._window.set_clipboard_text(text)  # system clipboard through pyglet
+            self.status = "copied to the clipboard"
+        except Exception as exc:  # no clipboard owner support on this display
+            self.status = f"clipboard unavailable ({_first_line(exc)}); select the field and copy"
+
+    # -- actions (deferred to the start of the next frame: they render or touch GL state) --------
+    def switch_backend(self, name: str) -> None:
+        self._pending.append(lambda: self._switch_backend(name))
+
+    def _switch_backend(self, name: str) -> None:
+        try:  # on failure Renderer.set_backend keeps the current backend
+            self.renderer.set_backend(name)
+            self.backend_error = ""
+            self.say(f"backend: {name}")
+        except RtwalkError as exc:
+            self.backend_error = f"{name}: {exc}"
+        except Exception as exc:  # a backend that fails in an unexpected way must not end the session
+            self.backend_error = f"{name}: {type(exc).__name__}: {_first_line(exc)}"
+
+    def take_screenshot(self) -> None:
+        self._pending.append(self._screenshot)
+
+    def _screenshot(self) -> None:
+        from PIL import Image
+
+        full = tuple(self.wnd.buffer_size)
+        if tuple(self.renderer.size) != full:  # the saved image is always at the full window size
+            self.renderer.resize(full)
+            self.renderer.render(self.camera)
+        img = self.renderer.read_image()
+        stamp = time.strftime("%Y%m%d-%H%M%S")
+        path = SCREENSHOT_DIR / f"rtwalk-{stamp}.png"
+        n = 1
+        while path.exists():
+            path = SCREENSHOT_DIR / f"rtwalk-{stamp}-{n}.png"
+            n += 1
+        try:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            Image.fromarray(img).save(path)
+        except OSError as exc:
+            self.say(f"screenshot failed: {path}: {exc.strerror or exc}")
+            return
+        self.say(f"screenshot: {path} ({img.shape[1]}x{img.shape[0]})")
+
+    def toggle_recording(self) -> None:
+        self._pending.append(self._toggle_recording)
+
+    def _toggle_recording(self) -> None:
+        if self.recorder.recording:
+            self._stop_recording()
+            return
+        if self.playing is not None:
+            self._stop_playback("playback stopped")
+        identity = self.scene.identity or self.scene_arg or self.scene.name
+        try:
+            self.recorder.start(identity, tuple(self.wnd.buffer_size), fps=30)
+        except RtwalkError as exc:
+            self.say(f"cannot record: {exc}")
+            return
+        self.recorder.add(time.perf_counter(), self.camera)
+        self.say("recording the camera path (R stops and saves)")
+
+    def _stop_recording(self) -> None:
+        try:
+            path = self.recorder.save(RECORDING_DIR)
+        except RtwalkError as exc:
+            self.say(f"recording not saved: {exc}")
+            return
+        rec = self.recorder.last
+        self.session_recording = rec
+        self.say(f"recording: {path} ({len(rec.keyframes)} keyframes, {rec.duration:.1f} s; P plays it)")
+
+    def toggle_playback(self) -> None:
+        self._pending.append(self._toggle_playback)
+
+    def _toggle_playback(self) -> None:
+        if self.playing is not None:
+            self._stop_playback("playback stopped")
+            return
+        if self.recorder.recording:
+            self._stop_recording()
+        rec = self.session_recording or self.cli_recording
+        if rec is None:
+            self.say("nothing to play: press R to record a camera path, or start with --recording FILE")
+            return
+        self.playing = rec
+        self._play_t0 = time.perf_counter()
+        name = rec.source if rec.source is not None else "recording"
+        self.say(f"playing {name} ({rec.duration:.1f} s; P stops)")
+
+    def _stop_playback(self, msg: str) -> None:
+        self.playing = None
+        self.fly.set_camera(self.camera)  # take over from where the path was
+        self.say(msg)
+
+    # -- events ----------------------------------------------------------------------------------
+    def on_resize(self, width: int, height: int) -> None:
+        self.imgui.resize(width, height)
+
+    def on_key(self, key, action, modifiers) -> None:
+        from imgui_bundle import imgui
+
+        io = imgui.get_io()
+        io.add_key_event(imgui.Key.mod_ctrl, bool(modifiers.ctrl))
+        io.add_key_event(imgui.Key.mod_shift, bool(modifiers.shift))
+        self.imgui.key_event(key, action, modifiers)
+        keys = self.wnd.keys
+        if action != keys.ACTION_PRESS or io.want_capture_keyboard:
+            return
+        if key == keys.ESCAPE:
+            self.wnd.is_closing = True
+        elif key == keys.F12:
+            self.take_screenshot()
+        elif key == keys.R:
+            self.toggle_recording()
+        elif key == keys.P:
+            self.toggle_playback()
+        elif key == keys.F1:
+            self.show_panel = not self.show_panel
+
+    def on_mouse_position(self, x, y, dx, dy) -> None:
+        self.imgui.mouse_position_event(x, y, dx, dy)
+
+    def on_mouse_press(self, x, y, button) -> None:
+        from imgui_bundle import imgui
+
+        self.imgui.mouse_press_event(x, y, button)
+        if button in (self.wnd.mouse.left, self.wnd.mouse.right) and not imgui.get_io().want_capture_mouse:
+            self._looking = True
+
+    def on_mouse_release(self, x, y, button) -> None:
+        self.imgui.mouse_release_event(x, y, button)
+        states = self.wnd.mouse_states
+        if not (states.left or states.right):
+            self._looking = False
+
+    def on_mouse_drag(self, x, y, dx, dy) -> None:
+        self.imgui.mouse_drag_event(x, y, dx, dy)
+        if self._looking and self.playing is None:
+            self.fly.look(dx, dy)
+
+    def on_mouse_scroll(self, x_offset, y_offset) -> None:
+        from imgui_bundle import imgui
+
+        self.imgui.mouse_scroll_event(x_offset, y_offset)
+        if not imgui.get_io().want_capture_mouse:
+            self.fly.scroll(y_offset)
+
+    # -- frame -----------------------------------------------------------------------------------
+    def _movement(self) -> tuple[list[str], bool]:
+        from imgui_bundle import imgui
+
+        if imgui.get_io().want_capture_keyboard:
+            return [], False
+        k = self.wnd.keys
+        held = self.wnd.is_key_pressed
+        actions = [a for key, a in ((k.W, "forward"), (k.S, "back"), (k.A, "left"), (k.D, "right"),
+                                    (k.Q, "down"), (k.E, "up")) if held(key)]
+        return actions, held(k.LEFT_SHIFT) or held(k.RIGHT_SHIFT)
+
+    def update_camera(self, now: float, dt: float) -> None:
+        if self.playing is not None:
+            rec = self.playing
+            t = now - self._play_t0
+            self.camera = rec.camera_at(rec.start_time + min(t, rec.duration))
+            self.fly.set_camera(self.camera)
+            if t >= rec.duration:
+                self._stop_playback("playback finished")
+            return
+        actions, fast = self._movement()
+        self.fly.update(dt, actions, fast)
+        self.camera = self.fly.camera()
+        if self.recorder.recording:
+            self.recorder.add(now, self.camera)
+
+    def _render(self):
+        r = self.renderer
+        try:
+            return r.render(self.camera)
+        except RtwalkError as exc:
+            if r.backend_name == "glsl":
+                raise
+            self.backend_error = f"{r.backend_name}: {exc} (back to glsl)"
+            r.set_backend("glsl")
+            return r.render(self.camera)
+
+    def frame(self, now: float, dt: float, frame_ms: float) -> None:
+        from imgui_bundle import imgui
+
+        pending, self._pending = self._pending, []
+        for action in pending:
+            action()
+        imgui.get_io().delta_time = max(dt, 1e-4)
+        self.update_camera(now, dt)
+        self.renderer.resize(self._render_size())
+        report = self._render()
+        self.last_report = report
+        self.history.add(frame_ms if frame_ms > 0 else report.wall_ms, sum(report.gpu_ms.values()))
+
+        ctx = self.ctx
+        w, h = self.wnd.buffer_size
+        ctx.screen.use()
+        ctx.viewport = (0, 0, w, h)
+        ctx.scissor = None
+        ctx.disable(moderngl.BLEND | moderngl.DEPTH_TEST | moderngl.CULL_FACE)
+        ctx.clear(0.0, 0.0, 0.0, 1.0)
+        self.sampler.use(0)
+        self.renderer.final_texture.use(0)
+        self.blit_vao.render(moderngl.TRIANGLES, vertices=3)
+        self.sampler.clear(0)  # the renderer's passes sample integer textures on unit 0 unfiltered
+
+        imgui.new_frame()
+        if self.show_panel:
+            ww, wh = self.wnd.size
+            draw_panel(self, min(PANEL_WIDTH, ww * 0.5), wh)
+        imgui.render()
+        self.imgui.render(imgui.get_draw_data())
+
+    def save_window(self, path: str) -> Path:
+        """The default framebuffer as it is now (scene + panel), as PNG."""
+        from PIL import Image
+
+        w, h = self.wnd.buffer_size
+        data = np.frombuffer(self.ctx.screen.read(viewport=(0, 0, w, h), components=3, alignment=1), np.uint8)
+        img = data.reshape(h, w, 3)[::-1]
+        p = Path(path)
+        try:
+            p.parent.mkdir(parents=True, exist_ok=True)
+            Image.fromarray(np.ascontiguousarray(img)).save(p)
+        except OSError as exc:
+            raise RtwalkError(f"cannot write the window screenshot {p}: {exc.strerror or exc}") from None
+        return p
+
+    def run(self) -> int:
+        if not self.quiet:
+            log("rtwalk view: WASD/QE move, drag to look, wheel = speed, shift = x5; F12 screenshot, "
+                "R record, P play, F1 panel, Esc quits")
+        last = time.perf_counter()
+        frame_ms = 0.0
+        while not self.wnd.is_closing:
+            now = time.perf_counter()
+            dt = min(now - last, MAX_DT) if self.frames else 0.0
+            if self.frames:
+                frame_ms = (now - last) * 1e3
+            last = now
+            self.frame(now, dt, frame_ms)
+            self.frames += 1
+            if self.max_frames is not None and self.frames >= self.max_frames:
+                if self.window_shot:
+                    p = self.save_window(self.window_shot)
+                    if not self.quiet:
+                        log(f"window screenshot: {p}")
+                self.wnd.swap_buffers()
+                break
+            self.wnd.swap_buffers()
+        if self.recorder.recording:  # do not lose a path when the window is closed while recording
+            self._stop_recording()
+        return 0
+
+    def release(self) -> None:
+        from imgui_bundle import imgui
+
+        try:
+            self.imgui.shutdown()
+            imgui.destroy_context()
+        finally:
+            for obj in (self.blit_vao, self.blit, self.sampler):
+                obj.release()
+            self.renderer.release()
+
+
+def _overview_camera(scene) -> Camera:
+    """A view of the whole scene for scenes without a default camera."""
+    lo, hi = (np.asarray(v, np.float64) for v in scene.bounds)
+    centre, diag = (lo + hi) / 2, max(float(np.linalg.norm(hi - lo)), 1e-6)
+    eye = centre + np.array([0.35, 0.3, 0.9]) * diag * 0.7
+    return Camera.look_at(eye, centre, fov_y=60.0)
