@@ -69,10 +69,13 @@ def test_all_ray_types_agree_with_embree(name, gl_ctx, tracers):
             assert st["hitmiss_agree"] >= 0.999, (label, st)
             need = 0.9999 if cp.ray_type == RayType.PRIMARY else 0.999
             assert st["id_agree"] >= need, (label, st)
-            # distances: 1e-5 relative where both found the same triangle
+            # distances: 1e-5 relative where both found the same triangle, plus a few float32 ulps of the
+            # coordinates: a float32 origin/vertex difference is only that exact, which dominates for
+            # hits very close to the ray origin (t -> 0), for Embree as for us
             both = (cp.tri[act] >= 0) & (cp.tri[act] == id_ref)
-            rel = np.abs(cp.t[act][both].astype(np.float64) - t_ref[both]) / np.maximum(t_ref[both], 1e-30)
-            assert rel.size == 0 or rel.max() <= 1e-5, (label, float(rel.max()))
+            err = np.abs(cp.t[act][both].astype(np.float64) - t_ref[both])
+            tol = 1e-5 * t_ref[both] + 4 * _ulp_scale(tris, o[both])
+            assert err.size == 0 or (err <= tol).all(), (label, float((err / np.maximum(t_ref[both], 1e-30)).max()))
         if cp.ray_type == RayType.PRIMARY:
             # rasterization (G-buffer ids) against Embree on the same primary rays
             # ids may differ only where the two triangles are met at the same distance (ties)
@@ -86,6 +89,12 @@ def test_all_ray_types_agree_with_embree(name, gl_ctx, tracers):
             assert agree >= 0.9999, (f"{name} raster vs embree", agree, int(diff.sum()))
     expected = {RayType.PRIMARY, RayType.SHADOW, RayType.AO, RayType.DIFFUSE}
     assert expected <= seen, seen
+
+
+def _ulp_scale(tris, o):
+    """float32 ulp of the largest coordinate magnitude involved, per ray (directions are unit)."""
+    mag = max(float(np.abs(tris).max()), 1e-30)
+    return np.spacing(np.float32(mag)).astype(np.float64) + np.spacing(np.abs(o).max(1).astype(np.float32))
 
 
 def _same_distance(tris, o, d, ids, t_ref, rel=1e-6):

@@ -64,13 +64,15 @@ class ProgramCache:
         self.ctx = ctx
         self._programs: dict[tuple, moderngl.Program] = {}
 
-    def get(self, vertex: str, fragment: str, defines: dict[str, object] | None = None) -> moderngl.Program:
-        key = (vertex, fragment, tuple(sorted((defines or {}).items())))
+    def get(self, vertex: str, fragment: str, defines: dict[str, object] | None = None,
+            geometry: str | None = None) -> moderngl.Program:
+        key = (vertex, fragment, geometry, tuple(sorted((defines or {}).items())))
         prog = self._programs.get(key)
         if prog is None:
             try:
                 prog = self.ctx.program(vertex_shader=load_shader_source(vertex, defines),
-                                        fragment_shader=load_shader_source(fragment, defines))
+                                        fragment_shader=load_shader_source(fragment, defines),
+                                        geometry_shader=load_shader_source(geometry, defines) if geometry else None)
             except moderngl.Error as exc:
                 raise RuntimeError(f"shader {vertex}/{fragment} failed to compile:\n{exc}") from exc
             self._programs[key] = prog

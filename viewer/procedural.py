@@ -521,7 +521,7 @@ def make_room(seed: int = 1, detail: int = 1) -> Scene:
         rect_lights=[rect],
         default_camera=Camera.look_at((0.0, 2.0, 4.6), (0.0, 1.6, -5.0), fov_y=60.0),
         identity={"builtin": "room", "size": int(detail), "seed": int(seed)},
-        sky_color=np.array([0.0, 0.0, 0.0], np.float32),
+        sky_color=np.array([0.35, 0.35, 0.38], np.float32),  # ambient stand-in for indirect light
     )
 
 

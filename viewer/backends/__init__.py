@@ -20,7 +20,13 @@ def _embree(bc: BackendContext) -> Backend:
     return EmbreeBackend(bc)
 
 
-BACKENDS: dict[str, Callable[[BackendContext], Backend]] = {"glsl": _glsl, "embree": _embree}
+def _chcrt(bc: BackendContext) -> Backend:
+    from viewer.backends.chcrt import ChcrtBackend, ChcrtParams
+
+    return ChcrtBackend(bc, ChcrtParams.from_env())
+
+
+BACKENDS: dict[str, Callable[[BackendContext], Backend]] = {"glsl": _glsl, "embree": _embree, "chcrt": _chcrt}
 
 
 def create_backend(name: str, bc: BackendContext) -> Backend:

@@ -17,7 +17,7 @@ class GBufferPass:
         self.gpu_scene = gpu_scene
         self.depth_scale = depth_scale
         self.diagonal = scene_diagonal
-        self.program = programs.get("gbuffer.vert", "gbuffer.frag")
+        self.program = programs.get("gbuffer.vert", "gbuffer.frag", geometry="gbuffer.geom")
         self.vao = ctx.vertex_array(self.program, [(gpu_scene.vertices, "3f", "in_pos")])
         self.size = (0, 0)
         self.resize(size)

@@ -57,15 +57,19 @@ bool intersectTriangle(RayPre r, vec3 v0, vec3 v1, vec3 v2, float tmin, float tm
     if ((U < 0.0 || V < 0.0 || W < 0.0) && (U > 0.0 || V > 0.0 || W > 0.0)) return false;
     float det = U + V + W;
     if (det == 0.0) return false;
-    float Az = r.S.z * A[r.kz], Bz = r.S.z * B[r.kz], Cz = r.S.z * C[r.kz];
-    float T = U * Az + V * Bz + W * Cz;
-    float sgn = det < 0.0 ? -1.0 : 1.0;
-    float Ts = T * sgn, dets = det * sgn;
-    if (Ts <= tmin * dets || Ts >= tmax * dets) return false;
-    float rcpDet = 1.0 / det;
-    t = T * rcpDet;
+    // Distance from the plane equation: far more accurate in float32 than the sheared-space
+    // T / det for grazing rays (same accuracy as Embree); the watertight edge test above still
+    // decides inside/outside. Degenerate float32 normals fall back to T / det.
+    vec3 n = cross(v1 - v0, v2 - v0);
+    float dn = dot(n, r.d);
+    if (dn != 0.0) {
+        t = dot(n, A) / dn;
+    } else {
+        float Az = r.S.z * A[r.kz], Bz = r.S.z * B[r.kz], Cz = r.S.z * C[r.kz];
+        t = (U * Az + V * Bz + W * Cz) / det;
+    }
     if (!(t > tmin && t < tmax)) return false;
-    bary = vec2(V, W) * rcpDet;
+    bary = vec2(V, W) / det;
     return true;
 }
 

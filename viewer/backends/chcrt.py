@@ -1,0 +1,583 @@
+"""CHC+RT (Mattausch, Bittner, Jaspe, Gobbetti, Wimmer, Pajarola, EG 2015): coherent hierarchical
+culling for ray tracing, with the rasterizer's occlusion queries.
+
+Query pairs are (screen tile, BVH node) (see chcrt_front). Per pass (Algorithm 1 of the paper):
+
+1. ``chc:1-intersect-visible``: clear, then intersect the pairs that were visible last frame
+   (their scheduled subtrees, batched by tile, up to `max_batch` per draw). This primes the
+   depth buffer with this frame's rays and geometry, so everything after it stays exact.
+2. ``chc:2-queries``: query the pairs that were invisible last frame; the invisible pairs of one
+   tile share multi-queries (up to `max_multi` pairs per draw; a failed multi-query is repeated
+   pair by pair). Visible leaves are re-queried every `requery_interval` frames (random phase).
+3. ``chc:3-traversal``: pairs that became visible are refined (split rule) and their children
+   queried, wave by wave (a wave's queries are issued together, then read); terminated visible
+   pairs are scheduled and intersected whenever `schedule_batch` of them are waiting.
+4. ``chc:4-final-intersect``: the remaining scheduled pairs.
+
+Then invisibility is pulled up one level (siblings that are all invisible are merged).
+
+Depth = distance along the ray (scaled by a power of two: exact); see shaders/chc_common.glsl.
+The hit buffer is written through the depth test, so conservative mode (visible_threshold = 0)
+returns exactly the nearest hit of the glsl baseline (ids may differ only between triangles hit
+at exactly the same distance); any-hit rays agree on hit/miss (which occluder is reported
+depends on the traversal order, in glsl too).
+
+Temporal state: one pair hierarchy per (ray type, sample, light); the light is the occurrence
+number of (ray type, sample) within the frame (the renderer's pass order).
+
+Parameters come from ChcrtParams; `RTWALK_CHCRT="visible_threshold=20,t_q=0.4"` overrides them
+for backends created by the factory (bench and viewer).
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from dataclasses import dataclass, fields
+
+import moderngl
+import numpy as np
+
+from viewer.backends.base import BackendContext, HitBuffer, RayBatch, TraceResult
+from viewer.backends.chcrt_front import INNER, INVISIBLE, VISIBLE, NodeTables, PairFront, max_tile_level
+from viewer.effects import RayType
+from viewer.errors import RtwalkError
+from viewer.gpu import FullscreenQuad, float_texture, int_texture
+
+ITEM_DTYPE = np.dtype([("bmin", "<f4", 3), ("ref", "<i4"), ("bmax", "<f4", 3), ("count", "<i4"),
+                       ("id", "<i4"), ("pad", "<i4", 3)])
+assert ITEM_DTYPE.itemsize == 48
+BIND_ITEMS = 5
+BIND_COUNT = 6
+COUNT_SLOTS = 64
+MAX_BOXES = 48  # boxes per query draw (max_multi pairs x 2 child boxes)
+
+
+@dataclass
+class ChcrtParams:
+    t_q: float = 0.5  # split in object space if A_node/A_root > t_q * A_tile/A_screen
+    min_tile_fraction: float = 0.015  # smallest tile, fraction of the screen (paper: 200x200 at 1080p)
+    max_subtree_height: int = 16  # scheduled subtrees: traversal stack bound
+    max_subtree_tris: int = 4096  # scheduled subtrees: triangle bound
+    requery_interval: int = 3  # n: visible leaves are re-queried every n frames
+    schedule_batch: int = 16  # m: newly visible leaves are intersected in batches of m
+    max_batch: int = 24  # subtree roots per intersection draw
+    max_multi: int = 24  # invisible pairs per multi-query
+    visible_threshold: int = 0  # aggressive mode: a pair with <= this many passing pixels is culled
+    overdraw_overlay: bool = True  # count query fragments per pixel (query_overdraw overlay)
+    front_to_back: bool = True  # order scheduled subtrees by a representative ray (primary/shadows)
+    sync_phases: bool = False  # glFinish at the end of each phase: exact per-phase times (diagnostics)
+    seed: int = 1
+
+    @staticmethod
+    def from_env(text: str | None = None) -> ChcrtParams:
+        text = os.environ.get("RTWALK_CHCRT", "") if text is None else text
+        p = ChcrtParams()
+        types = {f.name: f.type for f in fields(ChcrtParams)}
+        for item in filter(None, (s.strip() for s in text.split(","))):
+            key, _, val = item.partition("=")
+            key = key.strip()
+            if key not in types:
+                raise RtwalkError(f"RTWALK_CHCRT: unknown parameter '{key}' (choose from {', '.join(types)})")
+            kind = {"float": float, "int": int, "bool": lambda v: v.strip().lower() in ("1", "true", "yes", "on")}
+            try:
+                setattr(p, key, kind[str(types[key])](val))
+            except ValueError as exc:
+                raise RtwalkError(f"RTWALK_CHCRT: bad value for {key}: '{val}'") from exc
+        return p
+
+
+_GL_TEXTURE_2D = 0x0DE1
+_GL_TEXTURE_BINDING_2D = 0x8069
+_GL_DEPTH_COMPONENT = 0x1902
+_GL_DEPTH_COMPONENT32F = 0x8CAC
+_GL_FLOAT = 0x1406
+_GL_TEXTURE_DEPTH_SIZE = 0x884A
+_GL_TEXTURE_DEPTH_TYPE = 0x8C16
+_gl_funcs: dict | None = None
+
+
+def _gl() -> dict:
+    """A few core GL entry points through GLVND's libOpenGL (dispatches to the current context,
+    EGL or GLX alike): moderngl has no way to ask for a DEPTH_COMPONENT32F texture."""
+    global _gl_funcs
+    if _gl_funcs is None:
+        import ctypes
+
+        lib = None
+        for name in ("libOpenGL.so.0", "libGL.so.1", "libGL.so"):
+            try:
+                lib = ctypes.CDLL(name)
+                break
+            except OSError:
+                continue
+        if lib is None:
+            raise RtwalkError("chcrt: cannot load libOpenGL/libGL for the float depth buffer")
+        u, i, vp = ctypes.c_uint, ctypes.c_int, ctypes.c_void_p
+        pi = ctypes.POINTER(ctypes.c_int)
+        spec = {"glBindTexture": [u, u], "glTexImage2D": [u, i, i, i, i, i, u, u, vp],
+                "glGetIntegerv": [u, pi], "glGetTexLevelParameteriv": [u, i, u, pi]}
+        _gl_funcs = {}
+        for name, args in spec.items():
+            f = getattr(lib, name)
+            f.argtypes = args
+            f.restype = None
+            _gl_funcs[name] = f
+        _gl_funcs["ctypes"] = ctypes
+    return _gl_funcs
+
+
+def float_depth_texture(ctx: moderngl.Context, size: tuple[int, int]) -> moderngl.Texture:
+    """A depth texture with DEPTH_COMPONENT32F storage (moderngl's depth_texture is 24-bit fixed
+    point, which would quantise ray distances): moderngl's texture, storage re-specified."""
+    tex = ctx.depth_texture(size)
+    for _ in range(16):  # clear errors left by others: the check below must see only ours
+        if ctx.error == "GL_NO_ERROR":
+            break
+    gl = _gl()
+    ct = gl["ctypes"]
+    prev = ct.c_int(0)
+    gl["glGetIntegerv"](_GL_TEXTURE_BINDING_2D, ct.byref(prev))
+    gl["glBindTexture"](_GL_TEXTURE_2D, tex.glo)
+    gl["glTexImage2D"](_GL_TEXTURE_2D, 0, _GL_DEPTH_COMPONENT32F, size[0], size[1], 0, _GL_DEPTH_COMPONENT,
+                       _GL_FLOAT, None)
+    bits, kind = ct.c_int(0), ct.c_int(0)
+    gl["glGetTexLevelParameteriv"](_GL_TEXTURE_2D, 0, _GL_TEXTURE_DEPTH_SIZE, ct.byref(bits))
+    gl["glGetTexLevelParameteriv"](_GL_TEXTURE_2D, 0, _GL_TEXTURE_DEPTH_TYPE, ct.byref(kind))
+    gl["glBindTexture"](_GL_TEXTURE_2D, prev.value)
+    err = ctx.error
+    if bits.value != 32 or kind.value != _GL_FLOAT or err != "GL_NO_ERROR":
+        tex.release()
+        raise RtwalkError(f"chcrt: could not create a 32-bit float depth buffer ({bits.value} bits, {err})")
+    return tex
+
+
+class _Targets:
+    """GL objects at one ray-batch size."""
+
+    def __init__(self, ctx: moderngl.Context, size: tuple[int, int], max_level: int):
+        self.size = size
+        self.depth = float_depth_texture(ctx, size)
+        self.best = int_texture(ctx, size)
+        self.overdraw = int_texture(ctx, size)
+        self.subtree = int_texture(ctx, size)
+        self.query_fbo = ctx.framebuffer(depth_attachment=self.depth)
+        self.query_fbo.depth_mask = False
+        g = 1 << max_level
+        self.gather_size = (g, g)
+        self.gather_o = float_texture(ctx, (g, g), 4)
+        self.gather_d = float_texture(ctx, (g, g), 4)
+        self.gather_fbo = ctx.framebuffer(color_attachments=[self.gather_o, self.gather_d])
+        self.hits: HitBuffer | None = None
+        self.hit_fbo: moderngl.Framebuffer | None = None
+
+    def hit_framebuffer(self, ctx: moderngl.Context, hits: HitBuffer) -> moderngl.Framebuffer:
+        if self.hits is not hits or self.hit_fbo is None:
+            if self.hit_fbo is not None:
+                self.hit_fbo.release()
+            self.hit_fbo = ctx.framebuffer(color_attachments=[hits.t, hits.id, self.subtree],
+                                           depth_attachment=self.depth)
+            self.hits = hits
+        return self.hit_fbo
+
+    def release(self) -> None:
+        for obj in (self.hit_fbo, self.query_fbo, self.gather_fbo, self.depth, self.best, self.overdraw,
+                    self.subtree, self.gather_o, self.gather_d):
+            if obj is not None:
+                obj.release()
+
+
+class _ItemBuffer:
+    """An SSBO of ChcItem records, re-specified (orphaned) before every upload so draws still
+    queued keep their data and the upload never waits for them."""
+
+    def __init__(self, ctx: moderngl.Context):
+        self.ctx = ctx
+        self.capacity = 4096
+        self.buf = ctx.buffer(reserve=self.capacity * ITEM_DTYPE.itemsize, dynamic=True)
+
+    def upload(self, items: np.ndarray) -> None:
+        n = max(len(items), 1)
+        if n > self.capacity:
+            self.buf.release()
+            self.capacity = 1 << (n - 1).bit_length()
+            self.buf = self.ctx.buffer(reserve=self.capacity * ITEM_DTYPE.itemsize, dynamic=True)
+        else:
+            self.buf.orphan(self.capacity * ITEM_DTYPE.itemsize)
+        if len(items):
+            self.buf.write(items.tobytes())
+        self.buf.bind_to_storage_buffer(BIND_ITEMS)
+
+
+class ChcrtBackend:
+    name = "chcrt"
+    description = "CHC+RT: occlusion-query culling of (screen tile, BVH node) pairs, temporal fronts"
+
+    def __init__(self, bc: BackendContext, params: ChcrtParams | None = None):
+        self.bc = bc
+        self.ctx = bc.ctx
+        self.p = params or ChcrtParams()
+        if self.p.max_batch > 24 or self.p.max_multi > 24 or self.p.max_batch < 1 or self.p.max_multi < 1:
+            raise RtwalkError("chcrt: max_batch and max_multi must be in 1..24")
+        self.nt = NodeTables.from_bvh(bc.bvh)
+        self.bvh_first = np.asarray(bc.bvh.node_first, np.int32)
+        diag = max(float(getattr(bc.scene, "diagonal", 1.0)), 1e-30)
+        e = min(max(math.frexp(diag)[1] + 24, -100), 100)
+        self.depth_scale = float(np.float32(math.ldexp(1.0, -e)))  # exact power of two
+        progs = bc.programs
+        self.prog_init = progs.get("fullscreen.vert", "chc_init.frag")
+        self.prog_query = progs.get("fullscreen.vert", "chc_query.frag", {"CHC_MAX_ITEMS": MAX_BOXES})
+        self.prog_isect = progs.get("fullscreen.vert", "chc_intersect.frag",
+                                    {"CHC_MAX_ITEMS": self.p.max_batch,
+                                     "STACK_SIZE": self.p.max_batch + max(self.p.max_subtree_height, 1) + 2})
+        self.prog_gather = progs.get("fullscreen.vert", "chc_gather.frag")
+        for prog in (self.prog_init, self.prog_query, self.prog_isect, self.prog_gather):
+            prog["rayOrigin"] = 0
+            prog["rayDir"] = 1
+            if prog.get("depthScale", None) is not None:
+                prog["depthScale"] = self.depth_scale
+        self.quad = FullscreenQuad(self.ctx)
+        self.items = _ItemBuffer(self.ctx)
+        self.count_buf = self.ctx.buffer(reserve=4 * COUNT_SLOTS)
+        self._zero_counts = bytes(4 * COUNT_SLOTS)
+        self.queries: list[moderngl.Query] = []
+        self.targets: _Targets | None = None
+        self.fronts: dict[tuple, PairFront] = {}
+        self.rng = np.random.default_rng(self.p.seed)
+        self.frame = 0
+        self._occurrence: dict[tuple[int, int], int] = {}
+        self.last_stats: dict[str, float] = {}
+
+    # -- Backend protocol ----------------------------------------------------------------------
+    def begin_frame(self, frame_index: int) -> None:
+        self.frame = int(frame_index)
+        self._occurrence.clear()
+
+    def release(self) -> None:
+        if self.targets is not None:
+            self.targets.release()
+            self.targets = None
+        self.items.buf.release()
+        self.count_buf.release()
+        self.queries.clear()  # moderngl 5 queries have no release(); dropped with the context
+        self.fronts.clear()
+
+    def reset(self) -> None:
+        """Forget the temporal state (every front restarts from (screen, root))."""
+        self.fronts.clear()
+
+    def trace(self, rays: RayBatch, ray_type: RayType, sample: int, hits: HitBuffer) -> TraceResult:
+        occ_key = (int(ray_type), int(sample))
+        light = self._occurrence.get(occ_key, 0)
+        self._occurrence[occ_key] = light + 1
+        size = tuple(rays.size)
+        max_level = max_tile_level(size, self.p.min_tile_fraction)
+        if self.targets is None or self.targets.size != size or self.targets.gather_size[0] != 1 << max_level:
+            if self.targets is not None:
+                self.targets.release()
+            self.targets = _Targets(self.ctx, size, max_level)
+            self.fronts.clear()
+        key = (int(ray_type), int(sample), light)
+        front = self.fronts.get(key)
+        if front is None:
+            front = PairFront(size, max_level, self.rng, self.p.requery_interval)
+            self.fronts[key] = front
+        tr = _Pass(self, front, rays, ray_type, hits)
+        stats = tr.run()
+        front.frames += 1
+        self.last_stats = stats
+        return TraceResult(stats=stats, overlays={"query_overdraw": self.targets.overdraw,
+                                                  "subtree_id": self.targets.subtree})
+
+    def query(self, i: int) -> moderngl.Query:
+        while len(self.queries) <= i:
+            self.queries.append(self.ctx.query(samples=True))
+        return self.queries[i]
+
+
+class _Pass:
+    """One trace() call: Algorithm 1 on one front."""
+
+    def __init__(self, be: ChcrtBackend, front: PairFront, rays: RayBatch, ray_type: RayType, hits: HitBuffer):
+        self.be = be
+        self.ctx = be.ctx
+        self.p = be.p
+        self.nt = be.nt
+        self.front = front
+        self.rays = rays
+        self.ray_type = ray_type
+        self.any_hit = ray_type.any_hit
+        self.tg = be.targets
+        self.hit_fbo = self.tg.hit_framebuffer(self.ctx, hits)
+        self.size = rays.size
+        self.stats = {k: 0 for k in ("queries", "multi_queries", "failed_multi_queries", "visible_pairs",
+                                     "invisible_pairs", "subtrees_scheduled", "draws", "rays",
+                                     "intersect_draws", "batch_tiles", "tile_batches_1", "tile_batches_2",
+                                     "tile_batches_3plus", "query_waves", "pull_ups", "phase1_subtrees",
+                                     "query_pixels")}
+        self.rep: tuple[np.ndarray, np.ndarray] | None = None  # representative rays per finest tile
+        self.rays_read = False
+        self.threshold = int(self.p.visible_threshold)
+
+    # -- GL helpers -------------------------------------------------------------------------------
+    def _bind(self) -> None:
+        be, tg = self.be, self.tg
+        be.bc.gpu_scene.bind()
+        self.rays.origin.use(0)
+        self.rays.direction.use(1)
+        tg.best.bind_to_image(0, read=True, write=True)
+        tg.overdraw.bind_to_image(1, read=True, write=True)
+        self.be.count_buf.bind_to_storage_buffer(BIND_COUNT)
+
+    def _init(self) -> None:
+        ctx = self.ctx
+        self.be.count_buf.write(self.be._zero_counts)
+        fbo = self.hit_fbo
+        fbo.use()
+        fbo.scissor = None
+        fbo.depth_mask = True
+        ctx.enable(moderngl.DEPTH_TEST)
+        ctx.depth_func = "1"
+        self.be.quad.render(self.be.prog_init)
+        self.stats["draws"] += 1
+
+    def _gather(self) -> None:
+        """Representative rays per finest tile, for the front-to-back order of subtrees."""
+        tg = self.tg
+        prog = self.be.prog_gather
+        prog["raySize"] = tuple(self.size)
+        prog["level"] = self.front.max_level
+        self.ctx.disable(moderngl.DEPTH_TEST)
+        tg.gather_fbo.use()
+        tg.gather_fbo.scissor = None
+        self.be.quad.render(prog)
+        self.stats["draws"] += 1
+        g = tg.gather_size[0]
+        o = np.frombuffer(tg.gather_fbo.read(components=4, dtype="f4", attachment=0), np.float32).reshape(g, g, 4)
+        d = np.frombuffer(tg.gather_fbo.read(components=4, dtype="f4", attachment=1), np.float32).reshape(g, g, 4)
+        self.rep = (o, d)
+        self.ctx.enable(moderngl.DEPTH_TEST)
+
+    def _sync(self) -> None:
+        if self.p.sync_phases:
+            self.ctx.finish()
+
+    def _read_ray_count(self) -> None:
+        if not self.rays_read:
+            self.stats["rays"] = int(np.frombuffer(self.be.count_buf.read(), np.uint32).sum())
+            self.rays_read = True
+
+    # -- queries ------------------------------------------------------------------------------------
+    def _run_queries(self, groups: list[np.ndarray]) -> np.ndarray:
+        """One query per group of pairs (all pairs of a group share a tile); returns samples passed.
+
+        All queries are issued first, then all results are read (one wait per batch)."""
+        nq = len(groups)
+        if nq == 0:
+            return np.zeros(0, np.int64)
+        f, nt = self.front, self.nt
+        sizes = np.array([len(g) for g in groups])
+        pairs = np.concatenate(groups)
+        owner, bmin, bmax = nt.query_boxes(f.node[pairs])
+        group_of_pair = np.repeat(np.arange(nq), sizes)
+        gbox = group_of_pair[owner]
+        nbox = np.bincount(gbox, minlength=nq)
+        base = np.cumsum(nbox) - nbox
+        items = np.zeros(len(owner), ITEM_DTYPE)
+        items["bmin"] = bmin
+        items["bmax"] = bmax
+        items["id"] = f.node[pairs][owner]
+        self.be.items.upload(items)
+        first = np.cumsum(sizes) - sizes
+        rects = f.rects(pairs[first])
+        prog = self.be.prog_query
+        prog["countOverdraw"] = int(self.p.overdraw_overlay)
+        fbo = self.tg.query_fbo
+        fbo.use()
+        self.ctx.depth_func = "<"
+        u_base, u_count = prog["itemBase"], prog["itemCount"]
+        render = self.be.quad.render
+        used = []
+        for i in range(nq):
+            x, y, w, h = rects[i]
+            if w <= 0 or h <= 0:
+                used.append(None)
+                continue
+            fbo.scissor = (int(x), int(y), int(w), int(h))
+            self.stats["query_pixels"] += int(w * h)
+            u_base.value = int(base[i])
+            u_count.value = int(nbox[i])
+            q = self.be.query(i)
+            with q:
+                render(prog)
+            used.append(q)
+        self.stats["draws"] += sum(q is not None for q in used)
+        self.stats["queries"] += sum(q is not None for q in used)
+        out = np.array([q.samples if q is not None else 0 for q in used], np.int64)
+        self._read_ray_count()
+        return out
+
+    # -- intersection -------------------------------------------------------------------------------
+    def _order_keys(self, pairs: np.ndarray) -> np.ndarray:
+        """Sort key within a tile: distance from the tile's representative ray origin to the box
+        (front to back) where we have one, else more visible pixels first."""
+        f = self.front
+        if self.rep is None:
+            return -f.pixels[pairs].astype(np.float64)
+        o, d = self.rep
+        shift = f.max_level - f.level[pairs].astype(np.int64)
+        gx = np.minimum(f.tx[pairs].astype(np.int64) << shift, o.shape[1] - 1)
+        gy = np.minimum(f.ty[pairs].astype(np.int64) << shift, o.shape[0] - 1)
+        org = o[gy, gx, :3].astype(np.float64)
+        valid = d[gy, gx, 3] > o[gy, gx, 3]
+        nd = f.node[pairs]
+        lo = self.nt.box_min[nd].astype(np.float64)
+        hi = self.nt.box_max[nd].astype(np.float64)
+        gap = np.maximum(np.maximum(lo - org, org - hi), 0.0)
+        dist = np.sqrt((gap * gap).sum(axis=1))
+        return np.where(valid, dist, -f.pixels[pairs].astype(np.float64))
+
+    def _intersect(self, pairs: np.ndarray) -> None:
+        """Intersect scheduled pairs: grouped by tile, up to max_batch subtree roots per draw."""
+        if len(pairs) == 0:
+            return
+        f, nt = self.front, self.nt
+        tile = f.tile_key(pairs)
+        order = np.lexsort((self._order_keys(pairs), tile))
+        pairs = pairs[order]
+        tile = tile[order]
+        starts = np.flatnonzero(np.r_[True, tile[1:] != tile[:-1]])
+        ends = np.r_[starts[1:], len(pairs)]
+        mb = self.p.max_batch
+        nd = f.node[pairs]
+        items = np.zeros(len(pairs), ITEM_DTYPE)
+        items["bmin"] = nt.box_min[nd]
+        items["bmax"] = nt.box_max[nd]
+        items["ref"] = nt.gpu_ref[nd]
+        items["count"] = nt.gpu_count[nd]
+        items["id"] = nd
+        items["pad"][:, 0] = self.be.bvh_first[nd]
+        items["pad"][:, 1] = nt.count[nd]
+        self.be.items.upload(items)
+        rects = f.rects(pairs[starts])
+        prog = self.be.prog_isect
+        prog["anyHit"] = int(self.any_hit)
+        fbo = self.hit_fbo
+        fbo.use()
+        self.ctx.depth_func = "<"
+        u_base, u_count = prog["itemBase"], prog["itemCount"]
+        render = self.be.quad.render
+        draws = 0
+        for s, e, (x, y, w, h) in zip(starts, ends, rects, strict=True):
+            nb = -(-(e - s) // mb)
+            self.stats["tile_batches_1" if nb == 1 else "tile_batches_2" if nb == 2 else "tile_batches_3plus"] += 1
+            if w <= 0 or h <= 0:
+                continue
+            fbo.scissor = (int(x), int(y), int(w), int(h))
+            for b in range(s, e, mb):
+                u_base.value = int(b)
+                u_count.value = int(min(mb, e - b))
+                render(prog)
+                draws += 1
+        self.stats["batch_tiles"] += len(starts)
+        self.stats["intersect_draws"] += draws
+        self.stats["draws"] += draws
+        self.stats["subtrees_scheduled"] += len(pairs)
+
+    # -- Algorithm 1 --------------------------------------------------------------------------------
+    def run(self) -> dict[str, float]:
+        be, f, p = self.be, self.front, self.p
+        prof = be.bc.profiler
+        thr = self.threshold
+        self._sync()  # diagnostics: do not charge the ray generation to phase 1
+        try:
+            with prof.phase("chc:1-intersect-visible"):
+                self._bind()
+                self._init()
+                if p.front_to_back and self.ray_type in (RayType.PRIMARY, RayType.SHADOW, RayType.SOFT):
+                    self._gather()
+                visible = f.leaves(VISIBLE)
+                self._intersect(visible)
+                self.stats["phase1_subtrees"] = len(visible)
+                self._sync()
+
+            with prof.phase("chc:2-queries"):
+                invisible = f.leaves(INVISIBLE)
+                groups = f.multi_query_groups(invisible, p.max_multi)
+                multi = [len(g) > 1 for g in groups]
+                due = visible[f.requery_due(visible, self.frame_number())] if len(visible) else visible
+                groups += [due[i:i + 1] for i in range(len(due))]
+                multi += [False] * len(due)
+                res = self._run_queries(groups)
+                n_inv_groups = len(groups) - len(due)
+                became_visible = []
+                retry: list[np.ndarray] = []
+                for i in range(n_inv_groups):
+                    g = groups[i]
+                    if multi[i]:
+                        self.stats["multi_queries"] += 1
+                        if res[i] > thr:
+                            self.stats["failed_multi_queries"] += 1
+                            retry.append(g)
+                    elif res[i] > thr:
+                        became_visible.append(g)
+                        f.pixels[g] = res[i]
+                    if res[i] <= thr:
+                        f.age[g] += 1
+                if len(due):
+                    rq = res[n_inv_groups:]
+                    f.state[due[rq <= thr]] = INVISIBLE
+                    f.age[due] = 0
+                    f.pixels[due] = rq
+                wave = np.concatenate(became_visible) if became_visible else np.zeros(0, np.int64)
+                pending = np.concatenate(retry) if retry else np.zeros(0, np.int64)
+                self._sync()
+
+            with prof.phase("chc:3-traversal"):
+                scheduled: list[np.ndarray] = []
+                n_sched = 0
+                while True:
+                    if len(wave):
+                        term, obj, _ = f.classify(wave, self.nt, p.t_q, p.max_subtree_height,
+                                                  p.max_subtree_tris)
+                        done = wave[term]
+                        f.state[done] = VISIBLE
+                        if len(done):
+                            scheduled.append(done)
+                            n_sched += len(done)
+                        split = wave[~term]
+                        children = f.subdivide(split, obj[~term], self.nt) if len(split) else split
+                        pending = np.concatenate([pending, children])
+                        wave = np.zeros(0, np.int64)
+                    if n_sched >= p.schedule_batch:
+                        self._intersect(np.concatenate(scheduled))
+                        scheduled, n_sched = [], 0
+                    if len(pending) == 0:
+                        break
+                    self.stats["query_waves"] += 1
+                    res = self._run_queries([np.array([i]) for i in pending])
+                    vis = res > thr
+                    f.pixels[pending] = res
+                    f.age[pending[~vis]] += 1
+                    wave = pending[vis]
+                    pending = np.zeros(0, np.int64)
+                self._sync()
+
+            with prof.phase("chc:4-final-intersect"):
+                if scheduled:
+                    self._intersect(np.concatenate(scheduled))
+                self._read_ray_count()
+                self._sync()
+        finally:
+            self.ctx.disable(moderngl.DEPTH_TEST)
+            self.ctx.depth_func = "<"
+            self.hit_fbo.scissor = None
+            self.tg.query_fbo.scissor = None
+        self.stats["pull_ups"] = f.pull_up()
+        self.stats["visible_pairs"] = int((f.state[: f.n] == VISIBLE).sum())
+        self.stats["invisible_pairs"] = int((f.state[: f.n] == INVISIBLE).sum())
+        self.stats["inner_pairs"] = int((f.state[: f.n] == INNER).sum())
+        return {k: float(v) for k, v in self.stats.items()}
+
+    def frame_number(self) -> int:
+        return self.be.frame

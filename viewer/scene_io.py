@@ -1,0 +1,240 @@
+"""Loading scenes: built-in procedural scenes by name, or files through trimesh.
+
+Every failure is an RtwalkError with one line naming the file; NaN/Inf vertices and zero-area
+triangles are dropped with a one-line count in `scene.notes`.
+"""
+
+from __future__ import annotations
+
+import fnmatch
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from viewer.camera import Camera
+from viewer.errors import RtwalkError
+from viewer.scene import Material, PointLight, RectLight, Scene
+
+REPO_ROOT = Path(__file__).resolve().parents[1]
+SHARED_SCENES = REPO_ROOT.parent / "shared" / "scenes"
+RECORDINGS = REPO_ROOT / "recordings"
+GREY = np.array([0.7, 0.7, 0.7], np.float32)
+
+
+def resolve_scene_path(spec: str) -> Path:
+    p = Path(spec).expanduser()
+    for cand in ([p] if p.is_absolute() else [p, SHARED_SCENES / p, RECORDINGS / p]):
+        if cand.exists():
+            return cand
+    raise RtwalkError(f"{spec}: no such scene file (and not a built-in: city, room)")
+
+
+def load_scene(spec: str | None, scene_size: int | None = None, seed: int = 1,
+               mirror_patterns: list[str] | None = None, progress: bool = True) -> Scene:
+    from viewer.procedural import BUILTIN_SCENES
+
+    name = "city" if spec is None else spec
+    if name in BUILTIN_SCENES:
+        b = BUILTIN_SCENES[name]
+        size = b.default_size if scene_size is None else int(scene_size)
+        if not (b.min_size <= size <= b.max_size):
+            raise RtwalkError(f"--scene-size {size} out of range for {name} ({b.min_size}..{b.max_size}, "
+                              f"{b.size_meaning})")
+        scene = b.make(size, seed)
+        if mirror_patterns:
+            _apply_mirrors(scene.materials, mirror_patterns)
+        return scene
+    if "/" not in name and "." not in name:
+        raise RtwalkError(f"unknown built-in scene '{name}' (built-ins: {', '.join(BUILTIN_SCENES)})")
+    path = resolve_scene_path(name)
+    return _load_file(path, name, mirror_patterns or [], progress)
+
+
+def _apply_mirrors(materials: list[Material], patterns: list[str]) -> None:
+    pats = [p.lower() for p in patterns]
+    for m in materials:
+        if any(fnmatch.fnmatch(m.name.lower(), p) for p in pats):
+            m.mirror = True
+
+
+def _material_of(geom, index: int) -> tuple[str, np.ndarray, np.ndarray | None]:
+    """(name, albedo, per-face colours or None) of a trimesh geometry."""
+    vis = getattr(geom, "visual", None)
+    kind = getattr(vis, "kind", None)
+    if kind == "texture" or hasattr(vis, "material"):
+        mat = getattr(vis, "material", None)
+        if mat is not None:
+            name = getattr(mat, "name", None) or f"material_{index}"
+            diffuse = getattr(mat, "diffuse", None)
+            if diffuse is None:
+                diffuse = getattr(mat, "baseColorFactor", None)
+            if diffuse is not None:
+                alb = np.asarray(diffuse, np.float64)[:3]
+                if alb.max() > 1.0:
+                    alb = alb / 255.0
+                return str(name), np.clip(alb, 0, 1).astype(np.float32), None
+            return str(name), GREY, None
+    if kind == "face":
+        fc = np.asarray(vis.face_colors, np.float32)[:, :3] / 255.0
+        return f"face_colors_{index}", GREY, fc
+    if kind == "vertex":
+        vc = np.asarray(vis.vertex_colors, np.float32)[:, :3] / 255.0
+        fc = vc[np.asarray(geom.faces)].mean(axis=1)
+        return f"vertex_colors_{index}", GREY, fc
+    return f"default_{index}", GREY, None
+
+
+def _load_file(path: Path, given: str, mirror_patterns: list[str], progress: bool) -> Scene:
+    import trimesh
+
+    if progress:
+        print(f"loading {path} ...", file=sys.stderr, flush=True)
+    try:
+        loaded = trimesh.load(str(path), force="scene")
+    except Exception as exc:  # trimesh raises many types for corrupt files
+        msg = str(exc).splitlines()[0][:120] if str(exc) else type(exc).__name__
+        raise RtwalkError(f"{path}: cannot read scene file ({msg})") from None
+    tris_list, mat_list, materials = [], [], []
+    mat_index: dict[tuple, int] = {}
+    try:
+        items = list(loaded.graph.nodes_geometry)
+    except Exception:
+        items = []
+    for i, node in enumerate(items):
+        transform, geom_name = loaded.graph[node]
+        geom = loaded.geometry[geom_name]
+        faces = getattr(geom, "faces", None)
+        verts = getattr(geom, "vertices", None)
+        if faces is None or verts is None or len(faces) == 0:
+            continue
+        v = np.asarray(verts, np.float64)
+        v = v @ np.asarray(transform, np.float64)[:3, :3].T + np.asarray(transform, np.float64)[:3, 3]
+        tri = v[np.asarray(faces, np.int64)].astype(np.float32)
+        name, albedo, face_colors = _material_of(geom, i)
+        if face_colors is not None:
+            # quantise face colours into materials (vectorised: unique colours)
+            q = np.round(face_colors * 255).astype(np.int32)
+            uniq, inv = np.unique(q, axis=0, return_inverse=True)
+            base = len(materials)
+            for k, c in enumerate(uniq):
+                materials.append(Material(f"{name}_{k}", (c / 255.0).astype(np.float32)))
+            ids = base + inv.reshape(-1).astype(np.int32)
+        else:
+            key = (name, tuple(np.round(albedo, 6)))
+            if key not in mat_index:
+                mat_index[key] = len(materials)
+                materials.append(Material(name, albedo))
+            ids = np.full(len(tri), mat_index[key], np.int32)
+        tris_list.append(tri)
+        mat_list.append(ids)
+    if not tris_list:
+        raise RtwalkError(f"{path}: no triangles in file")
+    tris = np.concatenate(tris_list)
+    mats = np.concatenate(mat_list)
+    tris, mats, notes = clean_triangles(tris, mats)
+    if len(tris) == 0:
+        raise RtwalkError(f"{path}: has no valid triangles ({'; '.join(notes)})")
+    for n in notes:
+        print(f"{path.name}: {n}", file=sys.stderr)
+    scene = Scene(name=path.stem, triangles=tris, material_ids=mats, materials=materials,
+                  identity={"file": given, "name": path.name}, notes=notes)
+    sidecar = path.with_name(path.name + ".rtwalk.json")
+    patterns = list(mirror_patterns)
+    if sidecar.exists():
+        patterns += _apply_sidecar(scene, sidecar)
+    _apply_mirrors(scene.materials, patterns)
+    if not scene.point_lights and not scene.rect_lights:
+        default_lights(scene)
+    if scene.default_camera is None:
+        scene.default_camera = default_camera(scene)
+    return scene
+
+
+def clean_triangles(tris: np.ndarray, mats: np.ndarray) -> tuple[np.ndarray, np.ndarray, list[str]]:
+    notes = []
+    finite = np.isfinite(tris).all(axis=(1, 2))
+    if (~finite).any():
+        notes.append(f"dropped {int((~finite).sum())} triangles with NaN/Inf vertices")
+    t64 = tris.astype(np.float64)
+    cross = np.cross(t64[:, 1] - t64[:, 0], t64[:, 2] - t64[:, 0])
+    area2 = np.einsum("ij,ij->i", cross, cross)
+    with np.errstate(invalid="ignore"):
+        nondeg = finite & (area2 > 0) & np.isfinite(area2)
+        # a float32 normal must also be finite and non-zero for the shaders
+        c32 = np.cross(tris[:, 1] - tris[:, 0], tris[:, 2] - tris[:, 0])
+        nondeg &= np.isfinite(c32).all(1) & (np.abs(c32).max(1) > 0)
+    zero = finite & ~nondeg
+    if zero.any():
+        notes.append(f"dropped {int(zero.sum())} zero-area triangles")
+    keep = finite & nondeg
+    return np.ascontiguousarray(tris[keep]), np.ascontiguousarray(mats[keep]), notes
+
+
+def default_lights(scene: Scene) -> None:
+    lo, hi = (b.astype(np.float64) for b in scene.bounds)
+    c = (lo + hi) / 2
+    ext = hi - lo
+    diag = float(np.linalg.norm(ext))
+    pos = np.array([c[0], lo[1] + 0.85 * ext[1], c[2]])
+    scene.point_lights = [PointLight(pos.astype(np.float32), np.full(3, (0.5 * diag) ** 2, np.float32))]
+    side = 0.1 * max(ext[0], ext[2], 1e-6)
+    corner = pos + np.array([-side / 2, -0.02 * ext[1], -side / 2])
+    # cross(edge_u, edge_v) must point down (-Y): u = +Z, v = +X
+    eu = np.array([0, 0, side])
+    ev = np.array([side, 0, 0])
+    power_scale = (0.5 * diag) ** 2 / (side * side)
+    scene.rect_lights = [RectLight(corner.astype(np.float32), eu.astype(np.float32), ev.astype(np.float32),
+                                   np.full(3, power_scale, np.float32))]
+
+
+def default_camera(scene: Scene) -> Camera:
+    lo, hi = (b.astype(np.float64) for b in scene.bounds)
+    c = (lo + hi) / 2
+    ext = hi - lo
+    eye = np.array([c[0] - 0.35 * ext[0], lo[1] + 0.3 * ext[1], c[2]])
+    return Camera.look_at(eye, eye + np.array([1.0, 0.0, 0.0]), fov_y=60.0)
+
+
+def _vec(v, n: int, what: str, path: Path) -> np.ndarray:
+    try:
+        a = np.asarray(v, np.float64).reshape(n)
+    except (TypeError, ValueError):
+        raise RtwalkError(f"{path}: {what} must be {n} numbers") from None
+    if not np.isfinite(a).all():
+        raise RtwalkError(f"{path}: {what} must be finite")
+    return a
+
+
+def _apply_sidecar(scene: Scene, path: Path) -> list[str]:
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, ValueError) as exc:
+        raise RtwalkError(f"{path}: bad sidecar JSON ({str(exc).splitlines()[0]})") from None
+    if not isinstance(data, dict):
+        raise RtwalkError(f"{path}: sidecar must be a JSON object")
+    try:
+        scene.point_lights = [PointLight(_vec(p["position"], 3, "position", path).astype(np.float32),
+                                         _vec(p["intensity"], 3, "intensity", path).astype(np.float32))
+                              for p in data.get("point_lights", [])]
+        scene.rect_lights = [RectLight(*(_vec(r[k], 3, k, path).astype(np.float32)
+                                         for k in ("corner", "edge_u", "edge_v", "radiance")))
+                             for r in data.get("rect_lights", [])]
+        cam = data.get("camera")
+        if cam is not None:
+            fov = float(cam.get("fov_y", 60.0))
+            if "target" in cam:
+                scene.default_camera = Camera.look_at(_vec(cam["position"], 3, "camera position", path),
+                                                      _vec(cam["target"], 3, "camera target", path), fov_y=fov)
+            else:
+                q = _vec(cam["orientation"], 4, "camera orientation", path)
+                scene.default_camera = Camera(_vec(cam["position"], 3, "camera position", path), q / np.linalg.norm(q), fov)
+        if "sky_color" in data:
+            scene.sky_color = _vec(data["sky_color"], 3, "sky_color", path).astype(np.float32)
+        mirrors = data.get("mirrors", [])
+        if not isinstance(mirrors, list) or not all(isinstance(m, str) for m in mirrors):
+            raise RtwalkError(f"{path}: 'mirrors' must be a list of name patterns")
+    except (KeyError, TypeError, AttributeError) as exc:
+        raise RtwalkError(f"{path}: malformed sidecar ({type(exc).__name__}: {exc})") from None
+    return mirrors

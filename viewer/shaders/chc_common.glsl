@@ -1,0 +1,34 @@
+// Shared by the CHC+RT shaders (viewer/backends/chcrt.py).
+//  * Rays come from the ray batch textures (origin+tmin, direction+tmax; tmax <= tmin = no ray).
+//  * Depth = distance along the ray, t * depthScale with depthScale a power of two (exact, so the
+//    depth test compares distances exactly), clamped to 0.5. The depth buffer holds, per pixel,
+//    1.0 (no hit yet: everything passes), key(best t) = nextUp(depth(best t)) (a query passes iff
+//    its entry distance <= best t, like traverseBVH's `tl <= hit.t`), or 0.0 (inactive ray, or an
+//    any-hit ray that is finished: nothing passes).
+//  * bestBits (r32i image) mirrors the best t as float bits (-1 = inactive / finished). It only
+//    prunes traversal: the hit buffer is written through the depth test, so a stale read costs
+//    work, never correctness.
+#include "scene.glsl"
+#include "intersect.glsl"
+
+#ifndef CHC_MAX_ITEMS
+#define CHC_MAX_ITEMS 48
+#endif
+
+uniform sampler2D rayOrigin;
+uniform sampler2D rayDir;
+uniform float depthScale;
+uniform int itemBase;
+uniform int itemCount;
+
+layout(r32i, binding = 0) uniform coherent iimage2D bestBits;
+layout(r32i, binding = 1) uniform coherent iimage2D overdraw;
+
+// A box with a payload: query boxes (ref/count unused) or scheduled subtrees (GPU inner-node index,
+// or first triangle + count for a BVH leaf; id = canonical node index and p0/p1 = the subtree's
+// triangle range, for the overlay).
+struct ChcItem { vec3 bmin; int ref; vec3 bmax; int count; int id; int p0; int p1; int p2; };
+layout(std430, binding = 5) readonly buffer ChcItems { ChcItem items[]; };
+
+float chcDepth(float t) { return min(t * depthScale, 0.5); }
+float chcKey(float t) { return max(uintBitsToFloat(floatBitsToUint(chcDepth(t)) + 1u), 1e-30); }

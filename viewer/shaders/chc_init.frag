@@ -1,0 +1,21 @@
+// CHC+RT: start of a pass. Clears the hit buffer and the subtree overlay (colour outputs), the
+// overdraw overlay and bestBits (images), sets the depth (1 = active ray, 0 = no ray) and counts
+// active rays.
+#include "chc_common.glsl"
+layout(std430, binding = 6) buffer ChcCount { uint chcActive[]; };
+layout(location = 0) out float outT;
+layout(location = 1) out int outId;
+layout(location = 2) out int outSub;
+void main() {
+    ivec2 px = ivec2(gl_FragCoord.xy);
+    vec4 ot = texelFetch(rayOrigin, px, 0);
+    vec4 dt = texelFetch(rayDir, px, 0);
+    bool live = dt.w > ot.w;
+    outT = uintBitsToFloat(0x7f800000u);
+    outId = -1;
+    outSub = -1;
+    imageStore(overdraw, px, ivec4(0));
+    imageStore(bestBits, px, ivec4(live ? floatBitsToInt(dt.w) : -1));
+    gl_FragDepth = live ? 1.0 : 0.0;
+    if (live) atomicAdd(chcActive[(px.x & 7) + 8 * (px.y & 7)], 1u);
+}

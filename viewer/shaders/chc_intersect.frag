@@ -1,0 +1,104 @@
+// CHC+RT intersection: the pixels of a tile traverse up to CHC_MAX_ITEMS scheduled subtrees (BVH
+// inner nodes, or leaves), nearest box entry first, with a stack bounded by the subtree height
+// (STACK_SIZE = batch size + maximum subtree height). The hit is output through the depth test
+// (LESS on key(t)), so only a hit nearer than the pixel's current one is written; an any-hit ray
+// writes depth 0 and is finished.
+//
+// Scheduled BVH leaves the ray enters are intersected first; the inner subtree roots it enters
+// start on the traversal stack, sorted so that the nearest is on top, and ONE traverseBVH-style
+// loop (intersect.glsl: same node order, nearer child first) runs over all of them. Calling
+// traverseBVH once per subtree is not an option: Mesa 22's llvmpipe miscompiles a second run of
+// that loop in one invocation (it can stop after one iteration and miss hits).
+#include "chc_common.glsl"
+uniform int anyHit;
+layout(location = 0) out float outT;
+layout(location = 1) out int outId;
+layout(location = 2) out int outSub;
+
+void main() {
+    ivec2 px = ivec2(gl_FragCoord.xy);
+    int best = imageLoad(bestBits, px).r;
+    if (best < 0) discard;
+    vec4 ot = texelFetch(rayOrigin, px, 0);
+    vec4 dt = texelFetch(rayDir, px, 0);
+    RayPre r = prepareRay(ot.xyz, dt.xyz);
+    float tmin = ot.w;
+    bool any = anyHit != 0;
+    Hit hit = Hit(min(intBitsToFloat(best), dt.w), -1);
+    int stackNode[STACK_SIZE];
+    float stackT[STACK_SIZE];
+    int sp = 0;
+    bool done = false;
+    for (int i = itemCount - 1; i >= 0; --i) {  // farthest at the bottom
+        ChcItem it = items[itemBase + i];
+        float te;
+        if (intersectBox(r, it.bmin, it.bmax, tmin, hit.t, te)) {
+            if (it.count > 0) {  // a scheduled BVH leaf: intersect it now
+                if (intersectLeaf(r, it.ref, it.count, tmin, hit) && any) done = true;
+            } else {
+                int j = sp;
+                while (j > 0 && stackT[j - 1] < te) { stackT[j] = stackT[j - 1]; stackNode[j] = stackNode[j - 1]; --j; }
+                stackT[j] = te;
+                stackNode[j] = it.ref;
+                ++sp;
+            }
+        }
+    }
+    if (done) sp = 0;
+    int ni = -1;
+    while (sp > 0 && ni < 0) {
+        --sp;
+        if (stackT[sp] <= hit.t) ni = stackNode[sp];
+    }
+    while (ni >= 0) {
+        Node nd = nodes[ni];
+        float tl, tr;
+        bool hl = intersectBox(r, nd.lmin, nd.lmax, tmin, hit.t, tl);
+        bool hr = intersectBox(r, nd.rmin, nd.rmax, tmin, hit.t, tr);
+        if (hl && nd.left < 0) {
+            hl = false;
+            if (intersectLeaf(r, ~nd.left, nd.lcount, tmin, hit) && any) break;
+        }
+        if (hr && nd.right < 0) {
+            hr = false;
+            if (intersectLeaf(r, ~nd.right, nd.rcount, tmin, hit) && any) break;
+        }
+        hl = hl && tl <= hit.t;
+        hr = hr && tr <= hit.t;
+        if (hl && hr) {
+            bool leftFirst = tl <= tr;
+            stackNode[sp] = leftFirst ? nd.right : nd.left;
+            stackT[sp] = leftFirst ? tr : tl;
+            sp = min(sp + 1, STACK_SIZE - 1);
+            ni = leftFirst ? nd.left : nd.right;
+        } else if (hl) {
+            ni = nd.left;
+        } else if (hr) {
+            ni = nd.right;
+        } else {
+            bool found = false;
+            while (sp > 0) {
+                --sp;
+                if (stackT[sp] <= hit.t) { ni = stackNode[sp]; found = true; break; }
+            }
+            if (!found) break;
+        }
+    }
+    if (hit.id < 0) discard;
+    // the scheduled subtree that holds the hit triangle (for the subtree_id overlay)
+    int sub = -1;
+    for (int i = 0; i < itemCount; ++i) {
+        ChcItem it = items[itemBase + i];
+        if (hit.id >= it.p0 && hit.id < it.p0 + it.p1) sub = it.id;
+    }
+    outT = hit.t;
+    outId = hit.id;
+    outSub = sub;
+    if (any) {
+        imageAtomicMin(bestBits, px, -1);
+        gl_FragDepth = 0.0;
+    } else {
+        imageAtomicMin(bestBits, px, floatBitsToInt(hit.t));
+        gl_FragDepth = chcKey(hit.t);
+    }
+}
