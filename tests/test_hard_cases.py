@@ -43,7 +43,7 @@ except Exception as exc:  # the module under test is missing or broken: every te
     trace_rays = None
     _IMPORT_ERROR = exc
 
-BACKENDS = ["glsl"]
+BACKENDS = ["glsl", "chcrt"]
 F32 = np.float32
 INF = np.inf
 

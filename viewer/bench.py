@@ -45,7 +45,7 @@ def frame_numbers(rec: Recording, fps: float | None, max_frames: int | None) -> 
 def _mrays(rep: FrameReport) -> dict[str, float]:
     out = {}
     for ray, count in rep.rays.items():
-        ms = rep.gpu_ms.get(f"trace:{ray}", 0.0)
+        ms = rep.trace_ms_by_ray.get(ray, 0.0)
         out[ray] = count / (ms * 1e3) if ms > 0 else float("nan")
     total_ms = rep.trace_ms
     out["all"] = sum(rep.rays.values()) / (total_ms * 1e3) if total_ms > 0 else float("nan")
@@ -113,7 +113,7 @@ def run_bench(prepared: PreparedScene, rec: Recording, settings: EffectSettings,
         cam = rec.camera_for_frame(n, opts.fps)
         rep = renderer.render(cam)
         row = {"frame": n, "time_s": float(rec.frame_times(opts.fps)[n]), "wall_ms": rep.wall_ms,
-               "gpu_ms": rep.gpu_ms, "cpu_ms": rep.cpu_ms, "trace_ms": rep.trace_ms, "rays": rep.rays,
+               "gpu_ms": rep.gpu_ms, "cpu_ms": rep.cpu_ms, "trace_ms": rep.trace_ms, "trace_ms_by_ray": rep.trace_ms_by_ray, "rays": rep.rays,
                "mrays_per_s": _mrays(rep), "backend_stats": rep.backend_stats}
         image = None
         if tracer is not None and k % max(opts.reference_every, 1) == 0:

@@ -54,7 +54,7 @@ def add_effect_args(p: argparse.ArgumentParser, default: str) -> None:
     p.add_argument("--effects", default=default,
                    help="comma list of primary,shadows,soft,ao,diffuse,reflections (NAME:N = N samples), "
                         "'all' or 'none'")
-    p.add_argument("--backend", default="glsl", help="tracing backend: glsl, embree")
+    p.add_argument("--backend", default="glsl", help="tracing backend: glsl, chcrt, embree")
     p.add_argument("--size", default="640x360", help="WIDTHxHEIGHT")
     p.add_argument("--perturb", type=float, default=36.0, help="per-pixel sample rotation, degrees")
     p.add_argument("--ao-length", type=float, default=0.05, help="AO ray length, fraction of the scene diagonal")

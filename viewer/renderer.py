@@ -42,12 +42,13 @@ class FrameReport:
     cpu_ms: dict[str, float]  # CPU (submission) time per phase
     wall_ms: float  # whole frame, glFinish included
     rays: dict[str, int]  # active rays per ray type (effect name)
+    trace_ms_by_ray: dict[str, float] = field(default_factory=dict)  # GPU time inside the backend
     backend_stats: dict[str, float] = field(default_factory=dict)
     captured: list[CapturedPass] = field(default_factory=list)
 
     @property
     def trace_ms(self) -> float:
-        return sum(v for k, v in self.gpu_ms.items() if k.startswith("trace"))
+        return sum(self.trace_ms_by_ray.values())
 
 
 class Renderer:
@@ -147,7 +148,9 @@ class Renderer:
             with prof.phase("raygen"):
                 self.raygen.generate(self.rays, self.gbuffer, ray_type, sample, light,
                                      lengths.get(ray_type, 0.0), np.radians(s.perturb_deg))
+            prof.label = ray_type.label
             result = self.backend.trace(self.rays, ray_type, sample, self.hits)
+            prof.label = None
             for k, v in result.stats.items():
                 stats[k] = stats.get(k, 0) + v
             if capture:
@@ -165,7 +168,7 @@ class Renderer:
         wall = (time.perf_counter() - t0) * 1e3
         self.frame_index += 1
         rays = {RayType(i).label: int(counts[i]) for i in range(6) if counts[i] > 0}
-        return FrameReport(gpu_ms, prof.cpu_ms(), wall, rays, stats, captured)
+        return FrameReport(gpu_ms, prof.cpu_ms(), wall, rays, dict(prof.by_label), stats, captured)
 
     def read_image(self) -> np.ndarray:
         return self.shade.read_rgb()
@@ -174,7 +177,8 @@ class Renderer:
         """int32 (H*W,) raster triangle id per pixel (row 0 = bottom), -1 = background."""
         from viewer.gpu import read_texture
 
-        return read_texture(self.gbuffer.tri_id).reshape(-1).copy()
+        ids = read_texture(self.gbuffer.tri_id).reshape(-1)
+        return np.where(ids < 0, -1, ids).astype(np.int32)
 
     def stats(self) -> dict:
         st = self.bvh.stats.to_dict()

@@ -16,11 +16,21 @@ Query pairs are (screen tile, BVH node) (see chcrt_front). Per pass (Algorithm 1
 
 Then invisibility is pulled up one level (siblings that are all invisible are merged).
 
-Depth = distance along the ray (scaled by a power of two: exact); see shaders/chc_common.glsl.
-The hit buffer is written through the depth test, so conservative mode (visible_threshold = 0)
-returns exactly the nearest hit of the glsl baseline (ids may differ only between triangles hit
-at exactly the same distance); any-hit rays agree on hit/miss (which occluder is reported
-depends on the traversal order, in glsl too).
+Exactness. Depth = distance along the ray times a power of two (exact, so the depth test compares
+distances exactly) in a DEPTH_COMPONENT32F buffer (moderngl only makes 24-bit depth textures: the
+storage is re-specified through GL). Queries pass where a box entry <= the pixel's nearest hit so
+far (the `tl <= hit.t` of traverseBVH); the hit buffer is written through the depth test (LESS),
+so no memory barrier is needed between draws (glMemoryBarrier is a glFinish on llvmpipe) and a
+stale image read only costs work. Conservative mode (visible_threshold = 0) therefore returns
+the glsl baseline's nearest hit, bit for bit in t, except on ties: two triangles at the same true
+distance (shared edges, coplanar overlaps), where the winner depends on the visiting order in
+glsl too. Any-hit rays agree on hit/miss (which occluder is reported depends on the order).
+See shaders/chc_intersect.frag for a Mesa llvmpipe miscompilation the intersection loop avoids.
+
+Overlays (TraceResult.overlays, R32I at the ray-batch size, overwritten by the next pass):
+``query_overdraw`` (query fragments per pixel, imageAtomicAdd) and ``subtree_id`` (canonical BVH
+node of the scheduled subtree that produced the pixel's hit, -1 for none). Counters: see
+``_Pass.stats`` (the spec's eight plus per-tile batch counts, waves, re-queries, pull-ups).
 
 Temporal state: one pair hierarchy per (ray type, sample, light); the light is the occurrence
 number of (ray type, sample) within the frame (the renderer's pass order).
@@ -57,7 +67,7 @@ MAX_BOXES = 48  # boxes per query draw (max_multi pairs x 2 child boxes)
 class ChcrtParams:
     t_q: float = 0.5  # split in object space if A_node/A_root > t_q * A_tile/A_screen
     min_tile_fraction: float = 0.015  # smallest tile, fraction of the screen (paper: 200x200 at 1080p)
-    max_subtree_height: int = 16  # scheduled subtrees: traversal stack bound
+    max_subtree_height: int = 24  # scheduled subtrees: traversal stack bound (paper: 24)
     max_subtree_tris: int = 4096  # scheduled subtrees: triangle bound
     requery_interval: int = 3  # n: visible leaves are re-queried every n frames
     schedule_batch: int = 16  # m: newly visible leaves are intersected in batches of m
@@ -79,7 +89,8 @@ class ChcrtParams:
             key = key.strip()
             if key not in types:
                 raise RtwalkError(f"RTWALK_CHCRT: unknown parameter '{key}' (choose from {', '.join(types)})")
-            kind = {"float": float, "int": int, "bool": lambda v: v.strip().lower() in ("1", "true", "yes", "on")}
+            kind = {"float": float, "int": int,
+                    "bool": lambda v: v.strip().lower() in ("1", "true", "yes", "on")}
             try:
                 setattr(p, key, kind[str(types[key])](val))
             except ValueError as exc:
@@ -298,7 +309,8 @@ class ChcrtBackend:
 class _Pass:
     """One trace() call: Algorithm 1 on one front."""
 
-    def __init__(self, be: ChcrtBackend, front: PairFront, rays: RayBatch, ray_type: RayType, hits: HitBuffer):
+    def __init__(self, be: ChcrtBackend, front: PairFront, rays: RayBatch, ray_type: RayType,
+                 hits: HitBuffer):
         self.be = be
         self.ctx = be.ctx
         self.p = be.p
@@ -314,7 +326,7 @@ class _Pass:
                                      "invisible_pairs", "subtrees_scheduled", "draws", "rays",
                                      "intersect_draws", "batch_tiles", "tile_batches_1", "tile_batches_2",
                                      "tile_batches_3plus", "query_waves", "pull_ups", "phase1_subtrees",
-                                     "query_pixels")}
+                                     "query_pixels", "requeries")}
         self.rep: tuple[np.ndarray, np.ndarray] | None = None  # representative rays per finest tile
         self.rays_read = False
         self.threshold = int(self.p.visible_threshold)
@@ -353,8 +365,8 @@ class _Pass:
         self.be.quad.render(prog)
         self.stats["draws"] += 1
         g = tg.gather_size[0]
-        o = np.frombuffer(tg.gather_fbo.read(components=4, dtype="f4", attachment=0), np.float32).reshape(g, g, 4)
-        d = np.frombuffer(tg.gather_fbo.read(components=4, dtype="f4", attachment=1), np.float32).reshape(g, g, 4)
+        o, d = (np.frombuffer(tg.gather_fbo.read(components=4, dtype="f4", attachment=a), np.float32)
+                .reshape(g, g, 4) for a in (0, 1))
         self.rep = (o, d)
         self.ctx.enable(moderngl.DEPTH_TEST)
 
@@ -470,7 +482,8 @@ class _Pass:
         draws = 0
         for s, e, (x, y, w, h) in zip(starts, ends, rects, strict=True):
             nb = -(-(e - s) // mb)
-            self.stats["tile_batches_1" if nb == 1 else "tile_batches_2" if nb == 2 else "tile_batches_3plus"] += 1
+            self.stats["tile_batches_1" if nb == 1 else "tile_batches_2" if nb == 2
+                       else "tile_batches_3plus"] += 1
             if w <= 0 or h <= 0:
                 continue
             fbo.scissor = (int(x), int(y), int(w), int(h))
@@ -507,6 +520,7 @@ class _Pass:
                 multi = [len(g) > 1 for g in groups]
                 due = visible[f.requery_due(visible, self.frame_number())] if len(visible) else visible
                 groups += [due[i:i + 1] for i in range(len(due))]
+                self.stats["requeries"] = len(due)
                 multi += [False] * len(due)
                 res = self._run_queries(groups)
                 n_inv_groups = len(groups) - len(due)

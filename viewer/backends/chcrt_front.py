@@ -99,7 +99,8 @@ def max_tile_level(size: tuple[int, int], min_tile_fraction: float, min_tile_pix
 class PairFront:
     """The query-pair hierarchy of one (ray type, sample, light) for one ray-batch size."""
 
-    def __init__(self, size: tuple[int, int], max_level: int, rng: np.random.Generator, requery_interval: int):
+    def __init__(self, size: tuple[int, int], max_level: int, rng: np.random.Generator,
+                 requery_interval: int):
         self.size = size
         self.max_level = max_level
         self.rng = rng
@@ -314,7 +315,8 @@ class PairFront:
                 assert sorted(self.node[kids]) == sorted([nt.left[nd], nt.right[nd]])
                 assert (self.level[kids] == self.level[p]).all()
             else:
-                assert (self.node[kids] == self.node[p]).all() and (self.level[kids] == self.level[p] + 1).all()
+                assert (self.node[kids] == self.node[p]).all()
+                assert (self.level[kids] == self.level[p] + 1).all()
         alive = np.flatnonzero(st != DEAD)
         nonroot = alive[alive != 0]
         assert (st[self.parent[nonroot]] == INNER).all()

@@ -39,9 +39,9 @@ class GBufferPass:
     def render(self, camera: Camera) -> None:
         ctx = self.ctx
         self.fbo.use()
-        self.fbo.clear(0.0, 0.0, 0.0, 0.0, depth=1.0)
-        # integer attachment: clear ids to -1 explicitly (glClear with a float colour is undefined)
-        self.tri_id.write(self._minus_ones())
+        # The float clear colour reaches the R32I id attachment as raw bits: -1.0 -> 0xBF800000,
+        # a negative id, which every shader reads as "no triangle" (id < 0).
+        self.fbo.clear(-1.0, 0.0, 0.0, 0.0, depth=1.0)
         ctx.enable(ctx.DEPTH_TEST)
         ctx.disable(ctx.CULL_FACE | ctx.BLEND)
         ctx.depth_func = "<"
@@ -60,13 +60,6 @@ class GBufferPass:
         self.gpu_scene.bind()
         self.vao.render(moderngl.TRIANGLES, vertices=self.gpu_scene.triangle_count * 3)
         ctx.disable(ctx.DEPTH_TEST)
-
-    def _minus_ones(self) -> bytes:
-        cached = getattr(self, "_neg", None)
-        if cached is None or len(cached) != self.size[0] * self.size[1] * 4:
-            cached = np.full(self.size[0] * self.size[1], -1, np.int32).tobytes()
-            self._neg = cached
-        return cached
 
     def release_targets(self) -> None:
         for obj in (self.fbo, self.position, self.normal, self.albedo, self.tri_id, self.depth):
