@@ -172,19 +172,53 @@ def clean_triangles(tris: np.ndarray, mats: np.ndarray) -> tuple[np.ndarray, np.
     return np.ascontiguousarray(tris[keep]), np.ascontiguousarray(mats[keep]), notes
 
 
+def vertical_hits(tris: np.ndarray, x: float, z: float) -> tuple[np.ndarray, np.ndarray]:
+    """Heights where the vertical line (x, *, z) crosses the triangles, sorted, with the sign of
+    each crossed triangle's normal y (+1 faces up by its winding, -1 down). Vectorised."""
+    t = tris.astype(np.float64)
+    a, b, c = t[:, 0], t[:, 1], t[:, 2]
+    d = (b[:, 0] - a[:, 0]) * (c[:, 2] - a[:, 2]) - (c[:, 0] - a[:, 0]) * (b[:, 2] - a[:, 2])
+    ok = np.abs(d) > 0
+    with np.errstate(divide="ignore", invalid="ignore"):
+        u = ((x - a[:, 0]) * (c[:, 2] - a[:, 2]) - (c[:, 0] - a[:, 0]) * (z - a[:, 2])) / d
+        v = ((b[:, 0] - a[:, 0]) * (z - a[:, 2]) - (x - a[:, 0]) * (b[:, 2] - a[:, 2])) / d
+        inside = ok & (u >= 0) & (v >= 0) & (u + v <= 1)
+    y = a[inside, 1] + u[inside] * (b[inside, 1] - a[inside, 1]) + v[inside] * (c[inside, 1] - a[inside, 1])
+    # normal y of cross(b - a, c - a) has the sign of -d (x/z ordering of the 2D determinant)
+    up = -np.sign(d[inside])
+    order = np.argsort(y)
+    return y[order], up[order]
+
+
 def default_lights(scene: Scene) -> None:
+    """A point light and a small rect light in the largest free vertical gap above the centre.
+
+    Indoor scenes (sibenik's vaulted nave, the conference room) need the light under the
+    ceiling, not at a fixed fraction of the bounds, which may be above the roof.
+    """
     lo, hi = (b.astype(np.float64) for b in scene.bounds)
     c = (lo + hi) / 2
     ext = hi - lo
     diag = float(np.linalg.norm(ext))
-    pos = np.array([c[0], lo[1] + 0.85 * ext[1], c[2]])
-    scene.point_lights = [PointLight(pos.astype(np.float32), np.full(3, (0.5 * diag) ** 2, np.float32))]
+    light_y = lo[1] + 0.85 * ext[1]
+    reach = 0.5 * diag  # distance at which the point light gives irradiance ~1
+    ys, up = vertical_hits(scene.triangles, c[0], c[2])
+    if len(ys) >= 2:
+        gaps = np.diff(ys)
+        # a room: floor facing up below, ceiling facing down above (not the inside of a solid)
+        gaps[~((up[:-1] > 0) & (up[1:] < 0))] = 0.0
+        k = int(np.argmax(gaps))
+        if gaps[k] >= 0.25 * ext[1] and gaps[k] > hi[1] - ys[-1]:
+            light_y = ys[k] + 0.8 * gaps[k]
+            reach = 1.6 * (light_y - ys[k])
+    pos = np.array([c[0], light_y, c[2]])
+    scene.point_lights = [PointLight(pos.astype(np.float32), np.full(3, reach ** 2, np.float32))]
     side = 0.1 * max(ext[0], ext[2], 1e-6)
     corner = pos + np.array([-side / 2, -0.02 * ext[1], -side / 2])
     # cross(edge_u, edge_v) must point down (-Y): u = +Z, v = +X
     eu = np.array([0, 0, side])
     ev = np.array([side, 0, 0])
-    power_scale = (0.5 * diag) ** 2 / (side * side)
+    power_scale = reach ** 2 / (side * side)
     scene.rect_lights = [RectLight(corner.astype(np.float32), eu.astype(np.float32), ev.astype(np.float32),
                                    np.full(3, power_scale, np.float32))]
 

@@ -1,0 +1,89 @@
+"""Regenerates the shipped camera paths (run from the repo root: python recordings/make_paths.py).
+
+Paths are look-at keyframes designed from the scene layouts: the city's street grid
+(`viewer.procedural.city_layout`) and the bounds/floor heights of the shared benchmark scenes.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from viewer.camera import Camera
+from viewer.procedural import city_layout
+from viewer.recording import Keyframe, Recording, save_recording
+
+HERE = Path(__file__).resolve().parent
+RES = (1280, 720)
+
+
+def path(scene: dict, points: list[tuple], seconds: float, fov: float = 60.0) -> Recording:
+    """points: (eye, target) pairs, evenly spaced in time over `seconds`."""
+    times = np.linspace(0.0, seconds, len(points))
+    keys = [Keyframe.from_camera(float(t), Camera.look_at(e, g, fov_y=fov)) for t, (e, g) in zip(times, points)]
+    return Recording(scene, RES, 30.0, keys)
+
+
+def city_near() -> Recording:
+    lay = city_layout(150_000, 1)
+    p = lay["pitch"]
+    y = 1.7
+    # walk north down the street x = 0, turn east at the crossing z = p, walk along it
+    pts = [((0.0, y, 150.0), (0.0, y, 100.0)), ((0.0, y, 125.0), (0.5, y, 75.0)),
+           ((0.0, y, 100.0), (1.0, y, 50.0)), ((0.0, y, 75.0), (0.5, y, 25.0)),
+           ((0.0, y, 55.0), (12.0, y, 20.0)), ((2.0, y, p), (50.0, y, p)),
+           ((25.0, y, p), (75.0, y, p + 1.0)), ((50.0, y, p), (100.0, y, p + 2.0)),
+           ((75.0, y, p), (125.0, y, p + 6.0)), ((100.0, y, p), (150.0, y, p + 10.0))]
+    return path({"builtin": "city", "size": 150_000, "seed": 1}, pts, 12.0)
+
+
+def city_far() -> Recording:
+    lay = city_layout(150_000, 1)
+    h = lay["half_extent"]
+    height = 1.5 * h
+    pts = []
+    for a in np.linspace(0.0, 1.5 * np.pi, 10):
+        eye = (1.3 * h * np.cos(a), height, 1.3 * h * np.sin(a))
+        pts.append((eye, (0.2 * h * np.cos(a + 1.0), 0.0, 0.2 * h * np.sin(a + 1.0))))
+    return path({"builtin": "city", "size": 150_000, "seed": 1}, pts, 12.0)
+
+
+def sponza_walk() -> Recording:
+    y = 1.8  # floor at y ~ -0.08
+    pts = [((-13.0, y, 0.0), (-3.0, y + 0.5, 0.0)), ((-9.0, y, 0.3), (1.0, y + 1.0, -1.0)),
+           ((-5.0, y, 0.6), (5.0, y + 2.0, 0.0)), ((-1.0, y, 0.3), (9.0, y + 3.0, 2.0)),
+           ((3.0, y, -0.3), (10.0, y + 1.0, -4.0)), ((7.0, y, -0.6), (12.0, y, 2.0)),
+           ((10.0, y, 0.0), (4.0, y + 2.0, 4.0)), ((8.0, y, 1.0), (-2.0, y + 4.0, 0.0)),
+           ((4.0, y + 1.0, 0.5), (-8.0, y + 6.0, 0.0))]
+    return path({"file": "sponza-dabrovic/sponza.obj"}, pts, 12.0)
+
+
+def sibenik_walk() -> Recording:
+    y = -13.5  # nave floor at y ~ -15.3
+    pts = [((-17.0, y, 0.0), (0.0, y + 1.0, 0.0)), ((-13.0, y, 0.5), (3.0, y + 3.0, 0.0)),
+           ((-9.0, y, 0.8), (6.0, y + 5.0, -1.0)), ((-5.0, y, 0.4), (9.0, y + 2.0, 1.0)),
+           ((-1.0, y, -0.4), (12.0, y + 1.0, -2.0)), ((3.0, y, -0.6), (14.0, y + 4.0, 0.0)),
+           ((6.0, y, 0.0), (0.0, y + 8.0, 0.0)), ((3.0, y, 1.0), (-12.0, y + 3.0, 0.0))]
+    return path({"file": "sibenik/sibenik.obj"}, pts, 12.0)
+
+
+def conference_walk() -> Recording:
+    y = 360.0  # floor at y ~ -2.6, ceiling ~ 640
+    c = np.array([330.0, 0.0, -195.0])
+    pts = []
+    for a in np.linspace(0.2, 1.8 * np.pi, 10):
+        eye = (c[0] + 600.0 * np.cos(a), y, c[2] + 480.0 * np.sin(a))
+        pts.append((eye, (c[0], 120.0, c[2])))
+    return path({"file": "conference/conference.ply"}, pts, 12.0)
+
+
+def main() -> None:
+    for name, make in [("city-near", city_near), ("city-far", city_far), ("sponza-walk", sponza_walk),
+                       ("sibenik-walk", sibenik_walk), ("conference-walk", conference_walk)]:
+        out = save_recording(make(), HERE / f"{name}.json")
+        print(out)
+
+
+if __name__ == "__main__":
+    main()
