@@ -92,9 +92,9 @@ def cmd_render(args) -> int:
     from PIL import Image
 
     from viewer.gpu import create_headless_context
+    from viewer.passes.shade import VIEW_MODES
     from viewer.recording import load_recording
     from viewer.renderer import Renderer
-    from viewer.passes.shade import VIEW_MODES
 
     if args.view not in VIEW_MODES:
         raise RtwalkError(f"unknown --view '{args.view}' (choose from {', '.join(VIEW_MODES)})")

@@ -33,8 +33,8 @@ to within a few dozen triangles (for targets >= ~2000).
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Callable
 
 import numpy as np
 
@@ -249,7 +249,6 @@ def _city_camera(n: int, half: float) -> tuple[list[float], list[float]]:
 
 def make_city(target_triangles: int = 150_000, seed: int = 1) -> Scene:
     b = _city_buildings(target_triangles, seed)
-    rng = np.random.default_rng([seed, 7])  # relief randomness, independent of the layout draws
     n, half, nb = b.n, b.half, b.h.size
     g = n + 2
     ground_tris = 2 * g * g
@@ -339,7 +338,6 @@ def make_city(target_triangles: int = 150_000, seed: int = 1) -> Scene:
     lo = np.concatenate(los)
     hi = np.concatenate(his)
     box_mat = np.concatenate(mats).astype(np.int32)
-    del los, his, mats
 
     total = ground_tris + 12 * lo.shape[0]
     tris = np.empty((total, 3, 3), np.float32)

@@ -263,7 +263,8 @@ def _apply_sidecar(scene: Scene, path: Path) -> list[str]:
                                                       _vec(cam["target"], 3, "camera target", path), fov_y=fov)
             else:
                 q = _vec(cam["orientation"], 4, "camera orientation", path)
-                scene.default_camera = Camera(_vec(cam["position"], 3, "camera position", path), q / np.linalg.norm(q), fov)
+                pos = _vec(cam["position"], 3, "camera position", path)
+                scene.default_camera = Camera(pos, q / np.linalg.norm(q), fov)
         if "sky_color" in data:
             scene.sky_color = _vec(data["sky_color"], 3, "sky_color", path).astype(np.float32)
         mirrors = data.get("mirrors", [])

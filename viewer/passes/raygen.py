@@ -6,7 +6,6 @@ import moderngl
 import numpy as np
 
 from viewer.backends.base import RayBatch
-from viewer.camera import Camera
 from viewer.effects import RayType
 from viewer.gpu import BIND_COUNTERS, FullscreenQuad, ProgramCache
 from viewer.passes.gbuffer import GBufferPass
