@@ -233,7 +233,7 @@ def plot_phases(report: dict, path: Path) -> None:
     ax.set_title(f"{report['scene_name']} - {report['backend']} - {w}x{h}: GPU time per phase")
     ax.set_xlabel("frame")
     ax.set_ylabel("ms")
-    ax.legend(loc="upper left", fontsize=7, ncol=2)
+    ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=7)
     ax.grid(alpha=0.3)
     fig.tight_layout()
     fig.savefig(path)

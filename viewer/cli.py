@@ -248,11 +248,12 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     ap = build_parser()
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if not argv or (argv[0].startswith("-") and argv[0] not in ("-h", "--help")):
+        argv = ["demo"] + argv  # bare `rtwalk [options]` runs the main job
     args = ap.parse_args(argv)
     handlers = {"view": cmd_view, "render": cmd_render, "bench": cmd_bench, "bench-bvh": cmd_bench_bvh,
                 "info": cmd_info, "demo": cmd_demo}
-    if args.command is None:
-        args = ap.parse_args(["demo"] + (argv if argv is not None else sys.argv[1:]))
     if args.command == "demo":
         # demo reuses bench/view; fill in what their parsers would have set
         for key, val in {"recording": None, "fps": None, "reference": "embree", "reference_every": 6,

@@ -92,7 +92,7 @@ def _load_file(path: Path, given: str, mirror_patterns: list[str], progress: boo
     if progress:
         print(f"loading {path} ...", file=sys.stderr, flush=True)
     try:
-        loaded = trimesh.load(str(path), force="scene")
+        loaded = trimesh.load(str(path), force="scene", process=False)  # we clean, and say what we drop
     except Exception as exc:  # trimesh raises many types for corrupt files
         msg = str(exc).splitlines()[0][:120] if str(exc) else type(exc).__name__
         raise RtwalkError(f"{path}: cannot read scene file ({msg})") from None
