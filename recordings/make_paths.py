@@ -21,7 +21,8 @@ RES = (1280, 720)
 def path(scene: dict, points: list[tuple], seconds: float, fov: float = 60.0) -> Recording:
     """points: (eye, target) pairs, evenly spaced in time over `seconds`."""
     times = np.linspace(0.0, seconds, len(points))
-    keys = [Keyframe.from_camera(float(t), Camera.look_at(e, g, fov_y=fov)) for t, (e, g) in zip(times, points)]
+    keys = [Keyframe.from_camera(float(t), Camera.look_at(e, g, fov_y=fov))
+            for t, (e, g) in zip(times, points, strict=True)]
     return Recording(scene, RES, 30.0, keys)
 
 

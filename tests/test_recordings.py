@@ -16,7 +16,7 @@ from viewer.recording import Keyframe, Recording, load_recording, resolve_scene_
 
 def _rec(times, positions, yaw_deg):
     keys = []
-    for t, p, y in zip(times, positions, yaw_deg):
+    for t, p, y in zip(times, positions, yaw_deg, strict=True):
         a = np.radians(y) / 2
         keys.append(Keyframe(t, p, [np.cos(a), 0.0, np.sin(a), 0.0], 60.0))
     return Recording({"builtin": "room"}, (64, 36), 10.0, keys)
