@@ -8,11 +8,12 @@ from viewer.backends.base import HitBuffer, RayBatch
 from viewer.effects import RayType
 from viewer.gpu import FullscreenQuad, ProgramCache, float_texture
 from viewer.passes.gbuffer import GBufferPass
+from viewer.passes.targets import SizedTargets
 
 ACCUMULATED = (RayType.SHADOW, RayType.SOFT, RayType.AO, RayType.DIFFUSE, RayType.REFLECT)
 
 
-class AccumulatePass:
+class AccumulatePass(SizedTargets):
     def __init__(self, ctx: moderngl.Context, programs: ProgramCache, quad: FullscreenQuad,
                  size: tuple[int, int]):
         self.ctx = ctx
@@ -20,15 +21,9 @@ class AccumulatePass:
         self.program = programs.get("fullscreen.vert", "accumulate.frag")
         for i, name in enumerate(["gPos", "gNormal", "rayOrigin", "rayDir", "hitT", "hitId"]):
             self.program[name] = i
-        self.size = (0, 0)
         self.resize(size)
 
-    def resize(self, size: tuple[int, int]) -> None:
-        if size == self.size:
-            return
-        if self.size != (0, 0):
-            self.release()
-        self.size = size
+    def create_targets(self, size: tuple[int, int]) -> None:
         self.textures = {r: float_texture(self.ctx, size, 4) for r in ACCUMULATED}
         self.fbos = {r: self.ctx.framebuffer(color_attachments=[t]) for r, t in self.textures.items()}
 
@@ -52,8 +47,11 @@ class AccumulatePass:
         self.quad.render(p)
         ctx.disable(ctx.BLEND)
 
-    def release(self) -> None:
+    def release_targets(self) -> None:
         for f in self.fbos.values():
             f.release()
         for t in self.textures.values():
             t.release()
+
+    def release(self) -> None:
+        self.release_targets()

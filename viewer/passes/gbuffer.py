@@ -7,10 +7,11 @@ import numpy as np
 
 from viewer.camera import Camera
 from viewer.gpu import GpuScene, ProgramCache, float_texture, int_texture
+from viewer.passes.targets import SizedTargets
 from viewer.passes.uniforms import apply, camera_uniforms
 
 
-class GBufferPass:
+class GBufferPass(SizedTargets):
     def __init__(self, ctx: moderngl.Context, programs: ProgramCache, gpu_scene: GpuScene,
                  size: tuple[int, int], depth_scale: float, scene_diagonal: float):
         self.ctx = ctx
@@ -19,15 +20,9 @@ class GBufferPass:
         self.diagonal = scene_diagonal
         self.program = programs.get("gbuffer.vert", "gbuffer.frag", geometry="gbuffer.geom")
         self.vao = ctx.vertex_array(self.program, [(gpu_scene.vertices, "3f", "in_pos")])
-        self.size = (0, 0)
         self.resize(size)
 
-    def resize(self, size: tuple[int, int]) -> None:
-        if size == self.size:
-            return
-        if self.size != (0, 0):
-            self.release_targets()
-        self.size = size
+    def create_targets(self, size: tuple[int, int]) -> None:
         self.position = float_texture(self.ctx, size, 4)
         self.normal = float_texture(self.ctx, size, 4)
         self.albedo = float_texture(self.ctx, size, 4)

@@ -9,13 +9,14 @@ from viewer.effects import EffectSettings, RayType
 from viewer.gpu import FullscreenQuad, ProgramCache
 from viewer.passes.accumulate import AccumulatePass
 from viewer.passes.gbuffer import GBufferPass
+from viewer.passes.targets import SizedTargets
 
 # Index = viewMode uniform in shade.frag.
 VIEW_MODES = ["final", "albedo", "normal", "depth", "shadows", "soft", "ao", "diffuse", "reflections",
               "triangle_id"]
 
 
-class ShadePass:
+class ShadePass(SizedTargets):
     def __init__(self, ctx: moderngl.Context, programs: ProgramCache, quad: FullscreenQuad,
                  size: tuple[int, int]):
         self.ctx = ctx
@@ -24,15 +25,9 @@ class ShadePass:
         names = ["gPos", "gNormal", "gAlbedo", "gId", "accShadow", "accSoft", "accAO", "accDiffuse", "accReflect"]
         for i, name in enumerate(names):
             self.program[name] = i
-        self.size = (0, 0)
         self.resize(size)
 
-    def resize(self, size: tuple[int, int]) -> None:
-        if size == self.size:
-            return
-        if self.size != (0, 0):
-            self.release()
-        self.size = size
+    def create_targets(self, size: tuple[int, int]) -> None:
         self.color = self.ctx.texture(size, 4, dtype="f1")
         self.fbo = self.ctx.framebuffer(color_attachments=[self.color])
 
@@ -61,6 +56,9 @@ class ShadePass:
         data = np.frombuffer(self.color.read(), np.uint8).reshape(self.size[1], self.size[0], 4)
         return np.ascontiguousarray(data[::-1, :, :3])
 
-    def release(self) -> None:
+    def release_targets(self) -> None:
         self.fbo.release()
         self.color.release()
+
+    def release(self) -> None:
+        self.release_targets()
