@@ -94,6 +94,7 @@ class Renderer:
     def resize(self, size: tuple[int, int]) -> None:
         if size == self.size:
             return
+        self.ctx.screen.use()  # never release a framebuffer that is still bound
         self.size = size
         self.gbuffer.resize(size)
         self.accumulate.resize(size)

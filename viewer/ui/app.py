@@ -8,6 +8,7 @@ F12 screenshot, R record, P play back, F1 panel on/off, Esc quits.
 
 For tests and the README screenshot: `--max-frames N` or RTWALK_VIEW_FRAMES=N quits after N
 frames; RTWALK_VIEW_SCREENSHOT=path.png then saves the whole window, panel included.
+RTWALK_VIEW_SCALE=0.25..1 sets the initial render scale (default 0.5).
 """
 
 from __future__ import annotations
@@ -75,21 +76,43 @@ def frame_limit(args) -> int | None:
     return int(n)
 
 
+def render_scale_from_env() -> float:
+    """RTWALK_VIEW_SCALE (0.25..1), else DEFAULT_RENDER_SCALE; the panel slider changes it live."""
+    env = os.environ.get("RTWALK_VIEW_SCALE", "").strip()
+    if not env:
+        return DEFAULT_RENDER_SCALE
+    try:
+        v = float(env)
+    except ValueError:
+        v = float("nan")
+    if not 0.25 <= v <= 1.0:
+        raise RtwalkError(f"RTWALK_VIEW_SCALE='{env}' must be a number in 0.25..1")
+    return v
+
+
 def require_display() -> None:
     if not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")):
         raise RtwalkError(f"no display (DISPLAY is not set) for the `view` window; {NO_DISPLAY_HINT}")
 
 
-def open_window(size: tuple[int, int], title: str):
-    """A pyglet window with an OpenGL 4.5 core context (RtwalkError when there is none)."""
+def window_class():
+    """moderngl-window's pyglet window class; importing it connects to the display (checked early)."""
+    require_display()
     try:
         import moderngl_window as mglw
 
-        window_cls = mglw.get_local_window_cls("pyglet")
+        return mglw.get_local_window_cls("pyglet")
     except Exception as exc:  # pyglet connects to the X server on import (NoSuchDisplayException)
-        msg = _first_line(exc)
-        raise RtwalkError(f"no display: cannot connect to '{os.environ.get('DISPLAY', '')}' ({msg}); "
+        where = os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY", "")
+        raise RtwalkError(f"no display: cannot connect to '{where}' ({type(exc).__name__}); "
                           f"{NO_DISPLAY_HINT}") from None
+
+
+def open_window(size: tuple[int, int], title: str):
+    """A pyglet window with an OpenGL 4.5 core context (RtwalkError when there is none)."""
+    import moderngl_window as mglw
+
+    window_cls = window_class()
     try:
         window = window_cls(title=title, gl_version=(4, 5), size=size, resizable=True, vsync=False,
                             aspect_ratio=None)
@@ -112,8 +135,9 @@ def run_viewer(args) -> int:
     from viewer.recording import load_recording
 
     max_frames = frame_limit(args)
+    render_scale_from_env()  # bad values fail before the window opens
     shot = os.environ.get("RTWALK_VIEW_SCREENSHOT", "").strip() or None
-    require_display()
+    window_class()  # fail on a missing display before spending time on the scene
     settings = settings_from(args)
     size = parse_size(args.size)
     if args.backend not in BACKENDS:
@@ -134,7 +158,12 @@ def run_viewer(args) -> int:
     finally:
         if app is not None:
             app.release()
-        window.close()
+        _ = window.ctx.error  # a pending GL error would make pyglet's close raise
+        try:
+            window.close()
+        except Exception as exc:  # closing must not turn a clean exit into a traceback
+            if not quiet:
+                log(f"rtwalk view: warning: closing the window: {_first_line(exc)}")
 
 
 # --------------------------------------------------------------------------- the window
@@ -156,7 +185,7 @@ class ViewerApp:
         self.quiet = quiet
         self.max_frames = max_frames
         self.window_shot = window_shot
-        self.render_scale = DEFAULT_RENDER_SCALE
+        self.render_scale = render_scale_from_env()
         self.show_panel = True
         self.status = ""
         self.backend_error = ""
@@ -210,6 +239,15 @@ class ViewerApp:
         s = float(np.clip(self.render_scale, 0.1, 1.0))
         return max(1, int(round(w * s))), max(1, int(round(h * s)))
 
+    def _resize_renderer(self, size: tuple[int, int]) -> None:
+        if tuple(self.renderer.size) == tuple(size):
+            return
+        # With one of the renderer's framebuffers bound, moderngl re-binds the released (deleted)
+        # framebuffer after creating the new ones: GL_INVALID_OPERATION, which pyglet later reports.
+        self.ctx.screen.use()
+        self.renderer.resize(size)
+        _ = self.ctx.error  # consume anything left over so it is not blamed on pyglet's next call
+
     def say(self, msg: str) -> None:
         """Show in the panel and print (the paths of saved files are wanted on the terminal too)."""
         self.status = msg
@@ -259,7 +297,7 @@ class ViewerApp:
 
         full = tuple(self.wnd.buffer_size)
         if tuple(self.renderer.size) != full:  # the saved image is always at the full window size
-            self.renderer.resize(full)
+            self._resize_renderer(full)
             self.renderer.render(self.camera)
         img = self.renderer.read_image()
         stamp = time.strftime("%Y%m%d-%H%M%S")
@@ -426,7 +464,7 @@ class ViewerApp:
             action()
         imgui.get_io().delta_time = max(dt, 1e-4)
         self.update_camera(now, dt)
-        self.renderer.resize(self._render_size())
+        self._resize_renderer(self._render_size())
         report = self._render()
         self.last_report = report
         self.history.add(frame_ms if frame_ms > 0 else report.wall_ms, sum(report.gpu_ms.values()))

@@ -98,21 +98,67 @@ def draw_panel(host, width: float, height: float) -> None:  # noqa: C901 (a flat
     # -- status line --------------------------------------------------------------------------
     hist = host.history
     imgui.text(f"{hist.fps:5.1f} fps  {hist.mean_ms:6.1f} ms/frame  render {r.size[0]}x{r.size[1]}")
+    imgui.text(f"{scene.name}: {scene.triangle_count:,} tris, backend {r.backend_name}, view {r.view}")
     mode = host.mode_line()
     if mode:
         imgui.text_colored((1.0, 0.45, 0.35, 1.0), mode)
     if host.status:
         imgui.text_wrapped(host.status)
 
-    # -- scene --------------------------------------------------------------------------------
-    if imgui.collapsing_header("Scene", imgui.TreeNodeFlags_.default_open):
-        st = r.stats()
-        imgui.text(f"{scene.name}: {scene.triangle_count:,} triangles")
-        imgui.text(f"{len(scene.materials)} materials, {len(scene.point_lights)} point / "
-                   f"{len(scene.rect_lights)} area lights")
-        imgui.text(f"BVH {st.get('nodes', 0):,} nodes, depth {st.get('depth', 0)}")
-        imgui.text(f"SAH cost {st.get('sah_cost', 0.0):.1f}, built in {st.get('build_time_s', 0.0):.2f} s")
-        imgui.text(f"GPU memory {_mib(st.get('gpu_memory_bytes', 0))}")
+    # -- timings ------------------------------------------------------------------------------
+    if imgui.collapsing_header("Timings", imgui.TreeNodeFlags_.default_open):
+        rep = host.last_report
+        frame = hist.array("frame")
+        imgui.plot_lines("##frame", frame, overlay_text=f"frame ms (last {len(hist.frame_ms)})",
+                         scale_min=0.0, scale_max=float(max(frame.max() * 1.1, 1.0)), graph_size=(-1, 56))
+        if rep is not None:
+            total = max(sum(rep.gpu_ms.values()), 1e-6)
+            imgui.text(f"GPU {total:.1f} ms, wall {rep.wall_ms:.1f} ms")
+            for name, ms in rep.gpu_ms.items():
+                imgui.progress_bar(min(ms / total, 1.0), (-1, 0), f"{name}  {ms:.2f} ms")
+            rays = sum(rep.rays.values())
+            if rep.rays:
+                if imgui.begin_table("rays", 2):
+                    for name, n in rep.rays.items():
+                        imgui.table_next_column()
+                        imgui.text(f"{name} {n:,}")
+                    imgui.end_table()
+                trace = rep.trace_ms
+                mrays_trace = rays / (trace * 1e3) if trace > 0 else 0.0
+                mrays_frame = rays / (rep.wall_ms * 1e3) if rep.wall_ms > 0 else 0.0
+                imgui.text(f"{rays:,} rays: {mrays_trace:.1f} Mrays/s traced")
+                imgui.text(f"({mrays_frame:.1f} Mrays/s over the whole frame)")
+            else:
+                imgui.text("no rays traced (all effects off)")
+
+    # -- effects ------------------------------------------------------------------------------
+    if imgui.collapsing_header("Effects", imgui.TreeNodeFlags_.default_open):
+        col = 150
+
+        def toggle_with_samples(label: str, on: str, samples: str | None) -> None:
+            _, val = imgui.checkbox(label, getattr(s, on))
+            setattr(s, on, val)
+            if samples is not None and val:
+                imgui.same_line(col)
+                imgui.push_item_width(-1)
+                _, n = imgui.slider_int(f"##{samples}", getattr(s, samples), 1, 64, "%d samples")
+                imgui.pop_item_width()
+                setattr(s, samples, n)
+
+        _, s.shadows = imgui.checkbox("shadows", s.shadows)
+        imgui.same_line(col)
+        _, s.reflections = imgui.checkbox("reflections", s.reflections)
+        toggle_with_samples("soft shadows", "soft", "soft_samples")
+        toggle_with_samples("ambient occl.", "ao", "ao_samples")
+        if s.ao:
+            _, s.ao_length = imgui.slider_float("ao length", s.ao_length, 0.001, 1.0, "%.3f",
+                                                imgui.SliderFlags_.logarithmic)
+        toggle_with_samples("diffuse bounce", "diffuse", "diffuse_samples")
+        _, s.primary = imgui.checkbox("trace primary rays", s.primary)
+        _, s.perturb_deg = imgui.slider_float("perturb (deg)", s.perturb_deg, 0.0, 180.0, "%.1f")
+        _, s.exposure = imgui.slider_float("exposure", s.exposure, 0.05, 8.0, "%.2f",
+                                           imgui.SliderFlags_.logarithmic)
+        _, s.ambient = imgui.slider_float("ambient", s.ambient, 0.0, 1.0, "%.2f")
 
     # -- renderer -----------------------------------------------------------------------------
     if imgui.collapsing_header("Renderer", imgui.TreeNodeFlags_.default_open):
@@ -130,49 +176,15 @@ def draw_panel(host, width: float, height: float) -> None:  # noqa: C901 (a flat
             r.view = VIEW_MODES[idx]
         _, host.render_scale = imgui.slider_float("render scale", host.render_scale, 0.25, 1.0, "%.2f")
 
-    # -- effects ------------------------------------------------------------------------------
-    if imgui.collapsing_header("Effects", imgui.TreeNodeFlags_.default_open):
-        _, s.shadows = imgui.checkbox("shadows", s.shadows)
-        _, s.soft = imgui.checkbox("soft shadows", s.soft)
-        if s.soft:
-            _, s.soft_samples = imgui.slider_int("soft samples", s.soft_samples, 1, 64)
-        _, s.ao = imgui.checkbox("ambient occlusion", s.ao)
-        if s.ao:
-            _, s.ao_samples = imgui.slider_int("ao samples", s.ao_samples, 1, 64)
-            _, s.ao_length = imgui.slider_float("ao length", s.ao_length, 0.001, 1.0, "%.3f",
-                                                imgui.SliderFlags_.logarithmic)
-        _, s.diffuse = imgui.checkbox("diffuse (1 bounce)", s.diffuse)
-        if s.diffuse:
-            _, s.diffuse_samples = imgui.slider_int("diffuse samples", s.diffuse_samples, 1, 64)
-        _, s.reflections = imgui.checkbox("reflections", s.reflections)
-        _, s.primary = imgui.checkbox("trace primary rays", s.primary)
-        _, s.perturb_deg = imgui.slider_float("perturb (deg)", s.perturb_deg, 0.0, 180.0, "%.1f")
-        _, s.exposure = imgui.slider_float("exposure", s.exposure, 0.05, 8.0, "%.2f",
-                                           imgui.SliderFlags_.logarithmic)
-        _, s.ambient = imgui.slider_float("ambient", s.ambient, 0.0, 1.0, "%.2f")
-
-    # -- timings ------------------------------------------------------------------------------
-    if imgui.collapsing_header("Timings", imgui.TreeNodeFlags_.default_open):
-        rep = host.last_report
-        frame = hist.array("frame")
-        imgui.plot_lines("##frame", frame, overlay_text=f"frame ms (last {len(hist.frame_ms)})",
-                         scale_min=0.0, scale_max=float(max(frame.max() * 1.1, 1.0)), graph_size=(-1, 56))
-        if rep is not None:
-            total = max(sum(rep.gpu_ms.values()), 1e-6)
-            imgui.text(f"GPU {total:.1f} ms, wall {rep.wall_ms:.1f} ms")
-            for name, ms in rep.gpu_ms.items():
-                imgui.progress_bar(min(ms / total, 1.0), (-1, 0), f"{name}  {ms:.2f} ms")
-            rays = sum(rep.rays.values())
-            if rep.rays:
-                for name, n in rep.rays.items():
-                    imgui.text(f"  {name:<12} {n:>11,} rays")
-                trace = rep.trace_ms
-                mrays_trace = rays / (trace * 1e3) if trace > 0 else 0.0
-                mrays_frame = rays / (rep.wall_ms * 1e3) if rep.wall_ms > 0 else 0.0
-                imgui.text(f"{rays:,} rays: {mrays_trace:.1f} Mrays/s traced,")
-                imgui.text(f"{mrays_frame:.1f} Mrays/s per frame")
-            else:
-                imgui.text("no rays traced (all effects off)")
+    # -- scene --------------------------------------------------------------------------------
+    if imgui.collapsing_header("Scene", imgui.TreeNodeFlags_.default_open):
+        st = r.stats()
+        imgui.text(f"{scene.name}: {scene.triangle_count:,} triangles")
+        imgui.text(f"{len(scene.materials)} materials, {len(scene.point_lights)} point / "
+                   f"{len(scene.rect_lights)} area lights")
+        imgui.text(f"BVH {st.get('nodes', 0):,} nodes, depth {st.get('depth', 0)}")
+        imgui.text(f"SAH cost {st.get('sah_cost', 0.0):.1f}, built in {st.get('build_time_s', 0.0):.2f} s")
+        imgui.text(f"GPU memory {_mib(st.get('gpu_memory_bytes', 0))}")
 
     # -- camera -------------------------------------------------------------------------------
     if imgui.collapsing_header("Camera", imgui.TreeNodeFlags_.default_open):

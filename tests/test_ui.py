@@ -1,0 +1,384 @@
+"""The interactive window: camera controller (pure Python), panel helpers, and `rtwalk view` smoke
+tests under xvfb-run (skipped where xvfb-run is missing)."""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import shutil
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from viewer.camera import Camera, yaw_pitch_to_quat
+from viewer.errors import RtwalkError
+from viewer.ui.camera_controller import (
+    FAST_FACTOR,
+    PITCH_LIMIT,
+    SPEED_FRACTION,
+    WHEEL_FACTOR,
+    FlyCamera,
+    yaw_pitch_of,
+)
+from viewer.ui.panel import FrameHistory, camera_argument
+
+XVFB = shutil.which("xvfb-run")
+needs_xvfb = pytest.mark.skipif(XVFB is None, reason="xvfb-run is not installed (apt-get install xvfb xauth)")
+
+
+def fly(yaw=0.0, pitch=0.0, speed=2.0):
+    return FlyCamera(np.zeros(3), yaw=yaw, pitch=pitch, base_speed=speed)
+
+
+# --------------------------------------------------------------------------- camera controller
+
+
+def test_w_moves_along_forward_by_speed_times_dt():
+    f = fly(yaw=0.3, pitch=0.2, speed=2.0)
+    cam = f.camera()
+    f.update(0.1, ["forward"])
+    np.testing.assert_allclose(f.position, cam.forward * 2.0 * 0.1, atol=1e-12)
+    np.testing.assert_allclose(np.linalg.norm(f.position), 0.2, rtol=1e-12)
+
+
+def test_axes_match_the_camera_and_other_keys():
+    f = fly(yaw=-0.7, pitch=0.4)
+    cam = f.camera()
+    ax = f.axes()
+    np.testing.assert_allclose(ax["forward"], cam.forward, atol=1e-12)
+    np.testing.assert_allclose(ax["right"], cam.right, atol=1e-12)
+    for action, expect in [("back", -cam.forward), ("right", cam.right), ("left", -cam.right),
+                           ("up", [0, 1, 0]), ("down", [0, -1, 0])]:
+        g = fly(yaw=-0.7, pitch=0.4, speed=1.0)
+        g.update(1.0, [action])
+        np.testing.assert_allclose(g.position, expect, atol=1e-12, err_msg=action)
+
+
+def test_shift_multiplies_speed_and_diagonals_are_not_faster():
+    a, b = fly(), fly()
+    a.update(0.1, ["forward"])
+    b.update(0.1, ["forward"], fast=True)
+    np.testing.assert_allclose(b.position, a.position * FAST_FACTOR, atol=1e-12)
+    c = fly(speed=2.0)
+    c.update(0.5, ["forward", "right"])
+    assert np.linalg.norm(c.position) == pytest.approx(1.0)
+    d = fly()
+    d.update(0.5, ["forward", "back"])  # opposite keys cancel
+    np.testing.assert_allclose(d.position, 0.0)
+
+
+def test_frame_rate_independence():
+    a, b = fly(yaw=1.1, pitch=-0.3), fly(yaw=1.1, pitch=-0.3)
+    a.update(0.05, ["forward", "up"], fast=True)
+    a.update(0.05, ["forward", "up"], fast=True)
+    b.update(0.1, ["forward", "up"], fast=True)
+    np.testing.assert_allclose(a.position, b.position, atol=1e-12)
+    c = fly()
+    for _ in range(10):
+        c.update(0.01, ["left"])
+    d = fly()
+    d.update(0.1, ["left"])
+    np.testing.assert_allclose(c.position, d.position, atol=1e-12)
+    e = fly()
+    e.update(0.0, ["forward"])
+    e.update(float("nan"), ["forward"])
+    np.testing.assert_allclose(e.position, 0.0)
+
+
+def test_mouse_look_changes_yaw_and_pitch():
+    f = fly()
+    f.look(10, 0)  # drag right: turn right (yaw about +Y decreases)
+    assert f.yaw == pytest.approx(-10 * f.sensitivity)
+    assert f.pitch == 0.0
+    assert f.camera().forward[0] > 0  # now looking a little towards +X
+    f.look(0, -20)  # drag up: look up
+    assert f.pitch == pytest.approx(20 * f.sensitivity)
+    assert f.camera().forward[1] > 0
+
+
+def test_pitch_is_clamped():
+    f = fly()
+    f.look(0, -1e6)
+    assert f.pitch == pytest.approx(PITCH_LIMIT)
+    assert math.degrees(f.pitch) == pytest.approx(89.0)
+    f.look(0, 1e6)
+    assert f.pitch == pytest.approx(-PITCH_LIMIT)
+    assert FlyCamera(np.zeros(3), pitch=3.0).pitch == pytest.approx(PITCH_LIMIT)
+
+
+def test_wheel_scales_speed():
+    f = fly(speed=2.0)
+    f.scroll(1)
+    assert f.speed == pytest.approx(2.0 * WHEEL_FACTOR)
+    f.scroll(-3)
+    assert f.speed == pytest.approx(2.0 / WHEEL_FACTOR**2)
+    for _ in range(200):
+        f.scroll(1)
+    assert np.isfinite(f.speed) and f.speed < 2.0 * 1e4
+
+
+def test_from_camera_round_trips_the_view_and_scales_speed_to_the_scene():
+    cam = Camera.look_at([3.0, 2.0, 1.0], [-4.0, 1.0, -6.0], fov_y=50.0)
+    f = FlyCamera.from_camera(cam, scene_diagonal=500.0)
+    assert f.base_speed == pytest.approx(500.0 * SPEED_FRACTION)
+    out = f.camera()
+    np.testing.assert_allclose(out.position, cam.position)
+    np.testing.assert_allclose(out.forward, cam.forward, atol=1e-9)
+    np.testing.assert_allclose(out.up, cam.up, atol=1e-9)  # look_at has no roll
+    assert out.fov_y == 50.0
+    for yaw, pitch in [(0.0, 0.0), (2.5, -0.4), (-3.0, 1.2)]:
+        y, p = yaw_pitch_of(Camera(np.zeros(3), yaw_pitch_to_quat(yaw, pitch)))
+        assert y == pytest.approx(yaw) and p == pytest.approx(pitch)
+
+
+# --------------------------------------------------------------------------- panel helpers
+
+
+def test_camera_argument_reproduces_the_view():
+    from viewer.cli import parse_camera
+
+    cam = Camera.look_at([1.5, 2.25, -3.0], [10.0, 0.0, 4.0], fov_y=45.0)
+    arg = camera_argument(cam, target_distance=5.0)
+    back = parse_camera(arg)
+    np.testing.assert_allclose(back.position, cam.position, atol=1e-4)
+    np.testing.assert_allclose(back.forward, cam.forward, atol=1e-4)
+    assert back.fov_y == 45.0
+    assert " " not in arg and len(arg.split(",")) == 7
+
+
+def test_frame_history_keeps_the_last_frames():
+    h = FrameHistory(n=120)
+    assert h.fps == 0.0 and h.array().shape == (1,)
+    for i in range(300):
+        h.add(10.0 + (i % 2), 5.0)
+    assert len(h.frame_ms) == 120
+    assert h.mean_ms == pytest.approx(10.5)
+    assert h.array().dtype == np.float32
+
+
+def test_frame_limit(monkeypatch):
+    from argparse import Namespace
+
+    from viewer.ui.app import frame_limit
+
+    monkeypatch.delenv("RTWALK_VIEW_FRAMES", raising=False)
+    assert frame_limit(Namespace(max_frames=None)) is None
+    assert frame_limit(Namespace()) is None
+    assert frame_limit(Namespace(max_frames=3)) == 3
+    monkeypatch.setenv("RTWALK_VIEW_FRAMES", "7")
+    assert frame_limit(Namespace(max_frames=None)) == 7
+    assert frame_limit(Namespace(max_frames=2)) == 2
+    monkeypatch.setenv("RTWALK_VIEW_FRAMES", "x")
+    with pytest.raises(RtwalkError):
+        frame_limit(Namespace(max_frames=None))
+    with pytest.raises(RtwalkError):
+        frame_limit(Namespace(max_frames=0))
+
+
+def test_render_scale_from_env(monkeypatch):
+    from viewer.ui.app import DEFAULT_RENDER_SCALE, render_scale_from_env
+
+    monkeypatch.delenv("RTWALK_VIEW_SCALE", raising=False)
+    assert render_scale_from_env() == DEFAULT_RENDER_SCALE == 0.5
+    monkeypatch.setenv("RTWALK_VIEW_SCALE", "1")
+    assert render_scale_from_env() == 1.0
+    for bad in ("0.1", "2", "nan", "x"):
+        monkeypatch.setenv("RTWALK_VIEW_SCALE", bad)
+        with pytest.raises(RtwalkError):
+            render_scale_from_env()
+
+
+# --------------------------------------------------------------------------- the window
+
+
+def _env(**extra) -> dict:
+    env = dict(os.environ)
+    for key in ("RTWALK_VIEW_FRAMES", "RTWALK_VIEW_SCREENSHOT", "RTWALK_VIEW_SCALE"):
+        env.pop(key, None)
+    env.update(extra)
+    return env
+
+
+def _xvfb(cmd: list[str], cwd: Path, env: dict, timeout: float = 120) -> subprocess.CompletedProcess:
+    return subprocess.run([XVFB, "-a", "-s", "-screen 0 1280x800x24", *cmd], cwd=cwd, env=env,
+                          capture_output=True, text=True, timeout=timeout)
+
+
+@needs_xvfb
+def test_view_smoke_under_xvfb(tmp_path):
+    from PIL import Image
+
+    shot = tmp_path / "tmp.png"
+    res = _xvfb([sys.executable, "-m", "viewer.cli", "view", "room", "--size", "320x180"], tmp_path,
+                _env(RTWALK_VIEW_FRAMES="5", RTWALK_VIEW_SCREENSHOT=str(shot)))
+    assert res.returncode == 0, res.stderr[-3000:]
+    assert shot.is_file(), res.stderr[-3000:]
+    img = np.asarray(Image.open(shot).convert("RGB"))
+    assert img.shape == (180, 320, 3)
+    assert len(np.unique(img.reshape(-1, 3), axis=0)) > 50  # panel text + rendered scene, not a flat colour
+    left, right = img[:, :100], img[:, 200:]
+    assert left.std() > 5 and right.std() > 5
+    assert not (tmp_path / "imgui.ini").exists()
+
+
+@pytest.mark.parametrize("display", [None, ":4093"], ids=["unset", "unreachable"])
+def test_view_without_display_fails_with_one_line(tmp_path, display):
+    env = _env()
+    env.pop("DISPLAY", None)
+    env.pop("WAYLAND_DISPLAY", None)
+    if display is not None:
+        env["DISPLAY"] = display
+    res = subprocess.run([sys.executable, "-m", "viewer.cli", "view", "room"], cwd=tmp_path, env=env,
+                         capture_output=True, text=True, timeout=60)
+    assert res.returncode == 2
+    lines = res.stderr.strip().splitlines()
+    assert len(lines) == 1, res.stderr  # one line, and no scene loading before it
+    assert lines[0].startswith("rtwalk: error: no display")
+    assert "xvfb-run" in lines[0] and "rtwalk render" in lines[0]
+
+
+_DRIVER = textwrap.dedent('''
+    """Drives the real window through pyglet's event handlers, frame by frame.
+    (pyglet coordinates: y = 0 is the bottom row; the panel covers x < 200.)"""
+    import json
+    import sys
+
+    import moderngl_window  # noqa: F401  (before pyglet, so its options apply)
+    import pyglet.window.key as K
+    import pyglet.window.mouse as M
+
+    from viewer import cli
+    from viewer.ui import app as ui_app
+
+    script, log = {}, {}
+
+    def at(n):
+        def deco(f):
+            script.setdefault(n, []).append(f)
+            return f
+        return deco
+
+    orig_frame = ui_app.ViewerApp.frame
+
+    def frame(self, now, dt, frame_ms):
+        for f in script.get(self.frames, []):
+            f(self, self.wnd)
+        orig_frame(self, now, dt, frame_ms)
+        err = self.ctx.error
+        if err != "GL_NO_ERROR":
+            log.setdefault("gl_errors", []).append([self.frames, err])
+
+    ui_app.ViewerApp.frame = frame
+
+    def press(w, key):
+        w.on_key_press(key, 0)
+        w.on_key_release(key, 0)
+
+    @at(1)
+    def f1(app, w):
+        log["p0"] = app.fly.position.tolist()
+        w.on_key_press(K.W, 0)
+
+    @at(4)
+    def f4(app, w):
+        w.on_key_release(K.W, 0)
+        log["p1"] = app.fly.position.tolist()
+        log["forward"] = app.camera.forward.tolist()
+        log["yaw0"] = app.fly.yaw
+        w.on_mouse_motion(600, 200, 0, 0)
+
+    @at(5)
+    def f5(app, w):  # drag in the scene: looks around
+        w.on_mouse_press(600, 200, M.LEFT, 0)
+        w.on_mouse_drag(650, 200, 50, 0, M.LEFT, 0)
+        w.on_mouse_release(650, 200, M.LEFT, 0)
+        w.on_mouse_motion(60, 150, 0, 0)
+
+    @at(6)
+    def f6(app, w):  # drag that starts on the panel: no camera change
+        log["yaw1"] = app.fly.yaw
+        w.on_mouse_press(60, 150, M.LEFT, 0)
+        w.on_mouse_drag(160, 150, 100, 0, M.LEFT, 0)
+        w.on_mouse_release(160, 150, M.LEFT, 0)
+        w.on_mouse_motion(600, 200, 0, 0)
+
+    @at(7)
+    def f7(app, w):
+        log["yaw2"] = app.fly.yaw
+        press(w, K.F12)
+        press(w, K.R)
+        w.on_key_press(K.D, 0)
+
+    @at(10)
+    def f10(app, w):
+        w.on_key_release(K.D, 0)
+        log["recording"] = app.recorder.recording
+        press(w, K.R)
+
+    @at(11)
+    def f11(app, w):
+        log["saved"] = app.session_recording is not None and not app.recorder.recording
+        press(w, K.P)
+
+    @at(12)
+    def f12(app, w):
+        log["playing"] = app.playing is not None
+        press(w, K.P)
+
+    @at(13)
+    def f13(app, w):
+        log["stopped"] = app.playing is None
+        app.switch_backend("no-such-backend")
+
+    @at(14)
+    def f14(app, w):
+        log["backend"] = app.renderer.backend_name
+        log["backend_error"] = app.backend_error
+        app.renderer.view = "normal"
+        app.render_scale = 1.0
+
+    @at(16)
+    def f16(app, w):
+        log["render_size"] = list(app.renderer.size)
+        w.on_key_press(K.ESCAPE, 0)
+
+    args = cli.build_parser().parse_args(["view", "room", "--size", "400x240", "--quiet"])
+    log["rc"] = ui_app.run_viewer(args)
+    print("LOG " + json.dumps(log))
+''')
+
+
+@needs_xvfb
+def test_view_keys_and_mouse_under_xvfb(tmp_path):
+    """W moves, drags look (not when they start on the panel), F12/R/P save and play, Esc quits."""
+    (tmp_path / "driver.py").write_text(_DRIVER)
+    res = _xvfb([sys.executable, "driver.py"], tmp_path, _env())
+    assert res.returncode == 0, res.stderr[-3000:]
+    line = [ln for ln in res.stdout.splitlines() if ln.startswith("LOG ")]
+    assert line, res.stdout[-2000:] + res.stderr[-2000:]
+    log = json.loads(line[-1][4:])
+    assert log["rc"] == 0
+    assert "gl_errors" not in log
+    moved = np.subtract(log["p1"], log["p0"])
+    assert np.linalg.norm(moved) > 0 and np.dot(moved, log["forward"]) > 0.99 * np.linalg.norm(moved)
+    assert log["yaw1"] < log["yaw0"]  # dragged right in the scene: turned right
+    assert log["yaw2"] == log["yaw1"]  # the drag on the panel did not move the camera
+    assert log["recording"] and log["saved"] and log["playing"] and log["stopped"]
+    assert log["backend"] == "glsl" and "no-such-backend" in log["backend_error"]
+    assert log["render_size"] == [400, 240]
+    from PIL import Image
+
+    shots = list((tmp_path / "screenshots").glob("rtwalk-*.png"))
+    assert len(shots) == 1
+    assert Image.open(shots[0]).size == (400, 240)  # F12 saves the full-size render, not the 0.5 scale
+    recs = list((tmp_path / "recordings").glob("room-*.json"))
+    assert len(recs) == 1
+    from viewer.recording import load_recording
+
+    rec = load_recording(recs[0])
+    assert rec.scene["builtin"] == "room" and len(rec.keyframes) >= 2
