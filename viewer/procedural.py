@@ -221,9 +221,14 @@ def _city_buildings(target_triangles: int, seed: int) -> _Buildings:
 
 
 def city_layout(target_triangles: int = 150_000, seed: int = 1) -> dict:
-    """Street layout of `make_city(target_triangles, seed)` (see the module docstring)."""
+    """Street layout of `make_city(target_triangles, seed)` (see the module docstring).
+
+    max_height is the top of the geometry (antennas included; it builds the city to find it),
+    max_building_height the tallest building body.
+    """
     b = _city_buildings(target_triangles, seed)
     n, half = b.n, b.half
+    top = float(make_city(target_triangles, seed).triangles[..., 1].max())
     streets = [float(-half + k * PITCH) for k in range(n + 1)]
     cam_pos, cam_target = _city_camera(n, half)
     return {
@@ -236,7 +241,8 @@ def city_layout(target_triangles: int = 150_000, seed: int = 1) -> dict:
         "street_centres": streets,
         "block_ranges": [(s + STREET_WIDTH / 2, s + PITCH - STREET_WIDTH / 2) for s in streets[:-1]],
         "sidewalk_top": PLINTH_TOP,
-        "max_height": float(b.h.max()),
+        "max_height": top,
+        "max_building_height": float(b.h.max()),
         "building_count": int(b.h.size),
         "default_camera": {"position": cam_pos, "target": cam_target, "fov_y": 60.0},
     }

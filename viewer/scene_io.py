@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import fnmatch
 import json
+import re
 import sys
 from pathlib import Path
 
@@ -35,7 +36,12 @@ def load_scene(spec: str | None, scene_size: int | None = None, seed: int = 1,
                mirror_patterns: list[str] | None = None, progress: bool = True) -> Scene:
     from viewer.procedural import BUILTIN_SCENES
 
-    name = "city" if spec is None else spec
+    name = "city" if spec is None else str(spec)
+    base, sep, spec_size = name.partition(":")
+    if sep and base in BUILTIN_SCENES and re.fullmatch(r"[0-9_]+[kKmM]?", spec_size):
+        # "city:400000", "city:2M": a size in the spec takes precedence over scene_size
+        mult = {"k": 1_000, "m": 1_000_000}.get(spec_size[-1].lower(), 1)
+        name, scene_size = base, int(spec_size.rstrip("kKmM").replace("_", "")) * mult
     if name in BUILTIN_SCENES:
         b = BUILTIN_SCENES[name]
         size = b.default_size if scene_size is None else int(scene_size)
@@ -67,15 +73,8 @@ def _material_of(geom, index: int) -> tuple[str, np.ndarray, np.ndarray | None]:
         mat = getattr(vis, "material", None)
         if mat is not None:
             name = getattr(mat, "name", None) or f"material_{index}"
-            diffuse = getattr(mat, "diffuse", None)
-            if diffuse is None:
-                diffuse = getattr(mat, "baseColorFactor", None)
-            if diffuse is not None:
-                alb = np.asarray(diffuse, np.float64)[:3]
-                if alb.max() > 1.0:
-                    alb = alb / 255.0
-                return str(name), np.clip(alb, 0, 1).astype(np.float32), None
-            return str(name), GREY, None
+            alb = _material_albedo(mat)
+            return str(name), (GREY if alb is None else alb), None
     if kind == "face":
         fc = np.asarray(vis.face_colors, np.float32)[:, :3] / 255.0
         return f"face_colors_{index}", GREY, fc
@@ -84,6 +83,51 @@ def _material_of(geom, index: int) -> tuple[str, np.ndarray, np.ndarray | None]:
         fc = vc[np.asarray(geom.faces)].mean(axis=1)
         return f"vertex_colors_{index}", GREY, fc
     return f"default_{index}", GREY, None
+
+
+def _material_albedo(mat) -> np.ndarray | None:
+    """Diffuse albedo (float32 (3,), 0..1) of a trimesh material, or None if it has none.
+
+    MTL: the exact Kd floats (trimesh keeps them in `kwargs`; its `diffuse` is rounded to 8 bits).
+    glTF: baseColorFactor (uint8 in trimesh, or floats). No sRGB conversion: both are linear.
+    """
+    kd = (getattr(mat, "kwargs", None) or {}).get("kd")
+    if kd is not None:
+        try:
+            a = np.asarray(kd, np.float64).ravel()[:3]
+            if a.size == 3 and np.isfinite(a).all():
+                return np.clip(a, 0, 1).astype(np.float32)
+        except (TypeError, ValueError):
+            pass
+    for attr in ("diffuse", "baseColorFactor"):
+        value = getattr(mat, attr, None)
+        if value is None:
+            continue
+        raw = np.asarray(value)
+        a = raw.astype(np.float64).ravel()[:3]
+        if a.size != 3 or not np.isfinite(a).all():
+            continue
+        if raw.dtype.kind in "ui" or a.max() > 1.0:
+            a = a / 255.0
+        return np.clip(a, 0, 1).astype(np.float32)
+    return None
+
+
+MAX_COLOUR_MATERIALS = 256
+
+
+def _colour_materials(face_colors: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Distinct per-face colours (0..1) -> (unique colours (K, 3) float32, per-face index).
+
+    More than MAX_COLOUR_MATERIALS distinct 8-bit colours (a vertex-coloured scan averaged per face
+    can have one per face) are quantised to 4 bits per channel, so K <= 4096.
+    """
+    q = np.clip(np.round(face_colors * 255), 0, 255).astype(np.int32)
+    uniq, inv = np.unique(q, axis=0, return_inverse=True)
+    if len(uniq) > MAX_COLOUR_MATERIALS:
+        q = np.round(q / 17.0).astype(np.int32) * 17
+        uniq, inv = np.unique(q, axis=0, return_inverse=True)
+    return (uniq / 255.0).astype(np.float32), inv.reshape(-1).astype(np.int32)
 
 
 def _load_file(path: Path, given: str, mirror_patterns: list[str], progress: bool) -> Scene:
@@ -102,33 +146,41 @@ def _load_file(path: Path, given: str, mirror_patterns: list[str], progress: boo
         items = list(loaded.graph.nodes_geometry)
     except Exception:
         items = []
-    for i, node in enumerate(items):
-        transform, geom_name = loaded.graph[node]
-        geom = loaded.geometry[geom_name]
-        faces = getattr(geom, "faces", None)
-        verts = getattr(geom, "vertices", None)
-        if faces is None or verts is None or len(faces) == 0:
-            continue
-        v = np.asarray(verts, np.float64)
-        v = v @ np.asarray(transform, np.float64)[:3, :3].T + np.asarray(transform, np.float64)[:3, 3]
-        tri = v[np.asarray(faces, np.int64)].astype(np.float32)
-        name, albedo, face_colors = _material_of(geom, i)
-        if face_colors is not None:
-            # quantise face colours into materials (vectorised: unique colours)
-            q = np.round(face_colors * 255).astype(np.int32)
-            uniq, inv = np.unique(q, axis=0, return_inverse=True)
-            base = len(materials)
-            for k, c in enumerate(uniq):
-                materials.append(Material(f"{name}_{k}", (c / 255.0).astype(np.float32)))
-            ids = base + inv.reshape(-1).astype(np.int32)
-        else:
-            key = (name, tuple(np.round(albedo, 6)))
-            if key not in mat_index:
-                mat_index[key] = len(materials)
-                materials.append(Material(name, albedo))
-            ids = np.full(len(tri), mat_index[key], np.int32)
-        tris_list.append(tri)
-        mat_list.append(ids)
+    try:
+        for i, node in enumerate(items):
+            transform, geom_name = loaded.graph[node]
+            geom = loaded.geometry[geom_name]
+            faces = getattr(geom, "faces", None)
+            verts = getattr(geom, "vertices", None)
+            if faces is None or verts is None or len(faces) == 0:
+                continue
+            faces = np.asarray(faces, np.int64)
+            v = np.asarray(verts, np.float64)
+            if faces.ndim != 2 or faces.shape[1] != 3 or faces.min() < 0 or faces.max() >= len(v):
+                raise ValueError(f"bad face indices in '{geom_name}'")
+            t = np.asarray(transform, np.float64)
+            if not np.array_equal(t, np.eye(4)):
+                with np.errstate(all="ignore"):
+                    v = v @ t[:3, :3].T + t[:3, 3]
+            tri = v.astype(np.float32)[faces]  # cast first: no float64 (N, 3, 3) temporary
+            name, albedo, face_colors = _material_of(geom, i)
+            if face_colors is not None:
+                uniq, inv = _colour_materials(face_colors)
+                base = len(materials)
+                for k, c in enumerate(uniq):
+                    materials.append(Material(f"{name}_{k}", c))
+                ids = base + inv
+            else:
+                key = (name, tuple(np.round(albedo, 6)))
+                if key not in mat_index:
+                    mat_index[key] = len(materials)
+                    materials.append(Material(name, albedo))
+                ids = np.full(len(tri), mat_index[key], np.int32)
+            tris_list.append(tri)
+            mat_list.append(ids)
+    except Exception as exc:  # corrupt content that trimesh let through
+        msg = " ".join(str(exc).split())[:120] or type(exc).__name__
+        raise RtwalkError(f"{path}: cannot read scene file ({msg})") from None
     if not tris_list:
         raise RtwalkError(f"{path}: no triangles in file")
     tris = np.concatenate(tris_list)
@@ -215,20 +267,73 @@ def default_lights(scene: Scene) -> None:
     scene.point_lights = [PointLight(pos.astype(np.float32), np.full(3, reach ** 2, np.float32))]
     side = 0.1 * max(ext[0], ext[2], 1e-6)
     corner = pos + np.array([-side / 2, -0.02 * ext[1], -side / 2])
-    # cross(edge_u, edge_v) must point down (-Y): u = +Z, v = +X
-    eu = np.array([0, 0, side])
-    ev = np.array([side, 0, 0])
+    # cross(edge_u, edge_v) must point down (-Y): cross(+X, +Z) = -Y
+    eu = np.array([side, 0, 0])
+    ev = np.array([0, 0, side])
     power_scale = reach ** 2 / (side * side)
     scene.rect_lights = [RectLight(corner.astype(np.float32), eu.astype(np.float32), ev.astype(np.float32),
                                    np.full(3, power_scale, np.float32))]
 
 
+def axis_ray_hits(tris: np.ndarray, origin, axis: int, sign: float,
+                  tri_min: np.ndarray | None = None, tri_max: np.ndarray | None = None) -> np.ndarray:
+    """Sorted distances of all hits of the ray origin + t * sign * e_axis (t > 0). Vectorised;
+    triangles whose bounding box misses the ray are skipped first (pass tri_min/tri_max, the
+    per-triangle vertex min/max, to reuse them over several rays)."""
+    origin = np.asarray(origin, np.float64)
+    tri_min = tris.min(axis=1) if tri_min is None else tri_min
+    tri_max = tris.max(axis=1) if tri_max is None else tri_max
+    b, c = (axis + 1) % 3, (axis + 2) % 3
+    cand = ((tri_min[:, b] <= origin[b]) & (tri_max[:, b] >= origin[b])
+            & (tri_min[:, c] <= origin[c]) & (tri_max[:, c] >= origin[c]))
+    cand &= (tri_max[:, axis] >= origin[axis]) if sign > 0 else (tri_min[:, axis] <= origin[axis])
+    t = tris[np.nonzero(cand)[0]].astype(np.float64)
+    d = np.zeros(3)
+    d[axis] = 1.0 if sign > 0 else -1.0
+    e1, e2 = t[:, 1] - t[:, 0], t[:, 2] - t[:, 0]
+    with np.errstate(all="ignore"):  # Moller-Trumbore
+        p = np.cross(d, e2)
+        det = np.einsum("ij,ij->i", e1, p)
+        inv = 1.0 / det
+        s = origin - t[:, 0]
+        u = np.einsum("ij,ij->i", s, p) * inv
+        q = np.cross(s, e1)
+        v = (q @ d) * inv
+        dist = np.einsum("ij,ij->i", e2, q) * inv
+        ok = (det != 0) & (u >= 0) & (v >= 0) & (u + v <= 1) & (dist > 0)
+    return np.sort(dist[ok])
+
+
+def is_enclosed(scene: Scene, point) -> bool:
+    """Whether `point` is inside a shell that spans the scene bounds (an interior such as sponza,
+    sibenik, the conference room), not inside a closed object (a scanned bunny): along at least 4
+    of the 6 axis directions, the farthest surface is within 3% of the bounding-box face."""
+    lo, hi = (b.astype(np.float64) for b in scene.bounds)
+    ext = np.maximum(hi - lo, 1e-12)
+    point = np.asarray(point, np.float64)
+    tmin, tmax = scene.triangles.min(axis=1), scene.triangles.max(axis=1)
+    near_face = 0
+    for axis in range(3):
+        for sign, face in ((1.0, hi[axis]), (-1.0, lo[axis])):
+            hits = axis_ray_hits(scene.triangles, point, axis, sign, tmin, tmax)
+            if len(hits) and abs(face - point[axis]) - hits[-1] <= 0.03 * ext[axis]:
+                near_face += 1
+    return near_face >= 4
+
+
 def default_camera(scene: Scene) -> Camera:
+    """Interiors: from the centre moved 35% of the x extent towards -X, at 30% of the height,
+    looking along +X. Objects (bunny, dragon: that point would be inside them): from outside, in
+    front (+Z) and a little above, looking at the centre from 1.7 bounding-sphere radii."""
     lo, hi = (b.astype(np.float64) for b in scene.bounds)
     c = (lo + hi) / 2
     ext = hi - lo
     eye = np.array([c[0] - 0.35 * ext[0], lo[1] + 0.3 * ext[1], c[2]])
-    return Camera.look_at(eye, eye + np.array([1.0, 0.0, 0.0]), fov_y=60.0)
+    if is_enclosed(scene, eye):
+        return Camera.look_at(eye, eye + np.array([1.0, 0.0, 0.0]), fov_y=60.0)
+    direction = np.array([0.0, 0.3, 1.0]) / np.hypot(0.3, 1.0)
+    radius = 0.5 * max(float(np.linalg.norm(ext)), 1e-9)
+    return Camera.look_at(c + direction * 1.7 * radius, c, fov_y=60.0)
 
 
 def _vec(v, n: int, what: str, path: Path) -> np.ndarray:
