@@ -61,21 +61,24 @@ def sponza_walk() -> Recording:
 
 
 def sibenik_walk() -> Recording:
-    y = -13.5  # nave floor at y ~ -15.3
-    pts = [((-17.0, y, 0.0), (0.0, y + 1.0, 0.0)), ((-13.0, y, 0.5), (3.0, y + 3.0, 0.0)),
-           ((-9.0, y, 0.8), (6.0, y + 5.0, -1.0)), ((-5.0, y, 0.4), (9.0, y + 2.0, 1.0)),
-           ((-1.0, y, -0.4), (12.0, y + 1.0, -2.0)), ((3.0, y, -0.6), (14.0, y + 4.0, 0.0)),
-           ((6.0, y, 0.0), (0.0, y + 8.0, 0.0)), ((3.0, y, 1.0), (-12.0, y + 3.0, 0.0))]
-    return path({"file": "sibenik/sibenik.obj"}, pts, 12.0)
+    y = -13.5  # nave floor at y = -15.3 (chancel steps start at x ~ 2.5, so the walk stops at x = 0.5)
+    pts = [((-18.0, y, 0.0), (0.0, y + 1.0, 0.0)), ((-16.0, y, 0.3), (2.0, y + 2.0, 0.5)),
+           ((-14.0, y, 0.6), (0.0, y + 6.0, -3.0)), ((-12.0, y, 0.7), (-6.0, y + 10.0, 0.0)),
+           ((-10.0, y, 0.5), (2.0, y + 5.0, 2.0)), ((-8.0, y, 0.0), (-4.0, y + 1.0, 6.0)),
+           ((-6.0, y, -0.5), (6.0, y + 2.0, -2.0)), ((-4.0, y, -0.6), (10.0, y + 3.0, 0.0)),
+           ((-2.0, y, -0.3), (10.0, y + 2.5, 0.0)), ((-0.2, y, 0.0), (0.5, y + 2.0, -8.0)),
+           ((0.5, y, 0.3), (-12.0, y + 3.0, 0.0))]
+    return path({"file": "sibenik/sibenik.obj"}, pts, 12.5)
 
 
 def conference_walk() -> Recording:
-    y = 360.0  # floor at y ~ -2.6, ceiling ~ 640
-    c = np.array([330.0, 0.0, -195.0])
+    y = 360.0  # floor ~ -1.6, table top ~180-210, chair backs < 230, ceiling ~640
+    c = np.array([490.0, 0.0, -135.0])  # table + chairs span x -40..1020, z -390..120
     pts = []
-    for a in np.linspace(0.2, 1.8 * np.pi, 10):
-        eye = (c[0] + 600.0 * np.cos(a), y, c[2] + 480.0 * np.sin(a))
-        pts.append((eye, (c[0], 120.0, c[2])))
+    for a in np.linspace(0.1 * np.pi, 1.75 * np.pi, 10):
+        eye = np.array([c[0] + 780.0 * np.cos(a), y, c[2] + 420.0 * np.sin(a)])
+        tangent = np.array([-780.0 * np.sin(a), 0.0, 420.0 * np.cos(a)])
+        pts.append((tuple(eye), tuple(c + (0, 120.0, 0) + 0.35 * tangent)))
     return path({"file": "conference/conference.ply"}, pts, 12.0)
 
 

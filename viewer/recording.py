@@ -307,7 +307,8 @@ def _parse_keyframe(k: Any, i: int) -> Keyframe:
         q = _vector(k["orientation"], 4, "orientation")
         n = float(np.linalg.norm(q))
         if not math.isfinite(n) or n < 1e-12:
-            raise _Invalid(f"orientation must be a non-zero quaternion [w, x, y, z], got {_short(k['orientation'])}")
+            raise _Invalid("orientation must be a non-zero quaternion [w, x, y, z], "
+                           f"got {_short(k['orientation'])}")
         fov = _number(k["fov_y"], "fov_y")
         if not MIN_FOV < fov < MAX_FOV:
             raise _Invalid(f"fov_y must be between {MIN_FOV:g} and {MAX_FOV:g} degrees, got {fov:g}")
@@ -335,7 +336,8 @@ def _parse(data: Any) -> tuple[dict, tuple[int, int], float, list[Keyframe]]:
     scene = _parse_scene(data["scene"])
     res = data["resolution"]
     if (not isinstance(res, list) or len(res) != 2
-            or any(isinstance(v, bool) or not isinstance(v, int) or not 0 < v <= MAX_RESOLUTION for v in res)):
+            or any(isinstance(v, bool) or not isinstance(v, int) or not 0 < v <= MAX_RESOLUTION
+                   for v in res)):
         raise _Invalid(f"'resolution' must be [width, height] with integers in 1..{MAX_RESOLUTION}, "
                        f"got {_short(res)}")
     try:
@@ -390,7 +392,8 @@ def load_recording(path: str | os.PathLike) -> Recording:
     try:
         data = json.loads(text)
     except json.JSONDecodeError as e:
-        raise RtwalkError(_one_line(f"{p}: invalid JSON at line {e.lineno} column {e.colno}: {e.msg}")) from None
+        msg = f"{p}: invalid JSON at line {e.lineno} column {e.colno}: {e.msg}"
+        raise RtwalkError(_one_line(msg)) from None
     except (ValueError, RecursionError) as e:
         raise RtwalkError(_one_line(f"{p}: invalid JSON: {_short(str(e), 80)}")) from None
     return recording_from_dict(data, str(p), p)
