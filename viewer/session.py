@@ -41,5 +41,5 @@ def prepare_scene(spec: str | None, scene_size: int | None = None, seed: int = 1
             f"{len(scene.point_lights)} point / {len(scene.rect_lights)} area lights")
         log(f"BVH: {st.nodes:,} nodes, depth {st.depth}, SAH cost {st.sah_cost:.1f}, "
             f"built in {st.build_time_s:.2f} s ({scene.triangle_count / max(st.build_time_s, 1e-9) / 1e6:.2f} Mtri/s), "
-            f"{st.memory_bytes / 2**20:.1f} MiB on the GPU")
+            f"{st.memory_bytes / 2**20:.1f} MiB of node + triangle buffers")
     return PreparedScene(scene.reordered(bvh.tri_order), bvh)
