@@ -16,6 +16,7 @@ import numpy as np
 from tqdm import tqdm
 
 from viewer.effects import EffectSettings
+from viewer.errors import RtwalkError
 from viewer.recording import Recording
 from viewer.renderer import FrameReport, Renderer
 from viewer.session import PreparedScene
@@ -32,10 +33,19 @@ class BenchOptions:
     warmup: int = 1
     frames_dir: Path | None = None  # write PNG frames here (every `frame_every` frames)
     frame_every: int = 10
+    backend_options: dict[str, str] | None = None  # per backend: parameter text (e.g. --chcrt)
+    first_frame: int | None = None  # consecutive frames from here (None: spread over the path)
 
 
-def frame_numbers(rec: Recording, fps: float | None, max_frames: int | None) -> list[int]:
+def frame_numbers(rec: Recording, fps: float | None, max_frames: int | None,
+                  first_frame: int | None = None) -> list[int]:
+    """Frames to replay: all, `max_frames` spread over the path, or consecutive from `first_frame`
+    (what temporal-coherence methods need: spread frames are far apart in time)."""
     n = rec.frame_count(fps)
+    if first_frame is not None:
+        if not 0 <= first_frame < n:
+            raise RtwalkError(f"--first-frame {first_frame} is outside the recording's 0..{n - 1}")
+        return list(range(first_frame, min(n, first_frame + (max_frames or n))))
     if max_frames is not None and max_frames < n:
         # spread the frames over the whole path, still deterministic
         return sorted({int(round(i * (n - 1) / max(max_frames - 1, 1))) for i in range(max_frames)})
@@ -102,7 +112,7 @@ def image_error(a: np.ndarray, b: np.ndarray) -> dict:
 
 def run_bench(prepared: PreparedScene, rec: Recording, settings: EffectSettings, opts: BenchOptions,
               ctx, quiet: bool = False) -> dict:
-    renderer = Renderer(ctx, prepared.scene, prepared.bvh, opts.size, opts.backend, settings)
+    renderer = Renderer(ctx, prepared.scene, prepared.bvh, opts.size, opts.backend, settings, opts.backend_options)
     tracer = None
     if opts.reference == "embree":
         from viewer.reference import EmbreeTracer
@@ -111,7 +121,7 @@ def run_bench(prepared: PreparedScene, rec: Recording, settings: EffectSettings,
             tracer = EmbreeTracer(prepared.scene.triangles)
         else:
             print("rtwalk: embreex is not installed: no error column (pip install embreex)", file=sys.stderr)
-    frames = frame_numbers(rec, opts.fps, opts.max_frames)
+    frames = frame_numbers(rec, opts.fps, opts.max_frames, opts.first_frame)
     fps = opts.fps or rec.fps
     for _ in range(opts.warmup):  # compile shaders, fault in buffers
         renderer.render(rec.camera_for_frame(frames[0], opts.fps))
@@ -146,7 +156,9 @@ def run_bench(prepared: PreparedScene, rec: Recording, settings: EffectSettings,
         "format": "rtwalk-bench", "version": 1,
         "scene": prepared.scene.identity, "scene_name": prepared.scene.name,
         "triangles": prepared.scene.triangle_count, "bvh": prepared.bvh.stats.to_dict(),
-        "backend": opts.backend, "effects": settings.to_dict(), "size": list(opts.size),
+        "backend": opts.backend, "backend_options": opts.backend_options or {},
+        "backend_params": getattr(renderer.backend, "params_text", None),
+        "effects": settings.to_dict(), "size": list(opts.size),
         "recording": str(rec.source) if getattr(rec, "source", None) else None, "fps": fps,
         "device": {"renderer": ctx.info.get("GL_RENDERER"), "version": ctx.info.get("GL_VERSION")},
         "frames": records, "summary": summarize(records),

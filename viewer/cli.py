@@ -59,6 +59,20 @@ def add_effect_args(p: argparse.ArgumentParser, default: str) -> None:
     p.add_argument("--perturb", type=float, default=36.0, help="per-pixel sample rotation, degrees")
     p.add_argument("--ao-length", type=float, default=0.05, help="AO ray length, fraction of the scene diagonal")
     p.add_argument("--exposure", type=float, default=1.0)
+    p.add_argument("--chcrt", default=None, metavar="KEY=VALUE,...",
+                   help="chcrt backend parameters, e.g. 'visible_threshold=20,t_q=0.5' (aggressive threshold in "
+                        "pixels, split rule, min_tile_fraction, max_subtree_height, max_batch, max_multi, ...)")
+
+
+def backend_options_from(args) -> dict[str, str]:
+    """Per-backend parameter text; parsed (and checked) here so bad values fail before any work."""
+    text = getattr(args, "chcrt", None)
+    if not text:
+        return {}
+    from viewer.backends.chcrt import ChcrtParams
+
+    ChcrtParams.parse(text, "--chcrt")
+    return {"chcrt": text}
 
 
 def settings_from(args):
@@ -101,6 +115,7 @@ def cmd_render(args) -> int:
     rec = load_recording(args.recording) if args.recording else None
     size = parse_size(args.size)
     settings = settings_from(args)
+    backend_options = backend_options_from(args)
     prepared = scene_from_args(args, rec)
     if args.camera:
         camera = parse_camera(args.camera)
@@ -109,7 +124,7 @@ def cmd_render(args) -> int:
     else:
         camera = prepared.scene.default_camera
     ctx = create_headless_context()
-    renderer = Renderer(ctx, prepared.scene, prepared.bvh, size, args.backend, settings)
+    renderer = Renderer(ctx, prepared.scene, prepared.bvh, size, args.backend, settings, backend_options)
     renderer.view = args.view
     report = renderer.render(camera)
     out = Path(args.output)
@@ -131,13 +146,15 @@ def cmd_bench(args) -> int:
     if rec_path is None:
         raise RtwalkError("bench needs --recording FILE for this scene (see recordings/)")
     rec = load_recording(rec_path)
-    prepared = scene_from_args(args, rec)
+    settings = settings_from(args)
     opts = BenchOptions(backend=args.backend, size=parse_size(args.size), fps=args.fps,
                         max_frames=args.frames, reference=args.reference, reference_every=args.reference_every,
                         frames_dir=Path(args.save_frames) if args.save_frames else None,
-                        frame_every=args.frame_every)
+                        frame_every=args.frame_every, backend_options=backend_options_from(args),
+                        first_frame=getattr(args, "first_frame", None))
+    prepared = scene_from_args(args, rec)
     ctx = create_headless_context()
-    report = run_bench(prepared, rec, settings_from(args), opts, ctx, quiet=args.quiet)
+    report = run_bench(prepared, rec, settings, opts, ctx, quiet=args.quiet)
     print_summary(report)
     stem = args.name or f"{prepared.scene.name}-{Path(rec_path).stem}-{args.backend}-{opts.size[0]}x{opts.size[1]}"
     json_path, png_path = write_report(report, Path(args.out), stem)
@@ -223,7 +240,10 @@ def build_parser() -> argparse.ArgumentParser:
     add_effect_args(b, "shadows,ao:4,reflections")
     b.add_argument("--recording", default=None, help="camera path (default: recordings/city-near.json for city)")
     b.add_argument("--fps", type=float, default=None, help="sample the path at this rate (default: recording's)")
-    b.add_argument("--frames", type=int, default=None, help="at most this many frames, spread over the path")
+    b.add_argument("--frames", type=int, default=None,
+                   help="at most this many frames, spread over the path (consecutive with --first-frame)")
+    b.add_argument("--first-frame", type=int, default=None,
+                   help="replay consecutive frames from this one (temporal coherence as in a walkthrough)")
     b.add_argument("--reference", choices=["embree", "none"], default="embree")
     b.add_argument("--reference-every", type=int, default=1, help="check every Nth frame against Embree")
     b.add_argument("--save-frames", default=None, help="folder for PNG frames")

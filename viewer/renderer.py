@@ -53,8 +53,10 @@ class FrameReport:
 
 class Renderer:
     def __init__(self, ctx: moderngl.Context, scene: Scene, bvh: BVH, size: tuple[int, int],
-                 backend: str = "glsl", settings: EffectSettings | None = None):
-        """`scene` must already be in BVH leaf order (scene.reordered(bvh.tri_order))."""
+                 backend: str = "glsl", settings: EffectSettings | None = None,
+                 backend_options: dict[str, str] | None = None):
+        """`scene` must already be in BVH leaf order (scene.reordered(bvh.tri_order)).
+        `backend_options`: per backend name, its parameter text (e.g. {"chcrt": "t_q=0.4"})."""
         self.ctx = ctx
         self.scene = scene
         self.bvh = bvh
@@ -77,6 +79,7 @@ class Renderer:
         self.backend_name = ""
         self.backend = None
         self._backends: dict[str, object] = {}
+        self.backend_options = dict(backend_options or {})
         self.set_backend(backend)
 
     # -- configuration -------------------------------------------------------------------------
@@ -87,7 +90,7 @@ class Renderer:
         backend = self._backends.get(name)
         if backend is None:
             bc = BackendContext(self.ctx, self.programs, self.profiler, self.gpu_scene, self.scene, self.bvh)
-            backend = create_backend(name, bc)
+            backend = create_backend(name, bc, self.backend_options.get(name))
             self._backends[name] = backend
         self.backend, self.backend_name = backend, name
 

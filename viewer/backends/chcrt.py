@@ -80,22 +80,47 @@ class ChcrtParams:
     seed: int = 1
 
     @staticmethod
-    def from_env(text: str | None = None) -> ChcrtParams:
-        text = os.environ.get("RTWALK_CHCRT", "") if text is None else text
+    def parse(text: str | None, source: str = "--chcrt") -> ChcrtParams:
+        """Parameters from "key=value,key=value" (the --chcrt option or RTWALK_CHCRT)."""
         p = ChcrtParams()
         types = {f.name: f.type for f in fields(ChcrtParams)}
-        for item in filter(None, (s.strip() for s in text.split(","))):
-            key, _, val = item.partition("=")
+        kind = {"float": float, "int": int, "str": str,
+                "bool": lambda v: _parse_bool(v)}
+        for item in filter(None, (s.strip() for s in (text or "").split(","))):
+            key, sep, val = item.partition("=")
             key = key.strip()
-            if key not in types:
-                raise RtwalkError(f"RTWALK_CHCRT: unknown parameter '{key}' (choose from {', '.join(types)})")
-            kind = {"float": float, "int": int,
-                    "bool": lambda v: v.strip().lower() in ("1", "true", "yes", "on")}
+            if key not in types or not sep:
+                raise RtwalkError(f"{source}: expected key=value with key one of {', '.join(types)} (got '{item}')")
             try:
-                setattr(p, key, kind[str(types[key])](val))
+                setattr(p, key, kind[str(types[key])](val.strip()))
             except ValueError as exc:
-                raise RtwalkError(f"RTWALK_CHCRT: bad value for {key}: '{val}'") from exc
+                raise RtwalkError(f"{source}: bad value for {key}: '{val}'") from exc
+        p.validate(source)
         return p
+
+    @staticmethod
+    def from_env(text: str | None = None) -> ChcrtParams:
+        return ChcrtParams.parse(os.environ.get("RTWALK_CHCRT", "") if text is None else text, "RTWALK_CHCRT")
+
+    def validate(self, source: str = "chcrt") -> None:
+        if not (1 <= self.max_batch <= 24 and 1 <= self.max_multi <= 24):
+            raise RtwalkError(f"{source}: max_batch and max_multi must be in 1..24")
+        if not (self.t_q > 0 and 0 < self.min_tile_fraction <= 1 and self.max_subtree_height >= 1
+                and self.max_subtree_tris >= 1 and self.requery_interval >= 1 and self.schedule_batch >= 1
+                and self.visible_threshold >= 0):
+            raise RtwalkError(f"{source}: t_q and min_tile_fraction must be > 0, thresholds >= 0, counts >= 1")
+
+    def to_text(self) -> str:
+        return ",".join(f"{f.name}={getattr(self, f.name)}" for f in fields(self))
+
+
+def _parse_bool(v: str) -> bool:
+    v = v.strip().lower()
+    if v in ("1", "true", "yes", "on"):
+        return True
+    if v in ("0", "false", "no", "off"):
+        return False
+    raise ValueError(v)
 
 
 _GL_TEXTURE_2D = 0x0DE1
@@ -228,8 +253,7 @@ class ChcrtBackend:
         self.bc = bc
         self.ctx = bc.ctx
         self.p = params or ChcrtParams()
-        if self.p.max_batch > 24 or self.p.max_multi > 24 or self.p.max_batch < 1 or self.p.max_multi < 1:
-            raise RtwalkError("chcrt: max_batch and max_multi must be in 1..24")
+        self.p.validate()
         self.nt = NodeTables.from_bvh(bc.bvh)
         self.bvh_first = np.asarray(bc.bvh.node_first, np.int32)
         diag = max(float(getattr(bc.scene, "diagonal", 1.0)), 1e-30)
@@ -258,6 +282,10 @@ class ChcrtBackend:
         self.frame = 0
         self._occurrence: dict[tuple[int, int], int] = {}
         self.last_stats: dict[str, float] = {}
+
+    @property
+    def params_text(self) -> str:
+        return self.p.to_text()
 
     # -- Backend protocol ----------------------------------------------------------------------
     def begin_frame(self, frame_index: int) -> None:

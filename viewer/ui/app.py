@@ -131,7 +131,7 @@ def _first_line(exc: BaseException) -> str:
 
 def run_viewer(args) -> int:
     from viewer.backends import BACKENDS
-    from viewer.cli import parse_size, scene_from_args, settings_from
+    from viewer.cli import backend_options_from, parse_size, scene_from_args, settings_from
     from viewer.recording import load_recording
 
     max_frames = frame_limit(args)
@@ -139,6 +139,7 @@ def run_viewer(args) -> int:
     shot = os.environ.get("RTWALK_VIEW_SCREENSHOT", "").strip() or None
     window_class()  # fail on a missing display before spending time on the scene
     settings = settings_from(args)
+    backend_options = backend_options_from(args)
     size = parse_size(args.size)
     if args.backend not in BACKENDS:
         raise RtwalkError(f"unknown backend '{args.backend}' (choose from {', '.join(BACKENDS)})")
@@ -151,7 +152,8 @@ def run_viewer(args) -> int:
     window = open_window(size, f"rtwalk - {prepared.scene.name}")
     app = None
     try:
-        app = ViewerApp(window, prepared, settings, args.backend, recording=recording,
+        app = ViewerApp(window, prepared, settings, args.backend, backend_options=backend_options,
+                        recording=recording,
                         scene_arg=getattr(args, "scene", None), max_frames=max_frames, window_shot=shot,
                         quiet=quiet)
         return app.run()
@@ -171,7 +173,8 @@ def run_viewer(args) -> int:
 
 class ViewerApp:
     def __init__(self, window, prepared, settings, backend: str, recording=None, scene_arg: str | None = None,
-                 max_frames: int | None = None, window_shot: str | None = None, quiet: bool = False):
+                 backend_options: dict[str, str] | None = None, max_frames: int | None = None,
+                 window_shot: str | None = None, quiet: bool = False):
         from imgui_bundle import imgui
         from moderngl_window.integrations.imgui_bundle import ModernglWindowRenderer
 
@@ -194,7 +197,8 @@ class ViewerApp:
         self.frames = 0
         self._pending: list[Callable[[], None]] = []
 
-        self.renderer = Renderer(self.ctx, prepared.scene, prepared.bvh, self._render_size(), backend, settings)
+        self.renderer = Renderer(self.ctx, prepared.scene, prepared.bvh, self._render_size(), backend, settings,
+                                 backend_options)
         start = self.scene.default_camera or _overview_camera(self.scene)
         self.fly = FlyCamera.from_camera(start, self.renderer.diagonal)
         self.camera: Camera = self.fly.camera()
