@@ -96,20 +96,10 @@ def _fallback_scene(name: str, path):
 
 
 def _render_both(ctx, name: str, effects: str = ALL, params: str = ""):
-    import os
-
     scene, bvh, path = _load(name)
     settings = parse_effects(effects)
-    old = os.environ.get("RTWALK_CHCRT")
-    os.environ["RTWALK_CHCRT"] = params
-    try:
-        rg = Renderer(ctx, scene, bvh, SIZE, "glsl", settings)
-        rc = Renderer(ctx, scene, bvh, SIZE, "chcrt", settings)
-    finally:
-        if old is None:
-            del os.environ["RTWALK_CHCRT"]
-        else:
-            os.environ["RTWALK_CHCRT"] = old
+    rg = Renderer(ctx, scene, bvh, SIZE, "glsl", settings)
+    rc = Renderer(ctx, scene, bvh, SIZE, "chcrt", settings, {"chcrt": params})
     try:
         frames = []
         for cam in path:
@@ -165,9 +155,12 @@ def _check_exact(a, b, label: str, triangles: np.ndarray) -> dict:
     return {"ties": ties}
 
 
-@pytest.mark.parametrize("name", ["city", "sponza", "conference"])
-def test_conservative_equals_glsl_every_ray_type(name, gl_ctx):
-    frames, scene, bvh = _render_both(gl_ctx, name)
+@pytest.mark.parametrize("name,mode", [("city", "batched"), ("city", "hw"), ("sponza", "batched"),
+                                       ("conference", "batched")])
+def test_conservative_equals_glsl_every_ray_type(name, mode, gl_ctx):
+    """Exact on every ray type, in both query modes (hardware occlusion queries, one draw each;
+    instanced draws with shader-counted queries)."""
+    frames, scene, bvh = _render_both(gl_ctx, name, params=f"query_mode={mode}")
     seen = set()
     ties = 0
     for k, (a, b) in enumerate(frames):
@@ -225,11 +218,12 @@ def test_static_camera_second_frame_needs_fewer_queries(gl_ctx):
     assert second["phase1_subtrees"] > 0 and first["phase1_subtrees"] == 0
 
 
-def test_overlays_and_counters(gl_ctx):
+@pytest.mark.parametrize("mode", ["batched", "hw"])
+def test_overlays_and_counters(mode, gl_ctx):
     from viewer.gpu import read_texture
 
     scene, bvh, path = _load("city")
-    r = Renderer(gl_ctx, scene, bvh, SIZE, "chcrt", parse_effects("primary"))
+    r = Renderer(gl_ctx, scene, bvh, SIZE, "chcrt", parse_effects("primary"), {"chcrt": f"query_mode={mode}"})
     try:
         r.render(path[0])
         rays = r.rays
@@ -245,8 +239,13 @@ def test_overlays_and_counters(gl_ctx):
     assert hit.any() and (sub[hit] >= 0).all() and (sub[~hit] == -1).all()
     first, count = bvh.node_first[sub[hit]], bvh.node_count[sub[hit]]
     assert ((tri[hit] >= first) & (tri[hit] < first + count)).all()  # the hit lies in that subtree
-    assert res.stats["draws"] >= res.stats["queries"] + res.stats["intersect_draws"]
-    assert res.stats["subtrees_scheduled"] > 0
+    st = res.stats
+    if mode == "hw":  # one draw per query and per batch
+        assert st["draws"] >= st["queries"] + st["intersect_draws"] and st["intersect_draws"] == st["batches"]
+    else:  # one instanced draw per query wave / intersection step
+        assert st["queries"] > st["query_waves"] + 2 and st["draws"] <= st["query_waves"] + 8
+        assert st["intersect_draws"] < st["batches"]
+    assert st["subtrees_scheduled"] > 0
 
 
 def test_params_from_env():

@@ -8,6 +8,7 @@ CPU/OpenCL backends call `RayBatch.read()` and `HitBuffer.write()`.
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass, field
 from typing import Protocol
 
@@ -94,6 +95,42 @@ class BackendContext:
     gpu_scene: object  # viewer.gpu.GpuScene
     scene: object  # viewer.scene.Scene (leaf order)
     bvh: object  # viewer.bvh.BVH
+
+
+WORK_SLOTS = ("invocations", "nodes", "box_tests", "tri_tests",
+              "query_fragments", "query_nodes", "query_box_tests", "query_tri_tests")
+BIND_WORK = 9
+
+
+class WorkCounters:
+    """Shader work per trace (diagnostics, RTWALK_COUNT_WORK=1): ray-shader invocations, BVH nodes
+    fetched, ray/box and ray/triangle tests, and the same for occlusion-query fragments. This is
+    what a CPU rasterizer pays for, so it explains speed on llvmpipe independently of timing
+    noise. Off by default: the counting itself costs time."""
+
+    def __init__(self, ctx: moderngl.Context, enabled: bool | None = None):
+        self.enabled = os.environ.get("RTWALK_COUNT_WORK", "") == "1" if enabled is None else enabled
+        self.buf = ctx.buffer(reserve=4 * 16) if self.enabled else None
+
+    @property
+    def defines(self) -> dict[str, object]:
+        return {"COUNT_WORK": 1} if self.enabled else {}
+
+    def begin(self) -> None:
+        if self.buf is not None:
+            self.buf.write(bytes(4 * 16))
+            self.buf.bind_to_storage_buffer(BIND_WORK)
+
+    def end(self) -> dict[str, float]:
+        if self.buf is None:
+            return {}
+        self.buf.ctx.memory_barrier(moderngl.BUFFER_UPDATE_BARRIER_BIT)  # SSBO writes -> glGetBufferSubData
+        v = np.frombuffer(self.buf.read(), np.uint32)
+        return {f"work_{name}": float(v[i]) for i, name in enumerate(WORK_SLOTS)}
+
+    def release(self) -> None:
+        if self.buf is not None:
+            self.buf.release()
 
 
 class Backend(Protocol):

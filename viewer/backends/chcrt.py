@@ -48,7 +48,7 @@ from dataclasses import dataclass, fields
 import moderngl
 import numpy as np
 
-from viewer.backends.base import BackendContext, HitBuffer, RayBatch, TraceResult
+from viewer.backends.base import BackendContext, HitBuffer, RayBatch, TraceResult, WorkCounters
 from viewer.backends.chcrt_front import INNER, INVISIBLE, VISIBLE, NodeTables, PairFront, max_tile_level
 from viewer.effects import RayType
 from viewer.errors import RtwalkError
@@ -57,8 +57,12 @@ from viewer.gpu import FullscreenQuad, float_texture, int_texture
 ITEM_DTYPE = np.dtype([("bmin", "<f4", 3), ("ref", "<i4"), ("bmax", "<f4", 3), ("count", "<i4"),
                        ("id", "<i4"), ("pad", "<i4", 3)])
 assert ITEM_DTYPE.itemsize == 48
+DRAW_DTYPE = np.dtype([("rect", "<i4", 4), ("info", "<i4", 4)])  # x, y, w, h; item base, count, query slot
 BIND_ITEMS = 5
 BIND_COUNT = 6
+BIND_DRAWS = 7
+BIND_QUERY_COUNTS = 8
+QUERY_MODES = ("batched", "hw")
 COUNT_SLOTS = 64
 MAX_BOXES = 48  # boxes per query draw (max_multi pairs x 2 child boxes)
 
@@ -77,6 +81,10 @@ class ChcrtParams:
     overdraw_overlay: bool = True  # count query fragments per pixel (query_overdraw overlay)
     front_to_back: bool = True  # order scheduled subtrees by a representative ray (primary/shadows)
     sync_phases: bool = False  # glFinish at the end of each phase: exact per-phase times (diagnostics)
+    # "hw": one hardware occlusion query and one scissored draw per query or batch (the paper);
+    # "batched": a wave of queries (or all batches of an intersection step) in one instanced draw,
+    # queries counted by shader atomics (same pass condition as the depth test)
+    query_mode: str = "batched"
     seed: int = 1
 
     @staticmethod
@@ -105,6 +113,8 @@ class ChcrtParams:
     def validate(self, source: str = "chcrt") -> None:
         if not (1 <= self.max_batch <= 24 and 1 <= self.max_multi <= 24):
             raise RtwalkError(f"{source}: max_batch and max_multi must be in 1..24")
+        if self.query_mode not in QUERY_MODES:
+            raise RtwalkError(f"{source}: query_mode must be one of {', '.join(QUERY_MODES)}")
         if not (self.t_q > 0 and 0 < self.min_tile_fraction <= 1 and self.max_subtree_height >= 1
                 and self.max_subtree_tris >= 1 and self.requery_interval >= 1 and self.schedule_batch >= 1
                 and self.visible_threshold >= 0):
@@ -197,6 +207,7 @@ class _Targets:
         self.best = int_texture(ctx, size)
         self.overdraw = int_texture(ctx, size)
         self.subtree = int_texture(ctx, size)
+        self.batch = int_texture(ctx, size)
         self.query_fbo = ctx.framebuffer(depth_attachment=self.depth)
         self.query_fbo.depth_mask = False
         g = 1 << max_level
@@ -218,31 +229,34 @@ class _Targets:
 
     def release(self) -> None:
         for obj in (self.hit_fbo, self.query_fbo, self.gather_fbo, self.depth, self.best, self.overdraw,
-                    self.subtree, self.gather_o, self.gather_d):
+                    self.subtree, self.batch, self.gather_o, self.gather_d):
             if obj is not None:
                 obj.release()
 
 
-class _ItemBuffer:
-    """An SSBO of ChcItem records, re-specified (orphaned) before every upload so draws still
-    queued keep their data and the upload never waits for them."""
+class _StreamBuffer:
+    """An SSBO of records, re-specified (orphaned) before every upload so draws still queued keep
+    their data and the upload never waits for them."""
 
-    def __init__(self, ctx: moderngl.Context):
+    def __init__(self, ctx: moderngl.Context, itemsize: int, binding: int, capacity: int = 4096):
         self.ctx = ctx
-        self.capacity = 4096
-        self.buf = ctx.buffer(reserve=self.capacity * ITEM_DTYPE.itemsize, dynamic=True)
+        self.itemsize = itemsize
+        self.binding = binding
+        self.capacity = capacity
+        self.buf = ctx.buffer(reserve=self.capacity * itemsize, dynamic=True)
 
-    def upload(self, items: np.ndarray) -> None:
-        n = max(len(items), 1)
+    def upload(self, records: np.ndarray | bytes, count: int | None = None) -> None:
+        data = records if isinstance(records, bytes) else records.tobytes()
+        n = max(len(data) // self.itemsize if count is None else count, 1)
         if n > self.capacity:
             self.buf.release()
             self.capacity = 1 << (n - 1).bit_length()
-            self.buf = self.ctx.buffer(reserve=self.capacity * ITEM_DTYPE.itemsize, dynamic=True)
+            self.buf = self.ctx.buffer(reserve=self.capacity * self.itemsize, dynamic=True)
         else:
-            self.buf.orphan(self.capacity * ITEM_DTYPE.itemsize)
-        if len(items):
-            self.buf.write(items.tobytes())
-        self.buf.bind_to_storage_buffer(BIND_ITEMS)
+            self.buf.orphan(self.capacity * self.itemsize)
+        if data:
+            self.buf.write(data)
+        self.buf.bind_to_storage_buffer(self.binding)
 
 
 class ChcrtBackend:
@@ -260,19 +274,31 @@ class ChcrtBackend:
         e = min(max(math.frexp(diag)[1] + 24, -100), 100)
         self.depth_scale = float(np.float32(math.ldexp(1.0, -e)))  # exact power of two
         progs = bc.programs
+        self.work = WorkCounters(self.ctx)
+        wd = self.work.defines
+        stack = self.p.max_batch + max(self.p.max_subtree_height, 1) + 2
         self.prog_init = progs.get("fullscreen.vert", "chc_init.frag")
-        self.prog_query = progs.get("fullscreen.vert", "chc_query.frag", {"CHC_MAX_ITEMS": MAX_BOXES})
+        self.prog_query = progs.get("fullscreen.vert", "chc_query.frag", {"CHC_MAX_ITEMS": MAX_BOXES, **wd})
         self.prog_isect = progs.get("fullscreen.vert", "chc_intersect.frag",
-                                    {"CHC_MAX_ITEMS": self.p.max_batch,
-                                     "STACK_SIZE": self.p.max_batch + max(self.p.max_subtree_height, 1) + 2})
+                                    {"CHC_MAX_ITEMS": self.p.max_batch, "STACK_SIZE": stack, **wd})
         self.prog_gather = progs.get("fullscreen.vert", "chc_gather.frag")
-        for prog in (self.prog_init, self.prog_query, self.prog_isect, self.prog_gather):
+        self.batched = self.p.query_mode == "batched"
+        self.prog_query_b = progs.get("chc_tile.vert", "chc_query.frag",
+                                      {"CHC_MAX_ITEMS": MAX_BOXES, "CHC_BATCHED": 1, **wd})
+        self.prog_isect_b = progs.get("chc_tile.vert", "chc_intersect.frag",
+                                      {"CHC_MAX_ITEMS": self.p.max_batch, "CHC_BATCHED": 1, "STACK_SIZE": stack, **wd})
+        self.vao_query_b = self.ctx.vertex_array(self.prog_query_b, [])
+        self.vao_isect_b = self.ctx.vertex_array(self.prog_isect_b, [])
+        for prog in (self.prog_init, self.prog_query, self.prog_isect, self.prog_gather, self.prog_query_b,
+                     self.prog_isect_b):
             prog["rayOrigin"] = 0
             prog["rayDir"] = 1
             if prog.get("depthScale", None) is not None:
                 prog["depthScale"] = self.depth_scale
         self.quad = FullscreenQuad(self.ctx)
-        self.items = _ItemBuffer(self.ctx)
+        self.items = _StreamBuffer(self.ctx, ITEM_DTYPE.itemsize, BIND_ITEMS)
+        self.draws = _StreamBuffer(self.ctx, DRAW_DTYPE.itemsize, BIND_DRAWS)
+        self.query_counts = _StreamBuffer(self.ctx, 4, BIND_QUERY_COUNTS)
         self.count_buf = self.ctx.buffer(reserve=4 * COUNT_SLOTS)
         self._zero_counts = bytes(4 * COUNT_SLOTS)
         self.queries: list[moderngl.Query] = []
@@ -296,8 +322,12 @@ class ChcrtBackend:
         if self.targets is not None:
             self.targets.release()
             self.targets = None
-        self.items.buf.release()
+        for sb in (self.items, self.draws, self.query_counts):
+            sb.buf.release()
+        for vao in (self.vao_query_b, self.vao_isect_b):
+            vao.release()
         self.count_buf.release()
+        self.work.release()
         self.queries.clear()  # moderngl 5 queries have no release(); dropped with the context
         self.fronts.clear()
 
@@ -322,11 +352,14 @@ class ChcrtBackend:
             front = PairFront(size, max_level, self.rng, self.p.requery_interval)
             self.fronts[key] = front
         tr = _Pass(self, front, rays, ray_type, hits)
+        self.work.begin()
         stats = tr.run()
+        stats.update(self.work.end())
         front.frames += 1
         self.last_stats = stats
         return TraceResult(stats=stats, overlays={"query_overdraw": self.targets.overdraw,
-                                                  "subtree_id": self.targets.subtree})
+                                                  "subtree_id": self.targets.subtree,
+                                                  "batch_subtrees": self.targets.batch})
 
     def query(self, i: int) -> moderngl.Query:
         while len(self.queries) <= i:
@@ -354,7 +387,7 @@ class _Pass:
                                      "invisible_pairs", "subtrees_scheduled", "draws", "rays",
                                      "intersect_draws", "batch_tiles", "tile_batches_1", "tile_batches_2",
                                      "tile_batches_3plus", "query_waves", "pull_ups", "phase1_subtrees",
-                                     "query_pixels", "requeries")}
+                                     "query_pixels", "requeries", "batches")}
         self.rep: tuple[np.ndarray, np.ndarray] | None = None  # representative rays per finest tile
         self.rays_read = False
         self.threshold = int(self.p.visible_threshold)
@@ -367,6 +400,7 @@ class _Pass:
         self.rays.direction.use(1)
         tg.best.bind_to_image(0, read=True, write=True)
         tg.overdraw.bind_to_image(1, read=True, write=True)
+        tg.batch.bind_to_image(2, read=True, write=True)
         self.be.count_buf.bind_to_storage_buffer(BIND_COUNT)
 
     def _init(self) -> None:
@@ -411,7 +445,7 @@ class _Pass:
     def _run_queries(self, groups: list[np.ndarray]) -> np.ndarray:
         """One query per group of pairs (all pairs of a group share a tile); returns samples passed.
 
-        All queries are issued first, then all results are read (one wait per batch)."""
+        All queries are issued first, then all results are read (one wait per wave)."""
         nq = len(groups)
         if nq == 0:
             return np.zeros(0, np.int64)
@@ -430,32 +464,67 @@ class _Pass:
         self.be.items.upload(items)
         first = np.cumsum(sizes) - sizes
         rects = f.rects(pairs[first])
+        live = (rects[:, 2] > 0) & (rects[:, 3] > 0)
+        self.stats["query_pixels"] += int((rects[:, 2] * rects[:, 3]).sum())
+        self.stats["queries"] += int(live.sum())
+        if self.be.batched:
+            out = self._queries_batched(rects, base, nbox, live)
+        else:
+            out = self._queries_hw(rects, base, nbox, live)
+        self._read_ray_count()
+        return out
+
+    def _queries_batched(self, rects: np.ndarray, base: np.ndarray, nbox: np.ndarray,
+                         live: np.ndarray) -> np.ndarray:
+        """All queries in one instanced draw; results from one buffer read."""
+        nq = len(rects)
+        recs = np.zeros(nq, DRAW_DTYPE)
+        recs["rect"] = rects
+        recs["info"][:, 0] = base
+        recs["info"][:, 1] = nbox
+        recs["info"][:, 2] = np.arange(nq)
+        recs = recs[live]
+        self.be.draws.upload(recs)
+        self.be.query_counts.upload(bytes(4 * nq))
+        prog = self.be.prog_query_b
+        prog["countOverdraw"] = int(self.p.overdraw_overlay)
+        prog["raySize"] = tuple(self.size)
+        fbo = self.tg.query_fbo
+        fbo.use()
+        fbo.scissor = None
+        self.ctx.disable(moderngl.DEPTH_TEST)
+        if len(recs):
+            self.be.vao_query_b.render(moderngl.TRIANGLES, vertices=6, instances=len(recs))
+            self.stats["draws"] += 1
+        self.ctx.memory_barrier(moderngl.BUFFER_UPDATE_BARRIER_BIT)
+        out = np.frombuffer(self.be.query_counts.buf.read(size=4 * nq), np.uint32).astype(np.int64)
+        self.ctx.enable(moderngl.DEPTH_TEST)
+        return out
+
+    def _queries_hw(self, rects: np.ndarray, base: np.ndarray, nbox: np.ndarray, live: np.ndarray) -> np.ndarray:
+        """The paper's way: one scissored draw inside one occlusion query object per query."""
         prog = self.be.prog_query
         prog["countOverdraw"] = int(self.p.overdraw_overlay)
         fbo = self.tg.query_fbo
         fbo.use()
+        self.ctx.enable(moderngl.DEPTH_TEST)
         self.ctx.depth_func = "<"
         u_base, u_count = prog["itemBase"], prog["itemCount"]
         render = self.be.quad.render
         used = []
-        for i in range(nq):
-            x, y, w, h = rects[i]
-            if w <= 0 or h <= 0:
+        for i, (x, y, w, h) in enumerate(rects.tolist()):
+            if not live[i]:
                 used.append(None)
                 continue
-            fbo.scissor = (int(x), int(y), int(w), int(h))
-            self.stats["query_pixels"] += int(w * h)
+            fbo.scissor = (x, y, w, h)
             u_base.value = int(base[i])
             u_count.value = int(nbox[i])
             q = self.be.query(i)
             with q:
                 render(prog)
             used.append(q)
-        self.stats["draws"] += sum(q is not None for q in used)
-        self.stats["queries"] += sum(q is not None for q in used)
-        out = np.array([q.samples if q is not None else 0 for q in used], np.int64)
-        self._read_ray_count()
-        return out
+        self.stats["draws"] += int(live.sum())
+        return np.array([q.samples if q is not None else 0 for q in used], np.int64)
 
     # -- intersection -------------------------------------------------------------------------------
     def _order_keys(self, pairs: np.ndarray) -> np.ndarray:
@@ -478,7 +547,7 @@ class _Pass:
         return np.where(valid, dist, -f.pixels[pairs].astype(np.float64))
 
     def _intersect(self, pairs: np.ndarray) -> None:
-        """Intersect scheduled pairs: grouped by tile, up to max_batch subtree roots per draw."""
+        """Intersect scheduled pairs: grouped by tile, up to max_batch subtree roots per batch."""
         if len(pairs) == 0:
             return
         f, nt = self.front, self.nt
@@ -500,30 +569,55 @@ class _Pass:
         items["pad"][:, 1] = nt.count[nd]
         self.be.items.upload(items)
         rects = f.rects(pairs[starts])
-        prog = self.be.prog_isect
-        prog["anyHit"] = int(self.any_hit)
+        # batches: per tile, consecutive runs of at most max_batch subtrees (nearest first)
+        nbatch = -(-(ends - starts) // mb)
+        tile_of = np.repeat(np.arange(len(starts)), nbatch)
+        k = np.arange(len(tile_of)) - np.repeat(np.cumsum(nbatch) - nbatch, nbatch)
+        bstart = starts[tile_of] + k * mb
+        bcount = np.minimum(mb, ends[tile_of] - bstart)
+        live = (rects[tile_of, 2] > 0) & (rects[tile_of, 3] > 0)
+        self.stats["tile_batches_1"] += int((nbatch == 1).sum())
+        self.stats["tile_batches_2"] += int((nbatch == 2).sum())
+        self.stats["tile_batches_3plus"] += int((nbatch >= 3).sum())
+        self.stats["batch_tiles"] += len(starts)
+        self.stats["batches"] += int(live.sum())
+        self.stats["subtrees_scheduled"] += len(pairs)
+        self.ctx.enable(moderngl.DEPTH_TEST)
+        self.ctx.depth_func = "<"
         fbo = self.hit_fbo
         fbo.use()
-        self.ctx.depth_func = "<"
-        u_base, u_count = prog["itemBase"], prog["itemCount"]
-        render = self.be.quad.render
-        draws = 0
-        for s, e, (x, y, w, h) in zip(starts, ends, rects, strict=True):
-            nb = -(-(e - s) // mb)
-            self.stats["tile_batches_1" if nb == 1 else "tile_batches_2" if nb == 2
-                       else "tile_batches_3plus"] += 1
-            if w <= 0 or h <= 0:
-                continue
-            fbo.scissor = (int(x), int(y), int(w), int(h))
-            for b in range(s, e, mb):
-                u_base.value = int(b)
-                u_count.value = int(min(mb, e - b))
+        if self.be.batched:
+            prog = self.be.prog_isect_b
+            prog["raySize"] = tuple(self.size)
+            recs = np.zeros(int(live.sum()), DRAW_DTYPE)
+            recs["rect"] = rects[tile_of[live]]
+            recs["info"][:, 0] = bstart[live]
+            recs["info"][:, 1] = bcount[live]
+            self.be.draws.upload(recs)
+            draws = 0
+            if len(recs):
+                fbo.scissor = None
+                self._isect_uniforms(prog)
+                self.be.vao_isect_b.render(moderngl.TRIANGLES, vertices=6, instances=len(recs))
+                draws = 1
+        else:
+            prog = self.be.prog_isect
+            self._isect_uniforms(prog)
+            u_base, u_count = prog["itemBase"], prog["itemCount"]
+            render = self.be.quad.render
+            draws = 0
+            for t, b, c in zip(tile_of[live].tolist(), bstart[live].tolist(), bcount[live].tolist(), strict=True):
+                fbo.scissor = tuple(int(v) for v in rects[t])
+                u_base.value = b
+                u_count.value = c
                 render(prog)
                 draws += 1
-        self.stats["batch_tiles"] += len(starts)
         self.stats["intersect_draws"] += draws
         self.stats["draws"] += draws
-        self.stats["subtrees_scheduled"] += len(pairs)
+
+    def _isect_uniforms(self, prog: moderngl.Program) -> None:
+        prog["anyHit"] = int(self.any_hit)
+        prog["countOverlays"] = int(self.p.overdraw_overlay)
 
     # -- Algorithm 1 --------------------------------------------------------------------------------
     def run(self) -> dict[str, float]:

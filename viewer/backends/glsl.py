@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from viewer.backends.base import BackendContext, HitBuffer, RayBatch, TraceResult
+from viewer.backends.base import BackendContext, HitBuffer, RayBatch, TraceResult, WorkCounters
 from viewer.effects import RayType
 from viewer.gpu import FullscreenQuad
 
@@ -13,8 +13,9 @@ class GlslBackend:
 
     def __init__(self, bc: BackendContext):
         self.bc = bc
+        self.work = WorkCounters(bc.ctx)
         self.program = bc.programs.get("fullscreen.vert", "trace_glsl.frag",
-                                       {"STACK_SIZE": bc.gpu_scene.stack_size})
+                                       {"STACK_SIZE": bc.gpu_scene.stack_size, **self.work.defines})
         self.program["rayOrigin"] = 0
         self.program["rayDir"] = 1
         self.quad = FullscreenQuad(bc.ctx)
@@ -30,9 +31,10 @@ class GlslBackend:
         self.program["anyHit"] = int(ray_type.any_hit)
         hits.fbo.use()
         ctx.disable(ctx.BLEND | ctx.DEPTH_TEST)
+        self.work.begin()
         with self.bc.profiler.phase(f"trace:{ray_type.label}"):
             self.quad.render(self.program)
-        return TraceResult(stats={"draws": 1})
+        return TraceResult(stats={"draws": 1, **self.work.end()})
 
     def release(self) -> None:
-        pass
+        self.work.release()

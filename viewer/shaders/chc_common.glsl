@@ -18,11 +18,23 @@
 uniform sampler2D rayOrigin;
 uniform sampler2D rayDir;
 uniform float depthScale;
+#ifdef CHC_BATCHED
+// batched mode (chc_tile.vert): the draw record of this fragment's instance
+flat in int vItemBase;
+flat in int vItemCount;
+flat in int vQuery;
+#define ITEM_BASE vItemBase
+#define ITEM_COUNT vItemCount
+#else
 uniform int itemBase;
 uniform int itemCount;
+#define ITEM_BASE itemBase
+#define ITEM_COUNT itemCount
+#endif
 
 layout(r32i, binding = 0) uniform coherent iimage2D bestBits;
 layout(r32i, binding = 1) uniform coherent iimage2D overdraw;
+layout(r32i, binding = 2) uniform coherent iimage2D batchSubtrees;  // overlay: subtrees in the pixel's batches
 
 // A box with a payload: query boxes (ref/count unused) or scheduled subtrees (GPU inner-node index,
 // or first triangle + count for a BVH leaf; id = canonical node index and p0/p1 = the subtree's

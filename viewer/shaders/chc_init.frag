@@ -1,5 +1,5 @@
 // CHC+RT: start of a pass. Clears the hit buffer and the subtree overlay (colour outputs), the
-// overdraw overlay and bestBits (images), sets the depth (1 = active ray, 0 = no ray) and counts
+// overdraw and batch overlays and bestBits (images), sets the depth (1 = active ray, 0 = no ray) and counts
 // active rays.
 #include "chc_common.glsl"
 layout(std430, binding = 6) buffer ChcCount { uint chcActive[]; };
@@ -15,6 +15,7 @@ void main() {
     outId = -1;
     outSub = -1;
     imageStore(overdraw, px, ivec4(0));
+    imageStore(batchSubtrees, px, ivec4(0));
     imageStore(bestBits, px, ivec4(live ? floatBitsToInt(dt.w) : -1));
     gl_FragDepth = live ? 1.0 : 0.0;
     if (live) atomicAdd(chcActive[(px.x & 7) + 8 * (px.y & 7)], 1u);

@@ -11,12 +11,14 @@
 // that loop in one invocation (it can stop after one iteration and miss hits).
 #include "chc_common.glsl"
 uniform int anyHit;
+uniform int countOverlays;
 layout(location = 0) out float outT;
 layout(location = 1) out int outId;
 layout(location = 2) out int outSub;
 
 void main() {
     ivec2 px = ivec2(gl_FragCoord.xy);
+    if (countOverlays != 0) imageAtomicAdd(batchSubtrees, px, ITEM_COUNT);
     int best = imageLoad(bestBits, px).r;
     if (best < 0) discard;
     vec4 ot = texelFetch(rayOrigin, px, 0);
@@ -29,8 +31,8 @@ void main() {
     float stackT[STACK_SIZE];
     int sp = 0;
     bool done = false;
-    for (int i = itemCount - 1; i >= 0; --i) {  // farthest at the bottom
-        ChcItem it = items[itemBase + i];
+    for (int i = ITEM_COUNT - 1; i >= 0; --i) {  // farthest at the bottom
+        ChcItem it = items[ITEM_BASE + i];
         float te;
         if (intersectBox(r, it.bmin, it.bmax, tmin, hit.t, te)) {
             if (it.count > 0) {  // a scheduled BVH leaf: intersect it now
@@ -52,6 +54,7 @@ void main() {
     }
     while (ni >= 0) {
         Node nd = nodes[ni];
+        WORK(workNode);
         float tl, tr;
         bool hl = intersectBox(r, nd.lmin, nd.lmax, tmin, hit.t, tl);
         bool hr = intersectBox(r, nd.rmin, nd.rmax, tmin, hit.t, tr);
@@ -84,11 +87,12 @@ void main() {
             if (!found) break;
         }
     }
+    workFlush(0);
     if (hit.id < 0) discard;
     // the scheduled subtree that holds the hit triangle (for the subtree_id overlay)
     int sub = -1;
-    for (int i = 0; i < itemCount; ++i) {
-        ChcItem it = items[itemBase + i];
+    for (int i = 0; i < (countOverlays != 0 ? ITEM_COUNT : 0); ++i) {
+        ChcItem it = items[ITEM_BASE + i];
         if (hit.id >= it.p0 && hit.id < it.p0 + it.p1) sub = it.id;
     }
     outT = hit.t;

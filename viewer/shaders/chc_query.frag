@@ -3,25 +3,40 @@
 // = depth(nearest entry) if some box is entered before tmax, and the depth test (LESS against
 // key(best t)) keeps it only if that entry is not beyond the nearest hit found so far. A
 // samples-passed query counts the rays that may still hit the pair.
+//
+// Batched mode (CHC_BATCHED, chc_tile.vert): many queries in one instanced draw; each fragment does
+// the depth test's comparison itself against bestBits (the same key: depth(entry) <= depth(best t))
+// and counts into its query's slot of chcPassed. bestBits may be stale by the writes of draws still
+// in flight; it only ever decreases within a pass, so a stale value can only make a query pass more
+// (conservative: more work, never a missed hit).
 #include "chc_common.glsl"
 uniform int countOverdraw;
+#ifdef CHC_BATCHED
+layout(std430, binding = 8) buffer ChcQueryCounts { uint chcPassed[]; };
+#endif
 void main() {
     ivec2 px = ivec2(gl_FragCoord.xy);
     if (countOverdraw != 0) imageAtomicAdd(overdraw, px, 1);
-    if (imageLoad(bestBits, px).r < 0) discard;  // no ray, or an any-hit ray that is done
+    int best = imageLoad(bestBits, px).r;
+    if (best < 0) discard;  // no ray, or an any-hit ray that is done
     vec4 ot = texelFetch(rayOrigin, px, 0);
     vec4 dt = texelFetch(rayDir, px, 0);
     RayPre r = prepareRay(ot.xyz, dt.xyz);
     float entry = uintBitsToFloat(0x7f800000u);
     bool any = false;
-    for (int i = 0; i < itemCount; ++i) {
-        ChcItem it = items[itemBase + i];
+    for (int i = 0; i < ITEM_COUNT; ++i) {
+        ChcItem it = items[ITEM_BASE + i];
         float te;
         if (intersectBox(r, it.bmin, it.bmax, ot.w, dt.w, te)) {
             entry = min(entry, te);
             any = true;
         }
     }
+    workFlush(4);
     if (!any) discard;
+#ifdef CHC_BATCHED
+    if (chcDepth(entry) <= chcDepth(intBitsToFloat(best))) atomicAdd(chcPassed[vQuery], 1u);
+#else
     gl_FragDepth = chcDepth(entry);
+#endif
 }

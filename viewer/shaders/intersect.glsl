@@ -8,6 +8,23 @@
 #define STACK_SIZE 64
 #endif
 
+// Work counters (diagnostics, RTWALK_COUNT_WORK=1): per invocation, then one atomicAdd each into
+// slots [base, base+4) of workTotals: invocations, nodes fetched, box tests, triangle tests.
+#ifdef COUNT_WORK
+uint workNode = 0u, workBox = 0u, workTri = 0u;
+layout(std430, binding = 9) buffer WorkCounters { uint workTotals[16]; };
+#define WORK(v) (v += 1u)
+void workFlush(int base) {
+    atomicAdd(workTotals[base], 1u);
+    atomicAdd(workTotals[base + 1], workNode);
+    atomicAdd(workTotals[base + 2], workBox);
+    atomicAdd(workTotals[base + 3], workTri);
+}
+#else
+#define WORK(v)
+void workFlush(int base) {}
+#endif
+
 struct RayPre {
     vec3 o;
     vec3 d;
@@ -77,6 +94,7 @@ const float GAMMA3_SCALE = 1.0 + 2.0 * (3.0 * 5.960464477539063e-08) / (1.0 - 3.
 
 // Conservative slab test; tEntry is the (clamped) entry distance.
 bool intersectBox(RayPre r, vec3 bmin, vec3 bmax, float tmin, float tmax, out float tEntry) {
+    WORK(workBox);
     vec3 t0 = (bmin - r.o) * r.invD;
     vec3 t1 = (bmax - r.o) * r.invD;
     vec3 tn = min(t0, t1), tf = max(t0, t1);
@@ -94,6 +112,7 @@ bool intersectLeaf(RayPre r, int first, int count, float tmin, inout Hit hit) {
     bool found = false;
     for (int i = 0; i < count; ++i) {
         Tri tri = tris[first + i];
+        WORK(workTri);
         float t; vec2 b;
         if (intersectTriangle(r, tri.v0, tri.v1, tri.v2, tmin, hit.t, t, b)) {
             hit.t = t;
@@ -113,6 +132,7 @@ void traverseBVH(RayPre r, int root, float tmin, bool anyHit, inout Hit hit) {
     int ni = root;
     while (true) {
         Node nd = nodes[ni];
+        WORK(workNode);
         float tl, tr;
         bool hl = intersectBox(r, nd.lmin, nd.lmax, tmin, hit.t, tl);
         bool hr = intersectBox(r, nd.rmin, nd.rmax, tmin, hit.t, tr);

@@ -16,5 +16,6 @@ void main() {
         Hit h = Hit(dt.w, -1);
         traverseBVH(prepareRay(ot.xyz, dt.xyz), 0, ot.w, anyHit != 0, h);
         if (h.id >= 0) { outT = h.t; outId = h.id; }
+        workFlush(0);
     }
 }

@@ -1,0 +1,19 @@
+// CHC+RT batched mode: one instanced draw covers many (tile, item range) records; instance i draws
+// the pixel rectangle of record i as two triangles (edges on pixel boundaries, so every pixel
+// centre of the tile is covered exactly once) and hands its item range and query slot to the
+// fragment shader. Replaces one scissored draw (and one occlusion query object) per record.
+struct ChcDraw { ivec4 rect; ivec4 info; };  // rect = x, y, w, h; info = item base, count, query slot
+layout(std430, binding = 7) readonly buffer ChcDraws { ChcDraw draws[]; };
+uniform ivec2 raySize;
+flat out int vItemBase;
+flat out int vItemCount;
+flat out int vQuery;
+void main() {
+    ChcDraw d = draws[gl_InstanceID];
+    const ivec2 corner[6] = ivec2[6](ivec2(0, 0), ivec2(1, 0), ivec2(0, 1), ivec2(0, 1), ivec2(1, 0), ivec2(1, 1));
+    vec2 p = vec2(d.rect.xy + corner[gl_VertexID] * d.rect.zw) / vec2(raySize);
+    gl_Position = vec4(p * 2.0 - 1.0, 0.0, 1.0);
+    vItemBase = d.info.x;
+    vItemCount = d.info.y;
+    vQuery = d.info.z;
+}
