@@ -224,6 +224,7 @@ def test_overlays_and_counters(mode, gl_ctx):
 
     scene, bvh, path = _load("city")
     r = Renderer(gl_ctx, scene, bvh, SIZE, "chcrt", parse_effects("primary"), {"chcrt": f"query_mode={mode}"})
+    r.capture_overlays = True
     try:
         r.render(path[0])
         rays = r.rays

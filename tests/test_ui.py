@@ -25,7 +25,7 @@ from viewer.ui.camera_controller import (
     FlyCamera,
     yaw_pitch_of,
 )
-from viewer.ui.panel import FrameHistory, camera_argument
+from viewer.ui.panel import FrameHistory, camera_argument, chart_phases
 
 XVFB = shutil.which("xvfb-run")
 needs_xvfb = pytest.mark.skipif(XVFB is None, reason="xvfb-run is not installed (apt-get install xvfb xauth)")
@@ -161,6 +161,42 @@ def test_frame_history_keeps_the_last_frames():
     assert h.array().dtype == np.float32
 
 
+def test_phase_chart_data():
+    gpu = {"gbuffer": 5.0, "chc:2-queries": 2.0, "chc:1-intersect-visible": 1.0, "shade": 1.0,
+           "chc:4-final-intersect": 4.0, "chc:3-traversal": 3.0}
+    assert list(chart_phases(gpu)) == ["chc:1-intersect-visible", "chc:2-queries", "chc:3-traversal",
+                                       "chc:4-final-intersect"]
+    assert chart_phases({"gbuffer": 1.0, "trace:shadows": 2.0, "trace:ao": 3.0}) == {"trace:shadows": 2.0,
+                                                                                     "trace:ao": 3.0}
+    h = FrameHistory(n=5)
+    assert h.phase_table()[0] == [] and h.phase_table()[1].shape == (0, 0)
+    h.add(10, 10, chart_phases(gpu), {"queries": 4})
+    h.add(10, 10, {"trace:ao": 7.0}, {"queries": 6})  # backend switched: other phases are 0 there
+    names, table = h.phase_table()
+    assert names[-1] == "trace:ao" and table.shape == (5, 2)
+    np.testing.assert_array_equal(table[:, 0], [1, 2, 3, 4, 0])
+    np.testing.assert_array_equal(table[:, 1], [0, 0, 0, 0, 7])
+    assert h.counter_mean("queries") == 5.0 and h.counter_mean("draws") == 0.0
+    for _ in range(10):
+        h.add(1, 1)
+    assert len(h.phases) == 5 and h.phase_table(last=3)[1].shape == (0, 3)
+
+
+def test_initial_view(monkeypatch):
+    from argparse import Namespace
+
+    from viewer.ui.app import initial_view
+
+    monkeypatch.delenv("RTWALK_VIEW_MODE", raising=False)
+    assert initial_view(Namespace()) == "final"
+    monkeypatch.setenv("RTWALK_VIEW_MODE", "query_overdraw")
+    assert initial_view(Namespace()) == "query_overdraw"
+    assert initial_view(Namespace(view="subtree_batches")) == "subtree_batches"
+    monkeypatch.setenv("RTWALK_VIEW_MODE", "xray")
+    with pytest.raises(RtwalkError, match="xray"):
+        initial_view(Namespace())
+
+
 def test_frame_limit(monkeypatch):
     from argparse import Namespace
 
@@ -198,7 +234,7 @@ def test_render_scale_from_env(monkeypatch):
 
 def _env(**extra) -> dict:
     env = dict(os.environ)
-    for key in ("RTWALK_VIEW_FRAMES", "RTWALK_VIEW_SCREENSHOT", "RTWALK_VIEW_SCALE"):
+    for key in ("RTWALK_VIEW_FRAMES", "RTWALK_VIEW_SCREENSHOT", "RTWALK_VIEW_SCALE", "RTWALK_VIEW_MODE"):
         env.pop(key, None)
     env.update(extra)
     return env
@@ -382,3 +418,93 @@ def test_view_keys_and_mouse_under_xvfb(tmp_path):
 
     rec = load_recording(recs[0])
     assert rec.scene["builtin"] == "room" and len(rec.keyframes) >= 2
+
+
+_OVERLAY_DRIVER = textwrap.dedent('''
+    """chcrt window in the query_overdraw view: O and V keys, glsl (no overlays) and back; the
+    window screenshot is taken at the last frame (query_overdraw again)."""
+    import json
+
+    import moderngl_window  # noqa: F401
+    import pyglet.window.key as K
+
+    from viewer import cli
+    from viewer.ui import app as ui_app
+
+    log = {"frames": []}
+    orig_frame = ui_app.ViewerApp.frame
+
+    def press(w, key):
+        w.on_key_press(key, 0)
+        w.on_key_release(key, 0)
+
+    def frame(self, now, dt, frame_ms):
+        r, n, w = self.renderer, self.frames, self.wnd
+        if n == 1:
+            press(w, K.O)  # overlay pass: first pass -> primary sample 0 -> ...
+            press(w, K.O)
+        elif n == 2:
+            press(w, K.V)  # query_overdraw -> subtree_batches
+        elif n == 4:
+            press(w, K.V)  # -> final
+        elif n == 5:
+            press(w, K.V)  # -> query_overdraw
+            self.switch_backend("glsl")
+        elif n == 6:
+            self.switch_backend("chcrt")
+        orig_frame(self, now, dt, frame_ms)
+        src = r.overlay_source
+        log["frames"].append({"view": r.view, "backend": r.backend_name, "missing": r.overlay_missing,
+                              "source": None if src is None else [src[0].label, src[1]],
+                              "pass": None if r.overlay_pass is None else [r.overlay_pass[0].label, r.overlay_pass[1]],
+                              "phases": len(self.history.phases[-1]), "error": self.ctx.error})
+
+    ui_app.ViewerApp.frame = frame
+    args = cli.build_parser().parse_args(["view", "city", "--scene-size", "20000", "--backend", "chcrt",
+                                          "--effects", "primary,shadows", "--size", "640x400", "--quiet"])
+    log["rc"] = ui_app.run_viewer(args)
+    print("LOG " + json.dumps(log))
+''')
+
+
+@needs_xvfb
+def test_view_overlays_under_xvfb(tmp_path):
+    """chcrt in the window: overlay views (RTWALK_VIEW_MODE, V), source pass (O), the panel line
+    for a backend without overlays, and the legend drawn over the heat map (window screenshot)."""
+    from PIL import Image
+
+    from viewer.passes.overlay import heat_lut
+
+    shot = tmp_path / "overlays.png"
+    (tmp_path / "driver.py").write_text(_OVERLAY_DRIVER)
+    res = _xvfb([sys.executable, "driver.py"], tmp_path,
+                _env(RTWALK_VIEW_FRAMES="9", RTWALK_VIEW_MODE="query_overdraw", RTWALK_VIEW_SCREENSHOT=str(shot)))
+    assert res.returncode == 0, res.stderr[-3000:]
+    line = [ln for ln in res.stdout.splitlines() if ln.startswith("LOG ")]
+    assert line, res.stdout[-2000:] + res.stderr[-2000:]
+    log = json.loads(line[-1][4:])
+    fr = log["frames"]
+    assert log["rc"] == 0 and len(fr) == 9
+    assert all(f["error"] == "GL_NO_ERROR" for f in fr), fr
+    assert fr[0]["view"] == "query_overdraw" and fr[0]["source"] == ["primary", 0] and fr[0]["phases"] == 4
+    assert fr[1]["pass"] == ["shadows", 0] and fr[1]["source"] == ["shadows", 0]  # O twice
+    assert fr[2]["view"] == "subtree_batches" and fr[2]["source"] == ["shadows", 0]
+    assert fr[4]["view"] == "final" and fr[4]["source"] is None  # nothing copied in the final view
+    glsl = fr[5]  # switch_backend applies at the start of the next frame(); here: the same one
+    assert glsl["backend"] == "glsl" and glsl["view"] == "query_overdraw" and glsl["source"] is None
+    assert "glsl" in glsl["missing"] and glsl["phases"] == 2  # trace:primary, trace:shadows
+    assert fr[-1]["backend"] == "chcrt" and fr[-1]["source"] == ["shadows", 0] and not fr[-1]["missing"]
+
+    img = np.asarray(Image.open(shot).convert("RGB")).astype(np.int32)
+    assert img.shape == (400, 640, 3)
+    lut = heat_lut().astype(np.int32)
+
+    def near(region, colour, tol=12):
+        return (np.abs(region - colour).max(axis=2) <= tol).any()
+
+    legend = img[280:, 320:]  # bottom right, right of the panel (320 px at this width)
+    assert near(legend, lut[0]) and near(legend, lut[255]) and near(legend, lut[128])  # the colour bar
+    assert near(legend, (210, 210, 210), 3) and near(legend, (255, 255, 255), 3)  # ticks and text
+    heat = img[10:250, 340:630].reshape(-1, 3)
+    exact = (heat[:, None, :] == lut[None]).all(axis=2).any(axis=1)
+    assert exact.mean() > 0.8  # the image is the heat map (constant per tile; edges filtered by the blit)

@@ -1,5 +1,11 @@
 """One frame: G-buffer -> for each effect and sample pass: ray generation -> backend trace ->
-accumulate -> shade. Backend-agnostic; knows nothing about windows or files."""
+accumulate -> shade. Backend-agnostic; knows nothing about windows or files.
+
+Backend overlays (TraceResult.overlays, e.g. CHC+RT's query overdraw) are overwritten by every
+trace() call, so one pass is chosen (`overlay_pass`, default the frame's first) and its overlays
+are copied on the GPU right after it is traced (passes/overlay.py); the overlay views draw from
+that copy. Nothing is copied unless an overlay view is shown or `capture_overlays` is set.
+"""
 
 from __future__ import annotations
 
@@ -14,9 +20,11 @@ from viewer.backends.base import BackendContext, HitBuffer, RayArrays, RayBatch
 from viewer.bvh import BVH
 from viewer.camera import Camera
 from viewer.effects import EffectSettings, RayType
+from viewer.errors import RtwalkError
 from viewer.gpu import FullscreenQuad, GpuScene, ProgramCache
 from viewer.passes.accumulate import AccumulatePass
 from viewer.passes.gbuffer import GBufferPass
+from viewer.passes.overlay import OVERLAY_VIEWS, OverlayPass
 from viewer.passes.raygen import RayGenPass
 from viewer.passes.shade import ShadePass
 from viewer.passes.uniforms import apply, camera_uniforms, light_uniforms
@@ -45,6 +53,7 @@ class FrameReport:
     trace_ms_by_ray: dict[str, float] = field(default_factory=dict)  # GPU time inside the backend
     backend_stats: dict[str, float] = field(default_factory=dict)
     captured: list[CapturedPass] = field(default_factory=list)
+    overlay_source: tuple[RayType, int] | None = None  # the pass whose overlays were copied
 
     @property
     def trace_ms(self) -> float:
@@ -76,6 +85,20 @@ class Renderer:
         self.rays = RayBatch(ctx, size)
         self.hits = HitBuffer(ctx, size)
         self.frame_index = 0
+        # overlays: the pass to copy them from ((ray type, sample), first occurrence in the frame;
+        # None or a pass not in the frame: the frame's first pass), forced capture for tools that
+        # save them, heat-map scale (fixed maximum, 0 = from the frame; log or linear), and strict
+        # mode: an overlay view the backend cannot feed raises RtwalkError (the window sets it off
+        # and shows `overlay_missing` instead, over the final image)
+        self.overlay_pass: tuple[RayType, int] | None = None
+        self.capture_overlays = False
+        self.overlay_scale = 0
+        self.overlay_log = True
+        self.strict_overlays = True
+        self.overlay_source: tuple[RayType, int] | None = None
+        self.overlay_missing = ""
+        self.backend_overlays: tuple[str, ...] | None = None  # names the backend returned last (None: not traced)
+        self._overlay: OverlayPass | None = None
         self.backend_name = ""
         self.backend = None
         self._backends: dict[str, object] = {}
@@ -93,6 +116,7 @@ class Renderer:
             backend = create_backend(name, bc, self.backend_options.get(name))
             self._backends[name] = backend
         self.backend, self.backend_name = backend, name
+        self.backend_overlays = None
 
     def resize(self, size: tuple[int, int]) -> None:
         if size == self.size:
@@ -106,6 +130,8 @@ class Renderer:
         self.hits.release()
         self.rays = RayBatch(self.ctx, size)
         self.hits = HitBuffer(self.ctx, size)
+        if self._overlay is not None:
+            self._overlay.resize(size)
 
     @property
     def final_texture(self) -> moderngl.Texture:
@@ -129,11 +155,106 @@ class Renderer:
             out.append((RayType.REFLECT, 0, 0, 1.0))
         return out
 
+    # -- overlays ------------------------------------------------------------------------------
+    @property
+    def overlays_wanted(self) -> bool:
+        return self.capture_overlays or self.view in OVERLAY_VIEWS
+
+    @property
+    def overlay(self) -> OverlayPass:
+        """Created on first use: a renderer that never shows overlays never compiles its shaders."""
+        if self._overlay is None:
+            self._overlay = OverlayPass(self.ctx, self.programs, self.quad, self.size)
+        return self._overlay
+
+    def overlay_source_for(self, passes: list[tuple[RayType, int, int, float]]) -> tuple[RayType, int] | None:
+        """The (ray type, sample) whose overlays are copied: `overlay_pass` if the frame has it,
+        else the frame's first pass (None: no pass traces rays)."""
+        keys = [(rt, k) for rt, k, _, _ in passes]
+        if self.overlay_pass is not None and tuple(self.overlay_pass) in keys:
+            rt, k = self.overlay_pass
+            return RayType(rt), int(k)
+        return keys[0] if keys else None
+
+    def overlay_tile_level(self) -> int:
+        """Quadtree level of the backend's finest tiles (outlines), -1 for a backend without tiles."""
+        from viewer.backends.chcrt_front import max_tile_level
+
+        frac = getattr(getattr(self.backend, "p", None), "min_tile_fraction", None)
+        return max_tile_level(self.size, float(frac)) if frac else -1
+
+    def _overlay_unavailable(self, msg: str) -> None:
+        self.overlay_missing = msg
+        if self.strict_overlays:
+            raise RtwalkError(msg)
+
+    def _capture_overlays(self, overlays: dict) -> bool:
+        need = OVERLAY_VIEWS.get(self.view, ())
+        missing = [n for n in need if n not in overlays]
+        if missing:
+            self._overlay_unavailable(f"view '{self.view}' needs the backend's {', '.join(missing)} overlay; "
+                                      f"backend '{self.backend_name}' does not produce it (use chcrt)")
+        if not overlays or missing:
+            return False
+        if any(tuple(t.size) != tuple(self.size) for t in overlays.values()):
+            self._overlay_unavailable(f"backend '{self.backend_name}' overlays are not at the render size")
+            return False
+        with self.profiler.phase("overlay"):
+            self.overlay.capture(overlays, self.rays, self.hits)
+        return True
+
+    def overlay_scale_max(self) -> int:
+        """The heat map's maximum this frame (the legend's): the fixed scale, else the frame's
+        largest query-fragment count rounded up to 1-2-5 steps (8 bytes read back)."""
+        from viewer.passes.overlay import nice_ceil
+
+        if self.overlay_scale > 0:
+            return int(self.overlay_scale)
+        if self._overlay is None or not self._overlay.captured:
+            return 1
+        return nice_ceil(max(self._overlay.read_max()[0], 1))
+
+    def read_overlays(self) -> dict[str, np.ndarray]:
+        """The copied overlays of this frame's overlay pass, int32 (H*W,) each, row 0 = bottom:
+        the backend's (query_overdraw, subtree_id, batch_subtrees: those it produced) plus
+        `ray` and `hit` (bool) for that pass. Empty when nothing was copied."""
+        from viewer.passes.overlay import FLAG_HIT, FLAG_RAY, OVERLAY_NAMES
+
+        ov = self._overlay
+        if ov is None or not ov.captured:
+            return {}
+        data = ov.read().reshape(-1, 4)
+        out = {n: np.ascontiguousarray(data[:, i]) for i, n in enumerate(OVERLAY_NAMES) if n in ov.captured}
+        out["ray"] = (data[:, 3] & FLAG_RAY) != 0
+        out["hit"] = (data[:, 3] & FLAG_HIT) != 0
+        return out
+
+    def overlay_tiles(self) -> tuple[np.ndarray, np.ndarray, str] | None:
+        """Per finest tile of this frame's overlay pass: (rects, counts, what) (see
+        passes.overlay.tile_counts); None without a capture or tiles. Reads the capture back."""
+        from viewer.passes.overlay import tile_counts
+
+        level = self.overlay_tile_level()
+        if self._overlay is None or not self._overlay.captured or level < 0:
+            return None
+        return tile_counts(self._overlay.read(), level)
+
     # -- one frame -----------------------------------------------------------------------------
     def render(self, camera: Camera, capture: bool = False) -> FrameReport:
         s = self.settings
         t0 = time.perf_counter()
         prof = self.profiler
+        passes = self.passes()
+        view_overlay = self.view in OVERLAY_VIEWS
+        source = self.overlay_source_for(passes) if self.overlays_wanted else None
+        self.overlay_missing = ""
+        self.overlay_source = None
+        if self._overlay is not None:
+            self._overlay.begin_frame()
+        if view_overlay and source is None:
+            self._overlay_unavailable(f"view '{self.view}' shows a traced pass's overlays, but no pass "
+                                      "traces rays (turn an effect on)")
+        overlay_done = False
         prof.begin_frame()
         cam_u = camera_uniforms(camera, self.size)
         light_u = light_uniforms(self.scene, s.ambient)
@@ -144,17 +265,22 @@ class Renderer:
             self.gbuffer.render(camera)
         self.accumulate.clear()
         self.raygen.reset_count()
+        if hasattr(self.backend, "overlays_enabled"):  # diagnostics cost time: only when shown or saved
+            self.backend.overlays_enabled = self.overlays_wanted
         self.backend.begin_frame(self.frame_index)
         lengths = {RayType.AO: s.ao_length * self.diagonal, RayType.DIFFUSE: self.diagonal}
         captured: list[CapturedPass] = []
         stats: dict[str, float] = {}
-        for ray_type, sample, light, weight in self.passes():
+        for ray_type, sample, light, weight in passes:
             with prof.phase("raygen"):
                 self.raygen.generate(self.rays, self.gbuffer, ray_type, sample, light,
                                      lengths.get(ray_type, 0.0), np.radians(s.perturb_deg))
             prof.label = ray_type.label
             result = self.backend.trace(self.rays, ray_type, sample, self.hits)
             prof.label = None
+            self.backend_overlays = tuple(result.overlays)
+            if source is not None and not overlay_done and (ray_type, sample) == source:
+                overlay_done = self._capture_overlays(result.overlays)
             for k, v in result.stats.items():
                 stats[k] = stats.get(k, 0) + v
             if capture:
@@ -164,15 +290,21 @@ class Renderer:
                 with prof.phase("accumulate"):
                     self.accumulate.add(ray_type, self.rays, self.hits, self.gbuffer, light, weight)
         with prof.phase("shade"):
-            self.shade.render(self.gbuffer, self.accumulate, s, self.view,
-                              min(len(self.scene.point_lights), 8), self.depth_scale)
+            if view_overlay and overlay_done:
+                self.overlay.render_view(self.shade.fbo, self.view, self.overlay_tile_level(),
+                                         int(self.overlay_scale), self.overlay_log)
+            else:  # an overlay view without overlays (window): the final image under the message
+                self.shade.render(self.gbuffer, self.accumulate, s, "final" if view_overlay else self.view,
+                                  min(len(self.scene.point_lights), 8), self.depth_scale)
+        self.overlay_source = source if overlay_done else None
         gpu_ms = prof.end_frame()
         counts = self.raygen.read_counts()
         self.ctx.finish()
         wall = (time.perf_counter() - t0) * 1e3
         self.frame_index += 1
         rays = {RayType(i).label: int(counts[i]) for i in range(6) if counts[i] > 0}
-        return FrameReport(gpu_ms, prof.cpu_ms(), wall, rays, dict(prof.by_label), stats, captured)
+        return FrameReport(gpu_ms, prof.cpu_ms(), wall, rays, dict(prof.by_label), stats, captured,
+                           self.overlay_source)
 
     def read_image(self) -> np.ndarray:
         return self.shade.read_rgb()
@@ -194,3 +326,6 @@ class Renderer:
             backend.release()
         for obj in (self.gbuffer, self.accumulate, self.shade, self.rays, self.hits, self.gpu_scene):
             obj.release()
+        if self._overlay is not None:
+            self._overlay.release()
+            self._overlay = None

@@ -78,7 +78,7 @@ class ChcrtParams:
     max_batch: int = 24  # subtree roots per intersection draw
     max_multi: int = 24  # invisible pairs per multi-query
     visible_threshold: int = 0  # aggressive mode: a pair with <= this many passing pixels is culled
-    overdraw_overlay: bool = True  # count query fragments per pixel (query_overdraw overlay)
+    overdraw_overlay: bool = True  # allow the overlays (the renderer turns them on only when shown/saved)
     front_to_back: bool = True  # order scheduled subtrees by a representative ray (primary/shadows)
     sync_phases: bool = False  # glFinish at the end of each phase: exact per-phase times (diagnostics)
     # "hw": one hardware occlusion query and one scissored draw per query or batch (the paper);
@@ -308,6 +308,9 @@ class ChcrtBackend:
         self.frame = 0
         self._occurrence: dict[tuple[int, int], int] = {}
         self.last_stats: dict[str, float] = {}
+        # fill the overlay textures (query overdraw, subtree id, batch sizes): set per frame by the
+        # renderer (on only while an overlay view is shown or saved: the counting costs ~5%)
+        self.overlays_enabled = True
 
     @property
     def params_text(self) -> str:
@@ -391,6 +394,7 @@ class _Pass:
         self.rep: tuple[np.ndarray, np.ndarray] | None = None  # representative rays per finest tile
         self.rays_read = False
         self.threshold = int(self.p.visible_threshold)
+        self.overlays = bool(self.p.overdraw_overlay and be.overlays_enabled)
 
     # -- GL helpers -------------------------------------------------------------------------------
     def _bind(self) -> None:
@@ -487,7 +491,7 @@ class _Pass:
         self.be.draws.upload(recs)
         self.be.query_counts.upload(bytes(4 * nq))
         prog = self.be.prog_query_b
-        prog["countOverdraw"] = int(self.p.overdraw_overlay)
+        prog["countOverdraw"] = int(self.overlays)
         prog["raySize"] = tuple(self.size)
         fbo = self.tg.query_fbo
         fbo.use()
@@ -504,7 +508,7 @@ class _Pass:
     def _queries_hw(self, rects: np.ndarray, base: np.ndarray, nbox: np.ndarray, live: np.ndarray) -> np.ndarray:
         """The paper's way: one scissored draw inside one occlusion query object per query."""
         prog = self.be.prog_query
-        prog["countOverdraw"] = int(self.p.overdraw_overlay)
+        prog["countOverdraw"] = int(self.overlays)
         fbo = self.tg.query_fbo
         fbo.use()
         self.ctx.enable(moderngl.DEPTH_TEST)
@@ -617,7 +621,7 @@ class _Pass:
 
     def _isect_uniforms(self, prog: moderngl.Program) -> None:
         prog["anyHit"] = int(self.any_hit)
-        prog["countOverlays"] = int(self.p.overdraw_overlay)
+        prog["countOverlays"] = int(self.overlays)
 
     # -- Algorithm 1 --------------------------------------------------------------------------------
     def run(self) -> dict[str, float]:

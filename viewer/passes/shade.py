@@ -9,11 +9,14 @@ from viewer.effects import EffectSettings, RayType
 from viewer.gpu import FullscreenQuad, ProgramCache
 from viewer.passes.accumulate import AccumulatePass
 from viewer.passes.gbuffer import GBufferPass
+from viewer.passes.overlay import OVERLAY_VIEWS
 from viewer.passes.targets import SizedTargets
 
 # Index = viewMode uniform in shade.frag.
-VIEW_MODES = ["final", "albedo", "normal", "depth", "shadows", "soft", "ao", "diffuse", "reflections",
-              "triangle_id"]
+SHADE_MODES = ["final", "albedo", "normal", "depth", "shadows", "soft", "ao", "diffuse", "reflections",
+               "triangle_id"]
+# Every view: the shade pass's modes, then the backend overlay views (drawn by passes/overlay.py).
+VIEW_MODES = SHADE_MODES + list(OVERLAY_VIEWS)
 
 
 class ShadePass(SizedTargets):
@@ -45,7 +48,7 @@ class ShadePass(SizedTargets):
         p["reflectOn"] = int(settings.reflections)
         p["numShadowLights"] = int(n_shadow_lights)
         p["exposure"] = float(settings.exposure)
-        p["viewMode"] = VIEW_MODES.index(view)
+        p["viewMode"] = SHADE_MODES.index(view)
         p["depthScale"] = float(depth_scale)
         self.fbo.use()
         self.ctx.disable(self.ctx.BLEND | self.ctx.DEPTH_TEST)

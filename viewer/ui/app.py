@@ -4,11 +4,14 @@ The scene is loaded and its BVH built before the window opens. Each frame: move 
 (keys/mouse, or a recording being played back), `Renderer.render`, draw the final texture over
 the window (at `render_scale` of the framebuffer size; llvmpipe is a CPU rasterizer), draw the
 panel. Keys: WASD/QE move, drag (left or right button) to look, wheel = speed, shift = x5,
-F12 screenshot, R record, P play back, F1 panel on/off, Esc quits.
+F12 screenshot, R record, P play back, V next view of final / query_overdraw / subtree_batches
+(backend overlays; legend and tile labels drawn over the image), O next overlay source pass,
+F1 panel on/off, Esc quits.
 
 For tests and the README screenshot: `--max-frames N` or RTWALK_VIEW_FRAMES=N quits after N
 frames; RTWALK_VIEW_SCREENSHOT=path.png then saves the whole window, panel included.
-RTWALK_VIEW_SCALE=0.25..1 sets the initial render scale (default 0.5).
+RTWALK_VIEW_SCALE=0.25..1 sets the initial render scale (default 0.5); RTWALK_VIEW_MODE=VIEW the
+initial view (a `--view` argument, where the parser has one, takes precedence).
 """
 
 from __future__ import annotations
@@ -25,11 +28,19 @@ import numpy as np
 from viewer.camera import Camera
 from viewer.errors import RtwalkError
 from viewer.ui.camera_controller import FlyCamera
-from viewer.ui.panel import PANEL_WIDTH, FrameHistory, draw_panel
+from viewer.ui.panel import (
+    PANEL_WIDTH,
+    FrameHistory,
+    chart_phases,
+    draw_overlay_annotations,
+    draw_panel,
+    overlay_pass_choices,
+)
 
 DEFAULT_RENDER_SCALE = 0.5
 SCREENSHOT_DIR = Path("screenshots")
 RECORDING_DIR = Path("recordings")
+CYCLED_VIEWS = ("final", "query_overdraw", "subtree_batches")  # the V key
 MAX_DT = 0.25  # a stall (scene switch, screenshot) must not throw the camera across the scene
 NO_DISPLAY_HINT = "use `rtwalk render`/`rtwalk bench` or run under xvfb-run (e.g. xvfb-run -a rtwalk view)"
 
@@ -90,6 +101,20 @@ def render_scale_from_env() -> float:
     return v
 
 
+def initial_view(args) -> str:
+    """`--view` if the parser has it, else RTWALK_VIEW_MODE, else final; checked before the window."""
+    from viewer.passes.shade import VIEW_MODES
+
+    view = getattr(args, "view", None)
+    source = "--view"
+    if view is None:
+        view = os.environ.get("RTWALK_VIEW_MODE", "").strip() or "final"
+        source = "RTWALK_VIEW_MODE"
+    if view not in VIEW_MODES:
+        raise RtwalkError(f"{source}: unknown view '{view}' (choose from {', '.join(VIEW_MODES)})")
+    return view
+
+
 def require_display() -> None:
     if not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")):
         raise RtwalkError(f"no display (DISPLAY is not set) for the `view` window; {NO_DISPLAY_HINT}")
@@ -136,6 +161,7 @@ def run_viewer(args) -> int:
 
     max_frames = frame_limit(args)
     render_scale_from_env()  # bad values fail before the window opens
+    view = initial_view(args)
     shot = os.environ.get("RTWALK_VIEW_SCREENSHOT", "").strip() or None
     window_class()  # fail on a missing display before spending time on the scene
     settings = settings_from(args)
@@ -156,6 +182,7 @@ def run_viewer(args) -> int:
                         recording=recording,
                         scene_arg=getattr(args, "scene", None), max_frames=max_frames, window_shot=shot,
                         quiet=quiet)
+        app.renderer.view = view
         return app.run()
     finally:
         if app is not None:
@@ -175,7 +202,7 @@ class ViewerApp:
     def __init__(self, window, prepared, settings, backend: str, recording=None, scene_arg: str | None = None,
                  backend_options: dict[str, str] | None = None, max_frames: int | None = None,
                  window_shot: str | None = None, quiet: bool = False):
-        from imgui_bundle import imgui
+        from imgui_bundle import imgui, implot
         from moderngl_window.integrations.imgui_bundle import ModernglWindowRenderer
 
         from viewer.recording import Recorder
@@ -199,6 +226,7 @@ class ViewerApp:
 
         self.renderer = Renderer(self.ctx, prepared.scene, prepared.bvh, self._render_size(), backend, settings,
                                  backend_options)
+        self.renderer.strict_overlays = False  # an overlay view the backend cannot feed: a panel line
         start = self.scene.default_camera or _overview_camera(self.scene)
         self.fly = FlyCamera.from_camera(start, self.renderer.diagonal)
         self.camera: Camera = self.fly.camera()
@@ -212,6 +240,7 @@ class ViewerApp:
 
         # imgui: context, renderer, extra keys (ctrl+A/C for the read-only camera field)
         imgui.create_context()
+        implot.create_context()  # the panel's phase chart
         io = imgui.get_io()
         io.set_ini_filename("")  # no imgui.ini in the working directory
         self.imgui = ModernglWindowRenderer(window)
@@ -393,6 +422,26 @@ class ViewerApp:
             self.toggle_playback()
         elif key == keys.F1:
             self.show_panel = not self.show_panel
+        elif key == keys.V:
+            self.cycle_view()
+        elif key == keys.O:
+            self.cycle_overlay_pass()
+
+    def cycle_view(self) -> None:
+        """V: final -> query_overdraw -> subtree_batches -> final (any other view goes to final)."""
+        r = self.renderer
+        i = CYCLED_VIEWS.index(r.view) if r.view in CYCLED_VIEWS else -1
+        r.view = CYCLED_VIEWS[(i + 1) % len(CYCLED_VIEWS)]
+        self.say(f"view: {r.view}")
+
+    def cycle_overlay_pass(self) -> None:
+        """O: the overlay views' source pass: first pass of the frame, then each pass in turn."""
+        r = self.renderer
+        choices = overlay_pass_choices(r)
+        values = [v for _, v in choices]
+        i = values.index(r.overlay_pass) if r.overlay_pass in values else 0
+        label, r.overlay_pass = choices[(i + 1) % len(choices)]
+        self.say(f"overlay pass: {label}")
 
     def on_mouse_position(self, x, y, dx, dy) -> None:
         self.imgui.mouse_position_event(x, y, dx, dy)
@@ -471,7 +520,8 @@ class ViewerApp:
         self._resize_renderer(self._render_size())
         report = self._render()
         self.last_report = report
-        self.history.add(frame_ms if frame_ms > 0 else report.wall_ms, sum(report.gpu_ms.values()))
+        self.history.add(frame_ms if frame_ms > 0 else report.wall_ms, sum(report.gpu_ms.values()),
+                         chart_phases(report.gpu_ms), report.backend_stats)
 
         ctx = self.ctx
         w, h = self.wnd.buffer_size
@@ -486,9 +536,11 @@ class ViewerApp:
         self.sampler.clear(0)  # the renderer's passes sample integer textures on unit 0 unfiltered
 
         imgui.new_frame()
+        ww, wh = self.wnd.size
+        panel_w = min(PANEL_WIDTH, ww * 0.5) if self.show_panel else 0.0
+        draw_overlay_annotations(self, ww, wh, panel_w)
         if self.show_panel:
-            ww, wh = self.wnd.size
-            draw_panel(self, min(PANEL_WIDTH, ww * 0.5), wh)
+            draw_panel(self, panel_w, wh)
         imgui.render()
         self.imgui.render(imgui.get_draw_data())
 
@@ -510,7 +562,7 @@ class ViewerApp:
     def run(self) -> int:
         if not self.quiet:
             log("rtwalk view: WASD/QE move, drag to look, wheel = speed, shift = x5; F12 screenshot, "
-                "R record, P play, F1 panel, Esc quits")
+                "R record, P play, V view (final/overlays), O overlay pass, F1 panel, Esc quits")
         last = time.perf_counter()
         frame_ms = 0.0
         while not self.wnd.is_closing:
@@ -534,10 +586,11 @@ class ViewerApp:
         return 0
 
     def release(self) -> None:
-        from imgui_bundle import imgui
+        from imgui_bundle import imgui, implot
 
         try:
             self.imgui.shutdown()
+            implot.destroy_context()
             imgui.destroy_context()
         finally:
             for obj in (self.blit_vao, self.blit, self.sampler):

@@ -1,7 +1,10 @@
-"""The side panel (imgui): scene stats, effect settings, backend/view, timings, camera, keys.
+"""The side panel (imgui): scene stats, effect settings, backend/view, timings, camera, keys;
+backend phases as a stacked bar per frame (CHC+RT paper, Figure 8) and per-frame counters; the
+overlay views' controls, and their legend / tile labels drawn over the image.
 
-`FrameHistory` and `camera_argument` are plain Python (unit-testable); `draw_panel` needs a live
-imgui frame and reads/writes the viewer through the small `PanelHost` interface below.
+`FrameHistory`, `chart_phases` and `camera_argument` are plain Python (unit-testable); `draw_panel`
+and `draw_overlay_annotations` need a live imgui (+ implot) frame and read/write the viewer through
+the small `PanelHost` interface below.
 """
 
 from __future__ import annotations
@@ -15,18 +18,48 @@ from viewer.camera import Camera
 
 PANEL_WIDTH = 340
 HISTORY = 120
+CHART_FRAMES = 60  # frames in the stacked phase chart
+# The spec's per-frame counters (FrameReport.backend_stats), in display order.
+COUNTERS = ("queries", "multi_queries", "failed_multi_queries", "visible_pairs", "invisible_pairs",
+            "subtrees_scheduled", "draws", "rays")
+
+
+def chart_phases(gpu_ms: dict[str, float]) -> dict[str, float]:
+    """The phases stacked per frame: CHC+RT's four (chc:*) when present, else the per-ray-type
+    trace times of other backends (trace:*)."""
+    chc = {k: v for k, v in gpu_ms.items() if k.startswith("chc:")}
+    return dict(sorted(chc.items())) if chc else {k: v for k, v in gpu_ms.items() if k.startswith("trace:")}
 
 
 class FrameHistory:
-    """Last `n` frame times (ms) and the latest per-phase GPU timings."""
+    """Last `n` frame times (ms), GPU totals, chart phases and backend counters."""
 
     def __init__(self, n: int = HISTORY):
         self.frame_ms: deque[float] = deque(maxlen=n)
         self.gpu_ms: deque[float] = deque(maxlen=n)
+        self.phases: deque[dict[str, float]] = deque(maxlen=n)
+        self.counters: deque[dict[str, float]] = deque(maxlen=n)
 
-    def add(self, frame_ms: float, gpu_total_ms: float) -> None:
+    def add(self, frame_ms: float, gpu_total_ms: float, phases: dict[str, float] | None = None,
+            counters: dict[str, float] | None = None) -> None:
         self.frame_ms.append(float(frame_ms))
         self.gpu_ms.append(float(gpu_total_ms))
+        self.phases.append(dict(phases or {}))
+        self.counters.append(dict(counters or {}))
+
+    def phase_table(self, last: int = CHART_FRAMES) -> tuple[list[str], np.ndarray]:
+        """(phase names, float64 (phases, frames) ms) over the last frames; 0 where a frame lacks
+        a phase (backend switched). Names in first-seen order (chc phases sort by number)."""
+        frames = list(self.phases)[-last:]
+        names: list[str] = []
+        for f in frames:
+            names += [k for k in f if k not in names]
+        table = np.array([[f.get(n, 0.0) for f in frames] for n in names], np.float64)
+        return names, table.reshape(len(names), len(frames))
+
+    def counter_mean(self, name: str) -> float:
+        vals = [c[name] for c in self.counters if name in c]
+        return float(np.mean(vals)) if vals else 0.0
 
     def array(self, which: str = "frame") -> np.ndarray:
         src = self.frame_ms if which == "frame" else self.gpu_ms
@@ -102,6 +135,8 @@ def draw_panel(host, width: float, height: float) -> None:  # noqa: C901 (a flat
     mode = host.mode_line()
     if mode:
         imgui.text_colored((1.0, 0.45, 0.35, 1.0), mode)
+    if r.overlay_missing:  # an overlay view the backend cannot feed: the final image is shown
+        imgui.text_colored((1.0, 0.45, 0.35, 1.0), overlay_missing_line(r))
     if host.status:
         imgui.text_wrapped(host.status)
 
@@ -130,6 +165,11 @@ def draw_panel(host, width: float, height: float) -> None:  # noqa: C901 (a flat
                 imgui.text(f"({mrays_frame:.1f} Mrays/s over the whole frame)")
             else:
                 imgui.text("no rays traced (all effects off)")
+
+    # -- backend phases and counters (CHC+RT paper, Figure 8) ------------------------------------
+    if imgui.collapsing_header("Backend phases & counters", imgui.TreeNodeFlags_.default_open):
+        _draw_phase_chart(hist)
+        _draw_counters(host.last_report, hist)
 
     # -- effects ------------------------------------------------------------------------------
     if imgui.collapsing_header("Effects", imgui.TreeNodeFlags_.default_open):
@@ -174,6 +214,7 @@ def draw_panel(host, width: float, height: float) -> None:  # noqa: C901 (a flat
         changed, idx = imgui.combo("view", cur, VIEW_MODES)
         if changed:
             r.view = VIEW_MODES[idx]
+        _draw_overlay_controls(r, host.last_report)
         _, host.render_scale = imgui.slider_float("render scale", host.render_scale, 0.25, 1.0, "%.2f")
 
     # -- scene --------------------------------------------------------------------------------
@@ -214,7 +255,240 @@ def draw_panel(host, width: float, height: float) -> None:  # noqa: C901 (a flat
         imgui.same_line()
         if imgui.button("Play (P)"):
             host.toggle_playback()
-        imgui.text_wrapped("WASD move, Q/E down/up, drag to look, wheel = speed, shift = x5, Esc quits")
+        imgui.text_wrapped("WASD move, Q/E down/up, drag to look, wheel = speed, shift = x5, V view "
+                           "(final / query overdraw / subtree batches), O overlay pass, F1 panel, Esc quits")
 
     imgui.pop_item_width()
     imgui.end()
+
+
+# --------------------------------------------------------------------------- backend phases, counters
+
+
+_CHART_LABELS = {"chc:1-intersect-visible": "1 visible", "chc:2-queries": "2 queries",
+                 "chc:3-traversal": "3 traversal", "chc:4-final-intersect": "4 final"}
+
+
+def _short_phase(name: str) -> str:
+    """Chart legend label: 'chc:2-queries' -> '2 queries', 'trace:ao' -> 'ao'."""
+    return _CHART_LABELS.get(name) or name.split(":", 1)[-1].replace("-", " ")
+
+
+def _draw_phase_chart(hist: FrameHistory) -> None:
+    """GPU ms per phase, one stacked bar per frame over the recent frames (implot)."""
+    from imgui_bundle import imgui, implot
+
+    names, table = hist.phase_table()
+    if not names:
+        imgui.text("no backend phases timed yet")
+        return
+    n = table.shape[1]
+    totals = table.sum(axis=0)
+    # the y range follows the typical frame: a warm-up frame (shader compilation) or a backend
+    # switch would flatten every other bar; such a bar runs off the top
+    ymax = float(max(np.percentile(totals, 90) * 1.25, 1e-3))
+    last = ", ".join(f"{k.split(':', 1)[-1].replace('-', ' ')} {v:.1f}"
+                     for k, v in zip(names, table[:, -1], strict=True))
+    imgui.text_wrapped(f"last frame (ms): {last}")
+    flags = implot.Flags_.no_menus | implot.Flags_.no_box_select | implot.Flags_.no_mouse_text
+    sv = implot.StyleVar_
+    implot.push_style_var(sv.legend_inner_padding, imgui.ImVec2(3, 3))  # a narrow legend beside the bars
+    implot.push_style_var(sv.legend_spacing, imgui.ImVec2(2, 1))
+    implot.push_style_var(sv.legend_padding, imgui.ImVec2(4, 4))
+    if implot.begin_plot("##phases", (-1, 170), flags):
+        implot.setup_axes("frames (newest right)", "GPU ms", implot.AxisFlags_.no_tick_labels)
+        implot.setup_axis_limits(implot.ImAxis_.x1, -0.6, max(n, 8) - 0.4, implot.Cond_.always)
+        implot.setup_axis_limits(implot.ImAxis_.y1, 0.0, ymax, implot.Cond_.always)
+        implot.setup_legend(implot.Location_.north_east, implot.LegendFlags_.outside)
+        implot.plot_bar_groups([_short_phase(k) for k in names], np.ascontiguousarray(table.reshape(-1)),
+                               0.8, 0.0, implot.BarGroupsFlags_.stacked)
+        implot.end_plot()
+    implot.pop_style_var(3)
+
+
+def _draw_counters(rep, hist: FrameHistory) -> None:
+    """This frame's backend counters (summed over its passes) and their mean over the history."""
+    from imgui_bundle import imgui
+
+    stats = rep.backend_stats if rep is not None else {}
+    if not stats:
+        imgui.text("the backend reports no counters")
+        return
+    rows = [k for k in COUNTERS if k in stats]
+    flags = imgui.TableFlags_.row_bg | imgui.TableFlags_.borders_inner_v
+    if imgui.begin_table("counters", 3, flags):
+        stretch = imgui.TableColumnFlags_.width_stretch
+        imgui.table_setup_column("counter", stretch, 1.7)
+        imgui.table_setup_column("frame", stretch, 1.0)
+        imgui.table_setup_column(f"mean ({len(hist.counters)})", stretch, 1.0)
+        imgui.table_headers_row()
+        for k in rows:
+            imgui.table_next_row()
+            imgui.table_next_column()
+            imgui.text(k.replace("_", " "))
+            imgui.table_next_column()
+            imgui.text(f"{stats[k]:,.0f}")
+            imgui.table_next_column()
+            imgui.text(f"{hist.counter_mean(k):,.0f}")
+        imgui.end_table()
+    others = [k for k in stats if k not in COUNTERS]
+    if others and imgui.tree_node("more counters"):
+        for k in others:
+            imgui.text(f"{k.replace('_', ' ')}: {stats[k]:,.0f}")
+        imgui.tree_pop()
+
+
+# --------------------------------------------------------------------------- overlays
+
+
+def overlay_pass_choices(renderer) -> list[tuple[str, tuple | None]]:
+    """(label, Renderer.overlay_pass value) for the overlay source selector: the frame's first
+    pass (automatic), then each (ray type, sample) of the frame."""
+    seen: list[tuple] = []
+    for rt, k, _, _ in renderer.passes():
+        if (rt, k) not in seen:
+            seen.append((rt, k))
+    return [("first pass of the frame", None)] + [(f"{rt.label} sample {k}", (rt, k)) for rt, k in seen]
+
+
+def overlay_missing_line(r) -> str:
+    """One short panel line for Renderer.overlay_missing (the full reason is in that attribute)."""
+    if not r.overlay_missing:
+        return ""
+    if not r.passes():  # no pass traced rays this frame
+        return "no traced pass: turn an effect on"
+    return f"{r.backend_name}: no overlays, final shown (chcrt)"
+
+
+def _draw_overlay_controls(r, rep) -> None:
+    """Overlay source pass, heat-map scale, and one line saying what the overlay shows (or why
+    there is none)."""
+    from imgui_bundle import imgui
+
+    from viewer.passes.overlay import OVERLAY_VIEWS
+
+    if r.backend_overlays is not None and not r.backend_overlays:
+        imgui.text_colored((1.0, 0.7, 0.3, 1.0), f"backend {r.backend_name}: no overlays (chcrt has them)")
+    if r.view not in OVERLAY_VIEWS:
+        return
+    choices = overlay_pass_choices(r)
+    values = [v for _, v in choices]
+    cur = values.index(r.overlay_pass) if r.overlay_pass in values else 0
+    changed, idx = imgui.combo("overlay pass", cur, [label for label, _ in choices])
+    if changed:
+        r.overlay_pass = values[idx]
+    if r.view == "query_overdraw":
+        _, auto = imgui.checkbox("auto scale", r.overlay_scale <= 0)
+        imgui.same_line(150)
+        _, r.overlay_log = imgui.checkbox("log scale", r.overlay_log)
+        if auto:
+            r.overlay_scale = 0
+        else:
+            _, v = imgui.slider_int("scale max", max(int(r.overlay_scale), 1), 1, 2000, "%d fragments",
+                                    imgui.SliderFlags_.logarithmic)
+            r.overlay_scale = max(int(v), 1)
+    if r.overlay_source is not None:
+        rt, k = r.overlay_source
+        imgui.text(f"overlays of the {rt.label} pass, sample {k}")
+        total = rep.backend_stats.get("query_pixels") if rep is not None else None
+        if r.view == "query_overdraw" and total is not None:  # the backend counts them: no readback
+            imgui.text(f"frame: {total:,.0f} query fragments (all passes)")
+
+
+def _u32(rgb, alpha: int = 255) -> int:
+    from imgui_bundle import imgui
+
+    return imgui.IM_COL32(int(rgb[0]), int(rgb[1]), int(rgb[2]), int(alpha))
+
+
+def _text_box(dl, x: float, y: float, text: str, fg=(255, 255, 255), bg_alpha: int = 170) -> None:
+    """Text at (x, y) (top left) on a dark box, readable over any image."""
+    from imgui_bundle import imgui
+
+    sz = imgui.calc_text_size(text)
+    dl.add_rect_filled((x - 2, y - 1), (x + sz.x + 2, y + sz.y + 1), _u32((0, 0, 0), bg_alpha))
+    dl.add_text((x, y), _u32(fg), text)
+
+
+def draw_overlay_annotations(host, width: float, height: float, left: float = 0.0) -> None:
+    """Over the image (behind the panel): the heat map's legend, or the subtree view's per-tile
+    counts. `width` x `height`: the window in imgui units; the image fills it; `left`: panel width
+    (the legend stays right of it). Reads back only while an overlay view is shown."""
+    from imgui_bundle import imgui
+
+    r = host.renderer
+    if r.overlay_source is None or r.overlay_missing:
+        return
+    dl = imgui.get_background_draw_list()
+    if r.view == "query_overdraw":
+        _draw_heat_legend(dl, r, width, height, left)
+    elif r.view == "subtree_batches":
+        _draw_tile_labels(dl, r, width, height, left)
+
+
+def _draw_heat_legend(dl, r, width: float, height: float, left: float) -> None:
+    """Colour bar with ticks (the shader's scale, same colormap), the scale's maximum and how it
+    was chosen, the frame's maximum, and the source pass; bottom right of the image."""
+    from imgui_bundle import imgui
+
+    from viewer.passes.overlay import heat_colors, heat_position, heat_ticks
+
+    vmax = r.overlay_scale_max()
+    frame_max = r.overlay.read_max()[0]
+    rt, k = r.overlay_source
+    how = "fixed" if r.overlay_scale > 0 else "auto"
+    lines = ["query fragments per pixel", f"max {vmax} ({how}), frame max {frame_max}",
+             f"{rt.label} #{k}, {'log' if r.overlay_log else 'linear'} scale, grey: no ray"]
+    line = imgui.get_text_line_height()
+    bar_w = float(min(300.0, max(120.0, width - left - 60.0)))
+    box_w = max(bar_w + 12.0, *(imgui.calc_text_size(t).x for t in lines)) + 16.0
+    bar_h = 14.0
+    box_h = 3 * line + bar_h + line + 30.0
+    bx, by = width - box_w - 8.0, height - box_h - 8.0
+    dl.add_rect_filled((bx, by), (bx + box_w, by + box_h), _u32((20, 20, 20), 215), 4.0)
+    white, grey = _u32((255, 255, 255)), _u32((210, 210, 210))
+    x0 = bx + (box_w - bar_w) / 2
+    dl.add_text((bx + 8, by + 6), white, lines[0])
+    y0 = by + line + 12.0
+    segs = 64
+    pos = np.linspace(0.0, 1.0, segs + 1)
+    # colours at evenly spaced positions of the bar: invert the scale to get the values there
+    m = float(max(vmax, 1))
+    at = np.expm1(pos * np.log1p(m)) if r.overlay_log else pos * m
+    cols = heat_colors(at.astype(np.float32), vmax, r.overlay_log)
+    for i in range(segs):
+        a, b = x0 + bar_w * pos[i], x0 + bar_w * pos[i + 1]
+        ca, cb = _u32(cols[i]), _u32(cols[i + 1])
+        dl.add_rect_filled_multi_color((a, y0), (b + 0.5, y0 + bar_h), ca, cb, cb, ca)
+    dl.add_rect((x0, y0), (x0 + bar_w, y0 + bar_h), grey)
+    for t in heat_ticks(vmax, r.overlay_log):
+        x = x0 + bar_w * float(heat_position(t, vmax, r.overlay_log))
+        dl.add_line((x, y0 + bar_h), (x, y0 + bar_h + 4), grey)
+        label = str(t)
+        tw = imgui.calc_text_size(label).x
+        dl.add_text((min(max(x - tw / 2, x0 - 6), x0 + bar_w - tw + 6), y0 + bar_h + 5), grey, label)
+    dl.add_text((bx + 8, y0 + bar_h + line + 8), grey, lines[1])
+    dl.add_text((bx + 8, y0 + bar_h + 2 * line + 10), grey, lines[2])
+
+
+def _draw_tile_labels(dl, r, width: float, height: float, left: float) -> None:
+    from imgui_bundle import imgui
+
+    tiles = r.overlay_tiles()
+    if tiles is None:
+        return
+    rects, counts, what = tiles
+    rw, rh = r.size
+    sx, sy = width / rw, height / rh
+    line = imgui.get_text_line_height()
+    for (x, y, w, h), c in zip(rects.tolist(), counts.tolist(), strict=True):
+        cx, cy = (x + w / 2) * sx, height - (y + h / 2) * sy
+        label = str(c)
+        sz = imgui.calc_text_size(label)
+        if w * sx < sz.x + 6 or h * sy < line + 4 or cx - sz.x / 2 < left:
+            continue  # too small to label, or under the panel
+        _text_box(dl, cx - sz.x / 2, cy - sz.y / 2, label)
+    rt, k = r.overlay_source
+    note = f"{rt.label} #{k}: colour = hit subtree; numbers = {what}"
+    tw = imgui.calc_text_size(note).x
+    _text_box(dl, max(left + 6, width - tw - 10), height - line - 8, note, bg_alpha=210)

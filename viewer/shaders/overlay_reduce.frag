@@ -1,0 +1,21 @@
+// One step of a max-reduction over BLOCK x BLOCK texels: (max query fragments, max batch subtrees)
+// of the capture texture (first step: channels r, b) or of the previous step (channels r, g).
+// Render-to-texture steps (no atomics, no memory barriers) down to 1x1, which the view shader reads.
+#define BLOCK 16
+uniform isampler2D src;
+uniform ivec2 srcSize;
+uniform int firstStep;
+out ivec2 outMax;
+
+void main() {
+    ivec2 base = ivec2(gl_FragCoord.xy) * BLOCK;
+    ivec2 hi = min(base + BLOCK, srcSize);
+    ivec2 m = ivec2(0);
+    for (int y = base.y; y < hi.y; ++y) {
+        for (int x = base.x; x < hi.x; ++x) {
+            ivec4 v = texelFetch(src, ivec2(x, y), 0);
+            m = max(m, firstStep != 0 ? v.rb : v.rg);
+        }
+    }
+    outMax = m;
+}
