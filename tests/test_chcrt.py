@@ -363,3 +363,24 @@ def test_multi_query_groups_follow_chcpp():
     assert max(len(g) for g in f.multi_query_groups(inv, 4)) == 4
     f.age[inv] = 0  # just became invisible: q = 0.29, not worth grouping
     assert all(len(g) == 1 for g in f.multi_query_groups(inv, 24))
+
+
+def test_headless_resize_rebuilds_chcrt_targets(gl_ctx):
+    """Renderer.resize works without a default framebuffer (EGL), and chcrt restarts its fronts at
+    the new size: still exactly the glsl hits."""
+    scene, bvh, path = _load("city")
+    settings = parse_effects("primary,ao:1")
+    rg = Renderer(gl_ctx, scene, bvh, SIZE, "glsl", settings)
+    rc = Renderer(gl_ctx, scene, bvh, SIZE, "chcrt", settings)
+    try:
+        rc.render(path[0])
+        small = (SIZE[0] // 2 + 3, SIZE[1] // 2 + 1)
+        for r in (rg, rc):
+            r.resize(small)
+        a, b = rg.render(path[1], capture=True), rc.render(path[1], capture=True)
+        assert b.rays["primary"] == small[0] * small[1]
+        for pa, pb in zip(a.captured, b.captured, strict=True):
+            _check_exact(pa, pb, f"resized {pa.ray_type.label}", scene.triangles)
+    finally:
+        rg.release()
+        rc.release()

@@ -62,6 +62,14 @@ def _mrays(rep: FrameReport) -> dict[str, float]:
     return out
 
 
+def frame_row(rep: FrameReport, rec: Recording, n: int, fps: float | None = None) -> dict:
+    """One frame's numbers as stored in reports (shared with `rtwalk bench-chcrt`)."""
+    return {"frame": n, "time_s": float(rec.frame_times(fps)[n]), "wall_ms": rep.wall_ms,
+            "gpu_ms": rep.gpu_ms, "cpu_ms": rep.cpu_ms, "trace_ms": rep.trace_ms,
+            "trace_ms_by_ray": rep.trace_ms_by_ray, "rays": rep.rays,
+            "mrays_per_s": _mrays(rep), "backend_stats": rep.backend_stats}
+
+
 def reference_errors(renderer: Renderer, camera, tracer) -> dict:
     """Per ray type: agreement of the backend's hits with Embree on exactly the same rays."""
     from viewer.reference import compare_hits
@@ -130,10 +138,7 @@ def run_bench(prepared: PreparedScene, rec: Recording, settings: EffectSettings,
                                file=sys.stderr)):
         cam = rec.camera_for_frame(n, opts.fps)
         rep = renderer.render(cam)
-        row = {"frame": n, "time_s": float(rec.frame_times(opts.fps)[n]), "wall_ms": rep.wall_ms,
-               "gpu_ms": rep.gpu_ms, "cpu_ms": rep.cpu_ms, "trace_ms": rep.trace_ms,
-               "trace_ms_by_ray": rep.trace_ms_by_ray, "rays": rep.rays,
-               "mrays_per_s": _mrays(rep), "backend_stats": rep.backend_stats}
+        row = frame_row(rep, rec, n, opts.fps)
         image = None
         if tracer is not None and k % max(opts.reference_every, 1) == 0:
             err = reference_errors(renderer, cam, tracer)

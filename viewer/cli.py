@@ -1,4 +1,4 @@
-"""Command line: `rtwalk [view|render|bench|bench-bvh|info] ...`. Bad input -> one line, exit 2."""
+"""Command line: `rtwalk [view|render|bench|bench-chcrt|bench-bvh|info] ...`. Bad input -> one line, exit 2."""
 
 from __future__ import annotations
 
@@ -184,6 +184,12 @@ def cmd_bench_bvh(args) -> int:
     return 0
 
 
+def cmd_bench_chcrt(args) -> int:
+    from viewer.bench_chcrt import cmd_bench_chcrt as run
+
+    return run(args)
+
+
 def cmd_info(args) -> int:
     prepared = scene_from_args(args)
     s = prepared.scene
@@ -251,6 +257,11 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--out", default="out/bench", help="folder for the JSON report and plot")
     b.add_argument("--name", default=None, help="report file stem")
 
+    from viewer.bench_chcrt import add_arguments as add_bench_chcrt_args
+
+    bc = sub.add_parser("bench-chcrt", help="CHC+RT paper tables: glsl vs chcrt, aggressive mode, phases, overhead")
+    add_bench_chcrt_args(bc)
+
     bb = sub.add_parser("bench-bvh", help="BVH build throughput on the city scene")
     bb.add_argument("--sizes", default="1000000,5000000")
     bb.add_argument("--seed", type=int, default=1)
@@ -273,7 +284,7 @@ def main(argv: list[str] | None = None) -> int:
         argv = ["demo"] + argv  # bare `rtwalk [options]` runs the main job
     args = ap.parse_args(argv)
     handlers = {"view": cmd_view, "render": cmd_render, "bench": cmd_bench, "bench-bvh": cmd_bench_bvh,
-                "info": cmd_info, "demo": cmd_demo}
+                "bench-chcrt": cmd_bench_chcrt, "info": cmd_info, "demo": cmd_demo}
     if args.command == "demo":
         # demo reuses bench/view; fill in what their parsers would have set
         for key, val in {"recording": None, "fps": None, "reference": "embree", "reference_every": 6,

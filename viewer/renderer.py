@@ -99,6 +99,7 @@ class Renderer:
         self.overlay_missing = ""
         self.backend_overlays: tuple[str, ...] | None = None  # names the backend returned last (None: not traced)
         self._overlay: OverlayPass | None = None
+        self._idle_fbo: moderngl.Framebuffer | None = None  # bound during a headless resize
         self.backend_name = ""
         self.backend = None
         self._backends: dict[str, object] = {}
@@ -121,7 +122,13 @@ class Renderer:
     def resize(self, size: tuple[int, int]) -> None:
         if size == self.size:
             return
-        self.ctx.screen.use()  # never release a framebuffer that is still bound
+        # never release a framebuffer that is still bound: bind one that survives the resize
+        if self.ctx.screen is not None:
+            self.ctx.screen.use()
+        else:  # headless (EGL): no default framebuffer
+            if self._idle_fbo is None:
+                self._idle_fbo = self.ctx.simple_framebuffer((1, 1))
+            self._idle_fbo.use()
         self.size = size
         self.gbuffer.resize(size)
         self.accumulate.resize(size)
@@ -328,4 +335,6 @@ class Renderer:
             obj.release()
         if self._overlay is not None:
             self._overlay.release()
+        if self._idle_fbo is not None:
+            self._idle_fbo.release()
             self._overlay = None

@@ -1,0 +1,135 @@
+"""`rtwalk bench-chcrt` end to end (in-process, --quick, city-near at 96x54): the files each study
+writes, the table4 error column (threshold 0 is the reference: exactly 0), the overhead variants,
+and bad input as one line with exit 2. No speeds are asserted."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import pytest
+
+from viewer.cli import main
+
+SIZE = "96x54"
+
+
+@pytest.fixture(scope="module")
+def quick_run(tmp_path_factory):
+    """table4 + overhead in one command (the scene is loaded once)."""
+    out = tmp_path_factory.mktemp("bench-chcrt")
+    rc = main(["bench-chcrt", "--quick", "--study", "table4,overhead", "--sizes", SIZE,
+               "--recordings", "city-near", "--out", str(out), "--quiet"])
+    return rc, out
+
+
+def _load(out, study: str) -> dict:
+    path = out / f"{study}.json"
+    assert path.is_file(), path
+    data = json.loads(path.read_text())
+    assert data["format"] == "rtwalk-bench-chcrt" and data["study"] == study
+    assert data["device"]["renderer"]  # GL_RENDERER string
+    for ext in ("md", "png"):
+        assert (out / f"{study}.{ext}").stat().st_size > 0
+    return data
+
+
+def test_exit_code(quick_run):
+    rc, _ = quick_run
+    assert rc == 0
+
+
+def test_table4_errors(quick_run):
+    _, out = quick_run
+    data = _load(out, "table4")
+    rows = data["rows"]
+    assert [r["config"] for r in rows] == ["threshold 0", "threshold 20", "threshold 100", "threshold 200", "glsl"]
+    t0 = rows[0]
+    assert t0["threshold"] == 0 and t0["mae"] == 0.0 and t0["max_error"] == 0.0 and t0["pct_pixels_over_8"] == 0.0
+    assert t0["per_frame_mae"] == [0.0, 0.0]
+    for r in rows:
+        assert r["size"] == SIZE
+        for key in ("mae", "max_error", "pct_pixels_over_8"):
+            assert math.isfinite(r[key]) and r[key] >= 0, (r["config"], key, r[key])
+        assert len(r["per_frame_mae"]) == 2
+    # raw per-frame numbers: 2 consecutive frames per run, the first cold, with the chcrt parameters used
+    runs = data["runs"]
+    assert len(runs) == len(rows)
+    for run, row in zip(runs, rows, strict=True):
+        assert [f["cold"] for f in run["frames"]] == [True, False]
+        assert run["frame_numbers"][1] == run["frame_numbers"][0] + 1
+        if row["threshold"] is not None:
+            assert f"visible_threshold={row['threshold']}" in run["params"]
+            assert any(p.startswith("chc:") for p in run["frames"][0]["gpu_ms"])
+        for f in run["frames"]:
+            assert "image_error_vs_threshold0" in f and f["wall_ms"] > 0
+    md = (out / "table4.md").read_text()
+    for label in ("threshold 0", "threshold 20", "threshold 100", "threshold 200", "glsl"):
+        assert f"| {label} | {SIZE} |" in md
+
+
+def test_overhead_tables(quick_run):
+    _, out = quick_run
+    data = _load(out, "overhead")
+    micro = data["micro"]
+    assert len(micro) >= 8
+    for m in micro:
+        assert math.isfinite(m["us_per_op"]) and m["us_per_op"] >= 0
+        assert "unexpected" not in m["check"] and "!=" not in m["check"], m
+    configs = [r["config"] for r in data["rows"]]
+    assert configs[0] == "default" and "max_batch=1" in configs and "max_multi=1" in configs
+    from dataclasses import fields
+
+    from viewer.backends.chcrt import ChcrtParams
+
+    if "query_mode" in {f.name for f in fields(ChcrtParams)}:
+        assert "query_mode=hw" in configs
+    else:
+        assert any("query_mode" in n for n in data["notes"])
+    for r in data["rows"]:
+        assert r["draws"] >= 1 and r["queries"] >= 0 and math.isfinite(r["trace_ms"])
+    md = (out / "overhead.md").read_text()
+    assert "| default |" in md and "| max_batch=1 |" in md
+    assert "occlusion query one at a time" in md
+
+
+def test_missing_parameter_is_skipped_with_a_note(monkeypatch):
+    import viewer.bench_chcrt as bc
+
+    have = bc._param_names() - {"query_mode"}
+    monkeypatch.setattr(bc, "_param_names", lambda: have)
+    variants, skipped = bc.overhead_variants("")
+    assert all("query_mode" not in text for _, text, _ in variants)
+    assert skipped and all("query_mode" in s for s in skipped)
+
+
+def test_estimate_all_at_640x360_is_under_an_hour():
+    import argparse
+
+    import viewer.bench_chcrt as bc
+
+    p = argparse.ArgumentParser()
+    bc.add_arguments(p)
+    o = bc.options_from_args(p.parse_args(["--sizes", "640x360"]))
+    est = bc.estimate(o)
+    assert set(est) >= {"table2", "table4", "phases", "overhead"} or o.notes
+    assert 0 < sum(est.values()) < 3600
+
+
+@pytest.mark.parametrize("args,needle", [
+    (["--study", "table9"], "table9"),
+    (["--sizes", "0x10"], "--sizes"),
+    (["--sizes", "wide"], "wide"),
+    (["--recordings", "nope-walk"], "nope-walk"),
+    (["--chcrt", "max_batch=99"], "max_batch"),
+    (["--thresholds", "a,b"], "--thresholds"),
+    (["--first-frame", "100000"], "--first-frame"),
+    (["--effects", "sparkles"], "sparkles"),
+])
+def test_bad_input_is_one_line(capsys, args, needle):
+    rc = main(["bench-chcrt", "--quick", *args, "--out", "/nonexistent/never-written"])
+    err = capsys.readouterr().err
+    assert rc == 2, err
+    lines = [ln for ln in err.strip().splitlines() if ln.startswith("rtwalk: error")]
+    assert len(lines) == 1 and needle in lines[0], err
+    assert "Traceback" not in err

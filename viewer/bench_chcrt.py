@@ -1,0 +1,1313 @@
+"""`rtwalk bench-chcrt`: the benchmark tables of the CHC+RT paper (Mattausch et al., EG 2015) in one command.
+
+`rtwalk bench` measures one configuration; CHC+RT's speed depends on more than that: temporal
+coherence (consecutive frames, a cold first frame after a reset), its parameters (aggressive
+threshold, batching, multi-queries, query mode) and the per-draw / per-query cost of the GL
+implementation. Studies (``--study``, comma list or ``all``):
+
+- ``table2`` (paper Table 2): glsl vs chcrt per recording x size x effect: steady-state trace time
+  (sum of the ``trace:*`` / ``chc:*`` GPU phases) and frame wall time, the cold first frame in its
+  own columns, speedup glsl/chcrt, rays/frame and Mrays/s.
+- ``table4`` (paper Table 4): aggressive mode (``visible_threshold`` 0/20/100/200 px): time and
+  image error against the conservative (threshold 0) image of the same frame.
+- ``phases`` (paper Figure 8): chc phase times and counters per frame over a longer run.
+- ``overhead``: GL per-draw / per-query costs measured on the same context (synthetic), and
+  batching / multi-query / query-mode variants of a real chcrt run.
+
+Every study writes ``<study>.json`` (all per-frame numbers, the parameters, the device),
+``<study>.md`` and ``<study>.png`` into ``--out``.
+
+Timing protocol of one run: a warm-up frame with one sample per effect (compiles the shader
+variants; the context's very first timer query reads as unknown on llvmpipe), reset of the
+backend's temporal state, then N consecutive frames from the first frame. The first is the cold
+frame; the mean of the rest is the steady state. Configurations compared with each other
+(glsl and chcrt of a Table 2 row, the thresholds of Table 4, the overhead variants) are
+interleaved frame by frame, each with its own renderer, so load from other jobs hits them alike.
+One GL context; each scene is loaded once per command.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import time
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, field, fields
+from pathlib import Path
+
+import numpy as np
+
+from viewer.errors import RtwalkError
+
+STUDIES = ("table2", "table4", "phases", "overhead")
+RECORDINGS_DIR = Path(__file__).resolve().parents[1] / "recordings"
+DEFAULT_RECORDINGS = ("city-near", "city-far", "sponza-walk", "sibenik-walk", "conference-walk")
+TRACE_PREFIXES = ("trace:", "chc:")  # GPU phases that are ray tracing (glsl/embree, chcrt)
+PHASE_COUNTERS = ("queries", "multi_queries", "failed_multi_queries", "subtrees_scheduled", "draws",
+                  "intersect_draws")
+FORMAT = "rtwalk-bench-chcrt"
+QUICK_SIZE = (96, 54)
+
+
+# ----------------------------------------------------------------------------------------- options
+
+
+@dataclass
+class StudyOptions:
+    """Everything a `bench-chcrt` invocation does, checked before any scene is loaded."""
+
+    studies: list[str]
+    sizes: list[tuple[int, int]]
+    recordings: list[Path]
+    frames: int = 4
+    first_frame: int | None = None  # None: a third into each path
+    out: Path = Path("out/bench-chcrt")
+    chcrt: str = ""  # extra chcrt parameters for every chcrt run
+    quiet: bool = False
+    quick: bool = False
+    effects: list[str] = field(default_factory=lambda: ["primary", "ao:20", "diffuse:20"])
+    thresholds: list[int] = field(default_factory=lambda: [0, 20, 100, 200])
+    table4_recording: Path = RECORDINGS_DIR / "city-near.json"
+    table4_effect: str = "diffuse:20"
+    table4_glsl: bool = True
+    phases_recording: Path = RECORDINGS_DIR / "city-near.json"
+    phases_effect: str = "ao:4"
+    phases_frames: int = 40
+    overhead_recording: Path = RECORDINGS_DIR / "city-near.json"
+    overhead_effect: str = "ao:4"
+    micro_scale: float = 1.0  # op counts of the synthetic benchmark (quick: smaller)
+    notes: list[str] = field(default_factory=list)
+
+
+def resolve_recording(text: str) -> Path:
+    """A recording by path, or by name in recordings/ (`city-near` or `city-near.json`)."""
+    text = text.strip()
+    given = Path(text).expanduser()
+    for cand in (given, RECORDINGS_DIR / text, RECORDINGS_DIR / f"{text}.json"):
+        if cand.is_file():
+            return cand.resolve()
+    names = ", ".join(p.stem for p in sorted(RECORDINGS_DIR.glob("*.json")))
+    raise RtwalkError(f"unknown recording '{text}': no such file (shipped: {names})")
+
+
+def effect_settings(effect: str):
+    """One run's effects: 'ao:20', or several joined with '+' (or ',')."""
+    from viewer.effects import parse_effects
+
+    return parse_effects(effect.replace("+", ","))
+
+
+def _split(text: str) -> list[str]:
+    return [t.strip() for t in text.split(",") if t.strip()]
+
+
+def _param_names() -> set[str]:
+    from viewer.backends.chcrt import ChcrtParams
+
+    return {f.name for f in fields(ChcrtParams)}
+
+
+def _join(*texts: str | None) -> str:
+    return ",".join(t.strip().strip(",") for t in texts if t and t.strip().strip(","))
+
+
+def effective_params(*texts: str | None) -> str:
+    """The chcrt parameters a run gets: RTWALK_CHCRT, then the texts in order (later wins)."""
+    from viewer.backends.chcrt import ChcrtParams
+
+    return ChcrtParams.parse(_join(os.environ.get("RTWALK_CHCRT", ""), *texts), "--chcrt").to_text()
+
+
+def options_from_args(args: argparse.Namespace) -> StudyOptions:
+    """Check all input up front (bad input fails in a second, not after an hour)."""
+    from viewer.cli import parse_size
+
+    studies: list[str] = []
+    for s in _split(args.study or "all"):
+        if s == "all":
+            studies += [x for x in STUDIES if x not in studies]
+        elif s in STUDIES:
+            studies += [] if s in studies else [s]
+        else:
+            raise RtwalkError(f"unknown --study '{s}' (choose from {', '.join(STUDIES)}, all)")
+    if not studies:
+        raise RtwalkError("--study is empty")
+    quick = bool(args.quick)
+    sizes = []
+    for text in _split(args.sizes) if args.sizes else []:
+        try:
+            sizes.append(parse_size(text))
+        except RtwalkError:
+            raise RtwalkError(f"bad --sizes item '{text}': expected WIDTHxHEIGHT (1..16384 each), "
+                              "e.g. 640x360,1280x720") from None
+    if not args.sizes:
+        sizes = [QUICK_SIZE] if quick else [(640, 360)]
+    if not sizes:
+        raise RtwalkError("--sizes is empty")
+    notes: list[str] = []
+    if args.recordings:
+        recordings = [resolve_recording(r) for r in _split(args.recordings)]
+    else:
+        names = ["city-near"] if quick else list(DEFAULT_RECORDINGS)
+        recordings = [resolve_recording(n) for n in names]
+    frames = args.frames if args.frames is not None else (2 if quick else 4)
+    if frames < 1:
+        raise RtwalkError("--frames must be >= 1")
+    if args.first_frame is not None and args.first_frame < 0:
+        raise RtwalkError("--first-frame must be >= 0")
+    chcrt = args.chcrt or ""
+    effective_params(chcrt)  # bad --chcrt text fails here
+    o = StudyOptions(studies=studies, sizes=sizes, recordings=recordings, frames=frames,
+                     first_frame=args.first_frame, out=Path(args.out), chcrt=chcrt, quiet=bool(args.quiet),
+                     quick=quick, notes=notes)
+    o.effects = [e for e in _split(args.effects)] if args.effects else (
+        ["primary", "ao:2", "diffuse:2"] if quick else o.effects)
+    try:
+        o.thresholds = [int(t) for t in _split(args.thresholds)] if args.thresholds else o.thresholds
+    except ValueError:
+        raise RtwalkError(f"bad --thresholds '{args.thresholds}': expected integers (pixels)") from None
+    if any(t < 0 for t in o.thresholds) or not o.thresholds:
+        raise RtwalkError("--thresholds must be integers >= 0")
+    if args.table4_recording:
+        o.table4_recording = resolve_recording(args.table4_recording)
+    if args.phases_recording:
+        o.phases_recording = resolve_recording(args.phases_recording)
+    if args.overhead_recording:
+        o.overhead_recording = resolve_recording(args.overhead_recording)
+    o.table4_effect = args.table4_effect or ("diffuse:2" if quick else o.table4_effect)
+    o.phases_effect = args.phases_effect or ("ao:1" if quick else o.phases_effect)
+    o.overhead_effect = args.overhead_effect or ("ao:1" if quick else o.overhead_effect)
+    o.phases_frames = args.phases_frames if args.phases_frames is not None else (4 if quick else o.phases_frames)
+    if o.phases_frames < 1:
+        raise RtwalkError("--phases-frames must be >= 1")
+    o.table4_glsl = not args.no_glsl_reference
+    o.micro_scale = 0.1 if quick else 1.0
+    for e in o.effects + [o.table4_effect, o.phases_effect, o.overhead_effect]:
+        effect_settings(e)  # bad effect names fail here
+    # every recording must load, and its scene must exist (a missing scene file of a default
+    # recording is skipped with a note: ../shared/scenes is optional)
+    from viewer.recording import load_recording, resolve_scene_spec
+
+    keep = []
+    for path in o.recordings:
+        rec = load_recording(path)
+        spec = resolve_scene_spec(rec, path)
+        if "file" in rec.scene and not Path(spec.spec).is_file():
+            if args.recordings:
+                raise RtwalkError(f"{path.name}: scene file '{spec.spec}' not found (see ../shared/scenes)")
+            notes.append(f"{path.stem} skipped: scene file {spec.spec} not found")
+            continue
+        keep.append(path)
+    o.recordings = keep
+    for path in set(o.recordings) | {o.table4_recording, o.phases_recording, o.overhead_recording}:
+        n = load_recording(path).frame_count()
+        if o.first_frame is not None and o.first_frame >= n:
+            raise RtwalkError(f"--first-frame {o.first_frame} is outside {path.name}'s frames 0..{n - 1}")
+    if "table2" in studies and not o.recordings:
+        raise RtwalkError("table2: none of the recordings' scenes are present")
+    return o
+
+
+# ----------------------------------------------------------------------------------------- estimate
+
+# Steady-state microseconds per ray and cold-frame factors (first frame after a reset), fitted to
+# city-near at 320x180 and 640x360 on the machine this was written on (2 cores, Mesa llvmpipe,
+# shared with other jobs). Only for the up-front estimate; tqdm shows the real rate.
+_US_PER_RAY = {("glsl", "primary"): 1.0, ("glsl", "ao"): 1.2, ("glsl", "diffuse"): 1.6,
+               ("chcrt", "primary"): 1.3, ("chcrt", "ao"): 2.2, ("chcrt", "diffuse"): 3.2}
+_US_PER_RAY_OTHER = {"glsl": 1.2, "chcrt": 2.5}
+_COLD_FACTOR = {"primary": 2.7, "ao": 2.6, "diffuse": 3.4}  # chcrt only; others 3.0
+_US_PER_PIXEL_FRAME = 1.7  # G-buffer + shading
+_US_PER_PIXEL_PASS = 0.26  # ray generation + accumulation, per sample pass
+_RUN_FIXED_S = 0.5  # renderer, shader variants
+_SCENE_LOAD_S = {"builtin": 1.0, "file": 6.0}
+_MICRO_S = 10.0
+
+
+def estimate_frame_s(backend: str, effect: str, size: tuple[int, int], cold: bool = False,
+                     aggressive: float = 1.0, warm_up: bool = False) -> float:
+    """Model of one frame's wall time (seconds) from rays per pass and a per-ray cost."""
+    s = effect_settings(effect)
+    if warm_up:
+        s.soft_samples = s.ao_samples = s.diffuse_samples = 1
+    px = size[0] * size[1]
+    from viewer.effects import EFFECT_NAMES
+
+    total_us = px * _US_PER_PIXEL_FRAME
+    for name in EFFECT_NAMES:
+        if not getattr(s, name):
+            continue
+        passes = {"soft": s.soft_samples, "ao": s.ao_samples, "diffuse": s.diffuse_samples}.get(name, 1)
+        per_ray = _US_PER_RAY.get((backend, name), _US_PER_RAY_OTHER.get(backend, 1.0))
+        if backend == "chcrt":
+            per_ray *= aggressive * (_COLD_FACTOR.get(name, 3.0) if cold else 1.0)
+        total_us += passes * px * (per_ray + _US_PER_PIXEL_PASS)
+    return total_us / 1e6
+
+
+def _run_estimate(backend: str, effect: str, size: tuple[int, int], frames: int, aggressive: float = 1.0) -> float:
+    return (_RUN_FIXED_S + estimate_frame_s(backend, effect, size, True, aggressive, warm_up=True)
+            + estimate_frame_s(backend, effect, size, True, aggressive)
+            + (frames - 1) * estimate_frame_s(backend, effect, size, False, aggressive))
+
+
+def estimate(o: StudyOptions) -> dict[str, float]:
+    """Seconds per study (and 'scenes' for loading), from the cost model above."""
+    from viewer.recording import load_recording
+
+    out: dict[str, float] = {}
+    scene_recs = set()
+    if "table2" in o.studies:
+        t = 0.0
+        for _ in o.recordings:
+            for size in o.sizes:
+                for e in o.effects:
+                    t += _run_estimate("glsl", e, size, o.frames) + _run_estimate("chcrt", e, size, o.frames)
+        out["table2"] = t
+        scene_recs.update(o.recordings)
+    if "table4" in o.studies:
+        t = 0.0
+        thr = sorted(set([0] + o.thresholds))
+        for size in o.sizes:
+            for k in thr:
+                t += _run_estimate("chcrt", o.table4_effect, size, o.frames, 1.0 if k == 0 else 0.5)
+            if o.table4_glsl:
+                t += _run_estimate("glsl", o.table4_effect, size, o.frames)
+        out["table4"] = t
+        scene_recs.add(o.table4_recording)
+    if "phases" in o.studies:
+        out["phases"] = _run_estimate("chcrt", o.phases_effect, o.sizes[0], o.phases_frames)
+        scene_recs.add(o.phases_recording)
+    if "overhead" in o.studies:
+        n_variants = 7
+        out["overhead"] = (_MICRO_S * max(o.micro_scale, 0.1)
+                           + n_variants * _run_estimate("chcrt", o.overhead_effect, o.sizes[0], o.frames)
+                           + _run_estimate("glsl", o.overhead_effect, o.sizes[0], o.frames))
+        scene_recs.add(o.overhead_recording)
+    specs = {}
+    for p in scene_recs:
+        rec = load_recording(p)
+        specs[json.dumps(rec.scene, sort_keys=True)] = "builtin" if "builtin" in rec.scene else "file"
+    out["scenes"] = sum(_SCENE_LOAD_S[k] for k in specs.values())
+    return out
+
+
+def format_estimate(est: dict[str, float]) -> str:
+    parts = ", ".join(f"{k} {v / 60:.1f} min" for k, v in est.items())
+    return f"estimate: {sum(est.values()) / 60:.0f} min ({parts}; model of a 2-core llvmpipe machine)"
+
+
+# ----------------------------------------------------------------------------------------- runs
+
+
+@dataclass
+class FrameStats:
+    """Means over a set of frames (cold: the first frame alone; steady: the rest)."""
+
+    frames: int
+    trace_ms: float  # GPU time of the tracing phases (trace:* / chc:*)
+    trace_cpu_ms: float  # CPU time inside those phases (Python, submission, waits for query results)
+    wall_ms: float  # whole frame, glFinish included
+    gpu_ms: float  # all GPU phases
+    rays: float
+    mrays_per_s: float  # rays / trace_ms
+    counters: dict[str, float]
+
+    @staticmethod
+    def of(rows: list[dict]) -> FrameStats:
+        def mean(vals) -> float:
+            vals = [float(v) for v in vals]
+            return float(np.mean(vals)) if vals else float("nan")
+
+        keys = sorted({k for r in rows for k in r["backend_stats"]})
+        trace = mean(r["trace_gpu_ms"] for r in rows)
+        rays = mean(sum(r["rays"].values()) for r in rows)
+        return FrameStats(len(rows), trace, mean(r["trace_cpu_ms"] for r in rows), mean(r["wall_ms"] for r in rows),
+                          mean(sum(r["gpu_ms"].values()) for r in rows), rays,
+                          rays / (trace * 1e3) if trace > 0 else float("nan"),
+                          {k: mean(r["backend_stats"].get(k, 0.0) for r in rows) for k in keys})
+
+
+@dataclass
+class RunResult:
+    """One configuration over consecutive frames: the raw per-frame rows and their summaries."""
+
+    label: str
+    recording: str
+    scene: str
+    size: tuple[int, int]
+    effect: str
+    backend: str
+    params: str | None  # effective chcrt parameters (None for other backends)
+    frame_numbers: list[int]
+    frames: list[dict]
+    cold: FrameStats
+    steady: FrameStats
+
+    @property
+    def best(self) -> FrameStats:
+        """Steady state where there is one (>= 2 frames), else the cold frame."""
+        return self.steady if self.steady.frames else self.cold
+
+
+def _load_average() -> list[float] | None:
+    try:
+        return [round(v, 2) for v in os.getloadavg()]
+    except OSError:
+        return None
+
+
+ImageSink = Callable[[int, int, np.ndarray], None]
+
+
+@dataclass
+class RunSpec:
+    """One configuration to time: label, effect, backend, chcrt parameter text, image consumer."""
+
+    label: str
+    effect: str
+    backend: str
+    params: str | None = None
+    sink: ImageSink | None = None
+
+
+class Bench:
+    """One GL context and a scene cache shared by all studies of a command."""
+
+    def __init__(self, o: StudyOptions):
+        from viewer.tracing import shared_context
+
+        self.o = o
+        self.ctx = shared_context()
+        self.device = {"renderer": self.ctx.info.get("GL_RENDERER"), "version": self.ctx.info.get("GL_VERSION")}
+        self._scenes: dict[str, object] = {}
+        self._recs: dict[Path, object] = {}
+        self.load_at_start = _load_average()
+        self.bar = None
+
+    def recording(self, path: Path):
+        from viewer.recording import load_recording
+
+        if path not in self._recs:
+            self._recs[path] = load_recording(path)
+        return self._recs[path]
+
+    def scene(self, path: Path):
+        """The recording's scene, prepared (BVH) once per command."""
+        from viewer.recording import resolve_scene_spec
+        from viewer.session import prepare_scene
+
+        rec = self.recording(path)
+        spec = resolve_scene_spec(rec, path)
+        key = json.dumps([spec.spec, spec.size, spec.seed])
+        if key not in self._scenes:
+            if self.bar is not None:
+                self.bar.set_postfix_str(f"loading {Path(spec.spec).name}")
+            self._scenes[key] = prepare_scene(spec.spec, scene_size=spec.size, seed=spec.seed or 1, quiet=True)
+        return self._scenes[key]
+
+    def frames_for(self, path: Path, count: int) -> list[int]:
+        """`count` consecutive frames: from --first-frame, else from a third into the path."""
+        from viewer.bench import frame_numbers
+
+        rec = self.recording(path)
+        n = rec.frame_count()
+        first = self.o.first_frame
+        if first is None:
+            first = max(0, min(n // 3, n - count))
+        return frame_numbers(rec, None, count, first)
+
+    def run(self, label: str, path: Path, size: tuple[int, int], effect: str, backend: str,
+            params: str | None = None, frames: list[int] | None = None, sink: ImageSink | None = None) -> RunResult:
+        """One configuration (see run_many)."""
+        return self.run_many(path, size, [RunSpec(label, effect, backend, params, sink)], frames)[0]
+
+    def run_many(self, path: Path, size: tuple[int, int], specs: list[RunSpec],
+                 frames: list[int] | None = None) -> list[RunResult]:
+        """Configurations compared with each other, on the same consecutive frames, interleaved frame
+        by frame (each keeps its own renderer and temporal state), so that other jobs on a shared
+        machine slow them alike. Per configuration: warm-up, reset, timed frames (module docstring)."""
+        from viewer.bench import frame_row
+        from viewer.renderer import Renderer
+
+        rec = self.recording(path)
+        prep = self.scene(path)
+        frames = frames if frames is not None else self.frames_for(path, self.o.frames)
+        renderers: list = []
+        rows: list[list[dict]] = [[] for _ in specs]
+        try:
+            for spec in specs:
+                options = {"chcrt": spec.params} if spec.backend == "chcrt" and spec.params else None
+                warm = effect_settings(spec.effect)
+                warm.soft_samples = warm.ao_samples = warm.diffuse_samples = 1  # every pass kind, once
+                r = Renderer(self.ctx, prep.scene, prep.bvh, size, spec.backend, warm, options)
+                renderers.append(r)
+                r.render(rec.camera_for_frame(frames[0]))
+                r.settings = effect_settings(spec.effect)
+                reset = getattr(r.backend, "reset", None)
+                if callable(reset):
+                    reset()
+            for k, n in enumerate(frames):
+                cam = rec.camera_for_frame(n)
+                for i, (spec, r) in enumerate(zip(specs, renderers, strict=True)):
+                    if self.bar is not None:
+                        self.bar.set_postfix_str(f"{path.stem} {size[0]}x{size[1]} {spec.effect} {spec.label}")
+                    rep = r.render(cam)
+                    row = frame_row(rep, rec, n)
+                    row["cold"] = k == 0
+                    row["trace_gpu_ms"] = sum(v for p, v in rep.gpu_ms.items() if p.startswith(TRACE_PREFIXES))
+                    row["trace_cpu_ms"] = sum(v for p, v in rep.cpu_ms.items() if p.startswith(TRACE_PREFIXES))
+                    rows[i].append(row)
+                    if spec.sink is not None:
+                        spec.sink(k, n, r.read_image())
+                    if self.bar is not None:
+                        self.bar.update(1)
+            params = [getattr(r.backend, "params_text", None) if s.backend == "chcrt" else None
+                      for s, r in zip(specs, renderers, strict=True)]
+        finally:
+            for r in renderers:
+                r.release()
+        return [RunResult(s.label, path.stem, prep.scene.name, size, s.effect, s.backend, params[i], list(frames),
+                          rows[i], FrameStats.of(rows[i][:1]), FrameStats.of(rows[i][1:]))
+                for i, s in enumerate(specs)]
+
+    def progress(self, desc: str, total: int):
+        from tqdm import tqdm
+
+        self.bar = tqdm(total=total, desc=desc, unit="frame", disable=self.o.quiet, file=sys.stderr)
+        return self.bar
+
+    def done(self) -> None:
+        if self.bar is not None:
+            self.bar.close()
+            self.bar = None
+
+    def header(self, study: str, o: StudyOptions, extra: dict) -> dict:
+        from viewer.backends.chcrt import ChcrtParams
+
+        return {"format": FORMAT, "version": 1, "study": study, "device": self.device,
+                "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"), "options": asdict(o),
+                "parameters": {"sizes": [list(s) for s in o.sizes], "frames": o.frames,
+                               "first_frame": o.first_frame, "chcrt": o.chcrt,
+                               "RTWALK_CHCRT": os.environ.get("RTWALK_CHCRT", ""),
+                               "chcrt_defaults": ChcrtParams().to_text(), "quick": o.quick, **extra},
+                "load_average": {"command_start": self.load_at_start, "study_end": _load_average(),
+                                 "cpus": os.cpu_count()},  # other jobs on the machine skew timings
+                "protocol": "warm-up frame (one sample per effect), backend reset; then consecutive frames: "
+                            "the first is the cold frame, the mean of the rest the steady state; configurations "
+                            "compared in one table are interleaved frame by frame",
+                "notes": list(o.notes)}
+
+
+# ----------------------------------------------------------------------------------------- output
+
+
+def _fmt(v: float | None, nd: int = 1) -> str:
+    if v is None or not np.isfinite(v):
+        return "-"
+    return f"{v:,.{nd}f}"
+
+
+def md_table(headers: list[str], rows: list[list[str]]) -> str:
+    lines = ["| " + " | ".join(headers) + " |", "|" + "|".join("---" for _ in headers) + "|"]
+    lines += ["| " + " | ".join(r) + " |" for r in rows]
+    return "\n".join(lines)
+
+
+def _jsonable(obj):
+    if isinstance(obj, (np.integer,)):
+        return int(obj)
+    if isinstance(obj, (np.floating,)):
+        return float(obj)
+    if isinstance(obj, np.ndarray):
+        return obj.tolist()
+    if isinstance(obj, Path):
+        return str(obj)
+    raise TypeError(f"not JSON serialisable: {type(obj).__name__}")
+
+
+def write_json(path: Path, data: dict) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(data, indent=1, default=_jsonable, allow_nan=True))
+
+
+def _plt():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def _size_text(size: tuple[int, int]) -> str:
+    return f"{size[0]}x{size[1]}"
+
+
+# ----------------------------------------------------------------------------------------- table2
+
+
+@dataclass
+class Table2Row:
+    """One (recording, size, effect): glsl vs chcrt, steady state and cold frame."""
+
+    recording: str
+    size: str
+    effect: str
+    rays_per_frame: float
+    glsl_trace_ms: float
+    glsl_frame_ms: float
+    chcrt_trace_ms: float
+    chcrt_frame_ms: float
+    chcrt_cold_trace_ms: float
+    chcrt_cold_frame_ms: float
+    speedup_trace: float  # glsl / chcrt, steady
+    speedup_frame: float
+    glsl_mrays_per_s: float
+    chcrt_mrays_per_s: float
+
+    @staticmethod
+    def of(g: RunResult, c: RunResult) -> Table2Row:
+        gs, cs = g.best, c.best
+        return Table2Row(g.recording, _size_text(g.size), g.effect, gs.rays, gs.trace_ms, gs.wall_ms, cs.trace_ms,
+                         cs.wall_ms, c.cold.trace_ms, c.cold.wall_ms, _ratio(gs.trace_ms, cs.trace_ms),
+                         _ratio(gs.wall_ms, cs.wall_ms), gs.mrays_per_s, cs.mrays_per_s)
+
+
+def _ratio(a: float, b: float) -> float:
+    return a / b if b and np.isfinite(a) and np.isfinite(b) and b > 0 else float("nan")
+
+
+def study_table2(b: Bench) -> dict:
+    """Paper Table 2: for each recording x size x effect, glsl and chcrt over the same frames."""
+    o = b.o
+    total = len(o.recordings) * len(o.sizes) * len(o.effects) * 2 * o.frames
+    b.progress("table2", total)
+    runs: list[RunResult] = []
+    rows: list[Table2Row] = []
+    try:
+        for path in o.recordings:
+            for size in o.sizes:
+                for effect in o.effects:
+                    g, c = b.run_many(path, size, [RunSpec("glsl", effect, "glsl"),
+                                                   RunSpec("chcrt", effect, "chcrt", o.chcrt)])
+                    runs += [g, c]
+                    rows.append(Table2Row.of(g, c))
+    finally:
+        b.done()
+    report = b.header("table2", o, {"recordings": [p.stem for p in o.recordings], "effects": o.effects})
+    report.update(rows=[asdict(r) for r in rows], runs=[asdict(r) for r in runs])
+    steady = "steady state" if o.frames > 1 else "one frame only: no steady state, cold frame shown"
+    md = [f"## Table 2 analog: glsl vs chcrt ({steady}; mean of frames 2..{o.frames} of {o.frames} consecutive)",
+          "", f"Device: {b.device['renderer']}. Trace = sum of the GPU tracing phases (trace:* / chc:*); frame = "
+          "wall time of the whole frame. Cold = first frame after a reset (chcrt builds its fronts). "
+          "Speedup = glsl / chcrt (> 1: chcrt faster).", ""]
+    md.append(md_table(
+        ["recording", "size", "effect", "rays/frame", "glsl trace ms", "glsl frame ms", "chcrt trace ms",
+         "chcrt frame ms", "chcrt cold trace ms", "chcrt cold frame ms", "speedup trace", "speedup frame",
+         "glsl Mrays/s", "chcrt Mrays/s"],
+        [[r.recording, r.size, r.effect, _fmt(r.rays_per_frame, 0), _fmt(r.glsl_trace_ms), _fmt(r.glsl_frame_ms),
+          _fmt(r.chcrt_trace_ms), _fmt(r.chcrt_frame_ms), _fmt(r.chcrt_cold_trace_ms), _fmt(r.chcrt_cold_frame_ms),
+          _fmt(r.speedup_trace, 2), _fmt(r.speedup_frame, 2), _fmt(r.glsl_mrays_per_s, 2),
+          _fmt(r.chcrt_mrays_per_s, 2)] for r in rows]))
+    md += _notes_md(report["notes"])
+    _plot_table2(rows, o.out / "table2.png", b.device["renderer"])
+    return _finish(o, "table2", report, "\n".join(md))
+
+
+def _plot_table2(rows: list[Table2Row], path: Path, device: str) -> None:
+    plt = _plt()
+    labels = [f"{r.recording} {r.size} {r.effect}" for r in rows]
+    y = np.arange(len(rows))
+    fig, axes = plt.subplots(1, 2, figsize=(12, 1.2 + 0.32 * len(rows)), dpi=110, sharey=True)
+    ax = axes[0]
+    ax.barh(y - 0.2, [r.glsl_trace_ms for r in rows], 0.4, label="glsl")
+    ax.barh(y + 0.2, [r.chcrt_trace_ms for r in rows], 0.4, label="chcrt")
+    ax.set_xscale("log")
+    ax.set_xlabel("steady trace ms (log)")
+    ax.set_yticks(y, labels, fontsize=7)
+    ax.invert_yaxis()
+    ax.legend(fontsize=8)
+    ax = axes[1]
+    ax.barh(y - 0.2, [r.speedup_trace for r in rows], 0.4, label="trace")
+    ax.barh(y + 0.2, [r.speedup_frame for r in rows], 0.4, label="frame")
+    ax.axvline(1.0, color="k", lw=0.8)
+    ax.set_xlabel("speedup glsl / chcrt")
+    ax.legend(fontsize=8)
+    fig.suptitle(f"CHC+RT Table 2 analog - {device}", fontsize=9)
+    for a in axes:
+        a.grid(alpha=0.3, axis="x")
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+
+
+# ----------------------------------------------------------------------------------------- table4
+
+
+@dataclass
+class Table4Row:
+    """One aggressive threshold (or the glsl reference) at one size: time and image error."""
+
+    config: str  # "threshold N" or "glsl"
+    threshold: int | None
+    size: str
+    trace_ms: float  # steady
+    frame_ms: float  # steady
+    cold_trace_ms: float
+    cold_frame_ms: float
+    mae: float  # mean absolute error (0..255, over RGB) vs the threshold-0 image of the same frame, all frames
+    max_error: float
+    pct_pixels_over_8: float  # % pixels with an error > 8 in some channel
+    psnr_min_db: float
+    queries: float
+    subtrees_scheduled: float
+    per_frame_mae: list[float]
+
+
+def study_table4(b: Bench) -> dict:
+    """Paper Table 4: visible_threshold vs time and error against the conservative image."""
+    from viewer.bench import image_error
+
+    o = b.o
+    path = o.table4_recording
+    thresholds = [0] + [t for t in dict.fromkeys(o.thresholds) if t != 0]
+    per_size = len(thresholds) + int(o.table4_glsl)
+    b.progress("table4", len(o.sizes) * per_size * o.frames)
+    runs: list[RunResult] = []
+    rows: list[Table4Row] = []
+    img_dir = o.out / "table4-images"
+    img_dir.mkdir(parents=True, exist_ok=True)
+    try:
+        for size in o.sizes:
+            configs = [(f"threshold {t}", t) for t in thresholds] + ([("glsl", None)] if o.table4_glsl else [])
+            images: list[list[np.ndarray]] = [[] for _ in configs]
+            specs = []
+            for i, (label, thr) in enumerate(configs):
+                def sink(k: int, n: int, img: np.ndarray, store=images[i]) -> None:
+                    store.append(img)
+
+                specs.append(RunSpec(label, o.table4_effect, "glsl", None, sink) if thr is None else
+                             RunSpec(label, o.table4_effect, "chcrt", _join(o.chcrt, f"visible_threshold={thr}"),
+                                     sink))
+            size_runs = b.run_many(path, size, specs)
+            ref = images[0]  # threshold 0
+            for (label, thr), run, imgs in zip(configs, size_runs, images, strict=True):
+                errs = [image_error(img, ref[k]) for k, img in enumerate(imgs)]
+                for k, e in enumerate(errs):
+                    run.frames[k]["image_error_vs_threshold0"] = e
+                runs.append(run)
+                st = run.best
+                rows.append(Table4Row(
+                    label, thr, _size_text(size), st.trace_ms, st.wall_ms, run.cold.trace_ms, run.cold.wall_ms,
+                    float(np.mean([e["mae"] for e in errs])), float(max(e["max"] for e in errs)),
+                    100.0 * float(np.mean([e["pixels_over_8"] for e in errs])),
+                    float(min(e["psnr_db"] for e in errs)), st.counters.get("queries", float("nan")),
+                    st.counters.get("subtrees_scheduled", float("nan")), [e["mae"] for e in errs]))
+                _save_png(img_dir / f"{path.stem}-{_size_text(size)}-{label.replace(' ', '')}.png", imgs[-1])
+                if thr is not None and thr == thresholds[-1] and thr != 0:
+                    diff = np.abs(imgs[-1].astype(np.int16) - ref[-1].astype(np.int16)).max(axis=-1)
+                    _save_png(img_dir / f"{path.stem}-{_size_text(size)}-diff-x8-{label.replace(' ', '')}.png",
+                              np.clip(diff * 8, 0, 255).astype(np.uint8))
+    finally:
+        b.done()
+    report = b.header("table4", o, {"recording": path.stem, "effect": o.table4_effect, "thresholds": thresholds,
+                                    "glsl_reference": o.table4_glsl})
+    report.update(rows=[asdict(r) for r in rows], runs=[asdict(r) for r in runs])
+    md = [f"## Table 4 analog: aggressive culling ({path.stem}, {o.table4_effect}, {o.frames} consecutive frames "
+          f"from {runs[0].frame_numbers[0] if runs else '-'})", "",
+          f"Device: {b.device['renderer']}. Error: mean absolute difference (0..255, over RGB) to the "
+          "conservative (threshold 0) image of the same frame, mean over all frames; '> 8': % pixels with "
+          "an error above 8 in some channel. Times: steady state (cold frame apart).", ""]
+    md.append(md_table(
+        ["config", "size", "trace ms", "frame ms", "cold trace ms", "cold frame ms", "mean abs error",
+         "max error", "% px > 8", "min PSNR dB", "queries/frame", "subtrees/frame"],
+        [[r.config, r.size, _fmt(r.trace_ms), _fmt(r.frame_ms), _fmt(r.cold_trace_ms), _fmt(r.cold_frame_ms),
+          _fmt(r.mae, 3), _fmt(r.max_error, 0), _fmt(r.pct_pixels_over_8, 2), _fmt(r.psnr_min_db, 1),
+          _fmt(r.queries, 0), _fmt(r.subtrees_scheduled, 0)] for r in rows]))
+    md += _notes_md(report["notes"])
+    _plot_table4(rows, o.out / "table4.png", f"{path.stem} {o.table4_effect} - {b.device['renderer']}")
+    return _finish(o, "table4", report, "\n".join(md))
+
+
+def _save_png(path: Path, img: np.ndarray) -> None:
+    from PIL import Image
+
+    Image.fromarray(img).save(path)
+
+
+def _plot_table4(rows: list[Table4Row], path: Path, title: str) -> None:
+    plt = _plt()
+    fig, ax = plt.subplots(figsize=(7, 4.5), dpi=110)
+    for size in dict.fromkeys(r.size for r in rows):
+        rs = [r for r in rows if r.size == size and r.threshold is not None]
+        line = ax.plot([r.mae for r in rs], [r.trace_ms for r in rs], "o-", label=f"chcrt {size}")[0]
+        for r in rs:
+            ax.annotate(f"{r.threshold}px", (r.mae, r.trace_ms), textcoords="offset points", xytext=(4, 4),
+                        fontsize=7)
+        for r in rows:
+            if r.size == size and r.threshold is None and np.isfinite(r.trace_ms):
+                ax.axhline(r.trace_ms, ls="--", color=line.get_color(), lw=0.8, label=f"glsl {size}")
+    ax.set_xlabel("mean absolute error vs threshold 0 (0..255)")
+    ax.set_ylabel("steady trace ms")
+    ax.set_title(f"Aggressive CHC+RT: time vs error - {title}", fontsize=8)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+
+
+# ----------------------------------------------------------------------------------------- phases
+
+
+def study_phases(b: Bench) -> dict:
+    """Paper Figure 8: chc phase times and counters per frame over a longer consecutive run.
+
+    sync_phases=1 by default (a glFinish after each phase) so each phase is charged its own work;
+    --chcrt sync_phases=0 turns it off."""
+    o = b.o
+    path, size = o.phases_recording, o.sizes[0]
+    pre = "sync_phases=1" if "sync_phases" in _param_names() else ""
+    b.progress("phases", o.phases_frames)
+    try:
+        run = b.run("chcrt", path, size, o.phases_effect, "chcrt", _join(pre, o.chcrt),
+                    frames=b.frames_for(path, o.phases_frames))
+    finally:
+        b.done()
+    phases = sorted({p for r in run.frames for p in r["gpu_ms"] if p.startswith("chc:")})
+    counters = [c for c in PHASE_COUNTERS if any(c in r["backend_stats"] for r in run.frames)]
+    report = b.header("phases", o, {"recording": path.stem, "effect": o.phases_effect, "size": list(size),
+                                    "frames_requested": o.phases_frames})
+    report.update(phases=phases, counters=counters, run=asdict(run))
+    md = [f"## Figure 8 analog: chcrt phases per frame ({path.stem}, {_size_text(size)}, {o.phases_effect})", "",
+          f"Device: {b.device['renderer']}. Parameters: {run.params}. GPU ms per phase; 'other' = G-buffer, "
+          "ray generation, accumulation, shading. Frame 1 of the run is the cold frame.", ""]
+    rows = []
+    for r in run.frames:
+        other = sum(v for p, v in r["gpu_ms"].items() if not p.startswith(TRACE_PREFIXES))
+        rows.append([str(r["frame"]) + (" (cold)" if r["cold"] else "")]
+                    + [_fmt(r["gpu_ms"].get(p, 0.0)) for p in phases]
+                    + [_fmt(other), _fmt(r["wall_ms"])]
+                    + [_fmt(r["backend_stats"].get(c, float("nan")), 0) for c in counters])
+    md.append(md_table(["frame"] + [p.removeprefix("chc:") + " ms" for p in phases] + ["other ms", "wall ms"]
+                       + counters, rows))
+    md += ["", f"Steady mean (frames 2..): trace {_fmt(run.steady.trace_ms)} ms, wall {_fmt(run.steady.wall_ms)} ms; "
+               f"cold frame: trace {_fmt(run.cold.trace_ms)} ms, wall {_fmt(run.cold.wall_ms)} ms."]
+    md += _notes_md(report["notes"])
+    _plot_phases(run, phases, counters, o.out / "phases.png", b.device["renderer"])
+    return _finish(o, "phases", report, "\n".join(md))
+
+
+def _plot_phases(run: RunResult, phases: list[str], counters: list[str], path: Path, device: str) -> None:
+    plt = _plt()
+    x = np.array([r["frame"] for r in run.frames])
+    fig, (ax, ax2) = plt.subplots(2, 1, figsize=(10, 7), dpi=110, sharex=True,
+                                  gridspec_kw={"height_ratios": [3, 2]})
+    bottom = np.zeros(len(x))
+    for p in phases:
+        v = np.array([r["gpu_ms"].get(p, 0.0) for r in run.frames])
+        ax.bar(x, v, bottom=bottom, width=0.85, label=p.removeprefix("chc:"))
+        bottom += v
+    other = np.array([sum(v for p, v in r["gpu_ms"].items() if not p.startswith(TRACE_PREFIXES))
+                      for r in run.frames])
+    ax.bar(x, other, bottom=bottom, width=0.85, color="0.75", label="other phases")
+    ax.plot(x, [r["wall_ms"] for r in run.frames], "k.", ms=4, label="frame wall ms")
+    ax.set_ylabel("GPU ms")
+    ax.set_title(f"CHC+RT phases per frame - {run.recording} {_size_text(run.size)} {run.effect} - {device}",
+                 fontsize=9)
+    ax.legend(fontsize=7, loc="upper right")
+    ax.grid(alpha=0.3, axis="y")
+    for c in counters:
+        ax2.plot(x, [r["backend_stats"].get(c, 0.0) for r in run.frames], "o-", ms=3, label=c)
+    ax2.set_yscale("symlog")
+    ax2.xaxis.get_major_locator().set_params(integer=True)
+    ax2.set_xlabel("frame (first = cold)")
+    ax2.set_ylabel("count per frame")
+    ax2.legend(fontsize=7, ncol=3)
+    ax2.grid(alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+
+
+# ----------------------------------------------------------------------------------------- overhead
+
+
+@dataclass
+class MicroResult:
+    """One synthetic GL operation: wall time per op, best of the trials (other jobs on a shared
+    machine only ever add time), with the glFinish at the end amortised."""
+
+    name: str
+    ops_per_trial: int
+    trials: int
+    us_per_op: float  # wall, best trial, including the final glFinish
+    submit_us_per_op: float  # CPU time to issue (before the final glFinish), same trial
+    median_us_per_op: float  # wall, median of the trials
+    items_per_op: int = 1  # instances / queries per op
+    us_per_item: float = float("nan")
+    check: str = ""
+    trial_us_per_op: list[float] = field(default_factory=list)
+
+
+_MICRO_VS = """#version 450
+uniform int instanced;
+uniform ivec2 grid;  // instance grid (columns, rows) over the target
+uniform vec2 cell;   // NDC step between grid cells
+uniform vec2 quad;   // NDC size of one instance
+flat out int inst;
+void main() {
+    inst = gl_InstanceID;
+    if (instanced == 0) {  // one big triangle; the scissor box keeps it to a tile
+        gl_Position = vec4(gl_VertexID == 1 ? 3.0 : -1.0, gl_VertexID == 2 ? 3.0 : -1.0, 0.0, 1.0);
+        return;
+    }
+    vec2 corner = vec2(gl_VertexID & 1, gl_VertexID >> 1);
+    ivec2 c = ivec2(gl_InstanceID % grid.x, (gl_InstanceID / grid.x) % grid.y);
+    gl_Position = vec4(-1.0 + vec2(c) * cell + corner * quad, 0.0, 1.0);
+}
+"""
+_MICRO_FS = """#version 450
+uniform vec4 value;
+uniform int countAtomics;
+layout(std430, binding = 15) buffer MicroCounts { uint counts[]; };
+flat in int inst;
+out vec4 color;
+void main() {
+    if (countAtomics != 0) atomicAdd(counts[inst], 1u);
+    color = value;
+}
+"""
+_MICRO_BINDING = 15
+_MICRO_GRID = (32, 32)
+_MICRO_QUAD_PX = 4
+
+
+def micro_overheads(ctx, size: tuple[int, int], scale: float = 1.0, trials: int = 7) -> tuple[list[MicroResult], dict]:
+    """Per-draw / per-query costs of this GL implementation, on a target of the run's size.
+
+    Tiles are 1/16 of the target per side (the finest CHC+RT tiles at the default
+    min_tile_fraction are about that), cycled over the target so every draw also changes the
+    scissor box, as chcrt's draws do."""
+    import moderngl
+
+    w, h = size
+    tw, th = max(w // 16, 1), max(h // 16, 1)
+    tiles = [(x * tw, y * th, tw, th) for y in range(16) for x in range(16)]
+    prog = ctx.program(vertex_shader=_MICRO_VS, fragment_shader=_MICRO_FS)
+    vao = ctx.vertex_array(prog, [])
+    color = ctx.texture(size, 4)
+    fbo = ctx.framebuffer(color_attachments=[color])
+    counts = ctx.buffer(reserve=4 * 1024)
+    zeros = bytes(4 * 1024)
+    gx, gy = _MICRO_GRID
+    prog["grid"].value = (gx, gy)
+    q = _MICRO_QUAD_PX  # the grid spans the target, so no instance is clipped (each covers q*q pixels)
+    prog["cell"].value = (2.0 * max(w - q, 0) / (w * (gx - 1)), 2.0 * max(h - q, 0) / (h * (gy - 1)))
+    prog["quad"].value = (2.0 * _MICRO_QUAD_PX / w, 2.0 * _MICRO_QUAD_PX / h)
+    prog["value"].value = (0.2, 0.4, 0.6, 1.0)
+    prog["countAtomics"].value = 0
+    prog["instanced"].value = 0
+    ctx.disable(moderngl.DEPTH_TEST | moderngl.BLEND)
+    fbo.use()
+    n_q = max(int(400 * scale), 8)
+    queries = [ctx.query(samples=True) for _ in range(n_q)]
+    results: list[MicroResult] = []
+
+    def n_of(base: int) -> int:
+        return max(int(base * scale), 4)
+
+    def measure(name: str, ops: int, body: Callable[[int], None], items: int = 1, check: str = "") -> MicroResult:
+        body(min(ops, 8))  # warm up (first use allocates)
+        ctx.finish()
+        walls, submits = [], []
+        for _ in range(trials):
+            ctx.finish()
+            t0 = time.perf_counter()
+            body(ops)
+            t1 = time.perf_counter()
+            ctx.finish()
+            t2 = time.perf_counter()
+            walls.append((t2 - t0) / ops * 1e6)
+            submits.append((t1 - t0) / ops * 1e6)
+        best = int(np.argmin(walls))
+        us = float(walls[best])
+        r = MicroResult(name, ops, trials, us, float(submits[best]), float(np.median(walls)), items, us / items,
+                        check, [float(v) for v in walls])
+        results.append(r)
+        return r
+
+    def tiled_draws(n: int) -> None:
+        prog["instanced"].value = 0
+        for i in range(n):
+            fbo.scissor = tiles[i % len(tiles)]
+            vao.render(moderngl.TRIANGLES, vertices=3)
+
+    def uniform_draws(n: int) -> None:
+        prog["instanced"].value = 0
+        u = prog["value"]
+        for i in range(n):
+            fbo.scissor = tiles[i % len(tiles)]
+            u.value = ((i % 97) / 97.0, 0.4, 0.6, 1.0)
+            vao.render(moderngl.TRIANGLES, vertices=3)
+
+    def full_draws(n: int) -> None:
+        prog["instanced"].value = 0
+        fbo.scissor = None
+        for _ in range(n):
+            vao.render(moderngl.TRIANGLES, vertices=3)
+
+    def query_sync(n: int) -> None:
+        prog["instanced"].value = 0
+        for i in range(n):
+            fbo.scissor = tiles[i % len(tiles)]
+            q = queries[i % n_q]
+            with q:
+                vao.render(moderngl.TRIANGLES, vertices=3)
+            _ = q.samples
+
+    def query_batch(n: int) -> None:
+        prog["instanced"].value = 0
+        for s in range(0, n, n_q):
+            used = queries[: min(n_q, n - s)]
+            for i, q in enumerate(used):
+                fbo.scissor = tiles[(s + i) % len(tiles)]
+                with q:
+                    vao.render(moderngl.TRIANGLES, vertices=3)
+            for q in used:
+                _ = q.samples
+
+    def instanced(k: int) -> Callable[[int], None]:
+        def body(n: int) -> None:
+            prog["instanced"].value = 1
+            fbo.scissor = None
+            for _ in range(n):
+                vao.render(moderngl.TRIANGLE_STRIP, vertices=4, instances=k)
+        return body
+
+    last_counts: dict[int, np.ndarray] = {}
+
+    def atomic_queries(k: int) -> Callable[[int], None]:
+        def body(n: int) -> None:
+            prog["instanced"].value = 1
+            prog["countAtomics"].value = 1
+            fbo.scissor = None
+            counts.bind_to_storage_buffer(_MICRO_BINDING)
+            for _ in range(n):
+                counts.write(zeros)
+                vao.render(moderngl.TRIANGLE_STRIP, vertices=4, instances=k)
+                ctx.memory_barrier()
+                last_counts[k] = np.frombuffer(counts.read(size=4 * k), np.uint32)
+            prog["countAtomics"].value = 0
+        return body
+
+    def finishes(n: int) -> None:
+        for _ in range(n):
+            ctx.finish()
+
+    def small_reads(n: int) -> None:
+        prog["instanced"].value = 0
+        for i in range(n):
+            fbo.scissor = tiles[i % len(tiles)]
+            vao.render(moderngl.TRIANGLES, vertices=3)
+            counts.read(size=64)
+
+    tile_txt = f"{tw}x{th} px tile"
+    try:
+        measure("glFinish, idle pipeline", n_of(400), finishes)
+        measure(f"draw, {tile_txt} (scissor change + draw)", n_of(2000), tiled_draws)
+        measure(f"draw + uniform change, {tile_txt}", n_of(2000), uniform_draws)
+        measure(f"draw, whole {w}x{h} target", n_of(100), full_draws)
+        measure(f"draw + 64-byte buffer read (one round trip), {tile_txt}", n_of(200), small_reads)
+        measure(f"occlusion query one at a time (begin, draw {tile_txt}, end, read)", n_of(400), query_sync)
+        measure(f"occlusion queries, {n_q} issued then all read, {tile_txt}", n_q, query_batch)
+        for k in (1, 64, 1024):
+            measure(f"instanced draw, {k} x {_MICRO_QUAD_PX}x{_MICRO_QUAD_PX} px instances",
+                    n_of(200 if k < 1024 else 60), instanced(k), items=k)
+        for k in (64, 1024):
+            r = measure(f"{k} queries in one instanced draw, counted by SSBO atomics, + barrier + read",
+                        n_of(100 if k < 1024 else 40), atomic_queries(k), items=k)
+            got = last_counts.get(k)
+            expect = _MICRO_QUAD_PX * _MICRO_QUAD_PX
+            r.check = ("counts ok" if got is not None and np.all(got == expect)
+                       else f"unexpected counts (want {expect} per instance)")
+        q = queries[0]
+        fbo.scissor = tiles[0]
+        prog["instanced"].value = 0
+        with q:
+            vao.render(moderngl.TRIANGLES, vertices=3)
+        for r in results:
+            if "occlusion" in r.name:
+                r.check = "samples ok" if q.samples == tw * th else f"samples {q.samples} != {tw * th}"
+    finally:
+        fbo.scissor = None
+        prog["countAtomics"].value = 0
+        for obj in (vao, fbo, color, counts, prog):
+            obj.release()
+    return results, {"target": list(size), "tile": [tw, th], "trials": trials, "queries_in_flight": n_q}
+
+
+@dataclass
+class OverheadRow:
+    """One chcrt configuration on a real run: counts per frame and derived costs (steady state)."""
+
+    config: str
+    params: str | None
+    draws: float
+    intersect_draws: float
+    queries: float
+    multi_queries: float
+    trace_ms: float
+    trace_cpu_ms: float
+    frame_ms: float
+    ms_per_draw: float  # trace_ms / draws: all tracing time charged to draws (an upper bound)
+    ms_per_query: float  # trace_ms / queries (same, for queries)
+    same_as: str | None = None  # an earlier config with identical effective parameters
+
+
+@dataclass
+class Comparison:
+    """Two configurations that differ in one setting: marginal cost of what changed."""
+
+    a: str
+    b: str
+    d_draws: float
+    d_queries: float
+    d_trace_ms: float
+    ms_per_extra_draw: float
+    ms_per_extra_query: float
+
+
+# (label, parameter text); (a, b) pairs compared: a adds draws / queries that b batches
+OVERHEAD_VARIANTS = [
+    ("default", ""),
+    ("max_batch=24", "max_batch=24"),
+    ("max_batch=1", "max_batch=1"),
+    ("max_multi=24", "max_multi=24"),
+    ("max_multi=1", "max_multi=1"),
+    ("query_mode=batched", "query_mode=batched"),
+    ("query_mode=hw", "query_mode=hw"),
+    ("hw, max_batch=1", "query_mode=hw,max_batch=1"),
+    ("hw, max_multi=1", "query_mode=hw,max_multi=1"),
+    ("hw, max_batch=1, max_multi=1", "query_mode=hw,max_batch=1,max_multi=1"),
+]
+OVERHEAD_PAIRS = [("max_batch=1", "max_batch=24"), ("max_multi=1", "max_multi=24"),
+                  ("query_mode=hw", "query_mode=batched"), ("hw, max_batch=1", "query_mode=hw"),
+                  ("hw, max_multi=1", "query_mode=hw"), ("hw, max_batch=1, max_multi=1", "query_mode=hw")]
+
+
+def overhead_variants(user: str) -> tuple[list[tuple[str, str, str]], list[str]]:
+    """(label, run text, effective parameters) for the variants this ChcrtParams supports, and
+    notes on the ones skipped (a parameter or value it does not have)."""
+    have = _param_names()
+    out, skipped = [], []
+    for label, text in OVERHEAD_VARIANTS:
+        keys = [kv.partition("=")[0] for kv in _split(text)]
+        missing = [k for k in keys if k not in have]
+        if missing:
+            skipped.append(f"{label}: skipped, ChcrtParams has no {', '.join(missing)}")
+            continue
+        try:
+            eff = effective_params(user, text)
+        except RtwalkError as exc:
+            skipped.append(f"{label}: skipped ({exc})")
+            continue
+        out.append((label, _join(user, text), eff))
+    return out, skipped
+
+
+def _moved(delta: float, a: float, b: float) -> bool:
+    """A count changed enough to charge a time difference to it (not a handful out of thousands)."""
+    return bool(np.isfinite(delta) and abs(delta) >= max(10.0, 0.05 * max(abs(a), abs(b))))
+
+
+def study_overhead(b: Bench) -> dict:
+    """Per-draw / per-query cost: synthetic GL microbenchmark, then chcrt variants on a real path."""
+    o = b.o
+    size, path = o.sizes[0], o.overhead_recording
+    if not o.quiet:
+        print("overhead: synthetic GL microbenchmark ...", file=sys.stderr, flush=True)
+    micro, micro_setup = micro_overheads(b.ctx, size, o.micro_scale, trials=3 if o.quick else 7)
+    variants, skipped = overhead_variants(o.chcrt)
+    unique: dict[str, str] = {}
+    for label, _, eff in variants:
+        unique.setdefault(eff, label)
+    b.progress("overhead", (len(unique) + 1) * o.frames)
+    rows: list[OverheadRow] = []
+    try:
+        frames = b.frames_for(path, o.frames)
+        texts = {label: text for label, text, _ in variants}
+        specs = [RunSpec("glsl", o.overhead_effect, "glsl")] + [
+            RunSpec(label, o.overhead_effect, "chcrt", texts[label]) for label in unique.values()]
+        g, *chc = b.run_many(path, size, specs, frames)
+        runs = {r.label: r for r in chc}
+        for label, _, eff in variants:
+            first = unique[eff]
+            run = runs[first]
+            s, c = run.best, run.best.counters
+            draws, queries = c.get("draws", float("nan")), c.get("queries", float("nan"))
+            rows.append(OverheadRow(label, run.params, draws, c.get("intersect_draws", float("nan")), queries,
+                                    c.get("multi_queries", float("nan")), s.trace_ms, s.trace_cpu_ms, s.wall_ms,
+                                    _ratio(s.trace_ms, draws), _ratio(s.trace_ms, queries),
+                                    None if first == label else first))
+    finally:
+        b.done()
+    by_label = {r.config: r for r in rows}
+    comps = []
+    for a, bb in OVERHEAD_PAIRS:
+        ra, rb = by_label.get(a), by_label.get(bb)
+        if ra is None or rb is None or (ra.same_as or ra.config) == (rb.same_as or rb.config):
+            continue
+        dd, dq, dt = ra.draws - rb.draws, ra.queries - rb.queries, ra.trace_ms - rb.trace_ms
+        comps.append(Comparison(a, bb, dd, dq, dt,
+                                dt / dd if _moved(dd, ra.draws, rb.draws) else float("nan"),
+                                dt / dq if _moved(dq, ra.queries, rb.queries) else float("nan")))
+    report = b.header("overhead", o, {"recording": path.stem, "effect": o.overhead_effect, "size": list(size),
+                                      "micro_setup": micro_setup})
+    report["notes"] += skipped
+    report.update(micro=[asdict(m) for m in micro], rows=[asdict(r) for r in rows],
+                  comparisons=[asdict(c) for c in comps], glsl=asdict(g), runs={k: asdict(v) for k, v in runs.items()})
+    md = [f"## Overhead: draws and queries on {b.device['renderer']}", "",
+          f"### (a) Synthetic, same GL context, {size[0]}x{size[1]} target (best of {micro_setup['trials']} "
+          "trials, median beside it; wall time per op with the final glFinish amortised; submit = CPU time "
+          "to issue)", ""]
+    md.append(md_table(["operation", "ops/trial", "us per op (wall)", "median", "us per op (submit)", "items/op",
+                        "us per item", "check"],
+                       [[m.name, str(m.ops_per_trial), _fmt(m.us_per_op, 1), _fmt(m.median_us_per_op, 1),
+                         _fmt(m.submit_us_per_op, 1), str(m.items_per_op), _fmt(m.us_per_item, 2), m.check]
+                        for m in micro]))
+    gs = g.best
+    md += ["", f"### (b) chcrt on {path.stem}, {_size_text(size)}, {o.overhead_effect}, steady state of "
+               f"{o.frames} consecutive frames from {frames[0]}", "",
+           "Per frame. 'ms per draw/query' = trace ms / count (all tracing time charged to draws or queries: "
+           f"upper bounds). glsl on the same frames: trace {_fmt(gs.trace_ms)} ms, frame {_fmt(gs.wall_ms)} ms.", ""]
+    md.append(md_table(["config", "draws", "intersect draws", "queries", "multi-queries", "trace ms",
+                        "trace CPU ms", "frame ms", "ms per draw", "ms per query"],
+                       [[r.config + (f" (= {r.same_as})" if r.same_as else ""), _fmt(r.draws, 0),
+                         _fmt(r.intersect_draws, 0), _fmt(r.queries, 0), _fmt(r.multi_queries, 0), _fmt(r.trace_ms),
+                         _fmt(r.trace_cpu_ms), _fmt(r.frame_ms), _fmt(r.ms_per_draw, 3), _fmt(r.ms_per_query, 3)]
+                        for r in rows]))
+    if comps:
+        md += ["", "Marginal cost: configuration a vs b (one setting changed): extra trace ms per extra draw / "
+                   "query, the whole time difference charged to each ('-': that count barely changed).", ""]
+        md.append(md_table(["a", "b", "d draws", "d queries", "d trace ms", "ms per extra draw",
+                            "ms per extra query"],
+                           [[c.a, c.b, _fmt(c.d_draws, 0), _fmt(c.d_queries, 0), _fmt(c.d_trace_ms),
+                             _fmt(c.ms_per_extra_draw, 3), _fmt(c.ms_per_extra_query, 3)] for c in comps]))
+    md += _notes_md(report["notes"])
+    _plot_overhead(micro, rows, o.out / "overhead.png", b.device["renderer"])
+    return _finish(o, "overhead", report, "\n".join(md))
+
+
+def _plot_overhead(micro: list[MicroResult], rows: list[OverheadRow], path: Path, device: str) -> None:
+    plt = _plt()
+    fig, (ax, ax2) = plt.subplots(1, 2, figsize=(13, 5), dpi=110)
+    y = np.arange(len(micro))
+    ax.barh(y, [m.us_per_op for m in micro])
+    ax.set_yticks(y, [m.name for m in micro], fontsize=6)
+    ax.invert_yaxis()
+    ax.set_xscale("log")
+    ax.set_xlabel("us per op (wall, log)")
+    ax.set_title("synthetic GL operations", fontsize=9)
+    ax.grid(alpha=0.3, axis="x")
+    rs = [r for r in rows if r.same_as is None]
+    y2 = np.arange(len(rs))
+    ax2.barh(y2, [r.trace_ms for r in rs], color="C1")
+    for i, r in enumerate(rs):
+        ax2.text(r.trace_ms if np.isfinite(r.trace_ms) else 0, i, f" {_fmt(r.draws, 0)} draws, "
+                 f"{_fmt(r.queries, 0)} queries", va="center", fontsize=6)
+    ax2.set_yticks(y2, [r.config for r in rs], fontsize=7)
+    ax2.invert_yaxis()
+    ax2.set_xlabel("steady trace ms per frame")
+    ax2.set_title("chcrt configurations", fontsize=9)
+    ax2.grid(alpha=0.3, axis="x")
+    fig.suptitle(f"Draw / query overhead - {device}", fontsize=9)
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+
+
+# ----------------------------------------------------------------------------------------- driver
+
+
+def _notes_md(notes: list[str]) -> list[str]:
+    return (["", "Notes:"] + [f"- {n}" for n in notes]) if notes else []
+
+
+def _finish(o: StudyOptions, study: str, report: dict, md: str) -> dict:
+    write_json(o.out / f"{study}.json", report)
+    (o.out / f"{study}.md").write_text(md + "\n")
+    return {"study": study, "json": o.out / f"{study}.json", "md": o.out / f"{study}.md",
+            "png": o.out / f"{study}.png", "markdown": md}
+
+
+STUDY_FUNCS: dict[str, Callable[[Bench], dict]] = {"table2": study_table2, "table4": study_table4,
+                                                    "phases": study_phases, "overhead": study_overhead}
+
+
+def run_studies(o: StudyOptions, out=sys.stdout) -> list[dict]:
+    est = estimate(o)
+    if not o.quiet:
+        print(format_estimate(est), file=sys.stderr, flush=True)
+        for n in o.notes:
+            print(f"rtwalk: note: {n}", file=sys.stderr)
+    o.out.mkdir(parents=True, exist_ok=True)
+    b = Bench(o)
+    done = []
+    t0 = time.perf_counter()
+    for study in o.studies:
+        res = STUDY_FUNCS[study](b)
+        done.append(res)
+        print(res["markdown"] + "\n", file=out)
+        print(f"{study}: {res['json']}  {res['md']}  {res['png']}\n", file=out, flush=True)
+    if not o.quiet:
+        print(f"bench-chcrt: {len(done)} studies in {(time.perf_counter() - t0) / 60:.1f} min "
+              f"(estimated {sum(est.values()) / 60:.1f})", file=sys.stderr)
+    return done
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    """The `bench-chcrt` subcommand's options (kept here so cli.py only registers it)."""
+    p.description = (__doc__ or "").split("\n\n")[0].replace("`", "")
+    p.add_argument("--study", default="all", help=f"comma list of {', '.join(STUDIES)}, or all")
+    p.add_argument("--sizes", default=None, help="comma list of WIDTHxHEIGHT (default 640x360; --quick: 96x54); "
+                                                 "phases and overhead use the first")
+    p.add_argument("--recordings", default=None,
+                   help="table2: comma list of recordings (name in recordings/ or path; default all five)")
+    p.add_argument("--frames", type=int, default=None,
+                   help="consecutive frames per run; the first is the cold frame (default 4; --quick: 2)")
+    p.add_argument("--first-frame", type=int, default=None, help="first frame (default: a third into each path)")
+    p.add_argument("--out", default="out/bench-chcrt", help="folder for JSON, Markdown and plots")
+    p.add_argument("--chcrt", default=None, metavar="KEY=VALUE,...", help="extra chcrt parameters for every chcrt run")
+    p.add_argument("--effects", default=None,
+                   help="table2: comma list, one run each (join effects of one run with '+'); "
+                        "default primary,ao:20,diffuse:20")
+    p.add_argument("--thresholds", default=None, help="table4: visible_threshold values, px (default 0,20,100,200)")
+    p.add_argument("--table4-recording", default=None, help="table4 path (default city-near)")
+    p.add_argument("--table4-effect", default=None, help="table4 effect (default diffuse:20)")
+    p.add_argument("--no-glsl-reference", action="store_true", help="table4: leave out the glsl row")
+    p.add_argument("--phases-recording", default=None, help="phases path (default city-near)")
+    p.add_argument("--phases-effect", default=None, help="phases effect (default ao:4)")
+    p.add_argument("--phases-frames", type=int, default=None, help="phases: consecutive frames (default 40)")
+    p.add_argument("--overhead-recording", default=None, help="overhead path (default city-near)")
+    p.add_argument("--overhead-effect", default=None, help="overhead effect (default ao:4)")
+    p.add_argument("--quick", action="store_true", help="tiny size, 2 frames, one recording, few samples (tests)")
+    p.add_argument("--dry-run", action="store_true", help="print the plan and the time estimate, run nothing")
+    p.add_argument("--quiet", action="store_true", help="no progress output")
+
+
+def cmd_bench_chcrt(args: argparse.Namespace) -> int:
+    o = options_from_args(args)
+    if args.dry_run:
+        est = estimate(o)
+        print(f"studies: {', '.join(o.studies)}; sizes: {', '.join(_size_text(s) for s in o.sizes)}; "
+              f"recordings: {', '.join(p.stem for p in o.recordings)}; {o.frames} consecutive frames per run")
+        for n in o.notes:
+            print(f"note: {n}")
+        print(format_estimate(est))
+        return 0
+    run_studies(o)
+    return 0
