@@ -45,3 +45,29 @@ def test_bench_writes_report_with_speed_and_error(tmp_path):
     assert proc2.returncode == 0, proc2.stderr
     again = json.loads((out / "t2.json").read_text())
     assert [f["rays"] for f in again["frames"]] == [f["rays"] for f in frames]
+
+
+def test_bench_chcrt_consecutive_frames_saves_overlays(tmp_path):
+    """--first-frame replays consecutive frames; with --save-frames, chcrt's overlay views are
+    saved next to the frames, and the heat map differs from the final image."""
+    from PIL import Image
+
+    path = _room_path(tmp_path)
+    out, frames_dir = tmp_path / "bench", tmp_path / "frames"
+    proc = subprocess.run([sys.executable, "-m", "viewer.cli", "bench", "--recording", str(path),
+                           "--backend", "chcrt", "--chcrt", "t_q=0.5", "--effects", "primary,ao:1",
+                           "--size", "64x36", "--first-frame", "1", "--frames", "2", "--reference", "none",
+                           "--save-frames", str(frames_dir), "--frame-every", "1", "--out", str(out),
+                           "--name", "c", "--quiet"], capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    report = json.loads((out / "c.json").read_text())
+    assert [f["frame"] for f in report["frames"]] == [1, 2]
+    assert "t_q=0.5" in report["backend_params"]
+    for f in report["frames"]:
+        assert f["overlays"] == [f"query_overdraw_{f['frame']:05d}.png", f"subtree_batches_{f['frame']:05d}.png"]
+        final = np.asarray(Image.open(frames_dir / f"frame_{f['frame']:05d}.png"))
+        heat = np.asarray(Image.open(frames_dir / f["overlays"][0]))
+        assert heat.shape == final.shape and not np.array_equal(heat, final)
+    bad = subprocess.run([sys.executable, "-m", "viewer.cli", "bench", "--recording", str(path), "--first-frame",
+                          "99", "--quiet"], capture_output=True, text=True, timeout=120)
+    assert bad.returncode == 2 and bad.stderr.strip().startswith("rtwalk: error:") and "Traceback" not in bad.stderr

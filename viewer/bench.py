@@ -110,6 +110,29 @@ def reference_errors(renderer: Renderer, camera, tracer) -> dict:
     return {"rays": out, "image": image}
 
 
+def save_overlay_views(renderer: Renderer, camera, folder: Path, frame: int) -> list[str]:
+    """The backend's overlay views of this frame as PNGs (chcrt: query overdraw heat map, subtree
+    batches), rendered again after the timed frame so diagnostics never cost timed work. Returns
+    the file names (none for a backend without overlays)."""
+    from PIL import Image
+
+    from viewer.passes.overlay import OVERLAY_VIEWS
+
+    if not hasattr(renderer.backend, "overlays_enabled"):
+        return []
+    saved, view, strict = [], renderer.view, renderer.strict_overlays
+    try:
+        for name in OVERLAY_VIEWS:
+            renderer.view = name
+            renderer.render(camera)
+            path = folder / f"{name}_{frame:05d}.png"
+            Image.fromarray(renderer.read_image()).save(path)
+            saved.append(path.name)
+    finally:
+        renderer.view, renderer.strict_overlays = view, strict
+    return saved
+
+
 def image_error(a: np.ndarray, b: np.ndarray) -> dict:
     diff = np.abs(a.astype(np.float64) - b.astype(np.float64))
     mse = float((diff ** 2).mean())
@@ -156,6 +179,7 @@ def run_bench(prepared: PreparedScene, rec: Recording, settings: EffectSettings,
                 image = renderer.read_image()
             opts.frames_dir.mkdir(parents=True, exist_ok=True)
             Image.fromarray(image).save(opts.frames_dir / f"frame_{n:05d}.png")
+            row["overlays"] = save_overlay_views(renderer, cam, opts.frames_dir, n)
         records.append(row)
     report = {
         "format": "rtwalk-bench", "version": 1,
