@@ -16,9 +16,9 @@ SIZE = "96x54"
 
 @pytest.fixture(scope="module")
 def quick_run(tmp_path_factory):
-    """table4 + overhead in one command (the scene is loaded once)."""
+    """table4 + overhead + tuning in one command (the scene is loaded once)."""
     out = tmp_path_factory.mktemp("bench-chcrt")
-    rc = main(["bench-chcrt", "--quick", "--study", "table4,overhead", "--sizes", SIZE,
+    rc = main(["bench-chcrt", "--quick", "--study", "table4,overhead,tuning", "--sizes", SIZE,
                "--recordings", "city-near", "--out", str(out), "--quiet"])
     return rc, out
 
@@ -125,6 +125,8 @@ def test_estimate_all_at_640x360_is_under_an_hour():
     (["--thresholds", "a,b"], "--thresholds"),
     (["--first-frame", "100000"], "--first-frame"),
     (["--effects", "sparkles"], "sparkles"),
+    (["--tuning-grid", "t_q"], "--tuning-grid"),
+    (["--tuning-grid", "t_q=1|fast"], "t_q"),
 ])
 def test_bad_input_is_one_line(capsys, args, needle):
     rc = main(["bench-chcrt", "--quick", *args, "--out", "/nonexistent/never-written"])
@@ -133,3 +135,24 @@ def test_bad_input_is_one_line(capsys, args, needle):
     lines = [ln for ln in err.strip().splitlines() if ln.startswith("rtwalk: error")]
     assert len(lines) == 1 and needle in lines[0], err
     assert "Traceback" not in err
+
+
+def test_tuning_sweep_counts_work(quick_run):
+    """The sweep's work counters: glsl makes no queries; chcrt's query fragments and tests are
+    counted; a larger t_q (fewer object-space splits) never needs more queries here."""
+    from viewer.bench_chcrt import tuning_configs
+
+    _, out = quick_run
+    rows = _load(out, "tuning")["rows"]
+    assert [r["params"] for r in rows] == ["glsl", "t_q=0.5", "t_q=2"]
+    glsl, a, b = rows
+    assert glsl["queries"] == 0 and glsl["query_fragments_per_ray"] == 0 and glsl["tests_per_ray"] > 1
+    for r in (a, b):
+        assert r["queries"] > 0 and r["query_fragments_per_ray"] > 0 and r["query_box_tests_per_ray"] > 0
+        assert r["tests_per_ray"] == pytest.approx(r["box_tests_per_ray"] + r["query_box_tests_per_ray"]
+                                                   + r["tri_tests_per_ray"])
+        # the same rays hit the same triangles: triangle tests differ only by the traversal order
+        assert r["tri_tests_per_ray"] > 0
+    assert b["queries"] <= a["queries"]
+    assert tuning_configs("t_q=1|2;requery_interval=3|8") == [
+        "t_q=1,requery_interval=3", "t_q=1,requery_interval=8", "t_q=2,requery_interval=3", "t_q=2,requery_interval=8"]

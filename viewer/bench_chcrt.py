@@ -41,7 +41,7 @@ import numpy as np
 
 from viewer.errors import RtwalkError
 
-STUDIES = ("table2", "table4", "phases", "overhead")
+STUDIES = ("table2", "table4", "phases", "overhead", "tuning")
 RECORDINGS_DIR = Path(__file__).resolve().parents[1] / "recordings"
 DEFAULT_RECORDINGS = ("city-near", "city-far", "sponza-walk", "sibenik-walk", "conference-walk")
 TRACE_PREFIXES = ("trace:", "chc:")  # GPU phases that are ray tracing (glsl/embree, chcrt)
@@ -78,6 +78,8 @@ class StudyOptions:
     overhead_recording: Path = RECORDINGS_DIR / "city-near.json"
     overhead_effect: str = "ao:4"
     micro_scale: float = 1.0  # op counts of the synthetic benchmark (quick: smaller)
+    tuning_effects: list[str] = field(default_factory=lambda: ["ao:4", "diffuse:4"])
+    tuning_grid: str = "t_q=0.5|1|2;min_tile_fraction=0.015|0.06;requery_interval=3|8"
     notes: list[str] = field(default_factory=list)
 
 
@@ -184,7 +186,14 @@ def options_from_args(args: argparse.Namespace) -> StudyOptions:
         raise RtwalkError("--phases-frames must be >= 1")
     o.table4_glsl = not args.no_glsl_reference
     o.micro_scale = 0.1 if quick else 1.0
-    for e in o.effects + [o.table4_effect, o.phases_effect, o.overhead_effect]:
+    if args.tuning_effects:
+        o.tuning_effects = _split(args.tuning_effects)
+    elif quick:
+        o.tuning_effects = ["ao:1"]
+    o.tuning_grid = args.tuning_grid or ("t_q=0.5|2" if quick else o.tuning_grid)
+    for params in tuning_configs(o.tuning_grid):
+        effective_params(params)  # bad grid text fails here
+    for e in o.effects + o.tuning_effects + [o.table4_effect, o.phases_effect, o.overhead_effect]:
         effect_settings(e)  # bad effect names fail here
     # every recording must load, and its scene must exist (a missing scene file of a default
     # recording is skipped with a note: ../shared/scenes is optional)
@@ -285,6 +294,11 @@ def estimate(o: StudyOptions) -> dict[str, float]:
         out["overhead"] = (_MICRO_S * max(o.micro_scale, 0.1)
                            + n_variants * _run_estimate("chcrt", o.overhead_effect, o.sizes[0], o.frames)
                            + _run_estimate("glsl", o.overhead_effect, o.sizes[0], o.frames))
+        scene_recs.add(o.overhead_recording)
+    if "tuning" in o.studies:
+        n = len(tuning_configs(o.tuning_grid))
+        out["tuning"] = sum(n * _run_estimate("chcrt", e, o.sizes[0], o.frames) * 1.5
+                            + _run_estimate("glsl", e, o.sizes[0], o.frames) for e in o.tuning_effects)
         scene_recs.add(o.overhead_recording)
     specs = {}
     for p in scene_recs:
@@ -1244,8 +1258,107 @@ def _finish(o: StudyOptions, study: str, report: dict, md: str) -> dict:
             "png": o.out / f"{study}.png", "markdown": md}
 
 
+def tuning_configs(grid: str) -> list[str]:
+    """chcrt parameter texts of a grid "key=v1|v2;key2=w1|w2" (every combination)."""
+    import itertools
+
+    axes = []
+    for part in filter(None, (p.strip() for p in grid.split(";"))):
+        key, sep, vals = part.partition("=")
+        values = [v.strip() for v in vals.split("|") if v.strip()]
+        if not sep or not values:
+            raise RtwalkError(f"bad --tuning-grid item '{part}': expected key=v1|v2|...")
+        axes.append([f"{key.strip()}={v}" for v in values])
+    return [",".join(c) for c in itertools.product(*axes)] if axes else [""]
+
+
+@dataclass
+class TuningRow:
+    effect: str
+    params: str
+    trace_ms: float
+    wall_ms: float
+    queries: float
+    query_fragments_per_ray: float
+    box_tests_per_ray: float  # intersection (subtree traversal and batch items)
+    query_box_tests_per_ray: float
+    tri_tests_per_ray: float
+    tests_per_ray: float  # all ray/box and ray/triangle tests
+
+
+def study_tuning(b: Bench) -> dict:
+    """Parameter sweep for this machine: chcrt over a grid of split-rule / tile / re-query settings
+    against glsl, timed and with the shader work counters (RTWALK_COUNT_WORK): on a CPU
+    rasterizer time follows the number of tests, so the counters explain the timings and do not
+    suffer from other jobs' load."""
+    o = b.o
+    path, size = o.overhead_recording, o.sizes[0]
+    configs = tuning_configs(o.tuning_grid)
+    old = os.environ.get("RTWALK_COUNT_WORK")
+    os.environ["RTWALK_COUNT_WORK"] = "1"
+    rows: list[TuningRow] = []
+    runs = []
+    b.progress("tuning", len(o.tuning_effects) * (len(configs) + 1) * o.frames)
+    try:
+        for effect in o.tuning_effects:
+            specs = [RunSpec("glsl", effect, "glsl")] + [RunSpec(c, effect, "chcrt", _join(c, "overdraw_overlay=0",
+                                                                                          o.chcrt)) for c in configs]
+            for spec, run in zip(specs, b.run_many(path, size, specs), strict=True):
+                st, rays = run.best.counters, max(run.best.rays, 1.0)
+
+                def per_ray(key: str, st=st, rays=rays) -> float:
+                    return st.get(f"work_{key}", 0.0) / rays
+
+                box, qbox, tri = per_ray("box_tests"), per_ray("query_box_tests"), per_ray("tri_tests")
+                rows.append(TuningRow(effect, spec.label, run.best.trace_ms, run.best.wall_ms, st.get("queries", 0.0),
+                                      per_ray("query_fragments"), box, qbox, tri, box + qbox + tri))
+                runs.append(asdict(run))
+    finally:
+        b.done()
+        if old is None:
+            os.environ.pop("RTWALK_COUNT_WORK", None)
+        else:
+            os.environ["RTWALK_COUNT_WORK"] = old
+    report = b.header("tuning", o, {"recording": path.stem, "size": list(size), "grid": o.tuning_grid,
+                                    "effects": o.tuning_effects})
+    report.update(rows=[asdict(r) for r in rows], runs=runs)
+    md = [f"## chcrt parameter sweep ({path.stem}, {_size_text(size)}, steady state of {o.frames} consecutive frames)",
+          "", f"Device: {b.device['renderer']}. Work counters per traced ray (RTWALK_COUNT_WORK=1; counting adds "
+          "time to both backends). 'tests' = ray/box + ray/triangle tests of intersection and queries.", ""]
+    md.append(md_table(["effect", "config", "trace ms", "queries/frame", "query frags/ray", "isect box/ray",
+                        "query box/ray", "tri/ray", "tests/ray"],
+                       [[r.effect, r.params, _fmt(r.trace_ms), _fmt(r.queries, 0), _fmt(r.query_fragments_per_ray, 2),
+                         _fmt(r.box_tests_per_ray, 1), _fmt(r.query_box_tests_per_ray, 1),
+                         _fmt(r.tri_tests_per_ray, 2), _fmt(r.tests_per_ray, 1)] for r in rows]))
+    md += _notes_md(report["notes"])
+    _plot_tuning(rows, o.out / "tuning.png", b.device["renderer"])
+    return _finish(o, "tuning", report, "\n".join(md))
+
+
+def _plot_tuning(rows: list[TuningRow], path: Path, device: str) -> None:
+    plt = _plt()
+    effects = list(dict.fromkeys(r.effect for r in rows))
+    fig, axes = plt.subplots(1, len(effects), figsize=(6 * len(effects), 4.5), dpi=100, squeeze=False)
+    for ax, effect in zip(axes[0], effects, strict=True):
+        rs = [r for r in rows if r.effect == effect]
+        for r in rs:
+            glsl = r.params == "glsl"
+            ax.scatter(r.tests_per_ray, r.trace_ms, c="tab:red" if glsl else "tab:blue", s=30)
+            ax.annotate(r.params.replace("min_tile_fraction", "tile").replace("requery_interval", "rq"),
+                        (r.tests_per_ray, r.trace_ms), fontsize=6)
+        ax.set_xlabel("ray/box + ray/triangle tests per ray")
+        ax.set_ylabel("trace ms per frame")
+        ax.set_title(f"{effect}: chcrt configs (blue) vs glsl (red)", fontsize=9)
+        ax.grid(alpha=0.3)
+    fig.suptitle(f"chcrt tuning - {device}", fontsize=9)
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+
+
 STUDY_FUNCS: dict[str, Callable[[Bench], dict]] = {"table2": study_table2, "table4": study_table4,
-                                                    "phases": study_phases, "overhead": study_overhead}
+                                                    "phases": study_phases, "overhead": study_overhead,
+                                                    "tuning": study_tuning}
 
 
 def run_studies(o: StudyOptions, out=sys.stdout) -> list[dict]:
@@ -1294,6 +1407,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--phases-frames", type=int, default=None, help="phases: consecutive frames (default 40)")
     p.add_argument("--overhead-recording", default=None, help="overhead path (default city-near)")
     p.add_argument("--overhead-effect", default=None, help="overhead effect (default ao:4)")
+    p.add_argument("--tuning-effects", default=None, help="tuning: comma list of effects (default ao:4,diffuse:4)")
+    p.add_argument("--tuning-grid", default=None,
+                   help="tuning: chcrt grid 'key=v1|v2;key=...' (default t_q=0.5|1|2;min_tile_fraction=0.015|0.06;"
+                        "requery_interval=3|8)")
     p.add_argument("--quick", action="store_true", help="tiny size, 2 frames, one recording, few samples (tests)")
     p.add_argument("--dry-run", action="store_true", help="print the plan and the time estimate, run nothing")
     p.add_argument("--quiet", action="store_true", help="no progress output")
