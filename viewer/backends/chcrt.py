@@ -35,8 +35,15 @@ node of the scheduled subtree that produced the pixel's hit, -1 for none). Count
 Temporal state: one pair hierarchy per (ray type, sample, light); the light is the occurrence
 number of (ray type, sample) within the frame (the renderer's pass order).
 
-Parameters come from ChcrtParams; `RTWALK_CHCRT="visible_threshold=20,t_q=0.4"` overrides them
-for backends created by the factory (bench and viewer).
+Query modes. ``query_mode=hw`` (the paper's): every query is one scissored draw inside one hardware
+occlusion query, every intersection batch one scissored draw. ``query_mode=batched`` (default): a
+wave of queries, or all batches of one intersection step, is ONE instanced draw (chc_tile.vert
+places each instance on its tile); query fragments make the depth test's comparison themselves
+against bestBits and count into their query's slot with an atomic add, read back once per wave.
+Same query results (bestBits can only be stale towards passing), far fewer draws and waits.
+
+Parameters come from ChcrtParams: `--chcrt "visible_threshold=20,t_q=0.4"` on the command line,
+or the RTWALK_CHCRT environment variable (both for backends created by the factory).
 """
 
 from __future__ import annotations
