@@ -120,7 +120,7 @@ def save_overlay_views(renderer: Renderer, camera, folder: Path, frame: int) -> 
 
     if not hasattr(renderer.backend, "overlays_enabled"):
         return []
-    saved, view, strict = [], renderer.view, renderer.strict_overlays
+    saved, view = [], renderer.view
     try:
         for name in OVERLAY_VIEWS:
             renderer.view = name
@@ -129,7 +129,7 @@ def save_overlay_views(renderer: Renderer, camera, folder: Path, frame: int) -> 
             Image.fromarray(renderer.read_image()).save(path)
             saved.append(path.name)
     finally:
-        renderer.view, renderer.strict_overlays = view, strict
+        renderer.view = view
     return saved
 
 

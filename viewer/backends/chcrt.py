@@ -99,8 +99,7 @@ class ChcrtParams:
         """Parameters from "key=value,key=value" (the --chcrt option or RTWALK_CHCRT)."""
         p = ChcrtParams()
         types = {f.name: f.type for f in fields(ChcrtParams)}
-        kind = {"float": float, "int": int, "str": str,
-                "bool": lambda v: _parse_bool(v)}
+        kind = {"float": float, "int": int, "str": str, "bool": _parse_bool}
         for item in filter(None, (s.strip() for s in (text or "").split(","))):
             key, sep, val = item.partition("=")
             key = key.strip()
@@ -252,9 +251,9 @@ class _StreamBuffer:
         self.capacity = capacity
         self.buf = ctx.buffer(reserve=self.capacity * itemsize, dynamic=True)
 
-    def upload(self, records: np.ndarray | bytes, count: int | None = None) -> None:
+    def upload(self, records: np.ndarray | bytes) -> None:
         data = records if isinstance(records, bytes) else records.tobytes()
-        n = max(len(data) // self.itemsize if count is None else count, 1)
+        n = max(len(data) // self.itemsize, 1)
         if n > self.capacity:
             self.buf.release()
             self.capacity = 1 << (n - 1).bit_length()
@@ -316,7 +315,7 @@ class ChcrtBackend:
         self._occurrence: dict[tuple[int, int], int] = {}
         self.last_stats: dict[str, float] = {}
         # fill the overlay textures (query overdraw, subtree id, batch sizes): set per frame by the
-        # renderer (on only while an overlay view is shown or saved: the counting costs ~5%)
+        # renderer (on only while an overlay view is shown or saved: the counting costs time)
         self.overlays_enabled = True
 
     @property
@@ -617,8 +616,9 @@ class _Pass:
             u_base, u_count = prog["itemBase"], prog["itemCount"]
             render = self.be.quad.render
             draws = 0
+            rect_list = rects.tolist()
             for t, b, c in zip(tile_of[live].tolist(), bstart[live].tolist(), bcount[live].tolist(), strict=True):
-                fbo.scissor = tuple(int(v) for v in rects[t])
+                fbo.scissor = tuple(rect_list[t])
                 u_base.value = b
                 u_count.value = c
                 render(prog)
