@@ -189,7 +189,8 @@ def run_bench(prepared: PreparedScene, rec: Recording, settings: EffectSettings,
         "backend_params": getattr(renderer.backend, "params_text", None),
         "effects": settings.to_dict(), "size": list(opts.size),
         "recording": str(rec.source) if getattr(rec, "source", None) else None, "fps": fps,
-        "device": {"renderer": ctx.info.get("GL_RENDERER"), "version": ctx.info.get("GL_VERSION")},
+        "device": {"renderer": ctx.info.get("GL_RENDERER"), "version": ctx.info.get("GL_VERSION"),
+                   "phase_timing": renderer.profiler.method},
         "frames": records, "summary": summarize(records),
     }
     renderer.release()

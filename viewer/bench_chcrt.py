@@ -391,11 +391,14 @@ class Bench:
     """One GL context and a scene cache shared by all studies of a command."""
 
     def __init__(self, o: StudyOptions):
+        from viewer.profiler import choose_timing
         from viewer.tracing import shared_context
 
         self.o = o
         self.ctx = shared_context()
-        self.device = {"renderer": self.ctx.info.get("GL_RENDERER"), "version": self.ctx.info.get("GL_VERSION")}
+        self.device = {"renderer": self.ctx.info.get("GL_RENDERER"), "version": self.ctx.info.get("GL_VERSION"),
+                       "phase_timing": choose_timing(self.ctx)}
+        self.device_text = f"{self.device['renderer']} (phase times: {self.device['phase_timing']})"
         self._scenes: dict[str, object] = {}
         self._recs: dict[Path, object] = {}
         self.load_at_start = _load_average()
@@ -615,7 +618,7 @@ def study_table2(b: Bench) -> dict:
     report.update(rows=[asdict(r) for r in rows], runs=[asdict(r) for r in runs])
     steady = "steady state" if o.frames > 1 else "one frame only: no steady state, cold frame shown"
     md = [f"## Table 2 analog: glsl vs chcrt ({steady}; mean of frames 2..{o.frames} of {o.frames} consecutive)",
-          "", f"Device: {b.device['renderer']}. Trace = sum of the GPU tracing phases (trace:* / chc:*); frame = "
+          "", f"Device: {b.device_text}. Trace = sum of the GPU tracing phases (trace:* / chc:*); frame = "
           "wall time of the whole frame. Cold = first frame after a reset (chcrt builds its fronts). "
           "Speedup = glsl / chcrt (> 1: chcrt faster).", ""]
     md.append(md_table(
@@ -732,7 +735,7 @@ def study_table4(b: Bench) -> dict:
     report.update(rows=[asdict(r) for r in rows], runs=[asdict(r) for r in runs])
     md = [f"## Table 4 analog: aggressive culling ({path.stem}, {o.table4_effect}, {o.frames} consecutive frames "
           f"from {runs[0].frame_numbers[0] if runs else '-'})", "",
-          f"Device: {b.device['renderer']}. Error: mean absolute difference (0..255, over RGB) to the "
+          f"Device: {b.device_text}. Error: mean absolute difference (0..255, over RGB) to the "
           "conservative (threshold 0) image of the same frame, mean over all frames; '> 8': % pixels with "
           "an error above 8 in some channel. Times: steady state (cold frame apart).", ""]
     md.append(md_table(
@@ -797,7 +800,7 @@ def study_phases(b: Bench) -> dict:
                                     "frames_requested": o.phases_frames})
     report.update(phases=phases, counters=counters, run=asdict(run))
     md = [f"## Figure 8 analog: chcrt phases per frame ({path.stem}, {_size_text(size)}, {o.phases_effect})", "",
-          f"Device: {b.device['renderer']}. Parameters: {run.params}. GPU ms per phase; 'other' = G-buffer, "
+          f"Device: {b.device_text}. Parameters: {run.params}. GPU ms per phase; 'other' = G-buffer, "
           "ray generation, accumulation, shading. Frame 1 of the run is the cold frame.", ""]
     rows = []
     for r in run.frames:
@@ -1323,7 +1326,7 @@ def study_tuning(b: Bench) -> dict:
                                     "effects": o.tuning_effects})
     report.update(rows=[asdict(r) for r in rows], runs=runs)
     md = [f"## chcrt parameter sweep ({path.stem}, {_size_text(size)}, steady state of {o.frames} consecutive frames)",
-          "", f"Device: {b.device['renderer']}. Work counters per traced ray (RTWALK_COUNT_WORK=1; counting adds "
+          "", f"Device: {b.device_text}. Work counters per traced ray (RTWALK_COUNT_WORK=1; counting adds "
           "time to both backends). 'tests' = ray/box + ray/triangle tests of intersection and queries.", ""]
     md.append(md_table(["effect", "config", "trace ms", "queries/frame", "query frags/ray", "isect box/ray",
                         "query box/ray", "tri/ray", "tests/ray"],

@@ -1,60 +1,102 @@
-"""GPU timer queries per named phase, reused frame to frame (no per-frame allocation)."""
+"""Per-phase GPU times, reused frame to frame (no per-frame allocation).
+
+Two ways to time a phase:
+- "timer": GL_TIME_ELAPSED queries, read once per frame (asynchronous; right on real GPUs).
+- "sync": glFinish before and after the phase, wall time in between. Used on Mesa llvmpipe,
+  whose GL_TIME_ELAPSED is wrong: the begin-query command is replayed in every 64x64 bin, so a
+  one-draw phase is charged roughly the last bin each thread shaded (measured: a 512x512
+  full-screen draw read 11 ms against 297 ms of wall time; a 64x64 one read right). Also,
+  moderngl reads the result as 32 bits, so phases over 4.29 s saturate.
+RTWALK_PHASE_TIMING=timer|sync overrides the automatic choice.
+"""
 
 from __future__ import annotations
 
+import os
 import time
 from contextlib import contextmanager
 
 import moderngl
 
+TIMING_METHODS = ("timer", "sync")
+_SATURATED_NS = 0xFFFFFFFF  # moderngl's 32-bit read: the result is >= 4.29 s, or not available
+
+
+def choose_timing(ctx: moderngl.Context) -> str:
+    """The phase timing method for this context: RTWALK_PHASE_TIMING, else sync on llvmpipe."""
+    env = os.environ.get("RTWALK_PHASE_TIMING", "").strip().lower()
+    if env in TIMING_METHODS:
+        return env
+    renderer = str(ctx.info.get("GL_RENDERER", "")).lower()
+    return "sync" if ("llvmpipe" in renderer or "softpipe" in renderer) else "timer"
+
 
 class GpuProfiler:
-    """Times phases with GL_TIME_ELAPSED queries; results are read once per frame.
+    """Times named phases; same-name phases of one frame are summed (20 AO passes -> 'trace:ao').
 
-    Phases with the same name in one frame are summed (e.g. 20 AO passes -> one 'trace:ao').
     Phases timed while `label` is set are also summed per label (`by_label`): the renderer sets
     it to the ray type around each backend call, so any backend's phases count as tracing time.
+    `saturated` counts timer results that could not be read (>= 4.29 s or unavailable); those
+    phases are charged their CPU time instead, which includes waiting for the GPU.
     """
 
-    def __init__(self, ctx: moderngl.Context, enabled: bool = True):
+    def __init__(self, ctx: moderngl.Context, enabled: bool = True, method: str | None = None):
         self.ctx = ctx
         self.enabled = enabled
+        self.method = method or choose_timing(ctx)
+        if self.method not in TIMING_METHODS:
+            raise ValueError(f"phase timing must be one of {', '.join(TIMING_METHODS)}, not {self.method!r}")
         self._pool: list[moderngl.Query] = []
-        self._used: list[tuple[str, moderngl.Query, str | None]] = []
+        self._used: list[tuple[str, moderngl.Query | float, str | None, float]] = []
         self._cpu: dict[str, float] = {}
         self.label: str | None = None  # set by the renderer around backend.trace (ray type)
         self.by_label: dict[str, float] = {}
+        self.saturated = 0
 
     def begin_frame(self) -> None:
         self._used.clear()
         self._cpu.clear()
+        self.saturated = 0
 
     @contextmanager
     def phase(self, name: str):
-        t0 = time.perf_counter()
         if not self.enabled:
+            t0 = time.perf_counter()
             yield
+        elif self.method == "sync":
+            self.ctx.finish()  # work issued before the phase is not charged to it
+            t0 = time.perf_counter()
+            yield
+            self.ctx.finish()
+            self._used.append((name, (time.perf_counter() - t0) * 1e3, self.label, 0.0))
         else:
+            t0 = time.perf_counter()
             idx = len(self._used)
             if idx >= len(self._pool):
                 self._pool.append(self.ctx.query(time=True))
             q = self._pool[idx]
-            self._used.append((name, q, self.label))
             with q:
                 yield
+            self._used.append((name, q, self.label, (time.perf_counter() - t0) * 1e3))
         self._cpu[name] = self._cpu.get(name, 0.0) + (time.perf_counter() - t0) * 1e3
 
     def end_frame(self) -> dict[str, float]:
         """GPU milliseconds per phase (waits for the queries)."""
         out: dict[str, float] = {}
         self.by_label = {}
-        for name, q, label in self._used:
-            ns = q.elapsed
-            if ns >= 0xFFFFFFFF:  # result not available (llvmpipe on the first use): unknown, not huge
-                ns = 0
-            out[name] = out.get(name, 0.0) + ns / 1e6
+        for name, q, label, cpu_ms in self._used:
+            if isinstance(q, float):
+                ms = q
+            else:
+                ns = q.elapsed
+                if ns >= _SATURATED_NS:
+                    self.saturated += 1
+                    ms = cpu_ms
+                else:
+                    ms = ns / 1e6
+            out[name] = out.get(name, 0.0) + ms
             if label is not None:
-                self.by_label[label] = self.by_label.get(label, 0.0) + ns / 1e6
+                self.by_label[label] = self.by_label.get(label, 0.0) + ms
         return out
 
     def cpu_ms(self) -> dict[str, float]:
