@@ -3,9 +3,9 @@
 Two ways to time a phase:
 - "timer": GL_TIME_ELAPSED queries, read once per frame (asynchronous; right on real GPUs).
 - "sync": glFinish before and after the phase, wall time in between. Used on Mesa llvmpipe,
-  whose GL_TIME_ELAPSED is wrong: the begin-query command is replayed in every 64x64 bin, so a
-  one-draw phase is charged roughly the last bin each thread shaded (measured: a 512x512
-  full-screen draw read 11 ms against 297 ms of wall time; a 64x64 one read right). Also,
+  whose GL_TIME_ELAPSED is wrong for draws over many 64x64 bins: a one-draw phase reads about
+  one bin per thread (measured, tests/test_profiler.py: a 512x512 full-screen draw read 11 ms
+  against 297 ms of wall time, 256x256 1/7 of it, a 64x64 one right). Also,
   moderngl reads the result as 32 bits, so phases over 4.29 s saturate.
 RTWALK_PHASE_TIMING=timer|sync overrides the automatic choice.
 """
