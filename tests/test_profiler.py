@@ -8,15 +8,11 @@ import numpy as np
 import pytest
 
 from viewer.profiler import GpuProfiler, choose_timing
-
-_VS = "#version 330\nin vec2 p; void main() { gl_Position = vec4(p, 0.0, 1.0); }"
-_FS = """#version 330
-uniform int n; out vec4 c;
-void main() { float a = gl_FragCoord.x; for (int i = 0; i < n; ++i) a = sin(a * 1.0001 + float(i)); c = vec4(a); }"""
+from viewer.timer_check import HEAVY_FS, HEAVY_VS
 
 
 def _heavy_draw(ctx, size: int = 256, n: int = 400):
-    prog = ctx.program(vertex_shader=_VS, fragment_shader=_FS)
+    prog = ctx.program(vertex_shader=HEAVY_VS, fragment_shader=HEAVY_FS)
     prog["n"] = n
     vbo = ctx.buffer(np.array([-1, -1, 3, -1, -1, 3], "f4").tobytes())
     vao = ctx.vertex_array(prog, vbo, "p")

@@ -4,8 +4,8 @@ Two ways to time a phase:
 - "timer": GL_TIME_ELAPSED queries, read once per frame (asynchronous; right on real GPUs).
 - "sync": glFinish before and after the phase, wall time in between. Used on Mesa llvmpipe,
   whose GL_TIME_ELAPSED is wrong for draws over many 64x64 bins: a one-draw phase reads about
-  one bin per thread (measured, tests/test_profiler.py: a 512x512 full-screen draw read 11 ms
-  against 297 ms of wall time, 256x256 1/7 of it, a 64x64 one right). Also,
+  one bin per thread (`python3 -m viewer.timer_check`: a 512x512 full-screen draw read 11 ms
+  against 308 ms of wall time, 256x256 0.14 of it, a 64x64 one right). Also,
   moderngl reads the result as 32 bits, so phases over 4.29 s saturate.
 RTWALK_PHASE_TIMING=timer|sync overrides the automatic choice.
 """
