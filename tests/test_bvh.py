@@ -1,4 +1,4 @@
-"""Tests for viewer.bvh: structure, boxes, GPU layout, SAH quality, traversal, edge cases.
+"""Tests for viewer.accel.bvh: structure, boxes, GPU layout, SAH quality, traversal, edge cases.
 
 Every check is computed independently from the original triangles with plain NumPy (or small
 Python reference builders), never from the builder's own intermediate data.
@@ -13,7 +13,7 @@ import time
 import numpy as np
 import pytest
 
-from viewer.bvh import (
+from viewer.accel.bvh import (
     EMPTY_BOX_MAX,
     EMPTY_BOX_MIN,
     GPU_NODE_DTYPE,
@@ -457,7 +457,7 @@ def test_scenes_structure(scene):
 
 
 def test_depth_limit_falls_back_to_median(monkeypatch):
-    import viewer.bvh as bvh_mod
+    import viewer.accel.bvh as bvh_mod
 
     monkeypatch.setattr(bvh_mod, "DEPTH_LIMIT", 3)
     tris = clustered_tris(3000, seed=2)

@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from tests.conftest import SHARED_SCENES
+from viewer.accel.bvh import build_bvh
 from viewer.backends.chcrt_front import (
     DEAD,
     INNER,
@@ -19,9 +20,9 @@ from viewer.backends.chcrt_front import (
     max_tile_level,
     tile_rects,
 )
-from viewer.bvh import build_bvh
 from viewer.camera import Camera
 from viewer.effects import RayType, parse_effects
+from viewer.rays import PassInfo
 from viewer.renderer import Renderer
 
 SIZE = (128, 72)
@@ -228,7 +229,7 @@ def test_overlays_and_counters(mode, gl_ctx):
     try:
         r.render(path[0])
         rays = r.rays
-        res = r.backend.trace(rays, RayType.PRIMARY, 0, r.hits)
+        res = r.backend.trace(rays, PassInfo(RayType.PRIMARY), r.hits)
         t, tri = r.hits.read()
         od = read_texture(res.overlays["query_overdraw"]).reshape(-1)
         sub = read_texture(res.overlays["subtree_id"]).reshape(-1)
@@ -251,15 +252,16 @@ def test_overlays_and_counters(mode, gl_ctx):
 
 def test_params_from_env():
     from viewer.backends.chcrt import ChcrtParams
+    from viewer.backends.interface import parse_params
     from viewer.errors import RtwalkError
 
-    p = ChcrtParams.from_env("visible_threshold=20, t_q=0.25,overdraw_overlay=off")
+    p = parse_params(ChcrtParams, "visible_threshold=20, t_q=0.25,overdraw_overlay=off", "RTWALK_CHCRT")
     assert p.visible_threshold == 20 and p.t_q == 0.25 and not p.overdraw_overlay
-    assert ChcrtParams.from_env("") == ChcrtParams()
+    assert parse_params(ChcrtParams, "", "RTWALK_CHCRT") == ChcrtParams()
     with pytest.raises(RtwalkError):
-        ChcrtParams.from_env("tq=1")
+        parse_params(ChcrtParams, "tq=1", "RTWALK_CHCRT")
     with pytest.raises(RtwalkError):
-        ChcrtParams.from_env("t_q=fast")
+        parse_params(ChcrtParams, "t_q=fast", "RTWALK_CHCRT")
 
 
 def test_trace_rays_entry_point_matches_glsl():

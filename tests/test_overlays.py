@@ -53,9 +53,9 @@ def _record_backend_overlays(r: Renderer) -> dict:
     seen: dict = {}
     orig = r.backend.trace
 
-    def trace(rays, ray_type, sample, hits):
-        res = orig(rays, ray_type, sample, hits)
-        key = (RayType(ray_type), int(sample))
+    def trace(rays, pinfo, hits):
+        res = orig(rays, pinfo, hits)
+        key = (pinfo.ray_type, int(pinfo.sample))
         if key not in seen:  # first occurrence: the pass the renderer copies
             seen[key] = {k: read_texture(t).reshape(-1).copy() for k, t in res.overlays.items()}
         return res

@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
+from viewer.backends.interface import params_text
 from viewer.effects import EffectSettings
 from viewer.errors import RtwalkError
 from viewer.recording import Recording
@@ -118,7 +119,7 @@ def save_overlay_views(renderer: Renderer, camera, folder: Path, frame: int) -> 
 
     from viewer.passes.overlay import OVERLAY_VIEWS
 
-    if not hasattr(renderer.backend, "overlays_enabled"):
+    if not renderer.backend.info.overlays:
         return []
     saved, view = [], renderer.view
     try:
@@ -186,7 +187,7 @@ def run_bench(prepared: PreparedScene, rec: Recording, settings: EffectSettings,
         "scene": prepared.scene.identity, "scene_name": prepared.scene.name,
         "triangles": prepared.scene.triangle_count, "bvh": prepared.bvh.stats.to_dict(),
         "backend": opts.backend, "backend_options": opts.backend_options or {},
-        "backend_params": getattr(renderer.backend, "params_text", None),
+        "backend_params": params_text(renderer.backend.params),
         "effects": settings.to_dict(), "size": list(opts.size),
         "recording": str(rec.source) if getattr(rec, "source", None) else None, "fps": fps,
         "device": {"renderer": ctx.info.get("GL_RENDERER"), "version": ctx.info.get("GL_VERSION"),

@@ -39,6 +39,7 @@ from pathlib import Path
 
 import numpy as np
 
+from viewer.backends.interface import params_text
 from viewer.errors import RtwalkError
 
 STUDIES = ("table2", "table4", "phases", "overhead", "tuning")
@@ -118,8 +119,9 @@ def _join(*texts: str | None) -> str:
 def effective_params(*texts: str | None) -> str:
     """The chcrt parameters a run gets: RTWALK_CHCRT, then the texts in order (later wins)."""
     from viewer.backends.chcrt import ChcrtParams
+    from viewer.backends.interface import params_text, parse_params
 
-    return ChcrtParams.parse(_join(os.environ.get("RTWALK_CHCRT", ""), *texts), "--chcrt").to_text()
+    return params_text(parse_params(ChcrtParams, _join(os.environ.get("RTWALK_CHCRT", ""), *texts), "--chcrt"))
 
 
 def options_from_args(args: argparse.Namespace) -> StudyOptions:
@@ -463,9 +465,7 @@ class Bench:
                 renderers.append(r)
                 r.render(rec.camera_for_frame(frames[0]))
                 r.settings = effect_settings(spec.effect)
-                reset = getattr(r.backend, "reset", None)
-                if callable(reset):
-                    reset()
+                r.backend.reset()
             for k, n in enumerate(frames):
                 cam = rec.camera_for_frame(n)
                 for i, (spec, r) in enumerate(zip(specs, renderers, strict=True)):
@@ -481,7 +481,7 @@ class Bench:
                         spec.sink(k, n, r.read_image())
                     if self.bar is not None:
                         self.bar.update(1)
-            params = [getattr(r.backend, "params_text", None) if s.backend == "chcrt" else None
+            params = [params_text(r.backend.params) or None
                       for s, r in zip(specs, renderers, strict=True)]
         finally:
             for r in renderers:
@@ -503,13 +503,14 @@ class Bench:
 
     def header(self, study: str, o: StudyOptions, extra: dict) -> dict:
         from viewer.backends.chcrt import ChcrtParams
+        from viewer.backends.interface import params_text
 
         return {"format": FORMAT, "version": 1, "study": study, "device": self.device,
                 "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"), "options": asdict(o),
                 "parameters": {"sizes": [list(s) for s in o.sizes], "frames": o.frames,
                                "first_frame": o.first_frame, "chcrt": o.chcrt,
                                "RTWALK_CHCRT": os.environ.get("RTWALK_CHCRT", ""),
-                               "chcrt_defaults": ChcrtParams().to_text(), "quick": o.quick, **extra},
+                               "chcrt_defaults": params_text(ChcrtParams()), "quick": o.quick, **extra},
                 "load_average": {"command_start": self.load_at_start, "study_end": _load_average(),
                                  "cpus": os.cpu_count()},  # other jobs on the machine skew timings
                 "protocol": "warm-up frame (one sample per effect), backend reset; then consecutive frames: "

@@ -69,9 +69,9 @@ def backend_options_from(args) -> dict[str, str]:
     text = getattr(args, "chcrt", None)
     if not text:
         return {}
-    from viewer.backends.chcrt import ChcrtParams
+    from viewer.backends import check_params
 
-    ChcrtParams.parse(text, "--chcrt")
+    check_params("chcrt", text, "--chcrt")
     return {"chcrt": text}
 
 
@@ -165,7 +165,7 @@ def cmd_bench(args) -> int:
 def cmd_bench_bvh(args) -> int:
     import json
 
-    from viewer.bvh import bench_build
+    from viewer.accel.bvh import bench_build
     from viewer.procedural import make_city
 
     rows = []

@@ -13,7 +13,7 @@ from pathlib import Path
 import moderngl
 import numpy as np
 
-from viewer.bvh import BVH, gpu_triangles
+from viewer.accel.bvh import BVH, gpu_triangles
 from viewer.errors import RtwalkError
 from viewer.scene import Scene
 

@@ -15,9 +15,9 @@ from dataclasses import dataclass, field
 import moderngl
 import numpy as np
 
+from viewer.accel.bvh import BVH
 from viewer.backends import create_backend
-from viewer.backends.base import BackendContext, HitBuffer, RayArrays, RayBatch
-from viewer.bvh import BVH
+from viewer.backends.base import BackendContext
 from viewer.camera import Camera
 from viewer.effects import EffectSettings, RayType
 from viewer.errors import RtwalkError
@@ -29,6 +29,7 @@ from viewer.passes.raygen import RayGenPass
 from viewer.passes.shade import ShadePass
 from viewer.passes.uniforms import apply, camera_uniforms, light_uniforms
 from viewer.profiler import GpuProfiler
+from viewer.rays import HitBuffer, PassInfo, RayArrays, RayBatch
 from viewer.scene import Scene
 
 
@@ -185,10 +186,7 @@ class Renderer:
 
     def overlay_tile_level(self) -> int:
         """Quadtree level of the backend's finest tiles (outlines), -1 for a backend without tiles."""
-        from viewer.backends.chcrt_front import max_tile_level
-
-        frac = getattr(getattr(self.backend, "p", None), "min_tile_fraction", None)
-        return max_tile_level(self.size, float(frac)) if frac else -1
+        return int(self.backend.tile_level(self.size))
 
     def _overlay_unavailable(self, msg: str) -> None:
         self.overlay_missing = msg
@@ -272,8 +270,7 @@ class Renderer:
             self.gbuffer.render(camera)
         self.accumulate.clear()
         self.raygen.reset_count()
-        if hasattr(self.backend, "overlays_enabled"):  # diagnostics cost time: only when shown or saved
-            self.backend.overlays_enabled = self.overlays_wanted
+        self.backend.overlays_enabled = self.overlays_wanted  # diagnostics cost time: only when shown or saved
         self.backend.begin_frame(self.frame_index)
         lengths = {RayType.AO: s.ao_length * self.diagonal, RayType.DIFFUSE: self.diagonal}
         captured: list[CapturedPass] = []
@@ -283,7 +280,7 @@ class Renderer:
                 self.raygen.generate(self.rays, self.gbuffer, ray_type, sample, light,
                                      lengths.get(ray_type, 0.0), np.radians(s.perturb_deg))
             prof.label = ray_type.label
-            result = self.backend.trace(self.rays, ray_type, sample, self.hits)
+            result = self.backend.trace(self.rays, PassInfo(ray_type, sample, light, weight), self.hits)
             prof.label = None
             self.backend_overlays = tuple(result.overlays)
             if source is not None and not overlay_done and (ray_type, sample) == source:

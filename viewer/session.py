@@ -7,7 +7,7 @@ from dataclasses import dataclass
 
 from tqdm import tqdm
 
-from viewer.bvh import BVH, build_bvh
+from viewer.accel.bvh import BVH, build_bvh
 from viewer.scene import Scene
 
 

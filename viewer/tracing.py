@@ -12,12 +12,13 @@ import hashlib
 import moderngl
 import numpy as np
 
+from viewer.accel.bvh import BVH, build_bvh
 from viewer.backends import create_backend
-from viewer.backends.base import BackendContext, HitBuffer, RayBatch
-from viewer.bvh import BVH, build_bvh
+from viewer.backends.base import BackendContext
 from viewer.effects import RayType
 from viewer.gpu import GpuScene, ProgramCache, create_headless_context
 from viewer.profiler import GpuProfiler
+from viewer.rays import HitBuffer, PassInfo, RayBatch
 from viewer.scene import Material, Scene
 
 _CTX: moderngl.Context | None = None
@@ -84,7 +85,7 @@ def trace_rays(triangles: np.ndarray, origins, directions, tmin, tmax, any_hit: 
         bc = BackendContext(ctx, programs, GpuProfiler(ctx, enabled=False), gpu_scene, scene, bvh)
         be = create_backend(backend, bc)
         be.begin_frame(0)
-        be.trace(rays, RayType.SHADOW if any_hit else RayType.PRIMARY, 0, hits)
+        be.trace(rays, PassInfo(RayType.SHADOW if any_hit else RayType.PRIMARY), hits)
         be.release()
         t, slot = hits.read()
     finally:

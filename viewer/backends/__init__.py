@@ -1,42 +1,48 @@
-"""Tracing backends, by name. Each module registers a factory taking a BackendContext."""
+"""The backend registry: one line per backend, "name": "module:Class".
+
+Classes are imported on first use, so a backend whose device or package is missing costs nothing
+until it is asked for. Everything generic code needs (parameters, overlays, counters, phases) is
+read from the class's `info` (viewer.backends.interface.BackendInfo).
+"""
 
 from __future__ import annotations
 
-import os
-from collections.abc import Callable
+import importlib
 
-from viewer.backends.base import Backend, BackendContext
+from viewer.backends.base import BackendContext
+from viewer.backends.interface import Backend, BackendInfo, params_text, resolve_params
 from viewer.errors import RtwalkError
 
-
-def _glsl(bc: BackendContext, options: str | None = None) -> Backend:
-    from viewer.backends.glsl import GlslBackend
-
-    return GlslBackend(bc)
-
-
-def _embree(bc: BackendContext, options: str | None = None) -> Backend:
-    from viewer.backends.embree import EmbreeBackend
-
-    return EmbreeBackend(bc)
+BACKENDS: dict[str, str] = {
+    "glsl": "viewer.backends.glsl:GlslBackend",
+    "chcrt": "viewer.backends.chcrt:ChcrtBackend",
+    "embree": "viewer.backends.embree:EmbreeBackend",
+}
 
 
-def _chcrt(bc: BackendContext, options: str | None = None) -> Backend:
-    """Parameters: RTWALK_CHCRT first, then `options` (the --chcrt text) on top."""
-    from viewer.backends.chcrt import ChcrtBackend, ChcrtParams
-
-    env = os.environ.get("RTWALK_CHCRT", "")
-    text = ",".join(t for t in (env, options or "") if t.strip())
-    return ChcrtBackend(bc, ChcrtParams.parse(text, "--chcrt" if options else "RTWALK_CHCRT"))
+def backend_names() -> list[str]:
+    return list(BACKENDS)
 
 
-BackendFactory = Callable[[BackendContext, str | None], Backend]
-BACKENDS: dict[str, BackendFactory] = {"glsl": _glsl, "embree": _embree, "chcrt": _chcrt}
-
-
-def create_backend(name: str, bc: BackendContext, options: str | None = None) -> Backend:
-    """`options`: the backend's "key=value,..." parameter text (e.g. --chcrt), or None."""
-    factory = BACKENDS.get(name)
-    if factory is None:
+def backend_class(name: str) -> type:
+    target = BACKENDS.get(name)
+    if target is None:
         raise RtwalkError(f"unknown backend '{name}' (choose from {', '.join(BACKENDS)})")
-    return factory(bc, options)
+    module, _, cls = target.partition(":")
+    return getattr(importlib.import_module(module), cls)
+
+
+def backend_info(name: str) -> BackendInfo:
+    return backend_class(name).info
+
+
+def check_params(name: str, text: str | None, source: str = "--backend-params") -> str:
+    """Parse and validate a backend's parameter text before any work; returns the full
+    "key=value,..." text (defaults, RTWALK_<NAME>, then `text`)."""
+    return params_text(resolve_params(backend_info(name), text, source))
+
+
+def create_backend(name: str, bc: BackendContext, params: str | None = None) -> Backend:
+    """`params`: the backend's "key=value,..." text (--backend-params), or None for defaults."""
+    cls = backend_class(name)
+    return cls(bc, resolve_params(cls.info, params))

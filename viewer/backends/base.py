@@ -1,4 +1,4 @@
-"""The interface every tracing backend implements.
+"""GL-side pieces of the backend contract (see interface.py for what a backend declares).
 
 A backend receives a `RayBatch` (two RGBA32F textures, one ray per pixel: origin+tmin and
 direction+tmax, tmax < 0 marks "no ray") and fills a `HitBuffer` (R32F distance, +inf on a miss;
@@ -10,71 +10,12 @@ from __future__ import annotations
 
 import os
 from dataclasses import dataclass, field
-from typing import Protocol
 
 import moderngl
 import numpy as np
 
-from viewer.effects import RayType
-from viewer.gpu import ProgramCache, float_texture, int_texture, read_texture
+from viewer.gpu import ProgramCache
 from viewer.profiler import GpuProfiler
-
-
-@dataclass
-class RayArrays:
-    """Rays read back to the CPU, row-major over pixels (row 0 = bottom). float32."""
-
-    origins: np.ndarray  # (R, 3)
-    directions: np.ndarray  # (R, 3), unit length
-    tmin: np.ndarray  # (R,)
-    tmax: np.ndarray  # (R,), < 0 for pixels without a ray
-
-    @property
-    def active(self) -> np.ndarray:
-        return self.tmax > self.tmin
-
-
-class RayBatch:
-    """Ray textures for one pass; owned by the renderer, reused every pass."""
-
-    def __init__(self, ctx: moderngl.Context, size: tuple[int, int]):
-        self.size = size
-        self.origin = float_texture(ctx, size, 4)
-        self.direction = float_texture(ctx, size, 4)
-        self.fbo = ctx.framebuffer(color_attachments=[self.origin, self.direction])
-
-    def read(self) -> RayArrays:
-        o = read_texture(self.origin).reshape(-1, 4)
-        d = read_texture(self.direction).reshape(-1, 4)
-        return RayArrays(np.ascontiguousarray(o[:, :3]), np.ascontiguousarray(d[:, :3]),
-                         np.ascontiguousarray(o[:, 3]), np.ascontiguousarray(d[:, 3]))
-
-    def release(self) -> None:
-        self.fbo.release()
-        self.origin.release()
-        self.direction.release()
-
-
-class HitBuffer:
-    """Nearest-hit distance and triangle id per pixel."""
-
-    def __init__(self, ctx: moderngl.Context, size: tuple[int, int]):
-        self.size = size
-        self.t = float_texture(ctx, size, 1)
-        self.id = int_texture(ctx, size)
-        self.fbo = ctx.framebuffer(color_attachments=[self.t, self.id])
-
-    def write(self, t: np.ndarray, tri: np.ndarray) -> None:
-        self.t.write(np.ascontiguousarray(t, np.float32).tobytes())
-        self.id.write(np.ascontiguousarray(tri, np.int32).tobytes())
-
-    def read(self) -> tuple[np.ndarray, np.ndarray]:
-        return read_texture(self.t).reshape(-1).copy(), read_texture(self.id).reshape(-1).copy()
-
-    def release(self) -> None:
-        self.fbo.release()
-        self.t.release()
-        self.id.release()
 
 
 @dataclass
@@ -94,7 +35,7 @@ class BackendContext:
     profiler: GpuProfiler
     gpu_scene: object  # viewer.gpu.GpuScene
     scene: object  # viewer.scene.Scene (leaf order)
-    bvh: object  # viewer.bvh.BVH
+    bvh: object  # viewer.accel.bvh.BVH
 
 
 WORK_SLOTS = ("invocations", "nodes", "box_tests", "tri_tests",
@@ -131,18 +72,3 @@ class WorkCounters:
     def release(self) -> None:
         if self.buf is not None:
             self.buf.release()
-
-
-class Backend(Protocol):
-    name: str
-    description: str
-
-    def trace(self, rays: RayBatch, ray_type: RayType, sample: int, hits: HitBuffer) -> TraceResult:
-        """Trace every active ray of `rays` into `hits`. Phases are timed with the profiler."""
-        ...
-
-    def begin_frame(self, frame_index: int) -> None:
-        """Called before the first pass of a frame (temporal state lives in the backend)."""
-        ...
-
-    def release(self) -> None: ...

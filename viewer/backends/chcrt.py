@@ -32,8 +32,7 @@ Overlays (TraceResult.overlays, R32I at the ray-batch size, overwritten by the n
 node of the scheduled subtree that produced the pixel's hit, -1 for none). Counters: see
 ``_Pass.stats`` (the spec's eight plus per-tile batch counts, waves, re-queries, pull-ups).
 
-Temporal state: one pair hierarchy per (ray type, sample, light); the light is the occurrence
-number of (ray type, sample) within the frame (the renderer's pass order).
+Temporal state: one pair hierarchy per pass key (ray type, sample, light: PassInfo.key).
 
 Query modes. ``query_mode=hw`` (the paper's): every query is one scissored draw inside one hardware
 occlusion query, every intersection batch one scissored draw. ``query_mode=batched`` (default): a
@@ -42,24 +41,25 @@ places each instance on its tile); query fragments make the depth test's compari
 against bestBits and count into their query's slot with an atomic add, read back once per wave.
 Same query results (bestBits can only be stale towards passing), far fewer draws and waits.
 
-Parameters come from ChcrtParams: `--chcrt "visible_threshold=20,t_q=0.4"` on the command line,
-or the RTWALK_CHCRT environment variable (both for backends created by the factory).
+Parameters come from ChcrtParams: `--backend-params "visible_threshold=20,t_q=0.4"` (alias
+`--chcrt`) on the command line, or the RTWALK_CHCRT environment variable (the registry merges them).
 """
 
 from __future__ import annotations
 
 import math
-import os
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 
 import moderngl
 import numpy as np
 
-from viewer.backends.base import BackendContext, HitBuffer, RayBatch, TraceResult, WorkCounters
+from viewer.backends.base import BackendContext, TraceResult, WorkCounters
 from viewer.backends.chcrt_front import INNER, INVISIBLE, VISIBLE, NodeTables, PairFront, max_tile_level
+from viewer.backends.interface import BackendInfo, OverlaySpec
 from viewer.effects import RayType
 from viewer.errors import RtwalkError
 from viewer.gpu import FullscreenQuad, float_texture, int_texture
+from viewer.rays import HitBuffer, PassInfo, RayBatch
 
 ITEM_DTYPE = np.dtype([("bmin", "<f4", 3), ("ref", "<i4"), ("bmax", "<f4", 3), ("count", "<i4"),
                        ("id", "<i4"), ("pad", "<i4", 3)])
@@ -94,28 +94,6 @@ class ChcrtParams:
     query_mode: str = "batched"
     seed: int = 1
 
-    @staticmethod
-    def parse(text: str | None, source: str = "--chcrt") -> ChcrtParams:
-        """Parameters from "key=value,key=value" (the --chcrt option or RTWALK_CHCRT)."""
-        p = ChcrtParams()
-        types = {f.name: f.type for f in fields(ChcrtParams)}
-        kind = {"float": float, "int": int, "str": str, "bool": _parse_bool}
-        for item in filter(None, (s.strip() for s in (text or "").split(","))):
-            key, sep, val = item.partition("=")
-            key = key.strip()
-            if key not in types or not sep:
-                raise RtwalkError(f"{source}: expected key=value with key one of {', '.join(types)} (got '{item}')")
-            try:
-                setattr(p, key, kind[str(types[key])](val.strip()))
-            except ValueError as exc:
-                raise RtwalkError(f"{source}: bad value for {key}: '{val}'") from exc
-        p.validate(source)
-        return p
-
-    @staticmethod
-    def from_env(text: str | None = None) -> ChcrtParams:
-        return ChcrtParams.parse(os.environ.get("RTWALK_CHCRT", "") if text is None else text, "RTWALK_CHCRT")
-
     def validate(self, source: str = "chcrt") -> None:
         if not (1 <= self.max_batch <= 24 and 1 <= self.max_multi <= 24):
             raise RtwalkError(f"{source}: max_batch and max_multi must be in 1..24")
@@ -125,18 +103,6 @@ class ChcrtParams:
                 and self.max_subtree_tris >= 1 and self.requery_interval >= 1 and self.schedule_batch >= 1
                 and self.visible_threshold >= 0):
             raise RtwalkError(f"{source}: t_q and min_tile_fraction must be > 0, thresholds >= 0, counts >= 1")
-
-    def to_text(self) -> str:
-        return ",".join(f"{f.name}={getattr(self, f.name)}" for f in fields(self))
-
-
-def _parse_bool(v: str) -> bool:
-    v = v.strip().lower()
-    if v in ("1", "true", "yes", "on"):
-        return True
-    if v in ("0", "false", "no", "off"):
-        return False
-    raise ValueError(v)
 
 
 _GL_TEXTURE_2D = 0x0DE1
@@ -265,15 +231,26 @@ class _StreamBuffer:
         self.buf.bind_to_storage_buffer(self.binding)
 
 
+PHASES = ("chc:1-intersect-visible", "chc:2-queries", "chc:3-traversal", "chc:4-final-intersect")
+COUNTERS = ("queries", "multi_queries", "failed_multi_queries", "visible_pairs", "invisible_pairs",
+            "subtrees_scheduled", "draws", "rays")
+
+
 class ChcrtBackend:
-    name = "chcrt"
-    description = "CHC+RT: occlusion-query culling of (screen tile, BVH node) pairs, temporal fronts"
+    info = BackendInfo(
+        "chcrt", "CHC+RT: occlusion-query culling of (screen tile, BVH node) pairs, temporal fronts",
+        params=ChcrtParams,
+        overlays=(OverlaySpec("query_overdraw", "heat", "query_overdraw", "query fragments per pixel"),
+                  OverlaySpec("subtree_batches", "ids", "subtree_id", "hit subtree; subtrees in the tile's batches",
+                              counts="batch_subtrees")),
+        counters=COUNTERS, phases=PHASES)
 
     def __init__(self, bc: BackendContext, params: ChcrtParams | None = None):
         self.bc = bc
         self.ctx = bc.ctx
         self.p = params or ChcrtParams()
         self.p.validate()
+        self.params = self.p
         self.nt = NodeTables.from_bvh(bc.bvh)
         self.bvh_first = np.asarray(bc.bvh.node_first, np.int32)
         diag = max(float(getattr(bc.scene, "diagonal", 1.0)), 1e-30)
@@ -312,20 +289,14 @@ class ChcrtBackend:
         self.fronts: dict[tuple, PairFront] = {}
         self.rng = np.random.default_rng(self.p.seed)
         self.frame = 0
-        self._occurrence: dict[tuple[int, int], int] = {}
         self.last_stats: dict[str, float] = {}
         # fill the overlay textures (query overdraw, subtree id, batch sizes): set per frame by the
         # renderer (on only while an overlay view is shown or saved: the counting costs time)
         self.overlays_enabled = True
 
-    @property
-    def params_text(self) -> str:
-        return self.p.to_text()
-
     # -- Backend protocol ----------------------------------------------------------------------
     def begin_frame(self, frame_index: int) -> None:
         self.frame = int(frame_index)
-        self._occurrence.clear()
 
     def release(self) -> None:
         if self.targets is not None:
@@ -344,10 +315,11 @@ class ChcrtBackend:
         """Forget the temporal state (every front restarts from (screen, root))."""
         self.fronts.clear()
 
-    def trace(self, rays: RayBatch, ray_type: RayType, sample: int, hits: HitBuffer) -> TraceResult:
-        occ_key = (int(ray_type), int(sample))
-        light = self._occurrence.get(occ_key, 0)
-        self._occurrence[occ_key] = light + 1
+    def tile_level(self, size: tuple[int, int]) -> int:
+        return max_tile_level(size, self.p.min_tile_fraction)
+
+    def trace(self, rays: RayBatch, pinfo: PassInfo, hits: HitBuffer) -> TraceResult:
+        ray_type = pinfo.ray_type
         size = tuple(rays.size)
         max_level = max_tile_level(size, self.p.min_tile_fraction)
         if self.targets is None or self.targets.size != size or self.targets.gather_size[0] != 1 << max_level:
@@ -355,7 +327,7 @@ class ChcrtBackend:
                 self.targets.release()
             self.targets = _Targets(self.ctx, size, max_level)
             self.fronts.clear()
-        key = (int(ray_type), int(sample), light)
+        key = pinfo.key
         front = self.fronts.get(key)
         if front is None:
             front = PairFront(size, max_level, self.rng, self.p.requery_interval)

@@ -2,7 +2,7 @@
 
 A query pair is (screen tile, BVH node). The ray hierarchy is a quadtree over the ray batch:
 the tile (level L, x, y) covers pixels [x*W >> L, (x+1)*W >> L) x [y*H >> L, (y+1)*H >> L).
-The object hierarchy is the canonical BVH (viewer.bvh.BVH node indices).
+The object hierarchy is the canonical BVH (viewer.accel.bvh.BVH node indices).
 
 The pair hierarchy is kept between frames (one per ray type / sample / light) as flat arrays.
 Its leaves form the *front*: every leaf is either

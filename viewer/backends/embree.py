@@ -5,30 +5,39 @@ Used as the independent reference for tests and for the error column of `rtwalk 
 
 from __future__ import annotations
 
-from viewer.backends.base import BackendContext, HitBuffer, RayBatch, TraceResult
-from viewer.effects import RayType
+from viewer.backends.base import BackendContext, TraceResult
+from viewer.backends.interface import BackendInfo
 from viewer.errors import RtwalkError
+from viewer.rays import HitBuffer, PassInfo, RayBatch
 
 
 class EmbreeBackend:
-    name = "embree"
-    description = "CPU reference: Embree (embreex) on the same rays, hits uploaded back"
+    info = BackendInfo("embree", "CPU reference: Embree (embreex) on the same rays, hits uploaded back",
+                       counters=("cpu_rays",), device="cpu")
 
-    def __init__(self, bc: BackendContext):
+    def __init__(self, bc: BackendContext, params: None = None):
         from viewer.reference import EmbreeTracer
 
         if not EmbreeTracer.available():
             raise RtwalkError("backend 'embree' needs the embreex package (pip install embreex)")
         self.bc = bc
+        self.params = params
+        self.overlays_enabled = False
         self.tracer = EmbreeTracer(bc.scene.triangles)
 
     def begin_frame(self, frame_index: int) -> None:
         pass
 
-    def trace(self, rays: RayBatch, ray_type: RayType, sample: int, hits: HitBuffer) -> TraceResult:
-        with self.bc.profiler.phase(f"trace:{ray_type.label}"):
+    def reset(self) -> None:
+        pass
+
+    def tile_level(self, size: tuple[int, int]) -> int:
+        return -1
+
+    def trace(self, rays: RayBatch, pinfo: PassInfo, hits: HitBuffer) -> TraceResult:
+        with self.bc.profiler.phase(f"trace:{pinfo.ray_type.label}"):
             r = rays.read()
-            t, tri = self.tracer.trace(r.origins, r.directions, r.tmin, r.tmax, any_hit=ray_type.any_hit)
+            t, tri = self.tracer.trace(r.origins, r.directions, r.tmin, r.tmax, any_hit=pinfo.any_hit)
             hits.write(t, tri)
         return TraceResult(stats={"cpu_rays": int(r.active.sum())})
 

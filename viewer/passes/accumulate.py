@@ -4,11 +4,11 @@ from __future__ import annotations
 
 import moderngl
 
-from viewer.backends.base import HitBuffer, RayBatch
 from viewer.effects import RayType
 from viewer.gpu import FullscreenQuad, ProgramCache, float_texture
 from viewer.passes.gbuffer import GBufferPass
 from viewer.passes.targets import SizedTargets
+from viewer.rays import HitBuffer, RayBatch
 
 ACCUMULATED = (RayType.SHADOW, RayType.SOFT, RayType.AO, RayType.DIFFUSE, RayType.REFLECT)
 

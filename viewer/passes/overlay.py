@@ -23,9 +23,9 @@ from functools import lru_cache
 import moderngl
 import numpy as np
 
-from viewer.backends.base import HitBuffer, RayBatch
 from viewer.gpu import FullscreenQuad, ProgramCache, read_texture
 from viewer.passes.targets import SizedTargets
+from viewer.rays import HitBuffer, RayBatch
 
 # view name -> overlays (TraceResult.overlays keys) it needs from the backend
 OVERLAY_VIEWS: dict[str, tuple[str, ...]] = {"query_overdraw": ("query_overdraw",),

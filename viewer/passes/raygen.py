@@ -5,10 +5,10 @@ from __future__ import annotations
 import moderngl
 import numpy as np
 
-from viewer.backends.base import RayBatch
 from viewer.effects import RayType
 from viewer.gpu import BIND_COUNTERS, FullscreenQuad, ProgramCache
 from viewer.passes.gbuffer import GBufferPass
+from viewer.rays import RayBatch
 
 
 def radical_inverse(base: int, index: int) -> float:
