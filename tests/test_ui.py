@@ -25,7 +25,7 @@ from viewer.ui.camera_controller import (
     FlyCamera,
     yaw_pitch_of,
 )
-from viewer.ui.panel import FrameHistory, camera_argument, chart_phases
+from viewer.ui.panel import FrameHistory, camera_argument, chart_phases, counter_rows, phase_label
 
 XVFB = shutil.which("xvfb-run")
 needs_xvfb = pytest.mark.skipif(XVFB is None, reason="xvfb-run is not installed (apt-get install xvfb xauth)")
@@ -162,15 +162,17 @@ def test_frame_history_keeps_the_last_frames():
 
 
 def test_phase_chart_data():
+    declared = ("chc:1-intersect-visible", "chc:2-queries", "chc:3-traversal", "chc:4-final-intersect")
     gpu = {"gbuffer": 5.0, "chc:2-queries": 2.0, "chc:1-intersect-visible": 1.0, "shade": 1.0,
-           "chc:4-final-intersect": 4.0, "chc:3-traversal": 3.0}
-    assert list(chart_phases(gpu)) == ["chc:1-intersect-visible", "chc:2-queries", "chc:3-traversal",
-                                       "chc:4-final-intersect"]
-    assert chart_phases({"gbuffer": 1.0, "trace:shadows": 2.0, "trace:ao": 3.0}) == {"trace:shadows": 2.0,
-                                                                                     "trace:ao": 3.0}
+           "chc:4-final-intersect": 4.0, "chc:3-traversal": 3.0, "trace:ao": 9.0}
+    assert list(chart_phases(gpu, declared)) == list(declared)  # the backend's phases, in its order
+    assert list(chart_phases(gpu, declared[::-1])) == list(declared[::-1])
+    assert chart_phases(gpu) == {"trace:ao": 9.0}  # nothing declared: the per-ray-type trace phases
+    assert chart_phases({"gbuffer": 1.0, "trace:shadows": 2.0, "trace:ao": 3.0}, declared) == {"trace:shadows": 2.0,
+                                                                                               "trace:ao": 3.0}
     h = FrameHistory(n=5)
     assert h.phase_table()[0] == [] and h.phase_table()[1].shape == (0, 0)
-    h.add(10, 10, chart_phases(gpu), {"queries": 4})
+    h.add(10, 10, chart_phases(gpu, declared), {"queries": 4})
     h.add(10, 10, {"trace:ao": 7.0}, {"queries": 6})  # backend switched: other phases are 0 there
     names, table = h.phase_table()
     assert names[-1] == "trace:ao" and table.shape == (5, 2)
@@ -180,6 +182,16 @@ def test_phase_chart_data():
     for _ in range(10):
         h.add(1, 1)
     assert len(h.phases) == 5 and h.phase_table(last=3)[1].shape == (0, 3)
+
+
+def test_phase_labels_and_counter_rows():
+    assert phase_label("chc:2-queries") == "queries"
+    assert phase_label("chc:1-intersect-visible") == "intersect visible"
+    assert phase_label("trace:ao") == "ao" and phase_label("gbuffer") == "gbuffer"
+    assert phase_label("x:10_final_step") == "final step" and phase_label("x:3") == "3"
+    rows, others = counter_rows({"b": 1, "z": 2, "a": 3}, ("a", "b", "c"))
+    assert rows == ["a", "b"] and others == ["z"]
+    assert counter_rows({"b": 1}, ()) == ([], ["b"])
 
 
 def test_initial_view(monkeypatch):

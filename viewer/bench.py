@@ -112,18 +112,16 @@ def reference_errors(renderer: Renderer, camera, tracer) -> dict:
 
 
 def save_overlay_views(renderer: Renderer, camera, folder: Path, frame: int) -> list[str]:
-    """The backend's overlay views of this frame as PNGs (chcrt: query overdraw heat map, subtree
-    batches), rendered again after the timed frame so diagnostics never cost timed work. Returns
-    the file names (none for a backend without overlays)."""
+    """The backend's overlay views (its info.overlays) of this frame as PNGs, rendered again after
+    the timed frame so diagnostics never cost timed work. Returns the file names (none for a
+    backend without overlays)."""
     from PIL import Image
 
-    from viewer.passes.overlay import OVERLAY_VIEWS
+    from viewer.passes.overlay import overlay_view_names
 
-    if not renderer.backend.info.overlays:
-        return []
     saved, view = [], renderer.view
     try:
-        for name in OVERLAY_VIEWS:
+        for name in overlay_view_names(renderer.backend.info):
             renderer.view = name
             renderer.render(camera)
             path = folder / f"{name}_{frame:05d}.png"

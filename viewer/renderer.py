@@ -1,10 +1,12 @@
 """One frame: G-buffer -> for each effect and sample pass: ray generation -> backend trace ->
 accumulate -> shade. Backend-agnostic; knows nothing about windows or files.
 
-Backend overlays (TraceResult.overlays, e.g. CHC+RT's query overdraw) are overwritten by every
-trace() call, so one pass is chosen (`overlay_pass`, default the frame's first) and its overlays
-are copied on the GPU right after it is traced (passes/overlay.py); the overlay views draw from
-that copy. Nothing is copied unless an overlay view is shown or `capture_overlays` is set.
+Backend overlays (TraceResult.overlays, declared as OverlaySpecs in the backend's `info`) are
+overwritten by every trace() call, so one pass is chosen (`overlay_pass`, default the frame's
+first) and its overlays are copied on the GPU right after it is traced (passes/overlay.py); the
+overlay views draw from that copy. Nothing is copied unless an overlay view is shown or
+`capture_overlays` is set. Which views exist, and how they are drawn, comes from the backend's
+`info` only: the renderer never names a backend.
 """
 
 from __future__ import annotations
@@ -16,17 +18,29 @@ import moderngl
 import numpy as np
 
 from viewer.accel.bvh import BVH
-from viewer.backends import create_backend
+from viewer.backends import backend_names, create_backend
 from viewer.backends.base import BackendContext
+from viewer.backends.interface import OverlaySpec
 from viewer.camera import Camera
 from viewer.effects import EffectSettings, RayType
 from viewer.errors import RtwalkError
 from viewer.gpu import FullscreenQuad, GpuScene, ProgramCache
 from viewer.passes.accumulate import AccumulatePass
 from viewer.passes.gbuffer import GBufferPass
-from viewer.passes.overlay import OVERLAY_VIEWS, OverlayPass
+from viewer.passes.overlay import (
+    CAPTURE_COUNTS,
+    CAPTURE_FLAGS,
+    CAPTURE_VALUE,
+    FLAG_HIT,
+    FLAG_RAY,
+    OverlayPass,
+    nice_ceil,
+    overlay_spec,
+    tile_counts,
+    view_unavailable,
+)
 from viewer.passes.raygen import RayGenPass
-from viewer.passes.shade import ShadePass
+from viewer.passes.shade import SHADE_MODES, ShadePass
 from viewer.passes.uniforms import apply, camera_uniforms, light_uniforms
 from viewer.profiler import GpuProfiler
 from viewer.rays import HitBuffer, PassInfo, RayArrays, RayBatch
@@ -63,10 +77,11 @@ class FrameReport:
 
 class Renderer:
     def __init__(self, ctx: moderngl.Context, scene: Scene, bvh: BVH, size: tuple[int, int],
-                 backend: str = "glsl", settings: EffectSettings | None = None,
+                 backend: str | None = None, settings: EffectSettings | None = None,
                  backend_options: dict[str, str] | None = None):
         """`scene` must already be in BVH leaf order (scene.reordered(bvh.tri_order)).
-        `backend_options`: per backend name, its parameter text (e.g. {"chcrt": "t_q=0.4"})."""
+        `backend`: a registered name (None: the registry's first). `backend_options`: per backend
+        name, its parameter text (--backend-params)."""
         self.ctx = ctx
         self.scene = scene
         self.bvh = bvh
@@ -98,14 +113,14 @@ class Renderer:
         self.strict_overlays = True
         self.overlay_source: tuple[RayType, int] | None = None
         self.overlay_missing = ""
-        self.backend_overlays: tuple[str, ...] | None = None  # names the backend returned last (None: not traced)
+        self.backend_overlays: tuple[str, ...] | None = None  # textures the backend returned last (None: not traced)
         self._overlay: OverlayPass | None = None
         self._idle_fbo: moderngl.Framebuffer | None = None  # bound during a headless resize
         self.backend_name = ""
         self.backend = None
         self._backends: dict[str, object] = {}
         self.backend_options = dict(backend_options or {})
-        self.set_backend(backend)
+        self.set_backend(backend or backend_names()[0])
 
     # -- configuration -------------------------------------------------------------------------
     def set_backend(self, name: str) -> None:
@@ -165,8 +180,20 @@ class Renderer:
 
     # -- overlays ------------------------------------------------------------------------------
     @property
+    def is_overlay_view(self) -> bool:
+        """The view is not one of the shade pass's: a backend overlay view (or an unknown name)."""
+        return self.view not in SHADE_MODES
+
+    @property
+    def view_spec(self) -> OverlaySpec | None:
+        """The active backend's OverlaySpec of the current view (None: a shade view, or a view
+        this backend does not produce)."""
+        return overlay_spec(self.backend.info, self.view) if self.is_overlay_view else None
+
+    @property
     def overlays_wanted(self) -> bool:
-        return self.capture_overlays or self.view in OVERLAY_VIEWS
+        """Copy overlays this frame: a tool saves them, or one of the backend's views is shown."""
+        return self.capture_overlays or self.view_spec is not None
 
     @property
     def overlay(self) -> OverlayPass:
@@ -194,55 +221,63 @@ class Renderer:
             raise RtwalkError(msg)
 
     def _capture_overlays(self, overlays: dict) -> bool:
-        need = OVERLAY_VIEWS.get(self.view, ())
-        missing = [n for n in need if n not in overlays]
-        if missing:
-            self._overlay_unavailable(f"view '{self.view}' needs the backend's {', '.join(missing)} overlay; "
-                                      f"backend '{self.backend_name}' does not produce it (use chcrt)")
-        if not overlays or missing:
+        """Copy the backend's overlays of the pass just traced; False when the shown view (if
+        any) cannot be drawn from them."""
+        specs = self.backend.info.overlays
+        spec = self.view_spec
+        if spec is not None and spec.texture not in overlays:
+            self._overlay_unavailable(f"view '{self.view}': backend '{self.backend_name}' returned no "
+                                      f"'{spec.texture}' texture for this pass")
             return False
-        if any(tuple(t.size) != tuple(self.size) for t in overlays.values()):
+        present = [s for s in specs if s.texture in overlays]
+        if not present:
+            return False
+        if any(tuple(overlays[s.texture].size) != tuple(self.size) for s in present):
             self._overlay_unavailable(f"backend '{self.backend_name}' overlays are not at the render size")
             return False
         with self.profiler.phase("overlay"):
-            self.overlay.capture(overlays, self.rays, self.hits)
+            self.overlay.capture(tuple(present), overlays, self.rays, self.hits)
         return True
 
-    def overlay_scale_max(self) -> int:
-        """The heat map's maximum this frame (the legend's): the fixed scale, else the frame's
-        largest query-fragment count rounded up to 1-2-5 steps (8 bytes read back)."""
-        from viewer.passes.overlay import nice_ceil
-
+    def overlay_scale_max(self, view: str | None = None) -> int:
+        """The heat map's maximum this frame (the legend's) for a "heat" view (default: the
+        current one): the fixed scale, else the frame's largest value rounded up to 1-2-5 steps
+        (8 bytes read back)."""
         if self.overlay_scale > 0:
             return int(self.overlay_scale)
-        if self._overlay is None or not self._overlay.captured:
+        view = view or self.view
+        if self._overlay is None or view not in self._overlay.captured:
             return 1
-        return nice_ceil(max(self._overlay.read_max()[0], 1))
+        return nice_ceil(max(self._overlay.read_max(view)[0], 1))
 
     def read_overlays(self) -> dict[str, np.ndarray]:
-        """The copied overlays of this frame's overlay pass, int32 (H*W,) each, row 0 = bottom:
-        the backend's (query_overdraw, subtree_id, batch_subtrees: those it produced) plus
-        `ray` and `hit` (bool) for that pass. Empty when nothing was copied."""
-        from viewer.passes.overlay import FLAG_HIT, FLAG_RAY, OVERLAY_NAMES
-
+        """The copied overlays of this frame's overlay pass, int32 (H*W,) each, row 0 = bottom,
+        keyed by the backend's texture names (OverlaySpec.texture and .counts, those it returned),
+        plus `ray` and `hit` (bool) for that pass. Empty when nothing was copied."""
         ov = self._overlay
         if ov is None or not ov.captured:
             return {}
-        data = ov.read().reshape(-1, 4)
-        out = {n: np.ascontiguousarray(data[:, i]) for i, n in enumerate(OVERLAY_NAMES) if n in ov.captured}
-        out["ray"] = (data[:, 3] & FLAG_RAY) != 0
-        out["hit"] = (data[:, 3] & FLAG_HIT) != 0
+        out: dict[str, np.ndarray] = {}
+        for name, spec in ov.captured.items():
+            data = ov.read(name).reshape(-1, 4)
+            out[spec.texture] = np.ascontiguousarray(data[:, CAPTURE_VALUE])
+            if spec.counts and (data[:, CAPTURE_COUNTS] >= 0).any():
+                out[spec.counts] = np.ascontiguousarray(data[:, CAPTURE_COUNTS])
+            flags = data[:, CAPTURE_FLAGS]
+        out["ray"] = (flags & FLAG_RAY) != 0
+        out["hit"] = (flags & FLAG_HIT) != 0
         return out
 
-    def overlay_tiles(self) -> tuple[np.ndarray, np.ndarray, str] | None:
-        """Per finest tile of this frame's overlay pass: (rects, counts, what) (see
-        passes.overlay.tile_counts); None without a capture or tiles. Reads the capture back."""
-        from viewer.passes.overlay import tile_counts
-
+    def overlay_tiles(self, view: str | None = None) -> tuple[np.ndarray, np.ndarray, bool] | None:
+        """Per finest tile of this frame's overlay pass, for an "ids" view (default: the current
+        one): (rects, counts, from_counts) (see passes.overlay.tile_counts); None without a
+        capture of that view or without tiles. Reads the capture back."""
+        view = view or self.view
         level = self.overlay_tile_level()
-        if self._overlay is None or not self._overlay.captured or level < 0:
+        ov = self._overlay
+        if ov is None or view not in ov.captured or ov.captured[view].kind != "ids" or level < 0:
             return None
-        return tile_counts(self._overlay.read(), level)
+        return tile_counts(ov.read(view), level)
 
     # -- one frame -----------------------------------------------------------------------------
     def render(self, camera: Camera, capture: bool = False) -> FrameReport:
@@ -250,15 +285,19 @@ class Renderer:
         t0 = time.perf_counter()
         prof = self.profiler
         passes = self.passes()
-        view_overlay = self.view in OVERLAY_VIEWS
+        view_overlay = self.is_overlay_view
         source = self.overlay_source_for(passes) if self.overlays_wanted else None
         self.overlay_missing = ""
         self.overlay_source = None
         if self._overlay is not None:
             self._overlay.begin_frame()
-        if view_overlay and source is None:
-            self._overlay_unavailable(f"view '{self.view}' shows a traced pass's overlays, but no pass "
-                                      "traces rays (turn an effect on)")
+        if view_overlay:
+            missing = view_unavailable(self.view, self.backend.info)
+            if missing:
+                self._overlay_unavailable(missing)
+            elif source is None:
+                self._overlay_unavailable(f"view '{self.view}' shows a traced pass's overlays, but no pass "
+                                          "traces rays (turn an effect on)")
         overlay_done = False
         prof.begin_frame()
         cam_u = camera_uniforms(camera, self.size)
@@ -294,7 +333,7 @@ class Renderer:
                 with prof.phase("accumulate"):
                     self.accumulate.add(ray_type, self.rays, self.hits, self.gbuffer, light, weight)
         with prof.phase("shade"):
-            if view_overlay and overlay_done:
+            if view_overlay and overlay_done and self.view in self.overlay.captured:
                 self.overlay.render_view(self.shade.fbo, self.view, self.overlay_tile_level(),
                                          int(self.overlay_scale), self.overlay_log)
             else:  # an overlay view without overlays (window): the final image under the message

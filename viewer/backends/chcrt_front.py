@@ -4,6 +4,9 @@ A query pair is (screen tile, BVH node). The ray hierarchy is a quadtree over th
 the tile (level L, x, y) covers pixels [x*W >> L, (x+1)*W >> L) x [y*H >> L, (y+1)*H >> L).
 The object hierarchy is the canonical BVH (viewer.accel.bvh.BVH node indices).
 
+Screen tiles are the generic quadtree of viewer.screen_tiles (tile_rects, max_tile_level are
+re-exported here for the backend and its tests).
+
 The pair hierarchy is kept between frames (one per ray type / sample / light) as flat arrays.
 Its leaves form the *front*: every leaf is either
 
@@ -21,6 +24,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+
+from viewer.screen_tiles import max_tile_level, tile_rects  # noqa: F401 (re-exported for chcrt)
 
 INVISIBLE = 0
 VISIBLE = 1
@@ -71,29 +76,6 @@ class NodeTables:
         first_box = np.where(inner, self.left[nodes], nodes)
         box_node = np.where(second, self.right[nodes][owner], first_box[owner])
         return owner, self.box_min[box_node], self.box_max[box_node]
-
-
-def tile_rects(level: np.ndarray, tx: np.ndarray, ty: np.ndarray, size: tuple[int, int]) -> np.ndarray:
-    """int64 (K, 4) pixel rectangles (x, y, w, h) of quadtree tiles."""
-    w, h = size
-    level = np.asarray(level, np.int64)
-    tx = np.asarray(tx, np.int64)
-    ty = np.asarray(ty, np.int64)
-    x0 = (tx * w) >> level
-    x1 = ((tx + 1) * w) >> level
-    y0 = (ty * h) >> level
-    y1 = ((ty + 1) * h) >> level
-    return np.stack([x0, y0, x1 - x0, y1 - y0], axis=1)
-
-
-def max_tile_level(size: tuple[int, int], min_tile_fraction: float, min_tile_pixels: int = 4) -> int:
-    """Deepest quadtree level whose tiles still cover at least `min_tile_fraction` of the screen
-    (tiles of level L cover 4^-L of it), and at least `min_tile_pixels` pixels on each side."""
-    level = 0
-    while (4.0 ** -(level + 1) >= min_tile_fraction * (1 - 1e-9)
-           and min(size) >> (level + 1) >= min_tile_pixels):
-        level += 1
-    return level
 
 
 class PairFront:

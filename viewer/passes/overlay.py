@@ -1,13 +1,20 @@
-"""Backend overlays shown live: CHC+RT query overdraw (heat map) and subtree batches.
+"""Backend overlay views, driven by what the active backend declares (BackendInfo.overlays).
 
-A backend's overlay textures (TraceResult.overlays) are overwritten by its next trace() call, and
-a frame has many passes, so the renderer copies the overlays of one chosen pass into this pass's
-capture texture right after that pass is traced: one full-screen draw on the GPU, no readback.
-The views are then drawn from the capture in place of the final image.
+Every `OverlaySpec` of the backend is one view (`render --view NAME`, the window's View combo).
+Its kind decides how it is captured and drawn, never its name:
 
-Capture layout (RGBA32I, row 0 = bottom; shaders/overlay.glsl): r = query fragments drawn at the
-pixel, g = canonical BVH node of the subtree that produced the hit (-1 none), b = subtrees in the
-batches of the pixel's tile (-1 when the backend does not report it), a = flags (FLAG_RAY, FLAG_HIT).
+* "heat": the spec's texture holds a count per pixel, drawn as a heat map with a legend
+  (`OverlaySpec.label` is the legend's title) whose maximum comes from a max-reduction;
+* "ids": the texture holds an id per pixel (-1 none), drawn in a colour per id with screen-tile
+  outlines (the backend's `tile_level`); the optional `counts` texture holds a value per pixel that
+  is printed once per tile (its maximum over the tile). The label reads "colour; numbers", e.g.
+  "hit subtree; subtrees in the tile's batches" (`ids_labels`).
+
+A backend's overlay textures are overwritten by its next trace() call, and a frame has many
+passes, so the renderer copies the overlays of one chosen pass right after that pass is traced:
+one full-screen draw per view into that view's capture texture (RGBA32I, layout in
+shaders/overlay.glsl: r = value, g = counts, a = ray/hit flags), no readback. The views are then
+drawn from the capture in place of the final image.
 
 The heat map's scale maximum comes from the frame itself: a max-reduction on the GPU (render to
 texture, 16x16 per step) that the view shader reads directly, rounded up to 1-2-5 steps so that the
@@ -23,18 +30,98 @@ from functools import lru_cache
 import moderngl
 import numpy as np
 
+from viewer.backends import backend_class, backend_names
+from viewer.backends.interface import BackendInfo, OverlaySpec
+from viewer.errors import RtwalkError
 from viewer.gpu import FullscreenQuad, ProgramCache, read_texture
-from viewer.passes.targets import SizedTargets
+from viewer.passes.shade import SHADE_MODES
 from viewer.rays import HitBuffer, RayBatch
+from viewer.screen_tiles import level_rects, tile_index
 
-# view name -> overlays (TraceResult.overlays keys) it needs from the backend
-OVERLAY_VIEWS: dict[str, tuple[str, ...]] = {"query_overdraw": ("query_overdraw",),
-                                             "subtree_batches": ("subtree_id",)}
-OVERLAY_NAMES = ("query_overdraw", "subtree_id", "batch_subtrees")  # capture channels r, g, b
 FLAG_RAY = 1
 FLAG_HIT = 2
 NO_DATA_GREY = 46  # uint8 grey of pixels without data (OVERLAY_NO_DATA in overlay.glsl)
 REDUCE_BLOCK = 16  # BLOCK in overlay_reduce.frag
+VIEW_SHADER_MODES = {"heat": 0, "ids": 1}  # OverlaySpec.kind -> `mode` of overlay_view.frag
+CAPTURE_VALUE, CAPTURE_COUNTS, CAPTURE_FLAGS = 0, 1, 3  # channels of a capture texture
+
+
+# --------------------------------------------------------------------------- views of a backend
+
+
+def overlay_spec(info: BackendInfo, view: str) -> OverlaySpec | None:
+    """The backend's overlay called `view` (None: not one of its overlays)."""
+    return next((s for s in info.overlays if s.name == view), None)
+
+
+def overlay_view_names(info: BackendInfo) -> list[str]:
+    """The backend's overlay views, in its declared order."""
+    return [s.name for s in info.overlays if s.name not in SHADE_MODES]
+
+
+def view_names(info: BackendInfo) -> list[str]:
+    """Every view `render --view` / the window offers with this backend: the shade pass's views
+    ('final', 'albedo', ..., one pass alone), then the backend's overlay views."""
+    return list(SHADE_MODES) + overlay_view_names(info)
+
+
+def cycled_views(info: BackendInfo) -> list[str]:
+    """The window's V key: 'final', then the backend's overlay views."""
+    return ["final", *overlay_view_names(info)]
+
+
+def _registered_infos() -> list[BackendInfo]:
+    infos = []
+    for name in backend_names():
+        try:
+            infos.append(backend_class(name).info)
+        except Exception:  # a backend whose package or device is missing offers no views
+            continue
+    return infos
+
+
+def backends_with_view(view: str) -> list[str]:
+    """Registered backends that produce the overlay view `view` (from their `info`)."""
+    return [info.name for info in _registered_infos() if overlay_spec(info, view) is not None]
+
+
+def all_view_names() -> list[str]:
+    """The shade pass's views and every registered backend's overlay views (no duplicates)."""
+    out = list(SHADE_MODES)
+    for info in _registered_infos():
+        out += [n for n in overlay_view_names(info) if n not in out]
+    return out
+
+
+def view_unavailable(view: str, info: BackendInfo) -> str:
+    """Why backend `info` cannot show `view` ('' when it can): an unknown view, or an overlay
+    that other registered backends produce (named from the registry)."""
+    if view in SHADE_MODES or overlay_spec(info, view) is not None:
+        return ""
+    producers = backends_with_view(view)
+    if not producers:
+        return f"unknown view '{view}' (choose from {', '.join(view_names(info))})"
+    return (f"view '{view}' is an overlay that backend '{info.name}' does not produce "
+            f"(backends that do: {', '.join(producers)})")
+
+
+def check_view(view: str, info: BackendInfo) -> None:
+    """RtwalkError unless backend `info` can show `view` (the CLI's check before loading a scene)."""
+    msg = view_unavailable(view, info)
+    if msg:
+        raise RtwalkError(msg)
+
+
+def ids_labels(spec: OverlaySpec) -> tuple[str, str]:
+    """(what the colours are, what the per-tile numbers are) of an "ids" view, from its label
+    "colour; numbers"; without a counts texture the numbers are the distinct ids in the tile."""
+    colour, _, numbers = (spec.label or "").partition(";")
+    colour, numbers = colour.strip() or "id", numbers.strip()
+    if spec.counts is None:
+        numbers = "distinct ids in the tile"
+    elif not numbers:
+        numbers = f"{spec.counts.replace('_', ' ')} (max in the tile)"
+    return colour, numbers
 
 
 # --------------------------------------------------------------------------- NumPy mirrors
@@ -90,51 +177,67 @@ def heat_ticks(vmax: int, log: bool = True, most: int = 7) -> list[int]:
     return sorted(set(ticks) | {vmax})
 
 
-def tile_index(size: tuple[int, int], level: int) -> np.ndarray:
-    """int64 (H, W): finest CHC+RT tile (ty * 2^level + tx) of each pixel (overlayTileOf)."""
-    w, h = size
-    tx = (((np.arange(w, dtype=np.int64) + 1) << level) - 1) // w
-    ty = (((np.arange(h, dtype=np.int64) + 1) << level) - 1) // h
-    return ty[:, None] * (1 << level) + tx[None, :]
+def tile_counts(capture: np.ndarray, level: int) -> tuple[np.ndarray, np.ndarray, bool]:
+    """Per screen tile of `level`: (rects int64 (K, 4) x, y, w, h in pixels, counts (K,), from_counts).
 
-
-def tile_counts(overlay: np.ndarray, level: int) -> tuple[np.ndarray, np.ndarray, str]:
-    """Per finest tile: (rects int64 (K, 4) x, y, w, h in pixels, counts (K,), what the counts are).
-
-    `overlay` is the capture read back, (H, W, 4). With the backend's batch_subtrees overlay the
-    count is the number of subtrees in the tile's intersection batches; without it, the number of
-    distinct subtrees among the tile's hits (what the image can tell)."""
-    from viewer.backends.chcrt_front import tile_rects
-
-    h, w = overlay.shape[:2]
+    `capture` is an "ids" view's capture read back, (H, W, 4). Where the backend reported its
+    counts texture (any value >= 0), a tile's number is the maximum of those values over the
+    tile (from_counts True); otherwise it is the number of distinct ids in the tile."""
+    h, w = capture.shape[:2]
     n = 1 << level
-    ty, tx = np.divmod(np.arange(n * n, dtype=np.int64), n)
-    rects = tile_rects(np.full(n * n, level), tx, ty, (w, h))
+    rects = level_rects((w, h), level)
     tiles = tile_index((w, h), level).reshape(-1)
-    batch = overlay[..., 2].reshape(-1)
-    if (batch >= 0).any():
+    reported = capture[..., CAPTURE_COUNTS].reshape(-1)
+    if (reported >= 0).any():
         counts = np.zeros(n * n, np.int64)
-        np.maximum.at(counts, tiles, np.maximum(batch, 0).astype(np.int64))
-        return rects, counts, "subtrees in the tile's batches"
-    sub = overlay[..., 1].reshape(-1).astype(np.int64)
-    keep = sub >= 0
-    keys = np.unique(tiles[keep] * (int(sub.max(initial=0)) + 1) + sub[keep])
-    counts = np.bincount(keys // (int(sub.max(initial=0)) + 1), minlength=n * n)
-    return rects, counts, "distinct subtrees hit in the tile"
+        np.maximum.at(counts, tiles, np.maximum(reported, 0).astype(np.int64))
+        return rects, counts, True
+    ids = capture[..., CAPTURE_VALUE].reshape(-1).astype(np.int64)
+    keep = ids >= 0
+    span = int(ids.max(initial=0)) + 1
+    keys = np.unique(tiles[keep] * span + ids[keep])
+    return rects, np.bincount(keys // span, minlength=n * n), False
 
 
 # --------------------------------------------------------------------------- the pass
 
 
-class OverlayPass(SizedTargets):
-    """Capture of one pass's overlays, their max-reduction, and the overlay views."""
+class _Capture:
+    """One view's capture texture and its max-reduction chain."""
+
+    def __init__(self, ctx: moderngl.Context, size: tuple[int, int]):
+        self.texture = ctx.texture(size, 4, dtype="i4")
+        self.texture.filter = (moderngl.NEAREST, moderngl.NEAREST)
+        self.fbo = ctx.framebuffer(color_attachments=[self.texture])
+        self.steps: list[tuple[moderngl.Texture, moderngl.Framebuffer]] = []
+        w, h = size
+        while True:
+            w, h = -(-w // REDUCE_BLOCK), -(-h // REDUCE_BLOCK)
+            tex = ctx.texture((w, h), 2, dtype="i4")
+            tex.filter = (moderngl.NEAREST, moderngl.NEAREST)
+            self.steps.append((tex, ctx.framebuffer(color_attachments=[tex])))
+            if (w, h) == (1, 1):
+                break
+        self.reduced = False
+
+    def release(self) -> None:
+        for tex, fbo in self.steps:
+            fbo.release()
+            tex.release()
+        self.fbo.release()
+        self.texture.release()
+
+
+class OverlayPass:
+    """Capture of one pass's overlays (one texture per view), their max-reduction, and the views."""
 
     def __init__(self, ctx: moderngl.Context, programs: ProgramCache, quad: FullscreenQuad,
                  size: tuple[int, int]):
         self.ctx = ctx
         self.quad = quad
+        self.size = tuple(size)
         self.copy_prog = programs.get("fullscreen.vert", "overlay_copy.frag")
-        for i, name in enumerate(["srcOverdraw", "srcSubtree", "srcBatch", "rayOrigin", "rayDir", "hitId"]):
+        for i, name in enumerate(["srcValue", "srcCounts", "rayOrigin", "rayDir", "hitId"]):
             self.copy_prog[name] = i
         self.reduce_prog = programs.get("fullscreen.vert", "overlay_reduce.frag")
         self.reduce_prog["src"] = 0
@@ -144,82 +247,83 @@ class OverlayPass(SizedTargets):
         lut = np.concatenate([heat_lut(), np.full((256, 1), 255, np.uint8)], axis=1)
         self.lut = ctx.texture((256, 1), 4, lut.tobytes(), dtype="f1")
         self.lut.filter = (moderngl.NEAREST, moderngl.NEAREST)
-        self.captured: tuple[str, ...] = ()  # overlay names in the capture (empty: nothing this frame)
-        self._reduced = False
-        self.resize(size)
+        self.targets: dict[str, _Capture] = {}  # view name -> capture (created on first use)
+        self.captured: dict[str, OverlaySpec] = {}  # views copied this frame (empty: nothing)
 
-    def create_targets(self, size: tuple[int, int]) -> None:
-        self.texture = self.ctx.texture(size, 4, dtype="i4")
-        self.texture.filter = (moderngl.NEAREST, moderngl.NEAREST)
-        self.fbo = self.ctx.framebuffer(color_attachments=[self.texture])
-        self.steps: list[tuple[moderngl.Texture, moderngl.Framebuffer]] = []
-        w, h = size
-        while True:
-            w, h = -(-w // REDUCE_BLOCK), -(-h // REDUCE_BLOCK)
-            tex = self.ctx.texture((w, h), 2, dtype="i4")
-            tex.filter = (moderngl.NEAREST, moderngl.NEAREST)
-            self.steps.append((tex, self.ctx.framebuffer(color_attachments=[tex])))
-            if (w, h) == (1, 1):
-                break
-        self.captured = ()
+    def resize(self, size: tuple[int, int]) -> None:
+        if tuple(size) == self.size:
+            return
+        self._release_targets()
+        self.size = tuple(size)
 
-    def release_targets(self) -> None:
-        for tex, fbo in self.steps:
-            fbo.release()
-            tex.release()
-        self.fbo.release()
-        self.texture.release()
+    def _release_targets(self) -> None:
+        for cap in self.targets.values():
+            cap.release()
+        self.targets = {}
+        self.captured = {}
 
     def release(self) -> None:
-        self.release_targets()
+        self._release_targets()
         self.lut.release()
 
     def begin_frame(self) -> None:
-        self.captured = ()
-        self._reduced = False
+        self.captured = {}
 
-    def capture(self, overlays: dict[str, moderngl.Texture], rays: RayBatch, hits: HitBuffer) -> None:
-        """Copy the backend's overlays of the pass just traced (plus its ray/hit flags)."""
-        present = tuple(n for n in OVERLAY_NAMES if n in overlays)
-        stand_in = overlays[present[0]] if present else hits.id  # integer texture on unused units
+    def capture(self, specs: tuple[OverlaySpec, ...], overlays: dict[str, moderngl.Texture], rays: RayBatch,
+                hits: HitBuffer) -> None:
+        """Copy the views `specs` from the backend's textures of the pass just traced (plus the
+        pass's ray/hit flags); a spec whose texture the backend did not return is skipped."""
         p = self.copy_prog
-        for i, name in enumerate(OVERLAY_NAMES):
-            overlays.get(name, stand_in).use(i)
-        p["hasOverdraw"], p["hasSubtree"], p["hasBatch"] = (int(n in overlays) for n in OVERLAY_NAMES)
-        rays.origin.use(3)
-        rays.direction.use(4)
-        hits.id.use(5)
-        self.fbo.use()
-        self.fbo.scissor = None
+        rays.origin.use(2)
+        rays.direction.use(3)
+        hits.id.use(4)
         self.ctx.disable(moderngl.BLEND | moderngl.DEPTH_TEST)
-        self.quad.render(p)
-        self.captured = present
-        self._reduced = False
+        for spec in specs:
+            src = overlays.get(spec.texture)
+            if src is None:
+                continue
+            counts = overlays.get(spec.counts) if spec.counts else None
+            src.use(0)
+            (counts or src).use(1)  # an integer texture on the unit even when unused
+            p["hasCounts"] = int(counts is not None)
+            cap = self.targets.get(spec.name)
+            if cap is None:
+                cap = self.targets[spec.name] = _Capture(self.ctx, self.size)
+            cap.fbo.use()
+            cap.fbo.scissor = None
+            self.quad.render(p)
+            cap.reduced = False
+            self.captured[spec.name] = spec
 
-    def _reduce(self) -> None:
-        if self._reduced:
+    def _reduce(self, cap: _Capture) -> None:
+        if cap.reduced:
             return
         p = self.reduce_prog
-        src, first = self.texture, 1
+        src = cap.texture
         self.ctx.disable(moderngl.BLEND | moderngl.DEPTH_TEST)
-        for tex, fbo in self.steps:
+        for tex, fbo in cap.steps:
             src.use(0)
             p["srcSize"] = src.size
-            p["firstStep"] = first
             fbo.use()
             self.quad.render(p)
-            src, first = tex, 0
-        self._reduced = True
+            src = tex
+        cap.reduced = True
+
+    def _captured(self, view: str) -> _Capture:
+        if view not in self.captured:
+            raise KeyError(f"overlay view '{view}' was not captured this frame")
+        return self.targets[view]
 
     def render_view(self, fbo: moderngl.Framebuffer, view: str, tile_level: int, fixed_max: int,
                     log: bool) -> None:
-        """Draw `view` from the capture into `fbo` (the shade pass's image)."""
-        self._reduce()
+        """Draw the captured `view` into `fbo` (the shade pass's image)."""
+        cap = self._captured(view)
+        self._reduce(cap)
         p = self.view_prog
-        self.texture.use(0)
-        self.steps[-1][0].use(1)
+        cap.texture.use(0)
+        cap.steps[-1][0].use(1)
         self.lut.use(2)
-        p["mode"] = list(OVERLAY_VIEWS).index(view)
+        p["mode"] = VIEW_SHADER_MODES[self.captured[view].kind]
         p["fixedMax"] = int(max(fixed_max, 0))
         p["logScale"] = int(log)
         p["tileLevel"] = int(tile_level)
@@ -227,12 +331,13 @@ class OverlayPass(SizedTargets):
         self.ctx.disable(moderngl.BLEND | moderngl.DEPTH_TEST)
         self.quad.render(p)
 
-    def read_max(self) -> tuple[int, int]:
-        """(max query fragments, max batch subtrees) over the capture: 8 bytes read back."""
-        self._reduce()
-        v = np.frombuffer(self.steps[-1][0].read(), np.int32)
+    def read_max(self, view: str) -> tuple[int, int]:
+        """(max value, max counts) over the view's capture, at least 0: 8 bytes read back."""
+        cap = self._captured(view)
+        self._reduce(cap)
+        v = np.frombuffer(cap.steps[-1][0].read(), np.int32)
         return int(v[0]), int(v[1])
 
-    def read(self) -> np.ndarray:
-        """The capture, int32 (H, W, 4), row 0 = bottom."""
-        return read_texture(self.texture).copy()
+    def read(self, view: str) -> np.ndarray:
+        """The view's capture, int32 (H, W, 4), row 0 = bottom (layout: overlay.glsl)."""
+        return read_texture(self._captured(view).texture).copy()

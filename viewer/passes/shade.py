@@ -9,14 +9,22 @@ from viewer.effects import EffectSettings, RayType
 from viewer.gpu import FullscreenQuad, ProgramCache
 from viewer.passes.accumulate import AccumulatePass
 from viewer.passes.gbuffer import GBufferPass
-from viewer.passes.overlay import OVERLAY_VIEWS
 from viewer.passes.targets import SizedTargets
 
 # Index = viewMode uniform in shade.frag.
 SHADE_MODES = ["final", "albedo", "normal", "depth", "shadows", "soft", "ao", "diffuse", "reflections",
                "triangle_id"]
-# Every view: the shade pass's modes, then the backend overlay views (drawn by passes/overlay.py).
-VIEW_MODES = SHADE_MODES + list(OVERLAY_VIEWS)
+
+
+def __getattr__(name: str) -> list[str]:
+    """VIEW_MODES: every view of every registered backend (the shade pass's modes, then the
+    overlay views the backends declare; passes/overlay.py). Kept for callers that check a view
+    name without a backend; with one, use viewer.passes.overlay.view_names(info)."""
+    if name == "VIEW_MODES":
+        from viewer.passes.overlay import all_view_names
+
+        return all_view_names()
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 class ShadePass(SizedTargets):

@@ -1,8 +1,8 @@
 // Backend overlay views (viewer/passes/overlay.py mirrors these functions in NumPy for the legend
 // and the tests: keep the two in step).
-//  * Capture texture (RGBA32I, row 0 = bottom): r = query fragments drawn at the pixel, g = canonical
-//    BVH node of the subtree that produced the hit (-1 none), b = subtrees in the batches of the
-//    pixel's tile (-1 = not reported), a = flags (1 = the pixel had a ray, 2 = it hit).
+//  * Capture texture, one per overlay view (RGBA32I, row 0 = bottom): r = the view's per-pixel value
+//    (kind "heat": a count >= 0; kind "ids": an id, -1 = none), g = the view's per-pixel `counts`
+//    value (-1 = none or not reported), b = 0, a = flags (1 = the pixel had a ray, 2 = it hit).
 //  * Heat scale: position of v in [0, vmax] on a log2(1 + v) (or linear) axis, looked up in a
 //    256-entry colormap texture (inferno: perceptually uniform, lightness increases with the value).
 
@@ -34,7 +34,7 @@ vec3 overlayHeatColor(sampler2D lut, float p) {
     return texelFetch(lut, ivec2(int(floor(p * 255.0 + 0.5)), 0), 0).rgb;
 }
 
-// A bright, well spread colour per id (subtrees next to each other must be told apart).
+// A bright, well spread colour per id (neighbouring ids must be told apart).
 vec3 overlayIdColor(int id) {
     uint h = uint(id) * 747796405u + 2891336453u;
     h = ((h >> ((h >> 28u) + 4u)) ^ h) * 277803737u;
@@ -43,8 +43,8 @@ vec3 overlayIdColor(int id) {
     return 0.3 + 0.7 * c;
 }
 
-// Finest CHC+RT tile column (or row) of pixel coordinate x: tile t covers [t*w >> L, (t+1)*w >> L)
-// (viewer/backends/chcrt_front.tile_rects).
+// Screen-tile column (or row) of pixel coordinate x at quadtree level `level`: tile t covers
+// [t*w >> L, (t+1)*w >> L) (viewer/screen_tiles.py: tile_rects, tile_index).
 int overlayTileOf(int x, int w, int level) {
     return (((x + 1) << level) - 1) / w;
 }

@@ -1,10 +1,9 @@
-// One step of a max-reduction over BLOCK x BLOCK texels: (max query fragments, max batch subtrees)
-// of the capture texture (first step: channels r, b) or of the previous step (channels r, g).
+// One step of a max-reduction over BLOCK x BLOCK texels: (max value, max counts) of a capture
+// texture (channels r, g; layout overlay.glsl) or of the previous step, never below 0.
 // Render-to-texture steps (no atomics, no memory barriers) down to 1x1, which the view shader reads.
 #define BLOCK 16
 uniform isampler2D src;
 uniform ivec2 srcSize;
-uniform int firstStep;
 out ivec2 outMax;
 
 void main() {
@@ -13,8 +12,7 @@ void main() {
     ivec2 m = ivec2(0);
     for (int y = base.y; y < hi.y; ++y) {
         for (int x = base.x; x < hi.x; ++x) {
-            ivec4 v = texelFetch(src, ivec2(x, y), 0);
-            m = max(m, firstStep != 0 ? v.rb : v.rg);
+            m = max(m, texelFetch(src, ivec2(x, y), 0).rg);
         }
     }
     outMax = m;

@@ -1,12 +1,13 @@
-// Shows the captured overlays (layout: overlay.glsl) in place of the final image.
-//  mode 0 (query_overdraw): query fragments per pixel as a heat map; pixels without a ray and
-//    without query fragments are dark grey.
-//  mode 1 (subtree_batches): the subtree that produced the pixel's hit, coloured by its id (dark
-//    grey: no hit); finest-tile outlines, coloured by the number of subtrees in the tile's
-//    intersection batches on the heat scale when the backend reports it (white otherwise).
+// Shows one captured overlay view (layout: overlay.glsl) in place of the final image; the mode is
+// the OverlaySpec's kind (viewer/passes/overlay.py VIEW_SHADER_MODES), never its name.
+//  mode 0 (kind "heat"): the value per pixel as a heat map; pixels without a ray and with a value
+//    of 0 (or no value) are dark grey.
+//  mode 1 (kind "ids"): the id per pixel in a colour of its own (dark grey: -1, none); screen-tile
+//    outlines (tileLevel >= 0), coloured by the tile's `counts` value on the heat scale when the
+//    backend reports one (white otherwise).
 #include "overlay.glsl"
 uniform isampler2D overlay;
-uniform isampler2D reduced;  // 1x1: (max query fragments, max batch subtrees)
+uniform isampler2D reduced;  // 1x1: (max value, max counts)
 uniform sampler2D lut;
 uniform int mode;
 uniform int fixedMax;  // > 0: heat scale maximum chosen by the user; else from the frame's maximum
@@ -36,11 +37,11 @@ void main() {
         bool noData = o.r < 0 || (o.r == 0 && (o.a & OVERLAY_FLAG_RAY) == 0);
         c = noData ? OVERLAY_NO_DATA : overlayHeatColor(lut, overlayHeatPos(o.r, vmax, log2Scale));
     } else {
-        c = o.g >= 0 ? overlayIdColor(o.g) : OVERLAY_NO_DATA;
+        c = o.r >= 0 ? overlayIdColor(o.r) : OVERLAY_NO_DATA;
         if (tileEdge(px, size)) {
             c = vec3(1.0);
-            if (o.b >= 0 && mx.y > 0) {
-                float p = overlayHeatPos(o.b, overlayNiceCeil(mx.y), true);
+            if (o.g >= 0 && mx.y > 0) {
+                float p = overlayHeatPos(o.g, overlayNiceCeil(mx.y), true);
                 c = overlayHeatColor(lut, 0.3 + 0.7 * p);  // skip the near-black start of the map
             }
         }

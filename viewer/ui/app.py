@@ -4,9 +4,10 @@ The scene is loaded and its BVH built before the window opens. Each frame: move 
 (keys/mouse, or a recording being played back), `Renderer.render`, draw the final texture over
 the window (at `render_scale` of the framebuffer size; llvmpipe is a CPU rasterizer), draw the
 panel. Keys: WASD/QE move, drag (left or right button) to look, wheel = speed, shift = x5,
-F12 screenshot, R record, P play back, V next view of final / query_overdraw / subtree_batches
-(backend overlays; legend and tile labels drawn over the image), O next overlay source pass,
-F1 panel on/off, Esc quits.
+F12 screenshot, R record, P play back, V next view of 'final' and the active backend's overlay
+views (its info.overlays; legend and tile labels drawn over the image), O next overlay source
+pass, F1 panel on/off, Esc quits. An overlay view the active backend does not produce shows the
+final image with a message on it, and F12 then saves nothing (the message says why).
 
 For tests and the README screenshot: `--max-frames N` or RTWALK_VIEW_FRAMES=N quits after N
 frames; RTWALK_VIEW_SCREENSHOT=path.png then saves the whole window, panel included.
@@ -34,13 +35,13 @@ from viewer.ui.panel import (
     chart_phases,
     draw_overlay_annotations,
     draw_panel,
+    overlay_missing_line,
     overlay_pass_choices,
 )
 
 DEFAULT_RENDER_SCALE = 0.5
 SCREENSHOT_DIR = Path("screenshots")
 RECORDING_DIR = Path("recordings")
-CYCLED_VIEWS = ("final", "query_overdraw", "subtree_batches")  # the V key
 MAX_DT = 0.25  # a stall (scene switch, screenshot) must not throw the camera across the scene
 NO_DISPLAY_HINT = "use `rtwalk render`/`rtwalk bench` or run under xvfb-run (e.g. xvfb-run -a rtwalk view)"
 
@@ -102,16 +103,18 @@ def render_scale_from_env() -> float:
 
 
 def initial_view(args) -> str:
-    """`--view` if the parser has it, else RTWALK_VIEW_MODE, else final; checked before the window."""
-    from viewer.passes.shade import VIEW_MODES
+    """`--view` if the parser has it, else RTWALK_VIEW_MODE, else final; checked before the window
+    against every registered backend's views (the window says so when the active one lacks it)."""
+    from viewer.passes.overlay import all_view_names
 
+    views = all_view_names()
     view = getattr(args, "view", None)
     source = "--view"
     if view is None:
         view = os.environ.get("RTWALK_VIEW_MODE", "").strip() or "final"
         source = "RTWALK_VIEW_MODE"
-    if view not in VIEW_MODES:
-        raise RtwalkError(f"{source}: unknown view '{view}' (choose from {', '.join(VIEW_MODES)})")
+    if view not in views:
+        raise RtwalkError(f"{source}: unknown view '{view}' (choose from {', '.join(views)})")
     return view
 
 
@@ -332,6 +335,9 @@ class ViewerApp:
         if tuple(self.renderer.size) != full:  # the saved image is always at the full window size
             self._resize_renderer(full)
             self.renderer.render(self.camera)
+        if self.renderer.overlay_missing:  # the image is not the view asked for: say so, save nothing
+            self.say(f"screenshot not saved: {overlay_missing_line(self.renderer)}")
+            return
         img = self.renderer.read_image()
         stamp = time.strftime("%Y%m%d-%H%M%S")
         path = SCREENSHOT_DIR / f"rtwalk-{stamp}.png"
@@ -428,11 +434,14 @@ class ViewerApp:
             self.cycle_overlay_pass()
 
     def cycle_view(self) -> None:
-        """V: final -> query_overdraw -> subtree_batches -> final (any other view goes to final)."""
+        """V: final -> each overlay view of the active backend -> final (any other view goes to final)."""
+        from viewer.passes.overlay import cycled_views
+
         r = self.renderer
-        i = CYCLED_VIEWS.index(r.view) if r.view in CYCLED_VIEWS else -1
-        r.view = CYCLED_VIEWS[(i + 1) % len(CYCLED_VIEWS)]
-        self.say(f"view: {r.view}")
+        views = cycled_views(r.backend.info)
+        i = views.index(r.view) if r.view in views else -1
+        r.view = views[(i + 1) % len(views)]
+        self.say(f"view: {r.view}" if len(views) > 1 else f"view: {r.view} (this backend has no overlay views)")
 
     def cycle_overlay_pass(self) -> None:
         """O: the overlay views' source pass: first pass of the frame, then each pass in turn."""
@@ -499,14 +508,17 @@ class ViewerApp:
             self.recorder.add(now, self.camera)
 
     def _render(self):
+        from viewer.backends import backend_names
+
         r = self.renderer
+        fallback = backend_names()[0]  # the registry's first backend
         try:
             return r.render(self.camera)
         except RtwalkError as exc:
-            if r.backend_name == "glsl":
+            if r.backend_name == fallback:
                 raise
-            self.backend_error = f"{r.backend_name}: {exc} (back to glsl)"
-            r.set_backend("glsl")
+            self.backend_error = f"{r.backend_name}: {exc} (back to {fallback})"
+            r.set_backend(fallback)
             return r.render(self.camera)
 
     def frame(self, now: float, dt: float, frame_ms: float) -> None:
@@ -521,7 +533,7 @@ class ViewerApp:
         report = self._render()
         self.last_report = report
         self.history.add(frame_ms if frame_ms > 0 else report.wall_ms, sum(report.gpu_ms.values()),
-                         chart_phases(report.gpu_ms), report.backend_stats)
+                         chart_phases(report.gpu_ms, self.renderer.backend.info.phases), report.backend_stats)
 
         ctx = self.ctx
         w, h = self.wnd.buffer_size

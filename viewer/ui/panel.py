@@ -2,14 +2,21 @@
 backend phases as a stacked bar per frame (CHC+RT paper, Figure 8) and per-frame counters; the
 overlay views' controls, and their legend / tile labels drawn over the image.
 
-`FrameHistory`, `chart_phases` and `camera_argument` are plain Python (unit-testable); `draw_panel`
-and `draw_overlay_annotations` need a live imgui (+ implot) frame and read/write the viewer through
-the small `PanelHost` interface below.
+Everything backend-specific comes from the active backend's `info` (viewer.backends.interface):
+the counters it declares (others go under "more counters"), the phases it stacks (else the
+per-ray-type trace:* phases), its overlay views and their kinds and labels. No backend is named
+here.
+
+`FrameHistory`, `chart_phases`, `phase_label`, `counter_rows` and `camera_argument` are plain
+Python (unit-testable); `draw_panel` and `draw_overlay_annotations` need a live imgui (+ implot)
+frame and read/write the viewer through the small `PanelHost` interface below.
 """
 
 from __future__ import annotations
 
+import re
 from collections import deque
+from collections.abc import Sequence
 from typing import Protocol
 
 import numpy as np
@@ -19,16 +26,27 @@ from viewer.camera import Camera
 PANEL_WIDTH = 340
 HISTORY = 120
 CHART_FRAMES = 60  # frames in the stacked phase chart
-# The spec's per-frame counters (FrameReport.backend_stats), in display order.
-COUNTERS = ("queries", "multi_queries", "failed_multi_queries", "visible_pairs", "invisible_pairs",
-            "subtrees_scheduled", "draws", "rays")
 
 
-def chart_phases(gpu_ms: dict[str, float]) -> dict[str, float]:
-    """The phases stacked per frame: CHC+RT's four (chc:*) when present, else the per-ray-type
-    trace times of other backends (trace:*)."""
-    chc = {k: v for k, v in gpu_ms.items() if k.startswith("chc:")}
-    return dict(sorted(chc.items())) if chc else {k: v for k, v in gpu_ms.items() if k.startswith("trace:")}
+def chart_phases(gpu_ms: dict[str, float], phases: Sequence[str] = ()) -> dict[str, float]:
+    """The phases stacked per frame: the backend's declared `phases` (BackendInfo.phases, in that
+    order) that this frame timed, else the per-ray-type trace times (trace:*)."""
+    own = {k: gpu_ms[k] for k in phases if k in gpu_ms}
+    return own if own else {k: v for k, v in gpu_ms.items() if k.startswith("trace:")}
+
+
+def phase_label(name: str) -> str:
+    """Chart legend label: the part after a 'prefix:', without a leading step number:
+    'x:2-queries' -> 'queries', 'trace:ao' -> 'ao', 'gbuffer' -> 'gbuffer'."""
+    tail = name.split(":", 1)[-1]
+    tail = re.sub(r"^\d+[-_. ]*", "", tail) or tail
+    return tail.replace("-", " ").replace("_", " ")
+
+
+def counter_rows(stats: dict[str, float], declared: Sequence[str]) -> tuple[list[str], list[str]]:
+    """(the backend's declared counters present in `stats`, in its order; the other counters)."""
+    rows = [k for k in declared if k in stats]
+    return rows, [k for k in stats if k not in rows]
 
 
 class FrameHistory:
@@ -49,7 +67,7 @@ class FrameHistory:
 
     def phase_table(self, last: int = CHART_FRAMES) -> tuple[list[str], np.ndarray]:
         """(phase names, float64 (phases, frames) ms) over the last frames; 0 where a frame lacks
-        a phase (backend switched). Names in first-seen order (chc phases sort by number)."""
+        a phase (backend switched). Names in first-seen order."""
         frames = list(self.phases)[-last:]
         names: list[str] = []
         for f in frames:
@@ -115,8 +133,8 @@ def _mib(n: float) -> str:
 def draw_panel(host, width: float, height: float) -> None:  # noqa: C901 (a flat list of widgets)
     from imgui_bundle import imgui
 
-    from viewer.backends import BACKENDS
-    from viewer.passes.shade import VIEW_MODES
+    from viewer.backends import backend_names
+    from viewer.passes.overlay import view_names
 
     r = host.renderer
     s = r.settings
@@ -137,6 +155,7 @@ def draw_panel(host, width: float, height: float) -> None:  # noqa: C901 (a flat
         imgui.text_colored((1.0, 0.45, 0.35, 1.0), mode)
     if r.overlay_missing:  # an overlay view the backend cannot feed: the final image is shown
         imgui.text_colored((1.0, 0.45, 0.35, 1.0), overlay_missing_line(r))
+        imgui.text_wrapped(r.overlay_missing)
     if host.status:
         imgui.text_wrapped(host.status)
 
@@ -169,7 +188,7 @@ def draw_panel(host, width: float, height: float) -> None:  # noqa: C901 (a flat
     # -- backend phases and counters (CHC+RT paper, Figure 8) ------------------------------------
     if imgui.collapsing_header("Backend phases & counters", imgui.TreeNodeFlags_.default_open):
         _draw_phase_chart(hist)
-        _draw_counters(host.last_report, hist)
+        _draw_counters(host.last_report, hist, r.backend.info.counters)
 
     # -- effects ------------------------------------------------------------------------------
     if imgui.collapsing_header("Effects", imgui.TreeNodeFlags_.default_open):
@@ -202,7 +221,7 @@ def draw_panel(host, width: float, height: float) -> None:  # noqa: C901 (a flat
 
     # -- renderer -----------------------------------------------------------------------------
     if imgui.collapsing_header("Renderer", imgui.TreeNodeFlags_.default_open):
-        names = list(BACKENDS)
+        names = backend_names()
         cur = names.index(r.backend_name) if r.backend_name in names else 0
         changed, idx = imgui.combo("backend", cur, names)
         if changed and names[idx] != r.backend_name:
@@ -210,10 +229,12 @@ def draw_panel(host, width: float, height: float) -> None:  # noqa: C901 (a flat
         if host.backend_error:
             imgui.text_colored((1.0, 0.4, 0.3, 1.0), "backend error:")
             imgui.text_wrapped(host.backend_error)
-        cur = VIEW_MODES.index(r.view) if r.view in VIEW_MODES else 0
-        changed, idx = imgui.combo("view", cur, VIEW_MODES)
+        views = view_names(r.backend.info)  # the shade pass's views + this backend's overlays
+        if r.view not in views:  # kept from another backend: listed, and the panel says why it is not shown
+            views.append(r.view)
+        changed, idx = imgui.combo("view", views.index(r.view), views)
         if changed:
-            r.view = VIEW_MODES[idx]
+            r.view = views[idx]
         _draw_overlay_controls(r, host.last_report)
         _, host.render_scale = imgui.slider_float("render scale", host.render_scale, 0.25, 1.0, "%.2f")
 
@@ -256,22 +277,13 @@ def draw_panel(host, width: float, height: float) -> None:  # noqa: C901 (a flat
         if imgui.button("Play (P)"):
             host.toggle_playback()
         imgui.text_wrapped("WASD move, Q/E down/up, drag to look, wheel = speed, shift = x5, V view "
-                           "(final / query overdraw / subtree batches), O overlay pass, F1 panel, Esc quits")
+                           "(final / the backend's overlay views), O overlay pass, F1 panel, Esc quits")
 
     imgui.pop_item_width()
     imgui.end()
 
 
 # --------------------------------------------------------------------------- backend phases, counters
-
-
-_CHART_LABELS = {"chc:1-intersect-visible": "1 visible", "chc:2-queries": "2 queries",
-                 "chc:3-traversal": "3 traversal", "chc:4-final-intersect": "4 final"}
-
-
-def _short_phase(name: str) -> str:
-    """Chart legend label: 'chc:2-queries' -> '2 queries', 'trace:ao' -> 'ao'."""
-    return _CHART_LABELS.get(name) or name.split(":", 1)[-1].replace("-", " ")
 
 
 def _draw_phase_chart(hist: FrameHistory) -> None:
@@ -287,8 +299,7 @@ def _draw_phase_chart(hist: FrameHistory) -> None:
     # the y range follows the typical frame: a warm-up frame (shader compilation) or a backend
     # switch would flatten every other bar; such a bar runs off the top
     ymax = float(max(np.percentile(totals, 90) * 1.25, 1e-3))
-    last = ", ".join(f"{k.split(':', 1)[-1].replace('-', ' ')} {v:.1f}"
-                     for k, v in zip(names, table[:, -1], strict=True))
+    last = ", ".join(f"{phase_label(k)} {v:.1f}" for k, v in zip(names, table[:, -1], strict=True))
     imgui.text_wrapped(f"last frame (ms): {last}")
     flags = implot.Flags_.no_menus | implot.Flags_.no_box_select | implot.Flags_.no_mouse_text
     sv = implot.StyleVar_
@@ -300,21 +311,22 @@ def _draw_phase_chart(hist: FrameHistory) -> None:
         implot.setup_axis_limits(implot.ImAxis_.x1, -0.6, max(n, 8) - 0.4, implot.Cond_.always)
         implot.setup_axis_limits(implot.ImAxis_.y1, 0.0, ymax, implot.Cond_.always)
         implot.setup_legend(implot.Location_.north_east, implot.LegendFlags_.outside)
-        implot.plot_bar_groups([_short_phase(k) for k in names], np.ascontiguousarray(table.reshape(-1)),
+        implot.plot_bar_groups([phase_label(k) for k in names], np.ascontiguousarray(table.reshape(-1)),
                                0.8, 0.0, implot.BarGroupsFlags_.stacked)
         implot.end_plot()
     implot.pop_style_var(3)
 
 
-def _draw_counters(rep, hist: FrameHistory) -> None:
-    """This frame's backend counters (summed over its passes) and their mean over the history."""
+def _draw_counters(rep, hist: FrameHistory, declared: Sequence[str]) -> None:
+    """This frame's backend counters (summed over its passes) and their mean over the history:
+    the backend's declared counters in a table, the others folded away."""
     from imgui_bundle import imgui
 
     stats = rep.backend_stats if rep is not None else {}
     if not stats:
         imgui.text("the backend reports no counters")
         return
-    rows = [k for k in COUNTERS if k in stats]
+    rows, others = counter_rows(stats, declared)
     flags = imgui.TableFlags_.row_bg | imgui.TableFlags_.borders_inner_v
     if imgui.begin_table("counters", 3, flags):
         stretch = imgui.TableColumnFlags_.width_stretch
@@ -331,7 +343,6 @@ def _draw_counters(rep, hist: FrameHistory) -> None:
             imgui.table_next_column()
             imgui.text(f"{hist.counter_mean(k):,.0f}")
         imgui.end_table()
-    others = [k for k in stats if k not in COUNTERS]
     if others and imgui.tree_node("more counters"):
         for k in others:
             imgui.text(f"{k.replace('_', ' ')}: {stats[k]:,.0f}")
@@ -352,12 +363,15 @@ def overlay_pass_choices(renderer) -> list[tuple[str, tuple | None]]:
 
 
 def overlay_missing_line(r) -> str:
-    """One short panel line for Renderer.overlay_missing (the full reason is in that attribute)."""
+    """One short line for Renderer.overlay_missing (the full reason is in that attribute); it
+    never names a backend: the view, and what is shown instead."""
     if not r.overlay_missing:
         return ""
+    if r.is_overlay_view and r.view_spec is None:
+        return f"view '{r.view}': not produced by this backend; final image shown"
     if not r.passes():  # no pass traced rays this frame
         return "no traced pass: turn an effect on"
-    return f"{r.backend_name}: no overlays, final shown (chcrt)"
+    return f"view '{r.view}': no overlay this frame; final image shown"
 
 
 def _draw_overlay_controls(r, rep) -> None:
@@ -365,11 +379,10 @@ def _draw_overlay_controls(r, rep) -> None:
     there is none)."""
     from imgui_bundle import imgui
 
-    from viewer.passes.overlay import OVERLAY_VIEWS
-
-    if r.backend_overlays is not None and not r.backend_overlays:
-        imgui.text_colored((1.0, 0.7, 0.3, 1.0), f"backend {r.backend_name}: no overlays (chcrt has them)")
-    if r.view not in OVERLAY_VIEWS:
+    if not r.backend.info.overlays:
+        imgui.text_colored((1.0, 0.7, 0.3, 1.0), "this backend has no overlay views")
+    spec = r.view_spec
+    if spec is None:
         return
     choices = overlay_pass_choices(r)
     values = [v for _, v in choices]
@@ -377,22 +390,21 @@ def _draw_overlay_controls(r, rep) -> None:
     changed, idx = imgui.combo("overlay pass", cur, [label for label, _ in choices])
     if changed:
         r.overlay_pass = values[idx]
-    if r.view == "query_overdraw":
+    if spec.kind == "heat":
         _, auto = imgui.checkbox("auto scale", r.overlay_scale <= 0)
         imgui.same_line(150)
         _, r.overlay_log = imgui.checkbox("log scale", r.overlay_log)
         if auto:
             r.overlay_scale = 0
         else:
-            _, v = imgui.slider_int("scale max", max(int(r.overlay_scale), 1), 1, 2000, "%d fragments",
+            _, v = imgui.slider_int("scale max", max(int(r.overlay_scale), 1), 1, 2000, "%d",
                                     imgui.SliderFlags_.logarithmic)
             r.overlay_scale = max(int(v), 1)
     if r.overlay_source is not None:
         rt, k = r.overlay_source
         imgui.text(f"overlays of the {rt.label} pass, sample {k}")
-        total = rep.backend_stats.get("query_pixels") if rep is not None else None
-        if r.view == "query_overdraw" and total is not None:  # the backend counts them: no readback
-            imgui.text(f"frame: {total:,.0f} query fragments (all passes)")
+    if spec.label:
+        imgui.text_wrapped(spec.label)
 
 
 def _u32(rgb, alpha: int = 255) -> int:
@@ -411,33 +423,40 @@ def _text_box(dl, x: float, y: float, text: str, fg=(255, 255, 255), bg_alpha: i
 
 
 def draw_overlay_annotations(host, width: float, height: float, left: float = 0.0) -> None:
-    """Over the image (behind the panel): the heat map's legend, or the subtree view's per-tile
-    counts. `width` x `height`: the window in imgui units; the image fills it; `left`: panel width
-    (the legend stays right of it). Reads back only while an overlay view is shown."""
+    """Over the image (behind the panel): why an overlay view shows the final image instead, or
+    the view's annotations by kind: the heat map's legend, or an id view's per-tile numbers.
+    `width` x `height`: the window in imgui units; the image fills it; `left`: panel width (the
+    annotations stay right of it). Reads back only while an overlay view is shown."""
     from imgui_bundle import imgui
 
     r = host.renderer
-    if r.overlay_source is None or r.overlay_missing:
+    if r.overlay_missing and r.is_overlay_view:  # on the image too: the panel may be hidden (F1)
+        line = imgui.get_text_line_height()
+        _text_box(imgui.get_background_draw_list(), left + 10, height - line - 10, overlay_missing_line(r),
+                  fg=(255, 150, 120), bg_alpha=220)
+        return
+    spec = r.view_spec
+    if r.overlay_source is None or r.overlay_missing or spec is None:
         return
     dl = imgui.get_background_draw_list()
-    if r.view == "query_overdraw":
-        _draw_heat_legend(dl, r, width, height, left)
-    elif r.view == "subtree_batches":
-        _draw_tile_labels(dl, r, width, height, left)
+    if spec.kind == "heat":
+        _draw_heat_legend(dl, r, spec, width, height, left)
+    elif spec.kind == "ids":
+        _draw_tile_labels(dl, r, spec, width, height, left)
 
 
-def _draw_heat_legend(dl, r, width: float, height: float, left: float) -> None:
+def _draw_heat_legend(dl, r, spec, width: float, height: float, left: float) -> None:
     """Colour bar with ticks (the shader's scale, same colormap), the scale's maximum and how it
     was chosen, the frame's maximum, and the source pass; bottom right of the image."""
     from imgui_bundle import imgui
 
     from viewer.passes.overlay import heat_colors, heat_position, heat_ticks
 
-    vmax = r.overlay_scale_max()
-    frame_max = r.overlay.read_max()[0]
+    vmax = r.overlay_scale_max(spec.name)
+    frame_max = r.overlay.read_max(spec.name)[0]
     rt, k = r.overlay_source
     how = "fixed" if r.overlay_scale > 0 else "auto"
-    lines = ["query fragments per pixel", f"max {vmax} ({how}), frame max {frame_max}",
+    lines = [spec.label or spec.name.replace("_", " "), f"max {vmax} ({how}), frame max {frame_max}",
              f"{rt.label} #{k}, {'log' if r.overlay_log else 'linear'} scale, grey: no ray"]
     line = imgui.get_text_line_height()
     bar_w = float(min(300.0, max(120.0, width - left - 60.0)))
@@ -471,16 +490,27 @@ def _draw_heat_legend(dl, r, width: float, height: float, left: float) -> None:
     dl.add_text((bx + 8, y0 + bar_h + 2 * line + 10), grey, lines[2])
 
 
-def _draw_tile_labels(dl, r, width: float, height: float, left: float) -> None:
+def _draw_tile_labels(dl, r, spec, width: float, height: float, left: float) -> None:
+    """The id view's number per screen tile (where it fits) and a note saying what colours and
+    numbers are (ids_labels of the view's OverlaySpec)."""
     from imgui_bundle import imgui
 
-    tiles = r.overlay_tiles()
-    if tiles is None:
+    from viewer.passes.overlay import ids_labels
+
+    tiles = r.overlay_tiles(spec.name)
+    colour, what = ids_labels(spec)
+    rt, k = r.overlay_source
+    line = imgui.get_text_line_height()
+    if tiles is None:  # a backend without screen tiles: the colours only
+        note = f"{rt.label} #{k}: colour = {colour}"
+        _text_box(dl, max(left + 6, width - imgui.calc_text_size(note).x - 10), height - line - 8, note,
+                  bg_alpha=210)
         return
-    rects, counts, what = tiles
+    rects, counts, from_counts = tiles
+    if not from_counts:
+        what = "distinct ids in the tile"
     rw, rh = r.size
     sx, sy = width / rw, height / rh
-    line = imgui.get_text_line_height()
     for (x, y, w, h), c in zip(rects.tolist(), counts.tolist(), strict=True):
         cx, cy = (x + w / 2) * sx, height - (y + h / 2) * sy
         label = str(c)
@@ -488,7 +518,6 @@ def _draw_tile_labels(dl, r, width: float, height: float, left: float) -> None:
         if w * sx < sz.x + 6 or h * sy < line + 4 or cx - sz.x / 2 < left:
             continue  # too small to label, or under the panel
         _text_box(dl, cx - sz.x / 2, cy - sz.y / 2, label)
-    rt, k = r.overlay_source
-    note = f"{rt.label} #{k}: colour = hit subtree; numbers = {what}"
+    note = f"{rt.label} #{k}: colour = {colour}; numbers = {what}"
     tw = imgui.calc_text_size(note).x
     _text_box(dl, max(left + 6, width - tw - 10), height - line - 8, note, bg_alpha=210)
