@@ -27,6 +27,7 @@ from viewer.ui.camera_controller import (
 )
 from viewer.ui.panel import FrameHistory, camera_argument, chart_phases, counter_rows, phase_label
 
+REPO = Path(__file__).resolve().parents[1]
 XVFB = shutil.which("xvfb-run")
 needs_xvfb = pytest.mark.skipif(XVFB is None, reason="xvfb-run is not installed (apt-get install xvfb xauth)")
 
@@ -245,9 +246,12 @@ def test_render_scale_from_env(monkeypatch):
 
 
 def _env(**extra) -> dict:
+    """The environment of a window run: this checkout's `viewer` first (the runs start in a
+    temporary folder, where an installed copy would be imported instead), no RTWALK_VIEW_*."""
     env = dict(os.environ)
     for key in ("RTWALK_VIEW_FRAMES", "RTWALK_VIEW_SCREENSHOT", "RTWALK_VIEW_SCALE", "RTWALK_VIEW_MODE"):
         env.pop(key, None)
+    env["PYTHONPATH"] = os.pathsep.join(p for p in (str(REPO), env.get("PYTHONPATH", "")) if p)
     env.update(extra)
     return env
 
@@ -462,6 +466,7 @@ _OVERLAY_DRIVER = textwrap.dedent('''
         elif n == 5:
             press(w, K.V)  # -> query_overdraw
             self.switch_backend("glsl")
+            press(w, K.F12)  # glsl has no such overlay: the screenshot is refused with the reason
         elif n == 6:
             self.switch_backend("chcrt")
         orig_frame(self, now, dt, frame_ms)
@@ -469,7 +474,8 @@ _OVERLAY_DRIVER = textwrap.dedent('''
         log["frames"].append({"view": r.view, "backend": r.backend_name, "missing": r.overlay_missing,
                               "source": None if src is None else [src[0].label, src[1]],
                               "pass": None if r.overlay_pass is None else [r.overlay_pass[0].label, r.overlay_pass[1]],
-                              "phases": len(self.history.phases[-1]), "error": self.ctx.error})
+                              "phases": len(self.history.phases[-1]), "error": self.ctx.error,
+                              "status": self.status})
 
     ui_app.ViewerApp.frame = frame
     args = cli.build_parser().parse_args(["view", "city", "--scene-size", "20000", "--backend", "chcrt",
@@ -505,6 +511,9 @@ def test_view_overlays_under_xvfb(tmp_path):
     glsl = fr[5]  # switch_backend applies at the start of the next frame(); here: the same one
     assert glsl["backend"] == "glsl" and glsl["view"] == "query_overdraw" and glsl["source"] is None
     assert "glsl" in glsl["missing"] and glsl["phases"] == 2  # trace:primary, trace:shadows
+    assert glsl["status"] == ("screenshot not saved: view 'query_overdraw': not produced by this backend; "
+                              "final image shown")
+    assert not (tmp_path / "screenshots").exists()
     assert fr[-1]["backend"] == "chcrt" and fr[-1]["source"] == ["shadows", 0] and not fr[-1]["missing"]
 
     img = np.asarray(Image.open(shot).convert("RGB")).astype(np.int32)

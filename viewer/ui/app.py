@@ -331,10 +331,10 @@ class ViewerApp:
     def _screenshot(self) -> None:
         from PIL import Image
 
-        full = tuple(self.wnd.buffer_size)
-        if tuple(self.renderer.size) != full:  # the saved image is always at the full window size
-            self._resize_renderer(full)
-            self.renderer.render(self.camera)
+        # the saved image is always at the full window size, of the current view (V may have changed
+        # it since the last frame), so it is rendered again here
+        self._resize_renderer(tuple(self.wnd.buffer_size))
+        self.renderer.render(self.camera)
         if self.renderer.overlay_missing:  # the image is not the view asked for: say so, save nothing
             self.say(f"screenshot not saved: {overlay_missing_line(self.renderer)}")
             return
