@@ -183,6 +183,8 @@ def test_overlay_views_show_what_the_backend_wrote(fake):
         heat_img = _image_gl(r)
         ov = r.read_overlays()
         vmax = r.overlay_scale_max()
+        want = seen.pop((RayType.SHADOW, 0))
+        primary = seen.pop((RayType.PRIMARY, 0))
         r.view = "fake_tris"
         rep2 = r.render(cam, capture=True)
         ids_img = _image_gl(r).reshape(SIZE[1], SIZE[0], 3)
@@ -193,14 +195,17 @@ def test_overlay_views_show_what_the_backend_wrote(fake):
         del r.backend.trace
         r.view, r.overlay_pass = "final", None
     assert rep.overlay_source == rep2.overlay_source == (RayType.SHADOW, 0)
-    want = seen[(RayType.SHADOW, 0)]
-    assert set(want) == {"crossings", "hit_tri", "tile_tris"}
-    for name in want:  # the renderer's copy is exactly what the backend wrote for that pass
-        np.testing.assert_array_equal(ov[name], want[name], err_msg=name)
-        np.testing.assert_array_equal(ov2[name], want[name], err_msg=name)
-    assert not np.array_equal(seen[(RayType.PRIMARY, 0)]["hit_tri"], want["hit_tri"])  # not another pass
+    want2 = seen[(RayType.SHADOW, 0)]
+    assert set(want) == set(want2) == {"crossings", "hit_tri", "tile_tris"}
+    # the renderer's copy is exactly what the backend wrote for that pass, for the view shown
+    assert set(ov) == {"crossings", "ray", "hit"} and set(ov2) == {"hit_tri", "tile_tris", "ray", "hit"}
+    np.testing.assert_array_equal(ov["crossings"], want["crossings"])
+    for name in ("hit_tri", "tile_tris"):
+        np.testing.assert_array_equal(ov2[name], want2[name], err_msg=name)
+    assert not np.array_equal(primary["hit_tri"], want["hit_tri"])  # not another pass
     cp = next(c for c in rep.captured if (c.ray_type, c.sample) == (RayType.SHADOW, 0))
-    np.testing.assert_array_equal(ov["hit_tri"], cp.tri)  # the id overlay is the pass's hit buffer
+    cp2 = next(c for c in rep2.captured if (c.ray_type, c.sample) == (RayType.SHADOW, 0))
+    np.testing.assert_array_equal(ov2["hit_tri"], cp2.tri)  # the id overlay is the pass's hit buffer
     np.testing.assert_array_equal(ov["ray"], cp.rays.active)
     np.testing.assert_array_equal(ov["hit"], cp.tri >= 0)
     cross = ov["crossings"]

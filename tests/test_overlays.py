@@ -74,12 +74,18 @@ def test_copy_equals_the_backend_overlays_of_the_chosen_pass(chc):
     try:
         r.view = "query_overdraw"
         r.overlay_pass = (RayType.AO, 0)
+        r.render(cam)
+        shown_only = set(r.read_overlays())  # the window copies the view it shows
+        seen.clear()  # the backend's textures of the next frame only
+        r.capture_overlays = True  # tools copy every view
         rep = r.render(cam, capture=True)
         ov = r.read_overlays()
     finally:
         del r.backend.trace
         r.overlay_pass = None
         r.view = "final"
+        r.capture_overlays = False
+    assert shown_only == {"query_overdraw", "ray", "hit"}
     assert rep.overlay_source == (RayType.AO, 0) and r.overlay_source == (RayType.AO, 0)
     want = seen[(RayType.AO, 0)]
     assert set(want) >= {"query_overdraw", "subtree_id"}

@@ -221,14 +221,17 @@ class Renderer:
             raise RtwalkError(msg)
 
     def _capture_overlays(self, overlays: dict) -> bool:
-        """Copy the backend's overlays of the pass just traced; False when the shown view (if
-        any) cannot be drawn from them."""
+        """Copy the backend's overlays of the pass just traced (every view with
+        `capture_overlays`, else the one shown); False when the shown view (if any) cannot be
+        drawn from them."""
         specs = self.backend.info.overlays
         spec = self.view_spec
         if spec is not None and spec.texture not in overlays:
             self._overlay_unavailable(f"view '{self.view}': backend '{self.backend_name}' returned no "
                                       f"'{spec.texture}' texture for this pass")
             return False
+        if not self.capture_overlays:  # the window: only the view shown
+            specs = (spec,) if spec is not None else ()
         present = [s for s in specs if s.texture in overlays]
         if not present:
             return False
