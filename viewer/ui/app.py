@@ -156,7 +156,7 @@ def _first_line(exc: BaseException) -> str:
 
 def run_viewer(args) -> int:
     from viewer.backends import BACKENDS
-    from viewer.cli import backend_options_from, parse_size, scene_from_args, settings_from
+    from viewer.cli_args import backend_options_from, parse_size, scene_from_args, settings_from
     from viewer.recording import load_recording
 
     max_frames = frame_limit(args)
