@@ -29,7 +29,7 @@ from viewer.errors import RtwalkError
 def cmd_render(args) -> int:
     from PIL import Image
 
-    from viewer.gpu import create_headless_context
+    from viewer.gl.context import create_headless_context
     from viewer.passes.shade import VIEW_MODES
     from viewer.recording import load_recording
     from viewer.renderer import Renderer
@@ -63,7 +63,7 @@ def cmd_render(args) -> int:
 
 def cmd_bench(args) -> int:
     from viewer.bench import BenchOptions, print_summary, run_bench, write_report
-    from viewer.gpu import create_headless_context
+    from viewer.gl.context import create_headless_context
     from viewer.recording import load_recording
 
     rec_path = args.recording or (DEFAULT_RECORDING if args.scene in (None, "city") else None)

@@ -1,4 +1,4 @@
-"""Synthetic GL micro-benchmark: what one draw, one occlusion query, one glFinish or one small
+"""Synthetic GL micro-benchmark (shaders/bench_micro.*): what one draw, one occlusion query, one glFinish or one small
 readback costs on this GL implementation, on the same context the studies use.
 
 CHC+RT trades ray/box tests for draws and queries; on a CPU rasterizer those fixed costs decide
@@ -12,6 +12,9 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
+
+from viewer.gl.bindings import BIND_MICRO
+from viewer.gl.programs import load_shader_source
 
 
 @dataclass
@@ -31,35 +34,6 @@ class MicroResult:
     trial_us_per_op: list[float] = field(default_factory=list)
 
 
-_MICRO_VS = """#version 450
-uniform int instanced;
-uniform ivec2 grid;  // instance grid (columns, rows) over the target
-uniform vec2 cell;   // NDC step between grid cells
-uniform vec2 quad;   // NDC size of one instance
-flat out int inst;
-void main() {
-    inst = gl_InstanceID;
-    if (instanced == 0) {  // one big triangle; the scissor box keeps it to a tile
-        gl_Position = vec4(gl_VertexID == 1 ? 3.0 : -1.0, gl_VertexID == 2 ? 3.0 : -1.0, 0.0, 1.0);
-        return;
-    }
-    vec2 corner = vec2(gl_VertexID & 1, gl_VertexID >> 1);
-    ivec2 c = ivec2(gl_InstanceID % grid.x, (gl_InstanceID / grid.x) % grid.y);
-    gl_Position = vec4(-1.0 + vec2(c) * cell + corner * quad, 0.0, 1.0);
-}
-"""
-_MICRO_FS = """#version 450
-uniform vec4 value;
-uniform int countAtomics;
-layout(std430, binding = 15) buffer MicroCounts { uint counts[]; };
-flat in int inst;
-out vec4 color;
-void main() {
-    if (countAtomics != 0) atomicAdd(counts[inst], 1u);
-    color = value;
-}
-"""
-_MICRO_BINDING = 15
 _MICRO_GRID = (32, 32)
 _MICRO_QUAD_PX = 4
 
@@ -75,7 +49,8 @@ def micro_overheads(ctx, size: tuple[int, int], scale: float = 1.0, trials: int 
     w, h = size
     tw, th = max(w // 16, 1), max(h // 16, 1)
     tiles = [(x * tw, y * th, tw, th) for y in range(16) for x in range(16)]
-    prog = ctx.program(vertex_shader=_MICRO_VS, fragment_shader=_MICRO_FS)
+    prog = ctx.program(vertex_shader=load_shader_source("bench_micro.vert"),
+                       fragment_shader=load_shader_source("bench_micro.frag"))
     vao = ctx.vertex_array(prog, [])
     color = ctx.texture(size, 4)
     fbo = ctx.framebuffer(color_attachments=[color])
@@ -173,7 +148,7 @@ def micro_overheads(ctx, size: tuple[int, int], scale: float = 1.0, trials: int 
             prog["instanced"].value = 1
             prog["countAtomics"].value = 1
             fbo.scissor = None
-            counts.bind_to_storage_buffer(_MICRO_BINDING)
+            counts.bind_to_storage_buffer(BIND_MICRO)
             for _ in range(n):
                 counts.write(zeros)
                 vao.render(moderngl.TRIANGLE_STRIP, vertices=4, instances=k)

@@ -162,8 +162,8 @@ class Harness:
     """One GL context and a scene cache shared by all runs of a command."""
 
     def __init__(self, frames: int = 4, first_frame: int | None = None, quiet: bool = False, ctx=None):
+        from viewer.gl.context import shared_context
         from viewer.profiler import choose_timing
-        from viewer.tracing import shared_context
 
         self.frames, self.first_frame, self.quiet = frames, first_frame, quiet
         self.ctx = ctx if ctx is not None else shared_context()
