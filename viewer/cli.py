@@ -36,10 +36,10 @@ def cmd_render(args) -> int:
 
     if args.view not in VIEW_MODES:
         raise RtwalkError(f"unknown --view '{args.view}' (choose from {', '.join(VIEW_MODES)})")
-    rec = load_recording(args.recording) if args.recording else None
+    backend_options = backend_options_from(args)  # unknown backend / bad parameters: before any loading
     size = parse_size(args.size)
     settings = settings_from(args)
-    backend_options = backend_options_from(args)
+    rec = load_recording(args.recording) if args.recording else None
     prepared = scene_from_args(args, rec)
     if args.camera:
         camera = parse_camera(args.camera)
@@ -69,12 +69,14 @@ def cmd_bench(args) -> int:
     rec_path = args.recording or (DEFAULT_RECORDING if args.scene in (None, "city") else None)
     if rec_path is None:
         raise RtwalkError("bench needs --recording FILE for this scene (see recordings/)")
-    rec = load_recording(rec_path)
+    backend_options = backend_options_from(args)  # unknown backend / bad parameters: before any loading
+    size = parse_size(args.size)
     settings = settings_from(args)
-    opts = BenchOptions(backend=args.backend, size=parse_size(args.size), fps=args.fps,
+    rec = load_recording(rec_path)
+    opts = BenchOptions(backend=args.backend, size=size, fps=args.fps,
                         max_frames=args.frames, reference=args.reference, reference_every=args.reference_every,
                         frames_dir=Path(args.save_frames) if args.save_frames else None,
-                        frame_every=args.frame_every, backend_options=backend_options_from(args),
+                        frame_every=args.frame_every, backend_options=backend_options,
                         first_frame=getattr(args, "first_frame", None))
     prepared = scene_from_args(args, rec)
     ctx = create_headless_context()
