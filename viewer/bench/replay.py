@@ -80,18 +80,17 @@ def reference_errors(renderer: Renderer, camera, tracer) -> dict:
 
 
 def save_overlay_views(renderer: Renderer, camera, folder: Path, frame: int) -> list[str]:
-    """The backend's overlay views of this frame as PNGs (chcrt: query overdraw heat map, subtree
-    batches), rendered again after the timed frame so diagnostics never cost timed work. Returns
-    the file names (none for a backend without overlays)."""
+    """The overlay views the backend declares (info.overlays, e.g. a heat map of query fragments)
+    of this frame as PNGs, rendered again after the timed frame so diagnostics never cost timed
+    work. Returns the file names (none for a backend without overlays)."""
     from PIL import Image
 
-    from viewer.passes.overlay import OVERLAY_VIEWS
-
-    if not renderer.backend.info.overlays:
+    names = [o.name for o in renderer.backend.info.overlays]
+    if not names:
         return []
     saved, view = [], renderer.view
     try:
-        for name in OVERLAY_VIEWS:
+        for name in names:
             renderer.view = name
             renderer.render(camera)
             path = folder / f"{name}_{frame:05d}.png"
@@ -128,7 +127,7 @@ def run_bench(prepared: PreparedScene, rec, settings: EffectSettings, opts: Benc
             err = reference_errors(renderer, cam, tracer)
             image = err["image"]
             row["error"] = err["rays"]
-            renderer.set_backend("embree")
+            renderer.set_backend(opts.reference)  # the reference image: the backend of that name
             renderer.render(cam)
             ref_image = renderer.read_image()
             renderer.set_backend(opts.backend)
