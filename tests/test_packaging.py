@@ -102,3 +102,54 @@ def test_installed_wheel_renders_headless(wheel, tmp_path):
     img = np.asarray(Image.open(out).convert("RGB"))
     assert img.shape == (36, 64, 3)
     assert len(np.unique(img.reshape(-1, 3), axis=0)) > 20  # a rendered city, not a cleared target
+
+
+def _import_graph() -> dict[str, set[str]]:
+    """viewer module -> viewer modules it imports, at module level or inside functions (both run
+    sooner or later); imports under `if TYPE_CHECKING:` are left out (never executed)."""
+    import ast
+
+    mods = {}
+    for p in (REPO / "viewer").rglob("*.py"):
+        name = ".".join(p.relative_to(REPO).with_suffix("").parts)
+        mods[name.removesuffix(".__init__")] = p
+    graph: dict[str, set[str]] = {}
+    for name, p in mods.items():
+        tree = ast.parse(p.read_text())
+        skip = {id(n) for node in ast.walk(tree) if isinstance(node, ast.If)
+                and getattr(node.test, "id", None) == "TYPE_CHECKING" for n in ast.walk(node)}
+        deps: set[str] = set()
+        for node in ast.walk(tree):
+            if id(node) in skip:
+                continue
+            if isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+                deps.add(node.module)
+                deps.update(f"{node.module}.{a.name}" for a in node.names)
+            elif isinstance(node, ast.Import):
+                deps.update(a.name for a in node.names)
+        graph[name] = {d for d in deps if d in mods and d != name}
+    return graph
+
+
+def test_no_import_cycles():
+    """No viewer module imports, directly or through others, a module that imports it back (the CLI
+    helpers live in viewer.cli_args for this); nothing but the entry point imports viewer.cli."""
+    graph = _import_graph()
+    assert not [m for m, deps in graph.items() if "viewer.cli" in deps], "viewer.cli is only the entry point"
+    state: dict[str, int] = {}
+    stack: list[str] = []
+
+    def visit(m: str) -> None:
+        state[m] = 1
+        stack.append(m)
+        for d in sorted(graph[m]):
+            if state.get(d) == 1:
+                raise AssertionError("import cycle: " + " -> ".join(stack[stack.index(d):] + [d]))
+            if d not in state:
+                visit(d)
+        stack.pop()
+        state[m] = 2
+
+    for m in sorted(graph):
+        if m not in state:
+            visit(m)
