@@ -94,7 +94,7 @@ def test_overhead_tables(quick_run):
 
 
 def test_missing_parameter_is_skipped_with_a_note(monkeypatch):
-    import viewer.bench_chcrt as bc
+    import viewer.bench.chcrt as bc
 
     have = bc._param_names() - {"query_mode"}
     monkeypatch.setattr(bc, "_param_names", lambda: have)
@@ -106,7 +106,7 @@ def test_missing_parameter_is_skipped_with_a_note(monkeypatch):
 def test_estimate_all_at_640x360_is_under_an_hour():
     import argparse
 
-    import viewer.bench_chcrt as bc
+    import viewer.bench.chcrt as bc
 
     p = argparse.ArgumentParser()
     bc.add_arguments(p)
@@ -140,7 +140,7 @@ def test_bad_input_is_one_line(capsys, args, needle):
 def test_tuning_sweep_counts_work(quick_run):
     """The sweep's work counters: glsl makes no queries; chcrt's query fragments and tests are
     counted; a larger t_q (fewer object-space splits) never needs more queries here."""
-    from viewer.bench_chcrt import tuning_configs
+    from viewer.bench.chcrt import tuning_configs
 
     _, out = quick_run
     rows = _load(out, "tuning")["rows"]

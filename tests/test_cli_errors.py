@@ -82,3 +82,50 @@ def test_missing_egl_is_one_line(monkeypatch):
     with pytest.raises(RtwalkError) as exc:
         create_headless_context()
     assert "EGL" in str(exc.value) and "\n" not in str(exc.value)
+
+
+@pytest.mark.parametrize("command", ["render", "bench", "demo"])
+@pytest.mark.parametrize("args,needle", [
+    (["--backend", "chcrt", "--backend-params", "nosuch=1"], "nosuch"),
+    (["--backend", "chcrt", "--backend-params", "t_q=fast"], "t_q"),
+    (["--backend", "chcrt", "--backend-params", "max_batch=99"], "max_batch"),
+    (["--backend", "glsl", "--backend-params", "t_q=1"], "--backend-params"),
+    (["--backend", "magic", "--backend-params", "t_q=1"], "magic"),
+], ids=["unknown-key", "bad-value", "out-of-range", "no-params", "unknown-backend"])
+def test_backend_params_fail_before_the_scene(tmp_path, monkeypatch, command, args, needle):
+    """The backend and its parameters are checked before anything is loaded: the scene named here
+    does not exist, and the error is still about the parameters."""
+    for var in ("DISPLAY", "WAYLAND_DISPLAY"):  # demo: the headless replay path
+        monkeypatch.delenv(var, raising=False)
+    missing = str(tmp_path / "never-loaded.obj")
+    extra = ["--recording", str(tmp_path / "never-read.json")] if command == "bench" else []
+    proc = run_cli(command, missing, *args, *extra, "--quiet", timeout=60)
+    assert_one_line_error(proc, needle)
+    assert "never-loaded" not in proc.stderr and "never-read" not in proc.stderr
+
+
+def test_backend_help_lists_the_registry():
+    from viewer.backends import backend_names
+
+    out = run_cli("render", "--help", timeout=60).stdout
+    assert "--backend-params" in out
+    for name in backend_names():
+        assert name in out
+
+
+def test_backend_options_merge_alias_and_params():
+    """--chcrt stays an alias for chcrt's parameters; --backend-params belongs to --backend and is
+    applied after it (later keys win in the registry's parser)."""
+    import argparse
+
+    from viewer.backends import check_params
+    from viewer.cli_args import backend_options_from
+
+    ns = argparse.Namespace(backend="chcrt", chcrt="t_q=0.7,max_batch=4", backend_params="t_q=0.9")
+    opts = backend_options_from(ns)
+    assert set(opts) == {"chcrt"}
+    full = check_params("chcrt", opts["chcrt"])
+    assert "t_q=0.9" in full and "max_batch=4" in full
+    assert backend_options_from(argparse.Namespace(backend="glsl", chcrt="t_q=0.7", backend_params=None)) == {
+        "chcrt": "t_q=0.7"}
+    assert backend_options_from(argparse.Namespace(backend="glsl", chcrt=None, backend_params=None)) == {}

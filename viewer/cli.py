@@ -9,113 +9,37 @@ from pathlib import Path
 
 import numpy as np
 
+# the argument helpers live in viewer.cli_args (the window and the benchmarks use them without
+# importing this module); re-exported here for callers of the old names
+from viewer.cli_args import (  # noqa: F401
+    DEFAULT_RECORDING,
+    RECORDINGS,
+    REPO_ROOT,
+    add_effect_args,
+    add_scene_args,
+    backend_options_from,
+    parse_camera,
+    parse_size,
+    scene_from_args,
+    settings_from,
+)
 from viewer.errors import RtwalkError
-
-REPO_ROOT = Path(__file__).resolve().parents[1]
-RECORDINGS = REPO_ROOT / "recordings"
-DEFAULT_RECORDING = RECORDINGS / "city-near.json"
-
-
-def parse_size(text: str) -> tuple[int, int]:
-    try:
-        w, h = (int(v) for v in text.lower().split("x"))
-    except ValueError:
-        raise RtwalkError(f"bad --size '{text}': expected WIDTHxHEIGHT, e.g. 640x360") from None
-    if not (1 <= w <= 16384 and 1 <= h <= 16384):
-        raise RtwalkError(f"bad --size '{text}': each side must be in 1..16384")
-    return w, h
-
-
-def parse_camera(text: str):
-    from viewer.camera import Camera
-
-    try:
-        vals = [float(v) for v in text.split(",")]
-    except ValueError:
-        vals = []
-    if len(vals) not in (6, 7) or not np.all(np.isfinite(vals)):
-        raise RtwalkError(f"bad --camera '{text}': expected eye_x,eye_y,eye_z,target_x,target_y,target_z[,fov_deg]")
-    if np.allclose(vals[:3], vals[3:6]):
-        raise RtwalkError(f"bad --camera '{text}': eye and target coincide")
-    return Camera.look_at(vals[:3], vals[3:6], fov_y=vals[6] if len(vals) == 7 else 60.0)
-
-
-def add_scene_args(p: argparse.ArgumentParser) -> None:
-    p.add_argument("scene", nargs="?", default=None,
-                   help="scene file (OBJ/PLY/GLB/STL/OFF) or built-in name (city, room); default: city")
-    p.add_argument("--scene-size", type=int, default=None, help="triangles for procedural scenes (city)")
-    p.add_argument("--seed", type=int, default=1, help="seed for procedural scenes")
-    p.add_argument("--mirror", action="append", default=[], metavar="PATTERN",
-                   help="material name pattern made a mirror (repeatable, fnmatch, case-insensitive)")
-    p.add_argument("--quiet", action="store_true", help="no progress output")
-
-
-def add_effect_args(p: argparse.ArgumentParser, default: str) -> None:
-    p.add_argument("--effects", default=default,
-                   help="comma list of primary,shadows,soft,ao,diffuse,reflections (NAME:N = N samples), "
-                        "'all' or 'none'")
-    p.add_argument("--backend", default="glsl", help="tracing backend: glsl, chcrt, embree")
-    p.add_argument("--size", default="640x360", help="WIDTHxHEIGHT")
-    p.add_argument("--perturb", type=float, default=36.0, help="per-pixel sample rotation, degrees")
-    p.add_argument("--ao-length", type=float, default=0.05, help="AO ray length, fraction of the scene diagonal")
-    p.add_argument("--exposure", type=float, default=1.0)
-    p.add_argument("--chcrt", default=None, metavar="KEY=VALUE,...",
-                   help="chcrt backend parameters, e.g. 'visible_threshold=20,t_q=0.5' (aggressive threshold in "
-                        "pixels, split rule, min_tile_fraction, max_subtree_height, max_batch, max_multi, ...)")
-
-
-def backend_options_from(args) -> dict[str, str]:
-    """Per-backend parameter text; parsed (and checked) here so bad values fail before any work."""
-    text = getattr(args, "chcrt", None)
-    if not text:
-        return {}
-    from viewer.backends import check_params
-
-    check_params("chcrt", text, "--chcrt")
-    return {"chcrt": text}
-
-
-def settings_from(args):
-    from viewer.effects import parse_effects
-
-    s = parse_effects(args.effects)
-    if not 0 <= args.perturb <= 180:
-        raise RtwalkError("--perturb must be within 0..180 degrees")
-    if not 0 < args.ao_length <= 10:
-        raise RtwalkError("--ao-length must be within (0, 10] (fraction of the scene diagonal)")
-    s.perturb_deg, s.ao_length, s.exposure = args.perturb, args.ao_length, args.exposure
-    return s
-
-
-def scene_from_args(args, recording=None):
-    """Scene named on the command line, else the recording's scene, else the default city."""
-    from viewer.session import prepare_scene
-
-    spec, size, seed = args.scene, args.scene_size, args.seed
-    if spec is None and recording is not None:
-        from viewer.recording import resolve_scene_spec
-
-        rs = resolve_scene_spec(recording)
-        spec = rs.spec
-        size = size if size is not None else rs.size
-        seed = rs.seed if rs.seed is not None else seed
-    return prepare_scene(spec, scene_size=size, seed=seed, mirror_patterns=args.mirror, quiet=args.quiet)
 
 
 def cmd_render(args) -> int:
     from PIL import Image
 
-    from viewer.gpu import create_headless_context
+    from viewer.gl.context import create_headless_context
     from viewer.passes.shade import VIEW_MODES
     from viewer.recording import load_recording
     from viewer.renderer import Renderer
 
     if args.view not in VIEW_MODES:
         raise RtwalkError(f"unknown --view '{args.view}' (choose from {', '.join(VIEW_MODES)})")
-    rec = load_recording(args.recording) if args.recording else None
+    backend_options = backend_options_from(args)  # unknown backend / bad parameters: before any loading
     size = parse_size(args.size)
     settings = settings_from(args)
-    backend_options = backend_options_from(args)
+    rec = load_recording(args.recording) if args.recording else None
     prepared = scene_from_args(args, rec)
     if args.camera:
         camera = parse_camera(args.camera)
@@ -139,18 +63,20 @@ def cmd_render(args) -> int:
 
 def cmd_bench(args) -> int:
     from viewer.bench import BenchOptions, print_summary, run_bench, write_report
-    from viewer.gpu import create_headless_context
+    from viewer.gl.context import create_headless_context
     from viewer.recording import load_recording
 
     rec_path = args.recording or (DEFAULT_RECORDING if args.scene in (None, "city") else None)
     if rec_path is None:
         raise RtwalkError("bench needs --recording FILE for this scene (see recordings/)")
-    rec = load_recording(rec_path)
+    backend_options = backend_options_from(args)  # unknown backend / bad parameters: before any loading
+    size = parse_size(args.size)
     settings = settings_from(args)
-    opts = BenchOptions(backend=args.backend, size=parse_size(args.size), fps=args.fps,
+    rec = load_recording(rec_path)
+    opts = BenchOptions(backend=args.backend, size=size, fps=args.fps,
                         max_frames=args.frames, reference=args.reference, reference_every=args.reference_every,
                         frames_dir=Path(args.save_frames) if args.save_frames else None,
-                        frame_every=args.frame_every, backend_options=backend_options_from(args),
+                        frame_every=args.frame_every, backend_options=backend_options,
                         first_frame=getattr(args, "first_frame", None))
     prepared = scene_from_args(args, rec)
     ctx = create_headless_context()
@@ -185,7 +111,7 @@ def cmd_bench_bvh(args) -> int:
 
 
 def cmd_bench_chcrt(args) -> int:
-    from viewer.bench_chcrt import cmd_bench_chcrt as run
+    from viewer.bench.chcrt import cmd_bench_chcrt as run
 
     return run(args)
 
@@ -257,7 +183,7 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--out", default="out/bench", help="folder for the JSON report and plot")
     b.add_argument("--name", default=None, help="report file stem")
 
-    from viewer.bench_chcrt import add_arguments as add_bench_chcrt_args
+    from viewer.bench.chcrt import add_arguments as add_bench_chcrt_args
 
     bc = sub.add_parser("bench-chcrt", help="CHC+RT paper tables: glsl vs chcrt, aggressive mode, phases, overhead")
     add_bench_chcrt_args(bc)

@@ -16,21 +16,16 @@ from viewer.accel.bvh import BVH, build_bvh
 from viewer.backends import create_backend
 from viewer.backends.base import BackendContext
 from viewer.effects import RayType
-from viewer.gpu import GpuScene, ProgramCache, create_headless_context
+from viewer.gl.context import shared_context  # noqa: F401  (tools import it from here too)
+from viewer.gl.programs import ProgramCache
+from viewer.gl.scene import GpuScene
 from viewer.profiler import GpuProfiler
 from viewer.rays import HitBuffer, PassInfo, RayBatch
 from viewer.scene import Material, Scene
 
-_CTX: moderngl.Context | None = None
 _CACHE: dict[str, tuple[Scene, BVH, GpuScene, ProgramCache]] = {}
 ROW = 1024  # rays are laid out in a texture ROW wide
 
-
-def shared_context() -> moderngl.Context:
-    global _CTX
-    if _CTX is None:
-        _CTX = create_headless_context()
-    return _CTX
 
 
 def _prepared(ctx: moderngl.Context, triangles: np.ndarray):

@@ -14,7 +14,8 @@ from dataclasses import dataclass, field
 import moderngl
 import numpy as np
 
-from viewer.gpu import ProgramCache
+from viewer.gl.bindings import BIND_WORK
+from viewer.gl.programs import ProgramCache
 from viewer.profiler import GpuProfiler
 
 
@@ -40,7 +41,6 @@ class BackendContext:
 
 WORK_SLOTS = ("invocations", "nodes", "box_tests", "tri_tests",
               "query_fragments", "query_nodes", "query_box_tests", "query_tri_tests")
-BIND_WORK = 9
 
 
 class WorkCounters:

@@ -58,17 +58,24 @@ from viewer.backends.chcrt_front import INNER, INVISIBLE, VISIBLE, NodeTables, P
 from viewer.backends.interface import BackendInfo, OverlaySpec
 from viewer.effects import RayType
 from viewer.errors import RtwalkError
-from viewer.gpu import FullscreenQuad, float_texture, int_texture
+from viewer.gl.bindings import (
+    BIND_CHC_COUNT,
+    BIND_CHC_DRAWS,
+    BIND_CHC_ITEMS,
+    BIND_CHC_QUERY_COUNTS,
+    BIND_IMG_CHC_BATCH,
+    BIND_IMG_CHC_BEST,
+    BIND_IMG_CHC_OVERDRAW,
+)
+from viewer.gl.buffers import StreamBuffer
+from viewer.gl.programs import FullscreenQuad
+from viewer.gl.textures import float_depth_texture, float_texture, int_texture
 from viewer.rays import HitBuffer, PassInfo, RayBatch
 
 ITEM_DTYPE = np.dtype([("bmin", "<f4", 3), ("ref", "<i4"), ("bmax", "<f4", 3), ("count", "<i4"),
                        ("id", "<i4"), ("pad", "<i4", 3)])
 assert ITEM_DTYPE.itemsize == 48
 DRAW_DTYPE = np.dtype([("rect", "<i4", 4), ("info", "<i4", 4)])  # x, y, w, h; item base, count, query slot
-BIND_ITEMS = 5
-BIND_COUNT = 6
-BIND_DRAWS = 7
-BIND_QUERY_COUNTS = 8
 QUERY_MODES = ("batched", "hw")
 COUNT_SLOTS = 64
 MAX_BOXES = 48  # boxes per query draw (max_multi pairs x 2 child boxes)
@@ -105,71 +112,6 @@ class ChcrtParams:
             raise RtwalkError(f"{source}: t_q and min_tile_fraction must be > 0, thresholds >= 0, counts >= 1")
 
 
-_GL_TEXTURE_2D = 0x0DE1
-_GL_TEXTURE_BINDING_2D = 0x8069
-_GL_DEPTH_COMPONENT = 0x1902
-_GL_DEPTH_COMPONENT32F = 0x8CAC
-_GL_FLOAT = 0x1406
-_GL_TEXTURE_DEPTH_SIZE = 0x884A
-_GL_TEXTURE_DEPTH_TYPE = 0x8C16
-_gl_funcs: dict | None = None
-
-
-def _gl() -> dict:
-    """A few core GL entry points through GLVND's libOpenGL (dispatches to the current context,
-    EGL or GLX alike): moderngl has no way to ask for a DEPTH_COMPONENT32F texture."""
-    global _gl_funcs
-    if _gl_funcs is None:
-        import ctypes
-
-        lib = None
-        for name in ("libOpenGL.so.0", "libGL.so.1", "libGL.so"):
-            try:
-                lib = ctypes.CDLL(name)
-                break
-            except OSError:
-                continue
-        if lib is None:
-            raise RtwalkError("chcrt: cannot load libOpenGL/libGL for the float depth buffer")
-        u, i, vp = ctypes.c_uint, ctypes.c_int, ctypes.c_void_p
-        pi = ctypes.POINTER(ctypes.c_int)
-        spec = {"glBindTexture": [u, u], "glTexImage2D": [u, i, i, i, i, i, u, u, vp],
-                "glGetIntegerv": [u, pi], "glGetTexLevelParameteriv": [u, i, u, pi]}
-        _gl_funcs = {}
-        for name, args in spec.items():
-            f = getattr(lib, name)
-            f.argtypes = args
-            f.restype = None
-            _gl_funcs[name] = f
-        _gl_funcs["ctypes"] = ctypes
-    return _gl_funcs
-
-
-def float_depth_texture(ctx: moderngl.Context, size: tuple[int, int]) -> moderngl.Texture:
-    """A depth texture with DEPTH_COMPONENT32F storage (moderngl's depth_texture is 24-bit fixed
-    point, which would quantise ray distances): moderngl's texture, storage re-specified."""
-    tex = ctx.depth_texture(size)
-    for _ in range(16):  # clear errors left by others: the check below must see only ours
-        if ctx.error == "GL_NO_ERROR":
-            break
-    gl = _gl()
-    ct = gl["ctypes"]
-    prev = ct.c_int(0)
-    gl["glGetIntegerv"](_GL_TEXTURE_BINDING_2D, ct.byref(prev))
-    gl["glBindTexture"](_GL_TEXTURE_2D, tex.glo)
-    gl["glTexImage2D"](_GL_TEXTURE_2D, 0, _GL_DEPTH_COMPONENT32F, size[0], size[1], 0, _GL_DEPTH_COMPONENT,
-                       _GL_FLOAT, None)
-    bits, kind = ct.c_int(0), ct.c_int(0)
-    gl["glGetTexLevelParameteriv"](_GL_TEXTURE_2D, 0, _GL_TEXTURE_DEPTH_SIZE, ct.byref(bits))
-    gl["glGetTexLevelParameteriv"](_GL_TEXTURE_2D, 0, _GL_TEXTURE_DEPTH_TYPE, ct.byref(kind))
-    gl["glBindTexture"](_GL_TEXTURE_2D, prev.value)
-    err = ctx.error
-    if bits.value != 32 or kind.value != _GL_FLOAT or err != "GL_NO_ERROR":
-        tex.release()
-        raise RtwalkError(f"chcrt: could not create a 32-bit float depth buffer ({bits.value} bits, {err})")
-    return tex
-
-
 class _Targets:
     """GL objects at one ray-batch size."""
 
@@ -204,31 +146,6 @@ class _Targets:
                     self.subtree, self.batch, self.gather_o, self.gather_d):
             if obj is not None:
                 obj.release()
-
-
-class _StreamBuffer:
-    """An SSBO of records, re-specified (orphaned) before every upload so draws still queued keep
-    their data and the upload never waits for them."""
-
-    def __init__(self, ctx: moderngl.Context, itemsize: int, binding: int, capacity: int = 4096):
-        self.ctx = ctx
-        self.itemsize = itemsize
-        self.binding = binding
-        self.capacity = capacity
-        self.buf = ctx.buffer(reserve=self.capacity * itemsize, dynamic=True)
-
-    def upload(self, records: np.ndarray | bytes) -> None:
-        data = records if isinstance(records, bytes) else records.tobytes()
-        n = max(len(data) // self.itemsize, 1)
-        if n > self.capacity:
-            self.buf.release()
-            self.capacity = 1 << (n - 1).bit_length()
-            self.buf = self.ctx.buffer(reserve=self.capacity * self.itemsize, dynamic=True)
-        else:
-            self.buf.orphan(self.capacity * self.itemsize)
-        if data:
-            self.buf.write(data)
-        self.buf.bind_to_storage_buffer(self.binding)
 
 
 PHASES = ("chc:1-intersect-visible", "chc:2-queries", "chc:3-traversal", "chc:4-final-intersect")
@@ -279,9 +196,9 @@ class ChcrtBackend:
             if prog.get("depthScale", None) is not None:
                 prog["depthScale"] = self.depth_scale
         self.quad = FullscreenQuad(self.ctx)
-        self.items = _StreamBuffer(self.ctx, ITEM_DTYPE.itemsize, BIND_ITEMS)
-        self.draws = _StreamBuffer(self.ctx, DRAW_DTYPE.itemsize, BIND_DRAWS)
-        self.query_counts = _StreamBuffer(self.ctx, 4, BIND_QUERY_COUNTS)
+        self.items = StreamBuffer(self.ctx, ITEM_DTYPE.itemsize, BIND_CHC_ITEMS)
+        self.draws = StreamBuffer(self.ctx, DRAW_DTYPE.itemsize, BIND_CHC_DRAWS)
+        self.query_counts = StreamBuffer(self.ctx, 4, BIND_CHC_QUERY_COUNTS)
         self.count_buf = self.ctx.buffer(reserve=4 * COUNT_SLOTS)
         self._zero_counts = bytes(4 * COUNT_SLOTS)
         self.queries: list[moderngl.Query] = []
@@ -380,10 +297,10 @@ class _Pass:
         be.bc.gpu_scene.bind()
         self.rays.origin.use(0)
         self.rays.direction.use(1)
-        tg.best.bind_to_image(0, read=True, write=True)
-        tg.overdraw.bind_to_image(1, read=True, write=True)
-        tg.batch.bind_to_image(2, read=True, write=True)
-        self.be.count_buf.bind_to_storage_buffer(BIND_COUNT)
+        tg.best.bind_to_image(BIND_IMG_CHC_BEST, read=True, write=True)
+        tg.overdraw.bind_to_image(BIND_IMG_CHC_OVERDRAW, read=True, write=True)
+        tg.batch.bind_to_image(BIND_IMG_CHC_BATCH, read=True, write=True)
+        self.be.count_buf.bind_to_storage_buffer(BIND_CHC_COUNT)
 
     def _init(self) -> None:
         ctx = self.ctx

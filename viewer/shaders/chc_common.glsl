@@ -32,15 +32,15 @@ uniform int itemCount;
 #define ITEM_COUNT itemCount
 #endif
 
-layout(r32i, binding = 0) uniform coherent iimage2D bestBits;
-layout(r32i, binding = 1) uniform coherent iimage2D overdraw;
-layout(r32i, binding = 2) uniform coherent iimage2D batchSubtrees;  // overlay: subtrees in the pixel's batches
+layout(r32i, binding = BIND_IMG_CHC_BEST) uniform coherent iimage2D bestBits;
+layout(r32i, binding = BIND_IMG_CHC_OVERDRAW) uniform coherent iimage2D overdraw;
+layout(r32i, binding = BIND_IMG_CHC_BATCH) uniform coherent iimage2D batchSubtrees;  // overlay: subtrees in the pixel's batches
 
 // A box with a payload: query boxes (ref/count unused) or scheduled subtrees (GPU inner-node index,
 // or first triangle + count for a BVH leaf; id = canonical node index and p0/p1 = the subtree's
 // triangle range, for the overlay).
 struct ChcItem { vec3 bmin; int ref; vec3 bmax; int count; int id; int p0; int p1; int p2; };
-layout(std430, binding = 5) readonly buffer ChcItems { ChcItem items[]; };
+layout(std430, binding = BIND_CHC_ITEMS) readonly buffer ChcItems { ChcItem items[]; };
 
 float chcDepth(float t) { return min(t * depthScale, 0.5); }
 float chcKey(float t) { return max(uintBitsToFloat(floatBitsToUint(chcDepth(t)) + 1u), 1e-30); }

@@ -2,7 +2,7 @@
 // overdraw and batch overlays and bestBits (images), sets the depth (1 = active ray, 0 = no ray) and counts
 // active rays.
 #include "chc_common.glsl"
-layout(std430, binding = 6) buffer ChcCount { uint chcActive[]; };
+layout(std430, binding = BIND_CHC_COUNT) buffer ChcCount { uint chcActive[]; };
 layout(location = 0) out float outT;
 layout(location = 1) out int outId;
 layout(location = 2) out int outSub;

@@ -12,7 +12,7 @@
 #include "chc_common.glsl"
 uniform int countOverdraw;
 #ifdef CHC_BATCHED
-layout(std430, binding = 8) buffer ChcQueryCounts { uint chcPassed[]; };
+layout(std430, binding = BIND_CHC_QUERY_COUNTS) buffer ChcQueryCounts { uint chcPassed[]; };
 #endif
 void main() {
     ivec2 px = ivec2(gl_FragCoord.xy);

@@ -3,7 +3,7 @@
 // centre of the tile is covered exactly once) and hands its item range and query slot to the
 // fragment shader. Replaces one scissored draw (and one occlusion query object) per record.
 struct ChcDraw { ivec4 rect; ivec4 info; };  // rect = x, y, w, h; info = item base, count, query slot
-layout(std430, binding = 7) readonly buffer ChcDraws { ChcDraw draws[]; };
+layout(std430, binding = BIND_CHC_DRAWS) readonly buffer ChcDraws { ChcDraw draws[]; };
 uniform ivec2 raySize;
 flat out int vItemBase;
 flat out int vItemCount;

@@ -12,7 +12,7 @@
 // slots [base, base+4) of workTotals: invocations, nodes fetched, box tests, triangle tests.
 #ifdef COUNT_WORK
 uint workNode = 0u, workBox = 0u, workTri = 0u;
-layout(std430, binding = 9) buffer WorkCounters { uint workTotals[16]; };
+layout(std430, binding = BIND_WORK) buffer WorkCounters { uint workTotals[16]; };
 #define WORK(v) (v += 1u)
 void workFlush(int base) {
     atomicAdd(workTotals[base], 1u);

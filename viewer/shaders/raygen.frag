@@ -22,7 +22,7 @@ uniform float rayLength;    // AO / diffuse ray length
 uniform uint stream;        // decorrelates the per-pixel random numbers of different ray types
 uniform isampler2D gId;
 
-layout(std430, binding = 3) buffer Counters { uint counters[]; };
+layout(std430, binding = BIND_COUNTERS) buffer Counters { uint counters[]; };
 layout(location = 0) out vec4 outOrigin;
 layout(location = 1) out vec4 outDir;
 

@@ -4,9 +4,9 @@
 struct Node { vec3 lmin; int left; vec3 lmax; int right; vec3 rmin; int lcount; vec3 rmax; int rcount; };
 struct Tri { vec3 v0; int id; vec3 v1; int mat; vec3 v2; int pad; };
 
-layout(std430, binding = 0) readonly buffer Nodes { Node nodes[]; };
-layout(std430, binding = 1) readonly buffer Tris { Tri tris[]; };
-layout(std430, binding = 2) readonly buffer Materials { vec4 materials[]; };  // rgb albedo, a = mirror
+layout(std430, binding = BIND_NODES) readonly buffer Nodes { Node nodes[]; };
+layout(std430, binding = BIND_TRIS) readonly buffer Tris { Tri tris[]; };
+layout(std430, binding = BIND_MATERIALS) readonly buffer Materials { vec4 materials[]; };  // rgb albedo, a = mirror
 
 vec3 triNormal(int id) {
     Tri t = tris[id];

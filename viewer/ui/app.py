@@ -28,6 +28,7 @@ import numpy as np
 
 from viewer.camera import Camera
 from viewer.errors import RtwalkError
+from viewer.gl.programs import ProgramCache
 from viewer.ui.camera_controller import FlyCamera
 from viewer.ui.panel import (
     PANEL_WIDTH,
@@ -45,22 +46,6 @@ RECORDING_DIR = Path("recordings")
 MAX_DT = 0.25  # a stall (scene switch, screenshot) must not throw the camera across the scene
 NO_DISPLAY_HINT = "use `rtwalk render`/`rtwalk bench` or run under xvfb-run (e.g. xvfb-run -a rtwalk view)"
 
-_BLIT_VS = """
-#version 330 core
-out vec2 uv;
-void main() {
-    vec2 p = vec2(float((gl_VertexID << 1) & 2), float(gl_VertexID & 2));
-    uv = p;
-    gl_Position = vec4(p * 2.0 - 1.0, 0.0, 1.0);
-}
-"""
-_BLIT_FS = """
-#version 330 core
-uniform sampler2D image;
-in vec2 uv;
-out vec4 color;
-void main() { color = vec4(texture(image, uv).rgb, 1.0); }
-"""
 
 
 def log(msg: str) -> None:
@@ -159,7 +144,7 @@ def _first_line(exc: BaseException) -> str:
 
 def run_viewer(args) -> int:
     from viewer.backends import BACKENDS
-    from viewer.cli import backend_options_from, parse_size, scene_from_args, settings_from
+    from viewer.cli_args import backend_options_from, parse_size, scene_from_args, settings_from
     from viewer.recording import load_recording
 
     max_frames = frame_limit(args)
@@ -254,7 +239,8 @@ class ViewerApp:
                                           keys.LEFT_SHIFT: imgui.Key.left_shift,
                                           keys.RIGHT_SHIFT: imgui.Key.right_shift})
 
-        self.blit = self.ctx.program(vertex_shader=_BLIT_VS, fragment_shader=_BLIT_FS)
+        self.programs = ProgramCache(self.ctx)  # the window's own programs (the blit)
+        self.blit = self.programs.get("fullscreen.vert", "blit.frag")
         self.blit["image"] = 0
         self.blit_vao = self.ctx.vertex_array(self.blit, [])
         self.sampler = self.ctx.sampler(filter=(moderngl.LINEAR, moderngl.LINEAR), repeat_x=False,
@@ -544,6 +530,7 @@ class ViewerApp:
         ctx.clear(0.0, 0.0, 0.0, 1.0)
         self.sampler.use(0)
         self.renderer.final_texture.use(0)
+        self.blit["viewport"] = (float(w), float(h))
         self.blit_vao.render(moderngl.TRIANGLES, vertices=3)
         self.sampler.clear(0)  # the renderer's passes sample integer textures on unit 0 unfiltered
 
@@ -605,8 +592,9 @@ class ViewerApp:
             implot.destroy_context()
             imgui.destroy_context()
         finally:
-            for obj in (self.blit_vao, self.blit, self.sampler):
+            for obj in (self.blit_vao, self.sampler):
                 obj.release()
+            self.programs.release()
             self.renderer.release()
 
 

@@ -1,4 +1,5 @@
-"""Deterministic replay benchmark: time per phase, rays per type, Mrays/s and error vs Embree.
+"""`rtwalk bench`: deterministic replay of a recording: time per phase, rays per type, Mrays/s and
+error vs Embree.
 
 Frames are sampled from the recording at a fixed rate (never the wall clock). Timing frames are
 rendered without readbacks; frames checked against the reference are rendered a second time with
@@ -7,7 +8,6 @@ capture on (same rays: the pipeline is deterministic), so error checks never pol
 
 from __future__ import annotations
 
-import json
 import sys
 from dataclasses import dataclass
 from pathlib import Path
@@ -16,10 +16,11 @@ import numpy as np
 from tqdm import tqdm
 
 from viewer.backends.interface import params_text
+from viewer.bench.harness import frame_numbers, frame_row, image_error
+from viewer.bench.plots import figure, finish, stacked
+from viewer.bench.report import write_json
 from viewer.effects import EffectSettings
-from viewer.errors import RtwalkError
-from viewer.recording import Recording
-from viewer.renderer import FrameReport, Renderer
+from viewer.renderer import Renderer
 from viewer.session import PreparedScene
 
 
@@ -34,41 +35,8 @@ class BenchOptions:
     warmup: int = 1
     frames_dir: Path | None = None  # write PNG frames here (every `frame_every` frames)
     frame_every: int = 10
-    backend_options: dict[str, str] | None = None  # per backend: parameter text (e.g. --chcrt)
+    backend_options: dict[str, str] | None = None  # per backend: parameter text (--backend-params)
     first_frame: int | None = None  # consecutive frames from here (None: spread over the path)
-
-
-def frame_numbers(rec: Recording, fps: float | None, max_frames: int | None,
-                  first_frame: int | None = None) -> list[int]:
-    """Frames to replay: all, `max_frames` spread over the path, or consecutive from `first_frame`
-    (what temporal-coherence methods need: spread frames are far apart in time)."""
-    n = rec.frame_count(fps)
-    if first_frame is not None:
-        if not 0 <= first_frame < n:
-            raise RtwalkError(f"--first-frame {first_frame} is outside the recording's 0..{n - 1}")
-        return list(range(first_frame, min(n, first_frame + (max_frames or n))))
-    if max_frames is not None and max_frames < n:
-        # spread the frames over the whole path, still deterministic
-        return sorted({int(round(i * (n - 1) / max(max_frames - 1, 1))) for i in range(max_frames)})
-    return list(range(n))
-
-
-def _mrays(rep: FrameReport) -> dict[str, float]:
-    out = {}
-    for ray, count in rep.rays.items():
-        ms = rep.trace_ms_by_ray.get(ray, 0.0)
-        out[ray] = count / (ms * 1e3) if ms > 0 else float("nan")
-    total_ms = rep.trace_ms
-    out["all"] = sum(rep.rays.values()) / (total_ms * 1e3) if total_ms > 0 else float("nan")
-    return out
-
-
-def frame_row(rep: FrameReport, rec: Recording, n: int, fps: float | None = None) -> dict:
-    """One frame's numbers as stored in reports (shared with `rtwalk bench-chcrt`)."""
-    return {"frame": n, "time_s": float(rec.frame_times(fps)[n]), "wall_ms": rep.wall_ms,
-            "gpu_ms": rep.gpu_ms, "cpu_ms": rep.cpu_ms, "trace_ms": rep.trace_ms,
-            "trace_ms_by_ray": rep.trace_ms_by_ray, "rays": rep.rays,
-            "mrays_per_s": _mrays(rep), "backend_stats": rep.backend_stats}
 
 
 def reference_errors(renderer: Renderer, camera, tracer) -> dict:
@@ -132,15 +100,7 @@ def save_overlay_views(renderer: Renderer, camera, folder: Path, frame: int) -> 
     return saved
 
 
-def image_error(a: np.ndarray, b: np.ndarray) -> dict:
-    diff = np.abs(a.astype(np.float64) - b.astype(np.float64))
-    mse = float((diff ** 2).mean())
-    return {"mae": float(diff.mean()), "max": float(diff.max()),
-            "psnr_db": float(10 * np.log10(255.0 ** 2 / mse)) if mse > 0 else float("inf"),
-            "pixels_over_8": float((diff.max(axis=-1) > 8).mean())}
-
-
-def run_bench(prepared: PreparedScene, rec: Recording, settings: EffectSettings, opts: BenchOptions,
+def run_bench(prepared: PreparedScene, rec, settings: EffectSettings, opts: BenchOptions,
               ctx, quiet: bool = False) -> dict:
     renderer = Renderer(ctx, prepared.scene, prepared.bvh, opts.size, opts.backend, settings, opts.backend_options)
     tracer = None
@@ -166,7 +126,7 @@ def run_bench(prepared: PreparedScene, rec: Recording, settings: EffectSettings,
             err = reference_errors(renderer, cam, tracer)
             image = err["image"]
             row["error"] = err["rays"]
-            renderer.set_backend("embree")
+            renderer.set_backend(opts.reference)  # the reference image: the backend of that name
             renderer.render(cam)
             ref_image = renderer.read_image()
             renderer.set_backend(opts.backend)
@@ -253,29 +213,18 @@ def print_summary(report: dict, out=sys.stdout) -> None:
 def write_report(report: dict, out_dir: Path, stem: str) -> tuple[Path, Path]:
     out_dir.mkdir(parents=True, exist_ok=True)
     json_path = out_dir / f"{stem}.json"
-    json_path.write_text(json.dumps(report, indent=1, default=float))
+    write_json(json_path, report)
     png_path = out_dir / f"{stem}.png"
     plot_phases(report, png_path)
     return json_path, png_path
 
 
 def plot_phases(report: dict, path: Path) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+    """GPU time per phase over the replayed frames, stacked."""
     frames = [r["frame"] for r in report["frames"]]
-    phases = list(report["summary"]["gpu_ms_mean"])
-    data = np.array([[r["gpu_ms"].get(p, 0.0) for r in report["frames"]] for p in phases])
-    fig, ax = plt.subplots(figsize=(9, 4.5), dpi=110)
-    ax.stackplot(frames, data, labels=phases, step="mid")
+    layers = {p: [r["gpu_ms"].get(p, 0.0) for r in report["frames"]] for p in report["summary"]["gpu_ms_mean"]}
+    fig, ax = figure(size=(9, 4.5))
     w, h = report["size"]
-    ax.set_title(f"{report['scene_name']} - {report['backend']} - {w}x{h}: GPU time per phase")
-    ax.set_xlabel("frame")
-    ax.set_ylabel("ms")
-    ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=7)
-    ax.grid(alpha=0.3)
-    fig.tight_layout()
-    fig.savefig(path)
-    plt.close(fig)
+    stacked(ax, frames, layers, ylabel="ms", xlabel="frame", area=True,
+            title=f"{report['scene_name']} - {report['backend']} - {w}x{h}: GPU time per phase")
+    finish(fig, path)

@@ -29,7 +29,6 @@ One GL context; each scene is loaded once per command.
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import sys
 import time
@@ -40,12 +39,16 @@ from pathlib import Path
 import numpy as np
 
 from viewer.backends.interface import params_text
+from viewer.bench.estimate import CostModel, format_estimate, run_estimate, scenes_estimate
+from viewer.bench.gl_micro import MicroResult, micro_overheads
+from viewer.bench.harness import PROTOCOL, Harness, RunResult, RunSpec, effect_settings, is_trace_phase, load_average
+from viewer.bench.plots import barh, figure, finish, points, stacked
+from viewer.bench.report import fmt, md_table, notes_md, ratio, size_text, write_study
 from viewer.errors import RtwalkError
 
 STUDIES = ("table2", "table4", "phases", "overhead", "tuning")
-RECORDINGS_DIR = Path(__file__).resolve().parents[1] / "recordings"
+RECORDINGS_DIR = Path(__file__).resolve().parents[2] / "recordings"
 DEFAULT_RECORDINGS = ("city-near", "city-far", "sponza-walk", "sibenik-walk", "conference-walk")
-TRACE_PREFIXES = ("trace:", "chc:")  # GPU phases that are ray tracing (glsl/embree, chcrt)
 PHASE_COUNTERS = ("queries", "multi_queries", "failed_multi_queries", "subtrees_scheduled", "draws",
                   "intersect_draws")
 FORMAT = "rtwalk-bench-chcrt"
@@ -95,13 +98,6 @@ def resolve_recording(text: str) -> Path:
     raise RtwalkError(f"unknown recording '{text}': no such file (shipped: {names})")
 
 
-def effect_settings(effect: str):
-    """One run's effects: 'ao:20', or several joined with '+' (or ',')."""
-    from viewer.effects import parse_effects
-
-    return parse_effects(effect.replace("+", ","))
-
-
 def _split(text: str) -> list[str]:
     return [t.strip() for t in text.split(",") if t.strip()]
 
@@ -126,7 +122,7 @@ def effective_params(*texts: str | None) -> str:
 
 def options_from_args(args: argparse.Namespace) -> StudyOptions:
     """Check all input up front (bad input fails in a second, not after an hour)."""
-    from viewer.cli import parse_size
+    from viewer.cli_args import parse_size
 
     studies: list[str] = []
     for s in _split(args.study or "all"):
@@ -226,48 +222,19 @@ def options_from_args(args: argparse.Namespace) -> StudyOptions:
 # Steady-state microseconds per ray and cold-frame factors (first frame after a reset), fitted to
 # city-near at 320x180 and 640x360 on the machine this was written on (2 cores, Mesa llvmpipe,
 # shared with other jobs). Only for the up-front estimate; tqdm shows the real rate.
-_US_PER_RAY = {("glsl", "primary"): 1.0, ("glsl", "ao"): 1.2, ("glsl", "diffuse"): 1.6,
-               ("chcrt", "primary"): 1.3, ("chcrt", "ao"): 2.2, ("chcrt", "diffuse"): 3.2}
-_US_PER_RAY_OTHER = {"glsl": 1.2, "chcrt": 2.5}
-_COLD_FACTOR = {"primary": 2.7, "ao": 2.6, "diffuse": 3.4}  # chcrt only; others 3.0
-_US_PER_PIXEL_FRAME = 1.7  # G-buffer + shading
-_US_PER_PIXEL_PASS = 0.26  # ray generation + accumulation, per sample pass
-_RUN_FIXED_S = 0.5  # renderer, shader variants
-_SCENE_LOAD_S = {"builtin": 1.0, "file": 6.0}
+COST = {"glsl": CostModel({"primary": 1.0, "ao": 1.2, "diffuse": 1.6}, 1.2),
+        "chcrt": CostModel({"primary": 1.3, "ao": 2.2, "diffuse": 3.2}, 2.5,
+                           cold_factor={"primary": 2.7, "ao": 2.6, "diffuse": 3.4}, cold_default=3.0,
+                           scales_aggressive=True)}
 _MICRO_S = 10.0
 
 
-def estimate_frame_s(backend: str, effect: str, size: tuple[int, int], cold: bool = False,
-                     aggressive: float = 1.0, warm_up: bool = False) -> float:
-    """Model of one frame's wall time (seconds) from rays per pass and a per-ray cost."""
-    s = effect_settings(effect)
-    if warm_up:
-        s.soft_samples = s.ao_samples = s.diffuse_samples = 1
-    px = size[0] * size[1]
-    from viewer.effects import EFFECT_NAMES
-
-    total_us = px * _US_PER_PIXEL_FRAME
-    for name in EFFECT_NAMES:
-        if not getattr(s, name):
-            continue
-        passes = {"soft": s.soft_samples, "ao": s.ao_samples, "diffuse": s.diffuse_samples}.get(name, 1)
-        per_ray = _US_PER_RAY.get((backend, name), _US_PER_RAY_OTHER.get(backend, 1.0))
-        if backend == "chcrt":
-            per_ray *= aggressive * (_COLD_FACTOR.get(name, 3.0) if cold else 1.0)
-        total_us += passes * px * (per_ray + _US_PER_PIXEL_PASS)
-    return total_us / 1e6
-
-
 def _run_estimate(backend: str, effect: str, size: tuple[int, int], frames: int, aggressive: float = 1.0) -> float:
-    return (_RUN_FIXED_S + estimate_frame_s(backend, effect, size, True, aggressive, warm_up=True)
-            + estimate_frame_s(backend, effect, size, True, aggressive)
-            + (frames - 1) * estimate_frame_s(backend, effect, size, False, aggressive))
+    return run_estimate(COST[backend], effect, size, frames, aggressive)
 
 
 def estimate(o: StudyOptions) -> dict[str, float]:
     """Seconds per study (and 'scenes' for loading), from the cost model above."""
-    from viewer.recording import load_recording
-
     out: dict[str, float] = {}
     scene_recs = set()
     if "table2" in o.studies:
@@ -302,208 +269,33 @@ def estimate(o: StudyOptions) -> dict[str, float]:
         out["tuning"] = sum(n * _run_estimate("chcrt", e, o.sizes[0], o.frames) * 1.5
                             + _run_estimate("glsl", e, o.sizes[0], o.frames) for e in o.tuning_effects)
         scene_recs.add(o.overhead_recording)
-    specs = {}
-    for p in scene_recs:
-        rec = load_recording(p)
-        specs[json.dumps(rec.scene, sort_keys=True)] = "builtin" if "builtin" in rec.scene else "file"
-    out["scenes"] = sum(_SCENE_LOAD_S[k] for k in specs.values())
+    out["scenes"] = scenes_estimate(scene_recs)
     return out
-
-
-def format_estimate(est: dict[str, float]) -> str:
-    parts = ", ".join(f"{k} {v / 60:.1f} min" for k, v in est.items())
-    return f"estimate: {sum(est.values()) / 60:.0f} min ({parts}; model of a 2-core llvmpipe machine)"
 
 
 # ----------------------------------------------------------------------------------------- runs
 
-
-@dataclass
-class FrameStats:
-    """Means over a set of frames (cold: the first frame alone; steady: the rest)."""
-
-    frames: int
-    trace_ms: float  # GPU time of the tracing phases (trace:* / chc:*)
-    trace_cpu_ms: float  # CPU time inside those phases (Python, submission, waits for query results)
-    wall_ms: float  # whole frame, glFinish included
-    gpu_ms: float  # all GPU phases
-    rays: float
-    mrays_per_s: float  # rays / trace_ms
-    counters: dict[str, float]
-
-    @staticmethod
-    def of(rows: list[dict]) -> FrameStats:
-        def mean(vals) -> float:
-            vals = [float(v) for v in vals]
-            return float(np.mean(vals)) if vals else float("nan")
-
-        keys = sorted({k for r in rows for k in r["backend_stats"]})
-        trace = mean(r["trace_gpu_ms"] for r in rows)
-        rays = mean(sum(r["rays"].values()) for r in rows)
-        return FrameStats(len(rows), trace, mean(r["trace_cpu_ms"] for r in rows), mean(r["wall_ms"] for r in rows),
-                          mean(sum(r["gpu_ms"].values()) for r in rows), rays,
-                          rays / (trace * 1e3) if trace > 0 else float("nan"),
-                          {k: mean(r["backend_stats"].get(k, 0.0) for r in rows) for k in keys})
+CHC_PHASES: tuple[str, ...] = ()  # filled on first use from the backend's info (chcrt's own phases)
 
 
-@dataclass
-class RunResult:
-    """One configuration over consecutive frames: the raw per-frame rows and their summaries."""
+def chc_phases() -> tuple[str, ...]:
+    global CHC_PHASES
+    if not CHC_PHASES:
+        from viewer.backends import backend_info
 
-    label: str
-    recording: str
-    scene: str
-    size: tuple[int, int]
-    effect: str
-    backend: str
-    params: str | None  # effective chcrt parameters (None for other backends)
-    frame_numbers: list[int]
-    frames: list[dict]
-    cold: FrameStats
-    steady: FrameStats
-
-    @property
-    def best(self) -> FrameStats:
-        """Steady state where there is one (>= 2 frames), else the cold frame."""
-        return self.steady if self.steady.frames else self.cold
+        CHC_PHASES = tuple(backend_info("chcrt").phases)
+    return CHC_PHASES
 
 
-def _load_average() -> list[float] | None:
-    try:
-        return [round(v, 2) for v in os.getloadavg()]
-    except OSError:
-        return None
-
-
-ImageSink = Callable[[int, int, np.ndarray], None]
-
-
-@dataclass
-class RunSpec:
-    """One configuration to time: label, effect, backend, chcrt parameter text, image consumer."""
-
-    label: str
-    effect: str
-    backend: str
-    params: str | None = None
-    sink: ImageSink | None = None
-
-
-class Bench:
-    """One GL context and a scene cache shared by all studies of a command."""
+class Bench(Harness):
+    """The harness with this command's options; the studies read both."""
 
     def __init__(self, o: StudyOptions):
-        from viewer.profiler import choose_timing
-        from viewer.tracing import shared_context
-
+        super().__init__(o.frames, o.first_frame, o.quiet)
         self.o = o
-        self.ctx = shared_context()
-        self.device = {"renderer": self.ctx.info.get("GL_RENDERER"), "version": self.ctx.info.get("GL_VERSION"),
-                       "phase_timing": choose_timing(self.ctx)}
-        self.device_text = f"{self.device['renderer']} (phase times: {self.device['phase_timing']})"
-        self._scenes: dict[str, object] = {}
-        self._recs: dict[Path, object] = {}
-        self.load_at_start = _load_average()
-        self.bar = None
-
-    def recording(self, path: Path):
-        from viewer.recording import load_recording
-
-        if path not in self._recs:
-            self._recs[path] = load_recording(path)
-        return self._recs[path]
-
-    def scene(self, path: Path):
-        """The recording's scene, prepared (BVH) once per command."""
-        from viewer.recording import resolve_scene_spec
-        from viewer.session import prepare_scene
-
-        rec = self.recording(path)
-        spec = resolve_scene_spec(rec, path)
-        key = json.dumps([spec.spec, spec.size, spec.seed])
-        if key not in self._scenes:
-            if self.bar is not None:
-                self.bar.set_postfix_str(f"loading {Path(spec.spec).name}")
-            self._scenes[key] = prepare_scene(spec.spec, scene_size=spec.size, seed=spec.seed or 1, quiet=True)
-        return self._scenes[key]
-
-    def frames_for(self, path: Path, count: int) -> list[int]:
-        """`count` consecutive frames: from --first-frame, else from a third into the path."""
-        from viewer.bench import frame_numbers
-
-        rec = self.recording(path)
-        n = rec.frame_count()
-        first = self.o.first_frame
-        if first is None:
-            first = max(0, min(n // 3, n - count))
-        return frame_numbers(rec, None, count, first)
-
-    def run(self, label: str, path: Path, size: tuple[int, int], effect: str, backend: str,
-            params: str | None = None, frames: list[int] | None = None, sink: ImageSink | None = None) -> RunResult:
-        """One configuration (see run_many)."""
-        return self.run_many(path, size, [RunSpec(label, effect, backend, params, sink)], frames)[0]
-
-    def run_many(self, path: Path, size: tuple[int, int], specs: list[RunSpec],
-                 frames: list[int] | None = None) -> list[RunResult]:
-        """Configurations compared with each other, on the same consecutive frames, interleaved frame
-        by frame (each keeps its own renderer and temporal state), so that other jobs on a shared
-        machine slow them alike. Per configuration: warm-up, reset, timed frames (module docstring)."""
-        from viewer.bench import frame_row
-        from viewer.renderer import Renderer
-
-        rec = self.recording(path)
-        prep = self.scene(path)
-        frames = frames if frames is not None else self.frames_for(path, self.o.frames)
-        renderers: list = []
-        rows: list[list[dict]] = [[] for _ in specs]
-        try:
-            for spec in specs:
-                options = {"chcrt": spec.params} if spec.backend == "chcrt" and spec.params else None
-                warm = effect_settings(spec.effect)
-                warm.soft_samples = warm.ao_samples = warm.diffuse_samples = 1  # every pass kind, once
-                r = Renderer(self.ctx, prep.scene, prep.bvh, size, spec.backend, warm, options)
-                renderers.append(r)
-                r.render(rec.camera_for_frame(frames[0]))
-                r.settings = effect_settings(spec.effect)
-                r.backend.reset()
-            for k, n in enumerate(frames):
-                cam = rec.camera_for_frame(n)
-                for i, (spec, r) in enumerate(zip(specs, renderers, strict=True)):
-                    if self.bar is not None:
-                        self.bar.set_postfix_str(f"{path.stem} {size[0]}x{size[1]} {spec.effect} {spec.label}")
-                    rep = r.render(cam)
-                    row = frame_row(rep, rec, n)
-                    row["cold"] = k == 0
-                    row["trace_gpu_ms"] = sum(v for p, v in rep.gpu_ms.items() if p.startswith(TRACE_PREFIXES))
-                    row["trace_cpu_ms"] = sum(v for p, v in rep.cpu_ms.items() if p.startswith(TRACE_PREFIXES))
-                    rows[i].append(row)
-                    if spec.sink is not None:
-                        spec.sink(k, n, r.read_image())
-                    if self.bar is not None:
-                        self.bar.update(1)
-            params = [params_text(r.backend.params) or None
-                      for s, r in zip(specs, renderers, strict=True)]
-        finally:
-            for r in renderers:
-                r.release()
-        return [RunResult(s.label, path.stem, prep.scene.name, size, s.effect, s.backend, params[i], list(frames),
-                          rows[i], FrameStats.of(rows[i][:1]), FrameStats.of(rows[i][1:]))
-                for i, s in enumerate(specs)]
-
-    def progress(self, desc: str, total: int):
-        from tqdm import tqdm
-
-        self.bar = tqdm(total=total, desc=desc, unit="frame", disable=self.o.quiet, file=sys.stderr)
-        return self.bar
-
-    def done(self) -> None:
-        if self.bar is not None:
-            self.bar.close()
-            self.bar = None
 
     def header(self, study: str, o: StudyOptions, extra: dict) -> dict:
         from viewer.backends.chcrt import ChcrtParams
-        from viewer.backends.interface import params_text
 
         return {"format": FORMAT, "version": 1, "study": study, "device": self.device,
                 "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"), "options": asdict(o),
@@ -511,57 +303,10 @@ class Bench:
                                "first_frame": o.first_frame, "chcrt": o.chcrt,
                                "RTWALK_CHCRT": os.environ.get("RTWALK_CHCRT", ""),
                                "chcrt_defaults": params_text(ChcrtParams()), "quick": o.quick, **extra},
-                "load_average": {"command_start": self.load_at_start, "study_end": _load_average(),
+                "load_average": {"command_start": self.load_at_start, "study_end": load_average(),
                                  "cpus": os.cpu_count()},  # other jobs on the machine skew timings
-                "protocol": "warm-up frame (one sample per effect), backend reset; then consecutive frames: "
-                            "the first is the cold frame, the mean of the rest the steady state; configurations "
-                            "compared in one table are interleaved frame by frame",
+                "protocol": PROTOCOL,
                 "notes": list(o.notes)}
-
-
-# ----------------------------------------------------------------------------------------- output
-
-
-def _fmt(v: float | None, nd: int = 1) -> str:
-    if v is None or not np.isfinite(v):
-        return "-"
-    return f"{v:,.{nd}f}"
-
-
-def md_table(headers: list[str], rows: list[list[str]]) -> str:
-    lines = ["| " + " | ".join(headers) + " |", "|" + "|".join("---" for _ in headers) + "|"]
-    lines += ["| " + " | ".join(r) + " |" for r in rows]
-    return "\n".join(lines)
-
-
-def _jsonable(obj):
-    if isinstance(obj, (np.integer,)):
-        return int(obj)
-    if isinstance(obj, (np.floating,)):
-        return float(obj)
-    if isinstance(obj, np.ndarray):
-        return obj.tolist()
-    if isinstance(obj, Path):
-        return str(obj)
-    raise TypeError(f"not JSON serialisable: {type(obj).__name__}")
-
-
-def write_json(path: Path, data: dict) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(json.dumps(data, indent=1, default=_jsonable, allow_nan=True))
-
-
-def _plt():
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    return plt
-
-
-def _size_text(size: tuple[int, int]) -> str:
-    return f"{size[0]}x{size[1]}"
 
 
 # ----------------------------------------------------------------------------------------- table2
@@ -589,13 +334,9 @@ class Table2Row:
     @staticmethod
     def of(g: RunResult, c: RunResult) -> Table2Row:
         gs, cs = g.best, c.best
-        return Table2Row(g.recording, _size_text(g.size), g.effect, gs.rays, gs.trace_ms, gs.wall_ms, cs.trace_ms,
-                         cs.wall_ms, c.cold.trace_ms, c.cold.wall_ms, _ratio(gs.trace_ms, cs.trace_ms),
-                         _ratio(gs.wall_ms, cs.wall_ms), gs.mrays_per_s, cs.mrays_per_s)
-
-
-def _ratio(a: float, b: float) -> float:
-    return a / b if b and np.isfinite(a) and np.isfinite(b) and b > 0 else float("nan")
+        return Table2Row(g.recording, size_text(g.size), g.effect, gs.rays, gs.trace_ms, gs.wall_ms, cs.trace_ms,
+                         cs.wall_ms, c.cold.trace_ms, c.cold.wall_ms, ratio(gs.trace_ms, cs.trace_ms),
+                         ratio(gs.wall_ms, cs.wall_ms), gs.mrays_per_s, cs.mrays_per_s)
 
 
 def study_table2(b: Bench) -> dict:
@@ -626,40 +367,24 @@ def study_table2(b: Bench) -> dict:
         ["recording", "size", "effect", "rays/frame", "glsl trace ms", "glsl frame ms", "chcrt trace ms",
          "chcrt frame ms", "chcrt cold trace ms", "chcrt cold frame ms", "speedup trace", "speedup frame",
          "glsl Mrays/s", "chcrt Mrays/s"],
-        [[r.recording, r.size, r.effect, _fmt(r.rays_per_frame, 0), _fmt(r.glsl_trace_ms), _fmt(r.glsl_frame_ms),
-          _fmt(r.chcrt_trace_ms), _fmt(r.chcrt_frame_ms), _fmt(r.chcrt_cold_trace_ms), _fmt(r.chcrt_cold_frame_ms),
-          _fmt(r.speedup_trace, 2), _fmt(r.speedup_frame, 2), _fmt(r.glsl_mrays_per_s, 2),
-          _fmt(r.chcrt_mrays_per_s, 2)] for r in rows]))
-    md += _notes_md(report["notes"])
+        [[r.recording, r.size, r.effect, fmt(r.rays_per_frame, 0), fmt(r.glsl_trace_ms), fmt(r.glsl_frame_ms),
+          fmt(r.chcrt_trace_ms), fmt(r.chcrt_frame_ms), fmt(r.chcrt_cold_trace_ms), fmt(r.chcrt_cold_frame_ms),
+          fmt(r.speedup_trace, 2), fmt(r.speedup_frame, 2), fmt(r.glsl_mrays_per_s, 2),
+          fmt(r.chcrt_mrays_per_s, 2)] for r in rows]))
+    md += notes_md(report["notes"])
     _plot_table2(rows, o.out / "table2.png", b.device["renderer"])
     return _finish(o, "table2", report, "\n".join(md))
 
 
 def _plot_table2(rows: list[Table2Row], path: Path, device: str) -> None:
-    plt = _plt()
     labels = [f"{r.recording} {r.size} {r.effect}" for r in rows]
-    y = np.arange(len(rows))
-    fig, axes = plt.subplots(1, 2, figsize=(12, 1.2 + 0.32 * len(rows)), dpi=110, sharey=True)
-    ax = axes[0]
-    ax.barh(y - 0.2, [r.glsl_trace_ms for r in rows], 0.4, label="glsl")
-    ax.barh(y + 0.2, [r.chcrt_trace_ms for r in rows], 0.4, label="chcrt")
-    ax.set_xscale("log")
-    ax.set_xlabel("steady trace ms (log)")
-    ax.set_yticks(y, labels, fontsize=7)
-    ax.invert_yaxis()
-    ax.legend(fontsize=8)
-    ax = axes[1]
-    ax.barh(y - 0.2, [r.speedup_trace for r in rows], 0.4, label="trace")
-    ax.barh(y + 0.2, [r.speedup_frame for r in rows], 0.4, label="frame")
-    ax.axvline(1.0, color="k", lw=0.8)
-    ax.set_xlabel("speedup glsl / chcrt")
-    ax.legend(fontsize=8)
-    fig.suptitle(f"CHC+RT Table 2 analog - {device}", fontsize=9)
-    for a in axes:
-        a.grid(alpha=0.3, axis="x")
-    fig.tight_layout()
-    fig.savefig(path)
-    plt.close(fig)
+    fig, axes = figure(1, 2, size=(12, 1.2 + 0.32 * len(rows)), sharey=True)
+    barh(axes[0], labels, {"glsl": [r.glsl_trace_ms for r in rows], "chcrt": [r.chcrt_trace_ms for r in rows]},
+         "steady trace ms (log)", log=True)
+    barh(axes[1], labels, {"trace": [r.speedup_trace for r in rows], "frame": [r.speedup_frame for r in rows]},
+         "speedup glsl / chcrt", ref=1.0)
+    axes[1].invert_yaxis()  # shared y axis: inverted once by each call
+    finish(fig, path, f"CHC+RT Table 2 analog - {device}")
 
 
 # ----------------------------------------------------------------------------------------- table4
@@ -687,7 +412,7 @@ class Table4Row:
 
 def study_table4(b: Bench) -> dict:
     """Paper Table 4: visible_threshold vs time and error against the conservative image."""
-    from viewer.bench import image_error
+    from viewer.bench.harness import image_error
 
     o = b.o
     path = o.table4_recording
@@ -719,15 +444,15 @@ def study_table4(b: Bench) -> dict:
                 runs.append(run)
                 st = run.best
                 rows.append(Table4Row(
-                    label, thr, _size_text(size), st.trace_ms, st.wall_ms, run.cold.trace_ms, run.cold.wall_ms,
+                    label, thr, size_text(size), st.trace_ms, st.wall_ms, run.cold.trace_ms, run.cold.wall_ms,
                     float(np.mean([e["mae"] for e in errs])), float(max(e["max"] for e in errs)),
                     100.0 * float(np.mean([e["pixels_over_8"] for e in errs])),
                     float(min(e["psnr_db"] for e in errs)), st.counters.get("queries", float("nan")),
                     st.counters.get("subtrees_scheduled", float("nan")), [e["mae"] for e in errs]))
-                _save_png(img_dir / f"{path.stem}-{_size_text(size)}-{label.replace(' ', '')}.png", imgs[-1])
+                _save_png(img_dir / f"{path.stem}-{size_text(size)}-{label.replace(' ', '')}.png", imgs[-1])
                 if thr is not None and thr == thresholds[-1] and thr != 0:
                     diff = np.abs(imgs[-1].astype(np.int16) - ref[-1].astype(np.int16)).max(axis=-1)
-                    _save_png(img_dir / f"{path.stem}-{_size_text(size)}-diff-x8-{label.replace(' ', '')}.png",
+                    _save_png(img_dir / f"{path.stem}-{size_text(size)}-diff-x8-{label.replace(' ', '')}.png",
                               np.clip(diff * 8, 0, 255).astype(np.uint8))
     finally:
         b.done()
@@ -742,10 +467,10 @@ def study_table4(b: Bench) -> dict:
     md.append(md_table(
         ["config", "size", "trace ms", "frame ms", "cold trace ms", "cold frame ms", "mean abs error",
          "max error", "% px > 8", "min PSNR dB", "queries/frame", "subtrees/frame"],
-        [[r.config, r.size, _fmt(r.trace_ms), _fmt(r.frame_ms), _fmt(r.cold_trace_ms), _fmt(r.cold_frame_ms),
-          _fmt(r.mae, 3), _fmt(r.max_error, 0), _fmt(r.pct_pixels_over_8, 2), _fmt(r.psnr_min_db, 1),
-          _fmt(r.queries, 0), _fmt(r.subtrees_scheduled, 0)] for r in rows]))
-    md += _notes_md(report["notes"])
+        [[r.config, r.size, fmt(r.trace_ms), fmt(r.frame_ms), fmt(r.cold_trace_ms), fmt(r.cold_frame_ms),
+          fmt(r.mae, 3), fmt(r.max_error, 0), fmt(r.pct_pixels_over_8, 2), fmt(r.psnr_min_db, 1),
+          fmt(r.queries, 0), fmt(r.subtrees_scheduled, 0)] for r in rows]))
+    md += notes_md(report["notes"])
     _plot_table4(rows, o.out / "table4.png", f"{path.stem} {o.table4_effect} - {b.device['renderer']}")
     return _finish(o, "table4", report, "\n".join(md))
 
@@ -757,25 +482,19 @@ def _save_png(path: Path, img: np.ndarray) -> None:
 
 
 def _plot_table4(rows: list[Table4Row], path: Path, title: str) -> None:
-    plt = _plt()
-    fig, ax = plt.subplots(figsize=(7, 4.5), dpi=110)
+    fig, ax = figure(size=(7, 4.5))
     for size in dict.fromkeys(r.size for r in rows):
         rs = [r for r in rows if r.size == size and r.threshold is not None]
-        line = ax.plot([r.mae for r in rs], [r.trace_ms for r in rs], "o-", label=f"chcrt {size}")[0]
-        for r in rs:
-            ax.annotate(f"{r.threshold}px", (r.mae, r.trace_ms), textcoords="offset points", xytext=(4, 4),
-                        fontsize=7)
+        color = points(ax, [r.mae for r in rs], [r.trace_ms for r in rs], [f"{r.threshold}px" for r in rs],
+                       label=f"chcrt {size}", line=True)
         for r in rows:
             if r.size == size and r.threshold is None and np.isfinite(r.trace_ms):
-                ax.axhline(r.trace_ms, ls="--", color=line.get_color(), lw=0.8, label=f"glsl {size}")
+                ax.axhline(r.trace_ms, ls="--", color=color, lw=0.8, label=f"glsl {size}")
     ax.set_xlabel("mean absolute error vs threshold 0 (0..255)")
     ax.set_ylabel("steady trace ms")
     ax.set_title(f"Aggressive CHC+RT: time vs error - {title}", fontsize=8)
-    ax.grid(alpha=0.3)
     ax.legend(fontsize=7)
-    fig.tight_layout()
-    fig.savefig(path)
-    plt.close(fig)
+    finish(fig, path)
 
 
 # ----------------------------------------------------------------------------------------- phases
@@ -800,44 +519,35 @@ def study_phases(b: Bench) -> dict:
     report = b.header("phases", o, {"recording": path.stem, "effect": o.phases_effect, "size": list(size),
                                     "frames_requested": o.phases_frames})
     report.update(phases=phases, counters=counters, run=asdict(run))
-    md = [f"## Figure 8 analog: chcrt phases per frame ({path.stem}, {_size_text(size)}, {o.phases_effect})", "",
+    md = [f"## Figure 8 analog: chcrt phases per frame ({path.stem}, {size_text(size)}, {o.phases_effect})", "",
           f"Device: {b.device_text}. Parameters: {run.params}. GPU ms per phase; 'other' = G-buffer, "
           "ray generation, accumulation, shading. Frame 1 of the run is the cold frame.", ""]
     rows = []
     for r in run.frames:
-        other = sum(v for p, v in r["gpu_ms"].items() if not p.startswith(TRACE_PREFIXES))
+        other = sum(v for p, v in r["gpu_ms"].items() if not is_trace_phase(p, chc_phases()))
         rows.append([str(r["frame"]) + (" (cold)" if r["cold"] else "")]
-                    + [_fmt(r["gpu_ms"].get(p, 0.0)) for p in phases]
-                    + [_fmt(other), _fmt(r["wall_ms"])]
-                    + [_fmt(r["backend_stats"].get(c, float("nan")), 0) for c in counters])
+                    + [fmt(r["gpu_ms"].get(p, 0.0)) for p in phases]
+                    + [fmt(other), fmt(r["wall_ms"])]
+                    + [fmt(r["backend_stats"].get(c, float("nan")), 0) for c in counters])
     md.append(md_table(["frame"] + [p.removeprefix("chc:") + " ms" for p in phases] + ["other ms", "wall ms"]
                        + counters, rows))
-    md += ["", f"Steady mean (frames 2..): trace {_fmt(run.steady.trace_ms)} ms, wall {_fmt(run.steady.wall_ms)} ms; "
-               f"cold frame: trace {_fmt(run.cold.trace_ms)} ms, wall {_fmt(run.cold.wall_ms)} ms."]
-    md += _notes_md(report["notes"])
+    md += ["", f"Steady mean (frames 2..): trace {fmt(run.steady.trace_ms)} ms, wall {fmt(run.steady.wall_ms)} ms; "
+               f"cold frame: trace {fmt(run.cold.trace_ms)} ms, wall {fmt(run.cold.wall_ms)} ms."]
+    md += notes_md(report["notes"])
     _plot_phases(run, phases, counters, o.out / "phases.png", b.device["renderer"])
     return _finish(o, "phases", report, "\n".join(md))
 
 
 def _plot_phases(run: RunResult, phases: list[str], counters: list[str], path: Path, device: str) -> None:
-    plt = _plt()
-    x = np.array([r["frame"] for r in run.frames])
-    fig, (ax, ax2) = plt.subplots(2, 1, figsize=(10, 7), dpi=110, sharex=True,
-                                  gridspec_kw={"height_ratios": [3, 2]})
-    bottom = np.zeros(len(x))
-    for p in phases:
-        v = np.array([r["gpu_ms"].get(p, 0.0) for r in run.frames])
-        ax.bar(x, v, bottom=bottom, width=0.85, label=p.removeprefix("chc:"))
-        bottom += v
-    other = np.array([sum(v for p, v in r["gpu_ms"].items() if not p.startswith(TRACE_PREFIXES))
-                      for r in run.frames])
-    ax.bar(x, other, bottom=bottom, width=0.85, color="0.75", label="other phases")
+    x = [r["frame"] for r in run.frames]
+    fig, (ax, ax2) = figure(2, 1, size=(10, 7), sharex=True, gridspec_kw={"height_ratios": [3, 2]})
+    layers = {p.removeprefix("chc:"): [r["gpu_ms"].get(p, 0.0) for r in run.frames] for p in phases}
+    layers["other phases"] = [sum(v for p, v in r["gpu_ms"].items() if not is_trace_phase(p, chc_phases()))
+                              for r in run.frames]
+    stacked(ax, x, layers, ylabel="GPU ms", colors={"other phases": "0.75"},
+            title=f"CHC+RT phases per frame - {run.recording} {size_text(run.size)} {run.effect} - {device}")
     ax.plot(x, [r["wall_ms"] for r in run.frames], "k.", ms=4, label="frame wall ms")
-    ax.set_ylabel("GPU ms")
-    ax.set_title(f"CHC+RT phases per frame - {run.recording} {_size_text(run.size)} {run.effect} - {device}",
-                 fontsize=9)
     ax.legend(fontsize=7, loc="upper right")
-    ax.grid(alpha=0.3, axis="y")
     for c in counters:
         ax2.plot(x, [r["backend_stats"].get(c, 0.0) for r in run.frames], "o-", ms=3, label=c)
     ax2.set_yscale("symlog")
@@ -846,226 +556,11 @@ def _plot_phases(run: RunResult, phases: list[str], counters: list[str], path: P
     ax2.set_ylabel("count per frame")
     ax2.legend(fontsize=7, ncol=3)
     ax2.grid(alpha=0.3)
-    fig.tight_layout()
-    fig.savefig(path)
-    plt.close(fig)
+    finish(fig, path)
 
 
 # ----------------------------------------------------------------------------------------- overhead
 
-
-@dataclass
-class MicroResult:
-    """One synthetic GL operation: wall time per op, best of the trials (other jobs on a shared
-    machine only ever add time), with the glFinish at the end amortised."""
-
-    name: str
-    ops_per_trial: int
-    trials: int
-    us_per_op: float  # wall, best trial, including the final glFinish
-    submit_us_per_op: float  # CPU time to issue (before the final glFinish), same trial
-    median_us_per_op: float  # wall, median of the trials
-    items_per_op: int = 1  # instances / queries per op
-    us_per_item: float = float("nan")
-    check: str = ""
-    trial_us_per_op: list[float] = field(default_factory=list)
-
-
-_MICRO_VS = """#version 450
-uniform int instanced;
-uniform ivec2 grid;  // instance grid (columns, rows) over the target
-uniform vec2 cell;   // NDC step between grid cells
-uniform vec2 quad;   // NDC size of one instance
-flat out int inst;
-void main() {
-    inst = gl_InstanceID;
-    if (instanced == 0) {  // one big triangle; the scissor box keeps it to a tile
-        gl_Position = vec4(gl_VertexID == 1 ? 3.0 : -1.0, gl_VertexID == 2 ? 3.0 : -1.0, 0.0, 1.0);
-        return;
-    }
-    vec2 corner = vec2(gl_VertexID & 1, gl_VertexID >> 1);
-    ivec2 c = ivec2(gl_InstanceID % grid.x, (gl_InstanceID / grid.x) % grid.y);
-    gl_Position = vec4(-1.0 + vec2(c) * cell + corner * quad, 0.0, 1.0);
-}
-"""
-_MICRO_FS = """#version 450
-uniform vec4 value;
-uniform int countAtomics;
-layout(std430, binding = 15) buffer MicroCounts { uint counts[]; };
-flat in int inst;
-out vec4 color;
-void main() {
-    if (countAtomics != 0) atomicAdd(counts[inst], 1u);
-    color = value;
-}
-"""
-_MICRO_BINDING = 15
-_MICRO_GRID = (32, 32)
-_MICRO_QUAD_PX = 4
-
-
-def micro_overheads(ctx, size: tuple[int, int], scale: float = 1.0, trials: int = 7) -> tuple[list[MicroResult], dict]:
-    """Per-draw / per-query costs of this GL implementation, on a target of the run's size.
-
-    Tiles are 1/16 of the target per side (the finest CHC+RT tiles at the default
-    min_tile_fraction are about that), cycled over the target so every draw also changes the
-    scissor box, as chcrt's draws do."""
-    import moderngl
-
-    w, h = size
-    tw, th = max(w // 16, 1), max(h // 16, 1)
-    tiles = [(x * tw, y * th, tw, th) for y in range(16) for x in range(16)]
-    prog = ctx.program(vertex_shader=_MICRO_VS, fragment_shader=_MICRO_FS)
-    vao = ctx.vertex_array(prog, [])
-    color = ctx.texture(size, 4)
-    fbo = ctx.framebuffer(color_attachments=[color])
-    counts = ctx.buffer(reserve=4 * 1024)
-    zeros = bytes(4 * 1024)
-    gx, gy = _MICRO_GRID
-    prog["grid"].value = (gx, gy)
-    q = _MICRO_QUAD_PX  # the grid spans the target, so no instance is clipped (each covers q*q pixels)
-    prog["cell"].value = (2.0 * max(w - q, 0) / (w * (gx - 1)), 2.0 * max(h - q, 0) / (h * (gy - 1)))
-    prog["quad"].value = (2.0 * _MICRO_QUAD_PX / w, 2.0 * _MICRO_QUAD_PX / h)
-    prog["value"].value = (0.2, 0.4, 0.6, 1.0)
-    prog["countAtomics"].value = 0
-    prog["instanced"].value = 0
-    ctx.disable(moderngl.DEPTH_TEST | moderngl.BLEND)
-    fbo.use()
-    n_q = max(int(400 * scale), 8)
-    queries = [ctx.query(samples=True) for _ in range(n_q)]
-    results: list[MicroResult] = []
-
-    def n_of(base: int) -> int:
-        return max(int(base * scale), 4)
-
-    def measure(name: str, ops: int, body: Callable[[int], None], items: int = 1, check: str = "") -> MicroResult:
-        body(min(ops, 8))  # warm up (first use allocates)
-        ctx.finish()
-        walls, submits = [], []
-        for _ in range(trials):
-            ctx.finish()
-            t0 = time.perf_counter()
-            body(ops)
-            t1 = time.perf_counter()
-            ctx.finish()
-            t2 = time.perf_counter()
-            walls.append((t2 - t0) / ops * 1e6)
-            submits.append((t1 - t0) / ops * 1e6)
-        best = int(np.argmin(walls))
-        us = float(walls[best])
-        r = MicroResult(name, ops, trials, us, float(submits[best]), float(np.median(walls)), items, us / items,
-                        check, [float(v) for v in walls])
-        results.append(r)
-        return r
-
-    def tiled_draws(n: int) -> None:
-        prog["instanced"].value = 0
-        for i in range(n):
-            fbo.scissor = tiles[i % len(tiles)]
-            vao.render(moderngl.TRIANGLES, vertices=3)
-
-    def uniform_draws(n: int) -> None:
-        prog["instanced"].value = 0
-        u = prog["value"]
-        for i in range(n):
-            fbo.scissor = tiles[i % len(tiles)]
-            u.value = ((i % 97) / 97.0, 0.4, 0.6, 1.0)
-            vao.render(moderngl.TRIANGLES, vertices=3)
-
-    def full_draws(n: int) -> None:
-        prog["instanced"].value = 0
-        fbo.scissor = None
-        for _ in range(n):
-            vao.render(moderngl.TRIANGLES, vertices=3)
-
-    def query_sync(n: int) -> None:
-        prog["instanced"].value = 0
-        for i in range(n):
-            fbo.scissor = tiles[i % len(tiles)]
-            q = queries[i % n_q]
-            with q:
-                vao.render(moderngl.TRIANGLES, vertices=3)
-            _ = q.samples
-
-    def query_batch(n: int) -> None:
-        prog["instanced"].value = 0
-        for s in range(0, n, n_q):
-            used = queries[: min(n_q, n - s)]
-            for i, q in enumerate(used):
-                fbo.scissor = tiles[(s + i) % len(tiles)]
-                with q:
-                    vao.render(moderngl.TRIANGLES, vertices=3)
-            for q in used:
-                _ = q.samples
-
-    def instanced(k: int) -> Callable[[int], None]:
-        def body(n: int) -> None:
-            prog["instanced"].value = 1
-            fbo.scissor = None
-            for _ in range(n):
-                vao.render(moderngl.TRIANGLE_STRIP, vertices=4, instances=k)
-        return body
-
-    last_counts: dict[int, np.ndarray] = {}
-
-    def atomic_queries(k: int) -> Callable[[int], None]:
-        def body(n: int) -> None:
-            prog["instanced"].value = 1
-            prog["countAtomics"].value = 1
-            fbo.scissor = None
-            counts.bind_to_storage_buffer(_MICRO_BINDING)
-            for _ in range(n):
-                counts.write(zeros)
-                vao.render(moderngl.TRIANGLE_STRIP, vertices=4, instances=k)
-                ctx.memory_barrier()
-                last_counts[k] = np.frombuffer(counts.read(size=4 * k), np.uint32)
-            prog["countAtomics"].value = 0
-        return body
-
-    def finishes(n: int) -> None:
-        for _ in range(n):
-            ctx.finish()
-
-    def small_reads(n: int) -> None:
-        prog["instanced"].value = 0
-        for i in range(n):
-            fbo.scissor = tiles[i % len(tiles)]
-            vao.render(moderngl.TRIANGLES, vertices=3)
-            counts.read(size=64)
-
-    tile_txt = f"{tw}x{th} px tile"
-    try:
-        measure("glFinish, idle pipeline", n_of(400), finishes)
-        measure(f"draw, {tile_txt} (scissor change + draw)", n_of(2000), tiled_draws)
-        measure(f"draw + uniform change, {tile_txt}", n_of(2000), uniform_draws)
-        measure(f"draw, whole {w}x{h} target", n_of(100), full_draws)
-        measure(f"draw + 64-byte buffer read (one round trip), {tile_txt}", n_of(200), small_reads)
-        measure(f"occlusion query one at a time (begin, draw {tile_txt}, end, read)", n_of(400), query_sync)
-        measure(f"occlusion queries, {n_q} issued then all read, {tile_txt}", n_q, query_batch)
-        for k in (1, 64, 1024):
-            measure(f"instanced draw, {k} x {_MICRO_QUAD_PX}x{_MICRO_QUAD_PX} px instances",
-                    n_of(200 if k < 1024 else 60), instanced(k), items=k)
-        for k in (64, 1024):
-            r = measure(f"{k} queries in one instanced draw, counted by SSBO atomics, + barrier + read",
-                        n_of(100 if k < 1024 else 40), atomic_queries(k), items=k)
-            got = last_counts.get(k)
-            expect = _MICRO_QUAD_PX * _MICRO_QUAD_PX
-            r.check = ("counts ok" if got is not None and np.all(got == expect)
-                       else f"unexpected counts (want {expect} per instance)")
-        q = queries[0]
-        fbo.scissor = tiles[0]
-        prog["instanced"].value = 0
-        with q:
-            vao.render(moderngl.TRIANGLES, vertices=3)
-        for r in results:
-            if "occlusion" in r.name:
-                r.check = "samples ok" if q.samples == tw * th else f"samples {q.samples} != {tw * th}"
-    finally:
-        fbo.scissor = None
-        prog["countAtomics"].value = 0
-        for obj in (vao, fbo, color, counts, prog):
-            obj.release()
-    return results, {"target": list(size), "tile": [tw, th], "trials": trials, "queries_in_flight": n_q}
 
 
 @dataclass
@@ -1169,7 +664,7 @@ def study_overhead(b: Bench) -> dict:
             draws, queries = c.get("draws", float("nan")), c.get("queries", float("nan"))
             rows.append(OverheadRow(label, run.params, draws, c.get("intersect_draws", float("nan")), queries,
                                     c.get("multi_queries", float("nan")), s.trace_ms, s.trace_cpu_ms, s.wall_ms,
-                                    _ratio(s.trace_ms, draws), _ratio(s.trace_ms, queries),
+                                    ratio(s.trace_ms, draws), ratio(s.trace_ms, queries),
                                     None if first == label else first))
     finally:
         b.done()
@@ -1194,72 +689,48 @@ def study_overhead(b: Bench) -> dict:
           "to issue)", ""]
     md.append(md_table(["operation", "ops/trial", "us per op (wall)", "median", "us per op (submit)", "items/op",
                         "us per item", "check"],
-                       [[m.name, str(m.ops_per_trial), _fmt(m.us_per_op, 1), _fmt(m.median_us_per_op, 1),
-                         _fmt(m.submit_us_per_op, 1), str(m.items_per_op), _fmt(m.us_per_item, 2), m.check]
+                       [[m.name, str(m.ops_per_trial), fmt(m.us_per_op, 1), fmt(m.median_us_per_op, 1),
+                         fmt(m.submit_us_per_op, 1), str(m.items_per_op), fmt(m.us_per_item, 2), m.check]
                         for m in micro]))
     gs = g.best
-    md += ["", f"### (b) chcrt on {path.stem}, {_size_text(size)}, {o.overhead_effect}, steady state of "
+    md += ["", f"### (b) chcrt on {path.stem}, {size_text(size)}, {o.overhead_effect}, steady state of "
                f"{o.frames} consecutive frames from {frames[0]}", "",
            "Per frame. 'ms per draw/query' = trace ms / count (all tracing time charged to draws or queries: "
-           f"upper bounds). glsl on the same frames: trace {_fmt(gs.trace_ms)} ms, frame {_fmt(gs.wall_ms)} ms.", ""]
+           f"upper bounds). glsl on the same frames: trace {fmt(gs.trace_ms)} ms, frame {fmt(gs.wall_ms)} ms.", ""]
     md.append(md_table(["config", "draws", "intersect draws", "queries", "multi-queries", "trace ms",
                         "trace CPU ms", "frame ms", "ms per draw", "ms per query"],
-                       [[r.config + (f" (= {r.same_as})" if r.same_as else ""), _fmt(r.draws, 0),
-                         _fmt(r.intersect_draws, 0), _fmt(r.queries, 0), _fmt(r.multi_queries, 0), _fmt(r.trace_ms),
-                         _fmt(r.trace_cpu_ms), _fmt(r.frame_ms), _fmt(r.ms_per_draw, 3), _fmt(r.ms_per_query, 3)]
+                       [[r.config + (f" (= {r.same_as})" if r.same_as else ""), fmt(r.draws, 0),
+                         fmt(r.intersect_draws, 0), fmt(r.queries, 0), fmt(r.multi_queries, 0), fmt(r.trace_ms),
+                         fmt(r.trace_cpu_ms), fmt(r.frame_ms), fmt(r.ms_per_draw, 3), fmt(r.ms_per_query, 3)]
                         for r in rows]))
     if comps:
         md += ["", "Marginal cost: configuration a vs b (one setting changed): extra trace ms per extra draw / "
                    "query, the whole time difference charged to each ('-': that count barely changed).", ""]
         md.append(md_table(["a", "b", "d draws", "d queries", "d trace ms", "ms per extra draw",
                             "ms per extra query"],
-                           [[c.a, c.b, _fmt(c.d_draws, 0), _fmt(c.d_queries, 0), _fmt(c.d_trace_ms),
-                             _fmt(c.ms_per_extra_draw, 3), _fmt(c.ms_per_extra_query, 3)] for c in comps]))
-    md += _notes_md(report["notes"])
+                           [[c.a, c.b, fmt(c.d_draws, 0), fmt(c.d_queries, 0), fmt(c.d_trace_ms),
+                             fmt(c.ms_per_extra_draw, 3), fmt(c.ms_per_extra_query, 3)] for c in comps]))
+    md += notes_md(report["notes"])
     _plot_overhead(micro, rows, o.out / "overhead.png", b.device["renderer"])
     return _finish(o, "overhead", report, "\n".join(md))
 
 
 def _plot_overhead(micro: list[MicroResult], rows: list[OverheadRow], path: Path, device: str) -> None:
-    plt = _plt()
-    fig, (ax, ax2) = plt.subplots(1, 2, figsize=(13, 5), dpi=110)
-    y = np.arange(len(micro))
-    ax.barh(y, [m.us_per_op for m in micro])
-    ax.set_yticks(y, [m.name for m in micro], fontsize=6)
-    ax.invert_yaxis()
-    ax.set_xscale("log")
-    ax.set_xlabel("us per op (wall, log)")
-    ax.set_title("synthetic GL operations", fontsize=9)
-    ax.grid(alpha=0.3, axis="x")
+    fig, (ax, ax2) = figure(1, 2, size=(13, 5))
+    barh(ax, [m.name for m in micro], {"us per op": [m.us_per_op for m in micro]}, "us per op (wall, log)",
+         log=True, title="synthetic GL operations", label_size=6)
     rs = [r for r in rows if r.same_as is None]
-    y2 = np.arange(len(rs))
-    ax2.barh(y2, [r.trace_ms for r in rs], color="C1")
-    for i, r in enumerate(rs):
-        ax2.text(r.trace_ms if np.isfinite(r.trace_ms) else 0, i, f" {_fmt(r.draws, 0)} draws, "
-                 f"{_fmt(r.queries, 0)} queries", va="center", fontsize=6)
-    ax2.set_yticks(y2, [r.config for r in rs], fontsize=7)
-    ax2.invert_yaxis()
-    ax2.set_xlabel("steady trace ms per frame")
-    ax2.set_title("chcrt configurations", fontsize=9)
-    ax2.grid(alpha=0.3, axis="x")
-    fig.suptitle(f"Draw / query overhead - {device}", fontsize=9)
-    fig.tight_layout()
-    fig.savefig(path)
-    plt.close(fig)
+    barh(ax2, [r.config for r in rs], {"trace ms": [r.trace_ms for r in rs]}, "steady trace ms per frame",
+         texts=[f"{fmt(r.draws, 0)} draws, {fmt(r.queries, 0)} queries" for r in rs], title="chcrt configurations",
+         color="C1")
+    finish(fig, path, f"Draw / query overhead - {device}")
 
 
 # ----------------------------------------------------------------------------------------- driver
 
 
-def _notes_md(notes: list[str]) -> list[str]:
-    return (["", "Notes:"] + [f"- {n}" for n in notes]) if notes else []
-
-
 def _finish(o: StudyOptions, study: str, report: dict, md: str) -> dict:
-    write_json(o.out / f"{study}.json", report)
-    (o.out / f"{study}.md").write_text(md + "\n")
-    return {"study": study, "json": o.out / f"{study}.json", "md": o.out / f"{study}.md",
-            "png": o.out / f"{study}.png", "markdown": md}
+    return write_study(o.out, study, report, md)
 
 
 def tuning_configs(grid: str) -> list[str]:
@@ -1326,38 +797,29 @@ def study_tuning(b: Bench) -> dict:
     report = b.header("tuning", o, {"recording": path.stem, "size": list(size), "grid": o.tuning_grid,
                                     "effects": o.tuning_effects})
     report.update(rows=[asdict(r) for r in rows], runs=runs)
-    md = [f"## chcrt parameter sweep ({path.stem}, {_size_text(size)}, steady state of {o.frames} consecutive frames)",
+    md = [f"## chcrt parameter sweep ({path.stem}, {size_text(size)}, steady state of {o.frames} consecutive frames)",
           "", f"Device: {b.device_text}. Work counters per traced ray (RTWALK_COUNT_WORK=1; counting adds "
           "time to both backends). 'tests' = ray/box + ray/triangle tests of intersection and queries.", ""]
     md.append(md_table(["effect", "config", "trace ms", "queries/frame", "query frags/ray", "isect box/ray",
                         "query box/ray", "tri/ray", "tests/ray"],
-                       [[r.effect, r.params, _fmt(r.trace_ms), _fmt(r.queries, 0), _fmt(r.query_fragments_per_ray, 2),
-                         _fmt(r.box_tests_per_ray, 1), _fmt(r.query_box_tests_per_ray, 1),
-                         _fmt(r.tri_tests_per_ray, 2), _fmt(r.tests_per_ray, 1)] for r in rows]))
-    md += _notes_md(report["notes"])
+                       [[r.effect, r.params, fmt(r.trace_ms), fmt(r.queries, 0), fmt(r.query_fragments_per_ray, 2),
+                         fmt(r.box_tests_per_ray, 1), fmt(r.query_box_tests_per_ray, 1),
+                         fmt(r.tri_tests_per_ray, 2), fmt(r.tests_per_ray, 1)] for r in rows]))
+    md += notes_md(report["notes"])
     _plot_tuning(rows, o.out / "tuning.png", b.device["renderer"])
     return _finish(o, "tuning", report, "\n".join(md))
 
 
 def _plot_tuning(rows: list[TuningRow], path: Path, device: str) -> None:
-    plt = _plt()
     effects = list(dict.fromkeys(r.effect for r in rows))
-    fig, axes = plt.subplots(1, len(effects), figsize=(6 * len(effects), 4.5), dpi=100, squeeze=False)
+    fig, axes = figure(1, len(effects), size=(6 * len(effects), 4.5), dpi=100, squeeze=False)
     for ax, effect in zip(axes[0], effects, strict=True):
-        rs = [r for r in rows if r.effect == effect]
-        for r in rs:
-            glsl = r.params == "glsl"
-            ax.scatter(r.tests_per_ray, r.trace_ms, c="tab:red" if glsl else "tab:blue", s=30)
-            ax.annotate(r.params.replace("min_tile_fraction", "tile").replace("requery_interval", "rq"),
-                        (r.tests_per_ray, r.trace_ms), fontsize=6)
-        ax.set_xlabel("ray/box + ray/triangle tests per ray")
-        ax.set_ylabel("trace ms per frame")
-        ax.set_title(f"{effect}: chcrt configs (blue) vs glsl (red)", fontsize=9)
-        ax.grid(alpha=0.3)
-    fig.suptitle(f"chcrt tuning - {device}", fontsize=9)
-    fig.tight_layout()
-    fig.savefig(path)
-    plt.close(fig)
+        for r in (r for r in rows if r.effect == effect):
+            points(ax, [r.tests_per_ray], [r.trace_ms],
+                   [r.params.replace("min_tile_fraction", "tile").replace("requery_interval", "rq")],
+                   color="tab:red" if r.params == "glsl" else "tab:blue", xlabel="ray/box + ray/triangle tests per ray",
+                   ylabel="trace ms per frame", title=f"{effect}: chcrt configs (blue) vs glsl (red)")
+    finish(fig, path, f"chcrt tuning - {device}")
 
 
 STUDY_FUNCS: dict[str, Callable[[Bench], dict]] = {"table2": study_table2, "table4": study_table4,
@@ -1424,7 +886,7 @@ def cmd_bench_chcrt(args: argparse.Namespace) -> int:
     o = options_from_args(args)
     if args.dry_run:
         est = estimate(o)
-        print(f"studies: {', '.join(o.studies)}; sizes: {', '.join(_size_text(s) for s in o.sizes)}; "
+        print(f"studies: {', '.join(o.studies)}; sizes: {', '.join(size_text(s) for s in o.sizes)}; "
               f"recordings: {', '.join(p.stem for p in o.recordings)}; {o.frames} consecutive frames per run")
         for n in o.notes:
             print(f"note: {n}")

@@ -1,0 +1,73 @@
+"""viewer.gl: one table of binding points used by Python and every shader, the program cache's
+search path (a backend folder with its own shaders that include shared ones)."""
+
+from __future__ import annotations
+
+import re
+
+import numpy as np
+import pytest
+
+from viewer.gl import bindings
+from viewer.gl.programs import SHADER_DIR, ProgramCache, load_shader_source
+
+SHADER_FILES = sorted(p for p in SHADER_DIR.iterdir() if p.suffix in (".glsl", ".vert", ".frag", ".geom", ".comp"))
+
+
+def test_binding_points_are_unique_per_namespace():
+    for table in (bindings.SSBO, bindings.IMAGE):
+        assert len(set(table.values())) == len(table), table
+        assert all(k.startswith("BIND_") and v >= 0 for k, v in table.items())
+    assert not set(bindings.SSBO) & set(bindings.IMAGE)
+    header = bindings.glsl_header()
+    for name, value in {**bindings.SSBO, **bindings.IMAGE}.items():
+        assert f"#define {name} {value}\n" in header
+        assert getattr(bindings, name) == value
+
+
+@pytest.mark.parametrize("path", SHADER_FILES, ids=lambda p: p.name)
+def test_shaders_name_binding_points(path):
+    """No literal binding numbers in shaders: every `binding =` names a BIND_* of the table."""
+    text = path.read_text()
+    known = {**bindings.SSBO, **bindings.IMAGE}
+    for m in re.finditer(r"binding\s*=\s*([A-Za-z0-9_]+)", text):
+        assert m.group(1) in known, f"{path.name}: binding = {m.group(1)}"
+
+
+def test_loaded_source_carries_the_binding_header():
+    src = load_shader_source("trace_glsl.frag", {"STACK_SIZE": 24})
+    lines = src.splitlines()
+    assert lines[0] == "#version 450 core"
+    assert "#define BIND_NODES 0" in lines and "#define STACK_SIZE 24" in lines
+    assert "#include" not in src  # scene.glsl, intersect.glsl expanded
+
+
+def test_backend_folder_shaders_include_shared_ones(gl_ctx, tmp_path):
+    """A backend folder's own fragment shader, found through the search path, includes the shared
+    scene.glsl from viewer/shaders/ and reads the scene through BIND_MATERIALS; a file of the same
+    name in the folder wins over the shared one."""
+    folder = tmp_path / "mybackend"
+    folder.mkdir()
+    (folder / "mine.frag").write_text('#include "scene.glsl"\n#include "local.glsl"\nout vec4 color;\n'
+                                      "void main() { color = vec4(materials[1].rgb * LOCAL_SCALE, 1.0); }\n")
+    (folder / "local.glsl").write_text("const float LOCAL_SCALE = 0.5;\n")
+    ctx = gl_ctx
+    programs = ProgramCache(ctx).with_path(folder)
+    prog = programs.get("fullscreen.vert", "mine.frag")
+    assert programs.get("fullscreen.vert", "mine.frag") is prog  # cached
+    with pytest.raises(FileNotFoundError):
+        load_shader_source("mine.frag")  # not on the default path
+    mats = np.array([[0.1, 0.2, 0.3, 0.0], [0.8, 0.4, 0.2, 0.0]], np.float32)
+    buf = ctx.buffer(mats.tobytes())
+    tex = ctx.texture((4, 4), 4, dtype="f4")
+    fbo = ctx.framebuffer(color_attachments=[tex])
+    vao = ctx.vertex_array(prog, [])
+    try:
+        buf.bind_to_storage_buffer(bindings.BIND_MATERIALS)
+        fbo.use()
+        vao.render(vertices=3)
+        out = np.frombuffer(tex.read(), np.float32).reshape(4, 4, 4)
+        np.testing.assert_allclose(out[..., :3], np.broadcast_to(mats[1, :3] * 0.5, (4, 4, 3)), rtol=1e-6)
+    finally:
+        for obj in (vao, fbo, tex, buf):
+            obj.release()

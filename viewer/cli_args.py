@@ -1,0 +1,131 @@
+"""Command-line argument helpers shared by the CLI, the window and the benchmarks.
+
+Kept apart from viewer.cli (which only registers subcommands and dispatches) so that the window
+(viewer.ui.app) and the benchmarks (viewer.bench) can use them without importing the CLI: no
+import cycle. Everything here checks input before any scene is loaded; bad input raises
+RtwalkError (one line, exit 2).
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+import numpy as np
+
+from viewer.errors import RtwalkError
+
+REPO_ROOT = Path(__file__).resolve().parents[1]
+RECORDINGS = REPO_ROOT / "recordings"
+DEFAULT_RECORDING = RECORDINGS / "city-near.json"
+
+
+def parse_size(text: str) -> tuple[int, int]:
+    try:
+        w, h = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise RtwalkError(f"bad --size '{text}': expected WIDTHxHEIGHT, e.g. 640x360") from None
+    if not (1 <= w <= 16384 and 1 <= h <= 16384):
+        raise RtwalkError(f"bad --size '{text}': each side must be in 1..16384")
+    return w, h
+
+
+def parse_camera(text: str):
+    from viewer.camera import Camera
+
+    try:
+        vals = [float(v) for v in text.split(",")]
+    except ValueError:
+        vals = []
+    if len(vals) not in (6, 7) or not np.all(np.isfinite(vals)):
+        raise RtwalkError(f"bad --camera '{text}': expected eye_x,eye_y,eye_z,target_x,target_y,target_z[,fov_deg]")
+    if np.allclose(vals[:3], vals[3:6]):
+        raise RtwalkError(f"bad --camera '{text}': eye and target coincide")
+    return Camera.look_at(vals[:3], vals[3:6], fov_y=vals[6] if len(vals) == 7 else 60.0)
+
+
+def add_scene_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("scene", nargs="?", default=None,
+                   help="scene file (OBJ/PLY/GLB/STL/OFF) or built-in name (city, room); default: city")
+    p.add_argument("--scene-size", type=int, default=None, help="triangles for procedural scenes (city)")
+    p.add_argument("--seed", type=int, default=1, help="seed for procedural scenes")
+    p.add_argument("--mirror", action="append", default=[], metavar="PATTERN",
+                   help="material name pattern made a mirror (repeatable, fnmatch, case-insensitive)")
+    p.add_argument("--quiet", action="store_true", help="no progress output")
+
+
+def add_effect_args(p: argparse.ArgumentParser, default: str) -> None:
+    from viewer.backends import backend_names
+
+    p.add_argument("--effects", default=default,
+                   help="comma list of primary,shadows,soft,ao,diffuse,reflections (NAME:N = N samples), "
+                        "'all' or 'none'")
+    p.add_argument("--backend", default="glsl", help=f"tracing backend: {', '.join(backend_names())}")
+    p.add_argument("--backend-params", default=None, metavar="KEY=VALUE,...",
+                   help="parameters of the chosen --backend (also RTWALK_<BACKEND> in the environment), "
+                        "e.g. --backend chcrt --backend-params visible_threshold=20,t_q=0.5")
+    p.add_argument("--size", default="640x360", help="WIDTHxHEIGHT")
+    p.add_argument("--perturb", type=float, default=36.0, help="per-pixel sample rotation, degrees")
+    p.add_argument("--ao-length", type=float, default=0.05, help="AO ray length, fraction of the scene diagonal")
+    p.add_argument("--exposure", type=float, default=1.0)
+    p.add_argument("--chcrt", default=None, metavar="KEY=VALUE,...",
+                   help="chcrt backend parameters (alias kept from before --backend-params), e.g. "
+                        "'visible_threshold=20,t_q=0.5' (aggressive threshold in pixels, split rule, "
+                        "min_tile_fraction, max_subtree_height, max_batch, max_multi, ...)")
+
+
+def check_backend(name: str) -> str:
+    """The backend name if registered, else one line naming the choices (before any scene work)."""
+    from viewer.backends import backend_class
+
+    backend_class(name)  # raises RtwalkError for an unknown name
+    return name
+
+
+def backend_options_from(args) -> dict[str, str]:
+    """Per-backend parameter text, {backend name: "key=value,..."}; checked here (unknown backend,
+    unknown key, bad value) so bad input fails before any scene is loaded. `--backend-params`
+    belongs to `--backend`; `--chcrt` is the older spelling of chcrt's parameters."""
+    from viewer.backends import check_params
+
+    backend = getattr(args, "backend", None)
+    if backend is not None:
+        check_backend(backend)
+    options: dict[str, str] = {}
+    text = getattr(args, "chcrt", None)
+    if text:
+        check_params("chcrt", text, "--chcrt")
+        options["chcrt"] = text
+    text = getattr(args, "backend_params", None)
+    if text:
+        check_params(backend or "glsl", text, "--backend-params")
+        prev = options.get(backend or "glsl")
+        options[backend or "glsl"] = f"{prev},{text}" if prev else text  # --backend-params wins
+    return options
+
+
+def settings_from(args):
+    from viewer.effects import parse_effects
+
+    s = parse_effects(args.effects)
+    if not 0 <= args.perturb <= 180:
+        raise RtwalkError("--perturb must be within 0..180 degrees")
+    if not 0 < args.ao_length <= 10:
+        raise RtwalkError("--ao-length must be within (0, 10] (fraction of the scene diagonal)")
+    s.perturb_deg, s.ao_length, s.exposure = args.perturb, args.ao_length, args.exposure
+    return s
+
+
+def scene_from_args(args, recording=None):
+    """Scene named on the command line, else the recording's scene, else the default city."""
+    from viewer.session import prepare_scene
+
+    spec, size, seed = args.scene, args.scene_size, args.seed
+    if spec is None and recording is not None:
+        from viewer.recording import resolve_scene_spec
+
+        rs = resolve_scene_spec(recording)
+        spec = rs.spec
+        size = size if size is not None else rs.size
+        seed = rs.seed if rs.seed is not None else seed
+    return prepare_scene(spec, scene_size=size, seed=seed, mirror_patterns=args.mirror, quiet=args.quiet)

@@ -1,0 +1,50 @@
+"""The scene on the GPU: BVH nodes, leaf-ordered triangles, materials and raster vertices."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import moderngl
+import numpy as np
+
+from viewer.accel.bvh import BVH, gpu_triangles
+from viewer.gl.bindings import BIND_MATERIALS, BIND_NODES, BIND_TRIS
+from viewer.scene import Scene
+
+
+@dataclass
+class GpuScene:
+    """The scene on the GPU: BVH nodes, leaf-ordered triangles, materials, raster vertices.
+
+    Triangle ids everywhere are leaf-order slots (the scene passed in must already be
+    reordered with `Scene.reordered(bvh.tri_order)`).
+    """
+
+    nodes: moderngl.Buffer
+    tris: moderngl.Buffer
+    materials: moderngl.Buffer
+    vertices: moderngl.Buffer  # float32 (3N, 3) positions, for rasterization
+    triangle_count: int
+    stack_size: int
+    memory_bytes: int
+
+    @staticmethod
+    def upload(ctx: moderngl.Context, scene: Scene, bvh: BVH) -> GpuScene:
+        nodes = bvh.gpu_nodes()
+        tris = gpu_triangles(scene.triangles, scene.material_ids)
+        mats = scene.albedo_table()
+        verts = np.ascontiguousarray(scene.triangles.reshape(-1, 3), dtype=np.float32)
+        bufs = [ctx.buffer(nodes.tobytes()), ctx.buffer(tris.tobytes()), ctx.buffer(mats.tobytes()),
+                ctx.buffer(verts.tobytes())]
+        return GpuScene(*bufs, triangle_count=scene.triangle_count,
+                        stack_size=int(max(16, bvh.stats.depth + 4)),
+                        memory_bytes=sum(b.size for b in bufs))
+
+    def bind(self) -> None:
+        self.nodes.bind_to_storage_buffer(BIND_NODES)
+        self.tris.bind_to_storage_buffer(BIND_TRIS)
+        self.materials.bind_to_storage_buffer(BIND_MATERIALS)
+
+    def release(self) -> None:
+        for b in (self.nodes, self.tris, self.materials, self.vertices):
+            b.release()

@@ -1,0 +1,93 @@
+"""Textures: float and integer render targets, read-back, and the 32-bit float depth texture."""
+
+from __future__ import annotations
+
+import moderngl
+import numpy as np
+
+from viewer.errors import RtwalkError
+
+
+def float_texture(ctx: moderngl.Context, size: tuple[int, int], components: int) -> moderngl.Texture:
+    tex = ctx.texture(size, components, dtype="f4")
+    tex.filter = (moderngl.NEAREST, moderngl.NEAREST)
+    return tex
+
+
+def int_texture(ctx: moderngl.Context, size: tuple[int, int]) -> moderngl.Texture:
+    tex = ctx.texture(size, 1, dtype="i4")
+    tex.filter = (moderngl.NEAREST, moderngl.NEAREST)
+    return tex
+
+
+def read_texture(tex: moderngl.Texture) -> np.ndarray:
+    """Texture contents as (H, W, C) in GL order (row 0 = bottom)."""
+    dtype = {"f4": np.float32, "i4": np.int32, "u4": np.uint32, "f1": np.uint8, "u1": np.uint8}[tex.dtype]
+    data = np.frombuffer(tex.read(), dtype=dtype)
+    return data.reshape(tex.height, tex.width, tex.components)
+
+
+_GL_TEXTURE_2D = 0x0DE1
+_GL_TEXTURE_BINDING_2D = 0x8069
+_GL_DEPTH_COMPONENT = 0x1902
+_GL_DEPTH_COMPONENT32F = 0x8CAC
+_GL_FLOAT = 0x1406
+_GL_TEXTURE_DEPTH_SIZE = 0x884A
+_GL_TEXTURE_DEPTH_TYPE = 0x8C16
+_gl_funcs: dict | None = None
+
+
+def _gl() -> dict:
+    """A few core GL entry points through GLVND's libOpenGL (dispatches to the current context,
+    EGL or GLX alike): moderngl has no way to ask for a DEPTH_COMPONENT32F texture."""
+    global _gl_funcs
+    if _gl_funcs is None:
+        import ctypes
+
+        lib = None
+        for name in ("libOpenGL.so.0", "libGL.so.1", "libGL.so"):
+            try:
+                lib = ctypes.CDLL(name)
+                break
+            except OSError:
+                continue
+        if lib is None:
+            raise RtwalkError("cannot load libOpenGL/libGL for the 32-bit float depth buffer")
+        u, i, vp = ctypes.c_uint, ctypes.c_int, ctypes.c_void_p
+        pi = ctypes.POINTER(ctypes.c_int)
+        spec = {"glBindTexture": [u, u], "glTexImage2D": [u, i, i, i, i, i, u, u, vp],
+                "glGetIntegerv": [u, pi], "glGetTexLevelParameteriv": [u, i, u, pi]}
+        funcs: dict = {}
+        for name, args in spec.items():
+            f = getattr(lib, name)
+            f.argtypes = args
+            f.restype = None
+            funcs[name] = f
+        funcs["ctypes"] = ctypes
+        _gl_funcs = funcs
+    return _gl_funcs
+
+
+def float_depth_texture(ctx: moderngl.Context, size: tuple[int, int]) -> moderngl.Texture:
+    """A depth texture with DEPTH_COMPONENT32F storage (moderngl's depth_texture is 24-bit fixed
+    point, which would quantise ray distances): moderngl's texture, storage re-specified."""
+    tex = ctx.depth_texture(size)
+    for _ in range(16):  # clear errors left by others: the check below must see only ours
+        if ctx.error == "GL_NO_ERROR":
+            break
+    gl = _gl()
+    ct = gl["ctypes"]
+    prev = ct.c_int(0)
+    gl["glGetIntegerv"](_GL_TEXTURE_BINDING_2D, ct.byref(prev))
+    gl["glBindTexture"](_GL_TEXTURE_2D, tex.glo)
+    gl["glTexImage2D"](_GL_TEXTURE_2D, 0, _GL_DEPTH_COMPONENT32F, size[0], size[1], 0, _GL_DEPTH_COMPONENT,
+                       _GL_FLOAT, None)
+    bits, kind = ct.c_int(0), ct.c_int(0)
+    gl["glGetTexLevelParameteriv"](_GL_TEXTURE_2D, 0, _GL_TEXTURE_DEPTH_SIZE, ct.byref(bits))
+    gl["glGetTexLevelParameteriv"](_GL_TEXTURE_2D, 0, _GL_TEXTURE_DEPTH_TYPE, ct.byref(kind))
+    gl["glBindTexture"](_GL_TEXTURE_2D, prev.value)
+    err = ctx.error
+    if bits.value != 32 or kind.value != _GL_FLOAT or err != "GL_NO_ERROR":
+        tex.release()
+        raise RtwalkError(f"could not create a 32-bit float depth buffer ({bits.value} bits, {err})")
+    return tex
