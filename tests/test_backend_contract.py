@@ -9,6 +9,7 @@ against the ray-generation counters, per-tile numbers against NumPy on the id im
 
 from __future__ import annotations
 
+import ast
 import io
 import keyword
 import re
@@ -369,36 +370,32 @@ def test_bench_harness_drives_the_fake_backend(gl_ctx, tiny, tmp_path):
 
 GENERIC = ["viewer/renderer.py", "viewer/ui/panel.py", *sorted(str(p.relative_to(REPO))
                                                                   for p in (REPO / "viewer/passes").glob("*.py"))]
-# the bench harness: the replay module today, the bench package once it exists (modules named after
-# a backend, e.g. that backend's studies, may name it)
-LEGACY_BENCH = "viewer/bench.py"
+# the bench harness package (modules named after a backend, e.g. that backend's studies, may name it)
 
 
 def _bench_modules() -> list:
-    out = []
-    if (REPO / LEGACY_BENCH).exists():
-        out.append(pytest.param(LEGACY_BENCH, marks=pytest.mark.xfail(
-            reason="the single-module bench harness still names its reference backends; the bench package "
-                   "replaces it", strict=False)))
-    pkg = REPO / "viewer/bench"
-    if pkg.is_dir():
-        names = list(BACKENDS)
-        out += [str(p.relative_to(REPO)) for p in sorted(pkg.glob("*.py")) if not any(n in p.stem for n in names)]
-    return out
+    names = list(BACKENDS)
+    return [str(p.relative_to(REPO)) for p in sorted((REPO / "viewer/bench").glob("*.py"))
+            if not any(n in p.stem for n in names)]
 
 
 def backend_names_in(source: str, names: list[str]) -> list[tuple[int, str]]:
     """(line, token) of every identifier or string literal naming a backend: an identifier equal
     to a name or with it as a '_'-separated part, a string with the name as a word (not a file
-    extension such as '.glsl'). Comments do not count."""
+    extension such as '.glsl'). Comments and docstrings do not count."""
     found = []
+    tree = ast.parse(source)
+    doc_lines = {n.body[0].lineno for n in ast.walk(tree)
+                 if isinstance(n, (ast.Module, ast.ClassDef, ast.FunctionDef, ast.AsyncFunctionDef)) and n.body
+                 and isinstance(n.body[0], ast.Expr) and isinstance(n.body[0].value, ast.Constant)
+                 and isinstance(n.body[0].value.value, str)}
     alternatives = "|".join(map(re.escape, names))
     words = re.compile(rf"(?<![\w.])({alternatives})(?!\w)")
     for tok in tokenize.generate_tokens(io.StringIO(source).readline):
         if tok.type == tokenize.NAME and not keyword.iskeyword(tok.string):
             if any(n == tok.string or n in tok.string.split("_") for n in names):
                 found.append((tok.start[0], tok.string))
-        elif tok.type == tokenize.STRING and words.search(tok.string):
+        elif tok.type == tokenize.STRING and tok.start[0] not in doc_lines and words.search(tok.string):
             found.append((tok.start[0], tok.string))
     return found
 

@@ -33,6 +33,8 @@ from fractions import Fraction
 
 import numpy as np
 
+REFERENCE_BACKEND = "embree"  # the registry name of the backend that traces with EmbreeTracer
+
 __all__ = ["EmbreeTracer", "trace_float64", "compare_hits", "prepare_rays", "point_triangle_distance",
            "ray_edge_distance", "f32_ulp"]
 

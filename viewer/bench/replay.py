@@ -9,28 +9,30 @@ capture on (same rays: the pipeline is deterministic), so error checks never pol
 from __future__ import annotations
 
 import sys
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 from tqdm import tqdm
 
+from viewer.backends import backend_names
 from viewer.backends.interface import params_text
 from viewer.bench.harness import frame_numbers, frame_row, image_error
 from viewer.bench.plots import figure, finish, stacked
 from viewer.bench.report import write_json
 from viewer.effects import EffectSettings
+from viewer.reference import REFERENCE_BACKEND
 from viewer.renderer import Renderer
 from viewer.session import PreparedScene
 
 
 @dataclass
 class BenchOptions:
-    backend: str = "glsl"
+    backend: str = field(default_factory=lambda: backend_names()[0])
     size: tuple[int, int] = (640, 360)
     fps: float | None = None  # None: the recording's rate
     max_frames: int | None = None
-    reference: str = "embree"  # or "none"
+    reference: str = REFERENCE_BACKEND  # or "none"
     reference_every: int = 1
     warmup: int = 1
     frames_dir: Path | None = None  # write PNG frames here (every `frame_every` frames)
@@ -104,7 +106,7 @@ def run_bench(prepared: PreparedScene, rec, settings: EffectSettings, opts: Benc
               ctx, quiet: bool = False) -> dict:
     renderer = Renderer(ctx, prepared.scene, prepared.bvh, opts.size, opts.backend, settings, opts.backend_options)
     tracer = None
-    if opts.reference == "embree":
+    if opts.reference != "none":
         from viewer.reference import EmbreeTracer
 
         if EmbreeTracer.available():
