@@ -68,11 +68,12 @@ def _options(defines: Mapping[str, Any] | None) -> tuple[tuple[str, str], ...]:
 
 
 def build(path: str | Path, defines: Mapping[str, Any] | None = None, ctx: ClContext | None = None,
-          search: Iterable[Path] = ()) -> Any:
+          search: Iterable[Path] = (), prelude: str = "") -> Any:
     """The built pyopencl.Program for a kernel file and defines ({"WG": 64, "FAST": None} ->
-    -D WG=64 -D FAST), cached per (expanded source, defines, device)."""
+    -D WG=64 -D FAST), cached per (expanded source, defines, device). `prelude` is source text put
+    before the file (for macros with spaces or parentheses, e.g. a predicate)."""
     ctx = ctx or cl_context()
-    src = expand(path, search)
+    src = (prelude + "\n" if prelude else "") + expand(path, search)
     opts = _options(defines)
     key = (src, opts, int(ctx.device.int_ptr))
     prog = _cache.get(key)
