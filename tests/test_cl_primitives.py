@@ -151,6 +151,30 @@ def test_compact_rows_and_predicate(prims):
         prims.compact(10)
 
 
+@pytest.mark.parametrize("what", ["items", "index"])
+def test_compact_one_output(prims, what):
+    """Items only or indices only: the other output is not touched."""
+    ctx = prims.ctx
+    cl = ctx.cl
+    rng = np.random.default_rng(9)
+    n = 70_001
+    vals = rng.integers(0, 2**32, n, dtype=np.uint32)
+    flags = (rng.random(n) < 0.3).astype(np.uint32)
+    mf = cl.mem_flags
+    vb = cl.Buffer(ctx.context, mf.READ_WRITE | mf.COPY_HOST_PTR, hostbuf=vals)
+    fb = cl.Buffer(ctx.context, mf.READ_WRITE | mf.COPY_HOST_PTR, hostbuf=flags)
+    sentinel = np.full(n, 7, np.uint32)
+    ob = cl.Buffer(ctx.context, mf.READ_WRITE | mf.COPY_HOST_PTR, hostbuf=sentinel)
+    kw = {"dst": ob} if what == "items" else {"dst_index": ob}
+    m = prims.compact(n, flags=fb, src=vb, **kw)
+    out = np.empty(n, np.uint32)
+    cl.enqueue_copy(ctx.queue, out, ob)
+    want = vals[flags != 0] if what == "items" else np.flatnonzero(flags)
+    assert m == want.size
+    np.testing.assert_array_equal(out[:m], want)
+    assert (out[m:] == 7).all()  # nothing written past the kept count
+
+
 def _chunks_ref(k: np.ndarray, r: int | None):
     n = k.size
     if n == 0:

@@ -191,7 +191,7 @@ class Primitives:
         s, f = src if src is not None else dummy, flags if flags is not None else dummy
         self._run(ks["compact_count"], nb, s, f, u(n), u(nb), counts)
         self._scan_small(counts, nb, total)
-        self._run(ks["compact_write"], nb, s, f, u(n), u(nb), counts, dst if dst is not None else dummy,
+        self._run(ks["compact_write"], nb, s, f, u(n), u(nb), counts, total, dst if dst is not None else dummy,
                   dst_index if dst_index is not None else dummy, u(dst is not None), u(dst_index is not None))
         return self._read_u32(total)
 

@@ -10,9 +10,10 @@ inline bool rt_ray_active(float4 o, float4 d) {
            isfinite(d.x) && isfinite(d.y) && isfinite(d.z) && !isnan(d.w) && o.w < d.w;
 }
 
-/* [begin, end) of contiguous block `b` of `nblocks` over n items (one work-item per block). */
+/* [begin, end) of contiguous block `b` of `nblocks` over n items (one work-item per block).
+ * Blocks start at multiples of 16 items (vector loads stay aligned); trailing blocks may be empty. */
 inline uint2 rt_block_range(uint n, uint b, uint nblocks) {
-    uint per = (n + nblocks - 1u) / nblocks;
+    uint per = ((n + nblocks - 1u) / nblocks + 15u) & ~15u;
     uint begin = min(n, b * per);
     return (uint2)(begin, min(n, begin + per));
 }

@@ -30,19 +30,30 @@ __kernel WG_ATTR void block_sum(__global const uint *src, uint n, uint nblocks, 
     uint b = get_global_id(0);
     if (b >= nblocks) return;
     uint2 r = rt_block_range(n, b, nblocks);
-    uint s = 0;
-    for (uint i = r.x; i < r.y; ++i) s += src[i];
+    uint4 s4 = (uint4)(0);
+    uint i = r.x;
+    for (; i + 4 <= r.y; i += 4) s4 += vload4(0, src + i);
+    uint s = s4.x + s4.y + s4.z + s4.w;
+    for (; i < r.y; ++i) s += src[i];
     sums[b] = s;
 }
 
-/* dst may alias src: each element is read before it is written, by the same work-item. */
+/* dst may alias src: each element is read before it is written, by the same work-item. Four
+ * elements at a time with an in-register prefix sum (shortens the serial add chain). */
 __kernel WG_ATTR void block_scan(__global const uint *src, __global uint *dst, uint n, uint nblocks,
                                  __global const uint *offsets) {
     uint b = get_global_id(0);
     if (b >= nblocks) return;
     uint2 r = rt_block_range(n, b, nblocks);
     uint run = offsets[b];
-    for (uint i = r.x; i < r.y; ++i) { uint v = src[i]; dst[i] = run; run += v; }
+    uint i = r.x;
+    for (; i + 4 <= r.y; i += 4) {
+        uint4 v = vload4(0, src + i);
+        uint4 e = (uint4)(0u, v.x, v.x + v.y, v.x + v.y + v.z);
+        vstore4(e + run, 0, dst + i);
+        run += e.w + v.w;
+    }
+    for (; i < r.y; ++i) { uint v = src[i]; dst[i] = run; run += v; }
 }
 
 /* ---- LSD radix sort, 8-bit digits ------------------------------------------------------- */
@@ -98,20 +109,24 @@ __kernel WG_ATTR void compact_count(__global const ITEM *src, __global const uin
     counts[b] = c;
 }
 
-/* src NULL-like (has_src == 0): write the kept indices instead of the items. */
+/* Writes kept items (write_items) and/or their indices (write_index) from offsets[b] on. Every
+ * element is written to slot o (the next free one) and o advances only when it is kept: no
+ * data-dependent branch, so a random mask costs no mispredictions. Slots up to the block's end
+ * (the next block's offset) only, which keeps blocks from overwriting each other. */
 __kernel WG_ATTR void compact_write(__global const ITEM *src, __global const uint *flags, uint n, uint nblocks,
-                                    __global const uint *offsets, __global ITEM *dst, __global uint *dst_index,
+                                    __global const uint *offsets, __global const uint *total,
+                                    __global ITEM *dst, __global uint *dst_index,
                                     uint write_items, uint write_index) {
     uint b = get_global_id(0);
     if (b >= nblocks) return;
     uint2 r = rt_block_range(n, b, nblocks);
-    uint o = offsets[b];
-    for (uint i = r.x; i < r.y; ++i) {
-        if (KEEP(i)) {
-            if (write_items) dst[o] = src[i];
-            if (write_index) dst_index[o] = i;
-            ++o;
-        }
+    uint o = offsets[b], end = b + 1 < nblocks ? offsets[b + 1] : *total;
+    if (write_items && write_index) {
+        for (uint i = r.x; i < r.y && o < end; ++i) { dst[o] = src[i]; dst_index[o] = i; o += KEEP(i) ? 1u : 0u; }
+    } else if (write_items) {
+        for (uint i = r.x; i < r.y && o < end; ++i) { dst[o] = src[i]; o += KEEP(i) ? 1u : 0u; }
+    } else if (write_index) {
+        for (uint i = r.x; i < r.y && o < end; ++i) { dst_index[o] = i; o += KEEP(i) ? 1u : 0u; }
     }
 }
 
