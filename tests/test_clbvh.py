@@ -138,6 +138,29 @@ def test_bvh4_collapses_largest_child_first():
             assert max(closed_inner) <= min(area[list(opened)])
 
 
+def test_leaf_blocks_hold_every_triangle_once():
+    from viewer.backends.clbvh import LEAF_BLOCK_DTYPE, pack_leaves
+
+    assert LEAF_BLOCK_DTYPE.itemsize == 160
+    tris = random_tris(500, seed=4)
+    bvh = build_bvh(tris, max_leaf=7, min_leaf=1)  # leaves of more than 4 triangles span blocks
+    lo_tris = bvh.triangles_in_leaf_order(tris)
+    b4 = build_bvh4(bvh)
+    knodes, blocks = pack_leaves(b4.nodes, lo_tris)
+    leaf = (b4.nodes["child"] < 0) & (b4.nodes["count"] > 0)
+    assert np.array_equal(knodes["child"][~leaf], b4.nodes["child"][~leaf])
+    first_blocks = ~knodes["child"][leaf]
+    assert np.array_equal(blocks["first"][first_blocks], ~b4.nodes["child"][leaf])
+    assert np.all((blocks["count"] >= 1) & (blocks["count"] <= 4))
+    lane = np.arange(4)
+    used = lane[None, :] < blocks["count"][:, None]
+    slots = (blocks["first"][:, None] + lane[None, :])[used]
+    assert np.array_equal(np.sort(slots), np.arange(len(tris)))
+    v = blocks["v"].transpose(0, 2, 1).reshape(-1, 4, 3, 3)  # (block, lane, vertex, axis)
+    assert np.array_equal(v[used], lo_tris[slots])
+    assert np.isnan(v[~used]).all()
+
+
 # ------------------------------------------------------------------------------------------------
 # tracing
 
@@ -165,6 +188,16 @@ def test_trace_matches_float64(n_tris, any_hit):
     if not any_hit:
         assert st["id_agree"] == 1.0, st
         assert st["max_rel_err"] < 1e-4, st
+        # t is the plane-equation distance evaluated in IEEE float32 without fused multiply-adds
+        # (as NumPy evaluates it): bit for bit, wherever the normal is not perpendicular to d
+        v = tris[tri[hit]].astype(np.float32)
+        e1, e2 = v[:, 1] - v[:, 0], v[:, 2] - v[:, 0]
+        n = np.stack([e1[:, 1] * e2[:, 2] - e1[:, 2] * e2[:, 1], e1[:, 2] * e2[:, 0] - e1[:, 0] * e2[:, 2],
+                      e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]], 1)
+        a = v[:, 0] - o[hit]
+        dn = n[:, 0] * d[hit, 0] + n[:, 1] * d[hit, 1] + n[:, 2] * d[hit, 2]
+        t_np = (n[:, 0] * a[:, 0] + n[:, 1] * a[:, 1] + n[:, 2] * a[:, 2]) / dn
+        assert np.array_equal(t[hit], t_np)
 
 
 @needs_cl

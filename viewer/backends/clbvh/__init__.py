@@ -28,12 +28,44 @@ WG = 64
 MAX_STACK = 256  # private stack entries the kernel may hold (3 per BVH4 level)
 
 
-def pack_triangles(triangles: np.ndarray) -> np.ndarray:
-    """float32 (N, 3, 4): the three vertices of each triangle as float4 (w = 0), leaf order."""
-    t = np.asarray(triangles, np.float32).reshape(-1, 3, 3)
-    out = np.zeros((max(len(t), 1), 3, 4), np.float32)
-    out[: len(t), :, :3] = t
-    return out
+#: A leaf block: up to four triangles of one leaf in SoA form (one float4 lane per triangle, NaN
+#: padding), then the first triangle slot of the block and its triangle count.
+LEAF_BLOCK_DTYPE = np.dtype([("v", "<f4", (9, 4)), ("first", "<i4"), ("count", "<i4"), ("pad", "<i4", 2)])
+assert LEAF_BLOCK_DTYPE.itemsize == 160
+
+
+def pack_leaves(nodes: np.ndarray, triangles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Kernel copies of a BVH4: (nodes with leaf refs ~first_block, LEAF_BLOCK_DTYPE blocks).
+
+    A leaf of c triangles (slots first .. first+c-1, leaf order) becomes ceil(c / 4) consecutive
+    blocks; v[3 * vertex + axis, lane] holds the coordinate of slot first + 4 * block + lane.
+    Vectorised over leaves and lanes."""
+    tris = np.asarray(triangles, np.float32).reshape(-1, 3, 3)
+    child, count = nodes["child"], nodes["count"]
+    is_leaf = (child < 0) & (count > 0)
+    first = (~child[is_leaf]).astype(np.int64)
+    cnt = count[is_leaf].astype(np.int64)
+    nblk = (cnt + 3) // 4
+    blk_start = np.cumsum(nblk) - nblk
+    out_nodes = nodes.copy()
+    kchild = out_nodes["child"]
+    kchild[is_leaf] = ~blk_start
+    n_blocks = int(nblk.sum())
+    blocks = np.zeros(max(n_blocks, 1), LEAF_BLOCK_DTYPE)
+    if n_blocks:
+        leaf_of = np.repeat(np.arange(len(first)), nblk)
+        k = np.arange(n_blocks) - blk_start[leaf_of]  # block number inside its leaf
+        b_first = first[leaf_of] + 4 * k
+        b_count = np.minimum(cnt[leaf_of] - 4 * k, 4)
+        lane = np.arange(4)
+        valid = lane[None, :] < b_count[:, None]  # (B, 4)
+        slot = np.where(valid, b_first[:, None] + lane[None, :], 0)
+        v = tris[slot].reshape(n_blocks, 4, 9)  # (B, lane, vertex*3 + axis)
+        v = np.where(valid[:, :, None], v, np.float32(np.nan))
+        blocks["v"] = v.transpose(0, 2, 1)
+        blocks["first"] = b_first
+        blocks["count"] = b_count
+    return out_nodes, blocks
 
 
 class ClbvhScene:
@@ -48,23 +80,24 @@ class ClbvhScene:
         assert self.stack_size <= MAX_STACK, f"BVH4 depth {self.bvh4.depth} needs {self.stack_size} stack entries"
         cl = self.ctx.cl
         mf = cl.mem_flags
-        self.nodes = cl.Buffer(self.ctx.context, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=self.bvh4.nodes)
-        self.tris = cl.Buffer(self.ctx.context, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=pack_triangles(triangles))
+        knodes, blocks = pack_leaves(self.bvh4.nodes, triangles)
+        self.nodes = cl.Buffer(self.ctx.context, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=knodes)
+        self.blocks = cl.Buffer(self.ctx.context, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=blocks)
         prog = build(KERNEL, {"STACK_SIZE": self.stack_size, "WG": WG}, self.ctx)
         self.kernels = {False: cl.Kernel(prog, "trace_closest"), True: cl.Kernel(prog, "trace_any")}
-        self.memory_bytes = self.bvh4.memory_bytes + self.tris.size
+        self.memory_bytes = knodes.nbytes + blocks.nbytes
 
     def enqueue(self, ray_o, ray_d, out_t, out_id, n: int, any_hit: bool):
         """Enqueue the trace of n rays (buffers as viewer/cl/transfer.py lays them out)."""
         if n == 0:
             return None
         gsize = -(-n // WG) * WG
-        return self.kernels[bool(any_hit)](self.ctx.queue, (gsize,), (WG,), self.nodes, self.tris,
+        return self.kernels[bool(any_hit)](self.ctx.queue, (gsize,), (WG,), self.nodes, self.blocks,
                                            ray_o, ray_d, out_t, out_id, np.int32(n))
 
     def release(self) -> None:
         self.nodes.release()
-        self.tris.release()
+        self.blocks.release()
 
 
 class ClbvhBackend:

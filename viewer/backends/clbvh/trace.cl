@@ -5,9 +5,10 @@
 // visited nearest first (the others pushed far-to-near with their entry distance, culled when
 // popped beyond the current hit). The any-hit kernel stops at the first hit (shadow, soft, AO).
 //
-// Buffers: nodes = NODE4_DTYPE as 8 float4 per node (minx, maxx, miny, maxy, minz, maxz, child,
-// count); tris = GPU_TRI_DTYPE (viewer/accel/bvh.py) as 3 float4 per triangle (v0, v1, v2 in
-// .xyz), in leaf order; rays and hits as viewer/cl/transfer.py lays them out.
+// Buffers: nodes = NODE4_DTYPE (viewer/accel/bvh4.py) as 8 float4 per node (minx, maxx, miny,
+// maxy, minz, maxz, child, count) except that a leaf child is ~(its first leaf block) instead of
+// ~(first slot); blocks = leaf blocks (below, packed by clbvh/__init__.py: LEAF_BLOCK_DTYPE),
+// leaf triangles four at a time in SoA form; rays and hits as viewer/cl/transfer.py lays them out.
 #include "geometry.cl"
 
 #ifndef STACK_SIZE
@@ -24,22 +25,30 @@
         int tn = n##i; n##i = n##j; n##j = tn;                         \
     }
 
-// Returns true when the ray was stopped by a hit in any-hit mode.
-inline bool leaf_hits(const RayPre *r, __global const float4 *tris, int first, int count, float tmin,
+// Leaf blocks (LEAF_BLOCK floats4 each): v0x, v0y, v0z, v1x, v1y, v1z, v2x, v2y, v2z of up to four
+// triangles (one lane each, NaN padding), then int4 (first slot, triangles in the block, 0, 0).
+// A leaf of `count` triangles is (count + 3) / 4 consecutive blocks. Returns true when the ray
+// was stopped by a hit in any-hit mode.
+#define LEAF_BLOCK 10
+inline bool leaf_hits(const RayPre *r, __global const float4 *blocks, int block, int count, float tmin,
                       const bool any_hit, float *hit_t, int *hit_id) {
-    for (int i = 0; i < count; ++i) {
-        __global const float4 *tv = tris + 3 * (first + i);
+    int nb = (count + 3) >> 2;
+    for (int b = 0; b < nb; ++b) {
+        __global const float4 *blk = blocks + LEAF_BLOCK * (block + b);
+        int4 meta = as_int4(blk[9]);
+        int4 lanes = (int4)(0, 1, 2, 3) < (int4)(meta.y);
         float t;
-        if (rt_intersect_triangle(r, tv[0].xyz, tv[1].xyz, tv[2].xyz, tmin, *hit_t, &t)) {
+        int lane = rt_intersect_triangle4(r, blk, lanes, tmin, *hit_t, &t);
+        if (lane >= 0) {
             *hit_t = t;
-            *hit_id = first + i;
+            *hit_id = meta.x + lane;
             if (any_hit) return true;
         }
     }
     return false;
 }
 
-inline void trace_ray(__global const float4 *nodes, __global const float4 *tris, float4 ot, float4 dt,
+inline void trace_ray(__global const float4 *nodes, __global const float4 *blocks, float4 ot, float4 dt,
                       const bool any_hit, float *out_t, int *out_id) {
     float tmin = ot.w;
     float hit_t = dt.w;
@@ -69,9 +78,9 @@ inline void trace_ray(__global const float4 *nodes, __global const float4 *tris,
                 float it1 = 0.0f, it2 = 0.0f, it3 = 0.0f;
                 int nin = 0;
 #define VISIT(k)                                                                                 \
-                if (k < nhit && d##k <= hit_t) {                                                 \
+                if (d##k < INFINITY && d##k <= hit_t) {                                              \
                     if (c##k < 0) {                                                              \
-                        if (leaf_hits(&r, tris, ~c##k, n##k, tmin, any_hit, &hit_t, &hit_id))    \
+                        if (leaf_hits(&r, blocks, ~c##k, n##k, tmin, any_hit, &hit_t, &hit_id))    \
                             goto done;                                                           \
                     } else {                                                                     \
                         if (nin == 0) { in0 = c##k; }                                            \
@@ -104,25 +113,25 @@ done:
 }
 
 __kernel __attribute__((reqd_work_group_size(WG, 1, 1)))
-void trace_closest(__global const float4 *nodes, __global const float4 *tris, __global const float4 *ray_o,
+void trace_closest(__global const float4 *nodes, __global const float4 *blocks, __global const float4 *ray_o,
                    __global const float4 *ray_d, __global float *out_t, __global int *out_id, const int n) {
     int i = get_global_id(0);
     if (i >= n) return;
     float t;
     int id;
-    trace_ray(nodes, tris, ray_o[i], ray_d[i], false, &t, &id);
+    trace_ray(nodes, blocks, ray_o[i], ray_d[i], false, &t, &id);
     out_t[i] = t;
     out_id[i] = id;
 }
 
 __kernel __attribute__((reqd_work_group_size(WG, 1, 1)))
-void trace_any(__global const float4 *nodes, __global const float4 *tris, __global const float4 *ray_o,
+void trace_any(__global const float4 *nodes, __global const float4 *blocks, __global const float4 *ray_o,
                __global const float4 *ray_d, __global float *out_t, __global int *out_id, const int n) {
     int i = get_global_id(0);
     if (i >= n) return;
     float t;
     int id;
-    trace_ray(nodes, tris, ray_o[i], ray_d[i], true, &t, &id);
+    trace_ray(nodes, blocks, ray_o[i], ray_d[i], true, &t, &id);
     out_t[i] = t;
     out_id[i] = id;
 }

@@ -129,3 +129,51 @@ inline int4 rt_intersect_box4(const RayPre *r, __global const float4 *bounds, fl
     *t_entry = enter;
     return enter <= exit;
 }
+
+// Four triangles at once, structure of arrays: v[0..8] = v0x, v0y, v0z, v1x, v1y, v1z, v2x, v2y, v2z
+// (one lane per triangle). Lane by lane the same float operations as rt_intersect_triangle, so the
+// same answers; the ray's axis permutation picks whole float4 rows (no per-lane shuffles).
+// `lanes` masks the lanes that hold triangles (-1). Returns the lane of the nearest hit with
+// tmin < t < tmax (the lowest such lane on equal t, as a sequential loop would keep), or -1.
+inline int rt_intersect_triangle4(const RayPre *r, __global const float4 *v, int4 lanes, float tmin, float tmax,
+                                  float *t_out) {
+    float okx = rt_comp(r->o, r->kx), oky = rt_comp(r->o, r->ky), okz = rt_comp(r->o, r->kz);
+    float4 Akz = v[r->kz] - okz, Bkz = v[3 + r->kz] - okz, Ckz = v[6 + r->kz] - okz;
+    float4 Ax = (v[r->kx] - okx) - r->Sx * Akz, Ay = (v[r->ky] - oky) - r->Sy * Akz;
+    float4 Bx = (v[3 + r->kx] - okx) - r->Sx * Bkz, By = (v[3 + r->ky] - oky) - r->Sy * Bkz;
+    float4 Cx = (v[6 + r->kx] - okx) - r->Sx * Ckz, Cy = (v[6 + r->ky] - oky) - r->Sy * Ckz;
+    float4 U = Cx * By - Cy * Bx;
+    float4 V = Ax * Cy - Ay * Cx;
+    float4 W = Bx * Ay - By * Ax;
+#ifdef RT_HAVE_FP64
+    int4 zero = ((U == 0.0f) | (V == 0.0f) | (W == 0.0f)) & lanes;
+    if (any(zero)) {
+        double4 dAx = convert_double4(Ax), dAy = convert_double4(Ay), dBx = convert_double4(Bx);
+        double4 dBy = convert_double4(By), dCx = convert_double4(Cx), dCy = convert_double4(Cy);
+        U = select(U, convert_float4(dCx * dBy - dCy * dBx), zero);
+        V = select(V, convert_float4(dAx * dCy - dAy * dCx), zero);
+        W = select(W, convert_float4(dBx * dAy - dBy * dAx), zero);
+    }
+#endif
+    int4 outside = ((U < 0.0f) | (V < 0.0f) | (W < 0.0f)) & ((U > 0.0f) | (V > 0.0f) | (W > 0.0f));
+    float4 det = U + V + W;
+    int4 ok = lanes & ~outside & (det != 0.0f);
+    if (!any(ok)) return -1;
+    float4 e1x = v[3] - v[0], e1y = v[4] - v[1], e1z = v[5] - v[2];
+    float4 e2x = v[6] - v[0], e2y = v[7] - v[1], e2z = v[8] - v[2];
+    float4 nx = e1y * e2z - e1z * e2y, ny = e1z * e2x - e1x * e2z, nz = e1x * e2y - e1y * e2x;
+    float4 dn = nx * r->d.x + ny * r->d.y + nz * r->d.z;
+    float4 t = (nx * (v[0] - r->o.x) + ny * (v[1] - r->o.y) + nz * (v[2] - r->o.z)) / dn;
+    int4 flat = dn == 0.0f;
+    if (any(flat & ok)) {
+        float4 tw = (U * (r->Sz * Akz) + V * (r->Sz * Bkz) + W * (r->Sz * Ckz)) / det;
+        t = select(t, tw, flat);
+    }
+    ok &= (t > tmin) & (t < tmax);
+    if (!any(ok)) return -1;
+    float4 tm = select((float4)(INFINITY), t, ok);
+    float best = fmin(fmin(tm.x, tm.y), fmin(tm.z, tm.w));
+    int lane = (ok.x && tm.x == best) ? 0 : (ok.y && tm.y == best) ? 1 : (ok.z && tm.z == best) ? 2 : 3;
+    *t_out = best;
+    return lane;
+}
