@@ -188,3 +188,13 @@ def test_cl_phase_covers_kernel_time_and_counts_per_label(gl_ctx, tmp_path, meth
     assert ms["cl:extra"] == 2.5
     assert prof.by_label["ao"] == pytest.approx(ms["cl:spin"] + 2.5)
     assert "gl" in ms and "gl" not in prof.by_label
+
+
+def test_importing_the_layer_does_not_load_opencl():
+    """GL backends must work on machines without OpenCL: pyopencl loads on first cl_context()."""
+    import subprocess
+    import sys
+
+    code = ("import sys, viewer.cl, viewer.cl.primitives, viewer.cl.bench_primitives, viewer.profiler; "
+            "assert 'pyopencl' not in sys.modules; import os; assert os.environ.get('POCL_CACHE_DIR')")
+    subprocess.run([sys.executable, "-c", code], check=True, cwd=Path(__file__).resolve().parents[1])

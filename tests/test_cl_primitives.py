@@ -226,3 +226,10 @@ def test_min_max_reduce(prims, dtype, n):
     assert reduce_np(a, "max", prims=prims) == a.max()
     with pytest.raises(ValueError):
         prims.reduce(None, 0)
+
+
+def test_bad_arguments(prims):
+    with pytest.raises(ValueError, match="key_bits"):
+        prims.sort_pairs(None, None, 10, key_bits=33)
+    with pytest.raises(ValueError, match="r must be"):
+        prims.segments(None, 10, r=0)

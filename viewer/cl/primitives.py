@@ -32,6 +32,7 @@ from viewer.cl.programs import build
 
 WG = 16  # work-items per work-group (fixed; PoCL compiles one variant per local size)
 MIN_BLOCK = 4096  # elements per block before more blocks are worth their overhead
+MAX_N = 2**32 - 2**16  # block ranges are computed in uint
 _RTYPES = {np.dtype(np.uint32): ("uint", 0xFFFFFFFF, 0), np.dtype(np.int32): ("int", 2**31 - 1, -(2**31)),
            np.dtype(np.float32): ("float", np.inf, -np.inf)}
 _ITEMS = {4: "uint", 8: "uint2", 16: "uint4"}
@@ -65,7 +66,7 @@ class Primitives:
     def __init__(self, ctx: ClContext | None = None, max_blocks: int | None = None):
         self.ctx = ctx or cl_context()
         cl = self.ctx.cl
-        self.max_blocks = max_blocks or max(WG, 64 * self.ctx.compute_units)
+        self.max_blocks = max_blocks or min(1024, max(WG, 64 * self.ctx.compute_units))
         self.max_blocks = -(-self.max_blocks // WG) * WG
         prog = build("primitives.cl", {"WG": WG}, self.ctx)
         self._k = {name: cl.Kernel(prog, name) for name in (
@@ -144,6 +145,10 @@ class Primitives:
 
         Only ceil(key_bits / 8) digit passes run (key_bits=None: the bit length of the largest
         key, from a max-reduce); keys must be < 2**key_bits. An odd pass count ends with a copy."""
+        if key_bits is not None and not 0 <= key_bits <= 32:
+            raise ValueError(f"key_bits must be in 0..32, not {key_bits}")
+        if n > MAX_N:
+            raise ValueError(f"at most {MAX_N} elements")
         if n <= 1:
             return
         if key_bits is None:
@@ -222,6 +227,12 @@ class Primitives:
         self._run(self._k["seg_chunk_counts"], mb, out.start, u(m), u(mb), u(n), out.length)
         out.count = m
         return out
+
+    def release(self) -> None:
+        """Free the scratch buffers (a 10M-pair sort keeps 80 MB of them for the next call)."""
+        for buf in self._scratch.values():
+            buf.release()
+        self._scratch.clear()
 
     # -- warm-up ----------------------------------------------------------------------------
     def warm_up(self) -> None:
