@@ -123,8 +123,11 @@ def cl_context() -> ClContext:
     if _context is None:
         cl = _import_cl()
         device = choose_device(list_devices(), os.environ.get(DEVICE_ENV))
-        ctx = cl.Context([device])
-        queue = cl.CommandQueue(ctx, device, properties=cl.command_queue_properties.PROFILING_ENABLE)
+        try:
+            ctx = cl.Context([device])
+            queue = cl.CommandQueue(ctx, device, properties=cl.command_queue_properties.PROFILING_ENABLE)
+        except cl.Error as e:
+            raise RtwalkError(f"cannot open OpenCL device {device.name.strip()!r}: {str(e).splitlines()[0]}") from None
         _context = ClContext(cl, ctx, queue, device)
     return _context
 
