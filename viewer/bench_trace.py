@@ -116,27 +116,31 @@ def capture_passes(renderer, camera) -> list[Pass]:
     return out
 
 
-def time_backend(renderer, name: str, passes: list[Pass]) -> tuple[list[float], list[float], list]:
-    """Per pass: ms in trace:* phases, ms in all phases of the call, and (t, tri) read back."""
+def time_backend(renderer, name: str, passes: list[Pass]) -> tuple[list[float], list[float], list[float], list]:
+    """Per pass: ms in trace:* phases, ms in all phases of the call, process CPU ms of the call
+    (all threads: llvmpipe's, PoCL's), and (t, tri) read back."""
     from viewer.rays import PassInfo
 
     renderer.set_backend(name)
     be = renderer.backend
     prof = renderer.profiler
-    trace_ms, total_ms, hits = [], [], []
+    trace_ms, total_ms, cpu_ms, hits = [], [], [], []
     for p in passes:
         renderer.rays.origin.write(p.origin4.tobytes())
         renderer.rays.direction.write(p.dir4.tobytes())
         renderer.ctx.finish()
         prof.begin_frame()
         prof.label = p.label
+        c0 = time.process_time()
         be.trace(renderer.rays, PassInfo(p.ray_type, p.sample, p.light), renderer.hits)
+        renderer.ctx.finish()
+        cpu_ms.append((time.process_time() - c0) * 1e3)
         prof.label = None
         phases = prof.end_frame()
         trace_ms.append(sum(v for k, v in phases.items() if k.startswith("trace:")))
         total_ms.append(sum(phases.values()))
         hits.append(renderer.hits.read())
-    return trace_ms, total_ms, hits
+    return trace_ms, total_ms, cpu_ms, hits
 
 
 def _embree_run(scene, p: Pass, lo: int, hi: int) -> None:
@@ -144,14 +148,16 @@ def _embree_run(scene, p: Pass, lo: int, hi: int) -> None:
     scene.run(p.o_emb[lo:hi], p.d_emb[lo:hi], dists=p.far[lo:hi].copy(), query=q)
 
 
-def time_embree(scene, p: Pass, threads: int) -> float:
-    """Wall ms of embreex run() over the pass's active rays, split over `threads` Python threads."""
+def time_embree(scene, p: Pass, threads: int) -> tuple[float, float]:
+    """Wall ms and process CPU ms of embreex run() over the pass's active rays, split over
+    `threads` Python threads."""
     n = len(p.far)
     bounds = np.linspace(0, n, threads + 1).astype(int)
+    c0 = time.process_time()
     if threads == 1:
         t0 = time.perf_counter()
         _embree_run(scene, p, 0, n)
-        return (time.perf_counter() - t0) * 1e3
+        return (time.perf_counter() - t0) * 1e3, (time.process_time() - c0) * 1e3
     ts = [threading.Thread(target=_embree_run, args=(scene, p, int(bounds[i]), int(bounds[i + 1])))
           for i in range(threads)]
     t0 = time.perf_counter()
@@ -159,7 +165,12 @@ def time_embree(scene, p: Pass, threads: int) -> float:
         t.start()
     for t in ts:
         t.join()
-    return (time.perf_counter() - t0) * 1e3
+    return (time.perf_counter() - t0) * 1e3, (time.process_time() - c0) * 1e3
+
+
+def _by_label(values: list[float], passes: list[Pass], label: str) -> float:
+    """Sum of per-pass values over the passes of one ray type."""
+    return float(sum(v for v, p in zip(values, passes, strict=True) if p.label == label))
 
 
 def _median(xs) -> float:
@@ -177,15 +188,17 @@ def study_frame(renderer, embree_scene, reference, passes: list[Pass], backends:
     # per round, per config, per label: ms
     ms = {c: {lb: [] for lb in labels} for c in configs}
     ms_total = {b: {lb: [] for lb in labels} for b in backends}
+    ms_cpu = {c: {lb: [] for lb in labels} for c in configs}
     agree: dict[str, dict[str, list[float]]] = {b: {lb: [] for lb in labels} for b in backends}
     for r in range(rounds):
         order = configs[r % len(configs):] + configs[: r % len(configs)]  # rotate: interleave
         for kind, what in order:
             if kind == "backend":
-                tr, tot, hits = time_backend(renderer, what, passes)
+                tr, tot, cpu, hits = time_backend(renderer, what, passes)
                 for lb in labels:
-                    ms[(kind, what)][lb].append(sum(t for t, p in zip(tr, passes, strict=True) if p.label == lb))
-                    ms_total[what][lb].append(sum(t for t, p in zip(tot, passes, strict=True) if p.label == lb))
+                    ms_cpu[(kind, what)][lb].append(_by_label(cpu, passes, lb))
+                    ms[(kind, what)][lb].append(_by_label(tr, passes, lb))
+                    ms_total[what][lb].append(_by_label(tot, passes, lb))
                 if check and r == 0:
                     for p, (t, tri), ref in zip(passes, hits, reference, strict=True):
                         a = p.active
@@ -194,19 +207,23 @@ def study_frame(renderer, embree_scene, reference, passes: list[Pass], backends:
             else:
                 per = [time_embree(embree_scene, p, what) for p in passes]
                 for lb in labels:
-                    ms[(kind, what)][lb].append(sum(t for t, p in zip(per, passes, strict=True) if p.label == lb))
+                    ms[(kind, what)][lb].append(_by_label([t[0] for t in per], passes, lb))
+                    ms_cpu[(kind, what)][lb].append(_by_label([t[1] for t in per], passes, lb))
     rows = []
     for lb in labels:
         n = sum(p.rays for p in passes if p.label == lb)
         row: dict = {"ray_type": lb, "rays": n, "passes": sum(p.label == lb for p in passes),
                      "any_hit": next(p.any_hit for p in passes if p.label == lb), "ms": {}, "mrays_s": {},
-                     "ms_rounds": {}}
+                     "ms_rounds": {}, "cpu_ms": {}, "mrays_per_cpu_s": {}}
         for kind, what in configs:
             key = what if kind == "backend" else f"embree_{what}t"
             vals = ms[(kind, what)][lb]
             row["ms_rounds"][key] = vals
             row["ms"][key] = _median(vals)
             row["mrays_s"][key] = n / 1e3 / row["ms"][key] if row["ms"][key] > 0 else float("nan")
+            cpu = _median(ms_cpu[(kind, what)][lb])
+            row["cpu_ms"][key] = cpu
+            row["mrays_per_cpu_s"][key] = n / 1e3 / cpu if cpu > 0 else float("nan")
         for b in backends:
             tot = ms_total[b][lb]
             if any(t > 0 for t in tot) and tot != ms[("backend", b)][lb]:
@@ -254,6 +271,13 @@ def _markdown(report: dict) -> str:
             ag = row.get("hitmiss_agree", {})
             cells.append(", ".join(f"{b} {v:.5f}" for b, v in ag.items()))
             lines.append("| " + " | ".join(cells) + " |")
+        keys = [*backends, *emb]
+        lines += ["", "Mrays per CPU-second (process CPU time of all threads: llvmpipe's, PoCL's, Embree's; "
+                  "less sensitive to other load on the machine, but blind to idle cores):", "",
+                  "| ray type | " + " | ".join(keys) + " |", "|" + "---|" * (len(keys) + 1)]
+        for row in group["rows"]:
+            lines.append(f"| {row['ray_type']} | " + " | ".join(
+                f"{row['mrays_per_cpu_s'].get(k, float('nan')):.3g}" for k in keys) + " |")
         lines.append("")
     return "\n".join(lines)
 
