@@ -1,9 +1,10 @@
 // clbvh: one work-item per ray traverses the 4-wide BVH (viewer/accel/bvh4.py) from the root.
 // SIMD comes from inside the work-item: one float4 slab test checks a node's four children
-// (PoCL does not vectorise this kind of loop across work-items). Hit children are sorted by
-// entry distance; leaf children are intersected at once, nearest first, and inner children are
-// visited nearest first (the others pushed far-to-near with their entry distance, culled when
-// popped beyond the current hit). The any-hit kernel stops at the first hit (shadow, soft, AO).
+// (PoCL does not vectorise this kind of loop across work-items). Closest hit: hit children are
+// sorted by entry distance; leaf children are intersected at once, nearest first, and inner
+// children are visited nearest first (the others pushed far-to-near with their entry distance,
+// culled when popped beyond the current hit). Any hit (shadow, soft, AO): children in stored
+// order, and the kernel stops at the first hit.
 //
 // Buffers: nodes = NODE4_DTYPE (viewer/accel/bvh4.py) as 8 float4 per node (minx, maxx, miny,
 // maxy, minz, maxz, child, count) except that a leaf child is ~(its first leaf block) instead of
@@ -72,8 +73,12 @@ inline void trace_ray(__global const float4 *nodes, __global const float4 *block
             int nhit = -(m.x + m.y + m.z + m.w);
             int next = -1;
             if (nhit > 0) {
-                CSWAP(0, 1) CSWAP(2, 3) CSWAP(0, 2) CSWAP(1, 3) CSWAP(1, 2)
-                // nearest first: leaves now, inner children collected in order
+                // closest hit: nearest first (sorting network, only when two or more children are
+                // hit); any hit: stored order, the sort does not pay off (measured: 5-17% faster)
+                if (!any_hit && nhit > 1) {
+                    CSWAP(0, 1) CSWAP(2, 3) CSWAP(0, 2) CSWAP(1, 3) CSWAP(1, 2)
+                }
+                // leaves now, inner children collected in order
                 int in0 = -1, in1 = -1, in2 = -1, in3 = -1;
                 float it1 = 0.0f, it2 = 0.0f, it3 = 0.0f;
                 int nin = 0;
