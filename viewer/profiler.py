@@ -8,6 +8,11 @@ Two ways to time a phase:
   against 308 ms of wall time, 256x256 0.14 of it, a 64x64 one right). Also,
   moderngl reads the result as 32 bits, so phases over 4.29 s saturate.
 RTWALK_PHASE_TIMING=timer|sync overrides the automatic choice.
+
+OpenCL work is timed by `cl_phase(name, queue)`: the CL queue is finished at the end and the wall
+time recorded (in "sync" mode GL and the queue are finished first, as for GL phases), so CL phases
+sit in the same tables, plots and panel as GL phases and count towards `by_label`. `record(name,
+ms)` adds a phase measured elsewhere (e.g. from CL event profiling).
 """
 
 from __future__ import annotations
@@ -52,8 +57,10 @@ class GpuProfiler:
         self.label: str | None = None  # set by the renderer around backend.trace (ray type)
         self.by_label: dict[str, float] = {}
         self.saturated = 0
+        self._queries = 0  # timer queries used this frame
 
     def begin_frame(self) -> None:
+        self._queries = 0
         self._used.clear()
         self._cpu.clear()
         self.saturated = 0
@@ -71,7 +78,8 @@ class GpuProfiler:
             self._used.append((name, (time.perf_counter() - t0) * 1e3, self.label, 0.0))
         else:
             t0 = time.perf_counter()
-            idx = len(self._used)
+            idx = self._queries  # CL and recorded phases take no query
+            self._queries += 1
             if idx >= len(self._pool):
                 self._pool.append(self.ctx.query(time=True))
             q = self._pool[idx]
@@ -79,6 +87,33 @@ class GpuProfiler:
                 yield
             self._used.append((name, q, self.label, (time.perf_counter() - t0) * 1e3))
         self._cpu[name] = self._cpu.get(name, 0.0) + (time.perf_counter() - t0) * 1e3
+
+    @contextmanager
+    def cl_phase(self, name: str, queue):
+        """Time OpenCL work enqueued on `queue` (a pyopencl.CommandQueue) as phase `name`.
+
+        The queue is finished at the end, so the phase holds the kernels' run time even though
+        enqueueing returns at once. In "sync" mode, GL work and CL work issued before the phase
+        are finished first (not charged to it); in "timer" mode the queue is still drained first."""
+        if self.enabled:
+            if self.method == "sync":
+                self.ctx.finish()
+            queue.finish()
+        t0 = time.perf_counter()
+        yield
+        if self.enabled:
+            queue.finish()
+            ms = (time.perf_counter() - t0) * 1e3
+            self._used.append((name, ms, self.label, 0.0))
+        self._cpu[name] = self._cpu.get(name, 0.0) + (time.perf_counter() - t0) * 1e3
+
+    def record(self, name: str, ms: float, cpu_ms: float | None = None) -> None:
+        """Add `ms` to phase `name` for this frame (summed like timed phases, and into by_label
+        under the current label); `cpu_ms` also goes into cpu_ms() when given."""
+        if self.enabled:
+            self._used.append((name, float(ms), self.label, 0.0))
+        if cpu_ms is not None:
+            self._cpu[name] = self._cpu.get(name, 0.0) + float(cpu_ms)
 
     def end_frame(self) -> dict[str, float]:
         """GPU milliseconds per phase (waits for the queries)."""

@@ -17,6 +17,7 @@ BACKENDS: dict[str, str] = {
     "glsl": "viewer.backends.glsl:GlslBackend",
     "chcrt": "viewer.backends.chcrt:ChcrtBackend",
     "embree": "viewer.backends.embree:EmbreeBackend",
+    "clbvh": "viewer.backends.clbvh:ClbvhBackend",
 }
 
 

@@ -1,0 +1,155 @@
+"""clbvh: the OpenCL baseline. One work-item per ray traverses a 4-wide BVH from the root.
+
+The BVH4 is collapsed from the renderer's SAH binary BVH (viewer.accel.bvh4), so triangle ids
+are the same leaf-order slots as for every backend. Kernels (trace.cl beside this file, tests
+from viewer/cl/kernels/geometry.cl) follow glsl's conventions: watertight triangle test with the
+double fallback, conservative slab test, safe reciprocals, hits only for tmin < t < tmax; the
+any-hit kernel (shadow, soft, AO) exits on the first hit.
+
+Per pass: the ray textures are read into mapped CL buffers (phase "clbvh:upload"), the kernel
+runs (phase "trace:<ray type>", as glsl's draw), the hits are written back to the hit textures
+("clbvh:download"). The work-group size is fixed (WG): PoCL compiles one work-group function
+per size, and the size made no difference to speed in a prototype on this machine.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from viewer.accel.bvh4 import BVH4, build_bvh4
+from viewer.backends.base import BackendContext, TraceResult
+from viewer.backends.interface import BackendInfo
+from viewer.rays import HitBuffer, PassInfo, RayBatch
+
+KERNEL = Path(__file__).resolve().parent / "trace.cl"
+WG = 64
+MAX_STACK = 256  # private stack entries the kernel may hold (3 per BVH4 level)
+
+
+#: A leaf block: up to four triangles of one leaf in SoA form (one float4 lane per triangle, NaN
+#: padding), then the first triangle slot of the block and its triangle count.
+LEAF_BLOCK_DTYPE = np.dtype([("v", "<f4", (9, 4)), ("first", "<i4"), ("count", "<i4"), ("pad", "<i4", 2)])
+assert LEAF_BLOCK_DTYPE.itemsize == 160
+
+
+def pack_leaves(nodes: np.ndarray, triangles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Kernel copies of a BVH4: (nodes with leaf refs ~first_block, LEAF_BLOCK_DTYPE blocks).
+
+    A leaf of c triangles (slots first .. first+c-1, leaf order) becomes ceil(c / 4) consecutive
+    blocks; v[3 * vertex + axis, lane] holds the coordinate of slot first + 4 * block + lane.
+    Vectorised over leaves and lanes."""
+    tris = np.asarray(triangles, np.float32).reshape(-1, 3, 3)
+    child, count = nodes["child"], nodes["count"]
+    is_leaf = (child < 0) & (count > 0)
+    first = (~child[is_leaf]).astype(np.int64)
+    cnt = count[is_leaf].astype(np.int64)
+    nblk = (cnt + 3) // 4
+    blk_start = np.cumsum(nblk) - nblk
+    out_nodes = nodes.copy()
+    kchild = out_nodes["child"]
+    kchild[is_leaf] = ~blk_start
+    n_blocks = int(nblk.sum())
+    blocks = np.zeros(max(n_blocks, 1), LEAF_BLOCK_DTYPE)
+    if n_blocks:
+        leaf_of = np.repeat(np.arange(len(first)), nblk)
+        k = np.arange(n_blocks) - blk_start[leaf_of]  # block number inside its leaf
+        b_first = first[leaf_of] + 4 * k
+        b_count = np.minimum(cnt[leaf_of] - 4 * k, 4)
+        lane = np.arange(4)
+        valid = lane[None, :] < b_count[:, None]  # (B, 4)
+        slot = np.where(valid, b_first[:, None] + lane[None, :], 0)
+        v = tris[slot].reshape(n_blocks, 4, 9)  # (B, lane, vertex*3 + axis)
+        v = np.where(valid[:, :, None], v, np.float32(np.nan))
+        blocks["v"] = v.transpose(0, 2, 1)
+        blocks["first"] = b_first
+        blocks["count"] = b_count
+    return out_nodes, blocks
+
+
+class ClbvhScene:
+    """The BVH4 and the leaf-ordered triangles in CL buffers, plus the built kernels."""
+
+    def __init__(self, triangles: np.ndarray, bvh, ctx=None):
+        from viewer.cl import build, cl_context
+
+        self.ctx = ctx or cl_context()
+        self.bvh4: BVH4 = build_bvh4(bvh)
+        self.stack_size = self.bvh4.stack_size()
+        assert self.stack_size <= MAX_STACK, f"BVH4 depth {self.bvh4.depth} needs {self.stack_size} stack entries"
+        cl = self.ctx.cl
+        mf = cl.mem_flags
+        knodes, blocks = pack_leaves(self.bvh4.nodes, triangles)
+        self.nodes = cl.Buffer(self.ctx.context, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=knodes)
+        self.blocks = cl.Buffer(self.ctx.context, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=blocks)
+        prog = build(KERNEL, {"STACK_SIZE": self.stack_size, "WG": WG}, self.ctx)
+        self.kernels = {False: cl.Kernel(prog, "trace_closest"), True: cl.Kernel(prog, "trace_any")}
+        self.memory_bytes = knodes.nbytes + blocks.nbytes
+
+    def enqueue(self, ray_o, ray_d, out_t, out_id, n: int, any_hit: bool):
+        """Enqueue the trace of n rays (buffers as viewer/cl/transfer.py lays them out)."""
+        if n == 0:
+            return None
+        gsize = -(-n // WG) * WG
+        return self.kernels[bool(any_hit)](self.ctx.queue, (gsize,), (WG,), self.nodes, self.blocks,
+                                           ray_o, ray_d, out_t, out_id, np.int32(n))
+
+    def release(self) -> None:
+        self.nodes.release()
+        self.blocks.release()
+
+
+class ClbvhBackend:
+    info = BackendInfo("clbvh", "OpenCL: one work-item per ray walks a 4-wide BVH (float4 child tests) from the root",
+                       counters=("rays",), device="cl")
+
+    def __init__(self, bc: BackendContext, params: None = None):
+        from viewer.cl import cl_context
+
+        self.bc = bc
+        self.params = params
+        self.overlays_enabled = False
+        self.ctx = cl_context()
+        self.scene = ClbvhScene(bc.scene.triangles, bc.bvh, self.ctx)
+        self._stages = None  # (size, RayStage, HitStage)
+
+    def _staged(self, size: tuple[int, int]):
+        from viewer.cl import HitStage, RayStage
+
+        size = (int(size[0]), int(size[1]))
+        if self._stages is None or self._stages[0] != size:
+            self._release_stages()
+            self._stages = (size, RayStage(size, self.ctx), HitStage(size, self.ctx))
+        return self._stages[1], self._stages[2]
+
+    def begin_frame(self, frame_index: int) -> None:
+        pass
+
+    def reset(self) -> None:
+        pass
+
+    def tile_level(self, size: tuple[int, int]) -> int:
+        return -1
+
+    def trace(self, rays: RayBatch, pinfo: PassInfo, hits: HitBuffer) -> TraceResult:
+        prof = self.bc.profiler
+        rs, hs = self._staged(rays.size)
+        q = self.ctx.queue
+        with prof.cl_phase("clbvh:upload", q):
+            rs.upload(rays)
+        with prof.cl_phase(f"trace:{pinfo.ray_type.label}", q):
+            self.scene.enqueue(rs.origin, rs.dir, hs.t, hs.tri, rs.n, pinfo.any_hit)
+        with prof.cl_phase("clbvh:download", q):
+            hs.download(hits)
+        return TraceResult(stats={"rays": rs.n})
+
+    def _release_stages(self) -> None:
+        if self._stages is not None:
+            self._stages[1].release()
+            self._stages[2].release()
+            self._stages = None
+
+    def release(self) -> None:
+        self._release_stages()
+        self.scene.release()

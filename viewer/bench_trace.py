@@ -1,0 +1,416 @@
+"""Trace-speed study: Mrays/s of backends and of raw Embree on the very same rays.
+
+Rays are captured once per frame (Renderer.render(capture=True) with the glsl backend: every
+ray type of the frame, one RayArrays per pass), then, in interleaved rounds, each backend traces
+each captured pass again from the ray textures and Embree (embreex's own `run()`, tnear folded
+into the origin as viewer.reference does) traces the same active rays on 1 thread and on N
+Python threads over equal slices (embreex releases the GIL in run(): checked by a Python loop
+that keeps running beside it). A backend's time is the sum of its profiler phases named
+trace:<ray type> (for clbvh the kernel; its mapped ray/hit transfers are reported apart as
+"with transfer"); Embree's is the wall time of run(). Medians over rounds; ratios are taken
+per round (interleaved), then the median. Hit/miss agreement of each backend with the Embree
+reference (viewer.reference.EmbreeTracer) is reported once per pass.
+
+Output in --out: bench_trace.json (every pass and round), bench_trace.md (a table per scene
+and size) and bench_trace.png (Mrays/s per ray type, log scale).
+"""
+
+from __future__ import annotations
+
+import json
+import statistics
+import sys
+import threading
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from viewer.errors import RtwalkError
+
+DEFAULT_RECORDINGS = "city-near.json,sponza-walk.json,conference-walk.json"
+DEFAULT_EFFECTS = "primary,shadows,soft,ao,diffuse,reflections"
+RECORDINGS_DIR = Path(__file__).resolve().parents[1] / "recordings"
+
+
+def add_arguments(p) -> None:
+    p.add_argument("--recordings", default=DEFAULT_RECORDINGS,
+                   help=f"comma-separated recordings (names in recordings/ or paths; default {DEFAULT_RECORDINGS})")
+    p.add_argument("--sizes", default="640x360,1280x720", help="comma-separated WxH (default 640x360,1280x720)")
+    p.add_argument("--frames", type=int, default=1,
+                   help="frames per recording, evenly spaced inside it (default 1: the middle frame)")
+    p.add_argument("--backends", default="glsl,clbvh", help="comma-separated registered backends (default glsl,clbvh)")
+    p.add_argument("--effects", default=DEFAULT_EFFECTS, help=f"ray types to capture (default {DEFAULT_EFFECTS})")
+    p.add_argument("--embree-threads", default="1,2", help="Embree raw thread counts (default 1,2; empty: none)")
+    p.add_argument("--rounds", type=int, default=3, help="interleaved timing rounds (default 3)")
+    p.add_argument("--no-check", action="store_true", help="skip the hit/miss agreement with the Embree reference")
+    p.add_argument("--out", default="bench-trace", help="output folder (default bench-trace)")
+    p.add_argument("--quiet", action="store_true")
+
+
+@dataclass
+class Pass:
+    """One captured pass: rays as RGBA32F texel data, the active rays for Embree."""
+
+    label: str
+    any_hit: bool
+    ray_type: object  # viewer.effects.RayType
+    sample: int
+    light: int
+    origin4: np.ndarray  # float32 (H, W, 4) origin + tmin
+    dir4: np.ndarray  # float32 (H, W, 4) direction + tmax
+    active: np.ndarray  # bool (H*W,)
+    o_emb: np.ndarray  # float32 (A, 3) Embree origins (o + tmin d)
+    d_emb: np.ndarray  # float32 (A, 3)
+    far: np.ndarray  # float32 (A,) Embree tfar
+
+    @property
+    def rays(self) -> int:
+        return int(self.active.sum())
+
+
+def _parse_sizes(text: str) -> list[tuple[int, int]]:
+    out = []
+    for item in [s.strip() for s in text.split(",") if s.strip()]:
+        w, sep, h = item.lower().partition("x")
+        if not sep or not w.isdigit() or not h.isdigit() or int(w) < 1 or int(h) < 1:
+            raise RtwalkError(f"--sizes: expected WxH like 640x360 (got '{item}')")
+        out.append((int(w), int(h)))
+    if not out:
+        raise RtwalkError("--sizes: no size given")
+    return out
+
+
+def _recording_path(name: str) -> Path:
+    p = Path(name)
+    for cand in (p, RECORDINGS_DIR / name, RECORDINGS_DIR / f"{name}.json"):
+        if cand.is_file():
+            return cand
+    raise RtwalkError(f"--recordings: no recording '{name}' (looked in {RECORDINGS_DIR})")
+
+
+def _log(args, msg: str) -> None:
+    if not args.quiet:
+        print(msg, file=sys.stderr, flush=True)
+
+
+def capture_passes(renderer, camera) -> list[Pass]:
+    """Render one frame with capture and keep every pass that has active rays."""
+    from viewer.reference import EmbreeTracer, prepare_rays
+
+    rep = renderer.render(camera, capture=True)
+    w, h = renderer.size
+    out = []
+    for cp in rep.captured:
+        r = cp.rays
+        active = r.active & np.isfinite(r.origins).all(1) & np.isfinite(r.directions).all(1)
+        if not active.any():
+            continue
+        o4 = np.concatenate([r.origins, r.tmin[:, None]], 1).astype(np.float32).reshape(h, w, 4)
+        d4 = np.concatenate([r.directions, r.tmax[:, None]], 1).astype(np.float32).reshape(h, w, 4)
+        o, d, lo, hi, _ = prepare_rays(r.origins[active], r.directions[active], r.tmin[active], r.tmax[active])
+        o32, d32, far = EmbreeTracer._embree_rays(o, d, lo, hi)
+        out.append(Pass(cp.ray_type.label, cp.ray_type.any_hit, cp.ray_type, cp.sample, cp.light, o4, d4, active,
+                        o32, d32, far))
+    return out
+
+
+def time_backend(renderer, name: str, passes: list[Pass]) -> tuple[list[float], list[float], list[float], list]:
+    """Per pass: ms in trace:* phases, ms in all phases of the call, process CPU ms of the call
+    (all threads: llvmpipe's, PoCL's), and (t, tri) read back."""
+    from viewer.rays import PassInfo
+
+    renderer.set_backend(name)
+    be = renderer.backend
+    prof = renderer.profiler
+    trace_ms, total_ms, cpu_ms, hits = [], [], [], []
+    for p in passes:
+        renderer.rays.origin.write(p.origin4.tobytes())
+        renderer.rays.direction.write(p.dir4.tobytes())
+        renderer.ctx.finish()
+        prof.begin_frame()
+        prof.label = p.label
+        c0 = time.process_time()
+        be.trace(renderer.rays, PassInfo(p.ray_type, p.sample, p.light), renderer.hits)
+        renderer.ctx.finish()
+        cpu_ms.append((time.process_time() - c0) * 1e3)
+        prof.label = None
+        phases = prof.end_frame()
+        trace_ms.append(sum(v for k, v in phases.items() if k.startswith("trace:")))
+        total_ms.append(sum(phases.values()))
+        hits.append(renderer.hits.read())
+    return trace_ms, total_ms, cpu_ms, hits
+
+
+def _embree_run(scene, p: Pass, lo: int, hi: int) -> None:
+    q = "OCCLUDED" if p.any_hit else "INTERSECT"
+    scene.run(p.o_emb[lo:hi], p.d_emb[lo:hi], dists=p.far[lo:hi].copy(), query=q)
+
+
+def time_embree(scene, p: Pass, threads: int) -> tuple[float, float]:
+    """Wall ms and process CPU ms of embreex run() over the pass's active rays, split over
+    `threads` Python threads."""
+    n = len(p.far)
+    bounds = np.linspace(0, n, threads + 1).astype(int)
+    c0 = time.process_time()
+    if threads == 1:
+        t0 = time.perf_counter()
+        _embree_run(scene, p, 0, n)
+        return (time.perf_counter() - t0) * 1e3, (time.process_time() - c0) * 1e3
+    ts = [threading.Thread(target=_embree_run, args=(scene, p, int(bounds[i]), int(bounds[i + 1])))
+          for i in range(threads)]
+    t0 = time.perf_counter()
+    for t in ts:
+        t.start()
+    for t in ts:
+        t.join()
+    return (time.perf_counter() - t0) * 1e3, (time.process_time() - c0) * 1e3
+
+
+def _by_label(values: list[float], passes: list[Pass], label: str) -> float:
+    """Sum of per-pass values over the passes of one ray type."""
+    return float(sum(v for v, p in zip(values, passes, strict=True) if p.label == label))
+
+
+def _median(xs) -> float:
+    xs = [x for x in xs if x is not None and np.isfinite(x)]
+    return float(statistics.median(xs)) if xs else float("nan")
+
+
+def study_frame(renderer, embree_scene, reference, passes: list[Pass], backends: list[str], threads: list[int],
+                rounds: int, check: bool) -> list[dict]:
+    """Interleaved rounds over backends and Embree thread counts; one row per ray type."""
+    from viewer.reference import compare_hits
+
+    labels = list(dict.fromkeys(p.label for p in passes))
+    configs = [("backend", b) for b in backends] + [("embree", t) for t in threads]
+    # per round, per config, per label: ms
+    ms = {c: {lb: [] for lb in labels} for c in configs}
+    ms_total = {b: {lb: [] for lb in labels} for b in backends}
+    ms_cpu = {c: {lb: [] for lb in labels} for c in configs}
+    agree: dict[str, dict[str, list[float]]] = {b: {lb: [] for lb in labels} for b in backends}
+    for r in range(rounds):
+        order = configs[r % len(configs):] + configs[: r % len(configs)]  # rotate: interleave
+        for kind, what in order:
+            if kind == "backend":
+                tr, tot, cpu, hits = time_backend(renderer, what, passes)
+                for lb in labels:
+                    ms_cpu[(kind, what)][lb].append(_by_label(cpu, passes, lb))
+                    ms[(kind, what)][lb].append(_by_label(tr, passes, lb))
+                    ms_total[what][lb].append(_by_label(tot, passes, lb))
+                if check and r == 0:
+                    for p, (t, tri), ref in zip(passes, hits, reference, strict=True):
+                        a = p.active
+                        st = compare_hits(t[a], tri[a], ref[0], ref[1])
+                        agree[what][p.label].append(st["hitmiss_agree"])
+            else:
+                per = [time_embree(embree_scene, p, what) for p in passes]
+                for lb in labels:
+                    ms[(kind, what)][lb].append(_by_label([t[0] for t in per], passes, lb))
+                    ms_cpu[(kind, what)][lb].append(_by_label([t[1] for t in per], passes, lb))
+    rows = []
+    for lb in labels:
+        n = sum(p.rays for p in passes if p.label == lb)
+        row: dict = {"ray_type": lb, "rays": n, "passes": sum(p.label == lb for p in passes),
+                     "any_hit": next(p.any_hit for p in passes if p.label == lb), "ms": {}, "mrays_s": {},
+                     "ms_rounds": {}, "cpu_ms": {}, "mrays_per_cpu_s": {}}
+        for kind, what in configs:
+            key = what if kind == "backend" else f"embree_{what}t"
+            vals = ms[(kind, what)][lb]
+            row["ms_rounds"][key] = vals
+            row["ms"][key] = _median(vals)
+            row["mrays_s"][key] = n / 1e3 / row["ms"][key] if row["ms"][key] > 0 else float("nan")
+            cpu = _median(ms_cpu[(kind, what)][lb])
+            row["cpu_ms"][key] = cpu
+            row["mrays_per_cpu_s"][key] = n / 1e3 / cpu if cpu > 0 else float("nan")
+        for b in backends:
+            tot = ms_total[b][lb]
+            if any(t > 0 for t in tot) and tot != ms[("backend", b)][lb]:
+                row["ms"][f"{b}+transfer"] = _median(tot)
+                row["mrays_s"][f"{b}+transfer"] = n / 1e3 / row["ms"][f"{b}+transfer"]
+            if agree[b][lb]:
+                row.setdefault("hitmiss_agree", {})[b] = float(min(agree[b][lb]))
+        # interleaved ratios: per round, then the median
+        ratios = {}
+        keys = list(row["ms_rounds"])
+        for a in keys:
+            for b in keys:
+                if a != b:
+                    rr = [y / x for x, y in zip(row["ms_rounds"][a], row["ms_rounds"][b], strict=True) if x > 0]
+                    ratios[f"{a}/{b}"] = _median(rr)  # speed of a over b (time b / time a)
+        row["speedup"] = ratios
+        rows.append(row)
+    return rows
+
+
+def _markdown(report: dict) -> str:
+    lines = [f"# Trace speed on the same rays ({report['device_cl']})", "",
+             f"Command: `{report['command']}`", "",
+             "Mrays/s = active rays / median time over interleaved rounds; a backend's time is its trace:* phases "
+             "(clbvh: the kernel; '+transfer' adds the mapped ray/hit copies), Embree's the wall time of embreex "
+             "run() on N Python threads. Ratios are per-round, then the median.", ""]
+    backends = report["backends"]
+    emb = [f"embree_{t}t" for t in report["embree_threads"]]
+    for group in report["groups"]:
+        lines += [f"## {group['recording']} frame {group['frame']} at {group['size'][0]}x{group['size'][1]}"
+                  f" ({group['triangles']:,} triangles)", ""]
+        cols = [*backends, *[f"{b}+transfer" for b in backends if b != "glsl"], *emb]
+        ratio_cols = []
+        if "clbvh" in backends and "glsl" in backends:
+            ratio_cols.append(("clbvh/glsl", "clbvh vs glsl"))
+        if "clbvh" in backends and emb:
+            ratio_cols += [(f"clbvh/{e}", f"clbvh vs {e.replace('_', ' ')}") for e in emb]
+        head = ["ray type", "rays", *[f"{c} Mrays/s" for c in cols], *[r[1] for r in ratio_cols], "hit/miss vs Embree"]
+        lines.append("| " + " | ".join(head) + " |")
+        lines.append("|" + "---|" * len(head))
+        for row in group["rows"]:
+            cells = [row["ray_type"], f"{row['rays']:,}"]
+            cells += [f"{row['mrays_s'].get(c, float('nan')):.3g}" for c in cols]
+            cells += [f"{row['speedup'].get(k, float('nan')):.2f}x" for k, _ in ratio_cols]
+            ag = row.get("hitmiss_agree", {})
+            cells.append(", ".join(f"{b} {v:.5f}" for b, v in ag.items()))
+            lines.append("| " + " | ".join(cells) + " |")
+        keys = [*backends, *emb]
+        lines += ["", "Mrays per CPU-second (process CPU time of all threads: llvmpipe's, PoCL's, Embree's; "
+                  "less sensitive to other load on the machine, but blind to idle cores):", "",
+                  "| ray type | " + " | ".join(keys) + " |", "|" + "---|" * (len(keys) + 1)]
+        for row in group["rows"]:
+            lines.append(f"| {row['ray_type']} | " + " | ".join(
+                f"{row['mrays_per_cpu_s'].get(k, float('nan')):.3g}" for k in keys) + " |")
+        lines.append("")
+    return "\n".join(lines)
+
+
+def _plot(report: dict, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    groups = report["groups"]
+    fig, axes = plt.subplots(len(groups), 1, figsize=(10, 3.2 * len(groups)), squeeze=False)
+    keys = [*report["backends"], *[f"embree_{t}t" for t in report["embree_threads"]]]
+    for ax, g in zip(axes[:, 0], groups, strict=True):
+        labels = [r["ray_type"] for r in g["rows"]]
+        x = np.arange(len(labels))
+        wbar = 0.8 / max(len(keys), 1)
+        for i, k in enumerate(keys):
+            ax.bar(x + i * wbar, [r["mrays_s"].get(k, np.nan) for r in g["rows"]], wbar, label=k)
+        ax.set_xticks(x + 0.4 - wbar / 2, labels)
+        ax.set_yscale("log")
+        ax.set_ylabel("Mrays/s")
+        ax.set_title(f"{g['recording']} frame {g['frame']} {g['size'][0]}x{g['size'][1]}")
+        ax.legend(fontsize=7, ncol=len(keys))
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
+def run(args) -> int:
+    from viewer.backends import backend_names
+    from viewer.effects import parse_effects
+    from viewer.recording import load_recording, resolve_scene_spec
+    from viewer.reference import EmbreeTracer
+    from viewer.renderer import Renderer
+    from viewer.session import prepare_scene
+    from viewer.tracing import shared_context
+
+    sizes = _parse_sizes(args.sizes)
+    backends = [b.strip() for b in args.backends.split(",") if b.strip()]
+    for b in backends:
+        if b not in backend_names():
+            raise RtwalkError(f"--backends: unknown backend '{b}' (choose from {', '.join(backend_names())})")
+    try:
+        threads = [int(t) for t in args.embree_threads.split(",") if t.strip()]
+    except ValueError:
+        raise RtwalkError(f"--embree-threads: expected integers like 1,2 (got '{args.embree_threads}')") from None
+    if any(t < 1 for t in threads):
+        raise RtwalkError("--embree-threads: thread counts must be >= 1")
+    if args.frames < 1 or args.rounds < 1:
+        raise RtwalkError("--frames and --rounds must be >= 1")
+    if threads and not EmbreeTracer.available():
+        raise RtwalkError("Embree timings need the embreex package (pip install embreex)")
+    recs = [_recording_path(n.strip()) for n in args.recordings.split(",") if n.strip()]
+    settings = parse_effects(args.effects)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    ctx = shared_context()
+    device_cl = ""
+    if any(b == "clbvh" for b in backends):
+        from viewer.cl import cl_context
+
+        device_cl = cl_context().name
+    report = {"command": _command(),
+              "backends": backends, "embree_threads": threads, "rounds": args.rounds, "effects": args.effects,
+              "device_cl": device_cl or "no OpenCL backend", "groups": []}
+    for rec_path in recs:
+        rec = load_recording(rec_path)
+        rs = resolve_scene_spec(rec, rec_path)
+        _log(args, f"bench-trace: loading {rec_path.name}")
+        prep = prepare_scene(rs.spec, scene_size=rs.size, seed=rs.seed if rs.seed is not None else 1, quiet=True)
+        embree_scene = mesh = tracer = reference = None
+        if threads:
+            from embreex import mesh_construction, rtcore_scene
+
+            embree_scene = rtcore_scene.EmbreeScene(robust=True)
+            mesh = mesh_construction.TriangleMesh(embree_scene, np.ascontiguousarray(prep.scene.triangles))
+        if not args.no_check:
+            tracer = EmbreeTracer(prep.scene.triangles)
+        count = rec.frame_count()
+        frames = sorted({int(count * (k + 1) / (args.frames + 1)) for k in range(args.frames)})
+        for size in sizes:
+            renderer = Renderer(ctx, prep.scene, prep.bvh, size, backends[0] if backends else "glsl", settings)
+            try:
+                for fr in frames:
+                    passes = capture_passes(renderer, rec.camera_for_frame(fr))
+                    if tracer is not None:
+                        reference = [_reference(tracer, p) for p in passes]
+                    # warm up outside the timing: kernel builds and first-use costs of both query kinds
+                    warm = list({p.any_hit: p for p in passes}.values())
+                    for b in backends:
+                        time_backend(renderer, b, warm)
+                    _log(args, f"bench-trace: {rec_path.stem} frame {fr} {size[0]}x{size[1]}: "
+                               f"{sum(p.rays for p in passes):,} rays in {len(passes)} passes")
+                    rows = study_frame(renderer, embree_scene, reference, passes, backends, threads, args.rounds,
+                                       not args.no_check)
+                    report["groups"].append({"recording": rec_path.stem, "frame": fr, "size": list(size),
+                                             "triangles": prep.scene.triangle_count, "rows": rows})
+                    for row in rows:
+                        _log(args, f"  {row['ray_type']:12s} " + "  ".join(
+                            f"{k} {v:.3g}" for k, v in row["mrays_s"].items()) + " Mrays/s")
+            finally:
+                renderer.release()
+        del mesh, embree_scene, tracer
+    (out / "bench_trace.json").write_text(json.dumps(report, indent=1))
+    (out / "bench_trace.md").write_text(_markdown(report))
+    if report["groups"]:
+        _plot(report, out / "bench_trace.png")
+    print(_markdown(report))
+    return 0
+
+
+def _command() -> str:
+    argv = sys.argv[1:]
+    if argv and argv[0] == "bench-trace":
+        argv = argv[1:]
+    return " ".join(["rtwalk bench-trace", *argv])
+
+
+def _reference(tracer, p: Pass) -> tuple[np.ndarray, np.ndarray]:
+    """Embree reference hits for the pass's active rays (full convention of viewer.reference)."""
+    o4 = p.origin4.reshape(-1, 4)[p.active]
+    d4 = p.dir4.reshape(-1, 4)[p.active]
+    return tracer.trace(o4[:, :3], d4[:, :3], o4[:, 3], d4[:, 3], any_hit=p.any_hit)
+
+
+if __name__ == "__main__":  # python3 -m viewer.bench_trace ... (same options as rtwalk bench-trace)
+    import argparse
+
+    parser = argparse.ArgumentParser(prog="python3 -m viewer.bench_trace", description=__doc__.splitlines()[0])
+    add_arguments(parser)
+    try:
+        sys.exit(run(parser.parse_args()))
+    except RtwalkError as exc:
+        print(f"rtwalk: error: {exc}", file=sys.stderr)
+        sys.exit(2)

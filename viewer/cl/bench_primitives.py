@@ -1,0 +1,265 @@
+"""`rtwalk bench-cl`: OpenCL primitive throughput next to NumPy on the same data, in one run.
+
+For each size: stable key-value sort (OpenCL radix sort vs np.argsort(kind="stable") plus the
+gather of keys, i.e. both produce sorted keys and their original indices), exclusive scan (vs
+np.cumsum) and stream compaction of half the elements (vs boolean indexing). Data are random
+uint32 (full 32-bit keys, 4 sort passes). The OpenCL inputs live on the device before timing (as
+in a backend); each time runs from enqueue to queue finish. Repetitions interleave NumPy and
+OpenCL (alternating which goes first); medians and the median of per-repetition ratios are
+reported. Writes bench_cl.json, bench_cl.md and bench_cl.png to --out.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import sys
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+
+from viewer.errors import RtwalkError
+
+OPS = ("sort", "scan", "compact")
+NUMPY_NAMES = {"sort": 'np.argsort(kind="stable") + gather', "scan": "np.cumsum", "compact": "a[mask]"}
+
+
+def parse_sizes(text: str) -> list[int]:
+    """"1M,10M" -> [1000000, 10000000] (suffixes K, M; plain integers too)."""
+    out = []
+    for part in text.split(","):
+        p = part.strip().upper()
+        mult = {"K": 1_000, "M": 1_000_000}.get(p[-1:], 1)
+        try:
+            v = int(float(p[:-1] if mult > 1 else p) * mult)
+        except ValueError:
+            raise RtwalkError(f"bad --sizes '{text}': expected sizes like 1M,10M") from None
+        if not 1 <= v <= 200_000_000:
+            raise RtwalkError(f"bad --sizes '{text}': each size must be in 1..200M")
+        out.append(v)
+    return out
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--sizes", default="1M,10M", help="element counts, e.g. 1M,10M (default %(default)s)")
+    parser.add_argument("--reps", type=int, default=7, help="interleaved repetitions per measurement (default 7)")
+    parser.add_argument("--ops", default=",".join(OPS), help="subset of sort,scan,compact (default all)")
+    parser.add_argument("--out", default="out/bench-cl", help="output folder (default %(default)s)")
+
+
+def _time(fn: Callable[[], object]) -> float:
+    t0 = time.perf_counter()
+    fn()
+    return (time.perf_counter() - t0) * 1e3
+
+
+class _Case:
+    """One op at one size: a NumPy callable and an OpenCL callable (which finishes the queue),
+    plus a `prepare` run before each OpenCL repetition, outside the timing."""
+
+    def __init__(self, op: str, n: int, prims, rng: np.random.Generator):
+        ctx = prims.ctx
+        cl, q = ctx.cl, ctx.queue
+        mf = cl.mem_flags
+        self.op, self.n = op, n
+        self.prepare: Callable[[], None] = ctx.finish
+
+        def dev(a: np.ndarray):
+            return cl.Buffer(ctx.context, mf.READ_WRITE | mf.COPY_HOST_PTR, hostbuf=a)
+
+        if op == "sort":
+            keys = rng.integers(0, 2**32, n, dtype=np.uint32)
+            idx = np.arange(n, dtype=np.uint32)
+            k0, v0, kb, vb = dev(keys), dev(idx), dev(keys), dev(idx)
+
+            def np_sort():
+                order = np.argsort(keys, kind="stable")
+                return keys[order], order
+
+            def prep():
+                cl.enqueue_copy(q, kb, k0)
+                cl.enqueue_copy(q, vb, v0)
+                ctx.finish()
+
+            def cl_sort():
+                prims.sort_pairs(kb, vb, n, key_bits=32)
+                ctx.finish()
+
+            self.numpy, self.opencl, self.prepare = np_sort, cl_sort, prep
+            self._check = lambda: self._check_sort(ctx, keys, kb, vb)
+        elif op == "scan":
+            a = rng.integers(0, 1000, n, dtype=np.uint32)
+            ab, ob = dev(a), dev(np.empty_like(a))
+            self.numpy = lambda: np.cumsum(a, dtype=np.uint32)
+
+            def cl_scan():
+                prims.exclusive_scan(ab, ob, n)
+                ctx.finish()
+
+            self.opencl = cl_scan
+            self._check = lambda: self._check_scan(ctx, a, ob)
+        else:
+            a = rng.integers(0, 2**32, n, dtype=np.uint32)
+            mask = rng.random(n) < 0.5
+            ab, fb, ob = dev(a), dev(mask.astype(np.uint32)), dev(np.empty_like(a))
+            self.numpy = lambda: a[mask]
+            self.opencl = lambda: prims.compact(n, flags=fb, src=ab, dst=ob)  # reads the count: finished
+            self._check = lambda: self._check_compact(ctx, a, mask, ob, self.opencl())
+
+    @staticmethod
+    def _check_sort(ctx, keys, kb, vb) -> None:
+        k, v = np.empty_like(keys), np.empty_like(keys)
+        ctx.cl.enqueue_copy(ctx.queue, k, kb)
+        ctx.cl.enqueue_copy(ctx.queue, v, vb)
+        eq = k[1:] == k[:-1]
+        if not ((k[1:] >= k[:-1]).all() and (keys[v] == k).all() and (v[1:][eq] > v[:-1][eq]).all()):
+            raise RuntimeError("OpenCL sort result is wrong")
+
+    @staticmethod
+    def _check_scan(ctx, a, ob) -> None:
+        o = np.empty_like(a)
+        ctx.cl.enqueue_copy(ctx.queue, o, ob)
+        if not (o[0] == 0 and (o[1:] == np.cumsum(a, dtype=np.uint32)[:-1]).all()):
+            raise RuntimeError("OpenCL scan result is wrong")
+
+    @staticmethod
+    def _check_compact(ctx, a, mask, ob, m) -> None:
+        o = np.empty(m, np.uint32)
+        ctx.cl.enqueue_copy(ctx.queue, o, ob)
+        if m != mask.sum() or not (o == a[mask]).all():
+            raise RuntimeError("OpenCL compaction result is wrong")
+
+    def check(self) -> None:
+        """Run once (warm-up) and verify the OpenCL result against NumPy."""
+        self.prepare()
+        self.opencl()
+        self._check()
+
+
+def measure(sizes: list[int], ops: list[str], reps: int, command: str = "", log=print) -> dict:
+    from viewer.cl.context import cl_context
+    from viewer.cl.primitives import primitives
+
+    ctx = cl_context()
+    prims = primitives(ctx)
+    t0 = time.perf_counter()
+    prims.warm_up()
+    warm_ms = (time.perf_counter() - t0) * 1e3
+    rng = np.random.default_rng(2024)
+    rows = []
+    for n in sizes:
+        for op in ops:
+            case = _Case(op, n, prims, rng)
+            case.check()
+            case.numpy()
+            np_ms, cl_ms = [], []
+            for r in range(reps):
+                case.prepare()
+                if r % 2:
+                    cl_ms.append(_time(case.opencl))
+                    np_ms.append(_time(case.numpy))
+                else:
+                    np_ms.append(_time(case.numpy))
+                    case.prepare()
+                    cl_ms.append(_time(case.opencl))
+            ratio = float(np.median(np.array(np_ms) / np.array(cl_ms)))
+            row = {"op": op, "n": n, "numpy": NUMPY_NAMES[op], "numpy_ms": float(np.median(np_ms)),
+                   "opencl_ms": float(np.median(cl_ms)), "speedup": ratio, "numpy_samples_ms": np_ms,
+                   "opencl_samples_ms": cl_ms}
+            row["numpy_melem_s"] = n / row["numpy_ms"] / 1e3
+            row["opencl_melem_s"] = n / row["opencl_ms"] / 1e3
+            rows.append(row)
+            log(f"{op:8s} n={n:>11,d}  numpy {row['numpy_ms']:9.2f} ms  opencl {row['opencl_ms']:8.2f} ms  "
+                f"speedup {ratio:6.1f}x")
+            del case
+    return {"device": ctx.name, "compute_units": ctx.compute_units, "host": platform.node(),
+            "cpu_count": os.cpu_count(), "load_average_before": _load(), "reps": reps,
+            "warm_up_ms": warm_ms, "command": command, "rows": rows}
+
+
+def _load() -> list[float] | None:
+    try:
+        return [round(v, 2) for v in os.getloadavg()]
+    except OSError:
+        return None
+
+
+def markdown(report: dict) -> str:
+    lines = [f"OpenCL primitives vs NumPy on {report['device']} ({report['compute_units']} compute units), "
+             f"median of {report['reps']} interleaved repetitions; speedup = median of per-repetition "
+             "NumPy/OpenCL ratios.", "",
+             "| op | elements | NumPy | NumPy ms | OpenCL ms | NumPy Melem/s | OpenCL Melem/s | speedup |",
+             "|---|---:|---|---:|---:|---:|---:|---:|"]
+    for r in report["rows"]:
+        lines.append(f"| {r['op']} | {r['n']:,} | {r['numpy']} | {r['numpy_ms']:.2f} | {r['opencl_ms']:.2f} | "
+                     f"{r['numpy_melem_s']:.1f} | {r['opencl_melem_s']:.1f} | {r['speedup']:.1f}x |")
+    lines += ["", f"Command: `{report['command']}`", ""]
+    return "\n".join(lines)
+
+
+def plot(report: dict, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    rows = report["rows"]
+    labels = [f"{r['op']}\n{r['n'] / 1e6:g}M" for r in rows]
+    x = np.arange(len(rows))
+    fig, ax = plt.subplots(figsize=(max(6.0, 1.1 * len(rows) + 2), 4.2))
+    ax.bar(x - 0.2, [r["numpy_melem_s"] for r in rows], 0.4, label="NumPy")
+    ax.bar(x + 0.2, [r["opencl_melem_s"] for r in rows], 0.4, label="OpenCL")
+    for i, r in enumerate(rows):
+        ax.annotate(f"{r['speedup']:.1f}x", (x[i] + 0.2, r["opencl_melem_s"]), ha="center", va="bottom", fontsize=8)
+    ax.set_xticks(x, labels)
+    ax.set_yscale("log")
+    ax.set_ylabel("million elements / s (log)")
+    ax.set_title(f"OpenCL primitives vs NumPy: {report['device']}", fontsize=9)
+    ax.legend()
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def run(args: argparse.Namespace) -> int:
+    sizes = parse_sizes(args.sizes)
+    ops = [o.strip() for o in args.ops.split(",") if o.strip()]
+    bad = [o for o in ops if o not in OPS]
+    if bad or not ops:
+        raise RtwalkError(f"bad --ops '{args.ops}': choose from {','.join(OPS)}")
+    if args.reps < 1:
+        raise RtwalkError("--reps must be >= 1")
+    out = Path(args.out)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise RtwalkError(f"cannot create --out folder {out}: {e.strerror}") from None
+    command = f"rtwalk bench-cl --sizes {args.sizes} --reps {args.reps} --ops {','.join(ops)} --out {args.out}"
+    report = measure(sizes, ops, args.reps, command)
+    (out / "bench_cl.json").write_text(json.dumps(report, indent=1))
+    md = markdown(report)
+    (out / "bench_cl.md").write_text(md)
+    plot(report, out / "bench_cl.png")
+    print()
+    print(md)
+    print(f"wrote {out / 'bench_cl.json'}, {out / 'bench_cl.md'}, {out / 'bench_cl.png'}")
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    """`python3 -m viewer.cl.bench_primitives` until the CLI has `rtwalk bench-cl`."""
+    parser = argparse.ArgumentParser(prog="rtwalk bench-cl", description=__doc__.splitlines()[0])
+    add_arguments(parser)
+    try:
+        return run(parser.parse_args(argv))
+    except RtwalkError as e:
+        print(f"rtwalk: error: {e}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())
