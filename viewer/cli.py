@@ -29,14 +29,14 @@ from viewer.errors import RtwalkError
 def cmd_render(args) -> int:
     from PIL import Image
 
+    from viewer.backends import backend_info
     from viewer.gl.context import create_headless_context
-    from viewer.passes.shade import VIEW_MODES
+    from viewer.passes.overlay import check_view
     from viewer.recording import load_recording
     from viewer.renderer import Renderer
 
-    if args.view not in VIEW_MODES:
-        raise RtwalkError(f"unknown --view '{args.view}' (choose from {', '.join(VIEW_MODES)})")
     backend_options = backend_options_from(args)  # unknown backend / bad parameters: before any loading
+    check_view(args.view, backend_info(args.backend))
     size = parse_size(args.size)
     settings = settings_from(args)
     rec = load_recording(args.recording) if args.recording else None

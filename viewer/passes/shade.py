@@ -16,17 +16,6 @@ SHADE_MODES = ["final", "albedo", "normal", "depth", "shadows", "soft", "ao", "d
                "triangle_id"]
 
 
-def __getattr__(name: str) -> list[str]:
-    """VIEW_MODES: every view of every registered backend (the shade pass's modes, then the
-    overlay views the backends declare; passes/overlay.py). Kept for callers that check a view
-    name without a backend; with one, use viewer.passes.overlay.view_names(info)."""
-    if name == "VIEW_MODES":
-        from viewer.passes.overlay import all_view_names
-
-        return all_view_names()
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-
-
 class ShadePass(SizedTargets):
     def __init__(self, ctx: moderngl.Context, programs: ProgramCache, quad: FullscreenQuad,
                  size: tuple[int, int]):

@@ -13,7 +13,7 @@ uniform sampler2D accReflect;
 uniform int shadowOn, softOn, aoOn, diffuseOn, reflectOn;
 uniform int numShadowLights;
 uniform float exposure;
-uniform int viewMode;  // see viewer/passes/shade.py VIEW_MODES
+uniform int viewMode;  // see viewer/passes/shade.py SHADE_MODES
 uniform float depthScale;
 out vec4 fragColor;
 
