@@ -1,4 +1,4 @@
-"""Command line: `rtwalk [view|render|bench|bench-chcrt|bench-bvh|info] ...`. Bad input -> one line, exit 2."""
+"""Command line: `rtwalk [view|render|bench|bench-*|info|demo] ...`. Bad input -> one line, exit 2."""
 
 from __future__ import annotations
 
@@ -110,6 +110,18 @@ def cmd_bench_bvh(args) -> int:
     return 0
 
 
+def cmd_bench_cl(args) -> int:
+    from viewer.bench.cl_primitives import run
+
+    return run(args)
+
+
+def cmd_bench_trace(args) -> int:
+    from viewer.bench.trace_vs_embree import run
+
+    return run(args)
+
+
 def cmd_bench_chcrt(args) -> int:
     from viewer.bench.chcrt import cmd_bench_chcrt as run
 
@@ -188,6 +200,13 @@ def build_parser() -> argparse.ArgumentParser:
     bc = sub.add_parser("bench-chcrt", help="CHC+RT paper tables: glsl vs chcrt, aggressive mode, phases, overhead")
     add_bench_chcrt_args(bc)
 
+    from viewer.bench.cl_primitives import add_arguments as add_bench_cl_args
+    from viewer.bench.trace_vs_embree import add_arguments as add_bench_trace_args
+
+    add_bench_trace_args(sub.add_parser("bench-trace", help="Mrays/s per ray type of backends and raw Embree "
+                                                          "on the same captured rays"))
+    add_bench_cl_args(sub.add_parser("bench-cl", help="OpenCL sort/scan/compact throughput next to NumPy"))
+
     bb = sub.add_parser("bench-bvh", help="BVH build throughput on the city scene")
     bb.add_argument("--sizes", default="1000000,5000000")
     bb.add_argument("--seed", type=int, default=1)
@@ -210,7 +229,8 @@ def main(argv: list[str] | None = None) -> int:
         argv = ["demo"] + argv  # bare `rtwalk [options]` runs the main job
     args = ap.parse_args(argv)
     handlers = {"view": cmd_view, "render": cmd_render, "bench": cmd_bench, "bench-bvh": cmd_bench_bvh,
-                "bench-chcrt": cmd_bench_chcrt, "info": cmd_info, "demo": cmd_demo}
+                "bench-chcrt": cmd_bench_chcrt, "bench-trace": cmd_bench_trace, "bench-cl": cmd_bench_cl,
+                "info": cmd_info, "demo": cmd_demo}
     if args.command == "demo":
         # demo reuses bench/view; fill in what their parsers would have set
         for key, val in {"recording": None, "fps": None, "reference": "embree", "reference_every": 6,
