@@ -443,3 +443,110 @@ def test_compare_hits_counts():
     assert s2["ok"] and s2["max_rel_err"] == 0.0 and s2["id_agree"] == 1.0
     s3 = compare_hits(F32([]), np.int32([]), F32([]), np.int32([]))
     assert s3["ok"] and s3["n_rays"] == 0
+
+
+# ----------------------------------------------------------------------------------------------
+# range ends decided in float64, whatever Embree's float32 t says
+# ----------------------------------------------------------------------------------------------
+
+def _exact_t(tri, o, d):
+    """Exact rational plane distance of one ray (Fraction), for the expected answers."""
+    from fractions import Fraction
+
+    q = [[Fraction(float(x)) for x in v] for v in np.asarray(tri, np.float64)]
+    oo = [Fraction(float(x)) for x in o]
+    dd = [Fraction(float(x)) for x in d]
+    e1 = [q[1][k] - q[0][k] for k in range(3)]
+    e2 = [q[2][k] - q[0][k] for k in range(3)]
+    n = [e1[1] * e2[2] - e1[2] * e2[1], e1[2] * e2[0] - e1[0] * e2[2], e1[0] * e2[1] - e1[1] * e2[0]]
+    return sum(n[k] * (q[0][k] - oo[k]) for k in range(3)) / sum(n[k] * dd[k] for k in range(3))
+
+
+def _range_end_cases(rng, n=300):
+    """Rays onto big tilted triangles with tmax (or tmin) at the float32 values next to the exact hit
+    distance, and exactly at it where that is a float32: the cases where a float32 t rounds across."""
+    from fractions import Fraction
+
+    tris, o_all, d_all, lo_all, hi_all, want = [], [], [], [], [], []
+    for i in range(n):
+        c = rng.uniform(-3, 3, 3) * (10.0 ** rng.integers(0, 4))
+        a, b = rng.normal(size=3), rng.normal(size=3)
+        tri = f32([c - 50 * a - 50 * b, c + 100 * a, c + 100 * b])
+        o = f32(c + rng.uniform(-0.5, 0.5, 3) + rng.normal(size=3) * rng.choice([1e-3, 1, 30]))
+        d = f32(c - o.astype(np.float64) + rng.normal(size=3) * 0.01)
+        if i % 5 == 0:                                            # straight down onto z = const, t exact
+            tri = f32([[-1e3, -1e3, 0], [1e3, -1e3, 0], [0, 1e3, 0]]) + f32(c * [0, 0, 1])
+            o = f32([c[0] * 1e-3, c[1] * 1e-3, c[2] + rng.choice([1.0, 0.7, 3.3e-4])])
+            d = f32([0, 0, -rng.choice([1.0, 0.3, 2.5])])
+        te = _exact_t(tri, o, d)
+        if te <= 0:
+            continue
+        t32 = np.float32(float(te))
+        for end in {np.nextafter(t32, F32(-INF)), t32, np.nextafter(t32, F32(INF))}:
+            e = Fraction(float(end))
+            for as_tmax in (True, False):
+                tris.append(tri)
+                o_all.append(o)
+                d_all.append(d)
+                lo_all.append(F32(0) if as_tmax else end)
+                hi_all.append(end if as_tmax else F32(INF))
+                want.append(te < e if as_tmax else te > e)
+    k = len(tris)
+    return (f32(tris), f32(o_all), f32(d_all), f32(lo_all), f32(hi_all), np.array(want), np.arange(k))
+
+
+class _ShiftedT:
+    """An Embree scene whose closest-hit distances come back moved by `steps` float32 steps."""
+
+    def __init__(self, scene, steps: int):
+        self.scene = scene
+        self.steps = steps
+
+    def run(self, o32, d32, dists=None, query="INTERSECT", output=None):
+        res = self.scene.run(o32, d32, dists=dists, query=query, output=output)
+        if query == "INTERSECT" and output:
+            t = np.asarray(res["tfar"], np.float32)
+            for _ in range(abs(self.steps)):
+                t = np.nextafter(t, F32(INF) if self.steps > 0 else F32(-INF))
+            res["tfar"] = t
+        return res
+
+
+def test_range_ends_decided_in_float64_not_float32(embree_ok):
+    """Hits at float32 distances next to tmax / tmin (and exactly at them) are kept or dropped as the
+    exact distance says, for the Embree reference and the float64 tracer. Embree's own float32 t is
+    then shifted by up to two float32 steps either way (what another CPU's kernel may return, e.g.
+    0.99999994 for an exact 1 on AVX2): the reference's decisions must not change, because it
+    decides on a float64 distance to the triangle Embree returned, not on Embree's t."""
+    rng = np.random.default_rng(21)
+    tris, o, d, lo, hi, want, ids = _range_end_cases(rng)
+    assert want.sum() > 100 and (~want).sum() > 100
+    # every ray against its own triangle (rays of one triangle share a tracer)
+    groups = {}
+    for k in range(len(tris)):
+        groups.setdefault(tris[k].tobytes(), []).append(k)
+    results = {}
+    for mode in ("plain", "shifted"):
+        got_e = np.zeros(len(tris), bool)
+        got_f = np.zeros(len(tris), bool)
+        for ks in groups.values():
+            ks = np.array(ks)
+            tri = tris[ks[:1]]
+            tracer = EmbreeTracer(tri)
+            if mode == "shifted":
+                tracer._scene = _ShiftedT(tracer._scene, int(rng.integers(-2, 3)))
+            te, ie = tracer.trace(o[ks], d[ks], lo[ks], hi[ks])
+            got_e[ks] = ie >= 0
+            tf, i_f = trace_float64(tri, o[ks], d[ks], lo[ks], hi[ks])
+            got_f[ks] = i_f >= 0
+            for tt, ii in ((te, ie), (tf, i_f)):                   # returned t strictly inside the range
+                h = ii >= 0
+                assert np.all((tt[h] > lo[ks][h]) & (tt[h] < hi[ks][h]))
+        results[mode] = got_e
+        bad = np.flatnonzero(got_f != want)
+        assert len(bad) == 0, f"float64 tracer: {len(bad)} wrong range decisions, e.g. rays {bad[:5]}"
+        bad = np.flatnonzero(got_e != want)
+        assert len(bad) == 0, (f"Embree reference ({mode} float32 t): {len(bad)} wrong range decisions, e.g. "
+                               + "; ".join(f"o={o[k].tolist()} d={d[k].tolist()} range=({lo[k]}, {hi[k]}) "
+                                           f"want {want[k]}" for k in bad[:3]))
+    assert np.array_equal(results["plain"], results["shifted"])

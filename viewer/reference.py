@@ -193,6 +193,9 @@ class EmbreeTracer:
         keep = ~_exact_zero_area(self.triangles) & np.isfinite(self.triangles).all(axis=(1, 2))
         self._ids = np.flatnonzero(keep).astype(np.int32)     # Embree primID -> input triangle id
         self._scene = None
+        self._v64: np.ndarray | None = None
+        self._scale = float(np.abs(self.triangles[keep]).max()) if keep.any() else 0.0
+        self._grid_cache: _TriangleGrid | None = None
         if len(self._ids):
             self._scene = rtcore_scene.EmbreeScene(robust=robust)
             kept = np.ascontiguousarray(self.triangles[keep])
@@ -238,56 +241,243 @@ class EmbreeTracer:
         id_out[idx[hit]] = self._ids[prim[hit]]
         return t_out, id_out
 
-    @staticmethod
-    def _embree_rays(o, d, lo, hi):
-        """float32 rays for embreex (tnear is always 0): origin moved to o + lo d where lo != 0, and
-        tfar = the largest float32 strictly below hi - lo (Embree's far end is inclusive)."""
+    def _embree_rays(self, o, d, lo, hi, back: bool = True):
+        """float32 rays for embreex (tnear is always 0), covering a little more than (lo, hi): the
+        float64 decision follows, so Embree must not drop a hit that float32 rounding puts just outside.
+
+        Where lo != 0 the origin moves to o + (lo - m) d (`back`; else to o + lo d), m = 64 float32
+        ulps of the larger of |start| and the scene's coordinates over |d|: rounding the moved origin
+        and Embree's float32 distance (its error grows with the vertices' magnitude) must not skip a
+        hit just after lo. tfar ends 1e-3 relative plus m past hi (a float32 t may round past tmax,
+        more so for grazing hits). Embree's t is not used: callers recompute distances in float64."""
+        dn = np.linalg.norm(d, axis=1)
         shift = lo != 0
         o_emb = o.copy()
         o_emb[shift] = o[shift] + lo[shift, None] * d[shift]
+        m = self._margin(o_emb, dn)
+        start = np.where(shift, lo - m, 0.0) if back else np.where(shift, lo, 0.0)
+        o_emb[shift] = o[shift] + start[shift, None] * d[shift]
         o32 = np.ascontiguousarray(o_emb.astype(np.float32))
         d32 = np.ascontiguousarray(d.astype(np.float32))
-        span = hi - lo                                     # > 0, may be +inf
-        with np.errstate(over="ignore"):
-            far = span.astype(np.float32)
-        too_big = far.astype(np.float64) >= span
-        far[too_big] = np.nextafter(far[too_big], np.float32(0))
-        return o32, d32, np.ascontiguousarray(np.maximum(far, np.float32(0)))
+        span = hi - start                                  # > 0, may be +inf
+        slack = 1e-3 * span + m
+        with np.errstate(over="ignore", invalid="ignore"):
+            far = (span + slack).astype(np.float32)
+        far[~np.isfinite(far)] = np.float32(np.inf)
+        return o32, d32, np.ascontiguousarray(far)
 
-    def _closest(self, o, d, t0, t1, retries: int = 4):
-        """Closest hit with tmin < t < tmax (float64 t, Embree primID or -1).
+    def _closest(self, o, d, t0, t1):
+        """Closest hit with tmin < t < tmax, decided in float64 (t float64, Embree primID or -1).
 
-        Robust Embree accepts a hit exactly at tnear (e.g. a ray starting on a surface with tmin = 0).
-        Such rays are traced again from a start nudged forward by a few float32 ulps of the origin
-        (doubling each retry): hits within that distance of tmin are within the rounding of the moved
-        origin anyway.
-        """
+        Embree finds the triangle; its distance is recomputed in float64 on the caller's ray and
+        ``tmin < t < tmax`` is decided on that (exactly near the ends, see ``range_decision``), never on
+        Embree's float32 t. Embree is given a slightly longer ``tfar`` so that a hit whose float32 t
+        rounds past ``tmax`` is still seen. A ray whose closest Embree hit lies at or before ``tmin``
+        (it starts on a surface, or its float32 start rounded onto or past one) is resolved by
+        ``_resolve_from_start``."""
         n = len(o)
         t_res = np.full(n, np.inf)
         p_res = np.full(n, -1, np.int64)
-        todo = np.arange(n)
+        if n == 0:
+            return t_res, p_res
+        prim = self._run_closest(o, d, t0, t1)
+        hit = np.flatnonzero(prim >= 0)
+        if len(hit) == 0:
+            return t_res, p_res
+        v = self._verts64[prim[hit]]
+        t, ok = range_decision(v, o[hit], d[hit], t0[hit], t1[hit])
+        t_res[hit[ok]] = t[ok]
+        p_res[hit[ok]] = prim[hit[ok]]
+        with np.errstate(invalid="ignore"):
+            before = ~ok & ~(t >= t1[hit])               # at/before tmin, or parallel: Embree's t is noise
+        flagged = hit[before]
+        if len(flagged):
+            tf, pf = self._resolve_from_start(o[flagged], d[flagged], t0[flagged], t1[flagged])
+            t_res[flagged] = tf
+            p_res[flagged] = pf
+        return t_res, p_res
+
+    def _margin(self, p, dn):
+        """64 float32 ulps of max(|p|, the scene's largest coordinate) over |d|: the reach of float32
+        rounding along the ray (positions, Embree's distances; x 1/sin for a hit at angle sin to its
+        plane, so covered down to sin ~ 0.01) in units of t."""
+        return 64 * f32_ulp(np.maximum(np.abs(p).max(axis=1), self._scale)) / dn
+
+    def _run_closest(self, o, d, t0, t1, back: bool = True) -> np.ndarray:
+        """Embree's closest hit (primID or -1) from o + t0 d (backed off, see _embree_rays), up to a
+        little past t1."""
+        o32, d32, far = self._embree_rays(o, d, t0, t1, back)
+        res = self._scene.run(o32, d32, dists=far, query="INTERSECT", output=1)
+        return np.asarray(res["primID"]).astype(np.int64)
+
+    def _resolve_from_start(self, o, d, t0, t1, rounds: int = 4):
+        """Rays whose closest Embree hit is at or before tmin: their hits are found in float64.
+
+        Embree cannot say what lies within float32 rounding of the ray's start (about ulp(|start|), a
+        quarter unit at 1e6). So, in windows (lo, lo + 2w] starting at tmin (w = 64 float32 ulps of the
+        start or the scene's coordinates (`_margin`), growing 4x a round): every triangle near the
+        window's segment (a grid lookup) is tested with the float64 watertight test; a hit there is the
+        answer. Otherwise Embree traces from lo + w, inside the window, and its triangle is accepted
+        when its float64 distance on the caller's ray lies beyond the window (closer hits would be
+        within the window, where there are none); otherwise the next window starts at the end of this
+        one. Rays left after `rounds` are traced by brute force over all triangles."""
+        n = len(o)
+        t_res = np.full(n, np.inf)
+        p_res = np.full(n, -1, np.int64)
+        dn = np.linalg.norm(d, axis=1)
         lo = t0.copy()
-        for attempt in range(retries + 1):
+        todo = np.arange(n)
+        w = self._margin(o + t0[:, None] * d, dn)
+        grid = self._grid()
+        for _ in range(rounds):
             if len(todo) == 0:
                 break
-            o32, d32, far = self._embree_rays(o[todo], d[todo], lo, t1[todo])
-            res = self._scene.run(o32, d32, dists=far, query="INTERSECT", output=1)
-            prim = np.asarray(res["primID"]).astype(np.int64)
-            t = np.asarray(res["tfar"], dtype=np.float64) + lo
-            with np.errstate(invalid="ignore"):
-                hit = (prim >= 0) & (t < t1[todo])
-                good = hit & (t > t0[todo])
-            t_res[todo[good]] = t[good]
-            p_res[todo[good]] = prim[good]
-            again = hit & ~good
-            if attempt == retries or not again.any():
+            oo, dd, ll, hh = o[todo], d[todo], lo[todo], t1[todo]
+            end = np.minimum(ll + 2 * w[todo], hh)
+            top = np.nextafter(end, np.inf)                # the window includes its end
+            ri, ti = grid.candidates(oo + ll[:, None] * dd, oo + end[:, None] * dd)
+            tw, pw = _closest_pairs(self._verts64, ri, ti, oo, dd, ll, np.minimum(top, hh), len(todo))
+            found = pw >= 0
+            t_res[todo[found]] = tw[found]
+            p_res[todo[found]] = pw[found]
+            rest = np.flatnonzero(~found & (end < hh))
+            if len(rest) == 0:
+                todo = todo[:0]
                 break
-            todo = todo[again]
-            start = o[todo] + lo[again, None] * d[todo]
-            ulp = f32_ulp(np.abs(start).max(axis=1))
-            step = 4.0 * (2.0 ** attempt) * ulp / np.linalg.norm(d[todo], axis=1)
-            lo = np.maximum(lo[again], t[again]) + step
+            sub = todo[rest]
+            mid = ll[rest] + w[sub]
+            prim = self._run_closest(o[sub], d[sub], mid, t1[sub], back=False)
+            hit = np.flatnonzero(prim >= 0)
+            t, ok = range_decision(self._verts64[prim[hit]], o[sub[hit]], d[sub[hit]], end[rest[hit]], t1[sub[hit]])
+            acc = hit[ok]
+            t_res[sub[acc]] = t[ok]
+            p_res[sub[acc]] = prim[acc]
+            with np.errstate(invalid="ignore"):
+                beyond = hit[~ok & (t >= t1[sub[hit]])]
+            again = np.ones(len(sub), bool)
+            again[acc] = False
+            again[beyond] = False                          # the closest hit past the window is past tmax
+            again[prim < 0] = False                        # nothing past the window
+            todo = sub[again]
+            lo[todo] = end[rest][again]
+            w[todo] *= 4
+        if len(todo):
+            tb, pb = trace_float64(self.triangles[self._ids], o[todo], d[todo], lo[todo], t1[todo])
+            t_res[todo] = tb
+            p_res[todo] = pb
         return t_res, p_res
+
+    @property
+    def _verts64(self) -> np.ndarray:
+        """float64 (M, 3, 3) vertices of the triangles given to Embree (indexed by primID)."""
+        if self._v64 is None:
+            self._v64 = self.triangles[self._ids].astype(np.float64)
+        return self._v64
+
+    def _grid(self) -> _TriangleGrid:
+        if self._grid_cache is None:
+            self._grid_cache = _TriangleGrid(self._verts64)
+        return self._grid_cache
+
+
+def _closest_pairs(verts, ri, ti, o, d, lo, hi, n):
+    """Closest float64 watertight hit per ray over (ray, triangle) pairs ri/ti (ray index into o/d/lo/hi,
+    triangle index into verts). Returns (t (n,), triangle (n,) or -1); ties: the smallest index."""
+    t_out = np.full(n, np.inf)
+    p_out = np.full(n, -1, np.int64)
+    if len(ri) == 0:
+        return t_out, p_out
+    ad = np.abs(d[ri])
+    kz = np.argmax(ad, axis=1)
+    kx = (kz + 1) % 3
+    ky = (kx + 1) % 3
+    neg = d[ri][np.arange(len(ri)), kz] < 0
+    kx, ky = np.where(neg, ky, kx), np.where(neg, kx, ky)
+    perm = np.stack([kx, ky, kz], axis=1)
+    vp = np.take_along_axis(verts[ti], perm[:, None, :], axis=2)
+    op = np.take_along_axis(o[ri], perm, axis=1)
+    dp = np.take_along_axis(d[ri], perm, axis=1)
+    t = _woop_pairs(vp, op, dp, lo[ri], hi[ri])
+    ok = t < np.inf
+    ri, ti, t = ri[ok], ti[ok], t[ok]
+    if len(t) == 0:
+        return t_out, p_out
+    order = np.lexsort((ti, t, ri))
+    ri, ti, t = ri[order], ti[order], t[order]
+    first = np.ones(len(ri), bool)
+    first[1:] = ri[1:] != ri[:-1]
+    t_out[ri[first]] = t[first]
+    p_out[ri[first]] = ti[first]
+    return t_out, p_out
+
+
+class _TriangleGrid:
+    """Uniform grid over triangle bounding boxes, for "which triangles are near this short segment".
+
+    Cell size: twice the median bounding-box extent. A triangle spanning more than 64 cells goes to a
+    list tested against every query instead. Cells are keyed by their integer coordinates packed in an
+    int64 (no collisions for grids up to 2^21 cells a side; beyond, distinct cells may share a key,
+    which only adds candidates)."""
+
+    MAX_CELLS = 64
+
+    def __init__(self, verts: np.ndarray):
+        lo = verts.min(axis=1)
+        hi = verts.max(axis=1)
+        ext = (hi - lo).max(axis=1)
+        self.origin = lo.min(axis=0) if len(lo) else np.zeros(3)
+        cell = 2 * float(np.median(ext)) if len(ext) else 1.0
+        span = float((hi.max(axis=0) - self.origin).max()) if len(hi) else 1.0
+        self.cell = max(cell, span / 2**20, 1e-30)
+        c0 = self._cell(lo)
+        c1 = self._cell(hi)
+        counts = (c1 - c0 + 1).prod(axis=1)
+        small = counts <= self.MAX_CELLS
+        self.big = np.flatnonzero(~small)
+        ids = np.flatnonzero(small)
+        keys, tris = _expand_cells(c0[ids], c1[ids], ids)
+        order = np.argsort(keys, kind="stable")
+        self.keys = keys[order]
+        self.tris = tris[order]
+
+    def _cell(self, p):
+        return np.floor((p - self.origin) / self.cell).astype(np.int64)
+
+    def candidates(self, a, b):
+        """(query, triangle) pairs for segments a[i]..b[i] (K, 3): every triangle whose bounding box
+        comes within a few float32 ulps of the segment's box (conservative), with repeats removed."""
+        pad = 4 * f32_ulp(np.maximum(np.abs(a).max(axis=1), np.abs(b).max(axis=1)))[:, None] + 1e-9 * self.cell
+        c0 = self._cell(np.minimum(a, b) - pad)
+        c1 = self._cell(np.maximum(a, b) + pad)
+        qk, qi = _expand_cells(c0, c1, np.arange(len(a)))
+        first = np.searchsorted(self.keys, qk, side="left")
+        last = np.searchsorted(self.keys, qk, side="right")
+        cnt = last - first
+        rep = np.repeat(np.arange(len(qk)), cnt)
+        off = np.arange(cnt.sum()) - np.repeat(np.cumsum(cnt) - cnt, cnt)
+        ri = qi[rep]
+        ti = self.tris[first[rep] + off]
+        if len(self.big):
+            ri = np.concatenate([ri, np.repeat(np.arange(len(a)), len(self.big))])
+            ti = np.concatenate([ti, np.tile(self.big, len(a))])
+        stride = int(self.tris.max(initial=0)) + int(self.big.max(initial=0)) + 2
+        pair = np.unique(ri * stride + ti, return_index=True)[1]
+        return ri[pair], ti[pair]
+
+
+def _expand_cells(c0, c1, ids):
+    """Every integer cell of the boxes c0[i]..c1[i] (inclusive): (packed keys, ids[i] per cell)."""
+    size = c1 - c0 + 1
+    count = size.prod(axis=1)
+    rep = np.repeat(np.arange(len(ids)), count)
+    k = np.arange(count.sum()) - np.repeat(np.cumsum(count) - count, count)
+    sx, sy = size[rep, 0], size[rep, 1]
+    cx = c0[rep, 0] + k % sx
+    cy = c0[rep, 1] + (k // sx) % sy
+    cz = c0[rep, 2] + k // (sx * sy)
+    m = (1 << 21) - 1
+    keys = (cx & m) | ((cy & m) << 21) | ((cz & m) << 42)
+    return keys, ids[rep]
 
 
 # ----------------------------------------------------------------------------------------------
@@ -441,9 +631,79 @@ def _woop_pairs(v, op, dp, lo, hi):
     tt = u * (sz * a[:, 2]) + vv * (sz * b[:, 2]) + w_ * (sz * c[:, 2])
     with np.errstate(divide="ignore", invalid="ignore"):
         tt = tt / det
-    inside &= (tt > lo) & (tt < hi)
-    tt[~inside] = np.inf
+    # t is float64-accurate relative to the vertices' distances from the origin, not to t itself: a ray
+    # starting exactly on a triangle's plane gets t ~ 1e-20 instead of 0. Near a range end (within
+    # 1e-9 of that scale) the decision tmin < t < tmax is made on the exact plane distance instead.
+    reach = np.maximum(np.maximum(np.abs(a).max(axis=1), np.abs(b).max(axis=1)), np.abs(c).max(axis=1))
+    band = 1e-9 * reach / np.abs(dp).max(axis=1)
+    with np.errstate(invalid="ignore"):
+        near = inside & ((np.abs(tt - lo) <= band) | (np.abs(tt - hi) <= band))
+    ok = inside & (tt > lo) & (tt < hi)
+    if near.any():
+        k = np.flatnonzero(near)
+        t_near, ok_near = range_decision(v[k], op[k], dp[k], lo[k], hi[k])
+        tt[k] = t_near
+        ok[k] = ok_near
+    tt[~ok] = np.inf
     return tt
+
+
+def _plane_t(v, o, d):
+    """float64 distance along each ray to its triangle's plane (K,) and a bound on its rounding error.
+
+    ``t = n . (v0 - o) / n . d`` with ``n = (v1 - v0) x (v2 - v0)``; NaN/inf where the ray is parallel to
+    the plane. From float32 inputs the differences are exact and each product and sum adds at most one
+    rounding, so ``|error| <= 16 eps (|n| |v0 - o| + |t| |n| |d|) / |n . d|``; 64 eps is used."""
+    e1 = v[:, 1] - v[:, 0]
+    e2 = v[:, 2] - v[:, 0]
+    n = np.cross(e1, e2)
+    w = v[:, 0] - o
+    num = (n * w).sum(axis=1)
+    den = (n * d).sum(axis=1)
+    nn = np.abs(n).sum(axis=1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = num / den
+        err = 64 * np.finfo(np.float64).eps * (nn * np.abs(w).sum(axis=1) + np.abs(t) * nn * np.abs(d).sum(axis=1)) \
+            / np.abs(den)
+    return t, err
+
+
+def _exact_plane_t(v, o, d) -> Fraction | None:
+    """The exact plane distance of one ray (rational arithmetic); None when the ray is parallel."""
+    q = [[Fraction(float(x)) for x in row] for row in v]
+    oo = [Fraction(float(x)) for x in o]
+    dd = [Fraction(float(x)) for x in d]
+    e1 = [q[1][k] - q[0][k] for k in range(3)]
+    e2 = [q[2][k] - q[0][k] for k in range(3)]
+    n = [e1[1] * e2[2] - e1[2] * e2[1], e1[2] * e2[0] - e1[0] * e2[2], e1[0] * e2[1] - e1[1] * e2[0]]
+    den = sum(n[k] * dd[k] for k in range(3))
+    if den == 0:
+        return None
+    return sum(n[k] * (q[0][k] - oo[k]) for k in range(3)) / den
+
+
+def range_decision(v, o, d, lo, hi):
+    """Decide ``lo < t < hi`` exactly for rays known to meet their triangle (v (K, 3, 3), o, d (K, 3),
+    lo, hi (K,), all float64 holding float32-exact coordinates; lo/hi any float64).
+
+    Returns ``(t, ok)``: the float64 plane distance (the exact one rounded where it was needed) and the
+    decision. The float64 distance decides where its error bound keeps it clear of both ends; the few
+    rays within the bound of an end (a ray starting on the surface, a hit exactly at ``tmax``) are
+    decided in rational arithmetic. A ray parallel to the plane is never in range (as in the watertight
+    test, whose determinant is then 0)."""
+    t, err = _plane_t(v, o, d)
+    with np.errstate(invalid="ignore"):
+        ok = (t - err > lo) & (t + err < hi)
+        unsure = np.isfinite(t) & ~ok & (t + err > lo) & (t - err < hi)
+    for i in np.flatnonzero(unsure):
+        te = _exact_plane_t(v[i], o[i], d[i])
+        if te is None:
+            continue
+        above = np.isneginf(lo[i]) or te > Fraction(float(lo[i]))
+        below = np.isposinf(hi[i]) or te < Fraction(float(hi[i]))
+        ok[i] = above and below
+        t[i] = float(te)
+    return t, ok
 
 
 # ----------------------------------------------------------------------------------------------
