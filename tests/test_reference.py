@@ -550,3 +550,149 @@ def test_range_ends_decided_in_float64_not_float32(embree_ok):
                                + "; ".join(f"o={o[k].tolist()} d={d[k].tolist()} range=({lo[k]}, {hi[k]}) "
                                            f"want {want[k]}" for k in bad[:3]))
     assert np.array_equal(results["plain"], results["shifted"])
+
+
+# ----------------------------------------------------------------------------------------------
+# far from the origin: rays that start on a surface
+# ----------------------------------------------------------------------------------------------
+
+FAR_SHIFT = np.array([1e6, 0.0, 0.0])
+
+
+def far_room():
+    """The built-in room (10 x 5 x 10, closed, ~3.5k triangles) moved to x = 1e6, where float32 steps
+    are 1/16: (triangles float32, point light position float64)."""
+    from viewer.procedural import make_room
+
+    room = make_room()
+    tris = f32(room.triangles.astype(np.float64) + FAR_SHIFT)
+    light = np.asarray(room.point_lights[0].position, np.float64) + FAR_SHIFT
+    return tris, light
+
+
+def _offset_origin(p, n):
+    """NumPy copy of offsetRayOrigin (shaders/sampling.glsl): 256 float32 steps along the normal."""
+    p = f32(p)
+    ofi = (256.0 * n).astype(np.int32)
+    bits = p.view(np.int32)
+    moved = np.where(p < 0, bits - ofi, bits + ofi).astype(np.int32).view(np.float32)
+    return np.where(np.abs(p) < 1 / 32, p + F32(1 / 65536) * f32(n), moved).astype(F32)
+
+
+def far_surface_rays(tris, light, rng, n=1500):
+    """Secondary rays as the pipeline makes them on the far room: from points on random triangles
+    (rounded to float32, so they lie within 1/32 of the surface, on either side) and from the same
+    points offset like raygen does; AO-length, unbounded and shadow rays (tmax just short of the
+    light), tmin 0. Returns (o, d, tmin, tmax) float32."""
+    k = rng.integers(0, len(tris), n)
+    v = tris[k].astype(np.float64)
+    b = rng.dirichlet([1, 1, 1], n)
+    p = (b[:, :, None] * v).sum(axis=1)
+    nrm = np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0])
+    nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
+    nrm *= rng.choice([-1.0, 1.0], (n, 1))
+    u = rng.normal(size=(n, 3))
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    u *= np.sign((u * nrm).sum(axis=1, keepdims=True))            # hemisphere of the chosen side
+    o_list, d_list, hi_list = [], [], []
+    for origin in (f32(p), _offset_origin(p, nrm)):
+        o_list += [origin, origin]
+        d_list += [u, u]
+        hi_list += [np.full(n, 0.75), np.full(n, INF)]
+        to_light = light - origin.astype(np.float64)
+        dist = np.linalg.norm(to_light, axis=1)
+        o_list.append(origin)
+        d_list.append(to_light / dist[:, None])
+        hi_list.append(dist * (1 - 1e-4))
+    o = f32(np.concatenate(o_list))
+    return o, f32(np.concatenate(d_list)), np.zeros(len(o), F32), f32(np.concatenate(hi_list))
+
+
+def far_agreement(te, ie, tf, i_f, tris, o, d):
+    """Hit/miss and id agreement of (te, ie) with the float64 tracer (tf, i_f), counting a
+    disagreement as excused only where the ray passes within 1e-5 of the room's size of an edge of
+    either triangle (float32 rounding of the local coordinates); plus hits whose point o + t d is
+    not on the reported triangle (1e-5 of the room's size)."""
+    extent = float(np.ptp(tris.reshape(-1, 3).astype(np.float64), axis=0).max())
+    diff = np.flatnonzero((ie >= 0) != (i_f >= 0))
+    da = ray_edge_distance(tris, ie[diff], o[diff], d[diff])
+    db = ray_edge_distance(tris, i_f[diff], o[diff], d[diff])
+    unexcused = diff[np.minimum(da, db) > 1e-5 * extent]
+    h = np.flatnonzero(ie >= 0)
+    pts = o[h].astype(np.float64) + te[h, None].astype(np.float64) * d[h].astype(np.float64)
+    off = point_triangle_distance(pts, tris[ie[h]])
+    st = compare_hits(te, ie, tf, i_f, tris, rel_tol=1e-5, tie_rel=1e-5, abs_tol=8 * f32_ulp(1e6))
+    return {"rays": len(o), "hitmiss_agree": st["hitmiss_agree"], "id_agree": st["id_agree"],
+            "n_disagree": len(diff), "n_unexcused": len(unexcused), "n_off_triangle": int((off > 1e-5 * extent).sum()),
+            "n_id_mismatch": st["n_id_mismatch"]}
+
+
+@pytest.mark.parametrize("any_hit", [False, True])
+def test_far_from_origin_rays_starting_on_surfaces(embree_ok, any_hit):
+    """The room at x = 1e6 (float32 step 1/16): rays starting on (within rounding of) its surfaces or
+    offset from them as raygen does. The Embree reference must return what the float64 tracer returns
+    (hit/miss up to edge rounding, ids up to ties) and only genuine hits; it used to return t = 0 for
+    such rays and re-trace from an origin nudged 1/4 unit on, past real hits and through walls."""
+    tris, light = far_room()
+    rng = np.random.default_rng(31)
+    o, d, lo, hi = far_surface_rays(tris, light, rng)
+    te, ie = EmbreeTracer(tris).trace(o, d, lo, hi, any_hit=any_hit)
+    tf, i_f = trace_float64(tris, o, d, lo, hi)
+    st = far_agreement(te, ie, tf, i_f, tris, o, d)
+    assert (i_f >= 0).mean() > 0.3 and (i_f < 0).mean() > 0.1, st
+    assert st["n_unexcused"] == 0 and st["n_off_triangle"] == 0, st
+    if not any_hit:
+        assert st["n_id_mismatch"] == 0, st
+
+
+def main() -> None:
+    """Figures for the far-from-origin case (``python3 -m tests.test_reference``): the Embree reference
+    against the float64 tracer on the rays of the test above, then the pipeline's own secondary rays of
+    the far room rendered by every GL backend, each against both references."""
+    from dataclasses import replace
+
+    from viewer.accel.bvh import build_bvh
+    from viewer.backends import backend_info, backend_names
+    from viewer.camera import Camera
+    from viewer.effects import parse_effects
+    from viewer.procedural import make_room
+    from viewer.renderer import Renderer
+    from viewer.tracing import shared_context
+
+    tris, light = far_room()
+    o, d, lo, hi = far_surface_rays(tris, light, np.random.default_rng(31))
+    tf, i_f = trace_float64(tris, o, d, lo, hi)
+    for any_hit in (False, True):
+        te, ie = EmbreeTracer(tris).trace(o, d, lo, hi, any_hit=any_hit)
+        st = far_agreement(te, ie, tf, i_f, tris, o, d)
+        print(f"surface rays, any_hit={any_hit}: Embree reference vs float64 {st}")
+    room = make_room()
+    pl = [replace(p, position=f32(p.position + FAR_SHIFT)) for p in room.point_lights]
+    rl = [replace(r, corner=f32(r.corner + FAR_SHIFT)) for r in room.rect_lights]
+    cam = Camera(room.default_camera.position + FAR_SHIFT, room.default_camera.orientation, room.default_camera.fov_y)
+    scene = replace(room, triangles=tris, point_lights=pl, rect_lights=rl, default_camera=cam)
+    bvh = build_bvh(scene.triangles)
+    scene = scene.reordered(bvh.tri_order)
+    embree = EmbreeTracer(scene.triangles)
+    ctx = shared_context()
+    for name in backend_names():
+        if backend_info(name).device != "gl":
+            continue
+        r = Renderer(ctx, scene, bvh, (160, 90), name, parse_effects("shadows,soft:1,ao:1,diffuse:1,reflections"))
+        r.render(cam)
+        rep = r.render(cam, capture=True)
+        r.release()
+        for cp in rep.captured:
+            a = cp.rays.active
+            oo, dd, ll, hh = cp.rays.origins[a], cp.rays.directions[a], cp.rays.tmin[a], cp.rays.tmax[a]
+            te, ie = embree.trace(oo, dd, ll, hh, any_hit=cp.ray_type.any_hit)
+            tf, i_f = trace_float64(scene.triangles, oo, dd, ll, hh)
+            agree = [compare_hits(x, y, tf, i_f)["hitmiss_agree"] for x, y in ((te, ie), (cp.t[a], cp.tri[a]))]
+            vs_embree = compare_hits(cp.t[a], cp.tri[a], te, ie)["hitmiss_agree"]
+            print(f"far room 160x90 {name:6s} {cp.ray_type.label:11s} {int(a.sum()):6d} rays: hit/miss agreement "
+                  f"{name} vs Embree reference {vs_embree:.4%}, Embree reference vs float64 {agree[0]:.4%}, "
+                  f"{name} vs float64 {agree[1]:.4%}")
+
+
+if __name__ == "__main__":
+    main()
