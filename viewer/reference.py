@@ -21,7 +21,8 @@ Convention shared by every tracer in the project (the GLSL tracer in ``viewer.tr
 
 Two implementations:
 
-* :class:`EmbreeTracer` -- Intel Embree 4 through ``embreex``; fast, float32, for big scenes.
+* :class:`EmbreeTracer` -- Intel Embree 4 through ``embreex`` finds the triangle (float32, fast, for big
+  scenes); distances and range decisions are float64 (see the class).
 * :func:`trace_float64` -- brute force, float64, watertight (Woop et al. 2013); for small scenes.
 
 and :func:`compare_hits`, the agreement statistics used by tests and benchmarks.
@@ -156,28 +157,29 @@ class EmbreeTracer:
 
     Consequences handled here:
 
-    * ``tnear``: for rays with ``tmin != 0`` the origin is moved to ``o + tmin * d`` (computed in float64
-      and rounded to float32), ``tfar`` becomes ``tmax - tmin`` and ``tmin`` is added back to ``t``.
-      The rounding of the moved origin perturbs the ray by up to half an ulp of ``|o + tmin d|``, so the
-      returned ``t`` carries an extra absolute error of about ``ulp(|o + tmin d|) / |d|`` and hits within
-      that distance of ``tmin`` may be classified either way. Rays with ``tmin == 0`` are passed exactly.
-    * Embree's range test is inclusive at both ends in robust mode (``tnear <= t <= tfar``; measured: a ray
-      starting exactly on a triangle gets ``t = -0.0`` with ``tnear = 0``; the non-robust mode excludes
-      it), inclusive at the far end in both modes. ``tfar`` is therefore the float32 strictly below
-      ``tmax - tmin``, results are post-filtered to ``tmin < t < tmax`` in float64, and a ray whose
-      closest Embree hit is at or before ``tmin`` is traced again from a start nudged forward by a few
-      float32 ulps of the origin (a hit within that distance past ``tmin`` can be skipped; it is within
-      the rounding of the moved origin anyway).
+    * Embree only chooses the triangle; the distance and the range decision are float64. For the
+      triangle Embree returns, ``t`` is recomputed on the caller's ray (``range_decision``: the plane
+      distance in float64, in rational arithmetic where it lies within its error bound of ``tmin`` or
+      ``tmax``), and ``tmin < t < tmax`` is decided on that, never on Embree's float32 ``t`` (which on
+      an AVX2 CPU returned 0.99999994 for an exact 1 = tmax). Embree therefore gets a slightly longer
+      range than asked (``_embree_rays``): ``tnear`` is hard-wired to 0, so for ``tmin != 0`` the origin
+      moves to ``o + (tmin - m) d`` (float32), m = 64 float32 ulps of the coordinates over ``|d|``, and
+      ``tfar`` ends 1e-3 relative plus m past ``tmax``.
+    * A ray whose closest Embree hit lies at or before ``tmin`` in float64 starts on (or within float32
+      rounding of) a surface: Embree's robust mode accepts ``t = 0`` (its near end is inclusive), and far
+      from the origin a float32 start is up to 1/32 unit off the surface (at 1e6). Such rays are not
+      re-traced from a nudged start (that jumped past real hits, 1/4 unit at 1e6): windows of m..4^k m
+      after ``tmin`` are searched with the float64 watertight test over the triangles near the window
+      (``_TriangleGrid``), and Embree is trusted only for what lies beyond a window
+      (``_resolve_from_start``).
     * Embree works in float32 throughout (its ``t`` has ~1e-7 relative error, more for grazing hits and
       hits close to the origin). The scene is created with ``robust=True`` by default
       (``RTC_SCENE_FLAG_ROBUST``: "avoid optimizations that reduce arithmetic accuracy"). Measured: in
       robust mode no ray aimed exactly at a vertex or an edge of a closed mesh leaks; with
       ``robust=False`` about 10 % of such rays from inside an icosphere escape. Embree does not cull
       back faces. Embree normalises nothing: ``t`` is in units of ``|d|``.
-    * ``any_hit=True`` uses ``OCCLUDED`` for the occluded/not decision and a closest-hit query on the
-      occluded rays to produce a valid ``(t, tri)``; an occlusion the closest-hit query cannot confirm
-      strictly inside ``(tmin, tmax)`` (the inclusive near end; with ``robust=False`` also kernel
-      differences, seen near ``t == tmax``) is reported as a miss.
+    * ``any_hit=True`` uses ``OCCLUDED`` (over the same widened range) to find the rays that may be
+      occluded and the closest-hit path above on those, so occluded-or-not is decided in float64 too.
     * Zero-area triangles are removed before the build (they could never hit; Embree should not report
       them either, this just makes it certain); ids still refer to the input order.
     """
@@ -501,9 +503,10 @@ def trace_float64(triangles, origins, directions, tmin, tmax, any_hit: bool = Fa
     exactly 0 is treated as "on the edge" (counted as a hit for both neighbours). This only matters for
     rays within ~1e-16 relative of an edge and never creates a leak.
 
-    The range test ``tmin < t < tmax`` is made on the float64 ``t`` (relative error ~1e-16): a hit that
-    lies exactly at ``tmax`` in real arithmetic (a shadow ray ending on the light's own surface) can be
-    counted or not; callers that care must treat hits within rounding of the range ends as ambiguous.
+    The range test ``tmin < t < tmax`` is exact: the float64 ``t`` decides where it is clear of both
+    ends; within 1e-9 of the vertices' distance from the origin of an end (a ray starting on the
+    triangle's plane gets t ~ 1e-20 instead of 0; a hit exactly at ``tmax``) the exact plane distance
+    decides (``range_decision``). A hit exactly at ``tmax`` or ``tmin`` in real arithmetic is a miss.
 
     Zero-area triangles (decided exactly) never hit. Ties: smallest ``t``, then the smallest triangle id.
     ``any_hit`` is accepted for API symmetry; the closest hit is returned (a valid any-hit answer).
