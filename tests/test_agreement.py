@@ -122,3 +122,32 @@ def _same_distance(tris, o, d, ids, t_ref, rel=1e-6):
         t, hit = trace_float64(tris[ids[k]][None], o[k][None], d[k][None], np.zeros(1), np.full(1, np.inf))
         ok[k] = hit[0] >= 0 and abs(t[0] - t_ref[k]) <= rel * max(t_ref[k], 1e-30)
     return ok
+
+
+def test_backend_params_marks(monkeypatch):
+    """The registry-driven parameters: the reference left out where asked, an OpenCL backend skipped
+    (with the reason) only when no OpenCL device exists, an inexact backend skipped with the reason."""
+    import sys
+    import types
+
+    import tests.conftest as conftest
+    import viewer.backends as registry
+    from viewer.backends.interface import BackendInfo
+
+    fake = types.ModuleType("fake_backends")
+    fake.Cl = type("Cl", (), {"info": BackendInfo("fakecl", "an OpenCL backend", device="cl")})
+    fake.Approx = type("Approx", (), {"info": BackendInfo("fakeapprox", "approximate by design", exact=False)})
+    monkeypatch.setitem(sys.modules, "fake_backends", fake)
+    monkeypatch.setitem(registry.BACKENDS, "fakecl", "fake_backends:Cl")
+    monkeypatch.setitem(registry.BACKENDS, "fakeapprox", "fake_backends:Approx")
+    monkeypatch.setattr(conftest, "_opencl_reason", ["no OpenCL device (test)"])
+    params = {p.id: p for p in backend_params(reference=False)}
+    assert "embree" not in params and {"glsl", "fakecl", "fakeapprox"} <= set(params)
+    assert not params["glsl"].marks
+    (mark,) = params["fakecl"].marks
+    assert mark.name == "skip" and "no OpenCL device (test)" in mark.kwargs["reason"]
+    (mark,) = params["fakeapprox"].marks
+    assert mark.name == "skip" and "exact" in mark.kwargs["reason"]
+    assert "embree" in {p.id for p in backend_params(reference=True)}
+    monkeypatch.setattr(conftest, "_opencl_reason", [None])      # an OpenCL device exists: it runs
+    assert not {p.id: p for p in backend_params(reference=False)}["fakecl"].marks
