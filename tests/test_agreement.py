@@ -29,9 +29,39 @@ SCENES = {
     "sibenik": lambda: (shared_scene("sibenik/sibenik.obj"), None, "sibenik-walk.json"),
     "conference": lambda: (shared_scene("conference/conference.ply"), None, "conference-walk.json"),
     "bunny": lambda: (shared_scene("bunny/bun_zipper.ply"), None, None),
+    # the room moved to x = 1e6 (float32 step 1/16): secondary rays start within rounding of surfaces
+    "room-at-1e6": lambda: ("room-at-1e6", None, None),
 }
 
 _embree: dict = {}  # scene key -> EmbreeTracer, shared by the backends
+_far: dict = {}  # the far room, prepared once
+
+
+def _far_room():
+    """The built-in room moved by 1e6 along x (lights and camera too), prepared like a loaded scene."""
+    from dataclasses import replace
+
+    from tests.test_reference import FAR_SHIFT
+    from viewer.accel.bvh import build_bvh
+    from viewer.camera import Camera
+    from viewer.procedural import make_room
+    from viewer.session import PreparedScene
+
+    if not _far:
+        room = make_room()
+        shift = FAR_SHIFT
+
+        def moved(p):
+            return (np.asarray(p, np.float64) + shift).astype(np.float32)
+
+        cam = room.default_camera
+        scene = replace(room, triangles=moved(room.triangles),
+                        point_lights=[replace(p, position=moved(p.position)) for p in room.point_lights],
+                        rect_lights=[replace(r, corner=moved(r.corner)) for r in room.rect_lights],
+                        default_camera=Camera(cam.position + shift, cam.orientation, cam.fov_y))
+        bvh = build_bvh(scene.triangles)
+        _far["room"] = PreparedScene(scene.reordered(bvh.tri_order), bvh)
+    return _far["room"]
 
 
 def _cameras(scene, recording: str | None):
@@ -52,7 +82,7 @@ def _cameras(scene, recording: str | None):
 def test_all_ray_types_agree_with_embree(backend, name, gl_ctx):
     backend = checked_backend(backend)
     spec, size, recording = SCENES[name]()
-    prep = prepared_scene(spec, size)
+    prep = _far_room() if spec == "room-at-1e6" else prepared_scene(spec, size)
     settings = parse_effects(EFFECTS)
     before, camera = _cameras(prep.scene, recording)
     r = Renderer(gl_ctx, prep.scene, prep.bvh, SIZE, backend, settings)
