@@ -584,7 +584,9 @@ def far_surface_rays(tris, light, rng, n=1500):
     (rounded to float32, so they lie within 1/32 of the surface, on either side) and from the same
     points offset like raygen does; AO-length, unbounded and shadow rays (tmax just short of the
     light), tmin 0. Returns (o, d, tmin, tmax) float32."""
-    k = rng.integers(0, len(tris), n)
+    t64 = tris.astype(np.float64)
+    area = np.linalg.norm(np.cross(t64[:, 1] - t64[:, 0], t64[:, 2] - t64[:, 0]), axis=1)
+    k = rng.choice(np.flatnonzero(area > 0), n)                  # (float32 rounding far out can flatten some)
     v = tris[k].astype(np.float64)
     b = rng.dirichlet([1, 1, 1], n)
     p = (b[:, :, None] * v).sum(axis=1)

@@ -299,11 +299,11 @@ class EmbreeTracer:
             p_res[flagged] = pf
         return t_res, p_res
 
-    def _margin(self, p, dn):
-        """64 float32 ulps of max(|p|, the scene's largest coordinate) over |d|: the reach of float32
-        rounding along the ray (positions, Embree's distances; x 1/sin for a hit at angle sin to its
-        plane, so covered down to sin ~ 0.01) in units of t."""
-        return 64 * f32_ulp(np.maximum(np.abs(p).max(axis=1), self._scale)) / dn
+    def _margin(self, p, dn, ulps: int = 64):
+        """`ulps` float32 ulps of max(|p|, the scene's largest coordinate) over |d|: the reach of
+        float32 rounding along the ray (positions, Embree's distances; x 1/sin for a hit at angle sin
+        to its plane: 64 covers sin down to ~0.01) in units of t."""
+        return ulps * f32_ulp(np.maximum(np.abs(p).max(axis=1), self._scale)) / dn
 
     def _run_closest(self, o, d, t0, t1, back: bool = True) -> np.ndarray:
         """Embree's closest hit (primID or -1) from o + t0 d (backed off, see _embree_rays), up to a
@@ -316,52 +316,44 @@ class EmbreeTracer:
         """Rays whose closest Embree hit is at or before tmin: their hits are found in float64.
 
         Embree cannot say what lies within float32 rounding of the ray's start (about ulp(|start|), a
-        quarter unit at 1e6). So, in windows (lo, lo + 2w] starting at tmin (w = 64 float32 ulps of the
-        start or the scene's coordinates (`_margin`), growing 4x a round): every triangle near the
-        window's segment (a grid lookup) is tested with the float64 watertight test; a hit there is the
-        answer. Otherwise Embree traces from lo + w, inside the window, and its triangle is accepted
-        when its float64 distance on the caller's ray lies beyond the window (closer hits would be
-        within the window, where there are none); otherwise the next window starts at the end of this
-        one. Rays left after `rounds` are traced by brute force over all triangles."""
+        quarter unit at 1e6), and a start moved along the ray and rounded to float32 is off the ray by
+        up to half an ulp sideways (1/32 unit at 1e6), which changes which triangle an edge-near ray
+        meets. So Embree only bounds the search: it traces from lo + w (w = 16 float32 ulps of the
+        start or the scene's coordinates, `_margin`), its triangle's float64 distance t_T on the
+        caller's ray gives the segment (lo, t_T + 2w], and every triangle near that segment (grid
+        lookup) is tested with the float64 watertight test; the closest hit there is the answer.
+        Where the segment holds none (Embree's start was behind a surface, or it found nothing: then
+        the segment is (lo, lo + 2w]), the next round starts at the segment's end with w x 4. Rays left
+        after `rounds` are traced by brute force over all triangles."""
         n = len(o)
         t_res = np.full(n, np.inf)
         p_res = np.full(n, -1, np.int64)
         dn = np.linalg.norm(d, axis=1)
         lo = t0.copy()
         todo = np.arange(n)
-        w = self._margin(o + t0[:, None] * d, dn)
+        w = self._margin(o + t0[:, None] * d, dn, 16)
         grid = self._grid()
         for _ in range(rounds):
             if len(todo) == 0:
                 break
-            oo, dd, ll, hh = o[todo], d[todo], lo[todo], t1[todo]
-            end = np.minimum(ll + 2 * w[todo], hh)
-            top = np.nextafter(end, np.inf)                # the window includes its end
+            oo, dd, ll, hh, ww = o[todo], d[todo], lo[todo], t1[todo], w[todo]
+            prim = self._run_closest(oo, dd, ll + ww, hh, back=False)
+            end = ll + 2 * ww
+            hit = np.flatnonzero(prim >= 0)
+            if len(hit):
+                t_t, _ = _plane_t(self._verts64[prim[hit]], oo[hit], dd[hit])
+                with np.errstate(invalid="ignore"):
+                    end[hit] = np.maximum(end[hit], np.where(np.isfinite(t_t), t_t, -np.inf) + 2 * ww[hit])
+            end = np.minimum(end, hh)
+            top = np.minimum(np.nextafter(end, np.inf), hh)          # the segment includes its end
             ri, ti = grid.candidates(oo + ll[:, None] * dd, oo + end[:, None] * dd)
-            tw, pw = _closest_pairs(self._verts64, ri, ti, oo, dd, ll, np.minimum(top, hh), len(todo))
+            tw, pw = _closest_pairs(self._verts64, ri, ti, oo, dd, ll, top, len(todo))
             found = pw >= 0
             t_res[todo[found]] = tw[found]
             p_res[todo[found]] = pw[found]
-            rest = np.flatnonzero(~found & (end < hh))
-            if len(rest) == 0:
-                todo = todo[:0]
-                break
-            sub = todo[rest]
-            mid = ll[rest] + w[sub]
-            prim = self._run_closest(o[sub], d[sub], mid, t1[sub], back=False)
-            hit = np.flatnonzero(prim >= 0)
-            t, ok = range_decision(self._verts64[prim[hit]], o[sub[hit]], d[sub[hit]], end[rest[hit]], t1[sub[hit]])
-            acc = hit[ok]
-            t_res[sub[acc]] = t[ok]
-            p_res[sub[acc]] = prim[acc]
-            with np.errstate(invalid="ignore"):
-                beyond = hit[~ok & (t >= t1[sub[hit]])]
-            again = np.ones(len(sub), bool)
-            again[acc] = False
-            again[beyond] = False                          # the closest hit past the window is past tmax
-            again[prim < 0] = False                        # nothing past the window
-            todo = sub[again]
-            lo[todo] = end[rest][again]
+            again = ~found & (end < hh) & (prim >= 0)                # Embree saw nothing past lo + w: a miss
+            todo = todo[again]
+            lo[todo] = end[again]
             w[todo] *= 4
         if len(todo):
             tb, pb = trace_float64(self.triangles[self._ids], o[todo], d[todo], lo[todo], t1[todo])
@@ -414,56 +406,73 @@ def _closest_pairs(verts, ri, ti, o, d, lo, hi, n):
 
 
 class _TriangleGrid:
-    """Uniform grid over triangle bounding boxes, for "which triangles are near this short segment".
+    """Uniform grids over triangle bounding boxes, for "which triangles are near this short segment".
 
-    Cell size: twice the median bounding-box extent. A triangle spanning more than 64 cells goes to a
-    list tested against every query instead. Cells are keyed by their integer coordinates packed in an
-    int64 (no collisions for grids up to 2^21 cells a side; beyond, distinct cells may share a key,
-    which only adds candidates)."""
+    Level k has cells of 4^k times the median bounding-box extent; a triangle goes to the first level
+    where its box spans at most 27 cells, or, past the last level, to a list tested against every
+    query. Cells are keyed by their integer coordinates packed in an int64 (no collisions for grids
+    up to 2^21 cells a side; beyond, distinct cells may share a key, which only adds candidates)."""
 
-    MAX_CELLS = 64
+    MAX_CELLS = 27
+    LEVELS = 6
 
     def __init__(self, verts: np.ndarray):
         lo = verts.min(axis=1)
         hi = verts.max(axis=1)
         ext = (hi - lo).max(axis=1)
         self.origin = lo.min(axis=0) if len(lo) else np.zeros(3)
-        cell = 2 * float(np.median(ext)) if len(ext) else 1.0
         span = float((hi.max(axis=0) - self.origin).max()) if len(hi) else 1.0
-        self.cell = max(cell, span / 2**20, 1e-30)
-        c0 = self._cell(lo)
-        c1 = self._cell(hi)
-        counts = (c1 - c0 + 1).prod(axis=1)
-        small = counts <= self.MAX_CELLS
-        self.big = np.flatnonzero(~small)
-        ids = np.flatnonzero(small)
-        keys, tris = _expand_cells(c0[ids], c1[ids], ids)
-        order = np.argsort(keys, kind="stable")
-        self.keys = keys[order]
-        self.tris = tris[order]
+        base = max(float(np.median(ext)) if len(ext) else 1.0, span / 2**20, 1e-30)
+        self.levels: list[tuple[float, np.ndarray, np.ndarray]] = []   # (cell, sorted keys, triangles)
+        left = np.arange(len(verts))
+        for k in range(self.LEVELS):
+            cell = base * 4.0**k
+            c0 = self._cell(lo[left], cell)
+            c1 = self._cell(hi[left], cell)
+            fits = (c1 - c0 + 1).prod(axis=1) <= self.MAX_CELLS
+            keys, tris = _expand_cells(c0[fits], c1[fits], left[fits])
+            order = np.argsort(keys, kind="stable")
+            self.levels.append((cell, keys[order], tris[order]))
+            left = left[~fits]
+        self.big = left
+        self.stride = len(verts) + 1
 
-    def _cell(self, p):
-        return np.floor((p - self.origin) / self.cell).astype(np.int64)
+    def _cell(self, p, cell):
+        return np.floor((p - self.origin) / cell).astype(np.int64)
 
     def candidates(self, a, b):
         """(query, triangle) pairs for segments a[i]..b[i] (K, 3): every triangle whose bounding box
         comes within a few float32 ulps of the segment's box (conservative), with repeats removed."""
-        pad = 4 * f32_ulp(np.maximum(np.abs(a).max(axis=1), np.abs(b).max(axis=1)))[:, None] + 1e-9 * self.cell
-        c0 = self._cell(np.minimum(a, b) - pad)
-        c1 = self._cell(np.maximum(a, b) + pad)
-        qk, qi = _expand_cells(c0, c1, np.arange(len(a)))
-        first = np.searchsorted(self.keys, qk, side="left")
-        last = np.searchsorted(self.keys, qk, side="right")
-        cnt = last - first
-        rep = np.repeat(np.arange(len(qk)), cnt)
-        off = np.arange(cnt.sum()) - np.repeat(np.cumsum(cnt) - cnt, cnt)
-        ri = qi[rep]
-        ti = self.tris[first[rep] + off]
+        pad = 4 * f32_ulp(np.maximum(np.abs(a).max(axis=1), np.abs(b).max(axis=1)))[:, None]
+        ri_all, ti_all = [], []
+        for cell, keys, tris in self.levels:
+            if len(keys) == 0:
+                continue
+            # a long diagonal segment is cut into pieces about one cell long: thin boxes, few cells
+            pieces = np.clip(np.ceil(np.abs(b - a).max(axis=1) / cell), 1, 256).astype(np.int64)
+            qi = np.repeat(np.arange(len(a)), pieces)
+            j = np.arange(pieces.sum()) - np.repeat(np.cumsum(pieces) - pieces, pieces)
+            f0 = (j / pieces[qi])[:, None]
+            f1 = ((j + 1) / pieces[qi])[:, None]
+            p0 = a[qi] + f0 * (b[qi] - a[qi])
+            p1 = a[qi] + f1 * (b[qi] - a[qi])
+            lo = np.minimum(p0, p1) - pad[qi] - 1e-9 * cell
+            hi = np.maximum(p0, p1) + pad[qi] + 1e-9 * cell
+            qk, qi = _expand_cells(self._cell(lo, cell), self._cell(hi, cell), qi)
+            first = np.searchsorted(keys, qk, side="left")
+            cnt = np.searchsorted(keys, qk, side="right") - first
+            rep = np.repeat(np.arange(len(qk)), cnt)
+            off = np.arange(cnt.sum()) - np.repeat(np.cumsum(cnt) - cnt, cnt)
+            ri_all.append(qi[rep])
+            ti_all.append(tris[first[rep] + off])
         if len(self.big):
-            ri = np.concatenate([ri, np.repeat(np.arange(len(a)), len(self.big))])
-            ti = np.concatenate([ti, np.tile(self.big, len(a))])
-        stride = int(self.tris.max(initial=0)) + int(self.big.max(initial=0)) + 2
-        pair = np.unique(ri * stride + ti, return_index=True)[1]
+            ri_all.append(np.repeat(np.arange(len(a)), len(self.big)))
+            ti_all.append(np.tile(self.big, len(a)))
+        if not ri_all:
+            return np.zeros(0, np.int64), np.zeros(0, np.int64)
+        ri = np.concatenate(ri_all)
+        ti = np.concatenate(ti_all)
+        pair = np.unique(ri * self.stride + ti, return_index=True)[1]
         return ri[pair], ti[pair]
 
 
@@ -671,18 +680,32 @@ def _plane_t(v, o, d):
     return t, err
 
 
-def _exact_plane_t(v, o, d) -> Fraction | None:
-    """The exact plane distance of one ray (rational arithmetic); None when the ray is parallel."""
-    q = [[Fraction(float(x)) for x in row] for row in v]
-    oo = [Fraction(float(x)) for x in o]
-    dd = [Fraction(float(x)) for x in d]
+def _exact_plane_t(v, o, d) -> tuple[int, int] | None:
+    """The exact plane distance of one ray as a fraction (num, den) of Python ints with den > 0; None
+    when the ray is parallel to the plane. The coordinates are dyadic rationals: scaled by their
+    largest denominator (a power of two) they are integers, and the products are exact big ints."""
+    ratios = [float(x).as_integer_ratio() for x in (*np.ravel(v), *o, *d)]
+    scale = max(b for _, b in ratios)
+    ints = [a * (scale // b) for a, b in ratios]
+    q = [ints[0:3], ints[3:6], ints[6:9]]
+    oo = ints[9:12]
+    dd = ints[12:15]
     e1 = [q[1][k] - q[0][k] for k in range(3)]
     e2 = [q[2][k] - q[0][k] for k in range(3)]
     n = [e1[1] * e2[2] - e1[2] * e2[1], e1[2] * e2[0] - e1[0] * e2[2], e1[0] * e2[1] - e1[1] * e2[0]]
     den = sum(n[k] * dd[k] for k in range(3))
     if den == 0:
         return None
-    return sum(n[k] * (q[0][k] - oo[k]) for k in range(3)) / den
+    num = sum(n[k] * (q[0][k] - oo[k]) for k in range(3))
+    return (num, den) if den > 0 else (-num, -den)
+
+
+def _compare(t: tuple[int, int], x: float) -> int:
+    """Sign of num/den - x for t = (num, den), den > 0, and a finite float64 x (exact)."""
+    a, b = float(x).as_integer_ratio()
+    lhs = t[0] * b
+    rhs = a * t[1]
+    return (lhs > rhs) - (lhs < rhs)
 
 
 def range_decision(v, o, d, lo, hi):
@@ -698,14 +721,14 @@ def range_decision(v, o, d, lo, hi):
     with np.errstate(invalid="ignore"):
         ok = (t - err > lo) & (t + err < hi)
         unsure = np.isfinite(t) & ~ok & (t + err > lo) & (t - err < hi)
-    for i in np.flatnonzero(unsure):
+    for i in np.flatnonzero(unsure):           # few rays: the exact decision in integers
         te = _exact_plane_t(v[i], o[i], d[i])
         if te is None:
             continue
-        above = np.isneginf(lo[i]) or te > Fraction(float(lo[i]))
-        below = np.isposinf(hi[i]) or te < Fraction(float(hi[i]))
+        above = np.isneginf(lo[i]) or _compare(te, lo[i]) > 0
+        below = np.isposinf(hi[i]) or _compare(te, hi[i]) < 0
         ok[i] = above and below
-        t[i] = float(te)
+        t[i] = te[0] / te[1]                   # correctly rounded int division
     return t, ok
 
 
