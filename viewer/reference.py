@@ -168,10 +168,9 @@ class EmbreeTracer:
     * A ray whose closest Embree hit lies at or before ``tmin`` in float64 starts on (or within float32
       rounding of) a surface: Embree's robust mode accepts ``t = 0`` (its near end is inclusive), and far
       from the origin a float32 start is up to 1/32 unit off the surface (at 1e6). Such rays are not
-      re-traced from a nudged start (that jumped past real hits, 1/4 unit at 1e6): windows of m..4^k m
-      after ``tmin`` are searched with the float64 watertight test over the triangles near the window
-      (``_TriangleGrid``), and Embree is trusted only for what lies beyond a window
-      (``_resolve_from_start``).
+      decided by a re-trace from a nudged start (that jumped past real hits, 1/4 unit at 1e6): Embree,
+      traced from a little after ``tmin``, only bounds a segment of the ray, which is searched with the
+      float64 watertight test over the triangles near it (``_TriangleGrid``, ``_resolve_from_start``).
     * Embree works in float32 throughout (its ``t`` has ~1e-7 relative error, more for grazing hits and
       hits close to the origin). The scene is created with ``robust=True`` by default
       (``RTC_SCENE_FLAG_ROBUST``: "avoid optimizations that reduce arithmetic accuracy"). Measured: in
