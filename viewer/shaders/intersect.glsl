@@ -74,13 +74,19 @@ bool intersectTriangle(RayPre r, vec3 v0, vec3 v1, vec3 v2, float tmin, float tm
     if ((U < 0.0 || V < 0.0 || W < 0.0) && (U > 0.0 || V > 0.0 || W > 0.0)) return false;
     float det = U + V + W;
     if (det == 0.0) return false;
-    // Distance from the plane equation: far more accurate in float32 than the sheared-space
-    // T / det for grazing rays (same accuracy as Embree); the watertight edge test above still
-    // decides inside/outside. Degenerate float32 normals fall back to T / det.
-    vec3 n = cross(v1 - v0, v2 - v0);
-    float dn = dot(n, r.d);
+    // Distance from the plane equation evaluated in float64: t = dot(n, v0 - o) / dot(n, d) with
+    // n = cross(v1 - v0, v2 - v0). In float32 this loses most of its accuracy on needles and slivers
+    // (n is a difference of nearly equal products: relative error up to 1e-2, and its sign flips
+    // for rays starting just in front of the triangle); the sheared-space T / det is no better for
+    // grazing rays. In float64 the vertex differences of float32 inputs are exact, their products
+    // too, so n and t are accurate to ~1e-15 relative for any triangle shape and any angle, and t
+    // rounds to the nearest float32. Only rays that passed the edge test pay for it. A ray exactly
+    // parallel to the float64 plane (dot(n, d) == 0) falls back to T / det.
+    dvec3 e1 = dvec3(v1) - dvec3(v0), e2 = dvec3(v2) - dvec3(v0);
+    dvec3 n = cross(e1, e2);
+    double dn = dot(n, dvec3(r.d));
     if (dn != 0.0) {
-        t = dot(n, A) / dn;
+        t = float(dot(n, dvec3(v0) - dvec3(r.o)) / dn);
     } else {
         float Az = r.S.z * A[r.kz], Bz = r.S.z * B[r.kz], Cz = r.S.z * C[r.kz];
         t = (U * Az + V * Bz + W * Cz) / det;
