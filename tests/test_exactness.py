@@ -163,7 +163,10 @@ def _dirs_at_angle(rng, nrm, sin_lo, sin_hi):
 def assert_agrees(tris, o, d, t, tri, rt, rtri, edge_rel=1e-6, ulps=4):
     """Hit/miss and ids as the float64 reference, except where the ray passes within `edge_rel` x the
     coordinate magnitude of an edge of the triangle either reports (float32 rounding of the inputs
-    decides there, see tests/test_hard_cases.py); t within `ulps` float32 ulps where the ids agree."""
+    decides there, see tests/test_hard_cases.py). Where the ids agree, t within `ulps` float32 ulps of
+    t plus 2 `ulps` ulps of |v - o| over |d| sin(angle to the plane): a float32 tracer has v - o only
+    that exact, whatever the triangle's shape; a float32 normal of a needle is far worse (its error
+    grows as 1 / sin of the triangle's angle)."""
     differ = tri != rtri
     if differ.any():
         idx = np.flatnonzero(differ)
@@ -176,8 +179,14 @@ def assert_agrees(tris, o, d, t, tri, rt, rtri, edge_rel=1e-6, ulps=4):
             near |= ed <= edge_rel * np.maximum(scale, np.abs(tris[np.maximum(ids, 0)]).max((1, 2)))
         assert near.all(), f"{int((~near).sum())} rays disagree with the reference away from any edge"
     same = (tri == rtri) & (rtri >= 0)
+    v = tris[rtri[same]].astype(np.float64)
+    od, dd = o[same].astype(np.float64), d[same].astype(np.float64)
+    nrm = np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0])
+    nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
+    a = np.abs(v - od[:, None, :]).max((1, 2))  # |v - o| of the farthest vertex
+    along = np.abs((dd * nrm).sum(1))  # |d| sin(angle between the ray and the plane)
     err = np.abs(t[same].astype(np.float64) - rt[same])
-    tol = ulps * f32_ulp(rt[same])
+    tol = ulps * f32_ulp(rt[same]) + 2 * ulps * f32_ulp(a) / along
     rel = err / rt[same]
     assert (err <= tol).all(), (f"{int((err > tol).sum())} of {int(same.sum())} distances off by more than "
                                 f"{ulps} ulps: relative error median {np.median(rel):.2e} max {rel.max():.2e}")
@@ -189,8 +198,8 @@ def assert_agrees(tris, o, d, t, tri, rt, rtri, edge_rel=1e-6, ulps=4):
 def test_needle_and_sliver_distances(backend, angle):
     """Rays aimed at the interior of needles and slivers (3 x 3e-4) from steep or grazing directions
     (sine of the angle to the plane 0.3..1, or 1e-3..3e-2) against the float64 reference: same hits
-    (up to rounding on edges) and t within 4 float32 ulps. Before the fix: relative error up to 1e-3
-    on steep rays and 1.7e-1 on grazing ones."""
+    (up to rounding on edges) and t within 4 float32 ulps (see assert_agrees). Before the fix: relative
+    error up to 1e-3 on steep rays and 1.7e-1 on grazing ones."""
     rng = np.random.default_rng(2 if angle == "steep" else 3)
     n = 4000
     tris, inside, nrm = thin_triangles(rng, n)

@@ -11,13 +11,13 @@
 // behind the camera plane, an edge-on projection) get a screen rectangle instead that holds every
 // pixel the triangle can cover (coverageRect below), so primary visibility agrees with traced
 // primary rays for any camera position, however close to the geometry.
+#include "scene.glsl"
 #include "camera.glsl"
 #ifndef EXPAND_PX
 #define EXPAND_PX (1.0 / 32.0)
 #endif
 layout(triangles) in;
 layout(triangle_strip, max_vertices = 4) out;
-in vec3 vWorld[];
 
 // Screen rectangle (NDC) holding the projection of every point of the triangle that a pixel's
 // primary ray can hit, computed in float64 from the float32 vertices and camera (exact differences).
@@ -26,8 +26,9 @@ in vec3 vWorld[];
 // so clipping the triangle at w = wmin = c * planeDistance / 2 loses nothing that is on screen; the
 // clipped polygon (<= 4 corners, all in front) then projects to a bounded rectangle.
 bool coverageRect(out vec4 rect) {
+    Tri tri = tris[gl_PrimitiveIDIn];
     dvec3 cp = dvec3(camPos);
-    dvec3 a = dvec3(vWorld[0]) - cp, b = dvec3(vWorld[1]) - cp, c = dvec3(vWorld[2]) - cp;
+    dvec3 a = dvec3(tri.v0) - cp, b = dvec3(tri.v1) - cp, c = dvec3(tri.v2) - cp;
     dvec3 n = cross(b - a, c - a);
     double nn = dot(n, n);
     if (nn == 0.0) return false;  // zero area: the ray test never hits it
