@@ -14,14 +14,13 @@ import numpy as np
 from viewer.backends.base import BackendContext, TraceResult, WorkCounters
 from viewer.backends.interface import BackendInfo
 from viewer.errors import RtwalkError
-from viewer.gpu import FullscreenQuad, int_texture
+from viewer.gl.bindings import BIND_IMG_RESUME, BIND_RESUME_COUNTERS, BIND_RESUME_STATE
+from viewer.gl.programs import FullscreenQuad
+from viewer.gl.textures import int_texture
 from viewer.rays import HitBuffer, PassInfo, RayBatch
 
 LOOP_LIMIT = 65_535  # llvmpipe: loop back-edges per shader invocation, shared by all loops
 SIMD_WIDTH = 16  # fragments per llvmpipe shader invocation, assumed wide (8 with 256-bit vectors)
-BIND_RESUME_IMAGE = 4
-BIND_RESUME_COUNTERS = 10
-BIND_RESUME_STATE = 11
 
 
 def max_visits(max_leaf: int, stack_size: int, other_loops: int = 0) -> int:
@@ -41,7 +40,7 @@ class ResumableTraversal:
     """Full BVH traversal of every ray (trace_glsl.frag) that finishes long traversals in further draws.
 
     Also finishes rays another GL backend gave up on: its shader marks such a pixel -2 in the slot
-    image (image unit BIND_RESUME_IMAGE) and counts it once in ResumeCounters.unfinished (SSBO
+    image (image unit BIND_IMG_RESUME) and counts it once in ResumeCounters.unfinished (SSBO
     BIND_RESUME_COUNTERS) after `bind_flags`; `run(..., resume_only=True)` then traces exactly
     those rays from the root and overwrites their hits."""
 
@@ -77,7 +76,7 @@ class ResumableTraversal:
 
     def bind_flags(self, size: tuple[int, int]) -> None:
         """Bind the slot image and zeroed counters (before the draws that may flag pixels)."""
-        self._slot_image(size).bind_to_image(BIND_RESUME_IMAGE, read=True, write=True)
+        self._slot_image(size).bind_to_image(BIND_IMG_RESUME, read=True, write=True)
         self.counters.write(np.zeros(2, np.int32).tobytes())
         self.counters.bind_to_storage_buffer(BIND_RESUME_COUNTERS)
 

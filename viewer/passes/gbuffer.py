@@ -6,7 +6,7 @@ import moderngl
 import numpy as np
 
 from viewer.camera import Camera
-from viewer.gl_depth import float_depth_texture
+from viewer.gl.textures import float_depth_texture
 from viewer.gpu import GpuScene, ProgramCache, float_texture, int_texture
 from viewer.passes.targets import SizedTargets
 from viewer.passes.uniforms import apply, camera_uniforms

@@ -27,8 +27,8 @@ layout(location = 2) out int outSub;
 #ifndef CHC_MAX_VISITS
 #define CHC_MAX_VISITS 2048
 #endif
-layout(r32i, binding = 4) uniform coherent iimage2D resumeSlot;  // glsl.py ResumableTraversal
-layout(std430, binding = 10) buffer ResumeCounters { int unfinished; int allocated; };
+layout(r32i, binding = BIND_IMG_RESUME) uniform coherent iimage2D resumeSlot;  // glsl.py ResumableTraversal
+layout(std430, binding = BIND_RESUME_COUNTERS) buffer ResumeCounters { int unfinished; int allocated; };
 
 void main() {
     ivec2 px = ivec2(gl_FragCoord.xy);

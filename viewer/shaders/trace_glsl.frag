@@ -20,10 +20,10 @@ uniform int resume;    // 0: every ray from the root; 1: only the unfinished ray
 uniform int capacity;  // resume slots in ResumeState
 // per pixel: -1 finished (the state between traces), >= 0 its resume slot, -2 unfinished without
 // a slot (the buffer was full: it restarts from the root once the buffer has grown)
-layout(r32i, binding = 4) uniform coherent iimage2D resumeSlot;
-layout(std430, binding = 10) buffer ResumeCounters { int unfinished; int allocated; };
+layout(r32i, binding = BIND_IMG_RESUME) uniform coherent iimage2D resumeSlot;
+layout(std430, binding = BIND_RESUME_COUNTERS) buffer ResumeCounters { int unfinished; int allocated; };
 // slot s: next node, stack size, hit t (bits), hit id, then (node, entry t bits) per stack entry
-layout(std430, binding = 11) buffer ResumeState { int state[]; };
+layout(std430, binding = BIND_RESUME_STATE) buffer ResumeState { int state[]; };
 layout(location = 0) out float outT;
 layout(location = 1) out int outId;
 
