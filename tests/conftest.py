@@ -15,7 +15,7 @@ _prepared: dict = {}
 
 @pytest.fixture(scope="session")
 def gl_ctx():
-    from viewer.tracing import shared_context
+    from viewer.gl.context import shared_context
 
     return shared_context()
 

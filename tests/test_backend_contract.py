@@ -26,7 +26,7 @@ from viewer.backends import BACKENDS, backend_info, backend_names, check_params
 from viewer.camera import Camera
 from viewer.effects import RayType, parse_effects
 from viewer.errors import RtwalkError
-from viewer.gpu import read_texture
+from viewer.gl.textures import read_texture
 from viewer.passes.overlay import (
     NO_DATA_GREY,
     backends_with_view,
@@ -333,7 +333,7 @@ def test_panel_helpers_and_panel_drive_the_fake_backend(fake):
 def test_bench_harness_drives_the_fake_backend(gl_ctx, tiny, tmp_path):
     from PIL import Image
 
-    from viewer.bench import BenchOptions, print_summary, run_bench
+    from viewer.bench.replay import BenchOptions, print_summary, run_bench
     from viewer.recording import Keyframe, Recording
 
     cam0 = tiny.scene.default_camera

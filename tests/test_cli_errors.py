@@ -73,7 +73,7 @@ def test_missing_egl_is_one_line(monkeypatch):
     import moderngl
 
     from viewer.errors import RtwalkError
-    from viewer.gpu import create_headless_context
+    from viewer.gl.context import create_headless_context
 
     def broken(*a, **k):
         raise Exception("eglInitialize failed")

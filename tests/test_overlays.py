@@ -15,7 +15,7 @@ import pytest
 from tests.conftest import prepared_scene
 from viewer.effects import RayType, parse_effects
 from viewer.errors import RtwalkError
-from viewer.gpu import read_texture
+from viewer.gl.textures import read_texture
 from viewer.passes.overlay import (
     NO_DATA_GREY,
     heat_colors,

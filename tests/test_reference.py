@@ -657,9 +657,9 @@ def main() -> None:
     from viewer.backends import backend_info, backend_names
     from viewer.camera import Camera
     from viewer.effects import parse_effects
+    from viewer.gl.context import shared_context
     from viewer.procedural import make_room
     from viewer.renderer import Renderer
-    from viewer.tracing import shared_context
 
     tris, light = far_room()
     o, d, lo, hi = far_surface_rays(tris, light, np.random.default_rng(31))

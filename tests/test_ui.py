@@ -141,7 +141,7 @@ def test_from_camera_round_trips_the_view_and_scales_speed_to_the_scene():
 
 
 def test_camera_argument_reproduces_the_view():
-    from viewer.cli import parse_camera
+    from viewer.cli_args import parse_camera
 
     cam = Camera.look_at([1.5, 2.25, -3.0], [10.0, 0.0, 4.0], fov_y=45.0)
     arg = camera_argument(cam, target_distance=5.0)

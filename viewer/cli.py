@@ -10,11 +10,9 @@ from pathlib import Path
 import numpy as np
 
 # the argument helpers live in viewer.cli_args (the window and the benchmarks use them without
-# importing this module); re-exported here for callers of the old names
-from viewer.cli_args import (  # noqa: F401
+# importing this module)
+from viewer.cli_args import (
     DEFAULT_RECORDING,
-    RECORDINGS,
-    REPO_ROOT,
     add_effect_args,
     add_scene_args,
     backend_options_from,
@@ -62,7 +60,7 @@ def cmd_render(args) -> int:
 
 
 def cmd_bench(args) -> int:
-    from viewer.bench import BenchOptions, print_summary, run_bench, write_report
+    from viewer.bench.replay import BenchOptions, print_summary, run_bench, write_report
     from viewer.gl.context import create_headless_context
     from viewer.recording import load_recording
 

@@ -24,7 +24,8 @@ from viewer.backends.interface import OverlaySpec
 from viewer.camera import Camera
 from viewer.effects import EffectSettings, RayType
 from viewer.errors import RtwalkError
-from viewer.gpu import FullscreenQuad, GpuScene, ProgramCache
+from viewer.gl.programs import FullscreenQuad, ProgramCache
+from viewer.gl.scene import GpuScene
 from viewer.passes.accumulate import AccumulatePass
 from viewer.passes.gbuffer import GBufferPass
 from viewer.passes.overlay import (
@@ -359,7 +360,7 @@ class Renderer:
 
     def read_gbuffer_ids(self) -> np.ndarray:
         """int32 (H*W,) raster triangle id per pixel (row 0 = bottom), -1 = background."""
-        from viewer.gpu import read_texture
+        from viewer.gl.textures import read_texture
 
         ids = read_texture(self.gbuffer.tri_id).reshape(-1)
         return np.where(ids < 0, -1, ids).astype(np.int32)

@@ -34,7 +34,7 @@ class BackendContext:
     ctx: moderngl.Context
     programs: ProgramCache
     profiler: GpuProfiler
-    gpu_scene: object  # viewer.gpu.GpuScene
+    gpu_scene: object  # viewer.gl.scene.GpuScene
     scene: object  # viewer.scene.Scene (leaf order)
     bvh: object  # viewer.accel.bvh.BVH
 

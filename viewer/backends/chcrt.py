@@ -54,7 +54,7 @@ import moderngl
 import numpy as np
 
 from viewer.backends.base import BackendContext, TraceResult, WorkCounters
-from viewer.backends.chcrt_front import INNER, INVISIBLE, VISIBLE, NodeTables, PairFront, max_tile_level
+from viewer.backends.chcrt_front import INNER, INVISIBLE, VISIBLE, NodeTables, PairFront
 from viewer.backends.glsl import ResumableTraversal, max_visits
 from viewer.backends.interface import BackendInfo, OverlaySpec
 from viewer.effects import RayType
@@ -72,6 +72,7 @@ from viewer.gl.buffers import StreamBuffer
 from viewer.gl.programs import FullscreenQuad
 from viewer.gl.textures import float_depth_texture, float_texture, int_texture
 from viewer.rays import HitBuffer, PassInfo, RayBatch
+from viewer.screen_tiles import max_tile_level
 
 ITEM_DTYPE = np.dtype([("bmin", "<f4", 3), ("ref", "<i4"), ("bmax", "<f4", 3), ("count", "<i4"),
                        ("id", "<i4"), ("pad", "<i4", 3)])

@@ -311,11 +311,11 @@ def _plot(report: dict, path: Path) -> None:
 def run(args) -> int:
     from viewer.backends import backend_info, backend_names
     from viewer.effects import parse_effects
+    from viewer.gl.context import shared_context
     from viewer.recording import load_recording, resolve_scene_spec
     from viewer.reference import REFERENCE_BACKEND, EmbreeTracer
     from viewer.renderer import Renderer
     from viewer.session import prepare_scene
-    from viewer.tracing import shared_context
 
     sizes = _parse_sizes(args.sizes)
     backends = [b.strip() for b in args.backends.split(",") if b.strip()] or [

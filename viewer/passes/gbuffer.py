@@ -6,8 +6,9 @@ import moderngl
 import numpy as np
 
 from viewer.camera import Camera
-from viewer.gl.textures import float_depth_texture
-from viewer.gpu import GpuScene, ProgramCache, float_texture, int_texture
+from viewer.gl.programs import ProgramCache
+from viewer.gl.scene import GpuScene
+from viewer.gl.textures import float_depth_texture, float_texture, int_texture
 from viewer.passes.targets import SizedTargets
 from viewer.passes.uniforms import apply, camera_uniforms
 

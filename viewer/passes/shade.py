@@ -6,7 +6,7 @@ import moderngl
 import numpy as np
 
 from viewer.effects import EffectSettings, RayType
-from viewer.gpu import FullscreenQuad, ProgramCache
+from viewer.gl.programs import FullscreenQuad, ProgramCache
 from viewer.passes.accumulate import AccumulatePass
 from viewer.passes.gbuffer import GBufferPass
 from viewer.passes.targets import SizedTargets
