@@ -55,7 +55,7 @@ import numpy as np
 
 from viewer.backends.base import BackendContext, TraceResult, WorkCounters
 from viewer.backends.chcrt_front import INNER, INVISIBLE, VISIBLE, NodeTables, PairFront
-from viewer.backends.glsl import ResumableTraversal, max_visits
+from viewer.backends.gl_traversal import ResumableTraversal, max_visits
 from viewer.backends.interface import BackendInfo, OverlaySpec
 from viewer.effects import RayType
 from viewer.errors import RtwalkError

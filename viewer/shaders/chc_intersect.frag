@@ -14,7 +14,7 @@
 // traverseBVH once per subtree, ran into; it was not a miscompilation.) A batch of up to
 // CHC_MAX_ITEMS subtrees of <= 4096 triangles can need more than 24 x 4,000 node visits, so the
 // bound is reachable (a closed fan of 62,832 needles reaches it). The traversal therefore stops
-// after CHC_MAX_VISITS node visits (chcrt.py derives it like glsl.py's max_visits) and hands the
+// after CHC_MAX_VISITS node visits (chcrt.py derives it like gl_traversal.py max_visits) and hands the
 // ray to the glsl backend's resumable full traversal: the pixel is marked -2 in resumeSlot and
 // counted once; after the CHC+RT pass those rays are traced again from the root, in as many draws
 // as they need, and their hits replace what this pass found.
@@ -27,7 +27,7 @@ layout(location = 2) out int outSub;
 #ifndef CHC_MAX_VISITS
 #define CHC_MAX_VISITS 2048
 #endif
-layout(r32i, binding = BIND_IMG_RESUME) uniform coherent iimage2D resumeSlot;  // glsl.py ResumableTraversal
+layout(r32i, binding = BIND_IMG_RESUME) uniform coherent iimage2D resumeSlot;  // gl_traversal.py ResumableTraversal
 layout(std430, binding = BIND_RESUME_COUNTERS) buffer ResumeCounters { int unfinished; int allocated; };
 
 void main() {

@@ -3,8 +3,8 @@
 // Bounded work per invocation: llvmpipe silently ends shader loops after 65,535 loop back-edges per
 // invocation (one counter shared by all loops of the shader, per SIMD vector of fragments), which
 // would return a miss or a farther hit for rays that need long traversals. So a ray visits at most
-// MAX_VISITS nodes per draw; glsl.py derives MAX_VISITS from the largest leaf and the stack size so
-// that the worst case over a SIMD vector stays below that limit (see glsl.py: max_visits). A ray
+// MAX_VISITS nodes per draw; gl_traversal.py (max_visits) derives MAX_VISITS from the largest leaf
+// and the stack size so that the worst case over a SIMD vector stays below that limit. A ray
 // that is not finished saves its traversal (next node, stack, current hit) in a resume slot, and
 // the backend draws again for the unfinished rays (resume = 1) until none is left.
 #include "scene.glsl"
