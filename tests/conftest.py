@@ -2,13 +2,9 @@
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import pytest
 
-REPO = Path(__file__).resolve().parents[1]
-SHARED_SCENES = REPO.parent / "shared" / "scenes"
-RECORDINGS = REPO / "recordings"
+from viewer.paths import SHARED_SCENES
 
 _prepared: dict = {}
 

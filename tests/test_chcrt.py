@@ -8,7 +8,6 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from tests.conftest import SHARED_SCENES
 from viewer.accel.bvh import build_bvh
 from viewer.backends.chcrt_front import (
     DEAD,
@@ -20,6 +19,7 @@ from viewer.backends.chcrt_front import (
 )
 from viewer.camera import Camera
 from viewer.effects import RayType, parse_effects
+from viewer.paths import SHARED_SCENES
 from viewer.rays import PassInfo
 from viewer.renderer import Renderer
 from viewer.screen_tiles import max_tile_level, tile_rects

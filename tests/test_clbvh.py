@@ -7,9 +7,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from tests.conftest import RECORDINGS, prepared_scene
+from tests.conftest import prepared_scene
 from viewer.accel.bvh import build_bvh
 from viewer.accel.bvh4 import NODE4_DTYPE, build_bvh4
+from viewer.paths import RECORDINGS
 from viewer.reference import EmbreeTracer, compare_hits, trace_float64
 
 

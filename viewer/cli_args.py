@@ -9,14 +9,12 @@ RtwalkError (one line, exit 2).
 from __future__ import annotations
 
 import argparse
-from pathlib import Path
 
 import numpy as np
 
 from viewer.errors import RtwalkError
+from viewer.paths import RECORDINGS
 
-REPO_ROOT = Path(__file__).resolve().parents[1]
-RECORDINGS = REPO_ROOT / "recordings"
 DEFAULT_RECORDING = RECORDINGS / "city-near.json"
 
 

@@ -16,11 +16,9 @@ import numpy as np
 
 from viewer.camera import Camera
 from viewer.errors import RtwalkError
+from viewer.paths import RECORDINGS, SHARED_SCENES
 from viewer.scene import Material, PointLight, RectLight, Scene
 
-REPO_ROOT = Path(__file__).resolve().parents[1]
-SHARED_SCENES = REPO_ROOT.parent / "shared" / "scenes"
-RECORDINGS = REPO_ROOT / "recordings"
 GREY = np.array([0.7, 0.7, 0.7], np.float32)
 
 

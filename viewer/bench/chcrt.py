@@ -45,9 +45,9 @@ from viewer.bench.harness import PROTOCOL, Harness, RunResult, RunSpec, effect_s
 from viewer.bench.plots import barh, figure, finish, points, stacked
 from viewer.bench.report import fmt, md_table, notes_md, ratio, size_text, write_study
 from viewer.errors import RtwalkError
+from viewer.paths import RECORDINGS, resolve_recording
 
 STUDIES = ("table2", "table4", "phases", "overhead", "tuning")
-RECORDINGS_DIR = Path(__file__).resolve().parents[2] / "recordings"
 DEFAULT_RECORDINGS = ("city-near", "city-far", "sponza-walk", "sibenik-walk", "conference-walk")
 PHASE_COUNTERS = ("queries", "multi_queries", "failed_multi_queries", "subtrees_scheduled", "draws",
                   "intersect_draws")
@@ -73,29 +73,18 @@ class StudyOptions:
     quick: bool = False
     effects: list[str] = field(default_factory=lambda: ["primary", "ao:20", "diffuse:20"])
     thresholds: list[int] = field(default_factory=lambda: [0, 20, 100, 200])
-    table4_recording: Path = RECORDINGS_DIR / "city-near.json"
+    table4_recording: Path = RECORDINGS / "city-near.json"
     table4_effect: str = "diffuse:20"
     table4_glsl: bool = True
-    phases_recording: Path = RECORDINGS_DIR / "city-near.json"
+    phases_recording: Path = RECORDINGS / "city-near.json"
     phases_effect: str = "ao:4"
     phases_frames: int = 40
-    overhead_recording: Path = RECORDINGS_DIR / "city-near.json"
+    overhead_recording: Path = RECORDINGS / "city-near.json"
     overhead_effect: str = "ao:4"
     micro_scale: float = 1.0  # op counts of the synthetic benchmark (quick: smaller)
     tuning_effects: list[str] = field(default_factory=lambda: ["ao:4", "diffuse:4"])
     tuning_grid: str = "t_q=0.5|1|2;min_tile_fraction=0.015|0.06;requery_interval=3|8"
     notes: list[str] = field(default_factory=list)
-
-
-def resolve_recording(text: str) -> Path:
-    """A recording by path, or by name in recordings/ (`city-near` or `city-near.json`)."""
-    text = text.strip()
-    given = Path(text).expanduser()
-    for cand in (given, RECORDINGS_DIR / text, RECORDINGS_DIR / f"{text}.json"):
-        if cand.is_file():
-            return cand.resolve()
-    names = ", ".join(p.stem for p in sorted(RECORDINGS_DIR.glob("*.json")))
-    raise RtwalkError(f"unknown recording '{text}': no such file (shipped: {names})")
 
 
 def _split(text: str) -> list[str]:

@@ -7,6 +7,8 @@ from pathlib import Path
 
 import numpy as np
 
+from viewer.errors import RtwalkError
+
 
 def fmt(v: float | None, nd: int = 1) -> str:
     """A table cell: '-' for missing or non-finite values."""
@@ -23,8 +25,10 @@ def size_text(size: tuple[int, int]) -> str:
     return f"{size[0]}x{size[1]}"
 
 
-def md_table(headers: list[str], rows: list[list[str]]) -> str:
-    lines = ["| " + " | ".join(headers) + " |", "|" + "|".join("---" for _ in headers) + "|"]
+def md_table(headers: list[str], rows: list[list[str]], align: str = "") -> str:
+    """A Markdown table; `align` has one letter per column, "l" or "r" (right-aligned numbers)."""
+    rule = ["---:" if a == "r" else "---" for a in align.ljust(len(headers), "l")]
+    lines = ["| " + " | ".join(headers) + " |", "|" + "|".join(rule) + "|"]
     lines += ["| " + " | ".join(r) + " |" for r in rows]
     return "\n".join(lines)
 
@@ -48,6 +52,16 @@ def _jsonable(obj):
 def write_json(path: Path, data: dict) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(json.dumps(data, indent=1, default=_jsonable, allow_nan=True))
+
+
+def out_folder(path: str | Path) -> Path:
+    """The output folder, created; one error line (RtwalkError) when it cannot be."""
+    out = Path(path)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise RtwalkError(f"cannot create --out folder {out}: {e.strerror}") from None
+    return out
 
 
 def write_study(out: Path, study: str, report: dict, md: str) -> dict:
