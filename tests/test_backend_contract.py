@@ -15,12 +15,12 @@ import keyword
 import re
 import tokenize
 from pathlib import Path
-from types import SimpleNamespace
 
 import numpy as np
 import pytest
 
 from tests.fake_backend import FakeBackend, FakeParams
+from tests.panel_frames import draw_views
 from viewer.accel.bvh import build_bvh
 from viewer.backends import BACKENDS, backend_info, backend_names, check_params
 from viewer.camera import Camera
@@ -274,51 +274,13 @@ def test_views_the_backend_does_not_produce(gl_ctx, tiny):
 
 
 def test_panel_helpers_and_panel_drive_the_fake_backend(fake):
-    from imgui_bundle import imgui, implot
-
-    from viewer.ui.camera_controller import FlyCamera
-    from viewer.ui.panel import (
-        FrameHistory,
-        chart_phases,
-        counter_rows,
-        draw_overlay_annotations,
-        draw_panel,
-        phase_label,
-    )
+    from viewer.ui.panel import counter_rows, phase_label
 
     r, cam = fake
     info = r.backend.info
-    hist = FrameHistory()
-    host = SimpleNamespace(renderer=r, fly=FlyCamera.from_camera(cam, r.diagonal), history=hist, render_scale=1.0,
-                           status="", backend_error="", last_report=None,
-                           current_camera=lambda: cam, switch_backend=lambda n: None, take_screenshot=lambda: None,
-                           toggle_recording=lambda: None, toggle_playback=lambda: None,
-                           copy_to_clipboard=lambda t: None, mode_line=lambda: "")
-    imgui.create_context()
-    implot.create_context()
-    try:
-        io_ = imgui.get_io()
-        io_.display_size = (900, 600)
-        io_.set_ini_filename("")
-        io_.fonts.build()
-        vtx = {}
-        for view in ("fake_crossings", "fake_tris", "final"):
-            r.view = view
-            rep = r.render(cam)
-            host.last_report = rep
-            hist.add(rep.wall_ms, sum(rep.gpu_ms.values()), chart_phases(rep.gpu_ms, info.phases), rep.backend_stats)
-            io_.delta_time = 1 / 30
-            imgui.new_frame()
-            draw_overlay_annotations(host, 900, 600, 340)
-            draw_panel(host, 340, 600)
-            imgui.render()
-            vtx[view] = imgui.get_draw_data().total_vtx_count
-        assert min(vtx.values()) > 1000
-        assert vtx["fake_crossings"] > vtx["final"]  # the legend is drawn over the heat view
-    finally:
-        r.view = "final"
-        implot.destroy_context()
-        imgui.destroy_context()
+    hist, vtx, rep = draw_views(r, cam, ("fake_crossings", "fake_tris", "final"))
+    assert min(vtx.values()) > 1000
+    assert vtx["fake_crossings"] > vtx["final"]  # the legend is drawn over the heat view
     names, table = hist.phase_table()
     assert names == list(info.phases) and table.shape == (3, 3) and (table > 0).all()
     assert [phase_label(n) for n in names] == ["read", "intersect", "write"]

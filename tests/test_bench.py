@@ -92,7 +92,7 @@ def test_bench_trace_same_rays_against_embree(tmp_path, capsys):
             assert np.isfinite(r["mrays_s"][key]) and r["mrays_s"][key] > 0 and len(r["ms_rounds"][key]) == 2
         assert r["hitmiss_agree"]["glsl"] >= 0.999
     md = (out / "bench_trace.md").read_text()
-    assert "| primary | 1,296 |" in md and "rtwalk bench-trace" in md
+    assert "| primary | 1,296 |" in md and "--sizes 48x27 --effects primary,shadows" in md
     assert (out / "bench_trace.png").stat().st_size > 1000
     assert "Mrays/s" in capsys.readouterr().out
 

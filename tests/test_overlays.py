@@ -7,12 +7,12 @@ from __future__ import annotations
 
 import subprocess
 import sys
-from types import SimpleNamespace
 
 import numpy as np
 import pytest
 
 from tests.conftest import prepared_scene
+from tests.panel_frames import draw_views
 from viewer.effects import RayType, parse_effects
 from viewer.errors import RtwalkError
 from viewer.gl.textures import read_texture
@@ -312,41 +312,9 @@ def test_scale_helpers():
 def test_panel_and_annotations_draw_headless(chc, gl_ctx, city):
     """The panel's chart, counters and overlay controls and the legend / tile labels run in a real
     imgui + implot frame (no window: the draw data is built, not rasterised)."""
-    from imgui_bundle import imgui, implot
-
-    from viewer.ui.camera_controller import FlyCamera
-    from viewer.ui.panel import FrameHistory, chart_phases, draw_overlay_annotations, draw_panel
-
     r, cam = chc
-    hist = FrameHistory()
-    host = SimpleNamespace(renderer=r, fly=FlyCamera.from_camera(cam, r.diagonal), history=hist, render_scale=1.0,
-                           status="", backend_error="", last_report=None,
-                           current_camera=lambda: cam, switch_backend=lambda n: None, take_screenshot=lambda: None,
-                           toggle_recording=lambda: None, toggle_playback=lambda: None,
-                           copy_to_clipboard=lambda t: None, mode_line=lambda: "")
-    imgui.create_context()
-    implot.create_context()
-    try:
-        io = imgui.get_io()
-        io.display_size = (900, 600)
-        io.set_ini_filename("")
-        io.fonts.build()  # what a renderer backend does
-        for view in ("query_overdraw", "subtree_batches", "final"):
-            r.view = view
-            rep = r.render(cam)
-            host.last_report = rep
-            hist.add(rep.wall_ms, sum(rep.gpu_ms.values()), chart_phases(rep.gpu_ms, r.backend.info.phases),
-                     rep.backend_stats)
-            io.delta_time = 1 / 30
-            imgui.new_frame()
-            draw_overlay_annotations(host, 900, 600, 340)
-            draw_panel(host, 340, 600)
-            imgui.render()
-            assert imgui.get_draw_data().total_vtx_count > 1000
-        names, table = hist.phase_table()
-        assert names == ["chc:1-intersect-visible", "chc:2-queries", "chc:3-traversal", "chc:4-final-intersect"]
-        assert table.shape == (4, 3) and (table >= 0).all()
-    finally:
-        r.view = "final"
-        implot.destroy_context()
-        imgui.destroy_context()
+    hist, vtx, _ = draw_views(r, cam, ("query_overdraw", "subtree_batches", "final"))
+    assert min(vtx.values()) > 1000
+    names, table = hist.phase_table()
+    assert names == ["chc:1-intersect-visible", "chc:2-queries", "chc:3-traversal", "chc:4-final-intersect"]
+    assert table.shape == (4, 3) and (table >= 0).all()

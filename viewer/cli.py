@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import shlex
 import sys
 from pathlib import Path
 
@@ -226,6 +227,7 @@ def main(argv: list[str] | None = None) -> int:
     if not argv or (argv[0].startswith("-") and argv[0] not in ("-h", "--help")):
         argv = ["demo"] + argv  # bare `rtwalk [options]` runs the main job
     args = ap.parse_args(argv)
+    args.command_line = shlex.join(["rtwalk", *argv])  # what the reports quote to reproduce a run
     handlers = {"view": cmd_view, "render": cmd_render, "bench": cmd_bench, "bench-bvh": cmd_bench_bvh,
                 "bench-chcrt": cmd_bench_chcrt, "bench-trace": cmd_bench_trace, "bench-cl": cmd_bench_cl,
                 "info": cmd_info, "demo": cmd_demo}

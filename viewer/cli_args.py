@@ -28,6 +28,21 @@ def parse_size(text: str) -> tuple[int, int]:
     return w, h
 
 
+def parse_sizes(text: str, option: str = "--sizes") -> list[tuple[int, int]]:
+    """"640x360,1280x720" -> [(640, 360), (1280, 720)], each item checked as parse_size does."""
+    items = [s.strip() for s in text.split(",") if s.strip()]
+    if not items:
+        raise RtwalkError(f"{option} is empty")
+    out = []
+    for item in items:
+        try:
+            out.append(parse_size(item))
+        except RtwalkError:
+            raise RtwalkError(f"bad {option} item '{item}': expected WIDTHxHEIGHT (1..16384 each), "
+                              "e.g. 640x360,1280x720") from None
+    return out
+
+
 def parse_camera(text: str):
     from viewer.camera import Camera
 

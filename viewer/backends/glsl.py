@@ -6,35 +6,25 @@ viewer.backends.gl_traversal.ResumableTraversal, shared with chcrt.
 
 from __future__ import annotations
 
-from viewer.backends.base import BackendContext, TraceResult, WorkCounters
+from viewer.backends.base import BackendContext, StatelessBackend, TraceResult, WorkCounters
 from viewer.backends.gl_traversal import ResumableTraversal
 from viewer.backends.interface import BackendInfo
 from viewer.rays import HitBuffer, PassInfo, RayBatch
 
 
-class GlslBackend:
+class GlslBackend(StatelessBackend):
     info = BackendInfo("glsl", "full BVH traversal from the root per ray (CHC+RT Table 2 'GLSL' baseline)",
                        counters=("draws", "resumed_rays"))
 
     def __init__(self, bc: BackendContext, params: None = None):
         self.bc = bc
         self.params = params
-        self.overlays_enabled = False
         self.work = WorkCounters(bc.ctx)
         self.traversal = ResumableTraversal(bc, self.work)
 
     @property
     def max_visits(self) -> int:
         return self.traversal.max_visits
-
-    def begin_frame(self, frame_index: int) -> None:
-        pass
-
-    def reset(self) -> None:
-        pass
-
-    def tile_level(self, size: tuple[int, int]) -> int:
-        return -1
 
     def trace(self, rays: RayBatch, pinfo: PassInfo, hits: HitBuffer) -> TraceResult:
         self.traversal.bind_flags(hits.size)

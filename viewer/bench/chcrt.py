@@ -111,7 +111,7 @@ def effective_params(*texts: str | None) -> str:
 
 def options_from_args(args: argparse.Namespace) -> StudyOptions:
     """Check all input up front (bad input fails in a second, not after an hour)."""
-    from viewer.cli_args import parse_size
+    from viewer.cli_args import parse_sizes
 
     studies: list[str] = []
     for s in _split(args.study or "all"):
@@ -124,17 +124,10 @@ def options_from_args(args: argparse.Namespace) -> StudyOptions:
     if not studies:
         raise RtwalkError("--study is empty")
     quick = bool(args.quick)
-    sizes = []
-    for text in _split(args.sizes) if args.sizes else []:
-        try:
-            sizes.append(parse_size(text))
-        except RtwalkError:
-            raise RtwalkError(f"bad --sizes item '{text}': expected WIDTHxHEIGHT (1..16384 each), "
-                              "e.g. 640x360,1280x720") from None
-    if not args.sizes:
+    if args.sizes:
+        sizes = parse_sizes(args.sizes)
+    else:
         sizes = [QUICK_SIZE] if quick else [(640, 360)]
-    if not sizes:
-        raise RtwalkError("--sizes is empty")
     notes: list[str] = []
     if args.recordings:
         recordings = [resolve_recording(r) for r in _split(args.recordings)]

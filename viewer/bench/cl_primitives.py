@@ -211,8 +211,7 @@ def run(args: argparse.Namespace) -> int:
     if args.reps < 1:
         raise RtwalkError("--reps must be >= 1")
     out = out_folder(args.out)
-    command = f"rtwalk bench-cl --sizes {args.sizes} --reps {args.reps} --ops {','.join(ops)} --out {args.out}"
-    report = measure(sizes, ops, args.reps, command)
+    report = measure(sizes, ops, args.reps, getattr(args, "command_line", ""))
     files = write_study(out, "bench_cl", report, markdown(report))
     plot(report, files["png"])
     print()

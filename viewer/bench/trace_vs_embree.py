@@ -28,6 +28,7 @@ import numpy as np
 from viewer.bench.harness import is_trace_phase
 from viewer.bench.plots import bars, figure, finish
 from viewer.bench.report import md_table, out_folder, write_study
+from viewer.cli_args import parse_sizes
 from viewer.errors import RtwalkError
 from viewer.paths import resolve_recording
 
@@ -68,18 +69,6 @@ class Pass:
     @property
     def rays(self) -> int:
         return int(self.active.sum())
-
-
-def _parse_sizes(text: str) -> list[tuple[int, int]]:
-    out = []
-    for item in [s.strip() for s in text.split(",") if s.strip()]:
-        w, sep, h = item.lower().partition("x")
-        if not sep or not w.isdigit() or not h.isdigit() or int(w) < 1 or int(h) < 1:
-            raise RtwalkError(f"--sizes: expected WxH like 640x360 (got '{item}')")
-        out.append((int(w), int(h)))
-    if not out:
-        raise RtwalkError("--sizes: no size given")
-    return out
 
 
 def _log(args, msg: str) -> None:
@@ -263,7 +252,7 @@ def run(args) -> int:
     from viewer.renderer import Renderer
     from viewer.session import prepare_scene
 
-    sizes = _parse_sizes(args.sizes)
+    sizes = parse_sizes(args.sizes)
     backends = [b.strip() for b in args.backends.split(",") if b.strip()] or [
         b for b in backend_names() if b != REFERENCE_BACKEND and backend_info(b).exact]
     for b in backends:
@@ -288,7 +277,7 @@ def run(args) -> int:
         from viewer.cl import cl_context
 
         device_cl = cl_context().name
-    report = {"command": _command(),
+    report = {"command": getattr(args, "command_line", ""),
               "backends": backends, "embree_threads": threads, "rounds": args.rounds, "effects": args.effects,
               "device_cl": device_cl or "no OpenCL backend", "groups": []}
     for rec_path in recs:
@@ -328,13 +317,6 @@ def run(args) -> int:
         _plot(report, files["png"])
     print(files["markdown"])
     return 0
-
-
-def _command() -> str:
-    argv = sys.argv[1:]
-    if argv and argv[0] == "bench-trace":
-        argv = argv[1:]
-    return " ".join(["rtwalk bench-trace", *argv])
 
 
 def _reference(tracer, p: Pass) -> tuple[np.ndarray, np.ndarray]:

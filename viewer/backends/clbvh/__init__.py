@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from viewer.accel.bvh4 import BVH4, build_bvh4
-from viewer.backends.base import BackendContext, TraceResult
+from viewer.backends.base import BackendContext, StatelessBackend, TraceResult
 from viewer.backends.interface import BackendInfo
 from viewer.rays import HitBuffer, PassInfo, RayBatch
 
@@ -114,7 +114,7 @@ class ClbvhScene:
         self.active.release()
 
 
-class ClbvhBackend:
+class ClbvhBackend(StatelessBackend):
     info = BackendInfo("clbvh", "OpenCL: one work-item per ray walks a 4-wide BVH (float4 child tests) from the root",
                        counters=("rays",), device="cl")
 
@@ -123,7 +123,6 @@ class ClbvhBackend:
 
         self.bc = bc
         self.params = params
-        self.overlays_enabled = False
         self.ctx = cl_context()
         self.scene = ClbvhScene(bc.scene.triangles, bc.bvh, self.ctx)
         self._stages = None  # (size, RayStage, HitStage)
@@ -136,15 +135,6 @@ class ClbvhBackend:
             self._release_stages()
             self._stages = (size, RayStage(size, self.ctx), HitStage(size, self.ctx))
         return self._stages[1], self._stages[2]
-
-    def begin_frame(self, frame_index: int) -> None:
-        pass
-
-    def reset(self) -> None:
-        pass
-
-    def tile_level(self, size: tuple[int, int]) -> int:
-        return -1
 
     def trace(self, rays: RayBatch, pinfo: PassInfo, hits: HitBuffer) -> TraceResult:
         prof = self.bc.profiler
