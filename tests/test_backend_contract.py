@@ -20,13 +20,12 @@ import numpy as np
 import pytest
 
 from tests.fake_backend import FakeBackend, FakeParams
-from tests.panel_frames import draw_views
+from tests.view_helpers import draw_views, image_gl, record_overlays
 from viewer.accel.bvh import build_bvh
 from viewer.backends import BACKENDS, backend_info, backend_names, check_params
 from viewer.camera import Camera
 from viewer.effects import RayType, parse_effects
 from viewer.errors import RtwalkError
-from viewer.gl.textures import read_texture
 from viewer.passes.overlay import (
     NO_DATA_GREY,
     backends_with_view,
@@ -90,27 +89,6 @@ def fake(gl_ctx, tiny):
     r.render(cam)
     yield r, cam
     r.release()
-
-
-def _record_overlays(r: Renderer) -> dict:
-    """Wrap the backend's trace(): read its overlay textures back after the first pass of each
-    (ray type, sample), i.e. what it wrote for the pass the renderer copies."""
-    seen: dict = {}
-    orig = r.backend.trace
-
-    def trace(rays, pinfo, hits):
-        res = orig(rays, pinfo, hits)
-        key = (pinfo.ray_type, int(pinfo.sample))
-        if key not in seen:
-            seen[key] = {k: read_texture(t).reshape(-1).copy() for k, t in res.overlays.items()}
-        return res
-
-    r.backend.trace = trace
-    return seen
-
-
-def _image_gl(r: Renderer) -> np.ndarray:
-    return r.read_image()[::-1].reshape(-1, 3).astype(np.int32)
 
 
 # --------------------------------------------------------------------------- registry and views
@@ -177,18 +155,18 @@ def test_renderer_traces_with_the_fake_backend(fake, tiny):
 
 def test_overlay_views_show_what_the_backend_wrote(fake):
     r, cam = fake
-    seen = _record_overlays(r)
+    seen = record_overlays(r)
     try:
         r.view, r.overlay_pass = "fake_crossings", (RayType.SHADOW, 0)
         rep = r.render(cam, capture=True)
-        heat_img = _image_gl(r)
+        heat_img = image_gl(r)
         ov = r.read_overlays()
         vmax = r.overlay_scale_max()
         want = seen.pop((RayType.SHADOW, 0))
         primary = seen.pop((RayType.PRIMARY, 0))
         r.view = "fake_tris"
         rep2 = r.render(cam, capture=True)
-        ids_img = _image_gl(r).reshape(SIZE[1], SIZE[0], 3)
+        ids_img = image_gl(r).reshape(SIZE[1], SIZE[0], 3)
         ov2 = r.read_overlays()
         tiles = r.overlay_tiles()
         level = r.overlay_tile_level()

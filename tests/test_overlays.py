@@ -12,10 +12,9 @@ import numpy as np
 import pytest
 
 from tests.conftest import prepared_scene
-from tests.panel_frames import draw_views
+from tests.view_helpers import draw_views, image_gl, record_overlays
 from viewer.effects import RayType, parse_effects
 from viewer.errors import RtwalkError
-from viewer.gl.textures import read_texture
 from viewer.passes.overlay import (
     NO_DATA_GREY,
     heat_colors,
@@ -47,30 +46,9 @@ def chc(gl_ctx, city):
     r.release()
 
 
-def _record_backend_overlays(r: Renderer) -> dict:
-    """Wrap the backend's trace(): read its overlays back after every pass, keyed (ray type, sample)."""
-    seen: dict = {}
-    orig = r.backend.trace
-
-    def trace(rays, pinfo, hits):
-        res = orig(rays, pinfo, hits)
-        key = (pinfo.ray_type, int(pinfo.sample))
-        if key not in seen:  # first occurrence: the pass the renderer copies
-            seen[key] = {k: read_texture(t).reshape(-1).copy() for k, t in res.overlays.items()}
-        return res
-
-    r.backend.trace = trace
-    return seen
-
-
-def _image_gl(r: Renderer) -> np.ndarray:
-    """The shaded image as (H*W, 3) in GL row order (row 0 = bottom), like the overlays."""
-    return r.read_image()[::-1].reshape(-1, 3).astype(np.int32)
-
-
 def test_copy_equals_the_backend_overlays_of_the_chosen_pass(chc):
     r, cam = chc
-    seen = _record_backend_overlays(r)
+    seen = record_overlays(r)
     try:
         r.view = "query_overdraw"
         r.overlay_pass = (RayType.AO, 0)
@@ -135,11 +113,11 @@ def test_subtree_ids_hold_the_pixels_hit_triangle(chc, city, source):
 def test_heat_map_is_the_colormap_of_the_overdraw(chc):
     r, cam = chc
     r.render(cam)
-    final = _image_gl(r)
+    final = image_gl(r)
     r.view = "query_overdraw"
     try:
         r.render(cam)
-        img = _image_gl(r)
+        img = image_gl(r)
         ov = r.read_overlays()
         vmax = r.overlay_scale_max()
         frame_max = r.overlay.read_max("query_overdraw")[0]
@@ -176,7 +154,7 @@ def test_fixed_and_linear_scale(chc):
     r.view, r.overlay_scale, r.overlay_log = "query_overdraw", 4, False
     try:
         r.render(cam)
-        img = _image_gl(r)
+        img = image_gl(r)
         od = r.read_overlays()["query_overdraw"]
         assert r.overlay_scale_max() == 4
     finally:
@@ -194,7 +172,7 @@ def test_subtree_batches_view_and_tile_counts(chc):
     r.view = "subtree_batches"
     try:
         r.render(cam)
-        img = _image_gl(r).reshape(SIZE[1], SIZE[0], 3)
+        img = image_gl(r).reshape(SIZE[1], SIZE[0], 3)
         ov = r.read_overlays()
         level = r.overlay_tile_level()
         tiles = r.overlay_tiles()

@@ -88,9 +88,8 @@ def cmd_bench(args) -> int:
 
 
 def cmd_bench_bvh(args) -> int:
-    import json
-
     from viewer.accel.bvh import bench_build
+    from viewer.bench.report import out_folder, write_json
     from viewer.procedural import make_city
 
     rows = []
@@ -102,9 +101,8 @@ def cmd_bench_bvh(args) -> int:
         print(f"city {scene.triangle_count:>10,} tris: build {r['build_time_s']:.2f} s "
               f"({r['throughput_mtris_per_s']:.2f} Mtri/s), {r['nodes']:,} nodes, depth {r['depth']}, "
               f"SAH {r['sah_cost']:.1f}", flush=True)
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "bvh-build.json").write_text(json.dumps(rows, indent=1, default=float))
+    out = out_folder(args.out)
+    write_json(out / "bvh-build.json", rows)
     print(f"report: {out / 'bvh-build.json'}")
     return 0
 

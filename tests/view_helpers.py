@@ -1,15 +1,42 @@
-"""Draw the window's panel and overlay annotations headless, one frame per view: a real imgui + implot
-frame whose draw data is built but not rasterised. Shared by the panel tests of every backend."""
+"""Helpers the overlay and panel tests of every backend share: record the overlays a backend returns,
+read the shaded image in GL row order, draw the panel headless."""
 
 from __future__ import annotations
 
 from types import SimpleNamespace
 
+import numpy as np
+
+from viewer.gl.textures import read_texture
+
+
+def record_overlays(r) -> dict:
+    """Wrap the backend's trace() of Renderer `r`: read its overlay textures back after the first pass
+    of each (ray type, sample), i.e. what it wrote for the pass the renderer copies."""
+    seen: dict = {}
+    orig = r.backend.trace
+
+    def trace(rays, pinfo, hits):
+        res = orig(rays, pinfo, hits)
+        key = (pinfo.ray_type, int(pinfo.sample))
+        if key not in seen:
+            seen[key] = {k: read_texture(t).reshape(-1).copy() for k, t in res.overlays.items()}
+        return res
+
+    r.backend.trace = trace
+    return seen
+
+
+def image_gl(r) -> np.ndarray:
+    """The shaded image as (H*W, 3) in GL row order (row 0 = bottom), like the overlays."""
+    return r.read_image()[::-1].reshape(-1, 3).astype(np.int32)
+
 
 def draw_views(r, cam, views) -> tuple[object, dict[str, int], object]:
-    """Render each view with Renderer `r` from `cam` and draw the panel (340 px wide, in a 900x600
-    window) with its history; returns (FrameHistory, draw-data vertices per view, last FrameReport).
-    Leaves `r.view` at "final"."""
+    """Draw the window's panel and overlay annotations headless, one frame per view: a real imgui +
+    implot frame whose draw data is built but not rasterised. Renders each view with Renderer `r` from
+    `cam`, the panel 340 px wide in a 900x600 window; returns (FrameHistory, draw-data vertices per
+    view, last FrameReport) and leaves `r.view` at "final"."""
     from imgui_bundle import imgui, implot
 
     from viewer.ui.camera_controller import FlyCamera
