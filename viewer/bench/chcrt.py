@@ -809,7 +809,8 @@ STUDY_FUNCS: dict[str, Callable[[Bench], dict]] = {"table2": study_table2, "tabl
                                                     "tuning": study_tuning}
 
 
-def run_studies(o: StudyOptions, out=sys.stdout) -> list[dict]:
+def run_studies(o: StudyOptions, out=None) -> list[dict]:
+    out = out or sys.stdout  # looked up per call: a stream bound at import may be closed by now
     est = estimate(o)
     if not o.quiet:
         print(format_estimate(est), file=sys.stderr, flush=True)

@@ -188,7 +188,8 @@ def summarize(records: list[dict]) -> dict:
     return s
 
 
-def print_summary(report: dict, out=sys.stdout) -> None:
+def print_summary(report: dict, out=None) -> None:
+    out = out or sys.stdout  # looked up per call: a stream bound at import may be closed by now
     s = report["summary"]
     w, h = report["size"]
     print(f"\n{report['scene_name']} ({report['triangles']:,} tris)  backend={report['backend']}  "
