@@ -144,19 +144,29 @@ def _first_line(exc: BaseException) -> str:
 
 def run_viewer(args) -> int:
     from viewer.backends import BACKENDS
-    from viewer.cli_args import backend_options_from, parse_size, scene_from_args, settings_from
+    from viewer.cli_args import (
+        backend_options_from,
+        check_device,
+        check_image_output,
+        parse_size,
+        scene_from_args,
+        settings_from,
+    )
     from viewer.recording import load_recording
 
     max_frames = frame_limit(args)
     render_scale_from_env()  # bad values fail before the window opens
     view = initial_view(args)
     shot = os.environ.get("RTWALK_VIEW_SCREENSHOT", "").strip() or None
+    if shot:
+        check_image_output(shot, "RTWALK_VIEW_SCREENSHOT")
     window_class()  # fail on a missing display before spending time on the scene
     settings = settings_from(args)
     backend_options = backend_options_from(args)
     size = parse_size(args.size)
     if args.backend not in BACKENDS:
         raise RtwalkError(f"unknown backend '{args.backend}' (choose from {', '.join(BACKENDS)})")
+    check_device(args.backend)
     rec_path = getattr(args, "recording", None)
     recording = load_recording(rec_path) if rec_path else None
     quiet = bool(getattr(args, "quiet", False))
