@@ -75,6 +75,7 @@ class Scene:
     identity: dict = field(default_factory=dict)
     sky_color: np.ndarray = field(default_factory=lambda: np.array([0.55, 0.65, 0.8], np.float32))
     notes: list[str] = field(default_factory=list)  # e.g. "dropped 53627 zero-area triangles"
+    auto_lights: bool = False  # lights are the loader's guess: viewer.default_lights checks them by ray casts
 
     @property
     def triangle_count(self) -> int:

@@ -316,13 +316,16 @@ def default_lights(scene: Scene) -> None:
     power_scale = reach ** 2 / (side * side)
     scene.rect_lights = [RectLight(corner.astype(np.float32), eu.astype(np.float32), ev.astype(np.float32),
                                    np.full(3, power_scale, np.float32))]
+    scene.auto_lights = True  # a guess: viewer.session moves it by ray casts once the BVH exists
 
 
 def axis_ray_hits(tris: np.ndarray, origin, axis: int, sign: float,
-                  tri_min: np.ndarray | None = None, tri_max: np.ndarray | None = None) -> np.ndarray:
+                  tri_min: np.ndarray | None = None, tri_max: np.ndarray | None = None,
+                  facing: bool = False):
     """Sorted distances of all hits of the ray origin + t * sign * e_axis (t > 0). Vectorised;
     triangles whose bounding box misses the ray are skipped first (pass tri_min/tri_max, the
-    per-triangle vertex min/max, to reuse them over several rays)."""
+    per-triangle vertex min/max, to reuse them over several rays). With `facing`, also the sign of
+    dot(winding normal, ray direction) of each hit (-1: the surface faces the origin)."""
     origin = np.asarray(origin, np.float64)
     tri_min = tris.min(axis=1) if tri_min is None else tri_min
     tri_max = tris.max(axis=1) if tri_max is None else tri_max
@@ -344,24 +347,32 @@ def axis_ray_hits(tris: np.ndarray, origin, axis: int, sign: float,
         v = (q @ d) * inv
         dist = np.einsum("ij,ij->i", e2, q) * inv
         ok = (det != 0) & (u >= 0) & (v >= 0) & (u + v <= 1) & (dist > 0)
-    return np.sort(dist[ok])
+    order = np.argsort(dist[ok])
+    if facing:  # dot(cross(e1, e2), d) = -det (Moller-Trumbore: det = dot(e1, cross(d, e2)))
+        return dist[ok][order], -np.sign(det[ok][order])
+    return dist[ok][order]
 
 
 def is_enclosed(scene: Scene, point) -> bool:
     """Whether `point` is inside a shell that spans the scene bounds (an interior such as sponza,
-    sibenik, the conference room), not inside a closed object (a scanned bunny): along at least 4
-    of the 6 axis directions, the farthest surface is within 3% of the bounding-box face."""
+    sibenik, the conference room), not inside a closed object (a scanned bunny, a box): along at
+    least 4 of the 6 axis directions, the farthest surface is within 3% of the bounding-box face,
+    and the nearest surfaces do not all turn their backs to the point (inside a solid whose
+    winding points outwards, such as trimesh.creation.box(), every nearest hit is a back face)."""
     lo, hi = (b.astype(np.float64) for b in scene.bounds)
     ext = np.maximum(hi - lo, 1e-12)
     point = np.asarray(point, np.float64)
     tmin, tmax = scene.triangles.min(axis=1), scene.triangles.max(axis=1)
-    near_face = 0
+    near_face = back = hit = 0
     for axis in range(3):
         for sign, face in ((1.0, hi[axis]), (-1.0, lo[axis])):
-            hits = axis_ray_hits(scene.triangles, point, axis, sign, tmin, tmax)
-            if len(hits) and abs(face - point[axis]) - hits[-1] <= 0.03 * ext[axis]:
-                near_face += 1
-    return near_face >= 4
+            hits, facing = axis_ray_hits(scene.triangles, point, axis, sign, tmin, tmax, facing=True)
+            if len(hits):
+                hit += 1
+                back += int(facing[0] > 0)
+                if abs(face - point[axis]) - hits[-1] <= 0.03 * ext[axis]:
+                    near_face += 1
+    return near_face >= 4 and not (hit == 6 and back == 6)
 
 
 def default_camera(scene: Scene) -> Camera:

@@ -65,4 +65,12 @@ def prepare_scene(spec: str | None, scene_size: int | None = None, seed: int = 1
         log(f"BVH: {st.nodes:,} nodes, depth {st.depth}, SAH cost {st.sah_cost:.1f}, "
             f"built in {st.build_time_s:.2f} s ({scene.triangle_count / max(st.build_time_s, 1e-9) / 1e6:.2f} Mtri/s), "
             f"{st.memory_bytes / 2**20:.1f} MiB of node + triangle buffers")
-    return PreparedScene(scene.reordered(bvh.tri_order), bvh)
+    ordered = scene.reordered(bvh.tri_order)
+    if ordered.auto_lights:
+        from viewer.default_lights import apply
+
+        placed = apply(ordered, bvh)
+        if placed is not None and not quiet:
+            pos = ", ".join(f"{v:.3g}" for v in placed.position)
+            log(f"default light at ({pos}): lights {100 * placed.lit:.0f}% of the surfaces the camera sees")
+    return PreparedScene(ordered, bvh)
