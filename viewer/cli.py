@@ -14,6 +14,7 @@ from viewer.cli_args import (  # noqa: F401
     RECORDINGS,
     REPO_ROOT,
     add_effect_args,
+    add_progressive_args,
     add_scene_args,
     backend_options_from,
     check_at_least,
@@ -82,6 +83,7 @@ def cmd_bench(args) -> int:
     size = parse_size(args.size)
     settings = settings_from(args)
     check_positive(args.fps, "--fps")
+    check_positive(getattr(args, "frame_target_ms", None), "--frame-target-ms")
     check_at_least(args.frames, 1, "--frames")
     check_at_least(args.reference_every, 1, "--reference-every")
     check_at_least(args.frame_every, 1, "--frame-every")
@@ -97,9 +99,19 @@ def cmd_bench(args) -> int:
     check_device(args.backend)
     ctx = create_headless_context()  # no EGL: fail before loading
     prepared = scene_from_args(args, rec)
+    stem = args.name or f"{prepared.scene.name}-{Path(rec_path).stem}-{args.backend}-{opts.size[0]}x{opts.size[1]}"
+    if getattr(args, "progressive", False):
+        import json
+
+        from viewer.progressive import replay_progressive
+
+        result = replay_progressive(prepared, rec, settings, opts, ctx, args.frame_target_ms, quiet=args.quiet)
+        path = out_dir / f"{stem}-progressive.json"
+        path.write_text(json.dumps(result, indent=1))
+        print(f"report: {path}")
+        return 0
     report = run_bench(prepared, rec, settings, opts, ctx, quiet=args.quiet)
     print_summary(report)
-    stem = args.name or f"{prepared.scene.name}-{Path(rec_path).stem}-{args.backend}-{opts.size[0]}x{opts.size[1]}"
     json_path, png_path = write_report(report, out_dir, stem)
     print(f"report: {json_path}\nplot:   {png_path}")
     return 0
@@ -208,6 +220,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="with --save-frames: save every Nth replayed frame (and its overlay views)")
     b.add_argument("--out", default="out/bench", help="folder for the JSON report and plot")
     b.add_argument("--name", default=None, help="report file stem")
+    add_progressive_args(b, "replay in the window's progressive mode (one pass per effect while moving, "
+                            "refine after the path stops) and report its frame times and convergence")
 
     from viewer.bench.chcrt import add_arguments as add_bench_chcrt_args
 

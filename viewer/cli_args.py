@@ -78,6 +78,14 @@ def add_effect_args(p: argparse.ArgumentParser, default: str) -> None:
                         "min_tile_fraction, max_subtree_height, max_batch, max_multi, ...)")
 
 
+def add_progressive_args(p: argparse.ArgumentParser, help_flag: str, default: bool = False) -> None:
+    """--progressive / --no-progressive and --frame-target-ms (viewer.progressive)."""
+    p.add_argument("--progressive", action=argparse.BooleanOptionalAction, default=default, help=help_flag)
+    p.add_argument("--frame-target-ms", type=float, default=100.0,
+                   help="progressive mode: frame time to keep while the camera moves, by lowering the render "
+                        "scale (default 100)")
+
+
 def check_backend(name: str) -> str:
     """The backend name if registered, else one line naming the choices (before any scene work)."""
     from viewer.backends import backend_class
