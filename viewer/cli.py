@@ -32,6 +32,7 @@ from viewer.errors import RtwalkError
 
 BENCH_FRAMES = 48  # default bench: frames spread over the path, a few minutes on 2 cores
 BENCH_REFERENCE_EVERY = 6  # and an Embree check of every 6th of them
+VIEW_SIZE = "896x504"  # the window's image; the panel is beside it (viewer.ui.panel.PANEL_WIDTH)
 
 
 def cmd_render(args) -> int:
@@ -188,6 +189,10 @@ def build_parser() -> argparse.ArgumentParser:
     v.add_argument("--recording", default=None, help="play this recording (P toggles)")
     v.add_argument("--max-frames", type=int, default=None,
                    help="quit after N frames (also RTWALK_VIEW_FRAMES; RTWALK_VIEW_SCREENSHOT=PNG saves the window)")
+    add_progressive_args(v, "progressive refinement (default): one pass per effect at a reduced scale while the "
+                            "camera moves, more passes when it stops; --no-progressive: full quality every frame",
+                         default=True)
+    v.set_defaults(size=VIEW_SIZE)
 
     r = sub.add_parser("render", help="render one frame headless to PNG")
     add_scene_args(r)

@@ -20,6 +20,7 @@ from __future__ import annotations
 import math
 import sys
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -57,8 +58,10 @@ def _camera_key(camera: Camera) -> tuple:
 
 class Progressive:
     def __init__(self, renderer: Renderer, full_size: tuple[int, int], target_ms: float = 100.0,
-                 min_scale: float = 0.25):
+                 min_scale: float = 0.25, resize: Callable[[tuple[int, int]], None] | None = None):
+        """`resize`: how to resize the renderer (the window binds its screen first)."""
         self.renderer = renderer
+        self.resize = resize or renderer.resize
         self.full_size = tuple(full_size)
         self.target_ms = float(target_ms)
         self.min_scale = float(min_scale)
@@ -95,14 +98,14 @@ class Progressive:
         requested = self.requested()
         if key != self._key:  # moving: one pass per effect at the adapted scale
             self._key = key
-            r.resize(scaled_size(self.full_size, self.scale))
+            self.resize(scaled_size(self.full_size, self.scale))
             report = r.render(camera, samples=(0,))
             self.shown_scale = self.scale
             self._adapt(report.wall_ms)
             self._next = 0 if self.scale < 1.0 else 1  # at full scale, sample 0 is already in
             return Step(report, True, self.shown_scale, 1, requested, requested <= 1 and self._next == 1)
         if self._next == 0:  # stopped after a reduced-scale image: start over at full scale
-            r.resize(self.full_size)
+            self.resize(self.full_size)
             report = r.render(camera, samples=(0,))
             self.shown_scale, self._next = 1.0, 1
             return Step(report, False, 1.0, 1, requested, requested <= 1)
