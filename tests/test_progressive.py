@@ -97,3 +97,27 @@ def test_settings_change_restarts(gl_ctx, room):
         assert st.report is not None and st.samples_requested == 2 and st.samples_done == 1
     finally:
         r.release()
+
+
+def test_bench_progressive_report(tmp_path):
+    """`rtwalk bench --progressive`: moving frame times (median, p95), time to convergence, and the
+    converged image equal to the full-quality frame."""
+    import json
+    import subprocess
+    import sys
+
+    from viewer.recording import Keyframe, Recording, save_recording
+
+    a, b = _cams()
+    keys = [Keyframe.from_camera(0.0, a), Keyframe.from_camera(1.0, b)]
+    path = save_recording(Recording({"builtin": "room"}, (64, 36), 6.0, keys), tmp_path / "room-path.json")
+    proc = subprocess.run([sys.executable, "-m", "viewer.cli", "bench", "--recording", str(path), "--progressive",
+                           "--effects", "primary,shadows,ao:3", "--size", "64x36", "--out", str(tmp_path / "out"),
+                           "--name", "p", "--frame-target-ms", "1000"], capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    assert "progressive: 7 moving frames" in proc.stderr, proc.stderr
+    rep = json.loads((tmp_path / "out" / "p-progressive.json").read_text())
+    assert rep["frames"] == 7 and len(rep["moving_ms"]["all"]) == 7
+    assert rep["moving_ms"]["median"] <= rep["moving_ms"]["p95"] <= rep["moving_ms"]["max"]
+    assert rep["converge"]["frames"] == 2 and rep["converge"]["seconds"] > 0  # samples 1 and 2 of 0..2
+    assert rep["scale"]["max"] == 1.0 and rep["converged_vs_full_mae"] <= 1.0

@@ -226,7 +226,9 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--out", default="out/bench", help="folder for the JSON report and plot")
     b.add_argument("--name", default=None, help="report file stem")
     add_progressive_args(b, "replay in the window's progressive mode (one pass per effect while moving, "
-                            "refine after the path stops) and report its frame times and convergence")
+                            "refine after the path stops) and report its frame times, time to convergence and "
+                            "the converged image's error against the full-quality frame (no Embree check, "
+                            "no saved frames)")
 
     from viewer.bench.chcrt import add_arguments as add_bench_chcrt_args
 
