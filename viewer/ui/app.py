@@ -278,7 +278,9 @@ class ViewerApp:
     # -- helpers -------------------------------------------------------------------------------
     def panel_width(self) -> float:
         """The panel's width in window coordinates (0 when hidden)."""
-        return float(min(PANEL_WIDTH, self.wnd.size[0] * 0.5)) if self.show_panel else 0.0
+        # a window opened at --size plus the panel leaves exactly --size to the image (down to --size
+        # 227 wide); a narrower window (resized by hand) keeps 40% for the image
+        return float(min(PANEL_WIDTH, self.wnd.size[0] * 0.6)) if self.show_panel else 0.0
 
     def viewport(self) -> tuple[int, int, int, int]:
         """(x, y, w, h) of the image in framebuffer pixels: the window right of the panel."""
