@@ -47,7 +47,7 @@ def add_arguments(p) -> None:
     p.add_argument("--rounds", type=int, default=3, help="interleaved timing rounds (default 3)")
     p.add_argument("--no-check", action="store_true", help="skip the hit/miss agreement with the Embree reference")
     p.add_argument("--out", default="bench-trace", help="output folder (default bench-trace)")
-    p.add_argument("--quiet", action="store_true")
+    p.add_argument("--quiet", action="store_true", help="no progress output")
 
 
 @dataclass
