@@ -111,7 +111,7 @@ def effective_params(*texts: str | None) -> str:
 
 def options_from_args(args: argparse.Namespace) -> StudyOptions:
     """Check all input up front (bad input fails in a second, not after an hour)."""
-    from viewer.cli_args import parse_sizes
+    from viewer.cli_args import parse_image_sizes
 
     studies: list[str] = []
     for s in _split(args.study or "all"):
@@ -125,7 +125,7 @@ def options_from_args(args: argparse.Namespace) -> StudyOptions:
         raise RtwalkError("--study is empty")
     quick = bool(args.quick)
     if args.sizes:
-        sizes = parse_sizes(args.sizes)
+        sizes = parse_image_sizes(args.sizes)
     else:
         sizes = [QUICK_SIZE] if quick else [(640, 360)]
     notes: list[str] = []

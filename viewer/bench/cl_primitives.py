@@ -22,7 +22,8 @@ import numpy as np
 
 from viewer.bench.harness import load_average
 from viewer.bench.plots import bars, figure, finish
-from viewer.bench.report import md_table, out_folder, write_study
+from viewer.bench.report import md_table, write_study
+from viewer.cli_args import check_output_dir
 from viewer.errors import RtwalkError
 
 OPS = ("sort", "scan", "compact")
@@ -210,7 +211,7 @@ def run(args: argparse.Namespace) -> int:
         raise RtwalkError(f"bad --ops '{args.ops}': choose from {','.join(OPS)}")
     if args.reps < 1:
         raise RtwalkError("--reps must be >= 1")
-    out = out_folder(args.out)
+    out = check_output_dir(args.out, "--out")
     report = measure(sizes, ops, args.reps, getattr(args, "command_line", ""))
     files = write_study(out, "bench_cl", report, markdown(report))
     plot(report, files["png"])

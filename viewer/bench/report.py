@@ -7,8 +7,6 @@ from pathlib import Path
 
 import numpy as np
 
-from viewer.errors import RtwalkError
-
 
 def fmt(v: float | None, nd: int = 1) -> str:
     """A table cell: '-' for missing or non-finite values."""
@@ -52,16 +50,6 @@ def _jsonable(obj):
 def write_json(path: Path, data: dict | list) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(json.dumps(data, indent=1, default=_jsonable, allow_nan=True))
-
-
-def out_folder(path: str | Path) -> Path:
-    """The output folder, created; one error line (RtwalkError) when it cannot be."""
-    out = Path(path)
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as e:
-        raise RtwalkError(f"cannot create --out folder {out}: {e.strerror}") from None
-    return out
 
 
 def write_study(out: Path, study: str, report: dict, md: str) -> dict:

@@ -27,8 +27,8 @@ import numpy as np
 
 from viewer.bench.harness import is_trace_phase
 from viewer.bench.plots import bars, figure, finish
-from viewer.bench.report import md_table, out_folder, write_study
-from viewer.cli_args import parse_sizes
+from viewer.bench.report import md_table, write_study
+from viewer.cli_args import check_output_dir, parse_image_sizes
 from viewer.errors import RtwalkError
 from viewer.paths import resolve_recording
 
@@ -49,7 +49,7 @@ def add_arguments(p) -> None:
     p.add_argument("--rounds", type=int, default=3, help="interleaved timing rounds (default 3)")
     p.add_argument("--no-check", action="store_true", help="skip the hit/miss agreement with the Embree reference")
     p.add_argument("--out", default="bench-trace", help="output folder (default bench-trace)")
-    p.add_argument("--quiet", action="store_true")
+    p.add_argument("--quiet", action="store_true", help="no progress output")
 
 
 @dataclass
@@ -252,7 +252,7 @@ def run(args) -> int:
     from viewer.renderer import Renderer
     from viewer.session import prepare_scene
 
-    sizes = parse_sizes(args.sizes)
+    sizes = parse_image_sizes(args.sizes)
     backends = [b.strip() for b in args.backends.split(",") if b.strip()] or [
         b for b in backend_names() if b != REFERENCE_BACKEND and backend_info(b).exact]
     for b in backends:
@@ -270,7 +270,7 @@ def run(args) -> int:
         raise RtwalkError("Embree timings need the embreex package (pip install embreex)")
     recs = [resolve_recording(n) for n in args.recordings.split(",") if n.strip()]
     settings = parse_effects(args.effects)
-    out = out_folder(args.out)
+    out = check_output_dir(args.out, "--out")
     ctx = shared_context()
     device_cl = ""
     if any(b == "clbvh" for b in backends):
