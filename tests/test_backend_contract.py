@@ -20,7 +20,7 @@ import numpy as np
 import pytest
 
 from tests.fake_backend import FakeBackend, FakeParams
-from tests.view_helpers import draw_views, image_gl, record_overlays
+from tests.view_helpers import draw_views, image_gl, record_overlays, tile_edges
 from viewer.accel.bvh import build_bvh
 from viewer.backends import BACKENDS, backend_info, backend_names, check_params
 from viewer.camera import Camera
@@ -201,12 +201,7 @@ def test_overlay_views_show_what_the_backend_wrote(fake):
 
     # id view: one colour per id, grey without a hit, tile outlines at the backend's tile level
     assert level == 2
-    tid = tile_index(SIZE, level)
-    edge = np.zeros(tid.shape, bool)
-    edge[:, 1:] |= tid[:, 1:] != tid[:, :-1]
-    edge[:, :-1] |= tid[:, 1:] != tid[:, :-1]
-    edge[1:] |= tid[1:] != tid[:-1]
-    edge[:-1] |= tid[1:] != tid[:-1]
+    edge = tile_edges(SIZE, level)
     ids = ov2["hit_tri"].reshape(SIZE[1], SIZE[0])
     grey = (ids_img == NO_DATA_GREY).all(axis=2)
     assert grey[(ids < 0) & ~edge].all() and not grey[(ids >= 0) & ~edge].any() and not grey[edge].any()
@@ -217,7 +212,7 @@ def test_overlay_views_show_what_the_backend_wrote(fake):
     # per-tile numbers: distinct hit triangles per tile, computed here from the id image
     rects, counts, from_counts = tiles
     assert from_counts and rects.shape == (16, 4) and counts.shape == (16,)
-    flat_t, flat_i = tid.reshape(-1), ov2["hit_tri"]
+    flat_t, flat_i = tile_index(SIZE, level).reshape(-1), ov2["hit_tri"]
     keep = flat_i >= 0
     expect = np.bincount(np.unique(flat_t[keep] * 1000 + flat_i[keep]) // 1000, minlength=16)
     np.testing.assert_array_equal(counts, expect)

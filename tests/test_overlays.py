@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from tests.conftest import prepared_scene
-from tests.view_helpers import draw_views, image_gl, record_overlays
+from tests.view_helpers import draw_views, image_gl, record_overlays, tile_edges
 from viewer.effects import RayType, parse_effects
 from viewer.errors import RtwalkError
 from viewer.passes.overlay import (
@@ -180,12 +180,7 @@ def test_subtree_batches_view_and_tile_counts(chc):
         r.view = "final"
     assert level >= 1
     n = 1 << level
-    tid = tile_index(SIZE, level)
-    edge = np.zeros(tid.shape, bool)
-    edge[:, 1:] |= tid[:, 1:] != tid[:, :-1]
-    edge[:, :-1] |= tid[:, 1:] != tid[:, :-1]
-    edge[1:] |= tid[1:] != tid[:-1]
-    edge[:-1] |= tid[1:] != tid[:-1]
+    edge = tile_edges(SIZE, level)
     sub = ov["subtree_id"].reshape(SIZE[1], SIZE[0])
     grey = (img == NO_DATA_GREY).all(axis=2)
     assert grey[(sub < 0) & ~edge].all()  # no hit: dark grey
@@ -201,7 +196,7 @@ def test_subtree_batches_view_and_tile_counts(chc):
     assert rects.shape == (n * n, 4) and counts.shape == (n * n,)
     assert rects[:, 2].sum() == SIZE[0] * n and rects[:, 3].sum() == SIZE[1] * n
     # every subtree that produced a hit in a tile was in that tile's batches
-    flat_t, flat_s = tid.reshape(-1), ov["subtree_id"]
+    flat_t, flat_s = tile_index(SIZE, level).reshape(-1), ov["subtree_id"]
     keep = flat_s >= 0
     distinct = np.bincount(np.unique(flat_t[keep] * (flat_s.max() + 1) + flat_s[keep]) // (flat_s.max() + 1),
                            minlength=n * n)

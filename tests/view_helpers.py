@@ -1,5 +1,5 @@
 """Helpers the overlay and panel tests of every backend share: record the overlays a backend returns,
-read the shaded image in GL row order, draw the panel headless."""
+read the shaded image in GL row order, the tile outline pixels, draw the panel headless."""
 
 from __future__ import annotations
 
@@ -25,6 +25,20 @@ def record_overlays(r) -> dict:
 
     r.backend.trace = trace
     return seen
+
+
+def tile_edges(size: tuple[int, int], level: int) -> np.ndarray:
+    """(H, W) bool: pixels on either side of a border between the screen tiles of `level` (where the
+    overlay views draw tile outlines)."""
+    from viewer.screen_tiles import tile_index
+
+    tid = tile_index(size, level)
+    edge = np.zeros(tid.shape, bool)
+    edge[:, 1:] |= tid[:, 1:] != tid[:, :-1]
+    edge[:, :-1] |= tid[:, 1:] != tid[:, :-1]
+    edge[1:] |= tid[1:] != tid[:-1]
+    edge[:-1] |= tid[1:] != tid[:-1]
+    return edge
 
 
 def image_gl(r) -> np.ndarray:
