@@ -34,6 +34,7 @@ class VoxelStructure:
     root_lo: np.ndarray  # uint16 (3,), root box, grid units, inclusive
     root_hi: np.ndarray  # uint16 (3,), exclusive
     leaf_depth: np.ndarray  # int32 per leaf, root = depth 0
+    voxel_coords: np.ndarray | None = None  # uint16 (n, 3) in leaf order (host side, for checks)
     stats: dict = field(default_factory=dict)
 
     @property
@@ -66,7 +67,8 @@ def finish(kind: str, resolution: int, nodes: np.ndarray, coords: np.ndarray, tr
     leaves = pack_leaves(coords, starts_a, counts_a)
     root = 0 if len(nodes) else -1
     s = VoxelStructure(kind, resolution, nodes, leaves, np.asarray(tri, np.int32), root,
-                       np.asarray(root_lo, np.uint16), np.asarray(root_hi, np.uint16), depth)
+                       np.asarray(root_lo, np.uint16), np.asarray(root_hi, np.uint16), depth,
+                       np.asarray(coords, np.uint16))
     s.stats = {
         "structure": kind, "resolution": resolution, "voxels": int(counts_a.sum()),
         "interior_nodes": int(len(nodes)), "leaves": int(len(leaves)),

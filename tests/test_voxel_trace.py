@@ -1,0 +1,160 @@
+"""The voxel traversal kernels (BVH, KD-tree, octree; short stacks 1, 4 and 8 with restart) against
+a brute-force float64 search over the whole voxel set: the same first voxel on the same rays."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from tests.conftest import opencl_missing
+from viewer.accel.voxelize import voxel_keys, voxelize
+
+pytestmark = pytest.mark.skipif(opencl_missing() is not None, reason=opencl_missing() or "")
+
+EPS = 1e-4  # grid units: decisions closer than this to flipping may differ between float32 and float64
+
+
+def safe_rcp(d: np.ndarray) -> np.ndarray:
+    d = np.asarray(d, np.float64)
+    s = np.where(np.signbit(d), -1.0, 1.0)
+    with np.errstate(divide="ignore"):
+        return np.where(np.abs(d) < 1e-30, s * 1e30, 1.0 / np.where(d == 0, 1.0, d))
+
+
+def reference_first_voxel(coords: np.ndarray, R: int, o4: np.ndarray, d4: np.ndarray):
+    """Per ray: (index of the first voxel or -1, its entry, ambiguous flag, set of acceptable
+    indices when ambiguous). Rule as in viewer/backends/voxels/common.cl, float64."""
+    v = coords.astype(np.float64)
+    keys = voxel_keys(coords, R)
+    out_i = np.full(len(o4), -1)
+    out_t = np.full(len(o4), np.inf)
+    ambiguous = np.zeros(len(o4), bool)
+    accept: list = [None] * len(o4)
+    for s in range(0, len(o4), 64):
+        o = o4[s:s + 64, :3].astype(np.float64)[:, None, :]
+        inv = safe_rcp(d4[s:s + 64, :3])[:, None, :]
+        tmin = o4[s:s + 64, 3].astype(np.float64)[:, None]
+        tmax = d4[s:s + 64, 3].astype(np.float64)[:, None]
+        a = (v[None] - o) * inv
+        b = (v[None] + 1 - o) * inv
+        e = np.maximum(np.minimum(a, b).max(axis=2), tmin)
+        x = np.minimum(np.maximum(a, b).min(axis=2), tmax)
+        hit = e < x
+        et = np.where(hit, e, np.inf)
+        best_t = et.min(axis=1)
+        for j in range(et.shape[0]):
+            r = s + j
+            if np.isfinite(best_t[j]):
+                cand = np.flatnonzero(et[j] == best_t[j])
+                out_i[r] = cand[np.argmin(keys[cand])]
+                out_t[r] = best_t[j]
+            near = (e[j] < x[j] + EPS) & (e[j] <= (best_t[j] if np.isfinite(best_t[j]) else np.inf) + EPS)
+            grazing = np.abs(x[j] - e[j]) < EPS
+            if near.sum() > (1 if out_i[r] >= 0 else 0) or np.any(grazing & (e[j] <= best_t[j] + EPS)):
+                ambiguous[r] = True
+                accept[r] = set(np.flatnonzero(near).tolist()) | {-1}
+    return out_i, out_t, ambiguous, accept
+
+
+def _scene(seed=3, n=50, R=32):
+    rng = np.random.default_rng(seed)
+    base = rng.random((n, 1, 3)) * 10
+    tris = (base + rng.normal(size=(n, 3, 3)) * rng.choice([0.3, 1.5], size=(n, 1, 1))).astype(np.float32)
+    return voxelize(tris, R)
+
+
+def _rays(R: int, n: int, seed: int):
+    rng = np.random.default_rng(seed)
+    o4 = np.zeros((n, 4), np.float32)
+    d4 = np.zeros((n, 4), np.float32)
+    o4[:, :3] = rng.uniform(-0.3 * R, 1.3 * R, (n, 3))
+    target = rng.uniform(0, R, (n, 3))
+    d4[:, :3] = target - o4[:, :3]
+    d4[:, :3] /= np.linalg.norm(d4[:, :3], axis=1, keepdims=True)
+    o4[:, 3] = rng.choice([0.0, 0.0, 3.0], n)
+    d4[:, 3] = rng.choice([1e30, 2.0 * R, 0.5 * R], n)
+    # a quarter axis-aligned from integer or voxel-centre origins (face planes, zero components)
+    k = n // 4
+    ax = rng.integers(0, 3, k)
+    d4[:k, :3] = 0
+    d4[np.arange(k), ax] = rng.choice([-1.0, 1.0], k)
+    o4[:k, :3] = np.floor(rng.uniform(0, R, (k, 3))) + rng.choice([0.0, 0.5], (k, 3))
+    o4[np.arange(k), ax] = np.where(d4[np.arange(k), ax] > 0, -1.0, R + 1.0)
+    return o4, d4
+
+
+@pytest.fixture(scope="module")
+def scene():
+    vox = _scene()
+    R = vox.grid.resolution
+    o4, d4 = _rays(R, 1500, 11)
+    return vox, o4, d4, reference_first_voxel(vox.coords, R, o4, d4)
+
+
+@pytest.mark.parametrize("kind", ["bvh", "kd", "octree"])
+@pytest.mark.parametrize("stack", [1, 4, 8])
+def test_first_voxel_matches_brute_force(scene, kind, stack):
+    from viewer.backends.voxels.scene import VoxelTracer, build_structure
+
+    vox, o4, d4, (ref_i, ref_t, amb, accept) = scene
+    s = build_structure(kind, vox)
+    tr = VoxelTracer(s, np.zeros(3), 1.0, stack=stack, record=True)
+    out = tr.trace_arrays(o4, d4)
+    tr.release()
+    # kernel voxel (leaf order) -> index in vox (key order)
+    got = np.full(len(o4), -1)
+    hit = out.vox >= 0
+    kk = voxel_keys(s.voxel_coords[out.vox[hit]], vox.grid.resolution)
+    got[hit] = np.searchsorted(vox.keys, kk)
+    assert np.array_equal(vox.keys[got[hit]], kk)
+    same = got == ref_i
+    assert hit.sum() > 200 and (~hit).sum() > 100  # both outcomes exercised
+    bad = [r for r in np.flatnonzero(~same) if not (amb[r] and got[r] in accept[r])]
+    assert not bad, f"{len(bad)} rays differ from the brute force, e.g. ray {bad[0]}: {got[bad[0]]} vs {ref_i[bad[0]]}"
+    assert same.mean() > 0.99
+    both = same & hit
+    np.testing.assert_allclose(out.t[both], ref_t[both], rtol=1e-5, atol=1e-4)
+    # the representative triangle comes with the voxel
+    assert np.array_equal(out.tri[both], vox.tri[got[both]])
+    assert np.all(out.t[~hit] == np.inf) and np.all(out.tri[~hit] == -1)
+    rec = out.record
+    assert np.all(rec >= 0)
+    if stack == 1 and kind != "octree":
+        assert rec[:, 3].sum() > 0  # restarts happen with a one-entry stack
+
+
+@pytest.mark.parametrize("kind", ["bvh", "kd", "octree"])
+def test_any_hit_finds_a_hit_exactly_when_there_is_one(scene, kind):
+    from viewer.backends.voxels.scene import VoxelTracer, build_structure
+
+    vox, o4, d4, (ref_i, ref_t, amb, accept) = scene
+    tr = VoxelTracer(build_structure(kind, vox), np.zeros(3), 1.0, stack=4)
+    out = tr.trace_arrays(o4, d4, any_hit=True)
+    tr.release()
+    clear = ~amb
+    assert np.array_equal(out.vox[clear] >= 0, ref_i[clear] >= 0)
+
+
+def test_world_space_grid_transform():
+    """Rays in world units through VoxelGrid's transform hit the voxel the grid-space reference finds."""
+    from viewer.backends.voxels.scene import VoxelTracer, build_structure
+
+    vox = _scene(seed=5, R=16)
+    g = vox.grid
+    o4g, d4g = _rays(16, 600, 3)
+    o4g[:, 3] = 0
+    d4g[:, 3] = 1e30
+    ref_i, ref_t, amb, accept = reference_first_voxel(vox.coords, 16, o4g, d4g)
+    o4 = o4g.copy()
+    o4[:, :3] = (o4g[:, :3] / g.scale + g.origin).astype(np.float32)
+    tr = VoxelTracer(build_structure("bvh", vox), g.origin, g.scale, stack=4)
+    out = tr.trace_arrays(o4, d4g)
+    tr.release()
+    s = tr.structure
+    got = np.full(len(o4), -1)
+    hit = out.vox >= 0
+    got[hit] = np.searchsorted(vox.keys, voxel_keys(s.voxel_coords[out.vox[hit]], 16))
+    ok = (got == ref_i) | amb
+    assert ok.mean() > 0.99
+    both = (got == ref_i) & hit
+    np.testing.assert_allclose(out.t[both] * g.scale, ref_t[both], rtol=1e-4, atol=1e-3)
