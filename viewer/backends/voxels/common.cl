@@ -113,8 +113,8 @@ inline void st_pop(ShortStack *s, int *ref, float *a, float *b) {
 #endif
 
 // The ray in grid units; returns false for inactive rays. tmin is raised by `bias` voxel widths
-// for any-hit rays (secondary rays start on the voxel surface they leave).
-inline bool vx_ray(__constant float *hdr, float4 ot, float4 dt, int any_hit, float bias, VRay *r, float *tmin,
+// (the backend passes it for secondary rays, which start on the voxel surface they leave).
+inline bool vx_ray(__constant float *hdr, float4 ot, float4 dt, float bias, VRay *r, float *tmin,
                    float *tmax) {
     float3 org = (float3)(hdr[0], hdr[1], hdr[2]);
     float sc = hdr[3];
@@ -125,7 +125,7 @@ inline bool vx_ray(__constant float *hdr, float4 ot, float4 dt, int any_hit, flo
     r->neg = (int3)(signbit(r->inv.x) ? 1 : 0, signbit(r->inv.y) ? 1 : 0, signbit(r->inv.z) ? 1 : 0);
     *tmin = ot.w;
     *tmax = dt.w;
-    if (any_hit && bias > 0.0f) *tmin += bias / length(d);
+    if (bias > 0.0f) *tmin += bias / length(d);
     return isfinite(ot.x + ot.y + ot.z + ot.w + dt.x + dt.y + dt.z) && dt.w > ot.w && *tmax > *tmin;
 }
 
@@ -144,7 +144,7 @@ inline bool vx_ray(__constant float *hdr, float4 ot, float4 dt, int any_hit, flo
     Best best;                                                                                              \
     best.idx = -1;                                                                                          \
     best.key = 0;                                                                                           \
-    if (vx_ray(hdr, ray_o[i], ray_d[i], any_hit, bias, &r, &tmin, &tmax)) {                                 \
+    if (vx_ray(hdr, ray_o[i], ray_d[i], bias, &r, &tmin, &tmax)) {                                 \
         best.t = tmax;                                                                                      \
         TRAVERSE;                                                                                           \
     }                                                                                                       \
