@@ -103,10 +103,25 @@ inline void st_pop(ShortStack *s, int *ref, float *a, float *b) {
     *b = s->b[s->head];
 }
 
-// step record: rec->x interior steps, ->y leaf tests, ->z pops, ->w restarts
+// Step record (RECORD builds): per ray the counts c = (interior steps, leaf tests, pops, restarts)
+// and, with SEQ_LEN > 0, the first SEQ_LEN step kinds in order (1 interior, 2 leaf, 3 pop,
+// 4 restart; 0 after the last step) for the lockstep (SIMD lane utilisation) model of
+// viewer/bench/voxels.py.
+#ifndef SEQ_LEN
+#define SEQ_LEN 0
+#endif
+typedef struct {
+    int4 c;
+    int n;
+    __global uchar *seq;
+} Rec;
+#define REC_KIND_x 1
+#define REC_KIND_y 2
+#define REC_KIND_z 3
+#define REC_KIND_w 4
 #ifdef RECORD
-#define REC(k) (++rec->k)
-#define REC_STORE record[i] = rec;
+#define REC(k) do { ++rec->c.k; if (SEQ_LEN > 0 && rec->n < SEQ_LEN) rec->seq[rec->n] = REC_KIND_##k; ++rec->n; } while (0)
+#define REC_STORE record[i] = rec.c; if (SEQ_LEN > 0) for (int q = min(rec.n, SEQ_LEN); q < SEQ_LEN; ++q) rec.seq[q] = 0;
 #else
 #define REC(k)
 #define REC_STORE
@@ -133,12 +148,16 @@ inline bool vx_ray(__constant float *hdr, float4 ot, float4 dt, float bias, VRay
     __global const uint *nodes, __global const ushort *leaves, __global const int *voxel_tri,             \
     __constant float *hdr, const int root, const int R, const float4 root_lo, const float4 root_hi,      \
     __global const float4 *ray_o, __global const float4 *ray_d, __global float *out_t, __global int *out_tri, \
-    __global int *out_vox, __global int4 *record, const int n, const int any_hit, const float bias
+    __global int *out_vox, __global int4 *record, __global uchar *seq, const int n, const int any_hit,            \
+    const float bias
 
 #define VX_KERNEL_BODY(TRAVERSE)                                                                           \
     int i = get_global_id(0);                                                                               \
     if (i >= n) return;                                                                                     \
-    int4 rec = (int4)(0, 0, 0, 0);                                                                          \
+    Rec rec;                                                                                                \
+    rec.c = (int4)(0, 0, 0, 0);                                                                             \
+    rec.n = 0;                                                                                              \
+    rec.seq = seq + (size_t)i * (SEQ_LEN > 0 ? SEQ_LEN : 1);                                                \
     VRay r;                                                                                                 \
     float tmin, tmax;                                                                                       \
     Best best;                                                                                              \

@@ -9,7 +9,7 @@
 
 inline void traverse_kd(__global const uint *nodes, __global const ushort *leaves, int root, ulong R,
                         float3 rlo, float3 rhi, const VRay *r, float tmin, float tmax, int any_hit, Best *best,
-                        int4 *rec) {
+                        Rec *rec) {
     float2 rs = vx_slab(r, rlo, rhi);
     float t_done = fmax(rs.x, tmin);
     float t_end = fmin(rs.y, tmax);

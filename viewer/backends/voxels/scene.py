@@ -31,19 +31,22 @@ def build_structure(kind: str, vox: Voxels) -> VoxelStructure:
 @dataclass
 class TraceOut:
     """Host copies of one trace: t (+inf miss), tri (-1 miss), vox (leaf-order voxel index, -1),
-    record int32 (n, 4) steps per ray (interior, leaf, pop, restart) when recorded."""
+    record int32 (n, 4) steps per ray (interior, leaf, pop, restart) when recorded; seq the step kinds
+    in order when the tracer was built with seq_len > 0."""
 
     t: np.ndarray
     tri: np.ndarray
     vox: np.ndarray
     record: np.ndarray | None = None
+    seq: np.ndarray | None = None  # uint8 (n, seq_len) step kinds in order (1-4), 0 after the last
 
 
 class VoxelTracer:
-    """One structure on the CL device. `record`: build the kernel that writes per-ray steps."""
+    """One structure on the CL device. `record`: build the kernel that writes per-ray step counts;
+    `seq_len` > 0 also the first seq_len step kinds of each ray (the lockstep model's input)."""
 
     def __init__(self, structure: VoxelStructure, origin, scale: float, stack: int = 8, record: bool = False,
-                 ctx=None):
+                 ctx=None, seq_len: int = 0):
         from viewer.cl import build, cl_context
 
         if not STACK_RANGE[0] <= stack <= STACK_RANGE[1]:
@@ -51,6 +54,7 @@ class VoxelTracer:
         self.ctx = ctx or cl_context()
         self.structure = structure
         self.stack = stack
+        self.seq_len = int(seq_len) if record else 0
         self.record = record
         cl = self.ctx.cl
         mf = cl.mem_flags
@@ -72,6 +76,7 @@ class VoxelTracer:
         defines = {"STACK": stack, "WG": WG}
         if record:
             defines["RECORD"] = None
+            defines["SEQ_LEN"] = self.seq_len
         prog = build(HERE / f"{structure.kind}.cl", defines, self.ctx)
         self.kernel = cl.Kernel(prog, "trace")
         self.root_lo = np.zeros(4, np.float32)
@@ -81,8 +86,9 @@ class VoxelTracer:
         self.dummy = cl.Buffer(c, mf.READ_WRITE, 16)
 
     def enqueue(self, ray_o, ray_d, out_t, out_tri, out_vox, n: int, any_hit: bool, bias: float = 0.0,
-                record=None):
-        """Trace n rays (buffers as viewer/cl/transfer.py lays them out); record: int4 per ray."""
+                record=None, seq=None):
+        """Trace n rays (buffers as viewer/cl/transfer.py lays them out); record: int4 per ray, seq:
+        seq_len bytes per ray (recording tracers)."""
         if n == 0:
             return None
         if self.record and record is None:
@@ -91,7 +97,8 @@ class VoxelTracer:
         s = self.structure
         return self.kernel(self.ctx.queue, (gsize,), (WG,), self.nodes, self.leaves, self.voxel_tri, self.hdr,
                            np.int32(s.root), np.int32(s.resolution), self.root_lo, self.root_hi, ray_o, ray_d,
-                           out_t, out_tri, out_vox, record if record is not None else self.dummy, np.int32(n),
+                           out_t, out_tri, out_vox, record if record is not None else self.dummy,
+                           seq if seq is not None else self.dummy, np.int32(n),
                            np.int32(bool(any_hit)), np.float32(bias))
 
     def trace_arrays(self, o4: np.ndarray, d4: np.ndarray, any_hit: bool = False, bias: float = 0.0) -> TraceOut:
@@ -110,19 +117,23 @@ class VoxelTracer:
         tri_b = cl.Buffer(c, mf.WRITE_ONLY, max(tri.nbytes, 4))
         vox_b = cl.Buffer(c, mf.WRITE_ONLY, max(vox.nbytes, 4))
         rec_b = cl.Buffer(c, mf.WRITE_ONLY, max(rec.nbytes, 16)) if rec is not None else None
+        seq = np.zeros((n, self.seq_len), np.uint8) if self.seq_len else None
+        seq_b = cl.Buffer(c, mf.WRITE_ONLY, max(seq.nbytes, 16)) if seq is not None else None
         q = self.ctx.queue
-        self.enqueue(o_b, d_b, t_b, tri_b, vox_b, n, any_hit, bias, rec_b)
+        self.enqueue(o_b, d_b, t_b, tri_b, vox_b, n, any_hit, bias, rec_b, seq_b)
         if n:
             cl.enqueue_copy(q, t, t_b)
             cl.enqueue_copy(q, tri, tri_b)
             cl.enqueue_copy(q, vox, vox_b)
             if rec is not None:
                 cl.enqueue_copy(q, rec, rec_b)
+            if seq is not None:
+                cl.enqueue_copy(q, seq, seq_b)
         q.finish()
-        for b in (o_b, d_b, t_b, tri_b, vox_b, rec_b):
+        for b in (o_b, d_b, t_b, tri_b, vox_b, rec_b, seq_b):
             if b is not None:
                 b.release()
-        return TraceOut(t, tri, vox, rec)
+        return TraceOut(t, tri, vox, rec, seq)
 
     def release(self) -> None:
         for b in (self.nodes, self.leaves, self.voxel_tri, self.hdr, self.dummy):
