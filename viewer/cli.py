@@ -9,6 +9,8 @@ from pathlib import Path
 
 import numpy as np
 
+from viewer.bench import voxels as bench_voxels
+
 # the argument helpers live in viewer.cli_args (the window and the benchmarks use them without
 # importing this module); re-exported here for callers of the old names
 from viewer.cli_args import (  # noqa: F401
@@ -206,6 +208,7 @@ def build_parser() -> argparse.ArgumentParser:
     add_bench_trace_args(sub.add_parser("bench-trace", help="Mrays/s per ray type of backends and raw Embree "
                                                           "on the same captured rays"))
     add_bench_cl_args(sub.add_parser("bench-cl", help="OpenCL sort/scan/compact throughput next to NumPy"))
+    bench_voxels.add_parser(sub)
 
     bb = sub.add_parser("bench-bvh", help="BVH build throughput on the city scene")
     bb.add_argument("--sizes", default="1000000,5000000")
@@ -230,6 +233,7 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     handlers = {"view": cmd_view, "render": cmd_render, "bench": cmd_bench, "bench-bvh": cmd_bench_bvh,
                 "bench-chcrt": cmd_bench_chcrt, "bench-trace": cmd_bench_trace, "bench-cl": cmd_bench_cl,
+                "bench-voxels": bench_voxels.run,
                 "info": cmd_info, "demo": cmd_demo}
     if args.command == "demo":
         # demo reuses bench/view; fill in what their parsers would have set
