@@ -62,6 +62,8 @@ def add_arguments(p) -> None:
     p.add_argument("--rounds", type=int, default=3, help="interleaved timing rounds")
     p.add_argument("--seq-len", type=int, default=1024, help="steps per ray kept for the lockstep model")
     p.add_argument("--no-image", action="store_true", help="skip the full-render image error")
+    p.add_argument("--voxelize-only", action="store_true",
+                   help="only voxelize and build the structures per resolution (count, time, memory, depth)")
     p.add_argument("--out", default="bench-voxels")
     p.add_argument("--quiet", action="store_true")
 
@@ -428,6 +430,45 @@ def _plot(report: dict, path: Path) -> None:
     plt.close(fig)
 
 
+def _voxelize_only(args, specs, resolutions: list[int], structures: list[str]) -> int:
+    """Voxel count, time, output and peak process memory per resolution (ascending, so the peak
+    resident size so far is the peak of the latest resolution), and each structure's statistics."""
+    import resource
+
+    from viewer.accel.voxelize import voxelize
+    from viewer.backends.voxels.scene import build_structure
+    from viewer.session import prepare_scene
+
+    rows = []
+    lines = ["| scene | triangles | res | voxels | voxelize s | voxels MiB | peak RSS MiB | structure | nodes x B | "
+             "leaves x B | MiB | mean leaf depth | variance | build s |", "|" + "---|" * 14]
+    for name, spec, _ in specs:
+        scene = prepare_scene(spec, quiet=True).scene
+        for res in resolutions:
+            vox = voxelize(scene.triangles, res)
+            rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+            row = {"scene": name, "triangles": scene.triangle_count, **vox.stats, "peak_rss_mib": rss, "structures": {}}
+            for kind in structures:
+                st = build_structure(kind, vox).stats
+                row["structures"][kind] = st
+                lines.append(f"| {name} | {scene.triangle_count:,} | {res} | {vox.count:,} | "
+                             f"{vox.stats['seconds']:.2f} | {vox.nbytes / 2**20:.1f} | {rss:.0f} | {kind} | "
+                             f"{st['interior_nodes']:,} x "
+                             f"{st['node_bytes']} | {st['leaves']:,} x {st['leaf_bytes']} | "
+                             f"{st['memory_bytes'] / 2**20:.1f} | {st['mean_leaf_depth']:.2f} | "
+                             f"{st['var_leaf_depth']:.2f} | {st['build_seconds']:.2f} |")
+                _log(args, lines[-1])
+            rows.append(row)
+            del vox
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "voxelize.json").write_text(json.dumps(rows, indent=1, default=float))
+    (out / "voxelize.md").write_text("\n".join([f"Command: `rtwalk bench-voxels {' '.join(sys.argv[2:])}`", "",
+                                                 *lines, ""]))
+    print(f"report: {out / 'voxelize.md'}")
+    return 0
+
+
 def run(args) -> int:
     from viewer.accel.voxelize import check_resolution
     from viewer.backends import backend_info, backend_names
@@ -452,6 +493,8 @@ def run(args) -> int:
     if args.rounds < 1 or args.seq_len < 1:
         raise RtwalkError("--rounds and --seq-len must be >= 1")
     specs = [_scene_spec(s.strip()) for s in args.scenes.split(",") if s.strip()]
+    if args.voxelize_only:
+        return _voxelize_only(args, specs, sorted(resolutions), structures)
     ctx_gl = shared_context()
     report = {"command": "rtwalk bench-voxels " + " ".join(sys.argv[2:]), "device_cl": cl_context().name,
               "reference": args.reference, "structures": structures, "stacks": stacks, "resolutions": resolutions,

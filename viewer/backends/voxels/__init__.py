@@ -53,7 +53,8 @@ _cache: dict = {}  # (triangle buffer identity, resolution) -> Voxels; one scene
 
 def voxels_for(triangles: np.ndarray, resolution: int, quiet: bool = False) -> Voxels:
     """The scene's voxelization, cached for the last scene (bench runs create backends repeatedly)."""
-    key = (triangles.__array_interface__["data"][0], triangles.shape, resolution)
+    sample = np.ascontiguousarray(triangles[:: max(1, len(triangles) // 4096)])  # a freed array's address may recur
+    key = (triangles.__array_interface__["data"][0], triangles.shape, hash(sample.tobytes()), resolution)
     if key not in _cache:
         from tqdm import tqdm
 
