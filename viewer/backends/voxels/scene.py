@@ -51,6 +51,8 @@ class VoxelTracer:
 
         if not STACK_RANGE[0] <= stack <= STACK_RANGE[1]:
             raise RtwalkError(f"voxel stack must be in {STACK_RANGE[0]}..{STACK_RANGE[1]} (got {stack})")
+        if len(structure.leaves) == 0:
+            raise RtwalkError("the voxelization has no voxels (the scene has no triangle of non-zero area)")
         self.ctx = ctx or cl_context()
         self.structure = structure
         self.stack = stack
