@@ -60,6 +60,8 @@ def add_arguments(p) -> None:
                    help="ray types and samples per pixel (the paper: soft:36, ao:36)")
     p.add_argument("--reference", default="clbvh", help="exact backend that generates the rays and judges")
     p.add_argument("--rounds", type=int, default=3, help="interleaved timing rounds")
+    p.add_argument("--bias", type=float, default=1.5,
+                   help="secondary rays start this many voxel widths along the ray (the backend's bias)")
     p.add_argument("--seq-len", type=int, default=1024, help="steps per ray kept for the lockstep model")
     p.add_argument("--no-image", action="store_true", help="skip the full-render image error")
     p.add_argument("--voxelize-only", action="store_true",
@@ -164,6 +166,7 @@ def _errors(tracer, rays: _Rays, bias: float, scale: float) -> dict:
     return {"hitmiss_disagree": float(np.mean(hv != hr)), "voxel_only": float(np.mean(hv & ~hr)),
             "reference_only": float(np.mean(~hv & hr)),
             "t_err_voxels_mean": float(dt.mean()) if dt.size else 0.0,
+            "t_err_voxels_median": float(np.median(dt)) if dt.size else 0.0,
             "t_err_voxels_p90": float(np.percentile(dt, 90)) if dt.size else 0.0}
 
 
@@ -239,8 +242,7 @@ def study_scene(args, ctx_gl, name: str, spec: str, recording: str | None, size,
                     for k in order:
                         per = {lb: 0.0 for lb in labels}
                         for x in rays:
-                            per[x.label] += _time_kernel(ctx, tracers[k], x, outs, 0.0 if x.label == "primary"
-                                                         else 1.5)
+                            per[x.label] += _time_kernel(ctx, tracers[k], x, outs, _bias(args, x.label))
                         for lb in labels:
                             times[k][lb].append(per[lb])
                 for k in stacks:
@@ -248,7 +250,7 @@ def study_scene(args, ctx_gl, name: str, spec: str, recording: str | None, size,
                     krow: dict = {"ms": {lb: _median(times[k][lb]) for lb in labels}, "ms_rounds": times[k],
                                   "record": {}}
                     for lb in labels:
-                        recs = [_record(rec_tr, x, 0.0 if lb == "primary" else 1.5, args) for x in rays
+                        recs = [_record(rec_tr, x, _bias(args, lb), args) for x in rays
                                 if x.label == lb]
                         steps = np.sum([rr["steps"] for rr in recs], axis=0)
                         lanes = {}
@@ -271,14 +273,14 @@ def study_scene(args, ctx_gl, name: str, spec: str, recording: str | None, size,
                         for lb in labels))
                 if kind == structures[0]:
                     big = tracers[max(stacks)]
-                    rrow["errors"] = {lb: _errors_label(big, [x for x in rays if x.label == lb], g.scale)
+                    rrow["errors"] = {lb: _errors_label(big, [x for x in rays if x.label == lb], g.scale, args)
                                       for lb in labels}
                 for t in tracers.values():
                     t.release()
                 rrow["structures"][kind] = srow
             if ref_image is not None:
                 rrow["image_mae"] = _image_error(ctx_gl, prep, size, settings, camera, res, structures[0],
-                                                 max(stacks), ref_image)
+                                                 max(stacks), ref_image, args.bias)
             out["resolutions"].append(rrow)
     finally:
         for b in outs:
@@ -288,17 +290,23 @@ def study_scene(args, ctx_gl, name: str, spec: str, recording: str | None, size,
     return out
 
 
-def _errors_label(tracer, rays: list, scale: float) -> dict:
-    parts = [(_errors(tracer, x, 0.0 if x.label == "primary" else 1.5, scale), x.n) for x in rays]
+def _bias(args, label: str) -> float:
+    """Secondary rays start --bias voxel widths along the ray, as the backend's `bias` does."""
+    return 0.0 if label == "primary" else float(args.bias)
+
+
+def _errors_label(tracer, rays: list, scale: float, args) -> dict:
+    parts = [(_errors(tracer, x, _bias(args, x.label), scale), x.n) for x in rays]
     n = sum(w for _, w in parts)
     return {k: float(sum(p[k] * w for p, w in parts) / n) for k in parts[0][0]}
 
 
-def _image_error(ctx_gl, prep, size, settings, camera, res: int, structure: str, stack: int, ref_image) -> float:
+def _image_error(ctx_gl, prep, size, settings, camera, res: int, structure: str, stack: int, ref_image,
+                 bias: float) -> float:
     from viewer.renderer import Renderer
 
     r = Renderer(ctx_gl, prep.scene, prep.bvh, size, "voxels", settings,
-                 backend_options={"voxels": f"structure={structure},resolution={res},stack={stack}"})
+                 backend_options={"voxels": f"structure={structure},resolution={res},stack={stack},bias={bias}"})
     try:
         r.render(camera)
         img = r.read_image().astype(np.float64)
@@ -369,7 +377,21 @@ def _markdown(report: dict) -> str:
                         cells += [f"{1000 * kr['record'][lb]['restarts'] / sc['rays'][lb]:.1f}", f"{kr['ms'][lb]:.1f}"]
                     lines.append(f"| {sc['scene']} | {kind} | {lb} | " + " | ".join(cells) + " |")
         lines.append("")
-    lines += ["## Voxels and structures", "",
+    lines += [f"## Steps per ray at stack {big} (interior / leaf / pop): what a scalar CPU work-item pays for", "",
+              "| scene | res | structure | " + " | ".join(RAY_TYPES) + " |", "|---|---|---|" + "---|" * len(RAY_TYPES)]
+    for sc in scenes:
+        for rr in sc["resolutions"]:
+            for kind in structures:
+                rec = rr["structures"][kind]["stacks"][big]["record"]
+                cells = []
+                for lb in RAY_TYPES:
+                    if lb not in rec:
+                        cells.append("-")
+                        continue
+                    n, q = sc["rays"][lb], rec[lb]
+                    cells.append(f"{q['interior'] / n:.1f} / {q['leaf'] / n:.1f} / {q['pop'] / n:.1f}")
+                lines.append(f"| {sc['scene']} | {rr['resolution']} | {kind} | " + " | ".join(cells) + " |")
+    lines += ["", "## Voxels and structures", "",
               "| scene | res | voxels | voxelize s | voxel MiB | structure | interior nodes x B | leaves x B | MiB | "
               "mean leaf depth | variance | build s |", "|" + "---|" * 12]
     for sc in scenes:
@@ -383,8 +405,8 @@ def _markdown(report: dict) -> str:
                              f"{s['mean_leaf_depth']:.2f} | {s['var_leaf_depth']:.2f} | {s['build_seconds']:.2f} |")
     lines += ["", f"## Speed against error ({structures[0]}, stack {big}) vs {report['reference']} on the same rays",
               "",
-              "| scene | res | ray type | voxels ms | reference ms | hit/miss disagree | t error (voxels, mean) | "
-              "image MAE (0-255) |", "|" + "---|" * 8]
+              "| scene | res | ray type | voxels ms | reference ms | hit/miss disagree | "
+              "t error (voxels: median / mean) | image MAE (0-255) |", "|" + "---|" * 8]
     for sc in scenes:
         for rr in sc["resolutions"]:
             for lb in RAY_TYPES:
@@ -393,10 +415,24 @@ def _markdown(report: dict) -> str:
                 e = rr["errors"][lb]
                 ms = rr["structures"][structures[0]]["stacks"][big]["ms"][lb]
                 lines.append(f"| {sc['scene']} | {rr['resolution']} | {lb} | {ms:.1f} | {sc['reference_ms'][lb]:.1f} | "
-                             f"{100 * e['hitmiss_disagree']:.2f}% | {e['t_err_voxels_mean']:.2f} | "
+                             f"{100 * e['hitmiss_disagree']:.2f}% | {e.get('t_err_voxels_median', float('nan')):.2f} / "
+                             f"{e['t_err_voxels_mean']:.2f} | "
                              f"{rr.get('image_mae', float('nan')):.2f} |")
     lines += ["", "## Lane utilisation: the model", "", "```", lockstep_doc.strip(), "```", ""]
     return "\n".join(lines)
+
+
+def report_from_json(path: str | Path) -> dict:
+    """A bench_voxels.json read back with its integer keys (stacks, widths) restored."""
+    r = json.loads(Path(path).read_text())
+    for sc in r["scenes"]:
+        for rr in sc["resolutions"]:
+            for s in rr["structures"].values():
+                s["stacks"] = {int(k): v for k, v in s["stacks"].items()}
+                for v in s["stacks"].values():
+                    for rec in v["record"].values():
+                        rec["lanes"] = {int(k): x for k, x in rec["lanes"].items()}
+    return r
 
 
 def _plot(report: dict, path: Path) -> None:
@@ -490,15 +526,15 @@ def run(args) -> int:
     w, sep, h = args.size.lower().partition("x")
     if not sep or not w.isdigit() or not h.isdigit():
         raise RtwalkError(f"--size: expected WxH (got '{args.size}')")
-    if args.rounds < 1 or args.seq_len < 1:
-        raise RtwalkError("--rounds and --seq-len must be >= 1")
+    if args.rounds < 1 or args.seq_len < 1 or not args.bias >= 0:
+        raise RtwalkError("--rounds and --seq-len must be >= 1, --bias >= 0")
     specs = [_scene_spec(s.strip()) for s in args.scenes.split(",") if s.strip()]
     if args.voxelize_only:
         return _voxelize_only(args, specs, sorted(resolutions), structures)
     ctx_gl = shared_context()
     report = {"command": "rtwalk bench-voxels " + " ".join(sys.argv[2:]), "device_cl": cl_context().name,
               "reference": args.reference, "structures": structures, "stacks": stacks, "resolutions": resolutions,
-              "widths": list(WIDTHS), "scenes": []}
+              "bias": args.bias, "widths": list(WIDTHS), "scenes": []}
     for name, spec, rec in specs:
         report["scenes"].append(study_scene(args, ctx_gl, name, spec, rec, (int(w), int(h)), resolutions,
                                             structures, stacks))
