@@ -163,11 +163,13 @@ def _errors(tracer, rays: _Rays, bias: float, scale: float) -> dict:
     hv, hr = out.tri >= 0, rays.ref_tri >= 0
     both = hv & hr
     dt = np.abs(out.t[both].astype(np.float64) - rays.ref_t[both]) * scale
+    if rays.any_hit:  # any hit: the distance is of whichever hit was found first, not comparable
+        dt = np.zeros(0)
     return {"hitmiss_disagree": float(np.mean(hv != hr)), "voxel_only": float(np.mean(hv & ~hr)),
             "reference_only": float(np.mean(~hv & hr)),
-            "t_err_voxels_mean": float(dt.mean()) if dt.size else 0.0,
-            "t_err_voxels_median": float(np.median(dt)) if dt.size else 0.0,
-            "t_err_voxels_p90": float(np.percentile(dt, 90)) if dt.size else 0.0}
+            "t_err_voxels_mean": float(dt.mean()) if dt.size else float("nan"),
+            "t_err_voxels_median": float(np.median(dt)) if dt.size else float("nan"),
+            "t_err_voxels_p90": float(np.percentile(dt, 90)) if dt.size else float("nan")}
 
 
 def _median(xs) -> float:
@@ -415,8 +417,7 @@ def _markdown(report: dict) -> str:
                 e = rr["errors"][lb]
                 ms = rr["structures"][structures[0]]["stacks"][big]["ms"][lb]
                 lines.append(f"| {sc['scene']} | {rr['resolution']} | {lb} | {ms:.1f} | {sc['reference_ms'][lb]:.1f} | "
-                             f"{100 * e['hitmiss_disagree']:.2f}% | {e.get('t_err_voxels_median', float('nan')):.2f} / "
-                             f"{e['t_err_voxels_mean']:.2f} | "
+                             f"{100 * e['hitmiss_disagree']:.2f}% | {_t_err(e, lb)} | "
                              f"{rr.get('image_mae', float('nan')):.2f} |")
     lines += ["", "## Lane utilisation: the model", "", "```", lockstep_doc.strip(), "```", ""]
     return "\n".join(lines)
@@ -433,6 +434,12 @@ def report_from_json(path: str | Path) -> dict:
                     for rec in v["record"].values():
                         rec["lanes"] = {int(k): x for k, x in rec["lanes"].items()}
     return r
+
+
+def _t_err(e: dict, label: str) -> str:
+    if label != "primary":  # any-hit ray types report no comparable distance
+        return "-"
+    return f"{e.get('t_err_voxels_median', float('nan')):.2f} / {e['t_err_voxels_mean']:.2f}"
 
 
 def _plot(report: dict, path: Path) -> None:
