@@ -158,3 +158,35 @@ def test_world_space_grid_transform():
     assert ok.mean() > 0.99
     both = (got == ref_i) & hit
     np.testing.assert_allclose(out.t[both] * g.scale, ref_t[both], rtol=1e-4, atol=1e-3)
+
+
+@pytest.mark.parametrize("kind", ["bvh", "kd", "octree"])
+def test_leave_skips_the_surface_a_ray_starts_in(kind):
+    """Two parallel voxelized planes; rays starting inside the first one: without `leave` they hit it
+    at once, with `leave` they skip its voxels and report the second plane."""
+    from viewer.accel.voxelize import VoxelGrid
+    from viewer.backends.voxels.scene import VoxelTracer, build_structure
+
+    quad = np.array([[[0, 0, 0], [16, 0, 0], [16, 16, 0]], [[0, 0, 0], [16, 16, 0], [0, 16, 0]]], np.float64)
+    tris = np.concatenate([quad + [0, 0, 4.2], quad + [0, 0, 11.7]]).astype(np.float32)
+    grid = VoxelGrid(np.zeros(3), 16.0, 16)
+    vox = voxelize(tris, 16, grid=grid)
+    assert set(np.unique(vox.coords[:, 2]).tolist()) == {4, 11}
+    rng = np.random.default_rng(1)
+    n = 200
+    o4 = np.zeros((n, 4), np.float32)
+    d4 = np.zeros((n, 4), np.float32)
+    o4[:, :2] = rng.uniform(2, 14, (n, 2))
+    o4[:, 2] = 4.3
+    d = np.concatenate([rng.uniform(-0.2, 0.2, (n, 2)), np.ones((n, 1))], axis=1)
+    d4[:, :3] = d / np.linalg.norm(d, axis=1, keepdims=True)
+    d4[:, 3] = 1e30
+    tr = VoxelTracer(build_structure(kind, vox), grid.origin, grid.scale, stack=4)
+    for any_hit in (False, True):
+        plain = tr.trace_arrays(o4, d4, any_hit)
+        assert np.all(plain.t == 0)
+        left = tr.trace_arrays(o4, d4, any_hit, leave=True, gap=0.5)
+        assert np.all(left.tri >= 0)
+        z = o4[:, 2] + left.t * d4[:, 2]
+        np.testing.assert_allclose(z, 11.0, atol=1e-4)  # entered through the lower face of the second layer
+    tr.release()

@@ -21,9 +21,9 @@ def test_info_and_params():
     info = backend_info("voxels")
     assert info.exact is False and info.device == "cl"
     assert check_params("voxels", "structure=kd,resolution=64,stack=4") == \
-        "structure=kd,resolution=64,stack=4,bias=1.5"
+        "structure=kd,resolution=64,stack=4,bias=1.5,leave=False,gap=0.5"
     for bad, msg in (("structure=grid", "structure must be"), ("resolution=100", "power of two"),
-                     ("stack=0", "stack must be"), ("bias=-1", "bias")):
+                     ("stack=0", "stack must be"), ("bias=-1", "bias"), ("gap=-1", "gap")):
         with pytest.raises(RtwalkError, match=msg):
             check_params("voxels", bad)
 

@@ -6,7 +6,9 @@ and one OpenCL work-item per ray walks it front to back with a short stack of `s
 and restart from the root (scene.py, *.cl beside this file). A hit reports the voxel's entry
 distance and its representative triangle (the triangle whose plane passes nearest the voxel
 centre), so every effect shades with that triangle's material and normal. Secondary rays start
-`bias` voxel widths along the ray: they leave a voxel surface that the true surface lies inside.
+`bias` voxel widths along the ray: they leave a voxel surface that the true surface lies inside;
+with `leave`, they also skip the whole run of voxels they start in (costs re-traversals; on sponza
+at 128^3 it cut shadow-ray false occlusion from 17.5% to 11-14% of rays at 2-5x the time).
 
 The error shrinks with the resolution: the bench reports image error and hit disagreement
 against the exact backends (BackendInfo.exact = False keeps it out of the exact agreement tests).
@@ -34,6 +36,8 @@ class VoxelsParams:
     resolution: int = 256  # voxels per side (power of two)
     stack: int = 8  # short-stack entries (the paper: 4-8); restart from the root when it runs empty
     bias: float = 1.5  # secondary rays start this many voxel widths along the ray
+    leave: bool = False  # secondary rays skip the run of voxels they start in (the surface they leave)
+    gap: float = 0.5  # leave: voxels starting within this many voxel widths of the previous exit are one run
 
     def validate(self, source: str = "voxels") -> None:
         if self.structure not in STRUCTURES:
@@ -46,6 +50,8 @@ class VoxelsParams:
             raise RtwalkError(f"{source}: stack must be in {STACK_RANGE[0]}..{STACK_RANGE[1]} (got {self.stack})")
         if not (self.bias >= 0 and np.isfinite(self.bias)):
             raise RtwalkError(f"{source}: bias must be >= 0 (got {self.bias})")
+        if not (self.gap >= 0 and np.isfinite(self.gap)):
+            raise RtwalkError(f"{source}: gap must be >= 0 (got {self.gap})")
 
 
 _cache: dict = {}  # (triangle buffer identity, resolution) -> Voxels; one scene at a time
@@ -116,11 +122,13 @@ class VoxelsBackend:
         prof = self.bc.profiler
         rs, hs, vox = self._staged(rays.size)
         q = self.ctx.queue
-        bias = 0.0 if pinfo.ray_type == RayType.PRIMARY else self.params.bias
+        secondary = pinfo.ray_type != RayType.PRIMARY
+        bias = self.params.bias if secondary else 0.0
         with prof.cl_phase("voxels:upload", q):
             rs.upload(rays)
         with prof.cl_phase(f"trace:{pinfo.ray_type.label}", q):
-            self.tracer.enqueue(rs.origin, rs.dir, hs.t, hs.tri, vox, rs.n, pinfo.any_hit, bias)
+            self.tracer.enqueue(rs.origin, rs.dir, hs.t, hs.tri, vox, rs.n, pinfo.any_hit, bias,
+                                leave=secondary and self.params.leave, gap=self.params.gap)
         with prof.cl_phase("voxels:download", q):
             hs.download(hits)
         return TraceResult(stats={"rays": rs.n, "voxels": self.voxels.count})

@@ -25,11 +25,16 @@
 #define WG 64
 #endif
 #define MAX_ITER (1 << 22)
+// `leave` (secondary rays): the run of voxels the ray is in at its start, each beginning within
+// `gap` voxel widths of the previous one's exit, is the surface the ray leaves and is skipped; a
+// ray still in such a run after LEAVE_MAX voxels reports no hit.
+#define LEAVE_MAX 32
 
 typedef struct {
     float3 o;
     float3 inv;
     int3 neg;  // 1 where the direction is negative (signbit of the safe reciprocal)
+    float len;  // |direction| in grid units: t per voxel width = 1 / len
 } VRay;
 
 inline float vx_rcp(float x) {
@@ -51,6 +56,7 @@ inline float2 vx_slab(const VRay *r, float3 lo, float3 hi) {
 
 typedef struct {
     float t;    // entry distance of the best voxel (tmax while none)
+    float x;    // its exit distance
     ulong key;  // its key
     int idx;    // its leaf-order index, -1 none
 } Best;
@@ -70,6 +76,7 @@ inline bool vx_leaf(const VRay *r, __global const ushort *leaves, int li, float 
             ulong key = (ulong)lv[3 * k] + R * ((ulong)lv[3 * k + 1] + R * (ulong)lv[3 * k + 2]);
             if (e < best->t || (e == best->t && key < best->key)) {
                 best->t = e;
+                best->x = fmin(s.y, tmax);
                 best->key = key;
                 best->idx = first + k;
                 found = true;
@@ -138,6 +145,7 @@ inline bool vx_ray(__constant float *hdr, float4 ot, float4 dt, float bias, VRay
     r->o = o;
     r->inv = (float3)(vx_rcp(d.x), vx_rcp(d.y), vx_rcp(d.z));
     r->neg = (int3)(signbit(r->inv.x) ? 1 : 0, signbit(r->inv.y) ? 1 : 0, signbit(r->inv.z) ? 1 : 0);
+    r->len = length(d);
     *tmin = ot.w;
     *tmax = dt.w;
     if (bias > 0.0f) *tmin += bias / length(d);
@@ -149,7 +157,7 @@ inline bool vx_ray(__constant float *hdr, float4 ot, float4 dt, float bias, VRay
     __constant float *hdr, const int root, const int R, const float4 root_lo, const float4 root_hi,      \
     __global const float4 *ray_o, __global const float4 *ray_d, __global float *out_t, __global int *out_tri, \
     __global int *out_vox, __global int4 *record, __global uchar *seq, const int n, const int any_hit,            \
-    const float bias
+    const float bias, const int leave, const float gap
 
 #define VX_KERNEL_BODY(TRAVERSE)                                                                           \
     int i = get_global_id(0);                                                                               \
@@ -163,9 +171,17 @@ inline bool vx_ray(__constant float *hdr, float4 ot, float4 dt, float bias, VRay
     Best best;                                                                                              \
     best.idx = -1;                                                                                          \
     best.key = 0;                                                                                           \
-    if (vx_ray(hdr, ray_o[i], ray_d[i], bias, &r, &tmin, &tmax)) {                                 \
-        best.t = tmax;                                                                                      \
-        TRAVERSE;                                                                                           \
+    if (vx_ray(hdr, ray_o[i], ray_d[i], bias, &r, &tmin, &tmax)) {                                          \
+        float t0 = tmin;                                                                                    \
+        for (int pass = 0; pass < LEAVE_MAX; ++pass) {                                                      \
+            best.t = tmax;                                                                                  \
+            best.idx = -1;                                                                                  \
+            tmin = t0;                                                                                      \
+            TRAVERSE;                                                                                       \
+            if (!leave || best.idx < 0 || best.t > t0 + gap / r.len) break;                                 \
+            t0 = best.x;                                                                                    \
+            if (pass == LEAVE_MAX - 1) best.idx = -1;                                                       \
+        }                                                                                                   \
     }                                                                                                       \
     out_t[i] = best.idx >= 0 ? best.t : INFINITY;                                                           \
     out_tri[i] = best.idx >= 0 ? voxel_tri[best.idx] : -1;                                                  \

@@ -88,9 +88,11 @@ class VoxelTracer:
         self.dummy = cl.Buffer(c, mf.READ_WRITE, 16)
 
     def enqueue(self, ray_o, ray_d, out_t, out_tri, out_vox, n: int, any_hit: bool, bias: float = 0.0,
-                record=None, seq=None):
+                record=None, seq=None, leave: bool = False, gap: float = 0.5):
         """Trace n rays (buffers as viewer/cl/transfer.py lays them out); record: int4 per ray, seq:
-        seq_len bytes per ray (recording tracers)."""
+        seq_len bytes per ray (recording tracers). `bias`: tmin moves this many voxel widths along
+        the ray; `leave`: the run of voxels the ray starts in (each within `gap` voxel widths of the
+        previous exit) is skipped: the surface a secondary ray leaves (common.cl)."""
         if n == 0:
             return None
         if self.record and record is None:
@@ -101,9 +103,10 @@ class VoxelTracer:
                            np.int32(s.root), np.int32(s.resolution), self.root_lo, self.root_hi, ray_o, ray_d,
                            out_t, out_tri, out_vox, record if record is not None else self.dummy,
                            seq if seq is not None else self.dummy, np.int32(n),
-                           np.int32(bool(any_hit)), np.float32(bias))
+                           np.int32(bool(any_hit)), np.float32(bias), np.int32(bool(leave)), np.float32(gap))
 
-    def trace_arrays(self, o4: np.ndarray, d4: np.ndarray, any_hit: bool = False, bias: float = 0.0) -> TraceOut:
+    def trace_arrays(self, o4: np.ndarray, d4: np.ndarray, any_hit: bool = False, bias: float = 0.0,
+                     leave: bool = False, gap: float = 0.5) -> TraceOut:
         """Host-side convenience (tests, study): float32 (n, 4) origin+tmin and direction+tmax."""
         cl = self.ctx.cl
         mf = cl.mem_flags
@@ -122,7 +125,7 @@ class VoxelTracer:
         seq = np.zeros((n, self.seq_len), np.uint8) if self.seq_len else None
         seq_b = cl.Buffer(c, mf.WRITE_ONLY, max(seq.nbytes, 16)) if seq is not None else None
         q = self.ctx.queue
-        self.enqueue(o_b, d_b, t_b, tri_b, vox_b, n, any_hit, bias, rec_b, seq_b)
+        self.enqueue(o_b, d_b, t_b, tri_b, vox_b, n, any_hit, bias, rec_b, seq_b, leave, gap)
         if n:
             cl.enqueue_copy(q, t, t_b)
             cl.enqueue_copy(q, tri, tri_b)
