@@ -8,6 +8,8 @@ import shlex
 import sys
 from pathlib import Path
 
+from viewer.bench import voxels as bench_voxels
+
 # the argument helpers live in viewer.cli_args (the window and the benchmarks use them without
 # importing this module)
 from viewer.cli_args import (
@@ -252,6 +254,7 @@ def build_parser() -> argparse.ArgumentParser:
     add_bench_trace_args(sub.add_parser("bench-trace", help="Mrays/s per ray type of backends and raw Embree "
                                                           "on the same captured rays"))
     add_bench_cl_args(sub.add_parser("bench-cl", help="OpenCL sort/scan/compact throughput next to NumPy"))
+    bench_voxels.add_parser(sub)
 
     bb = sub.add_parser("bench-bvh", help="BVH build throughput on the city scene")
     bb.add_argument("--sizes", default="1000000,5000000",
@@ -278,6 +281,7 @@ def main(argv: list[str] | None = None) -> int:
     args.command_line = shlex.join(["rtwalk", *argv])  # what the reports quote to reproduce a run
     handlers = {"view": cmd_view, "render": cmd_render, "bench": cmd_bench, "bench-bvh": cmd_bench_bvh,
                 "bench-chcrt": cmd_bench_chcrt, "bench-trace": cmd_bench_trace, "bench-cl": cmd_bench_cl,
+                "bench-voxels": bench_voxels.run,
                 "info": cmd_info, "demo": cmd_demo}
     if args.command == "demo":
         # demo reuses bench/view; fill in what their parsers would have set
