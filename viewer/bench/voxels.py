@@ -53,7 +53,7 @@ def add_arguments(p) -> None:
     p.add_argument("--scenes", default="conference,buddha,dragon,sponza",
                    help="comma-separated: conference, buddha, dragon, sponza, sibenik, bunny, room, city, or files")
     p.add_argument("--resolutions", default="64,128,256", help="voxel grid sizes, powers of two")
-    p.add_argument("--structures", default="bvh,kd,octree")
+    p.add_argument("--structures", default="bvh,kd,octree", help="voxel structures to trace (bvh, kd, octree)")
     p.add_argument("--stacks", default="4,8", help="short-stack sizes to compare")
     p.add_argument("--size", default="640x360", help="WxH (the paper: 1280x720)")
     p.add_argument("--effects", default="primary,shadows,soft:4,ao:4",
@@ -66,8 +66,8 @@ def add_arguments(p) -> None:
     p.add_argument("--no-image", action="store_true", help="skip the full-render image error")
     p.add_argument("--voxelize-only", action="store_true",
                    help="only voxelize and build the structures per resolution (count, time, memory, depth)")
-    p.add_argument("--out", default="bench-voxels")
-    p.add_argument("--quiet", action="store_true")
+    p.add_argument("--out", default="bench-voxels", help="folder for bench_voxels.json/.md/.png")
+    p.add_argument("--quiet", action="store_true", help="no progress output")
 
 
 def _log(args, msg: str) -> None:
