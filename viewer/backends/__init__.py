@@ -18,6 +18,7 @@ BACKENDS: dict[str, str] = {
     "chcrt": "viewer.backends.chcrt:ChcrtBackend",
     "embree": "viewer.backends.embree:EmbreeBackend",
     "clbvh": "viewer.backends.clbvh:ClbvhBackend",
+    "ugrid": "viewer.backends.ugrid:UgridBackend",
 }
 
 
