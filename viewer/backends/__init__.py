@@ -19,6 +19,7 @@ BACKENDS: dict[str, str] = {
     "embree": "viewer.backends.embree:EmbreeBackend",
     "clbvh": "viewer.backends.clbvh:ClbvhBackend",
     "ugrid": "viewer.backends.ugrid:UgridBackend",
+    "pgrid": "viewer.backends.pgrid:PgridBackend",
 }
 
 

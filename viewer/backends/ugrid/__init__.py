@@ -60,17 +60,21 @@ class GridTracer:
         for count in (False, True):
             defines: dict[str, Any] = {"WG": WG, **({"COUNT_TESTS": None} if count else {})}
             prog = build(KERNEL, defines, ctx)
-            self.kernels[(False, count)] = cl.Kernel(prog, "trace_closest")
-            self.kernels[(True, count)] = cl.Kernel(prog, "trace_any")
+            for idx in (False, True):
+                sfx = "_idx" if idx else ""
+                self.kernels[(False, count, idx)] = cl.Kernel(prog, "trace_closest" + sfx)
+                self.kernels[(True, count, idx)] = cl.Kernel(prog, "trace_any" + sfx)
 
     def enqueue(self, tris: Any, ray_o: Any, ray_d: Any, out_t: Any, out_id: Any, n: int, any_hit: bool,
-                tests: Any = None) -> None:
+                tests: Any = None, index: Any = None) -> None:
+        """Trace rays 0..n-1, or with `index` (uint32 buffer) the n rays it lists."""
         if n == 0:
             return
         g = self.grid
-        k = self.kernels[(bool(any_hit), tests is not None)]
+        k = self.kernels[(bool(any_hit), tests is not None, index is not None)]
+        extra = (index,) if index is not None else ()
         k(self.ctx.queue, (-(-n // WG) * WG,), (WG,), g.header, g.cells, g.refs, tris, ray_o, ray_d, out_t,
-          out_id, np.int32(n), tests if tests is not None else out_id)
+          out_id, np.int32(n), tests if tests is not None else out_id, *extra)
 
 
 class UgridBackend:

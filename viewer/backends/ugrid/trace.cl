@@ -54,13 +54,14 @@ done:
 #define STORE_TESTS
 #endif
 
-#define TRACE_KERNEL(name, ANY)                                                                             \
+#define TRACE_KERNEL(name, ANY, INDEX_ARG, RAY)                                                              \
 __kernel __attribute__((reqd_work_group_size(WG, 1, 1)))                                                    \
 void name(__global const Grid *grid, __global const uint2 *cells, __global const uint *refs,                \
           __global const float4 *tris, __global const float4 *ray_o, __global const float4 *ray_d,          \
-          __global float *out_t, __global int *out_id, const int n, __global int *tests_out) {              \
-    int i = get_global_id(0);                                                                               \
-    if (i >= n) return;                                                                                     \
+          __global float *out_t, __global int *out_id, const int n, __global int *tests_out INDEX_ARG) {    \
+    int j = get_global_id(0);                                                                               \
+    if (j >= n) return;                                                                                     \
+    int i = RAY;                                                                                            \
     Grid g = *grid;                                                                                         \
     float t;                                                                                                \
     int id, tests;                                                                                          \
@@ -70,5 +71,10 @@ void name(__global const Grid *grid, __global const uint2 *cells, __global const
     STORE_TESTS                                                                                             \
 }
 
-TRACE_KERNEL(trace_closest, false)
-TRACE_KERNEL(trace_any, true)
+#define NO_INDEX
+#define WITH_INDEX , __global const uint *index
+// every ray of the batch, or (the _idx kernels) only the rays listed in `index`
+TRACE_KERNEL(trace_closest, false, NO_INDEX, j)
+TRACE_KERNEL(trace_any, true, NO_INDEX, j)
+TRACE_KERNEL(trace_closest_idx, false, WITH_INDEX, (int)index[j])
+TRACE_KERNEL(trace_any_idx, true, WITH_INDEX, (int)index[j])
