@@ -423,8 +423,8 @@ def _judge(tris, o, d, tmin, tmax, t, tri, any_hit):
 
 @needs_cl
 @pytest.mark.parametrize("light_at", ["inside", "outside", "on_cell_plane"])
-@pytest.mark.parametrize("chunk", [16, 64, 256])
-def test_pgrid_shadow_rays_through_light(light_at, chunk):
+@pytest.mark.parametrize("params", ["chunk=16", "chunk=64", "chunk=256", "chunk=32,balance=false,slabs=1"])
+def test_pgrid_shadow_rays_through_light(light_at, params):
     """Shadow rays from surface points to a point light inside / outside the scene: the spherical
     grid handles (nearly) all of them, and every answer matches the float64 reference."""
     from viewer.effects import RayType
@@ -446,10 +446,12 @@ def test_pgrid_shadow_rays_through_light(light_at, chunk):
     tmax = (dist * (1 - 1e-4)).astype(F32)
     tmax[:100] = -1.0  # inactive rays
     t, tri, stats = trace_centred(tris, o, d, tmin, tmax, RayType.SHADOW,
-                                  light=light, params=f"chunk={chunk}")
+                                  light=light, params=params)
     padding = stats["rays"] - n  # the texture's unused texels are inactive rays
     assert stats["outside_rays"] <= padding + 100 + 0.01 * n, stats  # the grid took the rays
     assert stats["pairs"] > 0 and stats["chunks"] > 0
+    if "balance=false" in params:
+        assert stats["chunk_occupancy"] > 1  # whole tiles: more rays than work-items per group
     out = _judge(tris, o, d, tmin, tmax, t, tri, True)
     assert 0.1 * n < out.rhit.sum() < 0.95 * n
     assert_matches(out)

@@ -70,17 +70,14 @@ class PointGridStats:
     culled: int
     widened: int
     build_ms: float
-
-    @property
-    def occupancy(self) -> float:
-        """Mean rays per chunk / chunk capacity is reported by the caller (it knows the chunk size)."""
-        return self.in_grid / max(self.chunks, 1)
+    rearrange_ms: float = 0.0
 
     def as_dict(self, chunk: int) -> dict[str, float]:
         return {"pairs": float(self.pairs), "chunks": float(self.chunks),
                 "chunk_occupancy": self.in_grid / max(self.chunks * chunk, 1), "culled": float(self.culled),
                 "widened": float(self.widened), "outside_rays": float(self.outside),
-                "tiles": float(self.tiles[0] * self.tiles[1]), "pgrid_build_ms": self.build_ms}
+                "tiles": float(self.tiles[0] * self.tiles[1]), "pgrid_build_ms": self.build_ms,
+                "rearrange_ms": self.rearrange_ms}
 
 
 def choose_frame(centre: np.ndarray, origins: np.ndarray, dirs: np.ndarray) -> tuple[np.ndarray, ...]:
@@ -152,7 +149,14 @@ class PointGrid:
 
     def build(self, tris: Any, n_tris: int, scene_lo: np.ndarray, scene_hi: np.ndarray, ray_o: Any, ray_d: Any,
               n: int, centre: np.ndarray, sample: tuple[np.ndarray, np.ndarray], spec: PointGridSpec) -> PointGridStats:
-        """Build the grid around `centre` for the n rays in (ray_o, ray_d) (viewer.cl.transfer layout)."""
+        """Both halves: `place` (frame, ray directions, tiles; triangle pairs) then `rearrange` (rays)."""
+        self.place(tris, n_tris, scene_lo, scene_hi, ray_o, ray_d, n, centre, sample, spec)
+        return self.rearrange(n, spec)
+
+    def place(self, tris: Any, n_tris: int, scene_lo: np.ndarray, scene_hi: np.ndarray, ray_o: Any, ray_d: Any,
+              n: int, centre: np.ndarray, sample: tuple[np.ndarray, np.ndarray], spec: PointGridSpec) -> None:
+        """The grid around `centre` for the n rays in (ray_o, ray_d) (viewer.cl.transfer layout): steps
+        1-3 and 5 of the module docstring (the data-structure build)."""
         cl, q, u = self.ctx.cl, self.ctx.queue, np.uint32
         p = self.prims
         t0 = time.perf_counter()
@@ -188,20 +192,13 @@ class PointGrid:
         width = dmax / ns
         h["rect"][0] = (a0, e0, na / (a1 - a0), nt / (e1 - e0))
         h["slab"][0, :2] = (width, 1.0 / width)
-        ntiles = na * nt
-        ncells = ntiles * ns
+        ncells = na * nt * ns
         h["res"][0] = (na, nt, ns, ncells)
         self.header_host = h
         cl.enqueue_copy(q, self.header, h)
-        # rays: (tile, ray) sorted, chunks of at most `chunk`
-        rk, rv = self.buf("ray_keys", 4 * n), self.buf("ray_vals", 4 * n)
-        self._run("pg_ray_keys", n, self.header, alpha, theta, outside, u(n), rk, rv)
-        p.sort_pairs(rk, rv, n, key_bits=max(1, ntiles.bit_length()))
+        # triangles: (cell, triangle) pairs
         from viewer.cl.primitives import Chunks
 
-        self.chunks = p.segments(rk, n, spec.chunk, out=Chunks(0, self.buf("ch_key", 4 * n),
-                                                               self.buf("ch_start", 4 * n), self.buf("ch_len", 4 * n)))
-        # triangles: (cell, triangle) pairs
         counts, flags = self.buf("tri_counts", 4 * max(n_tris, 1)), self.buf("tri_flags", 4 * max(n_tris, 1))
         self._run("pg_tri_count", n_tris, self.header, tris, u(n_tris), counts, flags)
         pairs = p.exclusive_scan(counts, counts, n_tris) if n_tris else 0
@@ -224,8 +221,27 @@ class PointGrid:
             cl.enqueue_copy(q, fl, flags)
         fl = fl[:n_tris]
         q.finish()
-        self.stats = PointGridStats((na, nt), ns, n, in_grid, self.outside_count, self.chunks.count, int(pairs),
+        self.stats = PointGridStats((na, nt), ns, n, in_grid, self.outside_count, 0, int(pairs),
                                     int((fl & 1).sum()), int(((fl & 2) != 0).sum()), (time.perf_counter() - t0) * 1e3)
+
+    def rearrange(self, n: int, spec: PointGridSpec, balance: bool = True) -> PointGridStats:
+        """Step 4: (tile, ray) pairs sorted, chunks of at most spec.chunk rays (balance=False: one
+        chunk per tile, whatever its size)."""
+        from viewer.cl.primitives import Chunks
+
+        assert self.stats is not None, "place first"
+        t0 = time.perf_counter()
+        na, nt = self.stats.tiles
+        ntiles = na * nt
+        rk, rv = self.buf("ray_keys", 4 * n), self.buf("ray_vals", 4 * n)
+        self._run("pg_ray_keys", n, self.header, self._bufs["alpha"], self._bufs["theta"], self._bufs["outside"],
+                  np.uint32(n), rk, rv)
+        self.prims.sort_pairs(rk, rv, n, key_bits=max(1, ntiles.bit_length()))
+        out = Chunks(0, self.buf("ch_key", 4 * n), self.buf("ch_start", 4 * n), self.buf("ch_len", 4 * n))
+        self.chunks = self.prims.segments(rk, n, spec.chunk if balance else None, out=out)
+        self.ctx.queue.finish()
+        self.stats.chunks = self.chunks.count
+        self.stats.rearrange_ms = (time.perf_counter() - t0) * 1e3
         return self.stats
 
     @property

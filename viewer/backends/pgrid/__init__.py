@@ -14,8 +14,9 @@
   grid of ugrid (viewer.accel.grid, built once per scene geometry), so every ray is traced
   exactly. Soft-shadow rays end at different points of an area light, so they take this way.
 
-Parameters: chunk (rays per work-group: 16..256), tile_rays / tiles (angular tiling), slabs,
-margin (radians), density / resolution (the uniform grid). Counters: pairs, chunks,
+Parameters: chunk (rays per work-group: 16..256), balance (chunks; off: one work-group per
+tile), tile_rays / tiles (angular tiling), slabs, margin (radians), density / resolution /
+rebuild (the uniform grid; rebuild: every frame). Counters: pairs, chunks,
 chunk_occupancy, culled and widened (pole/seam) triangles, rays outside the grid, tests per ray
 (with the overlays on).
 """
@@ -49,6 +50,8 @@ class PgridParams:
     slabs: int = 16  # distance slabs per tile
     margin: float = 0.004  # angular margin (radians) a ray may deviate from its tile direction
     primary: bool = True  # primary rays through the eye-centred grid (else the uniform grid)
+    balance: bool = True  # cut tiles into chunks of `chunk` rays (False: one work-group per tile)
+    rebuild: bool = False  # rebuild the uniform grid every frame (animated scenes; timing studies)
     density: float = 2.0  # uniform grid (other ray types): ~cells per triangle
     resolution: int = 0  # uniform grid: cells on the longest axis (0 = from density)
 
@@ -77,7 +80,7 @@ class PgridBackend:
                   OverlaySpec("light_tiles", "ids", "light_chunks", "chunks (colours) and rays per tile",
                               counts="tile_rays")),
         counters=("rays", "pairs", "chunks", "chunk_occupancy", "culled", "widened", "outside_rays", "tests_per_ray",
-                  "pgrid_build_ms"),
+                  "pgrid_build_ms", "rearrange_ms"),
         device="cl")
 
     def __init__(self, bc: BackendContext, params: PgridParams | None = None):
@@ -124,7 +127,7 @@ class PgridBackend:
         self._tris_key = self._geometry_key()
 
     def begin_frame(self, frame_index: int) -> None:
-        if self._geometry_key() != self._tris_key:
+        if self.params.rebuild or self._geometry_key() != self._tris_key:
             self._rebuild()
 
     def reset(self) -> None:
@@ -185,9 +188,11 @@ class PgridBackend:
         else:
             centre, so, sd = point
             pg = self.pgrid
+            spec = self.params.point_spec()
             with prof.cl_phase(f"pgrid:build:{label}", q):
-                st = pg.build(self._tris, self._n_tris, *self._box, rs.origin, rs.dir, rs.n, centre, (so, sd),
-                              self.params.point_spec())
+                pg.place(self._tris, self._n_tris, *self._box, rs.origin, rs.dir, rs.n, centre, (so, sd), spec)
+            with prof.cl_phase(f"pgrid:rearrange:{label}", q):
+                st = pg.rearrange(rs.n, spec, balance=self.params.balance)
             with prof.cl_phase(f"trace:{label}", q):
                 if st.chunks:
                     ch = pg.chunks

@@ -7,6 +7,7 @@
 //  * closest hit (primary rays from the eye): after slab s a ray whose hit lies nearer to the
 //    centre than where slab s+1 starts is done (slab check); the chunk stops when all are done.
 // Chunks whose key is the "outside" tile (ntiles) return at once: those rays go another way.
+// A chunk of more than WG rays (load balancing off: whole tiles) is traced WG rays at a time.
 // With COUNT_TESTS, each ray's triangle tests are written to `tests`.
 #include "geometry.cl"
 
@@ -43,8 +44,11 @@ void pg_trace(__global const PGrid *grid, __global const uint *chunk_key, __glob
     uint ntiles = (uint)(g.res.x * g.res.y);
     if (key >= ntiles) return;  // uniform for the whole work-group
     uint len = chunk_len[c];
-    bool mine = lid < len;
-    uint ri = mine ? ray_index[chunk_start[c] + lid] : 0u;
+    // a chunk longer than WG (no load balancing: one work-group per tile) is done WG rays at a time
+    for (uint rb = 0; rb < len; rb += WG) {
+    barrier(CLK_LOCAL_MEM_FENCE);
+    bool mine = rb + lid < len;
+    uint ri = mine ? ray_index[chunk_start[c] + rb + lid] : 0u;
     float4 ot = mine ? ray_o[ri] : (float4)(0.0f);
     float4 dt = mine ? ray_d[ri] : (float4)(0.0f, 0.0f, 1.0f, -1.0f);
     bool active = mine && dt.w > ot.w;
@@ -85,7 +89,7 @@ void pg_trace(__global const PGrid *grid, __global const uint *chunk_key, __glob
                 sv[3 * lid + 2] = tris[3 * slot + 2];
             }
             barrier(CLK_LOCAL_MEM_FENCE);
-            if (!done) {
+            if (!done && slab_lo <= far) {  // this ray's segment may reach this slab
                 for (uint k = 0; k < cnt; ++k) {
                     float t;
                     ++tests;
@@ -113,5 +117,6 @@ void pg_trace(__global const PGrid *grid, __global const uint *chunk_key, __glob
 #ifdef COUNT_TESTS
         tests_out[ri] = tests;
 #endif
+    }
     }
 }

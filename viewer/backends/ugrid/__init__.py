@@ -8,7 +8,8 @@ closest-hit rays stop after the first cell that contains their nearest hit, any-
 the first hit.
 
 Parameters (`--backend-params`): density (cells per triangle for the automatic resolution),
-resolution (cells along the longest axis; 0 = automatic), max_axis (cap per axis).
+resolution (cells along the longest axis; 0 = automatic), max_axis (cap per axis), rebuild
+(rebuild the grid every frame, as an animated scene needs).
 Overlay "triangle_tests": triangles tested per ray of the last pass (heat).
 """
 
@@ -35,6 +36,7 @@ class UgridParams:
     density: float = 2.0  # ~cells per triangle (automatic resolution, per axis by the scene's extent)
     resolution: int = 0  # >0: cells along the longest axis instead
     max_axis: int = 512  # cap on cells per axis
+    rebuild: bool = False  # rebuild every frame (animated scenes; timing studies)
 
     def validate(self, source: str) -> None:
         if not self.density > 0:
@@ -81,7 +83,7 @@ class UgridBackend:
     info = BackendInfo("ugrid", "OpenCL: uniform grid (sorted triangle-cell pairs) walked by 3D-DDA, one ray per "
                        "work-item", params=UgridParams,
                        overlays=(OverlaySpec("triangle_tests", "heat", "triangle_tests", "triangles tested per ray"),),
-                       counters=("rays", "grid_pairs", "grid_nonempty", "grid_build_ms"), device="cl")
+                       counters=("rays", "grid_pairs", "grid_nonempty", "grid_build_ms", "tests_per_ray"), device="cl")
 
     def __init__(self, bc: BackendContext, params: UgridParams | None = None):
         from viewer.cl import cl_context
@@ -120,7 +122,7 @@ class UgridBackend:
         self._tris_key = self._geometry_key()
 
     def begin_frame(self, frame_index: int) -> None:
-        if self._geometry_key() != self._tris_key:
+        if self.params.rebuild or self._geometry_key() != self._tris_key:
             self._rebuild()
 
     def reset(self) -> None:
@@ -155,7 +157,7 @@ class UgridBackend:
         stats = {"rays": float(rs.n), **self.grid.stats.as_dict()}
         overlays = {}
         if count:
-            overlays["triangle_tests"] = self._overlay_texture(rays.size, tests, rs.n)
+            overlays["triangle_tests"], stats["tests_per_ray"] = self._overlay_texture(rays.size, tests, rs.n)
         return TraceResult(stats=stats, overlays=overlays)
 
     def _overlay_texture(self, size: tuple[int, int], buf: Any, n: int):
@@ -168,7 +170,8 @@ class UgridBackend:
             self._overlay = int_texture(self.bc.ctx, size)
         with mapped(self.ctx, buf, (n,), np.int32) as a:
             self._overlay.write(a)
-        return self._overlay
+            per_ray = float(a.sum()) / max(n, 1)
+        return self._overlay, per_ray
 
     def _release_stages(self) -> None:
         if self._stages is not None:
