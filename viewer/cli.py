@@ -116,6 +116,12 @@ def cmd_bench_chcrt(args) -> int:
     return run(args)
 
 
+def cmd_bench_pgrid(args) -> int:
+    from viewer.bench.pgrid import run
+
+    return run(args)
+
+
 def cmd_info(args) -> int:
     prepared = scene_from_args(args)
     s = prepared.scene
@@ -188,6 +194,11 @@ def build_parser() -> argparse.ArgumentParser:
     bc = sub.add_parser("bench-chcrt", help="CHC+RT paper tables: glsl vs chcrt, aggressive mode, phases, overhead")
     add_bench_chcrt_args(bc)
 
+    from viewer.bench.pgrid import add_arguments as add_bench_pgrid_args
+
+    bp = sub.add_parser("bench-pgrid", help="perspective-grid thesis studies: pgrid vs uniform grid vs BVH")
+    add_bench_pgrid_args(bp)
+
     bb = sub.add_parser("bench-bvh", help="BVH build throughput on the city scene")
     bb.add_argument("--sizes", default="1000000,5000000")
     bb.add_argument("--seed", type=int, default=1)
@@ -210,7 +221,7 @@ def main(argv: list[str] | None = None) -> int:
         argv = ["demo"] + argv  # bare `rtwalk [options]` runs the main job
     args = ap.parse_args(argv)
     handlers = {"view": cmd_view, "render": cmd_render, "bench": cmd_bench, "bench-bvh": cmd_bench_bvh,
-                "bench-chcrt": cmd_bench_chcrt, "info": cmd_info, "demo": cmd_demo}
+                "bench-chcrt": cmd_bench_chcrt, "bench-pgrid": cmd_bench_pgrid, "info": cmd_info, "demo": cmd_demo}
     if args.command == "demo":
         # demo reuses bench/view; fill in what their parsers would have set
         for key, val in {"recording": None, "fps": None, "reference": "embree", "reference_every": 6,

@@ -140,31 +140,34 @@ inline bool pg_tri(const PGrid *g, __global const float4 *tris, uint i, int4 *ra
     return true;
 }
 
-// counts[i] = tiles of triangle i; flags[i]: bit 0 culled, bit 1 widened (pole or seam)
+// counts[i] = tiles of triangle i; flags[i]: bit 0 culled, bit 1 widened (pole or seam);
+// place[i] = (tile range ia0, ia1, it0, it1) and place_slab[i] for pg_tri_write
 __kernel __attribute__((reqd_work_group_size(WG, 1, 1)))
 void pg_tri_count(__global const PGrid *grid, __global const float4 *tris, const uint n, __global uint *counts,
-                  __global uint *flags) {
+                  __global uint *flags, __global int4 *place, __global int *place_slab) {
     uint i = get_global_id(0);
     if (i >= n) return;
     PGrid g = *grid;
-    int4 r;
-    int slab;
+    int4 r = (int4)(0);
+    int slab = 0;
     bool full;
     bool ok = pg_tri(&g, tris, i, &r, &slab, &full);
     counts[i] = ok ? (uint)(r.y - r.x + 1) * (uint)(r.w - r.z + 1) : 0u;
     flags[i] = (ok ? 0u : 1u) | (full ? 2u : 0u);
+    place[i] = r;
+    place_slab[i] = slab;
 }
 
 __kernel __attribute__((reqd_work_group_size(WG, 1, 1)))
-void pg_tri_write(__global const PGrid *grid, __global const float4 *tris, const uint n, __global const uint *offsets,
+void pg_tri_write(__global const PGrid *grid, const uint n, __global const uint *offsets,
+                  __global const int4 *place, __global const int *place_slab, __global const uint *flags,
                   __global uint *keys, __global uint *vals) {
     uint i = get_global_id(0);
     if (i >= n) return;
+    if (flags[i] & 1u) return;
     PGrid g = *grid;
-    int4 r;
-    int slab;
-    bool full;
-    if (!pg_tri(&g, tris, i, &r, &slab, &full)) return;
+    int4 r = place[i];
+    int slab = place_slab[i];
     uint o = offsets[i];
     for (int it = r.z; it <= r.w; ++it)
         for (int ia = r.x; ia <= r.y; ++ia) {

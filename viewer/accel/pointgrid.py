@@ -200,13 +200,14 @@ class PointGrid:
         from viewer.cl.primitives import Chunks
 
         counts, flags = self.buf("tri_counts", 4 * max(n_tris, 1)), self.buf("tri_flags", 4 * max(n_tris, 1))
-        self._run("pg_tri_count", n_tris, self.header, tris, u(n_tris), counts, flags)
+        place, place_slab = self.buf("tri_place", 16 * max(n_tris, 1)), self.buf("tri_slab", 4 * max(n_tris, 1))
+        self._run("pg_tri_count", n_tris, self.header, tris, u(n_tris), counts, flags, place, place_slab)
         pairs = p.exclusive_scan(counts, counts, n_tris) if n_tris else 0
         if pairs > MAX_PAIRS:
             raise RtwalkError(f"point grid {na}x{nt}x{ns} needs {pairs} triangle-cell pairs (at most {MAX_PAIRS}): "
                               "use fewer tiles")
         keys, refs = self.buf("keys", 4 * pairs), self.buf("refs", 4 * pairs)
-        self._run("pg_tri_write", n_tris, self.header, tris, u(n_tris), counts, keys, refs)
+        self._run("pg_tri_write", n_tris, self.header, u(n_tris), counts, place, place_slab, flags, keys, refs)
         cell_start = self.buf("cell_start", 4 * (ncells + 1))
         cl.enqueue_fill_buffer(q, cell_start, np.uint32(0), 0, 4 * (ncells + 1))
         if pairs:

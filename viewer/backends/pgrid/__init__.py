@@ -202,6 +202,8 @@ class PgridBackend:
                 self.tracer.enqueue(self._tris, rs.origin, rs.dir, hs.t, hs.tri, st.outside, pinfo.any_hit,
                                     tests if count else None, index=pg.outside_index)
             stats.update(st.as_dict(self.params.chunk))
+            # the same per ray type (the renderer sums a frame's passes)
+            stats.update({f"{k}_{label}": v for k, v in st.as_dict(self.params.chunk).items()})
         with prof.cl_phase("pgrid:download", q):
             hs.download(hits)
         overlays = {}
