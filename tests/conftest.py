@@ -35,3 +35,78 @@ def shared_scene(rel: str) -> str:
     if not path.exists():
         pytest.skip(f"{path} not present")
     return str(path)
+
+
+# ----------------------------------------------------------------------------------------------
+# backends from the registry: every registered backend meets the same bars without new test code
+# ----------------------------------------------------------------------------------------------
+
+REFERENCE_BACKEND = "embree"  # the judge: not compared with itself in agreement / image tests
+
+_opencl_reason: list[str | None] = []
+
+
+def opencl_missing() -> str | None:
+    """None when an OpenCL device can be used here, else why not (checked once per session)."""
+    if not _opencl_reason:
+        reason = None
+        try:
+            import pyopencl as cl
+
+            devices = []
+            for platform in cl.get_platforms():
+                try:
+                    devices += platform.get_devices()
+                except cl.Error:  # a platform without devices raises DEVICE_NOT_FOUND
+                    pass
+            if not devices:
+                reason = "no OpenCL device: no platform lists a device (install pocl-opencl-icd)"
+        except ImportError as exc:
+            reason = f"no OpenCL: pyopencl cannot be imported ({exc})"
+        except Exception as exc:  # pyopencl raises LogicError/RuntimeError when no ICD is installed
+            reason = f"no OpenCL device ({type(exc).__name__}: {exc}; install pocl-opencl-icd)"
+        _opencl_reason.append(reason)
+    return _opencl_reason[0]
+
+
+def backend_params(reference: bool) -> list:
+    """pytest params, one per registered backend (registry order), with skip marks where a backend
+    cannot run here or is not held to the exact bars.
+
+    `reference`: include the reference backend (hard cases judge it against the float64 tracer);
+    agreement and image tests leave it out. An OpenCL backend skips only when no OpenCL device
+    exists; a backend whose class cannot be imported while OpenCL is there errors in the test
+    (`backend_info` raises again there), it is never skipped silently. `info.exact` False: skipped
+    with the reason (approximate by design; these tests hold exact bars)."""
+    from viewer.backends import backend_info, backend_names
+
+    params = []
+    for name in backend_names():
+        if name == REFERENCE_BACKEND and not reference:
+            continue
+        marks = []
+        try:
+            info = backend_info(name)
+        except ImportError as exc:
+            reason = opencl_missing()
+            if reason is not None:
+                marks.append(pytest.mark.skip(reason=f"backend '{name}' cannot be imported ({exc}); {reason}"))
+            params.append(pytest.param(name, marks=marks, id=name))
+            continue
+        if info.device == "cl":
+            reason = opencl_missing()
+            if reason is not None:
+                marks.append(pytest.mark.skip(reason=f"backend '{name}' runs on OpenCL: {reason}"))
+        if not info.exact:
+            marks.append(pytest.mark.skip(reason=f"backend '{name}' is approximate by design (info.exact = False): "
+                                                 "not held to the exact bars of this test"))
+        params.append(pytest.param(name, marks=marks, id=name))
+    return params
+
+
+def checked_backend(name: str) -> str:
+    """The backend name after importing its class (raises where it is broken: an error, not a skip)."""
+    from viewer.backends import backend_info
+
+    backend_info(name)
+    return name

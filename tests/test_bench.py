@@ -25,7 +25,8 @@ def test_bench_writes_report_with_speed_and_error(tmp_path):
     out = tmp_path / "bench"
     proc = subprocess.run([sys.executable, "-m", "viewer.cli", "bench", "--recording", str(path),
                            "--effects", "shadows,ao:2,reflections", "--size", "64x36", "--out", str(out),
-                           "--name", "t", "--quiet"], capture_output=True, text=True, timeout=300)
+                           "--name", "t", "--quiet", "--reference-every", "1"],
+                          capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stderr
     report = json.loads((out / "t.json").read_text())
     assert (out / "t.png").stat().st_size > 1000

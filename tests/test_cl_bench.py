@@ -1,4 +1,4 @@
-"""`rtwalk bench-cl` (viewer/cl/bench_primitives.py): a tiny run writes its table, and bad input
+"""`rtwalk bench-cl` (viewer/bench/cl_primitives.py): a tiny run writes its table, and bad input
 or a missing OpenCL device is one error line with exit status 2."""
 
 from __future__ import annotations
@@ -7,8 +7,9 @@ import json
 
 import pytest
 
-from viewer.cl import bench_primitives as bench
+from viewer.bench import cl_primitives as bench
 from viewer.cl import context as clctx
+from viewer.cli import main as cli_main
 from viewer.errors import RtwalkError
 
 
@@ -25,7 +26,7 @@ def test_small_run_writes_json_markdown_plot(tmp_path, capsys):
     if reason is not None:
         pytest.skip(f"no OpenCL device: {reason}")
     out = tmp_path / "b"
-    assert bench.main(["--sizes", "3000,20K", "--reps", "2", "--out", str(out)]) == 0
+    assert cli_main(["bench-cl", "--sizes", "3000,20K", "--reps", "2", "--out", str(out)]) == 0
     report = json.loads((out / "bench_cl.json").read_text())
     rows = report["rows"]
     assert [(r["op"], r["n"]) for r in rows] == [(op, n) for n in (3000, 20000) for op in bench.OPS]
@@ -41,7 +42,7 @@ def test_small_run_writes_json_markdown_plot(tmp_path, capsys):
 @pytest.mark.parametrize("argv,msg", [(["--sizes", "big"], "--sizes"), (["--ops", "sort,fft"], "--ops"),
                                       (["--reps", "0"], "--reps")])
 def test_bad_options_exit_2(tmp_path, capsys, argv, msg):
-    assert bench.main([*argv, "--out", str(tmp_path)]) == 2
+    assert cli_main(["bench-cl", *argv, "--out", str(tmp_path)]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith("rtwalk: error: ") and msg in err[0]
 
@@ -49,6 +50,6 @@ def test_bad_options_exit_2(tmp_path, capsys, argv, msg):
 def test_no_opencl_device_exit_2(tmp_path, capsys, monkeypatch):
     monkeypatch.setattr(clctx, "_context", None)
     monkeypatch.setattr(clctx, "list_devices", lambda: [])
-    assert bench.main(["--sizes", "1000", "--out", str(tmp_path)]) == 2
+    assert cli_main(["bench-cl", "--sizes", "1000", "--out", str(tmp_path)]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert err == ["rtwalk: error: no OpenCL device (install pocl-opencl-icd)"]

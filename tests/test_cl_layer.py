@@ -195,6 +195,6 @@ def test_importing_the_layer_does_not_load_opencl():
     import subprocess
     import sys
 
-    code = ("import sys, viewer.cl, viewer.cl.primitives, viewer.cl.bench_primitives, viewer.profiler; "
+    code = ("import sys, viewer.cl, viewer.cl.primitives, viewer.bench.cl_primitives, viewer.profiler; "
             "assert 'pyopencl' not in sys.modules; import os; assert os.environ.get('POCL_CACHE_DIR')")
     subprocess.run([sys.executable, "-c", code], check=True, cwd=Path(__file__).resolve().parents[1])

@@ -189,11 +189,12 @@ def test_trace_matches_float64(n_tris, any_hit):
         assert st["id_agree"] == 1.0, st
         assert st["max_rel_err"] < 1e-4, st
         # t is the plane-equation distance evaluated in IEEE float32 without fused multiply-adds
-        # (as NumPy evaluates it): bit for bit, wherever the normal is not perpendicular to d
+        # (as NumPy evaluates it), the normal rounded once from the exact float64 cross product of the
+        # float32 edges: bit for bit, wherever the normal is not perpendicular to d
         v = tris[tri[hit]].astype(np.float32)
-        e1, e2 = v[:, 1] - v[:, 0], v[:, 2] - v[:, 0]
+        e1, e2 = (v[:, 1] - v[:, 0]).astype(np.float64), (v[:, 2] - v[:, 0]).astype(np.float64)
         n = np.stack([e1[:, 1] * e2[:, 2] - e1[:, 2] * e2[:, 1], e1[:, 2] * e2[:, 0] - e1[:, 0] * e2[:, 2],
-                      e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]], 1)
+                      e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]], 1).astype(np.float32)
         a = v[:, 0] - o[hit]
         dn = n[:, 0] * d[hit, 0] + n[:, 1] * d[hit, 1] + n[:, 2] * d[hit, 2]
         t_np = (n[:, 0] * a[:, 0] + n[:, 1] * a[:, 1] + n[:, 2] * a[:, 2]) / dn

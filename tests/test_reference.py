@@ -443,3 +443,258 @@ def test_compare_hits_counts():
     assert s2["ok"] and s2["max_rel_err"] == 0.0 and s2["id_agree"] == 1.0
     s3 = compare_hits(F32([]), np.int32([]), F32([]), np.int32([]))
     assert s3["ok"] and s3["n_rays"] == 0
+
+
+# ----------------------------------------------------------------------------------------------
+# range ends decided in float64, whatever Embree's float32 t says
+# ----------------------------------------------------------------------------------------------
+
+def _exact_t(tri, o, d):
+    """Exact rational plane distance of one ray (Fraction), for the expected answers."""
+    from fractions import Fraction
+
+    q = [[Fraction(float(x)) for x in v] for v in np.asarray(tri, np.float64)]
+    oo = [Fraction(float(x)) for x in o]
+    dd = [Fraction(float(x)) for x in d]
+    e1 = [q[1][k] - q[0][k] for k in range(3)]
+    e2 = [q[2][k] - q[0][k] for k in range(3)]
+    n = [e1[1] * e2[2] - e1[2] * e2[1], e1[2] * e2[0] - e1[0] * e2[2], e1[0] * e2[1] - e1[1] * e2[0]]
+    return sum(n[k] * (q[0][k] - oo[k]) for k in range(3)) / sum(n[k] * dd[k] for k in range(3))
+
+
+def _range_end_cases(rng, n=300):
+    """Rays onto big tilted triangles with tmax (or tmin) at the float32 values next to the exact hit
+    distance, and exactly at it where that is a float32: the cases where a float32 t rounds across."""
+    from fractions import Fraction
+
+    tris, o_all, d_all, lo_all, hi_all, want = [], [], [], [], [], []
+    for i in range(n):
+        c = rng.uniform(-3, 3, 3) * (10.0 ** rng.integers(0, 4))
+        a, b = rng.normal(size=3), rng.normal(size=3)
+        tri = f32([c - 50 * a - 50 * b, c + 100 * a, c + 100 * b])
+        o = f32(c + rng.uniform(-0.5, 0.5, 3) + rng.normal(size=3) * rng.choice([1e-3, 1, 30]))
+        d = f32(c - o.astype(np.float64) + rng.normal(size=3) * 0.01)
+        if i % 5 == 0:                                            # straight down onto z = const, t exact
+            tri = f32([[-1e3, -1e3, 0], [1e3, -1e3, 0], [0, 1e3, 0]]) + f32(c * [0, 0, 1])
+            o = f32([c[0] * 1e-3, c[1] * 1e-3, c[2] + rng.choice([1.0, 0.7, 3.3e-4])])
+            d = f32([0, 0, -rng.choice([1.0, 0.3, 2.5])])
+        te = _exact_t(tri, o, d)
+        if te <= 0:
+            continue
+        t32 = np.float32(float(te))
+        for end in {np.nextafter(t32, F32(-INF)), t32, np.nextafter(t32, F32(INF))}:
+            e = Fraction(float(end))
+            for as_tmax in (True, False):
+                tris.append(tri)
+                o_all.append(o)
+                d_all.append(d)
+                lo_all.append(F32(0) if as_tmax else end)
+                hi_all.append(end if as_tmax else F32(INF))
+                want.append(te < e if as_tmax else te > e)
+    k = len(tris)
+    return (f32(tris), f32(o_all), f32(d_all), f32(lo_all), f32(hi_all), np.array(want), np.arange(k))
+
+
+class _ShiftedT:
+    """An Embree scene whose closest-hit distances come back moved by `steps` float32 steps."""
+
+    def __init__(self, scene, steps: int):
+        self.scene = scene
+        self.steps = steps
+
+    def run(self, o32, d32, dists=None, query="INTERSECT", output=None):
+        res = self.scene.run(o32, d32, dists=dists, query=query, output=output)
+        if query == "INTERSECT" and output:
+            t = np.asarray(res["tfar"], np.float32)
+            for _ in range(abs(self.steps)):
+                t = np.nextafter(t, F32(INF) if self.steps > 0 else F32(-INF))
+            res["tfar"] = t
+        return res
+
+
+def test_range_ends_decided_in_float64_not_float32(embree_ok):
+    """Hits at float32 distances next to tmax / tmin (and exactly at them) are kept or dropped as the
+    exact distance says, for the Embree reference and the float64 tracer. Embree's own float32 t is
+    then shifted by up to two float32 steps either way (what another CPU's kernel may return, e.g.
+    0.99999994 for an exact 1 on AVX2): the reference's decisions must not change, because it
+    decides on a float64 distance to the triangle Embree returned, not on Embree's t."""
+    rng = np.random.default_rng(21)
+    tris, o, d, lo, hi, want, ids = _range_end_cases(rng)
+    assert want.sum() > 100 and (~want).sum() > 100
+    # every ray against its own triangle (rays of one triangle share a tracer)
+    groups = {}
+    for k in range(len(tris)):
+        groups.setdefault(tris[k].tobytes(), []).append(k)
+    results = {}
+    for mode in ("plain", "shifted"):
+        got_e = np.zeros(len(tris), bool)
+        got_f = np.zeros(len(tris), bool)
+        for ks in groups.values():
+            ks = np.array(ks)
+            tri = tris[ks[:1]]
+            tracer = EmbreeTracer(tri)
+            if mode == "shifted":
+                tracer._scene = _ShiftedT(tracer._scene, int(rng.integers(-2, 3)))
+            te, ie = tracer.trace(o[ks], d[ks], lo[ks], hi[ks])
+            got_e[ks] = ie >= 0
+            tf, i_f = trace_float64(tri, o[ks], d[ks], lo[ks], hi[ks])
+            got_f[ks] = i_f >= 0
+            for tt, ii in ((te, ie), (tf, i_f)):                   # returned t strictly inside the range
+                h = ii >= 0
+                assert np.all((tt[h] > lo[ks][h]) & (tt[h] < hi[ks][h]))
+        results[mode] = got_e
+        bad = np.flatnonzero(got_f != want)
+        assert len(bad) == 0, f"float64 tracer: {len(bad)} wrong range decisions, e.g. rays {bad[:5]}"
+        bad = np.flatnonzero(got_e != want)
+        assert len(bad) == 0, (f"Embree reference ({mode} float32 t): {len(bad)} wrong range decisions, e.g. "
+                               + "; ".join(f"o={o[k].tolist()} d={d[k].tolist()} range=({lo[k]}, {hi[k]}) "
+                                           f"want {want[k]}" for k in bad[:3]))
+    assert np.array_equal(results["plain"], results["shifted"])
+
+
+# ----------------------------------------------------------------------------------------------
+# far from the origin: rays that start on a surface
+# ----------------------------------------------------------------------------------------------
+
+FAR_SHIFT = np.array([1e6, 0.0, 0.0])
+
+
+def far_room():
+    """The built-in room (10 x 5 x 10, closed, ~3.5k triangles) moved to x = 1e6, where float32 steps
+    are 1/16: (triangles float32, point light position float64)."""
+    from viewer.procedural import make_room
+
+    room = make_room()
+    tris = f32(room.triangles.astype(np.float64) + FAR_SHIFT)
+    light = np.asarray(room.point_lights[0].position, np.float64) + FAR_SHIFT
+    return tris, light
+
+
+def _offset_origin(p, n):
+    """NumPy copy of offsetRayOrigin (shaders/sampling.glsl): 256 float32 steps along the normal."""
+    p = f32(p)
+    ofi = (256.0 * n).astype(np.int32)
+    bits = p.view(np.int32)
+    moved = np.where(p < 0, bits - ofi, bits + ofi).astype(np.int32).view(np.float32)
+    return np.where(np.abs(p) < 1 / 32, p + F32(1 / 65536) * f32(n), moved).astype(F32)
+
+
+def far_surface_rays(tris, light, rng, n=1500):
+    """Secondary rays as the pipeline makes them on the far room: from points on random triangles
+    (rounded to float32, so they lie within 1/32 of the surface, on either side) and from the same
+    points offset like raygen does; AO-length, unbounded and shadow rays (tmax just short of the
+    light), tmin 0. Returns (o, d, tmin, tmax) float32."""
+    t64 = tris.astype(np.float64)
+    area = np.linalg.norm(np.cross(t64[:, 1] - t64[:, 0], t64[:, 2] - t64[:, 0]), axis=1)
+    k = rng.choice(np.flatnonzero(area > 0), n)                  # (float32 rounding far out can flatten some)
+    v = tris[k].astype(np.float64)
+    b = rng.dirichlet([1, 1, 1], n)
+    p = (b[:, :, None] * v).sum(axis=1)
+    nrm = np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0])
+    nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
+    nrm *= rng.choice([-1.0, 1.0], (n, 1))
+    u = rng.normal(size=(n, 3))
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    u *= np.sign((u * nrm).sum(axis=1, keepdims=True))            # hemisphere of the chosen side
+    o_list, d_list, hi_list = [], [], []
+    for origin in (f32(p), _offset_origin(p, nrm)):
+        o_list += [origin, origin]
+        d_list += [u, u]
+        hi_list += [np.full(n, 0.75), np.full(n, INF)]
+        to_light = light - origin.astype(np.float64)
+        dist = np.linalg.norm(to_light, axis=1)
+        o_list.append(origin)
+        d_list.append(to_light / dist[:, None])
+        hi_list.append(dist * (1 - 1e-4))
+    o = f32(np.concatenate(o_list))
+    return o, f32(np.concatenate(d_list)), np.zeros(len(o), F32), f32(np.concatenate(hi_list))
+
+
+def far_agreement(te, ie, tf, i_f, tris, o, d):
+    """Hit/miss and id agreement of (te, ie) with the float64 tracer (tf, i_f), counting a
+    disagreement as excused only where the ray passes within 1e-5 of the room's size of an edge of
+    either triangle (float32 rounding of the local coordinates); plus hits whose point o + t d is
+    not on the reported triangle (1e-5 of the room's size)."""
+    extent = float(np.ptp(tris.reshape(-1, 3).astype(np.float64), axis=0).max())
+    diff = np.flatnonzero((ie >= 0) != (i_f >= 0))
+    da = ray_edge_distance(tris, ie[diff], o[diff], d[diff])
+    db = ray_edge_distance(tris, i_f[diff], o[diff], d[diff])
+    unexcused = diff[np.minimum(da, db) > 1e-5 * extent]
+    h = np.flatnonzero(ie >= 0)
+    pts = o[h].astype(np.float64) + te[h, None].astype(np.float64) * d[h].astype(np.float64)
+    off = point_triangle_distance(pts, tris[ie[h]])
+    st = compare_hits(te, ie, tf, i_f, tris, rel_tol=1e-5, tie_rel=1e-5, abs_tol=8 * f32_ulp(1e6))
+    return {"rays": len(o), "hitmiss_agree": st["hitmiss_agree"], "id_agree": st["id_agree"],
+            "n_disagree": len(diff), "n_unexcused": len(unexcused), "n_off_triangle": int((off > 1e-5 * extent).sum()),
+            "n_id_mismatch": st["n_id_mismatch"]}
+
+
+@pytest.mark.parametrize("any_hit", [False, True])
+def test_far_from_origin_rays_starting_on_surfaces(embree_ok, any_hit):
+    """The room at x = 1e6 (float32 step 1/16): rays starting on (within rounding of) its surfaces or
+    offset from them as raygen does. The Embree reference must return what the float64 tracer returns
+    (hit/miss up to edge rounding, ids up to ties) and only genuine hits; it used to return t = 0 for
+    such rays and re-trace from an origin nudged 1/4 unit on, past real hits and through walls."""
+    tris, light = far_room()
+    rng = np.random.default_rng(31)
+    o, d, lo, hi = far_surface_rays(tris, light, rng)
+    te, ie = EmbreeTracer(tris).trace(o, d, lo, hi, any_hit=any_hit)
+    tf, i_f = trace_float64(tris, o, d, lo, hi)
+    st = far_agreement(te, ie, tf, i_f, tris, o, d)
+    assert (i_f >= 0).mean() > 0.3 and (i_f < 0).mean() > 0.1, st
+    assert st["n_unexcused"] == 0 and st["n_off_triangle"] == 0, st
+    if not any_hit:
+        assert st["n_id_mismatch"] == 0, st
+
+
+def main() -> None:
+    """Figures for the far-from-origin case (``python3 -m tests.test_reference``): the Embree reference
+    against the float64 tracer on the rays of the test above, then the pipeline's own secondary rays of
+    the far room rendered by every GL backend, each against both references."""
+    from dataclasses import replace
+
+    from viewer.accel.bvh import build_bvh
+    from viewer.backends import backend_info, backend_names
+    from viewer.camera import Camera
+    from viewer.effects import parse_effects
+    from viewer.procedural import make_room
+    from viewer.renderer import Renderer
+    from viewer.tracing import shared_context
+
+    tris, light = far_room()
+    o, d, lo, hi = far_surface_rays(tris, light, np.random.default_rng(31))
+    tf, i_f = trace_float64(tris, o, d, lo, hi)
+    for any_hit in (False, True):
+        te, ie = EmbreeTracer(tris).trace(o, d, lo, hi, any_hit=any_hit)
+        st = far_agreement(te, ie, tf, i_f, tris, o, d)
+        print(f"surface rays, any_hit={any_hit}: Embree reference vs float64 {st}")
+    room = make_room()
+    pl = [replace(p, position=f32(p.position + FAR_SHIFT)) for p in room.point_lights]
+    rl = [replace(r, corner=f32(r.corner + FAR_SHIFT)) for r in room.rect_lights]
+    cam = Camera(room.default_camera.position + FAR_SHIFT, room.default_camera.orientation, room.default_camera.fov_y)
+    scene = replace(room, triangles=tris, point_lights=pl, rect_lights=rl, default_camera=cam)
+    bvh = build_bvh(scene.triangles)
+    scene = scene.reordered(bvh.tri_order)
+    embree = EmbreeTracer(scene.triangles)
+    ctx = shared_context()
+    for name in backend_names():
+        if backend_info(name).device != "gl":
+            continue
+        r = Renderer(ctx, scene, bvh, (160, 90), name, parse_effects("shadows,soft:1,ao:1,diffuse:1,reflections"))
+        r.render(cam)
+        rep = r.render(cam, capture=True)
+        r.release()
+        for cp in rep.captured:
+            a = cp.rays.active
+            oo, dd, ll, hh = cp.rays.origins[a], cp.rays.directions[a], cp.rays.tmin[a], cp.rays.tmax[a]
+            te, ie = embree.trace(oo, dd, ll, hh, any_hit=cp.ray_type.any_hit)
+            tf, i_f = trace_float64(scene.triangles, oo, dd, ll, hh)
+            agree = [compare_hits(x, y, tf, i_f)["hitmiss_agree"] for x, y in ((te, ie), (cp.t[a], cp.tri[a]))]
+            vs_embree = compare_hits(cp.t[a], cp.tri[a], te, ie)["hitmiss_agree"]
+            print(f"far room 160x90 {name:6s} {cp.ray_type.label:11s} {int(a.sum()):6d} rays: hit/miss agreement "
+                  f"{name} vs Embree reference {vs_embree:.4%}, Embree reference vs float64 {agree[0]:.4%}, "
+                  f"{name} vs float64 {agree[1]:.4%}")
+
+
+if __name__ == "__main__":
+    main()

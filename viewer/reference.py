@@ -21,7 +21,8 @@ Convention shared by every tracer in the project (the GLSL tracer in ``viewer.tr
 
 Two implementations:
 
-* :class:`EmbreeTracer` -- Intel Embree 4 through ``embreex``; fast, float32, for big scenes.
+* :class:`EmbreeTracer` -- Intel Embree 4 through ``embreex`` finds the triangle (float32, fast, for big
+  scenes); distances and range decisions are float64 (see the class).
 * :func:`trace_float64` -- brute force, float64, watertight (Woop et al. 2013); for small scenes.
 
 and :func:`compare_hits`, the agreement statistics used by tests and benchmarks.
@@ -158,28 +159,28 @@ class EmbreeTracer:
 
     Consequences handled here:
 
-    * ``tnear``: for rays with ``tmin != 0`` the origin is moved to ``o + tmin * d`` (computed in float64
-      and rounded to float32), ``tfar`` becomes ``tmax - tmin`` and ``tmin`` is added back to ``t``.
-      The rounding of the moved origin perturbs the ray by up to half an ulp of ``|o + tmin d|``, so the
-      returned ``t`` carries an extra absolute error of about ``ulp(|o + tmin d|) / |d|`` and hits within
-      that distance of ``tmin`` may be classified either way. Rays with ``tmin == 0`` are passed exactly.
-    * Embree's range test is inclusive at both ends in robust mode (``tnear <= t <= tfar``; measured: a ray
-      starting exactly on a triangle gets ``t = -0.0`` with ``tnear = 0``; the non-robust mode excludes
-      it), inclusive at the far end in both modes. ``tfar`` is therefore the float32 strictly below
-      ``tmax - tmin``, results are post-filtered to ``tmin < t < tmax`` in float64, and a ray whose
-      closest Embree hit is at or before ``tmin`` is traced again from a start nudged forward by a few
-      float32 ulps of the origin (a hit within that distance past ``tmin`` can be skipped; it is within
-      the rounding of the moved origin anyway).
+    * Embree only chooses the triangle; the distance and the range decision are float64. For the
+      triangle Embree returns, ``t`` is recomputed on the caller's ray (``range_decision``: the plane
+      distance in float64, in rational arithmetic where it lies within its error bound of ``tmin`` or
+      ``tmax``), and ``tmin < t < tmax`` is decided on that, never on Embree's float32 ``t`` (which on
+      an AVX2 CPU returned 0.99999994 for an exact 1 = tmax). Embree therefore gets a slightly longer
+      range than asked (``_embree_rays``): ``tnear`` is hard-wired to 0, so for ``tmin != 0`` the origin
+      moves to ``o + (tmin - m) d`` (float32), m = 64 float32 ulps of the coordinates over ``|d|``, and
+      ``tfar`` ends 1e-3 relative plus m past ``tmax``.
+    * A ray whose closest Embree hit lies at or before ``tmin`` in float64 starts on (or within float32
+      rounding of) a surface: Embree's robust mode accepts ``t = 0`` (its near end is inclusive), and far
+      from the origin a float32 start is up to 1/32 unit off the surface (at 1e6). Such rays are not
+      decided by a re-trace from a nudged start (that jumped past real hits, 1/4 unit at 1e6): Embree,
+      traced from a little after ``tmin``, only bounds a segment of the ray, which is searched with the
+      float64 watertight test over the triangles near it (``_TriangleGrid``, ``_resolve_from_start``).
     * Embree works in float32 throughout (its ``t`` has ~1e-7 relative error, more for grazing hits and
       hits close to the origin). The scene is created with ``robust=True`` by default
       (``RTC_SCENE_FLAG_ROBUST``: "avoid optimizations that reduce arithmetic accuracy"). Measured: in
       robust mode no ray aimed exactly at a vertex or an edge of a closed mesh leaks; with
       ``robust=False`` about 10 % of such rays from inside an icosphere escape. Embree does not cull
       back faces. Embree normalises nothing: ``t`` is in units of ``|d|``.
-    * ``any_hit=True`` uses ``OCCLUDED`` for the occluded/not decision and a closest-hit query on the
-      occluded rays to produce a valid ``(t, tri)``; an occlusion the closest-hit query cannot confirm
-      strictly inside ``(tmin, tmax)`` (the inclusive near end; with ``robust=False`` also kernel
-      differences, seen near ``t == tmax``) is reported as a miss.
+    * ``any_hit=True`` uses ``OCCLUDED`` (over the same widened range) to find the rays that may be
+      occluded and the closest-hit path above on those, so occluded-or-not is decided in float64 too.
     * Zero-area triangles are removed before the build (they could never hit; Embree should not report
       them either, this just makes it certain); ids still refer to the input order.
     """
@@ -195,6 +196,9 @@ class EmbreeTracer:
         keep = ~_exact_zero_area(self.triangles) & np.isfinite(self.triangles).all(axis=(1, 2))
         self._ids = np.flatnonzero(keep).astype(np.int32)     # Embree primID -> input triangle id
         self._scene = None
+        self._v64: np.ndarray | None = None
+        self._scale = float(np.abs(self.triangles[keep]).max()) if keep.any() else 0.0
+        self._grid_cache: _TriangleGrid | None = None
         if len(self._ids):
             self._scene = rtcore_scene.EmbreeScene(robust=robust)
             kept = np.ascontiguousarray(self.triangles[keep])
@@ -240,56 +244,252 @@ class EmbreeTracer:
         id_out[idx[hit]] = self._ids[prim[hit]]
         return t_out, id_out
 
-    @staticmethod
-    def _embree_rays(o, d, lo, hi):
-        """float32 rays for embreex (tnear is always 0): origin moved to o + lo d where lo != 0, and
-        tfar = the largest float32 strictly below hi - lo (Embree's far end is inclusive)."""
+    def _embree_rays(self, o, d, lo, hi, back: bool = True):
+        """float32 rays for embreex (tnear is always 0), covering a little more than (lo, hi): the
+        float64 decision follows, so Embree must not drop a hit that float32 rounding puts just outside.
+
+        Where lo != 0 the origin moves to o + (lo - m) d (`back`; else to o + lo d), m = 64 float32
+        ulps of the larger of |start| and the scene's coordinates over |d|: rounding the moved origin
+        and Embree's float32 distance (its error grows with the vertices' magnitude) must not skip a
+        hit just after lo. tfar ends 1e-3 relative plus m past hi (a float32 t may round past tmax,
+        more so for grazing hits). Embree's t is not used: callers recompute distances in float64."""
+        dn = np.linalg.norm(d, axis=1)
         shift = lo != 0
         o_emb = o.copy()
         o_emb[shift] = o[shift] + lo[shift, None] * d[shift]
+        m = self._margin(o_emb, dn)
+        start = np.where(shift, lo - m, 0.0) if back else np.where(shift, lo, 0.0)
+        o_emb[shift] = o[shift] + start[shift, None] * d[shift]
         o32 = np.ascontiguousarray(o_emb.astype(np.float32))
         d32 = np.ascontiguousarray(d.astype(np.float32))
-        span = hi - lo                                     # > 0, may be +inf
-        with np.errstate(over="ignore"):
-            far = span.astype(np.float32)
-        too_big = far.astype(np.float64) >= span
-        far[too_big] = np.nextafter(far[too_big], np.float32(0))
-        return o32, d32, np.ascontiguousarray(np.maximum(far, np.float32(0)))
+        span = hi - start                                  # > 0, may be +inf
+        slack = 1e-3 * span + m
+        with np.errstate(over="ignore", invalid="ignore"):
+            far = (span + slack).astype(np.float32)
+        far[~np.isfinite(far)] = np.float32(np.inf)
+        return o32, d32, np.ascontiguousarray(far)
 
-    def _closest(self, o, d, t0, t1, retries: int = 4):
-        """Closest hit with tmin < t < tmax (float64 t, Embree primID or -1).
+    def _closest(self, o, d, t0, t1):
+        """Closest hit with tmin < t < tmax, decided in float64 (t float64, Embree primID or -1).
 
-        Robust Embree accepts a hit exactly at tnear (e.g. a ray starting on a surface with tmin = 0).
-        Such rays are traced again from a start nudged forward by a few float32 ulps of the origin
-        (doubling each retry): hits within that distance of tmin are within the rounding of the moved
-        origin anyway.
-        """
+        Embree finds the triangle; its distance is recomputed in float64 on the caller's ray and
+        ``tmin < t < tmax`` is decided on that (exactly near the ends, see ``range_decision``), never on
+        Embree's float32 t. Embree is given a slightly longer ``tfar`` so that a hit whose float32 t
+        rounds past ``tmax`` is still seen. A ray whose closest Embree hit lies at or before ``tmin``
+        (it starts on a surface, or its float32 start rounded onto or past one) is resolved by
+        ``_resolve_from_start``."""
         n = len(o)
         t_res = np.full(n, np.inf)
         p_res = np.full(n, -1, np.int64)
-        todo = np.arange(n)
+        if n == 0:
+            return t_res, p_res
+        prim = self._run_closest(o, d, t0, t1)
+        hit = np.flatnonzero(prim >= 0)
+        if len(hit) == 0:
+            return t_res, p_res
+        v = self._verts64[prim[hit]]
+        t, ok = range_decision(v, o[hit], d[hit], t0[hit], t1[hit])
+        t_res[hit[ok]] = t[ok]
+        p_res[hit[ok]] = prim[hit[ok]]
+        with np.errstate(invalid="ignore"):
+            before = ~ok & ~(t >= t1[hit])               # at/before tmin, or parallel: Embree's t is noise
+        flagged = hit[before]
+        if len(flagged):
+            tf, pf = self._resolve_from_start(o[flagged], d[flagged], t0[flagged], t1[flagged])
+            t_res[flagged] = tf
+            p_res[flagged] = pf
+        return t_res, p_res
+
+    def _margin(self, p, dn, ulps: int = 64):
+        """`ulps` float32 ulps of max(|p|, the scene's largest coordinate) over |d|: the reach of
+        float32 rounding along the ray (positions, Embree's distances; x 1/sin for a hit at angle sin
+        to its plane: 64 covers sin down to ~0.01) in units of t."""
+        return ulps * f32_ulp(np.maximum(np.abs(p).max(axis=1), self._scale)) / dn
+
+    def _run_closest(self, o, d, t0, t1, back: bool = True) -> np.ndarray:
+        """Embree's closest hit (primID or -1) from o + t0 d (backed off, see _embree_rays), up to a
+        little past t1."""
+        o32, d32, far = self._embree_rays(o, d, t0, t1, back)
+        res = self._scene.run(o32, d32, dists=far, query="INTERSECT", output=1)
+        return np.asarray(res["primID"]).astype(np.int64)
+
+    def _resolve_from_start(self, o, d, t0, t1, rounds: int = 4):
+        """Rays whose closest Embree hit is at or before tmin: their hits are found in float64.
+
+        Embree cannot say what lies within float32 rounding of the ray's start (about ulp(|start|), a
+        quarter unit at 1e6), and a start moved along the ray and rounded to float32 is off the ray by
+        up to half an ulp sideways (1/32 unit at 1e6), which changes which triangle an edge-near ray
+        meets. So Embree only bounds the search: it traces from lo + w (w = 16 float32 ulps of the
+        start or the scene's coordinates, `_margin`), its triangle's float64 distance t_T on the
+        caller's ray gives the segment (lo, t_T + 2w], and every triangle near that segment (grid
+        lookup) is tested with the float64 watertight test; the closest hit there is the answer.
+        Where the segment holds none (Embree's start was behind a surface, or it found nothing: then
+        the segment is (lo, lo + 2w]), the next round starts at the segment's end with w x 4. Rays left
+        after `rounds` are traced by brute force over all triangles."""
+        n = len(o)
+        t_res = np.full(n, np.inf)
+        p_res = np.full(n, -1, np.int64)
+        dn = np.linalg.norm(d, axis=1)
         lo = t0.copy()
-        for attempt in range(retries + 1):
+        todo = np.arange(n)
+        w = self._margin(o + t0[:, None] * d, dn, 16)
+        grid = self._grid()
+        for _ in range(rounds):
             if len(todo) == 0:
                 break
-            o32, d32, far = self._embree_rays(o[todo], d[todo], lo, t1[todo])
-            res = self._scene.run(o32, d32, dists=far, query="INTERSECT", output=1)
-            prim = np.asarray(res["primID"]).astype(np.int64)
-            t = np.asarray(res["tfar"], dtype=np.float64) + lo
-            with np.errstate(invalid="ignore"):
-                hit = (prim >= 0) & (t < t1[todo])
-                good = hit & (t > t0[todo])
-            t_res[todo[good]] = t[good]
-            p_res[todo[good]] = prim[good]
-            again = hit & ~good
-            if attempt == retries or not again.any():
-                break
+            oo, dd, ll, hh, ww = o[todo], d[todo], lo[todo], t1[todo], w[todo]
+            prim = self._run_closest(oo, dd, ll + ww, hh, back=False)
+            end = ll + 2 * ww
+            hit = np.flatnonzero(prim >= 0)
+            if len(hit):
+                t_t, _ = _plane_t(self._verts64[prim[hit]], oo[hit], dd[hit])
+                with np.errstate(invalid="ignore"):
+                    end[hit] = np.maximum(end[hit], np.where(np.isfinite(t_t), t_t, -np.inf) + 2 * ww[hit])
+            end = np.minimum(end, hh)
+            top = np.minimum(np.nextafter(end, np.inf), hh)          # the segment includes its end
+            ri, ti = grid.candidates(oo + ll[:, None] * dd, oo + end[:, None] * dd)
+            tw, pw = _closest_pairs(self._verts64, ri, ti, oo, dd, ll, top, len(todo))
+            found = pw >= 0
+            t_res[todo[found]] = tw[found]
+            p_res[todo[found]] = pw[found]
+            again = ~found & (end < hh) & (prim >= 0)                # Embree saw nothing past lo + w: a miss
             todo = todo[again]
-            start = o[todo] + lo[again, None] * d[todo]
-            ulp = f32_ulp(np.abs(start).max(axis=1))
-            step = 4.0 * (2.0 ** attempt) * ulp / np.linalg.norm(d[todo], axis=1)
-            lo = np.maximum(lo[again], t[again]) + step
+            lo[todo] = end[again]
+            w[todo] *= 4
+        if len(todo):
+            tb, pb = trace_float64(self.triangles[self._ids], o[todo], d[todo], lo[todo], t1[todo])
+            t_res[todo] = tb
+            p_res[todo] = pb
         return t_res, p_res
+
+    @property
+    def _verts64(self) -> np.ndarray:
+        """float64 (M, 3, 3) vertices of the triangles given to Embree (indexed by primID)."""
+        if self._v64 is None:
+            self._v64 = self.triangles[self._ids].astype(np.float64)
+        return self._v64
+
+    def _grid(self) -> _TriangleGrid:
+        if self._grid_cache is None:
+            self._grid_cache = _TriangleGrid(self._verts64)
+        return self._grid_cache
+
+
+def _closest_pairs(verts, ri, ti, o, d, lo, hi, n):
+    """Closest float64 watertight hit per ray over (ray, triangle) pairs ri/ti (ray index into o/d/lo/hi,
+    triangle index into verts). Returns (t (n,), triangle (n,) or -1); ties: the smallest index."""
+    t_out = np.full(n, np.inf)
+    p_out = np.full(n, -1, np.int64)
+    if len(ri) == 0:
+        return t_out, p_out
+    ad = np.abs(d[ri])
+    kz = np.argmax(ad, axis=1)
+    kx = (kz + 1) % 3
+    ky = (kx + 1) % 3
+    neg = d[ri][np.arange(len(ri)), kz] < 0
+    kx, ky = np.where(neg, ky, kx), np.where(neg, kx, ky)
+    perm = np.stack([kx, ky, kz], axis=1)
+    vp = np.take_along_axis(verts[ti], perm[:, None, :], axis=2)
+    op = np.take_along_axis(o[ri], perm, axis=1)
+    dp = np.take_along_axis(d[ri], perm, axis=1)
+    t = _woop_pairs(vp, op, dp, lo[ri], hi[ri])
+    ok = t < np.inf
+    ri, ti, t = ri[ok], ti[ok], t[ok]
+    if len(t) == 0:
+        return t_out, p_out
+    order = np.lexsort((ti, t, ri))
+    ri, ti, t = ri[order], ti[order], t[order]
+    first = np.ones(len(ri), bool)
+    first[1:] = ri[1:] != ri[:-1]
+    t_out[ri[first]] = t[first]
+    p_out[ri[first]] = ti[first]
+    return t_out, p_out
+
+
+class _TriangleGrid:
+    """Uniform grids over triangle bounding boxes, for "which triangles are near this short segment".
+
+    Level k has cells of 4^k times the median bounding-box extent; a triangle goes to the first level
+    where its box spans at most 27 cells, or, past the last level, to a list tested against every
+    query. Cells are keyed by their integer coordinates packed in an int64 (no collisions for grids
+    up to 2^21 cells a side; beyond, distinct cells may share a key, which only adds candidates)."""
+
+    MAX_CELLS = 27
+    LEVELS = 6
+
+    def __init__(self, verts: np.ndarray):
+        lo = verts.min(axis=1)
+        hi = verts.max(axis=1)
+        ext = (hi - lo).max(axis=1)
+        self.origin = lo.min(axis=0) if len(lo) else np.zeros(3)
+        span = float((hi.max(axis=0) - self.origin).max()) if len(hi) else 1.0
+        base = max(float(np.median(ext)) if len(ext) else 1.0, span / 2**20, 1e-30)
+        self.levels: list[tuple[float, np.ndarray, np.ndarray]] = []   # (cell, sorted keys, triangles)
+        left = np.arange(len(verts))
+        for k in range(self.LEVELS):
+            cell = base * 4.0**k
+            c0 = self._cell(lo[left], cell)
+            c1 = self._cell(hi[left], cell)
+            fits = (c1 - c0 + 1).prod(axis=1) <= self.MAX_CELLS
+            keys, tris = _expand_cells(c0[fits], c1[fits], left[fits])
+            order = np.argsort(keys, kind="stable")
+            self.levels.append((cell, keys[order], tris[order]))
+            left = left[~fits]
+        self.big = left
+        self.stride = len(verts) + 1
+
+    def _cell(self, p, cell):
+        return np.floor((p - self.origin) / cell).astype(np.int64)
+
+    def candidates(self, a, b):
+        """(query, triangle) pairs for segments a[i]..b[i] (K, 3): every triangle whose bounding box
+        comes within a few float32 ulps of the segment's box (conservative), with repeats removed."""
+        pad = 4 * f32_ulp(np.maximum(np.abs(a).max(axis=1), np.abs(b).max(axis=1)))[:, None]
+        ri_all, ti_all = [], []
+        for cell, keys, tris in self.levels:
+            if len(keys) == 0:
+                continue
+            # a long diagonal segment is cut into pieces about one cell long: thin boxes, few cells
+            pieces = np.clip(np.ceil(np.abs(b - a).max(axis=1) / cell), 1, 256).astype(np.int64)
+            qi = np.repeat(np.arange(len(a)), pieces)
+            j = np.arange(pieces.sum()) - np.repeat(np.cumsum(pieces) - pieces, pieces)
+            f0 = (j / pieces[qi])[:, None]
+            f1 = ((j + 1) / pieces[qi])[:, None]
+            p0 = a[qi] + f0 * (b[qi] - a[qi])
+            p1 = a[qi] + f1 * (b[qi] - a[qi])
+            lo = np.minimum(p0, p1) - pad[qi] - 1e-9 * cell
+            hi = np.maximum(p0, p1) + pad[qi] + 1e-9 * cell
+            qk, qi = _expand_cells(self._cell(lo, cell), self._cell(hi, cell), qi)
+            first = np.searchsorted(keys, qk, side="left")
+            cnt = np.searchsorted(keys, qk, side="right") - first
+            rep = np.repeat(np.arange(len(qk)), cnt)
+            off = np.arange(cnt.sum()) - np.repeat(np.cumsum(cnt) - cnt, cnt)
+            ri_all.append(qi[rep])
+            ti_all.append(tris[first[rep] + off])
+        if len(self.big):
+            ri_all.append(np.repeat(np.arange(len(a)), len(self.big)))
+            ti_all.append(np.tile(self.big, len(a)))
+        if not ri_all:
+            return np.zeros(0, np.int64), np.zeros(0, np.int64)
+        ri = np.concatenate(ri_all)
+        ti = np.concatenate(ti_all)
+        pair = np.unique(ri * self.stride + ti, return_index=True)[1]
+        return ri[pair], ti[pair]
+
+
+def _expand_cells(c0, c1, ids):
+    """Every integer cell of the boxes c0[i]..c1[i] (inclusive): (packed keys, ids[i] per cell)."""
+    size = c1 - c0 + 1
+    count = size.prod(axis=1)
+    rep = np.repeat(np.arange(len(ids)), count)
+    k = np.arange(count.sum()) - np.repeat(np.cumsum(count) - count, count)
+    sx, sy = size[rep, 0], size[rep, 1]
+    cx = c0[rep, 0] + k % sx
+    cy = c0[rep, 1] + (k // sx) % sy
+    cz = c0[rep, 2] + k // (sx * sy)
+    m = (1 << 21) - 1
+    keys = (cx & m) | ((cy & m) << 21) | ((cz & m) << 42)
+    return keys, ids[rep]
 
 
 # ----------------------------------------------------------------------------------------------
@@ -313,9 +513,10 @@ def trace_float64(triangles, origins, directions, tmin, tmax, any_hit: bool = Fa
     exactly 0 is treated as "on the edge" (counted as a hit for both neighbours). This only matters for
     rays within ~1e-16 relative of an edge and never creates a leak.
 
-    The range test ``tmin < t < tmax`` is made on the float64 ``t`` (relative error ~1e-16): a hit that
-    lies exactly at ``tmax`` in real arithmetic (a shadow ray ending on the light's own surface) can be
-    counted or not; callers that care must treat hits within rounding of the range ends as ambiguous.
+    The range test ``tmin < t < tmax`` is exact: the float64 ``t`` decides where it is clear of both
+    ends; within 1e-9 of the vertices' distance from the origin of an end (a ray starting on the
+    triangle's plane gets t ~ 1e-20 instead of 0; a hit exactly at ``tmax``) the exact plane distance
+    decides (``range_decision``). A hit exactly at ``tmax`` or ``tmin`` in real arithmetic is a miss.
 
     Zero-area triangles (decided exactly) never hit. Ties: smallest ``t``, then the smallest triangle id.
     ``any_hit`` is accepted for API symmetry; the closest hit is returned (a valid any-hit answer).
@@ -443,9 +644,93 @@ def _woop_pairs(v, op, dp, lo, hi):
     tt = u * (sz * a[:, 2]) + vv * (sz * b[:, 2]) + w_ * (sz * c[:, 2])
     with np.errstate(divide="ignore", invalid="ignore"):
         tt = tt / det
-    inside &= (tt > lo) & (tt < hi)
-    tt[~inside] = np.inf
+    # t is float64-accurate relative to the vertices' distances from the origin, not to t itself: a ray
+    # starting exactly on a triangle's plane gets t ~ 1e-20 instead of 0. Near a range end (within
+    # 1e-9 of that scale) the decision tmin < t < tmax is made on the exact plane distance instead.
+    reach = np.maximum(np.maximum(np.abs(a).max(axis=1), np.abs(b).max(axis=1)), np.abs(c).max(axis=1))
+    band = 1e-9 * reach / np.abs(dp).max(axis=1)
+    with np.errstate(invalid="ignore"):
+        near = inside & ((np.abs(tt - lo) <= band) | (np.abs(tt - hi) <= band))
+    ok = inside & (tt > lo) & (tt < hi)
+    if near.any():
+        k = np.flatnonzero(near)
+        t_near, ok_near = range_decision(v[k], op[k], dp[k], lo[k], hi[k])
+        tt[k] = t_near
+        ok[k] = ok_near
+    tt[~ok] = np.inf
     return tt
+
+
+def _plane_t(v, o, d):
+    """float64 distance along each ray to its triangle's plane (K,) and a bound on its rounding error.
+
+    ``t = n . (v0 - o) / n . d`` with ``n = (v1 - v0) x (v2 - v0)``; NaN/inf where the ray is parallel to
+    the plane. From float32 inputs the differences are exact and each product and sum adds at most one
+    rounding, so ``|error| <= 16 eps (|n| |v0 - o| + |t| |n| |d|) / |n . d|``; 64 eps is used."""
+    e1 = v[:, 1] - v[:, 0]
+    e2 = v[:, 2] - v[:, 0]
+    n = np.cross(e1, e2)
+    w = v[:, 0] - o
+    num = (n * w).sum(axis=1)
+    den = (n * d).sum(axis=1)
+    nn = np.abs(n).sum(axis=1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = num / den
+        err = 64 * np.finfo(np.float64).eps * (nn * np.abs(w).sum(axis=1) + np.abs(t) * nn * np.abs(d).sum(axis=1)) \
+            / np.abs(den)
+    return t, err
+
+
+def _exact_plane_t(v, o, d) -> tuple[int, int] | None:
+    """The exact plane distance of one ray as a fraction (num, den) of Python ints with den > 0; None
+    when the ray is parallel to the plane. The coordinates are dyadic rationals: scaled by their
+    largest denominator (a power of two) they are integers, and the products are exact big ints."""
+    ratios = [float(x).as_integer_ratio() for x in (*np.ravel(v), *o, *d)]
+    scale = max(b for _, b in ratios)
+    ints = [a * (scale // b) for a, b in ratios]
+    q = [ints[0:3], ints[3:6], ints[6:9]]
+    oo = ints[9:12]
+    dd = ints[12:15]
+    e1 = [q[1][k] - q[0][k] for k in range(3)]
+    e2 = [q[2][k] - q[0][k] for k in range(3)]
+    n = [e1[1] * e2[2] - e1[2] * e2[1], e1[2] * e2[0] - e1[0] * e2[2], e1[0] * e2[1] - e1[1] * e2[0]]
+    den = sum(n[k] * dd[k] for k in range(3))
+    if den == 0:
+        return None
+    num = sum(n[k] * (q[0][k] - oo[k]) for k in range(3))
+    return (num, den) if den > 0 else (-num, -den)
+
+
+def _compare(t: tuple[int, int], x: float) -> int:
+    """Sign of num/den - x for t = (num, den), den > 0, and a finite float64 x (exact)."""
+    a, b = float(x).as_integer_ratio()
+    lhs = t[0] * b
+    rhs = a * t[1]
+    return (lhs > rhs) - (lhs < rhs)
+
+
+def range_decision(v, o, d, lo, hi):
+    """Decide ``lo < t < hi`` exactly for rays known to meet their triangle (v (K, 3, 3), o, d (K, 3),
+    lo, hi (K,), all float64 holding float32-exact coordinates; lo/hi any float64).
+
+    Returns ``(t, ok)``: the float64 plane distance (the exact one rounded where it was needed) and the
+    decision. The float64 distance decides where its error bound keeps it clear of both ends; the few
+    rays within the bound of an end (a ray starting on the surface, a hit exactly at ``tmax``) are
+    decided in rational arithmetic. A ray parallel to the plane is never in range (as in the watertight
+    test, whose determinant is then 0)."""
+    t, err = _plane_t(v, o, d)
+    with np.errstate(invalid="ignore"):
+        ok = (t - err > lo) & (t + err < hi)
+        unsure = np.isfinite(t) & ~ok & (t + err > lo) & (t - err < hi)
+    for i in np.flatnonzero(unsure):           # few rays: the exact decision in integers
+        te = _exact_plane_t(v[i], o[i], d[i])
+        if te is None:
+            continue
+        above = np.isneginf(lo[i]) or _compare(te, lo[i]) > 0
+        below = np.isposinf(hi[i]) or _compare(te, hi[i]) < 0
+        ok[i] = above and below
+        t[i] = te[0] / te[1]                   # correctly rounded int division
+    return t, ok
 
 
 # ----------------------------------------------------------------------------------------------

@@ -142,7 +142,7 @@ class ClbvhBackend:
             self.scene.enqueue(rs.origin, rs.dir, hs.t, hs.tri, rs.n, pinfo.any_hit)
         with prof.cl_phase("clbvh:download", q):
             hs.download(hits)
-        return TraceResult(stats={"rays": rs.n})
+        return TraceResult(stats={"rays": rs.n})  # work-items launched: one per pixel of the batch
 
     def _release_stages(self) -> None:
         if self._stages is not None:

@@ -82,18 +82,18 @@ inline void trace_ray(__global const float4 *nodes, __global const float4 *block
                 int in0 = -1, in1 = -1, in2 = -1, in3 = -1;
                 float it1 = 0.0f, it2 = 0.0f, it3 = 0.0f;
                 int nin = 0;
-#define VISIT(k)                                                                                 \
-                if (d##k < INFINITY && d##k <= hit_t) {                                              \
-                    if (c##k < 0) {                                                              \
-                        if (leaf_hits(&r, blocks, ~c##k, n##k, tmin, any_hit, &hit_t, &hit_id))    \
-                            goto done;                                                           \
-                    } else {                                                                     \
-                        if (nin == 0) { in0 = c##k; }                                            \
-                        else if (nin == 1) { in1 = c##k; it1 = d##k; }                           \
-                        else if (nin == 2) { in2 = c##k; it2 = d##k; }                           \
-                        else { in3 = c##k; it3 = d##k; }                                         \
-                        ++nin;                                                                   \
-                    }                                                                            \
+#define VISIT(k)                                                                                        \
+                if (d##k < INFINITY && d##k <= hit_t) {                                                 \
+                    if (c##k < 0) {                                                                     \
+                        if (leaf_hits(&r, blocks, ~c##k, n##k, tmin, any_hit, &hit_t, &hit_id))         \
+                            goto done;                                                                  \
+                    } else {                                                                            \
+                        if (nin == 0) { in0 = c##k; }                                                   \
+                        else if (nin == 1) { in1 = c##k; it1 = d##k; }                                  \
+                        else if (nin == 2) { in2 = c##k; it2 = d##k; }                                  \
+                        else { in3 = c##k; it3 = d##k; }                                                \
+                        ++nin;                                                                          \
+                    }                                                                                   \
                 }
                 VISIT(0) VISIT(1) VISIT(2) VISIT(3)
 #undef VISIT

@@ -40,13 +40,14 @@ def add_arguments(p) -> None:
     p.add_argument("--sizes", default="640x360,1280x720", help="comma-separated WxH (default 640x360,1280x720)")
     p.add_argument("--frames", type=int, default=1,
                    help="frames per recording, evenly spaced inside it (default 1: the middle frame)")
-    p.add_argument("--backends", default="glsl,clbvh", help="comma-separated registered backends (default glsl,clbvh)")
+    p.add_argument("--backends", default="", help="comma-separated registered backends (default: every registered "
+                                                  "exact backend but the reference)")
     p.add_argument("--effects", default=DEFAULT_EFFECTS, help=f"ray types to capture (default {DEFAULT_EFFECTS})")
     p.add_argument("--embree-threads", default="1,2", help="Embree raw thread counts (default 1,2; empty: none)")
     p.add_argument("--rounds", type=int, default=3, help="interleaved timing rounds (default 3)")
     p.add_argument("--no-check", action="store_true", help="skip the hit/miss agreement with the Embree reference")
     p.add_argument("--out", default="bench-trace", help="output folder (default bench-trace)")
-    p.add_argument("--quiet", action="store_true")
+    p.add_argument("--quiet", action="store_true", help="no progress output")
 
 
 @dataclass
@@ -308,16 +309,17 @@ def _plot(report: dict, path: Path) -> None:
 
 
 def run(args) -> int:
-    from viewer.backends import backend_names
+    from viewer.backends import backend_info, backend_names
     from viewer.effects import parse_effects
     from viewer.recording import load_recording, resolve_scene_spec
-    from viewer.reference import EmbreeTracer
+    from viewer.reference import REFERENCE_BACKEND, EmbreeTracer
     from viewer.renderer import Renderer
     from viewer.session import prepare_scene
     from viewer.tracing import shared_context
 
     sizes = _parse_sizes(args.sizes)
-    backends = [b.strip() for b in args.backends.split(",") if b.strip()]
+    backends = [b.strip() for b in args.backends.split(",") if b.strip()] or [
+        b for b in backend_names() if b != REFERENCE_BACKEND and backend_info(b).exact]
     for b in backends:
         if b not in backend_names():
             raise RtwalkError(f"--backends: unknown backend '{b}' (choose from {', '.join(backend_names())})")
@@ -402,15 +404,3 @@ def _reference(tracer, p: Pass) -> tuple[np.ndarray, np.ndarray]:
     o4 = p.origin4.reshape(-1, 4)[p.active]
     d4 = p.dir4.reshape(-1, 4)[p.active]
     return tracer.trace(o4[:, :3], d4[:, :3], o4[:, 3], d4[:, 3], any_hit=p.any_hit)
-
-
-if __name__ == "__main__":  # python3 -m viewer.bench_trace ... (same options as rtwalk bench-trace)
-    import argparse
-
-    parser = argparse.ArgumentParser(prog="python3 -m viewer.bench_trace", description=__doc__.splitlines()[0])
-    add_arguments(parser)
-    try:
-        sys.exit(run(parser.parse_args()))
-    except RtwalkError as exc:
-        print(f"rtwalk: error: {exc}", file=sys.stderr)
-        sys.exit(2)

@@ -15,7 +15,6 @@ import argparse
 import json
 import os
 import platform
-import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -248,18 +247,3 @@ def run(args: argparse.Namespace) -> int:
     print(md)
     print(f"wrote {out / 'bench_cl.json'}, {out / 'bench_cl.md'}, {out / 'bench_cl.png'}")
     return 0
-
-
-def main(argv: list[str] | None = None) -> int:
-    """`python3 -m viewer.cl.bench_primitives` until the CLI has `rtwalk bench-cl`."""
-    parser = argparse.ArgumentParser(prog="rtwalk bench-cl", description=__doc__.splitlines()[0])
-    add_arguments(parser)
-    try:
-        return run(parser.parse_args(argv))
-    except RtwalkError as e:
-        print(f"rtwalk: error: {e}", file=sys.stderr)
-        return 2
-
-
-if __name__ == "__main__":
-    sys.exit(main())
