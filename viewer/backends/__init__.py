@@ -20,6 +20,7 @@ BACKENDS: dict[str, str] = {
     "clbvh": "viewer.backends.clbvh:ClbvhBackend",
     "ugrid": "viewer.backends.ugrid:UgridBackend",
     "pgrid": "viewer.backends.pgrid:PgridBackend",
+    "voxelwalk": "viewer.backends.voxelwalk:VoxelwalkBackend",
 }
 
 
