@@ -144,6 +144,8 @@ class VoxelWalker:
         self._run("ec_init", n, g.header, ray_o, ray_d, u(n), keys, nxt, iters)
         m = self.prims.compact(n, predicate="x != 0xffffffffu", src=nxt, dst_index=act)
         ps.rays = self._active(ray_o, ray_d, n) if stats else m
+        if stats and size is not None:
+            ps.first_cell = np.full(n, 0xFFFFFFFF, np.uint32)  # no active ray: no cell anywhere
         key_bits = max(1, (int(g.stats.cells) - 1).bit_length())
         limit = int(sum(g.stats.res)) + 8  # a 3D-DDA visits at most rx + ry + rz - 2 cells
         trace_s = 0.0
