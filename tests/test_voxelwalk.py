@@ -233,3 +233,32 @@ def test_render_view_overlays(tmp_path, view):
     assert r.returncode == 0, r.stderr
     img = np.asarray(Image.open(out).convert("RGB"), np.int32)
     assert len(np.unique(img.reshape(-1, 3), axis=0)) > 4  # a heat map, not one flat colour
+
+
+def test_counters_per_ray_type_agree_between_modes(gl_ctx):
+    """The room with every material a mirror: IVW and EC walk the same cells, so their statistics
+    per ray type agree; the grid figures are reported once per frame (the renderer sums passes)."""
+    from dataclasses import replace
+
+    from tests.conftest import prepared_scene
+    from viewer.effects import parse_effects
+    from viewer.renderer import Renderer
+
+    ps = prepared_scene("room")
+    scene = replace(ps.scene, materials=[replace(m, mirror=True) for m in ps.scene.materials])
+    got = {}
+    for mode in ("ec", "ivw"):
+        r = Renderer(gl_ctx, scene, ps.bvh, (96, 64), "voxelwalk", parse_effects("shadows,reflections"),
+                     backend_options={"voxelwalk": f"mode={mode},stats=true"})
+        r.render(scene.default_camera)
+        got[mode] = r.render(scene.default_camera).backend_stats
+        res = r.backend.resolution
+        r.release()
+    ec, ivw = got["ec"], got["ivw"]
+    assert (ec["res_x"], ec["res_y"], ec["res_z"]) == tuple(float(x) for x in res)
+    assert ec["grid_build_ms"] == 0.0  # no rebuild on the second frame
+    for key in ("iterations_mean_reflections", "rays_per_cell_reflections", "resolved_first_pct_reflections",
+                "tile_divergence_reflections", "tile_divergence_shadows"):
+        assert ec[key] == pytest.approx(ivw[key]), key
+    assert ec["pairs"] > 0 and ec["workgroups"] > 0 and "pairs" not in ivw
+    assert 1.0 <= ec["tile_divergence_reflections"] <= 64.0

@@ -20,9 +20,12 @@ cells per triangle, shaped like the scene's box: extents per axis and triangle d
 N cells on the longest axis (the thesis used 128^3); the cells per axis are counters res_x/y/z.
 
 Overlays: "iterations" (non-empty cells visited per ray) and "tile_divergence" (distinct first
-cells per 8x8 pixel tile). Counters: pairs, work-groups, EC iterations, rays per cell at the
-first iteration (mean, max), the % of rays resolved at the first iteration and the mean tile
-divergence; the per-iteration series are in `last_stats` (viewer.bench.voxelwalk reads them).
+cells per 8x8 pixel tile). Counters: the grid (res_x/y/z, pairs, build time; once per frame),
+EC ray-cell pairs, work-groups after compaction and iterations (EC passes); with overlays shown
+(or stats=true) per ray type (suffix _<effect>): iterations per walking ray (mean, max), rays per
+cell at the first iteration (mean, max),
+the % of rays resolved at the first iteration and the mean tile divergence. The per-iteration
+series are in `last_stats` (viewer.bench.voxelwalk reads them).
 """
 
 from __future__ import annotations
@@ -86,7 +89,8 @@ class VoxelwalkBackend:
                               "distinct cells per 8x8 pixel tile (first iteration)"),
                   OverlaySpec("iterations", "heat", "iterations", "iterations (non-empty cells visited) per ray")),
         counters=("rays", "res_x", "res_y", "res_z", "grid_build_ms", "pairs", "workgroups", "iterations",
-                  "rays_per_cell", "rays_per_cell_max", "resolved_first_pct", "tile_divergence"),
+                  "iterations_mean_reflections", "rays_per_cell_reflections", "rays_per_cell_max_reflections",
+                  "resolved_first_pct_reflections", "tile_divergence_reflections"),
         device="cl")
 
     def __init__(self, bc: BackendContext, params: VoxelwalkParams | None = None):
@@ -103,6 +107,8 @@ class VoxelwalkBackend:
         self._stages = None
         self._textures: dict[str, Any] = {}
         self.last_stats: PassStats | None = None
+        self._frame_stats: dict[str, float] = {}  # reported by the frame's first pass (the renderer sums passes)
+        self._build_ms = 0.0
         self._rebuild()
 
     # -- geometry -------------------------------------------------------------------------
@@ -120,8 +126,9 @@ class VoxelwalkBackend:
                 self._tris = cl.Buffer(ctx.context, cl.mem_flags.READ_ONLY, max(16, f4.nbytes))
             if f4.nbytes:
                 cl.enqueue_copy(ctx.queue, self._tris, f4)
-            self.grid.build(self._tris, len(tris), *scene_box(tris), self.params.spec())
+            gs = self.grid.build(self._tris, len(tris), *scene_box(tris), self.params.spec())
         self._tris_key = self._geometry_key()
+        self._build_ms += gs.build_ms  # reported by the next frame
 
     @property
     def resolution(self) -> tuple[int, int, int]:
@@ -130,6 +137,10 @@ class VoxelwalkBackend:
     def begin_frame(self, frame_index: int) -> None:
         if self.params.rebuild or self._geometry_key() != self._tris_key:
             self._rebuild()
+        gs = self.grid.stats
+        self._frame_stats = {"res_x": float(gs.res[0]), "res_y": float(gs.res[1]), "res_z": float(gs.res[2]),
+                             "grid_pairs": float(gs.pairs), "grid_build_ms": self._build_ms}
+        self._build_ms = 0.0
 
     def reset(self) -> None:
         pass
@@ -164,9 +175,10 @@ class VoxelwalkBackend:
         with prof.cl_phase("voxelwalk:download", q):
             hs.download(hits)
         self.last_stats = ps
-        gs = self.grid.stats
-        stats = {"rays": float(rs.n), "res_x": float(gs.res[0]), "res_y": float(gs.res[1]), "res_z": float(gs.res[2]),
-                 "grid_build_ms": gs.build_ms, "grid_pairs": float(gs.pairs)}
+        # per frame: grid figures once (first pass); ratios per ray type (the renderer sums a frame's passes)
+        stats = {"rays": float(rs.n), **self._frame_stats}
+        self._frame_stats = {}
+        label = pinfo.ray_type.label
         if ec:
             stats.update({"pairs": float(ps.pairs), "workgroups": float(ps.workgroups),
                           "iterations": float(ps.iterations), "ec_reorder_ms": ps.reorder_ms,
@@ -174,18 +186,19 @@ class VoxelwalkBackend:
         overlays = {}
         if want and ps.iters is not None:
             if ps.rays_per_cell is not None and len(ps.rays_per_cell):
-                stats["rays_per_cell"] = float(ps.rays_per_cell.mean())
-                stats["rays_per_cell_max"] = float(ps.rays_per_cell.max())
+                stats[f"rays_per_cell_{label}"] = float(ps.rays_per_cell.mean())
+                stats[f"rays_per_cell_max_{label}"] = float(ps.rays_per_cell.max())
             res = ps.resolved_fraction()
             if len(res):
-                stats["resolved_first_pct"] = 100.0 * float(res[0])
-            if not ec:
-                stats["iterations"] = float(ps.iterations)
+                stats[f"resolved_first_pct_{label}"] = 100.0 * float(res[0])
+            walked = ps.iters[ps.iters > 0]
+            stats[f"iterations_mean_{label}"] = float(walked.mean()) if len(walked) else 0.0
+            stats[f"iterations_max_{label}"] = float(walked.max()) if len(walked) else 0.0
             div = None
             if ps.first_cell is not None:
                 div, per_tile = tile_divergence(ps.first_cell, rays.size)
                 if len(per_tile):
-                    stats["tile_divergence"] = float(per_tile.mean())
+                    stats[f"tile_divergence_{label}"] = float(per_tile.mean())
             if self.overlays_enabled:
                 overlays["iterations"] = self._texture("iterations", rays.size, ps.iters)
                 if div is not None:
