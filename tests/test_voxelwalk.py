@@ -262,3 +262,27 @@ def test_counters_per_ray_type_agree_between_modes(gl_ctx):
         assert ec[key] == pytest.approx(ivw[key]), key
     assert ec["pairs"] > 0 and ec["workgroups"] > 0 and "pairs" not in ivw
     assert 1.0 <= ec["tile_divergence_reflections"] <= 64.0
+
+
+def test_bench_voxelwalk_end_to_end(tmp_path):
+    """The study on the room: tables, JSON and plots written; IVW and EC agree with clbvh on the rays."""
+    import json
+
+    r = subprocess.run([sys.executable, "-m", "viewer.cli", "bench-voxelwalk", "--scenes", "room", "--sizes", "96x54",
+                        "--repeats", "1", "--resolutions", "8,16", "--out", str(tmp_path), "--quiet"],
+                       capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0, r.stderr
+    for study in ("table51", "iterations", "resolution"):
+        for ext in ("json", "md", "png"):
+            assert (tmp_path / f"{study}.{ext}").stat().st_size > 100, (study, ext)
+    rows = json.loads((tmp_path / "table51.json").read_text())["rows"]
+    (row,) = rows
+    assert row["reflection_rays"] > 0 and row["agreement"] == {"ivw": 1.0, "ec": 1.0}
+    w = row["walk"]
+    assert w["pairs"] >= w["rays"] > 0 and w["workgroups"] >= len(w["rays_per_cell"]) > 0
+    assert abs(sum(w["resolved"]) - 1.0) < 1e-9  # every active reflection ray resolved at some iteration
+    pts = json.loads((tmp_path / "resolution.json").read_text())["scenes"][0]["points"]
+    assert [p["resolution"] for p in pts][:2] == [8, 16] and sum(p["auto"] for p in pts) == 1
+    rb = subprocess.run([sys.executable, "-m", "viewer.cli", "bench-voxelwalk", "--sizes", "big"],
+                        capture_output=True, text=True, timeout=120)
+    assert rb.returncode == 2 and rb.stderr.startswith("rtwalk: error: --sizes")

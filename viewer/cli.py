@@ -164,6 +164,12 @@ def cmd_bench_pgrid(args) -> int:
     return run(args)
 
 
+def cmd_bench_voxelwalk(args) -> int:
+    from viewer.bench.voxelwalk import run
+
+    return run(args)
+
+
 def cmd_info(args) -> int:
     prepared = scene_from_args(args)
     s = prepared.scene
@@ -257,6 +263,10 @@ def build_parser() -> argparse.ArgumentParser:
 
     bp = sub.add_parser("bench-pgrid", help="perspective-grid thesis studies: pgrid vs uniform grid vs BVH")
     add_bench_pgrid_args(bp)
+    from viewer.bench.voxelwalk import add_arguments as add_bench_voxelwalk_args
+
+    add_bench_voxelwalk_args(sub.add_parser("bench-voxelwalk", help="voxel-walk thesis studies: IVW vs EC on "
+                                            "reflection rays, with clbvh on the same rays"))
     from viewer.bench.cl_primitives import add_arguments as add_bench_cl_args
     from viewer.bench.trace_vs_embree import add_arguments as add_bench_trace_args
 
@@ -287,7 +297,8 @@ def main(argv: list[str] | None = None) -> int:
         argv = ["demo"] + argv  # bare `rtwalk [options]` runs the main job
     args = ap.parse_args(argv)
     handlers = {"view": cmd_view, "render": cmd_render, "bench": cmd_bench, "bench-bvh": cmd_bench_bvh,
-                "bench-chcrt": cmd_bench_chcrt, "bench-pgrid": cmd_bench_pgrid, "bench-trace": cmd_bench_trace,
+                "bench-chcrt": cmd_bench_chcrt, "bench-pgrid": cmd_bench_pgrid, "bench-voxelwalk": cmd_bench_voxelwalk,
+                "bench-trace": cmd_bench_trace,
                 "bench-cl": cmd_bench_cl, "info": cmd_info, "demo": cmd_demo}
     if args.command == "demo":
         # demo reuses bench/view; fill in what their parsers would have set
