@@ -277,7 +277,7 @@ def test_bench_voxelwalk_end_to_end(tmp_path):
             assert (tmp_path / f"{study}.{ext}").stat().st_size > 100, (study, ext)
     rows = json.loads((tmp_path / "table51.json").read_text())["rows"]
     (row,) = rows
-    assert row["reflection_rays"] > 0 and row["agreement"] == {"ivw": 1.0, "ec": 1.0}
+    assert row["reflection_rays"] > 0 and row["agreement"] == {"ivw": 1.0, "ec": 1.0, "ec_all": 1.0}
     w = row["walk"]
     assert w["pairs"] >= w["rays"] > 0 and w["workgroups"] >= len(w["rays_per_cell"]) > 0
     assert abs(sum(w["resolved"]) - 1.0) < 1e-9  # every active reflection ray resolved at some iteration
