@@ -459,7 +459,8 @@ def _plot_resolution(out: list[dict], path: Path) -> None:
         xs = [p["resolution"] for p in s["points"]]
         for key, lab in (("ivw_ms", "IVW"), ("ec_ms", "EC total"), ("build_ms", "grid build")):
             ax.plot(xs, [p[key] for p in s["points"]], marker="o", label=lab)
-        ax.axhline(s["points"][0]["clbvh_ms"], color="#4daf4a", ls="--", label="clbvh")
+        ax.axhline(statistics.median(p["clbvh_ms"] for p in s["points"]), color="#4daf4a", ls="--",
+                   label="clbvh (median)")
         for p in s["points"]:
             if p["auto"]:
                 ax.axvline(p["resolution"], color="grey", ls=":", label=f"auto ({p['resolution']})")
