@@ -56,7 +56,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--resolutions", default="64,96,128,192,256",
                    help="resolution study: cells on the longest axis (the auto choice is added)")
     p.add_argument("--out", default="out/bench-voxelwalk", help="output folder")
-    p.add_argument("--quiet", action="store_true")
+    p.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
 
 
 def _log(args, msg: str) -> None:
