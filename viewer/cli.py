@@ -159,6 +159,18 @@ def cmd_bench_chcrt(args) -> int:
     return run(args)
 
 
+def cmd_bench_pgrid(args) -> int:
+    from viewer.bench.pgrid import run
+
+    return run(args)
+
+
+def cmd_bench_voxelwalk(args) -> int:
+    from viewer.bench.voxelwalk import run
+
+    return run(args)
+
+
 def cmd_info(args) -> int:
     prepared = scene_from_args(args)
     s = prepared.scene
@@ -248,6 +260,14 @@ def build_parser() -> argparse.ArgumentParser:
     bc = sub.add_parser("bench-chcrt", help="CHC+RT paper tables: glsl vs chcrt, aggressive mode, phases, overhead")
     add_bench_chcrt_args(bc)
 
+    from viewer.bench.pgrid import add_arguments as add_bench_pgrid_args
+
+    bp = sub.add_parser("bench-pgrid", help="perspective-grid thesis studies: pgrid vs uniform grid vs BVH")
+    add_bench_pgrid_args(bp)
+    from viewer.bench.voxelwalk import add_arguments as add_bench_voxelwalk_args
+
+    add_bench_voxelwalk_args(sub.add_parser("bench-voxelwalk", help="voxel-walk thesis studies: IVW vs EC on "
+                                            "reflection rays, with clbvh on the same rays"))
     from viewer.bench.cl_primitives import add_arguments as add_bench_cl_args
     from viewer.bench.trace_vs_embree import add_arguments as add_bench_trace_args
 
@@ -280,8 +300,8 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     args.command_line = shlex.join(["rtwalk", *argv])  # what the reports quote to reproduce a run
     handlers = {"view": cmd_view, "render": cmd_render, "bench": cmd_bench, "bench-bvh": cmd_bench_bvh,
-                "bench-chcrt": cmd_bench_chcrt, "bench-trace": cmd_bench_trace, "bench-cl": cmd_bench_cl,
-                "bench-voxels": bench_voxels.run,
+                "bench-chcrt": cmd_bench_chcrt, "bench-pgrid": cmd_bench_pgrid, "bench-voxelwalk": cmd_bench_voxelwalk,
+                "bench-trace": cmd_bench_trace, "bench-cl": cmd_bench_cl, "bench-voxels": bench_voxels.run,
                 "info": cmd_info, "demo": cmd_demo}
     if args.command == "demo":
         # demo reuses bench/view; fill in what their parsers would have set

@@ -233,10 +233,14 @@ def _load_file(path: Path, given: str, mirror_patterns: list[str], progress: boo
         print(f"{path.name}: {n}", file=sys.stderr)
     scene = Scene(name=path.stem, triangles=tris, material_ids=mats, materials=materials,
                   identity={"file": given, "name": path.name}, notes=notes)
+    from viewer.presets import apply_preset, find_preset
+
+    preset = find_preset(path.name, len(tris))
+    patterns = apply_preset(scene, preset) if preset is not None else []  # shipped presets (viewer/presets)
     sidecar = path.with_name(path.name + ".rtwalk.json")
-    patterns = list(mirror_patterns)
     if sidecar.exists():
         patterns += _apply_sidecar(scene, sidecar)
+    patterns += list(mirror_patterns)
     _apply_mirrors(scene.materials, patterns)
     if not scene.point_lights and not scene.rect_lights:
         default_lights(scene)
