@@ -98,6 +98,7 @@ class UgridBackend:
         self._tris_key: tuple[int, int] | None = None
         self._stages = None  # (size, RayStage, HitStage, tests buffer)
         self._overlay = None
+        self._grid_stats_due = True
         self._rebuild()
 
     # -- geometry -------------------------------------------------------------------------
@@ -124,6 +125,7 @@ class UgridBackend:
     def begin_frame(self, frame_index: int) -> None:
         if self.params.rebuild or self._geometry_key() != self._tris_key:
             self._rebuild()
+        self._grid_stats_due = True  # the grid's counters go with the frame's first pass only
 
     def reset(self) -> None:
         pass
@@ -154,7 +156,10 @@ class UgridBackend:
                                 tests if count else None)
         with prof.cl_phase("ugrid:download", q):
             hs.download(hits)
-        stats = {"rays": float(rs.n), **self.grid.stats.as_dict()}
+        stats = {"rays": float(rs.n)}
+        if getattr(self, "_grid_stats_due", True):
+            stats.update(self.grid.stats.as_dict())
+            self._grid_stats_due = False
         overlays = {}
         if count:
             overlays["triangle_tests"], stats["tests_per_ray"] = self._overlay_texture(rays.size, tests, rs.n)
