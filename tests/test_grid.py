@@ -111,9 +111,34 @@ def build_grid(tris: np.ndarray, spec: GridSpec):
     lo, hi = scene_box(tris)
     stats = g.build(buf, len(tris), lo, hi, spec)
     out = g.to_numpy()
+    cell_blocks, blocks = g.blocks_to_numpy()
     g.release()
+    check_blocks(tris, out[1], out[2], cell_blocks, blocks)
     buf.release()
     return stats, *out
+
+
+def check_blocks(tris, cells, refs, cell_blocks, blocks) -> None:
+    """Each cell's SoA blocks hold its refs in order, four per block, with their vertices; padding
+    lanes are slot -1 and NaN."""
+    from viewer.accel.grid import GRID_BLOCK_DTYPE
+
+    assert blocks.dtype == GRID_BLOCK_DTYPE and GRID_BLOCK_DTYPE.itemsize == 160
+    count = cells[:, 1].astype(np.int64)
+    nb = (count + 3) // 4
+    assert np.array_equal(cell_blocks.astype(np.int64), np.cumsum(nb) - nb)
+    assert len(blocks) == nb.sum()
+    # expected slot of every (block, lane)
+    cell_of_block = np.repeat(np.arange(len(cells)), nb)
+    k = (np.arange(len(blocks)) - cell_blocks[cell_of_block].astype(np.int64))[:, None] * 4 + np.arange(4)
+    valid = k < count[cell_of_block][:, None]
+    src = cells[cell_of_block, 0].astype(np.int64)[:, None] + k
+    want = np.where(valid, refs[np.where(valid, src, 0)].astype(np.int64), -1)
+    assert np.array_equal(blocks["slot"], want)
+    v = blocks["v"].transpose(0, 2, 1).reshape(-1, 4, 3, 3)  # (block, lane, vertex, axis)
+    t = np.asarray(tris, F32).reshape(-1, 3, 3)
+    assert np.array_equal(v[valid], t[want[valid]], equal_nan=True)
+    assert np.isnan(v[~valid]).all()
 
 
 def check_grid(tris: np.ndarray, spec: GridSpec) -> dict:

@@ -24,6 +24,9 @@ Layouts (device buffers, all little-endian):
   cells  : uint32 (ncells, 2): first ref, ref count; cell id = x + rx * (y + ry * z)
   refs   : uint32 (pairs,): triangle slots, grouped by cell in cell order
   tris   : float32 (n, 3, 4): the triangles' vertices as float4 (w = 0); `triangles_f4`
+  blocks : GRID_BLOCK_DTYPE (nblocks,): each cell's triangles four at a time in SoA form for the
+           float4 triangle test (rt_intersect_triangle4); cell c's ceil(count / 4) blocks start
+           at cell_blocks[c] (uint32 (ncells,))
 """
 
 from __future__ import annotations
@@ -44,6 +47,10 @@ MAX_PAIRS = 2**26  # pairs in one build (keys + values + sort scratch: 16 bytes 
 GRID_DTYPE = np.dtype([("lo", "<f4", 4), ("hi", "<f4", 4), ("cell", "<f4", 4), ("inv", "<f4", 4),
                        ("eps", "<f4", 4), ("res", "<i4", 4)])
 assert GRID_DTYPE.itemsize == 96
+
+#: Four triangles of one cell: v[3 * vertex + axis, lane] (NaN padding), their slots (-1 padding).
+GRID_BLOCK_DTYPE = np.dtype([("v", "<f4", (9, 4)), ("slot", "<i4", 4)])
+assert GRID_BLOCK_DTYPE.itemsize == 160
 
 
 @dataclass
@@ -141,7 +148,8 @@ class UniformGrid:
         self.prims = prims or primitives(self.ctx)
         prog = build(KERNEL, {"WG": WG}, self.ctx)
         cl = self.ctx.cl
-        self._k = {name: cl.Kernel(prog, name) for name in ("grid_count", "grid_write", "grid_ranges")}
+        self._k = {name: cl.Kernel(prog, name) for name in ("grid_count", "grid_write", "grid_ranges",
+                                                             "grid_block_counts", "grid_blocks")}
         self._bufs: dict[str, Any] = {}
         self.header_host = np.zeros(1, GRID_DTYPE)
         self.header = self._buf("header", GRID_DTYPE.itemsize)
@@ -163,6 +171,14 @@ class UniformGrid:
     @property
     def refs(self) -> Any:
         return self._bufs["vals"]
+
+    @property
+    def blocks(self) -> Any:
+        return self._bufs["blocks"]
+
+    @property
+    def cell_blocks(self) -> Any:
+        return self._bufs["cell_blocks"]
 
     def _run(self, name: str, n: int, *args: Any) -> None:
         if n:
@@ -198,6 +214,12 @@ class UniformGrid:
             seg = self.prims.segments(keys, pairs, None, out=self._chunks(pairs))
             nonempty = seg.count
             self._run("grid_ranges", nonempty, seg.key, seg.start, seg.length, u(nonempty), cells)
+        cell_blocks = self._buf("cell_blocks", 4 * ncells)
+        self._run("grid_block_counts", ncells, cells, u(ncells), cell_blocks)
+        nblocks = self.prims.exclusive_scan(cell_blocks, cell_blocks, ncells)
+        blocks = self._buf("blocks", GRID_BLOCK_DTYPE.itemsize * max(nblocks, 1))
+        if nblocks:
+            self._run("grid_blocks", ncells, cells, cell_blocks, vals, tris, u(ncells), blocks)
         q.finish()
         self.stats = GridStats(tuple(int(r) for r in res), ncells, int(pairs), int(nonempty),
                                (time.perf_counter() - t0) * 1e3)
@@ -219,6 +241,19 @@ class UniformGrid:
         if self.stats.pairs:
             self.ctx.cl.enqueue_copy(q, refs, self.refs)
         return self.header_host.copy(), cells, refs
+
+    def blocks_to_numpy(self) -> tuple[np.ndarray, np.ndarray]:
+        """(cell_blocks (ncells,) uint32, blocks GRID_BLOCK_DTYPE) copied from the device."""
+        assert self.stats is not None, "build first"
+        cb = np.empty(self.stats.cells, np.uint32)
+        q = self.ctx.queue
+        self.ctx.cl.enqueue_copy(q, cb, self.cell_blocks)
+        counts = self.to_numpy()[1][:, 1].astype(np.int64)
+        nb = int(((counts + 3) // 4).sum())
+        blocks = np.empty(nb, GRID_BLOCK_DTYPE)
+        if nb:
+            self.ctx.cl.enqueue_copy(q, blocks, self.blocks)
+        return cb, blocks
 
     def release(self) -> None:
         for buf in self._bufs.values():

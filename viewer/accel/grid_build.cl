@@ -67,3 +67,47 @@ void grid_ranges(__global const uint *seg_key, __global const uint *seg_start, _
     if (i >= m) return;
     cells[seg_key[i]] = (uint2)(seg_start[i], seg_len[i]);
 }
+
+// Blocks per cell for the walkers' four-wide test: nblocks[c] = ceil(count / 4).
+__kernel __attribute__((reqd_work_group_size(WG, 1, 1)))
+void grid_block_counts(__global const uint2 *cells, const uint ncells, __global uint *nblocks) {
+    uint c = get_global_id(0);
+    if (c >= ncells) return;
+    nblocks[c] = (cells[c].y + 3u) >> 2;
+}
+
+// The triangles of each cell four at a time in SoA form (GRID_BLOCK_DTYPE in grid.py): rows
+// v0x, v0y, v0z, v1x, v1y, v1z, v2x, v2y, v2z (one lane per triangle, NaN padding), then the
+// four triangle slots (-1 padding). Cell c's blocks start at block_start[c].
+__kernel __attribute__((reqd_work_group_size(WG, 1, 1)))
+void grid_blocks(__global const uint2 *cells, __global const uint *block_start, __global const uint *refs,
+                 __global const float4 *tris, const uint ncells, __global float4 *blocks) {
+    uint c = get_global_id(0);
+    if (c >= ncells) return;
+    uint2 cr = cells[c];
+    uint b0 = block_start[c];
+    uint nb = (cr.y + 3u) >> 2;
+    for (uint b = 0; b < nb; ++b) {
+        float v[9][4];
+        int slots[4];
+        for (int lane = 0; lane < 4; ++lane) {
+            uint k = 4u * b + (uint)lane;
+            if (k < cr.y) {
+                uint slot = refs[cr.x + k];
+                slots[lane] = (int)slot;
+                for (int vi = 0; vi < 3; ++vi) {
+                    float4 p = tris[3 * slot + vi];
+                    v[3 * vi][lane] = p.x;
+                    v[3 * vi + 1][lane] = p.y;
+                    v[3 * vi + 2][lane] = p.z;
+                }
+            } else {
+                slots[lane] = -1;
+                for (int row = 0; row < 9; ++row) v[row][lane] = NAN;
+            }
+        }
+        __global float4 *blk = blocks + 10 * (b0 + b);
+        for (int row = 0; row < 9; ++row) blk[row] = (float4)(v[row][0], v[row][1], v[row][2], v[row][3]);
+        blk[9] = as_float4((int4)(slots[0], slots[1], slots[2], slots[3]));
+    }
+}

@@ -5,7 +5,8 @@
 // alpha = atan2(u.right, u.fwd) and elevation theta = asin(u.up); the forward axis points at the
 // rays (away from the poles +-up). Tiles cover the angular rectangle of the rays (grown by the
 // margin): tile (ia, it) = floor((alpha - alpha0) * rect.z), floor((theta - theta0) * rect.w).
-// Slab s holds the triangles whose distance from E is at least s * slab width (a lower bound).
+// Slab s holds the triangles whose distance from E is at least d0 + s * slab width (a lower
+// bound; d0 = distance from E to the scene box, so the slabs span only the geometry).
 #include "geometry.cl"
 
 #ifndef WG
@@ -18,7 +19,7 @@ typedef struct {
     float4 up;
     float4 right;
     float4 rect;    // alpha0, theta0, tiles per radian (alpha), tiles per radian (theta)
-    float4 slab;    // slab width, 1 / slab width, tan(margin), unused
+    float4 slab;    // slab width, 1 / slab width, tan(margin), d0 (distance from E to the scene box)
     int4 res;       // tiles in alpha, tiles in theta, slabs, tiles * slabs
 } PGrid;
 
@@ -28,11 +29,13 @@ inline float2 pg_angles(const PGrid *g, float3 u) {
     return (float2)(a, t);
 }
 
-// A ray's place in the grid: false when its segment does not stay within the margin of one
-// direction from E (then it is traced another way). *u_out: that direction, *far: an upper
-// bound of the distance from E of the segment's points, *h: distance of the ray's line from E,
-// *lam0: lambda(t) = *lam0 + t * |d| is the signed distance along u... of o + t d (outward rays).
-inline bool pg_ray(const PGrid *g, float4 ot, float4 dt, float3 *u_out, float *far, float *h_out) {
+// A ray's place in the grid: false when its segment does not stay within the margin cap
+// (slab.z = tan of the largest margin allowed) of one direction u from E (then it is traced
+// another way). Only segment points at least d0 (slab.w: distance from E to the scene box) from E
+// can meet a triangle, so the deviation that matters is *dev = h / max(lambda_min, sqrt(d0^2 - h^2)),
+// with h the distance of the ray's line from E and lambda_min the nearest along-ray distance of
+// the segment (rounded up; an upper bound of the angle). Computed in double.
+inline bool pg_ray(const PGrid *g, float4 ot, float4 dt, float3 *u_out, float *dev) {
     if (!(dt.w > ot.w) || !isfinite(ot.x) || !isfinite(ot.y) || !isfinite(ot.z) || !isfinite(ot.w) ||
         !isfinite(dt.x) || !isfinite(dt.y) || !isfinite(dt.z) || isnan(dt.w))
         return false;
@@ -50,29 +53,32 @@ inline bool pg_ray(const PGrid *g, float4 ot, float4 dt, float3 *u_out, float *f
     if (l0 >= 0.0) { lmin = l0; *u_out = convert_float3(dh); }
     else if (l1 <= 0.0) { lmin = -l1; *u_out = convert_float3(-dh); }
     else return false;
-    if (!(h <= (double)g->slab.z * lmin)) return false;
-    double lfar = fmax(fabs(l0), fabs(l1));
-    *far = (float)((lfar + h) * (1.0 + 1e-6));
-    *h_out = (float)h;
+    double d0 = (double)g->slab.w;
+    double lam = fmax(lmin, sqrt(fmax(d0 * d0 - h * h, 0.0)));
+    double dv = h == 0.0 ? 0.0 : (lam > 0.0 ? h / lam : INFINITY);
+    if (!(dv <= (double)g->slab.z)) return false;
+    *dev = (float)(dv * (1.0 + 1e-6)) + 1e-30f;
     return true;
 #else
     return false;  // without doubles every ray takes the other way (still exact)
 #endif
 }
 
-// Per ray: tile key (ntiles = not in the grid), angles (0 for rays not in the grid), flags.
+// Per ray: angles of u (0 for rays not in the grid), its deviation bound (0 when not in the grid)
+// and whether it is outside the grid.
 __kernel __attribute__((reqd_work_group_size(WG, 1, 1)))
 void pg_classify(__global const PGrid *grid, __global const float4 *ray_o, __global const float4 *ray_d, const uint n,
-                 __global float *alpha, __global float *theta, __global uint *outside) {
+                 __global float *alpha, __global float *theta, __global float *dev, __global uint *outside) {
     uint i = get_global_id(0);
     if (i >= n) return;
     PGrid g = *grid;
     float3 u;
-    float far, h;
-    bool ok = pg_ray(&g, ray_o[i], ray_d[i], &u, &far, &h);
+    float dv = 0.0f;
+    bool ok = pg_ray(&g, ray_o[i], ray_d[i], &u, &dv);
     float2 at = ok ? pg_angles(&g, u) : (float2)(0.0f);
     alpha[i] = at.x;
     theta[i] = at.y;
+    dev[i] = ok ? dv : 0.0f;
     outside[i] = ok ? 0u : 1u;
 }
 
@@ -109,7 +115,7 @@ inline bool pg_tri(const PGrid *g, __global const float4 *tris, uint i, int4 *ra
     float nl = length(nrm);
     float dplane = nl > 0.0f ? fabs(rt_dot(nrm, a)) / nl : 0.0f;
     float dmin = fmax(fmax(dplane, dc - R), 0.0f) * (1.0f - 1e-5f);
-    *slab = clamp((int)floor(dmin * g->slab.y), 0, g->res.z - 1);
+    *slab = clamp((int)floor((dmin - g->slab.w) * g->slab.y), 0, g->res.z - 1);
     float amin = -M_PI_F, amax = M_PI_F, tmin = -M_PI_2_F, tmax = M_PI_2_F;
     bool everywhere = !(dc > 0.0f && la > 0.0f && lb > 0.0f && lc > 0.0f);
     if (!everywhere) {

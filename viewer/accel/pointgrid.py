@@ -6,10 +6,13 @@ Narayanan (ICVGIP 2008, perspective grids); built per pass on the OpenCL device.
 Build (kernels in pointgrid.cl beside this file, primitives from viewer.cl.primitives):
  1. frame: forward axis = mean direction from the centre of a strided sample of the rays (so the
     rays lie away from the poles of the spherical mapping), up/right orthogonal to it (host).
- 2. rays: per ray, its direction u from the centre and whether its whole segment stays within
-    `margin` radians of u (checked in double: line distance from the centre <= tan(margin) x the
-    nearest along-ray distance). Rays that do not ("outside": other origins, inactive rays,
-    segments through the centre) are compacted into a list and traced another way.
+ 2. rays: per ray, its direction u from the centre and an upper bound of how far (in angle) its
+    segment strays from u where it could meet geometry: h / max(nearest along-ray distance,
+    sqrt(d0^2 - h^2)), h = distance of the ray's line from the centre, d0 = distance from the
+    centre to the scene box (computed in double). Rays above `margin` ("outside": other origins,
+    inactive rays, segments through the centre) are compacted into a list and traced another
+    way; the grid's margin is the largest bound of the rays it keeps (a max-reduce), so rays
+    that meet exactly in the centre (the eye) or lights outside the scene box cost no margin.
  3. angular rectangle of the rays (min/max reduce), grown by the margin; tiles over it
     (~tile_rays rays per tile, or `tiles` on the longer side); slabs by distance from the centre.
  4. (tile, ray) pairs radix-sorted; segments cut into chunks of at most `chunk` rays.
@@ -22,7 +25,8 @@ Build (kernels in pointgrid.cl beside this file, primitives from viewer.cl.primi
     cell_start (ncells + 1 entries), so a tile's triangles are contiguous and in slab order.
 
 Layouts: header PGRID_DTYPE (112 bytes: float4 centre (w = margin), fwd, up, right, rect (alpha0,
-theta0, tiles per radian in alpha and theta), slab (width, 1 / width, tan(margin), 0); int4 res
+theta0, tiles per radian in alpha and theta), slab (width, 1 / width, tan(margin), d0 = distance
+from the centre to the scene box, where slab 0 starts); int4 res
 (tiles alpha, tiles theta, slabs, cells)); cell_start uint32 (ncells + 1,); refs uint32 (pairs,)
 triangle slots; chunks: viewer.cl.primitives.Chunks over the sorted ray keys (key = tile,
 ntiles for rays outside the grid), ray_vals uint32 (n,) ray indices in that order.
@@ -162,20 +166,25 @@ class PointGrid:
         t0 = time.perf_counter()
         centre = np.asarray(centre, np.float64)
         fwd, up, right = choose_frame(centre, *sample)
+        d0 = float(np.linalg.norm(centre - np.clip(centre, scene_lo, scene_hi))) * (1 - 1e-6)
         h = np.zeros(1, PGRID_DTYPE)
         h["centre"][0, :3], h["centre"][0, 3] = centre, spec.margin
         h["fwd"][0, :3], h["up"][0, :3], h["right"][0, :3] = fwd, up, right
-        h["slab"][0, 2] = np.tan(spec.margin)
+        h["slab"][0, 2:] = (np.tan(spec.margin), d0)
         h["res"][0] = (1, 1, 1, 1)
         cl.enqueue_copy(q, self.header, h)
         alpha, theta = self.buf("alpha", 4 * n), self.buf("theta", 4 * n)
-        outside = self.buf("outside", 4 * n)
-        self._run("pg_classify", n, self.header, ray_o, ray_d, u(n), alpha, theta, outside)
+        dev, outside = self.buf("dev", 4 * n), self.buf("outside", 4 * n)
+        self._run("pg_classify", n, self.header, ray_o, ray_d, u(n), alpha, theta, dev, outside)
         out_idx = self.buf("outside_idx", 4 * n)
         self.outside_count = p.compact(n, flags=outside, dst_index=out_idx) if n else 0
         in_grid = n - self.outside_count
+        # margin: the largest deviation of a ray in the grid (at most spec.margin), plus float slack
+        m = float(p.reduce(dev, n, "max", np.float32)) * (1 + 1e-4) + 1e-6 if in_grid else spec.margin
+        m = min(m, spec.margin)
+        h["centre"][0, 3] = m
+        self.margin = m
         # the rays' angular rectangle, grown by the margin
-        m = spec.margin
         if in_grid:
             a0, a1 = float(p.reduce(alpha, n, "min", np.float32)), float(p.reduce(alpha, n, "max", np.float32))
             e0, e1 = float(p.reduce(theta, n, "min", np.float32)), float(p.reduce(theta, n, "max", np.float32))
@@ -189,7 +198,7 @@ class PointGrid:
         corners = np.array([[x, y, z] for x in (scene_lo[0], scene_hi[0]) for y in (scene_lo[1], scene_hi[1])
                             for z in (scene_lo[2], scene_hi[2])], np.float64)
         dmax = float(np.linalg.norm(corners - centre, axis=1).max()) * 1.0001 + 1e-30
-        width = dmax / ns
+        width = max(dmax - d0, 1e-30) / ns
         h["rect"][0] = (a0, e0, na / (a1 - a0), nt / (e1 - e0))
         h["slab"][0, :2] = (width, 1.0 / width)
         ncells = na * nt * ns
@@ -241,7 +250,9 @@ class PointGrid:
         out = Chunks(0, self.buf("ch_key", 4 * n), self.buf("ch_start", 4 * n), self.buf("ch_len", 4 * n))
         self.chunks = self.prims.segments(rk, n, spec.chunk if balance else None, out=out)
         self.ctx.queue.finish()
-        self.stats.chunks = self.chunks.count
+        outside = self.outside_count
+        sentinel = (-(-outside // spec.chunk) if balance else 1) if outside else 0
+        self.stats.chunks = self.chunks.count - sentinel  # chunks of the outside rays are not traced here
         self.stats.rearrange_ms = (time.perf_counter() - t0) * 1e3
         return self.stats
 

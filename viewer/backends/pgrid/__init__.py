@@ -183,7 +183,7 @@ class PgridBackend:
         stats: dict[str, float] = {"rays": float(rs.n)}
         if point is None:
             with prof.cl_phase(f"trace:{label}", q):
-                self.tracer.enqueue(self._tris, rs.origin, rs.dir, hs.t, hs.tri, rs.n, pinfo.any_hit,
+                self.tracer.enqueue(rs.origin, rs.dir, hs.t, hs.tri, rs.n, pinfo.any_hit,
                                     tests if count else None)
         else:
             centre, so, sd = point
@@ -194,12 +194,12 @@ class PgridBackend:
             with prof.cl_phase(f"pgrid:rearrange:{label}", q):
                 st = pg.rearrange(rs.n, spec, balance=self.params.balance)
             with prof.cl_phase(f"trace:{label}", q):
-                if st.chunks:
+                if pg.chunks.count:
                     ch = pg.chunks
-                    self._kernels[count](q, (st.chunks * self.params.chunk,), (self.params.chunk,), pg.header,
+                    self._kernels[count](q, (pg.chunks.count * self.params.chunk,), (self.params.chunk,), pg.header,
                                          ch.key, ch.start, ch.length, pg.ray_vals, pg.cell_start, pg.refs, self._tris,
                                          rs.origin, rs.dir, hs.t, hs.tri, np.int32(pinfo.any_hit), tests)
-                self.tracer.enqueue(self._tris, rs.origin, rs.dir, hs.t, hs.tri, st.outside, pinfo.any_hit,
+                self.tracer.enqueue(rs.origin, rs.dir, hs.t, hs.tri, st.outside, pinfo.any_hit,
                                     tests if count else None, index=pg.outside_index)
             stats.update(st.as_dict(self.params.chunk))
             # the same per ray type (the renderer sums a frame's passes)

@@ -75,7 +75,7 @@ void pg_trace(__global const PGrid *grid, __global const uint *chunk_key, __glob
     float chunk_far = as_float(far_bits);
     uint cell0 = key * (uint)g.res.z;
     for (int s = 0; s < g.res.z; ++s) {
-        float slab_lo = ((float)s - 0.001f) * g.slab.x;
+        float slab_lo = g.slab.w + ((float)s - 0.001f) * g.slab.x;
         if (remaining == 0 || slab_lo > chunk_far) break;  // same value in every work-item
         uint a = cell_start[cell0 + s], b = cell_start[cell0 + s + 1];
         for (uint base_i = a; base_i < b; base_i += WG) {
@@ -105,7 +105,7 @@ void pg_trace(__global const PGrid *grid, __global const uint *chunk_key, __glob
         }
         if (!any_hit && !done && hit_id >= 0 && outward) {
             // slab check: every triangle of the later slabs is at least this far from E
-            float next_lo = ((float)(s + 1) - 0.001f) * g.slab.x;
+            float next_lo = g.slab.w + ((float)(s + 1) - 0.001f) * g.slab.x;
             float dist = base + hit_t * dlen + h;
             if (dist < next_lo) { done = true; atomic_dec(&remaining); }
         }

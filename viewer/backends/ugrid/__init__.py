@@ -67,7 +67,7 @@ class GridTracer:
                 self.kernels[(False, count, idx)] = cl.Kernel(prog, "trace_closest" + sfx)
                 self.kernels[(True, count, idx)] = cl.Kernel(prog, "trace_any" + sfx)
 
-    def enqueue(self, tris: Any, ray_o: Any, ray_d: Any, out_t: Any, out_id: Any, n: int, any_hit: bool,
+    def enqueue(self, ray_o: Any, ray_d: Any, out_t: Any, out_id: Any, n: int, any_hit: bool,
                 tests: Any = None, index: Any = None) -> None:
         """Trace rays 0..n-1, or with `index` (uint32 buffer) the n rays it lists."""
         if n == 0:
@@ -75,8 +75,8 @@ class GridTracer:
         g = self.grid
         k = self.kernels[(bool(any_hit), tests is not None, index is not None)]
         extra = (index,) if index is not None else ()
-        k(self.ctx.queue, (-(-n // WG) * WG,), (WG,), g.header, g.cells, g.refs, tris, ray_o, ray_d, out_t,
-          out_id, np.int32(n), tests if tests is not None else out_id, *extra)
+        k(self.ctx.queue, (-(-n // WG) * WG,), (WG,), g.header, g.cells, g.blocks, g.cell_blocks, ray_o, ray_d,
+          out_t, out_id, np.int32(n), tests if tests is not None else out_id, *extra)
 
 
 class UgridBackend:
@@ -98,6 +98,7 @@ class UgridBackend:
         self._tris_key: tuple[int, int] | None = None
         self._stages = None  # (size, RayStage, HitStage, tests buffer)
         self._overlay = None
+        self._grid_stats_due = True
         self._rebuild()
 
     # -- geometry -------------------------------------------------------------------------
@@ -124,6 +125,7 @@ class UgridBackend:
     def begin_frame(self, frame_index: int) -> None:
         if self.params.rebuild or self._geometry_key() != self._tris_key:
             self._rebuild()
+        self._grid_stats_due = True  # the grid's counters go with the frame's first pass only
 
     def reset(self) -> None:
         pass
@@ -150,11 +152,14 @@ class UgridBackend:
         with prof.cl_phase("ugrid:upload", q):
             rs.upload(rays)
         with prof.cl_phase(f"trace:{pinfo.ray_type.label}", q):
-            self.tracer.enqueue(self._tris, rs.origin, rs.dir, hs.t, hs.tri, rs.n, pinfo.any_hit,
+            self.tracer.enqueue(rs.origin, rs.dir, hs.t, hs.tri, rs.n, pinfo.any_hit,
                                 tests if count else None)
         with prof.cl_phase("ugrid:download", q):
             hs.download(hits)
-        stats = {"rays": float(rs.n), **self.grid.stats.as_dict()}
+        stats = {"rays": float(rs.n)}
+        if getattr(self, "_grid_stats_due", True):
+            stats.update(self.grid.stats.as_dict())
+            self._grid_stats_due = False
         overlays = {}
         if count:
             overlays["triangle_tests"], stats["tests_per_ray"] = self._overlay_texture(rays.size, tests, rs.n)

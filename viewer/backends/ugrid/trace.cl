@@ -1,6 +1,7 @@
 // ugrid: one work-item per ray walks the uniform grid (viewer/accel/grid.py; layout and 3D-DDA in
-// viewer/cl/kernels/grid.cl) and tests the triangles listed in each cell it visits with the
-// watertight test of geometry.cl. Closest hit: the walk stops after the first cell whose exit
+// viewer/cl/kernels/grid.cl) and tests the triangles listed in each cell it visits, four at a
+// time from the cell's SoA blocks (grid.py GRID_BLOCK_DTYPE), with the watertight float4 test of
+// geometry.cl. Closest hit: the walk stops after the first cell whose exit
 // distance is at or beyond the nearest hit found so far (the hit-inside-cell check: a triangle
 // listed in several cells may be hit beyond the current cell, and a nearer one may still lie in
 // the cells between). Any hit (shadow, soft, AO): stops at the first hit in (tmin, tmax).
@@ -12,8 +13,8 @@
 #define WG 64
 #endif
 
-inline void trace_ray(const Grid *g, __global const uint2 *cells, __global const uint *refs,
-                      __global const float4 *tris, float4 ot, float4 dt, const bool any_hit,
+inline void trace_ray(const Grid *g, __global const uint2 *cells, __global const float4 *blocks,
+                      __global const uint *cell_blocks, float4 ot, float4 dt, const bool any_hit,
                       float *out_t, int *out_id, int *out_tests) {
     float tmin = ot.w;
     float hit_t = dt.w;
@@ -25,16 +26,21 @@ inline void trace_ray(const Grid *g, __global const uint2 *cells, __global const
         float t_enter;
         if (grid_walk_begin(g, &r, tmin, hit_t, &w, &t_enter)) {
             while (true) {
-                uint2 cr = cells[grid_cell_id(g, w.cell)];
-                for (uint k = 0; k < cr.y; ++k) {
-                    uint slot = refs[cr.x + k];
-                    __global const float4 *v = tris + 3 * slot;
-                    float t;
-                    ++tests;
-                    if (rt_intersect_triangle(&r, v[0].xyz, v[1].xyz, v[2].xyz, tmin, hit_t, &t)) {
-                        hit_t = t;
-                        hit_id = (int)slot;
-                        if (any_hit) goto done;
+                int cid = grid_cell_id(g, w.cell);
+                uint cnt = cells[cid].y;
+                if (cnt > 0) {
+                    __global const float4 *blk = blocks + 10 * cell_blocks[cid];
+                    for (uint k = 0; k < cnt; k += 4, blk += 10) {
+                        int4 slots = as_int4(blk[9]);
+                        int4 lanes = slots >= (int4)(0);
+                        float t;
+                        tests += min(4u, cnt - k);
+                        int lane = rt_intersect_triangle4(&r, blk, lanes, tmin, hit_t, &t);
+                        if (lane >= 0) {
+                            hit_t = t;
+                            hit_id = lane == 0 ? slots.x : (lane == 1 ? slots.y : (lane == 2 ? slots.z : slots.w));
+                            if (any_hit) goto done;
+                        }
                     }
                 }
                 if (hit_id >= 0 && hit_t <= grid_cell_exit(&w)) break;
@@ -56,8 +62,8 @@ done:
 
 #define TRACE_KERNEL(name, ANY, INDEX_ARG, RAY)                                                              \
 __kernel __attribute__((reqd_work_group_size(WG, 1, 1)))                                                    \
-void name(__global const Grid *grid, __global const uint2 *cells, __global const uint *refs,                \
-          __global const float4 *tris, __global const float4 *ray_o, __global const float4 *ray_d,          \
+void name(__global const Grid *grid, __global const uint2 *cells, __global const float4 *blocks,           \
+          __global const uint *cell_blocks, __global const float4 *ray_o, __global const float4 *ray_d,     \
           __global float *out_t, __global int *out_id, const int n, __global int *tests_out INDEX_ARG) {    \
     int j = get_global_id(0);                                                                               \
     if (j >= n) return;                                                                                     \
@@ -65,7 +71,7 @@ void name(__global const Grid *grid, __global const uint2 *cells, __global const
     Grid g = *grid;                                                                                         \
     float t;                                                                                                \
     int id, tests;                                                                                          \
-    trace_ray(&g, cells, refs, tris, ray_o[i], ray_d[i], ANY, &t, &id, &tests);                             \
+    trace_ray(&g, cells, blocks, cell_blocks, ray_o[i], ray_d[i], ANY, &t, &id, &tests);                    \
     out_t[i] = t;                                                                                           \
     out_id[i] = id;                                                                                         \
     STORE_TESTS                                                                                             \
