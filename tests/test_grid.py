@@ -12,7 +12,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from tests.conftest import RECORDINGS, prepared_scene
+from tests.conftest import prepared_scene
 from tests.test_hard_cases import (  # noqa: F401  (collected here again, with the grid backends)
     assert_matches,
     run_case,
@@ -29,6 +29,7 @@ from tests.test_hard_cases import (  # noqa: F401  (collected here again, with t
     test_translated_scene,
 )
 from viewer.accel.grid import GRID_DTYPE, GridSpec, grid_header, grid_resolution, scene_box, triangles_f4
+from viewer.paths import RECORDINGS
 from viewer.reference import EmbreeTracer, compare_hits
 
 
@@ -394,12 +395,12 @@ def trace_centred(tris, o, d, tmin, tmax, ray_type, light=None, params: str | No
     from viewer.accel.bvh import build_bvh
     from viewer.backends import create_backend
     from viewer.backends.base import BackendContext
+    from viewer.gl.context import shared_context
     from viewer.gl.programs import ProgramCache
     from viewer.gl.scene import GpuScene
     from viewer.profiler import GpuProfiler
     from viewer.rays import HitBuffer, PassInfo, RayBatch
     from viewer.scene import Material, PointLight, Scene
-    from viewer.tracing import shared_context
 
     ctx = shared_context()
     tris = np.ascontiguousarray(tris, F32)

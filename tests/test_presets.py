@@ -11,7 +11,8 @@ import numpy as np
 import pytest
 import trimesh
 
-from tests.conftest import RECORDINGS, shared_scene
+from tests.conftest import shared_scene
+from viewer.paths import RECORDINGS
 from viewer.presets import part_labels
 from viewer.scene_io import load_scene
 

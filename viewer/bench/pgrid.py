@@ -391,7 +391,7 @@ def _command() -> str:
 
 def run(args) -> int:
     from viewer.cl import cl_context
-    from viewer.tracing import shared_context
+    from viewer.gl.context import shared_context
 
     studies = _list(args.study, STUDIES, "--study")
     _list(args.scenes, SCENES, "--scenes")

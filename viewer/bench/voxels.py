@@ -180,9 +180,10 @@ def study_scene(args, ctx_gl, name: str, spec: str, recording: str | None, size,
                 stacks) -> dict:
     from viewer.backends.voxels import voxels_for
     from viewer.backends.voxels.scene import VoxelTracer, build_structure
-    from viewer.bench.trace_vs_embree import RECORDINGS_DIR, time_backend
+    from viewer.bench.trace_vs_embree import time_backend
     from viewer.cl import cl_context
     from viewer.effects import parse_effects
+    from viewer.paths import RECORDINGS as RECORDING_FOLDER
     from viewer.recording import load_recording
     from viewer.renderer import Renderer
     from viewer.session import prepare_scene
@@ -193,8 +194,8 @@ def study_scene(args, ctx_gl, name: str, spec: str, recording: str | None, size,
     settings = parse_effects(args.effects)
     settings.ao_length = float(np.max(hi - lo)) / 3 / scene.diagonal  # 1/3 of the scene size (the paper)
     camera = scene.default_camera
-    if recording and (RECORDINGS_DIR / recording).exists():
-        rec = load_recording(RECORDINGS_DIR / recording)
+    if recording and (RECORDING_FOLDER / recording).exists():
+        rec = load_recording(RECORDING_FOLDER / recording)
         camera = rec.camera_for_frame(rec.frame_count() // 2)
     r = Renderer(ctx_gl, scene, prep.bvh, size, args.reference, settings)
     try:
@@ -517,7 +518,7 @@ def run(args) -> int:
     from viewer.backends import backend_info, backend_names
     from viewer.backends.voxels.scene import STACK_RANGE, STRUCTURES
     from viewer.cl import cl_context
-    from viewer.tracing import shared_context
+    from viewer.gl.context import shared_context
 
     resolutions = _ints(args.resolutions, "resolutions")
     for r in resolutions:

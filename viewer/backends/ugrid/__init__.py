@@ -167,7 +167,7 @@ class UgridBackend:
 
     def _overlay_texture(self, size: tuple[int, int], buf: Any, n: int):
         from viewer.cl import mapped
-        from viewer.gpu import int_texture
+        from viewer.gl.textures import int_texture
 
         if self._overlay is None or tuple(self._overlay.size) != tuple(size):
             if self._overlay is not None:

@@ -206,7 +206,7 @@ class VoxelwalkBackend:
         return TraceResult(stats=stats, overlays=overlays)
 
     def _texture(self, name: str, size: tuple[int, int], data: np.ndarray):
-        from viewer.gpu import int_texture
+        from viewer.gl.textures import int_texture
 
         tex = self._textures.get(name)
         if tex is None or tuple(tex.size) != tuple(size):
