@@ -22,39 +22,14 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from viewer.backends import backend_info, backend_names
+from tests.conftest import backend_params
 from viewer.reference import f32_ulp, point_triangle_distance, ray_edge_distance, trace_float64
 
 F32 = np.float32
 
 
-def _opencl_device() -> str | None:
-    """Why OpenCL backends cannot run here (None: they can)."""
-    try:
-        import pyopencl as cl
-
-        if any(p.get_devices() for p in cl.get_platforms()):
-            return None
-        return "no OpenCL device"
-    except Exception as exc:  # no pyopencl, no ICD loader, no platform
-        return f"no OpenCL device ({type(exc).__name__}: {exc})"
-
-
-def _backend_params():
-    out = []
-    for name in backend_names():
-        marks = []
-        info = backend_info(name)
-        if info.device == "cl":
-            why = _opencl_device()
-            if why is not None:
-                marks.append(pytest.mark.skip(reason=why))
-        out.append(pytest.param(name, marks=marks, id=name))
-    return out
-
-
-BACKENDS = _backend_params()
-TRACERS = [p for p in BACKENDS if p.values[0] != "embree"]  # embree is judged elsewhere, not a judge here
+BACKENDS = backend_params(reference=True)  # OpenCL skips without a device; inexact backends skip
+TRACERS = backend_params(reference=False)  # the reference is judged elsewhere, not a judge here
 
 
 def trace(backend, tris, o, d, tmin, tmax, any_hit=False):
