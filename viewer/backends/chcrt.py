@@ -79,6 +79,7 @@ DRAW_DTYPE = np.dtype([("rect", "<i4", 4), ("info", "<i4", 4)])  # x, y, w, h; i
 QUERY_MODES = ("batched", "hw")
 COUNT_SLOTS = 64
 MAX_BOXES = 48  # boxes per query draw (max_multi pairs x 2 child boxes)
+MAX_LEAF_CACHE = 16
 
 
 @dataclass
@@ -99,11 +100,16 @@ class ChcrtParams:
     # "batched": a wave of queries (or all batches of an intersection step) in one instanced draw,
     # queries counted by shader atomics (same pass condition as the depth test)
     query_mode: str = "batched"
+    # leaf cache (paper 5.2): leaves a ray enters are collected, up to this many, and their triangles
+    # tested together in one loop (coherent delayed tests); 0 tests each leaf at once
+    leaf_cache: int = 0
     seed: int = 1
 
     def validate(self, source: str = "chcrt") -> None:
         if not (1 <= self.max_batch <= 24 and 1 <= self.max_multi <= 24):
             raise RtwalkError(f"{source}: max_batch and max_multi must be in 1..24")
+        if not 0 <= self.leaf_cache <= MAX_LEAF_CACHE:
+            raise RtwalkError(f"{source}: leaf_cache must be in 0..{MAX_LEAF_CACHE}")
         if self.query_mode not in QUERY_MODES:
             raise RtwalkError(f"{source}: query_mode must be one of {', '.join(QUERY_MODES)}")
         if not (self.t_q > 0 and 0 < self.min_tile_fraction <= 1 and self.max_subtree_height >= 1
@@ -177,16 +183,17 @@ class ChcrtBackend:
         self.work = WorkCounters(self.ctx)
         wd = self.work.defines
         stack = self.p.max_batch + max(self.p.max_subtree_height, 1) + 2
+        iwd = {**wd, "LEAF_CACHE": int(self.p.leaf_cache)}  # intersection programs only
         self.prog_init = progs.get("fullscreen.vert", "chc_init.frag")
         self.prog_query = progs.get("fullscreen.vert", "chc_query.frag", {"CHC_MAX_ITEMS": MAX_BOXES, **wd})
         self.prog_isect = progs.get("fullscreen.vert", "chc_intersect.frag",
-                                    {"CHC_MAX_ITEMS": self.p.max_batch, "STACK_SIZE": stack, **wd})
+                                    {"CHC_MAX_ITEMS": self.p.max_batch, "STACK_SIZE": stack, **iwd})
         self.prog_gather = progs.get("fullscreen.vert", "chc_gather.frag")
         self.batched = self.p.query_mode == "batched"
         self.prog_query_b = progs.get("chc_tile.vert", "chc_query.frag",
                                       {"CHC_MAX_ITEMS": MAX_BOXES, "CHC_BATCHED": 1, **wd})
         self.prog_isect_b = progs.get("chc_tile.vert", "chc_intersect.frag",
-                                      {"CHC_MAX_ITEMS": self.p.max_batch, "CHC_BATCHED": 1, "STACK_SIZE": stack, **wd})
+                                      {"CHC_MAX_ITEMS": self.p.max_batch, "CHC_BATCHED": 1, "STACK_SIZE": stack, **iwd})
         self.vao_query_b = self.ctx.vertex_array(self.prog_query_b, [])
         self.vao_isect_b = self.ctx.vertex_array(self.prog_isect_b, [])
         for prog in (self.prog_init, self.prog_query, self.prog_isect, self.prog_gather, self.prog_query_b,

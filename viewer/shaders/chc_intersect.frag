@@ -10,6 +10,7 @@
 // traverseBVH once per subtree is not an option: Mesa 22's llvmpipe miscompiles a second run of
 // that loop in one invocation (it can stop after one iteration and miss hits).
 #include "chc_common.glsl"
+#include "chc_leafcache.glsl"
 uniform int anyHit;
 uniform int countOverlays;
 layout(location = 0) out float outT;
@@ -36,7 +37,7 @@ void main() {
         float te;
         if (intersectBox(r, it.bmin, it.bmax, tmin, hit.t, te)) {
             if (it.count > 0) {  // a scheduled BVH leaf: intersect it now
-                if (intersectLeaf(r, it.ref, it.count, tmin, hit) && any) done = true;
+                if (visitLeaf(r, it.ref, it.count, tmin, hit) && any) done = true;
             } else {
                 int j = sp;
                 while (j > 0 && stackT[j - 1] < te) { stackT[j] = stackT[j - 1]; stackNode[j] = stackNode[j - 1]; --j; }
@@ -60,11 +61,11 @@ void main() {
         bool hr = intersectBox(r, nd.rmin, nd.rmax, tmin, hit.t, tr);
         if (hl && nd.left < 0) {
             hl = false;
-            if (intersectLeaf(r, ~nd.left, nd.lcount, tmin, hit) && any) break;
+            if (visitLeaf(r, ~nd.left, nd.lcount, tmin, hit) && any) { done = true; break; }
         }
         if (hr && nd.right < 0) {
             hr = false;
-            if (intersectLeaf(r, ~nd.right, nd.rcount, tmin, hit) && any) break;
+            if (visitLeaf(r, ~nd.right, nd.rcount, tmin, hit) && any) { done = true; break; }
         }
         hl = hl && tl <= hit.t;
         hr = hr && tr <= hit.t;
@@ -87,6 +88,7 @@ void main() {
             if (!found) break;
         }
     }
+    if (!done && flushLeaves(r, tmin, hit) && any) done = true;  // the leaf cache's last leaves
     workFlush(0);
     if (hit.id < 0) discard;
     // the scheduled subtree that holds the hit triangle (for the subtree_id overlay)
