@@ -54,6 +54,7 @@ import moderngl
 import numpy as np
 
 from viewer.backends.base import BackendContext, TraceResult, WorkCounters
+from viewer.backends.chcrt_cache import MB, SubtreeCache
 from viewer.backends.chcrt_front import INNER, INVISIBLE, VISIBLE, NodeTables, PairFront, max_tile_level
 from viewer.backends.interface import BackendInfo, OverlaySpec
 from viewer.effects import RayType
@@ -66,6 +67,8 @@ from viewer.gl.bindings import (
     BIND_IMG_CHC_BATCH,
     BIND_IMG_CHC_BEST,
     BIND_IMG_CHC_OVERDRAW,
+    BIND_NODES,
+    BIND_TRIS,
 )
 from viewer.gl.buffers import StreamBuffer
 from viewer.gl.programs import FullscreenQuad
@@ -103,11 +106,17 @@ class ChcrtParams:
     # leaf cache (paper 5.2): leaves a ray enters are collected, up to this many, and their triangles
     # tested together in one loop (coherent delayed tests); 0 tests each leaf at once
     leaf_cache: int = 0
+    # out-of-core (paper 5.4): GPU budget for the ray tracer's BVH + triangles, in MB, or as a fraction
+    # of the scene's (0 = everything resident); scheduled subtrees then live in a round-robin cache
+    gpu_budget_mb: float = 0.0
+    gpu_budget_fraction: float = 0.0
     seed: int = 1
 
     def validate(self, source: str = "chcrt") -> None:
         if not (1 <= self.max_batch <= 24 and 1 <= self.max_multi <= 24):
             raise RtwalkError(f"{source}: max_batch and max_multi must be in 1..24")
+        if self.gpu_budget_mb < 0 or not 0 <= self.gpu_budget_fraction <= 1:
+            raise RtwalkError(f"{source}: gpu_budget_mb must be >= 0 and gpu_budget_fraction in 0..1")
         if not 0 <= self.leaf_cache <= MAX_LEAF_CACHE:
             raise RtwalkError(f"{source}: leaf_cache must be in 0..{MAX_LEAF_CACHE}")
         if self.query_mode not in QUERY_MODES:
@@ -156,7 +165,7 @@ class _Targets:
 
 PHASES = ("chc:1-intersect-visible", "chc:2-queries", "chc:3-traversal", "chc:4-final-intersect")
 COUNTERS = ("queries", "multi_queries", "failed_multi_queries", "visible_pairs", "invisible_pairs",
-            "subtrees_scheduled", "draws", "rays")
+            "subtrees_scheduled", "draws", "rays", "upload_bvh_mb", "upload_geom_mb")
 
 
 class ChcrtBackend:
@@ -184,6 +193,9 @@ class ChcrtBackend:
         wd = self.work.defines
         stack = self.p.max_batch + max(self.p.max_subtree_height, 1) + 2
         iwd = {**wd, "LEAF_CACHE": int(self.p.leaf_cache)}  # intersection programs only
+        self.cache = self._make_cache(bc)
+        if self.cache is not None:
+            iwd["CHC_OOC"] = 1
         self.prog_init = progs.get("fullscreen.vert", "chc_init.frag")
         self.prog_query = progs.get("fullscreen.vert", "chc_query.frag", {"CHC_MAX_ITEMS": MAX_BOXES, **wd})
         self.prog_isect = progs.get("fullscreen.vert", "chc_intersect.frag",
@@ -218,6 +230,20 @@ class ChcrtBackend:
         # renderer (on only while an overlay view is shown or saved: the counting costs time)
         self.overlays_enabled = True
 
+    def _make_cache(self, bc: BackendContext) -> SubtreeCache | None:
+        """The out-of-core subtree cache when a GPU budget is set (chcrt_cache)."""
+        p = self.p
+        if p.gpu_budget_mb <= 0 and p.gpu_budget_fraction <= 0:
+            return None
+        bvh, scene = bc.bvh, bc.scene
+        if p.gpu_budget_mb > 0:
+            budget = int(p.gpu_budget_mb * MB)
+        else:
+            n_inner = max(int((np.asarray(bvh.node_left) >= 0).sum()), 1)
+            budget = int(p.gpu_budget_fraction * (n_inner * 64 + scene.triangle_count * 48))
+        return SubtreeCache(self.ctx, bvh, scene.triangles, scene.material_ids, budget, p.max_subtree_tris,
+                            p.max_subtree_height)
+
     # -- Backend protocol ----------------------------------------------------------------------
     def begin_frame(self, frame_index: int) -> None:
         self.frame = int(frame_index)
@@ -231,6 +257,8 @@ class ChcrtBackend:
         for vao in (self.vao_query_b, self.vao_isect_b):
             vao.release()
         self.count_buf.release()
+        if self.cache is not None:
+            self.cache.release()
         self.work.release()
         self.queries.clear()  # moderngl 5 queries have no release(); dropped with the context
         self.fronts.clear()
@@ -292,7 +320,7 @@ class _Pass:
                                      "invisible_pairs", "subtrees_scheduled", "draws", "rays",
                                      "intersect_draws", "batch_tiles", "tile_batches_1", "tile_batches_2",
                                      "tile_batches_3plus", "query_waves", "pull_ups", "phase1_subtrees",
-                                     "query_pixels", "requeries", "batches")}
+                                     "query_pixels", "requeries", "batches", "upload_bvh_mb", "upload_geom_mb")}
         self.rep: tuple[np.ndarray, np.ndarray] | None = None  # representative rays per finest tile
         self.rays_read = False
         self.threshold = int(self.p.visible_threshold)
@@ -302,6 +330,9 @@ class _Pass:
     def _bind(self) -> None:
         be, tg = self.be, self.tg
         be.bc.gpu_scene.bind()
+        if be.cache is not None:  # out-of-core: the intersection reads nodes and triangles from the cache
+            be.cache.bind(BIND_NODES, BIND_TRIS)
+            be.cache.begin_pass()
         self.rays.origin.use(0)
         self.rays.direction.use(1)
         tg.best.bind_to_image(BIND_IMG_CHC_BEST, read=True, write=True)
@@ -453,6 +484,30 @@ class _Pass:
         return np.where(valid, dist, -f.pixels[pairs].astype(np.float64))
 
     def _intersect(self, pairs: np.ndarray) -> None:
+        """Intersect scheduled pairs. Out-of-core (paper 5.4): pairs whose subtree is cached first,
+        then the others after their upload, in chunks that never overwrite a subtree still to be drawn."""
+        cache = self.be.cache
+        if cache is None or len(pairs) == 0:
+            self._draw_subtrees(pairs)
+            return
+        nd = self.front.node[pairs]
+        hit = cache.cached(nd)
+        cache.t.hits += len(np.unique(nd[hit]))
+        self._draw_subtrees(pairs[hit])
+        rest = pairs[~hit]
+        if len(rest) == 0:
+            return
+        rest_nd = nd[~hit]
+        chunk: list[int] = []
+        for n in np.unique(rest_nd).tolist():
+            if chunk and not set(cache.evicts(n)).isdisjoint(chunk):
+                self._draw_subtrees(rest[np.isin(rest_nd, chunk)])
+                chunk = []
+            cache.upload(n)
+            chunk.append(n)
+        self._draw_subtrees(rest[np.isin(rest_nd, chunk)])
+
+    def _draw_subtrees(self, pairs: np.ndarray) -> None:
         """Intersect scheduled pairs: grouped by tile, up to max_batch subtree roots per batch."""
         if len(pairs) == 0:
             return
@@ -468,7 +523,7 @@ class _Pass:
         items = np.zeros(len(pairs), ITEM_DTYPE)
         items["bmin"] = nt.box_min[nd]
         items["bmax"] = nt.box_max[nd]
-        items["ref"] = nt.gpu_ref[nd]
+        items["ref"] = nt.gpu_ref[nd] if self.be.cache is None else self.be.cache.item_refs(nd)
         items["count"] = nt.gpu_count[nd]
         items["id"] = nd
         items["pad"][:, 0] = self.be.bvh_first[nd]
@@ -612,6 +667,12 @@ class _Pass:
                 self._read_ray_count()
                 self._sync()
         finally:
+            if be.cache is not None:
+                be.bc.gpu_scene.bind()  # later passes (shading) read the scene's triangles
+                t = be.cache.t
+                self.stats.update(upload_bvh_mb=t.bvh_bytes / MB, upload_geom_mb=t.geom_bytes / MB,
+                                  subtrees_uploaded=t.uploads, cache_hits=t.hits, cache_evictions=t.evictions,
+                                  upload_syncs=t.syncs)
             self.ctx.disable(moderngl.DEPTH_TEST)
             self.ctx.depth_func = "<"
             self.hit_fbo.scissor = None

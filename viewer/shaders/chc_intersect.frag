@@ -91,6 +91,9 @@ void main() {
     if (!done && flushLeaves(r, tmin, hit) && any) done = true;  // the leaf cache's last leaves
     workFlush(0);
     if (hit.id < 0) discard;
+#ifdef CHC_OOC
+    hit.id = tris[hit.id].id;  // out-of-core: cache slot -> the triangle's leaf-order slot
+#endif
     // the scheduled subtree that holds the hit triangle (for the subtree_id overlay)
     int sub = -1;
     for (int i = 0; i < (countOverlays != 0 ? ITEM_COUNT : 0); ++i) {
