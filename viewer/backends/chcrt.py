@@ -54,7 +54,7 @@ import moderngl
 import numpy as np
 
 from viewer.backends.base import BackendContext, TraceResult, WorkCounters
-from viewer.backends.chcrt_cache import MB, SubtreeCache
+from viewer.backends.chcrt_cache import MB, CachePlan, SubtreeCache
 from viewer.backends.chcrt_front import INNER, INVISIBLE, VISIBLE, NodeTables, PairFront, max_tile_level
 from viewer.backends.interface import BackendInfo, OverlaySpec
 from viewer.effects import RayType
@@ -239,8 +239,7 @@ class ChcrtBackend:
         if p.gpu_budget_mb > 0:
             budget = int(p.gpu_budget_mb * MB)
         else:
-            n_inner = max(int((np.asarray(bvh.node_left) >= 0).sum()), 1)
-            budget = int(p.gpu_budget_fraction * (n_inner * 64 + scene.triangle_count * 48))
+            budget = int(p.gpu_budget_fraction * CachePlan.scene_bytes_of(bvh))
         return SubtreeCache(self.ctx, bvh, scene.triangles, scene.material_ids, budget, p.max_subtree_tris,
                             p.max_subtree_height)
 
@@ -672,7 +671,7 @@ class _Pass:
                 t = be.cache.t
                 self.stats.update(upload_bvh_mb=t.bvh_bytes / MB, upload_geom_mb=t.geom_bytes / MB,
                                   subtrees_uploaded=t.uploads, cache_hits=t.hits, cache_evictions=t.evictions,
-                                  upload_syncs=t.syncs)
+                                  upload_syncs=t.syncs, in_core_pct=100.0 * be.cache.plan.in_core_fraction)
             self.ctx.disable(moderngl.DEPTH_TEST)
             self.ctx.depth_func = "<"
             self.hit_fbo.scissor = None

@@ -97,6 +97,77 @@ class Transfer:
     geom_bytes: int = 0
 
 
+@dataclass
+class CachePlan:
+    """How a budget splits (pure NumPy, no GL): the resident BVH top and the two cache buffers."""
+
+    triangles: int
+    scene_bvh_bytes: int  # all GPU inner nodes
+    scene_geom_bytes: int  # all GPU triangles
+    budget_bytes: int
+    top_nodes: int
+    resident_bytes: int
+    node_cap: int  # cache slots
+    tri_cap: int
+    need_nodes: int  # the largest schedulable subtree
+    need_tris: int
+
+    @property
+    def scene_bytes(self) -> int:
+        return self.scene_bvh_bytes + self.scene_geom_bytes
+
+    @property
+    def cache_bytes(self) -> int:
+        return self.node_cap * NODE_BYTES + self.tri_cap * TRI_BYTES
+
+    @property
+    def in_core_fraction(self) -> float:
+        """Share of the scene's ray-tracing data (BVH + triangles) the GPU holds at once."""
+        return min(1.0, (self.resident_bytes + self.cache_bytes) / max(self.scene_bytes, 1))
+
+    @staticmethod
+    def scene_bytes_of(bvh) -> int:
+        n_inner = max(int((np.asarray(bvh.node_left) >= 0).sum()), 1)
+        return n_inner * NODE_BYTES + int(np.asarray(bvh.node_count)[0]) * TRI_BYTES
+
+    @staticmethod
+    def of(bvh, budget_bytes: int, max_tris: int, max_height: int, n_inner: np.ndarray | None = None) -> CachePlan:
+        left = np.asarray(bvh.node_left, np.int64)
+        is_leaf = left < 0
+        count = np.asarray(bvh.node_count, np.int64)
+        if n_inner is None:
+            n_inner = inner_counts(bvh)
+        schedulable = (count <= max_tris) & (np.asarray(bvh.node_height, np.int64) <= max_height)
+        top = int((~schedulable & ~is_leaf).sum())  # never scheduled whole: stays resident
+        bvh_bytes = max(int((~is_leaf).sum()), 1) * NODE_BYTES
+        geom_bytes = int(count[0]) * TRI_BYTES
+        frac = bvh_bytes / max(bvh_bytes + geom_bytes, 1)
+        cache = int(budget_bytes) - top * NODE_BYTES
+        return CachePlan(int(count[0]), bvh_bytes, geom_bytes, int(budget_bytes), top, top * NODE_BYTES,
+                         max(int(cache * frac) // NODE_BYTES, 0), max(int(cache * (1 - frac)) // TRI_BYTES, 0),
+                         int(n_inner[schedulable].max(initial=0)), int(count[schedulable].max(initial=1)))
+
+    def check(self) -> None:
+        if self.node_cap < self.need_nodes or self.tri_cap < self.need_tris or self.node_cap < 1:
+            frac = self.scene_bvh_bytes / max(self.scene_bytes, 1)
+            need = self.resident_bytes + max(self.need_nodes * NODE_BYTES / frac,
+                                             self.need_tris * TRI_BYTES / (1 - frac))
+            raise RtwalkError(f"chcrt: gpu budget of {self.budget_bytes / MB:.3f} MB is too small: the BVH top "
+                              f"({self.resident_bytes / MB:.3f} MB) and one subtree of up to {self.need_tris} "
+                              f"triangles need about {need / MB:.3f} MB (lower max_subtree_tris or raise the budget)")
+
+
+def inner_counts(bvh) -> np.ndarray:
+    """Inner nodes per canonical subtree: leaves - 1 (binary tree; leaf triangle ranges are
+    contiguous and non-empty, so a subtree's leaves are those whose first slot lies in its range)."""
+    first = np.asarray(bvh.node_first, np.int64)
+    count = np.asarray(bvh.node_count, np.int64)
+    is_leaf = np.asarray(bvh.node_left) < 0
+    lf = np.sort(first[is_leaf])
+    n_leaves = np.searchsorted(lf, first + count) - np.searchsorted(lf, first)
+    return np.where(is_leaf, 0, n_leaves - 1)
+
+
 class SubtreeCache:
     """Scheduled subtrees resident on the GPU within a memory budget (see the module docstring)."""
 
@@ -106,36 +177,16 @@ class SubtreeCache:
         is_leaf = left < 0
         first = np.asarray(bvh.node_first, np.int64)
         count = np.asarray(bvh.node_count, np.int64)
-        height = np.asarray(bvh.node_height, np.int64)
         self.first, self.count, self.is_leaf = first, count, is_leaf
         self.left, self.right = left, np.asarray(bvh.node_right, np.int64)
         self.inner_index = np.asarray(bvh.inner_index_of_node(), np.int64)
-        # leaves per subtree (leaf triangle ranges are contiguous and non-empty) -> inner nodes
-        lf = np.sort(first[is_leaf])
-        n_leaves = np.searchsorted(lf, first + count) - np.searchsorted(lf, first)
-        self.n_inner = np.where(is_leaf, 0, n_leaves - 1)
+        self.n_inner = inner_counts(bvh)
+        self.plan = plan = CachePlan.of(bvh, budget_bytes, max_tris, max_height, self.n_inner)
+        plan.check()
         # host copies of what the cache is filled from ("out of core": host memory)
         self.host_nodes = bvh.gpu_nodes()
         self.host_tris = gpu_triangles(triangles, material_ids)
-        self.scene_bvh_bytes = self.host_nodes.nbytes
-        self.scene_geom_bytes = self.host_tris.nbytes
-        schedulable = (count <= max_tris) & (height <= max_height)
-        self.top_nodes = int((~schedulable & ~is_leaf).sum())  # never scheduled whole: stays resident
-        self.resident_bytes = self.top_nodes * NODE_BYTES
-        self.budget_bytes = int(budget_bytes)
-        cache_bytes = self.budget_bytes - self.resident_bytes
-        # the largest subtree that can be scheduled must fit
-        need_nodes = int(self.n_inner[schedulable].max(initial=0))
-        need_tris = int(count[schedulable].max(initial=1))
-        frac = self.scene_bvh_bytes / max(self.scene_bvh_bytes + self.scene_geom_bytes, 1)
-        node_cap = int(cache_bytes * frac) // NODE_BYTES
-        tri_cap = int(cache_bytes * (1 - frac)) // TRI_BYTES
-        if node_cap < need_nodes or tri_cap < need_tris:
-            need = (self.resident_bytes + need_nodes * NODE_BYTES + need_tris * TRI_BYTES) / max(1 - frac, frac)
-            raise RtwalkError(f"chcrt: gpu budget of {self.budget_bytes / MB:.3f} MB is too small: the BVH top "
-                              f"({self.resident_bytes / MB:.3f} MB) and one subtree of up to {need_tris} triangles "
-                              f"need about {need / MB:.3f} MB (lower max_subtree_tris or raise the budget)")
-        self.node_cap, self.tri_cap = max(node_cap, 1), tri_cap
+        self.node_cap, self.tri_cap = plan.node_cap, plan.tri_cap
         self.nodes_buf = ctx.buffer(reserve=self.node_cap * NODE_BYTES)
         self.tris_buf = ctx.buffer(reserve=self.tri_cap * TRI_BYTES)
         self.node_ring = RingAllocator(self.node_cap)
@@ -144,15 +195,6 @@ class SubtreeCache:
         self.in_flight: set[int] = set()  # entries (id) read by draws issued since the last glFinish
         self.ctx = ctx
         self.t = Transfer()
-
-    @property
-    def cache_bytes(self) -> int:
-        return self.node_cap * NODE_BYTES + self.tri_cap * TRI_BYTES
-
-    def in_core_fraction(self) -> float:
-        """Share of the scene's ray-tracing data (BVH + triangles) that fits on the GPU at once."""
-        total = self.scene_bvh_bytes + self.scene_geom_bytes
-        return min(1.0, (self.resident_bytes + self.cache_bytes) / max(total, 1))
 
     def bind(self, nodes_binding: int, tris_binding: int) -> None:
         self.nodes_buf.bind_to_storage_buffer(nodes_binding)
