@@ -14,6 +14,8 @@ implementation. Studies (``--study``, comma list or ``all``):
 - ``ooc`` (paper Tables 1 and 3, section 5.4): out-of-core chcrt on a large city with GPU budgets
   of 47/32/20 % in core: sizes, Mrays/s, queries and MB transferred per frame, peak memory
   (bench/chcrt_ooc.py).
+- ``coherence`` (paper Table 5 / Figure 10, section 5.3): glsl and chcrt at per-pixel sample rotations
+  of 0 / 18 / 36 / 180 degrees, times and images side by side (bench/chcrt_coherence.py).
 - ``overhead``: GL per-draw / per-query costs measured on the same context (synthetic), and
   batching / multi-query / query-mode variants of a real chcrt run.
 
@@ -42,6 +44,7 @@ from pathlib import Path
 import numpy as np
 
 from viewer.backends.interface import params_text
+from viewer.bench.chcrt_coherence import study_coherence
 from viewer.bench.chcrt_ooc import study_ooc
 from viewer.bench.estimate import CostModel, format_estimate, run_estimate, scenes_estimate
 from viewer.bench.gl_micro import MicroResult, micro_overheads
@@ -50,8 +53,8 @@ from viewer.bench.plots import barh, figure, finish, points, stacked
 from viewer.bench.report import fmt, md_table, notes_md, ratio, size_text, write_study
 from viewer.errors import RtwalkError
 
-STUDIES = ("table2", "table4", "phases", "overhead", "tuning", "ooc")
-EXPLICIT_ONLY = ("ooc",)  # not part of "all" (a 10M-triangle scene): ask for it by name
+STUDIES = ("table2", "table4", "phases", "overhead", "tuning", "ooc", "coherence")
+EXPLICIT_ONLY = ("ooc", "coherence")  # not part of "all" (a 10M-triangle scene; 16 runs): ask for them by name
 RECORDINGS_DIR = Path(__file__).resolve().parents[2] / "recordings"
 DEFAULT_RECORDINGS = ("city-near", "city-far", "sponza-walk", "sibenik-walk", "conference-walk")
 PHASE_COUNTERS = ("queries", "multi_queries", "failed_multi_queries", "subtrees_scheduled", "draws",
@@ -95,6 +98,10 @@ class StudyOptions:
                                                                 RECORDINGS_DIR / "city-far.json"])
     ooc_effects: list[str] = field(default_factory=lambda: ["primary", "ao:20", "diffuse:20"])
     ooc_frames: int = 6
+    coherence_recordings: list[Path] = field(default_factory=lambda: [RECORDINGS_DIR / "city-near.json",
+                                                                      RECORDINGS_DIR / "sponza-walk.json"])
+    coherence_effects: list[str] = field(default_factory=lambda: ["ao:20", "diffuse:20"])
+    perturbs: list[float] = field(default_factory=lambda: [0.0, 18.0, 36.0, 180.0])
     notes: list[str] = field(default_factory=list)
 
 
@@ -222,7 +229,21 @@ def options_from_args(args: argparse.Namespace) -> StudyOptions:
     o.ooc_frames = args.ooc_frames if args.ooc_frames is not None else (2 if quick else o.ooc_frames)
     if o.ooc_frames < 1:
         raise RtwalkError("--ooc-frames must be >= 1")
-    for e in o.effects + o.tuning_effects + o.ooc_effects + [o.table4_effect, o.phases_effect, o.overhead_effect]:
+    if args.coherence_recordings:
+        o.coherence_recordings = [resolve_recording(r) for r in _split(args.coherence_recordings)]
+    elif quick:
+        o.coherence_recordings = o.coherence_recordings[:1]
+    o.coherence_effects = (_split(args.coherence_effects) if args.coherence_effects
+                           else (["ao:1"] if quick else o.coherence_effects))
+    try:
+        o.perturbs = [float(v) for v in _split(args.perturbs)] if args.perturbs else (
+            [0.0, 180.0] if quick else o.perturbs)
+    except ValueError:
+        raise RtwalkError(f"bad --perturbs '{args.perturbs}': expected degrees in 0..180") from None
+    if not o.perturbs or not all(0 <= v <= 180 for v in o.perturbs):
+        raise RtwalkError("--perturbs must be degrees in 0..180")
+    for e in (o.effects + o.tuning_effects + o.ooc_effects + o.coherence_effects
+              + [o.table4_effect, o.phases_effect, o.overhead_effect]):
         effect_settings(e)  # bad effect names fail here
     # every recording must load, and its scene must exist (a missing scene file of a default
     # recording is skipped with a note: ../shared/scenes is optional)
@@ -304,6 +325,11 @@ def estimate(o: StudyOptions) -> dict[str, float]:
         n = len(o.ooc_fractions) + 1
         out["ooc"] = sum(n * _run_estimate("chcrt", e, o.sizes[0], o.ooc_frames) * 1.5
                          for e in o.ooc_effects) * len(o.ooc_recordings) + 8e-6 * o.ooc_scene_size
+    if "coherence" in o.studies:
+        out["coherence"] = len(o.coherence_recordings) * len(o.perturbs) * sum(
+            _run_estimate("chcrt", e, o.sizes[0], o.frames) + _run_estimate("glsl", e, o.sizes[0], o.frames)
+            for e in o.coherence_effects)
+        scene_recs.update(o.coherence_recordings)
     out["scenes"] = scenes_estimate(scene_recs)
     return out
 
@@ -859,7 +885,8 @@ def _plot_tuning(rows: list[TuningRow], path: Path, device: str) -> None:
 
 STUDY_FUNCS: dict[str, Callable[[Bench], dict]] = {"table2": study_table2, "table4": study_table4,
                                                     "phases": study_phases, "overhead": study_overhead,
-                                                    "tuning": study_tuning, "ooc": study_ooc}
+                                                    "tuning": study_tuning, "ooc": study_ooc,
+                                                    "coherence": study_coherence}
 
 
 def run_studies(o: StudyOptions, out=sys.stdout) -> list[dict]:
@@ -920,6 +947,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--ooc-recordings", default=None, help="ooc: builtin-city recordings (default city-near,city-far)")
     p.add_argument("--ooc-effects", default=None, help="ooc: comma list of effects (default primary,ao:20,diffuse:20)")
     p.add_argument("--ooc-frames", type=int, default=None, help="ooc: consecutive frames per run (default 6)")
+    p.add_argument("--coherence-recordings", default=None,
+                   help="coherence: comma list of recordings (default city-near,sponza-walk)")
+    p.add_argument("--coherence-effects", default=None,
+                   help="coherence: comma list of effects (default ao:20,diffuse:20)")
+    p.add_argument("--perturbs", default=None, help="coherence: per-pixel rotations, degrees (default 0,18,36,180)")
     p.add_argument("--quick", action="store_true", help="tiny size, 2 frames, one recording, few samples (tests)")
     p.add_argument("--dry-run", action="store_true", help="print the plan and the time estimate, run nothing")
     p.add_argument("--quiet", action="store_true", help="no progress output")
