@@ -42,6 +42,7 @@ class Entry:
     tri_base: int
     n_tris: int
     live: bool = True
+    seq: int = 0  # upload number (identifies the entry in SubtreeCache.in_flight)
 
 
 class RingAllocator:
@@ -192,7 +193,8 @@ class SubtreeCache:
         self.node_ring = RingAllocator(self.node_cap)
         self.tri_ring = RingAllocator(self.tri_cap)
         self.entries: dict[int, Entry] = {}  # canonical node -> live entry
-        self.in_flight: set[int] = set()  # entries (id) read by draws issued since the last glFinish
+        self.in_flight: set[int] = set()  # entries (seq) read by draws issued since the last glFinish
+        self.seq = 0
         self.ctx = ctx
         self.t = Transfer()
 
@@ -216,10 +218,11 @@ class SubtreeCache:
         """Place subtree `node` in both rings (evicting what it overwrites) and write its data."""
         node = int(node)
         n_nodes, n_tris = int(self.n_inner[node]), int(self.count[node])
-        e = Entry(node, 0, n_nodes, 0, n_tris)
+        self.seq += 1
+        e = Entry(node, 0, n_nodes, 0, n_tris, seq=self.seq)
         e.node_base, ev1 = self.node_ring.place(n_nodes, e)
         e.tri_base, ev2 = self.tri_ring.place(n_tris, e)
-        if not self.in_flight.isdisjoint(id(old) for old in ev1 + ev2):
+        if not self.in_flight.isdisjoint(old.seq for old in ev1 + ev2):
             # llvmpipe does not order glBufferSubData after queued draws that read the buffer as an
             # SSBO: wait for them before overwriting what they read
             self.ctx.finish()
@@ -270,7 +273,7 @@ class SubtreeCache:
         """Cache references of cached subtrees (node slot of an inner root, triangle slot of a BVH
         leaf), for a draw about to be issued: their entries are then in flight."""
         ents = [self.entries[int(n)] for n in nodes.tolist()]
-        self.in_flight.update(id(e) for e in ents)
+        self.in_flight.update(e.seq for e in ents)
         return np.array([e.tri_base if e.n_nodes == 0 else e.node_base for e in ents], np.int32)
 
     def release(self) -> None:
