@@ -2,20 +2,16 @@
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import pytest
 
-REPO = Path(__file__).resolve().parents[1]
-SHARED_SCENES = REPO.parent / "shared" / "scenes"
-RECORDINGS = REPO / "recordings"
+from viewer.paths import SHARED_SCENES
 
 _prepared: dict = {}
 
 
 @pytest.fixture(scope="session")
 def gl_ctx():
-    from viewer.tracing import shared_context
+    from viewer.gl.context import shared_context
 
     return shared_context()
 

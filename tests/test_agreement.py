@@ -13,8 +13,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from tests.conftest import RECORDINGS, backend_params, checked_backend, prepared_scene, shared_scene
+from tests.conftest import backend_params, checked_backend, prepared_scene, shared_scene
 from viewer.effects import RayType, parse_effects
+from viewer.paths import RECORDINGS
 from viewer.reference import EmbreeTracer, compare_hits
 from viewer.renderer import Renderer
 

@@ -15,18 +15,17 @@ import keyword
 import re
 import tokenize
 from pathlib import Path
-from types import SimpleNamespace
 
 import numpy as np
 import pytest
 
 from tests.fake_backend import FakeBackend, FakeParams
+from tests.view_helpers import draw_views, image_gl, record_overlays, tile_edges
 from viewer.accel.bvh import build_bvh
 from viewer.backends import BACKENDS, backend_info, backend_names, check_params
 from viewer.camera import Camera
 from viewer.effects import RayType, parse_effects
 from viewer.errors import RtwalkError
-from viewer.gpu import read_texture
 from viewer.passes.overlay import (
     NO_DATA_GREY,
     backends_with_view,
@@ -90,27 +89,6 @@ def fake(gl_ctx, tiny):
     r.render(cam)
     yield r, cam
     r.release()
-
-
-def _record_overlays(r: Renderer) -> dict:
-    """Wrap the backend's trace(): read its overlay textures back after the first pass of each
-    (ray type, sample), i.e. what it wrote for the pass the renderer copies."""
-    seen: dict = {}
-    orig = r.backend.trace
-
-    def trace(rays, pinfo, hits):
-        res = orig(rays, pinfo, hits)
-        key = (pinfo.ray_type, int(pinfo.sample))
-        if key not in seen:
-            seen[key] = {k: read_texture(t).reshape(-1).copy() for k, t in res.overlays.items()}
-        return res
-
-    r.backend.trace = trace
-    return seen
-
-
-def _image_gl(r: Renderer) -> np.ndarray:
-    return r.read_image()[::-1].reshape(-1, 3).astype(np.int32)
 
 
 # --------------------------------------------------------------------------- registry and views
@@ -177,18 +155,18 @@ def test_renderer_traces_with_the_fake_backend(fake, tiny):
 
 def test_overlay_views_show_what_the_backend_wrote(fake):
     r, cam = fake
-    seen = _record_overlays(r)
+    seen = record_overlays(r)
     try:
         r.view, r.overlay_pass = "fake_crossings", (RayType.SHADOW, 0)
         rep = r.render(cam, capture=True)
-        heat_img = _image_gl(r)
+        heat_img = image_gl(r)
         ov = r.read_overlays()
         vmax = r.overlay_scale_max()
         want = seen.pop((RayType.SHADOW, 0))
         primary = seen.pop((RayType.PRIMARY, 0))
         r.view = "fake_tris"
         rep2 = r.render(cam, capture=True)
-        ids_img = _image_gl(r).reshape(SIZE[1], SIZE[0], 3)
+        ids_img = image_gl(r).reshape(SIZE[1], SIZE[0], 3)
         ov2 = r.read_overlays()
         tiles = r.overlay_tiles()
         level = r.overlay_tile_level()
@@ -223,12 +201,7 @@ def test_overlay_views_show_what_the_backend_wrote(fake):
 
     # id view: one colour per id, grey without a hit, tile outlines at the backend's tile level
     assert level == 2
-    tid = tile_index(SIZE, level)
-    edge = np.zeros(tid.shape, bool)
-    edge[:, 1:] |= tid[:, 1:] != tid[:, :-1]
-    edge[:, :-1] |= tid[:, 1:] != tid[:, :-1]
-    edge[1:] |= tid[1:] != tid[:-1]
-    edge[:-1] |= tid[1:] != tid[:-1]
+    edge = tile_edges(SIZE, level)
     ids = ov2["hit_tri"].reshape(SIZE[1], SIZE[0])
     grey = (ids_img == NO_DATA_GREY).all(axis=2)
     assert grey[(ids < 0) & ~edge].all() and not grey[(ids >= 0) & ~edge].any() and not grey[edge].any()
@@ -239,7 +212,7 @@ def test_overlay_views_show_what_the_backend_wrote(fake):
     # per-tile numbers: distinct hit triangles per tile, computed here from the id image
     rects, counts, from_counts = tiles
     assert from_counts and rects.shape == (16, 4) and counts.shape == (16,)
-    flat_t, flat_i = tid.reshape(-1), ov2["hit_tri"]
+    flat_t, flat_i = tile_index(SIZE, level).reshape(-1), ov2["hit_tri"]
     keep = flat_i >= 0
     expect = np.bincount(np.unique(flat_t[keep] * 1000 + flat_i[keep]) // 1000, minlength=16)
     np.testing.assert_array_equal(counts, expect)
@@ -274,51 +247,13 @@ def test_views_the_backend_does_not_produce(gl_ctx, tiny):
 
 
 def test_panel_helpers_and_panel_drive_the_fake_backend(fake):
-    from imgui_bundle import imgui, implot
-
-    from viewer.ui.camera_controller import FlyCamera
-    from viewer.ui.panel import (
-        FrameHistory,
-        chart_phases,
-        counter_rows,
-        draw_overlay_annotations,
-        draw_panel,
-        phase_label,
-    )
+    from viewer.ui.panel import counter_rows, phase_label
 
     r, cam = fake
     info = r.backend.info
-    hist = FrameHistory()
-    host = SimpleNamespace(renderer=r, fly=FlyCamera.from_camera(cam, r.diagonal), history=hist, render_scale=1.0,
-                           status="", backend_error="", last_report=None,
-                           current_camera=lambda: cam, switch_backend=lambda n: None, take_screenshot=lambda: None,
-                           toggle_recording=lambda: None, toggle_playback=lambda: None,
-                           copy_to_clipboard=lambda t: None, mode_line=lambda: "")
-    imgui.create_context()
-    implot.create_context()
-    try:
-        io_ = imgui.get_io()
-        io_.display_size = (900, 600)
-        io_.set_ini_filename("")
-        io_.fonts.build()
-        vtx = {}
-        for view in ("fake_crossings", "fake_tris", "final"):
-            r.view = view
-            rep = r.render(cam)
-            host.last_report = rep
-            hist.add(rep.wall_ms, sum(rep.gpu_ms.values()), chart_phases(rep.gpu_ms, info.phases), rep.backend_stats)
-            io_.delta_time = 1 / 30
-            imgui.new_frame()
-            draw_overlay_annotations(host, 900, 600, 340)
-            draw_panel(host, 340, 600)
-            imgui.render()
-            vtx[view] = imgui.get_draw_data().total_vtx_count
-        assert min(vtx.values()) > 1000
-        assert vtx["fake_crossings"] > vtx["final"]  # the legend is drawn over the heat view
-    finally:
-        r.view = "final"
-        implot.destroy_context()
-        imgui.destroy_context()
+    hist, vtx, rep = draw_views(r, cam, ("fake_crossings", "fake_tris", "final"))
+    assert min(vtx.values()) > 1000
+    assert vtx["fake_crossings"] > vtx["final"]  # the legend is drawn over the heat view
     names, table = hist.phase_table()
     assert names == list(info.phases) and table.shape == (3, 3) and (table > 0).all()
     assert [phase_label(n) for n in names] == ["read", "intersect", "write"]
@@ -333,7 +268,7 @@ def test_panel_helpers_and_panel_drive_the_fake_backend(fake):
 def test_bench_harness_drives_the_fake_backend(gl_ctx, tiny, tmp_path):
     from PIL import Image
 
-    from viewer.bench import BenchOptions, print_summary, run_bench
+    from viewer.bench.replay import BenchOptions, print_summary, run_bench
     from viewer.recording import Keyframe, Recording
 
     cam0 = tiny.scene.default_camera

@@ -25,7 +25,8 @@ def test_bench_writes_report_with_speed_and_error(tmp_path):
     out = tmp_path / "bench"
     proc = subprocess.run([sys.executable, "-m", "viewer.cli", "bench", "--recording", str(path),
                            "--effects", "shadows,ao:2,reflections", "--size", "64x36", "--out", str(out),
-                           "--name", "t", "--quiet"], capture_output=True, text=True, timeout=300)
+                           "--name", "t", "--quiet", "--reference-every", "1"],
+                          capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stderr
     report = json.loads((out / "t.json").read_text())
     assert (out / "t.png").stat().st_size > 1000
@@ -71,3 +72,35 @@ def test_bench_chcrt_consecutive_frames_saves_overlays(tmp_path):
     bad = subprocess.run([sys.executable, "-m", "viewer.cli", "bench", "--recording", str(path), "--first-frame",
                           "99", "--quiet"], capture_output=True, text=True, timeout=120)
     assert bad.returncode == 2 and bad.stderr.strip().startswith("rtwalk: error:") and "Traceback" not in bad.stderr
+
+
+def test_bench_trace_same_rays_against_embree(tmp_path, capsys):
+    """`rtwalk bench-trace` on a tiny room path: one row per ray type with the active ray count, finite
+    Mrays/s for the backend and for raw Embree, and full hit/miss agreement with the Embree reference."""
+    from viewer.cli import main
+
+    path = _room_path(tmp_path)
+    out = tmp_path / "trace"
+    assert main(["bench-trace", "--recordings", str(path), "--sizes", "48x27", "--effects", "primary,shadows",
+                 "--backends", "glsl", "--embree-threads", "1,2", "--rounds", "2", "--out", str(out), "--quiet"]) == 0
+    report = json.loads((out / "bench_trace.json").read_text())
+    (group,) = report["groups"]
+    rows = {r["ray_type"]: r for r in group["rows"]}
+    assert set(rows) == {"primary", "shadows"}
+    assert rows["primary"]["rays"] == 48 * 27 and 0 < rows["shadows"]["rays"] <= 48 * 27
+    for r in rows.values():
+        for key in ("glsl", "embree_1t", "embree_2t"):
+            assert np.isfinite(r["mrays_s"][key]) and r["mrays_s"][key] > 0 and len(r["ms_rounds"][key]) == 2
+        assert r["hitmiss_agree"]["glsl"] >= 0.999
+    md = (out / "bench_trace.md").read_text()
+    assert "| primary | 1,296 |" in md and "--sizes 48x27 --effects primary,shadows" in md
+    assert (out / "bench_trace.png").stat().st_size > 1000
+    assert "Mrays/s" in capsys.readouterr().out
+
+
+def test_bench_trace_unknown_recording_is_one_error_line(tmp_path, capsys):
+    from viewer.cli import main
+
+    assert main(["bench-trace", "--recordings", "nope-walk", "--out", str(tmp_path)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("rtwalk: error: ") and "nope-walk" in err[0]

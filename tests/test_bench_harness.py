@@ -13,9 +13,9 @@ import numpy as np
 import pytest
 
 from viewer.backends.base import BackendContext, TraceResult
+from viewer.backends.gl_traversal import ResumableTraversal
 from viewer.backends.interface import BackendInfo
 from viewer.camera import Camera
-from viewer.gl.programs import FullscreenQuad
 from viewer.rays import HitBuffer, PassInfo, RayBatch
 from viewer.recording import Keyframe, Recording, save_recording
 
@@ -35,7 +35,8 @@ class ProbeParams:
 
 
 class ProbeBackend:
-    """Full BVH traversal (the glsl shader) under its own phase name, with a counter and a log."""
+    """Full BVH traversal (the GL backends' resumable traversal) under its own phase name, with a
+    counter and a log."""
 
     info = BackendInfo("probe", "test backend", params=ProbeParams, counters=("probe_draws",),
                        phases=("probe:trace",))
@@ -43,10 +44,7 @@ class ProbeBackend:
     def __init__(self, bc: BackendContext, params: ProbeParams):
         self.bc, self.params = bc, params
         self.overlays_enabled = False
-        self.program = bc.programs.get("fullscreen.vert", "trace_glsl.frag", {"STACK_SIZE": bc.gpu_scene.stack_size})
-        self.program["rayOrigin"] = 0
-        self.program["rayDir"] = 1
-        self.quad = FullscreenQuad(bc.ctx)
+        self.traversal = ResumableTraversal(bc)
         self.frame = -1
 
     def begin_frame(self, frame_index: int) -> None:
@@ -60,20 +58,14 @@ class ProbeBackend:
         return -1
 
     def trace(self, rays: RayBatch, pinfo: PassInfo, hits: HitBuffer) -> TraceResult:
-        ctx = self.bc.ctx
-        self.bc.gpu_scene.bind()
-        rays.origin.use(0)
-        rays.direction.use(1)
-        self.program["anyHit"] = int(pinfo.any_hit)
-        hits.fbo.use()
-        ctx.disable(ctx.BLEND | ctx.DEPTH_TEST)
         with self.bc.profiler.phase("probe:trace"):
             for _ in range(self.params.repeat):
-                self.quad.render(self.program)
+                self.traversal.bind_flags(hits.size)
+                self.traversal.run(rays, pinfo, hits)
         return TraceResult(stats={"probe_draws": float(self.params.repeat)})
 
     def release(self) -> None:
-        self.quad.release()
+        self.traversal.release()
 
 
 @pytest.fixture

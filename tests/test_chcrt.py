@@ -8,7 +8,6 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from tests.conftest import SHARED_SCENES
 from viewer.accel.bvh import build_bvh
 from viewer.backends.chcrt_front import (
     DEAD,
@@ -17,13 +16,13 @@ from viewer.backends.chcrt_front import (
     VISIBLE,
     NodeTables,
     PairFront,
-    max_tile_level,
-    tile_rects,
 )
 from viewer.camera import Camera
 from viewer.effects import RayType, parse_effects
+from viewer.paths import SHARED_SCENES
 from viewer.rays import PassInfo
 from viewer.renderer import Renderer
+from viewer.screen_tiles import max_tile_level, tile_rects
 
 SIZE = (128, 72)
 ALL = "primary,shadows,soft:2,ao:2,diffuse:2,reflections"
@@ -221,7 +220,7 @@ def test_static_camera_second_frame_needs_fewer_queries(gl_ctx):
 
 @pytest.mark.parametrize("mode", ["batched", "hw"])
 def test_overlays_and_counters(mode, gl_ctx):
-    from viewer.gpu import read_texture
+    from viewer.gl.textures import read_texture
 
     scene, bvh, path = _load("city")
     r = Renderer(gl_ctx, scene, bvh, SIZE, "chcrt", parse_effects("primary"), {"chcrt": f"query_mode={mode}"})

@@ -7,9 +7,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from tests.conftest import RECORDINGS, prepared_scene
+from tests.conftest import prepared_scene
 from viewer.accel.bvh import build_bvh
 from viewer.accel.bvh4 import NODE4_DTYPE, build_bvh4
+from viewer.paths import RECORDINGS
 from viewer.reference import EmbreeTracer, compare_hits, trace_float64
 
 
@@ -189,15 +190,58 @@ def test_trace_matches_float64(n_tris, any_hit):
         assert st["id_agree"] == 1.0, st
         assert st["max_rel_err"] < 1e-4, st
         # t is the plane-equation distance evaluated in IEEE float32 without fused multiply-adds
-        # (as NumPy evaluates it): bit for bit, wherever the normal is not perpendicular to d
+        # (as NumPy evaluates it), the normal rounded once from the exact float64 cross product of the
+        # float32 edges: bit for bit, wherever the normal is not perpendicular to d
         v = tris[tri[hit]].astype(np.float32)
-        e1, e2 = v[:, 1] - v[:, 0], v[:, 2] - v[:, 0]
+        e1, e2 = (v[:, 1] - v[:, 0]).astype(np.float64), (v[:, 2] - v[:, 0]).astype(np.float64)
         n = np.stack([e1[:, 1] * e2[:, 2] - e1[:, 2] * e2[:, 1], e1[:, 2] * e2[:, 0] - e1[:, 0] * e2[:, 2],
-                      e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]], 1)
+                      e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]], 1).astype(np.float32)
         a = v[:, 0] - o[hit]
         dn = n[:, 0] * d[hit, 0] + n[:, 1] * d[hit, 1] + n[:, 2] * d[hit, 2]
         t_np = (n[:, 0] * a[:, 0] + n[:, 1] * a[:, 1] + n[:, 2] * a[:, 2]) / dn
         assert np.array_equal(t[hit], t_np)
+
+
+@needs_cl
+@pytest.mark.parametrize("any_hit", [False, True])
+def test_rays_counter_counts_active_rays(any_hit):
+    """The kernel's count of active rays (the backend's `rays` counter) equals the convention's
+    active rays (viewer.reference.prepare_rays, NumPy) for a batch that is not a multiple of the
+    work-group size and holds every kind of inactive ray; inactive rays miss."""
+    from viewer.backends.clbvh import ClbvhScene
+    from viewer.cl.transfer import HitStage, RayStage
+    from viewer.reference import prepare_rays
+
+    tris = random_tris(50, seed=4, extent=6.0, size=1.5)
+    size = (37, 29)  # 1,073 rays: 16 full work-groups of 64 and a partial one
+    n = size[0] * size[1]
+    o, d = random_rays(n, seed=5, lo=-2.0, hi=8.0)
+    rng = np.random.default_rng(6)
+    lo = rng.uniform(0, 0.5, n).astype(np.float32)
+    hi = np.where(rng.random(n) < 0.5, rng.uniform(0.5, 10, n), np.inf).astype(np.float32)
+    kind = rng.integers(0, 8, n)
+    hi[kind == 1] = lo[kind == 1]                       # empty range
+    hi[kind == 2] = lo[kind == 2] - 1.0                 # reversed range
+    o[kind == 3, 1] = np.nan
+    d[kind == 4, 2] = np.inf
+    lo[kind == 5] = -np.inf
+    hi[kind == 6] = np.nan
+    expected = int(prepare_rays(o, d, lo, hi)[4].sum())
+    assert 0 < expected < n - 300
+    scene = ClbvhScene(tris, build_bvh(tris))
+    rs, hs = RayStage(size, scene.ctx), HitStage(size, scene.ctx)
+    try:
+        rs.upload_arrays(np.c_[o, lo], np.c_[d, hi])
+        scene.enqueue(rs.origin, rs.dir, hs.t, hs.tri, n, any_hit)
+        assert scene.active_count() == expected
+        t, tri = hs.read()
+        inactive = ~prepare_rays(o, d, lo, hi)[4]
+        assert np.all(tri[inactive] == -1) and np.all(np.isinf(t[inactive]))
+        assert (tri[~inactive] >= 0).any()
+    finally:
+        rs.release()
+        hs.release()
+        scene.release()
 
 
 @needs_cl
@@ -235,7 +279,8 @@ def test_renderer_every_ray_type_agrees_with_embree(gl_ctx):
     finally:
         r.release()
     assert any(k.startswith("trace:") for k in rep.gpu_ms), rep.gpu_ms
-    assert rep.backend_stats.get("rays", 0) > 0
+    # the counter is the frame's active rays, summed over its passes (NumPy on the captured rays)
+    assert rep.backend_stats["rays"] == sum(int(cp.rays.active.sum()) for cp in rep.captured) > 0
     embree = EmbreeTracer(prep.scene.triangles)
     seen = set()
     for cp in rep.captured:

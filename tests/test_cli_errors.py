@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import argparse
 import json
 import subprocess
 import sys
@@ -73,7 +74,7 @@ def test_missing_egl_is_one_line(monkeypatch):
     import moderngl
 
     from viewer.errors import RtwalkError
-    from viewer.gpu import create_headless_context
+    from viewer.gl.context import create_headless_context
 
     def broken(*a, **k):
         raise Exception("eglInitialize failed")
@@ -129,3 +130,195 @@ def test_backend_options_merge_alias_and_params():
     assert backend_options_from(argparse.Namespace(backend="glsl", chcrt="t_q=0.7", backend_params=None)) == {
         "chcrt": "t_q=0.7"}
     assert backend_options_from(argparse.Namespace(backend="glsl", chcrt=None, backend_params=None)) == {}
+
+
+# ---------------------------------------------------------------------------------------------
+# issue 13: every check that needs no scene runs before the scene is loaded (the scene named here
+# does not exist, and the error is still about the flag), one line, exit 2
+
+
+def _never_loaded(tmp_path) -> str:
+    return str(tmp_path / "never-loaded.obj")
+
+
+@pytest.mark.parametrize("args,needle", [
+    (["bench", "--frames", "0"], "--frames"),
+    (["bench", "--frames", "-1"], "--frames"),
+    (["--frames", "0"], "--frames"),  # bare `rtwalk` (demo), headless
+    (["bench", "--fps", "0"], "--fps"),
+    (["bench", "--fps", "nan"], "--fps"),
+    (["bench", "--reference-every", "0"], "--reference-every"),
+    (["bench", "--frame-every", "0"], "--frame-every"),
+    (["render", "--exposure", "nan"], "--exposure"),
+    (["render", "--exposure", "-1"], "--exposure"),
+    (["render", "--exposure", "inf"], "--exposure"),
+    (["render", "--exposure", "0"], "--exposure"),
+    (["render", "--effects", ""], "--effects"),
+    (["render", "--effects", "ao:2,ao:3"], "twice"),
+    (["render", "--effects", "shadow,shadows"], "twice"),
+    (["render", "--effects", "ao,,shadows"], "empty"),
+    (["render", "--frame", "-1"], "--frame"),
+    (["render", "-o", "/proc/x.png"], "/proc/x.png"),
+    (["render", "-o", "somefile.xyz"], ".xyz"),
+    (["render", "-o", "noextension"], "noextension"),
+], ids=lambda v: " ".join(v) if isinstance(v, list) else v)
+def test_checks_before_the_scene(tmp_path, monkeypatch, args, needle):
+    for var in ("DISPLAY", "WAYLAND_DISPLAY"):  # demo: the headless replay path
+        monkeypatch.delenv(var, raising=False)
+    command, rest = (args[0], args[1:]) if not args[0].startswith("-") else ("demo", args)
+    extra = ["-o", str(tmp_path / "x.png")] if command == "render" and "-o" not in rest else []
+    if command == "bench":
+        extra += ["--recording", "recordings/city-near.json", "--out", str(tmp_path / "bench")]
+    proc = run_cli(command, _never_loaded(tmp_path), *rest, *extra, "--quiet", timeout=60)
+    assert_one_line_error(proc, needle)
+    assert "never-loaded" not in proc.stderr
+
+
+def test_output_is_an_existing_folder(tmp_path):
+    folder = tmp_path / "adir"
+    folder.mkdir()
+    proc = run_cli("render", _never_loaded(tmp_path), "-o", str(folder), timeout=60)
+    assert_one_line_error(proc, "folder")
+    assert "never-loaded" not in proc.stderr
+
+
+@pytest.mark.parametrize("flag", ["--out", "--save-frames"])
+def test_bench_output_folder_is_a_file(tmp_path, flag):
+    """Checked before the benchmark runs (it used to crash at the end and lose the report)."""
+    afile = tmp_path / "afile"
+    afile.write_text("x")
+    proc = run_cli("bench", _never_loaded(tmp_path), "--recording", "recordings/city-near.json", flag, str(afile),
+                   timeout=60)
+    assert_one_line_error(proc, "not a folder")
+    assert "never-loaded" not in proc.stderr and afile.read_text() == "x"
+
+
+def test_missing_opencl_device_before_the_scene(tmp_path, monkeypatch):
+    from viewer.backends import backend_info, backend_names
+
+    cl_backends = [n for n in backend_names() if backend_info(n).device == "cl"]
+    if not cl_backends:
+        pytest.skip("no OpenCL backend registered")
+    monkeypatch.setenv("RTWALK_CL_DEVICE", "no-such-device-anywhere")
+    proc = run_cli("render", _never_loaded(tmp_path), "--backend", cl_backends[0], "-o", str(tmp_path / "x.png"),
+                   timeout=60)
+    assert_one_line_error(proc, "OpenCL")
+    assert "never-loaded" not in proc.stderr
+
+
+def test_missing_egl_before_the_scene(tmp_path, monkeypatch):
+    """No EGL vendor library (glvnd finds no device): one line about EGL, before any loading."""
+    monkeypatch.setenv("__EGL_VENDOR_LIBRARY_FILENAMES", str(tmp_path / "no-vendor.json"))
+    proc = run_cli("render", _never_loaded(tmp_path), "-o", str(tmp_path / "x.png"), timeout=60)
+    assert_one_line_error(proc, "EGL")
+    assert "never-loaded" not in proc.stderr
+
+
+@pytest.mark.parametrize("sizes,needle", [("abc", "--sizes"), ("0", "out of range"), ("-5", "--sizes"),
+                                          ("1000,x", "--sizes"), ("40000001", "out of range")])
+def test_bench_bvh_sizes(tmp_path, sizes, needle):
+    """Same range as --scene-size; nothing is built (the first size is valid in the mixed case)."""
+    proc = run_cli("bench-bvh", "--sizes", sizes, "--out", str(tmp_path), timeout=60)
+    assert_one_line_error(proc, needle)
+    assert "tris: build" not in proc.stdout
+
+
+def _address_space_limit(gib: int):
+    import resource
+
+    def apply() -> None:
+        resource.setrlimit(resource.RLIMIT_AS, (gib << 30, gib << 30))
+
+    return apply
+
+
+def test_scene_size_memory_estimate_refuses_before_building():
+    """Under a 3 GiB address-space limit the largest city (40M triangles, ~16 GiB) is refused with
+    the figure, at once; a small one still loads under the same limit."""
+    limit = _address_space_limit(3)
+    proc = subprocess.run([sys.executable, "-m", "viewer.cli", "info", "--scene-size", "40000000"],
+                          capture_output=True, text=True, timeout=60, preexec_fn=limit)
+    assert_one_line_error(proc, "GiB")
+    assert "40,000,000" in proc.stderr and "available" in proc.stderr
+    ok = subprocess.run([sys.executable, "-m", "viewer.cli", "info", "--scene-size", "2000", "--quiet"],
+                        capture_output=True, text=True, timeout=120, preexec_fn=limit)
+    assert ok.returncode == 0, ok.stderr
+
+
+def test_memory_estimate_covers_a_measured_build():
+    """The per-triangle figure is not below what a build here really takes (peak RSS growth of
+    prepare_scene on a 300k-triangle city in a fresh process)."""
+    from viewer.procedural import BUILTIN_SCENES
+
+    code = ("import resource; from viewer.session import prepare_scene; "
+            "r0 = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss; "
+            "prepare_scene('city', scene_size=300000, quiet=True); "
+            "print((resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - r0) * 1024)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=180, check=True)
+    grown = int(out.stdout.strip().splitlines()[-1])
+    assert BUILTIN_SCENES["city"].memory_estimate(300_000) >= grown
+
+
+def test_nan_vertices_one_line_no_numpy_warning(tmp_path):
+    mesh = tmp_path / "partly-nan.obj"
+    mesh.write_text("v nan 0 0\nv 1 0 0\nv 0 1 0\nv inf 1 1\nv 0 0 1\nf 1 2 3\nf 2 3 4\nf 2 3 5\n")
+    proc = run_cli("info", str(mesh), timeout=60)
+    assert proc.returncode == 0, proc.stderr
+    assert "Warning" not in proc.stderr, proc.stderr
+    assert sum("dropped 2 triangles with NaN/Inf" in ln for ln in proc.stderr.splitlines()) == 1, proc.stderr
+
+
+def test_info_prints_short_albedo(tmp_path):
+    proc = run_cli("info", "room", "--quiet", timeout=60)
+    assert proc.returncode == 0, proc.stderr
+    assert "albedo [" in proc.stdout and "0000000" not in proc.stdout and "9999999" not in proc.stdout, proc.stdout
+
+
+def test_every_option_has_help():
+    from viewer.cli import build_parser
+
+    ap = build_parser()
+    sub = next(a for a in ap._actions if isinstance(a, argparse._SubParsersAction))
+    missing = [f"{name} {a.option_strings[0]}" for name, p in sub.choices.items() for a in p._actions
+               if a.option_strings and a.dest != "help" and not a.help]
+    assert not missing, missing
+    helps = {a.dest: a.help for a in sub._choices_actions}
+    assert set(helps) == set(sub.choices) and all(helps.values()), helps
+
+
+def test_readme_lists_every_command():
+    from pathlib import Path
+
+    from viewer.cli import build_parser
+
+    readme = (Path(__file__).resolve().parents[1] / "README.md").read_text()
+    commands = readme.split("## Commands", 1)[1].split("\n- ", 1)[0]
+    sub = next(a for a in build_parser()._actions if isinstance(a, argparse._SubParsersAction))
+    for name in sub.choices:
+        assert f"rtwalk {name}" in commands or f"rtwalk [{name}]" in commands, name
+
+
+def test_default_bench_is_minutes_not_hours():
+    """The default replays a bounded number of frames spread over the path and checks a few
+    against Embree (city-near has 361 frames; every one, each with an Embree render, took over an
+    hour on 2 cores)."""
+    from viewer.bench.harness import frame_numbers
+    from viewer.cli import build_parser
+    from viewer.cli_args import DEFAULT_RECORDING
+    from viewer.recording import load_recording
+
+    args = build_parser().parse_args(["bench"])
+    rec = load_recording(DEFAULT_RECORDING)
+    frames = frame_numbers(rec, args.fps, args.frames, args.first_frame)
+    assert rec.frame_count() > 300 and len(frames) <= 60
+    assert frames[0] == 0 and frames[-1] == rec.frame_count() - 1  # spread over the whole path
+    assert len(range(0, len(frames), args.reference_every)) <= 10
+
+
+def test_bench_prints_its_estimate(tmp_path):
+    proc = run_cli("bench", "room", "--recording", "recordings/city-near.json", "--frames", "3",
+                   "--reference-every", "2", "--size", "48x27", "--effects", "shadows", "--out", str(tmp_path),
+                   timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    assert "3 of the path's" in proc.stderr and "2 checked against Embree" in proc.stderr, proc.stderr
+    assert "estimated" in proc.stderr, proc.stderr

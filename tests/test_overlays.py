@@ -7,15 +7,14 @@ from __future__ import annotations
 
 import subprocess
 import sys
-from types import SimpleNamespace
 
 import numpy as np
 import pytest
 
 from tests.conftest import prepared_scene
+from tests.view_helpers import draw_views, image_gl, record_overlays, tile_edges
 from viewer.effects import RayType, parse_effects
 from viewer.errors import RtwalkError
-from viewer.gpu import read_texture
 from viewer.passes.overlay import (
     NO_DATA_GREY,
     heat_colors,
@@ -47,30 +46,9 @@ def chc(gl_ctx, city):
     r.release()
 
 
-def _record_backend_overlays(r: Renderer) -> dict:
-    """Wrap the backend's trace(): read its overlays back after every pass, keyed (ray type, sample)."""
-    seen: dict = {}
-    orig = r.backend.trace
-
-    def trace(rays, pinfo, hits):
-        res = orig(rays, pinfo, hits)
-        key = (pinfo.ray_type, int(pinfo.sample))
-        if key not in seen:  # first occurrence: the pass the renderer copies
-            seen[key] = {k: read_texture(t).reshape(-1).copy() for k, t in res.overlays.items()}
-        return res
-
-    r.backend.trace = trace
-    return seen
-
-
-def _image_gl(r: Renderer) -> np.ndarray:
-    """The shaded image as (H*W, 3) in GL row order (row 0 = bottom), like the overlays."""
-    return r.read_image()[::-1].reshape(-1, 3).astype(np.int32)
-
-
 def test_copy_equals_the_backend_overlays_of_the_chosen_pass(chc):
     r, cam = chc
-    seen = _record_backend_overlays(r)
+    seen = record_overlays(r)
     try:
         r.view = "query_overdraw"
         r.overlay_pass = (RayType.AO, 0)
@@ -135,11 +113,11 @@ def test_subtree_ids_hold_the_pixels_hit_triangle(chc, city, source):
 def test_heat_map_is_the_colormap_of_the_overdraw(chc):
     r, cam = chc
     r.render(cam)
-    final = _image_gl(r)
+    final = image_gl(r)
     r.view = "query_overdraw"
     try:
         r.render(cam)
-        img = _image_gl(r)
+        img = image_gl(r)
         ov = r.read_overlays()
         vmax = r.overlay_scale_max()
         frame_max = r.overlay.read_max("query_overdraw")[0]
@@ -176,7 +154,7 @@ def test_fixed_and_linear_scale(chc):
     r.view, r.overlay_scale, r.overlay_log = "query_overdraw", 4, False
     try:
         r.render(cam)
-        img = _image_gl(r)
+        img = image_gl(r)
         od = r.read_overlays()["query_overdraw"]
         assert r.overlay_scale_max() == 4
     finally:
@@ -194,7 +172,7 @@ def test_subtree_batches_view_and_tile_counts(chc):
     r.view = "subtree_batches"
     try:
         r.render(cam)
-        img = _image_gl(r).reshape(SIZE[1], SIZE[0], 3)
+        img = image_gl(r).reshape(SIZE[1], SIZE[0], 3)
         ov = r.read_overlays()
         level = r.overlay_tile_level()
         tiles = r.overlay_tiles()
@@ -202,12 +180,7 @@ def test_subtree_batches_view_and_tile_counts(chc):
         r.view = "final"
     assert level >= 1
     n = 1 << level
-    tid = tile_index(SIZE, level)
-    edge = np.zeros(tid.shape, bool)
-    edge[:, 1:] |= tid[:, 1:] != tid[:, :-1]
-    edge[:, :-1] |= tid[:, 1:] != tid[:, :-1]
-    edge[1:] |= tid[1:] != tid[:-1]
-    edge[:-1] |= tid[1:] != tid[:-1]
+    edge = tile_edges(SIZE, level)
     sub = ov["subtree_id"].reshape(SIZE[1], SIZE[0])
     grey = (img == NO_DATA_GREY).all(axis=2)
     assert grey[(sub < 0) & ~edge].all()  # no hit: dark grey
@@ -223,7 +196,7 @@ def test_subtree_batches_view_and_tile_counts(chc):
     assert rects.shape == (n * n, 4) and counts.shape == (n * n,)
     assert rects[:, 2].sum() == SIZE[0] * n and rects[:, 3].sum() == SIZE[1] * n
     # every subtree that produced a hit in a tile was in that tile's batches
-    flat_t, flat_s = tid.reshape(-1), ov["subtree_id"]
+    flat_t, flat_s = tile_index(SIZE, level).reshape(-1), ov["subtree_id"]
     keep = flat_s >= 0
     distinct = np.bincount(np.unique(flat_t[keep] * (flat_s.max() + 1) + flat_s[keep]) // (flat_s.max() + 1),
                            minlength=n * n)
@@ -312,41 +285,9 @@ def test_scale_helpers():
 def test_panel_and_annotations_draw_headless(chc, gl_ctx, city):
     """The panel's chart, counters and overlay controls and the legend / tile labels run in a real
     imgui + implot frame (no window: the draw data is built, not rasterised)."""
-    from imgui_bundle import imgui, implot
-
-    from viewer.ui.camera_controller import FlyCamera
-    from viewer.ui.panel import FrameHistory, chart_phases, draw_overlay_annotations, draw_panel
-
     r, cam = chc
-    hist = FrameHistory()
-    host = SimpleNamespace(renderer=r, fly=FlyCamera.from_camera(cam, r.diagonal), history=hist, render_scale=1.0,
-                           status="", backend_error="", last_report=None,
-                           current_camera=lambda: cam, switch_backend=lambda n: None, take_screenshot=lambda: None,
-                           toggle_recording=lambda: None, toggle_playback=lambda: None,
-                           copy_to_clipboard=lambda t: None, mode_line=lambda: "")
-    imgui.create_context()
-    implot.create_context()
-    try:
-        io = imgui.get_io()
-        io.display_size = (900, 600)
-        io.set_ini_filename("")
-        io.fonts.build()  # what a renderer backend does
-        for view in ("query_overdraw", "subtree_batches", "final"):
-            r.view = view
-            rep = r.render(cam)
-            host.last_report = rep
-            hist.add(rep.wall_ms, sum(rep.gpu_ms.values()), chart_phases(rep.gpu_ms, r.backend.info.phases),
-                     rep.backend_stats)
-            io.delta_time = 1 / 30
-            imgui.new_frame()
-            draw_overlay_annotations(host, 900, 600, 340)
-            draw_panel(host, 340, 600)
-            imgui.render()
-            assert imgui.get_draw_data().total_vtx_count > 1000
-        names, table = hist.phase_table()
-        assert names == ["chc:1-intersect-visible", "chc:2-queries", "chc:3-traversal", "chc:4-final-intersect"]
-        assert table.shape == (4, 3) and (table >= 0).all()
-    finally:
-        r.view = "final"
-        implot.destroy_context()
-        imgui.destroy_context()
+    hist, vtx, _ = draw_views(r, cam, ("query_overdraw", "subtree_batches", "final"))
+    assert min(vtx.values()) > 1000
+    names, table = hist.phase_table()
+    assert names == ["chc:1-intersect-visible", "chc:2-queries", "chc:3-traversal", "chc:4-final-intersect"]
+    assert table.shape == (4, 3) and (table >= 0).all()

@@ -14,6 +14,7 @@ import pytest
 
 from viewer.camera import Camera, quat_to_matrix
 from viewer.errors import RtwalkError
+from viewer.paths import RECORDINGS, SHARED_SCENES
 from viewer.recording import (
     Keyframe,
     Recorder,
@@ -22,10 +23,6 @@ from viewer.recording import (
     resolve_scene_spec,
     save_recording,
 )
-
-REPO = Path(__file__).resolve().parents[1]
-RECORDINGS = REPO / "recordings"
-SHARED_SCENES = REPO.parent / "shared" / "scenes"
 
 # Bounding boxes from ../shared/scenes/README.md (min, max), used without loading the meshes.
 SCENE_BOUNDS = {

@@ -8,9 +8,9 @@ import json
 import numpy as np
 import pytest
 
-from tests.conftest import RECORDINGS, SHARED_SCENES
 from viewer.camera import Camera, quat_to_matrix
 from viewer.errors import RtwalkError
+from viewer.paths import RECORDINGS, SHARED_SCENES
 from viewer.recording import Keyframe, Recording, load_recording, resolve_scene_spec, save_recording
 
 

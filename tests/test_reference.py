@@ -384,6 +384,28 @@ def test_embree_empty_inputs_and_inactive(embree_ok):
     assert i[0] == 0 and t[0] == 0.25                                 # units of |d|
 
 
+def test_raw_rays_keep_the_active_rays_and_cover_their_range(embree_ok):
+    """raw_rays: only active rays, each starting a little before o + tmin d and reaching a little past
+    tmax (float64 check); time_raw traces them on 1 and 2 threads."""
+    tr = EmbreeTracer(f32([[[0, 0, 0], [1, 0, 0], [0, 1, 0]]]))
+    o = f32([[0.2, 0.2, 1]] * 5)
+    d = f32([[0, 0, -2]] * 4 + [[0, 0, 0]])
+    o[3, 0] = np.nan
+    tmin = f32([0, 0.25, 1, 0, 0])
+    tmax = f32([1, 2, 0.5, 1, 1])
+    raw = tr.raw_rays(o, d, tmin, tmax)
+    assert len(raw) == 2 and raw.origins.dtype == raw.far.dtype == np.float32
+    o64, d64 = o[:2].astype(np.float64), d[:2].astype(np.float64)
+    start = o64 + tmin[:2, None] * d64
+    back = (start - raw.origins) @ d64[0] / (d64[0] @ d64[0])      # how far before o + tmin d (units of |d|)
+    assert np.all(back >= 0) and np.all(back < 1e-4) and back[0] == 0       # tmin = 0: the origin itself
+    assert np.all(raw.far >= tmax[:2] - tmin[:2]) and np.all(raw.far < (tmax[:2] - tmin[:2]) * 1.01 + 1e-3)
+    for threads in (1, 2):
+        wall, cpu = tr.time_raw(raw, any_hit=False, threads=threads)
+        assert wall > 0 and cpu >= 0
+    assert tr.time_raw(tr.raw_rays(o[2:3], d[2:3], tmin[2:3], tmax[2:3]), any_hit=True) == (0.0, 0.0)
+
+
 @pytest.mark.parametrize("any_hit", [False, True])
 def test_ray_starting_on_a_surface(embree_ok, any_hit):
     """tmin = 0 is strict: a ray starting exactly on a triangle does not hit it (robust Embree reports
@@ -657,9 +679,9 @@ def main() -> None:
     from viewer.backends import backend_info, backend_names
     from viewer.camera import Camera
     from viewer.effects import parse_effects
+    from viewer.gl.context import shared_context
     from viewer.procedural import make_room
     from viewer.renderer import Renderer
-    from viewer.tracing import shared_context
 
     tris, light = far_room()
     o, d, lo, hi = far_surface_rays(tris, light, np.random.default_rng(31))

@@ -25,7 +25,7 @@ from viewer.ui.camera_controller import (
     FlyCamera,
     yaw_pitch_of,
 )
-from viewer.ui.panel import FrameHistory, camera_argument, chart_phases, counter_rows, phase_label
+from viewer.ui.panel import PANEL_WIDTH, FrameHistory, camera_argument, chart_phases, counter_rows, phase_label
 
 REPO = Path(__file__).resolve().parents[1]
 XVFB = shutil.which("xvfb-run")
@@ -141,7 +141,7 @@ def test_from_camera_round_trips_the_view_and_scales_speed_to_the_scene():
 
 
 def test_camera_argument_reproduces_the_view():
-    from viewer.cli import parse_camera
+    from viewer.cli_args import parse_camera
 
     cam = Camera.look_at([1.5, 2.25, -3.0], [10.0, 0.0, 4.0], fov_y=45.0)
     arg = camera_argument(cam, target_distance=5.0)
@@ -233,7 +233,7 @@ def test_render_scale_from_env(monkeypatch):
     from viewer.ui.app import DEFAULT_RENDER_SCALE, render_scale_from_env
 
     monkeypatch.delenv("RTWALK_VIEW_SCALE", raising=False)
-    assert render_scale_from_env() == DEFAULT_RENDER_SCALE == 0.5
+    assert render_scale_from_env() == DEFAULT_RENDER_SCALE == 1.0  # progressive refinement keeps it responsive
     monkeypatch.setenv("RTWALK_VIEW_SCALE", "1")
     assert render_scale_from_env() == 1.0
     for bad in ("0.1", "2", "nan", "x"):
@@ -271,7 +271,7 @@ def test_view_smoke_under_xvfb(tmp_path):
     assert res.returncode == 0, res.stderr[-3000:]
     assert shot.is_file(), res.stderr[-3000:]
     img = np.asarray(Image.open(shot).convert("RGB"))
-    assert img.shape == (180, 320, 3)
+    assert img.shape == (180, 320 + PANEL_WIDTH, 3)  # the panel is beside the image
     assert len(np.unique(img.reshape(-1, 3), axis=0)) > 50  # panel text + rendered scene, not a flat colour
     left, right = img[:, :100], img[:, 200:]
     assert left.std() > 5 and right.std() > 5
@@ -296,7 +296,7 @@ def test_view_without_display_fails_with_one_line(tmp_path, display):
 
 _DRIVER = textwrap.dedent('''
     """Drives the real window through pyglet's event handlers, frame by frame.
-    (pyglet coordinates: y = 0 is the bottom row; the panel covers x < 200.)"""
+    (pyglet coordinates: y = 0 is the bottom row; the panel covers x < 340, the image is right of it.)"""
     import json
     import sys
 
@@ -517,15 +517,94 @@ def test_view_overlays_under_xvfb(tmp_path):
     assert fr[-1]["backend"] == "chcrt" and fr[-1]["source"] == ["shadows", 0] and not fr[-1]["missing"]
 
     img = np.asarray(Image.open(shot).convert("RGB")).astype(np.int32)
-    assert img.shape == (400, 640, 3)
     lut = heat_lut().astype(np.int32)
 
     def near(region, colour, tol=12):
         return (np.abs(region - colour).max(axis=2) <= tol).any()
 
-    legend = img[280:, 320:]  # bottom right, right of the panel (320 px at this width)
+    assert img.shape == (400, 640 + PANEL_WIDTH, 3)
+    img = img[:, PANEL_WIDTH:]  # the image, right of the panel
+    legend = img[280:, 320:]  # bottom right
     assert near(legend, lut[0]) and near(legend, lut[255]) and near(legend, lut[128])  # the colour bar
     assert near(legend, (210, 210, 210), 3) and near(legend, (255, 255, 255), 3)  # ticks and text
-    heat = img[10:250, 340:630].reshape(-1, 3)
+    heat = img[10:250, 20:630].reshape(-1, 3)
     exact = (heat[:, None, :] == lut[None]).all(axis=2).any(axis=1)
     assert exact.mean() > 0.8  # the image is the heat map (constant per tile; edges filtered by the blit)
+
+
+_PROGRESSIVE_DRIVER = textwrap.dedent('''
+    """W held for frames 1-3 (moving), then still until converged; every imgui.text line is checked
+    against the room left in the panel; at the end the window and the renderer's image are saved."""
+    import json
+
+    import moderngl_window  # noqa: F401
+    import numpy as np
+    import pyglet.window.key as K
+    from imgui_bundle import imgui
+
+    from viewer import cli
+    from viewer.ui import app as ui_app
+
+    log = {"steps": [], "cut": []}
+    orig_text = imgui.text
+
+    def text(s, *a):
+        avail, width = imgui.get_content_region_avail().x, imgui.calc_text_size(s).x
+        if width > avail + 0.5:
+            log["cut"].append([s, width, avail])
+        return orig_text(s, *a)
+
+    imgui.text = text
+    orig_frame = ui_app.ViewerApp.frame
+
+    def frame(self, now, dt, frame_ms):
+        n, w = self.frames, self.wnd
+        if n == 1:
+            w.on_key_press(K.W, 0)
+        elif n == 4:
+            w.on_key_release(K.W, 0)
+        orig_frame(self, now, dt, frame_ms)
+        st = self.step
+        log["steps"].append({"moving": st.moving, "scale": st.scale, "done": st.samples_done,
+                             "requested": st.samples_requested, "idle": st.report is None,
+                             "size": list(self.renderer.size), "line": st.line()})
+        if n == 13:
+            np.save("final.npy", self.renderer.read_image())
+
+    ui_app.ViewerApp.frame = frame
+    args = cli.build_parser().parse_args(["view", "room", "--size", "400x240", "--effects", "shadows,ao:4",
+                                          "--frame-target-ms", "1", "--quiet"])
+    log["rc"] = ui_app.run_viewer(args)
+    print("LOG " + json.dumps(log))
+''')
+
+
+@needs_xvfb
+def test_view_progressive_panel_beside_the_image(tmp_path):
+    """The window refines progressively: reduced scale while W is held (the frame-time target is
+    1 ms), then 4 AO passes at full size, then idle; the panel is beside the image (the window's
+    image area is exactly the renderer's full-size image) and no panel text line is cut off."""
+    from PIL import Image
+
+    shot = tmp_path / "window.png"
+    (tmp_path / "driver.py").write_text(_PROGRESSIVE_DRIVER)
+    res = _xvfb([sys.executable, "driver.py"], tmp_path,
+                _env(RTWALK_VIEW_FRAMES="14", RTWALK_VIEW_SCREENSHOT=str(shot)))
+    assert res.returncode == 0, res.stderr[-3000:]
+    line = [ln for ln in res.stdout.splitlines() if ln.startswith("LOG ")]
+    assert line, res.stdout[-2000:] + res.stderr[-2000:]
+    log = json.loads(line[-1][4:])
+    steps = log["steps"]
+    assert log["rc"] == 0 and len(steps) == 14 and not log["cut"], log["cut"]
+    moving = steps[1:4]  # W held (pressed before frame 1, released before frame 4): the camera moves
+    assert all(s["moving"] and s["done"] == 1 and s["scale"] == 0.25 for s in moving), moving
+    assert all(s["size"] == [100, 60] for s in moving)
+    still = steps[4:]
+    assert not any(s["moving"] for s in still)
+    assert [s["done"] for s in still[:4]] == [1, 2, 3, 4] and all(s["size"] == [400, 240] for s in still)
+    assert still[3]["line"] == "samples 4/4, render scale 1.00 (converged)"
+    assert all(s["idle"] for s in still[4:])  # converged: nothing more is rendered
+    img = np.asarray(Image.open(shot).convert("RGB"))
+    assert img.shape == (240, 400 + PANEL_WIDTH, 3)
+    final = np.load(tmp_path / "final.npy")
+    np.testing.assert_array_equal(img[:, PANEL_WIDTH:], final)  # the whole image, nothing under the panel

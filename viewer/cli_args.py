@@ -9,14 +9,16 @@ RtwalkError (one line, exit 2).
 from __future__ import annotations
 
 import argparse
+import math
+import os
+import tempfile
 from pathlib import Path
 
 import numpy as np
 
 from viewer.errors import RtwalkError
+from viewer.paths import RECORDINGS
 
-REPO_ROOT = Path(__file__).resolve().parents[1]
-RECORDINGS = REPO_ROOT / "recordings"
 DEFAULT_RECORDING = RECORDINGS / "city-near.json"
 
 
@@ -28,6 +30,21 @@ def parse_size(text: str) -> tuple[int, int]:
     if not (1 <= w <= 16384 and 1 <= h <= 16384):
         raise RtwalkError(f"bad --size '{text}': each side must be in 1..16384")
     return w, h
+
+
+def parse_image_sizes(text: str, option: str = "--sizes") -> list[tuple[int, int]]:
+    """"640x360,1280x720" -> [(640, 360), (1280, 720)], each item checked as parse_size does."""
+    items = [s.strip() for s in text.split(",") if s.strip()]
+    if not items:
+        raise RtwalkError(f"{option} is empty")
+    out = []
+    for item in items:
+        try:
+            out.append(parse_size(item))
+        except RtwalkError:
+            raise RtwalkError(f"bad {option} item '{item}': expected WIDTHxHEIGHT (1..16384 each), "
+                              "e.g. 640x360,1280x720") from None
+    return out
 
 
 def parse_camera(text: str):
@@ -67,11 +84,20 @@ def add_effect_args(p: argparse.ArgumentParser, default: str) -> None:
     p.add_argument("--size", default="640x360", help="WIDTHxHEIGHT")
     p.add_argument("--perturb", type=float, default=36.0, help="per-pixel sample rotation, degrees")
     p.add_argument("--ao-length", type=float, default=0.05, help="AO ray length, fraction of the scene diagonal")
-    p.add_argument("--exposure", type=float, default=1.0)
+    p.add_argument("--exposure", type=float, default=1.0,
+                   help="multiplies the linear radiance before tone mapping (finite, > 0; default 1)")
     p.add_argument("--chcrt", default=None, metavar="KEY=VALUE,...",
                    help="chcrt backend parameters (alias kept from before --backend-params), e.g. "
                         "'visible_threshold=20,t_q=0.5' (aggressive threshold in pixels, split rule, "
                         "min_tile_fraction, max_subtree_height, max_batch, max_multi, ...)")
+
+
+def add_progressive_args(p: argparse.ArgumentParser, help_flag: str, default: bool = False) -> None:
+    """--progressive / --no-progressive and --frame-target-ms (viewer.progressive)."""
+    p.add_argument("--progressive", action=argparse.BooleanOptionalAction, default=default, help=help_flag)
+    p.add_argument("--frame-target-ms", type=float, default=100.0,
+                   help="progressive mode: frame time to keep while the camera moves, by lowering the render "
+                        "scale (default 100)")
 
 
 def check_backend(name: str) -> str:
@@ -108,6 +134,7 @@ def settings_from(args):
     from viewer.effects import parse_effects
 
     s = parse_effects(args.effects)
+    check_positive(args.exposure, "--exposure")
     if not 0 <= args.perturb <= 180:
         raise RtwalkError("--perturb must be within 0..180 degrees")
     if not 0 < args.ao_length <= 10:
@@ -129,3 +156,87 @@ def scene_from_args(args, recording=None):
         size = size if size is not None else rs.size
         seed = rs.seed if rs.seed is not None else seed
     return prepare_scene(spec, scene_size=size, seed=seed, mirror_patterns=args.mirror, quiet=args.quiet)
+
+
+# ---------------------------------------------------------------------------------------------
+# checks that need no scene: run before anything is loaded
+
+
+IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".ppm", ".webp", ".tga")
+
+
+def check_positive(value: float | None, flag: str) -> None:
+    """A finite number > 0 (None: not given)."""
+    if value is not None and not (math.isfinite(value) and value > 0):
+        raise RtwalkError(f"{flag} must be a finite number > 0 (got {value})")
+
+
+def check_at_least(value: int | None, low: int, flag: str) -> None:
+    if value is not None and value < low:
+        raise RtwalkError(f"{flag} must be >= {low} (got {value})")
+
+
+def _writable_dir(folder: Path, flag: str, given: str) -> None:
+    """Create `folder` (and parents) and prove a file can be written there."""
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        with tempfile.NamedTemporaryFile(dir=folder, prefix=".rtwalk-write-check-"):
+            pass
+    except OSError as exc:
+        where = "there" if Path(given) == folder else f"in {folder}"
+        raise RtwalkError(f"{flag} {given}: cannot write {where} ({exc.strerror or type(exc).__name__})") from None
+
+
+def check_image_output(path: str, flag: str = "-o/--output") -> Path:
+    """An image file path with a supported extension whose folder can be written (created here)."""
+    from PIL import Image
+
+    out = Path(path).expanduser()
+    if out.is_dir() or path.endswith(os.sep):
+        raise RtwalkError(f"{flag} {path}: is a folder, expected an image file name (e.g. out/render.png)")
+    Image.init()
+    saveable = {e for e, fmt in Image.registered_extensions().items() if fmt in Image.SAVE}
+    ext = out.suffix.lower()
+    if ext not in IMAGE_EXTENSIONS or ext not in saveable:
+        raise RtwalkError(f"{flag} {path}: unsupported image type '{ext or '(none)'}' "
+                          f"(choose from {', '.join(e for e in IMAGE_EXTENSIONS if e in saveable)})")
+    if out.exists() and not os.access(out, os.W_OK):
+        raise RtwalkError(f"{flag} {path}: file is not writable")
+    _writable_dir(out.parent, flag, path)
+    return out
+
+
+def check_output_dir(path: str | None, flag: str) -> Path | None:
+    """A folder that exists or can be created, and can be written (None: not given)."""
+    if path is None:
+        return None
+    out = Path(path).expanduser()
+    if out.exists() and not out.is_dir():
+        raise RtwalkError(f"{flag} {path}: exists and is not a folder")
+    _writable_dir(out, flag, path)
+    return out
+
+
+def check_device(backend: str) -> None:
+    """The backend's device can be opened (an OpenCL device for "cl" backends), before loading."""
+    from viewer.backends import backend_info
+
+    if backend_info(backend).device == "cl":
+        from viewer.cl import cl_available
+
+        reason = cl_available()
+        if reason is not None:
+            raise RtwalkError(f"--backend {backend} needs an OpenCL device: {reason}")
+
+
+def parse_sizes(text: str, scene: str = "city", flag: str = "--sizes") -> list[int]:
+    """'1000000,5000000' -> sizes of a built-in scene, each in its range and fitting in memory."""
+    from viewer.scene_io import check_builtin_size
+
+    sizes = []
+    for item in text.split(","):
+        item = item.strip().replace("_", "")
+        if not item.isdigit():
+            raise RtwalkError(f"bad {flag} '{text}': expected a comma list of triangle counts, e.g. 1000000,5000000")
+        sizes.append(check_builtin_size(scene, int(item), flag))
+    return sizes

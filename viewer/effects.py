@@ -68,18 +68,26 @@ def parse_effects(text: str, base: EffectSettings | None = None) -> EffectSettin
     s = base or EffectSettings()
     for name in EFFECT_NAMES:
         setattr(s, name, False)
-    if text.strip().lower() in ("", "none"):
+    if not text.strip():
+        raise RtwalkError("--effects is empty (name effects, e.g. shadows,ao:4, or 'none' for the raster image alone)")
+    if text.strip().lower() == "none":
         return s
     if text.strip().lower() == "all":
         for name in EFFECT_NAMES:
             setattr(s, name, name != "primary")
         return s
+    seen: set[str] = set()
     for item in text.split(","):
         name, _, count = item.strip().lower().partition(":")
         name = {"shadow": "shadows", "hard": "shadows", "reflection": "reflections", "refl": "reflections",
                 "soft_shadows": "soft", "indirect": "diffuse"}.get(name, name)
+        if not name:
+            raise RtwalkError(f"empty effect name in --effects '{text}'")
         if name not in EFFECT_NAMES:
             raise RtwalkError(f"unknown effect '{name}' (choose from {', '.join(EFFECT_NAMES)}, all, none)")
+        if name in seen:
+            raise RtwalkError(f"effect {name} is given twice in --effects '{text}' (give it once, e.g. {name}:N)")
+        seen.add(name)
         setattr(s, name, True)
         if count:
             if not count.isdigit() or not 1 <= int(count) <= 1024:

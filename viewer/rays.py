@@ -14,7 +14,7 @@ import moderngl
 import numpy as np
 
 from viewer.effects import RayType
-from viewer.gpu import float_texture, int_texture, read_texture
+from viewer.gl.textures import float_texture, int_texture, read_texture
 
 
 @dataclass(frozen=True)

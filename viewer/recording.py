@@ -41,6 +41,7 @@ import numpy as np
 
 from viewer.camera import Camera
 from viewer.errors import RtwalkError
+from viewer.paths import SHARED_SCENES
 
 FORMAT_TAG = "rtwalk-recording"
 FORMAT_VERSION = 1
@@ -50,8 +51,6 @@ MAX_FPS = 1000.0
 #: `Recorder.add` drops a keyframe closer than this (seconds) to the previously kept one.
 RECORDER_MIN_STEP = 0.1
 
-_REPO_ROOT = Path(__file__).resolve().parents[1]
-SHARED_SCENES = _REPO_ROOT.parent / "shared" / "scenes"
 
 
 # --------------------------------------------------------------------------- data

@@ -30,13 +30,16 @@ and :func:`compare_hits`, the agreement statistics used by tests and benchmarks.
 
 from __future__ import annotations
 
+import threading
+import time
+from dataclasses import dataclass
 from fractions import Fraction
 
 import numpy as np
 
 REFERENCE_BACKEND = "embree"  # the registry name of the backend that traces with EmbreeTracer
 
-__all__ = ["EmbreeTracer", "trace_float64", "compare_hits", "prepare_rays", "point_triangle_distance",
+__all__ = ["EmbreeTracer", "RawRays", "trace_float64", "compare_hits", "prepare_rays", "point_triangle_distance",
            "ray_edge_distance", "f32_ulp"]
 
 # ----------------------------------------------------------------------------------------------
@@ -144,6 +147,25 @@ def _exact_zero_area(tris: np.ndarray) -> np.ndarray:
 # Embree
 # ----------------------------------------------------------------------------------------------
 
+def _fits_float32(o: np.ndarray, d: np.ndarray) -> np.ndarray:
+    """Rays whose float32 origin and direction are finite: the only ones Embree can trace."""
+    with np.errstate(over="ignore"):
+        return (np.isfinite(o.astype(np.float32)) & np.isfinite(d.astype(np.float32))).all(axis=1)
+
+
+@dataclass
+class RawRays:
+    """Rays exactly as EmbreeTracer hands them to embreex's run(): float32 origins with tmin folded
+    in (Embree's tnear is 0), directions and the slightly widened tfar (see EmbreeTracer)."""
+
+    origins: np.ndarray  # float32 (A, 3), contiguous
+    directions: np.ndarray  # float32 (A, 3), contiguous
+    far: np.ndarray  # float32 (A,)
+
+    def __len__(self) -> int:
+        return len(self.far)
+
+
 class EmbreeTracer:
     """Intel Embree 4 (via ``embreex``) tracer for one fixed triangle set.
 
@@ -224,10 +246,7 @@ class EmbreeTracer:
         t_out, id_out = _miss(r)
         if r == 0 or self._scene is None or not active.any():
             return t_out, id_out
-        # rays whose float32 version overflows cannot be traced by Embree: they stay misses
-        with np.errstate(over="ignore"):
-            fits = np.isfinite(o.astype(np.float32)) & np.isfinite(d.astype(np.float32))
-        active &= fits.all(axis=1)
+        active &= _fits_float32(o, d)  # rays whose float32 version overflows stay misses
         idx = np.flatnonzero(active)
         o, d, t0, t1 = o[idx], d[idx], t0[idx], t1[idx]
         if any_hit:
@@ -243,6 +262,37 @@ class EmbreeTracer:
         t_out[idx[hit]] = t32[inside]
         id_out[idx[hit]] = self._ids[prim[hit]]
         return t_out, id_out
+
+    def raw_rays(self, origins, directions, tmin, tmax) -> RawRays:
+        """The active rays as trace() gives them to Embree (inactive or float32-overflowing rays dropped),
+        for timing Embree alone on the same rays (time_raw)."""
+        o, d, t0, t1, active = prepare_rays(origins, directions, tmin, tmax)
+        active &= _fits_float32(o, d)
+        return RawRays(*self._embree_rays(o[active], d[active], t0[active], t1[active]))
+
+    def time_raw(self, rays: RawRays, any_hit: bool, threads: int = 1) -> tuple[float, float]:
+        """(wall ms, process CPU ms) of embreex's bare run() -- INTERSECT, or OCCLUDED for `any_hit` --
+        over `rays`, split in equal slices over `threads` Python threads (run() releases the GIL). No
+        float64 decision: the cost of Embree itself, to compare tracers against."""
+        if self._scene is None or len(rays) == 0:
+            return 0.0, 0.0
+        query = "OCCLUDED" if any_hit else "INTERSECT"
+
+        def run(lo: int, hi: int) -> None:
+            self._scene.run(rays.origins[lo:hi], rays.directions[lo:hi], dists=rays.far[lo:hi].copy(), query=query)
+
+        bounds = np.linspace(0, len(rays), max(1, threads) + 1).astype(int)
+        workers = [threading.Thread(target=run, args=(int(bounds[i]), int(bounds[i + 1]))) for i in range(threads)]
+        c0 = time.process_time()
+        t0 = time.perf_counter()
+        if threads <= 1:
+            run(0, len(rays))
+        else:
+            for w in workers:
+                w.start()
+            for w in workers:
+                w.join()
+        return (time.perf_counter() - t0) * 1e3, (time.process_time() - c0) * 1e3
 
     def _embree_rays(self, o, d, lo, hi, back: bool = True):
         """float32 rays for embreex (tnear is always 0), covering a little more than (lo, hi): the

@@ -24,8 +24,9 @@ from viewer.backends.interface import OverlaySpec
 from viewer.camera import Camera
 from viewer.effects import EffectSettings, RayType
 from viewer.errors import RtwalkError
-from viewer.gpu import FullscreenQuad, GpuScene, ProgramCache
-from viewer.passes.accumulate import AccumulatePass
+from viewer.gl.programs import FullscreenQuad, ProgramCache
+from viewer.gl.scene import GpuScene
+from viewer.passes.accumulate import ACCUMULATED, AccumulatePass
 from viewer.passes.gbuffer import GBufferPass
 from viewer.passes.overlay import (
     CAPTURE_COUNTS,
@@ -101,6 +102,7 @@ class Renderer:
         self.rays = RayBatch(ctx, size)
         self.hits = HitBuffer(ctx, size)
         self.frame_index = 0
+        self.samples_done: dict[RayType, set[int]] = {}  # sample indices accumulated since the last clear
         # overlays: the pass to copy them from ((ray type, sample), first occurrence in the frame;
         # None or a pass not in the frame: the frame's first pass), forced capture for tools that
         # save them, heat-map scale (fixed maximum, 0 = from the frame; log or linear), and strict
@@ -283,11 +285,31 @@ class Renderer:
         return tile_counts(ov.read(view), level)
 
     # -- one frame -----------------------------------------------------------------------------
-    def render(self, camera: Camera, capture: bool = False) -> FrameReport:
+    def samples_requested(self) -> dict[RayType, int]:
+        """Sample passes per accumulated effect that is on (1 for shadows and reflections)."""
+        s = self.settings
+        return {rt: s.samples(rt) for rt in ACCUMULATED if s.enabled(rt)}
+
+    def acc_scale(self) -> tuple[float, ...]:
+        """Per accumulator (passes.accumulate.ACCUMULATED order): requested / done sample passes,
+        so that an image of k of N passes (weights 1/N each) is a complete estimate; exactly 1.0
+        once all are done (the full-quality frame is unchanged)."""
+        req = self.samples_requested()
+        return tuple(float(req[rt]) / len(self.samples_done[rt]) if self.samples_done.get(rt) and rt in req else 1.0
+                     for rt in ACCUMULATED)
+
+    def render(self, camera: Camera, capture: bool = False, samples: tuple[int, ...] | None = None,
+               keep: bool = False) -> FrameReport:
+        """One frame. `samples`: trace only the sample passes with these indices (None: all: the
+        full-quality frame); `keep`: add them to the accumulators of the previous call (same
+        camera and size: the G-buffer is not redrawn), as progressive refinement does
+        (viewer.progressive)."""
         s = self.settings
         t0 = time.perf_counter()
         prof = self.profiler
         passes = self.passes()
+        if samples is not None:
+            passes = [p for p in passes if p[1] in samples and (p[0] != RayType.PRIMARY or not keep)]
         view_overlay = self.is_overlay_view
         source = self.overlay_source_for(passes) if self.overlays_wanted else None
         self.overlay_missing = ""
@@ -308,9 +330,11 @@ class Renderer:
         for prog in (self.raygen.program, self.accumulate.program, self.shade.program):
             apply(prog, cam_u)
             apply(prog, light_u)
-        with prof.phase("gbuffer"):
-            self.gbuffer.render(camera)
-        self.accumulate.clear()
+        if not keep:
+            with prof.phase("gbuffer"):
+                self.gbuffer.render(camera)
+            self.accumulate.clear()
+            self.samples_done = {}
         self.raygen.reset_count()
         self.backend.overlays_enabled = self.overlays_wanted  # diagnostics cost time: only when shown or saved
         self.backend.begin_frame(self.frame_index)
@@ -335,13 +359,14 @@ class Renderer:
             if ray_type != RayType.PRIMARY:
                 with prof.phase("accumulate"):
                     self.accumulate.add(ray_type, self.rays, self.hits, self.gbuffer, light, weight)
+                self.samples_done.setdefault(ray_type, set()).add(sample)
         with prof.phase("shade"):
             if view_overlay and overlay_done and self.view in self.overlay.captured:
                 self.overlay.render_view(self.shade.fbo, self.view, self.overlay_tile_level(),
                                          int(self.overlay_scale), self.overlay_log)
             else:  # an overlay view without overlays (window): the final image under the message
                 self.shade.render(self.gbuffer, self.accumulate, s, "final" if view_overlay else self.view,
-                                  min(len(self.scene.point_lights), 8), self.depth_scale)
+                                  min(len(self.scene.point_lights), 8), self.depth_scale, self.acc_scale())
         self.overlay_source = source if overlay_done else None
         gpu_ms = prof.end_frame()
         if prof.saturated:  # timer results charged their CPU time instead (see profiler.py)
@@ -359,7 +384,7 @@ class Renderer:
 
     def read_gbuffer_ids(self) -> np.ndarray:
         """int32 (H*W,) raster triangle id per pixel (row 0 = bottom), -1 = background."""
-        from viewer.gpu import read_texture
+        from viewer.gl.textures import read_texture
 
         ids = read_texture(self.gbuffer.tri_id).reshape(-1)
         return np.where(ids < 0, -1, ids).astype(np.int32)

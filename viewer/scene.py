@@ -75,15 +75,24 @@ class Scene:
     identity: dict = field(default_factory=dict)
     sky_color: np.ndarray = field(default_factory=lambda: np.array([0.55, 0.65, 0.8], np.float32))
     notes: list[str] = field(default_factory=list)  # e.g. "dropped 53627 zero-area triangles"
+    auto_lights: bool = False  # lights are the loader's guess: viewer.default_lights checks them by ray casts
 
     @property
     def triangle_count(self) -> int:
         return int(self.triangles.shape[0])
 
+    _bounds: tuple = field(default=(None, None, None), init=False, repr=False, compare=False)
+
     @property
     def bounds(self) -> tuple[np.ndarray, np.ndarray]:
-        flat = self.triangles.reshape(-1, 3)
-        return flat.min(axis=0), flat.max(axis=0)
+        """(min, max) float32 (3,) over all vertices; cached per triangle array (the renderer asks
+        every frame, and a 2M-triangle reduction costs tens of ms)."""
+        tris, lo, hi = self._bounds
+        if tris is not self.triangles:  # the same array object (a reassigned array is recomputed)
+            flat = self.triangles.reshape(-1, 3)
+            lo, hi = flat.min(axis=0), flat.max(axis=0)
+            self._bounds = (self.triangles, lo, hi)
+        return lo.copy(), hi.copy()
 
     @property
     def diagonal(self) -> float:

@@ -10,17 +10,17 @@ import fnmatch
 import json
 import re
 import sys
+import threading
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
 
 from viewer.camera import Camera
 from viewer.errors import RtwalkError
+from viewer.paths import RECORDINGS, SHARED_SCENES
 from viewer.scene import Material, PointLight, RectLight, Scene
 
-REPO_ROOT = Path(__file__).resolve().parents[1]
-SHARED_SCENES = REPO_ROOT.parent / "shared" / "scenes"
-RECORDINGS = REPO_ROOT / "recordings"
 GREY = np.array([0.7, 0.7, 0.7], np.float32)
 
 
@@ -44,10 +44,7 @@ def load_scene(spec: str | None, scene_size: int | None = None, seed: int = 1,
         name, scene_size = base, int(spec_size.rstrip("kKmM").replace("_", "")) * mult
     if name in BUILTIN_SCENES:
         b = BUILTIN_SCENES[name]
-        size = b.default_size if scene_size is None else int(scene_size)
-        if not (b.min_size <= size <= b.max_size):
-            raise RtwalkError(f"--scene-size {size} out of range for {name} ({b.min_size}..{b.max_size}, "
-                              f"{b.size_meaning})")
+        size = check_builtin_size(name, b.default_size if scene_size is None else int(scene_size))
         scene = b.make(size, seed)
         if mirror_patterns:
             _apply_mirrors(scene.materials, mirror_patterns)
@@ -56,6 +53,23 @@ def load_scene(spec: str | None, scene_size: int | None = None, seed: int = 1,
         raise RtwalkError(f"unknown built-in scene '{name}' (built-ins: {', '.join(BUILTIN_SCENES)})")
     path = resolve_scene_path(name)
     return _load_file(path, name, mirror_patterns or [], progress)
+
+
+def check_builtin_size(name: str, size: int, flag: str = "--scene-size") -> int:
+    """`size` if within the built-in's range and its estimated memory fits what this process may
+    still allocate (viewer.sysmem), else one line with the figures. Nothing is built here."""
+    from viewer.procedural import BUILTIN_SCENES
+    from viewer.sysmem import available_bytes, gib
+
+    b = BUILTIN_SCENES[name]
+    if not (b.min_size <= size <= b.max_size):
+        raise RtwalkError(f"{flag} {size} out of range for {name} ({b.min_size}..{b.max_size}, {b.size_meaning})")
+    need = b.memory_estimate(size)
+    have = available_bytes()
+    if have is not None and need > have:
+        raise RtwalkError(f"{flag} {size:,}: {name} needs about {gib(need)} to build (scene + BVH), "
+                          f"only {gib(have)} is available; choose a smaller size")
+    return size
 
 
 def _apply_mirrors(materials: list[Material], patterns: list[str]) -> None:
@@ -130,13 +144,40 @@ def _colour_materials(face_colors: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return (uniq / 255.0).astype(np.float32), inv.reshape(-1).astype(np.int32)
 
 
+@contextmanager
+def _elapsed_ticker(desc: str, enabled: bool, every_s: float = 0.5):
+    """A line that counts the seconds of one long call that reports no progress itself (the
+    parser); shown only on a terminal, after the first second."""
+    if not enabled or not sys.stderr.isatty():
+        yield
+        return
+    from tqdm import tqdm
+
+    stop = threading.Event()
+    bar = tqdm(desc=desc, bar_format="{desc}: {elapsed}", file=sys.stderr, leave=False, delay=1.0)
+
+    def tick() -> None:
+        while not stop.wait(every_s):
+            bar.refresh()
+
+    thread = threading.Thread(target=tick, daemon=True)
+    thread.start()
+    try:
+        yield
+    finally:
+        stop.set()
+        thread.join()
+        bar.close()
+
+
 def _load_file(path: Path, given: str, mirror_patterns: list[str], progress: bool) -> Scene:
     import trimesh
 
     if progress:
-        print(f"loading {path} ...", file=sys.stderr, flush=True)
+        print(f"loading {path} ({path.stat().st_size / 2**20:.1f} MiB) ...", file=sys.stderr, flush=True)
     try:
-        loaded = trimesh.load(str(path), force="scene", process=False)  # we clean, and say what we drop
+        with _elapsed_ticker(f"reading {path.name}", progress):
+            loaded = trimesh.load(str(path), force="scene", process=False)  # we clean, and say what we drop
     except Exception as exc:  # trimesh raises many types for corrupt files
         msg = str(exc).splitlines()[0][:120] if str(exc) else type(exc).__name__
         raise RtwalkError(f"{path}: cannot read scene file ({msg})") from None
@@ -192,10 +233,14 @@ def _load_file(path: Path, given: str, mirror_patterns: list[str], progress: boo
         print(f"{path.name}: {n}", file=sys.stderr)
     scene = Scene(name=path.stem, triangles=tris, material_ids=mats, materials=materials,
                   identity={"file": given, "name": path.name}, notes=notes)
+    from viewer.presets import apply_preset, find_preset
+
+    preset = find_preset(path.name, len(tris))
+    patterns = apply_preset(scene, preset) if preset is not None else []  # shipped presets (viewer/presets)
     sidecar = path.with_name(path.name + ".rtwalk.json")
-    patterns = list(mirror_patterns)
     if sidecar.exists():
         patterns += _apply_sidecar(scene, sidecar)
+    patterns += list(mirror_patterns)
     _apply_mirrors(scene.materials, patterns)
     if not scene.point_lights and not scene.rect_lights:
         default_lights(scene)
@@ -210,9 +255,9 @@ def clean_triangles(tris: np.ndarray, mats: np.ndarray) -> tuple[np.ndarray, np.
     if (~finite).any():
         notes.append(f"dropped {int((~finite).sum())} triangles with NaN/Inf vertices")
     t64 = tris.astype(np.float64)
-    cross = np.cross(t64[:, 1] - t64[:, 0], t64[:, 2] - t64[:, 0])
-    area2 = np.einsum("ij,ij->i", cross, cross)
-    with np.errstate(invalid="ignore"):
+    with np.errstate(all="ignore"):  # NaN/Inf rows are dropped and counted above: no numpy warning
+        cross = np.cross(t64[:, 1] - t64[:, 0], t64[:, 2] - t64[:, 0])
+        area2 = np.einsum("ij,ij->i", cross, cross)
         nondeg = finite & (area2 > 0) & np.isfinite(area2)
         # a float32 normal must also be finite and non-zero for the shaders
         c32 = np.cross(tris[:, 1] - tris[:, 0], tris[:, 2] - tris[:, 0])
@@ -273,13 +318,16 @@ def default_lights(scene: Scene) -> None:
     power_scale = reach ** 2 / (side * side)
     scene.rect_lights = [RectLight(corner.astype(np.float32), eu.astype(np.float32), ev.astype(np.float32),
                                    np.full(3, power_scale, np.float32))]
+    scene.auto_lights = True  # a guess: viewer.session moves it by ray casts once the BVH exists
 
 
 def axis_ray_hits(tris: np.ndarray, origin, axis: int, sign: float,
-                  tri_min: np.ndarray | None = None, tri_max: np.ndarray | None = None) -> np.ndarray:
+                  tri_min: np.ndarray | None = None, tri_max: np.ndarray | None = None,
+                  facing: bool = False):
     """Sorted distances of all hits of the ray origin + t * sign * e_axis (t > 0). Vectorised;
     triangles whose bounding box misses the ray are skipped first (pass tri_min/tri_max, the
-    per-triangle vertex min/max, to reuse them over several rays)."""
+    per-triangle vertex min/max, to reuse them over several rays). With `facing`, also the sign of
+    dot(winding normal, ray direction) of each hit (-1: the surface faces the origin)."""
     origin = np.asarray(origin, np.float64)
     tri_min = tris.min(axis=1) if tri_min is None else tri_min
     tri_max = tris.max(axis=1) if tri_max is None else tri_max
@@ -301,24 +349,32 @@ def axis_ray_hits(tris: np.ndarray, origin, axis: int, sign: float,
         v = (q @ d) * inv
         dist = np.einsum("ij,ij->i", e2, q) * inv
         ok = (det != 0) & (u >= 0) & (v >= 0) & (u + v <= 1) & (dist > 0)
-    return np.sort(dist[ok])
+    order = np.argsort(dist[ok])
+    if facing:  # dot(cross(e1, e2), d) = -det (Moller-Trumbore: det = dot(e1, cross(d, e2)))
+        return dist[ok][order], -np.sign(det[ok][order])
+    return dist[ok][order]
 
 
 def is_enclosed(scene: Scene, point) -> bool:
     """Whether `point` is inside a shell that spans the scene bounds (an interior such as sponza,
-    sibenik, the conference room), not inside a closed object (a scanned bunny): along at least 4
-    of the 6 axis directions, the farthest surface is within 3% of the bounding-box face."""
+    sibenik, the conference room), not inside a closed object (a scanned bunny, a box): along at
+    least 4 of the 6 axis directions, the farthest surface is within 3% of the bounding-box face,
+    and the nearest surfaces do not all turn their backs to the point (inside a solid whose
+    winding points outwards, such as trimesh.creation.box(), every nearest hit is a back face)."""
     lo, hi = (b.astype(np.float64) for b in scene.bounds)
     ext = np.maximum(hi - lo, 1e-12)
     point = np.asarray(point, np.float64)
     tmin, tmax = scene.triangles.min(axis=1), scene.triangles.max(axis=1)
-    near_face = 0
+    near_face = back = hit = 0
     for axis in range(3):
         for sign, face in ((1.0, hi[axis]), (-1.0, lo[axis])):
-            hits = axis_ray_hits(scene.triangles, point, axis, sign, tmin, tmax)
-            if len(hits) and abs(face - point[axis]) - hits[-1] <= 0.03 * ext[axis]:
-                near_face += 1
-    return near_face >= 4
+            hits, facing = axis_ray_hits(scene.triangles, point, axis, sign, tmin, tmax, facing=True)
+            if len(hits):
+                hit += 1
+                back += int(facing[0] > 0)
+                if abs(face - point[axis]) - hits[-1] <= 0.03 * ext[axis]:
+                    near_face += 1
+    return near_face >= 4 and not (hit == 6 and back == 6)
 
 
 def default_camera(scene: Scene) -> Camera:

@@ -5,6 +5,7 @@ from __future__ import annotations
 import sys
 from dataclasses import dataclass
 
+import numpy as np
 from tqdm import tqdm
 
 from viewer.accel.bvh import BVH, build_bvh
@@ -21,17 +22,39 @@ class PreparedScene:
     bvh: BVH
 
 
+class BuildWork:
+    """Fraction of a level-by-level BVH build done, for a progress bar whose ETA holds.
+
+    Each level costs about as much as the triangles still above the leaves, so the work is
+    sum over levels of active triangles; the triangles placed in leaves (all the builder reports)
+    only grow near the end. After level L (about 2^(L+1) nodes below it) the active triangles sit
+    in nodes of about active / 2^(L+1) each, and need about log2(that / 3) + 1 more levels
+    (leaves hold 2..4 triangles)."""
+
+    def __init__(self, n: int):
+        self.n, self.level, self.done, self.active = max(int(n), 1), 0, 0.0, max(int(n), 1)
+
+    def level_done(self, placed: int) -> float:
+        self.done += self.active
+        self.level += 1
+        self.active = max(self.n - int(placed), 0)
+        per_node = self.active / 2.0 ** min(self.level, 60)
+        remaining = self.active * (np.log2(max(per_node / 3.0, 1.0)) + 1.0) if self.active else 0.0
+        return min(self.done / (self.done + remaining), 1.0)
+
+
 def prepare_scene(spec: str | None, scene_size: int | None = None, seed: int = 1,
                   mirror_patterns: list[str] | None = None, quiet: bool = False) -> PreparedScene:
     from viewer.scene_io import load_scene
 
     scene = load_scene(spec, scene_size=scene_size, seed=seed, mirror_patterns=mirror_patterns,
                        progress=not quiet)
-    bar = tqdm(total=scene.triangle_count, desc="BVH build", unit="tri", unit_scale=True,
+    bar = tqdm(total=100, desc="BVH build", unit="%", bar_format="{l_bar}{bar}| [{elapsed}<{remaining}]",
                disable=quiet or scene.triangle_count < 200_000, file=sys.stderr, leave=False)
+    work = BuildWork(scene.triangle_count)
 
-    def progress(done: int, total: int) -> None:
-        bar.update(done - bar.n)
+    def progress(placed: int, total: int) -> None:
+        bar.update(round(100 * work.level_done(placed)) - bar.n)
 
     bvh = build_bvh(scene.triangles, progress=progress)
     bar.close()
@@ -42,4 +65,12 @@ def prepare_scene(spec: str | None, scene_size: int | None = None, seed: int = 1
         log(f"BVH: {st.nodes:,} nodes, depth {st.depth}, SAH cost {st.sah_cost:.1f}, "
             f"built in {st.build_time_s:.2f} s ({scene.triangle_count / max(st.build_time_s, 1e-9) / 1e6:.2f} Mtri/s), "
             f"{st.memory_bytes / 2**20:.1f} MiB of node + triangle buffers")
-    return PreparedScene(scene.reordered(bvh.tri_order), bvh)
+    ordered = scene.reordered(bvh.tri_order)
+    if ordered.auto_lights:
+        from viewer.default_lights import apply
+
+        placed = apply(ordered, bvh)
+        if placed is not None and not quiet:
+            pos = ", ".join(f"{v:.3g}" for v in placed.position)
+            log(f"default light at ({pos}): lights {100 * placed.lit:.0f}% of the surfaces the camera sees")
+    return PreparedScene(ordered, bvh)

@@ -44,7 +44,7 @@ def measure(ctx, sizes=(64, 128, 256, 512), work: int = 1000 * 512 * 512) -> lis
 
 
 def main() -> None:
-    from viewer.tracing import shared_context
+    from viewer.gl.context import shared_context
 
     ctx = shared_context()
     print(f"device: {ctx.info.get('GL_RENDERER')}")

@@ -16,7 +16,7 @@ from viewer.accel.bvh import BVH, build_bvh
 from viewer.backends import create_backend
 from viewer.backends.base import BackendContext
 from viewer.effects import RayType
-from viewer.gl.context import shared_context  # noqa: F401  (tools import it from here too)
+from viewer.gl.context import shared_context
 from viewer.gl.programs import ProgramCache
 from viewer.gl.scene import GpuScene
 from viewer.profiler import GpuProfiler

@@ -18,6 +18,10 @@ BACKENDS: dict[str, str] = {
     "chcrt": "viewer.backends.chcrt:ChcrtBackend",
     "embree": "viewer.backends.embree:EmbreeBackend",
     "clbvh": "viewer.backends.clbvh:ClbvhBackend",
+    "ugrid": "viewer.backends.ugrid:UgridBackend",
+    "pgrid": "viewer.backends.pgrid:PgridBackend",
+    "voxelwalk": "viewer.backends.voxelwalk:VoxelwalkBackend",
+    "voxels": "viewer.backends.voxels:VoxelsBackend",
 }
 
 

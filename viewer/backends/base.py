@@ -34,9 +34,26 @@ class BackendContext:
     ctx: moderngl.Context
     programs: ProgramCache
     profiler: GpuProfiler
-    gpu_scene: object  # viewer.gpu.GpuScene
+    gpu_scene: object  # viewer.gl.scene.GpuScene
     scene: object  # viewer.scene.Scene (leaf order)
     bvh: object  # viewer.accel.bvh.BVH
+
+
+class StatelessBackend:
+    """Defaults of the Backend protocol for a backend that keeps nothing between frames and has no
+    screen tiles: begin_frame and reset do nothing, tile_level is -1 (no overlay outlines), no
+    overlays. A backend with temporal state (chcrt) implements them itself."""
+
+    overlays_enabled: bool = False
+
+    def begin_frame(self, frame_index: int) -> None:
+        """Nothing carries over between frames."""
+
+    def reset(self) -> None:
+        """No temporal state to forget."""
+
+    def tile_level(self, size: tuple[int, int]) -> int:
+        return -1
 
 
 WORK_SLOTS = ("invocations", "nodes", "box_tests", "tri_tests",

@@ -25,7 +25,7 @@ stale image read only costs work. Conservative mode (visible_threshold = 0) ther
 the glsl baseline's nearest hit, bit for bit in t, except on ties: two triangles at the same true
 distance (shared edges, coplanar overlaps), where the winner depends on the visiting order in
 glsl too. Any-hit rays agree on hit/miss (which occluder is reported depends on the order).
-See shaders/chc_intersect.frag for a Mesa llvmpipe miscompilation the intersection loop avoids.
+See shaders/chc_intersect.frag for llvmpipe's loop limit and how rays that would reach it are finished.
 
 Overlays (TraceResult.overlays, R32I at the ray-batch size, overwritten by the next pass):
 ``query_overdraw`` (query fragments per pixel, imageAtomicAdd) and ``subtree_id`` (canonical BVH
@@ -55,7 +55,8 @@ import numpy as np
 
 from viewer.backends.base import BackendContext, TraceResult, WorkCounters
 from viewer.backends.chcrt_cache import MB, CachePlan, SubtreeCache
-from viewer.backends.chcrt_front import INNER, INVISIBLE, VISIBLE, NodeTables, PairFront, max_tile_level
+from viewer.backends.chcrt_front import INNER, INVISIBLE, VISIBLE, NodeTables, PairFront
+from viewer.backends.gl_traversal import ResumableTraversal, max_visits
 from viewer.backends.interface import BackendInfo, OverlaySpec
 from viewer.effects import RayType
 from viewer.errors import RtwalkError
@@ -74,6 +75,7 @@ from viewer.gl.buffers import StreamBuffer
 from viewer.gl.programs import FullscreenQuad
 from viewer.gl.textures import float_depth_texture, float_texture, int_texture
 from viewer.rays import HitBuffer, PassInfo, RayBatch
+from viewer.screen_tiles import max_tile_level
 
 ITEM_DTYPE = np.dtype([("bmin", "<f4", 3), ("ref", "<i4"), ("bmax", "<f4", 3), ("count", "<i4"),
                        ("id", "<i4"), ("pad", "<i4", 3)])
@@ -198,14 +200,20 @@ class ChcrtBackend:
             iwd["CHC_OOC"] = 1
         self.prog_init = progs.get("fullscreen.vert", "chc_init.frag")
         self.prog_query = progs.get("fullscreen.vert", "chc_query.frag", {"CHC_MAX_ITEMS": MAX_BOXES, **wd})
+        # rays that would reach llvmpipe's loop limit are finished by the glsl resumable traversal
+        self.finisher = ResumableTraversal(bc)
+        items_loops = self.p.max_batch * (self.finisher.max_leaf + self.p.max_batch + 2)  # scheduled items, sort
+        visits = max_visits(self.finisher.max_leaf, stack, items_loops)
         self.prog_isect = progs.get("fullscreen.vert", "chc_intersect.frag",
-                                    {"CHC_MAX_ITEMS": self.p.max_batch, "STACK_SIZE": stack, **iwd})
+                                    {"CHC_MAX_ITEMS": self.p.max_batch, "STACK_SIZE": stack, "CHC_MAX_VISITS": visits,
+                                     **iwd})
         self.prog_gather = progs.get("fullscreen.vert", "chc_gather.frag")
         self.batched = self.p.query_mode == "batched"
         self.prog_query_b = progs.get("chc_tile.vert", "chc_query.frag",
                                       {"CHC_MAX_ITEMS": MAX_BOXES, "CHC_BATCHED": 1, **wd})
         self.prog_isect_b = progs.get("chc_tile.vert", "chc_intersect.frag",
-                                      {"CHC_MAX_ITEMS": self.p.max_batch, "CHC_BATCHED": 1, "STACK_SIZE": stack, **iwd})
+                                      {"CHC_MAX_ITEMS": self.p.max_batch, "CHC_BATCHED": 1, "STACK_SIZE": stack,
+                                       "CHC_MAX_VISITS": visits, **iwd})
         self.vao_query_b = self.ctx.vertex_array(self.prog_query_b, [])
         self.vao_isect_b = self.ctx.vertex_array(self.prog_isect_b, [])
         for prog in (self.prog_init, self.prog_query, self.prog_isect, self.prog_gather, self.prog_query_b,
@@ -258,6 +266,7 @@ class ChcrtBackend:
         self.count_buf.release()
         if self.cache is not None:
             self.cache.release()
+        self.finisher.release()
         self.work.release()
         self.queries.clear()  # moderngl 5 queries have no release(); dropped with the context
         self.fronts.clear()
@@ -285,7 +294,11 @@ class ChcrtBackend:
             self.fronts[key] = front
         tr = _Pass(self, front, rays, ray_type, hits)
         self.work.begin()
+        self.finisher.bind_flags(size)
         stats = tr.run()
+        fin = self.finisher.run(rays, pinfo, hits, resume_only=True)
+        stats["resumed_rays"] = fin["resumed_rays"]
+        stats["continuation_draws"] = fin["draws"]
         stats.update(self.work.end())
         front.frames += 1
         self.last_stats = stats

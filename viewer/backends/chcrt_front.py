@@ -4,8 +4,7 @@ A query pair is (screen tile, BVH node). The ray hierarchy is a quadtree over th
 the tile (level L, x, y) covers pixels [x*W >> L, (x+1)*W >> L) x [y*H >> L, (y+1)*H >> L).
 The object hierarchy is the canonical BVH (viewer.accel.bvh.BVH node indices).
 
-Screen tiles are the generic quadtree of viewer.screen_tiles (tile_rects, max_tile_level are
-re-exported here for the backend and its tests).
+Screen tiles are the generic quadtree of viewer.screen_tiles (tile_rects, max_tile_level).
 
 The pair hierarchy is kept between frames (one per ray type / sample / light) as flat arrays.
 Its leaves form the *front*: every leaf is either
@@ -25,7 +24,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from viewer.screen_tiles import max_tile_level, tile_rects  # noqa: F401 (re-exported for chcrt)
+from viewer.screen_tiles import tile_rects
 
 INVISIBLE = 0
 VISIBLE = 1

@@ -5,13 +5,13 @@ Used as the independent reference for tests and for the error column of `rtwalk 
 
 from __future__ import annotations
 
-from viewer.backends.base import BackendContext, TraceResult
+from viewer.backends.base import BackendContext, StatelessBackend, TraceResult
 from viewer.backends.interface import BackendInfo
 from viewer.errors import RtwalkError
 from viewer.rays import HitBuffer, PassInfo, RayBatch
 
 
-class EmbreeBackend:
+class EmbreeBackend(StatelessBackend):
     info = BackendInfo("embree", "CPU reference: Embree (embreex) on the same rays, hits uploaded back",
                        counters=("cpu_rays",), device="cpu")
 
@@ -22,17 +22,7 @@ class EmbreeBackend:
             raise RtwalkError("backend 'embree' needs the embreex package (pip install embreex)")
         self.bc = bc
         self.params = params
-        self.overlays_enabled = False
         self.tracer = EmbreeTracer(bc.scene.triangles)
-
-    def begin_frame(self, frame_index: int) -> None:
-        pass
-
-    def reset(self) -> None:
-        pass
-
-    def tile_level(self, size: tuple[int, int]) -> int:
-        return -1
 
     def trace(self, rays: RayBatch, pinfo: PassInfo, hits: HitBuffer) -> TraceResult:
         with self.bc.profiler.phase(f"trace:{pinfo.ray_type.label}"):

@@ -1,49 +1,38 @@
-"""The GLSL baseline: a full-screen fragment shader traverses the whole BVH for every ray."""
+"""The GLSL baseline: a full-screen fragment shader traverses the whole BVH for every ray.
+
+The traversal itself (resumed in further draws when llvmpipe's loop limit would cut it short) is
+viewer.backends.gl_traversal.ResumableTraversal, shared with chcrt.
+"""
 
 from __future__ import annotations
 
-from viewer.backends.base import BackendContext, TraceResult, WorkCounters
+from viewer.backends.base import BackendContext, StatelessBackend, TraceResult, WorkCounters
+from viewer.backends.gl_traversal import ResumableTraversal
 from viewer.backends.interface import BackendInfo
-from viewer.gpu import FullscreenQuad
 from viewer.rays import HitBuffer, PassInfo, RayBatch
 
 
-class GlslBackend:
+class GlslBackend(StatelessBackend):
     info = BackendInfo("glsl", "full BVH traversal from the root per ray (CHC+RT Table 2 'GLSL' baseline)",
-                       counters=("draws",))
+                       counters=("draws", "resumed_rays"))
 
     def __init__(self, bc: BackendContext, params: None = None):
         self.bc = bc
         self.params = params
-        self.overlays_enabled = False
         self.work = WorkCounters(bc.ctx)
-        self.program = bc.programs.get("fullscreen.vert", "trace_glsl.frag",
-                                       {"STACK_SIZE": bc.gpu_scene.stack_size, **self.work.defines})
-        self.program["rayOrigin"] = 0
-        self.program["rayDir"] = 1
-        self.quad = FullscreenQuad(bc.ctx)
+        self.traversal = ResumableTraversal(bc, self.work)
 
-    def begin_frame(self, frame_index: int) -> None:
-        pass
-
-    def reset(self) -> None:
-        pass
-
-    def tile_level(self, size: tuple[int, int]) -> int:
-        return -1
+    @property
+    def max_visits(self) -> int:
+        return self.traversal.max_visits
 
     def trace(self, rays: RayBatch, pinfo: PassInfo, hits: HitBuffer) -> TraceResult:
-        ctx = self.bc.ctx
-        self.bc.gpu_scene.bind()
-        rays.origin.use(0)
-        rays.direction.use(1)
-        self.program["anyHit"] = int(pinfo.any_hit)
-        hits.fbo.use()
-        ctx.disable(ctx.BLEND | ctx.DEPTH_TEST)
+        self.traversal.bind_flags(hits.size)
         self.work.begin()
         with self.bc.profiler.phase(f"trace:{pinfo.ray_type.label}"):
-            self.quad.render(self.program)
-        return TraceResult(stats={"draws": 1, **self.work.end()})
+            stats = self.traversal.run(rays, pinfo, hits)
+        return TraceResult(stats={**stats, **self.work.end()})
 
     def release(self) -> None:
+        self.traversal.release()
         self.work.release()

@@ -6,21 +6,7 @@
 - replay: `rtwalk bench` (one configuration over a recording, error against Embree)
 - chcrt: `rtwalk bench-chcrt` (the CHC+RT paper's tables)
 - gl_micro: synthetic per-draw / per-query GL costs (the overhead study)
+- trace_vs_embree: `rtwalk bench-trace`; cl_primitives: `rtwalk bench-cl`
 
-The names of the former viewer/bench.py are re-exported here (`from viewer.bench import run_bench`).
+Import each name from its module; this package re-exports nothing.
 """
-
-from viewer.bench.harness import frame_numbers, frame_row, image_error
-from viewer.bench.replay import (
-    BenchOptions,
-    plot_phases,
-    print_summary,
-    reference_errors,
-    run_bench,
-    save_overlay_views,
-    summarize,
-    write_report,
-)
-
-__all__ = ["BenchOptions", "frame_numbers", "frame_row", "image_error", "plot_phases", "print_summary",
-           "reference_errors", "run_bench", "save_overlay_views", "summarize", "write_report"]

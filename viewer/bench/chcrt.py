@@ -52,10 +52,10 @@ from viewer.bench.harness import PROTOCOL, Harness, RunResult, RunSpec, effect_s
 from viewer.bench.plots import barh, figure, finish, points, stacked
 from viewer.bench.report import fmt, md_table, notes_md, ratio, size_text, write_study
 from viewer.errors import RtwalkError
+from viewer.paths import RECORDINGS, resolve_recording
 
 STUDIES = ("table2", "table4", "phases", "overhead", "tuning", "ooc", "coherence")
 EXPLICIT_ONLY = ("ooc", "coherence")  # not part of "all" (a 10M-triangle scene; 16 runs): ask for them by name
-RECORDINGS_DIR = Path(__file__).resolve().parents[2] / "recordings"
 DEFAULT_RECORDINGS = ("city-near", "city-far", "sponza-walk", "sibenik-walk", "conference-walk")
 PHASE_COUNTERS = ("queries", "multi_queries", "failed_multi_queries", "subtrees_scheduled", "draws",
                   "intersect_draws")
@@ -81,39 +81,28 @@ class StudyOptions:
     quick: bool = False
     effects: list[str] = field(default_factory=lambda: ["primary", "ao:20", "diffuse:20"])
     thresholds: list[int] = field(default_factory=lambda: [0, 20, 100, 200])
-    table4_recording: Path = RECORDINGS_DIR / "city-near.json"
+    table4_recording: Path = RECORDINGS / "city-near.json"
     table4_effect: str = "diffuse:20"
     table4_glsl: bool = True
-    phases_recording: Path = RECORDINGS_DIR / "city-near.json"
+    phases_recording: Path = RECORDINGS / "city-near.json"
     phases_effect: str = "ao:4"
     phases_frames: int = 40
-    overhead_recording: Path = RECORDINGS_DIR / "city-near.json"
+    overhead_recording: Path = RECORDINGS / "city-near.json"
     overhead_effect: str = "ao:4"
     micro_scale: float = 1.0  # op counts of the synthetic benchmark (quick: smaller)
     tuning_effects: list[str] = field(default_factory=lambda: ["ao:4", "diffuse:4"])
     tuning_grid: str = "t_q=0.5|1|2;min_tile_fraction=0.015|0.06;requery_interval=3|8"
     ooc_scene_size: int = 10_000_000  # triangles of the City-200 analog
     ooc_fractions: list[float] = field(default_factory=lambda: [0.47, 0.32, 0.20])
-    ooc_recordings: list[Path] = field(default_factory=lambda: [RECORDINGS_DIR / "city-near.json",
-                                                                RECORDINGS_DIR / "city-far.json"])
+    ooc_recordings: list[Path] = field(default_factory=lambda: [RECORDINGS / "city-near.json",
+                                                                RECORDINGS / "city-far.json"])
     ooc_effects: list[str] = field(default_factory=lambda: ["primary", "ao:20", "diffuse:20"])
     ooc_frames: int = 6
-    coherence_recordings: list[Path] = field(default_factory=lambda: [RECORDINGS_DIR / "city-near.json",
-                                                                      RECORDINGS_DIR / "sponza-walk.json"])
+    coherence_recordings: list[Path] = field(default_factory=lambda: [RECORDINGS / "city-near.json",
+                                                                      RECORDINGS / "sponza-walk.json"])
     coherence_effects: list[str] = field(default_factory=lambda: ["ao:20", "diffuse:20"])
     perturbs: list[float] = field(default_factory=lambda: [0.0, 18.0, 36.0, 180.0])
     notes: list[str] = field(default_factory=list)
-
-
-def resolve_recording(text: str) -> Path:
-    """A recording by path, or by name in recordings/ (`city-near` or `city-near.json`)."""
-    text = text.strip()
-    given = Path(text).expanduser()
-    for cand in (given, RECORDINGS_DIR / text, RECORDINGS_DIR / f"{text}.json"):
-        if cand.is_file():
-            return cand.resolve()
-    names = ", ".join(p.stem for p in sorted(RECORDINGS_DIR.glob("*.json")))
-    raise RtwalkError(f"unknown recording '{text}': no such file (shipped: {names})")
 
 
 def _split(text: str) -> list[str]:
@@ -140,7 +129,7 @@ def effective_params(*texts: str | None) -> str:
 
 def options_from_args(args: argparse.Namespace) -> StudyOptions:
     """Check all input up front (bad input fails in a second, not after an hour)."""
-    from viewer.cli_args import parse_size
+    from viewer.cli_args import parse_image_sizes
 
     studies: list[str] = []
     for s in _split(args.study or "all"):
@@ -153,17 +142,10 @@ def options_from_args(args: argparse.Namespace) -> StudyOptions:
     if not studies:
         raise RtwalkError("--study is empty")
     quick = bool(args.quick)
-    sizes = []
-    for text in _split(args.sizes) if args.sizes else []:
-        try:
-            sizes.append(parse_size(text))
-        except RtwalkError:
-            raise RtwalkError(f"bad --sizes item '{text}': expected WIDTHxHEIGHT (1..16384 each), "
-                              "e.g. 640x360,1280x720") from None
-    if not args.sizes:
+    if args.sizes:
+        sizes = parse_image_sizes(args.sizes)
+    else:
         sizes = [QUICK_SIZE] if quick else [(640, 360)]
-    if not sizes:
-        raise RtwalkError("--sizes is empty")
     notes: list[str] = []
     if args.recordings:
         recordings = [resolve_recording(r) for r in _split(args.recordings)]
@@ -889,7 +871,8 @@ STUDY_FUNCS: dict[str, Callable[[Bench], dict]] = {"table2": study_table2, "tabl
                                                     "coherence": study_coherence}
 
 
-def run_studies(o: StudyOptions, out=sys.stdout) -> list[dict]:
+def run_studies(o: StudyOptions, out=None) -> list[dict]:
+    out = out or sys.stdout  # looked up per call: a stream bound at import may be closed by now
     est = estimate(o)
     if not o.quiet:
         print(format_estimate(est), file=sys.stderr, flush=True)

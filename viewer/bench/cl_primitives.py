@@ -12,7 +12,6 @@ reported. Writes bench_cl.json, bench_cl.md and bench_cl.png to --out.
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import platform
 import time
@@ -21,6 +20,10 @@ from pathlib import Path
 
 import numpy as np
 
+from viewer.bench.harness import load_average
+from viewer.bench.plots import bars, figure, finish
+from viewer.bench.report import md_table, write_study
+from viewer.cli_args import check_output_dir
 from viewer.errors import RtwalkError
 
 OPS = ("sort", "scan", "compact")
@@ -176,52 +179,28 @@ def measure(sizes: list[int], ops: list[str], reps: int, command: str = "", log=
                 f"speedup {ratio:6.1f}x")
             del case
     return {"device": ctx.name, "compute_units": ctx.compute_units, "host": platform.node(),
-            "cpu_count": os.cpu_count(), "load_average_before": _load(), "reps": reps,
+            "cpu_count": os.cpu_count(), "load_average_before": load_average(), "reps": reps,
             "warm_up_ms": warm_ms, "command": command, "rows": rows}
 
 
-def _load() -> list[float] | None:
-    try:
-        return [round(v, 2) for v in os.getloadavg()]
-    except OSError:
-        return None
-
-
 def markdown(report: dict) -> str:
-    lines = [f"OpenCL primitives vs NumPy on {report['device']} ({report['compute_units']} compute units), "
-             f"median of {report['reps']} interleaved repetitions; speedup = median of per-repetition "
-             "NumPy/OpenCL ratios.", "",
-             "| op | elements | NumPy | NumPy ms | OpenCL ms | NumPy Melem/s | OpenCL Melem/s | speedup |",
-             "|---|---:|---|---:|---:|---:|---:|---:|"]
-    for r in report["rows"]:
-        lines.append(f"| {r['op']} | {r['n']:,} | {r['numpy']} | {r['numpy_ms']:.2f} | {r['opencl_ms']:.2f} | "
-                     f"{r['numpy_melem_s']:.1f} | {r['opencl_melem_s']:.1f} | {r['speedup']:.1f}x |")
-    lines += ["", f"Command: `{report['command']}`", ""]
-    return "\n".join(lines)
+    rows = [[r["op"], f"{r['n']:,}", r["numpy"], f"{r['numpy_ms']:.2f}", f"{r['opencl_ms']:.2f}",
+             f"{r['numpy_melem_s']:.1f}", f"{r['opencl_melem_s']:.1f}", f"{r['speedup']:.1f}x"] for r in report["rows"]]
+    table = md_table(["op", "elements", "NumPy", "NumPy ms", "OpenCL ms", "NumPy Melem/s", "OpenCL Melem/s",
+                      "speedup"], rows, align="lrlrrrrr")
+    return "\n".join([f"OpenCL primitives vs NumPy on {report['device']} ({report['compute_units']} compute units), "
+                      f"median of {report['reps']} interleaved repetitions; speedup = median of per-repetition "
+                      "NumPy/OpenCL ratios.", "", table, "", f"Command: `{report['command']}`", ""])
 
 
 def plot(report: dict, path: Path) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
     rows = report["rows"]
-    labels = [f"{r['op']}\n{r['n'] / 1e6:g}M" for r in rows]
-    x = np.arange(len(rows))
-    fig, ax = plt.subplots(figsize=(max(6.0, 1.1 * len(rows) + 2), 4.2))
-    ax.bar(x - 0.2, [r["numpy_melem_s"] for r in rows], 0.4, label="NumPy")
-    ax.bar(x + 0.2, [r["opencl_melem_s"] for r in rows], 0.4, label="OpenCL")
-    for i, r in enumerate(rows):
-        ax.annotate(f"{r['speedup']:.1f}x", (x[i] + 0.2, r["opencl_melem_s"]), ha="center", va="bottom", fontsize=8)
-    ax.set_xticks(x, labels)
-    ax.set_yscale("log")
-    ax.set_ylabel("million elements / s (log)")
-    ax.set_title(f"OpenCL primitives vs NumPy: {report['device']}", fontsize=9)
-    ax.legend()
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    fig, ax = figure(size=(max(6.0, 1.1 * len(rows) + 2), 4.2))
+    bars(ax, [f"{r['op']}\n{r['n'] / 1e6:g}M" for r in rows],
+         {"NumPy": [r["numpy_melem_s"] for r in rows], "OpenCL": [r["opencl_melem_s"] for r in rows]},
+         ylabel="million elements / s (log)", log=True, texts=[f"{r['speedup']:.1f}x" for r in rows],
+         texts_of="OpenCL", title=f"OpenCL primitives vs NumPy: {report['device']}")
+    finish(fig, path)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -232,18 +211,11 @@ def run(args: argparse.Namespace) -> int:
         raise RtwalkError(f"bad --ops '{args.ops}': choose from {','.join(OPS)}")
     if args.reps < 1:
         raise RtwalkError("--reps must be >= 1")
-    out = Path(args.out)
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as e:
-        raise RtwalkError(f"cannot create --out folder {out}: {e.strerror}") from None
-    command = f"rtwalk bench-cl --sizes {args.sizes} --reps {args.reps} --ops {','.join(ops)} --out {args.out}"
-    report = measure(sizes, ops, args.reps, command)
-    (out / "bench_cl.json").write_text(json.dumps(report, indent=1))
-    md = markdown(report)
-    (out / "bench_cl.md").write_text(md)
-    plot(report, out / "bench_cl.png")
+    out = check_output_dir(args.out, "--out")
+    report = measure(sizes, ops, args.reps, getattr(args, "command_line", ""))
+    files = write_study(out, "bench_cl", report, markdown(report))
+    plot(report, files["png"])
     print()
-    print(md)
-    print(f"wrote {out / 'bench_cl.json'}, {out / 'bench_cl.md'}, {out / 'bench_cl.png'}")
+    print(files["markdown"])
+    print(f"wrote {files['json']}, {files['md']}, {files['png']}")
     return 0

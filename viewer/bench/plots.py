@@ -35,22 +35,42 @@ def finish(fig, path: Path, title: str | None = None, fontsize: int = 9) -> None
     pyplot().close(fig)
 
 
+def _grouped(ax, labels: Sequence[str], series: dict[str, Sequence[float]], horizontal: bool,
+             color: str | None = None) -> np.ndarray:
+    """One group of bars per label, one bar per series; returns the label positions."""
+    pos = np.arange(len(labels))
+    k = len(series)
+    width = 0.8 / k if k > 1 else 0.8
+    draw = ax.barh if horizontal else ax.bar
+    for j, (name, values) in enumerate(series.items()):
+        draw(pos + (j - (k - 1) / 2) * width, list(values), width, label=name, **({"color": color} if color else {}))
+    return pos
+
+
+def _annotate(ax, pos: np.ndarray, series: dict[str, Sequence[float]], texts: Sequence[str], of: str | None,
+              horizontal: bool) -> None:
+    """`texts` next to the bars of series `of` (default: the first)."""
+    k = len(series)
+    names = list(series)
+    j = names.index(of) if of is not None else 0
+    off = (j - (k - 1) / 2) * (0.8 / k if k > 1 else 0.8)
+    values = list(series[names[j]])
+    for i, t in enumerate(texts):
+        v = values[i] if np.isfinite(values[i]) else 0
+        if horizontal:
+            ax.text(v, pos[i] + off, f" {t}", va="center", fontsize=6)
+        else:
+            ax.annotate(t, (pos[i] + off, v), ha="center", va="bottom", fontsize=8)
+
+
 def barh(ax, labels: Sequence[str], series: dict[str, Sequence[float]], xlabel: str = "", log: bool = False,
          ref: float | None = None, texts: Sequence[str] | None = None, title: str = "", label_size: int = 7,
          color: str | None = None) -> None:
     """Horizontal bars, one group per label and one bar per series (legend when several);
-    `ref` draws a vertical line (e.g. 1.0 for ratios), `texts` annotate the bars of one series."""
-    y = np.arange(len(labels))
-    k = len(series)
-    width = 0.8 / k if k > 1 else 0.8
-    for j, (name, values) in enumerate(series.items()):
-        off = (j - (k - 1) / 2) * width
-        ax.barh(y + off, list(values), width, label=name, **({"color": color} if color else {}))
+    `ref` draws a vertical line (e.g. 1.0 for ratios), `texts` annotate the bars of the first series."""
+    y = _grouped(ax, labels, series, True, color)
     if texts is not None:
-        first = list(next(iter(series.values())))
-        for i, t in enumerate(texts):
-            v = first[i]
-            ax.text(v if np.isfinite(v) else 0, i, f" {t}", va="center", fontsize=6)
+        _annotate(ax, y, series, texts, None, True)
     if labels:
         ax.set_yticks(y, list(labels), fontsize=label_size)
     ax.invert_yaxis()
@@ -61,9 +81,28 @@ def barh(ax, labels: Sequence[str], series: dict[str, Sequence[float]], xlabel: 
     ax.set_xlabel(xlabel)
     if title:
         ax.set_title(title, fontsize=9)
-    if k > 1:
+    if len(series) > 1:
         ax.legend(fontsize=8)
     ax.grid(alpha=0.3, axis="x")
+
+
+def bars(ax, labels: Sequence[str], series: dict[str, Sequence[float]], ylabel: str = "", log: bool = False,
+         texts: Sequence[str] | None = None, texts_of: str | None = None, title: str = "",
+         legend_cols: int = 1) -> None:
+    """Vertical bars, one group per label and one bar per series (legend when several);
+    `texts` annotate the bars of series `texts_of` (default: the first)."""
+    x = _grouped(ax, labels, series, False)
+    if texts is not None:
+        _annotate(ax, x, series, texts, texts_of, False)
+    ax.set_xticks(x, list(labels))
+    if log:
+        ax.set_yscale("log")
+    ax.set_ylabel(ylabel)
+    if title:
+        ax.set_title(title, fontsize=9)
+    if len(series) > 1:
+        ax.legend(fontsize=7, ncol=legend_cols)
+    ax.grid(alpha=0.3, axis="y")
 
 
 def stacked(ax, x: Sequence[float], layers: dict[str, Sequence[float]], ylabel: str = "ms", xlabel: str = "",

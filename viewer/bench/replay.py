@@ -9,6 +9,7 @@ capture on (same rays: the pipeline is deterministic), so error checks never pol
 from __future__ import annotations
 
 import sys
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -118,11 +119,25 @@ def run_bench(prepared: PreparedScene, rec, settings: EffectSettings, opts: Benc
     for _ in range(opts.warmup):  # compile shaders, fault in buffers
         renderer.render(rec.camera_for_frame(frames[0], opts.fps))
     records = []
+    every = max(opts.reference_every, 1)
+    checked = len(range(0, len(frames), every)) if tracer is not None else 0
+    if not quiet:
+        print(f"bench: {len(frames)} of the path's {rec.frame_count(opts.fps)} frames"
+              + (f", {checked} checked against Embree (every {every})" if checked else ""), file=sys.stderr)
+    t_start, t_render0 = time.perf_counter(), 0.0
     for k, n in enumerate(tqdm(frames, desc=f"bench {opts.backend}", unit="frame", disable=quiet,
                                file=sys.stderr)):
+        if k == 1 and not quiet:  # the first frame (rendered and checked) times the rest
+            first = time.perf_counter() - t_start
+            # a checked frame costs `first`, an unchecked one its render part
+            est = first * (checked - 1) + t_render0 * (len(frames) - checked) if checked else first * (len(frames) - 1)
+            tqdm.write(f"bench: estimated {est / 60:.1f} min more (first frame {first:.1f} s)", file=sys.stderr)
+        t_frame = time.perf_counter()
         cam = rec.camera_for_frame(n, opts.fps)
         rep = renderer.render(cam)
         row = frame_row(rep, rec, n, opts.fps)
+        if k == 0:
+            t_render0 = time.perf_counter() - t_frame
         image = None
         if tracer is not None and k % max(opts.reference_every, 1) == 0:
             err = reference_errors(renderer, cam, tracer)
@@ -188,7 +203,8 @@ def summarize(records: list[dict]) -> dict:
     return s
 
 
-def print_summary(report: dict, out=sys.stdout) -> None:
+def print_summary(report: dict, out=None) -> None:
+    out = out or sys.stdout  # looked up per call: a stream bound at import may be closed by now
     s = report["summary"]
     w, h = report["size"]
     print(f"\n{report['scene_name']} ({report['triangles']:,} tris)  backend={report['backend']}  "

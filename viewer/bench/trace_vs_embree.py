@@ -2,9 +2,9 @@
 
 Rays are captured once per frame (Renderer.render(capture=True) with the glsl backend: every
 ray type of the frame, one RayArrays per pass), then, in interleaved rounds, each backend traces
-each captured pass again from the ray textures and Embree (embreex's own `run()`, tnear folded
-into the origin as viewer.reference does) traces the same active rays on 1 thread and on N
-Python threads over equal slices (embreex releases the GIL in run(): checked by a Python loop
+each captured pass again from the ray textures and Embree (EmbreeTracer.time_raw: embreex's bare
+`run()` on the rays as EmbreeTracer gives them to it) traces the same active rays on 1 thread and
+on N Python threads over equal slices (embreex releases the GIL in run(): checked by a Python loop
 that keeps running beside it). A backend's time is the sum of its profiler phases named
 trace:<ray type> (for clbvh the kernel; its mapped ray/hit transfers are reported apart as
 "with transfer"); Embree's is the wall time of run(). Medians over rounds; ratios are taken
@@ -17,21 +17,23 @@ and size) and bench_trace.png (Mrays/s per ray type, log scale).
 
 from __future__ import annotations
 
-import json
 import statistics
 import sys
-import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
+from viewer.bench.harness import is_trace_phase
+from viewer.bench.plots import bars, figure, finish
+from viewer.bench.report import md_table, write_study
+from viewer.cli_args import check_output_dir, parse_image_sizes
 from viewer.errors import RtwalkError
+from viewer.paths import resolve_recording
 
 DEFAULT_RECORDINGS = "city-near.json,sponza-walk.json,conference-walk.json"
 DEFAULT_EFFECTS = "primary,shadows,soft,ao,diffuse,reflections"
-RECORDINGS_DIR = Path(__file__).resolve().parents[1] / "recordings"
 
 
 def add_arguments(p) -> None:
@@ -47,12 +49,12 @@ def add_arguments(p) -> None:
     p.add_argument("--rounds", type=int, default=3, help="interleaved timing rounds (default 3)")
     p.add_argument("--no-check", action="store_true", help="skip the hit/miss agreement with the Embree reference")
     p.add_argument("--out", default="bench-trace", help="output folder (default bench-trace)")
-    p.add_argument("--quiet", action="store_true")
+    p.add_argument("--quiet", action="store_true", help="no progress output")
 
 
 @dataclass
 class Pass:
-    """One captured pass: rays as RGBA32F texel data, the active rays for Embree."""
+    """One captured pass: rays as RGBA32F texel data, the active rays as Embree is given them."""
 
     label: str
     any_hit: bool
@@ -62,33 +64,11 @@ class Pass:
     origin4: np.ndarray  # float32 (H, W, 4) origin + tmin
     dir4: np.ndarray  # float32 (H, W, 4) direction + tmax
     active: np.ndarray  # bool (H*W,)
-    o_emb: np.ndarray  # float32 (A, 3) Embree origins (o + tmin d)
-    d_emb: np.ndarray  # float32 (A, 3)
-    far: np.ndarray  # float32 (A,) Embree tfar
+    embree: object  # viewer.reference.RawRays of the active rays, or None without Embree timings
 
     @property
     def rays(self) -> int:
         return int(self.active.sum())
-
-
-def _parse_sizes(text: str) -> list[tuple[int, int]]:
-    out = []
-    for item in [s.strip() for s in text.split(",") if s.strip()]:
-        w, sep, h = item.lower().partition("x")
-        if not sep or not w.isdigit() or not h.isdigit() or int(w) < 1 or int(h) < 1:
-            raise RtwalkError(f"--sizes: expected WxH like 640x360 (got '{item}')")
-        out.append((int(w), int(h)))
-    if not out:
-        raise RtwalkError("--sizes: no size given")
-    return out
-
-
-def _recording_path(name: str) -> Path:
-    p = Path(name)
-    for cand in (p, RECORDINGS_DIR / name, RECORDINGS_DIR / f"{name}.json"):
-        if cand.is_file():
-            return cand
-    raise RtwalkError(f"--recordings: no recording '{name}' (looked in {RECORDINGS_DIR})")
 
 
 def _log(args, msg: str) -> None:
@@ -96,10 +76,9 @@ def _log(args, msg: str) -> None:
         print(msg, file=sys.stderr, flush=True)
 
 
-def capture_passes(renderer, camera) -> list[Pass]:
-    """Render one frame with capture and keep every pass that has active rays."""
-    from viewer.reference import EmbreeTracer, prepare_rays
-
+def capture_passes(renderer, camera, tracer=None) -> list[Pass]:
+    """Render one frame with capture and keep every pass that has active rays (with `tracer`, an
+    EmbreeTracer, also as the raw rays Embree is timed on)."""
     rep = renderer.render(camera, capture=True)
     w, h = renderer.size
     out = []
@@ -110,16 +89,16 @@ def capture_passes(renderer, camera) -> list[Pass]:
             continue
         o4 = np.concatenate([r.origins, r.tmin[:, None]], 1).astype(np.float32).reshape(h, w, 4)
         d4 = np.concatenate([r.directions, r.tmax[:, None]], 1).astype(np.float32).reshape(h, w, 4)
-        o, d, lo, hi, _ = prepare_rays(r.origins[active], r.directions[active], r.tmin[active], r.tmax[active])
-        o32, d32, far = EmbreeTracer._embree_rays(o, d, lo, hi)
+        raw = None if tracer is None else tracer.raw_rays(r.origins[active], r.directions[active], r.tmin[active],
+                                                          r.tmax[active])
         out.append(Pass(cp.ray_type.label, cp.ray_type.any_hit, cp.ray_type, cp.sample, cp.light, o4, d4, active,
-                        o32, d32, far))
+                        raw))
     return out
 
 
 def time_backend(renderer, name: str, passes: list[Pass]) -> tuple[list[float], list[float], list[float], list]:
-    """Per pass: ms in trace:* phases, ms in all phases of the call, process CPU ms of the call
-    (all threads: llvmpipe's, PoCL's), and (t, tri) read back."""
+    """Per pass: ms in tracing phases (trace:* and the backend's declared phases), ms in all phases of
+    the call, process CPU ms of the call (all threads: llvmpipe's, PoCL's), and (t, tri) read back."""
     from viewer.rays import PassInfo
 
     renderer.set_backend(name)
@@ -138,35 +117,10 @@ def time_backend(renderer, name: str, passes: list[Pass]) -> tuple[list[float], 
         cpu_ms.append((time.process_time() - c0) * 1e3)
         prof.label = None
         phases = prof.end_frame()
-        trace_ms.append(sum(v for k, v in phases.items() if k.startswith("trace:")))
+        trace_ms.append(sum(v for k, v in phases.items() if is_trace_phase(k, be.info.phases)))
         total_ms.append(sum(phases.values()))
         hits.append(renderer.hits.read())
     return trace_ms, total_ms, cpu_ms, hits
-
-
-def _embree_run(scene, p: Pass, lo: int, hi: int) -> None:
-    q = "OCCLUDED" if p.any_hit else "INTERSECT"
-    scene.run(p.o_emb[lo:hi], p.d_emb[lo:hi], dists=p.far[lo:hi].copy(), query=q)
-
-
-def time_embree(scene, p: Pass, threads: int) -> tuple[float, float]:
-    """Wall ms and process CPU ms of embreex run() over the pass's active rays, split over
-    `threads` Python threads."""
-    n = len(p.far)
-    bounds = np.linspace(0, n, threads + 1).astype(int)
-    c0 = time.process_time()
-    if threads == 1:
-        t0 = time.perf_counter()
-        _embree_run(scene, p, 0, n)
-        return (time.perf_counter() - t0) * 1e3, (time.process_time() - c0) * 1e3
-    ts = [threading.Thread(target=_embree_run, args=(scene, p, int(bounds[i]), int(bounds[i + 1])))
-          for i in range(threads)]
-    t0 = time.perf_counter()
-    for t in ts:
-        t.start()
-    for t in ts:
-        t.join()
-    return (time.perf_counter() - t0) * 1e3, (time.process_time() - c0) * 1e3
 
 
 def _by_label(values: list[float], passes: list[Pass], label: str) -> float:
@@ -179,7 +133,7 @@ def _median(xs) -> float:
     return float(statistics.median(xs)) if xs else float("nan")
 
 
-def study_frame(renderer, embree_scene, reference, passes: list[Pass], backends: list[str], threads: list[int],
+def study_frame(renderer, tracer, reference, passes: list[Pass], backends: list[str], threads: list[int],
                 rounds: int, check: bool) -> list[dict]:
     """Interleaved rounds over backends and Embree thread counts; one row per ray type."""
     from viewer.reference import compare_hits
@@ -206,7 +160,7 @@ def study_frame(renderer, embree_scene, reference, passes: list[Pass], backends:
                         st = compare_hits(t[a], tri[a], ref[0], ref[1])
                         agree[what][p.label].append(st["hitmiss_agree"])
             else:
-                per = [time_embree(embree_scene, p, what) for p in passes]
+                per = [tracer.time_raw(p.embree, p.any_hit, what) for p in passes]
                 for lb in labels:
                     ms[(kind, what)][lb].append(_by_label([t[0] for t in per], passes, lb))
                     ms_cpu[(kind, what)][lb].append(_by_label([t[1] for t in per], passes, lb))
@@ -248,11 +202,12 @@ def study_frame(renderer, embree_scene, reference, passes: list[Pass], backends:
 def _markdown(report: dict) -> str:
     lines = [f"# Trace speed on the same rays ({report['device_cl']})", "",
              f"Command: `{report['command']}`", "",
-             "Mrays/s = active rays / median time over interleaved rounds; a backend's time is its trace:* phases "
-             "(clbvh: the kernel; '+transfer' adds the mapped ray/hit copies), Embree's the wall time of embreex "
-             "run() on N Python threads. Ratios are per-round, then the median.", ""]
+             "Mrays/s = active rays / median time over interleaved rounds; a backend's time is its tracing phases "
+             "(trace:* and those it declares; clbvh: the kernel; '+transfer' adds the mapped ray/hit copies), "
+             "Embree's the wall time of embreex run() on N Python threads. Ratios are per-round, then the median.", ""]
     backends = report["backends"]
     emb = [f"embree_{t}t" for t in report["embree_threads"]]
+    nan = float("nan")
     for group in report["groups"]:
         lines += [f"## {group['recording']} frame {group['frame']} at {group['size'][0]}x{group['size'][1]}"
                   f" ({group['triangles']:,} triangles)", ""]
@@ -263,61 +218,41 @@ def _markdown(report: dict) -> str:
         if "clbvh" in backends and emb:
             ratio_cols += [(f"clbvh/{e}", f"clbvh vs {e.replace('_', ' ')}") for e in emb]
         head = ["ray type", "rays", *[f"{c} Mrays/s" for c in cols], *[r[1] for r in ratio_cols], "hit/miss vs Embree"]
-        lines.append("| " + " | ".join(head) + " |")
-        lines.append("|" + "---|" * len(head))
-        for row in group["rows"]:
-            cells = [row["ray_type"], f"{row['rays']:,}"]
-            cells += [f"{row['mrays_s'].get(c, float('nan')):.3g}" for c in cols]
-            cells += [f"{row['speedup'].get(k, float('nan')):.2f}x" for k, _ in ratio_cols]
-            ag = row.get("hitmiss_agree", {})
-            cells.append(", ".join(f"{b} {v:.5f}" for b, v in ag.items()))
-            lines.append("| " + " | ".join(cells) + " |")
+        rows = [[row["ray_type"], f"{row['rays']:,}",
+                 *[f"{row['mrays_s'].get(c, nan):.3g}" for c in cols],
+                 *[f"{row['speedup'].get(k, nan):.2f}x" for k, _ in ratio_cols],
+                 ", ".join(f"{b} {v:.5f}" for b, v in row.get("hitmiss_agree", {}).items())] for row in group["rows"]]
+        lines.append(md_table(head, rows))
         keys = [*backends, *emb]
         lines += ["", "Mrays per CPU-second (process CPU time of all threads: llvmpipe's, PoCL's, Embree's; "
-                  "less sensitive to other load on the machine, but blind to idle cores):", "",
-                  "| ray type | " + " | ".join(keys) + " |", "|" + "---|" * (len(keys) + 1)]
-        for row in group["rows"]:
-            lines.append(f"| {row['ray_type']} | " + " | ".join(
-                f"{row['mrays_per_cpu_s'].get(k, float('nan')):.3g}" for k in keys) + " |")
+                  "less sensitive to other load on the machine, but blind to idle cores):", ""]
+        lines.append(md_table(["ray type", *keys], [[row["ray_type"], *[
+            f"{row['mrays_per_cpu_s'].get(k, nan):.3g}" for k in keys]] for row in group["rows"]]))
         lines.append("")
     return "\n".join(lines)
 
 
 def _plot(report: dict, path: Path) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
     groups = report["groups"]
-    fig, axes = plt.subplots(len(groups), 1, figsize=(10, 3.2 * len(groups)), squeeze=False)
+    fig, axes = figure(len(groups), 1, size=(10, 3.2 * len(groups)), dpi=100, squeeze=False)
     keys = [*report["backends"], *[f"embree_{t}t" for t in report["embree_threads"]]]
     for ax, g in zip(axes[:, 0], groups, strict=True):
-        labels = [r["ray_type"] for r in g["rows"]]
-        x = np.arange(len(labels))
-        wbar = 0.8 / max(len(keys), 1)
-        for i, k in enumerate(keys):
-            ax.bar(x + i * wbar, [r["mrays_s"].get(k, np.nan) for r in g["rows"]], wbar, label=k)
-        ax.set_xticks(x + 0.4 - wbar / 2, labels)
-        ax.set_yscale("log")
-        ax.set_ylabel("Mrays/s")
-        ax.set_title(f"{g['recording']} frame {g['frame']} {g['size'][0]}x{g['size'][1]}")
-        ax.legend(fontsize=7, ncol=len(keys))
-    fig.tight_layout()
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
+        series = {k: [r["mrays_s"].get(k, np.nan) for r in g["rows"]] for k in keys}
+        bars(ax, [r["ray_type"] for r in g["rows"]], series, ylabel="Mrays/s", log=True, legend_cols=len(keys),
+             title=f"{g['recording']} frame {g['frame']} {g['size'][0]}x{g['size'][1]}")
+    finish(fig, path)
 
 
 def run(args) -> int:
     from viewer.backends import backend_info, backend_names
     from viewer.effects import parse_effects
+    from viewer.gl.context import shared_context
     from viewer.recording import load_recording, resolve_scene_spec
     from viewer.reference import REFERENCE_BACKEND, EmbreeTracer
     from viewer.renderer import Renderer
     from viewer.session import prepare_scene
-    from viewer.tracing import shared_context
 
-    sizes = _parse_sizes(args.sizes)
+    sizes = parse_image_sizes(args.sizes)
     backends = [b.strip() for b in args.backends.split(",") if b.strip()] or [
         b for b in backend_names() if b != REFERENCE_BACKEND and backend_info(b).exact]
     for b in backends:
@@ -333,17 +268,16 @@ def run(args) -> int:
         raise RtwalkError("--frames and --rounds must be >= 1")
     if threads and not EmbreeTracer.available():
         raise RtwalkError("Embree timings need the embreex package (pip install embreex)")
-    recs = [_recording_path(n.strip()) for n in args.recordings.split(",") if n.strip()]
+    recs = [resolve_recording(n) for n in args.recordings.split(",") if n.strip()]
     settings = parse_effects(args.effects)
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
+    out = check_output_dir(args.out, "--out")
     ctx = shared_context()
     device_cl = ""
     if any(b == "clbvh" for b in backends):
         from viewer.cl import cl_context
 
         device_cl = cl_context().name
-    report = {"command": _command(),
+    report = {"command": getattr(args, "command_line", ""),
               "backends": backends, "embree_threads": threads, "rounds": args.rounds, "effects": args.effects,
               "device_cl": device_cl or "no OpenCL backend", "groups": []}
     for rec_path in recs:
@@ -351,22 +285,16 @@ def run(args) -> int:
         rs = resolve_scene_spec(rec, rec_path)
         _log(args, f"bench-trace: loading {rec_path.name}")
         prep = prepare_scene(rs.spec, scene_size=rs.size, seed=rs.seed if rs.seed is not None else 1, quiet=True)
-        embree_scene = mesh = tracer = reference = None
-        if threads:
-            from embreex import mesh_construction, rtcore_scene
-
-            embree_scene = rtcore_scene.EmbreeScene(robust=True)
-            mesh = mesh_construction.TriangleMesh(embree_scene, np.ascontiguousarray(prep.scene.triangles))
-        if not args.no_check:
-            tracer = EmbreeTracer(prep.scene.triangles)
+        reference = None
+        tracer = EmbreeTracer(prep.scene.triangles) if threads or not args.no_check else None
         count = rec.frame_count()
         frames = sorted({int(count * (k + 1) / (args.frames + 1)) for k in range(args.frames)})
         for size in sizes:
             renderer = Renderer(ctx, prep.scene, prep.bvh, size, backends[0] if backends else "glsl", settings)
             try:
                 for fr in frames:
-                    passes = capture_passes(renderer, rec.camera_for_frame(fr))
-                    if tracer is not None:
+                    passes = capture_passes(renderer, rec.camera_for_frame(fr), tracer if threads else None)
+                    if not args.no_check:
                         reference = [_reference(tracer, p) for p in passes]
                     # warm up outside the timing: kernel builds and first-use costs of both query kinds
                     warm = list({p.any_hit: p for p in passes}.values())
@@ -374,7 +302,7 @@ def run(args) -> int:
                         time_backend(renderer, b, warm)
                     _log(args, f"bench-trace: {rec_path.stem} frame {fr} {size[0]}x{size[1]}: "
                                f"{sum(p.rays for p in passes):,} rays in {len(passes)} passes")
-                    rows = study_frame(renderer, embree_scene, reference, passes, backends, threads, args.rounds,
+                    rows = study_frame(renderer, tracer, reference, passes, backends, threads, args.rounds,
                                        not args.no_check)
                     report["groups"].append({"recording": rec_path.stem, "frame": fr, "size": list(size),
                                              "triangles": prep.scene.triangle_count, "rows": rows})
@@ -383,20 +311,12 @@ def run(args) -> int:
                             f"{k} {v:.3g}" for k, v in row["mrays_s"].items()) + " Mrays/s")
             finally:
                 renderer.release()
-        del mesh, embree_scene, tracer
-    (out / "bench_trace.json").write_text(json.dumps(report, indent=1))
-    (out / "bench_trace.md").write_text(_markdown(report))
+        del tracer
+    files = write_study(out, "bench_trace", report, _markdown(report))
     if report["groups"]:
-        _plot(report, out / "bench_trace.png")
-    print(_markdown(report))
+        _plot(report, files["png"])
+    print(files["markdown"])
     return 0
-
-
-def _command() -> str:
-    argv = sys.argv[1:]
-    if argv and argv[0] == "bench-trace":
-        argv = argv[1:]
-    return " ".join(["rtwalk bench-trace", *argv])
 
 
 def _reference(tracer, p: Pass) -> tuple[np.ndarray, np.ndarray]:

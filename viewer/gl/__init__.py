@@ -7,16 +7,7 @@
 - buffers: stream buffers (orphaned SSBOs for per-draw records)
 - scene: the scene's GPU buffers (BVH nodes, triangles, materials, vertices)
 
-A package rather than the single viewer/gpu.py: each part has one job and the parts that need raw
-GL (ctypes) or EGL stay out of the way of those that do not. viewer/gpu.py re-exports the old names.
+A package of small modules: each part has one job and the parts that need raw GL (ctypes) or EGL
+stay out of the way of those that do not. Import each name from its module (viewer.gl.textures,
+...); this package re-exports nothing, so every name has one home.
 """
-
-from viewer.gl.bindings import glsl_header
-from viewer.gl.buffers import StreamBuffer
-from viewer.gl.context import create_headless_context, shared_context
-from viewer.gl.programs import SHADER_DIR, FullscreenQuad, ProgramCache, load_shader_source
-from viewer.gl.textures import float_depth_texture, float_texture, int_texture, read_texture
-
-__all__ = ["SHADER_DIR", "FullscreenQuad", "ProgramCache", "StreamBuffer", "create_headless_context",
-           "float_depth_texture", "float_texture", "glsl_header", "int_texture", "load_shader_source",
-           "read_texture", "shared_context"]

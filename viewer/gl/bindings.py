@@ -19,6 +19,8 @@ SSBO: dict[str, int] = {
     "BIND_CHC_DRAWS": 7,  # chcrt: per-instance tile draws
     "BIND_CHC_QUERY_COUNTS": 8,  # chcrt: per-query passed-fragment counts
     "BIND_WORK": 9,  # shader work counters (RTWALK_COUNT_WORK=1, intersect.glsl)
+    "BIND_RESUME_COUNTERS": 10,  # glsl resumable traversal: unfinished rays, slots allocated
+    "BIND_RESUME_STATE": 11,  # glsl resumable traversal: saved traversal states
     "BIND_MICRO": 15,  # the GL micro-benchmark's per-instance counts
 }
 
@@ -27,6 +29,7 @@ IMAGE: dict[str, int] = {
     "BIND_IMG_CHC_BEST": 0,  # chcrt: packed closest hit per pixel
     "BIND_IMG_CHC_OVERDRAW": 1,  # chcrt: query fragments per pixel (overlay)
     "BIND_IMG_CHC_BATCH": 2,  # chcrt: subtrees in the pixel's batches (overlay)
+    "BIND_IMG_RESUME": 4,  # glsl resumable traversal: resume slot per pixel (-1 finished)
 }
 
 BIND_NODES = SSBO["BIND_NODES"]
@@ -42,6 +45,9 @@ BIND_MICRO = SSBO["BIND_MICRO"]
 BIND_IMG_CHC_BEST = IMAGE["BIND_IMG_CHC_BEST"]
 BIND_IMG_CHC_OVERDRAW = IMAGE["BIND_IMG_CHC_OVERDRAW"]
 BIND_IMG_CHC_BATCH = IMAGE["BIND_IMG_CHC_BATCH"]
+BIND_RESUME_COUNTERS = SSBO["BIND_RESUME_COUNTERS"]
+BIND_RESUME_STATE = SSBO["BIND_RESUME_STATE"]
+BIND_IMG_RESUME = IMAGE["BIND_IMG_RESUME"]
 
 
 def glsl_header() -> str:

@@ -5,7 +5,8 @@ from __future__ import annotations
 import moderngl
 
 from viewer.effects import RayType
-from viewer.gpu import FullscreenQuad, ProgramCache, float_texture
+from viewer.gl.programs import FullscreenQuad, ProgramCache
+from viewer.gl.textures import float_texture
 from viewer.passes.gbuffer import GBufferPass
 from viewer.passes.targets import SizedTargets
 from viewer.rays import HitBuffer, RayBatch

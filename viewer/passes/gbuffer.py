@@ -6,7 +6,9 @@ import moderngl
 import numpy as np
 
 from viewer.camera import Camera
-from viewer.gpu import GpuScene, ProgramCache, float_texture, int_texture
+from viewer.gl.programs import ProgramCache
+from viewer.gl.scene import GpuScene
+from viewer.gl.textures import float_depth_texture, float_texture, int_texture
 from viewer.passes.targets import SizedTargets
 from viewer.passes.uniforms import apply, camera_uniforms
 
@@ -27,7 +29,8 @@ class GBufferPass(SizedTargets):
         self.normal = float_texture(self.ctx, size, 4)
         self.albedo = float_texture(self.ctx, size, 4)
         self.tri_id = int_texture(self.ctx, size)
-        self.depth = self.ctx.depth_texture(size)
+        # float depth: t / (t + scale) of surfaces a hair apart right in front of the camera must order
+        self.depth = float_depth_texture(self.ctx, size)
         self.fbo = self.ctx.framebuffer(color_attachments=[self.position, self.normal, self.albedo, self.tri_id],
                                         depth_attachment=self.depth)
 

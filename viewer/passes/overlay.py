@@ -33,7 +33,8 @@ import numpy as np
 from viewer.backends import backend_class, backend_names
 from viewer.backends.interface import BackendInfo, OverlaySpec
 from viewer.errors import RtwalkError
-from viewer.gpu import FullscreenQuad, ProgramCache, read_texture
+from viewer.gl.programs import FullscreenQuad, ProgramCache
+from viewer.gl.textures import read_texture
 from viewer.passes.shade import SHADE_MODES
 from viewer.rays import HitBuffer, RayBatch
 from viewer.screen_tiles import level_rects, tile_index

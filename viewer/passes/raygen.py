@@ -6,7 +6,8 @@ import moderngl
 import numpy as np
 
 from viewer.effects import RayType
-from viewer.gpu import BIND_COUNTERS, FullscreenQuad, ProgramCache
+from viewer.gl.bindings import BIND_COUNTERS
+from viewer.gl.programs import FullscreenQuad, ProgramCache
 from viewer.passes.gbuffer import GBufferPass
 from viewer.rays import RayBatch
 

@@ -6,7 +6,7 @@ import moderngl
 import numpy as np
 
 from viewer.effects import EffectSettings, RayType
-from viewer.gpu import FullscreenQuad, ProgramCache
+from viewer.gl.programs import FullscreenQuad, ProgramCache
 from viewer.passes.accumulate import AccumulatePass
 from viewer.passes.gbuffer import GBufferPass
 from viewer.passes.targets import SizedTargets
@@ -32,7 +32,9 @@ class ShadePass(SizedTargets):
         self.fbo = self.ctx.framebuffer(color_attachments=[self.color])
 
     def render(self, gbuffer: GBufferPass, acc: AccumulatePass, settings: EffectSettings, view: str,
-               n_shadow_lights: int, depth_scale: float) -> None:
+               n_shadow_lights: int, depth_scale: float, acc_scale: tuple[float, ...] = (1.0,) * 5) -> None:
+        """`acc_scale`: factor per accumulator (shadow, soft, ao, diffuse, reflect): requested over
+        accumulated sample passes while progressive refinement is under way, else 1."""
         p = self.program
         for i, tex in enumerate([gbuffer.position, gbuffer.normal, gbuffer.albedo, gbuffer.tri_id]):
             tex.use(i)
@@ -47,6 +49,9 @@ class ShadePass(SizedTargets):
         p["exposure"] = float(settings.exposure)
         p["viewMode"] = SHADE_MODES.index(view)
         p["depthScale"] = float(depth_scale)
+        scale = p.get("accScale", None)
+        if scale is not None:
+            scale.value = tuple(float(v) for v in acc_scale)
         self.fbo.use()
         self.ctx.disable(self.ctx.BLEND | self.ctx.DEPTH_TEST)
         self.quad.render(p)

@@ -6,9 +6,18 @@
 //
 // Scheduled BVH leaves the ray enters are intersected first; the inner subtree roots it enters
 // start on the traversal stack, sorted so that the nearest is on top, and ONE traverseBVH-style
-// loop (intersect.glsl: same node order, nearer child first) runs over all of them. Calling
-// traverseBVH once per subtree is not an option: Mesa 22's llvmpipe miscompiles a second run of
-// that loop in one invocation (it can stop after one iteration and miss hits).
+// loop (intersect.glsl: same node order, nearer child first) runs over all of them.
+//
+// Loop limit: Mesa llvmpipe silently ends shader loops after 65,535 loop back-edges per invocation,
+// one counter shared by every loop of the shader (per SIMD vector of fragments); once it is spent,
+// every further loop runs one iteration. (That is what an earlier version, which called
+// traverseBVH once per subtree, ran into; it was not a miscompilation.) A batch of up to
+// CHC_MAX_ITEMS subtrees of <= 4096 triangles can need more than 24 x 4,000 node visits, so the
+// bound is reachable (a closed fan of 62,832 needles reaches it). The traversal therefore stops
+// after CHC_MAX_VISITS node visits (chcrt.py derives it like gl_traversal.py max_visits) and hands the
+// ray to the glsl backend's resumable full traversal: the pixel is marked -2 in resumeSlot and
+// counted once; after the CHC+RT pass those rays are traced again from the root, in as many draws
+// as they need, and their hits replace what this pass found.
 #include "chc_common.glsl"
 #include "chc_leafcache.glsl"
 uniform int anyHit;
@@ -16,6 +25,11 @@ uniform int countOverlays;
 layout(location = 0) out float outT;
 layout(location = 1) out int outId;
 layout(location = 2) out int outSub;
+#ifndef CHC_MAX_VISITS
+#define CHC_MAX_VISITS 2048
+#endif
+layout(r32i, binding = BIND_IMG_RESUME) uniform coherent iimage2D resumeSlot;  // gl_traversal.py ResumableTraversal
+layout(std430, binding = BIND_RESUME_COUNTERS) buffer ResumeCounters { int unfinished; int allocated; };
 
 void main() {
     ivec2 px = ivec2(gl_FragCoord.xy);
@@ -53,7 +67,14 @@ void main() {
         --sp;
         if (stackT[sp] <= hit.t) ni = stackNode[sp];
     }
+    int visits = 0;
     while (ni >= 0) {
+        if (visits == CHC_MAX_VISITS) {  // the loop limit is near: finish this ray elsewhere
+            if (imageAtomicExchange(resumeSlot, px, -2) != -2) atomicAdd(unfinished, 1);
+            done = true;  // traced again from the root: the leaf cache needs no flush
+            break;
+        }
+        ++visits;
         Node nd = nodes[ni];
         WORK(workNode);
         float tl, tr;

@@ -54,6 +54,14 @@ RayPre prepareRay(vec3 o, vec3 d) {
     return r;
 }
 
+// cross(a, b) rounded once per component: float32 products are exact in float64, so only the
+// difference rounds (then to float32). A float32 cross product of a needle's or sliver's edges
+// cancels instead: relative error ~1e-7 / sin of the angle between them, up to 1e-1 at aspect 1e4.
+vec3 crossRounded(vec3 a, vec3 b) {
+    dvec3 da = dvec3(a), db = dvec3(b);
+    return vec3(da.y * db.z - da.z * db.y, da.z * db.x - da.x * db.z, da.x * db.y - da.y * db.x);
+}
+
 // Returns true and the distance t (tmin < t < tmax) on a hit; bary receives (u, v) weights of v1, v2.
 bool intersectTriangle(RayPre r, vec3 v0, vec3 v1, vec3 v2, float tmin, float tmax, out float t, out vec2 bary) {
     vec3 A = v0 - r.o, B = v1 - r.o, C = v2 - r.o;
@@ -74,10 +82,16 @@ bool intersectTriangle(RayPre r, vec3 v0, vec3 v1, vec3 v2, float tmin, float tm
     if ((U < 0.0 || V < 0.0 || W < 0.0) && (U > 0.0 || V > 0.0 || W > 0.0)) return false;
     float det = U + V + W;
     if (det == 0.0) return false;
-    // Distance from the plane equation: far more accurate in float32 than the sheared-space
-    // T / det for grazing rays (same accuracy as Embree); the watertight edge test above still
-    // decides inside/outside. Degenerate float32 normals fall back to T / det.
-    vec3 n = cross(v1 - v0, v2 - v0);
+    // Distance from the plane equation t = dot(n, v0 - o) / dot(n, d), n = cross(v1 - v0, v2 - v0):
+    // far more accurate than the sheared-space T / det for grazing rays and thin triangles (the
+    // watertight edge test above still decides inside/outside). n must be the correctly rounded
+    // cross product (crossRounded): a float32 one loses most of its accuracy on needles and slivers
+    // (t off by up to 1e-1 relative, and its sign flips for rays starting just in front of the
+    // triangle). Vertex differences of nearby float32 vertices are exact (Sterbenz), so n is then
+    // within an ulp per component and t is as exact as v0 - o and the two float dot products allow,
+    // for any triangle shape. A ray parallel to the computed plane (dot(n, d) == 0) falls back to
+    // T / det.
+    vec3 n = crossRounded(v1 - v0, v2 - v0);
     float dn = dot(n, r.d);
     if (dn != 0.0) {
         t = dot(n, A) / dn;

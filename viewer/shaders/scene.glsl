@@ -1,4 +1,4 @@
-// Scene buffers shared by every pass. Layouts match viewer/bvh.py (GPU_NODE_DTYPE, GPU_TRI_DTYPE).
+// Scene buffers shared by every pass. Layouts match viewer/accel/bvh.py (GPU_NODE_DTYPE, GPU_TRI_DTYPE).
 // Node: both child boxes stored in the parent (Aila-Laine). A child reference >= 0 is an inner
 // node index; a negative reference is a leaf ~firstTriangle with its count in lcount/rcount.
 struct Node { vec3 lmin; int left; vec3 lmax; int right; vec3 rmin; int lcount; vec3 rmax; int rcount; };

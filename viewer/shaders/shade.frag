@@ -15,7 +15,10 @@ uniform int numShadowLights;
 uniform float exposure;
 uniform int viewMode;  // see viewer/passes/shade.py SHADE_MODES
 uniform float depthScale;
+uniform float accScale[5];  // requested / accumulated sample passes (progressive), else 1
 out vec4 fragColor;
+
+vec4 acc(sampler2D t, int k, ivec2 px) { return texelFetch(t, px, 0) * accScale[k]; }
 
 vec3 toDisplay(vec3 c) { return pow(clamp(c, 0.0, 1.0), vec3(1.0 / 2.2)); }
 
@@ -37,16 +40,16 @@ void main() {
         fragColor = vec4(c, 1.0);
         return;
     }
-    float ao = aoOn != 0 ? texelFetch(accAO, px, 0).r : 1.0;
+    float ao = aoOn != 0 ? acc(accAO, 2, px).r : 1.0;
     if (viewMode == 0) {
         vec3 e = vec3(0.0);
-        if (shadowOn != 0) e += texelFetch(accShadow, px, 0).rgb;
+        if (shadowOn != 0) e += acc(accShadow, 0, px).rgb;
         else for (int i = 0; i < numPointLights; ++i) e += pointIrradiance(i, pos.xyz, n);
-        if (softOn != 0) e += texelFetch(accSoft, px, 0).rgb;
+        if (softOn != 0) e += acc(accSoft, 1, px).rgb;
         else for (int i = 0; i < numRectLights; ++i) e += rectSampleIrradiance(i, rectCentre(i), pos.xyz, n);
-        vec3 indirect = diffuseOn != 0 ? texelFetch(accDiffuse, px, 0).rgb : sky * ao;
+        vec3 indirect = diffuseOn != 0 ? acc(accDiffuse, 3, px).rgb : sky * ao;
         vec3 l = alb.rgb / PI * e + alb.rgb * indirect;
-        if (alb.a > 0.5 && reflectOn != 0) l = alb.rgb * texelFetch(accReflect, px, 0).rgb;
+        if (alb.a > 0.5 && reflectOn != 0) l = alb.rgb * acc(accReflect, 4, px).rgb;
         c = toDisplay(l * exposure);
     } else if (viewMode == 1) {
         c = alb.rgb;
@@ -55,15 +58,15 @@ void main() {
     } else if (viewMode == 3) {
         c = vec3(1.0 - pos.w / (pos.w + depthScale));
     } else if (viewMode == 4) {
-        c = vec3(texelFetch(accShadow, px, 0).a / float(max(numShadowLights, 1)));
+        c = vec3(acc(accShadow, 0, px).a / float(max(numShadowLights, 1)));
     } else if (viewMode == 5) {
-        c = vec3(texelFetch(accSoft, px, 0).a);
+        c = vec3(acc(accSoft, 1, px).a);
     } else if (viewMode == 6) {
-        c = vec3(texelFetch(accAO, px, 0).r);
+        c = vec3(acc(accAO, 2, px).r);
     } else if (viewMode == 7) {
-        c = toDisplay(texelFetch(accDiffuse, px, 0).rgb * exposure);
+        c = toDisplay(acc(accDiffuse, 3, px).rgb * exposure);
     } else if (viewMode == 8) {
-        c = alb.a > 0.5 ? toDisplay(texelFetch(accReflect, px, 0).rgb * exposure) : vec3(0.0);
+        c = alb.a > 0.5 ? toDisplay(acc(accReflect, 4, px).rgb * exposure) : vec3(0.0);
     } else {
         c = idColor(id);
     }

@@ -1,17 +1,20 @@
 """`rtwalk view`: the interactive window (moderngl-window, pyglet backend, imgui side panel).
 
-The scene is loaded and its BVH built before the window opens. Each frame: move the camera
-(keys/mouse, or a recording being played back), `Renderer.render`, draw the final texture over
-the window (at `render_scale` of the framebuffer size; llvmpipe is a CPU rasterizer), draw the
-panel. Keys: WASD/QE move, drag (left or right button) to look, wheel = speed, shift = x5,
-F12 screenshot, R record, P play back, V next view of 'final' and the active backend's overlay
-views (its info.overlays; legend and tile labels drawn over the image), O next overlay source
-pass, F1 panel on/off, Esc quits. An overlay view the active backend does not produce shows the
+The scene is loaded and its BVH built before the window opens. The window is the panel (left,
+PANEL_WIDTH wide; F1 hides it) beside the image viewport (`--size`). Each frame: move the camera
+(keys/mouse, or a recording being played back), render with progressive refinement
+(viewer.progressive: one pass per effect at a reduced scale while the camera moves, sample passes
+added when it stops, idle once converged; `--no-progressive` renders every frame at full quality),
+draw the final texture into the viewport (at `render_scale` of its size), draw the panel.
+Keys: WASD/QE move, drag (left or right button) to look, wheel = speed, shift = x5, F12
+screenshot, R record, P play back, V next view of 'final' and the active backend's overlay views
+(its info.overlays; legend and tile labels drawn over the image), O next overlay source pass, F1
+panel on/off, Esc quits. An overlay view the active backend does not produce shows the
 final image with a message on it, and F12 then saves nothing (the message says why).
 
 For tests and the README screenshot: `--max-frames N` or RTWALK_VIEW_FRAMES=N quits after N
 frames; RTWALK_VIEW_SCREENSHOT=path.png then saves the whole window, panel included.
-RTWALK_VIEW_SCALE=0.25..1 sets the initial render scale (default 0.5); RTWALK_VIEW_MODE=VIEW the
+RTWALK_VIEW_SCALE=0.25..1 sets the initial render scale (default 1); RTWALK_VIEW_MODE=VIEW the
 initial view (a `--view` argument, where the parser has one, takes precedence).
 """
 
@@ -40,9 +43,10 @@ from viewer.ui.panel import (
     overlay_pass_choices,
 )
 
-DEFAULT_RENDER_SCALE = 0.5
+DEFAULT_RENDER_SCALE = 1.0  # progressive refinement lowers it while the camera moves
 SCREENSHOT_DIR = Path("screenshots")
 RECORDING_DIR = Path("recordings")
+IDLE_SLEEP_S = 0.01  # a converged image: wait a little instead of spinning
 MAX_DT = 0.25  # a stall (scene switch, screenshot) must not throw the camera across the scene
 NO_DISPLAY_HINT = "use `rtwalk render`/`rtwalk bench` or run under xvfb-run (e.g. xvfb-run -a rtwalk view)"
 
@@ -144,32 +148,43 @@ def _first_line(exc: BaseException) -> str:
 
 def run_viewer(args) -> int:
     from viewer.backends import BACKENDS
-    from viewer.cli_args import backend_options_from, parse_size, scene_from_args, settings_from
+    from viewer.cli_args import (
+        backend_options_from,
+        check_device,
+        check_image_output,
+        parse_size,
+        scene_from_args,
+        settings_from,
+    )
     from viewer.recording import load_recording
 
     max_frames = frame_limit(args)
     render_scale_from_env()  # bad values fail before the window opens
     view = initial_view(args)
     shot = os.environ.get("RTWALK_VIEW_SCREENSHOT", "").strip() or None
+    if shot:
+        check_image_output(shot, "RTWALK_VIEW_SCREENSHOT")
     window_class()  # fail on a missing display before spending time on the scene
     settings = settings_from(args)
     backend_options = backend_options_from(args)
     size = parse_size(args.size)
     if args.backend not in BACKENDS:
         raise RtwalkError(f"unknown backend '{args.backend}' (choose from {', '.join(BACKENDS)})")
+    check_device(args.backend)
     rec_path = getattr(args, "recording", None)
     recording = load_recording(rec_path) if rec_path else None
     quiet = bool(getattr(args, "quiet", False))
     if not quiet:
         log("rtwalk view: loading the scene before opening the window ...")
     prepared = scene_from_args(args, recording)
-    window = open_window(size, f"rtwalk - {prepared.scene.name}")
+    window = open_window((size[0] + PANEL_WIDTH, size[1]), f"rtwalk - {prepared.scene.name}")
     app = None
     try:
         app = ViewerApp(window, prepared, settings, args.backend, backend_options=backend_options,
                         recording=recording,
                         scene_arg=getattr(args, "scene", None), max_frames=max_frames, window_shot=shot,
-                        quiet=quiet)
+                        quiet=quiet, progressive=getattr(args, "progressive", True),
+                        frame_target_ms=getattr(args, "frame_target_ms", 100.0))
         app.renderer.view = view
         return app.run()
     finally:
@@ -189,10 +204,12 @@ def run_viewer(args) -> int:
 class ViewerApp:
     def __init__(self, window, prepared, settings, backend: str, recording=None, scene_arg: str | None = None,
                  backend_options: dict[str, str] | None = None, max_frames: int | None = None,
-                 window_shot: str | None = None, quiet: bool = False):
+                 window_shot: str | None = None, quiet: bool = False, progressive: bool = True,
+                 frame_target_ms: float = 100.0):
         from imgui_bundle import imgui, implot
         from moderngl_window.integrations.imgui_bundle import ModernglWindowRenderer
 
+        from viewer.progressive import Progressive
         from viewer.recording import Recorder
         from viewer.renderer import Renderer
 
@@ -215,6 +232,9 @@ class ViewerApp:
         self.renderer = Renderer(self.ctx, prepared.scene, prepared.bvh, self._render_size(), backend, settings,
                                  backend_options)
         self.renderer.strict_overlays = False  # an overlay view the backend cannot feed: a panel line
+        self.progressive = (Progressive(self.renderer, self._render_size(), frame_target_ms,
+                                        resize=self._resize_renderer) if progressive else None)
+        self.step = None  # the progressive step of the last frame (the panel shows it)
         start = self.scene.default_camera or _overview_camera(self.scene)
         self.fly = FlyCamera.from_camera(start, self.renderer.diagonal)
         self.camera: Camera = self.fly.camera()
@@ -256,8 +276,20 @@ class ViewerApp:
         window.resize_func = self.on_resize
 
     # -- helpers -------------------------------------------------------------------------------
+    def panel_width(self) -> float:
+        """The panel's width in window coordinates (0 when hidden)."""
+        # a window opened at --size plus the panel leaves exactly --size to the image (down to --size
+        # 227 wide); a narrower window (resized by hand) keeps 40% for the image
+        return float(min(PANEL_WIDTH, self.wnd.size[0] * 0.6)) if self.show_panel else 0.0
+
+    def viewport(self) -> tuple[int, int, int, int]:
+        """(x, y, w, h) of the image in framebuffer pixels: the window right of the panel."""
+        bw, bh = self.wnd.buffer_size
+        x = int(round(self.panel_width() * bw / max(self.wnd.size[0], 1)))
+        return x, 0, max(1, bw - x), max(1, bh)
+
     def _render_size(self) -> tuple[int, int]:
-        w, h = self.wnd.buffer_size
+        _, _, w, h = self.viewport()
         s = float(np.clip(self.render_scale, 0.1, 1.0))
         return max(1, int(round(w * s))), max(1, int(round(h * s)))
 
@@ -317,10 +349,12 @@ class ViewerApp:
     def _screenshot(self) -> None:
         from PIL import Image
 
-        # the saved image is always at the full window size, of the current view (V may have changed
-        # it since the last frame), so it is rendered again here
-        self._resize_renderer(tuple(self.wnd.buffer_size))
+        # the saved image is always at the full viewport size and quality, of the current view (V may
+        # have changed it since the last frame), so it is rendered again here
+        self._resize_renderer(tuple(self.viewport()[2:]))
         self.renderer.render(self.camera)
+        if self.progressive is not None:
+            self.progressive.invalidate()
         if self.renderer.overlay_missing:  # the image is not the view asked for: say so, save nothing
             self.say(f"screenshot not saved: {overlay_missing_line(self.renderer)}")
             return
@@ -493,19 +527,38 @@ class ViewerApp:
         if self.recorder.recording:
             self.recorder.add(now, self.camera)
 
+    def _render_once(self):
+        """One frame: a progressive step (None when converged and idle), or a full-quality frame
+        (--no-progressive, and overlay views, which show one traced pass's diagnostics)."""
+        r, prog = self.renderer, self.progressive
+        size = self._render_size()
+        if prog is None or r.is_overlay_view:
+            self.step = None
+            self._resize_renderer(size)
+            if prog is not None:
+                prog.invalidate()
+            return r.render(self.camera)
+        prog.full_size = size
+        self.step = prog.frame(self.camera)
+        if self.step.report is None:
+            time.sleep(IDLE_SLEEP_S)  # converged: nothing to draw but the panel
+        return self.step.report
+
     def _render(self):
         from viewer.backends import backend_names
 
         r = self.renderer
         fallback = backend_names()[0]  # the registry's first backend
         try:
-            return r.render(self.camera)
+            return self._render_once()
         except RtwalkError as exc:
             if r.backend_name == fallback:
                 raise
             self.backend_error = f"{r.backend_name}: {exc} (back to {fallback})"
             r.set_backend(fallback)
-            return r.render(self.camera)
+            if self.progressive is not None:
+                self.progressive.invalidate()
+            return self._render_once()
 
     def frame(self, now: float, dt: float, frame_ms: float) -> None:
         from imgui_bundle import imgui
@@ -515,28 +568,32 @@ class ViewerApp:
             action()
         imgui.get_io().delta_time = max(dt, 1e-4)
         self.update_camera(now, dt)
-        self._resize_renderer(self._render_size())
         report = self._render()
-        self.last_report = report
-        self.history.add(frame_ms if frame_ms > 0 else report.wall_ms, sum(report.gpu_ms.values()),
-                         chart_phases(report.gpu_ms, self.renderer.backend.info.phases), report.backend_stats)
+        if report is not None:
+            self.last_report = report
+            self.history.add(frame_ms if frame_ms > 0 else report.wall_ms, sum(report.gpu_ms.values()),
+                             chart_phases(report.gpu_ms, self.renderer.backend.info.phases), report.backend_stats)
 
         ctx = self.ctx
         w, h = self.wnd.buffer_size
+        vx, vy, vw, vh = self.viewport()
         ctx.screen.use()
         ctx.viewport = (0, 0, w, h)
         ctx.scissor = None
         ctx.disable(moderngl.BLEND | moderngl.DEPTH_TEST | moderngl.CULL_FACE)
         ctx.clear(0.0, 0.0, 0.0, 1.0)
+        ctx.viewport = (vx, vy, vw, vh)
         self.sampler.use(0)
         self.renderer.final_texture.use(0)
-        self.blit["viewport"] = (float(w), float(h))
+        self.blit["viewport"] = (float(vw), float(vh))
+        self.blit["origin"] = (float(vx), float(vy))
         self.blit_vao.render(moderngl.TRIANGLES, vertices=3)
         self.sampler.clear(0)  # the renderer's passes sample integer textures on unit 0 unfiltered
+        ctx.viewport = (0, 0, w, h)
 
         imgui.new_frame()
         ww, wh = self.wnd.size
-        panel_w = min(PANEL_WIDTH, ww * 0.5) if self.show_panel else 0.0
+        panel_w = self.panel_width()
         draw_overlay_annotations(self, ww, wh, panel_w)
         if self.show_panel:
             draw_panel(self, panel_w, wh)

@@ -141,15 +141,20 @@ def draw_panel(host, width: float, height: float) -> None:  # noqa: C901 (a flat
     scene = r.scene
     imgui.set_next_window_pos((0, 0), imgui.Cond_.always)
     imgui.set_next_window_size((width, height), imgui.Cond_.always)
-    imgui.set_next_window_bg_alpha(0.82)
+    imgui.set_next_window_bg_alpha(1.0)  # beside the image, not over it
     flags = (imgui.WindowFlags_.no_move | imgui.WindowFlags_.no_resize | imgui.WindowFlags_.no_saved_settings)
     imgui.begin("rtwalk", None, flags)
     imgui.push_item_width(-110)
 
     # -- status line --------------------------------------------------------------------------
     hist = host.history
-    imgui.text(f"{hist.fps:5.1f} fps  {hist.mean_ms:6.1f} ms/frame  render {r.size[0]}x{r.size[1]}")
-    imgui.text(f"{scene.name}: {scene.triangle_count:,} tris, backend {r.backend_name}, view {r.view}")
+    imgui.text_wrapped(f"{hist.fps:5.1f} fps  {hist.mean_ms:6.1f} ms/frame  render {r.size[0]}x{r.size[1]}")
+    imgui.text_wrapped(f"{scene.name}: {scene.triangle_count:,} tris, backend {r.backend_name}, view {r.view}")
+    step = getattr(host, "step", None)
+    if step is not None:
+        imgui.text_wrapped(step.line())
+    elif getattr(host, "progressive", None) is None:
+        imgui.text_wrapped("full quality every frame (--no-progressive)")
     mode = host.mode_line()
     if mode:
         imgui.text_colored((1.0, 0.45, 0.35, 1.0), mode)

@@ -8,8 +8,11 @@ any-hit kernel (shadow, soft, AO) exits on the first hit.
 
 Per pass: the ray textures are read into mapped CL buffers (phase "clbvh:upload"), the kernel
 runs (phase "trace:<ray type>", as glsl's draw), the hits are written back to the hit textures
-("clbvh:download"). The work-group size is fixed (WG): PoCL compiles one work-group function
-per size, and the size made no difference to speed in a prototype on this machine.
+("clbvh:download"). The kernel also counts the active rays, the `rays` counter: the first
+work-item of each work-group counts its group's, one global atomic per work-group, no barrier
+(measured: no cost against the kernel without the count). The work-group size is fixed (WG):
+PoCL compiles one work-group function per size, and the size made no difference to speed in a
+prototype on this machine.
 """
 
 from __future__ import annotations
@@ -19,7 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from viewer.accel.bvh4 import BVH4, build_bvh4
-from viewer.backends.base import BackendContext, TraceResult
+from viewer.backends.base import BackendContext, StatelessBackend, TraceResult
 from viewer.backends.interface import BackendInfo
 from viewer.rays import HitBuffer, PassInfo, RayBatch
 
@@ -86,21 +89,32 @@ class ClbvhScene:
         prog = build(KERNEL, {"STACK_SIZE": self.stack_size, "WG": WG}, self.ctx)
         self.kernels = {False: cl.Kernel(prog, "trace_closest"), True: cl.Kernel(prog, "trace_any")}
         self.memory_bytes = knodes.nbytes + blocks.nbytes
+        self.active = cl.Buffer(self.ctx.context, mf.READ_WRITE, 4)  # active rays of the last enqueue
 
     def enqueue(self, ray_o, ray_d, out_t, out_id, n: int, any_hit: bool):
-        """Enqueue the trace of n rays (buffers as viewer/cl/transfer.py lays them out)."""
+        """Enqueue the trace of n rays (buffers as viewer/cl/transfer.py lays them out); the kernel
+        counts the active ones into `self.active` (read with active_count)."""
+        cl, q = self.ctx.cl, self.ctx.queue
+        cl.enqueue_fill_buffer(q, self.active, np.int32(0), 0, 4)
         if n == 0:
             return None
         gsize = -(-n // WG) * WG
-        return self.kernels[bool(any_hit)](self.ctx.queue, (gsize,), (WG,), self.nodes, self.blocks,
-                                           ray_o, ray_d, out_t, out_id, np.int32(n))
+        return self.kernels[bool(any_hit)](q, (gsize,), (WG,), self.nodes, self.blocks,
+                                           ray_o, ray_d, out_t, out_id, np.int32(n), self.active)
+
+    def active_count(self) -> int:
+        """Active rays of the last enqueue (a 4-byte blocking read: waits for the kernel)."""
+        out = np.zeros(1, np.int32)
+        self.ctx.cl.enqueue_copy(self.ctx.queue, out, self.active)
+        return int(out[0])
 
     def release(self) -> None:
         self.nodes.release()
         self.blocks.release()
+        self.active.release()
 
 
-class ClbvhBackend:
+class ClbvhBackend(StatelessBackend):
     info = BackendInfo("clbvh", "OpenCL: one work-item per ray walks a 4-wide BVH (float4 child tests) from the root",
                        counters=("rays",), device="cl")
 
@@ -109,7 +123,6 @@ class ClbvhBackend:
 
         self.bc = bc
         self.params = params
-        self.overlays_enabled = False
         self.ctx = cl_context()
         self.scene = ClbvhScene(bc.scene.triangles, bc.bvh, self.ctx)
         self._stages = None  # (size, RayStage, HitStage)
@@ -123,15 +136,6 @@ class ClbvhBackend:
             self._stages = (size, RayStage(size, self.ctx), HitStage(size, self.ctx))
         return self._stages[1], self._stages[2]
 
-    def begin_frame(self, frame_index: int) -> None:
-        pass
-
-    def reset(self) -> None:
-        pass
-
-    def tile_level(self, size: tuple[int, int]) -> int:
-        return -1
-
     def trace(self, rays: RayBatch, pinfo: PassInfo, hits: HitBuffer) -> TraceResult:
         prof = self.bc.profiler
         rs, hs = self._staged(rays.size)
@@ -142,7 +146,7 @@ class ClbvhBackend:
             self.scene.enqueue(rs.origin, rs.dir, hs.t, hs.tri, rs.n, pinfo.any_hit)
         with prof.cl_phase("clbvh:download", q):
             hs.download(hits)
-        return TraceResult(stats={"rays": rs.n})  # work-items launched: one per pixel of the batch
+        return TraceResult(stats={"rays": self.scene.active_count()})  # the pass's active rays
 
     def _release_stages(self) -> None:
         if self._stages is not None:

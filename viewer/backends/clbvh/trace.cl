@@ -117,26 +117,43 @@ done:
     *out_id = hit_id;
 }
 
-__kernel __attribute__((reqd_work_group_size(WG, 1, 1)))
-void trace_closest(__global const float4 *nodes, __global const float4 *blocks, __global const float4 *ray_o,
-                   __global const float4 *ray_d, __global float *out_t, __global int *out_id, const int n) {
+// The convention's active ray (viewer/tracing.py): tmin < tmax, finite origin, direction and tmin
+// (tmax may be +inf). Inactive rays miss without a traversal.
+inline bool ray_active(float4 ot, float4 dt) {
+    return dt.w > ot.w && isfinite(ot.w) && all(isfinite(ot.xyz)) && all(isfinite(dt.xyz));
+}
+
+// One work-item per ray. The group's first work-item also counts the group's active rays and adds
+// them to *active: one global atomic per work-group and no barrier (a barrier makes PoCL split the
+// kernel into regions and keep each work-item's state across them).
+inline void trace_item(__global const float4 *nodes, __global const float4 *blocks, __global const float4 *ray_o,
+                       __global const float4 *ray_d, __global float *out_t, __global int *out_id, const int n,
+                       __global int *active, const bool any_hit) {
     int i = get_global_id(0);
+    if (get_local_id(0) == 0) {
+        int end = min(i + WG, n), count = 0;
+        for (int j = i; j < end; ++j) count += ray_active(ray_o[j], ray_d[j]) ? 1 : 0;
+        if (count > 0) atomic_add(active, count);
+    }
     if (i >= n) return;
-    float t;
-    int id;
-    trace_ray(nodes, blocks, ray_o[i], ray_d[i], false, &t, &id);
+    float4 ot = ray_o[i], dt = ray_d[i];
+    float t = INFINITY;
+    int id = -1;
+    if (ray_active(ot, dt)) trace_ray(nodes, blocks, ot, dt, any_hit, &t, &id);
     out_t[i] = t;
     out_id[i] = id;
 }
 
 __kernel __attribute__((reqd_work_group_size(WG, 1, 1)))
+void trace_closest(__global const float4 *nodes, __global const float4 *blocks, __global const float4 *ray_o,
+                   __global const float4 *ray_d, __global float *out_t, __global int *out_id, const int n,
+                   __global int *active) {
+    trace_item(nodes, blocks, ray_o, ray_d, out_t, out_id, n, active, false);
+}
+
+__kernel __attribute__((reqd_work_group_size(WG, 1, 1)))
 void trace_any(__global const float4 *nodes, __global const float4 *blocks, __global const float4 *ray_o,
-               __global const float4 *ray_d, __global float *out_t, __global int *out_id, const int n) {
-    int i = get_global_id(0);
-    if (i >= n) return;
-    float t;
-    int id;
-    trace_ray(nodes, blocks, ray_o[i], ray_d[i], true, &t, &id);
-    out_t[i] = t;
-    out_id[i] = id;
+               __global const float4 *ray_d, __global float *out_t, __global int *out_id, const int n,
+               __global int *active) {
+    trace_item(nodes, blocks, ray_o, ray_d, out_t, out_id, n, active, true);
 }

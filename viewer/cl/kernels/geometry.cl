@@ -4,7 +4,9 @@
 //  * Watertight ray/triangle test (Woop, Benthin, Wald 2013); when an edge function U, V or W
 //    is exactly 0 the three are recomputed in double (cl_khr_fp64), so rays through shared
 //    edges and vertices never leak. Distance from the plane equation (as accurate as Embree for
-//    grazing rays), T/det when the float32 normal is degenerate. Hits only for tmin < t < tmax.
+//    grazing rays) with a correctly rounded normal (rt_cross_rounded: float32 edge products are exact
+//    in double, only the difference rounds; a float32 cross product cancels on needles and slivers),
+//    T/det when dot(n, d) == 0. Hits only for tmin < t < tmax.
 //  * Conservative slab test: far distance scaled by 1 + 2*gamma(3) (Ize 2013); reciprocals of
 //    zero direction components replaced by +-1e30 with the component's sign (no 0 * inf).
 //    Near/far planes are picked by the direction's sign (same values as glsl's min/max for
@@ -58,6 +60,17 @@ inline float3 rt_cross(float3 a, float3 b) {
     return (float3)(a.y * b.z - a.z * b.y, a.z * b.x - a.x * b.z, a.x * b.y - a.y * b.x);
 }
 
+// cross(a, b) rounded once per component (see intersect.glsl: crossRounded)
+inline float3 rt_cross_rounded(float3 a, float3 b) {
+#ifdef RT_HAVE_FP64
+    double3 da = convert_double3(a), db = convert_double3(b);
+    return convert_float3((double3)(da.y * db.z - da.z * db.y, da.z * db.x - da.x * db.z,
+                                    da.x * db.y - da.y * db.x));
+#else
+    return rt_cross(a, b);
+#endif
+}
+
 inline float rt_dot(float3 a, float3 b) {
     return a.x * b.x + a.y * b.y + a.z * b.z;
 }
@@ -86,7 +99,7 @@ inline bool rt_intersect_triangle(const RayPre *r, float3 v0, float3 v1, float3 
     if ((U < 0.0f || V < 0.0f || W < 0.0f) && (U > 0.0f || V > 0.0f || W > 0.0f)) return false;
     float det = U + V + W;
     if (det == 0.0f) return false;
-    float3 n = rt_cross(v1 - v0, v2 - v0);
+    float3 n = rt_cross_rounded(v1 - v0, v2 - v0);
     float dn = rt_dot(n, r->d);
     float tt;
     if (dn != 0.0f) {
@@ -161,7 +174,14 @@ inline int rt_intersect_triangle4(const RayPre *r, __global const float4 *v, int
     if (!any(ok)) return -1;
     float4 e1x = v[3] - v[0], e1y = v[4] - v[1], e1z = v[5] - v[2];
     float4 e2x = v[6] - v[0], e2y = v[7] - v[1], e2z = v[8] - v[2];
+#ifdef RT_HAVE_FP64
+    double4 d1x = convert_double4(e1x), d1y = convert_double4(e1y), d1z = convert_double4(e1z);
+    double4 d2x = convert_double4(e2x), d2y = convert_double4(e2y), d2z = convert_double4(e2z);
+    float4 nx = convert_float4(d1y * d2z - d1z * d2y), ny = convert_float4(d1z * d2x - d1x * d2z);
+    float4 nz = convert_float4(d1x * d2y - d1y * d2x);
+#else
     float4 nx = e1y * e2z - e1z * e2y, ny = e1z * e2x - e1x * e2z, nz = e1x * e2y - e1y * e2x;
+#endif
     float4 dn = nx * r->d.x + ny * r->d.y + nz * r->d.z;
     float4 t = (nx * (v[0] - r->o.x) + ny * (v[1] - r->o.y) + nz * (v[2] - r->o.z)) / dn;
     int4 flat = dn == 0.0f;

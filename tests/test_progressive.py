@@ -1,0 +1,123 @@
+"""Progressive refinement (viewer.progressive): one pass per effect while moving, at a reduced
+scale when over the frame-time target; when the camera stops, passes are added until the
+requested counts, and the converged image is the full-quality frame (a separate renderer)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from tests.conftest import prepared_scene
+from viewer.camera import Camera
+from viewer.effects import parse_effects
+from viewer.progressive import Progressive
+from viewer.renderer import Renderer
+
+SIZE = (96, 54)
+EFFECTS = "primary,shadows,soft:3,ao:4"
+
+
+@pytest.fixture(scope="module")
+def room():
+    return prepared_scene("room")
+
+
+def _cams():
+    return (Camera.look_at([-1.5, 1.2, 2.0], [0.5, 0.8, -1.0]), Camera.look_at([1.0, 1.4, 2.2], [-0.5, 0.6, -1.0]))
+
+
+def _full_image(gl_ctx, room, cam) -> np.ndarray:
+    r = Renderer(gl_ctx, room.scene, room.bvh, SIZE, "glsl", parse_effects(EFFECTS))
+    try:
+        r.render(cam)
+        return r.read_image().astype(np.int16)
+    finally:
+        r.release()
+
+
+@pytest.mark.parametrize("target_ms", [1e6, 1e-3], ids=["full-scale", "reduced-scale"])
+def test_converges_to_the_full_quality_frame(gl_ctx, room, target_ms):
+    a, b = _cams()
+    full = _full_image(gl_ctx, room, b)
+    r = Renderer(gl_ctx, room.scene, room.bvh, SIZE, "glsl", parse_effects(EFFECTS))
+    try:
+        prog = Progressive(r, SIZE, target_ms=target_ms)
+        s1 = prog.frame(a)
+        s2 = prog.frame(b)  # moved
+        assert s1.moving and s2.moving and s2.samples_done == 1 and s2.samples_requested == 4
+        # one pass per effect while moving: 1 shadow pass per light, 1 soft pass per rect light, 1 AO pass
+        assert s2.report.rays["ao"] > 0 and s2.report.rays["soft"] > 0
+        if target_ms < 1:  # over the target: the moving image is smaller (upscaled when shown)
+            assert s2.scale == pytest.approx(0.25) and tuple(r.size) == (24, 14)
+        else:
+            assert s2.scale == 1.0 and tuple(r.size) == SIZE
+        steps = []
+        for _ in range(10):
+            st = prog.frame(b)  # stopped
+            steps.append(st)
+            if st.report is None:
+                break
+        assert steps[-1].report is None and steps[-1].converged  # idle once converged
+        assert tuple(r.size) == SIZE
+        assert [s.samples_done for s in steps[:-1]][-1] == 4
+        first_static = steps[0]
+        assert not first_static.moving
+        img = r.read_image().astype(np.int16)
+        assert np.abs(img - full).mean() <= 1.0  # <= 1/255 mean
+    finally:
+        r.release()
+
+
+def test_partial_images_are_complete_estimates(gl_ctx, room):
+    """After 1 of 4 AO passes the image is as bright as the full one on average (scaled by
+    requested / done), not a quarter of the AO term."""
+    _, b = _cams()
+    full = _full_image(gl_ctx, room, b)
+    r = Renderer(gl_ctx, room.scene, room.bvh, SIZE, "glsl", parse_effects(EFFECTS))
+    try:
+        prog = Progressive(r, SIZE, target_ms=1e6)
+        prog.frame(b)
+        partial = r.read_image().astype(np.int16)
+        assert np.abs(partial - full).mean() > 0.2  # noisier: fewer samples
+        assert abs(partial.mean() - full.mean()) < 2.0
+    finally:
+        r.release()
+
+
+def test_settings_change_restarts(gl_ctx, room):
+    _, b = _cams()
+    r = Renderer(gl_ctx, room.scene, room.bvh, SIZE, "glsl", parse_effects(EFFECTS))
+    try:
+        prog = Progressive(r, SIZE, target_ms=1e6)
+        for _ in range(6):
+            prog.frame(b)
+        assert prog.frame(b).report is None
+        r.settings = parse_effects("shadows,ao:2")
+        st = prog.frame(b)
+        assert st.report is not None and st.samples_requested == 2 and st.samples_done == 1
+    finally:
+        r.release()
+
+
+def test_bench_progressive_report(tmp_path):
+    """`rtwalk bench --progressive`: moving frame times (median, p95), time to convergence, and the
+    converged image equal to the full-quality frame."""
+    import json
+    import subprocess
+    import sys
+
+    from viewer.recording import Keyframe, Recording, save_recording
+
+    a, b = _cams()
+    keys = [Keyframe.from_camera(0.0, a), Keyframe.from_camera(1.0, b)]
+    path = save_recording(Recording({"builtin": "room"}, (64, 36), 6.0, keys), tmp_path / "room-path.json")
+    proc = subprocess.run([sys.executable, "-m", "viewer.cli", "bench", "--recording", str(path), "--progressive",
+                           "--effects", "primary,shadows,ao:3", "--size", "64x36", "--out", str(tmp_path / "out"),
+                           "--name", "p", "--frame-target-ms", "1000"], capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    assert "progressive: 7 moving frames" in proc.stderr, proc.stderr
+    rep = json.loads((tmp_path / "out" / "p-progressive.json").read_text())
+    assert rep["frames"] == 7 and len(rep["moving_ms"]["all"]) == 7
+    assert rep["moving_ms"]["median"] <= rep["moving_ms"]["p95"] <= rep["moving_ms"]["max"]
+    assert rep["converge"]["frames"] == 2 and rep["converge"]["seconds"] > 0  # samples 1 and 2 of 0..2
+    assert rep["scale"]["max"] == 1.0 and rep["converged_vs_full_mae"] <= 1.0

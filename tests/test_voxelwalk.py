@@ -1,0 +1,288 @@
+"""voxelwalk beyond the registry-driven tests (which run its defaults: EC for closest hits, IVW
+any-hit): every mode and parameter shape against Embree, EC's determinism whatever the chunk size
+(atomic minimum on packed keys), the walk statistics against a float64 NumPy 3D-DDA and a
+brute-force tile count, and the overlays through `render --view`."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import trimesh
+
+from tests.conftest import opencl_missing
+from viewer.errors import RtwalkError
+
+pytestmark = pytest.mark.skipif(opencl_missing() is not None, reason=str(opencl_missing()))
+
+
+def _scene() -> np.ndarray:
+    """Two nested spheres and a floor quad: closed surfaces, shared edges, rays in every direction."""
+    s = trimesh.creation.icosphere(3)
+    floor = np.array([[[-2, -1.2, -2], [2, -1.2, -2], [2, -1.2, 2]], [[-2, -1.2, -2], [2, -1.2, 2], [-2, -1.2, 2]]])
+    return np.concatenate([s.vertices[s.faces], s.vertices[s.faces] * 0.4 + 0.2, floor]).astype(np.float32)
+
+
+def _rays(n: int, seed: int = 3):
+    rng = np.random.default_rng(seed)
+    o = rng.uniform(-1.6, 1.6, (n, 3)).astype(np.float32)
+    d = rng.normal(size=(n, 3)).astype(np.float32)
+    d[: n // 8, 1] = 0.0  # axis-parallel components
+    return o, d, np.zeros(n, np.float32), np.full(n, np.inf, np.float32)
+
+
+@pytest.fixture(scope="module")
+def reference():
+    from viewer.tracing import trace_rays
+
+    tris = _scene()
+    o, d, lo, hi = _rays(6000)
+    return tris, (o, d, lo, hi), trace_rays(tris, o, d, lo, hi, backend="embree"), \
+        trace_rays(tris, o, d, lo, hi, any_hit=True, backend="embree")
+
+
+@pytest.mark.parametrize("params", ["mode=ivw", "mode=ec", "mode=ec,cells=0", "mode=ec,cells=3,chunk=16",
+                                    "mode=ec,chunk=256,resolution=4", "mode=ivw,resolution=300",
+                                    "mode=ec,resolution=1"])
+def test_modes_match_embree(monkeypatch, reference, params):
+    from viewer.tracing import trace_rays
+
+    monkeypatch.setenv("RTWALK_VOXELWALK", params)
+    tris, rays, (t0, i0), (ta, ia) = reference
+    t1, i1 = trace_rays(tris, *rays, backend="voxelwalk")
+    assert ((i0 >= 0) == (i1 >= 0)).all()
+    hit = i0 >= 0
+    assert hit.mean() > 0.3
+    np.testing.assert_allclose(t1[hit], t0[hit], rtol=1e-5)
+    assert (i1 == i0).mean() > 0.999  # the rest: ties on shared edges
+    t2, i2 = trace_rays(tris, *rays, any_hit=True, backend="voxelwalk")
+    assert ((i2 >= 0) == (ia >= 0)).all()
+
+
+def test_ec_is_deterministic_across_chunk_sizes(monkeypatch):
+    """Duplicated triangles (every hit is a tie between two slots): EC gives the same bits for every
+    chunk size and window, and the id is one of the tied pair."""
+    from viewer.tracing import trace_rays
+
+    base = _scene()
+    tris = np.concatenate([base, base])  # triangle k and k + len(base) coincide
+    o, d, lo, hi = _rays(3000, seed=5)
+    out = []
+    for params in ("mode=ec,chunk=16", "mode=ec,chunk=256", "mode=ec,cells=0,chunk=64", "mode=ec,cells=4,chunk=32"):
+        monkeypatch.setenv("RTWALK_VOXELWALK", params)
+        out.append(trace_rays(tris, o, d, lo, hi, backend="voxelwalk"))
+    for t, i in out[1:]:
+        assert np.array_equal(t.view(np.uint32), out[0][0].view(np.uint32))
+        assert np.array_equal(i, out[0][1])
+    t0, i0 = trace_rays(tris, o, d, lo, hi, backend="embree")
+    hit = i0 >= 0
+    assert ((out[0][1] >= 0) == hit).all()
+    assert (out[0][1][hit] % len(base) == i0[hit] % len(base)).mean() > 0.999
+
+
+@pytest.mark.parametrize("text", ["mode=fast", "chunk=48", "resolution=big", "resolution=0", "cells=-1",
+                                  "density=0", "colour=red"])
+def test_bad_parameters_raise(text):
+    from viewer.backends import check_params
+
+    with pytest.raises(RtwalkError):
+        check_params("voxelwalk", text)
+
+
+def test_bad_parameters_cli_one_line():
+    r = subprocess.run([sys.executable, "-m", "viewer.cli", "render", "room", "--backend", "voxelwalk",
+                        "--backend-params", "mode=sideways", "-o", "/nonexistent/x.png"],
+                       capture_output=True, text=True, timeout=120)
+    assert r.returncode == 2
+    assert r.stderr.strip().count("\n") == 0 and r.stderr.startswith("rtwalk: error:") and "mode" in r.stderr
+
+
+# ----------------------------------------------------------------------------------------------
+# statistics against independent computations
+# ----------------------------------------------------------------------------------------------
+
+def _walker(tris: np.ndarray, resolution: int, chunk: int = 64):
+    from viewer.accel.grid import GridSpec, UniformGrid, scene_box, triangles_f4
+    from viewer.backends.voxelwalk import VoxelWalker
+    from viewer.cl import cl_context
+
+    ctx = cl_context()
+    cl = ctx.cl
+    grid = UniformGrid(ctx)
+    tb = cl.Buffer(ctx.context, cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR, hostbuf=triangles_f4(tris))
+    grid.build(tb, len(tris), *scene_box(tris), GridSpec(resolution=resolution))
+    return ctx, grid, tb, VoxelWalker(ctx, grid, chunk=chunk, window=1)
+
+
+def _dda_float64(header, cells, o, d, tmax):
+    """Cells each ray's segment visits, in order, by a float64 3D-DDA (vectorised over rays):
+    list of (ray, step, cell id) rows, plus per ray the smallest distance of its path to a cell
+    boundary crossing corner (rays near corners may order ties differently)."""
+    lo, cell, res = header["lo"][0, :3].astype(np.float64), header["cell"][0, :3].astype(np.float64), \
+        header["res"][0, :3].astype(np.int64)
+    hi = lo + cell * res
+    o, d = o.astype(np.float64), d.astype(np.float64)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        inv = 1.0 / d
+        t0, t1 = (lo - o) * inv, (hi - o) * inv
+    tn = np.nanmax(np.where(np.isnan(np.minimum(t0, t1)), -np.inf, np.minimum(t0, t1)), axis=1)
+    tf = np.nanmin(np.where(np.isnan(np.maximum(t0, t1)), np.inf, np.maximum(t0, t1)), axis=1)
+    enter = np.maximum(tn, 0.0)
+    alive = enter < np.minimum(tf, tmax)
+    enter = np.where(alive, enter, 0.0)
+    p = o + enter[:, None] * d
+    c = np.clip(np.floor((p - lo) / cell), 0, res - 1).astype(np.int64)
+    step = np.sign(d).astype(np.int64)
+    rows = []
+    for k in range(int(res.sum()) + 3):
+        idx = np.flatnonzero(alive)
+        if len(idx) == 0:
+            break
+        cid = c[idx, 0] + res[0] * (c[idx, 1] + res[1] * c[idx, 2])
+        rows.append(np.stack([idx, np.full(len(idx), k), cid], 1))
+        with np.errstate(divide="ignore", invalid="ignore"):
+            plane = lo + (c + (step > 0)) * cell
+            tnext = np.where(step != 0, (plane - o) * inv, np.inf)
+        ax = np.argmin(tnext, axis=1)
+        tstep = tnext[np.arange(len(c)), ax]
+        c[np.arange(len(c)), ax] += step[np.arange(len(c)), ax]
+        inside = ((c >= 0) & (c < res)).all(1)
+        alive &= inside & (tstep < np.minimum(tf, tmax))
+    return np.concatenate(rows) if rows else np.zeros((0, 3), np.int64)
+
+
+def test_first_cells_and_iterations_match_a_float64_walk():
+    tris = _scene()
+    ctx, grid, tb, walker = _walker(tris, resolution=12)
+    from viewer.cl import HitStage, RayStage
+
+    n = 4096
+    o, d, _, _ = _rays(n, seed=7)
+    d = d / np.linalg.norm(d, axis=1, keepdims=True)
+    size = (64, 64)
+    rs, hs = RayStage(size, ctx), HitStage(size, ctx)
+    o4 = np.concatenate([o, np.zeros((n, 1), np.float32)], 1)
+    d4 = np.concatenate([d, np.full((n, 1), 1e30, np.float32)], 1)
+    rs.upload_arrays(o4, d4)
+    ivw = walker.trace_ivw(tb, rs.origin, rs.dir, hs.t, hs.tri, n, False, stats=True)
+    t_ivw, id_ivw = hs.read()
+    ec = walker.trace_ec(tb, rs.origin, rs.dir, hs.t, hs.tri, n, stats=True, size=size)
+    t_ec, id_ec = hs.read()
+    # same hits, and the same walk: per ray the same iterations and the same first non-empty cell
+    assert np.array_equal(t_ivw, t_ec) and np.array_equal(id_ivw, id_ec)
+    assert np.array_equal(ivw.iters, ec.iters)
+    assert np.array_equal(ivw.first_cell, ec.first_cell)
+    # first non-empty cell against the float64 walk (rays passing near a cell corner excepted)
+    header, cells, _ = grid.to_numpy()
+    rows = _dda_float64(header, cells, o, d, np.full(n, np.inf))
+    nonempty = cells[rows[:, 2], 1] > 0
+    r = rows[nonempty]
+    first = np.full(n, 0xFFFFFFFF, np.uint32)
+    order = np.lexsort((r[:, 1], r[:, 0]))
+    r = r[order]
+    keep = np.ones(len(r), bool)
+    keep[1:] = r[1:, 0] != r[:-1, 0]
+    first[r[keep, 0]] = r[keep, 2]
+    agree = (first == ivw.first_cell).mean()
+    assert agree > 0.995, agree
+    # resolved per iteration: per EC iteration the rays dropped equal the per-ray counts
+    frac = ec.resolved_fraction()
+    resolved = [row["resolved"] for row in ec.per_iter]
+    with_cell = int((ec.iters > 0).sum())
+    assert sum(resolved) == ec.per_iter[0]["active"] >= with_cell
+    assert abs(frac.sum() * ec.rays - with_cell) < 0.5
+    # rays per cell at the first iteration: every ray with a first cell, once
+    assert ec.rays_per_cell.sum() == with_cell == ec.per_iter[0]["pairs"]
+    assert ec.pairs == int(ec.iters.sum())
+    rs.release()
+    hs.release()
+    walker.release()
+    grid.release()
+    tb.release()
+
+
+def test_tile_divergence_brute_force():
+    from viewer.backends.voxelwalk import tile_divergence
+
+    rng = np.random.default_rng(2)
+    w, h = 37, 21
+    cells = rng.integers(0, 6, w * h).astype(np.uint32)
+    cells[rng.random(w * h) < 0.2] = 0xFFFFFFFF
+    per_pixel, per_tile = tile_divergence(cells, (w, h))
+    expect = {}
+    for i, c in enumerate(cells):
+        key = ((i % w) // 8, (i // w) // 8)
+        expect.setdefault(key, set())
+        if c != 0xFFFFFFFF:
+            expect[key].add(int(c))
+    for i in range(w * h):
+        assert per_pixel[i] == len(expect[((i % w) // 8, (i // w) // 8)])
+    assert sorted(per_tile) == sorted(len(s) for s in expect.values() if s)
+
+
+@pytest.mark.parametrize("view", ["tile_divergence", "iterations"])
+def test_render_view_overlays(tmp_path, view):
+    from PIL import Image
+
+    out = tmp_path / f"{view}.png"
+    r = subprocess.run([sys.executable, "-m", "viewer.cli", "render", "room", "--backend", "voxelwalk",
+                        "--effects", "reflections", "--mirror", "*", "--size", "160x90", "--view", view,
+                        "-o", str(out), "--quiet"], capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr
+    img = np.asarray(Image.open(out).convert("RGB"), np.int32)
+    assert len(np.unique(img.reshape(-1, 3), axis=0)) > 4  # a heat map, not one flat colour
+
+
+def test_counters_per_ray_type_agree_between_modes(gl_ctx):
+    """The room with every material a mirror: IVW and EC walk the same cells, so their statistics
+    per ray type agree; the grid figures are reported once per frame (the renderer sums passes)."""
+    from dataclasses import replace
+
+    from tests.conftest import prepared_scene
+    from viewer.effects import parse_effects
+    from viewer.renderer import Renderer
+
+    ps = prepared_scene("room")
+    scene = replace(ps.scene, materials=[replace(m, mirror=True) for m in ps.scene.materials])
+    got = {}
+    for mode in ("ec", "ivw"):
+        r = Renderer(gl_ctx, scene, ps.bvh, (96, 64), "voxelwalk", parse_effects("shadows,reflections"),
+                     backend_options={"voxelwalk": f"mode={mode},stats=true"})
+        r.render(scene.default_camera)
+        got[mode] = r.render(scene.default_camera).backend_stats
+        res = r.backend.resolution
+        r.release()
+    ec, ivw = got["ec"], got["ivw"]
+    assert (ec["res_x"], ec["res_y"], ec["res_z"]) == tuple(float(x) for x in res)
+    assert ec["grid_build_ms"] == 0.0  # no rebuild on the second frame
+    for key in ("iterations_mean_reflections", "rays_per_cell_reflections", "resolved_first_pct_reflections",
+                "tile_divergence_reflections", "tile_divergence_shadows"):
+        assert ec[key] == pytest.approx(ivw[key]), key
+    assert ec["pairs"] > 0 and ec["workgroups"] > 0 and "pairs" not in ivw
+    assert 1.0 <= ec["tile_divergence_reflections"] <= 64.0
+
+
+def test_bench_voxelwalk_end_to_end(tmp_path):
+    """The study on the room: tables, JSON and plots written; IVW and EC agree with clbvh on the rays."""
+    import json
+
+    r = subprocess.run([sys.executable, "-m", "viewer.cli", "bench-voxelwalk", "--scenes", "room", "--sizes", "96x54",
+                        "--repeats", "1", "--resolutions", "8,16", "--out", str(tmp_path), "--quiet"],
+                       capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0, r.stderr
+    for study in ("table51", "iterations", "resolution"):
+        for ext in ("json", "md", "png"):
+            assert (tmp_path / f"{study}.{ext}").stat().st_size > 100, (study, ext)
+    rows = json.loads((tmp_path / "table51.json").read_text())["rows"]
+    (row,) = rows
+    assert row["reflection_rays"] > 0 and row["agreement"] == {"ivw": 1.0, "ec": 1.0, "ec_all": 1.0}
+    w = row["walk"]
+    assert w["pairs"] >= w["rays"] > 0 and w["workgroups"] >= len(w["rays_per_cell"]) > 0
+    assert abs(sum(w["resolved"]) - 1.0) < 1e-9  # every active reflection ray resolved at some iteration
+    pts = json.loads((tmp_path / "resolution.json").read_text())["scenes"][0]["points"]
+    assert [p["resolution"] for p in pts][:2] == [8, 16] and sum(p["auto"] for p in pts) == 1
+    rb = subprocess.run([sys.executable, "-m", "viewer.cli", "bench-voxelwalk", "--sizes", "big"],
+                        capture_output=True, text=True, timeout=120)
+    assert rb.returncode == 2 and rb.stderr.startswith("rtwalk: error: --sizes")

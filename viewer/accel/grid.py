@@ -1,0 +1,262 @@
+"""Uniform grid built on the OpenCL device by sorting triangle-cell pairs (Kalojanov & Slusallek 2009).
+
+Shared by the grid backends (ugrid, pgrid's rays without a preferred direction, voxel walks).
+Per build: one work-item per triangle counts the cells its box overlaps, an exclusive scan gives
+each triangle its place, the (cell, triangle) pairs are written, radix-sorted by cell
+(viewer.cl.primitives), and each cell's range is read off the segment boundaries of the sorted
+keys. Kernels: grid_build.cl beside this file; the layout and the 3D-DDA walk:
+viewer/cl/kernels/grid.cl (include it from a trace kernel).
+
+Binning is box/box and conservative: a triangle is listed in every cell that its bounding box,
+grown by `eps` cells per axis and clipped to the grid, overlaps (a superset of the cells the
+triangle itself overlaps). The margin is 1e-3 cells plus 32 float32 ulps of the grid's largest
+coordinate, so a 3D-DDA whose float32 boundary distances are off by rounding still finds every
+hit in a cell it visits.
+
+Resolution (`grid_resolution`): cells per axis = extent_axis * cbrt(density * N / volume), i.e.
+about `density` cells per triangle, shaped like the scene's box (Wald/Kalojanov's rule); each
+axis in [1, max_axis] and the total at most max_cells. `resolution` > 0 instead fixes the cells
+along the longest axis (the others by extent).
+
+Layouts (device buffers, all little-endian):
+  header : GRID_DTYPE, one record (96 bytes; float4 lo, hi, cell, inv, eps; int4 res, res.w =
+           total cells)
+  cells  : uint32 (ncells, 2): first ref, ref count; cell id = x + rx * (y + ry * z)
+  refs   : uint32 (pairs,): triangle slots, grouped by cell in cell order
+  tris   : float32 (n, 3, 4): the triangles' vertices as float4 (w = 0); `triangles_f4`
+  blocks : GRID_BLOCK_DTYPE (nblocks,): each cell's triangles four at a time in SoA form for the
+           float4 triangle test (rt_intersect_triangle4); cell c's ceil(count / 4) blocks start
+           at cell_blocks[c] (uint32 (ncells,))
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from viewer.errors import RtwalkError
+
+KERNEL = Path(__file__).resolve().parent / "grid_build.cl"
+WG = 64
+MAX_PAIRS = 2**26  # pairs in one build (keys + values + sort scratch: 16 bytes per pair)
+
+GRID_DTYPE = np.dtype([("lo", "<f4", 4), ("hi", "<f4", 4), ("cell", "<f4", 4), ("inv", "<f4", 4),
+                       ("eps", "<f4", 4), ("res", "<i4", 4)])
+assert GRID_DTYPE.itemsize == 96
+
+#: Four triangles of one cell: v[3 * vertex + axis, lane] (NaN padding), their slots (-1 padding).
+GRID_BLOCK_DTYPE = np.dtype([("v", "<f4", (9, 4)), ("slot", "<i4", 4)])
+assert GRID_BLOCK_DTYPE.itemsize == 160
+
+
+@dataclass
+class GridSpec:
+    """How fine a grid is: ~density cells per triangle, or `resolution` cells on the longest axis."""
+
+    density: float = 2.0
+    resolution: int = 0
+    max_axis: int = 512
+    max_cells: int = 2**24
+
+
+@dataclass
+class GridStats:
+    res: tuple[int, int, int]
+    cells: int
+    pairs: int
+    nonempty: int
+    build_ms: float
+
+    def as_dict(self) -> dict[str, float]:
+        return {"grid_cells": float(self.cells), "grid_pairs": float(self.pairs),
+                "grid_nonempty": float(self.nonempty), "grid_build_ms": self.build_ms}
+
+
+def triangles_f4(triangles: np.ndarray) -> np.ndarray:
+    """(n, 3, 4) float32: the vertices as float4 (the kernels' triangle layout)."""
+    t = np.asarray(triangles, np.float32).reshape(-1, 3, 3)
+    out = np.zeros((len(t), 3, 4), np.float32)
+    out[:, :, :3] = t
+    return out
+
+
+def scene_box(triangles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Bounds of the finite vertices (a unit box at the origin when there are none)."""
+    v = np.asarray(triangles, np.float32).reshape(-1, 3)
+    v = v[np.isfinite(v).all(1)]
+    if len(v) == 0:
+        return np.zeros(3, np.float32), np.ones(3, np.float32)
+    return v.min(0), v.max(0)
+
+
+def _padded_extent(lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Bounds grown so that no axis is flat and the boundary vertices sit inside (float64)."""
+    lo, hi = np.asarray(lo, np.float64), np.asarray(hi, np.float64)
+    ext = hi - lo
+    big = max(float(ext.max()), 1e-6)
+    mag = max(float(np.abs(np.concatenate([lo, hi])).max()), 1e-30)
+    pad = np.maximum(1e-5 * big, 64 * float(np.spacing(np.float32(mag))))
+    ext_min = 1e-3 * big
+    grow = np.maximum(ext_min - ext, 0.0) / 2
+    return lo - pad - grow, hi + pad + grow
+
+
+def grid_resolution(lo: np.ndarray, hi: np.ndarray, n_tris: int, spec: GridSpec) -> np.ndarray:
+    """Cells per axis (int64 (3,)) for a box holding n_tris triangles (see the module docstring)."""
+    lo, hi = _padded_extent(lo, hi)
+    ext = hi - lo
+    if spec.resolution > 0:
+        res = np.round(ext / ext.max() * spec.resolution)
+    else:
+        k = np.cbrt(max(spec.density, 1e-6) * max(n_tris, 1) / float(np.prod(ext)))
+        res = np.ceil(ext * k)
+    res = np.clip(res, 1, spec.max_axis).astype(np.int64)
+    while int(np.prod(res)) > spec.max_cells:
+        res = np.maximum(1, np.floor(res * 0.9)).astype(np.int64)
+    return res
+
+
+def grid_header(lo: np.ndarray, hi: np.ndarray, res: np.ndarray) -> np.ndarray:
+    """The GRID_DTYPE record of a grid over the (padded) box lo..hi with res cells."""
+    plo, phi = _padded_extent(lo, hi)
+    res = np.asarray(res, np.int64)
+    cell = (phi - plo) / res
+    h = np.zeros(1, GRID_DTYPE)
+    h["lo"][0, :3] = plo
+    h["hi"][0, :3] = plo + cell * res
+    h["cell"][0, :3] = cell
+    h["inv"][0, :3] = 1.0 / cell
+    mag = max(float(np.abs(np.concatenate([plo, phi])).max()), 1e-30)
+    h["eps"][0, :3] = 1e-3 + 32 * float(np.spacing(np.float32(mag))) / cell
+    h["res"][0, :3] = res
+    h["res"][0, 3] = int(np.prod(res))
+    return h
+
+
+class UniformGrid:
+    """A uniform grid on the device, rebuilt by `build` (buffers reused when large enough)."""
+
+    def __init__(self, ctx: Any = None, prims: Any = None):
+        from viewer.cl import build, cl_context
+        from viewer.cl.primitives import primitives
+
+        self.ctx = ctx or cl_context()
+        self.prims = prims or primitives(self.ctx)
+        prog = build(KERNEL, {"WG": WG}, self.ctx)
+        cl = self.ctx.cl
+        self._k = {name: cl.Kernel(prog, name) for name in ("grid_count", "grid_write", "grid_ranges",
+                                                             "grid_block_counts", "grid_blocks")}
+        self._bufs: dict[str, Any] = {}
+        self.header_host = np.zeros(1, GRID_DTYPE)
+        self.header = self._buf("header", GRID_DTYPE.itemsize)
+        self.stats: GridStats | None = None
+
+    def _buf(self, name: str, nbytes: int) -> Any:
+        buf = self._bufs.get(name)
+        if buf is None or buf.size < nbytes:
+            if buf is not None:
+                buf.release()
+            buf = self.ctx.cl.Buffer(self.ctx.context, self.ctx.cl.mem_flags.READ_WRITE, max(16, int(nbytes)))
+            self._bufs[name] = buf
+        return buf
+
+    @property
+    def cells(self) -> Any:
+        return self._bufs["cells"]
+
+    @property
+    def refs(self) -> Any:
+        return self._bufs["vals"]
+
+    @property
+    def blocks(self) -> Any:
+        return self._bufs["blocks"]
+
+    @property
+    def cell_blocks(self) -> Any:
+        return self._bufs["cell_blocks"]
+
+    def _run(self, name: str, n: int, *args: Any) -> None:
+        if n:
+            self._k[name](self.ctx.queue, (-(-n // WG) * WG,), (WG,), *args)
+
+    def build(self, tris: Any, n: int, lo: np.ndarray, hi: np.ndarray, spec: GridSpec | None = None) -> GridStats:
+        """Bin n triangles (device buffer in the `tris` layout) into a grid over lo..hi."""
+        spec = spec or GridSpec()
+        cl, q, u = self.ctx.cl, self.ctx.queue, np.uint32
+        t0 = time.perf_counter()
+        res = grid_resolution(lo, hi, n, spec)
+        counts = self._buf("counts", 4 * max(n, 1))
+        for _ in range(8):
+            self.header_host = grid_header(lo, hi, res)
+            cl.enqueue_copy(q, self.header, self.header_host)
+            self._run("grid_count", n, self.header, tris, u(n), counts)
+            pairs = self.prims.exclusive_scan(counts, counts, n) if n else 0
+            if pairs <= MAX_PAIRS or spec.resolution > 0:
+                break
+            res = np.maximum(1, np.floor(res * 0.8)).astype(np.int64)  # auto resolution: coarser
+        if pairs > MAX_PAIRS:
+            raise RtwalkError(f"uniform grid {tuple(res)} needs {pairs} triangle-cell pairs (at most {MAX_PAIRS}): "
+                              "choose a lower resolution")
+        ncells = int(np.prod(res))
+        keys = self._buf("keys", 4 * pairs)
+        vals = self._buf("vals", 4 * pairs)
+        cells = self._buf("cells", 8 * ncells)
+        cl.enqueue_fill_buffer(q, cells, np.uint32(0), 0, 8 * ncells)
+        self._run("grid_write", n, self.header, tris, u(n), counts, keys, vals)
+        nonempty = 0
+        if pairs:
+            self.prims.sort_pairs(keys, vals, pairs, key_bits=max(1, (ncells - 1).bit_length()))
+            seg = self.prims.segments(keys, pairs, None, out=self._chunks(pairs))
+            nonempty = seg.count
+            self._run("grid_ranges", nonempty, seg.key, seg.start, seg.length, u(nonempty), cells)
+        cell_blocks = self._buf("cell_blocks", 4 * ncells)
+        self._run("grid_block_counts", ncells, cells, u(ncells), cell_blocks)
+        nblocks = self.prims.exclusive_scan(cell_blocks, cell_blocks, ncells)
+        blocks = self._buf("blocks", GRID_BLOCK_DTYPE.itemsize * max(nblocks, 1))
+        if nblocks:
+            self._run("grid_blocks", ncells, cells, cell_blocks, vals, tris, u(ncells), blocks)
+        q.finish()
+        self.stats = GridStats(tuple(int(r) for r in res), ncells, int(pairs), int(nonempty),
+                               (time.perf_counter() - t0) * 1e3)
+        return self.stats
+
+    def _chunks(self, pairs: int) -> Any:
+        from viewer.cl.primitives import Chunks
+
+        return Chunks(0, self._buf("seg_key", 4 * pairs), self._buf("seg_start", 4 * pairs),
+                      self._buf("seg_len", 4 * pairs))
+
+    def to_numpy(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(header record, cells (ncells, 2) uint32, refs (pairs,) uint32) copied from the device."""
+        assert self.stats is not None, "build first"
+        cells = np.empty((self.stats.cells, 2), np.uint32)
+        refs = np.empty(self.stats.pairs, np.uint32)
+        q = self.ctx.queue
+        self.ctx.cl.enqueue_copy(q, cells, self.cells)
+        if self.stats.pairs:
+            self.ctx.cl.enqueue_copy(q, refs, self.refs)
+        return self.header_host.copy(), cells, refs
+
+    def blocks_to_numpy(self) -> tuple[np.ndarray, np.ndarray]:
+        """(cell_blocks (ncells,) uint32, blocks GRID_BLOCK_DTYPE) copied from the device."""
+        assert self.stats is not None, "build first"
+        cb = np.empty(self.stats.cells, np.uint32)
+        q = self.ctx.queue
+        self.ctx.cl.enqueue_copy(q, cb, self.cell_blocks)
+        counts = self.to_numpy()[1][:, 1].astype(np.int64)
+        nb = int(((counts + 3) // 4).sum())
+        blocks = np.empty(nb, GRID_BLOCK_DTYPE)
+        if nb:
+            self.ctx.cl.enqueue_copy(q, blocks, self.blocks)
+        return cb, blocks
+
+    def release(self) -> None:
+        for buf in self._bufs.values():
+            buf.release()
+        self._bufs.clear()
+

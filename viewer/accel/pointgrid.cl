@@ -1,0 +1,192 @@
+// Point-centred (spherical) grid: angular tiles x distance slabs around a centre E through which
+// every ray of a pass passes (a point light for shadow rays, the eye for primary rays), after
+// Guntury & Narayanan 2010 (per-light spherical grids) and Patidar & Narayanan 2008 (perspective
+// grid). Layout: PGRID_DTYPE in viewer/accel/pointgrid.py. A direction u from E has azimuth
+// alpha = atan2(u.right, u.fwd) and elevation theta = asin(u.up); the forward axis points at the
+// rays (away from the poles +-up). Tiles cover the angular rectangle of the rays (grown by the
+// margin): tile (ia, it) = floor((alpha - alpha0) * rect.z), floor((theta - theta0) * rect.w).
+// Slab s holds the triangles whose distance from E is at least d0 + s * slab width (a lower
+// bound; d0 = distance from E to the scene box, so the slabs span only the geometry).
+#include "geometry.cl"
+
+#ifndef WG
+#define WG 64
+#endif
+
+typedef struct {
+    float4 centre;  // xyz = E, w = angular margin (radians)
+    float4 fwd;
+    float4 up;
+    float4 right;
+    float4 rect;    // alpha0, theta0, tiles per radian (alpha), tiles per radian (theta)
+    float4 slab;    // slab width, 1 / slab width, tan(margin), d0 (distance from E to the scene box)
+    int4 res;       // tiles in alpha, tiles in theta, slabs, tiles * slabs
+} PGrid;
+
+inline float2 pg_angles(const PGrid *g, float3 u) {
+    float a = atan2(rt_dot(u, g->right.xyz), rt_dot(u, g->fwd.xyz));
+    float t = asin(clamp(rt_dot(u, g->up.xyz), -1.0f, 1.0f));
+    return (float2)(a, t);
+}
+
+// A ray's place in the grid: false when its segment does not stay within the margin cap
+// (slab.z = tan of the largest margin allowed) of one direction u from E (then it is traced
+// another way). Only segment points at least d0 (slab.w: distance from E to the scene box) from E
+// can meet a triangle, so the deviation that matters is *dev = h / max(lambda_min, sqrt(d0^2 - h^2)),
+// with h the distance of the ray's line from E and lambda_min the nearest along-ray distance of
+// the segment (rounded up; an upper bound of the angle). Computed in double.
+inline bool pg_ray(const PGrid *g, float4 ot, float4 dt, float3 *u_out, float *dev) {
+    if (!(dt.w > ot.w) || !isfinite(ot.x) || !isfinite(ot.y) || !isfinite(ot.z) || !isfinite(ot.w) ||
+        !isfinite(dt.x) || !isfinite(dt.y) || !isfinite(dt.z) || isnan(dt.w))
+        return false;
+#ifdef RT_HAVE_FP64
+    double3 w = convert_double3(ot.xyz) - convert_double3(g->centre.xyz);
+    double3 d = convert_double3(dt.xyz);
+    double len = sqrt(d.x * d.x + d.y * d.y + d.z * d.z);
+    if (len == 0.0) return false;
+    double3 dh = d / len;
+    double base = w.x * dh.x + w.y * dh.y + w.z * dh.z;
+    double l0 = base + (double)ot.w * len, l1 = base + (double)fmin(dt.w, 3.0e38f) * len;
+    double3 cr = (double3)(w.y * dh.z - w.z * dh.y, w.z * dh.x - w.x * dh.z, w.x * dh.y - w.y * dh.x);
+    double h = sqrt(cr.x * cr.x + cr.y * cr.y + cr.z * cr.z) * (1.0 + 1e-12);
+    double lmin;
+    if (l0 >= 0.0) { lmin = l0; *u_out = convert_float3(dh); }
+    else if (l1 <= 0.0) { lmin = -l1; *u_out = convert_float3(-dh); }
+    else return false;
+    double d0 = (double)g->slab.w;
+    double lam = fmax(lmin, sqrt(fmax(d0 * d0 - h * h, 0.0)));
+    double dv = h == 0.0 ? 0.0 : (lam > 0.0 ? h / lam : INFINITY);
+    if (!(dv <= (double)g->slab.z)) return false;
+    *dev = (float)(dv * (1.0 + 1e-6)) + 1e-30f;
+    return true;
+#else
+    return false;  // without doubles every ray takes the other way (still exact)
+#endif
+}
+
+// Per ray: angles of u (0 for rays not in the grid), its deviation bound (0 when not in the grid)
+// and whether it is outside the grid.
+__kernel __attribute__((reqd_work_group_size(WG, 1, 1)))
+void pg_classify(__global const PGrid *grid, __global const float4 *ray_o, __global const float4 *ray_d, const uint n,
+                 __global float *alpha, __global float *theta, __global float *dev, __global uint *outside) {
+    uint i = get_global_id(0);
+    if (i >= n) return;
+    PGrid g = *grid;
+    float3 u;
+    float dv = 0.0f;
+    bool ok = pg_ray(&g, ray_o[i], ray_d[i], &u, &dv);
+    float2 at = ok ? pg_angles(&g, u) : (float2)(0.0f);
+    alpha[i] = at.x;
+    theta[i] = at.y;
+    dev[i] = ok ? dv : 0.0f;
+    outside[i] = ok ? 0u : 1u;
+}
+
+__kernel __attribute__((reqd_work_group_size(WG, 1, 1)))
+void pg_ray_keys(__global const PGrid *grid, __global const float *alpha, __global const float *theta,
+                 __global const uint *outside, const uint n, __global uint *keys, __global uint *vals) {
+    uint i = get_global_id(0);
+    if (i >= n) return;
+    PGrid g = *grid;
+    uint ntiles = (uint)(g.res.x * g.res.y);
+    uint key = ntiles;
+    if (!outside[i]) {
+        int ia = clamp((int)floor((alpha[i] - g.rect.x) * g.rect.z), 0, g.res.x - 1);
+        int it = clamp((int)floor((theta[i] - g.rect.y) * g.rect.w), 0, g.res.y - 1);
+        key = (uint)(ia + g.res.x * it);
+    }
+    keys[i] = key;
+    vals[i] = i;
+}
+
+// Tile range [ia0, ia1] x [it0, it1] and slab of triangle i; false: culled (outside the rays'
+// rectangle, or not finite). *full: the cap reached a pole or the seam (alpha range widened).
+inline bool pg_tri(const PGrid *g, __global const float4 *tris, uint i, int4 *range, int *slab, bool *full) {
+    float3 E = g->centre.xyz;
+    float3 a = tris[3 * i].xyz - E, b = tris[3 * i + 1].xyz - E, c = tris[3 * i + 2].xyz - E;
+    *full = false;
+    if (!(all(isfinite(a)) && all(isfinite(b)) && all(isfinite(c)))) return false;
+    float m = g->centre.w;
+    float3 ctr = (a + b + c) / 3.0f;
+    float dc = length(ctr);
+    float la = length(a), lb = length(b), lc = length(c);
+    float R = fmax(fmax(length(a - ctr), length(b - ctr)), length(c - ctr));
+    float3 nrm = rt_cross(b - a, c - a);
+    float nl = length(nrm);
+    float dplane = nl > 0.0f ? fabs(rt_dot(nrm, a)) / nl : 0.0f;
+    float dmin = fmax(fmax(dplane, dc - R), 0.0f) * (1.0f - 1e-5f);
+    *slab = clamp((int)floor((dmin - g->slab.w) * g->slab.y), 0, g->res.z - 1);
+    float amin = -M_PI_F, amax = M_PI_F, tmin = -M_PI_2_F, tmax = M_PI_2_F;
+    bool everywhere = !(dc > 0.0f && la > 0.0f && lb > 0.0f && lc > 0.0f);
+    if (!everywhere) {
+        float3 cu = ctr / dc;
+        float rho = fmax(fmax(atan2(length(rt_cross(cu, a)), rt_dot(cu, a)), atan2(length(rt_cross(cu, b)), rt_dot(cu, b))),
+                         atan2(length(rt_cross(cu, c)), rt_dot(cu, c)));
+        rho = rho * (1.0f + 1e-5f) + m + 1e-6f;
+        if (rho < 1.5f) {
+            float2 at = pg_angles(g, cu);
+            tmin = at.y - rho;
+            tmax = at.y + rho;
+            if (tmin > -M_PI_2_F && tmax < M_PI_2_F) {
+                float s = sin(rho) / cos(at.y);
+                if (s < 1.0f) {
+                    float da = asin(s) * (1.0f + 1e-5f) + 1e-6f;
+                    if (at.x - da > -M_PI_F && at.x + da < M_PI_F) { amin = at.x - da; amax = at.x + da; }
+                    else *full = true;
+                } else *full = true;
+            } else *full = true;
+        } else everywhere = true;
+    }
+    if (everywhere) *full = true;
+    float fa0 = (amin - g->rect.x) * g->rect.z, fa1 = (amax - g->rect.x) * g->rect.z;
+    float ft0 = (tmin - g->rect.y) * g->rect.w, ft1 = (tmax - g->rect.y) * g->rect.w;
+    if (fa1 < 0.0f || ft1 < 0.0f || fa0 >= (float)g->res.x || ft0 >= (float)g->res.y) return false;
+    *range = (int4)(clamp((int)floor(fa0), 0, g->res.x - 1), clamp((int)floor(fa1), 0, g->res.x - 1),
+                    clamp((int)floor(ft0), 0, g->res.y - 1), clamp((int)floor(ft1), 0, g->res.y - 1));
+    return true;
+}
+
+// counts[i] = tiles of triangle i; flags[i]: bit 0 culled, bit 1 widened (pole or seam);
+// place[i] = (tile range ia0, ia1, it0, it1) and place_slab[i] for pg_tri_write
+__kernel __attribute__((reqd_work_group_size(WG, 1, 1)))
+void pg_tri_count(__global const PGrid *grid, __global const float4 *tris, const uint n, __global uint *counts,
+                  __global uint *flags, __global int4 *place, __global int *place_slab) {
+    uint i = get_global_id(0);
+    if (i >= n) return;
+    PGrid g = *grid;
+    int4 r = (int4)(0);
+    int slab = 0;
+    bool full;
+    bool ok = pg_tri(&g, tris, i, &r, &slab, &full);
+    counts[i] = ok ? (uint)(r.y - r.x + 1) * (uint)(r.w - r.z + 1) : 0u;
+    flags[i] = (ok ? 0u : 1u) | (full ? 2u : 0u);
+    place[i] = r;
+    place_slab[i] = slab;
+}
+
+__kernel __attribute__((reqd_work_group_size(WG, 1, 1)))
+void pg_tri_write(__global const PGrid *grid, const uint n, __global const uint *offsets,
+                  __global const int4 *place, __global const int *place_slab, __global const uint *flags,
+                  __global uint *keys, __global uint *vals) {
+    uint i = get_global_id(0);
+    if (i >= n) return;
+    if (flags[i] & 1u) return;
+    PGrid g = *grid;
+    int4 r = place[i];
+    int slab = place_slab[i];
+    uint o = offsets[i];
+    for (int it = r.z; it <= r.w; ++it)
+        for (int ia = r.x; ia <= r.y; ++ia) {
+            keys[o] = (uint)((ia + g.res.x * it) * g.res.z + slab);
+            vals[o] = i;
+            ++o;
+        }
+}
+
+// counts per cell from the segments of the sorted pair keys (zero-filled before)
+__kernel __attribute__((reqd_work_group_size(WG, 1, 1)))
+void pg_cell_counts(__global const uint *seg_key, __global const uint *seg_len, const uint m, __global uint *counts) {
+    uint i = get_global_id(0);
+    if (i >= m) return;
+    counts[seg_key[i]] = seg_len[i];
+}

@@ -1,0 +1,278 @@
+"""Point-centred grid: angular tiles x distance slabs around a point every ray of a pass goes
+through (a point light for shadow rays, the eye for primary rays), with the rays sorted into
+chunks per tile. After Guntury & Narayanan (EGPGV 2010, per-light spherical grids) and Patidar &
+Narayanan (ICVGIP 2008, perspective grids); built per pass on the OpenCL device.
+
+Build (kernels in pointgrid.cl beside this file, primitives from viewer.cl.primitives):
+ 1. frame: forward axis = mean direction from the centre of a strided sample of the rays (so the
+    rays lie away from the poles of the spherical mapping), up/right orthogonal to it (host).
+ 2. rays: per ray, its direction u from the centre and an upper bound of how far (in angle) its
+    segment strays from u where it could meet geometry: h / max(nearest along-ray distance,
+    sqrt(d0^2 - h^2)), h = distance of the ray's line from the centre, d0 = distance from the
+    centre to the scene box (computed in double). Rays above `margin` ("outside": other origins,
+    inactive rays, segments through the centre) are compacted into a list and traced another
+    way; the grid's margin is the largest bound of the rays it keeps (a max-reduce), so rays
+    that meet exactly in the centre (the eye) or lights outside the scene box cost no margin.
+ 3. angular rectangle of the rays (min/max reduce), grown by the margin; tiles over it
+    (~tile_rays rays per tile, or `tiles` on the longer side); slabs by distance from the centre.
+ 4. (tile, ray) pairs radix-sorted; segments cut into chunks of at most `chunk` rays.
+ 5. triangles: a spherical cap around each triangle's centroid direction holding its vertices
+    (grown by the margin) gives a conservative (alpha, theta) box (full azimuth when the cap
+    reaches a pole or the azimuth seam: "widened"); clipped to the rays' rectangle (triangles
+    outside it are culled: frustum culling for the eye); one slab from a lower bound of the
+    triangle's distance to the centre. (cell = tile * slabs + slab, triangle) pairs counted,
+    scanned, written, sorted; per-cell counts from the segments, then an exclusive scan gives
+    cell_start (ncells + 1 entries), so a tile's triangles are contiguous and in slab order.
+
+Layouts: header PGRID_DTYPE (112 bytes: float4 centre (w = margin), fwd, up, right, rect (alpha0,
+theta0, tiles per radian in alpha and theta), slab (width, 1 / width, tan(margin), d0 = distance
+from the centre to the scene box, where slab 0 starts); int4 res
+(tiles alpha, tiles theta, slabs, cells)); cell_start uint32 (ncells + 1,); refs uint32 (pairs,)
+triangle slots; chunks: viewer.cl.primitives.Chunks over the sorted ray keys (key = tile,
+ntiles for rays outside the grid), ray_vals uint32 (n,) ray indices in that order.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from viewer.errors import RtwalkError
+
+KERNEL = Path(__file__).resolve().parent / "pointgrid.cl"
+WG = 64
+MAX_PAIRS = 2**26
+MAX_TILES_AXIS = 1024
+
+PGRID_DTYPE = np.dtype([("centre", "<f4", 4), ("fwd", "<f4", 4), ("up", "<f4", 4), ("right", "<f4", 4),
+                        ("rect", "<f4", 4), ("slab", "<f4", 4), ("res", "<i4", 4)])
+assert PGRID_DTYPE.itemsize == 112
+
+
+@dataclass
+class PointGridSpec:
+    chunk: int = 64  # rays per chunk (one work-group each)
+    tile_rays: int = 64  # automatic tiling: about this many rays per tile
+    tiles: int = 0  # >0: tiles along the longer side of the angular rectangle instead
+    slabs: int = 16
+    margin: float = 0.004  # radians
+
+
+@dataclass
+class PointGridStats:
+    tiles: tuple[int, int]
+    slabs: int
+    rays: int
+    in_grid: int
+    outside: int
+    chunks: int
+    pairs: int
+    culled: int
+    widened: int
+    build_ms: float
+    rearrange_ms: float = 0.0
+
+    def as_dict(self, chunk: int) -> dict[str, float]:
+        return {"pairs": float(self.pairs), "chunks": float(self.chunks),
+                "chunk_occupancy": self.in_grid / max(self.chunks * chunk, 1), "culled": float(self.culled),
+                "widened": float(self.widened), "outside_rays": float(self.outside),
+                "tiles": float(self.tiles[0] * self.tiles[1]), "pgrid_build_ms": self.build_ms,
+                "rearrange_ms": self.rearrange_ms}
+
+
+def choose_frame(centre: np.ndarray, origins: np.ndarray, dirs: np.ndarray) -> tuple[np.ndarray, ...]:
+    """(fwd, up, right) unit vectors: fwd = mean direction from `centre` of the sampled rays
+    ((k, 4) origin + tmin and direction + tmax rows; inactive rows ignored)."""
+    o, d = origins.astype(np.float64), dirs.astype(np.float64)
+    act = (d[:, 3] > o[:, 3]) & np.isfinite(o).all(1) & np.isfinite(d[:, :3]).all(1)
+    fwd = np.array([0.0, 0.0, -1.0])
+    if act.any():
+        o, d = o[act], d[act]
+        dn = d[:, :3] / np.maximum(np.linalg.norm(d[:, :3], axis=1, keepdims=True), 1e-300)
+        p = o[:, :3] + o[:, 3:4] * d[:, :3] - centre  # segment start seen from the centre
+        lam = (p * dn).sum(1)
+        u = np.where((lam >= 0)[:, None], dn, -dn)
+        m = u.sum(0)
+        if np.linalg.norm(m) > 1e-9 * len(u):
+            fwd = m / np.linalg.norm(m)
+    axis = np.eye(3)[int(np.argmin(np.abs(fwd)))]
+    up = axis - fwd * float(axis @ fwd)
+    up /= np.linalg.norm(up)
+    right = np.cross(up, fwd)
+    return fwd, up, right
+
+
+def tile_counts(span_a: float, span_t: float, rays: int, spec: PointGridSpec) -> tuple[int, int]:
+    """Tiles in azimuth and elevation over an angular rectangle span_a x span_t (radians)."""
+    span_a, span_t = max(span_a, 1e-9), max(span_t, 1e-9)
+    if spec.tiles > 0:
+        k = spec.tiles / max(span_a, span_t)
+    else:
+        k = np.sqrt(max(rays, 1) / max(spec.tile_rays, 1) / (span_a * span_t))
+    na = int(np.clip(round(span_a * k), 1, MAX_TILES_AXIS))
+    nt = int(np.clip(round(span_t * k), 1, MAX_TILES_AXIS))
+    return na, nt
+
+
+class PointGrid:
+    """Per-pass point-centred grid on the device (buffers reused across builds)."""
+
+    def __init__(self, ctx: Any = None, prims: Any = None):
+        from viewer.cl import build, cl_context
+        from viewer.cl.primitives import primitives
+
+        self.ctx = ctx or cl_context()
+        self.prims = prims or primitives(self.ctx)
+        prog = build(KERNEL, {"WG": WG}, self.ctx)
+        cl = self.ctx.cl
+        self._k = {name: cl.Kernel(prog, name) for name in
+                   ("pg_classify", "pg_ray_keys", "pg_tri_count", "pg_tri_write", "pg_cell_counts")}
+        self._bufs: dict[str, Any] = {}
+        self.header_host = np.zeros(1, PGRID_DTYPE)
+        self.header = self.buf("header", PGRID_DTYPE.itemsize)
+        self.stats: PointGridStats | None = None
+        self.chunks = None
+        self.outside_count = 0
+
+    def buf(self, name: str, nbytes: int) -> Any:
+        b = self._bufs.get(name)
+        if b is None or b.size < nbytes:
+            if b is not None:
+                b.release()
+            b = self.ctx.cl.Buffer(self.ctx.context, self.ctx.cl.mem_flags.READ_WRITE, max(16, int(nbytes)))
+            self._bufs[name] = b
+        return b
+
+    def _run(self, name: str, n: int, *args: Any) -> None:
+        if n:
+            self._k[name](self.ctx.queue, (-(-n // WG) * WG,), (WG,), *args)
+
+    def build(self, tris: Any, n_tris: int, scene_lo: np.ndarray, scene_hi: np.ndarray, ray_o: Any, ray_d: Any,
+              n: int, centre: np.ndarray, sample: tuple[np.ndarray, np.ndarray], spec: PointGridSpec) -> PointGridStats:
+        """Both halves: `place` (frame, ray directions, tiles; triangle pairs) then `rearrange` (rays)."""
+        self.place(tris, n_tris, scene_lo, scene_hi, ray_o, ray_d, n, centre, sample, spec)
+        return self.rearrange(n, spec)
+
+    def place(self, tris: Any, n_tris: int, scene_lo: np.ndarray, scene_hi: np.ndarray, ray_o: Any, ray_d: Any,
+              n: int, centre: np.ndarray, sample: tuple[np.ndarray, np.ndarray], spec: PointGridSpec) -> None:
+        """The grid around `centre` for the n rays in (ray_o, ray_d) (viewer.cl.transfer layout): steps
+        1-3 and 5 of the module docstring (the data-structure build)."""
+        cl, q, u = self.ctx.cl, self.ctx.queue, np.uint32
+        p = self.prims
+        t0 = time.perf_counter()
+        centre = np.asarray(centre, np.float64)
+        fwd, up, right = choose_frame(centre, *sample)
+        d0 = float(np.linalg.norm(centre - np.clip(centre, scene_lo, scene_hi))) * (1 - 1e-6)
+        h = np.zeros(1, PGRID_DTYPE)
+        h["centre"][0, :3], h["centre"][0, 3] = centre, spec.margin
+        h["fwd"][0, :3], h["up"][0, :3], h["right"][0, :3] = fwd, up, right
+        h["slab"][0, 2:] = (np.tan(spec.margin), d0)
+        h["res"][0] = (1, 1, 1, 1)
+        cl.enqueue_copy(q, self.header, h)
+        alpha, theta = self.buf("alpha", 4 * n), self.buf("theta", 4 * n)
+        dev, outside = self.buf("dev", 4 * n), self.buf("outside", 4 * n)
+        self._run("pg_classify", n, self.header, ray_o, ray_d, u(n), alpha, theta, dev, outside)
+        out_idx = self.buf("outside_idx", 4 * n)
+        self.outside_count = p.compact(n, flags=outside, dst_index=out_idx) if n else 0
+        in_grid = n - self.outside_count
+        # margin: the largest deviation of a ray in the grid (at most spec.margin), plus float slack
+        m = float(p.reduce(dev, n, "max", np.float32)) * (1 + 1e-4) + 1e-6 if in_grid else spec.margin
+        m = min(m, spec.margin)
+        h["centre"][0, 3] = m
+        self.margin = m
+        # the rays' angular rectangle, grown by the margin
+        if in_grid:
+            a0, a1 = float(p.reduce(alpha, n, "min", np.float32)), float(p.reduce(alpha, n, "max", np.float32))
+            e0, e1 = float(p.reduce(theta, n, "min", np.float32)), float(p.reduce(theta, n, "max", np.float32))
+        else:
+            a0 = a1 = e0 = e1 = 0.0
+        a0, a1 = max(a0 - 2 * m, -np.pi), min(a1 + 2 * m, np.pi)
+        e0, e1 = max(e0 - 2 * m, -np.pi / 2), min(e1 + 2 * m, np.pi / 2)
+        na, nt = tile_counts((a1 - a0) * np.cos(min(abs(e0), abs(e1)) if e0 * e1 > 0 else 0.0), e1 - e0,
+                             in_grid, spec)
+        ns = max(1, int(spec.slabs))
+        corners = np.array([[x, y, z] for x in (scene_lo[0], scene_hi[0]) for y in (scene_lo[1], scene_hi[1])
+                            for z in (scene_lo[2], scene_hi[2])], np.float64)
+        dmax = float(np.linalg.norm(corners - centre, axis=1).max()) * 1.0001 + 1e-30
+        width = max(dmax - d0, 1e-30) / ns
+        h["rect"][0] = (a0, e0, na / (a1 - a0), nt / (e1 - e0))
+        h["slab"][0, :2] = (width, 1.0 / width)
+        ncells = na * nt * ns
+        h["res"][0] = (na, nt, ns, ncells)
+        self.header_host = h
+        cl.enqueue_copy(q, self.header, h)
+        # triangles: (cell, triangle) pairs
+        from viewer.cl.primitives import Chunks
+
+        counts, flags = self.buf("tri_counts", 4 * max(n_tris, 1)), self.buf("tri_flags", 4 * max(n_tris, 1))
+        place, place_slab = self.buf("tri_place", 16 * max(n_tris, 1)), self.buf("tri_slab", 4 * max(n_tris, 1))
+        self._run("pg_tri_count", n_tris, self.header, tris, u(n_tris), counts, flags, place, place_slab)
+        pairs = p.exclusive_scan(counts, counts, n_tris) if n_tris else 0
+        if pairs > MAX_PAIRS:
+            raise RtwalkError(f"point grid {na}x{nt}x{ns} needs {pairs} triangle-cell pairs (at most {MAX_PAIRS}): "
+                              "use fewer tiles")
+        keys, refs = self.buf("keys", 4 * pairs), self.buf("refs", 4 * pairs)
+        self._run("pg_tri_write", n_tris, self.header, u(n_tris), counts, place, place_slab, flags, keys, refs)
+        cell_start = self.buf("cell_start", 4 * (ncells + 1))
+        cl.enqueue_fill_buffer(q, cell_start, np.uint32(0), 0, 4 * (ncells + 1))
+        if pairs:
+            p.sort_pairs(keys, refs, pairs, key_bits=max(1, (ncells - 1).bit_length()))
+            seg = p.segments(keys, pairs, None, out=Chunks(0, self.buf("seg_key", 4 * pairs),
+                                                            self.buf("seg_start", 4 * pairs),
+                                                            self.buf("seg_len", 4 * pairs)))
+            self._run("pg_cell_counts", seg.count, seg.key, seg.length, u(seg.count), cell_start)
+        p.exclusive_scan(cell_start, cell_start, ncells + 1)
+        fl = np.empty(max(n_tris, 1), np.uint32)
+        if n_tris:
+            cl.enqueue_copy(q, fl, flags)
+        fl = fl[:n_tris]
+        q.finish()
+        self.stats = PointGridStats((na, nt), ns, n, in_grid, self.outside_count, 0, int(pairs),
+                                    int((fl & 1).sum()), int(((fl & 2) != 0).sum()), (time.perf_counter() - t0) * 1e3)
+
+    def rearrange(self, n: int, spec: PointGridSpec, balance: bool = True) -> PointGridStats:
+        """Step 4: (tile, ray) pairs sorted, chunks of at most spec.chunk rays (balance=False: one
+        chunk per tile, whatever its size)."""
+        from viewer.cl.primitives import Chunks
+
+        assert self.stats is not None, "place first"
+        t0 = time.perf_counter()
+        na, nt = self.stats.tiles
+        ntiles = na * nt
+        rk, rv = self.buf("ray_keys", 4 * n), self.buf("ray_vals", 4 * n)
+        self._run("pg_ray_keys", n, self.header, self._bufs["alpha"], self._bufs["theta"], self._bufs["outside"],
+                  np.uint32(n), rk, rv)
+        self.prims.sort_pairs(rk, rv, n, key_bits=max(1, ntiles.bit_length()))
+        out = Chunks(0, self.buf("ch_key", 4 * n), self.buf("ch_start", 4 * n), self.buf("ch_len", 4 * n))
+        self.chunks = self.prims.segments(rk, n, spec.chunk if balance else None, out=out)
+        self.ctx.queue.finish()
+        outside = self.outside_count
+        sentinel = (-(-outside // spec.chunk) if balance else 1) if outside else 0
+        self.stats.chunks = self.chunks.count - sentinel  # chunks of the outside rays are not traced here
+        self.stats.rearrange_ms = (time.perf_counter() - t0) * 1e3
+        return self.stats
+
+    @property
+    def cell_start(self) -> Any:
+        return self._bufs["cell_start"]
+
+    @property
+    def refs(self) -> Any:
+        return self._bufs["refs"]
+
+    @property
+    def ray_vals(self) -> Any:
+        return self._bufs["ray_vals"]
+
+    @property
+    def outside_index(self) -> Any:
+        return self._bufs["outside_idx"]
+
+    def release(self) -> None:
+        for b in self._bufs.values():
+            b.release()
+        self._bufs.clear()

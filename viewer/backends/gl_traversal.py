@@ -1,0 +1,146 @@
+"""The resumable full BVH traversal shared by the GL backends (trace_glsl.frag).
+
+Long traversals are finished, never cut short: llvmpipe silently ends shader loops after 65,535
+loop back-edges per invocation, so each ray visits at most `max_visits` BVH nodes per draw; an
+unfinished ray saves its traversal state and further draws continue the unfinished rays until an
+atomic counter says none is left (stats: resumed_rays, continuation_draws). The glsl backend traces
+every ray with it; chcrt finishes the rays its own shader gave up on. A module of its own so that no
+backend imports another.
+"""
+
+from __future__ import annotations
+
+import moderngl
+import numpy as np
+
+from viewer.backends.base import BackendContext, WorkCounters
+from viewer.errors import RtwalkError
+from viewer.gl.bindings import BIND_IMG_RESUME, BIND_RESUME_COUNTERS, BIND_RESUME_STATE
+from viewer.gl.programs import FullscreenQuad
+from viewer.gl.textures import int_texture
+from viewer.rays import HitBuffer, PassInfo, RayBatch
+
+LOOP_LIMIT = 65_535  # llvmpipe: loop back-edges per shader invocation, shared by all loops
+SIMD_WIDTH = 16  # fragments per llvmpipe shader invocation, assumed wide (8 with 256-bit vectors)
+
+
+def max_visits(max_leaf: int, stack_size: int, other_loops: int = 0) -> int:
+    """Node visits per ray and draw that keep every SIMD vector below LOOP_LIMIT back-edges.
+
+    Per visit the vector runs one main-loop iteration and at most 2 * max_leaf triangle-loop
+    iterations (two leaves); stack pops run in an inner loop whose iterations, summed over the
+    vector, are at most SIMD_WIDTH * (visits + stack_size) (a lane pops no more than it pushed plus
+    what it resumed with); loading and saving the stack add 2 * stack_size; `other_loops` is what
+    the caller's other loops may run. A margin of 5,000 covers everything else."""
+    budget = LOOP_LIMIT - 5_000 - other_loops - (SIMD_WIDTH + 2) * stack_size
+    per_visit = 1 + 2 * max_leaf + SIMD_WIDTH
+    return max(64, min(4096, budget // per_visit))
+
+
+class ResumableTraversal:
+    """Full BVH traversal of every ray (trace_glsl.frag) that finishes long traversals in further draws.
+
+    Also finishes rays another GL backend gave up on: its shader marks such a pixel -2 in the slot
+    image (image unit BIND_IMG_RESUME) and counts it once in ResumeCounters.unfinished (SSBO
+    BIND_RESUME_COUNTERS) after `bind_flags`; `run(..., resume_only=True)` then traces exactly
+    those rays from the root and overwrites their hits."""
+
+    def __init__(self, bc: BackendContext, work: WorkCounters | None = None):
+        self.bc = bc
+        self.work = work or WorkCounters(bc.ctx, enabled=False)
+        hist = getattr(bc.bvh.stats, "leaf_size_histogram", None) or {1: 1}
+        self.max_leaf = max(int(k) for k in hist)
+        self.stack_size = int(bc.gpu_scene.stack_size)
+        self.max_visits = max_visits(self.max_leaf, self.stack_size)
+        self.program = bc.programs.get("fullscreen.vert", "trace_glsl.frag",
+                                       {"STACK_SIZE": self.stack_size, "MAX_VISITS": self.max_visits,
+                                        **self.work.defines})
+        self.program["rayOrigin"] = 0
+        self.program["rayDir"] = 1
+        self.quad = FullscreenQuad(bc.ctx)
+        self.counters = bc.ctx.buffer(reserve=8)
+        self.capacity = 1024  # resume slots; grows to the number of unfinished rays
+        self.state = bc.ctx.buffer(reserve=self.capacity * self._stride_bytes)
+        self.slots: moderngl.Texture | None = None  # per pixel resume slot, -1 between traces
+
+    @property
+    def _stride_bytes(self) -> int:
+        return 4 * (4 + 2 * self.stack_size)
+
+    def _slot_image(self, size: tuple[int, int]) -> moderngl.Texture:
+        if self.slots is None or self.slots.size != size:
+            if self.slots is not None:
+                self.slots.release()
+            self.slots = int_texture(self.bc.ctx, size)
+            self.slots.write(np.full(size[0] * size[1], -1, np.int32).tobytes())
+        return self.slots
+
+    def bind_flags(self, size: tuple[int, int]) -> None:
+        """Bind the slot image and zeroed counters (before the draws that may flag pixels)."""
+        self._slot_image(size).bind_to_image(BIND_IMG_RESUME, read=True, write=True)
+        self.counters.write(np.zeros(2, np.int32).tobytes())
+        self.counters.bind_to_storage_buffer(BIND_RESUME_COUNTERS)
+
+    def _read_counters(self) -> tuple[int, int]:
+        self.bc.ctx.memory_barrier(moderngl.BUFFER_UPDATE_BARRIER_BIT)
+        unfinished, allocated = np.frombuffer(self.counters.read(), np.int32)
+        return int(unfinished), int(allocated)
+
+    def _grow(self, needed: int) -> None:
+        """Room for `needed` slots, keeping the saved states."""
+        cap = max(2 * self.capacity, needed)
+        state = self.bc.ctx.buffer(reserve=cap * self._stride_bytes)
+        self.bc.ctx.copy_buffer(state, self.state)
+        self.state.release()
+        self.state = state
+        self.capacity = cap
+
+    def run(self, rays: RayBatch, pinfo: PassInfo, hits: HitBuffer, resume_only: bool = False) -> dict[str, float]:
+        """Trace (all rays, or only the flagged ones) until none is unfinished; call bind_flags first.
+        Returns stats: draws, resumed_rays (rays not finished by their first draw), continuation_draws."""
+        ctx = self.bc.ctx
+        barriers = moderngl.SHADER_STORAGE_BARRIER_BIT | moderngl.SHADER_IMAGE_ACCESS_BARRIER_BIT
+        draws, resumed = 0, 0
+        if resume_only:
+            resumed, _ = self._read_counters()
+            if resumed == 0:
+                return {"draws": 0, "resumed_rays": 0, "continuation_draws": 0}
+            ctx.memory_barrier(barriers)
+            self.counters.write(np.zeros(2, np.int32).tobytes())
+        # a ray visits each node at most once: a draw that does not finish it advances it by max_visits
+        # (or gives it a slot, once), so this many draws always suffice
+        max_draws = 4 + 2 * (len(self.bc.bvh.node_left) // self.max_visits + 1)
+        self.bc.gpu_scene.bind()
+        rays.origin.use(0)
+        rays.direction.use(1)
+        self.program["anyHit"] = int(pinfo.any_hit)
+        hits.fbo.use()
+        ctx.disable(ctx.BLEND | ctx.DEPTH_TEST)
+        while True:
+            self.state.bind_to_storage_buffer(BIND_RESUME_STATE)
+            self.program["resume"] = int(draws > 0 or resume_only)
+            self.program["capacity"] = self.capacity
+            self.quad.render(self.program)
+            draws += 1
+            unfinished, allocated = self._read_counters()
+            if draws == 1 and not resume_only:
+                resumed = unfinished
+            if unfinished == 0:
+                break
+            if draws >= max_draws:
+                raise RtwalkError(f"{unfinished} rays still unfinished after {draws} traversal draws")
+            ctx.memory_barrier(barriers)
+            if allocated > self.capacity:  # some rays got no slot (-2): make room, they restart
+                used = self.capacity
+                self._grow(allocated)
+                self.counters.write(np.array([0, used], np.int32).tobytes())
+            else:
+                self.counters.write(np.array([0, allocated], np.int32).tobytes())
+        return {"draws": draws, "resumed_rays": resumed,
+                "continuation_draws": draws - (0 if resume_only else 1)}
+
+    def release(self) -> None:
+        for obj in (self.counters, self.state, self.slots):
+            if obj is not None:
+                obj.release()
+        self.slots = None

@@ -1,0 +1,267 @@
+"""pgrid: per-pass grids specialised to the ray type (Guntury & Narayanan, EGPGV 2010 / thesis 2011).
+
+* Shadow rays (point light `PassInfo.light` of scene.point_lights): a spherical grid around the
+  light (viewer.accel.pointgrid), rebuilt every pass: rays sorted into (tile) chunks of at most
+  `chunk` rays, one work-group per chunk with the tile's triangles staged in local memory slab by
+  slab, any-hit early exit (trace.cl beside this file).
+* Primary rays: the same point-centred grid around the eye (taken from the rays: every primary
+  ray starts there), i.e. a perspective grid of angular tiles x depth slabs; triangles outside
+  the rays' angular rectangle are culled (frustum culling), closest hit with the slab check.
+  Not done from the thesis: image-space tiles, back-face culling and the indirect kN x kN
+  mapping (the angular tiles play the part of image tiles).
+* Soft shadows, AO, diffuse and reflection rays, and any ray whose segment does not stay within
+  the angular margin of one direction from the centre (checked per ray, in double): the uniform
+  grid of ugrid (viewer.accel.grid, built once per scene geometry), so every ray is traced
+  exactly. Soft-shadow rays end at different points of an area light, so they take this way.
+
+Parameters: chunk (rays per work-group: 16..256), balance (chunks; off: one work-group per
+tile), tile_rays / tiles (angular tiling), slabs, margin (radians), density / resolution /
+rebuild (the uniform grid; rebuild: every frame). Counters: pairs, chunks,
+chunk_occupancy, culled and widened (pole/seam) triangles, rays outside the grid, tests per ray
+(with the overlays on).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from viewer.accel.grid import GridSpec, UniformGrid, scene_box, triangles_f4
+from viewer.accel.pointgrid import PointGrid, PointGridSpec
+from viewer.backends.base import BackendContext, TraceResult
+from viewer.backends.interface import BackendInfo, OverlaySpec
+from viewer.backends.ugrid import GridTracer
+from viewer.effects import RayType
+from viewer.errors import RtwalkError
+from viewer.rays import HitBuffer, PassInfo, RayBatch
+
+KERNEL = Path(__file__).resolve().parent / "trace.cl"
+SAMPLE = 4096  # rays sampled (strided) to choose the spherical frame
+
+
+@dataclass
+class PgridParams:
+    chunk: int = 64  # rays per chunk = work-group size
+    tile_rays: int = 64  # automatic tiling: ~rays per angular tile
+    tiles: int = 0  # >0: tiles along the longer side of the angular rectangle
+    slabs: int = 16  # distance slabs per tile
+    margin: float = 0.004  # angular margin (radians) a ray may deviate from its tile direction
+    primary: bool = True  # primary rays through the eye-centred grid (else the uniform grid)
+    balance: bool = True  # cut tiles into chunks of `chunk` rays (False: one work-group per tile)
+    rebuild: bool = False  # rebuild the uniform grid every frame (animated scenes; timing studies)
+    density: float = 2.0  # uniform grid (other ray types): ~cells per triangle
+    resolution: int = 0  # uniform grid: cells on the longest axis (0 = from density)
+
+    def validate(self, source: str) -> None:
+        if self.chunk not in (16, 32, 64, 128, 256):
+            raise RtwalkError(f"{source}: chunk must be one of 16, 32, 64, 128, 256 (got {self.chunk})")
+        if not 1 <= self.tile_rays <= 1 << 20 or not 0 <= self.tiles <= 1024:
+            raise RtwalkError(f"{source}: tile_rays must be in 1..1048576 and tiles in 0..1024")
+        if not 1 <= self.slabs <= 256:
+            raise RtwalkError(f"{source}: slabs must be in 1..256 (got {self.slabs})")
+        if not 1e-5 <= self.margin <= 0.1:
+            raise RtwalkError(f"{source}: margin must be in 1e-5..0.1 radians (got {self.margin})")
+        if not self.density > 0 or not 0 <= self.resolution <= 2048:
+            raise RtwalkError(f"{source}: density must be > 0 and resolution in 0..2048")
+
+    def point_spec(self) -> PointGridSpec:
+        return PointGridSpec(chunk=self.chunk, tile_rays=self.tile_rays, tiles=self.tiles, slabs=self.slabs,
+                             margin=self.margin)
+
+
+class PgridBackend:
+    info = BackendInfo(
+        "pgrid", "OpenCL: per-pass point-centred grids (light / eye) with rays sorted into chunks; uniform grid for "
+        "the other rays", params=PgridParams,
+        overlays=(OverlaySpec("triangle_tests", "heat", "triangle_tests", "triangles tested per ray"),
+                  OverlaySpec("light_tiles", "ids", "light_chunks", "chunks (colours) and rays per tile",
+                              counts="tile_rays")),
+        counters=("rays", "pairs", "chunks", "chunk_occupancy", "culled", "widened", "outside_rays", "tests_per_ray",
+                  "pgrid_build_ms", "rearrange_ms"),
+        device="cl")
+
+    def __init__(self, bc: BackendContext, params: PgridParams | None = None):
+        from viewer.cl import build, cl_context
+
+        self.bc = bc
+        self.params = params or PgridParams()
+        self.overlays_enabled = False
+        self.ctx = cl_context()
+        self.grid = UniformGrid(self.ctx)
+        self.tracer = GridTracer(self.ctx, self.grid)
+        self.pgrid = PointGrid(self.ctx, self.grid.prims)
+        cl = self.ctx.cl
+        self._kernels = {}
+        for count in (False, True):
+            prog = build(KERNEL, {"WG": self.params.chunk, **({"COUNT_TESTS": None} if count else {})}, self.ctx)
+            self._kernels[count] = cl.Kernel(prog, "pg_trace")
+        self._tris = None
+        self._tris_key = None
+        self._box = (np.zeros(3), np.ones(3))
+        self._stages = None
+        self._textures: dict[str, Any] = {}
+        self._rebuild()
+
+    # -- geometry -------------------------------------------------------------------------
+    def _geometry_key(self) -> tuple[int, int]:
+        return id(self.bc.scene.triangles), int(getattr(self.bc.scene, "geometry_version", 0))
+
+    def _rebuild(self) -> None:
+        cl, ctx = self.ctx.cl, self.ctx
+        tris = np.asarray(self.bc.scene.triangles, np.float32).reshape(-1, 3, 3)
+        with self.bc.profiler.cl_phase("pgrid:ugrid_build", ctx.queue):
+            f4 = triangles_f4(tris)
+            if self._tris is None or self._tris.size < f4.nbytes:
+                if self._tris is not None:
+                    self._tris.release()
+                self._tris = cl.Buffer(ctx.context, cl.mem_flags.READ_ONLY, max(16, f4.nbytes))
+            if f4.nbytes:
+                cl.enqueue_copy(ctx.queue, self._tris, f4)
+            self._box = scene_box(tris)
+            self._n_tris = len(tris)
+            self.grid.build(self._tris, len(tris), *self._box,
+                            GridSpec(density=self.params.density, resolution=self.params.resolution))
+        self._tris_key = self._geometry_key()
+
+    def begin_frame(self, frame_index: int) -> None:
+        if self.params.rebuild or self._geometry_key() != self._tris_key:
+            self._rebuild()
+
+    def reset(self) -> None:
+        pass
+
+    def tile_level(self, size: tuple[int, int]) -> int:
+        return -1
+
+    # -- tracing --------------------------------------------------------------------------
+    def _staged(self, size: tuple[int, int]):
+        from viewer.cl import HitStage, RayStage, host_buffer
+
+        size = (int(size[0]), int(size[1]))
+        if self._stages is None or self._stages[0] != size:
+            self._release_stages()
+            n = size[0] * size[1]
+            self._stages = (size, RayStage(size, self.ctx), HitStage(size, self.ctx), host_buffer(self.ctx, 4 * n, "w"))
+        return self._stages[1], self._stages[2], self._stages[3]
+
+    def _centre(self, pinfo: PassInfo, rs) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+        """(centre, sampled origins, sampled directions) for a point-grid pass, else None."""
+        from viewer.cl import mapped
+
+        rt = pinfo.ray_type
+        lights = getattr(self.bc.scene, "point_lights", [])
+        if rt == RayType.SHADOW and 0 <= pinfo.light < len(lights):
+            centre = np.asarray(lights[pinfo.light].position, np.float64)
+        elif rt == RayType.PRIMARY and self.params.primary:
+            centre = None
+        else:
+            return None
+        step = max(1, rs.n // SAMPLE)
+        with mapped(self.ctx, rs.origin, (rs.n, 4), np.float32) as o:
+            so = o[::step].copy()
+        with mapped(self.ctx, rs.dir, (rs.n, 4), np.float32) as d:
+            sd = d[::step].copy()
+        if centre is None:
+            act = np.flatnonzero(sd[:, 3] > so[:, 3])
+            if len(act) == 0:
+                return None
+            centre = so[act[0], :3].astype(np.float64)  # the eye: every primary ray starts there
+        return centre, so, sd
+
+    def trace(self, rays: RayBatch, pinfo: PassInfo, hits: HitBuffer) -> TraceResult:
+        prof = self.bc.profiler
+        rs, hs, tests = self._staged(rays.size)
+        q = self.ctx.queue
+        count = bool(self.overlays_enabled)
+        label = pinfo.ray_type.label
+        with prof.cl_phase("pgrid:upload", q):
+            rs.upload(rays)
+        point = self._centre(pinfo, rs) if rs.n else None
+        stats: dict[str, float] = {"rays": float(rs.n)}
+        if point is None:
+            with prof.cl_phase(f"trace:{label}", q):
+                self.tracer.enqueue(rs.origin, rs.dir, hs.t, hs.tri, rs.n, pinfo.any_hit,
+                                    tests if count else None)
+        else:
+            centre, so, sd = point
+            pg = self.pgrid
+            spec = self.params.point_spec()
+            with prof.cl_phase(f"pgrid:build:{label}", q):
+                pg.place(self._tris, self._n_tris, *self._box, rs.origin, rs.dir, rs.n, centre, (so, sd), spec)
+            with prof.cl_phase(f"pgrid:rearrange:{label}", q):
+                st = pg.rearrange(rs.n, spec, balance=self.params.balance)
+            with prof.cl_phase(f"trace:{label}", q):
+                if pg.chunks.count:
+                    ch = pg.chunks
+                    self._kernels[count](q, (pg.chunks.count * self.params.chunk,), (self.params.chunk,), pg.header,
+                                         ch.key, ch.start, ch.length, pg.ray_vals, pg.cell_start, pg.refs, self._tris,
+                                         rs.origin, rs.dir, hs.t, hs.tri, np.int32(pinfo.any_hit), tests)
+                self.tracer.enqueue(rs.origin, rs.dir, hs.t, hs.tri, st.outside, pinfo.any_hit,
+                                    tests if count else None, index=pg.outside_index)
+            stats.update(st.as_dict(self.params.chunk))
+            # the same per ray type (the renderer sums a frame's passes)
+            stats.update({f"{k}_{label}": v for k, v in st.as_dict(self.params.chunk).items()})
+        with prof.cl_phase("pgrid:download", q):
+            hs.download(hits)
+        overlays = {}
+        if count:
+            from viewer.cl import mapped
+
+            with mapped(self.ctx, tests, (rs.n,), np.int32) as a:
+                stats["tests_per_ray"] = float(a.sum()) / max(rs.n, 1)
+                overlays["triangle_tests"] = self._texture("triangle_tests", rays.size, a)
+            if point is not None:
+                chunk_of, tile_rays = self._chunk_maps(rs.n)
+                overlays["light_chunks"] = self._texture("light_chunks", rays.size, chunk_of)
+                overlays["tile_rays"] = self._texture("tile_rays", rays.size, tile_rays)
+        return TraceResult(stats=stats, overlays=overlays)
+
+    def _chunk_maps(self, n: int) -> tuple[np.ndarray, np.ndarray]:
+        """Per ray: its chunk (-1 outside the grid) and the rays of its tile (0 outside)."""
+        pg = self.pgrid
+        key, start, length = pg.chunks.to_numpy(self.ctx)
+        vals = np.empty(n, np.uint32)
+        self.ctx.cl.enqueue_copy(self.ctx.queue, vals, pg.ray_vals)
+        ntiles = pg.stats.tiles[0] * pg.stats.tiles[1]
+        inside = key < ntiles
+        chunk_of = np.full(n, -1, np.int32)
+        tile_rays = np.zeros(n, np.int32)
+        ch = np.repeat(np.arange(len(key)), length.astype(np.int64))
+        pos = vals[: len(ch)]
+        keep = inside[ch]
+        chunk_of[pos[keep]] = ch[keep]
+        per_tile = np.bincount(key[inside].astype(np.int64), weights=length[inside], minlength=ntiles)
+        tile_rays[pos[keep]] = per_tile[key[ch[keep]].astype(np.int64)].astype(np.int32)
+        return chunk_of, tile_rays
+
+    def _texture(self, name: str, size: tuple[int, int], data: np.ndarray):
+        from viewer.gl.textures import int_texture
+
+        tex = self._textures.get(name)
+        if tex is None or tuple(tex.size) != tuple(size):
+            if tex is not None:
+                tex.release()
+            tex = int_texture(self.bc.ctx, size)
+            self._textures[name] = tex
+        tex.write(np.ascontiguousarray(data, np.int32).tobytes())
+        return tex
+
+    def _release_stages(self) -> None:
+        if self._stages is not None:
+            for s in self._stages[1:]:
+                s.release()
+            self._stages = None
+
+    def release(self) -> None:
+        self._release_stages()
+        for t in self._textures.values():
+            t.release()
+        self._textures.clear()
+        if self._tris is not None:
+            self._tris.release()
+            self._tris = None
+        self.pgrid.release()
+        self.grid.release()

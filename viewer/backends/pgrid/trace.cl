@@ -1,0 +1,122 @@
+// pgrid: one work-group per chunk of at most WG rays that share a tile of the point-centred grid
+// (viewer/accel/pointgrid.cl). The tile's triangles are staged in local memory WG at a time,
+// slab by slab (nearest to the centre first), and every ray of the chunk tests every staged
+// triangle (watertight test of geometry.cl).
+//  * any hit (shadow rays towards a light): a ray stops at its first hit; the chunk stops when all
+//    its rays have stopped or the next slab starts beyond the farthest point of its rays.
+//  * closest hit (primary rays from the eye): after slab s a ray whose hit lies nearer to the
+//    centre than where slab s+1 starts is done (slab check); the chunk stops when all are done.
+// Chunks whose key is the "outside" tile (ntiles) return at once: those rays go another way.
+// A chunk of more than WG rays (load balancing off: whole tiles) is traced WG rays at a time.
+// With COUNT_TESTS, each ray's triangle tests are written to `tests`.
+#include "geometry.cl"
+
+#ifndef WG
+#define WG 64
+#endif
+
+typedef struct {
+    float4 centre;
+    float4 fwd;
+    float4 up;
+    float4 right;
+    float4 rect;
+    float4 slab;
+    int4 res;
+} PGrid;
+
+#define MAX_SLABS 256
+
+__kernel __attribute__((reqd_work_group_size(WG, 1, 1)))
+void pg_trace(__global const PGrid *grid, __global const uint *chunk_key, __global const uint *chunk_start,
+              __global const uint *chunk_len, __global const uint *ray_index, __global const uint *cell_start,
+              __global const uint *refs, __global const float4 *tris, __global const float4 *ray_o,
+              __global const float4 *ray_d, __global float *out_t, __global int *out_id, const int any_hit,
+              __global int *tests_out) {
+    __local float4 sv[3 * WG];
+    __local int sslot[WG];
+    __local int remaining;
+    __local uint far_bits;
+    PGrid g = *grid;
+    uint c = get_group_id(0);
+    uint lid = get_local_id(0);
+    uint key = chunk_key[c];
+    uint ntiles = (uint)(g.res.x * g.res.y);
+    if (key >= ntiles) return;  // uniform for the whole work-group
+    uint len = chunk_len[c];
+    // a chunk longer than WG (no load balancing: one work-group per tile) is done WG rays at a time
+    for (uint rb = 0; rb < len; rb += WG) {
+    barrier(CLK_LOCAL_MEM_FENCE);
+    bool mine = rb + lid < len;
+    uint ri = mine ? ray_index[chunk_start[c] + rb + lid] : 0u;
+    float4 ot = mine ? ray_o[ri] : (float4)(0.0f);
+    float4 dt = mine ? ray_d[ri] : (float4)(0.0f, 0.0f, 1.0f, -1.0f);
+    bool active = mine && dt.w > ot.w;
+    float tmin = ot.w, hit_t = dt.w;
+    int hit_id = -1;
+    int tests = 0;
+    RayPre r = rt_prepare_ray(ot.xyz, dt.xyz);
+    float3 E = g.centre.xyz;
+    float dlen = length(dt.xyz);
+    // signed distance along the ray's direction from E of o + t d, and the line's distance from E
+    float3 w = ot.xyz - E;
+    float base = dlen > 0.0f ? rt_dot(w, dt.xyz) / dlen : 0.0f;
+    float h = dlen > 0.0f ? length(rt_cross(w, dt.xyz)) / dlen : 0.0f;
+    bool outward = base + tmin * dlen >= 0.0f;
+    float far = fmax(fabs(base + tmin * dlen), fabs(base + fmin(hit_t, 3.0e38f) * dlen)) + h;
+    if (lid == 0) { remaining = 0; far_bits = 0u; }
+    barrier(CLK_LOCAL_MEM_FENCE);
+    if (active) {
+        atomic_inc(&remaining);
+        atomic_max(&far_bits, as_uint(fmin(far, 3.0e38f)));
+    }
+    barrier(CLK_LOCAL_MEM_FENCE);
+    bool done = !active;
+    float chunk_far = as_float(far_bits);
+    uint cell0 = key * (uint)g.res.z;
+    for (int s = 0; s < g.res.z; ++s) {
+        float slab_lo = g.slab.w + ((float)s - 0.001f) * g.slab.x;
+        if (remaining == 0 || slab_lo > chunk_far) break;  // same value in every work-item
+        uint a = cell_start[cell0 + s], b = cell_start[cell0 + s + 1];
+        for (uint base_i = a; base_i < b; base_i += WG) {
+            uint cnt = min((uint)WG, b - base_i);
+            barrier(CLK_LOCAL_MEM_FENCE);
+            if (lid < cnt) {
+                uint slot = refs[base_i + lid];
+                sslot[lid] = (int)slot;
+                sv[3 * lid] = tris[3 * slot];
+                sv[3 * lid + 1] = tris[3 * slot + 1];
+                sv[3 * lid + 2] = tris[3 * slot + 2];
+            }
+            barrier(CLK_LOCAL_MEM_FENCE);
+            if (!done && slab_lo <= far) {  // this ray's segment may reach this slab
+                for (uint k = 0; k < cnt; ++k) {
+                    float t;
+                    ++tests;
+                    if (rt_intersect_triangle(&r, sv[3 * k].xyz, sv[3 * k + 1].xyz, sv[3 * k + 2].xyz, tmin, hit_t, &t)) {
+                        hit_t = t;
+                        hit_id = sslot[k];
+                        if (any_hit) { done = true; atomic_dec(&remaining); break; }
+                    }
+                }
+            }
+            barrier(CLK_LOCAL_MEM_FENCE);
+            if (any_hit && remaining == 0) break;
+        }
+        if (!any_hit && !done && hit_id >= 0 && outward) {
+            // slab check: every triangle of the later slabs is at least this far from E
+            float next_lo = g.slab.w + ((float)(s + 1) - 0.001f) * g.slab.x;
+            float dist = base + hit_t * dlen + h;
+            if (dist < next_lo) { done = true; atomic_dec(&remaining); }
+        }
+        barrier(CLK_LOCAL_MEM_FENCE);
+    }
+    if (mine) {
+        out_t[ri] = hit_id >= 0 ? hit_t : INFINITY;
+        out_id[ri] = hit_id;
+#ifdef COUNT_TESTS
+        tests_out[ri] = tests;
+#endif
+    }
+    }
+}

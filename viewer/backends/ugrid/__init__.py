@@ -1,0 +1,196 @@
+"""ugrid: the uniform-grid baseline (Kalojanov & Slusallek build, Amanatides & Woo 3D-DDA walk).
+
+The grid (viewer.accel.grid) is built on the OpenCL device from the leaf-ordered triangles at
+creation and again whenever the scene's triangles change (checked in begin_frame); one work-item
+per ray walks it (trace.cl beside this file), testing each visited cell's triangles with the
+watertight test of viewer/cl/kernels/geometry.cl. Every ray type is traced the same way;
+closest-hit rays stop after the first cell that contains their nearest hit, any-hit rays at
+the first hit.
+
+Parameters (`--backend-params`): density (cells per triangle for the automatic resolution),
+resolution (cells along the longest axis; 0 = automatic), max_axis (cap per axis), rebuild
+(rebuild the grid every frame, as an animated scene needs).
+Overlay "triangle_tests": triangles tested per ray of the last pass (heat).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from viewer.accel.grid import GridSpec, UniformGrid, scene_box, triangles_f4
+from viewer.backends.base import BackendContext, TraceResult
+from viewer.backends.interface import BackendInfo, OverlaySpec
+from viewer.errors import RtwalkError
+from viewer.rays import HitBuffer, PassInfo, RayBatch
+
+KERNEL = Path(__file__).resolve().parent / "trace.cl"
+WG = 64
+
+
+@dataclass
+class UgridParams:
+    density: float = 2.0  # ~cells per triangle (automatic resolution, per axis by the scene's extent)
+    resolution: int = 0  # >0: cells along the longest axis instead
+    max_axis: int = 512  # cap on cells per axis
+    rebuild: bool = False  # rebuild every frame (animated scenes; timing studies)
+
+    def validate(self, source: str) -> None:
+        if not self.density > 0:
+            raise RtwalkError(f"{source}: density must be > 0 (got {self.density})")
+        if not 0 <= self.resolution <= 2048:
+            raise RtwalkError(f"{source}: resolution must be in 0..2048 (got {self.resolution})")
+        if not 1 <= self.max_axis <= 2048:
+            raise RtwalkError(f"{source}: max_axis must be in 1..2048 (got {self.max_axis})")
+
+    def spec(self) -> GridSpec:
+        return GridSpec(density=self.density, resolution=self.resolution, max_axis=self.max_axis)
+
+
+class GridTracer:
+    """The ugrid trace kernels over a UniformGrid and the device copy of the triangles."""
+
+    def __init__(self, ctx: Any, grid: UniformGrid):
+        from viewer.cl import build
+
+        self.ctx, self.grid = ctx, grid
+        cl = ctx.cl
+        self.kernels = {}
+        for count in (False, True):
+            defines: dict[str, Any] = {"WG": WG, **({"COUNT_TESTS": None} if count else {})}
+            prog = build(KERNEL, defines, ctx)
+            for idx in (False, True):
+                sfx = "_idx" if idx else ""
+                self.kernels[(False, count, idx)] = cl.Kernel(prog, "trace_closest" + sfx)
+                self.kernels[(True, count, idx)] = cl.Kernel(prog, "trace_any" + sfx)
+
+    def enqueue(self, ray_o: Any, ray_d: Any, out_t: Any, out_id: Any, n: int, any_hit: bool,
+                tests: Any = None, index: Any = None) -> None:
+        """Trace rays 0..n-1, or with `index` (uint32 buffer) the n rays it lists."""
+        if n == 0:
+            return
+        g = self.grid
+        k = self.kernels[(bool(any_hit), tests is not None, index is not None)]
+        extra = (index,) if index is not None else ()
+        k(self.ctx.queue, (-(-n // WG) * WG,), (WG,), g.header, g.cells, g.blocks, g.cell_blocks, ray_o, ray_d,
+          out_t, out_id, np.int32(n), tests if tests is not None else out_id, *extra)
+
+
+class UgridBackend:
+    info = BackendInfo("ugrid", "OpenCL: uniform grid (sorted triangle-cell pairs) walked by 3D-DDA, one ray per "
+                       "work-item", params=UgridParams,
+                       overlays=(OverlaySpec("triangle_tests", "heat", "triangle_tests", "triangles tested per ray"),),
+                       counters=("rays", "grid_pairs", "grid_nonempty", "grid_build_ms", "tests_per_ray"), device="cl")
+
+    def __init__(self, bc: BackendContext, params: UgridParams | None = None):
+        from viewer.cl import cl_context
+
+        self.bc = bc
+        self.params = params or UgridParams()
+        self.overlays_enabled = False
+        self.ctx = cl_context()
+        self.grid = UniformGrid(self.ctx)
+        self.tracer = GridTracer(self.ctx, self.grid)
+        self._tris = None
+        self._tris_key: tuple[int, int] | None = None
+        self._stages = None  # (size, RayStage, HitStage, tests buffer)
+        self._overlay = None
+        self._grid_stats_due = True
+        self._rebuild()
+
+    # -- geometry -------------------------------------------------------------------------
+    def _geometry_key(self) -> tuple[int, int]:
+        tris = self.bc.scene.triangles
+        return id(tris), int(getattr(self.bc.scene, "geometry_version", 0))
+
+    def _rebuild(self) -> None:
+        """Upload the triangles and build the grid (phase "ugrid:build")."""
+        cl, ctx = self.ctx.cl, self.ctx
+        tris = np.asarray(self.bc.scene.triangles, np.float32).reshape(-1, 3, 3)
+        with self.bc.profiler.cl_phase("ugrid:build", ctx.queue):
+            f4 = triangles_f4(tris)
+            if self._tris is None or self._tris.size < f4.nbytes:
+                if self._tris is not None:
+                    self._tris.release()
+                self._tris = cl.Buffer(ctx.context, cl.mem_flags.READ_ONLY, max(16, f4.nbytes))
+            if f4.nbytes:
+                cl.enqueue_copy(ctx.queue, self._tris, f4)
+            lo, hi = scene_box(tris)
+            self.grid.build(self._tris, len(tris), lo, hi, self.params.spec())
+        self._tris_key = self._geometry_key()
+
+    def begin_frame(self, frame_index: int) -> None:
+        if self.params.rebuild or self._geometry_key() != self._tris_key:
+            self._rebuild()
+        self._grid_stats_due = True  # the grid's counters go with the frame's first pass only
+
+    def reset(self) -> None:
+        pass
+
+    def tile_level(self, size: tuple[int, int]) -> int:
+        return -1
+
+    # -- tracing --------------------------------------------------------------------------
+    def _staged(self, size: tuple[int, int]):
+        from viewer.cl import HitStage, RayStage, host_buffer
+
+        size = (int(size[0]), int(size[1]))
+        if self._stages is None or self._stages[0] != size:
+            self._release_stages()
+            n = size[0] * size[1]
+            self._stages = (size, RayStage(size, self.ctx), HitStage(size, self.ctx), host_buffer(self.ctx, 4 * n, "w"))
+        return self._stages[1], self._stages[2], self._stages[3]
+
+    def trace(self, rays: RayBatch, pinfo: PassInfo, hits: HitBuffer) -> TraceResult:
+        prof = self.bc.profiler
+        rs, hs, tests = self._staged(rays.size)
+        q = self.ctx.queue
+        count = bool(self.overlays_enabled)
+        with prof.cl_phase("ugrid:upload", q):
+            rs.upload(rays)
+        with prof.cl_phase(f"trace:{pinfo.ray_type.label}", q):
+            self.tracer.enqueue(rs.origin, rs.dir, hs.t, hs.tri, rs.n, pinfo.any_hit,
+                                tests if count else None)
+        with prof.cl_phase("ugrid:download", q):
+            hs.download(hits)
+        stats = {"rays": float(rs.n)}
+        if getattr(self, "_grid_stats_due", True):
+            stats.update(self.grid.stats.as_dict())
+            self._grid_stats_due = False
+        overlays = {}
+        if count:
+            overlays["triangle_tests"], stats["tests_per_ray"] = self._overlay_texture(rays.size, tests, rs.n)
+        return TraceResult(stats=stats, overlays=overlays)
+
+    def _overlay_texture(self, size: tuple[int, int], buf: Any, n: int):
+        from viewer.cl import mapped
+        from viewer.gl.textures import int_texture
+
+        if self._overlay is None or tuple(self._overlay.size) != tuple(size):
+            if self._overlay is not None:
+                self._overlay.release()
+            self._overlay = int_texture(self.bc.ctx, size)
+        with mapped(self.ctx, buf, (n,), np.int32) as a:
+            self._overlay.write(a)
+            per_ray = float(a.sum()) / max(n, 1)
+        return self._overlay, per_ray
+
+    def _release_stages(self) -> None:
+        if self._stages is not None:
+            self._stages[1].release()
+            self._stages[2].release()
+            self._stages[3].release()
+            self._stages = None
+
+    def release(self) -> None:
+        self._release_stages()
+        if self._overlay is not None:
+            self._overlay.release()
+            self._overlay = None
+        if self._tris is not None:
+            self._tris.release()
+            self._tris = None
+        self.grid.release()

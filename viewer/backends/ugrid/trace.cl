@@ -1,0 +1,86 @@
+// ugrid: one work-item per ray walks the uniform grid (viewer/accel/grid.py; layout and 3D-DDA in
+// viewer/cl/kernels/grid.cl) and tests the triangles listed in each cell it visits, four at a
+// time from the cell's SoA blocks (grid.py GRID_BLOCK_DTYPE), with the watertight float4 test of
+// geometry.cl. Closest hit: the walk stops after the first cell whose exit
+// distance is at or beyond the nearest hit found so far (the hit-inside-cell check: a triangle
+// listed in several cells may be hit beyond the current cell, and a nearer one may still lie in
+// the cells between). Any hit (shadow, soft, AO): stops at the first hit in (tmin, tmax).
+// With COUNT_TESTS defined, the triangle tests of each ray are written to `tests` (overlays).
+#include "geometry.cl"
+#include "grid.cl"
+
+#ifndef WG
+#define WG 64
+#endif
+
+inline void trace_ray(const Grid *g, __global const uint2 *cells, __global const float4 *blocks,
+                      __global const uint *cell_blocks, float4 ot, float4 dt, const bool any_hit,
+                      float *out_t, int *out_id, int *out_tests) {
+    float tmin = ot.w;
+    float hit_t = dt.w;
+    int hit_id = -1;
+    int tests = 0;
+    if (dt.w > ot.w) {
+        RayPre r = rt_prepare_ray(ot.xyz, dt.xyz);
+        GridWalk w;
+        float t_enter;
+        if (grid_walk_begin(g, &r, tmin, hit_t, &w, &t_enter)) {
+            while (true) {
+                int cid = grid_cell_id(g, w.cell);
+                uint cnt = cells[cid].y;
+                if (cnt > 0) {
+                    __global const float4 *blk = blocks + 10 * cell_blocks[cid];
+                    for (uint k = 0; k < cnt; k += 4, blk += 10) {
+                        int4 slots = as_int4(blk[9]);
+                        int4 lanes = slots >= (int4)(0);
+                        float t;
+                        tests += min(4u, cnt - k);
+                        int lane = rt_intersect_triangle4(&r, blk, lanes, tmin, hit_t, &t);
+                        if (lane >= 0) {
+                            hit_t = t;
+                            hit_id = lane == 0 ? slots.x : (lane == 1 ? slots.y : (lane == 2 ? slots.z : slots.w));
+                            if (any_hit) goto done;
+                        }
+                    }
+                }
+                if (hit_id >= 0 && hit_t <= grid_cell_exit(&w)) break;
+                if (!grid_walk_step(g, &r, &w, hit_t)) break;
+            }
+        }
+    }
+done:
+    *out_t = hit_id >= 0 ? hit_t : INFINITY;
+    *out_id = hit_id;
+    *out_tests = tests;
+}
+
+#ifdef COUNT_TESTS
+#define STORE_TESTS tests_out[i] = tests;
+#else
+#define STORE_TESTS
+#endif
+
+#define TRACE_KERNEL(name, ANY, INDEX_ARG, RAY)                                                              \
+__kernel __attribute__((reqd_work_group_size(WG, 1, 1)))                                                    \
+void name(__global const Grid *grid, __global const uint2 *cells, __global const float4 *blocks,           \
+          __global const uint *cell_blocks, __global const float4 *ray_o, __global const float4 *ray_d,     \
+          __global float *out_t, __global int *out_id, const int n, __global int *tests_out INDEX_ARG) {    \
+    int j = get_global_id(0);                                                                               \
+    if (j >= n) return;                                                                                     \
+    int i = RAY;                                                                                            \
+    Grid g = *grid;                                                                                         \
+    float t;                                                                                                \
+    int id, tests;                                                                                          \
+    trace_ray(&g, cells, blocks, cell_blocks, ray_o[i], ray_d[i], ANY, &t, &id, &tests);                    \
+    out_t[i] = t;                                                                                           \
+    out_id[i] = id;                                                                                         \
+    STORE_TESTS                                                                                             \
+}
+
+#define NO_INDEX
+#define WITH_INDEX , __global const uint *index
+// every ray of the batch, or (the _idx kernels) only the rays listed in `index`
+TRACE_KERNEL(trace_closest, false, NO_INDEX, j)
+TRACE_KERNEL(trace_any, true, NO_INDEX, j)
+TRACE_KERNEL(trace_closest_idx, false, WITH_INDEX, (int)index[j])
+TRACE_KERNEL(trace_any_idx, true, WITH_INDEX, (int)index[j])

@@ -1,0 +1,235 @@
+"""voxelwalk: reflection rays through a uniform grid, walked by each ray alone or with coherence
+enforced by sorting (Guntury, "Raytracing Dynamic Scenes on GPU", IIIT Hyderabad 2011, ch. 5).
+
+The grid is the shared one of viewer.accel.grid (sorted triangle-cell pairs), built on the
+OpenCL device at creation and again when the scene's triangles change (or every frame with
+rebuild=true, as an animated scene needs).
+
+* IVW (mode=ivw): one work-item per ray walks the grid by 3D-DDA and stops at the first cell that
+  holds a hit inside the cell (ivw.cl). Any-hit rays (shadow, soft, AO) always go this way,
+  stopping at their first hit.
+* EC (mode=ec, closest-hit rays): in iterations, every active ray enumerates the (ray, cell)
+  pairs of its next `cells` non-empty cells (count, scan, write), the pairs are radix-sorted by
+  cell, cut at the cell boundaries into chunks of at most `chunk` rays, compacted, and one
+  work-group per chunk tests the cell's triangles staged in local memory; nearest hits by an
+  atomic minimum on packed (distance, triangle) keys, so the result is deterministic (ec.cl).
+
+Both are exact (the watertight test of viewer/cl/kernels/geometry.cl, the grid's conservative
+binning, and the hit-inside-cell rule). Resolution: `auto` takes grid.py's rule (about `density`
+cells per triangle, shaped like the scene's box: extents per axis and triangle density), N fixes
+N cells on the longest axis (the thesis used 128^3); the cells per axis are counters res_x/y/z.
+
+Overlays: "iterations" (non-empty cells visited per ray) and "tile_divergence" (distinct first
+cells per 8x8 pixel tile). Counters: the grid (res_x/y/z, pairs, build time; once per frame),
+EC ray-cell pairs, work-groups after compaction and iterations (EC passes); with overlays shown
+(or stats=true) per ray type (suffix _<effect>): iterations per walking ray (mean, max), rays per
+cell at the first iteration (mean, max),
+the % of rays resolved at the first iteration and the mean tile divergence. The per-iteration
+series are in `last_stats` (viewer.bench.voxelwalk reads them).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from viewer.accel.grid import GridSpec, UniformGrid, scene_box, triangles_f4
+from viewer.backends.base import BackendContext, TraceResult
+from viewer.backends.interface import BackendInfo, OverlaySpec
+from viewer.backends.voxelwalk.engine import PassStats, VoxelWalker, tile_divergence
+from viewer.errors import RtwalkError
+from viewer.rays import HitBuffer, PassInfo, RayBatch
+
+__all__ = ["VoxelwalkParams", "VoxelwalkBackend", "VoxelWalker", "PassStats", "tile_divergence"]
+
+MODES = ("ivw", "ec")
+CHUNKS = (16, 32, 64, 128, 256)
+
+
+@dataclass
+class VoxelwalkParams:
+    mode: str = "ec"  # closest-hit rays: ivw (independent walk) or ec (enforced coherence)
+    chunk: int = 64  # EC: rays per chunk = work-group size
+    resolution: str = "auto"  # auto (grid.py's rule from the scene) or N cells on the longest axis
+    cells: int = 1  # EC: non-empty cells per ray per iteration (0: every cell the ray crosses at once)
+    density: float = 2.0  # auto resolution: about this many cells per triangle
+    rebuild: bool = False  # rebuild the grid every frame (animated scenes; timing studies)
+    stats: bool = False  # per-iteration statistics every pass (else only while overlays are shown)
+
+    def validate(self, source: str) -> None:
+        if self.mode not in MODES:
+            raise RtwalkError(f"{source}: mode must be ivw or ec (got '{self.mode}')")
+        if self.chunk not in CHUNKS:
+            raise RtwalkError(f"{source}: chunk must be one of 16, 32, 64, 128, 256 (got {self.chunk})")
+        if self.resolution != "auto":
+            try:
+                r = int(self.resolution)
+            except ValueError:
+                raise RtwalkError(f"{source}: resolution must be auto or a whole number (got '{self.resolution}')") \
+                    from None
+            if not 1 <= r <= 1024:
+                raise RtwalkError(f"{source}: resolution must be auto or in 1..1024 (got {r})")
+        if not 0 <= self.cells <= 4096:
+            raise RtwalkError(f"{source}: cells must be in 0..4096 (got {self.cells})")
+        if not self.density > 0:
+            raise RtwalkError(f"{source}: density must be > 0 (got {self.density})")
+
+    def spec(self) -> GridSpec:
+        res = 0 if self.resolution == "auto" else int(self.resolution)
+        return GridSpec(density=self.density, resolution=res, max_axis=max(512, res))
+
+
+class VoxelwalkBackend:
+    info = BackendInfo(
+        "voxelwalk", "OpenCL: uniform grid walked by each ray alone (IVW) or with coherence enforced by sorting "
+        "ray-cell pairs by cell (EC)", params=VoxelwalkParams,
+        overlays=(OverlaySpec("tile_divergence", "heat", "tile_divergence",
+                              "distinct cells per 8x8 pixel tile (first iteration)"),
+                  OverlaySpec("iterations", "heat", "iterations", "iterations (non-empty cells visited) per ray")),
+        counters=("rays", "res_x", "res_y", "res_z", "grid_build_ms", "pairs", "workgroups", "iterations",
+                  "iterations_mean_reflections", "rays_per_cell_reflections", "rays_per_cell_max_reflections",
+                  "resolved_first_pct_reflections", "tile_divergence_reflections"),
+        device="cl")
+
+    def __init__(self, bc: BackendContext, params: VoxelwalkParams | None = None):
+        from viewer.cl import cl_context
+
+        self.bc = bc
+        self.params = params or VoxelwalkParams()
+        self.overlays_enabled = False
+        self.ctx = cl_context()
+        self.grid = UniformGrid(self.ctx)
+        self.walker = VoxelWalker(self.ctx, self.grid, self.params.chunk, self.params.cells)
+        self._tris = None
+        self._tris_key: tuple[int, int] | None = None
+        self._stages = None
+        self._textures: dict[str, Any] = {}
+        self.last_stats: PassStats | None = None
+        self._frame_stats: dict[str, float] = {}  # reported by the frame's first pass (the renderer sums passes)
+        self._build_ms = 0.0
+        self._rebuild()
+
+    # -- geometry -------------------------------------------------------------------------
+    def _geometry_key(self) -> tuple[int, int]:
+        return id(self.bc.scene.triangles), int(getattr(self.bc.scene, "geometry_version", 0))
+
+    def _rebuild(self) -> None:
+        cl, ctx = self.ctx.cl, self.ctx
+        tris = np.asarray(self.bc.scene.triangles, np.float32).reshape(-1, 3, 3)
+        with self.bc.profiler.cl_phase("voxelwalk:build", ctx.queue):
+            f4 = triangles_f4(tris)
+            if self._tris is None or self._tris.size < f4.nbytes:
+                if self._tris is not None:
+                    self._tris.release()
+                self._tris = cl.Buffer(ctx.context, cl.mem_flags.READ_ONLY, max(16, f4.nbytes))
+            if f4.nbytes:
+                cl.enqueue_copy(ctx.queue, self._tris, f4)
+            gs = self.grid.build(self._tris, len(tris), *scene_box(tris), self.params.spec())
+        self._tris_key = self._geometry_key()
+        self._build_ms += gs.build_ms  # reported by the next frame
+
+    @property
+    def resolution(self) -> tuple[int, int, int]:
+        return self.grid.stats.res
+
+    def begin_frame(self, frame_index: int) -> None:
+        if self.params.rebuild or self._geometry_key() != self._tris_key:
+            self._rebuild()
+        gs = self.grid.stats
+        self._frame_stats = {"res_x": float(gs.res[0]), "res_y": float(gs.res[1]), "res_z": float(gs.res[2]),
+                             "grid_pairs": float(gs.pairs), "grid_build_ms": self._build_ms}
+        self._build_ms = 0.0
+
+    def reset(self) -> None:
+        pass
+
+    def tile_level(self, size: tuple[int, int]) -> int:
+        return -1
+
+    # -- tracing --------------------------------------------------------------------------
+    def _staged(self, size: tuple[int, int]):
+        from viewer.cl import HitStage, RayStage
+
+        size = (int(size[0]), int(size[1]))
+        if self._stages is None or self._stages[0] != size:
+            self._release_stages()
+            self._stages = (size, RayStage(size, self.ctx), HitStage(size, self.ctx))
+        return self._stages[1], self._stages[2]
+
+    def trace(self, rays: RayBatch, pinfo: PassInfo, hits: HitBuffer) -> TraceResult:
+        prof = self.bc.profiler
+        rs, hs = self._staged(rays.size)
+        q = self.ctx.queue
+        want = bool(self.overlays_enabled or self.params.stats)
+        with prof.cl_phase("voxelwalk:upload", q):
+            rs.upload(rays)
+        ec = self.params.mode == "ec" and not pinfo.any_hit
+        with prof.cl_phase(f"trace:{pinfo.ray_type.label}", q):
+            if ec:
+                ps = self.walker.trace_ec(self._tris, rs.origin, rs.dir, hs.t, hs.tri, rs.n, stats=want,
+                                          size=rays.size)
+            else:
+                ps = self.walker.trace_ivw(self._tris, rs.origin, rs.dir, hs.t, hs.tri, rs.n, pinfo.any_hit, stats=want)
+        with prof.cl_phase("voxelwalk:download", q):
+            hs.download(hits)
+        self.last_stats = ps
+        # per frame: grid figures once (first pass); ratios per ray type (the renderer sums a frame's passes)
+        stats = {"rays": float(rs.n), **self._frame_stats}
+        self._frame_stats = {}
+        label = pinfo.ray_type.label
+        if ec:
+            stats.update({"pairs": float(ps.pairs), "workgroups": float(ps.workgroups),
+                          "iterations": float(ps.iterations), "ec_reorder_ms": ps.reorder_ms,
+                          "ec_trace_ms": ps.trace_ms})
+        overlays = {}
+        if want and ps.iters is not None:
+            if ps.rays_per_cell is not None and len(ps.rays_per_cell):
+                stats[f"rays_per_cell_{label}"] = float(ps.rays_per_cell.mean())
+                stats[f"rays_per_cell_max_{label}"] = float(ps.rays_per_cell.max())
+            res = ps.resolved_fraction()
+            if len(res):
+                stats[f"resolved_first_pct_{label}"] = 100.0 * float(res[0])
+            walked = ps.iters[ps.iters > 0]
+            stats[f"iterations_mean_{label}"] = float(walked.mean()) if len(walked) else 0.0
+            stats[f"iterations_max_{label}"] = float(walked.max()) if len(walked) else 0.0
+            div = None
+            if ps.first_cell is not None:
+                div, per_tile = tile_divergence(ps.first_cell, rays.size)
+                if len(per_tile):
+                    stats[f"tile_divergence_{label}"] = float(per_tile.mean())
+            if self.overlays_enabled:
+                overlays["iterations"] = self._texture("iterations", rays.size, ps.iters)
+                if div is not None:
+                    overlays["tile_divergence"] = self._texture("tile_divergence", rays.size, div)
+        return TraceResult(stats=stats, overlays=overlays)
+
+    def _texture(self, name: str, size: tuple[int, int], data: np.ndarray):
+        from viewer.gl.textures import int_texture
+
+        tex = self._textures.get(name)
+        if tex is None or tuple(tex.size) != tuple(size):
+            if tex is not None:
+                tex.release()
+            tex = int_texture(self.bc.ctx, size)
+            self._textures[name] = tex
+        tex.write(np.ascontiguousarray(data, np.int32).tobytes())
+        return tex
+
+    def _release_stages(self) -> None:
+        if self._stages is not None:
+            for s in self._stages[1:]:
+                s.release()
+            self._stages = None
+
+    def release(self) -> None:
+        self._release_stages()
+        for t in self._textures.values():
+            t.release()
+        self._textures.clear()
+        if self._tris is not None:
+            self._tris.release()
+            self._tris = None
+        self.walker.release()
+        self.grid.release()

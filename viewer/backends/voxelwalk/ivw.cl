@@ -1,0 +1,55 @@
+// voxelwalk IVW (Independent Voxel Walk, Guntury 2011 ch. 5): one work-item per ray walks the
+// uniform grid by 3D-DDA from its origin, tests the triangles of each non-empty cell (watertight
+// test of geometry.cl) and stops at the first cell that holds a hit inside the cell (closest
+// hit) or at the first hit (any hit: shadow, soft, AO). iters[i] = non-empty cells the ray
+// visited (its iterations); first[i] = its first non-empty cell (VW_NONE: none), for the tile
+// divergence statistics.
+#include "walk.cl"
+
+#ifndef WG
+#define WG 64
+#endif
+
+__kernel __attribute__((reqd_work_group_size(WG, 1, 1)))
+void ivw_trace(__global const Grid *grid, __global const uint2 *cells, __global const uint *refs,
+               __global const float4 *tris, __global const float4 *ray_o, __global const float4 *ray_d,
+               __global float *out_t, __global int *out_id, const int n, const int any_hit,
+               __global int *iters_out, __global uint *first_out) {
+    int i = get_global_id(0);
+    if (i >= n) return;
+    Grid g = *grid;
+    float4 ot = ray_o[i], dt = ray_d[i];
+    float tmin = ot.w, hit_t = dt.w;
+    int hit_id = -1;
+    int iters = 0;
+    uint first = VW_NONE;
+    if (dt.w > ot.w) {
+        RayPre r = rt_prepare_ray(ot.xyz, dt.xyz);
+        GridWalk w;
+        float t_enter;
+        uint2 cr;
+        if (grid_walk_begin(&g, &r, tmin, hit_t, &w, &t_enter)) {
+            while (vw_next_nonempty(&g, cells, &r, &w, hit_t, &cr)) {
+                if (iters == 0) first = (uint)grid_cell_id(&g, w.cell);
+                ++iters;
+                for (uint k = 0; k < cr.y; ++k) {
+                    uint slot = refs[cr.x + k];
+                    __global const float4 *v = tris + 3 * slot;
+                    float t;
+                    if (rt_intersect_triangle(&r, v[0].xyz, v[1].xyz, v[2].xyz, tmin, hit_t, &t)) {
+                        hit_t = t;
+                        hit_id = (int)slot;
+                        if (any_hit) goto done;
+                    }
+                }
+                if (hit_id >= 0 && hit_t <= grid_cell_exit(&w)) break;  // the hit lies inside this cell
+                if (!grid_walk_step(&g, &r, &w, hit_t)) break;
+            }
+        }
+    }
+done:
+    out_t[i] = hit_id >= 0 ? hit_t : INFINITY;
+    out_id[i] = hit_id;
+    iters_out[i] = iters;
+    first_out[i] = first;
+}

@@ -1,0 +1,413 @@
+"""`rtwalk bench-pgrid`: the perspective-grid studies of Guntury's thesis (2011) on this machine.
+
+Studies (``--study``, comma list or ``all``):
+
+- ``table41`` (thesis Table 4.1): per scene and size, one point light, effects primary + shadows
+  (+ one diffuse pass for the cost model): pgrid's primary data-structure build (eye grid and
+  ray sort), primary traversal, shadow data-structure build (light grid), data rearrangement
+  (shadow-ray sort into chunks), shadow traversal, total and fps; the uniform grid (ugrid,
+  rebuilt every frame) and clbvh / glsl on the same frames, with and without a per-frame BVH
+  build (build_bvh, plus the BVH4 collapse for clbvh, timed on the scene). Also the counters
+  behind the times (triangle-cell pairs of each grid, culled triangles, chunks and their
+  occupancy, rays outside the point grid) -- the Figure 3.6 / 4.7 analogs.
+- ``lightdist`` (thesis Figure 4.9): shadow time (build + rearrangement + traversal) as the light
+  moves away from the model along the line from its centre through the scene's light, for chunk
+  sizes 64/128/256 and without load balancing; clbvh's any-hit time on the same rays beside it.
+- ``model`` (thesis Figures 4.10 / 5.5): the cost-model totals from the measured terms of
+  table41 (per-frame BVH build + traversals vs per-pass grids) as functions of the number of
+  lights and of secondary passes, and the break-even counts. Needs table41 in the same run.
+
+Timing: each configuration has its own Renderer; frames are interleaved between them (one
+warm-up frame each first: OpenCL kernels compile on first use), and per-phase times are the
+medians over the timed frames. Phases are the backends' profiler phases (OpenCL phases are wall
+time up to a queue finish). Writes <study>.json, <study>.md and <study>.png into --out.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import statistics
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from viewer.bench.plots import figure, finish
+from viewer.bench.report import fmt, md_table, size_text, write_study
+from viewer.errors import RtwalkError
+
+STUDIES = ("table41", "lightdist", "model")
+REPO = Path(__file__).resolve().parents[2]
+SCENES_DIR = REPO.parent / "shared" / "scenes"
+SCENES = {"sibenik": ("sibenik/sibenik.obj", "sibenik-walk.json"),
+          "conference": ("conference/conference.ply", "conference-walk.json"),
+          "buddha": ("buddha/buddha_100k.obj", None), "city": ("city", "city-near.json")}
+BACKENDS = ("pgrid", "ugrid", "clbvh", "glsl")
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--study", default="all", help=f"comma list of {', '.join(STUDIES)} or 'all' (default all)")
+    p.add_argument("--scenes", default="sibenik,conference,buddha,city",
+                   help="comma list of " + ", ".join(SCENES) + " (default all four)")
+    p.add_argument("--scene-dir", default=str(SCENES_DIR), help="folder of the scene files")
+    p.add_argument("--city-size", type=int, default=100_000, help="triangles of the built-in city (default 100000)")
+    p.add_argument("--sizes", default="640x360", help="comma list of WxH (thesis: 1024x1024,640x360)")
+    p.add_argument("--frames", type=int, default=3, help="timed frames per configuration (default 3)")
+    p.add_argument("--light-scene", default="buddha", help="scene of the lightdist study (default buddha)")
+    p.add_argument("--distances", default="0.25,0.5,1,2,4",
+                   help="lightdist: light distance from the model centre in scene diagonals")
+    p.add_argument("--pgrid-params", default="", help="extra pgrid parameters for every run (key=value,...)")
+    p.add_argument("--out", default="out/bench-pgrid", help="output folder")
+    p.add_argument("--quiet", action="store_true", help="no progress output")
+
+
+def _sizes(text: str) -> list[tuple[int, int]]:
+    out = []
+    for item in [s.strip() for s in text.split(",") if s.strip()]:
+        w, sep, h = item.lower().partition("x")
+        if not sep or not w.isdigit() or not h.isdigit() or int(w) < 1 or int(h) < 1:
+            raise RtwalkError(f"--sizes: expected WxH like 640x360 (got '{item}')")
+        out.append((int(w), int(h)))
+    if not out:
+        raise RtwalkError("--sizes: no size given")
+    return out
+
+
+def _list(text: str, allowed, what: str) -> list[str]:
+    items = [s.strip() for s in text.split(",") if s.strip()]
+    if items == ["all"]:
+        return list(allowed)
+    bad = [s for s in items if s not in allowed]
+    if bad or not items:
+        raise RtwalkError(f"{what}: unknown {', '.join(bad) or '(none)'} (choose from {', '.join(allowed)})")
+    return items
+
+
+def _log(args, msg: str) -> None:
+    if not args.quiet:
+        print(f"bench-pgrid: {msg}", file=sys.stderr, flush=True)
+
+
+def load_scene(args, name: str):
+    """(prepared scene, camera) for a study scene; the camera is a recording's middle frame."""
+    from viewer.recording import load_recording
+    from viewer.session import prepare_scene
+
+    rel, rec = SCENES[name]
+    if rel == "city":
+        prep = prepare_scene("city", scene_size=args.city_size, quiet=True)
+    else:
+        path = Path(args.scene_dir) / rel
+        if not path.exists():
+            raise RtwalkError(f"scene file {path} not found (--scene-dir)")
+        prep = prepare_scene(str(path), quiet=True)
+    cam = prep.scene.default_camera
+    if rec and (REPO / "recordings" / rec).exists():
+        r = load_recording(REPO / "recordings" / rec)
+        cam = r.camera_for_frame(r.frame_count() // 2)
+    if not prep.scene.point_lights:
+        raise RtwalkError(f"scene {name} has no point light")
+    return prep, cam
+
+
+def bvh_build_ms(prep) -> dict[str, float]:
+    """Per-frame BVH cost of a dynamic scene: the binary SAH build (glsl), plus the BVH4 collapse
+    and leaf packing (clbvh). Median of three."""
+    from viewer.accel.bvh import build_bvh
+    from viewer.accel.bvh4 import build_bvh4
+    from viewer.backends.clbvh import pack_leaves
+
+    tris = prep.scene.triangles
+    b, c = [], []
+    for _ in range(3):
+        t0 = time.perf_counter()
+        bvh = build_bvh(tris)
+        t1 = time.perf_counter()
+        b4 = build_bvh4(bvh)
+        pack_leaves(b4.nodes, bvh.triangles_in_leaf_order(tris))
+        t2 = time.perf_counter()
+        b.append((t1 - t0) * 1e3)
+        c.append((t2 - t1) * 1e3)
+    return {"glsl": statistics.median(b), "clbvh": statistics.median(b) + statistics.median(c)}
+
+
+def run_interleaved(ctx, prep, camera, size, effects: str, configs: dict[str, tuple[str, str]], frames: int,
+                    scene=None) -> dict[str, dict]:
+    """configs: label -> (backend, params). Returns label -> {"phases": {phase: median ms},
+    "stats": last frame's counters}."""
+    from viewer.effects import parse_effects
+    from viewer.renderer import Renderer
+
+    scene = scene or prep.scene
+    renderers = {}
+    try:
+        for label, (backend, params) in configs.items():
+            renderers[label] = Renderer(ctx, scene, prep.bvh, size, backend, parse_effects(effects),
+                                        backend_options={backend: params} if params else None)
+        samples: dict[str, list[dict]] = {k: [] for k in configs}
+        stats: dict[str, dict] = {}
+        for f in range(frames + 1):
+            for label, r in renderers.items():
+                rep = r.render(camera)
+                if f > 0:
+                    samples[label].append(dict(rep.gpu_ms))
+                    stats[label] = dict(rep.backend_stats)
+    finally:
+        for r in renderers.values():
+            r.release()
+    out = {}
+    for label, frames_ms in samples.items():
+        keys = sorted({k for s in frames_ms for k in s})
+        out[label] = {"phases": {k: statistics.median(s.get(k, 0.0) for s in frames_ms) for k in keys},
+                      "stats": stats.get(label, {})}
+    return out
+
+
+# ------------------------------------------------------------------------------------------ table41
+
+
+def _terms(res: dict, builds: dict[str, float]) -> dict[str, dict[str, float]]:
+    """Thesis Table 4.1 terms per backend (ms)."""
+    ph = {k: v["phases"] for k, v in res.items()}
+    g = lambda b, k: float(ph[b].get(k, 0.0))  # noqa: E731
+    t = {
+        "pgrid": {"primary_build": g("pgrid", "pgrid:build:primary") + g("pgrid", "pgrid:rearrange:primary"),
+                  "primary_trace": g("pgrid", "trace:primary"), "shadow_build": g("pgrid", "pgrid:build:shadows"),
+                  "rearrange": g("pgrid", "pgrid:rearrange:shadows"), "shadow_trace": g("pgrid", "trace:shadows"),
+                  "secondary_build": g("ugrid", "ugrid:build"), "secondary_trace": g("pgrid", "trace:diffuse")},
+        "ugrid": {"primary_build": g("ugrid", "ugrid:build"), "primary_trace": g("ugrid", "trace:primary"),
+                  "shadow_build": 0.0, "rearrange": 0.0, "shadow_trace": g("ugrid", "trace:shadows"),
+                  "secondary_build": 0.0, "secondary_trace": g("ugrid", "trace:diffuse")},
+    }
+    for b in ("clbvh", "glsl"):
+        t[b] = {"primary_build": builds[b], "primary_trace": g(b, "trace:primary"), "shadow_build": 0.0,
+                "rearrange": 0.0, "shadow_trace": g(b, "trace:shadows"), "secondary_build": 0.0,
+                "secondary_trace": g(b, "trace:diffuse")}
+    for v in t.values():
+        v["total"] = sum(v[k] for k in ("primary_build", "primary_trace", "shadow_build", "rearrange", "shadow_trace"))
+    return t
+
+
+def study_table41(args, ctx) -> dict:
+    rows = []
+    for name in _list(args.scenes, SCENES, "--scenes"):
+        prep, cam = load_scene(args, name)
+        builds = bvh_build_ms(prep)
+        for size in _sizes(args.sizes):
+            _log(args, f"table41 {name} {size_text(size)}")
+            extra = args.pgrid_params
+            configs = {"pgrid": ("pgrid", ",".join(x for x in ("rebuild=false", extra) if x)),
+                       "ugrid": ("ugrid", "rebuild=true"), "clbvh": ("clbvh", ""), "glsl": ("glsl", "")}
+            res = run_interleaved(ctx, prep, cam, size, "primary,shadows,diffuse:1", configs, args.frames)
+            rows.append({"scene": name, "triangles": prep.scene.triangle_count, "size": list(size),
+                         "terms": _terms(res, builds), "phases": {k: v["phases"] for k, v in res.items()},
+                         "stats": {k: v["stats"] for k, v in res.items()}, "bvh_build_ms": builds})
+    md = ["# Thesis Table 4.1 analog: primary + shadow rays, one point light (ms per frame, medians)", "",
+          f"Command: `{_command()}`", ""]
+    head = ["scene", "size", "backend", "prim. DS build", "prim. trace", "shadow DS build", "rearrange",
+            "shadow trace", "total", "fps", "total w/o build"]
+    body = []
+    for r in rows:
+        for b in BACKENDS:
+            t = r["terms"][b]
+            no_build = t["total"] - t["primary_build"] if b in ("clbvh", "glsl") else t["total"]
+            body.append([r["scene"], size_text(tuple(r["size"])), b, fmt(t["primary_build"]), fmt(t["primary_trace"]),
+                         fmt(t["shadow_build"]), fmt(t["rearrange"]), fmt(t["shadow_trace"]), fmt(t["total"]),
+                         fmt(1e3 / t["total"] if t["total"] > 0 else float("nan"), 2), fmt(no_build)])
+    md.append(md_table(head, body))
+    md += ["", "DS build of clbvh / glsl: the per-frame BVH build a dynamic scene needs (binary SAH build; clbvh "
+           "adds the BVH4 collapse), measured on the CPU apart from the frames; 'total w/o build' leaves it out.",
+           "", "## Ratios and counters", ""]
+    head = ["scene", "size", "ugrid/pgrid total", "pgrid shadow trace / clbvh", "ugrid pairs", "eye-grid pairs",
+            "light-grid pairs", "culled (eye)", "chunks (shadow)", "chunk occupancy", "shadow rays outside"]
+    body = []
+    for r in rows:
+        t, st = r["terms"], r["stats"]
+        ps = st.get("pgrid", {})
+        nan = float("nan")
+        body.append([r["scene"], size_text(tuple(r["size"])),
+                     fmt(t["ugrid"]["total"] / max(t["pgrid"]["total"], 1e-9), 2),
+                     fmt(t["pgrid"]["shadow_trace"] / max(t["clbvh"]["shadow_trace"], 1e-9), 2),
+                     fmt(st.get("ugrid", {}).get("grid_pairs", nan), 0),
+                     fmt(ps.get("pairs_primary", nan), 0), fmt(ps.get("pairs_shadows", nan), 0),
+                     fmt(ps.get("culled_primary", nan), 0), fmt(ps.get("chunks_shadows", nan), 0),
+                     fmt(ps.get("chunk_occupancy_shadows", nan), 2), fmt(ps.get("outside_rays_shadows", nan), 0)])
+    md.append(md_table(head, body))
+    _plot_table41(rows, Path(args.out) / "table41.png")
+    res = write_study(Path(args.out), "table41", {"rows": rows, "command": _command()}, "\n".join(md))
+    res["rows"] = rows
+    return res
+
+
+def _plot_table41(rows: list[dict], path: Path) -> None:
+    if not rows:
+        return
+    fig, ax = figure(size=(10, 0.5 + 0.45 * len(rows) * len(BACKENDS)))
+    labels, y = [], 0
+    colors = {"primary_build": "#8da0cb", "primary_trace": "#1f4e9c", "shadow_build": "#fc8d62", "rearrange": "#e5c494",
+              "shadow_trace": "#b2182b"}
+    for r in rows:
+        for b in BACKENDS:
+            left = 0.0
+            for k, c in colors.items():
+                v = r["terms"][b][k]
+                ax.barh(y, v, left=left, color=c, label=k if y == 0 else None)
+                left += v
+            labels.append(f"{r['scene']} {size_text(tuple(r['size']))} {b}")
+            y += 1
+    ax.set_yticks(range(len(labels)), labels, fontsize=7)
+    ax.invert_yaxis()
+    ax.set_xlabel("ms per frame")
+    ax.legend(fontsize=7)
+    finish(fig, path, "Table 4.1 analog: primary + shadow frame terms")
+
+
+# ---------------------------------------------------------------------------------------- lightdist
+
+
+def study_lightdist(args, ctx) -> dict:
+    from viewer.scene import PointLight
+
+    name = args.light_scene
+    if name not in SCENES:
+        raise RtwalkError(f"--light-scene: unknown {name} (choose from {', '.join(SCENES)})")
+    prep, cam = load_scene(args, name)
+    lo, hi = prep.scene.bounds
+    centre = (lo.astype(np.float64) + hi) / 2
+    diag = prep.scene.diagonal
+    l0 = prep.scene.point_lights[0]
+    axis = l0.position.astype(np.float64) - centre
+    axis = axis / np.linalg.norm(axis) if np.linalg.norm(axis) > 0 else np.array([0.0, 1.0, 0.0])
+    dists = [float(x) for x in args.distances.split(",") if x.strip()]
+    size = _sizes(args.sizes)[0]
+    extra = args.pgrid_params
+    configs = {f"chunk={c}": ("pgrid", ",".join(x for x in (f"chunk={c}", extra) if x)) for c in (64, 128, 256)}
+    configs["no balancing"] = ("pgrid", ",".join(x for x in ("chunk=64,balance=false", extra) if x))
+    configs["clbvh"] = ("clbvh", "")
+    rows = []
+    for k in dists:
+        pos = (centre + axis * k * diag).astype(np.float32)
+        scene = dataclasses.replace(prep.scene, point_lights=[PointLight(pos, l0.intensity)])
+        _log(args, f"lightdist {name} distance {k} diagonals")
+        res = run_interleaved(ctx, prep, cam, size, "shadows", configs, args.frames, scene=scene)
+        row = {"distance": k, "light": pos.tolist(), "configs": {}}
+        for label, v in res.items():
+            ph = v["phases"]
+            row["configs"][label] = {"build": ph.get("pgrid:build:shadows", 0.0),
+                                     "rearrange": ph.get("pgrid:rearrange:shadows", 0.0),
+                                     "trace": ph.get("trace:shadows", 0.0), "stats": v["stats"]}
+            row["configs"][label]["total"] = sum(row["configs"][label][x] for x in ("build", "rearrange", "trace"))
+        rows.append(row)
+    labels = list(configs)
+    md = [f"# Thesis Figure 4.9 analog: shadow time vs light distance ({name}, {size_text(size)}, ms, medians)", "",
+          f"Command: `{_command()}`", "",
+          md_table(["distance (diagonals)"] + [f"{lb} total" for lb in labels] + ["chunk=64 trace", "chunk=64 chunks",
+                                                                                 "chunk=64 occupancy"],
+                   [[fmt(r["distance"], 2)] + [fmt(r["configs"][lb]["total"]) for lb in labels]
+                    + [fmt(r["configs"]["chunk=64"]["trace"]),
+                       fmt(r["configs"]["chunk=64"]["stats"].get("chunks", float("nan")), 0),
+                       fmt(r["configs"]["chunk=64"]["stats"].get("chunk_occupancy", float("nan")), 2)] for r in rows])]
+    fig, ax = figure(size=(7, 4))
+    for lb in labels:
+        ax.plot([r["distance"] for r in rows], [r["configs"][lb]["total"] for r in rows], marker="o", label=lb)
+    ax.set_xscale("log")
+    ax.set_xlabel("light distance from the model centre (scene diagonals)")
+    ax.set_ylabel("shadow ms (build + rearrange + trace)")
+    ax.legend(fontsize=8)
+    finish(fig, Path(args.out) / "lightdist.png", f"Figure 4.9 analog ({name})")
+    return write_study(Path(args.out), "lightdist", {"rows": rows, "command": _command()}, "\n".join(md))
+
+
+# -------------------------------------------------------------------------------------------- model
+
+
+def model_totals(t: dict[str, dict[str, float]], lights: np.ndarray, passes: np.ndarray) -> dict[str, np.ndarray]:
+    """Frame time of each method for L lights and B secondary passes, from the measured terms:
+    BVH: build + primary + L shadow + B secondary traversals; uniform grid: build + the same;
+    pgrid: eye grid + primary, per light (light grid + rearrangement + shadow traversal), and
+    the uniform grid (built once when B > 0) for the secondary passes."""
+    out = {}
+    for b in ("clbvh", "glsl"):
+        v = t[b]
+        out[b] = v["primary_build"] + v["primary_trace"] + lights * v["shadow_trace"] + passes * v["secondary_trace"]
+    v = t["ugrid"]
+    out["ugrid"] = v["primary_build"] + v["primary_trace"] + lights * v["shadow_trace"] + passes * v["secondary_trace"]
+    v = t["pgrid"]
+    out["pgrid"] = (v["primary_build"] + v["primary_trace"] + lights * (v["shadow_build"] + v["rearrange"]
+                    + v["shadow_trace"]) + (passes > 0) * v["secondary_build"] + passes * v["secondary_trace"])
+    return out
+
+
+def study_model(args, table41: dict | None) -> dict:
+    if not table41:
+        raise RtwalkError("the model study needs table41 in the same run (--study table41,model)")
+    rows = table41["rows"]
+    lights = np.arange(0, 17, dtype=np.float64)
+    md = ["# Thesis Figures 4.10 / 5.5 analog: cost model from the measured terms", "",
+          f"Command: `{_command()}`", "",
+          "Break-even: the smallest number of lights (no secondary pass) and of secondary passes (one light) "
+          "at which a per-frame clbvh build + traversal is faster than pgrid's per-pass grids ('-': not within 64).",
+          ""]
+    body = []
+    fig, axes = figure(1, 2, size=(11, 4))
+    for r in rows:
+        t = r["terms"]
+        big = np.arange(0, 65, dtype=np.float64)
+        by_l = model_totals(t, big, np.zeros_like(big))
+        by_b = model_totals(t, np.ones_like(big), big)
+        win_l = np.flatnonzero(by_l["clbvh"] < by_l["pgrid"])
+        win_b = np.flatnonzero(by_b["clbvh"] < by_b["pgrid"])
+        body.append([r["scene"], size_text(tuple(r["size"])), fmt(t["pgrid"]["total"]), fmt(t["clbvh"]["total"]),
+                     str(int(big[win_l[0]])) if len(win_l) else "-", str(int(big[win_b[0]])) if len(win_b) else "-"])
+        lab = f"{r['scene']} {size_text(tuple(r['size']))}"
+        m = model_totals(t, lights, np.zeros_like(lights))
+        axes[0].plot(lights, m["pgrid"], label=f"pgrid {lab}")
+        axes[0].plot(lights, m["clbvh"], "--", label=f"clbvh+build {lab}")
+        m = model_totals(t, np.ones_like(lights), lights)
+        axes[1].plot(lights, m["pgrid"], label=f"pgrid {lab}")
+        axes[1].plot(lights, m["clbvh"], "--", label=f"clbvh+build {lab}")
+    md.append(md_table(["scene", "size", "pgrid 1 light ms", "clbvh+build 1 light ms", "break-even lights",
+                        "break-even secondary passes"], body))
+    axes[0].set_xlabel("point lights (no secondary pass)")
+    axes[1].set_xlabel("secondary passes (one light)")
+    for ax in axes:
+        ax.set_ylabel("ms per frame (model)")
+        ax.legend(fontsize=6)
+    finish(fig, Path(args.out) / "model.png", "Cost model: per-frame BVH vs per-pass grids")
+    return write_study(Path(args.out), "model", {"rows": body, "command": _command()}, "\n".join(md))
+
+
+# ---------------------------------------------------------------------------------------------- run
+
+
+def _command() -> str:
+    argv = sys.argv[1:]
+    if argv and argv[0] == "bench-pgrid":
+        argv = argv[1:]
+    return " ".join(["rtwalk bench-pgrid", *argv])
+
+
+def run(args) -> int:
+    from viewer.cl import cl_context
+    from viewer.gl.context import shared_context
+
+    studies = _list(args.study, STUDIES, "--study")
+    _list(args.scenes, SCENES, "--scenes")
+    _sizes(args.sizes)
+    if args.frames < 1:
+        raise RtwalkError("--frames must be >= 1")
+    cl_context()
+    ctx = shared_context()
+    Path(args.out).mkdir(parents=True, exist_ok=True)
+    t41 = None
+    for s in studies:
+        if s == "table41":
+            t41 = study_table41(args, ctx)
+            print(t41["markdown"], flush=True)
+        elif s == "lightdist":
+            print(study_lightdist(args, ctx)["markdown"], flush=True)
+        elif s == "model":
+            print(study_model(args, t41)["markdown"], flush=True)
+    return 0

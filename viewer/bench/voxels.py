@@ -1,0 +1,555 @@
+"""Voxel tracing study (Chajdas & Westermann analog): `rtwalk bench-voxels`.
+
+Per scene: one frame's rays are captured with an exact backend (--reference, default clbvh:
+primary, shadows, soft, ao with AO length 1/3 of the scene's largest extent, as in the paper).
+Per resolution the scene is voxelized (voxels, seconds, MiB) and each structure built (node
+sizes, mean leaf depth and its variance, MiB). Then, on the very same rays:
+
+  * time: each structure's trace kernel per ray type (wall ms around enqueue + finish, median
+    over --rounds interleaved rounds), for each --stacks size;
+  * coherency: the recording kernel writes every ray's steps in order; SIMD lane utilisation of
+    lockstep groups of W = 8, 32, 64 consecutive rays (viewer.bench.lockstep defines it), plus
+    restarts (stack overflows) and steps per ray;
+  * error (structure bvh, largest stack): hit/miss disagreement with the reference backend,
+    mean |t - t_ref| in voxel widths where both hit, the reference's time on the same rays; and
+    the image of a full render with the voxels backend against the reference backend's image
+    (mean absolute pixel error, 0..255).
+
+Output in --out: bench_voxels.json (everything), bench_voxels.md (tables: 1 and 2 analogs,
+stack 4 vs 8, structures, voxelization, speed against error) and bench_voxels.png (speed
+against error).
+"""
+
+from __future__ import annotations
+
+import json
+import statistics
+import sys
+import time
+import warnings
+from pathlib import Path
+
+import numpy as np
+
+from viewer.errors import RtwalkError
+
+SCENES = {"conference": "conference/conference.ply", "buddha": "buddha/buddha_100k.obj",
+          "dragon": "dragon/dragon_100k.ply", "sponza": "sponza-dabrovic/sponza.obj",
+          "sibenik": "sibenik/sibenik.obj", "bunny": "bunny/bun_zipper.ply"}
+RECORDINGS = {"conference": "conference-walk.json", "sponza": "sponza-walk.json", "sibenik": "sibenik-walk.json"}
+SHARED = Path(__file__).resolve().parents[2].parent / "shared" / "scenes"
+WIDTHS = (8, 32, 64)
+RAY_TYPES = ("primary", "shadows", "soft", "ao")
+CHUNK = 1 << 15  # rays per recording launch (a multiple of every W)
+
+
+def add_parser(sub) -> None:
+    """`rtwalk bench-voxels` on the CLI's subparsers."""
+    add_arguments(sub.add_parser("bench-voxels", help="voxel BVH / KD-tree / octree: coherency, time, stack 4 vs 8, "
+                                                      "speed against error"))
+
+
+def add_arguments(p) -> None:
+    p.add_argument("--scenes", default="conference,buddha,dragon,sponza",
+                   help="comma-separated: conference, buddha, dragon, sponza, sibenik, bunny, room, city, or files")
+    p.add_argument("--resolutions", default="64,128,256", help="voxel grid sizes, powers of two")
+    p.add_argument("--structures", default="bvh,kd,octree", help="voxel structures to trace (bvh, kd, octree)")
+    p.add_argument("--stacks", default="4,8", help="short-stack sizes to compare")
+    p.add_argument("--size", default="640x360", help="WxH (the paper: 1280x720)")
+    p.add_argument("--effects", default="primary,shadows,soft:4,ao:4",
+                   help="ray types and samples per pixel (the paper: soft:36, ao:36)")
+    p.add_argument("--reference", default="clbvh", help="exact backend that generates the rays and judges")
+    p.add_argument("--rounds", type=int, default=3, help="interleaved timing rounds")
+    p.add_argument("--bias", type=float, default=1.5,
+                   help="secondary rays start this many voxel widths along the ray (the backend's bias)")
+    p.add_argument("--seq-len", type=int, default=1024, help="steps per ray kept for the lockstep model")
+    p.add_argument("--no-image", action="store_true", help="skip the full-render image error")
+    p.add_argument("--voxelize-only", action="store_true",
+                   help="only voxelize and build the structures per resolution (count, time, memory, depth)")
+    p.add_argument("--out", default="bench-voxels", help="folder for bench_voxels.json/.md/.png")
+    p.add_argument("--quiet", action="store_true", help="no progress output")
+
+
+def _log(args, msg: str) -> None:
+    if not args.quiet:
+        print(msg, file=sys.stderr, flush=True)
+
+
+def _ints(text: str, what: str) -> list[int]:
+    try:
+        return [int(x) for x in text.split(",") if x.strip()]
+    except ValueError:
+        raise RtwalkError(f"--{what}: expected comma-separated integers (got '{text}')") from None
+
+
+def _scene_spec(name: str) -> tuple[str, str, str | None]:
+    if name in ("room", "city"):  # built-in scenes
+        return name, name, None
+    if name in SCENES:
+        path = SHARED / SCENES[name]
+        if not path.exists():
+            raise RtwalkError(f"--scenes: {path} not present")
+        return name, str(path), RECORDINGS.get(name)
+    if not Path(name).exists():
+        raise RtwalkError(f"--scenes: unknown scene '{name}' (choose from {', '.join(SCENES)} or give a file)")
+    return Path(name).stem, name, None
+
+
+class _Rays:
+    """One captured pass in CL buffers (active rays only, in pixel order) plus reference hits."""
+
+    def __init__(self, ctx, p, ref_hits):
+        cl = ctx.cl
+        mf = cl.mem_flags
+        a = p.active
+        self.label, self.any_hit, self.n = p.label, p.any_hit, int(a.sum())
+        self.o4 = np.ascontiguousarray(p.origin4.reshape(-1, 4)[a])
+        self.d4 = np.ascontiguousarray(p.dir4.reshape(-1, 4)[a])
+        self.o_b = cl.Buffer(ctx.context, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=self.o4)
+        self.d_b = cl.Buffer(ctx.context, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=self.d4)
+        self.ref_t = ref_hits[0][a].astype(np.float64)
+        self.ref_tri = ref_hits[1][a]
+
+    def release(self) -> None:
+        self.o_b.release()
+        self.d_b.release()
+
+
+def _capture(renderer, camera) -> list:
+    """Every pass of one frame with active rays, as texel arrays (time_backend's input)."""
+    from types import SimpleNamespace
+
+    rep = renderer.render(camera, capture=True)
+    w, h = renderer.size
+    out = []
+    for cp in rep.captured:
+        r = cp.rays
+        active = r.active & np.isfinite(r.origins).all(1) & np.isfinite(r.directions).all(1)
+        if not active.any() or cp.ray_type.label not in RAY_TYPES:
+            continue
+        o4 = np.concatenate([r.origins, r.tmin[:, None]], 1).astype(np.float32).reshape(h, w, 4)
+        d4 = np.concatenate([r.directions, r.tmax[:, None]], 1).astype(np.float32).reshape(h, w, 4)
+        out.append(SimpleNamespace(label=cp.ray_type.label, any_hit=cp.ray_type.any_hit, ray_type=cp.ray_type,
+                                   sample=cp.sample, light=cp.light, origin4=o4, dir4=d4, active=active))
+    return out
+
+
+def _time_kernel(ctx, tracer, rays: _Rays, outs, bias: float) -> float:
+    t0 = time.perf_counter()
+    tracer.enqueue(rays.o_b, rays.d_b, *outs, rays.n, rays.any_hit, bias)
+    ctx.queue.finish()
+    return (time.perf_counter() - t0) * 1e3
+
+
+def _record(tracer, rays: _Rays, bias: float, args) -> dict:
+    """Steps, restarts, lane utilisation per W for one pass (chunks of CHUNK rays)."""
+    from viewer.bench.lockstep import combine, lane_utilisation
+
+    parts = {w: [] for w in WIDTHS}
+    counts = np.zeros(4, np.int64)
+    cut = 0
+    for s in range(0, rays.n, CHUNK):
+        out = tracer.trace_arrays(rays.o4[s:s + CHUNK], rays.d4[s:s + CHUNK], rays.any_hit, bias)
+        counts += out.record.sum(axis=0)
+        cut += int(np.maximum(out.record.sum(axis=1) - args.seq_len, 0).sum())
+        for w in WIDTHS:
+            parts[w].append(lane_utilisation(out.seq, w))
+    lanes = {w: combine(parts[w], w) for w in WIDTHS}
+    return {"steps": counts.tolist(), "cut_steps": cut, "lanes": lanes}
+
+
+def _errors(tracer, rays: _Rays, bias: float, scale: float) -> dict:
+    out = tracer.trace_arrays(rays.o4, rays.d4, rays.any_hit, bias)
+    hv, hr = out.tri >= 0, rays.ref_tri >= 0
+    both = hv & hr
+    dt = np.abs(out.t[both].astype(np.float64) - rays.ref_t[both]) * scale
+    if rays.any_hit:  # any hit: the distance is of whichever hit was found first, not comparable
+        dt = np.zeros(0)
+    return {"hitmiss_disagree": float(np.mean(hv != hr)), "voxel_only": float(np.mean(hv & ~hr)),
+            "reference_only": float(np.mean(~hv & hr)),
+            "t_err_voxels_mean": float(dt.mean()) if dt.size else float("nan"),
+            "t_err_voxels_median": float(np.median(dt)) if dt.size else float("nan"),
+            "t_err_voxels_p90": float(np.percentile(dt, 90)) if dt.size else float("nan")}
+
+
+def _median(xs) -> float:
+    return float(statistics.median(xs)) if xs else float("nan")
+
+
+def study_scene(args, ctx_gl, name: str, spec: str, recording: str | None, size, resolutions, structures,
+                stacks) -> dict:
+    from viewer.backends.voxels import voxels_for
+    from viewer.backends.voxels.scene import VoxelTracer, build_structure
+    from viewer.bench.trace_vs_embree import time_backend
+    from viewer.cl import cl_context
+    from viewer.effects import parse_effects
+    from viewer.paths import RECORDINGS as RECORDING_FOLDER
+    from viewer.recording import load_recording
+    from viewer.renderer import Renderer
+    from viewer.session import prepare_scene
+
+    prep = prepare_scene(spec, quiet=True)
+    scene = prep.scene
+    lo, hi = scene.bounds
+    settings = parse_effects(args.effects)
+    settings.ao_length = float(np.max(hi - lo)) / 3 / scene.diagonal  # 1/3 of the scene size (the paper)
+    camera = scene.default_camera
+    if recording and (RECORDING_FOLDER / recording).exists():
+        rec = load_recording(RECORDING_FOLDER / recording)
+        camera = rec.camera_for_frame(rec.frame_count() // 2)
+    r = Renderer(ctx_gl, scene, prep.bvh, size, args.reference, settings)
+    try:
+        passes = _capture(r, camera)
+        ref_ms: dict = {}
+        hits = None
+        for _ in range(args.rounds):
+            tr_ms, _, _, hits = time_backend(r, args.reference, passes)
+            per: dict = {}
+            for p, ms in zip(passes, tr_ms, strict=True):
+                per[p.label] = per.get(p.label, 0.0) + ms
+            for lb, ms in per.items():
+                ref_ms.setdefault(lb, []).append(ms)
+        ref_image = None
+        if not args.no_image:
+            r.render(camera)
+            ref_image = r.read_image().astype(np.float64)
+    finally:
+        r.release()
+    ctx = cl_context()
+    rays = [_Rays(ctx, p, h) for p, h in zip(passes, hits, strict=True)]
+    labels = list(dict.fromkeys(x.label for x in rays))
+    # reference time per label: per round sum over passes, then median
+    n_pass = {lb: sum(x.label == lb for x in rays) for lb in labels}
+    ref_time = {lb: _median(ref_ms[lb]) for lb in labels}
+    out: dict = {"scene": name, "triangles": scene.triangle_count, "size": list(size), "effects": args.effects,
+                 "rays": {lb: sum(x.n for x in rays if x.label == lb) for lb in labels}, "passes": n_pass,
+                 "reference": args.reference, "reference_ms": ref_time, "resolutions": []}
+    _log(args, f"{name}: {scene.triangle_count:,} triangles, rays {out['rays']}")
+    maxn = max(x.n for x in rays)
+    cl = ctx.cl
+    outs = [cl.Buffer(ctx.context, cl.mem_flags.READ_WRITE, 4 * maxn) for _ in range(3)]
+    try:
+        for res in resolutions:
+            vox = voxels_for(scene.triangles, res, quiet=args.quiet)
+            g = vox.grid
+            rrow: dict = {"resolution": res, "voxelize": dict(vox.stats), "structures": {}}
+            for kind in structures:
+                st = build_structure(kind, vox)
+                srow: dict = {"stats": dict(st.stats), "stacks": {}}
+                tracers = {k: VoxelTracer(st, g.origin, g.scale, k, ctx=ctx) for k in stacks}
+                times = {k: {lb: [] for lb in labels} for k in stacks}
+                for k in stacks:  # PoCL compiles the work-group function at the first launch: not timed
+                    _time_kernel(ctx, tracers[k], rays[0], outs, 0.0)
+                for rd in range(args.rounds):
+                    order = stacks[rd % len(stacks):] + stacks[: rd % len(stacks)]
+                    for k in order:
+                        per = {lb: 0.0 for lb in labels}
+                        for x in rays:
+                            per[x.label] += _time_kernel(ctx, tracers[k], x, outs, _bias(args, x.label))
+                        for lb in labels:
+                            times[k][lb].append(per[lb])
+                for k in stacks:
+                    rec_tr = VoxelTracer(st, g.origin, g.scale, k, record=True, ctx=ctx, seq_len=args.seq_len)
+                    krow: dict = {"ms": {lb: _median(times[k][lb]) for lb in labels}, "ms_rounds": times[k],
+                                  "record": {}}
+                    for lb in labels:
+                        recs = [_record(rec_tr, x, _bias(args, lb), args) for x in rays
+                                if x.label == lb]
+                        steps = np.sum([rr["steps"] for rr in recs], axis=0)
+                        lanes = {}
+                        for w in WIDTHS:
+                            sl = sum(rr["lanes"][w]["slots"] for rr in recs)
+                            stp = sum(rr["lanes"][w]["steps"] for rr in recs)
+                            mg = sum(rr["lanes"][w]["steps"] / rr["lanes"][w]["merged_utilisation"] / w
+                                     for rr in recs if rr["lanes"][w]["steps"])
+                            lanes[w] = {"utilisation": stp / (w * sl) if sl else float("nan"),
+                                        "merged_utilisation": stp / (w * mg) if mg else float("nan")}
+                        nr = out["rays"][lb]
+                        krow["record"][lb] = {"interior": int(steps[0]), "leaf": int(steps[1]), "pop": int(steps[2]),
+                                              "restarts": int(steps[3]), "steps_per_ray": float(steps.sum() / nr),
+                                              "cut_steps": int(sum(rr["cut_steps"] for rr in recs)),
+                                              "lanes": lanes}
+                    rec_tr.release()
+                    srow["stacks"][k] = krow
+                    _log(args, f"  {res}^3 {kind} stack {k}: " + ", ".join(
+                        f"{lb} {krow['ms'][lb]:.1f} ms U64 {100 * krow['record'][lb]['lanes'][64]['utilisation']:.0f}%"
+                        for lb in labels))
+                if kind == structures[0]:
+                    big = tracers[max(stacks)]
+                    rrow["errors"] = {lb: _errors_label(big, [x for x in rays if x.label == lb], g.scale, args)
+                                      for lb in labels}
+                for t in tracers.values():
+                    t.release()
+                rrow["structures"][kind] = srow
+            if ref_image is not None:
+                rrow["image_mae"] = _image_error(ctx_gl, prep, size, settings, camera, res, structures[0],
+                                                 max(stacks), ref_image, args.bias)
+            out["resolutions"].append(rrow)
+    finally:
+        for b in outs:
+            b.release()
+        for x in rays:
+            x.release()
+    return out
+
+
+def _bias(args, label: str) -> float:
+    """Secondary rays start --bias voxel widths along the ray, as the backend's `bias` does."""
+    return 0.0 if label == "primary" else float(args.bias)
+
+
+def _errors_label(tracer, rays: list, scale: float, args) -> dict:
+    parts = [(_errors(tracer, x, _bias(args, x.label), scale), x.n) for x in rays]
+    n = sum(w for _, w in parts)
+    return {k: float(sum(p[k] * w for p, w in parts) / n) for k in parts[0][0]}
+
+
+def _image_error(ctx_gl, prep, size, settings, camera, res: int, structure: str, stack: int, ref_image,
+                 bias: float) -> float:
+    from viewer.renderer import Renderer
+
+    r = Renderer(ctx_gl, prep.scene, prep.bvh, size, "voxels", settings,
+                 backend_options={"voxels": f"structure={structure},resolution={res},stack={stack},bias={bias}"})
+    try:
+        r.render(camera)
+        img = r.read_image().astype(np.float64)
+    finally:
+        r.release()
+    return float(np.abs(img - ref_image).mean())
+
+
+def _markdown(report: dict) -> str:
+    from viewer.bench.lockstep import __doc__ as lockstep_doc
+
+    scenes = report["scenes"]
+    structures = report["structures"]
+    stacks = report["stacks"]
+    big = max(stacks)
+    lines = [f"# Voxel ray tracing: BVH, KD-tree, octree ({report['device_cl']})", "",
+             f"Command: `{report['command']}`", "",
+             "Rays: one frame per scene captured with the reference backend; every structure traces the same rays. "
+             "Times: wall ms of the trace kernel (median of interleaved rounds). Coherency: SIMD lane utilisation "
+             "U_W of lockstep groups of W consecutive rays (definition below).", ""]
+    for res in report["resolutions"]:
+        for w in (64, 32, 8):
+            lines += [f"## Table 1 analog: coherency U_{w} (%) at {res}^3, stack {big}", "",
+                      "| scene | structure | " + " | ".join(RAY_TYPES) + " |", "|---|---|" + "---|" * len(RAY_TYPES)]
+            avg: dict = {}
+            for sc in scenes:
+                rr = next((x for x in sc["resolutions"] if x["resolution"] == res), None)
+                if rr is None:
+                    continue
+                for kind in structures:
+                    rec = rr["structures"][kind]["stacks"][big]["record"]
+                    vals = [100 * rec[lb]["lanes"][w]["utilisation"] if lb in rec else float("nan") for lb in RAY_TYPES]
+                    avg.setdefault(kind, []).append(vals)
+                    lines.append(f"| {sc['scene']} | {kind} | " + " | ".join(f"{v:.1f}" for v in vals) + " |")
+            for kind, v in avg.items():
+                with warnings.catch_warnings():  # a ray type absent from every scene: nan, no warning
+                    warnings.simplefilter("ignore", RuntimeWarning)
+                    mean = np.nanmean(v, axis=0)
+                lines.append(f"| **average** | {kind} | " + " | ".join(f"{x:.1f}" for x in mean) + " |")
+            lines.append("")
+        lines += [f"## Table 2 analog: trace time (ms) at {res}^3, stack {big}, reference = {report['reference']}", "",
+                  "| scene | structure | " + " | ".join(RAY_TYPES) + " |", "|---|---|" + "---|" * len(RAY_TYPES)]
+        for sc in scenes:
+            rr = next((x for x in sc["resolutions"] if x["resolution"] == res), None)
+            if rr is None:
+                continue
+            for kind in structures:
+                ms = rr["structures"][kind]["stacks"][big]["ms"]
+                lines.append(f"| {sc['scene']} | {kind} | " + " | ".join(f"{ms.get(lb, float('nan')):.1f}"
+                                                                        for lb in RAY_TYPES) + " |")
+            lines.append(f"| {sc['scene']} | {report['reference']} (triangles) | " + " | ".join(
+                f"{sc['reference_ms'].get(lb, float('nan')):.1f}" for lb in RAY_TYPES) + " |")
+        head = " | ".join(f"restarts/1k s{k} | ms s{k}" for k in stacks)
+        lines += ["", f"## Stack {' vs '.join(map(str, stacks))} at {res}^3: restarts per 1000 rays and time (ms)", "",
+                  f"| scene | structure | ray type | {head} |",
+                  "|---|---|---|" + "---|---|" * len(stacks)]
+        for sc in scenes:
+            rr = next((x for x in sc["resolutions"] if x["resolution"] == res), None)
+            if rr is None:
+                continue
+            for kind in structures:
+                for lb in RAY_TYPES:
+                    if lb not in sc["rays"]:
+                        continue
+                    cells = []
+                    for k in stacks:
+                        kr = rr["structures"][kind]["stacks"][k]
+                        cells += [f"{1000 * kr['record'][lb]['restarts'] / sc['rays'][lb]:.1f}", f"{kr['ms'][lb]:.1f}"]
+                    lines.append(f"| {sc['scene']} | {kind} | {lb} | " + " | ".join(cells) + " |")
+        lines.append("")
+    lines += [f"## Steps per ray at stack {big} (interior / leaf / pop): what a scalar CPU work-item pays for", "",
+              "| scene | res | structure | " + " | ".join(RAY_TYPES) + " |", "|---|---|---|" + "---|" * len(RAY_TYPES)]
+    for sc in scenes:
+        for rr in sc["resolutions"]:
+            for kind in structures:
+                rec = rr["structures"][kind]["stacks"][big]["record"]
+                cells = []
+                for lb in RAY_TYPES:
+                    if lb not in rec:
+                        cells.append("-")
+                        continue
+                    n, q = sc["rays"][lb], rec[lb]
+                    cells.append(f"{q['interior'] / n:.1f} / {q['leaf'] / n:.1f} / {q['pop'] / n:.1f}")
+                lines.append(f"| {sc['scene']} | {rr['resolution']} | {kind} | " + " | ".join(cells) + " |")
+    lines += ["", "## Voxels and structures", "",
+              "| scene | res | voxels | voxelize s | voxel MiB | structure | interior nodes x B | leaves x B | MiB | "
+              "mean leaf depth | variance | build s |", "|" + "---|" * 12]
+    for sc in scenes:
+        for rr in sc["resolutions"]:
+            v = rr["voxelize"]
+            for kind in structures:
+                s = rr["structures"][kind]["stats"]
+                lines.append(f"| {sc['scene']} | {rr['resolution']} | {v['count']:,} | {v['seconds']:.2f} | "
+                             f"{v['bytes'] / 2**20:.1f} | {kind} | {s['interior_nodes']:,} x {s['node_bytes']} | "
+                             f"{s['leaves']:,} x {s['leaf_bytes']} | {s['memory_bytes'] / 2**20:.1f} | "
+                             f"{s['mean_leaf_depth']:.2f} | {s['var_leaf_depth']:.2f} | {s['build_seconds']:.2f} |")
+    lines += ["", f"## Speed against error ({structures[0]}, stack {big}) vs {report['reference']} on the same rays",
+              "",
+              "| scene | res | ray type | voxels ms | reference ms | hit/miss disagree | "
+              "t error (voxels: median / mean) | image MAE (0-255) |", "|" + "---|" * 8]
+    for sc in scenes:
+        for rr in sc["resolutions"]:
+            for lb in RAY_TYPES:
+                if lb not in rr.get("errors", {}):
+                    continue
+                e = rr["errors"][lb]
+                ms = rr["structures"][structures[0]]["stacks"][big]["ms"][lb]
+                lines.append(f"| {sc['scene']} | {rr['resolution']} | {lb} | {ms:.1f} | {sc['reference_ms'][lb]:.1f} | "
+                             f"{100 * e['hitmiss_disagree']:.2f}% | {_t_err(e, lb)} | "
+                             f"{rr.get('image_mae', float('nan')):.2f} |")
+    lines += ["", "## Lane utilisation: the model", "", "```", lockstep_doc.strip(), "```", ""]
+    return "\n".join(lines)
+
+
+def report_from_json(path: str | Path) -> dict:
+    """A bench_voxels.json read back with its integer keys (stacks, widths) restored."""
+    r = json.loads(Path(path).read_text())
+    for sc in r["scenes"]:
+        for rr in sc["resolutions"]:
+            for s in rr["structures"].values():
+                s["stacks"] = {int(k): v for k, v in s["stacks"].items()}
+                for v in s["stacks"].values():
+                    for rec in v["record"].values():
+                        rec["lanes"] = {int(k): x for k, x in rec["lanes"].items()}
+    return r
+
+
+def _t_err(e: dict, label: str) -> str:
+    if label != "primary":  # any-hit ray types report no comparable distance
+        return "-"
+    return f"{e.get('t_err_voxels_median', float('nan')):.2f} / {e['t_err_voxels_mean']:.2f}"
+
+
+def _plot(report: dict, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    big = max(report["stacks"])
+    kind = report["structures"][0]
+    fig, ax = plt.subplots(figsize=(7, 4.5))
+    for sc in report["scenes"]:
+        xs, ys, labels = [], [], []
+        ref = sum(sc["reference_ms"].values())
+        for rr in sc["resolutions"]:
+            ms = sum(rr["structures"][kind]["stacks"][big]["ms"].values())
+            xs.append(ms / ref)
+            ys.append(rr.get("image_mae", np.nan))
+            labels.append(str(rr["resolution"]))
+        ax.plot(xs, ys, "o-", label=sc["scene"])
+        for x, y, t in zip(xs, ys, labels, strict=True):
+            ax.annotate(t, (x, y), fontsize=7)
+    ax.axvline(1.0, color="grey", lw=0.8)
+    ax.set_xlabel(f"voxel trace time / {report['reference']} time (same rays, all ray types)")
+    ax.set_ylabel("image error vs reference (mean |pixel|, 0..255)")
+    ax.set_xscale("log")
+    ax.legend(fontsize=8)
+    ax.set_title("voxels: speed against error, labels = resolution")
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
+def _voxelize_only(args, specs, resolutions: list[int], structures: list[str]) -> int:
+    """Voxel count, time, output and peak process memory per resolution (ascending, so the peak
+    resident size so far is the peak of the latest resolution), and each structure's statistics."""
+    import resource
+
+    from viewer.accel.voxelize import voxelize
+    from viewer.backends.voxels.scene import build_structure
+    from viewer.session import prepare_scene
+
+    rows = []
+    lines = ["| scene | triangles | res | voxels | voxelize s | voxels MiB | peak RSS MiB | structure | nodes x B | "
+             "leaves x B | MiB | mean leaf depth | variance | build s |", "|" + "---|" * 14]
+    for name, spec, _ in specs:
+        scene = prepare_scene(spec, quiet=True).scene
+        for res in resolutions:
+            vox = voxelize(scene.triangles, res)
+            rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+            row = {"scene": name, "triangles": scene.triangle_count, **vox.stats, "peak_rss_mib": rss, "structures": {}}
+            for kind in structures:
+                st = build_structure(kind, vox).stats
+                row["structures"][kind] = st
+                lines.append(f"| {name} | {scene.triangle_count:,} | {res} | {vox.count:,} | "
+                             f"{vox.stats['seconds']:.2f} | {vox.nbytes / 2**20:.1f} | {rss:.0f} | {kind} | "
+                             f"{st['interior_nodes']:,} x "
+                             f"{st['node_bytes']} | {st['leaves']:,} x {st['leaf_bytes']} | "
+                             f"{st['memory_bytes'] / 2**20:.1f} | {st['mean_leaf_depth']:.2f} | "
+                             f"{st['var_leaf_depth']:.2f} | {st['build_seconds']:.2f} |")
+                _log(args, lines[-1])
+            rows.append(row)
+            del vox
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "voxelize.json").write_text(json.dumps(rows, indent=1, default=float))
+    (out / "voxelize.md").write_text("\n".join([f"Command: `rtwalk bench-voxels {' '.join(sys.argv[2:])}`", "",
+                                                 *lines, ""]))
+    print(f"report: {out / 'voxelize.md'}")
+    return 0
+
+
+def run(args) -> int:
+    from viewer.accel.voxelize import check_resolution
+    from viewer.backends import backend_info, backend_names
+    from viewer.backends.voxels.scene import STACK_RANGE, STRUCTURES
+    from viewer.cl import cl_context
+    from viewer.gl.context import shared_context
+
+    resolutions = _ints(args.resolutions, "resolutions")
+    for r in resolutions:
+        check_resolution(r)
+    stacks = _ints(args.stacks, "stacks")
+    if not stacks or any(not STACK_RANGE[0] <= k <= STACK_RANGE[1] for k in stacks):
+        raise RtwalkError(f"--stacks: each must be in {STACK_RANGE[0]}..{STACK_RANGE[1]}")
+    structures = [s.strip() for s in args.structures.split(",") if s.strip()]
+    if not structures or any(s not in STRUCTURES for s in structures):
+        raise RtwalkError(f"--structures: choose from {', '.join(STRUCTURES)}")
+    if args.reference not in backend_names() or not backend_info(args.reference).exact:
+        raise RtwalkError(f"--reference: an exact registered backend (got '{args.reference}')")
+    w, sep, h = args.size.lower().partition("x")
+    if not sep or not w.isdigit() or not h.isdigit():
+        raise RtwalkError(f"--size: expected WxH (got '{args.size}')")
+    if args.rounds < 1 or args.seq_len < 1 or not args.bias >= 0:
+        raise RtwalkError("--rounds and --seq-len must be >= 1, --bias >= 0")
+    specs = [_scene_spec(s.strip()) for s in args.scenes.split(",") if s.strip()]
+    if args.voxelize_only:
+        return _voxelize_only(args, specs, sorted(resolutions), structures)
+    ctx_gl = shared_context()
+    report = {"command": "rtwalk bench-voxels " + " ".join(sys.argv[2:]), "device_cl": cl_context().name,
+              "reference": args.reference, "structures": structures, "stacks": stacks, "resolutions": resolutions,
+              "bias": args.bias, "widths": list(WIDTHS), "scenes": []}
+    for name, spec, rec in specs:
+        report["scenes"].append(study_scene(args, ctx_gl, name, spec, rec, (int(w), int(h)), resolutions,
+                                            structures, stacks))
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "bench_voxels.json").write_text(json.dumps(report, indent=1, default=float))
+    (out / "bench_voxels.md").write_text(_markdown(report))
+    _plot(report, out / "bench_voxels.png")
+    print(f"report: {out / 'bench_voxels.md'}")
+    return 0

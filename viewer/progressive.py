@@ -1,0 +1,175 @@
+"""Progressive refinement: responsive while the camera moves, converging when it stops.
+
+A `Progressive` drives a Renderer one call per displayed frame:
+- the camera (or the settings, view, backend or size) changed since the last call: a new image
+  with one sample pass per effect (sample 0 of each), at a render scale chosen to keep the frame
+  time near `target_ms` (the window upscales the smaller image when it blits);
+- unchanged: at full scale, add the next sample pass of every effect that wants more into the
+  accumulators (Renderer.render(samples=(k,), keep=True)) until the requested counts are reached;
+- all done: idle (nothing is rendered; the last image stays).
+
+The accumulators get the same passes with the same weights as the full-quality frame, and the
+shade pass scales each by requested / done sample passes, so the converged image is the
+full-quality frame (same sums in the same order) and every image on the way is a complete,
+noisier estimate. Recordings and `rtwalk bench` render full-quality frames unless asked
+(`rtwalk bench --progressive`, which measures this mode with `replay_progressive`).
+"""
+
+from __future__ import annotations
+
+import math
+import sys
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+from viewer.camera import Camera
+from viewer.renderer import FrameReport, Renderer
+
+SCALE_STEP = 1 / 16  # render scales are multiples of this (each change reallocates the targets)
+
+
+@dataclass
+class Step:
+    """What one call did: `report` None when idle (the image is already converged)."""
+
+    report: FrameReport | None
+    moving: bool  # the camera (or anything else) changed: a one-pass-per-effect image
+    scale: float  # render scale of the image now shown (1 = full)
+    samples_done: int  # sample passes accumulated per effect (the largest count among effects)
+    samples_requested: int
+    converged: bool
+
+    def line(self) -> str:
+        state = "moving" if self.moving else ("converged" if self.converged else "refining")
+        return f"samples {self.samples_done}/{self.samples_requested}, render scale {self.scale:.2f} ({state})"
+
+
+def scaled_size(size: tuple[int, int], scale: float) -> tuple[int, int]:
+    return max(1, int(round(size[0] * scale))), max(1, int(round(size[1] * scale)))
+
+
+def _camera_key(camera: Camera) -> tuple:
+    return (tuple(np.round(np.asarray(camera.position, np.float64), 12)),
+            tuple(np.round(np.asarray(camera.orientation, np.float64), 12)), float(camera.fov_y))
+
+
+class Progressive:
+    def __init__(self, renderer: Renderer, full_size: tuple[int, int], target_ms: float = 100.0,
+                 min_scale: float = 0.25, resize: Callable[[tuple[int, int]], None] | None = None):
+        """`resize`: how to resize the renderer (the window binds its screen first)."""
+        self.renderer = renderer
+        self.resize = resize or renderer.resize
+        self.full_size = tuple(full_size)
+        self.target_ms = float(target_ms)
+        self.min_scale = float(min_scale)
+        self.scale = 1.0  # the scale used for moving frames (adapted)
+        self.shown_scale = 1.0
+        self._key: tuple | None = None
+        self._next = 0  # next sample index to accumulate at full scale (0: start over)
+
+    def invalidate(self) -> None:
+        """Something outside (a screenshot render) used the renderer: start over."""
+        self._key = None
+
+    def requested(self) -> int:
+        req = self.renderer.samples_requested()
+        return max(req.values()) if req else 1
+
+    def _state_key(self, camera: Camera) -> tuple:
+        r = self.renderer
+        return (_camera_key(camera), tuple(sorted(r.settings.to_dict().items())), r.view, r.backend_name,
+                self.full_size)
+
+    def _adapt(self, wall_ms: float) -> None:
+        """Scale for the next moving frame: cost ~ pixels ~ scale^2 (a dead band against flicker)."""
+        if wall_ms <= 0:
+            return
+        ideal = self.scale * math.sqrt(self.target_ms / wall_ms)
+        ideal = min(1.0, max(self.min_scale, ideal))
+        if ideal < self.scale * 0.95 or ideal > self.scale * 1.15:
+            self.scale = max(self.min_scale, min(1.0, math.floor(ideal / SCALE_STEP) * SCALE_STEP))
+
+    def frame(self, camera: Camera) -> Step:
+        r = self.renderer
+        key = self._state_key(camera)
+        requested = self.requested()
+        if key != self._key:  # moving: one pass per effect at the adapted scale
+            self._key = key
+            self.resize(scaled_size(self.full_size, self.scale))
+            report = r.render(camera, samples=(0,))
+            self.shown_scale = self.scale
+            self._adapt(report.wall_ms)
+            self._next = 0 if self.scale < 1.0 else 1  # at full scale, sample 0 is already in
+            return Step(report, True, self.shown_scale, 1, requested, requested <= 1 and self._next == 1)
+        if self._next == 0:  # stopped after a reduced-scale image: start over at full scale
+            self.resize(self.full_size)
+            report = r.render(camera, samples=(0,))
+            self.shown_scale, self._next = 1.0, 1
+            return Step(report, False, 1.0, 1, requested, requested <= 1)
+        if self._next < requested:
+            report = r.render(camera, samples=(self._next,), keep=True)
+            self._next += 1
+            return Step(report, False, 1.0, self._next, requested, self._next >= requested)
+        return Step(None, False, 1.0, requested, requested, True)
+
+
+def _percentile(values: list[float], q: float) -> float:
+    return float(np.percentile(np.asarray(values, np.float64), q)) if values else float("nan")
+
+
+def replay_progressive(prepared, rec, settings, opts, ctx, target_ms: float = 100.0, quiet: bool = False) -> dict:
+    """Headless replay in progressive mode: every replayed frame is a moving frame; at the last
+    camera the path stops and passes are added until converged. Reports frame times (median, p95)
+    while moving, the render scales used, the time to convergence after the stop, and the converged
+    image's error against the full-quality frame of the same camera (mean absolute, 0..255)."""
+    from viewer.bench.harness import frame_numbers
+
+    renderer = Renderer(ctx, prepared.scene, prepared.bvh, opts.size, opts.backend, settings, opts.backend_options)
+    prog = Progressive(renderer, opts.size, target_ms)
+    frames = frame_numbers(rec, opts.fps, opts.max_frames, opts.first_frame)
+    cams = [rec.camera_for_frame(n, opts.fps) for n in frames]
+    renderer.render(cams[0])  # warm-up: compile every shader variant at full size
+    for cam in cams[:2]:  # and the first adaptation steps
+        prog.frame(cam)
+    prog.invalidate()
+    moving_ms, scales = [], []
+    for cam in cams:
+        t = time.perf_counter()
+        step = prog.frame(cam)
+        moving_ms.append((time.perf_counter() - t) * 1e3)
+        scales.append(step.scale)
+    stop = cams[-1]
+    t = time.perf_counter()
+    refine_ms = []
+    while True:
+        t1 = time.perf_counter()
+        step = prog.frame(stop)
+        if step.report is None:
+            break
+        refine_ms.append((time.perf_counter() - t1) * 1e3)
+        if step.converged:
+            break
+    converge_s = time.perf_counter() - t
+    image = renderer.read_image().astype(np.int16)
+    renderer.render(stop)  # the full-quality frame of the same camera
+    full = renderer.read_image().astype(np.int16)
+    mae = float(np.abs(image - full).mean())
+    renderer.release()
+    out = {
+        "format": "rtwalk-progressive", "version": 1, "backend": opts.backend, "size": list(opts.size),
+        "effects": settings.to_dict(), "target_ms": target_ms, "frames": len(cams),
+        "moving_ms": {"median": _percentile(moving_ms, 50), "p95": _percentile(moving_ms, 95),
+                      "max": max(moving_ms), "all": moving_ms},
+        "scale": {"median": _percentile(scales, 50), "min": min(scales), "max": max(scales)},
+        "converge": {"seconds": converge_s, "frames": len(refine_ms), "frame_ms": refine_ms},
+        "converged_vs_full_mae": mae,
+    }
+    if not quiet:
+        print(f"progressive: {len(cams)} moving frames: median {out['moving_ms']['median']:.0f} ms, "
+              f"p95 {out['moving_ms']['p95']:.0f} ms (target {target_ms:.0f} ms), render scale median "
+              f"{out['scale']['median']:.2f}; converged {converge_s:.2f} s after the stop "
+              f"({len(refine_ms)} frames), |converged - full| = {mae:.4f}/255 mean", file=sys.stderr)
+    return out
