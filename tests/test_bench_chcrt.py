@@ -156,3 +156,56 @@ def test_tuning_sweep_counts_work(quick_run):
     assert b["queries"] <= a["queries"]
     assert tuning_configs("t_q=1|2;requery_interval=3|8") == [
         "t_q=1,requery_interval=3", "t_q=1,requery_interval=8", "t_q=2,requery_interval=3", "t_q=2,requery_interval=8"]
+
+
+@pytest.fixture(scope="module")
+def ooc_run(tmp_path_factory):
+    """The out-of-core and coherence studies, --quick (a 40k-triangle city)."""
+    out = tmp_path_factory.mktemp("bench-chcrt-ooc")
+    rc = main(["bench-chcrt", "--quick", "--study", "ooc,coherence", "--sizes", SIZE, "--ooc-recordings",
+               "city-near", "--ooc-effects", "primary", "--out", str(out), "--quiet"])
+    return rc, out
+
+
+def test_ooc_tables(ooc_run):
+    rc, out = ooc_run
+    assert rc == 0
+    data = _load(out, "ooc")
+    t1 = data["table1"]
+    assert [r["config"] for r in t1] == ["in-core", "47% in core", "32% in core", "20% in core"]
+    for r, pct in zip(t1, (100, 47, 32, 20), strict=True):
+        assert abs(r["in_core_pct"] - pct) < 0.5, r
+        assert r["triangles"] > 30_000 and math.isclose(r["total_mb"], r["bvh_mb"] + r["geometry_mb"])
+    t3 = data["table3"]
+    assert len(t3) == 4
+    assert t3[0]["upload_bvh_mb"] == 0 and t3[0]["upload_geom_mb"] == 0 and t3[0]["slowdown"] == 1.0
+    # the smallest budget re-uploads subtrees every frame, and no more than the larger budgets
+    assert t3[-1]["upload_geom_mb"] > 0 and t3[-1]["upload_bvh_mb"] > 0 and t3[-1]["subtrees_uploaded"] > 0
+    assert t3[-1]["upload_geom_mb"] >= t3[1]["upload_geom_mb"]
+    mem = data["memory"]
+    assert mem["build_peak_gib"] > 0 and mem["render_peak_gib"] > 0
+
+
+def test_coherence_table(ooc_run):
+    _, out = ooc_run
+    data = _load(out, "coherence")
+    rows = data["rows"]
+    assert [r["perturb_deg"] for r in rows] == [0.0, 180.0]
+    for r in rows:
+        assert r["max_abs_diff"] == 0  # conservative chcrt renders glsl's image
+        assert r["glsl_trace_ms"] > 0 and r["chcrt_trace_ms"] > 0 and r["queries"] > 0
+    assert (out / "coherence-images").is_dir()
+
+
+@pytest.mark.parametrize("args,needle", [
+    (["--study", "ooc", "--ooc-fractions", "1.5"], "--ooc-fractions"),
+    (["--study", "ooc", "--ooc-recordings", "sponza-walk"], "builtin"),
+    (["--study", "coherence", "--perturbs", "200"], "--perturbs"),
+    (["--study", "coherence", "--coherence-effects", "ao:2@perturb=500"], "perturb"),
+])
+def test_ooc_coherence_bad_input(capsys, args, needle):
+    rc = main(["bench-chcrt", "--quick", *args, "--out", "/nonexistent/never-written"])
+    err = capsys.readouterr().err
+    assert rc == 2, err
+    lines = [ln for ln in err.strip().splitlines() if ln.startswith("rtwalk: error")]
+    assert len(lines) == 1 and needle in lines[0], err

@@ -385,3 +385,92 @@ def test_headless_resize_rebuilds_chcrt_targets(gl_ctx):
     finally:
         rg.release()
         rc.release()
+
+
+@pytest.mark.parametrize("name,cache", [("city", 1), ("city", 2), ("city", 4), ("sponza", 2), ("sponza", 3)])
+def test_leaf_cache_is_exact(name, cache, gl_ctx):
+    """The leaf cache (paper 5.2) only delays ray-triangle tests: the same hits as glsl for every
+    cache size, including sizes that do not divide the leaf counts a ray meets, in both query modes."""
+    mode = "hw" if cache == 3 else "batched"
+    frames, scene, _ = _render_both(gl_ctx, name, params=f"leaf_cache={cache},query_mode={mode}")
+    seen = set()
+    for k, (a, b) in enumerate(frames):
+        for pa, pb in zip(a.captured, b.captured, strict=True):
+            if pa.rays.active.any():
+                seen.add(pa.ray_type)
+            _check_exact(pa, pb, f"{name} cache {cache} frame {k} {pa.ray_type.label} sample {pa.sample}",
+                         scene.triangles)
+        assert b.backend_stats["rays"] == sum(b.rays.values())
+    assert {RayType.PRIMARY, RayType.SHADOW, RayType.AO, RayType.DIFFUSE} <= seen
+    assert sum(b.backend_stats["phase1_subtrees"] for _, b in frames[1:]) > 0  # temporal fronts used
+
+
+def test_leaf_cache_param_checked():
+    from viewer.backends.chcrt import MAX_LEAF_CACHE, ChcrtParams
+    from viewer.backends.interface import parse_params
+    from viewer.errors import RtwalkError
+
+    assert parse_params(ChcrtParams, "leaf_cache=2", "--chcrt").leaf_cache == 2
+    for bad in (-1, MAX_LEAF_CACHE + 1):
+        with pytest.raises(RtwalkError, match="leaf_cache"):
+            ChcrtParams(leaf_cache=bad).validate()
+
+
+@pytest.mark.parametrize("name,params", [
+    ("city", "gpu_budget_fraction=0.47"),
+    ("city", "gpu_budget_fraction=0.2,leaf_cache=2"),
+    ("city", "gpu_budget_fraction=0.05,max_subtree_tris=256"),  # tiny: the cache thrashes
+    ("sponza", "gpu_budget_fraction=0.1,max_subtree_tris=512,query_mode=hw"),
+])
+def test_out_of_core_is_exact(name, params, gl_ctx):
+    """Out-of-core (paper 5.4): with the BVH and triangles read only from the round-robin subtree
+    cache, the hits stay those of glsl on the in-core scene for every budget; what is uploaded is
+    counted, and small budgets evict and re-upload subtrees."""
+    frames, scene, _ = _render_both(gl_ctx, name, "primary,shadows,ao:2,diffuse:2", params)
+    up = ev = 0.0
+    for k, (a, b) in enumerate(frames):
+        for pa, pb in zip(a.captured, b.captured, strict=True):
+            _check_exact(pa, pb, f"{name} {params} frame {k} {pa.ray_type.label} sample {pa.sample}",
+                         scene.triangles)
+        st = b.backend_stats
+        assert st["rays"] == sum(b.rays.values())
+        up += st["upload_bvh_mb"] + st["upload_geom_mb"]
+        ev += st["cache_evictions"]
+    assert up > 0
+    if "0.05" in params or "0.1" in params:
+        assert ev > 0
+
+
+def test_out_of_core_budget_checked(gl_ctx):
+    from viewer.errors import RtwalkError
+
+    scene, bvh, _ = _load("city")
+    with pytest.raises(RtwalkError, match="too small"):
+        Renderer(gl_ctx, scene, bvh, SIZE, "chcrt", parse_effects("primary"), {"chcrt": "gpu_budget_mb=0.01"})
+
+
+def test_round_robin_ring_never_overlaps_live_entries():
+    """The cache's ring allocator against a slot-owner array: every live entry keeps its slots,
+    would_evict() predicts place(), and entries are evicted only when overwritten or at a wrap."""
+    from viewer.backends.chcrt_cache import Entry, RingAllocator
+
+    rng = np.random.default_rng(0)
+    for cap in (10, 37, 100):
+        ring, owner, live = RingAllocator(cap), np.full(cap, -1), {}
+        evicted = 0
+        for i in range(1500):
+            size = int(rng.integers(0, cap // 2 + 1))
+            pred = ring.would_evict(size)
+            start, ev = ring.place(size, Entry(i, 0, 0, 0, size))
+            assert [id(x) for x in pred] == [id(x) for x in ev]
+            assert 0 <= start and start + size <= cap
+            for x in ev:
+                live.pop(x.node)
+            evicted += len(ev)
+            owner[start:start + size] = i
+            if size:
+                live[i] = (start, size)
+            for k, (s, n) in live.items():
+                assert (owner[s:s + n] == k).all()
+            assert sum(n for s, n in live.values()) <= cap
+        assert evicted > 100

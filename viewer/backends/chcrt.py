@@ -54,6 +54,7 @@ import moderngl
 import numpy as np
 
 from viewer.backends.base import BackendContext, TraceResult, WorkCounters
+from viewer.backends.chcrt_cache import MB, CachePlan, SubtreeCache
 from viewer.backends.chcrt_front import INNER, INVISIBLE, VISIBLE, NodeTables, PairFront
 from viewer.backends.gl_traversal import ResumableTraversal, max_visits
 from viewer.backends.interface import BackendInfo, OverlaySpec
@@ -67,6 +68,8 @@ from viewer.gl.bindings import (
     BIND_IMG_CHC_BATCH,
     BIND_IMG_CHC_BEST,
     BIND_IMG_CHC_OVERDRAW,
+    BIND_NODES,
+    BIND_TRIS,
 )
 from viewer.gl.buffers import StreamBuffer
 from viewer.gl.programs import FullscreenQuad
@@ -81,6 +84,7 @@ DRAW_DTYPE = np.dtype([("rect", "<i4", 4), ("info", "<i4", 4)])  # x, y, w, h; i
 QUERY_MODES = ("batched", "hw")
 COUNT_SLOTS = 64
 MAX_BOXES = 48  # boxes per query draw (max_multi pairs x 2 child boxes)
+MAX_LEAF_CACHE = 16
 
 
 @dataclass
@@ -101,11 +105,22 @@ class ChcrtParams:
     # "batched": a wave of queries (or all batches of an intersection step) in one instanced draw,
     # queries counted by shader atomics (same pass condition as the depth test)
     query_mode: str = "batched"
+    # leaf cache (paper 5.2): leaves a ray enters are collected, up to this many, and their triangles
+    # tested together in one loop (coherent delayed tests); 0 tests each leaf at once
+    leaf_cache: int = 0
+    # out-of-core (paper 5.4): GPU budget for the ray tracer's BVH + triangles, in MB, or as a fraction
+    # of the scene's (0 = everything resident); scheduled subtrees then live in a round-robin cache
+    gpu_budget_mb: float = 0.0
+    gpu_budget_fraction: float = 0.0
     seed: int = 1
 
     def validate(self, source: str = "chcrt") -> None:
         if not (1 <= self.max_batch <= 24 and 1 <= self.max_multi <= 24):
             raise RtwalkError(f"{source}: max_batch and max_multi must be in 1..24")
+        if self.gpu_budget_mb < 0 or not 0 <= self.gpu_budget_fraction <= 1:
+            raise RtwalkError(f"{source}: gpu_budget_mb must be >= 0 and gpu_budget_fraction in 0..1")
+        if not 0 <= self.leaf_cache <= MAX_LEAF_CACHE:
+            raise RtwalkError(f"{source}: leaf_cache must be in 0..{MAX_LEAF_CACHE}")
         if self.query_mode not in QUERY_MODES:
             raise RtwalkError(f"{source}: query_mode must be one of {', '.join(QUERY_MODES)}")
         if not (self.t_q > 0 and 0 < self.min_tile_fraction <= 1 and self.max_subtree_height >= 1
@@ -152,7 +167,7 @@ class _Targets:
 
 PHASES = ("chc:1-intersect-visible", "chc:2-queries", "chc:3-traversal", "chc:4-final-intersect")
 COUNTERS = ("queries", "multi_queries", "failed_multi_queries", "visible_pairs", "invisible_pairs",
-            "subtrees_scheduled", "draws", "rays")
+            "subtrees_scheduled", "draws", "rays", "upload_bvh_mb", "upload_geom_mb")
 
 
 class ChcrtBackend:
@@ -179,6 +194,10 @@ class ChcrtBackend:
         self.work = WorkCounters(self.ctx)
         wd = self.work.defines
         stack = self.p.max_batch + max(self.p.max_subtree_height, 1) + 2
+        iwd = {**wd, "LEAF_CACHE": int(self.p.leaf_cache)}  # intersection programs only
+        self.cache = self._make_cache(bc)
+        if self.cache is not None:
+            iwd["CHC_OOC"] = 1
         self.prog_init = progs.get("fullscreen.vert", "chc_init.frag")
         self.prog_query = progs.get("fullscreen.vert", "chc_query.frag", {"CHC_MAX_ITEMS": MAX_BOXES, **wd})
         # rays that would reach llvmpipe's loop limit are finished by the glsl resumable traversal
@@ -187,14 +206,14 @@ class ChcrtBackend:
         visits = max_visits(self.finisher.max_leaf, stack, items_loops)
         self.prog_isect = progs.get("fullscreen.vert", "chc_intersect.frag",
                                     {"CHC_MAX_ITEMS": self.p.max_batch, "STACK_SIZE": stack, "CHC_MAX_VISITS": visits,
-                                     **wd})
+                                     **iwd})
         self.prog_gather = progs.get("fullscreen.vert", "chc_gather.frag")
         self.batched = self.p.query_mode == "batched"
         self.prog_query_b = progs.get("chc_tile.vert", "chc_query.frag",
                                       {"CHC_MAX_ITEMS": MAX_BOXES, "CHC_BATCHED": 1, **wd})
         self.prog_isect_b = progs.get("chc_tile.vert", "chc_intersect.frag",
                                       {"CHC_MAX_ITEMS": self.p.max_batch, "CHC_BATCHED": 1, "STACK_SIZE": stack,
-                                       "CHC_MAX_VISITS": visits, **wd})
+                                       "CHC_MAX_VISITS": visits, **iwd})
         self.vao_query_b = self.ctx.vertex_array(self.prog_query_b, [])
         self.vao_isect_b = self.ctx.vertex_array(self.prog_isect_b, [])
         for prog in (self.prog_init, self.prog_query, self.prog_isect, self.prog_gather, self.prog_query_b,
@@ -219,6 +238,19 @@ class ChcrtBackend:
         # renderer (on only while an overlay view is shown or saved: the counting costs time)
         self.overlays_enabled = True
 
+    def _make_cache(self, bc: BackendContext) -> SubtreeCache | None:
+        """The out-of-core subtree cache when a GPU budget is set (chcrt_cache)."""
+        p = self.p
+        if p.gpu_budget_mb <= 0 and p.gpu_budget_fraction <= 0:
+            return None
+        bvh, scene = bc.bvh, bc.scene
+        if p.gpu_budget_mb > 0:
+            budget = int(p.gpu_budget_mb * MB)
+        else:
+            budget = int(p.gpu_budget_fraction * CachePlan.scene_bytes_of(bvh))
+        return SubtreeCache(self.ctx, bvh, scene.triangles, scene.material_ids, budget, p.max_subtree_tris,
+                            p.max_subtree_height)
+
     # -- Backend protocol ----------------------------------------------------------------------
     def begin_frame(self, frame_index: int) -> None:
         self.frame = int(frame_index)
@@ -232,6 +264,8 @@ class ChcrtBackend:
         for vao in (self.vao_query_b, self.vao_isect_b):
             vao.release()
         self.count_buf.release()
+        if self.cache is not None:
+            self.cache.release()
         self.finisher.release()
         self.work.release()
         self.queries.clear()  # moderngl 5 queries have no release(); dropped with the context
@@ -298,7 +332,7 @@ class _Pass:
                                      "invisible_pairs", "subtrees_scheduled", "draws", "rays",
                                      "intersect_draws", "batch_tiles", "tile_batches_1", "tile_batches_2",
                                      "tile_batches_3plus", "query_waves", "pull_ups", "phase1_subtrees",
-                                     "query_pixels", "requeries", "batches")}
+                                     "query_pixels", "requeries", "batches", "upload_bvh_mb", "upload_geom_mb")}
         self.rep: tuple[np.ndarray, np.ndarray] | None = None  # representative rays per finest tile
         self.rays_read = False
         self.threshold = int(self.p.visible_threshold)
@@ -308,6 +342,9 @@ class _Pass:
     def _bind(self) -> None:
         be, tg = self.be, self.tg
         be.bc.gpu_scene.bind()
+        if be.cache is not None:  # out-of-core: the intersection reads nodes and triangles from the cache
+            be.cache.bind(BIND_NODES, BIND_TRIS)
+            be.cache.begin_pass()
         self.rays.origin.use(0)
         self.rays.direction.use(1)
         tg.best.bind_to_image(BIND_IMG_CHC_BEST, read=True, write=True)
@@ -459,6 +496,30 @@ class _Pass:
         return np.where(valid, dist, -f.pixels[pairs].astype(np.float64))
 
     def _intersect(self, pairs: np.ndarray) -> None:
+        """Intersect scheduled pairs. Out-of-core (paper 5.4): pairs whose subtree is cached first,
+        then the others after their upload, in chunks that never overwrite a subtree still to be drawn."""
+        cache = self.be.cache
+        if cache is None or len(pairs) == 0:
+            self._draw_subtrees(pairs)
+            return
+        nd = self.front.node[pairs]
+        hit = cache.cached(nd)
+        cache.t.hits += len(np.unique(nd[hit]))
+        self._draw_subtrees(pairs[hit])
+        rest = pairs[~hit]
+        if len(rest) == 0:
+            return
+        rest_nd = nd[~hit]
+        chunk: list[int] = []
+        for n in np.unique(rest_nd).tolist():
+            if chunk and not set(cache.evicts(n)).isdisjoint(chunk):
+                self._draw_subtrees(rest[np.isin(rest_nd, chunk)])
+                chunk = []
+            cache.upload(n)
+            chunk.append(n)
+        self._draw_subtrees(rest[np.isin(rest_nd, chunk)])
+
+    def _draw_subtrees(self, pairs: np.ndarray) -> None:
         """Intersect scheduled pairs: grouped by tile, up to max_batch subtree roots per batch."""
         if len(pairs) == 0:
             return
@@ -474,7 +535,7 @@ class _Pass:
         items = np.zeros(len(pairs), ITEM_DTYPE)
         items["bmin"] = nt.box_min[nd]
         items["bmax"] = nt.box_max[nd]
-        items["ref"] = nt.gpu_ref[nd]
+        items["ref"] = nt.gpu_ref[nd] if self.be.cache is None else self.be.cache.item_refs(nd)
         items["count"] = nt.gpu_count[nd]
         items["id"] = nd
         items["pad"][:, 0] = self.be.bvh_first[nd]
@@ -618,6 +679,12 @@ class _Pass:
                 self._read_ray_count()
                 self._sync()
         finally:
+            if be.cache is not None:
+                be.bc.gpu_scene.bind()  # later passes (shading) read the scene's triangles
+                t = be.cache.t
+                self.stats.update(upload_bvh_mb=t.bvh_bytes / MB, upload_geom_mb=t.geom_bytes / MB,
+                                  subtrees_uploaded=t.uploads, cache_hits=t.hits, cache_evictions=t.evictions,
+                                  upload_syncs=t.syncs, in_core_pct=100.0 * be.cache.plan.in_core_fraction)
             self.ctx.disable(moderngl.DEPTH_TEST)
             self.ctx.depth_func = "<"
             self.hit_fbo.scissor = None

@@ -11,6 +11,11 @@ implementation. Studies (``--study``, comma list or ``all``):
 - ``table4`` (paper Table 4): aggressive mode (``visible_threshold`` 0/20/100/200 px): time and
   image error against the conservative (threshold 0) image of the same frame.
 - ``phases`` (paper Figure 8): chc phase times and counters per frame over a longer run.
+- ``ooc`` (paper Tables 1 and 3, section 5.4): out-of-core chcrt on a large city with GPU budgets
+  of 47/32/20 % in core: sizes, Mrays/s, queries and MB transferred per frame, peak memory
+  (bench/chcrt_ooc.py).
+- ``coherence`` (paper Table 5 / Figure 10, section 5.3): glsl and chcrt at per-pixel sample rotations
+  of 0 / 18 / 36 / 180 degrees, times and images side by side (bench/chcrt_coherence.py).
 - ``overhead``: GL per-draw / per-query costs measured on the same context (synthetic), and
   batching / multi-query / query-mode variants of a real chcrt run.
 
@@ -39,6 +44,8 @@ from pathlib import Path
 import numpy as np
 
 from viewer.backends.interface import params_text
+from viewer.bench.chcrt_coherence import study_coherence
+from viewer.bench.chcrt_ooc import study_ooc
 from viewer.bench.estimate import CostModel, format_estimate, run_estimate, scenes_estimate
 from viewer.bench.gl_micro import MicroResult, micro_overheads
 from viewer.bench.harness import PROTOCOL, Harness, RunResult, RunSpec, effect_settings, is_trace_phase, load_average
@@ -47,7 +54,8 @@ from viewer.bench.report import fmt, md_table, notes_md, ratio, size_text, write
 from viewer.errors import RtwalkError
 from viewer.paths import RECORDINGS, resolve_recording
 
-STUDIES = ("table2", "table4", "phases", "overhead", "tuning")
+STUDIES = ("table2", "table4", "phases", "overhead", "tuning", "ooc", "coherence")
+EXPLICIT_ONLY = ("ooc", "coherence")  # not part of "all" (a 10M-triangle scene; 16 runs): ask for them by name
 DEFAULT_RECORDINGS = ("city-near", "city-far", "sponza-walk", "sibenik-walk", "conference-walk")
 PHASE_COUNTERS = ("queries", "multi_queries", "failed_multi_queries", "subtrees_scheduled", "draws",
                   "intersect_draws")
@@ -84,6 +92,16 @@ class StudyOptions:
     micro_scale: float = 1.0  # op counts of the synthetic benchmark (quick: smaller)
     tuning_effects: list[str] = field(default_factory=lambda: ["ao:4", "diffuse:4"])
     tuning_grid: str = "t_q=0.5|1|2;min_tile_fraction=0.015|0.06;requery_interval=3|8"
+    ooc_scene_size: int = 10_000_000  # triangles of the City-200 analog
+    ooc_fractions: list[float] = field(default_factory=lambda: [0.47, 0.32, 0.20])
+    ooc_recordings: list[Path] = field(default_factory=lambda: [RECORDINGS / "city-near.json",
+                                                                RECORDINGS / "city-far.json"])
+    ooc_effects: list[str] = field(default_factory=lambda: ["primary", "ao:20", "diffuse:20"])
+    ooc_frames: int = 6
+    coherence_recordings: list[Path] = field(default_factory=lambda: [RECORDINGS / "city-near.json",
+                                                                      RECORDINGS / "sponza-walk.json"])
+    coherence_effects: list[str] = field(default_factory=lambda: ["ao:20", "diffuse:20"])
+    perturbs: list[float] = field(default_factory=lambda: [0.0, 18.0, 36.0, 180.0])
     notes: list[str] = field(default_factory=list)
 
 
@@ -116,7 +134,7 @@ def options_from_args(args: argparse.Namespace) -> StudyOptions:
     studies: list[str] = []
     for s in _split(args.study or "all"):
         if s == "all":
-            studies += [x for x in STUDIES if x not in studies]
+            studies += [x for x in STUDIES if x not in studies and x not in EXPLICIT_ONLY]
         elif s in STUDIES:
             studies += [] if s in studies else [s]
         else:
@@ -173,7 +191,41 @@ def options_from_args(args: argparse.Namespace) -> StudyOptions:
     o.tuning_grid = args.tuning_grid or ("t_q=0.5|2" if quick else o.tuning_grid)
     for params in tuning_configs(o.tuning_grid):
         effective_params(params)  # bad grid text fails here
-    for e in o.effects + o.tuning_effects + [o.table4_effect, o.phases_effect, o.overhead_effect]:
+    if args.ooc_recordings:
+        o.ooc_recordings = [resolve_recording(r) for r in _split(args.ooc_recordings)]
+    from viewer.recording import load_recording as _load_rec
+
+    for path in o.ooc_recordings:
+        if "builtin" not in _load_rec(path).scene:
+            raise RtwalkError(f"--ooc-recordings: {path.name} does not use a builtin scene (its size is scaled)")
+    o.ooc_scene_size = args.ooc_scene_size or (40_000 if quick else o.ooc_scene_size)
+    if o.ooc_scene_size < 1000:
+        raise RtwalkError("--ooc-scene-size must be >= 1000 triangles")
+    try:
+        o.ooc_fractions = [float(f) for f in _split(args.ooc_fractions)] if args.ooc_fractions else o.ooc_fractions
+    except ValueError:
+        raise RtwalkError(f"bad --ooc-fractions '{args.ooc_fractions}': expected numbers in (0, 1]") from None
+    if not o.ooc_fractions or not all(0 < f <= 1 for f in o.ooc_fractions):
+        raise RtwalkError("--ooc-fractions must be numbers in (0, 1]")
+    o.ooc_effects = _split(args.ooc_effects) if args.ooc_effects else (["primary", "ao:1"] if quick else o.ooc_effects)
+    o.ooc_frames = args.ooc_frames if args.ooc_frames is not None else (2 if quick else o.ooc_frames)
+    if o.ooc_frames < 1:
+        raise RtwalkError("--ooc-frames must be >= 1")
+    if args.coherence_recordings:
+        o.coherence_recordings = [resolve_recording(r) for r in _split(args.coherence_recordings)]
+    elif quick:
+        o.coherence_recordings = o.coherence_recordings[:1]
+    o.coherence_effects = (_split(args.coherence_effects) if args.coherence_effects
+                           else (["ao:1"] if quick else o.coherence_effects))
+    try:
+        o.perturbs = [float(v) for v in _split(args.perturbs)] if args.perturbs else (
+            [0.0, 180.0] if quick else o.perturbs)
+    except ValueError:
+        raise RtwalkError(f"bad --perturbs '{args.perturbs}': expected degrees in 0..180") from None
+    if not o.perturbs or not all(0 <= v <= 180 for v in o.perturbs):
+        raise RtwalkError("--perturbs must be degrees in 0..180")
+    for e in (o.effects + o.tuning_effects + o.ooc_effects + o.coherence_effects
+              + [o.table4_effect, o.phases_effect, o.overhead_effect]):
         effect_settings(e)  # bad effect names fail here
     # every recording must load, and its scene must exist (a missing scene file of a default
     # recording is skipped with a note: ../shared/scenes is optional)
@@ -251,6 +303,15 @@ def estimate(o: StudyOptions) -> dict[str, float]:
         out["tuning"] = sum(n * _run_estimate("chcrt", e, o.sizes[0], o.frames) * 1.5
                             + _run_estimate("glsl", e, o.sizes[0], o.frames) for e in o.tuning_effects)
         scene_recs.add(o.overhead_recording)
+    if "ooc" in o.studies:
+        n = len(o.ooc_fractions) + 1
+        out["ooc"] = sum(n * _run_estimate("chcrt", e, o.sizes[0], o.ooc_frames) * 1.5
+                         for e in o.ooc_effects) * len(o.ooc_recordings) + 8e-6 * o.ooc_scene_size
+    if "coherence" in o.studies:
+        out["coherence"] = len(o.coherence_recordings) * len(o.perturbs) * sum(
+            _run_estimate("chcrt", e, o.sizes[0], o.frames) + _run_estimate("glsl", e, o.sizes[0], o.frames)
+            for e in o.coherence_effects)
+        scene_recs.update(o.coherence_recordings)
     out["scenes"] = scenes_estimate(scene_recs)
     return out
 
@@ -806,7 +867,8 @@ def _plot_tuning(rows: list[TuningRow], path: Path, device: str) -> None:
 
 STUDY_FUNCS: dict[str, Callable[[Bench], dict]] = {"table2": study_table2, "table4": study_table4,
                                                     "phases": study_phases, "overhead": study_overhead,
-                                                    "tuning": study_tuning}
+                                                    "tuning": study_tuning, "ooc": study_ooc,
+                                                    "coherence": study_coherence}
 
 
 def run_studies(o: StudyOptions, out=None) -> list[dict]:
@@ -834,7 +896,8 @@ def run_studies(o: StudyOptions, out=None) -> list[dict]:
 def add_arguments(p: argparse.ArgumentParser) -> None:
     """The `bench-chcrt` subcommand's options (kept here so cli.py only registers it)."""
     p.description = (__doc__ or "").split("\n\n")[0].replace("`", "")
-    p.add_argument("--study", default="all", help=f"comma list of {', '.join(STUDIES)}, or all")
+    p.add_argument("--study", default="all",
+                   help=f"comma list of {', '.join(STUDIES)}, or all (all but {', '.join(EXPLICIT_ONLY)})")
     p.add_argument("--sizes", default=None, help="comma list of WIDTHxHEIGHT (default 640x360; --quick: 96x54); "
                                                  "phases and overhead use the first")
     p.add_argument("--recordings", default=None,
@@ -860,6 +923,18 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--tuning-grid", default=None,
                    help="tuning: chcrt grid 'key=v1|v2;key=...' (default t_q=0.5|1|2;min_tile_fraction=0.015|0.06;"
                         "requery_interval=3|8)")
+    p.add_argument("--ooc-scene-size", type=int, default=None,
+                   help="ooc: triangles of the large city (default 10000000; --quick: 40000)")
+    p.add_argument("--ooc-fractions", default=None,
+                   help="ooc: GPU budgets as fractions in core (default 0.47,0.32,0.2)")
+    p.add_argument("--ooc-recordings", default=None, help="ooc: builtin-city recordings (default city-near,city-far)")
+    p.add_argument("--ooc-effects", default=None, help="ooc: comma list of effects (default primary,ao:20,diffuse:20)")
+    p.add_argument("--ooc-frames", type=int, default=None, help="ooc: consecutive frames per run (default 6)")
+    p.add_argument("--coherence-recordings", default=None,
+                   help="coherence: comma list of recordings (default city-near,sponza-walk)")
+    p.add_argument("--coherence-effects", default=None,
+                   help="coherence: comma list of effects (default ao:20,diffuse:20)")
+    p.add_argument("--perturbs", default=None, help="coherence: per-pixel rotations, degrees (default 0,18,36,180)")
     p.add_argument("--quick", action="store_true", help="tiny size, 2 frames, one recording, few samples (tests)")
     p.add_argument("--dry-run", action="store_true", help="print the plan and the time estimate, run nothing")
     p.add_argument("--quiet", action="store_true", help="no progress output")

@@ -78,10 +78,22 @@ def is_trace_phase(name: str, backend_phases: tuple[str, ...] = ()) -> bool:
 
 
 def effect_settings(effect: str):
-    """One run's effects: 'ao:20', or several joined with '+' (or ',')."""
+    """One run's effects: 'ao:20', or several joined with '+' (or ','); a suffix '@perturb=D' sets the
+    per-pixel sample rotation in degrees (default 36, 0..180)."""
     from viewer.effects import parse_effects
 
-    return parse_effects(effect.replace("+", ","))
+    text, _, opt = effect.partition("@")
+    s = parse_effects(text.replace("+", ","))
+    if opt:
+        key, _, val = opt.partition("=")
+        try:
+            deg = float(val)
+        except ValueError:
+            deg = -1.0
+        if key.strip() != "perturb" or not 0 <= deg <= 180:
+            raise RtwalkError(f"bad effect option '@{opt}': expected @perturb=D with D in 0..180 degrees")
+        s.perturb_deg = deg
+    return s
 
 
 def load_average() -> list[float] | None:

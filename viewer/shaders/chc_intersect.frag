@@ -19,6 +19,7 @@
 // counted once; after the CHC+RT pass those rays are traced again from the root, in as many draws
 // as they need, and their hits replace what this pass found.
 #include "chc_common.glsl"
+#include "chc_leafcache.glsl"
 uniform int anyHit;
 uniform int countOverlays;
 layout(location = 0) out float outT;
@@ -50,7 +51,7 @@ void main() {
         float te;
         if (intersectBox(r, it.bmin, it.bmax, tmin, hit.t, te)) {
             if (it.count > 0) {  // a scheduled BVH leaf: intersect it now
-                if (intersectLeaf(r, it.ref, it.count, tmin, hit) && any) done = true;
+                if (visitLeaf(r, it.ref, it.count, tmin, hit) && any) done = true;
             } else {
                 int j = sp;
                 while (j > 0 && stackT[j - 1] < te) { stackT[j] = stackT[j - 1]; stackNode[j] = stackNode[j - 1]; --j; }
@@ -70,6 +71,7 @@ void main() {
     while (ni >= 0) {
         if (visits == CHC_MAX_VISITS) {  // the loop limit is near: finish this ray elsewhere
             if (imageAtomicExchange(resumeSlot, px, -2) != -2) atomicAdd(unfinished, 1);
+            done = true;  // traced again from the root: the leaf cache needs no flush
             break;
         }
         ++visits;
@@ -80,11 +82,11 @@ void main() {
         bool hr = intersectBox(r, nd.rmin, nd.rmax, tmin, hit.t, tr);
         if (hl && nd.left < 0) {
             hl = false;
-            if (intersectLeaf(r, ~nd.left, nd.lcount, tmin, hit) && any) break;
+            if (visitLeaf(r, ~nd.left, nd.lcount, tmin, hit) && any) { done = true; break; }
         }
         if (hr && nd.right < 0) {
             hr = false;
-            if (intersectLeaf(r, ~nd.right, nd.rcount, tmin, hit) && any) break;
+            if (visitLeaf(r, ~nd.right, nd.rcount, tmin, hit) && any) { done = true; break; }
         }
         hl = hl && tl <= hit.t;
         hr = hr && tr <= hit.t;
@@ -107,8 +109,12 @@ void main() {
             if (!found) break;
         }
     }
+    if (!done && flushLeaves(r, tmin, hit) && any) done = true;  // the leaf cache's last leaves
     workFlush(0);
     if (hit.id < 0) discard;
+#ifdef CHC_OOC
+    hit.id = tris[hit.id].id;  // out-of-core: cache slot -> the triangle's leaf-order slot
+#endif
     // the scheduled subtree that holds the hit triangle (for the subtree_id overlay)
     int sub = -1;
     for (int i = 0; i < (countOverlays != 0 ? ITEM_COUNT : 0); ++i) {

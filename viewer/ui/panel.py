@@ -322,6 +322,11 @@ def _draw_phase_chart(hist: FrameHistory) -> None:
     implot.pop_style_var(3)
 
 
+def fmt_counter(v: float) -> str:
+    """A counter cell: whole numbers with separators; small fractional values (MB) with 2 decimals."""
+    return f"{v:,.2f}" if abs(v) < 100 and v % 1 != 0 else f"{v:,.0f}"
+
+
 def _draw_counters(rep, hist: FrameHistory, declared: Sequence[str]) -> None:
     """This frame's backend counters (summed over its passes) and their mean over the history:
     the backend's declared counters in a table, the others folded away."""
@@ -344,13 +349,13 @@ def _draw_counters(rep, hist: FrameHistory, declared: Sequence[str]) -> None:
             imgui.table_next_column()
             imgui.text(k.replace("_", " "))
             imgui.table_next_column()
-            imgui.text(f"{stats[k]:,.0f}")
+            imgui.text(fmt_counter(stats[k]))
             imgui.table_next_column()
-            imgui.text(f"{hist.counter_mean(k):,.0f}")
+            imgui.text(fmt_counter(hist.counter_mean(k)))
         imgui.end_table()
     if others and imgui.tree_node("more counters"):
         for k in others:
-            imgui.text(f"{k.replace('_', ' ')}: {stats[k]:,.0f}")
+            imgui.text(f"{k.replace('_', ' ')}: {fmt_counter(stats[k])}")
         imgui.tree_pop()
 
 
