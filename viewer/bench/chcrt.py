@@ -45,12 +45,13 @@ import numpy as np
 
 from viewer.backends.interface import params_text
 from viewer.bench.chcrt_coherence import study_coherence
+from viewer.bench.chcrt_common import chc_phases, finish_study, join_params, save_png
 from viewer.bench.chcrt_ooc import study_ooc
 from viewer.bench.estimate import CostModel, format_estimate, run_estimate, scenes_estimate
 from viewer.bench.gl_micro import MicroResult, micro_overheads
 from viewer.bench.harness import PROTOCOL, Harness, RunResult, RunSpec, effect_settings, is_trace_phase, load_average
 from viewer.bench.plots import barh, figure, finish, points, stacked
-from viewer.bench.report import fmt, md_table, notes_md, ratio, size_text, write_study
+from viewer.bench.report import fmt, md_table, notes_md, ratio, size_text
 from viewer.errors import RtwalkError
 from viewer.paths import RECORDINGS, resolve_recording
 
@@ -115,16 +116,12 @@ def _param_names() -> set[str]:
     return {f.name for f in fields(ChcrtParams)}
 
 
-def _join(*texts: str | None) -> str:
-    return ",".join(t.strip().strip(",") for t in texts if t and t.strip().strip(","))
-
-
 def effective_params(*texts: str | None) -> str:
     """The chcrt parameters a run gets: RTWALK_CHCRT, then the texts in order (later wins)."""
     from viewer.backends.chcrt import ChcrtParams
     from viewer.backends.interface import params_text, parse_params
 
-    return params_text(parse_params(ChcrtParams, _join(os.environ.get("RTWALK_CHCRT", ""), *texts), "--chcrt"))
+    return params_text(parse_params(ChcrtParams, join_params(os.environ.get("RTWALK_CHCRT", ""), *texts), "--chcrt"))
 
 
 def options_from_args(args: argparse.Namespace) -> StudyOptions:
@@ -318,17 +315,6 @@ def estimate(o: StudyOptions) -> dict[str, float]:
 
 # ----------------------------------------------------------------------------------------- runs
 
-CHC_PHASES: tuple[str, ...] = ()  # filled on first use from the backend's info (chcrt's own phases)
-
-
-def chc_phases() -> tuple[str, ...]:
-    global CHC_PHASES
-    if not CHC_PHASES:
-        from viewer.backends import backend_info
-
-        CHC_PHASES = tuple(backend_info("chcrt").phases)
-    return CHC_PHASES
-
 
 class Bench(Harness):
     """The harness with this command's options; the studies read both."""
@@ -416,7 +402,7 @@ def study_table2(b: Bench) -> dict:
           fmt(r.chcrt_mrays_per_s, 2)] for r in rows]))
     md += notes_md(report["notes"])
     _plot_table2(rows, o.out / "table2.png", b.device["renderer"])
-    return _finish(o, "table2", report, "\n".join(md))
+    return finish_study(o, "table2", report, "\n".join(md))
 
 
 def _plot_table2(rows: list[Table2Row], path: Path, device: str) -> None:
@@ -476,7 +462,7 @@ def study_table4(b: Bench) -> dict:
                     store.append(img)
 
                 specs.append(RunSpec(label, o.table4_effect, "glsl", None, sink) if thr is None else
-                             RunSpec(label, o.table4_effect, "chcrt", _join(o.chcrt, f"visible_threshold={thr}"),
+                             RunSpec(label, o.table4_effect, "chcrt", join_params(o.chcrt, f"visible_threshold={thr}"),
                                      sink))
             size_runs = b.run_many(path, size, specs)
             ref = images[0]  # threshold 0
@@ -492,10 +478,10 @@ def study_table4(b: Bench) -> dict:
                     100.0 * float(np.mean([e["pixels_over_8"] for e in errs])),
                     float(min(e["psnr_db"] for e in errs)), st.counters.get("queries", float("nan")),
                     st.counters.get("subtrees_scheduled", float("nan")), [e["mae"] for e in errs]))
-                _save_png(img_dir / f"{path.stem}-{size_text(size)}-{label.replace(' ', '')}.png", imgs[-1])
+                save_png(img_dir / f"{path.stem}-{size_text(size)}-{label.replace(' ', '')}.png", imgs[-1])
                 if thr is not None and thr == thresholds[-1] and thr != 0:
                     diff = np.abs(imgs[-1].astype(np.int16) - ref[-1].astype(np.int16)).max(axis=-1)
-                    _save_png(img_dir / f"{path.stem}-{size_text(size)}-diff-x8-{label.replace(' ', '')}.png",
+                    save_png(img_dir / f"{path.stem}-{size_text(size)}-diff-x8-{label.replace(' ', '')}.png",
                               np.clip(diff * 8, 0, 255).astype(np.uint8))
     finally:
         b.done()
@@ -515,13 +501,7 @@ def study_table4(b: Bench) -> dict:
           fmt(r.queries, 0), fmt(r.subtrees_scheduled, 0)] for r in rows]))
     md += notes_md(report["notes"])
     _plot_table4(rows, o.out / "table4.png", f"{path.stem} {o.table4_effect} - {b.device['renderer']}")
-    return _finish(o, "table4", report, "\n".join(md))
-
-
-def _save_png(path: Path, img: np.ndarray) -> None:
-    from PIL import Image
-
-    Image.fromarray(img).save(path)
+    return finish_study(o, "table4", report, "\n".join(md))
 
 
 def _plot_table4(rows: list[Table4Row], path: Path, title: str) -> None:
@@ -553,7 +533,7 @@ def study_phases(b: Bench) -> dict:
     pre = "sync_phases=1" if "sync_phases" in _param_names() else ""
     b.progress("phases", o.phases_frames)
     try:
-        run = b.run("chcrt", path, size, o.phases_effect, "chcrt", _join(pre, o.chcrt),
+        run = b.run("chcrt", path, size, o.phases_effect, "chcrt", join_params(pre, o.chcrt),
                     frames=b.frames_for(path, o.phases_frames))
     finally:
         b.done()
@@ -578,7 +558,7 @@ def study_phases(b: Bench) -> dict:
                f"cold frame: trace {fmt(run.cold.trace_ms)} ms, wall {fmt(run.cold.wall_ms)} ms."]
     md += notes_md(report["notes"])
     _plot_phases(run, phases, counters, o.out / "phases.png", b.device["renderer"])
-    return _finish(o, "phases", report, "\n".join(md))
+    return finish_study(o, "phases", report, "\n".join(md))
 
 
 def _plot_phases(run: RunResult, phases: list[str], counters: list[str], path: Path, device: str) -> None:
@@ -671,7 +651,7 @@ def overhead_variants(user: str) -> tuple[list[tuple[str, str, str]], list[str]]
         except RtwalkError as exc:
             skipped.append(f"{label}: skipped ({exc})")
             continue
-        out.append((label, _join(user, text), eff))
+        out.append((label, join_params(user, text), eff))
     return out, skipped
 
 
@@ -755,7 +735,7 @@ def study_overhead(b: Bench) -> dict:
                              fmt(c.ms_per_extra_draw, 3), fmt(c.ms_per_extra_query, 3)] for c in comps]))
     md += notes_md(report["notes"])
     _plot_overhead(micro, rows, o.out / "overhead.png", b.device["renderer"])
-    return _finish(o, "overhead", report, "\n".join(md))
+    return finish_study(o, "overhead", report, "\n".join(md))
 
 
 def _plot_overhead(micro: list[MicroResult], rows: list[OverheadRow], path: Path, device: str) -> None:
@@ -770,10 +750,6 @@ def _plot_overhead(micro: list[MicroResult], rows: list[OverheadRow], path: Path
 
 
 # ----------------------------------------------------------------------------------------- driver
-
-
-def _finish(o: StudyOptions, study: str, report: dict, md: str) -> dict:
-    return write_study(o.out, study, report, md)
 
 
 def tuning_configs(grid: str) -> list[str]:
@@ -819,8 +795,8 @@ def study_tuning(b: Bench) -> dict:
     b.progress("tuning", len(o.tuning_effects) * (len(configs) + 1) * o.frames)
     try:
         for effect in o.tuning_effects:
-            specs = [RunSpec("glsl", effect, "glsl")] + [RunSpec(c, effect, "chcrt", _join(c, "overdraw_overlay=0",
-                                                                                          o.chcrt)) for c in configs]
+            specs = [RunSpec("glsl", effect, "glsl")] + [
+                RunSpec(c, effect, "chcrt", join_params(c, "overdraw_overlay=0", o.chcrt)) for c in configs]
             for spec, run in zip(specs, b.run_many(path, size, specs), strict=True):
                 st, rays = run.best.counters, max(run.best.rays, 1.0)
 
@@ -850,7 +826,7 @@ def study_tuning(b: Bench) -> dict:
                          fmt(r.tri_tests_per_ray, 2), fmt(r.tests_per_ray, 1)] for r in rows]))
     md += notes_md(report["notes"])
     _plot_tuning(rows, o.out / "tuning.png", b.device["renderer"])
-    return _finish(o, "tuning", report, "\n".join(md))
+    return finish_study(o, "tuning", report, "\n".join(md))
 
 
 def _plot_tuning(rows: list[TuningRow], path: Path, device: str) -> None:

@@ -16,6 +16,7 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
+from viewer.bench.chcrt_common import finish_study, join_params, save_png
 from viewer.bench.harness import RunSpec
 from viewer.bench.plots import figure, finish
 from viewer.bench.report import fmt, md_table, notes_md, ratio
@@ -37,7 +38,6 @@ class Table5Row:
 
 def study_coherence(b) -> dict:
     """Table 5 / Figure 10 analogs (module docstring). `b` is bench.chcrt.Bench."""
-    from viewer.bench.chcrt import _finish, _join, _save_png
 
     o = b.o
     size = o.sizes[0]
@@ -60,7 +60,7 @@ def study_coherence(b) -> dict:
                         def sink(k: int, n: int, img: np.ndarray, store=store) -> None:
                             store[:] = [img]  # keep the last frame
 
-                        params = _join("overdraw_overlay=0", o.chcrt) if backend == "chcrt" else None
+                        params = join_params("overdraw_overlay=0", o.chcrt) if backend == "chcrt" else None
                         specs.append(RunSpec(f"{backend} {deg:g}", f"{effect}@perturb={deg:g}", backend, params, sink))
                 results = b.run_many(path, size, specs)
                 runs += [asdict(r) for r in results]
@@ -73,7 +73,7 @@ def study_coherence(b) -> dict:
                                           ratio(g.best.trace_ms, c.best.trace_ms), cs.get("queries", 0.0),
                                           cs.get("subtrees_scheduled", 0.0), cs.get("visible_pairs", 0.0), diff))
                     shots.setdefault((path.stem, effect), []).append((deg, ic, ig))
-                    _save_png(img_dir / f"{path.stem}-{effect.replace(':', '')}-perturb{deg:g}.png", ic)
+                    save_png(img_dir / f"{path.stem}-{effect.replace(':', '')}-perturb{deg:g}.png", ic)
     finally:
         b.done()
     report = b.header("coherence", o, {"recordings": [p.stem for p in o.coherence_recordings], "size": list(size),
@@ -91,7 +91,7 @@ def study_coherence(b) -> dict:
                "single images in coherence-images/."]
     md += notes_md(report["notes"])
     _plot(shots, o.out / "coherence.png", b.device["renderer"])
-    return _finish(o, "coherence", report, "\n".join(md))
+    return finish_study(o, "coherence", report, "\n".join(md))
 
 
 def _plot(shots: dict, path, device: str) -> None:

@@ -21,6 +21,7 @@ import os
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
+from viewer.bench.chcrt_common import chc_phases, finish_study, join_params
 from viewer.bench.harness import RunSpec, is_trace_phase
 from viewer.bench.plots import figure, finish, stacked
 from viewer.bench.report import fmt, md_table, notes_md, ratio, size_text
@@ -104,7 +105,6 @@ def study_ooc(b) -> dict:
     from viewer.backends.chcrt import ChcrtParams
     from viewer.backends.chcrt_cache import NODE_BYTES, TRI_BYTES, CachePlan
     from viewer.backends.interface import parse_params
-    from viewer.bench.chcrt import _finish, _join, chc_phases
 
     o = b.o
     size = o.sizes[0]
@@ -117,7 +117,7 @@ def study_ooc(b) -> dict:
         prep = b.scene(recs[0])  # all paths share the scene: load + build once
         build_peak = peak_rss_gib()
         reset_peak_rss()
-        p = parse_params(ChcrtParams, _join(os.environ.get("RTWALK_CHCRT", ""), o.chcrt), "--chcrt")
+        p = parse_params(ChcrtParams, join_params(os.environ.get("RTWALK_CHCRT", ""), o.chcrt), "--chcrt")
         scene_bytes = CachePlan.scene_bytes_of(prep.bvh)
         t1 = []
         for label, params in cfgs:
@@ -131,7 +131,7 @@ def study_ooc(b) -> dict:
         runs = []
         for path in recs:
             for effect in o.ooc_effects:
-                specs = [RunSpec(label, effect, "chcrt", _join(params, "overdraw_overlay=0", o.chcrt))
+                specs = [RunSpec(label, effect, "chcrt", join_params(params, "overdraw_overlay=0", o.chcrt))
                          for label, params in cfgs]
                 results = b.run_many(path, size, specs, b.frames_for(path, o.ooc_frames))
                 base = results[0].best.trace_ms
@@ -175,7 +175,7 @@ def study_ooc(b) -> dict:
                          fmt(r.cache_hits, 0), fmt(r.upload_syncs, 0), fmt(r.slowdown, 2)] for r in rows]))
     md += notes_md(report["notes"])
     _plot(runs, cfgs, o.out / "ooc.png", b.device["renderer"], chc_phases())
-    return _finish(o, "ooc", report, "\n".join(md))
+    return finish_study(o, "ooc", report, "\n".join(md))
 
 
 def _plot(runs: list[dict], cfgs: list[tuple[str, str]], path: Path, device: str, own: tuple[str, ...]) -> None:
