@@ -127,3 +127,41 @@ def test_animated_scene_same_time_rebuilds_nothing(gl_ctx):
         assert not [k for k in rep.gpu_ms if k.startswith("build:")], rep.gpu_ms
     finally:
         r.release()
+
+
+def test_recording_scene_time_round_trip_and_old_files(tmp_path):
+    """Scene time per keyframe: saved as version 2, loaded back equal, interpolated linearly (against
+    np.interp on the keyframe values); a file without it (version 1) uses the camera clock."""
+    from viewer.camera import Camera
+    from viewer.recording import Keyframe, Recording, load_recording, save_recording
+
+    cam = Camera.look_at((0, 2, 4), (0, 1, 0))
+    keys = [Keyframe.from_camera(t, cam) for t in (0.0, 1.0, 3.0)]
+    for k, st in zip(keys, (5.0, 5.0, 9.0), strict=True):  # stands still, then runs at 2x
+        k.scene_time = st
+    rec = Recording({"builtin": "room-anim", "size": 1, "seed": 1}, (64, 36), 10.0, keys)
+    path = save_recording(rec, tmp_path / "anim.json")
+    import json
+
+    assert json.loads(path.read_text())["version"] == 2
+    back = load_recording(path)
+    assert [k.scene_time for k in back.keyframes] == [5.0, 5.0, 9.0]
+    for n in range(back.frame_count()):
+        t = n / 10.0
+        assert back.scene_time_for_frame(n) == pytest.approx(float(np.interp(t, [0, 1, 3], [5, 5, 9])))
+    for k in keys:
+        k.scene_time = None
+    path1 = save_recording(rec, tmp_path / "static.json")
+    assert json.loads(path1.read_text())["version"] == 1
+    old = load_recording(path1)
+    assert not old.has_scene_time and old.scene_time_for_frame(7) == pytest.approx(0.7)
+
+
+def test_shipped_anim_recording_moves_objects():
+    from viewer.paths import RECORDINGS
+    from viewer.recording import load_recording
+
+    rec = load_recording(RECORDINGS / "room-anim-walk.json")
+    assert rec.scene["builtin"] == "room-anim" and rec.has_scene_time
+    times = [rec.scene_time_for_frame(n) for n in range(rec.frame_count())]
+    assert times[0] < times[-1]

@@ -517,6 +517,7 @@ class ViewerApp:
             rec = self.playing
             t = now - self._play_t0
             self.camera = rec.camera_at(rec.start_time + min(t, rec.duration))
+            self.renderer.set_scene_time(rec.scene_time_at(rec.start_time + min(t, rec.duration)))
             self.fly.set_camera(self.camera)
             if t >= rec.duration:
                 self._stop_playback("playback finished")
