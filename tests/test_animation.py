@@ -165,3 +165,17 @@ def test_shipped_anim_recording_moves_objects():
     assert rec.scene["builtin"] == "room-anim" and rec.has_scene_time
     times = [rec.scene_time_for_frame(n) for n in range(rec.frame_count())]
     assert times[0] < times[-1]
+
+
+def test_every_registered_backend_implements_scene_changed():
+    """The contract method is implemented by every registered backend class (no silent fallback)."""
+    from tests.conftest import opencl_missing
+    from viewer.backends import backend_class, backend_names
+
+    for name in backend_names():
+        try:
+            cls = backend_class(name)
+        except ImportError:
+            assert opencl_missing() is not None, name
+            continue
+        assert callable(getattr(cls, "scene_changed", None)), name
