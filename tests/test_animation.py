@@ -179,3 +179,29 @@ def test_every_registered_backend_implements_scene_changed():
             assert opencl_missing() is not None, name
             continue
         assert callable(getattr(cls, "scene_changed", None)), name
+
+
+def test_inactive_backend_catches_up_when_selected(gl_ctx):
+    """A backend created earlier and inactive while the scene moved is told when selected again: its
+    hits match Embree on the current frame's triangles."""
+    from tests.conftest import opencl_missing
+
+    other = "clbvh" if opencl_missing() is None else "chcrt"
+    prep = prepared_scene("room-anim", 1)
+    r = Renderer(gl_ctx, prep.scene, prep.bvh, SIZE, other, parse_effects("primary,shadows"))
+    try:
+        r.render(prep.scene.default_camera)  # built at t = 0
+        r.set_backend("glsl")
+        r.set_scene_time(1.35)
+        r.render(prep.scene.default_camera)  # the geometry moves while `other` is inactive
+        r.set_backend(other)
+        rep = r.render(prep.scene.default_camera, capture=True)
+        embree = EmbreeTracer(r.scene.triangles)
+        for cp in rep.captured:
+            act = cp.rays.active
+            t_ref, id_ref = embree.trace(cp.rays.origins[act], cp.rays.directions[act], cp.rays.tmin[act],
+                                         cp.rays.tmax[act], any_hit=cp.ray_type.any_hit)
+            st = compare_hits(cp.t[act], cp.tri[act], t_ref, id_ref, r.scene.triangles)
+            assert st["hitmiss_agree"] >= 0.999, (other, cp.ray_type.label, st)
+    finally:
+        r.release()
