@@ -205,3 +205,21 @@ def test_inactive_backend_catches_up_when_selected(gl_ctx):
             assert st["hitmiss_agree"] >= 0.999, (other, cp.ray_type.label, st)
     finally:
         r.release()
+
+
+def test_chcrt_keeps_fronts_across_a_refit(gl_ctx):
+    """A refit keeps the tree's topology, so chcrt keeps its per-pass fronts (same objects) and
+    still agrees with Embree on the moved frame (checked in test_animated_frames_agree_with_embree)."""
+    prep = prepared_scene("room-anim", 1)
+    r = Renderer(gl_ctx, prep.scene, prep.bvh, SIZE, "chcrt", parse_effects("primary"))
+    try:
+        r.render(prep.scene.default_camera)
+        fronts = dict(r.backend.fronts)
+        assert fronts
+        r.set_scene_time(0.9)
+        rep = r.render(prep.scene.default_camera)
+        assert "build:chcrt" in rep.gpu_ms
+        assert all(r.backend.fronts.get(k) is f for k, f in fronts.items())
+        assert np.array_equal(r.backend.nt.box_min, r.bvh.node_min)  # the query boxes were refitted
+    finally:
+        r.release()
