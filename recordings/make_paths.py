@@ -82,9 +82,26 @@ def conference_walk() -> Recording:
     return path({"file": "conference/conference.ply"}, pts, 12.0)
 
 
+def room_anim_walk() -> Recording:
+    """A slow walk through the animated room (`room-anim`) watching the objects fall, with scene
+    time: the scene clock runs with the camera to 3 s, slows down (4.25 at 4.5 s, 5.0 at 6 s: a cube
+    bouncing in slow motion), then runs with the camera again (8.0 at 9 s). The camera stays inside the room (x, z in [-5, 5], y in [0, 5])."""
+    y = 1.9
+    pts = [((0.0, y, 4.4), (0.0, 1.2, -2.0)), ((1.2, y, 4.0), (2.0, 0.8, 1.0)),
+           ((2.4, y + 0.3, 3.2), (0.4, 0.6, -1.4)), ((2.6, y + 0.5, 1.6), (-3.0, 1.0, 2.5)),
+           ((1.0, y + 0.6, 0.6), (-3.3, 0.6, -0.2)), ((-0.8, y + 0.4, 1.2), (0.0, 3.4, -2.0)),
+           ((-2.0, y, 2.6), (2.7, 0.5, 2.9))]
+    rec = path({"builtin": "room-anim", "size": 1, "seed": 1}, pts, 9.0)
+    for k in rec.keyframes:
+        t = k.time
+        k.scene_time = t if t <= 4.0 else (4.0 + 0.5 * (t - 4.0) if t <= 6.0 else 5.0 + (t - 6.0))
+    return rec
+
+
 def main() -> None:
     for name, make in [("city-near", city_near), ("city-far", city_far), ("sponza-walk", sponza_walk),
-                       ("sibenik-walk", sibenik_walk), ("conference-walk", conference_walk)]:
+                       ("sibenik-walk", sibenik_walk), ("conference-walk", conference_walk),
+                       ("room-anim-walk", room_anim_walk)]:
         out = save_recording(make(), HERE / f"{name}.json")
         print(out)
 

@@ -105,6 +105,11 @@ class FakeBackend:
     def begin_frame(self, frame_index: int) -> None:
         self.frame = int(frame_index)
 
+    def scene_changed(self, bc: BackendContext) -> None:
+        """Animated scenes: the brute-force copy of the vertices follows the moved triangles."""
+        self.bc = bc
+        self.verts = np.asarray(bc.scene.triangles, np.float64)
+
     def reset(self) -> None:
         pass
 

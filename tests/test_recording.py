@@ -230,7 +230,11 @@ MALFORMED = {
     "top-level-list": "[1, 2]",
     "wrong-format": variant({"format": "blender-path"}),
     "no-format": variant(drop="format"),
-    "future-version": variant({"version": 2}),
+    "future-version": variant({"version": 3}),
+    "scene-time-partial": variant({"version": 2}, key={"scene_time": 1.0}),
+    "scene-time-nan": variant({"version": 2, "keyframes": [dict(k, scene_time="NAN") for k in GOOD["keyframes"]]})
+    .replace('"NAN"', "NaN"),
+    "scene-time-string": variant({"version": 2, "keyframes": [dict(k, scene_time="x") for k in GOOD["keyframes"]]}),
     "version-string": variant({"version": "1"}),
     "missing-keyframes": variant(drop="keyframes"),
     "empty-keyframes": variant({"keyframes": []}),

@@ -63,6 +63,8 @@ def cmd_render(args) -> int:
         camera = prepared.scene.default_camera
     renderer = Renderer(ctx, prepared.scene, prepared.bvh, size, args.backend, settings, backend_options)
     renderer.view = args.view
+    if rec is not None:  # an animated scene is shown at the recording's scene time of that frame
+        renderer.set_scene_time(rec.scene_time_for_frame(args.frame))
     report = renderer.render(camera)
     Image.fromarray(renderer.read_image()).save(out)
     if not args.quiet:

@@ -63,7 +63,7 @@ def parse_camera(text: str):
 
 def add_scene_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("scene", nargs="?", default=None,
-                   help="scene file (OBJ/PLY/GLB/STL/OFF) or built-in name (city, room); default: city")
+                   help="scene file (OBJ/PLY/GLB/STL/OFF) or built-in name (city, room, room-anim); default: city")
     p.add_argument("--scene-size", type=int, default=None, help="triangles for procedural scenes (city)")
     p.add_argument("--seed", type=int, default=1, help="seed for procedural scenes")
     p.add_argument("--mirror", action="append", default=[], metavar="PATTERN",

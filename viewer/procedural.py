@@ -530,6 +530,125 @@ def make_room(seed: int = 1, detail: int = 1) -> Scene:
 
 
 # ----------------------------------------------------------------------------------------------
+# room-anim: the room with moving objects (thesis Figure 5.7 in spirit: objects falling inside a room)
+
+ANIM_FALL_PERIOD = 2.4  # seconds per fall (drop, bounce, rest), then the object is lifted again
+ANIM_GRAVITY = 9.81
+
+
+def _rot_xyz(ax: np.ndarray, ay: np.ndarray) -> np.ndarray:
+    """(K, 3, 3) rotations: about X by ax, then about Y by ay (vectorised over K objects)."""
+    cx, sx, cy, sy = np.cos(ax), np.sin(ax), np.cos(ay), np.sin(ay)
+    one, zero = np.ones_like(ax), np.zeros_like(ax)
+    rx = np.stack([np.stack([one, zero, zero], -1), np.stack([zero, cx, -sx], -1),
+                   np.stack([zero, sx, cx], -1)], -2)
+    ry = np.stack([np.stack([cy, zero, sy], -1), np.stack([zero, one, zero], -1),
+                   np.stack([-sy, zero, cy], -1)], -2)
+    return ry @ rx
+
+
+@dataclass(frozen=True)
+class RoomAnimation:
+    """Rigid objects moving inside the room; positions are a pure function of the scene time.
+
+    static:  float32 (S, 3, 3) triangles that never move (the room), first in the triangle array
+    local:   float64 (D, 3, 3) triangles of the moving objects in object space (centred on 0)
+    owner:   int (D,) object of each moving triangle
+    kind:    per object 0 = falls from `height` to `rest` (bounces, tumbles, lifted again each
+             period), 1 = spins about Y in place, 2 = orbits the room centre at `height`
+    """
+
+    static: np.ndarray
+    local: np.ndarray
+    owner: np.ndarray
+    kind: np.ndarray
+    anchor: np.ndarray  # float64 (K, 3): x, z of the path, y unused
+    height: np.ndarray  # float64 (K,) start / orbit height
+    rest: np.ndarray  # float64 (K,) centre height when resting on the floor
+    phase: np.ndarray  # float64 (K,) time offset (s)
+    rate: np.ndarray  # float64 (K,) spin (rad/s) for kinds 0 and 1, angular speed for kind 2
+
+    def poses(self, t: float) -> tuple[np.ndarray, np.ndarray]:
+        """(K, 3, 3) rotations and (K, 3) centres at time t."""
+        k = len(self.kind)
+        tt = t + self.phase
+        centre = np.empty((k, 3))
+        centre[:, 0], centre[:, 2] = self.anchor[:, 0], self.anchor[:, 2]
+        # falling: free fall from height, one damped bounce, rest; restart every period
+        s = np.mod(tt, ANIM_FALL_PERIOD)
+        drop = self.height - self.rest
+        t_hit = np.sqrt(2 * np.maximum(drop, 0) / ANIM_GRAVITY)
+        v_up = 0.35 * ANIM_GRAVITY * t_hit  # bounce with restitution 0.35
+        sb = s - t_hit
+        y_fall = np.where(s < t_hit, self.height - 0.5 * ANIM_GRAVITY * s * s,
+                          self.rest + np.maximum(v_up * sb - 0.5 * ANIM_GRAVITY * sb * sb, 0.0))
+        t_stop = t_hit + 2 * v_up / ANIM_GRAVITY
+        moving = np.minimum(s, t_stop)  # spinning stops once at rest
+        ang = np.where(self.kind == 0, self.rate * moving, self.rate * tt)
+        orbit = self.kind == 2
+        centre[:, 1] = np.where(self.kind == 0, y_fall, self.height)
+        r = np.hypot(self.anchor[:, 0], self.anchor[:, 2])
+        a0 = np.arctan2(self.anchor[:, 2], self.anchor[:, 0])
+        centre[orbit, 0] = (r * np.cos(a0 + ang))[orbit]
+        centre[orbit, 2] = (r * np.sin(a0 + ang))[orbit]
+        # tumble about X while in the air, back to 0 at rest (the cube lands flat on the floor)
+        tilt = np.where(self.kind == 0, 0.6 * np.sin(np.pi * moving / np.maximum(t_stop, 1e-9)), 0.0)
+        return _rot_xyz(tilt, ang), centre
+
+    def __call__(self, t: float) -> np.ndarray:
+        rot, centre = self.poses(t)
+        # one gather per object, then one batched product over all moving vertices
+        moved = np.einsum("dij,dvj->dvi", rot[self.owner], self.local) + centre[self.owner][:, None, :]
+        return np.concatenate([self.static, moved.astype(np.float32)])
+
+
+def make_room_anim(seed: int = 1, detail: int = 1) -> Scene:
+    """`room` plus six moving objects: three cubes falling onto the floor (tumbling, bouncing,
+    lifted again every ANIM_FALL_PERIOD s, staggered), a box spinning on the floor and two spheres
+    orbiting under the ceiling. Deterministic from the scene time (seconds); triangle count,
+    order and materials never change. Resting cubes sink 1 cm into the floor (no coplanar faces)."""
+    base = make_room(seed, detail)
+    mats = list(base.materials) + [
+        Material("anim_orange", np.array([0.85, 0.40, 0.10], np.float32)),
+        Material("anim_teal", np.array([0.10, 0.55, 0.55], np.float32)),
+        Material("anim_purple", np.array([0.45, 0.20, 0.60], np.float32)),
+    ]
+    m0 = len(base.materials)
+    sub = min(1 + detail, 5)
+    cube = boxes_to_triangles(np.full((1, 3), -0.3), np.full((1, 3), 0.3)).astype(np.float64)
+    slab = boxes_to_triangles(np.array([[-0.6, -0.25, -0.2]]), np.array([[0.6, 0.25, 0.2]])).astype(np.float64)
+    ball = _icosphere(sub, 0.35, (0.0, 0.0, 0.0)).astype(np.float64)
+    objs = [  # (local triangles, material, kind, anchor x, z, height, rest, phase, rate)
+        (cube, m0, 0, 2.7, 2.9, 4.2, 0.29, 0.0, 2.5),
+        (cube, m0 + 1, 0, -3.3, 3.0, 4.4, 0.29, 0.8, -2.0),
+        (cube, m0 + 2, 0, 0.4, -1.4, 4.0, 0.29, 1.6, 3.0),
+        (slab, m0, 1, -3.4, -0.2, 0.24, 0.24, 0.0, 1.3),
+        (ball, m0 + 1, 2, 1.6, 0.0, 3.6, 3.6, 0.0, 0.7),
+        (ball, m0 + 2, 2, -2.2, 0.4, 3.1, 3.1, 0.0, -0.5),
+    ]
+    local = np.concatenate([o[0] for o in objs])
+    owner = np.concatenate([np.full(len(o[0]), i) for i, o in enumerate(objs)])
+    col = np.array([o[2:] for o in objs], np.float64)
+    anim = RoomAnimation(
+        static=base.triangles, local=local, owner=owner, kind=col[:, 0].astype(np.int64),
+        anchor=np.stack([col[:, 1], np.zeros(len(objs)), col[:, 2]], 1),
+        height=col[:, 3], rest=col[:, 4], phase=col[:, 5], rate=col[:, 6])
+    mids = np.concatenate([base.material_ids] + [np.full(len(o[0]), o[1], np.int32) for o in objs])
+    return Scene(
+        name="room-anim",
+        triangles=anim(0.0),
+        material_ids=mids.astype(np.int32),
+        materials=mats,
+        point_lights=base.point_lights,
+        rect_lights=base.rect_lights,
+        default_camera=base.default_camera,
+        identity={"builtin": "room-anim", "size": int(detail), "seed": int(seed)},
+        sky_color=base.sky_color,
+        animation=anim,
+    )
+
+
+# ----------------------------------------------------------------------------------------------
 # registry
 
 
@@ -557,4 +676,5 @@ BUILTIN_SCENES: dict[str, Builtin] = {
     "city": Builtin(lambda size, seed: make_city(size, seed), 150_000, 1_000, 40_000_000,
                     "target triangle count", bytes_per_size=420.0),
     "room": Builtin(lambda size, seed: make_room(seed, size), 1, 1, 6, "detail level"),
+    "room-anim": Builtin(lambda size, seed: make_room_anim(seed, size), 1, 1, 6, "detail level (animated)"),
 }

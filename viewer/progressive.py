@@ -81,7 +81,7 @@ class Progressive:
     def _state_key(self, camera: Camera) -> tuple:
         r = self.renderer
         return (_camera_key(camera), tuple(sorted(r.settings.to_dict().items())), r.view, r.backend_name,
-                self.full_size)
+                self.full_size, r.scene_time)  # an animated scene's new time is a moving frame
 
     def _adapt(self, wall_ms: float) -> None:
         """Scale for the next moving frame: cost ~ pixels ~ scale^2 (a dead band against flicker)."""
@@ -131,12 +131,15 @@ def replay_progressive(prepared, rec, settings, opts, ctx, target_ms: float = 10
     prog = Progressive(renderer, opts.size, target_ms)
     frames = frame_numbers(rec, opts.fps, opts.max_frames, opts.first_frame)
     cams = [rec.camera_for_frame(n, opts.fps) for n in frames]
+    scene_times = [rec.scene_time_for_frame(n, opts.fps) for n in frames]
+    renderer.set_scene_time(scene_times[0])
     renderer.render(cams[0])  # warm-up: compile every shader variant at full size
     for cam in cams[:2]:  # and the first adaptation steps
         prog.frame(cam)
     prog.invalidate()
     moving_ms, scales = [], []
-    for cam in cams:
+    for cam, scene_time in zip(cams, scene_times, strict=True):
+        renderer.set_scene_time(scene_time)
         t = time.perf_counter()
         step = prog.frame(cam)
         moving_ms.append((time.perf_counter() - t) * 1e3)

@@ -1,6 +1,6 @@
 """Camera-path recordings: a versioned JSON list of keyframes, interpolated smoothly.
 
-File format (version 1)::
+File format (version 2; version 1 files, which have no scene time, still load)::
 
     {"format": "rtwalk-recording", "version": 1,
      "scene": {"builtin": "city", "size": 150000, "seed": 1},   # or {"file": "sponza-dabrovic/sponza.obj"}
@@ -17,6 +17,12 @@ Rules enforced by `load_recording` (each violation is one `RtwalkError` line nam
   positions are 3 finite numbers; orientations 4 finite numbers, not all zero (they are
   normalised on load); ``fov_y`` is a finite number of degrees strictly inside (1, 179).
 * unknown keys are ignored (room for additions that keep version 1 readable).
+* version 2 adds an optional ``"scene_time"`` (seconds, finite) per keyframe: the time of an
+  animated scene (``viewer.scene.Scene.animation``) shown at that keyframe. Either every keyframe
+  has one or none: without it the scene time is the keyframe clock itself (``time``). Scene times
+  are interpolated linearly between keyframes (they may stand still or run at another rate than
+  the camera clock). A file is written as version 1 when no keyframe has a scene time, so paths
+  of static scenes stay readable by older builds.
 
 Keyframe indices in messages are 0-based positions in the ``keyframes`` array.
 
@@ -44,7 +50,8 @@ from viewer.errors import RtwalkError
 from viewer.paths import SHARED_SCENES
 
 FORMAT_TAG = "rtwalk-recording"
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2
+READ_VERSIONS = (1, 2)
 MIN_FOV, MAX_FOV = 1.0, 179.0
 MAX_RESOLUTION = 16384
 MAX_FPS = 1000.0
@@ -62,9 +69,11 @@ class Keyframe:
     position: np.ndarray  # float64 (3,)
     orientation: np.ndarray  # float64 (4,), unit quaternion (w, x, y, z), camera-to-world
     fov_y: float = 60.0  # degrees
+    scene_time: float | None = None  # animated scenes: the scene's time at this keyframe (None: `time`)
 
     def __post_init__(self) -> None:
         self.time = float(self.time)
+        self.scene_time = None if self.scene_time is None else float(self.scene_time)
         self.position = np.asarray(self.position, np.float64).reshape(3).copy()
         self.orientation = np.asarray(self.orientation, np.float64).reshape(4).copy()
         self.fov_y = float(self.fov_y)
@@ -72,7 +81,7 @@ class Keyframe:
     def __eq__(self, other: object) -> bool:
         if not isinstance(other, Keyframe):
             return NotImplemented
-        return (self.time == other.time and self.fov_y == other.fov_y
+        return (self.time == other.time and self.fov_y == other.fov_y and self.scene_time == other.scene_time
                 and np.array_equal(self.position, other.position)
                 and np.array_equal(self.orientation, other.orientation))
 
@@ -84,8 +93,11 @@ class Keyframe:
         return Camera(self.position.copy(), self.orientation.copy(), self.fov_y)
 
     def to_dict(self) -> dict:
-        return {"time": self.time, "position": [float(v) for v in self.position],
-                "orientation": [float(v) for v in self.orientation], "fov_y": self.fov_y}
+        d = {"time": self.time, "position": [float(v) for v in self.position],
+             "orientation": [float(v) for v in self.orientation], "fov_y": self.fov_y}
+        if self.scene_time is not None:
+            d["scene_time"] = self.scene_time
+        return d
 
 
 @dataclass
@@ -138,6 +150,26 @@ class Recording:
         f = self._fps(fps)
         return self.camera_at(self.start_time + int(n) / f)
 
+    def scene_time_for_frame(self, n: int, fps: float | None = None) -> float:
+        """The animated scene's time at frame n (see scene_time_at)."""
+        self.camera_for_frame(n, fps)  # range check
+        return self.scene_time_at(self.start_time + int(n) / self._fps(fps))
+
+    def scene_time_at(self, t: float) -> float:
+        """Scene time at camera time t: linear between the keyframes' scene_time values (clamped to
+        the path), or t itself when the keyframes carry none."""
+        t = float(t)
+        kfs = self.keyframes
+        if not kfs or kfs[0].scene_time is None:
+            return t
+        times = np.array([k.time for k in kfs])
+        values = np.array([k.scene_time for k in kfs], np.float64)
+        return float(np.interp(t, times, values))
+
+    @property
+    def has_scene_time(self) -> bool:
+        return bool(self.keyframes) and self.keyframes[0].scene_time is not None
+
     # ---- interpolation
 
     def camera_at(self, t: float) -> Camera:
@@ -169,7 +201,8 @@ class Recording:
     # ---- (de)serialisation
 
     def to_dict(self) -> dict:
-        return {"format": FORMAT_TAG, "version": FORMAT_VERSION, "scene": dict(self.scene),
+        return {"format": FORMAT_TAG, "version": FORMAT_VERSION if self.has_scene_time else 1,
+                "scene": dict(self.scene),
                 "resolution": [int(self.resolution[0]), int(self.resolution[1])],
                 "fps": _num_out(self.fps), "keyframes": [k.to_dict() for k in self.keyframes]}
 
@@ -293,7 +326,7 @@ def _parse_scene(s: Any) -> dict:
     return out
 
 
-def _parse_keyframe(k: Any, i: int) -> Keyframe:
+def _parse_keyframe(k: Any, i: int, version: int = FORMAT_VERSION) -> Keyframe:
     where = f"keyframe {i}"
     if not isinstance(k, dict):
         raise _Invalid(f"{where}: must be an object, got {_short(k)}")
@@ -311,9 +344,10 @@ def _parse_keyframe(k: Any, i: int) -> Keyframe:
         fov = _number(k["fov_y"], "fov_y")
         if not MIN_FOV < fov < MAX_FOV:
             raise _Invalid(f"fov_y must be between {MIN_FOV:g} and {MAX_FOV:g} degrees, got {fov:g}")
+        st = _number(k["scene_time"], "scene_time") if "scene_time" in k and version >= 2 else None
     except _Invalid as e:
         raise _Invalid(f"{where}: {e}") from None
-    return Keyframe(t, pos, q / n, fov)
+    return Keyframe(t, pos, q / n, fov, st)
 
 
 def _parse(data: Any) -> tuple[dict, tuple[int, int], float, list[Keyframe]]:
@@ -327,8 +361,9 @@ def _parse(data: Any) -> tuple[dict, tuple[int, int], float, list[Keyframe]]:
     ver = data["version"]
     if isinstance(ver, bool) or not isinstance(ver, int):
         raise _Invalid(f"'version' must be an integer, got {_short(ver)}")
-    if ver != FORMAT_VERSION:
-        raise _Invalid(f"unsupported version {ver} (this rtwalk reads version {FORMAT_VERSION})")
+    if ver not in READ_VERSIONS:
+        raise _Invalid(f"unsupported version {ver} (this rtwalk reads versions "
+                       f"{', '.join(map(str, READ_VERSIONS))})")
     for key in ("scene", "resolution", "fps", "keyframes"):
         if key not in data:
             raise _Invalid(f"missing '{key}'")
@@ -350,7 +385,11 @@ def _parse(data: Any) -> tuple[dict, tuple[int, int], float, list[Keyframe]]:
         raise _Invalid(f"'keyframes' must be a list, got {_short(kf)}")
     if not kf:
         raise _Invalid("'keyframes' is empty (need at least 1; 2 or more for a moving path)")
-    keyframes = [_parse_keyframe(k, i) for i, k in enumerate(kf)]
+    keyframes = [_parse_keyframe(k, i, ver) for i, k in enumerate(kf)]
+    with_st = [k.scene_time is not None for k in keyframes]
+    if any(with_st) and not all(with_st):
+        i = with_st.index(not with_st[0])
+        raise _Invalid(f"keyframe {i}: 'scene_time' must be given on every keyframe or on none")
     for i in range(1, len(keyframes)):
         if not keyframes[i].time > keyframes[i - 1].time:
             raise _Invalid(f"keyframe {i}: time must increase ({keyframes[i].time:g} after "

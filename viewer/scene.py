@@ -7,6 +7,7 @@ leaf order (`Scene.reordered`) and that order is the triangle id everywhere.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -63,6 +64,12 @@ class Scene:
     material_ids: int32 (N,), index into `materials`
     identity:     JSON-able dict naming the scene for recordings, e.g.
                   {"builtin": "city", "size": 100000, "seed": 1} or {"file": "sponza/sponza.obj"}
+    animation:    None for a static scene; else f(scene_time) -> float32 (N, 3, 3) triangles in the
+                  scene's ORIGINAL (construction) order. Triangle count and materials never change,
+                  only positions; `order` maps current slots to original indices (set by reordered),
+                  so `triangles_at(t)` is in the current (leaf) order.
+    scene_time:   the time `triangles` were evaluated at (seconds); geometry_version counts changes
+                  (backends key their per-geometry structures on it).
     """
 
     name: str
@@ -76,6 +83,21 @@ class Scene:
     sky_color: np.ndarray = field(default_factory=lambda: np.array([0.55, 0.65, 0.8], np.float32))
     notes: list[str] = field(default_factory=list)  # e.g. "dropped 53627 zero-area triangles"
     auto_lights: bool = False  # lights are the loader's guess: viewer.default_lights checks them by ray casts
+    animation: Callable[[float], np.ndarray] | None = None
+    order: np.ndarray | None = None  # int (N,): original index of each slot (None: identity)
+    scene_time: float = 0.0
+    geometry_version: int = 0
+
+    @property
+    def animated(self) -> bool:
+        return self.animation is not None
+
+    def triangles_at(self, scene_time: float) -> np.ndarray:
+        """float32 (N, 3, 3) triangles at `scene_time`, in this scene's current slot order."""
+        if self.animation is None:
+            return self.triangles
+        tris = np.asarray(self.animation(float(scene_time)), np.float32)
+        return np.ascontiguousarray(tris if self.order is None else tris[self.order])
 
     @property
     def triangle_count(self) -> int:
@@ -109,5 +131,7 @@ class Scene:
 
     def reordered(self, order: np.ndarray) -> Scene:
         """The same scene with triangles permuted: new triangle i is old triangle order[i]."""
+        composed = order if self.order is None else self.order[order]
         return replace(self, triangles=np.ascontiguousarray(self.triangles[order]),
-                       material_ids=np.ascontiguousarray(self.material_ids[order]))
+                       material_ids=np.ascontiguousarray(self.material_ids[order]),
+                       order=np.asarray(composed) if self.animation is not None else None)

@@ -29,7 +29,7 @@ def resolve_scene_path(spec: str) -> Path:
     for cand in ([p] if p.is_absolute() else [p, SHARED_SCENES / p, RECORDINGS / p]):
         if cand.exists():
             return cand
-    raise RtwalkError(f"{spec}: no such scene file (and not a built-in: city, room)")
+    raise RtwalkError(f"{spec}: no such scene file (and not a built-in: city, room, room-anim)")
 
 
 def load_scene(spec: str | None, scene_size: int | None = None, seed: int = 1,

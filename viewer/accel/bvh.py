@@ -56,7 +56,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 
 import numpy as np
 
@@ -634,3 +634,40 @@ def bench_build(triangles: np.ndarray, **kwargs) -> dict:
         bvh.stats.triangles / max(bvh.stats.build_time_s, 1e-9) / 1e6
     )
     return d
+
+
+def refit_bvh(bvh: BVH, triangles_in_leaf_order: np.ndarray) -> BVH:
+    """The same tree (topology, tri_order, node ranges) with boxes recomputed for moved triangles.
+
+    Used for animated scenes whose triangle count and order stay fixed: keeping the topology keeps
+    every triangle id (leaf-order slot) and every node id valid, so per-node temporal state (the
+    chcrt fronts) still maps onto the tree. Leaf boxes come from one `np.minimum.reduceat` over the
+    leaves' slot ranges (the leaves partition the slots); inner boxes are merged level by level,
+    deepest first (children are always deeper than their parent). Boxes are exact float32 min/max
+    of the vertices, as in the build, so they stay conservative. Quality (SAH cost) degrades as
+    objects move far from where the tree was built; the renderer rebuilds instead when that
+    matters (see Renderer.set_scene_time)."""
+    t = np.asarray(triangles_in_leaf_order, np.float32)
+    n = len(t)
+    if n != len(bvh.tri_order):
+        raise ValueError(f"refit: {n} triangles for a tree over {len(bvh.tri_order)}")
+    tmin = t.min(axis=1)
+    tmax = t.max(axis=1)
+    node_min = np.empty_like(bvh.node_min)
+    node_max = np.empty_like(bvh.node_max)
+    leaves = np.flatnonzero(bvh.node_left < 0)
+    nonempty = leaves[bvh.node_count[leaves] > 0]
+    order = nonempty[np.argsort(bvh.node_first[nonempty], kind="stable")]
+    starts = bvh.node_first[order].astype(np.int64)
+    node_min[order] = np.minimum.reduceat(tmin, starts, axis=0)
+    node_max[order] = np.maximum.reduceat(tmax, starts, axis=0)
+    empty = leaves[bvh.node_count[leaves] <= 0]
+    node_min[empty], node_max[empty] = EMPTY_BOX_MIN, EMPTY_BOX_MAX
+    inner = np.flatnonzero(bvh.node_left >= 0)
+    depth = bvh.node_depth[inner]
+    for d in np.unique(depth)[::-1]:
+        nodes = inner[depth == d]
+        left, right = bvh.node_left[nodes], bvh.node_right[nodes]
+        node_min[nodes] = np.minimum(node_min[left], node_min[right])
+        node_max[nodes] = np.maximum(node_max[left], node_max[right])
+    return replace(bvh, node_min=node_min, node_max=node_max)

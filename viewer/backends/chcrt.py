@@ -48,6 +48,7 @@ Parameters come from ChcrtParams: `--backend-params "visible_threshold=20,t_q=0.
 from __future__ import annotations
 
 import math
+import time
 from dataclasses import dataclass
 
 import moderngl
@@ -270,6 +271,29 @@ class ChcrtBackend:
         self.work.release()
         self.queries.clear()  # moderngl 5 queries have no release(); dropped with the context
         self.fronts.clear()
+
+    def scene_changed(self, bc: BackendContext) -> None:
+        """Moved triangles, refitted BVH: new node tables (query boxes) and, with a GPU budget, a
+        new out-of-core subtree cache (phase "build:chcrt"). The GpuScene's buffers were rewritten
+        in place. The fronts are kept when the tree's topology is unchanged (a refit keeps every
+        node id, child link and triangle range, so each front node still names the same subtree;
+        its visibility guess is only a schedule: every ray is still traced exactly). A tree with
+        another topology resets them."""
+        t0 = time.perf_counter()
+        same = (len(bc.bvh.node_left) == len(self.nt.left) and np.array_equal(bc.bvh.node_left, self.nt.left)
+                and np.array_equal(bc.bvh.node_right, self.nt.right)
+                and np.array_equal(np.asarray(bc.bvh.node_first, np.int32), self.bvh_first))
+        self.bc = bc
+        self.finisher.bc = bc
+        self.nt = NodeTables.from_bvh(bc.bvh)
+        self.bvh_first = np.asarray(bc.bvh.node_first, np.int32)
+        if self.cache is not None:
+            self.cache.release()
+            self.cache = self._make_cache(bc)
+        if not same:
+            self.fronts.clear()
+        ms = (time.perf_counter() - t0) * 1e3
+        bc.profiler.record("build:chcrt", ms, ms)
 
     def reset(self) -> None:
         """Forget the temporal state (every front restarts from (screen, root))."""

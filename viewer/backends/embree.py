@@ -5,6 +5,8 @@ Used as the independent reference for tests and for the error column of `rtwalk 
 
 from __future__ import annotations
 
+import time
+
 from viewer.backends.base import BackendContext, StatelessBackend, TraceResult
 from viewer.backends.interface import BackendInfo
 from viewer.errors import RtwalkError
@@ -30,6 +32,16 @@ class EmbreeBackend(StatelessBackend):
             t, tri = self.tracer.trace(r.origins, r.directions, r.tmin, r.tmax, any_hit=pinfo.any_hit)
             hits.write(t, tri)
         return TraceResult(stats={"cpu_rays": int(r.active.sum())})
+
+    def scene_changed(self, bc: BackendContext) -> None:
+        """A new Embree scene over the moved triangles (Embree builds its own BVH)."""
+        from viewer.reference import EmbreeTracer
+
+        self.bc = bc
+        t0 = time.perf_counter()
+        self.tracer = EmbreeTracer(bc.scene.triangles)
+        ms = (time.perf_counter() - t0) * 1e3
+        bc.profiler.record("build:embree", ms, ms)
 
     def release(self) -> None:
         pass

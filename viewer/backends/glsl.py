@@ -33,6 +33,12 @@ class GlslBackend(StatelessBackend):
             stats = self.traversal.run(rays, pinfo, hits)
         return TraceResult(stats={**stats, **self.work.end()})
 
+    def scene_changed(self, bc: BackendContext) -> None:
+        """Nothing to build: the renderer rewrote the GpuScene's node and triangle buffers in place
+        (the refitted BVH), and the traversal reads them from there."""
+        self.bc = bc
+        self.traversal.bc = bc
+
     def release(self) -> None:
         self.traversal.release()
         self.work.release()

@@ -146,4 +146,10 @@ class Backend(Protocol):
     def reset(self) -> None:
         """Forget temporal state (the next frame is a cold start)."""
 
+    def scene_changed(self, bc: BackendContext) -> None:
+        """The scene's triangles moved (animated scenes): `bc` holds the new leaf-order scene, the
+        refitted BVH (same topology, same triangle ids) and the GpuScene, whose buffers were
+        rewritten in place. Rebuild every structure that depends on the geometry before the next
+        trace, timing each build as a profiler phase named "build:<structure>"."""
+
     def release(self) -> None: ...

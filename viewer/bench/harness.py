@@ -57,7 +57,9 @@ def mrays(rep) -> dict[str, float]:
 
 def frame_row(rep, rec, n: int, fps: float | None = None) -> dict:
     """One frame's numbers as stored in every report."""
-    return {"frame": n, "time_s": float(rec.frame_times(fps)[n]), "wall_ms": rep.wall_ms,
+    return {"frame": n, "time_s": float(rec.frame_times(fps)[n]),
+            "scene_time_s": rec.scene_time_for_frame(n, fps), "wall_ms": rep.wall_ms,
+            "build_ms": {k[len("build:"):]: v for k, v in rep.gpu_ms.items() if k.startswith("build:")},
             "gpu_ms": rep.gpu_ms, "cpu_ms": rep.cpu_ms, "trace_ms": rep.trace_ms,
             "trace_ms_by_ray": rep.trace_ms_by_ray, "rays": rep.rays,
             "mrays_per_s": mrays(rep), "backend_stats": rep.backend_stats}
@@ -241,12 +243,15 @@ class Harness:
                 warm.soft_samples = warm.ao_samples = warm.diffuse_samples = 1  # every pass kind, once
                 r = Renderer(self.ctx, prep.scene, prep.bvh, size, spec.backend, warm, options)
                 renderers.append(r)
+                r.set_scene_time(rec.scene_time_for_frame(frames[0]))
                 r.render(rec.camera_for_frame(frames[0]))
                 r.settings = effect_settings(spec.effect)
                 r.backend.reset()
             for k, n in enumerate(frames):
                 cam = rec.camera_for_frame(n)
+                scene_time = rec.scene_time_for_frame(n)
                 for i, (spec, r) in enumerate(zip(specs, renderers, strict=True)):
+                    r.set_scene_time(scene_time)
                     if self.bar is not None:
                         self.bar.set_postfix_str(f"{path.stem} {size[0]}x{size[1]} {spec.effect} {spec.label}")
                     rep = r.render(cam)

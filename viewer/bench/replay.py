@@ -117,6 +117,7 @@ def run_bench(prepared: PreparedScene, rec, settings: EffectSettings, opts: Benc
     frames = frame_numbers(rec, opts.fps, opts.max_frames, opts.first_frame)
     fps = opts.fps or rec.fps
     for _ in range(opts.warmup):  # compile shaders, fault in buffers
+        renderer.set_scene_time(rec.scene_time_for_frame(frames[0], opts.fps))
         renderer.render(rec.camera_for_frame(frames[0], opts.fps))
     records = []
     every = max(opts.reference_every, 1)
@@ -134,6 +135,7 @@ def run_bench(prepared: PreparedScene, rec, settings: EffectSettings, opts: Benc
             tqdm.write(f"bench: estimated {est / 60:.1f} min more (first frame {first:.1f} s)", file=sys.stderr)
         t_frame = time.perf_counter()
         cam = rec.camera_for_frame(n, opts.fps)
+        renderer.set_scene_time(rec.scene_time_for_frame(n, opts.fps))
         rep = renderer.render(cam)
         row = frame_row(rep, rec, n, opts.fps)
         if k == 0:

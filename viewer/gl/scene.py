@@ -40,6 +40,18 @@ class GpuScene:
                         stack_size=int(max(16, bvh.stats.depth + 4)),
                         memory_bytes=sum(b.size for b in bufs))
 
+    def update(self, scene: Scene, bvh: BVH) -> None:
+        """Moved triangles (animated scenes): rewrite nodes, triangles and raster vertices in place.
+        The buffers keep their identity, so every holder (G-buffer VAO, backends) sees the new
+        geometry; sizes must match (same triangle count, same tree topology: a refit)."""
+        nodes = bvh.gpu_nodes().tobytes()
+        tris = gpu_triangles(scene.triangles, scene.material_ids).tobytes()
+        verts = np.ascontiguousarray(scene.triangles.reshape(-1, 3), dtype=np.float32).tobytes()
+        for buf, data in ((self.nodes, nodes), (self.tris, tris), (self.vertices, verts)):
+            if buf.size != len(data):
+                raise ValueError(f"GpuScene.update: {len(data)} bytes for a {buf.size}-byte buffer")
+            buf.write(data)
+
     def bind(self) -> None:
         self.nodes.bind_to_storage_buffer(BIND_NODES)
         self.tris.bind_to_storage_buffer(BIND_TRIS)

@@ -244,6 +244,7 @@ class ViewerApp:
         self.session_recording = None
         self.playing = None  # the Recording being played back
         self._play_t0 = 0.0
+        self._anim_t0 = time.perf_counter()  # scene time 0 of an animated scene (outside playback)
         self._looking = False
 
         # imgui: context, renderer, extra keys (ctrl+A/C for the read-only camera field)
@@ -517,10 +518,13 @@ class ViewerApp:
             rec = self.playing
             t = now - self._play_t0
             self.camera = rec.camera_at(rec.start_time + min(t, rec.duration))
+            self.renderer.set_scene_time(rec.scene_time_at(rec.start_time + min(t, rec.duration)))
             self.fly.set_camera(self.camera)
             if t >= rec.duration:
                 self._stop_playback("playback finished")
             return
+        if self.renderer.scene.animated:  # an animated scene runs on the wall clock outside playback
+            self.renderer.set_scene_time(now - self._anim_t0)
         actions, fast = self._movement()
         self.fly.update(dt, actions, fast)
         self.camera = self.fly.camera()

@@ -17,6 +17,7 @@ prototype on this machine.
 
 from __future__ import annotations
 
+import time
 from pathlib import Path
 
 import numpy as np
@@ -126,6 +127,16 @@ class ClbvhBackend(StatelessBackend):
         self.ctx = cl_context()
         self.scene = ClbvhScene(bc.scene.triangles, bc.bvh, self.ctx)
         self._stages = None  # (size, RayStage, HitStage)
+
+    def scene_changed(self, bc: BackendContext) -> None:
+        """Rebuild the BVH4 (collapsed from the refitted binary BVH) and re-upload it with the
+        moved triangles (phase "build:bvh4")."""
+        self.bc = bc
+        t0 = time.perf_counter()
+        self.scene.release()
+        self.scene = ClbvhScene(bc.scene.triangles, bc.bvh, self.ctx)
+        ms = (time.perf_counter() - t0) * 1e3
+        bc.profiler.record("build:bvh4", ms, ms)
 
     def _staged(self, size: tuple[int, int]):
         from viewer.cl import HitStage, RayStage

@@ -122,6 +122,12 @@ class UgridBackend:
             self.grid.build(self._tris, len(tris), lo, hi, self.params.spec())
         self._tris_key = self._geometry_key()
 
+    def scene_changed(self, bc: BackendContext) -> None:
+        """The triangles moved: rebuild the grid now (Kalojanov-style sort build, timed as this
+        backend's build phase) rather than lazily at the next begin_frame."""
+        self.bc = bc
+        self._rebuild()
+
     def begin_frame(self, frame_index: int) -> None:
         if self.params.rebuild or self._geometry_key() != self._tris_key:
             self._rebuild()

@@ -17,6 +17,7 @@ against the exact backends (BackendInfo.exact = False keeps it out of the exact 
 from __future__ import annotations
 
 import sys
+import time
 from dataclasses import dataclass
 
 import numpy as np
@@ -87,16 +88,30 @@ class VoxelsBackend:
         self.overlays_enabled = False
         self.ctx = cl_context()
         p = self.params
-        self.voxels = voxels_for(bc.scene.triangles, p.resolution)
-        self.structure = build_structure(p.structure, self.voxels)
-        g = self.voxels.grid
-        self.tracer = VoxelTracer(self.structure, g.origin, g.scale, p.stack, ctx=self.ctx)
+        self._voxelize(bc)
         st, vs = self.structure.stats, self.voxels.stats
         print(f"voxels: {vs['count']:,} voxels at {p.resolution}^3 in {vs['seconds']:.2f} s; {p.structure}: "
               f"{st['interior_nodes']:,} nodes x {st['node_bytes']} B + {st['leaves']:,} leaves x {st['leaf_bytes']} B"
               f" = {st['memory_bytes'] / 2**20:.1f} MiB, mean leaf depth {st['mean_leaf_depth']:.2f}",
               file=sys.stderr, flush=True)
         self._stages = None  # (size, RayStage, HitStage, vox buffer)
+
+    def _voxelize(self, bc: BackendContext) -> None:
+        """Voxelize the scene's triangles and build the chosen structure and its tracer."""
+        p = self.params
+        self.voxels = voxels_for(bc.scene.triangles, p.resolution)
+        self.structure = build_structure(p.structure, self.voxels)
+        g = self.voxels.grid
+        self.tracer = VoxelTracer(self.structure, g.origin, g.scale, p.stack, ctx=self.ctx)
+
+    def scene_changed(self, bc: BackendContext) -> None:
+        """Re-voxelize the moved triangles and rebuild the structure (phase "build:voxels")."""
+        self.bc = bc
+        t0 = time.perf_counter()
+        self.tracer.release()
+        self._voxelize(bc)
+        ms = (time.perf_counter() - t0) * 1e3
+        bc.profiler.record("build:voxels", ms, ms)
 
     def _staged(self, size: tuple[int, int]):
         from viewer.cl import HitStage, RayStage
