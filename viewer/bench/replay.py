@@ -112,6 +112,7 @@ def run_bench(prepared: PreparedScene, rec, settings: EffectSettings, opts: Benc
 
         if EmbreeTracer.available():
             tracer = EmbreeTracer(prepared.scene.triangles)
+            tracer_version = prepared.scene.geometry_version
         else:
             print("rtwalk: embreex is not installed: no error column (pip install embreex)", file=sys.stderr)
     frames = frame_numbers(rec, opts.fps, opts.max_frames, opts.first_frame)
@@ -142,6 +143,9 @@ def run_bench(prepared: PreparedScene, rec, settings: EffectSettings, opts: Benc
             t_render0 = time.perf_counter() - t_frame
         image = None
         if tracer is not None and k % max(opts.reference_every, 1) == 0:
+            if tracer_version != renderer.scene.geometry_version:  # an animated scene moved: judge this frame's
+                tracer = EmbreeTracer(renderer.scene.triangles)
+                tracer_version = renderer.scene.geometry_version
             err = reference_errors(renderer, cam, tracer)
             image = err["image"]
             row["error"] = err["rays"]
