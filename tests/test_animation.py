@@ -225,6 +225,22 @@ def test_chcrt_keeps_fronts_across_a_refit(gl_ctx):
         r.release()
 
 
+def test_chcrt_without_temporal_coherence_starts_every_frame_cold(gl_ctx):
+    """temporal=false (what temporal coherence buys is measured against it): fronts are dropped
+    at every frame, so each front has traced exactly one frame; the default keeps them."""
+    prep = prepared_scene("room-anim", 1)
+    for temporal, want in (("false", 1), ("true", 2)):
+        r = Renderer(gl_ctx, prep.scene, prep.bvh, SIZE, "chcrt", parse_effects("primary"),
+                     backend_options={"chcrt": f"temporal={temporal}"})
+        try:
+            r.render(prep.scene.default_camera)
+            r.set_scene_time(0.9)
+            r.render(prep.scene.default_camera)
+            assert r.backend.fronts and all(f.frames == want for f in r.backend.fronts.values())
+        finally:
+            r.release()
+
+
 def test_bench_judges_each_animated_frame_by_its_own_geometry(gl_ctx):
     """`rtwalk bench` on an animated path: the Embree reference of the error column is built on each
     checked frame's triangles (a reference of the first frame reports moved objects as errors)."""

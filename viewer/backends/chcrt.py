@@ -114,6 +114,8 @@ class ChcrtParams:
     gpu_budget_mb: float = 0.0
     gpu_budget_fraction: float = 0.0
     seed: int = 1
+    # False: every frame starts cold from (screen, root) (measures what temporal coherence buys)
+    temporal: bool = True
 
     def validate(self, source: str = "chcrt") -> None:
         if not (1 <= self.max_batch <= 24 and 1 <= self.max_multi <= 24):
@@ -255,6 +257,8 @@ class ChcrtBackend:
     # -- Backend protocol ----------------------------------------------------------------------
     def begin_frame(self, frame_index: int) -> None:
         self.frame = int(frame_index)
+        if not self.p.temporal:
+            self.fronts.clear()
 
     def release(self) -> None:
         if self.targets is not None:
