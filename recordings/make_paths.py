@@ -85,7 +85,8 @@ def conference_walk() -> Recording:
 def room_anim_walk() -> Recording:
     """A slow walk through the animated room (`room-anim`) watching the objects fall, with scene
     time: the scene clock runs with the camera to 3 s, slows down (4.25 at 4.5 s, 5.0 at 6 s: a cube
-    bouncing in slow motion), then runs with the camera again (8.0 at 9 s). The camera stays inside the room (x, z in [-5, 5], y in [0, 5])."""
+    bouncing in slow motion), then runs with the camera again (8.0 at 9 s). The camera stays inside
+    the room (x, z in [-5, 5], y in [0, 5])."""
     y = 1.9
     pts = [((0.0, y, 4.4), (0.0, 1.2, -2.0)), ((1.2, y, 4.0), (2.0, 0.8, 1.0)),
            ((2.4, y + 0.3, 3.2), (0.4, 0.6, -1.4)), ((2.6, y + 0.5, 1.6), (-3.0, 1.0, 2.5)),

@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 
 REPO = Path(__file__).resolve().parents[1]
-SHADER_SUFFIXES = {".glsl", ".vert", ".frag", ".geom", ".comp", ".cl", ".h"}
+SHADER_SUFFIXES = {".glsl", ".vert", ".frag", ".geom", ".comp", ".cl", ".h", ".json"}  # + scene presets
 NO_BACKEND_HINT = ("No matching distribution", "Could not find a version", "Failed to establish",
                    "Temporary failure in name resolution", "Network is unreachable")
 

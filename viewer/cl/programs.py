@@ -25,9 +25,10 @@ _cache: dict[tuple[str, tuple[tuple[str, str], ...], int], Any] = {}
 
 
 def resolve(path: str | Path, search: Iterable[Path] = ()) -> Path:
-    """A kernel file: an absolute/existing path as given, else looked up in `search` then KERNELS_DIR."""
+    """A kernel file: an absolute path as given, else looked up in `search` then KERNELS_DIR (never in
+    the working directory: a stray file there must not replace a packaged kernel)."""
     p = Path(path)
-    if p.is_absolute() or p.exists():
+    if p.is_absolute():
         return p.resolve()
     for d in (*search, KERNELS_DIR):
         cand = Path(d) / p
@@ -81,7 +82,7 @@ def build(path: str | Path, defines: Mapping[str, Any] | None = None, ctx: ClCon
         args = [f"-D{k}={v}" if v != "" else f"-D{k}" for k, v in opts]
         try:
             prog = ctx.cl.Program(ctx.context, src).build(options=args)
-        except ctx.cl.RuntimeError as e:
+        except ctx.cl.Error as e:  # RuntimeError (build log) or LogicError (bad options, invalid program)
             first = str(e).strip().splitlines()
             raise RtwalkError(f"OpenCL build of {Path(path).name} failed: {' | '.join(first[:8])}") from None
         _cache[key] = prog
