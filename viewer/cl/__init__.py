@@ -34,6 +34,8 @@ Transfer (viewer/cl/transfer.py), layouts (n = width*height, row-major, row 0 = 
   HitStage(size)      .t float[n] (+inf miss), .tri int[n] (-1 miss);
                       .download(hit_buffer) maps them and writes the R32F / R32I textures;
                       .read() -> (t, tri) NumPy copies.
+  PassStages(ctx, extras=0)  .get(size) -> (RayStage, HitStage, *extra int32 per-pixel buffers), made
+                      again only when the size changes; .release(). What every CL backend stages.
   host_buffer(ctx, nbytes, access), mapped(ctx, buf, shape, dtype, write=False) context manager.
 
 Profiling (viewer/profiler.py)
@@ -59,11 +61,12 @@ from viewer.cl.context import (
     list_devices,
 )
 from viewer.cl.programs import KERNELS_DIR, build, expand, warm_up
-from viewer.cl.transfer import HitStage, RayStage, host_buffer, mapped
+from viewer.cl.transfer import HitStage, PassStages, RayStage, host_buffer, mapped
 
 ensure_pocl_cache_dir()
 
 __all__ = [
     "DEVICE_ENV", "NO_DEVICE", "ClContext", "choose_device", "cl_available", "cl_context", "ensure_pocl_cache_dir",
-    "list_devices", "KERNELS_DIR", "build", "expand", "warm_up", "HitStage", "RayStage", "host_buffer", "mapped",
+    "list_devices", "KERNELS_DIR", "build", "expand", "warm_up", "HitStage", "PassStages", "RayStage",
+    "host_buffer", "mapped",
 ]

@@ -110,3 +110,30 @@ class HitStage:
     def release(self) -> None:
         self.t.release()
         self.tri.release()
+
+
+class PassStages:
+    """A CL backend's staging at the ray-batch size: a RayStage, a HitStage and `extras` int32
+    per-pixel buffers (e.g. per-ray counters), made again only when the size changes (every
+    backend needs the same, so it lives here)."""
+
+    def __init__(self, ctx: ClContext, extras: int = 0, extra_access: str = "w"):
+        self.ctx, self.extras, self.extra_access = ctx, int(extras), extra_access
+        self.size: tuple[int, int] | None = None
+        self.parts: tuple = ()
+
+    def get(self, size: tuple[int, int]) -> tuple:
+        """(RayStage, HitStage, *extra buffers) for a ray batch of `size`."""
+        size = (int(size[0]), int(size[1]))
+        if size != self.size:
+            self.release()
+            n = size[0] * size[1]
+            self.parts = (RayStage(size, self.ctx), HitStage(size, self.ctx),
+                          *(host_buffer(self.ctx, 4 * n, self.extra_access) for _ in range(self.extras)))
+            self.size = size
+        return self.parts
+
+    def release(self) -> None:
+        for part in self.parts:
+            part.release()
+        self.parts, self.size = (), None

@@ -91,3 +91,28 @@ def float_depth_texture(ctx: moderngl.Context, size: tuple[int, int]) -> moderng
         tex.release()
         raise RtwalkError(f"could not create a 32-bit float depth buffer ({bits.value} bits, {err})")
     return tex
+
+
+class IntTextures:
+    """Named R32I textures at the ray-batch size, rewritten every pass (a backend's overlays):
+    a texture is made again only when the size changes."""
+
+    def __init__(self, ctx: moderngl.Context):
+        self.ctx = ctx
+        self.textures: dict[str, moderngl.Texture] = {}
+
+    def write(self, name: str, size: tuple[int, int], data) -> moderngl.Texture:
+        """The texture `name` at `size` holding `data` (int32, one value per pixel, row 0 = bottom)."""
+        tex = self.textures.get(name)
+        if tex is None or tuple(tex.size) != tuple(size):
+            if tex is not None:
+                tex.release()
+            tex = int_texture(self.ctx, size)
+            self.textures[name] = tex
+        tex.write(np.ascontiguousarray(data, np.int32))
+        return tex
+
+    def release(self) -> None:
+        for tex in self.textures.values():
+            tex.release()
+        self.textures.clear()

@@ -120,13 +120,13 @@ class ClbvhBackend(StatelessBackend):
                        counters=("rays",), device="cl")
 
     def __init__(self, bc: BackendContext, params: None = None):
-        from viewer.cl import cl_context
+        from viewer.cl import PassStages, cl_context
 
         self.bc = bc
         self.params = params
         self.ctx = cl_context()
         self.scene = ClbvhScene(bc.scene.triangles, bc.bvh, self.ctx)
-        self._stages = None  # (size, RayStage, HitStage)
+        self.stages = PassStages(self.ctx)
 
     def scene_changed(self, bc: BackendContext) -> None:
         """Rebuild the BVH4 (collapsed from the refitted binary BVH) and re-upload it with the
@@ -138,18 +138,9 @@ class ClbvhBackend(StatelessBackend):
         ms = (time.perf_counter() - t0) * 1e3
         bc.profiler.record("build:bvh4", ms, ms)
 
-    def _staged(self, size: tuple[int, int]):
-        from viewer.cl import HitStage, RayStage
-
-        size = (int(size[0]), int(size[1]))
-        if self._stages is None or self._stages[0] != size:
-            self._release_stages()
-            self._stages = (size, RayStage(size, self.ctx), HitStage(size, self.ctx))
-        return self._stages[1], self._stages[2]
-
     def trace(self, rays: RayBatch, pinfo: PassInfo, hits: HitBuffer) -> TraceResult:
         prof = self.bc.profiler
-        rs, hs = self._staged(rays.size)
+        rs, hs = self.stages.get(rays.size)
         q = self.ctx.queue
         with prof.cl_phase("clbvh:upload", q):
             rs.upload(rays)
@@ -159,12 +150,6 @@ class ClbvhBackend(StatelessBackend):
             hs.download(hits)
         return TraceResult(stats={"rays": self.scene.active_count()})  # the pass's active rays
 
-    def _release_stages(self) -> None:
-        if self._stages is not None:
-            self._stages[1].release()
-            self._stages[2].release()
-            self._stages = None
-
     def release(self) -> None:
-        self._release_stages()
+        self.stages.release()
         self.scene.release()

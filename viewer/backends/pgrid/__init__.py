@@ -25,7 +25,6 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 
@@ -84,7 +83,8 @@ class PgridBackend:
         device="cl")
 
     def __init__(self, bc: BackendContext, params: PgridParams | None = None):
-        from viewer.cl import build, cl_context
+        from viewer.cl import PassStages, build, cl_context
+        from viewer.gl.textures import IntTextures
 
         self.bc = bc
         self.params = params or PgridParams()
@@ -101,8 +101,8 @@ class PgridBackend:
         self._tris = None
         self._tris_key = None
         self._box = (np.zeros(3), np.ones(3))
-        self._stages = None
-        self._textures: dict[str, Any] = {}
+        self.stages = PassStages(self.ctx, extras=1)  # + triangle tests per ray
+        self.textures = IntTextures(bc.ctx)
         self._rebuild()
 
     # -- geometry -------------------------------------------------------------------------
@@ -143,16 +143,6 @@ class PgridBackend:
         return -1
 
     # -- tracing --------------------------------------------------------------------------
-    def _staged(self, size: tuple[int, int]):
-        from viewer.cl import HitStage, RayStage, host_buffer
-
-        size = (int(size[0]), int(size[1]))
-        if self._stages is None or self._stages[0] != size:
-            self._release_stages()
-            n = size[0] * size[1]
-            self._stages = (size, RayStage(size, self.ctx), HitStage(size, self.ctx), host_buffer(self.ctx, 4 * n, "w"))
-        return self._stages[1], self._stages[2], self._stages[3]
-
     def _centre(self, pinfo: PassInfo, rs) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
         """(centre, sampled origins, sampled directions) for a point-grid pass, else None."""
         from viewer.cl import mapped
@@ -179,7 +169,7 @@ class PgridBackend:
 
     def trace(self, rays: RayBatch, pinfo: PassInfo, hits: HitBuffer) -> TraceResult:
         prof = self.bc.profiler
-        rs, hs, tests = self._staged(rays.size)
+        rs, hs, tests = self.stages.get(rays.size)
         q = self.ctx.queue
         count = bool(self.overlays_enabled)
         label = pinfo.ray_type.label
@@ -218,11 +208,11 @@ class PgridBackend:
 
             with mapped(self.ctx, tests, (rs.n,), np.int32) as a:
                 stats["tests_per_ray"] = float(a.sum()) / max(rs.n, 1)
-                overlays["triangle_tests"] = self._texture("triangle_tests", rays.size, a)
+                overlays["triangle_tests"] = self.textures.write("triangle_tests", rays.size, a)
             if point is not None:
                 chunk_of, tile_rays = self._chunk_maps(rs.n)
-                overlays["light_chunks"] = self._texture("light_chunks", rays.size, chunk_of)
-                overlays["tile_rays"] = self._texture("tile_rays", rays.size, tile_rays)
+                overlays["light_chunks"] = self.textures.write("light_chunks", rays.size, chunk_of)
+                overlays["tile_rays"] = self.textures.write("tile_rays", rays.size, tile_rays)
         return TraceResult(stats=stats, overlays=overlays)
 
     def _chunk_maps(self, n: int) -> tuple[np.ndarray, np.ndarray]:
@@ -243,29 +233,9 @@ class PgridBackend:
         tile_rays[pos[keep]] = per_tile[key[ch[keep]].astype(np.int64)].astype(np.int32)
         return chunk_of, tile_rays
 
-    def _texture(self, name: str, size: tuple[int, int], data: np.ndarray):
-        from viewer.gl.textures import int_texture
-
-        tex = self._textures.get(name)
-        if tex is None or tuple(tex.size) != tuple(size):
-            if tex is not None:
-                tex.release()
-            tex = int_texture(self.bc.ctx, size)
-            self._textures[name] = tex
-        tex.write(np.ascontiguousarray(data, np.int32).tobytes())
-        return tex
-
-    def _release_stages(self) -> None:
-        if self._stages is not None:
-            for s in self._stages[1:]:
-                s.release()
-            self._stages = None
-
     def release(self) -> None:
-        self._release_stages()
-        for t in self._textures.values():
-            t.release()
-        self._textures.clear()
+        self.stages.release()
+        self.textures.release()
         if self._tris is not None:
             self._tris.release()
             self._tris = None

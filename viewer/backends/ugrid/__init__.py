@@ -86,7 +86,8 @@ class UgridBackend:
                        counters=("rays", "grid_pairs", "grid_nonempty", "grid_build_ms", "tests_per_ray"), device="cl")
 
     def __init__(self, bc: BackendContext, params: UgridParams | None = None):
-        from viewer.cl import cl_context
+        from viewer.cl import PassStages, cl_context
+        from viewer.gl.textures import IntTextures
 
         self.bc = bc
         self.params = params or UgridParams()
@@ -96,8 +97,8 @@ class UgridBackend:
         self.tracer = GridTracer(self.ctx, self.grid)
         self._tris = None
         self._tris_key: tuple[int, int] | None = None
-        self._stages = None  # (size, RayStage, HitStage, tests buffer)
-        self._overlay = None
+        self.stages = PassStages(self.ctx, extras=1)  # + triangle tests per ray
+        self.textures = IntTextures(bc.ctx)
         self._grid_stats_due = True
         self._rebuild()
 
@@ -140,19 +141,9 @@ class UgridBackend:
         return -1
 
     # -- tracing --------------------------------------------------------------------------
-    def _staged(self, size: tuple[int, int]):
-        from viewer.cl import HitStage, RayStage, host_buffer
-
-        size = (int(size[0]), int(size[1]))
-        if self._stages is None or self._stages[0] != size:
-            self._release_stages()
-            n = size[0] * size[1]
-            self._stages = (size, RayStage(size, self.ctx), HitStage(size, self.ctx), host_buffer(self.ctx, 4 * n, "w"))
-        return self._stages[1], self._stages[2], self._stages[3]
-
     def trace(self, rays: RayBatch, pinfo: PassInfo, hits: HitBuffer) -> TraceResult:
         prof = self.bc.profiler
-        rs, hs, tests = self._staged(rays.size)
+        rs, hs, tests = self.stages.get(rays.size)
         q = self.ctx.queue
         count = bool(self.overlays_enabled)
         with prof.cl_phase("ugrid:upload", q):
@@ -173,29 +164,15 @@ class UgridBackend:
 
     def _overlay_texture(self, size: tuple[int, int], buf: Any, n: int):
         from viewer.cl import mapped
-        from viewer.gl.textures import int_texture
 
-        if self._overlay is None or tuple(self._overlay.size) != tuple(size):
-            if self._overlay is not None:
-                self._overlay.release()
-            self._overlay = int_texture(self.bc.ctx, size)
         with mapped(self.ctx, buf, (n,), np.int32) as a:
-            self._overlay.write(a)
+            tex = self.textures.write("triangle_tests", size, a)
             per_ray = float(a.sum()) / max(n, 1)
-        return self._overlay, per_ray
-
-    def _release_stages(self) -> None:
-        if self._stages is not None:
-            self._stages[1].release()
-            self._stages[2].release()
-            self._stages[3].release()
-            self._stages = None
+        return tex, per_ray
 
     def release(self) -> None:
-        self._release_stages()
-        if self._overlay is not None:
-            self._overlay.release()
-            self._overlay = None
+        self.stages.release()
+        self.textures.release()
         if self._tris is not None:
             self._tris.release()
             self._tris = None

@@ -81,7 +81,7 @@ class VoxelsBackend:
                        counters=("rays", "voxels"), device="cl", exact=False)
 
     def __init__(self, bc: BackendContext, params: VoxelsParams | None = None):
-        from viewer.cl import cl_context
+        from viewer.cl import PassStages, cl_context
 
         self.bc = bc
         self.params = params or VoxelsParams()
@@ -94,7 +94,7 @@ class VoxelsBackend:
               f"{st['interior_nodes']:,} nodes x {st['node_bytes']} B + {st['leaves']:,} leaves x {st['leaf_bytes']} B"
               f" = {st['memory_bytes'] / 2**20:.1f} MiB, mean leaf depth {st['mean_leaf_depth']:.2f}",
               file=sys.stderr, flush=True)
-        self._stages = None  # (size, RayStage, HitStage, vox buffer)
+        self.stages = PassStages(self.ctx, extras=1, extra_access="rw")  # + hit voxel per ray
 
     def _voxelize(self, bc: BackendContext) -> None:
         """Voxelize the scene's triangles and build the chosen structure and its tracer."""
@@ -113,17 +113,6 @@ class VoxelsBackend:
         ms = (time.perf_counter() - t0) * 1e3
         bc.profiler.record("build:voxels", ms, ms)
 
-    def _staged(self, size: tuple[int, int]):
-        from viewer.cl import HitStage, RayStage
-
-        size = (int(size[0]), int(size[1]))
-        if self._stages is None or self._stages[0] != size:
-            self._release_stages()
-            cl = self.ctx.cl
-            vox = cl.Buffer(self.ctx.context, cl.mem_flags.READ_WRITE, 4 * size[0] * size[1])
-            self._stages = (size, RayStage(size, self.ctx), HitStage(size, self.ctx), vox)
-        return self._stages[1:]
-
     def begin_frame(self, frame_index: int) -> None:
         pass
 
@@ -135,7 +124,7 @@ class VoxelsBackend:
 
     def trace(self, rays: RayBatch, pinfo: PassInfo, hits: HitBuffer) -> TraceResult:
         prof = self.bc.profiler
-        rs, hs, vox = self._staged(rays.size)
+        rs, hs, vox = self.stages.get(rays.size)
         q = self.ctx.queue
         secondary = pinfo.ray_type != RayType.PRIMARY
         bias = self.params.bias if secondary else 0.0
@@ -148,13 +137,6 @@ class VoxelsBackend:
             hs.download(hits)
         return TraceResult(stats={"rays": rs.n, "voxels": self.voxels.count})
 
-    def _release_stages(self) -> None:
-        if self._stages is not None:
-            self._stages[1].release()
-            self._stages[2].release()
-            self._stages[3].release()
-            self._stages = None
-
     def release(self) -> None:
-        self._release_stages()
+        self.stages.release()
         self.tracer.release()

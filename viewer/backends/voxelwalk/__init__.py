@@ -31,7 +31,6 @@ series are in `last_stats` (viewer.bench.voxelwalk reads them).
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any
 
 import numpy as np
 
@@ -94,7 +93,8 @@ class VoxelwalkBackend:
         device="cl")
 
     def __init__(self, bc: BackendContext, params: VoxelwalkParams | None = None):
-        from viewer.cl import cl_context
+        from viewer.cl import PassStages, cl_context
+        from viewer.gl.textures import IntTextures
 
         self.bc = bc
         self.params = params or VoxelwalkParams()
@@ -104,8 +104,8 @@ class VoxelwalkBackend:
         self.walker = VoxelWalker(self.ctx, self.grid, self.params.chunk, self.params.cells)
         self._tris = None
         self._tris_key: tuple[int, int] | None = None
-        self._stages = None
-        self._textures: dict[str, Any] = {}
+        self.stages = PassStages(self.ctx)
+        self.textures = IntTextures(bc.ctx)
         self.last_stats: PassStats | None = None
         self._frame_stats: dict[str, float] = {}  # reported by the frame's first pass (the renderer sums passes)
         self._build_ms = 0.0
@@ -155,18 +155,9 @@ class VoxelwalkBackend:
         return -1
 
     # -- tracing --------------------------------------------------------------------------
-    def _staged(self, size: tuple[int, int]):
-        from viewer.cl import HitStage, RayStage
-
-        size = (int(size[0]), int(size[1]))
-        if self._stages is None or self._stages[0] != size:
-            self._release_stages()
-            self._stages = (size, RayStage(size, self.ctx), HitStage(size, self.ctx))
-        return self._stages[1], self._stages[2]
-
     def trace(self, rays: RayBatch, pinfo: PassInfo, hits: HitBuffer) -> TraceResult:
         prof = self.bc.profiler
-        rs, hs = self._staged(rays.size)
+        rs, hs = self.stages.get(rays.size)
         q = self.ctx.queue
         want = bool(self.overlays_enabled or self.params.stats)
         with prof.cl_phase("voxelwalk:upload", q):
@@ -206,34 +197,14 @@ class VoxelwalkBackend:
                 if len(per_tile):
                     stats[f"tile_divergence_{label}"] = float(per_tile.mean())
             if self.overlays_enabled:
-                overlays["iterations"] = self._texture("iterations", rays.size, ps.iters)
+                overlays["iterations"] = self.textures.write("iterations", rays.size, ps.iters)
                 if div is not None:
-                    overlays["tile_divergence"] = self._texture("tile_divergence", rays.size, div)
+                    overlays["tile_divergence"] = self.textures.write("tile_divergence", rays.size, div)
         return TraceResult(stats=stats, overlays=overlays)
 
-    def _texture(self, name: str, size: tuple[int, int], data: np.ndarray):
-        from viewer.gl.textures import int_texture
-
-        tex = self._textures.get(name)
-        if tex is None or tuple(tex.size) != tuple(size):
-            if tex is not None:
-                tex.release()
-            tex = int_texture(self.bc.ctx, size)
-            self._textures[name] = tex
-        tex.write(np.ascontiguousarray(data, np.int32).tobytes())
-        return tex
-
-    def _release_stages(self) -> None:
-        if self._stages is not None:
-            for s in self._stages[1:]:
-                s.release()
-            self._stages = None
-
     def release(self) -> None:
-        self._release_stages()
-        for t in self._textures.values():
-            t.release()
-        self._textures.clear()
+        self.stages.release()
+        self.textures.release()
         if self._tris is not None:
             self._tris.release()
             self._tris = None
