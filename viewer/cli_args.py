@@ -32,6 +32,17 @@ def parse_size(text: str) -> tuple[int, int]:
     return w, h
 
 
+def parse_choices(text: str, allowed, option: str) -> list[str]:
+    """"a,b" -> ["a", "b"], each one of `allowed`; "all" -> every allowed one (the studies' lists)."""
+    items = [s.strip() for s in text.split(",") if s.strip()]
+    if items == ["all"]:
+        return list(allowed)
+    bad = [s for s in items if s not in allowed]
+    if bad or not items:
+        raise RtwalkError(f"{option}: unknown {', '.join(bad) or '(none)'} (choose from {', '.join(allowed)})")
+    return items
+
+
 def parse_image_sizes(text: str, option: str = "--sizes") -> list[tuple[int, int]]:
     """"640x360,1280x720" -> [(640, 360), (1280, 720)], each item checked as parse_size does."""
     items = [s.strip() for s in text.split(",") if s.strip()]

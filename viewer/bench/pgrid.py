@@ -36,6 +36,7 @@ import numpy as np
 
 from viewer.bench.plots import figure, finish
 from viewer.bench.report import fmt, md_table, size_text, write_study
+from viewer.cli_args import parse_choices
 from viewer.errors import RtwalkError
 
 STUDIES = ("table41", "lightdist", "model")
@@ -73,16 +74,6 @@ def _sizes(text: str) -> list[tuple[int, int]]:
     if not out:
         raise RtwalkError("--sizes: no size given")
     return out
-
-
-def _list(text: str, allowed, what: str) -> list[str]:
-    items = [s.strip() for s in text.split(",") if s.strip()]
-    if items == ["all"]:
-        return list(allowed)
-    bad = [s for s in items if s not in allowed]
-    if bad or not items:
-        raise RtwalkError(f"{what}: unknown {', '.join(bad) or '(none)'} (choose from {', '.join(allowed)})")
-    return items
 
 
 def _log(args, msg: str) -> None:
@@ -192,7 +183,7 @@ def _terms(res: dict, builds: dict[str, float]) -> dict[str, dict[str, float]]:
 
 def study_table41(args, ctx) -> dict:
     rows = []
-    for name in _list(args.scenes, SCENES, "--scenes"):
+    for name in parse_choices(args.scenes, SCENES, "--scenes"):
         prep, cam = load_scene(args, name)
         builds = bvh_build_ms(prep)
         for size in _sizes(args.sizes):
@@ -205,7 +196,7 @@ def study_table41(args, ctx) -> dict:
                          "terms": _terms(res, builds), "phases": {k: v["phases"] for k, v in res.items()},
                          "stats": {k: v["stats"] for k, v in res.items()}, "bvh_build_ms": builds})
     md = ["# Thesis Table 4.1 analog: primary + shadow rays, one point light (ms per frame, medians)", "",
-          f"Command: `{_command()}`", ""]
+          f"Command: `{args.command_line}`", ""]
     head = ["scene", "size", "backend", "prim. DS build", "prim. trace", "shadow DS build", "rearrange",
             "shadow trace", "total", "fps", "total w/o build"]
     body = []
@@ -236,7 +227,7 @@ def study_table41(args, ctx) -> dict:
                      fmt(ps.get("chunk_occupancy_shadows", nan), 2), fmt(ps.get("outside_rays_shadows", nan), 0)])
     md.append(md_table(head, body))
     _plot_table41(rows, Path(args.out) / "table41.png")
-    res = write_study(Path(args.out), "table41", {"rows": rows, "command": _command()}, "\n".join(md))
+    res = write_study(Path(args.out), "table41", {"rows": rows, "command": args.command_line}, "\n".join(md))
     res["rows"] = rows
     return res
 
@@ -302,7 +293,7 @@ def study_lightdist(args, ctx) -> dict:
         rows.append(row)
     labels = list(configs)
     md = [f"# Thesis Figure 4.9 analog: shadow time vs light distance ({name}, {size_text(size)}, ms, medians)", "",
-          f"Command: `{_command()}`", "",
+          f"Command: `{args.command_line}`", "",
           md_table(["distance (diagonals)"] + [f"{lb} total" for lb in labels] + ["chunk=64 trace", "chunk=64 chunks",
                                                                                  "chunk=64 occupancy"],
                    [[fmt(r["distance"], 2)] + [fmt(r["configs"][lb]["total"]) for lb in labels]
@@ -317,7 +308,7 @@ def study_lightdist(args, ctx) -> dict:
     ax.set_ylabel("shadow ms (build + rearrange + trace)")
     ax.legend(fontsize=8)
     finish(fig, Path(args.out) / "lightdist.png", f"Figure 4.9 analog ({name})")
-    return write_study(Path(args.out), "lightdist", {"rows": rows, "command": _command()}, "\n".join(md))
+    return write_study(Path(args.out), "lightdist", {"rows": rows, "command": args.command_line}, "\n".join(md))
 
 
 # -------------------------------------------------------------------------------------------- model
@@ -346,7 +337,7 @@ def study_model(args, table41: dict | None) -> dict:
     rows = table41["rows"]
     lights = np.arange(0, 17, dtype=np.float64)
     md = ["# Thesis Figures 4.10 / 5.5 analog: cost model from the measured terms", "",
-          f"Command: `{_command()}`", "",
+          f"Command: `{args.command_line}`", "",
           "Break-even: the smallest number of lights (no secondary pass) and of secondary passes (one light) "
           "at which a per-frame clbvh build + traversal is faster than pgrid's per-pass grids ('-': not within 64).",
           ""]
@@ -376,25 +367,18 @@ def study_model(args, table41: dict | None) -> dict:
         ax.set_ylabel("ms per frame (model)")
         ax.legend(fontsize=6)
     finish(fig, Path(args.out) / "model.png", "Cost model: per-frame BVH vs per-pass grids")
-    return write_study(Path(args.out), "model", {"rows": body, "command": _command()}, "\n".join(md))
+    return write_study(Path(args.out), "model", {"rows": body, "command": args.command_line}, "\n".join(md))
 
 
 # ---------------------------------------------------------------------------------------------- run
-
-
-def _command() -> str:
-    argv = sys.argv[1:]
-    if argv and argv[0] == "bench-pgrid":
-        argv = argv[1:]
-    return " ".join(["rtwalk bench-pgrid", *argv])
 
 
 def run(args) -> int:
     from viewer.cl import cl_context
     from viewer.gl.context import shared_context
 
-    studies = _list(args.study, STUDIES, "--study")
-    _list(args.scenes, SCENES, "--scenes")
+    studies = parse_choices(args.study, STUDIES, "--study")
+    parse_choices(args.scenes, SCENES, "--scenes")
     _sizes(args.sizes)
     if args.frames < 1:
         raise RtwalkError("--frames must be >= 1")

@@ -35,6 +35,7 @@ import numpy as np
 
 from viewer.bench.plots import figure, finish
 from viewer.bench.report import fmt, md_table, size_text, write_study
+from viewer.cli_args import parse_choices
 from viewer.errors import RtwalkError
 
 STUDIES = ("table51", "iterations", "resolution")
@@ -62,16 +63,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def _log(args, msg: str) -> None:
     if not args.quiet:
         print(f"bench-voxelwalk: {msg}", file=sys.stderr, flush=True)
-
-
-def _list(text: str, allowed, what: str) -> list[str]:
-    items = [s.strip() for s in text.split(",") if s.strip()]
-    if items == ["all"]:
-        return list(allowed)
-    bad = [s for s in items if s not in allowed]
-    if bad or not items:
-        raise RtwalkError(f"{what}: expected a comma list of {', '.join(allowed)} (got '{text}')")
-    return items
 
 
 def _sizes(text: str) -> list[tuple[int, int]]:
@@ -272,7 +263,7 @@ def collect(args, ctx_gl) -> list[dict]:
     from viewer.bench.pgrid import bvh_build_ms
 
     rows = []
-    for name in _list(args.scenes, SCENES, "--scenes"):
+    for name in parse_choices(args.scenes, SCENES, "--scenes"):
         prep, cam = load_scene(args, name)
         dev = Device(prep, args.chunk)
         try:
@@ -299,7 +290,7 @@ def collect(args, ctx_gl) -> list[dict]:
 
 def study_table51(args, rows: list[dict]) -> dict:
     md = ["# Thesis Table 5.1 analog: reflection rays through the uniform grid, IVW vs EC (ms, medians)", "",
-          f"Command: `{_command()}`", ""]
+          f"Command: `{args.command_line}`", ""]
     head = ["scene", "size", "refl. rays", "grid", "DS build", "ray-cell pairs", "work-groups", "EC reorder",
             "EC trace", "EC total", "IVW trace", "IVW/EC", "EC all pairs: pairs / total", "clbvh trace",
             "frame: build+IVW", "frame: build+EC", "frame: BVH build+clbvh"]
@@ -335,7 +326,7 @@ def study_table51(args, rows: list[dict]) -> dict:
            "binary SAH build + BVH4 collapse on the CPU) is rebuilt every frame before the reflection pass. "
            "Agreement: rays whose IVW / EC hit equals clbvh's (same triangle, or the same distance: a tie)."]
     _plot_table51(rows, Path(args.out) / "table51.png")
-    return write_study(Path(args.out), "table51", {"rows": rows, "command": _command()}, "\n".join(md))
+    return write_study(Path(args.out), "table51", {"rows": rows, "command": args.command_line}, "\n".join(md))
 
 
 def _plot_table51(rows: list[dict], path: Path) -> None:
@@ -365,7 +356,7 @@ def _plot_table51(rows: list[dict], path: Path) -> None:
 
 def study_iterations(args, rows: list[dict]) -> dict:
     md = ["# Thesis Figures 5.2 / 5.3 analog: rays resolved per iteration, rays per cell, tile divergence", "",
-          f"Command: `{_command()}`", ""]
+          f"Command: `{args.command_line}`", ""]
     head = ["scene", "size", "resolved after 1 / 2 / 4 / 8 / 16 it. (%)", "iterations (EC)",
             "rays per cell p50 / p90 / p99 / max", "cells per 8x8 tile it. 1 / 2 / 4 / 8"]
     body = []
@@ -383,8 +374,8 @@ def study_iterations(args, rows: list[dict]) -> dict:
     md += ["", "Iteration k: the k-th non-empty cell along each ray (IVW and EC visit the same cells). Resolved: "
            "% of the active reflection rays whose walk ended by iteration k (cumulative)."]
     _plot_iterations(rows, Path(args.out) / "iterations.png")
-    return write_study(Path(args.out), "iterations", {"rows": [{k: r[k] for k in ("scene", "size", "walk")}
-                                                               for r in rows], "command": _command()}, "\n".join(md))
+    summary = [{k: r[k] for k in ("scene", "size", "walk")} for r in rows]
+    return write_study(Path(args.out), "iterations", {"rows": summary, "command": args.command_line}, "\n".join(md))
 
 
 def _plot_iterations(rows: list[dict], path: Path) -> None:
@@ -414,7 +405,7 @@ def _plot_iterations(rows: list[dict], path: Path) -> None:
 def study_resolution(args, ctx_gl) -> dict:
     size = _sizes(args.sizes)[0]
     out = []
-    for name in _list(args.scenes, SCENES, "--scenes"):
+    for name in parse_choices(args.scenes, SCENES, "--scenes"):
         prep, cam = load_scene(args, name)
         dev = Device(prep, args.chunk)
         rs = None
@@ -437,7 +428,7 @@ def study_resolution(args, ctx_gl) -> dict:
                 rs.stage.release()
                 rs.hits.release()
             dev.release()
-    md = ["# Reflection-pass time against the grid resolution (ms, medians)", "", f"Command: `{_command()}`", ""]
+    md = ["# Reflection-pass time against the grid resolution (ms, medians)", "", f"Command: `{args.command_line}`", ""]
     head = ["scene", "cells (longest axis)", "grid", "tri-cell pairs", "build", "IVW", "EC total", "EC trace",
             "clbvh"]
     body = []
@@ -448,7 +439,7 @@ def study_resolution(args, ctx_gl) -> dict:
                          fmt(p["ivw_ms"]), fmt(p["ec_ms"]), fmt(p["ec_trace_ms"]), fmt(p["clbvh_ms"])])
     md.append(md_table(head, body))
     _plot_resolution(out, Path(args.out) / "resolution.png")
-    return write_study(Path(args.out), "resolution", {"scenes": out, "command": _command()}, "\n".join(md))
+    return write_study(Path(args.out), "resolution", {"scenes": out, "command": args.command_line}, "\n".join(md))
 
 
 def _plot_resolution(out: list[dict], path: Path) -> None:
@@ -473,19 +464,12 @@ def _plot_resolution(out: list[dict], path: Path) -> None:
 # ---------------------------------------------------------------------------------------------- run
 
 
-def _command() -> str:
-    argv = sys.argv[1:]
-    if argv and argv[0] == "bench-voxelwalk":
-        argv = argv[1:]
-    return " ".join(["rtwalk bench-voxelwalk", *argv])
-
-
 def run(args) -> int:
     from viewer.cl import cl_context
     from viewer.gl.context import shared_context
 
-    studies = _list(args.study, STUDIES, "--study")
-    _list(args.scenes, SCENES, "--scenes")
+    studies = parse_choices(args.study, STUDIES, "--study")
+    parse_choices(args.scenes, SCENES, "--scenes")
     _sizes(args.sizes)
     _ints(args.resolutions, "--resolutions")
     if args.repeats < 1:
