@@ -389,9 +389,11 @@ def test_renderer_every_ray_type_agrees_with_embree(gl_ctx, name):
 # pgrid's point-centred grids: rays that all pass through a light or start at an eye
 
 
-def trace_centred(tris, o, d, tmin, tmax, ray_type, light=None, params: str | None = None):
+def trace_centred(tris, o, d, tmin, tmax, ray_type, light=None, params: str | None = None,
+                  size: tuple[int, int] | None = None, keep=None):
     """Trace with pgrid as a pass of `ray_type` in a scene with one point light at `light`;
-    returns (t, tri in input order, backend stats)."""
+    returns (t, tri in input order, backend stats). `size`: the image the rays fill (row-major,
+    row 0 first; default up to 1024 wide); `keep(backend)` is called after the trace."""
     from viewer.accel.bvh import build_bvh
     from viewer.backends import create_backend
     from viewer.backends.base import BackendContext
@@ -409,8 +411,9 @@ def trace_centred(tris, o, d, tmin, tmax, ray_type, light=None, params: str | No
     scene = Scene("pg", tris, np.zeros(len(tris), np.int32), [Material("grey", np.full(3, 0.7, F32))],
                   point_lights=lights).reordered(bvh.tri_order)
     n = len(o)
-    width = min(n, 1024)
-    size = (width, -(-n // width))
+    if size is None:
+        width = min(n, 1024)
+        size = (width, -(-n // width))
     pad = size[0] * size[1]
     org = np.zeros((pad, 4), F32)
     dirs = np.zeros((pad, 4), F32)
@@ -426,6 +429,8 @@ def trace_centred(tris, o, d, tmin, tmax, ray_type, light=None, params: str | No
         be = create_backend("pgrid", bc, params)
         be.begin_frame(0)
         res = be.trace(rays, PassInfo(ray_type, light=0), hits)
+        if keep is not None:
+            keep(be)
         be.release()
         t, slot = hits.read()
     finally:
@@ -486,8 +491,8 @@ def test_pgrid_shadow_rays_through_light(light_at, params):
 @needs_cl
 @pytest.mark.parametrize("tiles", [0, 3, 40])
 def test_pgrid_primary_rays_from_eye(tiles):
-    """Rays from one eye point (closest hit): the eye-centred grid with the slab check against the
-    float64 reference, including axis-parallel directions and an eye inside the scene."""
+    """Rays from one eye point (closest hit): the eye-centred angular grid with the slab check
+    against the float64 reference, including axis-parallel directions and an eye inside the scene."""
     from viewer.effects import RayType
 
     rng = np.random.default_rng(22)
@@ -501,7 +506,8 @@ def test_pgrid_primary_rays_from_eye(tiles):
         o = np.broadcast_to(eye, (n, 3)).astype(F32)
         tmin = np.zeros(n, F32)
         tmax = np.full(n, np.inf, F32)
-        t, tri, stats = trace_centred(tris, o, d, tmin, tmax, RayType.PRIMARY, params=f"tiles={tiles}")
+        t, tri, stats = trace_centred(tris, o, d, tmin, tmax, RayType.PRIMARY,
+                                      params=f"tiles={tiles},primary=angular")
         assert stats["outside_rays"] == stats["rays"] - n, stats  # only the texture's padding
         out = _judge(tris, o, d, tmin, tmax, t, tri, False)
         assert out.rhit.sum() > 0.3 * n

@@ -1,24 +1,29 @@
 """pgrid: per-pass grids specialised to the ray type (Guntury & Narayanan, EGPGV 2010 / thesis 2011).
 
+* Primary rays: the camera perspective grid (viewer.accel.camgrid), rebuilt every frame: image
+  tiles x depth slabs, frustum culling (triangles clipped to the frustum), back-face culling
+  where it is exact (`backface=auto`: the scene is closed and faces outward, and the eye is
+  outside the scene box; `on` forces it), one pair per cell a triangle overlaps, radix sort by
+  cell; traced with 8 x 8 work-groups (camera.cl beside this file), k x k of them per tile
+  (`k`: the indirect mapping), triangles staged slab by slab with the slab check. The camera is
+  read off the rays (their four corner rays); a batch of "primary" rays that is not a pinhole
+  image falls back to the eye-centred angular grid below (`primary=angular` forces that,
+  `primary=grid` sends primary rays through the uniform grid).
 * Shadow rays (point light `PassInfo.light` of scene.point_lights): a spherical grid around the
   light (viewer.accel.pointgrid), rebuilt every pass: rays sorted into (tile) chunks of at most
   `chunk` rays, one work-group per chunk with the tile's triangles staged in local memory slab by
   slab, any-hit early exit (trace.cl beside this file).
-* Primary rays: the same point-centred grid around the eye (taken from the rays: every primary
-  ray starts there), i.e. a perspective grid of angular tiles x depth slabs; triangles outside
-  the rays' angular rectangle are culled (frustum culling), closest hit with the slab check.
-  Not done from the thesis: image-space tiles, back-face culling and the indirect kN x kN
-  mapping (the angular tiles play the part of image tiles).
-* Soft shadows, AO, diffuse and reflection rays, and any ray whose segment does not stay within
-  the angular margin of one direction from the centre (checked per ray, in double): the uniform
-  grid of ugrid (viewer.accel.grid, built once per scene geometry), so every ray is traced
-  exactly. Soft-shadow rays end at different points of an area light, so they take this way.
+* Soft shadows, AO, diffuse and reflection rays, and any ray a grid cannot take (checked per ray,
+  in double): the uniform grid of ugrid (viewer.accel.grid, built once per scene geometry), so
+  every ray is traced exactly. Soft-shadow rays end at different points of an area light, so
+  they take this way.
 
-Parameters: chunk (rays per work-group: 16..256), balance (chunks; off: one work-group per
-tile), tile_rays / tiles (angular tiling), slabs, margin (radians), density / resolution /
-rebuild (the uniform grid; rebuild: every frame). Counters: pairs, chunks,
-chunk_occupancy, culled and widened (pole/seam) triangles, rays outside the grid, tests per ray
-(with the overlays on).
+Parameters: primary (image | angular | grid), k (indirect mapping), backface (auto | on | off),
+chunk (rays per work-group: 16..256), balance (chunks; off: one work-group per tile), tile_rays /
+tiles (angular tiling), slabs (both grids), margin (radians, the angular grids), density /
+resolution / rebuild (the uniform grid; rebuild: every frame). Counters: pairs, chunks,
+chunk_occupancy, culled (frustum / back-face) and widened (pole/seam) triangles, rays outside the
+grids, tests per ray (with the overlays on).
 """
 
 from __future__ import annotations
@@ -28,6 +33,8 @@ from pathlib import Path
 
 import numpy as np
 
+from viewer.accel.camgrid import CameraGrid, CameraGridSpec, closed_outward, corner_rays, fit_camera
+from viewer.accel.camgrid import N as CAMERA_N
 from viewer.accel.grid import GridSpec, UniformGrid, scene_box, triangles_f4
 from viewer.accel.pointgrid import PointGrid, PointGridSpec
 from viewer.backends.base import BackendContext, TraceResult
@@ -38,6 +45,7 @@ from viewer.errors import RtwalkError
 from viewer.rays import HitBuffer, PassInfo, RayBatch
 
 KERNEL = Path(__file__).resolve().parent / "trace.cl"
+CAMERA_KERNEL = Path(__file__).resolve().parent / "camera.cl"
 SAMPLE = 4096  # rays sampled (strided) to choose the spherical frame
 
 
@@ -48,7 +56,9 @@ class PgridParams:
     tiles: int = 0  # >0: tiles along the longer side of the angular rectangle
     slabs: int = 16  # distance slabs per tile
     margin: float = 0.004  # angular margin (radians) a ray may deviate from its tile direction
-    primary: bool = True  # primary rays through the eye-centred grid (else the uniform grid)
+    primary: str = "image"  # image: camera perspective grid; angular: eye-centred grid; grid: uniform grid
+    k: int = 1  # camera grid: indirect mapping (tiles of k x 8 pixels)
+    backface: str = "auto"  # camera grid: auto (where exact), on, off
     balance: bool = True  # cut tiles into chunks of `chunk` rays (False: one work-group per tile)
     rebuild: bool = False  # rebuild the uniform grid every frame (animated scenes; timing studies)
     density: float = 2.0  # uniform grid (other ray types): ~cells per triangle
@@ -63,6 +73,12 @@ class PgridParams:
             raise RtwalkError(f"{source}: slabs must be in 1..256 (got {self.slabs})")
         if not 1e-5 <= self.margin <= 0.1:
             raise RtwalkError(f"{source}: margin must be in 1e-5..0.1 radians (got {self.margin})")
+        if self.primary not in ("image", "angular", "grid"):
+            raise RtwalkError(f"{source}: primary must be image, angular or grid (got {self.primary})")
+        if self.backface not in ("auto", "on", "off"):
+            raise RtwalkError(f"{source}: backface must be auto, on or off (got {self.backface})")
+        if not 1 <= self.k <= 16:
+            raise RtwalkError(f"{source}: k must be in 1..16 (got {self.k})")
         if not self.density > 0 or not 0 <= self.resolution <= 2048:
             raise RtwalkError(f"{source}: density must be > 0 and resolution in 0..2048")
 
@@ -78,8 +94,8 @@ class PgridBackend:
         overlays=(OverlaySpec("triangle_tests", "heat", "triangle_tests", "triangles tested per ray"),
                   OverlaySpec("light_tiles", "ids", "light_chunks", "chunks (colours) and rays per tile",
                               counts="tile_rays")),
-        counters=("rays", "pairs", "chunks", "chunk_occupancy", "culled", "widened", "outside_rays", "tests_per_ray",
-                  "pgrid_build_ms", "rearrange_ms"),
+        counters=("rays", "pairs", "chunks", "chunk_occupancy", "culled", "culled_frustum", "culled_backface",
+                  "near_eye", "widened", "outside_rays", "tests_per_ray", "pgrid_build_ms", "rearrange_ms"),
         device="cl")
 
     def __init__(self, bc: BackendContext, params: PgridParams | None = None):
@@ -93,11 +109,16 @@ class PgridBackend:
         self.grid = UniformGrid(self.ctx)
         self.tracer = GridTracer(self.ctx, self.grid)
         self.pgrid = PointGrid(self.ctx, self.grid.prims)
+        self.camgrid = CameraGrid(self.ctx, self.grid.prims)
         cl = self.ctx.cl
-        self._kernels = {}
+        self._kernels, self._camera_kernels = {}, {}
         for count in (False, True):
-            prog = build(KERNEL, {"WG": self.params.chunk, **({"COUNT_TESTS": None} if count else {})}, self.ctx)
+            extra = {"COUNT_TESTS": None} if count else {}
+            prog = build(KERNEL, {"WG": self.params.chunk, **extra}, self.ctx)
             self._kernels[count] = cl.Kernel(prog, "pg_trace")
+            prog = build(CAMERA_KERNEL, {"CN": CAMERA_N, **extra}, self.ctx)
+            self._camera_kernels[count] = cl.Kernel(prog, "cg_trace")
+        self._closed: tuple[tuple[int, int], bool] | None = None
         self._tris = None
         self._tris_key = None
         self._box = (np.zeros(3), np.ones(3))
@@ -151,7 +172,7 @@ class PgridBackend:
         lights = getattr(self.bc.scene, "point_lights", [])
         if rt == RayType.SHADOW and 0 <= pinfo.light < len(lights):
             centre = np.asarray(lights[pinfo.light].position, np.float64)
-        elif rt == RayType.PRIMARY and self.params.primary:
+        elif rt == RayType.PRIMARY and self.params.primary != "grid":
             centre = None
         else:
             return None
@@ -175,9 +196,12 @@ class PgridBackend:
         label = pinfo.ray_type.label
         with prof.cl_phase("pgrid:upload", q):
             rs.upload(rays)
-        point = self._centre(pinfo, rs) if rs.n else None
         stats: dict[str, float] = {"rays": float(rs.n)}
-        if point is None:
+        cam = self._camera(pinfo, rs, rays.size) if rs.n else None
+        point = self._centre(pinfo, rs) if rs.n and cam is None else None
+        if cam is not None:
+            self._trace_camera(cam, rs, hs, tests if count else None, rays.size, stats, label)
+        elif point is None:
             with prof.cl_phase(f"trace:{label}", q):
                 self.tracer.enqueue(rs.origin, rs.dir, hs.t, hs.tri, rs.n, pinfo.any_hit,
                                     tests if count else None)
@@ -209,11 +233,53 @@ class PgridBackend:
             with mapped(self.ctx, tests, (rs.n,), np.int32) as a:
                 stats["tests_per_ray"] = float(a.sum()) / max(rs.n, 1)
                 overlays["triangle_tests"] = self.textures.write("triangle_tests", rays.size, a)
-            if point is not None:
+            if point is not None and cam is None:
                 chunk_of, tile_rays = self._chunk_maps(rs.n)
                 overlays["light_chunks"] = self.textures.write("light_chunks", rays.size, chunk_of)
                 overlays["tile_rays"] = self.textures.write("tile_rays", rays.size, tile_rays)
         return TraceResult(stats=stats, overlays=overlays)
+
+    def _camera(self, pinfo: PassInfo, rs, size: tuple[int, int]):
+        """The pinhole camera of a primary pass when its rays form one (else None)."""
+        if pinfo.ray_type != RayType.PRIMARY or self.params.primary != "image" or rs.n != size[0] * size[1]:
+            return None
+        return fit_camera(*corner_rays(rs.origin, rs.dir, size, self.ctx), size)
+
+    def _backface(self, eye: np.ndarray) -> bool:
+        """Back-face culling for primary rays: exact only when every surface closes a volume it
+        faces out of and the eye is outside them (checked: outside the scene box)."""
+        mode = self.params.backface
+        if mode != "auto":
+            return mode == "on"
+        key = self._geometry_key()
+        if self._closed is None or self._closed[0] != key:
+            self._closed = (key, closed_outward(np.asarray(self.bc.scene.triangles, np.float32).reshape(-1, 3, 3)))
+        lo, hi = self._box
+        return self._closed[1] and bool(np.any(eye < lo) or np.any(eye > hi))
+
+    def _trace_camera(self, cam, rs, hs, tests, size: tuple[int, int], stats: dict[str, float], label: str) -> None:
+        """Primary rays through the camera perspective grid; rays it cannot take through the uniform grid."""
+        prof, q, cg = self.bc.profiler, self.ctx.queue, self.camgrid
+        spec = CameraGridSpec(k=self.params.k, slabs=self.params.slabs, backface=self._backface(cam.eye))
+        with prof.cl_phase(f"pgrid:build:{label}", q):
+            st = cg.build(self._tris, self._n_tris, cam, spec)
+        with prof.cl_phase(f"pgrid:rearrange:{label}", q):
+            outside = cg.classify(rs.origin, rs.dir, rs.n) if not st.overflow else rs.n
+        with prof.cl_phase(f"trace:{label}", q):
+            if st.overflow:  # too many pairs for one sort: the uniform grid takes every ray
+                self.tracer.enqueue(rs.origin, rs.dir, hs.t, hs.tri, rs.n, False, tests)
+            else:
+                w, h = size
+                gsize = (-(-w // CAMERA_N) * CAMERA_N, -(-h // CAMERA_N) * CAMERA_N)
+                dummy = tests if tests is not None else hs.t
+                self._camera_kernels[tests is not None](q, gsize, (CAMERA_N, CAMERA_N), cg.header, cg.cells, cg.refs,
+                                                        self._tris, rs.origin, rs.dir, cg.outside, hs.t, hs.tri,
+                                                        dummy)
+                self.tracer.enqueue(rs.origin, rs.dir, hs.t, hs.tri, outside, False, tests, index=cg.outside_index)
+        d = st.as_dict()
+        d["backface"] = float(spec.backface)
+        stats.update(d)
+        stats.update({f"{k}_{label}": v for k, v in d.items()})
 
     def _chunk_maps(self, n: int) -> tuple[np.ndarray, np.ndarray]:
         """Per ray: its chunk (-1 outside the grid) and the rays of its tile (0 outside)."""
@@ -240,4 +306,5 @@ class PgridBackend:
             self._tris.release()
             self._tris = None
         self.pgrid.release()
+        self.camgrid.release()
         self.grid.release()

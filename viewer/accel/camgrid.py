@@ -1,0 +1,311 @@
+"""Camera perspective grid: image tiles x depth slabs, rebuilt per frame for primary rays
+(Patidar & Narayanan, ICVGIP 2008; Guntury & Narayanan, EGPGV 2010 / thesis 2011, Ch. 3).
+
+The camera is taken from the rays themselves (`fit_camera`): the four corner pixel rays of a
+pinhole image fix the linear map M with direction(x, y) ~ M (x, y, 1), so the grid needs no camera
+object and any ray batch that is not such an image is recognised (the caller then traces it
+another way). Per frame on the OpenCL device (kernels: camgrid_build.cl beside this file, layout
+and helpers: viewer/cl/kernels/camgrid.cl):
+
+ 1. triangles (one work-item each, in double): back-face culling where enabled; the triangle
+    clipped to the frustum grown by `margin` pixels (frustum culling, including large triangles
+    with no vertex inside it); the clipped polygon's pixel rectangle gives its tiles, its depth
+    range (rounded outwards to float32) its slabs. A polygon that reaches the eye could cover
+    any pixel and is listed in every tile ("near_eye").
+ 2. slabs: the visible depth range (min/max-reduce of the triangles' depth ranges) [z_lo, z_hi],
+    z_lo >= z_hi / 1024, cut geometrically (perspective: a tile's footprint grows with depth, so
+    the slabs do too); then one pair per (tile, slab) cell the triangle overlaps -- not the
+    4-cell assumption of the 2008 paper.
+ 3. (cell, triangle) pairs counted, scanned, written, radix-sorted by cell (viewer.cl.primitives);
+    cell ranges from the segments.
+ 4. rays: primary rays are already in image order, so no sort is needed: each ray is checked to
+    start at the eye and to pass within margin / 2 pixels of its own tile (else it is "outside":
+    compacted into a list the caller traces another way).
+
+Indirect mapping: tiles are k x N pixels (N = work-group side, 8): k > 1 gives k^2 times fewer
+tiles and fewer pairs (cheaper sort) at the price of more triangles per tile (more tests per ray);
+the trace still uses N x N work-groups, k x k of them per tile.
+
+Layouts: header CGRID_DTYPE (224 bytes: float64 eye, M^-1 rows, screen (W, H, margin, 0), slab
+(log z_lo, slabs per log unit, z_lo, z_hi); int32 tiles (T, tiles x, tiles y, slabs), cells
+(tiles * slabs, W, H, flags)); cells uint32 (ncells, 2) (first ref, count), cell id
+(ty * tiles_x + tx) * slabs + s; refs uint32 (pairs,) triangle slots; outside_index uint32.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+KERNEL = Path(__file__).resolve().parent / "camgrid_build.cl"
+WG = 64
+N = 8  # work-group side in pixels (CN of the trace kernel)
+MAX_PAIRS = 2**26
+NEAR_RATIO = 1024.0  # z_lo >= z_hi / NEAR_RATIO
+
+CGRID_DTYPE = np.dtype([("eye", "<f8", 4), ("minv", "<f8", (3, 4)), ("screen", "<f8", 4), ("slab", "<f8", 4),
+                        ("tiles", "<i4", 4), ("cells", "<i4", 4)])
+assert CGRID_DTYPE.itemsize == 224
+
+FLAG_BACK, FLAG_FRUSTUM, FLAG_NEAR_EYE = 1, 2, 4
+
+
+@dataclass
+class CameraGridSpec:
+    k: int = 1  # indirect mapping: tiles of k * N pixels
+    slabs: int = 16
+    margin: float = 0.01  # pixels the triangles' rectangles are grown by
+    backface: bool = False  # cull back faces (only exact for closed, outward-facing geometry)
+
+
+@dataclass
+class CameraGridStats:
+    tiles: tuple[int, int]
+    slabs: int
+    triangles: int
+    pairs: int
+    culled_frustum: int
+    culled_backface: int
+    near_eye: int
+    rays: int
+    outside: int
+    build_ms: float
+    classify_ms: float = 0.0
+    overflow: bool = False
+
+    def as_dict(self) -> dict[str, float]:
+        return {"pairs": float(self.pairs), "tiles": float(self.tiles[0] * self.tiles[1]),
+                "culled": float(self.culled_frustum + self.culled_backface),
+                "culled_frustum": float(self.culled_frustum), "culled_backface": float(self.culled_backface),
+                "near_eye": float(self.near_eye), "outside_rays": float(self.outside),
+                "pgrid_build_ms": self.build_ms, "rearrange_ms": self.classify_ms}
+
+
+@dataclass
+class PinholeCamera:
+    """What the rays say about the camera: eye (float64 (3,), the rays' exact float32 origin) and
+    M (3, 3): the direction through pixel point (x, y) is parallel to M @ (x, y, 1)."""
+
+    eye: np.ndarray
+    m: np.ndarray
+    size: tuple[int, int]
+
+    def project(self, points: np.ndarray) -> np.ndarray:
+        """(k, 3) pixel x, pixel y, depth of world points (float64)."""
+        q = (np.asarray(points, np.float64) - self.eye) @ np.linalg.inv(self.m).T
+        with np.errstate(divide="ignore", invalid="ignore"):
+            return np.stack([q[:, 0] / q[:, 2], q[:, 1] / q[:, 2], q[:, 2]], 1)
+
+
+def fit_camera(corners_o: np.ndarray, corners_d: np.ndarray, size: tuple[int, int]) -> PinholeCamera | None:
+    """The pinhole camera of an image of rays from its four corner rays ((4, 4) origin + tmin and
+    direction + tmax rows of pixels (0, 0), (W-1, 0), (0, H-1), (W-1, H-1)), or None when they do
+    not share an origin or do not span a pinhole image. The un-normalised directions s_k d_k of the
+    corners form a parallelogram (the image plane is affine in the pixel coordinates), which fixes
+    the scales s (s_00 = 1)."""
+    w, h = size
+    o, d = np.asarray(corners_o, np.float64), np.asarray(corners_d, np.float64)
+    if w < 2 or h < 2 or not (np.isfinite(o).all() and np.isfinite(d[:, :3]).all()):
+        return None
+    if not (d[:, 3] > o[:, 3]).all() or not (o[:, :3] == o[0, :3]).all():
+        return None
+    d00, d10, d01, d11 = d[:, :3]
+    a = np.stack([d11, -d10, -d01], 1)
+    if abs(np.linalg.det(a)) < 1e-12 * np.prod(np.linalg.norm(a, axis=0)):
+        return None
+    s11, s10, s01 = np.linalg.solve(a, -d00)
+    if min(s11, s10, s01) <= 0:
+        return None
+    p00, p10, p01 = d00, s10 * d10, s01 * d01
+    dx, dy = (p10 - p00) / (w - 1), (p01 - p00) / (h - 1)
+    c = p00 - 0.5 * dx - 0.5 * dy
+    m = np.stack([dx, dy, c], 1)
+    if not np.isfinite(m).all() or abs(np.linalg.det(m)) <= 1e-300:
+        return None
+    return PinholeCamera(o[0, :3].copy(), m, (w, h))
+
+
+def corner_rays(ray_o: Any, ray_d: Any, size: tuple[int, int], ctx: Any) -> tuple[np.ndarray, np.ndarray]:
+    """The (4, 4) origin and direction rows of the corner pixels from mapped ray buffers."""
+    from viewer.cl import mapped
+
+    w, h = size
+    idx = [0, w - 1, (h - 1) * w, h * w - 1]
+    with mapped(ctx, ray_o, (w * h, 4), np.float32) as o:
+        co = o[idx].copy()
+    with mapped(ctx, ray_d, (w * h, 4), np.float32) as d:
+        cd = d[idx].copy()
+    return co, cd
+
+
+def slab_params(z_lo: float, z_hi: float, slabs: int) -> tuple[float, float, float, float]:
+    """The header's slab record (log z_lo, slabs per unit of log z, z_lo, z_hi) for the visible depth
+    range [z_lo, z_hi] (z_lo raised to z_hi / NEAR_RATIO; (1, 2) when nothing is visible)."""
+    if not (np.isfinite(z_hi) and z_hi > 0):
+        z_lo, z_hi = 1.0, 2.0
+    z_hi = float(z_hi) * (1 + 1e-6)
+    z_lo = max(float(z_lo), z_hi / NEAR_RATIO)
+    z_hi = max(z_hi, z_lo * (1 + 1e-6))
+    return np.log(z_lo), slabs / np.log(z_hi / z_lo), z_lo, z_hi
+
+
+def closed_outward(triangles: np.ndarray) -> bool:
+    """True when the triangles (float (n, 3, 3)) close volumes they face out of: every edge shared
+    by exactly two triangles with opposite orientation (trimesh, vertices merged) and each connected
+    piece of positive signed volume. Then, seen from outside, a back face is never the first hit,
+    so back-face culling of primary rays is exact."""
+    import trimesh
+
+    tris = np.asarray(triangles, np.float64).reshape(-1, 3, 3)
+    if len(tris) < 4:
+        return False
+    mesh = trimesh.Trimesh(**trimesh.triangles.to_kwargs(tris))
+    if len(mesh.faces) != len(tris) or not (mesh.is_watertight and mesh.is_winding_consistent):
+        return False
+    labels = trimesh.graph.connected_component_labels(mesh.face_adjacency, node_count=len(mesh.faces))
+    v = mesh.vertices[mesh.faces]
+    signed = np.einsum("ij,ij->i", v[:, 0], np.cross(v[:, 1], v[:, 2]))
+    return bool((np.bincount(labels, weights=signed) > 0).all())
+
+
+class CameraGrid:
+    """Per-frame camera perspective grid on the device (buffers reused across builds)."""
+
+    def __init__(self, ctx: Any = None, prims: Any = None):
+        from viewer.cl import build, cl_context
+        from viewer.cl.primitives import primitives
+
+        self.ctx = ctx or cl_context()
+        self.prims = prims or primitives(self.ctx)
+        prog = build(KERNEL, {"WG": WG}, self.ctx)
+        cl = self.ctx.cl
+        self._k = {name: cl.Kernel(prog, name) for name in ("cg_tri_clip", "cg_tri_count", "cg_tri_write", "cg_ranges",
+                                                             "cg_classify")}
+        self._bufs: dict[str, Any] = {}
+        self.header_host = np.zeros(1, CGRID_DTYPE)
+        self.header = self.buf("header", CGRID_DTYPE.itemsize)
+        self.stats: CameraGridStats | None = None
+        self.camera: PinholeCamera | None = None
+
+    def buf(self, name: str, nbytes: int) -> Any:
+        b = self._bufs.get(name)
+        if b is None or b.size < nbytes:
+            if b is not None:
+                b.release()
+            b = self.ctx.cl.Buffer(self.ctx.context, self.ctx.cl.mem_flags.READ_WRITE, max(16, int(nbytes)))
+            self._bufs[name] = b
+        return b
+
+    def _run(self, name: str, n: int, *args: Any) -> None:
+        if n:
+            self._k[name](self.ctx.queue, (-(-n // WG) * WG,), (WG,), *args)
+
+    def header_for(self, cam: PinholeCamera, spec: CameraGridSpec) -> np.ndarray:
+        w, h = cam.size
+        t = N * max(1, int(spec.k))
+        ntx, nty, ns = -(-w // t), -(-h // t), max(1, int(spec.slabs))
+        hd = np.zeros(1, CGRID_DTYPE)
+        hd["eye"][0, :3] = cam.eye
+        hd["minv"][0, :, :3] = np.linalg.inv(cam.m)
+        hd["screen"][0] = (w, h, spec.margin, 0.0)
+        hd["slab"][0] = slab_params(1.0, 2.0, ns)  # placed by build() from the visible depths
+        hd["tiles"][0] = (t, ntx, nty, ns)
+        hd["cells"][0] = (ntx * nty * ns, w, h, 1 if spec.backface else 0)
+        return hd
+
+    def build(self, tris: Any, n_tris: int, cam: PinholeCamera, spec: CameraGridSpec) -> CameraGridStats:
+        """Steps 1-3 of the module docstring. On more than MAX_PAIRS pairs the grid is left empty
+        and stats.overflow is set (the caller traces every ray another way)."""
+        from viewer.cl.primitives import Chunks
+
+        cl, q, u = self.ctx.cl, self.ctx.queue, np.uint32
+        p = self.prims
+        t0 = time.perf_counter()
+        self.camera = cam
+        hd = self.header_for(cam, spec)
+        cl.enqueue_copy(q, self.header, hd)
+        ntx, nty, ns = (int(x) for x in hd["tiles"][0, 1:])
+        ncells = ntx * nty * ns
+        nt = max(n_tris, 1)
+        counts, offsets, flags = self.buf("counts", 4 * nt), self.buf("offsets", 4 * nt), self.buf("flags", 4 * nt)
+        place, place_slab = self.buf("place", 16 * nt), self.buf("place_slab", 8 * nt)
+        zlo, zhi = self.buf("zlo", 4 * nt), self.buf("zhi", 4 * nt)
+        self._run("cg_tri_clip", n_tris, self.header, tris, u(n_tris), flags, place, zlo, zhi)
+        if n_tris:
+            z0, z1 = float(p.reduce(zlo, n_tris, "min", np.float32)), float(p.reduce(zhi, n_tris, "max", np.float32))
+        else:
+            z0, z1 = np.inf, -np.inf
+        hd["slab"][0] = slab_params(z0, z1, ns)
+        self.header_host = hd
+        cl.enqueue_copy(q, self.header, hd)
+        self._run("cg_tri_count", n_tris, self.header, u(n_tris), flags, place, zlo, zhi, counts, place_slab)
+        pairs = p.exclusive_scan(counts, offsets, n_tris) if n_tris else 0
+        cells = self.buf("cells", 8 * ncells)
+        cl.enqueue_fill_buffer(q, cells, np.uint32(0), 0, 8 * ncells)
+        overflow = pairs > MAX_PAIRS
+        if pairs and not overflow:
+            keys, refs = self.buf("keys", 4 * pairs), self.buf("refs", 4 * pairs)
+            self._run("cg_tri_write", n_tris, self.header, u(n_tris), offsets, counts, place, place_slab, keys, refs)
+            p.sort_pairs(keys, refs, pairs, key_bits=max(1, (ncells - 1).bit_length()))
+            seg = p.segments(keys, pairs, None, out=Chunks(0, self.buf("seg_key", 4 * pairs),
+                                                            self.buf("seg_start", 4 * pairs),
+                                                            self.buf("seg_len", 4 * pairs)))
+            self._run("cg_ranges", seg.count, seg.key, seg.start, seg.length, u(seg.count), cells)
+        self.buf("refs", 4 * max(pairs, 1) if not overflow else 4)
+        fl = np.empty(nt, np.uint32)
+        cl.enqueue_copy(q, fl, flags)
+        fl = fl[:n_tris]
+        q.finish()
+        self.stats = CameraGridStats((ntx, nty), ns, n_tris, 0 if overflow else int(pairs),
+                                     int((fl == FLAG_FRUSTUM).sum()), int((fl == FLAG_BACK).sum()),
+                                     int((fl == FLAG_NEAR_EYE).sum()), 0, 0, (time.perf_counter() - t0) * 1e3,
+                                     overflow=overflow)
+        return self.stats
+
+    def classify(self, ray_o: Any, ray_d: Any, n: int) -> int:
+        """Step 4: flag and list the rays the grid cannot trace; returns how many."""
+        assert self.stats is not None, "build first"
+        t0 = time.perf_counter()
+        outside, idx = self.buf("outside", 4 * max(n, 1)), self.buf("outside_idx", 4 * max(n, 1))
+        self._run("cg_classify", n, self.header, ray_o, ray_d, np.uint32(n), outside)
+        count = self.prims.compact(n, flags=outside, dst_index=idx) if n else 0
+        self.ctx.queue.finish()
+        self.stats.rays, self.stats.outside = n, int(count)
+        self.stats.classify_ms = (time.perf_counter() - t0) * 1e3
+        return int(count)
+
+    @property
+    def cells(self) -> Any:
+        return self._bufs["cells"]
+
+    @property
+    def refs(self) -> Any:
+        return self._bufs["refs"]
+
+    @property
+    def outside(self) -> Any:
+        return self._bufs["outside"]
+
+    @property
+    def outside_index(self) -> Any:
+        return self._bufs["outside_idx"]
+
+    def to_numpy(self) -> tuple[np.ndarray, np.ndarray]:
+        """(cells (ncells, 2), refs (pairs,)) for tests and studies."""
+        assert self.stats is not None
+        ncells = int(self.header_host["cells"][0, 0])
+        cells = np.empty((ncells, 2), np.uint32)
+        refs = np.empty(max(self.stats.pairs, 1), np.uint32)
+        self.ctx.cl.enqueue_copy(self.ctx.queue, cells, self.cells)
+        if self.stats.pairs:
+            self.ctx.cl.enqueue_copy(self.ctx.queue, refs, self.refs)
+        return cells, refs[: self.stats.pairs]
+
+    def release(self) -> None:
+        for b in self._bufs.values():
+            b.release()
+        self._bufs.clear()

@@ -1,0 +1,186 @@
+// Camera perspective grid build (layout: viewer/cl/kernels/camgrid.cl; host: camgrid.py).
+// Per triangle, in double: back-face culling (when enabled), the triangle clipped to the view
+// frustum grown by `margin` pixels (Sutherland-Hodgman in projective space, so triangles with no
+// vertex inside the frustum and triangles crossing the eye plane are handled exactly), the
+// clipped polygon's pixel rectangle (grown by the margin) and depth range give the tiles and
+// slabs it overlaps: one (cell, triangle) pair per cell of that tile x slab box.
+#include "camgrid.cl"
+
+#ifndef WG
+#define WG 64
+#endif
+
+#define CG_CULL_BACK 1u
+#define CG_CULL_FRUSTUM 2u
+#define CG_NEAR_EYE 4u
+
+#ifdef RT_HAVE_FP64
+// The part of the convex polygon p[0..n) with dot(plane, x) >= 0, written to out; returns its size.
+inline int cg_clip(const double3 *p, int n, double3 plane, double3 *out) {
+    int m = 0;
+    for (int i = 0; i < n; ++i) {
+        double3 a = p[i], b = p[(i + 1) % n];
+        double da = dot(plane, a), db = dot(plane, b);
+        if (da >= 0.0) out[m++] = a;
+        if ((da >= 0.0) != (db >= 0.0)) out[m++] = a + (da / (da - db)) * (b - a);
+    }
+    return m;
+}
+
+// Tile range (tx0, tx1, ty0, ty1) and depth range of triangle i; false when culled (*flag says why).
+inline bool cg_tri(const CGrid *g, __global const float4 *tris, uint i, int4 *range, double2 *depth, uint *flag) {
+    double3 E = g->eye.xyz;
+    double3 v0 = convert_double3(tris[3 * i].xyz) - E, v1 = convert_double3(tris[3 * i + 1].xyz) - E,
+            v2 = convert_double3(tris[3 * i + 2].xyz) - E;
+    *flag = 0u;
+    if (!(all(isfinite(v0)) && all(isfinite(v1)) && all(isfinite(v2)))) { *flag = CG_CULL_FRUSTUM; return false; }
+    if (g->cells.w & 1) {  // back-face culling: the eye is behind the triangle's plane (clearly)
+        double3 nrm = cross(v1 - v0, v2 - v0);
+        if (dot(nrm, v0) > 1e-9 * length(nrm) * length(v0)) { *flag = CG_CULL_BACK; return false; }
+    }
+    double W = g->screen.x, H = g->screen.y, m = g->screen.z;
+    double3 a[7], b[7];
+    a[0] = cg_project(g, v0);
+    a[1] = cg_project(g, v1);
+    a[2] = cg_project(g, v2);
+    int n = 3;
+    n = cg_clip(a, n, (double3)(1.0, 0.0, m), b);
+    n = cg_clip(b, n, (double3)(-1.0, 0.0, W + m), a);
+    n = cg_clip(a, n, (double3)(0.0, 1.0, m), b);
+    n = cg_clip(b, n, (double3)(0.0, -1.0, H + m), a);
+    if (n == 0) { *flag = CG_CULL_FRUSTUM; return false; }
+    double zmin = INFINITY, zmax = -INFINITY, big = 0.0;
+    for (int k = 0; k < n; ++k) {
+        zmin = fmin(zmin, a[k].z);
+        zmax = fmax(zmax, a[k].z);
+        big = fmax(big, fmax(fabs(a[k].x), fmax(fabs(a[k].y), fabs(a[k].z))));
+    }
+    if (!(zmax > 0.0)) { *flag = CG_CULL_FRUSTUM; return false; }
+    double x0 = 0.0, x1 = W, y0 = 0.0, y1 = H;
+    if (zmin > 1e-9 * big) {  // else the polygon reaches the eye: it may cover any pixel
+        x0 = INFINITY; x1 = -INFINITY; y0 = INFINITY; y1 = -INFINITY;
+        for (int k = 0; k < n; ++k) {
+            double x = a[k].x / a[k].z, y = a[k].y / a[k].z;
+            x0 = fmin(x0, x); x1 = fmax(x1, x); y0 = fmin(y0, y); y1 = fmax(y1, y);
+        }
+    } else {
+        *flag = CG_NEAR_EYE;
+    }
+    double T = (double)g->tiles.x;
+    *range = (int4)((int)clamp(floor((x0 - m) / T), 0.0, (double)(g->tiles.y - 1)),
+                    (int)clamp(floor((x1 + m) / T), 0.0, (double)(g->tiles.y - 1)),
+                    (int)clamp(floor((y0 - m) / T), 0.0, (double)(g->tiles.z - 1)),
+                    (int)clamp(floor((y1 + m) / T), 0.0, (double)(g->tiles.z - 1)));
+    *depth = (double2)(fmax(zmin, 0.0), zmax);
+    return true;
+}
+
+// float32 bounds of a double interval, rounded outwards
+inline float cg_down(double x) { float f = (float)x; return (double)f > x ? nextafter(f, -INFINITY) : f; }
+inline float cg_up(double x) { float f = (float)x; return (double)f < x ? nextafter(f, INFINITY) : f; }
+#endif
+
+// Pass 1 per triangle: flags[i] (CG_* bits), place[i] = tile range, depth range zlo[i]..zhi[i]
+// (+inf / -inf when culled; min/max-reduced by the host to place the slabs).
+__kernel __attribute__((reqd_work_group_size(WG, 1, 1)))
+void cg_tri_clip(__global const CGrid *grid, __global const float4 *tris, const uint n, __global uint *flags,
+                 __global int4 *place, __global float *zlo, __global float *zhi) {
+    uint i = get_global_id(0);
+    if (i >= n) return;
+    CGrid g = *grid;
+    int4 r = (int4)(0);
+    uint flag = CG_CULL_FRUSTUM;
+    bool ok = false;
+    float z0 = INFINITY, z1 = -INFINITY;
+#ifdef RT_HAVE_FP64
+    double2 z = (double2)(0.0);
+    ok = cg_tri(&g, tris, i, &r, &z, &flag);
+    if (ok) { z0 = cg_down(z.x); z1 = cg_up(z.y); }
+#endif
+    flags[i] = flag;
+    place[i] = r;
+    zlo[i] = z0;
+    zhi[i] = z1;
+}
+
+// Pass 2, once the slabs are placed: counts[i] = cells of triangle i (0 when culled), place_slab[i].
+__kernel __attribute__((reqd_work_group_size(WG, 1, 1)))
+void cg_tri_count(__global const CGrid *grid, const uint n, __global const uint *flags, __global const int4 *place,
+                  __global const float *zlo, __global const float *zhi, __global uint *counts,
+                  __global int2 *place_slab) {
+    uint i = get_global_id(0);
+    if (i >= n) return;
+    CGrid g = *grid;
+    uint c = 0u;
+    int2 s = (int2)(0);
+#ifdef RT_HAVE_FP64
+    if (flags[i] == 0u || flags[i] == CG_NEAR_EYE) {
+        int4 r = place[i];
+        s = (int2)(cg_slab(&g, (double)zlo[i], -1e-3), cg_slab(&g, (double)zhi[i], 1e-3));
+        c = (uint)(r.y - r.x + 1) * (uint)(r.w - r.z + 1) * (uint)(s.y - s.x + 1);
+    }
+#endif
+    counts[i] = c;
+    place_slab[i] = s;
+}
+
+__kernel __attribute__((reqd_work_group_size(WG, 1, 1)))
+void cg_tri_write(__global const CGrid *grid, const uint n, __global const uint *offsets, __global const uint *counts,
+                  __global const int4 *place, __global const int2 *place_slab, __global uint *keys,
+                  __global uint *vals) {
+    uint i = get_global_id(0);
+    if (i >= n || counts[i] == 0u) return;
+    CGrid g = *grid;
+    int4 r = place[i];
+    int2 s = place_slab[i];
+    uint o = offsets[i];
+    int S = g.tiles.w;
+    for (int ty = r.z; ty <= r.w; ++ty)
+        for (int tx = r.x; tx <= r.y; ++tx)
+            for (int sl = s.x; sl <= s.y; ++sl) {
+                keys[o] = (uint)((ty * g.tiles.y + tx) * S + sl);
+                vals[o] = i;
+                ++o;
+            }
+}
+
+// Cell ranges from the segments of the sorted keys (cells zero-filled before).
+__kernel __attribute__((reqd_work_group_size(WG, 1, 1)))
+void cg_ranges(__global const uint *seg_key, __global const uint *seg_start, __global const uint *seg_len,
+               const uint m, __global uint2 *cells) {
+    uint i = get_global_id(0);
+    if (i >= m) return;
+    cells[seg_key[i]] = (uint2)(seg_start[i], seg_len[i]);
+}
+
+// Per ray: outside[i] = 1 when ray i cannot be traced through the grid: it does not start at the
+// eye, or its direction does not pass within margin / 2 pixels of its own tile (a ray that is not
+// the pixel ray of its index). Inactive rays stay inside (the trace writes a miss for them).
+__kernel __attribute__((reqd_work_group_size(WG, 1, 1)))
+void cg_classify(__global const CGrid *grid, __global const float4 *ray_o, __global const float4 *ray_d,
+                 const uint n, __global uint *outside) {
+    uint i = get_global_id(0);
+    if (i >= n) return;
+    CGrid g = *grid;
+    float4 ot = ray_o[i], dt = ray_d[i];
+    uint out = 1u;
+    if (!(dt.w > ot.w)) {
+        out = 0u;
+    } else {
+#ifdef RT_HAVE_FP64
+        float3 e = convert_float3(g.eye.xyz);
+        if (ot.x == e.x && ot.y == e.y && ot.z == e.z && ot.w >= 0.0f && all(isfinite(dt.xyz))) {
+            double3 q = cg_project(&g, convert_double3(dt.xyz));
+            int W = g.cells.y;
+            double T = (double)g.tiles.x, h = 0.5 * g.screen.z;
+            double tx = (double)(((int)i % W) / g.tiles.x), ty = (double)(((int)i / W) / g.tiles.x);
+            if (q.z > 0.0) {
+                double x = q.x / q.z, y = q.y / q.z;
+                if (x >= tx * T - h && x <= (tx + 1.0) * T + h && y >= ty * T - h && y <= (ty + 1.0) * T + h)
+                    out = 0u;
+            }
+        }
+#endif
+    }
+    outside[i] = out;
+}
