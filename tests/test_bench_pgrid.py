@@ -47,7 +47,8 @@ def test_tiny_run_writes_every_study(tmp_path, capsys):
         pytest.skip(f"no OpenCL device: {reason}")
     out = tmp_path / "bp"
     rc = main(["bench-pgrid", "--scenes", "city", "--city-size", "3000", "--sizes", "64x36", "--frames", "1",
-               "--light-scene", "city", "--distances", "0.5,2", "--out", str(out), "--quiet"])
+               "--light-scene", "city", "--distances", "0.5,2", "--anim-frames", "2", "--anim-size", "64x36",
+               "--out", str(out), "--quiet"])
     assert rc == 0
     t41 = json.loads((out / "table41.json").read_text())
     (row,) = t41["rows"]
@@ -60,7 +61,20 @@ def test_tiny_run_writes_every_study(tmp_path, capsys):
     ld = json.loads((out / "lightdist.json").read_text())
     assert [r["distance"] for r in ld["rows"]] == [0.5, 2.0]
     assert {"chunk=64", "chunk=128", "chunk=256", "no balancing", "clbvh"} <= set(ld["rows"][0]["configs"])
-    for name in ("table41", "lightdist", "model"):
+    (pr,) = json.loads((out / "pairs.json").read_text())["rows"]
+    cam = pr["camera"]
+    assert pr["ugrid_pairs"] > 0 and cam["k=1,frustum"]["pairs"] > 0
+    for k in (1, 2, 4):  # back-face culling only removes pairs; coarser tiles never add any
+        assert cam[f"k={k},back"]["pairs"] <= cam[f"k={k},frustum"]["pairs"]
+        assert cam[f"k={k},back"]["culled_backface"] > 0
+    assert cam["k=4,frustum"]["pairs"] <= cam["k=2,frustum"]["pairs"] <= cam["k=1,frustum"]["pairs"]
+    (rr,) = json.loads((out / "rearrange.json").read_text())["rows"]
+    assert rr["rearrange_ms"] == row["phases"]["pgrid"]["pgrid:rearrange:shadows"] > 0
+    anim = {r["backend"]: r for r in json.loads((out / "anim.json").read_text())["rows"]}
+    assert set(anim) == {"pgrid", "ugrid", "clbvh", "glsl"}
+    assert anim["pgrid"]["builds_ms"]["pgrid:build:primary"] > 0 and anim["pgrid"]["builds_ms"]["build:bvh"] > 0
+    assert anim["clbvh"]["builds_ms"]["build:bvh4"] > 0 and anim["ugrid"]["builds_ms"]["ugrid:build"] > 0
+    for name in ("table41", "lightdist", "model", "pairs", "rearrange", "anim"):
         assert (out / f"{name}.md").read_text().startswith("# ")
         assert (out / f"{name}.png").stat().st_size > 1000
     assert "break-even" in (out / "model.md").read_text().lower()

@@ -3,19 +3,21 @@
 Studies (``--study``, comma list or ``all``):
 
 - ``table41`` (thesis Table 4.1): per scene and size, one point light, effects primary + shadows
-  (+ one diffuse pass for the cost model): pgrid's primary data-structure build (eye grid and
-  ray sort), primary traversal, shadow data-structure build (light grid), data rearrangement
+  (+ one diffuse pass for the cost model): pgrid's primary data-structure build (camera grid
+  and the rays' tile check), primary traversal, shadow data-structure build (light grid), data rearrangement
   (shadow-ray sort into chunks), shadow traversal, total and fps; the uniform grid (ugrid,
   rebuilt every frame) and clbvh / glsl on the same frames, with and without a per-frame BVH
   build (build_bvh, plus the BVH4 collapse for clbvh, timed on the scene). Also the counters
   behind the times (triangle-cell pairs of each grid, culled triangles, chunks and their
-  occupancy, rays outside the point grid) -- the Figure 3.6 / 4.7 analogs.
+  occupancy, rays outside the grids).
 - ``lightdist`` (thesis Figure 4.9): shadow time (build + rearrangement + traversal) as the light
   moves away from the model along the line from its centre through the scene's light, for chunk
   sizes 64/128/256 and without load balancing; clbvh's any-hit time on the same rays beside it.
 - ``model`` (thesis Figures 4.10 / 5.5): the cost-model totals from the measured terms of
   table41 (per-frame BVH build + traversals vs per-pass grids) as functions of the number of
   lights and of secondary passes, and the break-even counts. Needs table41 in the same run.
+- ``pairs`` (Figure 3.6), ``rearrange`` (Figure 4.7, needs table41) and ``anim`` (per-frame
+  builds on the animated scene): viewer.bench.pgrid_studies.
 
 Timing: each configuration has its own Renderer; frames are interleaved between them (one
 warm-up frame each first: OpenCL kernels compile on first use), and per-phase times are the
@@ -34,12 +36,13 @@ from pathlib import Path
 
 import numpy as np
 
+from viewer.bench.pgrid_studies import study_anim, study_pairs, study_rearrange
 from viewer.bench.plots import figure, finish
 from viewer.bench.report import fmt, md_table, size_text, write_study
 from viewer.cli_args import parse_choices
 from viewer.errors import RtwalkError
 
-STUDIES = ("table41", "lightdist", "model")
+STUDIES = ("table41", "lightdist", "model", "pairs", "rearrange", "anim")
 REPO = Path(__file__).resolve().parents[2]
 SCENES_DIR = REPO.parent / "shared" / "scenes"
 SCENES = {"sibenik": ("sibenik/sibenik.obj", "sibenik-walk.json"),
@@ -59,6 +62,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--light-scene", default="buddha", help="scene of the lightdist study (default buddha)")
     p.add_argument("--distances", default="0.25,0.5,1,2,4",
                    help="lightdist: light distance from the model centre in scene diagonals")
+    p.add_argument("--anim-frames", type=int, default=8, help="anim: timed frames of the animated walk (default 8)")
+    p.add_argument("--anim-size", default="640x360", help="anim: image size WxH (default 640x360)")
     p.add_argument("--pgrid-params", default="", help="extra pgrid parameters for every run (key=value,...)")
     p.add_argument("--out", default="out/bench-pgrid", help="output folder")
     p.add_argument("--quiet", action="store_true", help="no progress output")
@@ -211,8 +216,8 @@ def study_table41(args, ctx) -> dict:
     md += ["", "DS build of clbvh / glsl: the per-frame BVH build a dynamic scene needs (binary SAH build; clbvh "
            "adds the BVH4 collapse), measured on the CPU apart from the frames; 'total w/o build' leaves it out.",
            "", "## Ratios and counters", ""]
-    head = ["scene", "size", "ugrid/pgrid total", "pgrid shadow trace / clbvh", "ugrid pairs", "eye-grid pairs",
-            "light-grid pairs", "culled (eye)", "chunks (shadow)", "chunk occupancy", "shadow rays outside"]
+    head = ["scene", "size", "ugrid/pgrid total", "pgrid shadow trace / clbvh", "ugrid pairs", "camera-grid pairs",
+            "light-grid pairs", "culled (camera)", "chunks (shadow)", "chunk occupancy", "shadow rays outside"]
     body = []
     for r in rows:
         t, st = r["terms"], r["stats"]
@@ -317,7 +322,7 @@ def study_lightdist(args, ctx) -> dict:
 def model_totals(t: dict[str, dict[str, float]], lights: np.ndarray, passes: np.ndarray) -> dict[str, np.ndarray]:
     """Frame time of each method for L lights and B secondary passes, from the measured terms:
     BVH: build + primary + L shadow + B secondary traversals; uniform grid: build + the same;
-    pgrid: eye grid + primary, per light (light grid + rearrangement + shadow traversal), and
+    pgrid: camera grid + primary, per light (light grid + rearrangement + shadow traversal), and
     the uniform grid (built once when B > 0) for the secondary passes."""
     out = {}
     for b in ("clbvh", "glsl"):
@@ -377,11 +382,15 @@ def run(args) -> int:
     from viewer.cl import cl_context
     from viewer.gl.context import shared_context
 
-    studies = parse_choices(args.study, STUDIES, "--study")
+    wanted = parse_choices(args.study, STUDIES, "--study")
+    studies = [s for s in STUDIES if s in wanted]  # table41 before the studies built on it
     parse_choices(args.scenes, SCENES, "--scenes")
     _sizes(args.sizes)
-    if args.frames < 1:
-        raise RtwalkError("--frames must be >= 1")
+    if args.frames < 1 or args.anim_frames < 1:
+        raise RtwalkError("--frames and --anim-frames must be >= 1")
+    if ("model" in studies or "rearrange" in studies) and "table41" not in studies:
+        raise RtwalkError("--study: model and rearrange need table41 in the same run")
+    args.anim_size = _sizes(args.anim_size)[0]
     cl_context()
     ctx = shared_context()
     Path(args.out).mkdir(parents=True, exist_ok=True)
@@ -394,4 +403,13 @@ def run(args) -> int:
             print(study_lightdist(args, ctx)["markdown"], flush=True)
         elif s == "model":
             print(study_model(args, t41)["markdown"], flush=True)
+        elif s == "pairs":
+            _log(args, "pairs")
+            print(study_pairs(args, load_scene, _sizes(args.sizes), parse_choices(args.scenes, SCENES,
+                                                                                  "--scenes"))["markdown"], flush=True)
+        elif s == "rearrange":
+            print(study_rearrange(args, t41)["markdown"], flush=True)
+        elif s == "anim":
+            _log(args, "anim")
+            print(study_anim(args)["markdown"], flush=True)
     return 0

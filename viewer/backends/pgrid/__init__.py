@@ -14,7 +14,8 @@
   `chunk` rays, one work-group per chunk with the tile's triangles staged in local memory slab by
   slab, any-hit early exit (trace.cl beside this file).
 * Soft shadows, AO, diffuse and reflection rays, and any ray a grid cannot take (checked per ray,
-  in double): the uniform grid of ugrid (viewer.accel.grid, built once per scene geometry), so
+  in double): the uniform grid of ugrid (viewer.accel.grid, built once per scene geometry when a
+  pass first needs it: primary and shadow passes build it only for rays their grids decline), so
   every ray is traced exactly. Soft-shadow rays end at different points of an area light, so
   they take this way.
 
@@ -119,6 +120,7 @@ class PgridBackend:
             prog = build(CAMERA_KERNEL, {"CN": CAMERA_N, **extra}, self.ctx)
             self._camera_kernels[count] = cl.Kernel(prog, "cg_trace")
         self._closed: tuple[tuple[int, int], bool] | None = None
+        self._grid_fresh = False
         self._tris = None
         self._tris_key = None
         self._box = (np.zeros(3), np.ones(3))
@@ -131,9 +133,10 @@ class PgridBackend:
         return id(self.bc.scene.triangles), int(getattr(self.bc.scene, "geometry_version", 0))
 
     def _rebuild(self) -> None:
+        """The moved triangles to the device; the uniform grid is rebuilt when a pass needs it."""
         cl, ctx = self.ctx.cl, self.ctx
         tris = np.asarray(self.bc.scene.triangles, np.float32).reshape(-1, 3, 3)
-        with self.bc.profiler.cl_phase("pgrid:ugrid_build", ctx.queue):
+        with self.bc.profiler.cl_phase("pgrid:triangles", ctx.queue):
             f4 = triangles_f4(tris)
             if self._tris is None or self._tris.size < f4.nbytes:
                 if self._tris is not None:
@@ -143,13 +146,22 @@ class PgridBackend:
                 cl.enqueue_copy(ctx.queue, self._tris, f4)
             self._box = scene_box(tris)
             self._n_tris = len(tris)
-            self.grid.build(self._tris, len(tris), *self._box,
-                            GridSpec(density=self.params.density, resolution=self.params.resolution))
         self._tris_key = self._geometry_key()
+        self._grid_fresh = False
+
+    def _ensure_grid(self) -> None:
+        """Build the uniform grid (rays without a preferred direction, rays a per-pass grid cannot
+        take) for the current triangles, once per geometry: passes that do not use it never pay."""
+        if self._grid_fresh:
+            return
+        with self.bc.profiler.cl_phase("pgrid:ugrid_build", self.ctx.queue):
+            self.grid.build(self._tris, self._n_tris, *self._box,
+                            GridSpec(density=self.params.density, resolution=self.params.resolution))
+        self._grid_fresh = True
 
     def scene_changed(self, bc: BackendContext) -> None:
-        """The triangles moved: rebuild the grid now (Kalojanov-style sort build, timed as this
-        backend's build phase) rather than lazily at the next begin_frame."""
+        """The triangles moved: upload them now (the per-pass grids are built per pass anyway; the
+        uniform grid when a pass first needs it)."""
         self.bc = bc
         self._rebuild()
 
@@ -202,6 +214,7 @@ class PgridBackend:
         if cam is not None:
             self._trace_camera(cam, rs, hs, tests if count else None, rays.size, stats, label)
         elif point is None:
+            self._ensure_grid()
             with prof.cl_phase(f"trace:{label}", q):
                 self.tracer.enqueue(rs.origin, rs.dir, hs.t, hs.tri, rs.n, pinfo.any_hit,
                                     tests if count else None)
@@ -213,6 +226,8 @@ class PgridBackend:
                 pg.place(self._tris, self._n_tris, *self._box, rs.origin, rs.dir, rs.n, centre, (so, sd), spec)
             with prof.cl_phase(f"pgrid:rearrange:{label}", q):
                 st = pg.rearrange(rs.n, spec, balance=self.params.balance)
+            if st.outside:
+                self._ensure_grid()
             with prof.cl_phase(f"trace:{label}", q):
                 if pg.chunks.count:
                     ch = pg.chunks
@@ -265,6 +280,8 @@ class PgridBackend:
             st = cg.build(self._tris, self._n_tris, cam, spec)
         with prof.cl_phase(f"pgrid:rearrange:{label}", q):
             outside = cg.classify(rs.origin, rs.dir, rs.n) if not st.overflow else rs.n
+        if outside:
+            self._ensure_grid()
         with prof.cl_phase(f"trace:{label}", q):
             if st.overflow:  # too many pairs for one sort: the uniform grid takes every ray
                 self.tracer.enqueue(rs.origin, rs.dir, hs.t, hs.tri, rs.n, False, tests)
