@@ -529,3 +529,86 @@ def test_pgrid_rays_off_the_centre_take_the_uniform_grid():
     t, tri, stats = trace_centred(tris, o, d, tmin, tmax, RayType.SHADOW, light=[5, 5, 5])
     assert stats["outside_rays"] > 0.9 * n
     assert_matches(_judge(tris, o, d, tmin, tmax, t, tri, True))
+
+
+def _all_hits(tris, o, d, tmin, tmax, rounds: int = 12) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Every (ray, triangle) intersection along the segments (float64 reference, nearest first),
+    as (ray indices, triangle indices) per round."""
+    from viewer.reference import trace_float64
+
+    lo = tmin.astype(np.float64).copy()
+    out = []
+    for _ in range(rounds):
+        t, tri = trace_float64(tris, o, d, lo, tmax)
+        hit = np.flatnonzero(tri >= 0)
+        if not len(hit):
+            break
+        out.append((hit, tri[hit]))
+        lo[hit] = np.nextafter(t[hit], np.inf)
+    return out
+
+
+@needs_cl
+@pytest.mark.parametrize("light", [[5.0, 5.0, 5.0], [5.0, 30.0, 5.0], [5.0, 12.0, 5.0], "boxed"])
+def test_light_grid_lists_every_occluder_in_the_rays_tile(light):
+    """Conservative binning of the spherical grid: every triangle a shadow segment meets (float64
+    reference, all of them, not only the first) is listed in the cells of that ray's light tile.
+    Lights inside, far outside and right above the soup; "boxed": a light inside a small closed
+    box in the middle of the soup, so rays come from every direction and the box faces pierced by
+    the grid's pole axis surround the pole (their azimuth range is everything)."""
+    import trimesh
+
+    from viewer.effects import RayType
+
+    rng = np.random.default_rng(24)
+    tris = np.concatenate([_soup(rng, 1200, extent=10.0, size=0.5),
+                           _soup(rng, 40, extent=10.0, size=3.0)])  # large triangles over many tiles
+    if light == "boxed":
+        light = [5.0, 5.0, 5.0]
+        box = trimesh.creation.box([1.0, 1.0, 1.0]).apply_translation(light).triangles.astype(F32)
+        near = np.linalg.norm(tris.mean(1) - np.asarray(light), axis=1) > 2.5
+        tris = np.concatenate([tris[near], box])
+    light = np.asarray(light, F32)
+    n = 6000
+    w = rng.dirichlet([1, 1, 1], n)
+    p = (w[:, :, None] * tris[rng.integers(0, len(tris), n)].astype(np.float64)).sum(1)
+    l_vec = light.astype(np.float64) - p
+    dist = np.linalg.norm(l_vec, axis=1)
+    o, d = p.astype(F32), (l_vec / dist[:, None]).astype(F32)
+    tmin, tmax = np.full(n, 1e-4, F32), (dist * (1 - 1e-4)).astype(F32)
+    grid = {}
+
+    def keep(be):
+        pg = be.pgrid
+        cl, q = pg.ctx.cl, pg.ctx.queue
+        key, _, length = pg.chunks.to_numpy(pg.ctx)
+        vals = np.empty(int(length.sum()), np.uint32)
+        cl.enqueue_copy(q, vals, pg.ray_vals)
+        na, nt = pg.stats.tiles
+        ns = pg.stats.slabs
+        cell_start = np.empty(na * nt * ns + 1, np.uint32)
+        cl.enqueue_copy(q, cell_start, pg.cell_start)
+        refs = np.empty(max(pg.stats.pairs, 1), np.uint32)
+        if pg.stats.pairs:
+            cl.enqueue_copy(q, refs, pg.refs)
+        tile_of = np.full(len(vals), -1, np.int64)
+        ch = np.repeat(np.arange(len(key)), length.astype(np.int64))
+        tile_of[vals] = np.where(key[ch] < na * nt, key[ch].astype(np.int64), -1)
+        grid.update(tile_of=tile_of, cell_start=cell_start, refs=refs[: pg.stats.pairs], ns=ns,
+                    order=be.bc.bvh.tri_order)
+
+    trace_centred(tris, o, d, tmin, tmax, RayType.SHADOW, light=light, keep=keep)
+    tile_of = grid["tile_of"][:n]
+    assert (tile_of >= 0).mean() > 0.9  # nearly every ray is in the grid
+    slot_of = np.empty(len(grid["order"]), np.int64)
+    slot_of[grid["order"]] = np.arange(len(grid["order"]))
+    cs, refs, ns = grid["cell_start"], grid["refs"], grid["ns"]
+    checked = 0
+    for rays, tri in _all_hits(tris, o, d, tmin, tmax):
+        keep_ = tile_of[rays] >= 0
+        for r, t in zip(rays[keep_], slot_of[tri[keep_]], strict=True):
+            tile = tile_of[r]
+            listed = refs[cs[tile * ns]:cs[(tile + 1) * ns]]
+            assert t in listed, f"ray {r}: occluder slot {t} not in light tile {tile}"
+            checked += 1
+    assert checked > 0.2 * n

@@ -100,46 +100,75 @@ void pg_ray_keys(__global const PGrid *grid, __global const float *alpha, __glob
 }
 
 // Tile range [ia0, ia1] x [it0, it1] and slab of triangle i; false: culled (outside the rays'
-// rectangle, or not finite). *full: the cap reached a pole or the seam (alpha range widened).
+// rectangle, or not finite). *full: the triangle surrounds the up axis, comes close to it, or
+// crosses the azimuth seam behind the centre (alpha range widened to everything).
+// In the frame (x = right, y = up, z = fwd) around E: azimuth alpha = atan2(x, z) is the polar angle
+// of the triangle's projection onto the (z, x) plane; when that 2D triangle misses the origin its
+// angular range (< pi) is reached at vertices. Elevation theta = atan2(y, rho), rho = sqrt(x^2 + z^2)
+// >= rho_min (distance of the 2D triangle from the origin; rho is convex, so its maximum is at a
+// vertex): theta <= atan2(y_max, rho_min) when y_max > 0, else atan2(y_max, rho_max); the lower
+// bound likewise. Float32 with explicit slack: coordinates relative to E are off by at most
+// ~4e-7 |v|max, so rho_min is lowered by that, azimuths get 4e-7 |v|max / rho_min, elevations 1e-6
+// radians; a triangle within 1e-3 |v|max of the up axis takes the full azimuth range. The box is then
+// grown by the rays' margin m (in azimuth by asin(sin m / cos theta): the same angle nearer the poles).
+inline float pg_seg_dist2(float2 p, float2 q) {  // squared distance from the origin to segment pq
+    float2 d = q - p;
+    float dd = d.x * d.x + d.y * d.y;
+    float t = dd > 0.0f ? clamp(-(p.x * d.x + p.y * d.y) / dd, 0.0f, 1.0f) : 0.0f;
+    float2 c = p + t * d;
+    return c.x * c.x + c.y * c.y;
+}
+
 inline bool pg_tri(const PGrid *g, __global const float4 *tris, uint i, int4 *range, int *slab, bool *full) {
     float3 E = g->centre.xyz;
-    float3 a = tris[3 * i].xyz - E, b = tris[3 * i + 1].xyz - E, c = tris[3 * i + 2].xyz - E;
+    float3 v0 = tris[3 * i].xyz - E, v1 = tris[3 * i + 1].xyz - E, v2 = tris[3 * i + 2].xyz - E;
     *full = false;
-    if (!(all(isfinite(a)) && all(isfinite(b)) && all(isfinite(c)))) return false;
+    if (!(all(isfinite(v0)) && all(isfinite(v1)) && all(isfinite(v2)))) return false;
     float m = g->centre.w;
-    float3 ctr = (a + b + c) / 3.0f;
-    float dc = length(ctr);
-    float la = length(a), lb = length(b), lc = length(c);
-    float R = fmax(fmax(length(a - ctr), length(b - ctr)), length(c - ctr));
-    float3 nrm = rt_cross(b - a, c - a);
+    // slab: a lower bound of the triangle's distance from E
+    float3 ctr = (v0 + v1 + v2) / 3.0f;
+    float rad = fmax(fmax(length(v0 - ctr), length(v1 - ctr)), length(v2 - ctr));
+    float3 nrm = rt_cross(v1 - v0, v2 - v0);
     float nl = length(nrm);
-    float dplane = nl > 0.0f ? fabs(rt_dot(nrm, a)) / nl : 0.0f;
-    float dmin = fmax(fmax(dplane, dc - R), 0.0f) * (1.0f - 1e-5f);
+    float dplane = nl > 0.0f ? fabs(rt_dot(nrm, v0)) / nl : 0.0f;
+    float dmin = fmax(fmax(dplane, length(ctr) - rad), 0.0f) * (1.0f - 1e-5f);
     *slab = clamp((int)floor((dmin - g->slab.w) * g->slab.y), 0, g->res.z - 1);
-    float amin = -M_PI_F, amax = M_PI_F, tmin = -M_PI_2_F, tmax = M_PI_2_F;
-    bool everywhere = !(dc > 0.0f && la > 0.0f && lb > 0.0f && lc > 0.0f);
-    if (!everywhere) {
-        float3 cu = ctr / dc;
-        float rho = fmax(fmax(atan2(length(rt_cross(cu, a)), rt_dot(cu, a)), atan2(length(rt_cross(cu, b)), rt_dot(cu, b))),
-                         atan2(length(rt_cross(cu, c)), rt_dot(cu, c)));
-        rho = rho * (1.0f + 1e-5f) + m + 1e-6f;
-        if (rho < 1.5f) {
-            float2 at = pg_angles(g, cu);
-            tmin = at.y - rho;
-            tmax = at.y + rho;
-            if (tmin > -M_PI_2_F && tmax < M_PI_2_F) {
-                float s = sin(rho) / cos(at.y);
-                if (s < 1.0f) {
-                    float da = asin(s) * (1.0f + 1e-5f) + 1e-6f;
-                    if (at.x - da > -M_PI_F && at.x + da < M_PI_F) { amin = at.x - da; amax = at.x + da; }
-                    else *full = true;
-                } else *full = true;
-            } else *full = true;
-        } else everywhere = true;
+    float3 R = g->right.xyz, U = g->up.xyz, F = g->fwd.xyz;
+    float2 p0 = (float2)(rt_dot(v0, F), rt_dot(v0, R)), p1 = (float2)(rt_dot(v1, F), rt_dot(v1, R));
+    float2 p2 = (float2)(rt_dot(v2, F), rt_dot(v2, R));
+    float y0 = rt_dot(v0, U), y1 = rt_dot(v1, U), y2 = rt_dot(v2, U);
+    float vmax = fmax(fmax(length(v0), length(v1)), length(v2));
+    float err = 4e-7f * vmax;
+    float c0 = p0.x * p1.y - p0.y * p1.x, c1 = p1.x * p2.y - p1.y * p2.x, c2 = p2.x * p0.y - p2.y * p0.x;
+    bool around = (c0 >= 0.0f && c1 >= 0.0f && c2 >= 0.0f) || (c0 <= 0.0f && c1 <= 0.0f && c2 <= 0.0f);
+    float rho_min = around ? 0.0f : sqrt(fmin(fmin(pg_seg_dist2(p0, p1), pg_seg_dist2(p1, p2)),
+                                              pg_seg_dist2(p2, p0)));
+    bool near_axis = rho_min <= 1e-3f * vmax;
+    float rho_lo = fmax(rho_min - err, 0.0f);
+    float rho_max = fmax(fmax(length(p0), length(p1)), length(p2)) + err;
+    float ymax = fmax(fmax(y0, y1), y2) + err, ymin = fmin(fmin(y0, y1), y2) - err;
+    float thi = ymax > 0.0f ? (rho_lo > 0.0f ? atan2(ymax, rho_lo) : M_PI_2_F) : atan2(ymax, rho_max);
+    float tlo = ymin < 0.0f ? (rho_lo > 0.0f ? atan2(ymin, rho_lo) : -M_PI_2_F) : atan2(ymin, rho_max);
+    tlo = fmax(tlo - m - 1e-6f, -M_PI_2_F);
+    thi = fmin(thi + m + 1e-6f, M_PI_2_F);
+    float amin = -M_PI_F, amax = M_PI_F;
+    float ct = cos(fmax(fabs(tlo), fabs(thi))), sm = sin(m);
+    if (near_axis || ct <= sm * 1.001f) {
+        *full = true;
+    } else {
+        float a0 = atan2(p0.y, p0.x), lo = 0.0f, hi = 0.0f;
+        float d1 = atan2(p1.y, p1.x) - a0, d2 = atan2(p2.y, p2.x) - a0;
+        d1 = d1 > M_PI_F ? d1 - 2.0f * M_PI_F : (d1 < -M_PI_F ? d1 + 2.0f * M_PI_F : d1);
+        d2 = d2 > M_PI_F ? d2 - 2.0f * M_PI_F : (d2 < -M_PI_F ? d2 + 2.0f * M_PI_F : d2);
+        lo = fmin(lo, fmin(d1, d2));
+        hi = fmax(hi, fmax(d1, d2));
+        float da = asin(fmin(sm / ct, 1.0f)) * 1.001f + 1e-6f + err / rho_min;
+        amin = a0 + lo - da;
+        amax = a0 + hi + da;
+        if (amin <= -M_PI_F || amax >= M_PI_F) { amin = -M_PI_F; amax = M_PI_F; *full = true; }
     }
-    if (everywhere) *full = true;
     float fa0 = (amin - g->rect.x) * g->rect.z, fa1 = (amax - g->rect.x) * g->rect.z;
-    float ft0 = (tmin - g->rect.y) * g->rect.w, ft1 = (tmax - g->rect.y) * g->rect.w;
+    float ft0 = (tlo - g->rect.y) * g->rect.w, ft1 = (thi - g->rect.y) * g->rect.w;
     if (fa1 < 0.0f || ft1 < 0.0f || fa0 >= (float)g->res.x || ft0 >= (float)g->res.y) return false;
     *range = (int4)(clamp((int)floor(fa0), 0, g->res.x - 1), clamp((int)floor(fa1), 0, g->res.x - 1),
                     clamp((int)floor(ft0), 0, g->res.y - 1), clamp((int)floor(ft1), 0, g->res.y - 1));

@@ -16,9 +16,10 @@ Build (kernels in pointgrid.cl beside this file, primitives from viewer.cl.primi
  3. angular rectangle of the rays (min/max reduce), grown by the margin; tiles over it
     (~tile_rays rays per tile, or `tiles` on the longer side); slabs by distance from the centre.
  4. (tile, ray) pairs radix-sorted; segments cut into chunks of at most `chunk` rays.
- 5. triangles: a spherical cap around each triangle's centroid direction holding its vertices
-    (grown by the margin) gives a conservative (alpha, theta) box (full azimuth when the cap
-    reaches a pole or the azimuth seam: "widened"); clipped to the rays' rectangle (triangles
+ 5. triangles: a conservative (alpha, theta) box of the triangle itself (pointgrid.cl: azimuths
+    at the vertices, elevations bounded through the triangle's distance from the pole axis;
+    full azimuth when it surrounds or nears the pole axis or crosses the seam: "widened"),
+    grown by the margin; clipped to the rays' rectangle (triangles
     outside it are culled: frustum culling for the eye); one slab from a lower bound of the
     triangle's distance to the centre. (cell = tile * slabs + slab, triangle) pairs counted,
     scanned, written, sorted; per-cell counts from the segments, then an exclusive scan gives
