@@ -2,12 +2,14 @@
 // with one CN x CN work-group per CN x CN pixel block; a grid tile is k x k blocks (indirect
 // mapping: the tiles the grid is sorted into are k times wider than a work-group, so k x k
 // work-groups read the same cell lists). Per slab, front to back, the tile's triangles are staged
-// in local memory CN * CN at a time and every ray of the block tests every staged triangle
-// (watertight test of geometry.cl). Slab check: after slab s a ray whose hit is nearer than
+// in local memory CN * CN at a time (four per SoA block, stage.cl) and every ray of the block tests
+// every staged triangle, four at a time (watertight rt_intersect_triangle4 of geometry.cl: the
+// SIMD a CPU device gets from inside a work-item). Slab check: after slab s a ray whose hit is nearer than
 // where slab s + 1 begins is done (every triangle reaching nearer depths is listed in slab <= s);
 // the work-group stops when all its rays are done. Rays flagged `outside` are left alone (traced
 // another way). With COUNT_TESTS each ray's triangle tests are written to `tests_out`.
 #include "camgrid.cl"
+#include "stage.cl"
 
 #ifndef CN
 #define CN 8
@@ -18,7 +20,7 @@ __kernel __attribute__((reqd_work_group_size(CN, CN, 1)))
 void cg_trace(__global const CGrid *grid, __global const uint2 *cells, __global const uint *refs,
               __global const float4 *tris, __global const float4 *ray_o, __global const float4 *ray_d,
               __global const uint *outside, __global float *out_t, __global int *out_id, __global int *tests_out) {
-    __local float4 sv[3 * CWG];
+    __local float4 sv[9 * (CWG / 4)];  // staged triangles, four per block in SoA form (rt_intersect_triangle4)
     __local int sslot[CWG];
     __local int remaining;
     CGrid g = *grid;
@@ -54,18 +56,17 @@ void cg_trace(__global const CGrid *grid, __global const uint2 *cells, __global 
             if (lid < cnt) {
                 uint slot = refs[cr.x + b + lid];
                 sslot[lid] = (int)slot;
-                sv[3 * lid] = tris[3 * slot];
-                sv[3 * lid + 1] = tris[3 * slot + 1];
-                sv[3 * lid + 2] = tris[3 * slot + 2];
+                stage_triangle(sv, lid, tris, slot);
             }
             barrier(CLK_LOCAL_MEM_FENCE);
             if (!done) {
-                for (uint k = 0; k < cnt; ++k) {
+                for (uint k = 0; k < cnt; k += 4) {
                     float t;
-                    ++tests;
-                    if (rt_intersect_triangle(&r, sv[3 * k].xyz, sv[3 * k + 1].xyz, sv[3 * k + 2].xyz, tmin, hit_t, &t)) {
+                    tests += (int)min(4u, cnt - k);
+                    int lane = rt_intersect_triangle4_local(&r, sv + 9 * (k / 4), stage_lanes(k, cnt), tmin, hit_t, &t);
+                    if (lane >= 0) {
                         hit_t = t;
-                        hit_id = sslot[k];
+                        hit_id = sslot[k + lane];
                     }
                 }
             }

@@ -1,7 +1,7 @@
 // pgrid: one work-group per chunk of at most WG rays that share a tile of the point-centred grid
-// (viewer/accel/pointgrid.cl). The tile's triangles are staged in local memory WG at a time,
-// slab by slab (nearest to the centre first), and every ray of the chunk tests every staged
-// triangle (watertight test of geometry.cl).
+// (viewer/accel/pointgrid.cl). The tile's triangles are staged in local memory WG at a time
+// (four per SoA block, stage.cl), slab by slab (nearest to the centre first), and every ray of the
+// chunk tests every staged triangle, four at a time (watertight rt_intersect_triangle4).
 //  * any hit (shadow rays towards a light): a ray stops at its first hit; the chunk stops when all
 //    its rays have stopped or the next slab starts beyond the farthest point of its rays.
 //  * closest hit (primary rays from the eye): after slab s a ray whose hit lies nearer to the
@@ -10,6 +10,7 @@
 // A chunk of more than WG rays (load balancing off: whole tiles) is traced WG rays at a time.
 // With COUNT_TESTS, each ray's triangle tests are written to `tests`.
 #include "geometry.cl"
+#include "stage.cl"
 
 #ifndef WG
 #define WG 64
@@ -33,7 +34,7 @@ void pg_trace(__global const PGrid *grid, __global const uint *chunk_key, __glob
               __global const uint *refs, __global const float4 *tris, __global const float4 *ray_o,
               __global const float4 *ray_d, __global float *out_t, __global int *out_id, const int any_hit,
               __global int *tests_out) {
-    __local float4 sv[3 * WG];
+    __local float4 sv[9 * (WG / 4)];  // staged triangles, four per block in SoA form
     __local int sslot[WG];
     __local int remaining;
     __local uint far_bits;
@@ -84,18 +85,17 @@ void pg_trace(__global const PGrid *grid, __global const uint *chunk_key, __glob
             if (lid < cnt) {
                 uint slot = refs[base_i + lid];
                 sslot[lid] = (int)slot;
-                sv[3 * lid] = tris[3 * slot];
-                sv[3 * lid + 1] = tris[3 * slot + 1];
-                sv[3 * lid + 2] = tris[3 * slot + 2];
+                stage_triangle(sv, lid, tris, slot);
             }
             barrier(CLK_LOCAL_MEM_FENCE);
             if (!done && slab_lo <= far) {  // this ray's segment may reach this slab
-                for (uint k = 0; k < cnt; ++k) {
+                for (uint k = 0; k < cnt; k += 4) {
                     float t;
-                    ++tests;
-                    if (rt_intersect_triangle(&r, sv[3 * k].xyz, sv[3 * k + 1].xyz, sv[3 * k + 2].xyz, tmin, hit_t, &t)) {
+                    tests += (int)min(4u, cnt - k);
+                    int lane = rt_intersect_triangle4_local(&r, sv + 9 * (k / 4), stage_lanes(k, cnt), tmin, hit_t, &t);
+                    if (lane >= 0) {
                         hit_t = t;
-                        hit_id = sslot[k];
+                        hit_id = sslot[k + lane];
                         if (any_hit) { done = true; atomic_dec(&remaining); break; }
                     }
                 }

@@ -143,57 +143,76 @@ inline int4 rt_intersect_box4(const RayPre *r, __global const float4 *bounds, fl
     return enter <= exit;
 }
 
+// Helpers of the four-wide test (kept out of its macro body: they hold the fp64 #ifdefs).
+// Edge functions that came out exactly 0 recomputed in double (as rt_intersect_triangle does).
+inline void rt_uvw4_exact(int4 zero, float4 Ax, float4 Ay, float4 Bx, float4 By, float4 Cx, float4 Cy, float4 *U,
+                          float4 *V, float4 *W) {
+#ifdef RT_HAVE_FP64
+    if (any(zero)) {
+        double4 dAx = convert_double4(Ax), dAy = convert_double4(Ay), dBx = convert_double4(Bx);
+        double4 dBy = convert_double4(By), dCx = convert_double4(Cx), dCy = convert_double4(Cy);
+        *U = select(*U, convert_float4(dCx * dBy - dCy * dBx), zero);
+        *V = select(*V, convert_float4(dAx * dCy - dAy * dCx), zero);
+        *W = select(*W, convert_float4(dBx * dAy - dBy * dAx), zero);
+    }
+#endif
+}
+
+// Correctly rounded normals of four triangles from their edges (float32 products are exact in double).
+inline void rt_normal4(float4 e1x, float4 e1y, float4 e1z, float4 e2x, float4 e2y, float4 e2z, float4 *nx,
+                       float4 *ny, float4 *nz) {
+#ifdef RT_HAVE_FP64
+    double4 d1x = convert_double4(e1x), d1y = convert_double4(e1y), d1z = convert_double4(e1z);
+    double4 d2x = convert_double4(e2x), d2y = convert_double4(e2y), d2z = convert_double4(e2z);
+    *nx = convert_float4(d1y * d2z - d1z * d2y);
+    *ny = convert_float4(d1z * d2x - d1x * d2z);
+    *nz = convert_float4(d1x * d2y - d1y * d2x);
+#else
+    *nx = e1y * e2z - e1z * e2y;
+    *ny = e1z * e2x - e1x * e2z;
+    *nz = e1x * e2y - e1y * e2x;
+#endif
+}
+
 // Four triangles at once, structure of arrays: v[0..8] = v0x, v0y, v0z, v1x, v1y, v1z, v2x, v2y, v2z
 // (one lane per triangle). Lane by lane the same float operations as rt_intersect_triangle, so the
 // same answers; the ray's axis permutation picks whole float4 rows (no per-lane shuffles).
 // `lanes` masks the lanes that hold triangles (-1). Returns the lane of the nearest hit with
 // tmin < t < tmax (the lowest such lane on equal t, as a sequential loop would keep), or -1.
-inline int rt_intersect_triangle4(const RayPre *r, __global const float4 *v, int4 lanes, float tmin, float tmax,
-                                  float *t_out) {
-    float okx = rt_comp(r->o, r->kx), oky = rt_comp(r->o, r->ky), okz = rt_comp(r->o, r->kz);
-    float4 Akz = v[r->kz] - okz, Bkz = v[3 + r->kz] - okz, Ckz = v[6 + r->kz] - okz;
-    float4 Ax = (v[r->kx] - okx) - r->Sx * Akz, Ay = (v[r->ky] - oky) - r->Sy * Akz;
-    float4 Bx = (v[3 + r->kx] - okx) - r->Sx * Bkz, By = (v[3 + r->ky] - oky) - r->Sy * Bkz;
-    float4 Cx = (v[6 + r->kx] - okx) - r->Sx * Ckz, Cy = (v[6 + r->ky] - oky) - r->Sy * Ckz;
-    float4 U = Cx * By - Cy * Bx;
-    float4 V = Ax * Cy - Ay * Cx;
-    float4 W = Bx * Ay - By * Ax;
-#ifdef RT_HAVE_FP64
-    int4 zero = ((U == 0.0f) | (V == 0.0f) | (W == 0.0f)) & lanes;
-    if (any(zero)) {
-        double4 dAx = convert_double4(Ax), dAy = convert_double4(Ay), dBx = convert_double4(Bx);
-        double4 dBy = convert_double4(By), dCx = convert_double4(Cx), dCy = convert_double4(Cy);
-        U = select(U, convert_float4(dCx * dBy - dCy * dBx), zero);
-        V = select(V, convert_float4(dAx * dCy - dAy * dCx), zero);
-        W = select(W, convert_float4(dBx * dAy - dBy * dAx), zero);
-    }
-#endif
-    int4 outside = ((U < 0.0f) | (V < 0.0f) | (W < 0.0f)) & ((U > 0.0f) | (V > 0.0f) | (W > 0.0f));
-    float4 det = U + V + W;
-    int4 ok = lanes & ~outside & (det != 0.0f);
-    if (!any(ok)) return -1;
-    float4 e1x = v[3] - v[0], e1y = v[4] - v[1], e1z = v[5] - v[2];
-    float4 e2x = v[6] - v[0], e2y = v[7] - v[1], e2z = v[8] - v[2];
-#ifdef RT_HAVE_FP64
-    double4 d1x = convert_double4(e1x), d1y = convert_double4(e1y), d1z = convert_double4(e1z);
-    double4 d2x = convert_double4(e2x), d2y = convert_double4(e2y), d2z = convert_double4(e2z);
-    float4 nx = convert_float4(d1y * d2z - d1z * d2y), ny = convert_float4(d1z * d2x - d1x * d2z);
-    float4 nz = convert_float4(d1x * d2y - d1y * d2x);
-#else
-    float4 nx = e1y * e2z - e1z * e2y, ny = e1z * e2x - e1x * e2z, nz = e1x * e2y - e1y * e2x;
-#endif
-    float4 dn = nx * r->d.x + ny * r->d.y + nz * r->d.z;
-    float4 t = (nx * (v[0] - r->o.x) + ny * (v[1] - r->o.y) + nz * (v[2] - r->o.z)) / dn;
-    int4 flat = dn == 0.0f;
-    if (any(flat & ok)) {
-        float4 tw = (U * (r->Sz * Akz) + V * (r->Sz * Bkz) + W * (r->Sz * Ckz)) / det;
-        t = select(t, tw, flat);
-    }
-    ok &= (t > tmin) & (t < tmax);
-    if (!any(ok)) return -1;
-    float4 tm = select((float4)(INFINITY), t, ok);
-    float best = fmin(fmin(tm.x, tm.y), fmin(tm.z, tm.w));
-    int lane = (ok.x && tm.x == best) ? 0 : (ok.y && tm.y == best) ? 1 : (ok.z && tm.z == best) ? 2 : 3;
-    *t_out = best;
-    return lane;
+// Defined for triangles in global memory (rt_intersect_triangle4) and for triangles staged in
+// local memory (rt_intersect_triangle4_local): one body, two address spaces.
+#define RT_DEFINE_TRIANGLE4(NAME, SPACE) \
+inline int NAME(const RayPre *r, SPACE const float4 *v, int4 lanes, float tmin, float tmax, float *t_out) { \
+    float okx = rt_comp(r->o, r->kx), oky = rt_comp(r->o, r->ky), okz = rt_comp(r->o, r->kz); \
+    float4 Akz = v[r->kz] - okz, Bkz = v[3 + r->kz] - okz, Ckz = v[6 + r->kz] - okz; \
+    float4 Ax = (v[r->kx] - okx) - r->Sx * Akz, Ay = (v[r->ky] - oky) - r->Sy * Akz; \
+    float4 Bx = (v[3 + r->kx] - okx) - r->Sx * Bkz, By = (v[3 + r->ky] - oky) - r->Sy * Bkz; \
+    float4 Cx = (v[6 + r->kx] - okx) - r->Sx * Ckz, Cy = (v[6 + r->ky] - oky) - r->Sy * Ckz; \
+    float4 U = Cx * By - Cy * Bx; \
+    float4 V = Ax * Cy - Ay * Cx; \
+    float4 W = Bx * Ay - By * Ax; \
+    rt_uvw4_exact(((U == 0.0f) | (V == 0.0f) | (W == 0.0f)) & lanes, Ax, Ay, Bx, By, Cx, Cy, &U, &V, &W); \
+    int4 outside = ((U < 0.0f) | (V < 0.0f) | (W < 0.0f)) & ((U > 0.0f) | (V > 0.0f) | (W > 0.0f)); \
+    float4 det = U + V + W; \
+    int4 ok = lanes & ~outside & (det != 0.0f); \
+    if (!any(ok)) return -1; \
+    float4 nx, ny, nz; \
+    rt_normal4(v[3] - v[0], v[4] - v[1], v[5] - v[2], v[6] - v[0], v[7] - v[1], v[8] - v[2], &nx, &ny, &nz); \
+    float4 dn = nx * r->d.x + ny * r->d.y + nz * r->d.z; \
+    float4 t = (nx * (v[0] - r->o.x) + ny * (v[1] - r->o.y) + nz * (v[2] - r->o.z)) / dn; \
+    int4 flat = dn == 0.0f; \
+    if (any(flat & ok)) { \
+        float4 tw = (U * (r->Sz * Akz) + V * (r->Sz * Bkz) + W * (r->Sz * Ckz)) / det; \
+        t = select(t, tw, flat); \
+    } \
+    ok &= (t > tmin) & (t < tmax); \
+    if (!any(ok)) return -1; \
+    float4 tm = select((float4)(INFINITY), t, ok); \
+    float best = fmin(fmin(tm.x, tm.y), fmin(tm.z, tm.w)); \
+    int lane = (ok.x && tm.x == best) ? 0 : (ok.y && tm.y == best) ? 1 : (ok.z && tm.z == best) ? 2 : 3; \
+    *t_out = best; \
+    return lane; \
 }
+
+RT_DEFINE_TRIANGLE4(rt_intersect_triangle4, __global)
+RT_DEFINE_TRIANGLE4(rt_intersect_triangle4_local, __local)
