@@ -612,3 +612,35 @@ def test_light_grid_lists_every_occluder_in_the_rays_tile(light):
             assert t in listed, f"ray {r}: occluder slot {t} not in light tile {tile}"
             checked += 1
     assert checked > 0.2 * n
+
+
+@needs_cl
+def test_fast_atan2_error_bound(tmp_path):
+    """pg_atan2_fast (the light grid's binning) stays within the 2e-6 rad its slack assumes, in
+    every quadrant, on the axes and diagonals, and for tiny and huge inputs."""
+    from viewer.accel.pointgrid import KERNEL
+    from viewer.cl import build, cl_context
+
+    ctx = cl_context()
+    src = tmp_path / "atan_check.cl"
+    src.write_text('#include "pointgrid.cl"\n'
+                   '__kernel void atan_check(__global const float2 *yx, __global float *out, const uint n) {\n'
+                   '    uint i = get_global_id(0);\n'
+                   '    if (i < n) out[i] = pg_atan2_fast(yx[i].x, yx[i].y);\n}\n')
+    prog = build(src, {"WG": 64}, ctx, search=[KERNEL.parent])
+    rng = np.random.default_rng(5)
+    ang = np.concatenate([rng.uniform(-np.pi, np.pi, 400_000), np.arange(-8, 9) * np.pi / 8])
+    mag = np.exp(rng.uniform(-40, 40, len(ang)))
+    yx = np.stack([np.sin(ang) * mag, np.cos(ang) * mag], 1).astype(F32)
+    yx = np.concatenate([yx, np.array([[0, 1], [1, 0], [0, -1], [-1, 0], [1e-30, 1], [1, 1], [-1, -1]], F32)])
+    cl = ctx.cl
+    mf = cl.mem_flags
+    a = cl.Buffer(ctx.context, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=yx)
+    out = np.empty(len(yx), F32)
+    b = cl.Buffer(ctx.context, mf.WRITE_ONLY, out.nbytes)
+    cl.Kernel(prog, "atan_check")(ctx.queue, (len(yx),), None, a, b, np.uint32(len(yx)))
+    cl.enqueue_copy(ctx.queue, out, b)
+    ref = np.arctan2(yx[:, 0].astype(np.float64), yx[:, 1].astype(np.float64))
+    err = np.abs(out.astype(np.float64) - ref)
+    err = np.minimum(err, 2 * np.pi - err)  # +pi and -pi are the same direction
+    assert err.max() <= 2e-6, err.max()
