@@ -65,7 +65,7 @@ inline bool pg_ray(const PGrid *g, float4 ot, float4 dt, float3 *u_out, float *d
 }
 
 // Per ray: angles of u (0 for rays not in the grid), its deviation bound (0 when not in the grid)
-// and whether it is outside the grid.
+// and outside: 0 in the grid, 1 outside it (traced another way), 2 inactive (nothing to trace).
 __kernel __attribute__((reqd_work_group_size(WG, 1, 1)))
 void pg_classify(__global const PGrid *grid, __global const float4 *ray_o, __global const float4 *ray_d, const uint n,
                  __global float *alpha, __global float *theta, __global float *dev, __global uint *outside) {
@@ -74,12 +74,13 @@ void pg_classify(__global const PGrid *grid, __global const float4 *ray_o, __glo
     PGrid g = *grid;
     float3 u;
     float dv = 0.0f;
-    bool ok = pg_ray(&g, ray_o[i], ray_d[i], &u, &dv);
+    float4 ot = ray_o[i], dt = ray_d[i];
+    bool ok = pg_ray(&g, ot, dt, &u, &dv);
     float2 at = ok ? pg_angles(&g, u) : (float2)(0.0f);
     alpha[i] = at.x;
     theta[i] = at.y;
     dev[i] = ok ? dv : 0.0f;
-    outside[i] = ok ? 0u : 1u;
+    outside[i] = ok ? 0u : (dt.w > ot.w ? 1u : 2u);
 }
 
 __kernel __attribute__((reqd_work_group_size(WG, 1, 1)))
@@ -89,7 +90,7 @@ void pg_ray_keys(__global const PGrid *grid, __global const float *alpha, __glob
     if (i >= n) return;
     PGrid g = *grid;
     uint ntiles = (uint)(g.res.x * g.res.y);
-    uint key = ntiles;
+    uint key = ntiles + outside[i] - 1u;  // after every tile: outside rays, then inactive ones
     if (!outside[i]) {
         int ia = clamp((int)floor((alpha[i] - g.rect.x) * g.rect.z), 0, g.res.x - 1);
         int it = clamp((int)floor((theta[i] - g.rect.y) * g.rect.w), 0, g.res.y - 1);

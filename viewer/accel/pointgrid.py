@@ -30,7 +30,8 @@ theta0, tiles per radian in alpha and theta), slab (width, 1 / width, tan(margin
 from the centre to the scene box, where slab 0 starts); int4 res
 (tiles alpha, tiles theta, slabs, cells)); cell_start uint32 (ncells + 1,); refs uint32 (pairs,)
 triangle slots; chunks: viewer.cl.primitives.Chunks over the sorted ray keys (key = tile,
-ntiles for rays outside the grid), ray_vals uint32 (n,) ray indices in that order.
+ntiles for rays outside the grid, ntiles + 1 for inactive rays: neither is traced here, so the
+caller writes misses first), ray_vals uint32 (n,) ray indices in that order.
 """
 
 from __future__ import annotations
@@ -70,6 +71,7 @@ class PointGridStats:
     rays: int
     in_grid: int
     outside: int
+    inactive: int
     chunks: int
     pairs: int
     culled: int
@@ -81,6 +83,7 @@ class PointGridStats:
         return {"pairs": float(self.pairs), "chunks": float(self.chunks),
                 "chunk_occupancy": self.in_grid / max(self.chunks * chunk, 1), "culled": float(self.culled),
                 "widened": float(self.widened), "outside_rays": float(self.outside),
+                "inactive_rays": float(self.inactive),
                 "tiles": float(self.tiles[0] * self.tiles[1]), "pgrid_build_ms": self.build_ms,
                 "rearrange_ms": self.rearrange_ms}
 
@@ -138,6 +141,7 @@ class PointGrid:
         self.stats: PointGridStats | None = None
         self.chunks = None
         self.outside_count = 0
+        self.inactive_count = 0
 
     def buf(self, name: str, nbytes: int) -> Any:
         b = self._bufs.get(name)
@@ -178,8 +182,9 @@ class PointGrid:
         dev, outside = self.buf("dev", 4 * n), self.buf("outside", 4 * n)
         self._run("pg_classify", n, self.header, ray_o, ray_d, u(n), alpha, theta, dev, outside)
         out_idx = self.buf("outside_idx", 4 * n)
-        self.outside_count = p.compact(n, flags=outside, dst_index=out_idx) if n else 0
-        in_grid = n - self.outside_count
+        self.outside_count = p.compact(n, src=outside, predicate="x == 1u", dst_index=out_idx) if n else 0
+        self.inactive_count = p.compact(n, src=outside, predicate="x == 2u") if n else 0
+        in_grid = n - self.outside_count - self.inactive_count
         # margin: the largest deviation of a ray in the grid (at most spec.margin), plus float slack
         m = float(p.reduce(dev, n, "max", np.float32)) * (1 + 1e-4) + 1e-6 if in_grid else spec.margin
         m = min(m, spec.margin)
@@ -232,7 +237,7 @@ class PointGrid:
             cl.enqueue_copy(q, fl, flags)
         fl = fl[:n_tris]
         q.finish()
-        self.stats = PointGridStats((na, nt), ns, n, in_grid, self.outside_count, 0, int(pairs),
+        self.stats = PointGridStats((na, nt), ns, n, in_grid, self.outside_count, self.inactive_count, 0, int(pairs),
                                     int((fl & 1).sum()), int(((fl & 2) != 0).sum()), (time.perf_counter() - t0) * 1e3)
 
     def rearrange(self, n: int, spec: PointGridSpec, balance: bool = True) -> PointGridStats:
@@ -247,13 +252,13 @@ class PointGrid:
         rk, rv = self.buf("ray_keys", 4 * n), self.buf("ray_vals", 4 * n)
         self._run("pg_ray_keys", n, self.header, self._bufs["alpha"], self._bufs["theta"], self._bufs["outside"],
                   np.uint32(n), rk, rv)
-        self.prims.sort_pairs(rk, rv, n, key_bits=max(1, ntiles.bit_length()))
+        self.prims.sort_pairs(rk, rv, n, key_bits=max(1, (ntiles + 1).bit_length()))
         out = Chunks(0, self.buf("ch_key", 4 * n), self.buf("ch_start", 4 * n), self.buf("ch_len", 4 * n))
         self.chunks = self.prims.segments(rk, n, spec.chunk if balance else None, out=out)
         self.ctx.queue.finish()
-        outside = self.outside_count
-        sentinel = (-(-outside // spec.chunk) if balance else 1) if outside else 0
-        self.stats.chunks = self.chunks.count - sentinel  # chunks of the outside rays are not traced here
+        sentinel = sum((-(-k // spec.chunk) if balance else 1) if k else 0
+                       for k in (self.outside_count, self.inactive_count))
+        self.stats.chunks = self.chunks.count - sentinel  # chunks of outside / inactive rays are not traced here
         self.stats.rearrange_ms = (time.perf_counter() - t0) * 1e3
         return self.stats
 

@@ -96,7 +96,8 @@ class PgridBackend:
                   OverlaySpec("light_tiles", "ids", "light_chunks", "chunks (colours) and rays per tile",
                               counts="tile_rays")),
         counters=("rays", "pairs", "chunks", "chunk_occupancy", "culled", "culled_frustum", "culled_backface",
-                  "near_eye", "widened", "outside_rays", "tests_per_ray", "pgrid_build_ms", "rearrange_ms"),
+                  "near_eye", "widened", "outside_rays", "inactive_rays", "tests_per_ray", "pgrid_build_ms",
+                  "rearrange_ms"),
         device="cl")
 
     def __init__(self, bc: BackendContext, params: PgridParams | None = None):
@@ -229,6 +230,9 @@ class PgridBackend:
             if st.outside:
                 self._ensure_grid()
             with prof.cl_phase(f"trace:{label}", q):
+                if st.inactive:  # inactive rays are in no chunk: their answer is a miss
+                    self.ctx.cl.enqueue_fill_buffer(q, hs.t, np.float32(np.inf), 0, 4 * rs.n)
+                    self.ctx.cl.enqueue_fill_buffer(q, hs.tri, np.int32(-1), 0, 4 * rs.n)
                 if pg.chunks.count:
                     ch = pg.chunks
                     self._kernels[count](q, (pg.chunks.count * self.params.chunk,), (self.params.chunk,), pg.header,
