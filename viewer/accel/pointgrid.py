@@ -60,6 +60,7 @@ class PointGridSpec:
     chunk: int = 64  # rays per chunk (one work-group each)
     tile_rays: int = 64  # automatic tiling: about this many rays per tile
     tiles: int = 0  # >0: tiles along the longer side of the angular rectangle instead
+    tile_angle: float = 0.0  # >0: tiles of this many radians (a fixed angular resolution) instead
     slabs: int = 16
     margin: float = 0.004  # radians
 
@@ -83,7 +84,7 @@ class PointGridStats:
         return {"pairs": float(self.pairs), "chunks": float(self.chunks),
                 "chunk_occupancy": self.in_grid / max(self.chunks * chunk, 1), "culled": float(self.culled),
                 "widened": float(self.widened), "outside_rays": float(self.outside),
-                "inactive_rays": float(self.inactive),
+                "inactive_rays": float(self.inactive), "grid_rays": float(self.in_grid),
                 "tiles": float(self.tiles[0] * self.tiles[1]), "pgrid_build_ms": self.build_ms,
                 "rearrange_ms": self.rearrange_ms}
 
@@ -113,7 +114,9 @@ def choose_frame(centre: np.ndarray, origins: np.ndarray, dirs: np.ndarray) -> t
 def tile_counts(span_a: float, span_t: float, rays: int, spec: PointGridSpec) -> tuple[int, int]:
     """Tiles in azimuth and elevation over an angular rectangle span_a x span_t (radians)."""
     span_a, span_t = max(span_a, 1e-9), max(span_t, 1e-9)
-    if spec.tiles > 0:
+    if spec.tile_angle > 0:
+        k = 1.0 / spec.tile_angle
+    elif spec.tiles > 0:
         k = spec.tiles / max(span_a, span_t)
     else:
         k = np.sqrt(max(rays, 1) / max(spec.tile_rays, 1) / (span_a * span_t))

@@ -12,7 +12,8 @@ Studies (``--study``, comma list or ``all``):
   occupancy, rays outside the grids).
 - ``lightdist`` (thesis Figure 4.9): shadow time (build + rearrangement + traversal) as the light
   moves away from the model along the line from its centre through the scene's light, for chunk
-  sizes 64/128/256 and without load balancing; clbvh's any-hit time on the same rays beside it.
+  sizes 64/128/256 and without load balancing, at a fixed angular resolution (--light-tile-deg) so
+  tiles fill up as the light recedes; clbvh's any-hit time on the same rays beside it.
 - ``model`` (thesis Figures 4.10 / 5.5): the cost-model totals from the measured terms of
   table41 (per-frame BVH build + traversals vs per-pass grids) as functions of the number of
   lights and of secondary passes, and the break-even counts. Needs table41 in the same run.
@@ -60,6 +61,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--sizes", default="640x360", help="comma list of WxH (thesis: 1024x1024,640x360)")
     p.add_argument("--frames", type=int, default=3, help="timed frames per configuration (default 3)")
     p.add_argument("--light-scene", default="buddha", help="scene of the lightdist study (default buddha)")
+    p.add_argument("--light-tile-deg", type=float, default=2.0,
+                   help="lightdist: light-grid tile size in degrees, fixed at every distance (default 2)")
     p.add_argument("--distances", default="0.25,0.5,1,2,4",
                    help="lightdist: light distance from the model centre in scene diagonals")
     p.add_argument("--anim-frames", type=int, default=8, help="anim: timed frames of the animated walk (default 8)")
@@ -279,8 +282,11 @@ def study_lightdist(args, ctx) -> dict:
     dists = [float(x) for x in args.distances.split(",") if x.strip()]
     size = _sizes(args.sizes)[0]
     extra = args.pgrid_params
-    configs = {f"chunk={c}": ("pgrid", ",".join(x for x in (f"chunk={c}", extra) if x)) for c in (64, 128, 256)}
-    configs["no balancing"] = ("pgrid", ",".join(x for x in ("chunk=64,balance=false", extra) if x))
+    # a fixed angular resolution (as the thesis's grid): tiles fill up as the light recedes, which is
+    # what chunking is for (automatic tiling would keep ~tile_rays rays per tile at every distance)
+    fixed = f"tile_deg={args.light_tile_deg}"
+    configs = {f"chunk={c}": ("pgrid", ",".join(x for x in (f"chunk={c}", fixed, extra) if x)) for c in (64, 128, 256)}
+    configs["no balancing"] = ("pgrid", ",".join(x for x in ("chunk=64,balance=false", fixed, extra) if x))
     configs["clbvh"] = ("clbvh", "")
     rows = []
     for k in dists:
@@ -386,6 +392,8 @@ def run(args) -> int:
     studies = [s for s in STUDIES if s in wanted]  # table41 before the studies built on it
     parse_choices(args.scenes, SCENES, "--scenes")
     _sizes(args.sizes)
+    if not 0 < args.light_tile_deg <= 90:
+        raise RtwalkError("--light-tile-deg must be in (0, 90]")
     if args.frames < 1 or args.anim_frames < 1:
         raise RtwalkError("--frames and --anim-frames must be >= 1")
     if ("model" in studies or "rearrange" in studies) and "table41" not in studies:

@@ -120,13 +120,13 @@ def study_rearrange(args, table41: dict) -> dict:
         ph, st = r["phases"]["pgrid"], r["stats"]["pgrid"]
         rows.append({"scene": r["scene"], "size": r["size"], "rearrange_ms": ph.get("pgrid:rearrange:shadows", 0.0),
                      "classify_primary_ms": ph.get("pgrid:rearrange:primary", 0.0),
-                     "shadow_rays": st.get("rays_shadows", float("nan")),
+                     "shadow_rays": st.get("grid_rays_shadows", float("nan")),
                      "chunks": st.get("chunks_shadows", float("nan")), "tiles": st.get("tiles_shadows", float("nan"))})
     md = ["# Thesis Figure 4.7 analog: data rearrangement per scene (ms, medians)", "",
           f"Command: `{args.command_line}`", "",
           "Shadow rays: (light tile, ray) pairs radix-sorted, segments cut into chunks, compacted. Primary "
           "rays are in image order already: their step is only the per-ray check against the tile.", "",
-          md_table(["scene", "size", "shadow rearrangement", "shadow rays", "light tiles", "chunks",
+          md_table(["scene", "size", "shadow rearrangement", "shadow rays in the grid", "light tiles", "chunks",
                     "primary classification"],
                    [[r["scene"], size_text(tuple(r["size"])), fmt(r["rearrange_ms"]), fmt(r["shadow_rays"], 0),
                      fmt(r["tiles"], 0), fmt(r["chunks"], 0), fmt(r["classify_primary_ms"])] for r in rows])]

@@ -80,6 +80,12 @@ class RayStage:
             with mapped(self.ctx, buf, (self.n, 4), np.float32, write=True) as a:
                 a[...] = np.asarray(src, np.float32).reshape(self.n, 4)
 
+    def active_count(self) -> int:
+        """Rays with tmin < tmax (a vectorised read of the mapped buffers: for counters, not hot paths)."""
+        with mapped(self.ctx, self.origin, (self.n, 4), np.float32) as o, \
+                mapped(self.ctx, self.dir, (self.n, 4), np.float32) as d:
+            return int(np.count_nonzero(d[:, 3] > o[:, 3]))
+
     def release(self) -> None:
         self.origin.release()
         self.dir.release()

@@ -21,7 +21,7 @@
 
 Parameters: primary (image | angular | grid), k (indirect mapping), backface (auto | on | off),
 chunk (rays per work-group: 16..256), balance (chunks; off: one work-group per tile), tile_rays /
-tiles (angular tiling), slabs (both grids), margin (radians, the angular grids), density /
+tiles / tile_deg (angular tiling), slabs (both grids), margin (radians, the angular grids), density /
 resolution / rebuild (the uniform grid; rebuild: every frame). Counters: pairs, chunks,
 chunk_occupancy, culled (frustum / back-face) and widened (pole/seam) triangles, rays outside the
 grids, tests per ray (with the overlays on).
@@ -53,13 +53,15 @@ SAMPLE = 4096  # rays sampled (strided) to choose the spherical frame
 @dataclass
 class PgridParams:
     chunk: int = 64  # rays per chunk = work-group size
-    tile_rays: int = 64  # automatic tiling: ~rays per angular tile
+    tile_rays: int = 32  # automatic tiling: ~rays per angular tile (32: fewer triangles per tile than 64)
     tiles: int = 0  # >0: tiles along the longer side of the angular rectangle
+    tile_deg: float = 0.0  # >0: light tiles of this many degrees (fixed angular resolution)
     slabs: int = 16  # distance slabs per tile
     margin: float = 0.004  # angular margin (radians) a ray may deviate from its tile direction
     primary: str = "image"  # image: camera perspective grid; angular: eye-centred grid; grid: uniform grid
     k: int = 1  # camera grid: indirect mapping (tiles of k x 8 pixels)
     backface: str = "auto"  # camera grid: auto (where exact), on, off
+    order: str = "auto"  # light grid slab order for any hit: light (outward), surface (inward), auto
     balance: bool = True  # cut tiles into chunks of `chunk` rays (False: one work-group per tile)
     rebuild: bool = False  # rebuild the uniform grid every frame (animated scenes; timing studies)
     density: float = 2.0  # uniform grid (other ray types): ~cells per triangle
@@ -70,12 +72,16 @@ class PgridParams:
             raise RtwalkError(f"{source}: chunk must be one of 16, 32, 64, 128, 256 (got {self.chunk})")
         if not 1 <= self.tile_rays <= 1 << 20 or not 0 <= self.tiles <= 1024:
             raise RtwalkError(f"{source}: tile_rays must be in 1..1048576 and tiles in 0..1024")
+        if not 0 <= self.tile_deg <= 90:
+            raise RtwalkError(f"{source}: tile_deg must be in 0..90 degrees (got {self.tile_deg})")
         if not 1 <= self.slabs <= 256:
             raise RtwalkError(f"{source}: slabs must be in 1..256 (got {self.slabs})")
         if not 1e-5 <= self.margin <= 0.1:
             raise RtwalkError(f"{source}: margin must be in 1e-5..0.1 radians (got {self.margin})")
         if self.primary not in ("image", "angular", "grid"):
             raise RtwalkError(f"{source}: primary must be image, angular or grid (got {self.primary})")
+        if self.order not in ("auto", "light", "surface"):
+            raise RtwalkError(f"{source}: order must be auto, light or surface (got {self.order})")
         if self.backface not in ("auto", "on", "off"):
             raise RtwalkError(f"{source}: backface must be auto, on or off (got {self.backface})")
         if not 1 <= self.k <= 16:
@@ -84,7 +90,8 @@ class PgridParams:
             raise RtwalkError(f"{source}: density must be > 0 and resolution in 0..2048")
 
     def point_spec(self) -> PointGridSpec:
-        return PointGridSpec(chunk=self.chunk, tile_rays=self.tile_rays, tiles=self.tiles, slabs=self.slabs,
+        return PointGridSpec(chunk=self.chunk, tile_rays=self.tile_rays, tiles=self.tiles,
+                             tile_angle=float(np.radians(self.tile_deg)), slabs=self.slabs,
                              margin=self.margin)
 
 
@@ -230,14 +237,17 @@ class PgridBackend:
             if st.outside:
                 self._ensure_grid()
             with prof.cl_phase(f"trace:{label}", q):
-                if st.inactive:  # inactive rays are in no chunk: their answer is a miss
+                if st.inactive:  # inactive rays are in no chunk: their answer is a miss (and no test)
                     self.ctx.cl.enqueue_fill_buffer(q, hs.t, np.float32(np.inf), 0, 4 * rs.n)
                     self.ctx.cl.enqueue_fill_buffer(q, hs.tri, np.int32(-1), 0, 4 * rs.n)
+                    if count:
+                        self.ctx.cl.enqueue_fill_buffer(q, tests, np.int32(0), 0, 4 * rs.n)
                 if pg.chunks.count:
                     ch = pg.chunks
                     self._kernels[count](q, (pg.chunks.count * self.params.chunk,), (self.params.chunk,), pg.header,
                                          ch.key, ch.start, ch.length, pg.ray_vals, pg.cell_start, pg.refs, self._tris,
-                                         rs.origin, rs.dir, hs.t, hs.tri, np.int32(pinfo.any_hit), tests)
+                                         rs.origin, rs.dir, hs.t, hs.tri, np.int32(pinfo.any_hit), tests,
+                                         np.int32(self._from_far(centre)))
                 self.tracer.enqueue(rs.origin, rs.dir, hs.t, hs.tri, st.outside, pinfo.any_hit,
                                     tests if count else None, index=pg.outside_index)
             stats.update(st.as_dict(self.params.chunk))
@@ -250,13 +260,22 @@ class PgridBackend:
             from viewer.cl import mapped
 
             with mapped(self.ctx, tests, (rs.n,), np.int32) as a:
-                stats["tests_per_ray"] = float(a.sum()) / max(rs.n, 1)
+                stats["tests_per_ray"] = float(a.sum()) / max(rs.active_count(), 1)  # per active ray
                 overlays["triangle_tests"] = self.textures.write("triangle_tests", rays.size, a)
             if point is not None and cam is None:
                 chunk_of, tile_rays = self._chunk_maps(rs.n)
                 overlays["light_chunks"] = self.textures.write("light_chunks", rays.size, chunk_of)
                 overlays["tile_rays"] = self.textures.write("tile_rays", rays.size, tile_rays)
         return TraceResult(stats=stats, overlays=overlays)
+
+    def _from_far(self, centre: np.ndarray) -> bool:
+        """Any-hit slab order: from the surface end when the light is outside the scene box (the
+        slabs near such a light hold the scene's outer layer: roofs, the lit side), else from the
+        light (a light inside a room or a lamp is often occluded next to itself)."""
+        if self.params.order != "auto":
+            return self.params.order == "surface"
+        lo, hi = self._box
+        return bool(np.any(centre < lo) or np.any(centre > hi))
 
     def _camera(self, pinfo: PassInfo, rs, size: tuple[int, int]):
         """The pinhole camera of a primary pass when its rays form one (else None)."""

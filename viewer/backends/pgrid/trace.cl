@@ -33,7 +33,7 @@ void pg_trace(__global const PGrid *grid, __global const uint *chunk_key, __glob
               __global const uint *chunk_len, __global const uint *ray_index, __global const uint *cell_start,
               __global const uint *refs, __global const float4 *tris, __global const float4 *ray_o,
               __global const float4 *ray_d, __global float *out_t, __global int *out_id, const int any_hit,
-              __global int *tests_out) {
+              __global int *tests_out, const int from_far) {
     __local float4 sv[9 * (WG / 4)];  // staged triangles, four per block in SoA form
     __local int sslot[WG];
     __local int remaining;
@@ -75,7 +75,14 @@ void pg_trace(__global const PGrid *grid, __global const uint *chunk_key, __glob
     bool done = !active;
     float chunk_far = as_float(far_bits);
     uint cell0 = key * (uint)g.res.z;
-    for (int s = 0; s < g.res.z; ++s) {
+    // closest hit: front to back (the slab check needs it). Any hit: front to back, or with
+    // `from_far` from the farthest slab the chunk's rays reach back towards the centre (occluders
+    // next to the surface points first: the better order when the light is outside the scene)
+    int s_far = clamp((int)floor((chunk_far - g.slab.w) * g.slab.y + 0.001f), 0, g.res.z - 1);
+    bool back = any_hit && from_far;
+    for (int step = 0; step < g.res.z; ++step) {
+        int s = back ? s_far - step : step;
+        if (s < 0) break;
         float slab_lo = g.slab.w + ((float)s - 0.001f) * g.slab.x;
         if (remaining == 0 || slab_lo > chunk_far) break;  // same value in every work-item
         uint a = cell_start[cell0 + s], b = cell_start[cell0 + s + 1];

@@ -159,7 +159,8 @@ class UgridBackend:
             self._grid_stats_due = False
         overlays = {}
         if count:
-            overlays["triangle_tests"], stats["tests_per_ray"] = self._overlay_texture(rays.size, tests, rs.n)
+            overlays["triangle_tests"], total = self._overlay_texture(rays.size, tests, rs.n)
+            stats["tests_per_ray"] = total / max(rs.active_count(), 1)  # per active ray
         return TraceResult(stats=stats, overlays=overlays)
 
     def _overlay_texture(self, size: tuple[int, int], buf: Any, n: int):
@@ -167,8 +168,8 @@ class UgridBackend:
 
         with mapped(self.ctx, buf, (n,), np.int32) as a:
             tex = self.textures.write("triangle_tests", size, a)
-            per_ray = float(a.sum()) / max(n, 1)
-        return tex, per_ray
+            total = float(a.sum())
+        return tex, total
 
     def release(self) -> None:
         self.stages.release()
