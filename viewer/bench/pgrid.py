@@ -3,13 +3,14 @@
 Studies (``--study``, comma list or ``all``):
 
 - ``table41`` (thesis Table 4.1): per scene and size, one point light, effects primary + shadows
-  (+ one diffuse pass for the cost model): pgrid's primary data-structure build (camera grid
-  and the rays' tile check), primary traversal, shadow data-structure build (light grid), data rearrangement
-  (shadow-ray sort into chunks), shadow traversal, total and fps; the uniform grid (ugrid,
-  rebuilt every frame) and clbvh / glsl on the same frames, with and without a per-frame BVH
-  build (build_bvh, plus the BVH4 collapse for clbvh, timed on the scene). Also the counters
-  behind the times (triangle-cell pairs of each grid, culled triangles, chunks and their
-  occupancy, rays outside the grids).
+  (+ one diffuse pass for the cost model, one soft-shadow pass for what area lights cost):
+  pgrid's primary data-structure build (camera grid and the rays' tile check), primary
+  traversal, shadow data-structure build (light grid), data rearrangement (shadow-ray sort into
+  chunks), shadow traversal, total and fps; the uniform grid (ugrid, rebuilt every frame) and
+  clbvh / glsl on the same frames, with and without a per-frame BVH build (build_bvh, plus the
+  BVH4 collapse for clbvh, timed on the scene). Also the counters behind the times
+  (triangle-cell pairs of each grid, culled triangles, chunks and their occupancy, rays outside
+  the grids).
 - ``lightdist`` (thesis Figure 4.9): shadow time (build + rearrangement + traversal) as the light
   moves away from the model along the line from its centre through the scene's light, for chunk
   sizes 64/128/256 and without load balancing, at a fixed angular resolution (--light-tile-deg) so
@@ -175,7 +176,8 @@ def _terms(res: dict, builds: dict[str, float]) -> dict[str, dict[str, float]]:
         "pgrid": {"primary_build": g("pgrid", "pgrid:build:primary") + g("pgrid", "pgrid:rearrange:primary"),
                   "primary_trace": g("pgrid", "trace:primary"), "shadow_build": g("pgrid", "pgrid:build:shadows"),
                   "rearrange": g("pgrid", "pgrid:rearrange:shadows"), "shadow_trace": g("pgrid", "trace:shadows"),
-                  "secondary_build": g("ugrid", "ugrid:build"), "secondary_trace": g("pgrid", "trace:diffuse")},
+                  "secondary_build": g("ugrid", "ugrid:build"), "secondary_trace": g("pgrid", "trace:diffuse"),
+                  "soft_trace": g("pgrid", "trace:soft")},
         "ugrid": {"primary_build": g("ugrid", "ugrid:build"), "primary_trace": g("ugrid", "trace:primary"),
                   "shadow_build": 0.0, "rearrange": 0.0, "shadow_trace": g("ugrid", "trace:shadows"),
                   "secondary_build": 0.0, "secondary_trace": g("ugrid", "trace:diffuse")},
@@ -199,7 +201,7 @@ def study_table41(args, ctx) -> dict:
             extra = args.pgrid_params
             configs = {"pgrid": ("pgrid", ",".join(x for x in ("rebuild=false", extra) if x)),
                        "ugrid": ("ugrid", "rebuild=true"), "clbvh": ("clbvh", ""), "glsl": ("glsl", "")}
-            res = run_interleaved(ctx, prep, cam, size, "primary,shadows,diffuse:1", configs, args.frames)
+            res = run_interleaved(ctx, prep, cam, size, "primary,shadows,soft:1,diffuse:1", configs, args.frames)
             rows.append({"scene": name, "triangles": prep.scene.triangle_count, "size": list(size),
                          "terms": _terms(res, builds), "phases": {k: v["phases"] for k, v in res.items()},
                          "stats": {k: v["stats"] for k, v in res.items()}, "bvh_build_ms": builds})
@@ -220,7 +222,8 @@ def study_table41(args, ctx) -> dict:
            "adds the BVH4 collapse), measured on the CPU apart from the frames; 'total w/o build' leaves it out.",
            "", "## Ratios and counters", ""]
     head = ["scene", "size", "ugrid/pgrid total", "pgrid shadow trace / clbvh", "ugrid pairs", "camera-grid pairs",
-            "light-grid pairs", "culled (camera)", "chunks (shadow)", "chunk occupancy", "shadow rays outside"]
+            "light-grid pairs", "culled (camera)", "chunks (shadow)", "chunk occupancy", "shadow rays outside",
+            "hard pass (light grid)", "soft pass (uniform grid)"]
     body = []
     for r in rows:
         t, st = r["terms"], r["stats"]
@@ -232,8 +235,12 @@ def study_table41(args, ctx) -> dict:
                      fmt(st.get("ugrid", {}).get("grid_pairs", nan), 0),
                      fmt(ps.get("pairs_primary", nan), 0), fmt(ps.get("pairs_shadows", nan), 0),
                      fmt(ps.get("culled_primary", nan), 0), fmt(ps.get("chunks_shadows", nan), 0),
-                     fmt(ps.get("chunk_occupancy_shadows", nan), 2), fmt(ps.get("outside_rays_shadows", nan), 0)])
+                     fmt(ps.get("chunk_occupancy_shadows", nan), 2), fmt(ps.get("outside_rays_shadows", nan), 0),
+                     fmt(t["pgrid"]["shadow_build"] + t["pgrid"]["rearrange"] + t["pgrid"]["shadow_trace"]),
+                     fmt(t["pgrid"]["soft_trace"])])
     md.append(md_table(head, body))
+    md += ["", "Hard pass: pgrid's light grid (build + rearrangement + trace) for the point light; soft pass: one "
+           "area-light sample pass, which pgrid traces through its uniform grid (the rays do not meet in one point)."]
     _plot_table41(rows, Path(args.out) / "table41.png")
     res = write_study(Path(args.out), "table41", {"rows": rows, "command": args.command_line}, "\n".join(md))
     res["rows"] = rows
