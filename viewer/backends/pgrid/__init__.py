@@ -12,7 +12,8 @@
 * Shadow rays (point light `PassInfo.light` of scene.point_lights): a spherical grid around the
   light (viewer.accel.pointgrid), rebuilt every pass: rays sorted into (tile) chunks of at most
   `chunk` rays, one work-group per chunk with the tile's triangles staged in local memory slab by
-  slab, any-hit early exit (trace.cl beside this file).
+  slab, any-hit early exit (trace.cl beside this file); slabs from the light outwards, or from the
+  surface end when the light is outside the scene box (`order=auto`).
 * Soft shadows, AO, diffuse and reflection rays, and any ray a grid cannot take (checked per ray,
   in double): the uniform grid of ugrid (viewer.accel.grid, built once per scene geometry when a
   pass first needs it: primary and shadow passes build it only for rays their grids decline), so
@@ -20,11 +21,12 @@
   they take this way.
 
 Parameters: primary (image | angular | grid), k (indirect mapping), backface (auto | on | off),
-chunk (rays per work-group: 16..256), balance (chunks; off: one work-group per tile), tile_rays /
-tiles / tile_deg (angular tiling), slabs (both grids), margin (radians, the angular grids), density /
-resolution / rebuild (the uniform grid; rebuild: every frame). Counters: pairs, chunks,
-chunk_occupancy, culled (frustum / back-face) and widened (pole/seam) triangles, rays outside the
-grids, tests per ray (with the overlays on).
+order (any-hit slab order: auto | light | surface), chunk (rays per work-group: 16..256),
+balance (chunks; off: one work-group per tile), tile_rays / tiles / tile_deg (angular tiling),
+slabs (both grids), margin (radians, the angular grids), density / resolution / rebuild (the
+uniform grid; rebuild: every frame). Counters: pairs, chunks, chunk_occupancy, culled (frustum /
+back-face), near-eye and widened (pole/seam) triangles, rays outside the grids, inactive rays,
+tests per active ray (with the overlays on).
 """
 
 from __future__ import annotations
