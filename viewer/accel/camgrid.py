@@ -256,14 +256,12 @@ class CameraGrid:
                                                             self.buf("seg_len", 4 * pairs)))
             self._run("cg_ranges", seg.count, seg.key, seg.start, seg.length, u(seg.count), cells)
         self.buf("refs", 4 * max(pairs, 1) if not overflow else 4)
-        fl = np.empty(nt, np.uint32)
-        cl.enqueue_copy(q, fl, flags)
-        fl = fl[:n_tris]
+        # culled counts on the device (count-only compactions): no per-triangle read-back
+        frustum, back, near = (p.compact(n_tris, src=flags, predicate=f"x == {f}u") if n_tris else 0
+                               for f in (FLAG_FRUSTUM, FLAG_BACK, FLAG_NEAR_EYE))
         q.finish()
-        self.stats = CameraGridStats((ntx, nty), ns, n_tris, 0 if overflow else int(pairs),
-                                     int((fl == FLAG_FRUSTUM).sum()), int((fl == FLAG_BACK).sum()),
-                                     int((fl == FLAG_NEAR_EYE).sum()), 0, 0, (time.perf_counter() - t0) * 1e3,
-                                     overflow=overflow)
+        self.stats = CameraGridStats((ntx, nty), ns, n_tris, 0 if overflow else int(pairs), int(frustum), int(back),
+                                     int(near), 0, 0, (time.perf_counter() - t0) * 1e3, overflow=overflow)
         return self.stats
 
     def classify(self, ray_o: Any, ray_d: Any, n: int) -> int:

@@ -235,13 +235,12 @@ class PointGrid:
                                                             self.buf("seg_len", 4 * pairs)))
             self._run("pg_cell_counts", seg.count, seg.key, seg.length, u(seg.count), cell_start)
         p.exclusive_scan(cell_start, cell_start, ncells + 1)
-        fl = np.empty(max(n_tris, 1), np.uint32)
-        if n_tris:
-            cl.enqueue_copy(q, fl, flags)
-        fl = fl[:n_tris]
+        # culled / widened counts on the device (count-only compactions): no per-triangle read-back
+        culled, widened = (p.compact(n_tris, src=flags, predicate=f"(x & {b}u) != 0u") if n_tris else 0
+                           for b in (1, 2))
         q.finish()
         self.stats = PointGridStats((na, nt), ns, n, in_grid, self.outside_count, self.inactive_count, 0, int(pairs),
-                                    int((fl & 1).sum()), int(((fl & 2) != 0).sum()), (time.perf_counter() - t0) * 1e3)
+                                    int(culled), int(widened), (time.perf_counter() - t0) * 1e3)
 
     def rearrange(self, n: int, spec: PointGridSpec, balance: bool = True) -> PointGridStats:
         """Step 4: (tile, ray) pairs sorted, chunks of at most spec.chunk rays (balance=False: one
