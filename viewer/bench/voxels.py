@@ -298,6 +298,17 @@ def study_scene(args, ctx_gl, name: str, spec: str, recording: str | None, size,
     if recording and (RECORDING_FOLDER / recording).exists():
         rec = load_recording(RECORDING_FOLDER / recording)
         camera = rec.camera_for_frame(rec.frame_count() // 2)
+    prepared = {}  # before the frame's rays are held: the builds' working memory does not add to them
+    for res in resolutions:
+        vox = voxels_for(scene.triangles, res, quiet=args.quiet)
+        _log(args, f"{clock} {name} {res}^3: {vox.count:,} voxels in {vox.stats['seconds']:.1f} s")
+        built = {}
+        for kind in structures:
+            built[kind] = build_structure(kind, vox)
+            _log(args, f"{clock} {name} {res}^3 {kind}: built in {built[kind].stats['build_seconds']:.1f} s, "
+                       f"{built[kind].stats['memory_bytes'] / 2**20:.0f} MiB")
+        prepared[res] = (dict(vox.stats), vox.grid, built)
+        del vox, built
     _log(args, f"{clock} {name}: {scene.triangle_count:,} triangles; capturing one frame at {size[0]}x{size[1]}")
     r = Renderer(ctx_gl, scene, prep.bvh, size, args.reference, settings)
     ctx = cl_context()
@@ -346,16 +357,9 @@ def study_scene(args, ctx_gl, name: str, spec: str, recording: str | None, size,
     recorder = _Recorder(ctx, args.seq_len)
     try:
         for res in resolutions:
-            vox = voxels_for(scene.triangles, res, quiet=args.quiet)
-            g = vox.grid
-            rrow: dict = {"resolution": res, "voxelize": dict(vox.stats), "structures": {}}
-            _log(args, f"{clock} {res}^3: {vox.count:,} voxels in {vox.stats['seconds']:.1f} s")
-            built = {}
-            for kind in structures:
-                built[kind] = build_structure(kind, vox)
-                rrow["structures"][kind] = {"stats": dict(built[kind].stats), "stacks": {}}
-                _log(args, f"{clock} {res}^3 {kind}: built in {built[kind].stats['build_seconds']:.1f} s, "
-                           f"{built[kind].stats['memory_bytes'] / 2**20:.0f} MiB")
+            vox_stats, g, built = prepared.pop(res)
+            rrow: dict = {"resolution": res, "voxelize": vox_stats,
+                          "structures": {kind: {"stats": dict(built[kind].stats), "stacks": {}} for kind in structures}}
             configs = [(kind, k) for kind in structures for k in stacks]
             err_cfg = (structures[0], max(stacks))
             tracers = {c: VoxelTracer(built[c[0]], g.origin, g.scale, c[1], ctx=ctx) for c in configs}
@@ -396,7 +400,7 @@ def study_scene(args, ctx_gl, name: str, spec: str, recording: str | None, size,
                 _log(args, f"{clock} {res}^3 {kind} stack {k}: " + ", ".join(
                     f"{lb} {krow['ms'][lb]:.0f} ms U64 {100 * krow['record'][lb]['lanes'][64]['utilisation']:.0f}%"
                     for lb in labels))
-            del built, vox
+            del built
             if ref_image is not None:
                 rrow["image_mae"] = _image_error(ctx_gl, prep, size, settings, camera, res, structures[0],
                                                  max(stacks), ref_image, args.bias)
