@@ -49,3 +49,45 @@ def test_against_loop():
         c = combine(parts, w)
         if 128 % w == 0:
             assert c["slots"] == r["slots"] and abs(c["merged_utilisation"] - r["merged_utilisation"]) < 1e-12
+
+
+def test_device_lockstep_matches_numpy():
+    """lockstep.cl on device buffers against the NumPy definition; bytes past a ray's length hold
+    garbage (the recording kernel leaves them), which the device reduction must not read."""
+    from tests.conftest import opencl_missing
+
+    if opencl_missing() is not None:
+        import pytest
+
+        pytest.skip(opencl_missing())
+    from viewer.bench.lockstep import DeviceLockstep
+    from viewer.cl import cl_context
+
+    ctx = cl_context()
+    rng = np.random.default_rng(5)
+    n, L = 1000, 40
+    lengths = rng.integers(0, L + 20, n)  # some rays longer than L: only their first L steps count
+    kinds = rng.integers(1, 5, (n, L)).astype(np.uint8)
+    kinds[rng.random(n) < 0.3] = 1  # some uniform rays
+    clean = kinds.copy()
+    clean[np.arange(L)[None, :] >= lengths[:, None]] = 0
+    garbage = kinds.copy()
+    garbage[np.arange(L)[None, :] >= lengths[:, None]] = rng.integers(1, 255, int((clean == 0).sum()))
+    rec = np.zeros((n, 4), np.int32)
+    split = rng.integers(0, lengths + 1)
+    rec[:, 0], rec[:, 3] = split, lengths - split  # only the sum is the length
+    mf = ctx.cl.mem_flags
+    seq_b = ctx.cl.Buffer(ctx.context, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=garbage)
+    rec_b = ctx.cl.Buffer(ctx.context, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=rec)
+    dev = DeviceLockstep(ctx, n)
+    try:
+        for w in (1, 8, 32, 64):
+            want = lane_utilisation(clean, w)
+            got = dev(seq_b, rec_b, n, L, w)
+            assert (got["steps"], got["slots"], got["merged_slots"], got["groups"]) == \
+                (want["steps"], want["slots"], want["merged_slots"], want["groups"])
+            assert got["utilisation"] == want["utilisation"]
+    finally:
+        dev.release()
+        seq_b.release()
+        rec_b.release()

@@ -19,11 +19,15 @@ machine has none, so coherency is computed from what each ray did, under a state
   iteration): steps / (W * sum over groups of the longest ray).
 
 Inputs: seq uint8 (n, L), the kinds (1..4) of each ray's first L steps in order, 0 after its last
-step (viewer/backends/voxels/common.cl writes this layout). Only the first L steps of a ray are
-seen; the caller reports how many steps were cut off.
+step (VoxelTracer.trace_arrays returns this layout). Only the first L steps of a ray are seen; the
+caller reports how many steps were cut off. `lane_utilisation` is the NumPy definition (tests,
+small inputs); `DeviceLockstep` computes the same sums with lockstep.cl on the recording's device
+buffers (the study: tens of millions of rays, no host copy of the sequences).
 """
 
 from __future__ import annotations
+
+from pathlib import Path
 
 import numpy as np
 
@@ -45,16 +49,51 @@ def lane_utilisation(seq: np.ndarray, width: int) -> dict:
         slots += int(np.any(s == k, axis=1).sum())
     longest = (s != 0).sum(axis=2).max(axis=1)  # steps are contiguous from 0
     merged_slots = int(longest.sum())
-    return {"steps": steps, "slots": slots, "groups": g,
+    return {"steps": steps, "slots": slots, "groups": g, "merged_slots": merged_slots,
+            "utilisation": steps / (width * slots) if slots else float("nan"),
+            "merged_utilisation": steps / (width * merged_slots) if merged_slots else float("nan")}
+
+
+def summary(steps: int, slots: int, merged_slots: int, groups: int, width: int) -> dict:
+    """The dict lane_utilisation returns, from its sums."""
+    return {"steps": int(steps), "slots": int(slots), "groups": int(groups), "merged_slots": int(merged_slots),
             "utilisation": steps / (width * slots) if slots else float("nan"),
             "merged_utilisation": steps / (width * merged_slots) if merged_slots else float("nan")}
 
 
 def combine(parts: list[dict], width: int) -> dict:
-    """Utilisation of several chunks traced apart (each a whole number of groups but the last)."""
-    steps = sum(p["steps"] for p in parts)
-    slots = sum(p["slots"] for p in parts)
-    merged = sum(p["steps"] / p["merged_utilisation"] / width for p in parts if p["steps"])
-    return {"steps": steps, "slots": slots, "groups": sum(p["groups"] for p in parts),
-            "utilisation": steps / (width * slots) if slots else float("nan"),
-            "merged_utilisation": steps / (width * merged) if merged else float("nan")}
+    """Utilisation of several chunks or passes traced apart (each a whole number of groups but the last)."""
+    return summary(sum(p["steps"] for p in parts), sum(p["slots"] for p in parts),
+                   sum(p["merged_slots"] for p in parts), sum(p["groups"] for p in parts), width)
+
+
+class DeviceLockstep:
+    """lane_utilisation on device buffers: seq (n x L step kinds, entries past a ray's length
+    unread) and rec (int4 step counts per ray) as a recording VoxelTracer writes them."""
+
+    def __init__(self, ctx, max_rays: int, max_width: int = 64):
+        from viewer.cl import build
+
+        self.ctx = ctx
+        self.max_width = max_width
+        self.kernel = ctx.cl.Kernel(build(Path(__file__).with_name("lockstep.cl"), {"MAXW": max_width}, ctx),
+                                    "lockstep")
+        self.host = np.empty(3 * max(max_rays, 1), np.int32)  # width 1 at most
+        self.out = ctx.cl.Buffer(ctx.context, ctx.cl.mem_flags.WRITE_ONLY, self.host.nbytes)
+
+    def __call__(self, seq_b, rec_b, n: int, seq_len: int, width: int) -> dict:
+        if not 1 <= width <= self.max_width or 3 * -(-n // width) > len(self.host):
+            raise ValueError(f"lockstep: width {width} or {n} rays out of range")
+        g = -(-n // width)
+        if n == 0:
+            return summary(0, 0, 0, 0, width)
+        self.kernel(self.ctx.queue, (g,), None, seq_b, rec_b, np.int32(n), np.int32(seq_len), np.int32(width),
+                    self.out)
+        res = self.host[: 3 * g]
+        self.ctx.cl.enqueue_copy(self.ctx.queue, res, self.out)
+        self.ctx.queue.finish()
+        r = res.reshape(g, 3).astype(np.int64).sum(axis=0)
+        return summary(r[0], r[1], r[2], g, width)
+
+    def release(self) -> None:
+        self.out.release()

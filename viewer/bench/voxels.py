@@ -5,15 +5,22 @@ primary, shadows, soft, ao with AO length 1/3 of the scene's largest extent, as 
 Per resolution the scene is voxelized (voxels, seconds, MiB) and each structure built (node
 sizes, mean leaf depth and its variance, MiB). Then, on the very same rays:
 
-  * time: each structure's trace kernel per ray type (wall ms around enqueue + finish, median
-    over --rounds interleaved rounds), for each --stacks size;
-  * coherency: the recording kernel writes every ray's steps in order; SIMD lane utilisation of
-    lockstep groups of W = 8, 32, 64 consecutive rays (viewer.bench.lockstep defines it), plus
-    restarts (stack overflows) and steps per ray;
-  * error (structure bvh, largest stack): hit/miss disagreement with the reference backend,
-    mean |t - t_ref| in voxel widths where both hit, the reference's time on the same rays; and
-    the image of a full render with the voxels backend against the reference backend's image
-    (mean absolute pixel error, 0..255).
+  * time: each structure's trace kernel per ray type over every pass (wall ms around enqueue +
+    finish, median over --rounds rounds), for each --stacks size; structures and stacks take
+    turns pass by pass (the order rotates) so a change in machine load hits them alike;
+  * coherency: the recording kernel writes each ray's steps in order; lockstep.cl reduces them on
+    the device to the SIMD lane utilisation of lockstep groups of W = 8, 32, 64 consecutive rays
+    (viewer.bench.lockstep defines it), plus restarts (stack overflows) and steps per ray. With
+    --record-passes K only K evenly spaced whole passes of each multi-pass ray type are recorded
+    (pick_passes; utilisation is a per-pass statistic, so whole passes are an unbiased sample);
+    the passes used and the recorded ray count are in the output, nothing is scaled;
+  * error (first structure, largest stack, every ray, read from the timed kernel's output):
+    hit/miss disagreement with the reference backend, mean |t - t_ref| in voxel widths where both
+    hit, the reference's time on the same rays; and the image of a full render with the voxels
+    backend against the reference backend's image (mean absolute pixel error, 0..255).
+
+Finished resolutions are written at once (bench_voxels.* with "complete": false) so a late error
+loses no finished work. Host memory: the frame's rays live once, in CL buffers.
 
 Output in --out: bench_voxels.json (everything), bench_voxels.md (tables: 1 and 2 analogs,
 stack 4 vs 8, structures, voxelization, speed against error) and bench_voxels.png (speed
@@ -63,6 +70,9 @@ def add_arguments(p) -> None:
     p.add_argument("--bias", type=float, default=1.5,
                    help="secondary rays start this many voxel widths along the ray (the backend's bias)")
     p.add_argument("--seq-len", type=int, default=1024, help="steps per ray kept for the lockstep model")
+    p.add_argument("--record-passes", type=int, default=0, metavar="K",
+                   help="coherency (lane utilisation, steps, restarts) from K evenly spaced passes of each "
+                        "multi-pass ray type (soft, ao); 0 = every pass. Times and errors always use every pass")
     p.add_argument("--no-image", action="store_true", help="skip the full-render image error")
     p.add_argument("--voxelize-only", action="store_true",
                    help="only voxelize and build the structures per resolution (count, time, memory, depth)")
@@ -96,19 +106,22 @@ def _scene_spec(name: str) -> tuple[str, str, str | None]:
 
 
 class _Rays:
-    """One captured pass in CL buffers (active rays only, in pixel order) plus reference hits."""
+    """One captured pass in CL buffers (active rays only, in pixel order) plus what the error rows
+    need of the reference hits: hit or miss, and t for closest-hit rays. `index`: the pass's place
+    among the passes of its ray type (capture order)."""
 
-    def __init__(self, ctx, p, ref_hits):
+    def __init__(self, ctx, p, ref_hits, index: int):
         cl = ctx.cl
         mf = cl.mem_flags
         a = p.active
-        self.label, self.any_hit, self.n = p.label, p.any_hit, int(a.sum())
-        self.o4 = np.ascontiguousarray(p.origin4.reshape(-1, 4)[a])
-        self.d4 = np.ascontiguousarray(p.dir4.reshape(-1, 4)[a])
-        self.o_b = cl.Buffer(ctx.context, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=self.o4)
-        self.d_b = cl.Buffer(ctx.context, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=self.d4)
-        self.ref_t = ref_hits[0][a].astype(np.float64)
-        self.ref_tri = ref_hits[1][a]
+        self.label, self.any_hit, self.n, self.index = p.label, p.any_hit, int(a.sum()), index
+        self.sample, self.light = p.sample, p.light
+        self.o_b = cl.Buffer(ctx.context, mf.READ_ONLY | mf.COPY_HOST_PTR,
+                             hostbuf=np.ascontiguousarray(p.origin4.reshape(-1, 4)[a]))
+        self.d_b = cl.Buffer(ctx.context, mf.READ_ONLY | mf.COPY_HOST_PTR,
+                             hostbuf=np.ascontiguousarray(p.dir4.reshape(-1, 4)[a]))
+        self.ref_hit = ref_hits[1][a] >= 0
+        self.ref_t = None if self.any_hit else ref_hits[0][a].astype(np.float32)
 
     def release(self) -> None:
         self.o_b.release()
@@ -116,13 +129,17 @@ class _Rays:
 
 
 def _capture(renderer, camera) -> list:
-    """Every pass of one frame with active rays, as texel arrays (time_backend's input)."""
+    """Every pass of one frame with active rays, as texel arrays (time_backend's input); each
+    captured pass is dropped once converted, so only one copy of the frame's rays is held."""
     from types import SimpleNamespace
 
     rep = renderer.render(camera, capture=True)
     w, h = renderer.size
     out = []
-    for cp in rep.captured:
+    cap = rep.captured
+    cap.reverse()
+    while cap:
+        cp = cap.pop()
         r = cp.rays
         active = r.active & np.isfinite(r.origins).all(1) & np.isfinite(r.directions).all(1)
         if not active.any() or cp.ray_type.label not in RAY_TYPES:
@@ -131,7 +148,16 @@ def _capture(renderer, camera) -> list:
         d4 = np.concatenate([r.directions, r.tmax[:, None]], 1).astype(np.float32).reshape(h, w, 4)
         out.append(SimpleNamespace(label=cp.ray_type.label, any_hit=cp.ray_type.any_hit, ray_type=cp.ray_type,
                                    sample=cp.sample, light=cp.light, origin4=o4, dir4=d4, active=active))
+        del cp, r
     return out
+
+
+def pick_passes(m: int, k: int) -> list[int]:
+    """Indices of the passes recorded out of m: all when k <= 0 or k >= m, else the middle pass of
+    each of k equal strata, floor((i + 1/2) m / k) for i < k (deterministic, evenly spaced)."""
+    if k <= 0 or k >= m:
+        return list(range(m))
+    return [int((2 * i + 1) * m // (2 * k)) for i in range(k)]
 
 
 def _time_kernel(ctx, tracer, rays: _Rays, outs, bias: float) -> float:
@@ -141,43 +167,117 @@ def _time_kernel(ctx, tracer, rays: _Rays, outs, bias: float) -> float:
     return (time.perf_counter() - t0) * 1e3
 
 
-def _record(tracer, rays: _Rays, bias: float, args) -> dict:
-    """Steps, restarts, lane utilisation per W for one pass (chunks of CHUNK rays)."""
-    from viewer.bench.lockstep import combine, lane_utilisation
+class _Recorder:
+    """Step recording of whole passes in chunks of CHUNK rays, reduced on the device (lockstep.cl):
+    per pass the step counts by kind, the steps cut off past --seq-len, and the lane sums per W."""
 
-    parts = {w: [] for w in WIDTHS}
-    counts = np.zeros(4, np.int64)
-    cut = 0
-    for s in range(0, rays.n, CHUNK):
-        out = tracer.trace_arrays(rays.o4[s:s + CHUNK], rays.d4[s:s + CHUNK], rays.any_hit, bias)
-        counts += out.record.sum(axis=0)
-        cut += int(np.maximum(out.record.sum(axis=1) - args.seq_len, 0).sum())
-        for w in WIDTHS:
-            parts[w].append(lane_utilisation(out.seq, w))
-    lanes = {w: combine(parts[w], w) for w in WIDTHS}
-    return {"steps": counts.tolist(), "cut_steps": cut, "lanes": lanes}
+    def __init__(self, ctx, seq_len: int):
+        from viewer.bench.lockstep import DeviceLockstep
+
+        cl = ctx.cl
+        mf = cl.mem_flags
+        self.ctx, self.seq_len = ctx, seq_len
+        self.seq = cl.Buffer(ctx.context, mf.READ_WRITE, CHUNK * seq_len)
+        self.rec = cl.Buffer(ctx.context, mf.READ_WRITE, CHUNK * 16)
+        self.outs = [cl.Buffer(ctx.context, mf.READ_WRITE, CHUNK * 4) for _ in range(3)]
+        self.rec_host = np.empty((CHUNK, 4), np.int32)
+        self.lock = DeviceLockstep(ctx, CHUNK, max(WIDTHS))
+
+    def __call__(self, tracer, rays: _Rays, bias: float) -> dict:
+        from viewer.bench.lockstep import combine
+
+        cl, q = self.ctx.cl, self.ctx.queue
+        parts: dict = {w: [] for w in WIDTHS}
+        counts = np.zeros(4, np.int64)
+        cut = 0
+        for s in range(0, rays.n, CHUNK):
+            m = min(CHUNK, rays.n - s)
+            o = rays.o_b.get_sub_region(16 * s, 16 * m)
+            d = rays.d_b.get_sub_region(16 * s, 16 * m)
+            tracer.enqueue(o, d, *self.outs, m, rays.any_hit, bias, self.rec, self.seq)
+            for w in WIDTHS:
+                parts[w].append(self.lock(self.seq, self.rec, m, self.seq_len, w))
+            rec = self.rec_host[:m]
+            cl.enqueue_copy(q, rec, self.rec)
+            q.finish()
+            o.release()
+            d.release()
+            counts += rec.sum(axis=0, dtype=np.int64)
+            cut += int(np.maximum(rec.sum(axis=1, dtype=np.int64) - self.seq_len, 0).sum())
+        return {"pass": rays.index, "sample": rays.sample, "light": rays.light, "rays": rays.n,
+                "steps": counts.tolist(), "cut_steps": cut, "lanes": {w: combine(parts[w], w) for w in WIDTHS}}
+
+    def release(self) -> None:
+        for b in (self.seq, self.rec, *self.outs):
+            b.release()
+        self.lock.release()
 
 
-def _errors(tracer, rays: _Rays, bias: float, scale: float) -> dict:
-    out = tracer.trace_arrays(rays.o4, rays.d4, rays.any_hit, bias)
-    hv, hr = out.tri >= 0, rays.ref_tri >= 0
-    both = hv & hr
-    dt = np.abs(out.t[both].astype(np.float64) - rays.ref_t[both]) * scale
-    if rays.any_hit:  # any hit: the distance is of whichever hit was found first, not comparable
-        dt = np.zeros(0)
-    return {"hitmiss_disagree": float(np.mean(hv != hr)), "voxel_only": float(np.mean(hv & ~hr)),
-            "reference_only": float(np.mean(~hv & hr)),
-            "t_err_voxels_mean": float(dt.mean()) if dt.size else float("nan"),
-            "t_err_voxels_median": float(np.median(dt)) if dt.size else float("nan"),
-            "t_err_voxels_p90": float(np.percentile(dt, 90)) if dt.size else float("nan")}
+def _record_label(per_pass: list[dict], of_passes: int) -> dict:
+    """A ray type's record from its recorded passes: sums, utilisation of the pooled groups."""
+    from viewer.bench.lockstep import combine
+
+    steps = np.sum([r["steps"] for r in per_pass], axis=0)
+    nr = sum(r["rays"] for r in per_pass)
+    return {"interior": int(steps[0]), "leaf": int(steps[1]), "pop": int(steps[2]), "restarts": int(steps[3]),
+            "rays": nr, "passes": [r["pass"] for r in per_pass], "of_passes": of_passes,
+            "steps_per_ray": float(steps.sum() / nr) if nr else float("nan"),
+            "cut_steps": int(sum(r["cut_steps"] for r in per_pass)),
+            "lanes": {w: combine([r["lanes"][w] for r in per_pass], w) for w in WIDTHS}, "per_pass": per_pass}
+
+
+class _ErrorSums:
+    """Hit/miss disagreement and |t - t_ref| (voxel widths) against the reference, pass by pass,
+    from the hits the timed kernel wrote (no extra trace)."""
+
+    def __init__(self):
+        self.n = 0
+        self.disagree = self.voxel_only = self.reference_only = 0
+        self.dt: list = []
+
+    def add(self, ctx, outs, rays: _Rays, scale: float) -> None:
+        t = np.empty(rays.n, np.float32)
+        tri = np.empty(rays.n, np.int32)
+        ctx.cl.enqueue_copy(ctx.queue, t, outs[0])
+        ctx.cl.enqueue_copy(ctx.queue, tri, outs[1])
+        ctx.queue.finish()
+        hv, hr = tri >= 0, rays.ref_hit
+        self.n += rays.n
+        self.disagree += int(np.count_nonzero(hv != hr))
+        self.voxel_only += int(np.count_nonzero(hv & ~hr))
+        self.reference_only += int(np.count_nonzero(~hv & hr))
+        if rays.ref_t is not None:  # any hit: the distance is of whichever hit was found first, not comparable
+            both = hv & hr
+            self.dt.append(np.abs(t[both].astype(np.float64) - rays.ref_t[both]) * scale)
+
+    def result(self) -> dict:
+        dt = np.concatenate(self.dt) if self.dt else np.zeros(0)
+        n = max(self.n, 1)
+        return {"rays": self.n, "hitmiss_disagree": self.disagree / n, "voxel_only": self.voxel_only / n,
+                "reference_only": self.reference_only / n,
+                "t_err_voxels_mean": float(dt.mean()) if dt.size else float("nan"),
+                "t_err_voxels_median": float(np.median(dt)) if dt.size else float("nan"),
+                "t_err_voxels_p90": float(np.percentile(dt, 90)) if dt.size else float("nan")}
 
 
 def _median(xs) -> float:
     return float(statistics.median(xs)) if xs else float("nan")
 
 
+class _Clock:
+    """Elapsed seconds for the progress lines."""
+
+    def __init__(self):
+        self.t0 = time.perf_counter()
+
+    def __str__(self) -> str:
+        return f"[{time.perf_counter() - self.t0:7.1f} s]"
+
+
 def study_scene(args, ctx_gl, name: str, spec: str, recording: str | None, size, resolutions, structures,
-                stacks) -> dict:
+                stacks, checkpoint=None) -> dict:
+    """One scene: capture, reference time, then per resolution voxelize, build, time, record, errors.
+    `checkpoint(out)` is called after each finished resolution with the scene's results so far."""
     from viewer.backends.voxels import voxels_for
     from viewer.backends.voxels.scene import VoxelTracer, build_structure
     from viewer.bench.trace_vs_embree import time_backend
@@ -188,6 +288,7 @@ def study_scene(args, ctx_gl, name: str, spec: str, recording: str | None, size,
     from viewer.renderer import Renderer
     from viewer.session import prepare_scene
 
+    clock = _Clock()
     prep = prepare_scene(spec, quiet=True)
     scene = prep.scene
     lo, hi = scene.bounds
@@ -197,95 +298,118 @@ def study_scene(args, ctx_gl, name: str, spec: str, recording: str | None, size,
     if recording and (RECORDING_FOLDER / recording).exists():
         rec = load_recording(RECORDING_FOLDER / recording)
         camera = rec.camera_for_frame(rec.frame_count() // 2)
+    prepared = {}  # before the frame's rays are held: the builds' working memory does not add to them
+    for res in resolutions:
+        vox = voxels_for(scene.triangles, res, quiet=args.quiet)
+        _log(args, f"{clock} {name} {res}^3: {vox.count:,} voxels in {vox.stats['seconds']:.1f} s")
+        built = {}
+        for kind in structures:
+            built[kind] = build_structure(kind, vox)
+            _log(args, f"{clock} {name} {res}^3 {kind}: built in {built[kind].stats['build_seconds']:.1f} s, "
+                       f"{built[kind].stats['memory_bytes'] / 2**20:.0f} MiB")
+        prepared[res] = (dict(vox.stats), vox.grid, built)
+        del vox, built
+    _log(args, f"{clock} {name}: {scene.triangle_count:,} triangles; capturing one frame at {size[0]}x{size[1]}")
     r = Renderer(ctx_gl, scene, prep.bvh, size, args.reference, settings)
+    ctx = cl_context()
     try:
         passes = _capture(r, camera)
+        _log(args, f"{clock} {name}: {len(passes)} passes captured; timing {args.reference}")
         ref_ms: dict = {}
         hits = None
-        for _ in range(args.rounds):
+        for rd in range(args.rounds):
+            hits = None
             tr_ms, _, _, hits = time_backend(r, args.reference, passes)
             per: dict = {}
             for p, ms in zip(passes, tr_ms, strict=True):
                 per[p.label] = per.get(p.label, 0.0) + ms
             for lb, ms in per.items():
                 ref_ms.setdefault(lb, []).append(ms)
+            _log(args, f"{clock} {name}: {args.reference} round {rd + 1}/{args.rounds}: "
+                       + ", ".join(f"{lb} {ms:.0f} ms" for lb, ms in per.items()))
         ref_image = None
         if not args.no_image:
             r.render(camera)
             ref_image = r.read_image().astype(np.float64)
+        seen: dict = {}
+        rays = []
+        for i, p in enumerate(passes):  # to the CL device pass by pass, dropping the host copies
+            rays.append(_Rays(ctx, p, hits[i], seen.get(p.label, 0)))
+            seen[p.label] = seen.get(p.label, 0) + 1
+            p.origin4 = p.dir4 = None
+            hits[i] = None
+        del passes, hits
     finally:
         r.release()
-    ctx = cl_context()
-    rays = [_Rays(ctx, p, h) for p, h in zip(passes, hits, strict=True)]
     labels = list(dict.fromkeys(x.label for x in rays))
-    # reference time per label: per round sum over passes, then median
     n_pass = {lb: sum(x.label == lb for x in rays) for lb in labels}
+    picked = {lb: pick_passes(n_pass[lb], args.record_passes) for lb in labels}
     ref_time = {lb: _median(ref_ms[lb]) for lb in labels}
     out: dict = {"scene": name, "triangles": scene.triangle_count, "size": list(size), "effects": args.effects,
                  "rays": {lb: sum(x.n for x in rays if x.label == lb) for lb in labels}, "passes": n_pass,
-                 "reference": args.reference, "reference_ms": ref_time, "resolutions": []}
-    _log(args, f"{name}: {scene.triangle_count:,} triangles, rays {out['rays']}")
+                 "recorded_passes": picked, "reference": args.reference, "reference_ms": ref_time,
+                 "resolutions": []}
+    _log(args, f"{clock} {name}: rays {out['rays']}; coherency recorded on passes "
+               + ", ".join(f"{lb} {len(picked[lb])}/{n_pass[lb]}" for lb in labels))
     maxn = max(x.n for x in rays)
     cl = ctx.cl
     outs = [cl.Buffer(ctx.context, cl.mem_flags.READ_WRITE, 4 * maxn) for _ in range(3)]
+    recorder = _Recorder(ctx, args.seq_len)
     try:
         for res in resolutions:
-            vox = voxels_for(scene.triangles, res, quiet=args.quiet)
-            g = vox.grid
-            rrow: dict = {"resolution": res, "voxelize": dict(vox.stats), "structures": {}}
-            for kind in structures:
-                st = build_structure(kind, vox)
-                srow: dict = {"stats": dict(st.stats), "stacks": {}}
-                tracers = {k: VoxelTracer(st, g.origin, g.scale, k, ctx=ctx) for k in stacks}
-                times = {k: {lb: [] for lb in labels} for k in stacks}
-                for k in stacks:  # PoCL compiles the work-group function at the first launch: not timed
-                    _time_kernel(ctx, tracers[k], rays[0], outs, 0.0)
-                for rd in range(args.rounds):
-                    order = stacks[rd % len(stacks):] + stacks[: rd % len(stacks)]
-                    for k in order:
-                        per = {lb: 0.0 for lb in labels}
-                        for x in rays:
-                            per[x.label] += _time_kernel(ctx, tracers[k], x, outs, _bias(args, x.label))
-                        for lb in labels:
-                            times[k][lb].append(per[lb])
-                for k in stacks:
-                    rec_tr = VoxelTracer(st, g.origin, g.scale, k, record=True, ctx=ctx, seq_len=args.seq_len)
-                    krow: dict = {"ms": {lb: _median(times[k][lb]) for lb in labels}, "ms_rounds": times[k],
-                                  "record": {}}
+            vox_stats, g, built = prepared.pop(res)
+            rrow: dict = {"resolution": res, "voxelize": vox_stats,
+                          "structures": {kind: {"stats": dict(built[kind].stats), "stacks": {}} for kind in structures}}
+            configs = [(kind, k) for kind in structures for k in stacks]
+            err_cfg = (structures[0], max(stacks))
+            tracers = {c: VoxelTracer(built[c[0]], g.origin, g.scale, c[1], ctx=ctx) for c in configs}
+            for c in configs:  # PoCL compiles the work-group function at the first launch: not timed
+                _time_kernel(ctx, tracers[c], rays[0], outs, 0.0)
+            times = {c: {lb: [] for lb in labels} for c in configs}
+            errs = {lb: _ErrorSums() for lb in labels}
+            for rd in range(args.rounds):
+                per = {c: {lb: 0.0 for lb in labels} for c in configs}
+                last = time.perf_counter()
+                for i, x in enumerate(rays):  # configs rotate per pass: load changes hit them all alike
+                    rot = (rd + i) % len(configs)
+                    for c in configs[rot:] + configs[:rot]:
+                        per[c][x.label] += _time_kernel(ctx, tracers[c], x, outs, _bias(args, x.label))
+                        if rd == 0 and c == err_cfg:
+                            errs[x.label].add(ctx, outs, x, g.scale)
+                    if time.perf_counter() - last > 30 or i == len(rays) - 1:
+                        last = time.perf_counter()
+                        _log(args, f"{clock} {res}^3 timing round {rd + 1}/{args.rounds}: pass {i + 1}/{len(rays)} "
+                                   f"({x.label})")
+                for c in configs:
                     for lb in labels:
-                        recs = [_record(rec_tr, x, _bias(args, lb), args) for x in rays
-                                if x.label == lb]
-                        steps = np.sum([rr["steps"] for rr in recs], axis=0)
-                        lanes = {}
-                        for w in WIDTHS:
-                            sl = sum(rr["lanes"][w]["slots"] for rr in recs)
-                            stp = sum(rr["lanes"][w]["steps"] for rr in recs)
-                            mg = sum(rr["lanes"][w]["steps"] / rr["lanes"][w]["merged_utilisation"] / w
-                                     for rr in recs if rr["lanes"][w]["steps"])
-                            lanes[w] = {"utilisation": stp / (w * sl) if sl else float("nan"),
-                                        "merged_utilisation": stp / (w * mg) if mg else float("nan")}
-                        nr = out["rays"][lb]
-                        krow["record"][lb] = {"interior": int(steps[0]), "leaf": int(steps[1]), "pop": int(steps[2]),
-                                              "restarts": int(steps[3]), "steps_per_ray": float(steps.sum() / nr),
-                                              "cut_steps": int(sum(rr["cut_steps"] for rr in recs)),
-                                              "lanes": lanes}
-                    rec_tr.release()
-                    srow["stacks"][k] = krow
-                    _log(args, f"  {res}^3 {kind} stack {k}: " + ", ".join(
-                        f"{lb} {krow['ms'][lb]:.1f} ms U64 {100 * krow['record'][lb]['lanes'][64]['utilisation']:.0f}%"
-                        for lb in labels))
-                if kind == structures[0]:
-                    big = tracers[max(stacks)]
-                    rrow["errors"] = {lb: _errors_label(big, [x for x in rays if x.label == lb], g.scale, args)
-                                      for lb in labels}
-                for t in tracers.values():
-                    t.release()
-                rrow["structures"][kind] = srow
+                        times[c][lb].append(per[c][lb])
+            rrow["errors"] = {lb: errs[lb].result() for lb in labels}
+            rrow["errors_from"] = {"structure": err_cfg[0], "stack": err_cfg[1]}
+            for c in configs:
+                tracers[c].release()
+            for kind, k in configs:
+                rec_tr = VoxelTracer(built[kind], g.origin, g.scale, k, record=True, ctx=ctx, seq_len=args.seq_len)
+                krow: dict = {"ms": {lb: _median(times[(kind, k)][lb]) for lb in labels},
+                              "ms_rounds": times[(kind, k)], "record": {}}
+                for lb in labels:
+                    sel = [x for x in rays if x.label == lb and x.index in picked[lb]]
+                    krow["record"][lb] = _record_label([recorder(rec_tr, x, _bias(args, lb)) for x in sel],
+                                                       n_pass[lb])
+                rec_tr.release()
+                rrow["structures"][kind]["stacks"][k] = krow
+                _log(args, f"{clock} {res}^3 {kind} stack {k}: " + ", ".join(
+                    f"{lb} {krow['ms'][lb]:.0f} ms U64 {100 * krow['record'][lb]['lanes'][64]['utilisation']:.0f}%"
+                    for lb in labels))
+            del built
             if ref_image is not None:
                 rrow["image_mae"] = _image_error(ctx_gl, prep, size, settings, camera, res, structures[0],
                                                  max(stacks), ref_image, args.bias)
+                _log(args, f"{clock} {res}^3: image error {rrow['image_mae']:.2f} (full render, {structures[0]})")
             out["resolutions"].append(rrow)
+            if checkpoint is not None:
+                checkpoint(out)
     finally:
+        recorder.release()
         for b in outs:
             b.release()
         for x in rays:
@@ -296,12 +420,6 @@ def study_scene(args, ctx_gl, name: str, spec: str, recording: str | None, size,
 def _bias(args, label: str) -> float:
     """Secondary rays start --bias voxel widths along the ray, as the backend's `bias` does."""
     return 0.0 if label == "primary" else float(args.bias)
-
-
-def _errors_label(tracer, rays: list, scale: float, args) -> dict:
-    parts = [(_errors(tracer, x, _bias(args, x.label), scale), x.n) for x in rays]
-    n = sum(w for _, w in parts)
-    return {k: float(sum(p[k] * w for p, w in parts) / n) for k in parts[0][0]}
 
 
 def _image_error(ctx_gl, prep, size, settings, camera, res: int, structure: str, stack: int, ref_image,
@@ -328,8 +446,19 @@ def _markdown(report: dict) -> str:
     lines = [f"# Voxel ray tracing: BVH, KD-tree, octree ({report['device_cl']})", "",
              f"Command: `{report['command']}`", "",
              "Rays: one frame per scene captured with the reference backend; every structure traces the same rays. "
-             "Times: wall ms of the trace kernel (median of interleaved rounds). Coherency: SIMD lane utilisation "
-             "U_W of lockstep groups of W consecutive rays (definition below).", ""]
+             f"Times: wall ms of the trace kernel over every pass (median of {report.get('rounds', '?')} "
+             "interleaved round(s); structures and stacks rotate pass by pass). Coherency: SIMD lane utilisation "
+             "U_W of lockstep groups of W consecutive rays (definition below), with steps per ray and restarts, "
+             "measured on the recorded passes below; hit errors on every ray.", ""]
+    if not report.get("complete", True):
+        lines += ["**Partial: the study is still running or stopped early; finished resolutions only.**", ""]
+    for sc in scenes:
+        rp = sc.get("recorded_passes", {})
+        lines.append(f"- {sc['scene']}: coherency from " + "; ".join(
+            f"{lb} {len(rp[lb])} of {sc['passes'][lb]} passes"
+            + (f" ({', '.join(map(str, rp[lb]))})" if len(rp[lb]) < sc["passes"][lb] else "")
+            for lb in RAY_TYPES if lb in rp))
+    lines.append("")
     for res in report["resolutions"]:
         for w in (64, 32, 8):
             lines += [f"## Table 1 analog: coherency U_{w} (%) at {res}^3, stack {big}", "",
@@ -364,6 +493,7 @@ def _markdown(report: dict) -> str:
                 f"{sc['reference_ms'].get(lb, float('nan')):.1f}" for lb in RAY_TYPES) + " |")
         head = " | ".join(f"restarts/1k s{k} | ms s{k}" for k in stacks)
         lines += ["", f"## Stack {' vs '.join(map(str, stacks))} at {res}^3: restarts per 1000 rays and time (ms)", "",
+                  "Restarts: measured on the recorded passes (count / recorded rays); time: every pass.", "",
                   f"| scene | structure | ray type | {head} |",
                   "|---|---|---|" + "---|---|" * len(stacks)]
         for sc in scenes:
@@ -377,7 +507,9 @@ def _markdown(report: dict) -> str:
                     cells = []
                     for k in stacks:
                         kr = rr["structures"][kind]["stacks"][k]
-                        cells += [f"{1000 * kr['record'][lb]['restarts'] / sc['rays'][lb]:.1f}", f"{kr['ms'][lb]:.1f}"]
+                        q = kr["record"][lb]
+                        cells += [f"{1000 * q['restarts'] / max(q.get('rays', sc['rays'][lb]), 1):.1f}",
+                                  f"{kr['ms'][lb]:.1f}"]
                     lines.append(f"| {sc['scene']} | {kind} | {lb} | " + " | ".join(cells) + " |")
         lines.append("")
     lines += [f"## Steps per ray at stack {big} (interior / leaf / pop): what a scalar CPU work-item pays for", "",
@@ -391,7 +523,8 @@ def _markdown(report: dict) -> str:
                     if lb not in rec:
                         cells.append("-")
                         continue
-                    n, q = sc["rays"][lb], rec[lb]
+                    q = rec[lb]
+                    n = max(q.get("rays", sc["rays"][lb]), 1)
                     cells.append(f"{q['interior'] / n:.1f} / {q['leaf'] / n:.1f} / {q['pop'] / n:.1f}")
                 lines.append(f"| {sc['scene']} | {rr['resolution']} | {kind} | " + " | ".join(cells) + " |")
     lines += ["", "## Voxels and structures", "",
@@ -433,7 +566,8 @@ def report_from_json(path: str | Path) -> dict:
                 s["stacks"] = {int(k): v for k, v in s["stacks"].items()}
                 for v in s["stacks"].values():
                     for rec in v["record"].values():
-                        rec["lanes"] = {int(k): x for k, x in rec["lanes"].items()}
+                        for q in [rec, *rec.get("per_pass", [])]:
+                            q["lanes"] = {int(k): x for k, x in q["lanes"].items()}
     return r
 
 
@@ -534,22 +668,37 @@ def run(args) -> int:
     w, sep, h = args.size.lower().partition("x")
     if not sep or not w.isdigit() or not h.isdigit():
         raise RtwalkError(f"--size: expected WxH (got '{args.size}')")
-    if args.rounds < 1 or args.seq_len < 1 or not args.bias >= 0:
-        raise RtwalkError("--rounds and --seq-len must be >= 1, --bias >= 0")
+    if args.rounds < 1 or args.seq_len < 1 or not args.bias >= 0 or args.record_passes < 0:
+        raise RtwalkError("--rounds and --seq-len must be >= 1, --bias and --record-passes >= 0")
     specs = [_scene_spec(s.strip()) for s in args.scenes.split(",") if s.strip()]
     if args.voxelize_only:
         return _voxelize_only(args, specs, sorted(resolutions), structures)
     ctx_gl = shared_context()
     report = {"command": "rtwalk bench-voxels " + " ".join(sys.argv[2:]), "device_cl": cl_context().name,
               "reference": args.reference, "structures": structures, "stacks": stacks, "resolutions": resolutions,
-              "bias": args.bias, "widths": list(WIDTHS), "scenes": []}
-    for name, spec, rec in specs:
-        report["scenes"].append(study_scene(args, ctx_gl, name, spec, rec, (int(w), int(h)), resolutions,
-                                            structures, stacks))
+              "bias": args.bias, "widths": list(WIDTHS),
+              "record_passes": args.record_passes, "seq_len": args.seq_len, "rounds": args.rounds,
+              "scenes": []}
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    (out / "bench_voxels.json").write_text(json.dumps(report, indent=1, default=float))
-    (out / "bench_voxels.md").write_text(_markdown(report))
-    _plot(report, out / "bench_voxels.png")
+
+    def checkpoint(partial: dict) -> None:  # finished resolutions reach the disk at once
+        _write(out, {**report, "complete": False, "scenes": report["scenes"] + [partial]})
+
+    for name, spec, rec in specs:
+        report["scenes"].append(study_scene(args, ctx_gl, name, spec, rec, (int(w), int(h)), resolutions,
+                                            structures, stacks, checkpoint))
+    report["complete"] = True
+    _write(out, report)
     print(f"report: {out / 'bench_voxels.md'}")
     return 0
+
+
+def _write(out: Path, report: dict) -> None:
+    """bench_voxels.json/.md/.png; the JSON first (the record), each file replaced whole."""
+    for fname, text in (("bench_voxels.json", json.dumps(report, indent=1, default=float)),
+                        ("bench_voxels.md", _markdown(report))):
+        tmp = out / (fname + ".tmp")
+        tmp.write_text(text)
+        tmp.replace(out / fname)
+    _plot(report, out / "bench_voxels.png")

@@ -112,8 +112,9 @@ inline void st_pop(ShortStack *s, int *ref, float *a, float *b) {
 
 // Step record (RECORD builds): per ray the counts c = (interior steps, leaf tests, pops, restarts)
 // and, with SEQ_LEN > 0, the first SEQ_LEN step kinds in order (1 interior, 2 leaf, 3 pop,
-// 4 restart; 0 after the last step) for the lockstep (SIMD lane utilisation) model of
-// viewer/bench/voxels.py.
+// 4 restart) for the lockstep (SIMD lane utilisation) model of viewer/bench/lockstep.py. Entries
+// after a ray's last step are left as they were (readers take the length from the counts; the
+// host's trace_arrays clears the buffer first), so a ray writes only the steps it takes.
 #ifndef SEQ_LEN
 #define SEQ_LEN 0
 #endif
@@ -128,7 +129,7 @@ typedef struct {
 #define REC_KIND_w 4
 #ifdef RECORD
 #define REC(k) do { ++rec->c.k; if (SEQ_LEN > 0 && rec->n < SEQ_LEN) rec->seq[rec->n] = REC_KIND_##k; ++rec->n; } while (0)
-#define REC_STORE record[i] = rec.c; if (SEQ_LEN > 0) for (int q = min(rec.n, SEQ_LEN); q < SEQ_LEN; ++q) rec.seq[q] = 0;
+#define REC_STORE record[i] = rec.c;
 #else
 #define REC(k)
 #define REC_STORE

@@ -90,9 +90,10 @@ class VoxelTracer:
     def enqueue(self, ray_o, ray_d, out_t, out_tri, out_vox, n: int, any_hit: bool, bias: float = 0.0,
                 record=None, seq=None, leave: bool = False, gap: float = 0.5):
         """Trace n rays (buffers as viewer/cl/transfer.py lays them out); record: int4 per ray, seq:
-        seq_len bytes per ray (recording tracers). `bias`: tmin moves this many voxel widths along
-        the ray; `leave`: the run of voxels the ray starts in (each within `gap` voxel widths of the
-        previous exit) is skipped: the surface a secondary ray leaves (common.cl)."""
+        seq_len bytes per ray (recording tracers; a ray writes only its first min(steps, seq_len)
+        bytes). `bias`: tmin moves this many voxel widths along the ray; `leave`: the run of voxels
+        the ray starts in (each within `gap` voxel widths of the previous exit) is skipped: the
+        surface a secondary ray leaves (common.cl)."""
         if n == 0:
             return None
         if self.record and record is None:
@@ -123,7 +124,10 @@ class VoxelTracer:
         vox_b = cl.Buffer(c, mf.WRITE_ONLY, max(vox.nbytes, 4))
         rec_b = cl.Buffer(c, mf.WRITE_ONLY, max(rec.nbytes, 16)) if rec is not None else None
         seq = np.zeros((n, self.seq_len), np.uint8) if self.seq_len else None
-        seq_b = cl.Buffer(c, mf.WRITE_ONLY, max(seq.nbytes, 16)) if seq is not None else None
+        seq_b = None  # cleared: the kernel writes only the steps a ray takes, 0 after them is this copy's
+        if seq is not None:
+            seq_b = cl.Buffer(c, mf.READ_WRITE | mf.COPY_HOST_PTR, hostbuf=seq) if seq.nbytes else \
+                cl.Buffer(c, mf.WRITE_ONLY, 16)
         q = self.ctx.queue
         self.enqueue(o_b, d_b, t_b, tri_b, vox_b, n, any_hit, bias, rec_b, seq_b, leave, gap)
         if n:
