@@ -210,3 +210,18 @@ def test_primary_pass_that_is_not_an_image_is_still_exact():
     tmin, tmax = np.zeros(n, F32), np.full(n, np.inf, F32)
     t, tri, stats = trace_centred(tris, o, d, tmin, tmax, RayType.PRIMARY, size=SIZE)
     assert_matches(_judge(tris, o, d, tmin, tmax, t, tri, False))
+
+
+@needs_cl
+def test_pair_overflow_falls_back_exactly(monkeypatch):
+    """More triangle-cell pairs than one sort may take: the grid is left empty and every primary
+    ray goes through the uniform grid, still exact."""
+    import viewer.accel.camgrid as camgrid
+
+    monkeypatch.setattr(camgrid, "MAX_PAIRS", 100)
+    rng = np.random.default_rng(36)
+    tris = _soup(rng, 800, extent=10.0, size=0.6)
+    cam = Camera.look_at([5.0, 5.0, 5.0], [9.0, 6.0, 1.0], fov_y=70)
+    out, stats, _ = trace_image(tris, cam)
+    assert stats["pairs"] == 0 and out.rhit.sum() > 0.3 * len(out.o)
+    assert_matches(out)
