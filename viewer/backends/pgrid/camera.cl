@@ -3,9 +3,9 @@
 // mapping: the tiles the grid is sorted into are k times wider than a work-group, so k x k
 // work-groups read the same cell lists). Per slab, front to back, the tile's triangles are staged
 // in local memory CN * CN at a time (four per SoA block, stage.cl) and every ray of the block tests
-// every staged triangle, four at a time (watertight rt_intersect_triangle4 of geometry.cl: the
-// SIMD a CPU device gets from inside a work-item). Slab check: after slab s a ray whose hit is nearer than
-// where slab s + 1 begins is done (every triangle reaching nearer depths is listed in slab <= s);
+// every staged triangle, four at a time (watertight rt_intersect_triangle4 of geometry.cl: the SIMD
+// a CPU device gets from inside a work-item). Slab check: after slab s a ray whose hit is nearer
+// than where slab s + 1 begins is done (every triangle reaching nearer depths is in slab <= s);
 // the work-group stops when all its rays are done. Rays flagged `outside` are left alone (traced
 // another way). With COUNT_TESTS each ray's triangle tests are written to `tests_out`.
 #include "camgrid.cl"
