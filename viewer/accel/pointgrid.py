@@ -14,7 +14,8 @@ Build (kernels in pointgrid.cl beside this file, primitives from viewer.cl.primi
     way; the grid's margin is the largest bound of the rays it keeps (a max-reduce), so rays
     that meet exactly in the centre (the eye) or lights outside the scene box cost no margin.
  3. angular rectangle of the rays (min/max reduce), grown by the margin; tiles over it
-    (~tile_rays rays per tile, or `tiles` on the longer side); slabs by distance from the centre.
+    (~tile_rays rays per tile, `tiles` on the longer side, or tiles of `tile_angle` radians); slabs
+    by distance from the centre.
  4. (tile, ray) pairs radix-sorted; segments cut into chunks of at most `chunk` rays.
  5. triangles: a conservative (alpha, theta) box of the triangle itself (pointgrid.cl: azimuths
     at the vertices, elevations bounded through the triangle's distance from the pole axis;
