@@ -113,3 +113,25 @@ def test_finished_scene_survives_a_later_error(tmp_path, gl_ctx, monkeypatch):
     assert rep["complete"] is False and len(rep["scenes"]) == 1
     assert rep["scenes"][0]["resolutions"][0]["resolution"] == 16
     assert "Partial" in (tmp_path / "bench_voxels.md").read_text()
+
+
+def test_voxelize_only_keeps_finished_structures(tmp_path, monkeypatch):
+    """--voxelize-only writes its report after every structure: a build that dies late (the
+    4096^3 KD-tree ran out of memory here) leaves the finished rows on disk."""
+    import viewer.backends.voxels.scene as vscene
+
+    real = vscene.build_structure
+
+    def build(kind, vox):
+        if kind == "octree" and vox.stats["resolution"] == 32:
+            raise MemoryError("simulated")
+        return real(kind, vox)
+
+    monkeypatch.setattr(vscene, "build_structure", build)
+    with pytest.raises(MemoryError):
+        main(["bench-voxels", "--scenes", "room", "--resolutions", "16,32", "--voxelize-only", "--out",
+              str(tmp_path), "--quiet"])
+    rows = json.loads((tmp_path / "voxelize.json").read_text())
+    assert [r["resolution"] for r in rows] == [16, 32]
+    assert set(rows[0]["structures"]) == {"bvh", "kd", "octree"} and set(rows[1]["structures"]) == {"bvh", "kd"}
+    assert all(r["count"] > 0 for r in rows)

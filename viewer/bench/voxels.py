@@ -636,15 +636,22 @@ def _voxelize_only(args, specs, resolutions: list[int], structures: list[str]) -
                              f"{st['memory_bytes'] / 2**20:.1f} | {st['mean_leaf_depth']:.2f} | "
                              f"{st['var_leaf_depth']:.2f} | {st['build_seconds']:.2f} |")
                 _log(args, lines[-1])
+                _write_voxelize(args, rows + [row], lines)  # a late failure (out of memory) keeps these
             rows.append(row)
             del vox
+    out = _write_voxelize(args, rows, lines)
+    print(f"report: {out / 'voxelize.md'}")
+    return 0
+
+
+def _write_voxelize(args, rows: list, lines: list[str]) -> Path:
+    """voxelize.json / .md with the rows so far (rewritten after every structure)."""
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     (out / "voxelize.json").write_text(json.dumps(rows, indent=1, default=float))
     (out / "voxelize.md").write_text("\n".join([f"Command: `rtwalk bench-voxels {' '.join(sys.argv[2:])}`", "",
                                                  *lines, ""]))
-    print(f"report: {out / 'voxelize.md'}")
-    return 0
+    return out
 
 
 def run(args) -> int:
