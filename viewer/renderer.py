@@ -155,7 +155,7 @@ class Renderer:
 
         The binary BVH is REFIT, not rebuilt: the animated scenes keep triangle count, order and
         materials, and a refit keeps the tree's topology and leaf order, so triangle ids (leaf
-        slots) mean the same triangle in every frame and per-node temporal state (chcrt fronts)
+        slots) mean the same triangle in every frame and per-node temporal state (a backend's fronts)
         stays valid; it costs a few vectorised reductions instead of a SAH build. Phases:
         "build:animate" (evaluating the animation), "build:bvh" (refit), "build:upload" (GpuScene
         nodes, triangles and G-buffer vertices rewritten in place), then the active backend's own
