@@ -41,6 +41,8 @@ from typing import Any
 
 import numpy as np
 
+from viewer.cl.pool import BufferPool
+
 KERNEL = Path(__file__).resolve().parent / "camgrid_build.cl"
 WG = 64
 N = 8  # work-group side in pixels (CN of the trace kernel)
@@ -185,20 +187,14 @@ class CameraGrid:
         cl = self.ctx.cl
         self._k = {name: cl.Kernel(prog, name) for name in ("cg_tri_clip", "cg_tri_count", "cg_tri_write", "cg_ranges",
                                                              "cg_classify")}
-        self._bufs: dict[str, Any] = {}
+        self._bufs = BufferPool(self.ctx)
         self.header_host = np.zeros(1, CGRID_DTYPE)
         self.header = self.buf("header", CGRID_DTYPE.itemsize)
         self.stats: CameraGridStats | None = None
         self.camera: PinholeCamera | None = None
 
     def buf(self, name: str, nbytes: int) -> Any:
-        b = self._bufs.get(name)
-        if b is None or b.size < nbytes:
-            if b is not None:
-                b.release()
-            b = self.ctx.cl.Buffer(self.ctx.context, self.ctx.cl.mem_flags.READ_WRITE, max(16, int(nbytes)))
-            self._bufs[name] = b
-        return b
+        return self._bufs.get(name, nbytes)
 
     def _run(self, name: str, n: int, *args: Any) -> None:
         if n:
@@ -304,6 +300,4 @@ class CameraGrid:
         return cells, refs[: self.stats.pairs]
 
     def release(self) -> None:
-        for b in self._bufs.values():
-            b.release()
-        self._bufs.clear()
+        self._bufs.release()

@@ -38,6 +38,7 @@ from typing import Any
 
 import numpy as np
 
+from viewer.cl.pool import BufferPool
 from viewer.errors import RtwalkError
 
 KERNEL = Path(__file__).resolve().parent / "grid_build.cl"
@@ -150,19 +151,13 @@ class UniformGrid:
         cl = self.ctx.cl
         self._k = {name: cl.Kernel(prog, name) for name in ("grid_count", "grid_write", "grid_ranges",
                                                              "grid_block_counts", "grid_blocks")}
-        self._bufs: dict[str, Any] = {}
+        self._bufs = BufferPool(self.ctx)
         self.header_host = np.zeros(1, GRID_DTYPE)
         self.header = self._buf("header", GRID_DTYPE.itemsize)
         self.stats: GridStats | None = None
 
     def _buf(self, name: str, nbytes: int) -> Any:
-        buf = self._bufs.get(name)
-        if buf is None or buf.size < nbytes:
-            if buf is not None:
-                buf.release()
-            buf = self.ctx.cl.Buffer(self.ctx.context, self.ctx.cl.mem_flags.READ_WRITE, max(16, int(nbytes)))
-            self._bufs[name] = buf
-        return buf
+        return self._bufs.get(name, nbytes)
 
     @property
     def cells(self) -> Any:
@@ -256,7 +251,5 @@ class UniformGrid:
         return cb, blocks
 
     def release(self) -> None:
-        for buf in self._bufs.values():
-            buf.release()
-        self._bufs.clear()
+        self._bufs.release()
 

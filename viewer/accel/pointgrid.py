@@ -44,6 +44,7 @@ from typing import Any
 
 import numpy as np
 
+from viewer.cl.pool import BufferPool
 from viewer.errors import RtwalkError
 
 KERNEL = Path(__file__).resolve().parent / "pointgrid.cl"
@@ -139,7 +140,7 @@ class PointGrid:
         cl = self.ctx.cl
         self._k = {name: cl.Kernel(prog, name) for name in
                    ("pg_classify", "pg_ray_keys", "pg_tri_count", "pg_tri_write", "pg_cell_counts")}
-        self._bufs: dict[str, Any] = {}
+        self._bufs = BufferPool(self.ctx)
         self.header_host = np.zeros(1, PGRID_DTYPE)
         self.header = self.buf("header", PGRID_DTYPE.itemsize)
         self.stats: PointGridStats | None = None
@@ -148,13 +149,7 @@ class PointGrid:
         self.inactive_count = 0
 
     def buf(self, name: str, nbytes: int) -> Any:
-        b = self._bufs.get(name)
-        if b is None or b.size < nbytes:
-            if b is not None:
-                b.release()
-            b = self.ctx.cl.Buffer(self.ctx.context, self.ctx.cl.mem_flags.READ_WRITE, max(16, int(nbytes)))
-            self._bufs[name] = b
-        return b
+        return self._bufs.get(name, nbytes)
 
     def _run(self, name: str, n: int, *args: Any) -> None:
         if n:
@@ -282,6 +277,4 @@ class PointGrid:
         return self._bufs["outside_idx"]
 
     def release(self) -> None:
-        for b in self._bufs.values():
-            b.release()
-        self._bufs.clear()
+        self._bufs.release()

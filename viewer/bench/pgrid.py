@@ -41,7 +41,7 @@ import numpy as np
 from viewer.bench.pgrid_studies import study_anim, study_pairs, study_rearrange
 from viewer.bench.plots import figure, finish
 from viewer.bench.report import fmt, md_table, size_text, write_study
-from viewer.cli_args import parse_choices
+from viewer.cli_args import parse_choices, parse_image_sizes
 from viewer.errors import RtwalkError
 
 STUDIES = ("table41", "lightdist", "model", "pairs", "rearrange", "anim")
@@ -73,16 +73,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--quiet", action="store_true", help="no progress output")
 
 
-def _sizes(text: str) -> list[tuple[int, int]]:
-    out = []
-    for item in [s.strip() for s in text.split(",") if s.strip()]:
-        w, sep, h = item.lower().partition("x")
-        if not sep or not w.isdigit() or not h.isdigit() or int(w) < 1 or int(h) < 1:
-            raise RtwalkError(f"--sizes: expected WxH like 640x360 (got '{item}')")
-        out.append((int(w), int(h)))
-    if not out:
-        raise RtwalkError("--sizes: no size given")
-    return out
+def _sizes(text: str, option: str = "--sizes") -> list[tuple[int, int]]:
+    return parse_image_sizes(text, option)
 
 
 def _log(args, msg: str) -> None:
@@ -405,7 +397,7 @@ def run(args) -> int:
         raise RtwalkError("--frames and --anim-frames must be >= 1")
     if ("model" in studies or "rearrange" in studies) and "table41" not in studies:
         raise RtwalkError("--study: model and rearrange need table41 in the same run")
-    args.anim_size = _sizes(args.anim_size)[0]
+    args.anim_size = _sizes(args.anim_size, "--anim-size")[0]
     cl_context()
     ctx = shared_context()
     Path(args.out).mkdir(parents=True, exist_ok=True)
