@@ -17,6 +17,7 @@ from dataclasses import dataclass, field, replace
 import moderngl
 import numpy as np
 
+from viewer import iostats
 from viewer.accel.bvh import BVH, refit_bvh
 from viewer.backends import backend_names, create_backend
 from viewer.backends.base import BackendContext
@@ -26,6 +27,7 @@ from viewer.effects import EffectSettings, RayType
 from viewer.errors import RtwalkError
 from viewer.gl.programs import FullscreenQuad, ProgramCache
 from viewer.gl.scene import GpuScene
+from viewer.iostats import IoCounts
 from viewer.passes.accumulate import ACCUMULATED, AccumulatePass
 from viewer.passes.gbuffer import GBufferPass
 from viewer.passes.overlay import (
@@ -70,6 +72,7 @@ class FrameReport:
     backend_stats: dict[str, float] = field(default_factory=dict)
     captured: list[CapturedPass] = field(default_factory=list)
     overlay_source: tuple[RayType, int] | None = None  # the pass whose overlays were copied
+    io: IoCounts = field(default_factory=IoCounts)  # bytes, syncs, launches, draws, queries (viewer.iostats)
 
     @property
     def trace_ms(self) -> float:
@@ -369,6 +372,7 @@ class Renderer:
                 self._overlay_unavailable(f"view '{self.view}' shows a traced pass's overlays, but no pass "
                                           "traces rays (turn an effect on)")
         overlay_done = False
+        iostats.begin_frame()
         prof.begin_frame()
         self.update_geometry()
         cam_u = camera_uniforms(camera, self.size)
@@ -423,7 +427,7 @@ class Renderer:
         self.frame_index += 1
         rays = {RayType(i).label: int(counts[i]) for i in range(6) if counts[i] > 0}
         return FrameReport(gpu_ms, prof.cpu_ms(), wall, rays, dict(prof.by_label), stats, captured,
-                           self.overlay_source)
+                           self.overlay_source, iostats.end_frame())
 
     def read_image(self) -> np.ndarray:
         return self.shade.read_rgb()

@@ -62,7 +62,7 @@ def frame_row(rep, rec, n: int, fps: float | None = None) -> dict:
             "build_ms": {k[len("build:"):]: v for k, v in rep.gpu_ms.items() if k.startswith("build:")},
             "gpu_ms": rep.gpu_ms, "cpu_ms": rep.cpu_ms, "trace_ms": rep.trace_ms,
             "trace_ms_by_ray": rep.trace_ms_by_ray, "rays": rep.rays,
-            "mrays_per_s": mrays(rep), "backend_stats": rep.backend_stats}
+            "mrays_per_s": mrays(rep), "backend_stats": rep.backend_stats, "io": rep.io.as_dict()}
 
 
 def image_error(a: np.ndarray, b: np.ndarray) -> dict:
