@@ -25,6 +25,7 @@ import numpy as np
 from viewer.accel.bvh4 import BVH4, build_bvh4
 from viewer.backends.base import BackendContext, StatelessBackend, TraceResult
 from viewer.backends.interface import BackendInfo
+from viewer.cl.limits import new_buffer
 from viewer.rays import HitBuffer, PassInfo, RayBatch
 
 KERNEL = Path(__file__).resolve().parent / "trace.cl"
@@ -85,8 +86,8 @@ class ClbvhScene:
         cl = self.ctx.cl
         mf = cl.mem_flags
         knodes, blocks = pack_leaves(self.bvh4.nodes, triangles)
-        self.nodes = cl.Buffer(self.ctx.context, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=knodes)
-        self.blocks = cl.Buffer(self.ctx.context, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=blocks)
+        self.nodes = new_buffer(self.ctx, mf.READ_ONLY, 0, "clbvh nodes", hostbuf=knodes)
+        self.blocks = new_buffer(self.ctx, mf.READ_ONLY, 0, "clbvh leaf blocks", hostbuf=blocks)
         prog = build(KERNEL, {"STACK_SIZE": self.stack_size, "WG": WG}, self.ctx)
         self.kernels = {False: cl.Kernel(prog, "trace_closest"), True: cl.Kernel(prog, "trace_any")}
         self.memory_bytes = knodes.nbytes + blocks.nbytes
