@@ -253,9 +253,10 @@ class UniformGrid:
         what = f"uniform grid {tuple(int(r) for r in res)} ({pairs:,} triangle-cell pairs)"
         if pairs > MAX_PAIRS:
             raise RtwalkError(f"{what}: at most {MAX_PAIRS:,} pairs; choose a lower resolution")
+        if spec.resolution > 0 and (largest > lim.max_alloc or total > lim.budget):
+            what = f"{what} (choose a lower resolution)"
         check_alloc(largest, what, limits=lim)
-        if total > lim.budget:
-            check_total(total, what + (": choose a lower resolution" if spec.resolution > 0 else ""), limits=lim)
+        check_total(total, what, limits=lim)
         keys = self._buf("keys", 4 * pairs)
         vals = self._buf("vals", 4 * pairs)
         cells = self._buf("cells", 8 * ncells)
