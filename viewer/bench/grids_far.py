@@ -22,6 +22,7 @@ import resource
 import statistics
 import sys
 import time
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -35,13 +36,19 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--size", default="320x180", help="WxH of the primary rays (default 320x180)")
     p.add_argument("--backends", default="clbvh,ugrid,pgrid,voxelwalk")
     p.add_argument("--rounds", type=int, default=3, help="interleaved timing rounds (default 3)")
+    p.add_argument("--scene-dir", default="", help="folder of the shared scenes (default ../shared/scenes)")
     p.add_argument("--json", default="", help="write the rows to this file")
 
 
+SCENE_DIR: list[str] = [""]
+
+
 def _mesh(name: str) -> np.ndarray:
+    from viewer.paths import SHARED_SCENES
     from viewer.scene_io import load_scene
 
-    return np.asarray(load_scene(name, progress=False).triangles, np.float64).reshape(-1, 3, 3)
+    path = Path(SCENE_DIR[0] or SHARED_SCENES) / name
+    return np.asarray(load_scene(str(path), progress=False).triangles, np.float64).reshape(-1, 3, 3)
 
 
 def _icosphere() -> np.ndarray:
@@ -65,7 +72,7 @@ def scene_mixed() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """A 1e-3-tall object on a 2e4 ground (y = 0) in front of a 1e4-tall wall."""
     try:
         obj = _mesh("bunny/bun_zipper.ply")
-    except (RtwalkError, OSError):
+    except (RtwalkError, OSError):  # no shared scenes: a procedural sphere
         obj = _icosphere()
     lo, hi = obj.reshape(-1, 3).min(0), obj.reshape(-1, 3).max(0)
     s = 1e-3 / float(hi[1] - lo[1])
@@ -171,6 +178,7 @@ def run(args) -> int:
     from viewer.cli_args import parse_image_sizes
 
     size = parse_image_sizes(args.size)[0]
+    SCENE_DIR[0] = args.scene_dir
     tris, eye, target = scene_dragon(args.offset) if args.scene == "dragon" else scene_mixed()
     o, d = primary_rays(eye, target, size)
     names = [b for b in args.backends.split(",") if b]
