@@ -41,12 +41,14 @@ from typing import Any
 
 import numpy as np
 
+from viewer.cl.limits import pair_cap
 from viewer.cl.pool import BufferPool
 
 KERNEL = Path(__file__).resolve().parent / "camgrid_build.cl"
 WG = 64
 N = 8  # work-group side in pixels (CN of the trace kernel)
 MAX_PAIRS = 2**26
+PAIR_BYTES = 28  # keys, refs, radix scratch (8), segments (12)
 NEAR_RATIO = 1024.0  # z_lo >= z_hi / NEAR_RATIO
 
 CGRID_DTYPE = np.dtype([("eye", "<f8", 4), ("minv", "<f8", (3, 4)), ("screen", "<f8", 4), ("slab", "<f8", 4),
@@ -187,7 +189,7 @@ class CameraGrid:
         cl = self.ctx.cl
         self._k = {name: cl.Kernel(prog, name) for name in ("cg_tri_clip", "cg_tri_count", "cg_tri_write", "cg_ranges",
                                                              "cg_classify")}
-        self._bufs = BufferPool(self.ctx)
+        self._bufs = BufferPool(self.ctx, "camera grid")
         self.header_host = np.zeros(1, CGRID_DTYPE)
         self.header = self.buf("header", CGRID_DTYPE.itemsize)
         self.stats: CameraGridStats | None = None
@@ -242,7 +244,7 @@ class CameraGrid:
         pairs = p.exclusive_scan(counts, offsets, n_tris) if n_tris else 0
         cells = self.buf("cells", 8 * ncells)
         cl.enqueue_fill_buffer(q, cells, np.uint32(0), 0, 8 * ncells)
-        overflow = pairs > MAX_PAIRS
+        overflow = pairs > min(MAX_PAIRS, pair_cap(self.ctx, PAIR_BYTES))  # device limits too
         if pairs and not overflow:
             keys, refs = self.buf("keys", 4 * pairs), self.buf("refs", 4 * pairs)
             self._run("cg_tri_write", n_tris, self.header, u(n_tris), offsets, counts, place, place_slab, keys, refs)

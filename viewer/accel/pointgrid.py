@@ -44,12 +44,14 @@ from typing import Any
 
 import numpy as np
 
+from viewer.cl.limits import pair_cap
 from viewer.cl.pool import BufferPool
 from viewer.errors import RtwalkError
 
 KERNEL = Path(__file__).resolve().parent / "pointgrid.cl"
 WG = 64
 MAX_PAIRS = 2**26
+PAIR_BYTES = 28  # keys, refs, radix scratch (8), segments (12)
 MAX_TILES_AXIS = 1024
 
 PGRID_DTYPE = np.dtype([("centre", "<f4", 4), ("fwd", "<f4", 4), ("up", "<f4", 4), ("right", "<f4", 4),
@@ -140,7 +142,7 @@ class PointGrid:
         cl = self.ctx.cl
         self._k = {name: cl.Kernel(prog, name) for name in
                    ("pg_classify", "pg_ray_keys", "pg_tri_count", "pg_tri_write", "pg_cell_counts")}
-        self._bufs = BufferPool(self.ctx)
+        self._bufs = BufferPool(self.ctx, "light grid")
         self.header_host = np.zeros(1, PGRID_DTYPE)
         self.header = self.buf("header", PGRID_DTYPE.itemsize)
         self.stats: PointGridStats | None = None
@@ -217,9 +219,10 @@ class PointGrid:
         place, place_slab = self.buf("tri_place", 16 * max(n_tris, 1)), self.buf("tri_slab", 4 * max(n_tris, 1))
         self._run("pg_tri_count", n_tris, self.header, tris, u(n_tris), counts, flags, place, place_slab)
         pairs = p.exclusive_scan(counts, counts, n_tris) if n_tris else 0
-        if pairs > MAX_PAIRS:
-            raise RtwalkError(f"point grid {na}x{nt}x{ns} needs {pairs} triangle-cell pairs (at most {MAX_PAIRS}): "
-                              "use fewer tiles")
+        cap = min(MAX_PAIRS, pair_cap(self.ctx, PAIR_BYTES))  # the device's memory bounds it too
+        if pairs > cap:
+            raise RtwalkError(f"point grid {na}x{nt}x{ns} needs {pairs:,} triangle-cell pairs (at most {cap:,} "
+                              "on this OpenCL device): use fewer tiles")
         keys, refs = self.buf("keys", 4 * pairs), self.buf("refs", 4 * pairs)
         self._run("pg_tri_write", n_tris, self.header, u(n_tris), counts, place, place_slab, flags, keys, refs)
         cell_start = self.buf("cell_start", 4 * (ncells + 1))

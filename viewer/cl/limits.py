@@ -78,6 +78,13 @@ def budget(ctx: Any = None) -> int:
     return device_limits(ctx).budget
 
 
+def pair_cap(ctx: Any, bytes_per_pair: int) -> int:
+    """Most (key, value) pairs a sort-based build may list: its per-pair buffers within the
+    budget and each 4-byte-per-pair buffer within one allocation."""
+    lim = device_limits(ctx)
+    return int(min(lim.budget // max(1, bytes_per_pair), lim.max_alloc // 4))
+
+
 def mib(nbytes: float) -> str:
     return f"{nbytes / MIB:,.1f}"
 
