@@ -15,9 +15,7 @@ inline void traverse_bvh(__global const uint *nodes, __global const ushort *leav
     if (!(t_done < t_end)) return;
     ShortStack st;
     for (int iter = 0; iter < MAX_ITER; ++iter) {  // one pass per (re)start
-        st.head = 0;
-        st.size = 0;
-        st.dropped = false;
+        st_reset(&st);
         int ref = root;
         float exit_t = t_end;
         while (true) {
@@ -56,22 +54,11 @@ inline void traverse_bvh(__global const uint *nodes, __global const ushort *leav
                 t_done = fmax(t_done, exit_t);
             }
             // pop the nearest pending child that can still hold the first hit
-            bool next = false;
-            while (st.size > 0) {
-                float a, b;
-                st_pop(&st, &ref, &a, &b);
-                REC(z);
-                if (a <= best->t) {
-                    t_done = fmax(t_done, a);
-                    exit_t = b;
-                    next = true;
-                    break;
-                }
-            }
-            if (!next) break;
+            float a, b;
+            if (!st_pop_live(&st, best, &t_done, &ref, &a, &b, rec)) break;
+            exit_t = b;
         }
-        if (!(st.dropped && t_done < fmin(best->t, t_end))) return;
-        REC(w);
+        if (!st_restart(&st, t_done, best, t_end, rec)) return;
     }
 }
 

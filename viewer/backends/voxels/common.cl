@@ -135,6 +135,36 @@ typedef struct {
 #define REC_STORE
 #endif
 
+// The short stack's pop-and-restart protocol, shared by the kd-tree, octree and BVH walks (Horn et
+// al. 2007). st_reset starts a pass from the root. st_pop_live pops the nearest pending entry
+// that can still hold the first hit (its entry a <= the best t so far), raising t_done to that
+// entry; false when none is left (the pass ends). st_restart: the pass dropped entries (stack
+// overflow) and the part of the ray before the hit is not done yet, so the walk starts again from
+// the root with [t_done, t_end].
+inline void st_reset(ShortStack *s) {
+    s->head = 0;
+    s->size = 0;
+    s->dropped = false;
+}
+
+inline bool st_pop_live(ShortStack *s, const Best *best, float *t_done, int *ref, float *a, float *b, Rec *rec) {
+    while (s->size > 0) {
+        st_pop(s, ref, a, b);
+        REC(z);
+        if (*a <= best->t) {
+            *t_done = fmax(*t_done, *a);
+            return true;
+        }
+    }
+    return false;
+}
+
+inline bool st_restart(const ShortStack *s, float t_done, const Best *best, float t_end, Rec *rec) {
+    if (!(s->dropped && t_done < fmin(best->t, t_end))) return false;
+    REC(w);
+    return true;
+}
+
 // The ray in grid units; returns false for inactive rays. tmin is raised by `bias` voxel widths
 // (the backend passes it for secondary rays, which start on the voxel surface they leave).
 inline bool vx_ray(__constant float *hdr, float4 ot, float4 dt, float bias, VRay *r, float *tmin,

@@ -16,9 +16,7 @@ inline void traverse_octree(__global const uint *nodes, __global const ushort *l
     if (!(t_done < t_end)) return;
     ShortStack st;
     for (int iter = 0; iter < MAX_ITER; ++iter) {
-        st.head = 0;
-        st.size = 0;
-        st.dropped = false;
+        st_reset(&st);
         int node = 0;
         float a = t_done, b = t_end;
         while (true) {
@@ -70,20 +68,9 @@ inline void traverse_octree(__global const uint *nodes, __global const ushort *l
                 vx_leaf(r, leaves, 0, tmin, tmax, R, best);
                 return;
             }
-            bool next = false;
-            while (st.size > 0) {
-                st_pop(&st, &node, &a, &b);
-                REC(z);
-                if (a <= best->t) {
-                    t_done = fmax(t_done, a);
-                    next = true;
-                    break;
-                }
-            }
-            if (!next) break;
+            if (!st_pop_live(&st, best, &t_done, &node, &a, &b, rec)) break;
         }
-        if (!(st.dropped && t_done < fmin(best->t, t_end))) return;
-        REC(w);
+        if (!st_restart(&st, t_done, best, t_end, rec)) return;
     }
 }
 
