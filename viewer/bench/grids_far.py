@@ -7,9 +7,10 @@ Scenes (`--scene`):
                 2e4-wide ground with a 1e4-tall wall behind it (the teapot-in-a-stadium case)
 Primary rays of a pinhole camera framing the small object (`--size`, default 320x180) are traced
 by each backend (`--backends`) through Backend.trace (upload, kernel, download) once untimed
-(kernel compilation), then in interleaved rounds; reported per backend: the grid's triangle-cell pairs, its device buffer bytes, the median
-trace ms, its ratio to clbvh's, and hits that disagree with clbvh. Peak RSS: run one backend per
-process under /usr/bin/time -v.
+(kernel compilation), then in interleaved rounds; reported per backend: the grid's triangle-cell
+pairs, its device buffer bytes, the median trace ms, its ratio to clbvh's, and hits that disagree
+with clbvh (ties at the same distance excepted). Peak RSS: one backend per process under
+/usr/bin/time -v. `--build-only`: the uniform grid alone (pairs, MiB, RSS), no tracing.
 
   python -m viewer.bench.grids_far --scene dragon --offset 1e6 --backends clbvh,ugrid,pgrid,voxelwalk
 """
@@ -38,6 +39,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--rounds", type=int, default=3, help="interleaved timing rounds (default 3)")
     p.add_argument("--scene-dir", default="", help="folder of the shared scenes (default ../shared/scenes)")
     p.add_argument("--json", default="", help="write the rows to this file")
+    p.add_argument("--build-only", action="store_true",
+                   help="only build the uniform grid (ugrid's GridSpec) and report its pairs and MiB")
 
 
 SCENE_DIR: list[str] = [""]
@@ -175,12 +178,33 @@ class Runner:
         self.gpu.release()
 
 
+def build_only(args, tris: np.ndarray) -> int:
+    """The uniform grid alone (the one ugrid, pgrid and voxelwalk build): pairs, MiB, RSS."""
+    from viewer.accel.grid import GridSpec, UniformGrid, scene_box, triangles_f4
+    from viewer.cl import cl_context
+
+    ctx = cl_context()
+    cl = ctx.cl
+    f4 = triangles_f4(tris)
+    buf = cl.Buffer(ctx.context, cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR, hostbuf=f4)
+    grid = UniformGrid(ctx)
+    st = grid.build(buf, len(tris), *scene_box(tris), GridSpec())
+    mib = sum(b.size for b in grid._bufs.bufs.values()) / 2**20
+    print(f"scene {args.scene} offset {args.offset:g}: res {st.res} pairs {st.pairs:,} grid buffers {mib:.1f} MiB "
+          f"build {st.build_ms:.0f} ms peak RSS {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024:.0f} MiB")
+    grid.release()
+    buf.release()
+    return 0
+
+
 def run(args) -> int:
     from viewer.cli_args import parse_image_sizes
 
     size = parse_image_sizes(args.size)[0]
     SCENE_DIR[0] = args.scene_dir
     tris, eye, target = scene_dragon(args.offset) if args.scene == "dragon" else scene_mixed()
+    if args.build_only:
+        return build_only(args, tris)
     o, d = primary_rays(eye, target, size)
     names = [b for b in args.backends.split(",") if b]
     runners, rows = {}, {}
