@@ -114,8 +114,9 @@ class VoxelTracer:
         mf = cl.mem_flags
         c = self.ctx.context
         n = len(o4)
-        o_b = cl.Buffer(c, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=np.ascontiguousarray(o4, np.float32))
-        d_b = cl.Buffer(c, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=np.ascontiguousarray(d4, np.float32))
+        o_b = new_buffer(self.ctx, mf.READ_ONLY, 0, "voxel ray origins", hostbuf=np.ascontiguousarray(o4, np.float32))
+        d_b = new_buffer(self.ctx, mf.READ_ONLY, 0, "voxel ray directions",
+                         hostbuf=np.ascontiguousarray(d4, np.float32))
         t = np.empty(n, np.float32)
         tri = np.empty(n, np.int32)
         vox = np.empty(n, np.int32)
@@ -127,7 +128,7 @@ class VoxelTracer:
         seq = np.zeros((n, self.seq_len), np.uint8) if self.seq_len else None
         seq_b = None  # cleared: the kernel writes only the steps a ray takes, 0 after them is this copy's
         if seq is not None:
-            seq_b = cl.Buffer(c, mf.READ_WRITE | mf.COPY_HOST_PTR, hostbuf=seq) if seq.nbytes else \
+            seq_b = new_buffer(self.ctx, mf.READ_WRITE, 0, "voxel step sequences", hostbuf=seq) if seq.nbytes else \
                 cl.Buffer(c, mf.WRITE_ONLY, 16)
         q = self.ctx.queue
         self.enqueue(o_b, d_b, t_b, tri_b, vox_b, n, any_hit, bias, rec_b, seq_b, leave, gap)
