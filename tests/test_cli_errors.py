@@ -214,11 +214,11 @@ def test_missing_egl_before_the_scene(tmp_path, monkeypatch):
     assert "never-loaded" not in proc.stderr
 
 
-@pytest.mark.parametrize("sizes,needle", [("abc", "--sizes"), ("0", "out of range"), ("-5", "--sizes"),
-                                          ("1000,x", "--sizes"), ("40000001", "out of range")])
+@pytest.mark.parametrize("sizes,needle", [("abc", "--triangles"), ("0", "out of range"), ("-5", "--triangles"),
+                                          ("1000,x", "--triangles"), ("40000001", "out of range")])
 def test_bench_bvh_sizes(tmp_path, sizes, needle):
     """Same range as --scene-size; nothing is built (the first size is valid in the mixed case)."""
-    proc = run_cli("bench-bvh", "--sizes", sizes, "--out", str(tmp_path), timeout=60)
+    proc = run_cli("bench-bvh", "--triangles", sizes, "--out", str(tmp_path), timeout=60)
     assert_one_line_error(proc, needle)
     assert "tris: build" not in proc.stdout
 

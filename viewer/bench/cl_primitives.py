@@ -20,34 +20,25 @@ from pathlib import Path
 
 import numpy as np
 
+from viewer.bench.common import add_count_option, parse_counts
 from viewer.bench.harness import load_average
 from viewer.bench.plots import bars, figure, finish
 from viewer.bench.report import md_table, write_study
 from viewer.cli_args import check_output_dir
 from viewer.errors import RtwalkError
 
+HELP = "OpenCL sort/scan/compact throughput next to NumPy"
 OPS = ("sort", "scan", "compact")
 NUMPY_NAMES = {"sort": 'np.argsort(kind="stable") + gather', "scan": "np.cumsum", "compact": "a[mask]"}
 
 
 def parse_sizes(text: str) -> list[int]:
     """"1M,10M" -> [1000000, 10000000] (suffixes K, M; plain integers too)."""
-    out = []
-    for part in text.split(","):
-        p = part.strip().upper()
-        mult = {"K": 1_000, "M": 1_000_000}.get(p[-1:], 1)
-        try:
-            v = int(float(p[:-1] if mult > 1 else p) * mult)
-        except ValueError:
-            raise RtwalkError(f"bad --sizes '{text}': expected sizes like 1M,10M") from None
-        if not 1 <= v <= 200_000_000:
-            raise RtwalkError(f"bad --sizes '{text}': each size must be in 1..200M")
-        out.append(v)
-    return out
+    return parse_counts(text, "--elements")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--sizes", default="1M,10M", help="element counts, e.g. 1M,10M (default %(default)s)")
+    add_count_option(parser, "--elements", "1M,10M", "element counts")
     parser.add_argument("--reps", type=int, default=7, help="interleaved repetitions per measurement (default 7)")
     parser.add_argument("--ops", default=",".join(OPS), help="subset of sort,scan,compact (default all)")
     parser.add_argument("--out", default="out/bench-cl", help="output folder (default %(default)s)")
@@ -204,7 +195,7 @@ def plot(report: dict, path: Path) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    sizes = parse_sizes(args.sizes)
+    sizes = parse_sizes(args.elements)
     ops = [o.strip() for o in args.ops.split(",") if o.strip()]
     bad = [o for o in ops if o not in OPS]
     if bad or not ops:

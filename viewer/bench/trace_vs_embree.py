@@ -18,13 +18,13 @@ and size) and bench_trace.png (Mrays/s per ray type, log scale).
 from __future__ import annotations
 
 import statistics
-import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
+from viewer.bench.common import log
 from viewer.bench.harness import is_trace_phase
 from viewer.bench.plots import bars, figure, finish
 from viewer.bench.report import md_table, write_study
@@ -34,6 +34,9 @@ from viewer.paths import resolve_recording
 
 DEFAULT_RECORDINGS = "city-near.json,sponza-walk.json,conference-walk.json"
 DEFAULT_EFFECTS = "primary,shadows,soft,ao,diffuse,reflections"
+
+
+HELP = "Mrays/s per ray type of backends and raw Embree on the same captured rays"
 
 
 def add_arguments(p) -> None:
@@ -69,11 +72,6 @@ class Pass:
     @property
     def rays(self) -> int:
         return int(self.active.sum())
-
-
-def _log(args, msg: str) -> None:
-    if not args.quiet:
-        print(msg, file=sys.stderr, flush=True)
 
 
 def capture_passes(renderer, camera, tracer=None) -> list[Pass]:
@@ -283,7 +281,7 @@ def run(args) -> int:
     for rec_path in recs:
         rec = load_recording(rec_path)
         rs = resolve_scene_spec(rec, rec_path)
-        _log(args, f"bench-trace: loading {rec_path.name}")
+        log(args, f"bench-trace: loading {rec_path.name}")
         prep = prepare_scene(rs.spec, scene_size=rs.size, seed=rs.seed if rs.seed is not None else 1, quiet=True)
         reference = None
         tracer = EmbreeTracer(prep.scene.triangles) if threads or not args.no_check else None
@@ -300,14 +298,14 @@ def run(args) -> int:
                     warm = list({p.any_hit: p for p in passes}.values())
                     for b in backends:
                         time_backend(renderer, b, warm)
-                    _log(args, f"bench-trace: {rec_path.stem} frame {fr} {size[0]}x{size[1]}: "
+                    log(args, f"bench-trace: {rec_path.stem} frame {fr} {size[0]}x{size[1]}: "
                                f"{sum(p.rays for p in passes):,} rays in {len(passes)} passes")
                     rows = study_frame(renderer, tracer, reference, passes, backends, threads, args.rounds,
                                        not args.no_check)
                     report["groups"].append({"recording": rec_path.stem, "frame": fr, "size": list(size),
                                              "triangles": prep.scene.triangle_count, "rows": rows})
                     for row in rows:
-                        _log(args, f"  {row['ray_type']:12s} " + "  ".join(
+                        log(args, f"  {row['ray_type']:12s} " + "  ".join(
                             f"{k} {v:.3g}" for k, v in row["mrays_s"].items()) + " Mrays/s")
             finally:
                 renderer.release()

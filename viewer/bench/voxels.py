@@ -38,22 +38,20 @@ from pathlib import Path
 
 import numpy as np
 
+from viewer.bench.common import log
 from viewer.errors import RtwalkError
+from viewer.paths import SHARED_SCENES
 
 SCENES = {"conference": "conference/conference.ply", "buddha": "buddha/buddha_100k.obj",
           "dragon": "dragon/dragon_100k.ply", "sponza": "sponza-dabrovic/sponza.obj",
           "sibenik": "sibenik/sibenik.obj", "bunny": "bunny/bun_zipper.ply"}
 RECORDINGS = {"conference": "conference-walk.json", "sponza": "sponza-walk.json", "sibenik": "sibenik-walk.json"}
-SHARED = Path(__file__).resolve().parents[2].parent / "shared" / "scenes"
 WIDTHS = (8, 32, 64)
 RAY_TYPES = ("primary", "shadows", "soft", "ao")
 CHUNK = 1 << 15  # rays per recording launch (a multiple of every W)
 
 
-def add_parser(sub) -> None:
-    """`rtwalk bench-voxels` on the CLI's subparsers."""
-    add_arguments(sub.add_parser("bench-voxels", help="voxel BVH / KD-tree / octree: coherency, time, stack 4 vs 8, "
-                                                      "speed against error"))
+HELP = "voxel BVH / KD-tree / octree: coherency, time, stack 4 vs 8, speed against error"
 
 
 def add_arguments(p) -> None:
@@ -80,11 +78,6 @@ def add_arguments(p) -> None:
     p.add_argument("--quiet", action="store_true", help="no progress output")
 
 
-def _log(args, msg: str) -> None:
-    if not args.quiet:
-        print(msg, file=sys.stderr, flush=True)
-
-
 def _ints(text: str, what: str) -> list[int]:
     try:
         return [int(x) for x in text.split(",") if x.strip()]
@@ -96,7 +89,7 @@ def _scene_spec(name: str) -> tuple[str, str, str | None]:
     if name in ("room", "city"):  # built-in scenes
         return name, name, None
     if name in SCENES:
-        path = SHARED / SCENES[name]
+        path = SHARED_SCENES / SCENES[name]
         if not path.exists():
             raise RtwalkError(f"--scenes: {path} not present")
         return name, str(path), RECORDINGS.get(name)
@@ -301,20 +294,20 @@ def study_scene(args, ctx_gl, name: str, spec: str, recording: str | None, size,
     prepared = {}  # before the frame's rays are held: the builds' working memory does not add to them
     for res in resolutions:
         vox = voxels_for(scene.triangles, res, quiet=args.quiet)
-        _log(args, f"{clock} {name} {res}^3: {vox.count:,} voxels in {vox.stats['seconds']:.1f} s")
+        log(args, f"{clock} {name} {res}^3: {vox.count:,} voxels in {vox.stats['seconds']:.1f} s")
         built = {}
         for kind in structures:
             built[kind] = build_structure(kind, vox)
-            _log(args, f"{clock} {name} {res}^3 {kind}: built in {built[kind].stats['build_seconds']:.1f} s, "
+            log(args, f"{clock} {name} {res}^3 {kind}: built in {built[kind].stats['build_seconds']:.1f} s, "
                        f"{built[kind].stats['memory_bytes'] / 2**20:.0f} MiB")
         prepared[res] = (dict(vox.stats), vox.grid, built)
         del vox, built
-    _log(args, f"{clock} {name}: {scene.triangle_count:,} triangles; capturing one frame at {size[0]}x{size[1]}")
+    log(args, f"{clock} {name}: {scene.triangle_count:,} triangles; capturing one frame at {size[0]}x{size[1]}")
     r = Renderer(ctx_gl, scene, prep.bvh, size, args.reference, settings)
     ctx = cl_context()
     try:
         passes = _capture(r, camera)
-        _log(args, f"{clock} {name}: {len(passes)} passes captured; timing {args.reference}")
+        log(args, f"{clock} {name}: {len(passes)} passes captured; timing {args.reference}")
         ref_ms: dict = {}
         hits = None
         for rd in range(args.rounds):
@@ -325,7 +318,7 @@ def study_scene(args, ctx_gl, name: str, spec: str, recording: str | None, size,
                 per[p.label] = per.get(p.label, 0.0) + ms
             for lb, ms in per.items():
                 ref_ms.setdefault(lb, []).append(ms)
-            _log(args, f"{clock} {name}: {args.reference} round {rd + 1}/{args.rounds}: "
+            log(args, f"{clock} {name}: {args.reference} round {rd + 1}/{args.rounds}: "
                        + ", ".join(f"{lb} {ms:.0f} ms" for lb, ms in per.items()))
         ref_image = None
         if not args.no_image:
@@ -349,7 +342,7 @@ def study_scene(args, ctx_gl, name: str, spec: str, recording: str | None, size,
                  "rays": {lb: sum(x.n for x in rays if x.label == lb) for lb in labels}, "passes": n_pass,
                  "recorded_passes": picked, "reference": args.reference, "reference_ms": ref_time,
                  "resolutions": []}
-    _log(args, f"{clock} {name}: rays {out['rays']}; coherency recorded on passes "
+    log(args, f"{clock} {name}: rays {out['rays']}; coherency recorded on passes "
                + ", ".join(f"{lb} {len(picked[lb])}/{n_pass[lb]}" for lb in labels))
     maxn = max(x.n for x in rays)
     cl = ctx.cl
@@ -378,7 +371,7 @@ def study_scene(args, ctx_gl, name: str, spec: str, recording: str | None, size,
                             errs[x.label].add(ctx, outs, x, g.scale)
                     if time.perf_counter() - last > 30 or i == len(rays) - 1:
                         last = time.perf_counter()
-                        _log(args, f"{clock} {res}^3 timing round {rd + 1}/{args.rounds}: pass {i + 1}/{len(rays)} "
+                        log(args, f"{clock} {res}^3 timing round {rd + 1}/{args.rounds}: pass {i + 1}/{len(rays)} "
                                    f"({x.label})")
                 for c in configs:
                     for lb in labels:
@@ -397,14 +390,14 @@ def study_scene(args, ctx_gl, name: str, spec: str, recording: str | None, size,
                                                        n_pass[lb])
                 rec_tr.release()
                 rrow["structures"][kind]["stacks"][k] = krow
-                _log(args, f"{clock} {res}^3 {kind} stack {k}: " + ", ".join(
+                log(args, f"{clock} {res}^3 {kind} stack {k}: " + ", ".join(
                     f"{lb} {krow['ms'][lb]:.0f} ms U64 {100 * krow['record'][lb]['lanes'][64]['utilisation']:.0f}%"
                     for lb in labels))
             del built
             if ref_image is not None:
                 rrow["image_mae"] = _image_error(ctx_gl, prep, size, settings, camera, res, structures[0],
                                                  max(stacks), ref_image, args.bias)
-                _log(args, f"{clock} {res}^3: image error {rrow['image_mae']:.2f} (full render, {structures[0]})")
+                log(args, f"{clock} {res}^3: image error {rrow['image_mae']:.2f} (full render, {structures[0]})")
             out["resolutions"].append(rrow)
             if checkpoint is not None:
                 checkpoint(out)
@@ -635,7 +628,7 @@ def _voxelize_only(args, specs, resolutions: list[int], structures: list[str]) -
                              f"{st['node_bytes']} | {st['leaves']:,} x {st['leaf_bytes']} | "
                              f"{st['memory_bytes'] / 2**20:.1f} | {st['mean_leaf_depth']:.2f} | "
                              f"{st['var_leaf_depth']:.2f} | {st['build_seconds']:.2f} |")
-                _log(args, lines[-1])
+                log(args, lines[-1])
                 _write_voxelize(args, rows + [row], lines)  # a late failure (out of memory) keeps these
             rows.append(row)
             del vox
