@@ -39,7 +39,8 @@ def test_small_run_writes_json_markdown_plot(tmp_path, capsys):
     assert "speedup" in capsys.readouterr().out
 
 
-@pytest.mark.parametrize("argv,msg", [(["--elements", "big"], "--elements"), (["--sizes", "big"], "--elements"), (["--ops", "sort,fft"], "--ops"),
+@pytest.mark.parametrize("argv,msg", [(["--elements", "big"], "--elements"), (["--sizes", "big"], "--elements"),
+                                      (["--ops", "sort,fft"], "--ops"),
                                       (["--reps", "0"], "--reps")])
 def test_bad_options_exit_2(tmp_path, capsys, argv, msg):
     assert cli_main(["bench-cl", *argv, "--out", str(tmp_path)]) == 2

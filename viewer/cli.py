@@ -152,7 +152,9 @@ def main(argv: list[str] | None = None) -> int:
     handlers.update({command: bench_module(command).run for command in BENCHMARKS})
     if args.command == "demo":
         # demo reuses bench/view; fill in what their parsers would have set
-        for key, val in {"recording": None, "fps": None, "reference": "embree", "reference_every": 6,
+        from viewer.reference import REFERENCE_BACKEND
+
+        for key, val in {"recording": None, "fps": None, "reference": REFERENCE_BACKEND, "reference_every": 6,
                          "frame_every": 4, "save_frames": None, "out": "out/demo", "name": None}.items():
             if not hasattr(args, key):
                 setattr(args, key, val)

@@ -13,7 +13,7 @@ import moderngl
 import numpy as np
 
 from viewer.accel.bvh import BVH, build_bvh
-from viewer.backends import create_backend
+from viewer.backends import DEFAULT_BACKEND, create_backend
 from viewer.backends.base import BackendContext
 from viewer.effects import RayType
 from viewer.gl.context import shared_context
@@ -45,7 +45,7 @@ def _prepared(ctx: moderngl.Context, triangles: np.ndarray):
 
 
 def trace_rays(triangles: np.ndarray, origins, directions, tmin, tmax, any_hit: bool = False,
-               backend: str = "glsl") -> tuple[np.ndarray, np.ndarray]:
+               backend: str = DEFAULT_BACKEND) -> tuple[np.ndarray, np.ndarray]:
     tris = np.ascontiguousarray(triangles, np.float32).reshape(-1, 3, 3)
     o = np.asarray(origins, np.float32).reshape(-1, 3)
     d = np.asarray(directions, np.float32).reshape(-1, 3)

@@ -201,7 +201,7 @@ def _markdown(report: dict) -> str:
     lines = [f"# Trace speed on the same rays ({report['device_cl']})", "",
              f"Command: `{report['command']}`", "",
              "Mrays/s = active rays / median time over interleaved rounds; a backend's time is its tracing phases "
-             "(trace:* and those it declares; clbvh: the kernel; '+transfer' adds the mapped ray/hit copies), "
+             "(trace:* and those it declares; '+transfer' adds a staged backend's ray/hit copies), "
              "Embree's the wall time of embreex run() on N Python threads. Ratios are per-round, then the median.", ""]
     backends = report["backends"]
     emb = [f"embree_{t}t" for t in report["embree_threads"]]
@@ -209,12 +209,13 @@ def _markdown(report: dict) -> str:
     for group in report["groups"]:
         lines += [f"## {group['recording']} frame {group['frame']} at {group['size'][0]}x{group['size'][1]}"
                   f" ({group['triangles']:,} triangles)", ""]
-        cols = [*backends, *[f"{b}+transfer" for b in backends if b != "glsl"], *emb]
-        ratio_cols = []
-        if "clbvh" in backends and "glsl" in backends:
-            ratio_cols.append(("clbvh/glsl", "clbvh vs glsl"))
-        if "clbvh" in backends and emb:
-            ratio_cols += [(f"clbvh/{e}", f"clbvh vs {e.replace('_', ' ')}") for e in emb]
+        transfer = [f"{b}+transfer" for b in backends
+                    if any(f"{b}+transfer" in row["ms"] for row in group["rows"])]
+        cols = [*backends, *transfer, *emb]
+        # every other backend against the first one named (the baseline), every backend against Embree
+        base = backends[0] if backends else None
+        ratio_cols = [(f"{b}/{base}", f"{b} vs {base}") for b in backends[1:]]
+        ratio_cols += [(f"{b}/{e}", f"{b} vs {e.replace('_', ' ')}") for b in backends for e in emb]
         head = ["ray type", "rays", *[f"{c} Mrays/s" for c in cols], *[r[1] for r in ratio_cols], "hit/miss vs Embree"]
         rows = [[row["ray_type"], f"{row['rays']:,}",
                  *[f"{row['mrays_s'].get(c, nan):.3g}" for c in cols],
@@ -242,7 +243,7 @@ def _plot(report: dict, path: Path) -> None:
 
 
 def run(args) -> int:
-    from viewer.backends import backend_info, backend_names
+    from viewer.backends import DEFAULT_BACKEND, backend_info, backend_names
     from viewer.effects import parse_effects
     from viewer.gl.context import shared_context
     from viewer.recording import load_recording, resolve_scene_spec
@@ -271,7 +272,7 @@ def run(args) -> int:
     out = check_output_dir(args.out, "--out")
     ctx = shared_context()
     device_cl = ""
-    if any(b == "clbvh" for b in backends):
+    if any(backend_info(b).device == "cl" for b in backends):
         from viewer.cl import cl_context
 
         device_cl = cl_context().name
@@ -288,7 +289,8 @@ def run(args) -> int:
         count = rec.frame_count()
         frames = sorted({int(count * (k + 1) / (args.frames + 1)) for k in range(args.frames)})
         for size in sizes:
-            renderer = Renderer(ctx, prep.scene, prep.bvh, size, backends[0] if backends else "glsl", settings)
+            renderer = Renderer(ctx, prep.scene, prep.bvh, size, backends[0] if backends else DEFAULT_BACKEND,
+                                settings)
             try:
                 for fr in frames:
                     passes = capture_passes(renderer, rec.camera_for_frame(fr), tracer if threads else None)

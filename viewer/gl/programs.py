@@ -14,7 +14,7 @@ from pathlib import Path
 
 import moderngl
 
-from viewer.gl.bindings import glsl_header
+from viewer.gl.bindings import shader_header
 
 SHADER_DIR = Path(__file__).resolve().parents[1] / "shaders"
 
@@ -51,7 +51,7 @@ def load_shader_source(name: str, defines: dict[str, object] | None = None,
         return _INCLUDE.sub(lambda m: expand(find_shader(m.group(1), search, path.parent)), text)
 
     body = expand(find_shader(name, search))
-    header = "#version 450 core\n" + glsl_header()
+    header = "#version 450 core\n" + shader_header()
     for key, value in (defines or {}).items():
         header += f"#define {key} {value}\n"
     return header + body
