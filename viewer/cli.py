@@ -69,6 +69,12 @@ def cmd_render(args) -> int:
 
 
 def cmd_info(args) -> int:
+    if args.backend:  # a backend's self-description; no scene needed
+        from viewer.backends import backend_info
+        from viewer.backends.interface import describe
+
+        print(describe(backend_info(args.backend)))
+        return 0
     prepared = scene_from_args(args)
     s = prepared.scene
     lo, hi = s.bounds
@@ -131,8 +137,9 @@ def build_parser() -> argparse.ArgumentParser:
         module = bench_module(command)
         module.add_arguments(sub.add_parser(command, help=module.HELP))
 
-    i = sub.add_parser("info", help="scene statistics")
+    i = sub.add_parser("info", help="scene statistics, or a backend's description and parameters (--backend NAME)")
     add_scene_args(i)
+    i.add_argument("--backend", default=None, help="describe this backend: device, exactness, every parameter")
 
     d = sub.add_parser("demo", help="main job: window if a display exists, else headless replay + report")
     add_scene_args(d)
