@@ -2,7 +2,9 @@
 
 Convention shared with viewer.reference: t is in units of |direction| (hit = o + t*d), +inf on a
 miss; tri is the index into the *input* triangle array, -1 on a miss; only tmin < t < tmax hit;
-rays with tmax <= tmin (or non-finite data) are inactive and miss.
+rays with tmax <= tmin (or non-finite data) are inactive and miss. Triangles no ray can hit (zero
+area, decided exactly, or a non-finite vertex: viewer.degenerate) are left out of what the backend
+builds, as the scene loader leaves them out: float32 edge functions need not cancel on them.
 """
 
 from __future__ import annotations
@@ -15,6 +17,7 @@ import numpy as np
 from viewer.accel.bvh import BVH, build_bvh
 from viewer.backends import DEFAULT_BACKEND, create_backend
 from viewer.backends.base import BackendContext
+from viewer.degenerate import unhittable
 from viewer.effects import RayType
 from viewer.gl.context import shared_context
 from viewer.gl.programs import ProgramCache
@@ -47,6 +50,8 @@ def _prepared(ctx: moderngl.Context, triangles: np.ndarray):
 def trace_rays(triangles: np.ndarray, origins, directions, tmin, tmax, any_hit: bool = False,
                backend: str = DEFAULT_BACKEND) -> tuple[np.ndarray, np.ndarray]:
     tris = np.ascontiguousarray(triangles, np.float32).reshape(-1, 3, 3)
+    ids = np.flatnonzero(~unhittable(tris)).astype(np.int32)  # built triangle -> input index
+    tris = np.ascontiguousarray(tris[ids])
     o = np.asarray(origins, np.float32).reshape(-1, 3)
     d = np.asarray(directions, np.float32).reshape(-1, 3)
     lo = np.asarray(tmin, np.float32).reshape(-1)
@@ -89,5 +94,5 @@ def trace_rays(triangles: np.ndarray, origins, directions, tmin, tmax, any_hit: 
     t, slot = t[:n], slot[:n]
     hit = (slot >= 0) & active
     t_out[hit] = t[hit]
-    id_out[hit] = bvh.tri_order[slot[hit]]
+    id_out[hit] = ids[bvh.tri_order[slot[hit]]]
     return t_out, id_out
