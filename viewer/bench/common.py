@@ -9,11 +9,12 @@ from __future__ import annotations
 
 import argparse
 import sys
+from pathlib import Path
 
 from viewer.errors import RtwalkError
-from viewer.paths import SHARED_SCENES
+from viewer.paths import RECORDINGS, SHARED_SCENES
 
-__all__ = ["SHARED_SCENES", "log", "parse_counts", "add_count_option"]
+__all__ = ["SHARED_SCENES", "log", "parse_counts", "add_count_option", "study_scene"]
 
 
 def log(args: argparse.Namespace, msg: str, prefix: str = "") -> None:
@@ -45,3 +46,27 @@ def add_count_option(p: argparse.ArgumentParser, name: str, default: str, what: 
     dest = name.lstrip("-").replace("-", "_")
     p.add_argument(name, default=default, help=f"comma list of {what}, k/M suffixes allowed (default %(default)s)")
     p.add_argument("--sizes", dest=dest, default=argparse.SUPPRESS, help=argparse.SUPPRESS)
+
+
+def study_scene(entry: tuple[str, str | None], scene_dir: str | Path, builtin_size: int | None = None):
+    """(prepared scene, camera) of a study scene: `entry` = (file relative to `scene_dir`, or a
+    built-in scene name; a recording in recordings/ or None). The camera is the recording's middle
+    frame, else the scene's default camera. A missing file is one line (RtwalkError)."""
+    from viewer.procedural import BUILTIN_SCENES
+    from viewer.recording import load_recording
+    from viewer.session import prepare_scene
+
+    rel, rec = entry
+    if rel in BUILTIN_SCENES:
+        prep = prepare_scene(rel, scene_size=builtin_size, quiet=True) if builtin_size else \
+            prepare_scene(rel, quiet=True)
+    else:
+        path = Path(scene_dir) / rel
+        if not path.exists():
+            raise RtwalkError(f"scene file {path} not found (--scene-dir)")
+        prep = prepare_scene(str(path), quiet=True)
+    cam = prep.scene.default_camera
+    if rec and (RECORDINGS / rec).exists():
+        r = load_recording(RECORDINGS / rec)
+        cam = r.camera_for_frame(r.frame_count() // 2)
+    return prep, cam

@@ -37,13 +37,13 @@ from pathlib import Path
 
 import numpy as np
 
-from viewer.bench.common import log
+from viewer.bench.common import log, study_scene
 from viewer.bench.pgrid_studies import study_anim, study_pairs, study_rearrange
 from viewer.bench.plots import figure, finish
 from viewer.bench.report import fmt, md_table, size_text, write_study
 from viewer.cli_args import parse_choices, parse_image_sizes
 from viewer.errors import RtwalkError
-from viewer.paths import RECORDINGS, SHARED_SCENES
+from viewer.paths import SHARED_SCENES
 
 STUDIES = ("table41", "lightdist", "model", "pairs", "rearrange", "anim")
 SCENES = {"sibenik": ("sibenik/sibenik.obj", "sibenik-walk.json"),
@@ -77,21 +77,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def load_scene(args, name: str):
     """(prepared scene, camera) for a study scene; the camera is a recording's middle frame."""
-    from viewer.recording import load_recording
-    from viewer.session import prepare_scene
-
-    rel, rec = SCENES[name]
-    if rel == "city":
-        prep = prepare_scene("city", scene_size=args.city_size, quiet=True)
-    else:
-        path = Path(args.scene_dir) / rel
-        if not path.exists():
-            raise RtwalkError(f"scene file {path} not found (--scene-dir)")
-        prep = prepare_scene(str(path), quiet=True)
-    cam = prep.scene.default_camera
-    if rec and (RECORDINGS / rec).exists():
-        r = load_recording(RECORDINGS / rec)
-        cam = r.camera_for_frame(r.frame_count() // 2)
+    prep, cam = study_scene(SCENES[name], args.scene_dir, builtin_size=args.city_size)
     if not prep.scene.point_lights:
         raise RtwalkError(f"scene {name} has no point light")
     return prep, cam

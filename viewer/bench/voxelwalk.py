@@ -32,12 +32,12 @@ from typing import Any
 
 import numpy as np
 
-from viewer.bench.common import log
+from viewer.bench.common import log, study_scene
 from viewer.bench.plots import figure, finish
 from viewer.bench.report import fmt, md_table, size_text, write_study
 from viewer.cli_args import parse_choices, parse_image_sizes
 from viewer.errors import RtwalkError
-from viewer.paths import RECORDINGS, SHARED_SCENES
+from viewer.paths import SHARED_SCENES
 
 STUDIES = ("table51", "iterations", "resolution")
 SCENES = {"conference": ("conference/conference.ply", "conference-walk.json"),
@@ -89,21 +89,7 @@ class RaySet:
 
 def load_scene(args, name: str):
     """(prepared scene, camera): the shipped presets give the mirrors."""
-    from viewer.recording import load_recording
-    from viewer.session import prepare_scene
-
-    rel, rec = SCENES[name]
-    if rel == "room":
-        prep = prepare_scene("room", quiet=True)
-    else:
-        path = Path(args.scene_dir) / rel
-        if not path.exists():
-            raise RtwalkError(f"scene file {path} not found (--scene-dir)")
-        prep = prepare_scene(str(path), quiet=True)
-    cam = prep.scene.default_camera
-    if rec and (RECORDINGS / rec).exists():
-        r = load_recording(RECORDINGS / rec)
-        cam = r.camera_for_frame(r.frame_count() // 2)
+    prep, cam = study_scene(SCENES[name], args.scene_dir)
     if not any(m.mirror for m in prep.scene.materials):
         raise RtwalkError(f"scene {name} has no mirror material (its preset did not apply)")
     return prep, cam
