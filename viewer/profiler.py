@@ -23,6 +23,9 @@ from contextlib import contextmanager
 
 import moderngl
 
+from viewer import iostats
+from viewer.gl import io as glio
+
 TIMING_METHODS = ("timer", "sync")
 _SATURATED_NS = 0xFFFFFFFF  # moderngl's 32-bit read: the result is >= 4.29 s, or not available
 
@@ -34,6 +37,12 @@ def choose_timing(ctx: moderngl.Context) -> str:
         return env
     renderer = str(ctx.info.get("GL_RENDERER", "")).lower()
     return "sync" if ("llvmpipe" in renderer or "softpipe" in renderer) else "timer"
+
+
+def clfinish(queue) -> None:
+    """queue.finish() as one counted host sync (viewer.cl.io.finish without importing viewer.cl)."""
+    with iostats.timed_sync():
+        queue.finish()
 
 
 class GpuProfiler:
@@ -71,10 +80,10 @@ class GpuProfiler:
             t0 = time.perf_counter()
             yield
         elif self.method == "sync":
-            self.ctx.finish()  # work issued before the phase is not charged to it
+            glio.finish(self.ctx)  # work issued before the phase is not charged to it
             t0 = time.perf_counter()
             yield
-            self.ctx.finish()
+            glio.finish(self.ctx)
             self._used.append((name, (time.perf_counter() - t0) * 1e3, self.label, 0.0))
         else:
             t0 = time.perf_counter()
@@ -83,6 +92,7 @@ class GpuProfiler:
             if idx >= len(self._pool):
                 self._pool.append(self.ctx.query(time=True))
             q = self._pool[idx]
+            iostats.gl_query()
             with q:
                 yield
             self._used.append((name, q, self.label, (time.perf_counter() - t0) * 1e3))
@@ -97,12 +107,12 @@ class GpuProfiler:
         are finished first (not charged to it); in "timer" mode the queue is still drained first."""
         if self.enabled:
             if self.method == "sync":
-                self.ctx.finish()
-            queue.finish()
+                glio.finish(self.ctx)
+            clfinish(queue)
         t0 = time.perf_counter()
         yield
         if self.enabled:
-            queue.finish()
+            clfinish(queue)
             ms = (time.perf_counter() - t0) * 1e3
             self._used.append((name, ms, self.label, 0.0))
         self._cpu[name] = self._cpu.get(name, 0.0) + (time.perf_counter() - t0) * 1e3
@@ -119,6 +129,8 @@ class GpuProfiler:
         """GPU milliseconds per phase (waits for the queries)."""
         out: dict[str, float] = {}
         self.by_label = {}
+        if any(not isinstance(q, float) for _, q, _, _ in self._used):
+            iostats.sync()  # the first result read waits for the frame's GL work
         for name, q, label, cpu_ms in self._used:
             if isinstance(q, float):
                 ms = q

@@ -25,6 +25,7 @@ from viewer.backends.interface import OverlaySpec
 from viewer.camera import Camera
 from viewer.effects import EffectSettings, RayType
 from viewer.errors import RtwalkError
+from viewer.gl import io as glio
 from viewer.gl.programs import FullscreenQuad, ProgramCache
 from viewer.gl.scene import GpuScene
 from viewer.iostats import IoCounts
@@ -383,6 +384,7 @@ class Renderer:
         if not keep:
             with prof.phase("gbuffer"):
                 self.gbuffer.render(camera)
+            iostats.gl_draw()  # the G-buffer's one draw (counted here: gbuffer.py draws it)
             self.accumulate.clear()
             self.samples_done = {}
         self.raygen.reset_count()
@@ -422,7 +424,7 @@ class Renderer:
         if prof.saturated:  # timer results charged their CPU time instead (see profiler.py)
             stats["timer_saturated"] = float(prof.saturated)
         counts = self.raygen.read_counts()
-        self.ctx.finish()
+        glio.finish(self.ctx)
         wall = (time.perf_counter() - t0) * 1e3
         self.frame_index += 1
         rays = {RayType(i).label: int(counts[i]) for i in range(6) if counts[i] > 0}

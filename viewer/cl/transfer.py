@@ -20,6 +20,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from viewer.cl import io as clio
 from viewer.cl.context import ClContext, cl_context
 
 if TYPE_CHECKING:
@@ -43,7 +44,7 @@ class _Mapped:
         self.flags = mflags.WRITE_INVALIDATE_REGION if write else mflags.READ
 
     def __enter__(self) -> np.ndarray:
-        self.array, _ = self.ctx.cl.enqueue_map_buffer(self.ctx.queue, self.buf, self.flags, 0, self.shape,
+        self.array, _ = clio.map_buffer(self.ctx.queue, self.buf, self.flags, 0, self.shape,
                                                        self.dtype, is_blocking=True)
         return self.array
 

@@ -25,6 +25,7 @@ import numpy as np
 from viewer.accel.bvh4 import BVH4, build_bvh4
 from viewer.backends.base import BackendContext, StatelessBackend, TraceResult
 from viewer.backends.interface import BackendInfo
+from viewer.cl import io as clio
 from viewer.rays import HitBuffer, PassInfo, RayBatch
 
 KERNEL = Path(__file__).resolve().parent / "trace.cl"
@@ -85,10 +86,10 @@ class ClbvhScene:
         cl = self.ctx.cl
         mf = cl.mem_flags
         knodes, blocks = pack_leaves(self.bvh4.nodes, triangles)
-        self.nodes = cl.Buffer(self.ctx.context, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=knodes)
-        self.blocks = cl.Buffer(self.ctx.context, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=blocks)
+        self.nodes = clio.upload(self.ctx, knodes)
+        self.blocks = clio.upload(self.ctx, blocks)
         prog = build(KERNEL, {"STACK_SIZE": self.stack_size, "WG": WG}, self.ctx)
-        self.kernels = {False: cl.Kernel(prog, "trace_closest"), True: cl.Kernel(prog, "trace_any")}
+        self.kernels = {False: clio.kernel(prog, "trace_closest"), True: clio.kernel(prog, "trace_any")}
         self.memory_bytes = knodes.nbytes + blocks.nbytes
         self.active = cl.Buffer(self.ctx.context, mf.READ_WRITE, 4)  # active rays of the last enqueue
 
@@ -106,7 +107,7 @@ class ClbvhScene:
     def active_count(self) -> int:
         """Active rays of the last enqueue (a 4-byte blocking read: waits for the kernel)."""
         out = np.zeros(1, np.int32)
-        self.ctx.cl.enqueue_copy(self.ctx.queue, out, self.active)
+        clio.copy(self.ctx.queue, out, self.active)
         return int(out[0])
 
     def release(self) -> None:

@@ -43,6 +43,7 @@ from viewer.accel.pointgrid import PointGrid, PointGridSpec
 from viewer.backends.base import BackendContext, TraceResult
 from viewer.backends.interface import BackendInfo, OverlaySpec
 from viewer.backends.ugrid import GridTracer
+from viewer.cl import io as clio
 from viewer.effects import RayType
 from viewer.errors import RtwalkError
 from viewer.rays import HitBuffer, PassInfo, RayBatch
@@ -121,14 +122,13 @@ class PgridBackend:
         self.tracer = GridTracer(self.ctx, self.grid)
         self.pgrid = PointGrid(self.ctx, self.grid.prims)
         self.camgrid = CameraGrid(self.ctx, self.grid.prims)
-        cl = self.ctx.cl
         self._kernels, self._camera_kernels = {}, {}
         for count in (False, True):
             extra = {"COUNT_TESTS": None} if count else {}
             prog = build(KERNEL, {"WG": self.params.chunk, **extra}, self.ctx)
-            self._kernels[count] = cl.Kernel(prog, "pg_trace")
+            self._kernels[count] = clio.kernel(prog, "pg_trace")
             prog = build(CAMERA_KERNEL, {"CN": CAMERA_N, **extra}, self.ctx)
-            self._camera_kernels[count] = cl.Kernel(prog, "cg_trace")
+            self._camera_kernels[count] = clio.kernel(prog, "cg_trace")
         self._closed: tuple[tuple[int, int], bool] | None = None
         self._grid_fresh = False
         self._tris = None
@@ -153,7 +153,7 @@ class PgridBackend:
                     self._tris.release()
                 self._tris = cl.Buffer(ctx.context, cl.mem_flags.READ_ONLY, max(16, f4.nbytes))
             if f4.nbytes:
-                cl.enqueue_copy(ctx.queue, self._tris, f4)
+                clio.copy(ctx.queue, self._tris, f4)
             self._box = scene_box(tris)
             self._n_tris = len(tris)
         self._tris_key = self._geometry_key()
@@ -328,7 +328,7 @@ class PgridBackend:
         pg = self.pgrid
         key, start, length = pg.chunks.to_numpy(self.ctx)
         vals = np.empty(n, np.uint32)
-        self.ctx.cl.enqueue_copy(self.ctx.queue, vals, pg.ray_vals)
+        clio.copy(self.ctx.queue, vals, pg.ray_vals)
         ntiles = pg.stats.tiles[0] * pg.stats.tiles[1]
         inside = key < ntiles
         chunk_of = np.full(n, -1, np.int32)

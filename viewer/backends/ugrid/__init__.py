@@ -24,6 +24,7 @@ import numpy as np
 from viewer.accel.grid import GridSpec, UniformGrid, scene_box, triangles_f4
 from viewer.backends.base import BackendContext, TraceResult
 from viewer.backends.interface import BackendInfo, OverlaySpec
+from viewer.cl import io as clio
 from viewer.errors import RtwalkError
 from viewer.rays import HitBuffer, PassInfo, RayBatch
 
@@ -57,15 +58,14 @@ class GridTracer:
         from viewer.cl import build
 
         self.ctx, self.grid = ctx, grid
-        cl = ctx.cl
         self.kernels = {}
         for count in (False, True):
             defines: dict[str, Any] = {"WG": WG, **({"COUNT_TESTS": None} if count else {})}
             prog = build(KERNEL, defines, ctx)
             for idx in (False, True):
                 sfx = "_idx" if idx else ""
-                self.kernels[(False, count, idx)] = cl.Kernel(prog, "trace_closest" + sfx)
-                self.kernels[(True, count, idx)] = cl.Kernel(prog, "trace_any" + sfx)
+                self.kernels[(False, count, idx)] = clio.kernel(prog, "trace_closest" + sfx)
+                self.kernels[(True, count, idx)] = clio.kernel(prog, "trace_any" + sfx)
 
     def enqueue(self, ray_o: Any, ray_d: Any, out_t: Any, out_id: Any, n: int, any_hit: bool,
                 tests: Any = None, index: Any = None) -> None:
@@ -118,7 +118,7 @@ class UgridBackend:
                     self._tris.release()
                 self._tris = cl.Buffer(ctx.context, cl.mem_flags.READ_ONLY, max(16, f4.nbytes))
             if f4.nbytes:
-                cl.enqueue_copy(ctx.queue, self._tris, f4)
+                clio.copy(ctx.queue, self._tris, f4)
             lo, hi = scene_box(tris)
             self.grid.build(self._tris, len(tris), lo, hi, self.params.spec())
         self._tris_key = self._geometry_key()

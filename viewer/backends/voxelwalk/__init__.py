@@ -38,6 +38,7 @@ from viewer.accel.grid import GridSpec, UniformGrid, scene_box, triangles_f4
 from viewer.backends.base import BackendContext, TraceResult
 from viewer.backends.interface import BackendInfo, OverlaySpec
 from viewer.backends.voxelwalk.engine import PassStats, VoxelWalker, tile_divergence
+from viewer.cl import io as clio
 from viewer.errors import RtwalkError
 from viewer.rays import HitBuffer, PassInfo, RayBatch
 
@@ -125,7 +126,7 @@ class VoxelwalkBackend:
                     self._tris.release()
                 self._tris = cl.Buffer(ctx.context, cl.mem_flags.READ_ONLY, max(16, f4.nbytes))
             if f4.nbytes:
-                cl.enqueue_copy(ctx.queue, self._tris, f4)
+                clio.copy(ctx.queue, self._tris, f4)
             gs = self.grid.build(self._tris, len(tris), *scene_box(tris), self.params.spec())
         self._tris_key = self._geometry_key()
         self._build_ms += gs.build_ms  # reported by the next frame
