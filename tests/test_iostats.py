@@ -58,3 +58,78 @@ def test_cl_io_counts_bytes_direction_and_syncs():
     assert io.host_syncs == 4  # blocking read, two blocking maps, finish
     buf.release()
     hb.release()
+
+
+# -- steady frames --------------------------------------------------------------------------------
+SIZE = (160, 90)
+# a frame may read a few rays besides its per-pixel traffic (a backend placing a structure from a
+# strided sample: at most 4096 rays of 32 bytes), plus the frame's parameters and ray counts
+FIXED_BYTES = 4096 * 32 + 4096
+
+
+def _steady_io(backend: str, effects: str):
+    """The counts of the second frame of a two-frame replay of city-near (the first also builds,
+    uploads and compiles)."""
+    from tests.conftest import prepared_scene
+    from viewer.effects import parse_effects
+    from viewer.gl.context import shared_context
+    from viewer.paths import RECORDINGS
+    from viewer.recording import load_recording
+    from viewer.renderer import Renderer
+
+    prep = prepared_scene("city", 60_000)
+    rec = load_recording(RECORDINGS / "city-near.json")
+    r = Renderer(shared_context(), prep.scene, prep.bvh, SIZE, backend, parse_effects(effects))
+    try:
+        r.render(rec.camera_for_frame(10))
+        rep = r.render(rec.camera_for_frame(11))
+        return rep.io, r.frame_path
+    finally:
+        r.release()
+
+
+def _backends(device: str) -> list:
+    from tests.conftest import backend_params
+    from viewer.backends import backend_info
+
+    out = []
+    for p in backend_params(reference=True):
+        name = p.values[0]
+        try:
+            dev = backend_info(name).device
+        except Exception:  # noqa: BLE001 (an unimportable backend: its own tests report it)
+            continue
+        if dev == device:
+            out.append(p)
+    return out
+
+
+@pytest.mark.parametrize("backend", _backends("cl"))
+def test_cl_backend_steady_frame_bytes_are_bounded_and_pass_independent(backend, gl_ctx):
+    """Device-resident frames: per steady frame at most the G-buffer ids in (4 B/px) and the used
+    accumulators out (16 B/px each: shadows and ao here), and ao:8 moves exactly the bytes of ao:4."""
+    if opencl_missing():
+        pytest.skip(opencl_missing())
+    io4, path = _steady_io(backend, "primary,shadows,ao:4")
+    io8, _ = _steady_io(backend, "primary,shadows,ao:8")
+    assert path == "device"
+    px = SIZE[0] * SIZE[1]
+    k = 2  # accumulated effects: shadows, ao
+    total4 = io4.bytes_to_device + io4.bytes_to_host
+    assert total4 <= (4 + 16 * k) * px + FIXED_BYTES, io4
+    assert io4.bytes_to_device >= 4 * px and io4.bytes_to_host >= 16 * k * px, io4  # ids in, accumulators out
+    assert (io8.bytes_to_device, io8.bytes_to_host) == (io4.bytes_to_device, io4.bytes_to_host), (io4, io8)
+    assert io8.cl_launches > io4.cl_launches  # the 4 extra passes ran (raygen, trace, accumulate)
+    if backend == "clbvh":  # no host wait per pass: the syncs are per frame
+        assert io8.host_syncs == io4.host_syncs, (io4, io8)
+
+
+@pytest.mark.parametrize("backend", _backends("gl"))
+def test_gl_backend_bytes_do_not_grow_with_passes(backend, gl_ctx):
+    """GL backends trace on the GL device: ao:8 sends what ao:4 sends; what comes back grows only by
+    a traversal's 8-byte counter read per extra draw (glsl decides on the host whether to draw again)."""
+    io4, _ = _steady_io(backend, "primary,shadows,ao:4")
+    io8, _ = _steady_io(backend, "primary,shadows,ao:8")
+    assert io8.bytes_to_device == io4.bytes_to_device, (io4, io8)
+    assert 0 <= io8.bytes_to_host - io4.bytes_to_host <= 8 * (io8.gl_draws - io4.gl_draws), (io4, io8)
+    assert io4.bytes_to_device + io4.bytes_to_host < SIZE[0] * SIZE[1]  # no per-pixel traffic at all

@@ -67,6 +67,9 @@ class GpuProfiler:
         self.by_label: dict[str, float] = {}
         self.saturated = 0
         self._queries = 0  # timer queries used this frame
+        # CL phases timed by queue markers, read after one finish at end_frame (no host sync per
+        # phase): set by the renderer around a device-resident frame's passes
+        self.cl_deferred = False
 
     def begin_frame(self) -> None:
         self._queries = 0
@@ -105,6 +108,15 @@ class GpuProfiler:
         The queue is finished at the end, so the phase holds the kernels' run time even though
         enqueueing returns at once. In "sync" mode, GL work and CL work issued before the phase
         are finished first (not charged to it); in "timer" mode the queue is still drained first."""
+        if self.enabled and self.cl_deferred:
+            from viewer.cl import io as clio
+
+            t0 = time.perf_counter()
+            m0 = clio.marker(queue)
+            yield
+            self._used.append((name, (m0, clio.marker(queue), queue), self.label, 0.0))
+            self._cpu[name] = self._cpu.get(name, 0.0) + (time.perf_counter() - t0) * 1e3
+            return
         if self.enabled:
             if self.method == "sync":
                 glio.finish(self.ctx)
@@ -129,11 +141,16 @@ class GpuProfiler:
         """GPU milliseconds per phase (waits for the queries)."""
         out: dict[str, float] = {}
         self.by_label = {}
-        if any(not isinstance(q, float) for _, q, _, _ in self._used):
+        if any(not isinstance(q, (float, tuple)) for _, q, _, _ in self._used):
             iostats.sync()  # the first result read waits for the frame's GL work
+        queues = {id(q[2]): q[2] for _, q, _, _ in self._used if isinstance(q, tuple)}
+        for queue in queues.values():  # deferred CL phases: one wait, then the markers' times
+            clfinish(queue)
         for name, q, label, cpu_ms in self._used:
             if isinstance(q, float):
                 ms = q
+            elif isinstance(q, tuple):
+                ms = max(0.0, (q[1].profile.end - q[0].profile.end) / 1e6)
             else:
                 ns = q.elapsed
                 if ns >= _SATURATED_NS:

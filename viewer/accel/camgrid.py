@@ -133,16 +133,11 @@ def fit_camera(corners_o: np.ndarray, corners_d: np.ndarray, size: tuple[int, in
 
 
 def corner_rays(ray_o: Any, ray_d: Any, size: tuple[int, int], ctx: Any) -> tuple[np.ndarray, np.ndarray]:
-    """The (4, 4) origin and direction rows of the corner pixels from mapped ray buffers."""
-    from viewer.cl import mapped
-
+    """The (4, 4) origin and direction rows of the corner pixels (only those 8 rows are read)."""
     w, h = size
     idx = [0, w - 1, (h - 1) * w, h * w - 1]
-    with mapped(ctx, ray_o, (w * h, 4), np.float32) as o:
-        co = o[idx].copy()
-    with mapped(ctx, ray_d, (w * h, 4), np.float32) as d:
-        cd = d[idx].copy()
-    return co, cd
+    return (clio.read_rows(ctx.queue, ray_o, idx, (4,), np.float32),
+            clio.read_rows(ctx.queue, ray_d, idx, (4,), np.float32))
 
 
 def slab_params(z_lo: float, z_hi: float, slabs: int) -> tuple[float, float, float, float]:

@@ -60,6 +60,7 @@ class ResumableTraversal:
         self.program["rayDir"] = 1
         self.quad = FullscreenQuad(bc.ctx)
         self.counters = bc.ctx.buffer(reserve=8)
+        self._zeros = bc.ctx.buffer(bytes(8))  # copied on the GPU: zeroing the counters sends nothing per pass
         self.capacity = 1024  # resume slots; grows to the number of unfinished rays
         self.state = bc.ctx.buffer(reserve=self.capacity * self._stride_bytes)
         self.slots: moderngl.Texture | None = None  # per pixel resume slot, -1 between traces
@@ -79,7 +80,7 @@ class ResumableTraversal:
     def bind_flags(self, size: tuple[int, int]) -> None:
         """Bind the slot image and zeroed counters (before the draws that may flag pixels)."""
         self._slot_image(size).bind_to_image(BIND_IMG_RESUME, read=True, write=True)
-        glio.write(self.counters, np.zeros(2, np.int32).tobytes())
+        self.bc.ctx.copy_buffer(self.counters, self._zeros)
         self.counters.bind_to_storage_buffer(BIND_RESUME_COUNTERS)
 
     def _read_counters(self) -> tuple[int, int]:
@@ -107,7 +108,7 @@ class ResumableTraversal:
             if resumed == 0:
                 return {"draws": 0, "resumed_rays": 0, "continuation_draws": 0}
             ctx.memory_barrier(barriers)
-            glio.write(self.counters, np.zeros(2, np.int32).tobytes())
+            ctx.copy_buffer(self.counters, self._zeros)
         # a ray visits each node at most once: a draw that does not finish it advances it by max_visits
         # (or gives it a slot, once), so this many draws always suffice
         max_draws = 4 + 2 * (len(self.bc.bvh.node_left) // self.max_visits + 1)
@@ -141,7 +142,7 @@ class ResumableTraversal:
                 "continuation_draws": draws - (0 if resume_only else 1)}
 
     def release(self) -> None:
-        for obj in (self.counters, self.state, self.slots):
+        for obj in (self.counters, self._zeros, self.state, self.slots):
             if obj is not None:
                 obj.release()
         self.slots = None

@@ -114,6 +114,35 @@ def upload(ctx: Any, array: np.ndarray, flags: Any = None) -> Any:
     return cl.Buffer(ctx.context, (mf.READ_ONLY if flags is None else flags) | mf.COPY_HOST_PTR, hostbuf=a)
 
 
+def read_rows(queue: Any, buf: Any, rows, row_shape: tuple[int, ...], dtype: Any) -> np.ndarray:
+    """Rows `rows` of a buffer of fixed-size rows (e.g. float4 rays): one small copy each and one
+    wait; only those bytes cross (a backend that needs a few rays on the host)."""
+    dt = np.dtype(dtype)
+    rb = int(np.prod(row_shape)) * dt.itemsize
+    out = np.empty((len(rows), *row_shape), dt)
+    for k, r in enumerate(rows):
+        copy(queue, out[k], buf, src_offset=int(r) * rb, is_blocking=False)
+    finish(queue)
+    return out
+
+
+def read_strided(queue: Any, buf: Any, step: int, count: int, row_shape: tuple[int, ...], dtype: Any) -> np.ndarray:
+    """Rows 0, step, 2 * step, ... (`count` of them) in one rectangular copy: a strided sample
+    of a buffer of fixed-size rows without reading the rest."""
+    dt = np.dtype(dtype)
+    rb = int(np.prod(row_shape)) * dt.itemsize
+    out = np.empty((int(count), *row_shape), dt)
+    if count:
+        copy(queue, out, buf, buffer_origin=(0, 0), host_origin=(0, 0), region=(rb, int(count)),
+             buffer_pitches=(int(step) * rb,), host_pitches=(rb,))
+    return out
+
+
+def marker(queue: Any) -> Any:
+    """An event that completes when the queue's earlier commands have (deferred phase timing)."""
+    return _cl().enqueue_marker(queue)
+
+
 def finish(queue: Any) -> None:
     """queue.finish() counted as one host sync (its wait kept out of python_ms)."""
     with iostats.timed_sync():
