@@ -25,6 +25,7 @@ Buffers (n = width * height, row-major, row 0 = bottom):
 
 from __future__ import annotations
 
+import os
 from typing import Any
 
 import numpy as np
@@ -36,6 +37,7 @@ from viewer.cl.programs import build
 from viewer.cl.transfer import HitStage, RayStage, mapped
 from viewer.effects import RayType
 
+PATH_ENV = "RTWALK_FRAME_PATH"
 FRAME_PARAMS = 38  # float4 slots (frame.cl: P_RECT_RAD + 4)
 WG = 64
 MAX_COUNTERS = 8
@@ -51,7 +53,10 @@ def interop_available(ctx: ClContext | None = None, gl_extensions: set[str] | fr
 
 def frame_path(backend: Any, overlays: bool = False) -> str:
     """"device": the CL-resident frame (this module, staged through host memory); "batch": the
-    per-pass RayBatch path (GL backends, overlay frames, CL backends without trace_device)."""
+    per-pass RayBatch path (GL backends, overlay frames, CL backends without trace_device).
+    RTWALK_FRAME_PATH=batch forces the RayBatch path (comparisons, a fallback)."""
+    if os.environ.get(PATH_ENV, "").strip().lower() == "batch":
+        return "batch"
     if overlays or backend.info.device != "cl" or not callable(getattr(backend, "trace_device", None)):
         return "batch"
     return "device"
