@@ -19,6 +19,7 @@ from viewer.backends import DEFAULT_BACKEND, create_backend
 from viewer.backends.base import BackendContext
 from viewer.degenerate import unhittable
 from viewer.effects import RayType
+from viewer.gl import io as glio
 from viewer.gl.context import shared_context
 from viewer.gl.programs import ProgramCache
 from viewer.gl.scene import GpuScene
@@ -80,8 +81,8 @@ def trace_rays(triangles: np.ndarray, origins, directions, tmin, tmax, any_hit: 
     rays = RayBatch(ctx, size)
     hits = HitBuffer(ctx, size)
     try:
-        rays.origin.write(org.tobytes())
-        rays.direction.write(dirs.tobytes())
+        glio.write(rays.origin, org.tobytes())
+        glio.write(rays.direction, dirs.tobytes())
         bc = BackendContext(ctx, programs, GpuProfiler(ctx, enabled=False), gpu_scene, scene, bvh)
         be = create_backend(backend, bc)
         be.begin_frame(0)

@@ -38,6 +38,7 @@ from typing import Any
 
 import numpy as np
 
+from viewer.cl import io as clio
 from viewer.cl.pool import BufferPool
 from viewer.errors import RtwalkError
 
@@ -148,8 +149,7 @@ class UniformGrid:
         self.ctx = ctx or cl_context()
         self.prims = prims or primitives(self.ctx)
         prog = build(KERNEL, {"WG": WG}, self.ctx)
-        cl = self.ctx.cl
-        self._k = {name: cl.Kernel(prog, name) for name in ("grid_count", "grid_write", "grid_ranges",
+        self._k = {name: clio.kernel(prog, name) for name in ("grid_count", "grid_write", "grid_ranges",
                                                              "grid_block_counts", "grid_blocks")}
         self._bufs = BufferPool(self.ctx)
         self.header_host = np.zeros(1, GRID_DTYPE)
@@ -188,7 +188,7 @@ class UniformGrid:
         counts = self._buf("counts", 4 * max(n, 1))
         for _ in range(8):
             self.header_host = grid_header(lo, hi, res)
-            cl.enqueue_copy(q, self.header, self.header_host)
+            clio.copy(q, self.header, self.header_host)
             self._run("grid_count", n, self.header, tris, u(n), counts)
             pairs = self.prims.exclusive_scan(counts, counts, n) if n else 0
             if pairs <= MAX_PAIRS or spec.resolution > 0:
@@ -215,7 +215,7 @@ class UniformGrid:
         blocks = self._buf("blocks", GRID_BLOCK_DTYPE.itemsize * max(nblocks, 1))
         if nblocks:
             self._run("grid_blocks", ncells, cells, cell_blocks, vals, tris, u(ncells), blocks)
-        q.finish()
+        clio.finish(q)
         self.stats = GridStats(tuple(int(r) for r in res), ncells, int(pairs), int(nonempty),
                                (time.perf_counter() - t0) * 1e3)
         return self.stats
@@ -232,9 +232,9 @@ class UniformGrid:
         cells = np.empty((self.stats.cells, 2), np.uint32)
         refs = np.empty(self.stats.pairs, np.uint32)
         q = self.ctx.queue
-        self.ctx.cl.enqueue_copy(q, cells, self.cells)
+        clio.copy(q, cells, self.cells)
         if self.stats.pairs:
-            self.ctx.cl.enqueue_copy(q, refs, self.refs)
+            clio.copy(q, refs, self.refs)
         return self.header_host.copy(), cells, refs
 
     def blocks_to_numpy(self) -> tuple[np.ndarray, np.ndarray]:
@@ -242,12 +242,12 @@ class UniformGrid:
         assert self.stats is not None, "build first"
         cb = np.empty(self.stats.cells, np.uint32)
         q = self.ctx.queue
-        self.ctx.cl.enqueue_copy(q, cb, self.cell_blocks)
+        clio.copy(q, cb, self.cell_blocks)
         counts = self.to_numpy()[1][:, 1].astype(np.int64)
         nb = int(((counts + 3) // 4).sum())
         blocks = np.empty(nb, GRID_BLOCK_DTYPE)
         if nb:
-            self.ctx.cl.enqueue_copy(q, blocks, self.blocks)
+            clio.copy(q, blocks, self.blocks)
         return cb, blocks
 
     def release(self) -> None:

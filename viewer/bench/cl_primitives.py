@@ -24,6 +24,7 @@ from viewer.bench.common import add_count_option, parse_counts
 from viewer.bench.harness import load_average
 from viewer.bench.plots import bars, figure, finish
 from viewer.bench.report import md_table, write_study
+from viewer.cl import io as clio
 from viewer.cli_args import check_output_dir
 from viewer.errors import RtwalkError
 
@@ -62,7 +63,7 @@ class _Case:
         self.prepare: Callable[[], None] = ctx.finish
 
         def dev(a: np.ndarray):
-            return cl.Buffer(ctx.context, mf.READ_WRITE | mf.COPY_HOST_PTR, hostbuf=a)
+            return clio.upload(ctx, a, mf.READ_WRITE)
 
         if op == "sort":
             keys = rng.integers(0, 2**32, n, dtype=np.uint32)
@@ -74,8 +75,8 @@ class _Case:
                 return keys[order], order
 
             def prep():
-                cl.enqueue_copy(q, kb, k0)
-                cl.enqueue_copy(q, vb, v0)
+                clio.copy(q, kb, k0)
+                clio.copy(q, vb, v0)
                 ctx.finish()
 
             def cl_sort():
@@ -106,8 +107,8 @@ class _Case:
     @staticmethod
     def _check_sort(ctx, keys, kb, vb) -> None:
         k, v = np.empty_like(keys), np.empty_like(keys)
-        ctx.cl.enqueue_copy(ctx.queue, k, kb)
-        ctx.cl.enqueue_copy(ctx.queue, v, vb)
+        clio.copy(ctx.queue, k, kb)
+        clio.copy(ctx.queue, v, vb)
         eq = k[1:] == k[:-1]
         if not ((k[1:] >= k[:-1]).all() and (keys[v] == k).all() and (v[1:][eq] > v[:-1][eq]).all()):
             raise RuntimeError("OpenCL sort result is wrong")
@@ -115,14 +116,14 @@ class _Case:
     @staticmethod
     def _check_scan(ctx, a, ob) -> None:
         o = np.empty_like(a)
-        ctx.cl.enqueue_copy(ctx.queue, o, ob)
+        clio.copy(ctx.queue, o, ob)
         if not (o[0] == 0 and (o[1:] == np.cumsum(a, dtype=np.uint32)[:-1]).all()):
             raise RuntimeError("OpenCL scan result is wrong")
 
     @staticmethod
     def _check_compact(ctx, a, mask, ob, m) -> None:
         o = np.empty(m, np.uint32)
-        ctx.cl.enqueue_copy(ctx.queue, o, ob)
+        clio.copy(ctx.queue, o, ob)
         if m != mask.sum() or not (o == a[mask]).all():
             raise RuntimeError("OpenCL compaction result is wrong")
 

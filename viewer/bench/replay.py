@@ -195,6 +195,9 @@ def summarize(records: list[dict]) -> dict:
          "wall_ms_mean": _mean(r["wall_ms"] for r in records),
          "rays_mean": {p: _mean(r["rays"].get(p, 0) for r in records) for p in rays},
          "mrays_per_s_mean": {p: _mean(r["mrays_per_s"].get(p) for r in records) for p in rays + ["all"]}}
+    steady = [r["io"] for r in records[1:] if "io" in r] or [r["io"] for r in records if "io" in r]
+    if steady:  # steady frames: the first one also uploads, builds and compiles
+        s["io_mean"] = {k: _mean(io[k] for io in steady) for k in steady[0]}
     checked = [r for r in records if "error" in r]
     if checked:
         s["error"] = {}
@@ -231,6 +234,14 @@ def print_summary(report: dict, out=None) -> None:
         te = f"{e['p999_rel_t_error']:.1e}" if e else "-"
         tx = f"{e['t_beyond_tolerance']}" if e else "-"
         print(f"  {p:<14}{n:>12.0f}{s['mrays_per_s_mean'][p]:>10.2f}{ha:>11}{ia:>10}{te:>13}{tx:>9}", file=out)
+    io = s.get("io_mean")
+    if io:
+        px = max(w * h, 1)
+        print(f"  I/O per steady frame: to device {io['bytes_to_device'] / 1e6:.2f} MB "
+              f"({io['bytes_to_device'] / px:.1f} B/px), to host {io['bytes_to_host'] / 1e6:.2f} MB "
+              f"({io['bytes_to_host'] / px:.1f} B/px), host syncs {io['host_syncs']:.0f}, CL launches "
+              f"{io['cl_launches']:.0f}, GL draws {io['gl_draws']:.0f}, GL queries {io['gl_queries']:.0f}, "
+              f"host time {io['python_ms']:.1f} ms", file=out)
     if "image_mae_mean" in s:
         print(f"  image vs Embree: mean abs error {s['image_mae_mean']:.3f}/255, min PSNR "
               f"{s['image_psnr_min_db']:.1f} dB", file=out)

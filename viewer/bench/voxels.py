@@ -39,6 +39,7 @@ from pathlib import Path
 import numpy as np
 
 from viewer.bench.common import log
+from viewer.cl import io as clio
 from viewer.errors import RtwalkError
 from viewer.paths import SHARED_SCENES
 
@@ -104,15 +105,11 @@ class _Rays:
     among the passes of its ray type (capture order)."""
 
     def __init__(self, ctx, p, ref_hits, index: int):
-        cl = ctx.cl
-        mf = cl.mem_flags
         a = p.active
         self.label, self.any_hit, self.n, self.index = p.label, p.any_hit, int(a.sum()), index
         self.sample, self.light = p.sample, p.light
-        self.o_b = cl.Buffer(ctx.context, mf.READ_ONLY | mf.COPY_HOST_PTR,
-                             hostbuf=np.ascontiguousarray(p.origin4.reshape(-1, 4)[a]))
-        self.d_b = cl.Buffer(ctx.context, mf.READ_ONLY | mf.COPY_HOST_PTR,
-                             hostbuf=np.ascontiguousarray(p.dir4.reshape(-1, 4)[a]))
+        self.o_b = clio.upload(ctx, np.ascontiguousarray(p.origin4.reshape(-1, 4)[a]))
+        self.d_b = clio.upload(ctx, np.ascontiguousarray(p.dir4.reshape(-1, 4)[a]))
         self.ref_hit = ref_hits[1][a] >= 0
         self.ref_t = None if self.any_hit else ref_hits[0][a].astype(np.float32)
 
@@ -156,7 +153,7 @@ def pick_passes(m: int, k: int) -> list[int]:
 def _time_kernel(ctx, tracer, rays: _Rays, outs, bias: float) -> float:
     t0 = time.perf_counter()
     tracer.enqueue(rays.o_b, rays.d_b, *outs, rays.n, rays.any_hit, bias)
-    ctx.queue.finish()
+    clio.finish(ctx.queue)
     return (time.perf_counter() - t0) * 1e3
 
 
@@ -179,7 +176,7 @@ class _Recorder:
     def __call__(self, tracer, rays: _Rays, bias: float) -> dict:
         from viewer.bench.lockstep import combine
 
-        cl, q = self.ctx.cl, self.ctx.queue
+        _cl, q = self.ctx.cl, self.ctx.queue
         parts: dict = {w: [] for w in WIDTHS}
         counts = np.zeros(4, np.int64)
         cut = 0
@@ -191,8 +188,8 @@ class _Recorder:
             for w in WIDTHS:
                 parts[w].append(self.lock(self.seq, self.rec, m, self.seq_len, w))
             rec = self.rec_host[:m]
-            cl.enqueue_copy(q, rec, self.rec)
-            q.finish()
+            clio.copy(q, rec, self.rec)
+            clio.finish(q)
             o.release()
             d.release()
             counts += rec.sum(axis=0, dtype=np.int64)
@@ -231,9 +228,9 @@ class _ErrorSums:
     def add(self, ctx, outs, rays: _Rays, scale: float) -> None:
         t = np.empty(rays.n, np.float32)
         tri = np.empty(rays.n, np.int32)
-        ctx.cl.enqueue_copy(ctx.queue, t, outs[0])
-        ctx.cl.enqueue_copy(ctx.queue, tri, outs[1])
-        ctx.queue.finish()
+        clio.copy(ctx.queue, t, outs[0])
+        clio.copy(ctx.queue, tri, outs[1])
+        clio.finish(ctx.queue)
         hv, hr = tri >= 0, rays.ref_hit
         self.n += rays.n
         self.disagree += int(np.count_nonzero(hv != hr))

@@ -35,6 +35,7 @@ import numpy as np
 from viewer.bench.common import log, study_scene
 from viewer.bench.plots import figure, finish
 from viewer.bench.report import fmt, md_table, size_text, write_study
+from viewer.cl import io as clio
 from viewer.cli_args import parse_choices, parse_image_sizes
 from viewer.errors import RtwalkError
 from viewer.paths import SHARED_SCENES
@@ -124,12 +125,10 @@ class Device:
         from viewer.cl import cl_context
 
         self.ctx = cl_context()
-        cl = self.ctx.cl
         tris = np.asarray(prep.scene.triangles, np.float32).reshape(-1, 3, 3)
         self.n_tris = len(tris)
         self.box = scene_box(tris)
-        self.tris = cl.Buffer(self.ctx.context, cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR,
-                              hostbuf=triangles_f4(tris))
+        self.tris = clio.upload(self.ctx, triangles_f4(tris))
         self.grid = UniformGrid(self.ctx)
         self.walker = VoxelWalker(self.ctx, self.grid, chunk=chunk, window=1)
         self.walker_all = VoxelWalker(self.ctx, self.grid, chunk=chunk, window=0)  # every pair at once
@@ -151,7 +150,7 @@ class Device:
         one iteration) or 'clbvh': (PassStats or None, wall ms)."""
         st, h = rs.stage, rs.hits
         q = self.ctx.queue
-        q.finish()
+        clio.finish(q)
         t0 = time.perf_counter()
         ps = None
         if what == "ivw":
@@ -162,7 +161,7 @@ class Device:
             ps = self.walker_all.trace_ec(self.tris, st.origin, st.dir, h.t, h.tri, st.n, stats=stats, size=rs.size)
         else:
             self.clbvh.enqueue(st.origin, st.dir, h.t, h.tri, st.n, False)
-        q.finish()
+        clio.finish(q)
         return ps, (time.perf_counter() - t0) * 1e3
 
     def release(self) -> None:

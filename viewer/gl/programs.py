@@ -19,6 +19,7 @@ from pathlib import Path
 
 import moderngl
 
+from viewer.gl import io as glio
 from viewer.gl.bindings import shader_header
 
 SHADER_DIR = Path(__file__).resolve().parents[1] / "shaders"
@@ -114,7 +115,7 @@ class FullscreenQuad:
         if vao is None:
             vao = self.ctx.vertex_array(program, [])
             self._vaos[id(program)] = vao
-        vao.render(moderngl.TRIANGLES, vertices=3)
+        glio.draw(vao, moderngl.TRIANGLES, vertices=3)
 
     def release(self) -> None:
         for vao in self._vaos.values():
