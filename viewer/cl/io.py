@@ -105,13 +105,13 @@ def map_buffer(queue: Any, buf: Any, flags: Any, offset: int, shape: Any, dtype:
     return cl.enqueue_map_buffer(queue, buf, flags, offset, shape, dtype, is_blocking=False)
 
 
-def upload(ctx: Any, array: np.ndarray, flags: Any = None) -> Any:
-    """A new CL buffer holding `array` (COPY_HOST_PTR; default READ_ONLY), counted to_device."""
-    cl = ctx.cl
-    mf = cl.mem_flags
+def upload(ctx: Any, array: np.ndarray, flags: Any = None, what: str = "buffer") -> Any:
+    """A new CL buffer holding `array` (COPY_HOST_PTR; default READ_ONLY), counted to_device, after
+    the device's allocation limits are checked (viewer.cl.limits: one line, never a raw error)."""
+    from viewer.cl.limits import new_buffer
+
     a = np.ascontiguousarray(array)
-    iostats.to_device(a.nbytes)
-    return cl.Buffer(ctx.context, (mf.READ_ONLY if flags is None else flags) | mf.COPY_HOST_PTR, hostbuf=a)
+    return new_buffer(ctx, ctx.cl.mem_flags.READ_ONLY if flags is None else flags, a.nbytes, what, hostbuf=a)
 
 
 def read_rows(queue: Any, buf: Any, rows, row_shape: tuple[int, ...], dtype: Any) -> np.ndarray:

@@ -29,6 +29,7 @@ import numpy as np
 
 from viewer.cl import io as clio
 from viewer.cl.context import ClContext, cl_context
+from viewer.cl.limits import new_buffer
 from viewer.cl.programs import build
 
 WG = 16  # work-items per work-group (fixed; PoCL compiles one variant per local size)
@@ -87,7 +88,8 @@ class Primitives:
         if buf is None or buf.size < nbytes:
             if buf is not None:
                 buf.release()
-            buf = self.ctx.cl.Buffer(self.ctx.context, self.ctx.cl.mem_flags.READ_WRITE, max(4, int(nbytes)))
+                del self._scratch[name]
+            buf = new_buffer(self.ctx, self.ctx.cl.mem_flags.READ_WRITE, int(nbytes), f"primitives scratch {name}")
             self._scratch[name] = buf
         return buf
 
@@ -208,7 +210,7 @@ class Primitives:
             raise ValueError("chunk length r must be >= 1")
         cl, ctx = self.ctx.cl, self.ctx
         if out is None:
-            mk = [cl.Buffer(ctx.context, cl.mem_flags.READ_WRITE, max(4, 4 * n)) for _ in range(3)]
+            mk = [new_buffer(ctx, cl.mem_flags.READ_WRITE, 4 * n, "segments") for _ in range(3)]
             out = Chunks(0, *mk)
         if n == 0:
             out.count = 0

@@ -22,6 +22,7 @@ import numpy as np
 
 from viewer.cl import io as clio
 from viewer.cl.context import ClContext, cl_context
+from viewer.cl.limits import check_alloc
 
 if TYPE_CHECKING:
     from viewer.rays import HitBuffer, RayBatch
@@ -32,6 +33,7 @@ def host_buffer(ctx: ClContext, nbytes: int, access: str = "rw") -> Any:
     the kernels' point of view."""
     mf = ctx.cl.mem_flags
     flags = {"r": mf.READ_ONLY, "w": mf.WRITE_ONLY, "rw": mf.READ_WRITE}[access]
+    check_alloc(int(nbytes), "ray/hit stage", ctx)
     return ctx.cl.Buffer(ctx.context, flags | mf.ALLOC_HOST_PTR, max(int(nbytes), 4))
 
 

@@ -44,6 +44,7 @@ from viewer.backends.base import BackendContext, TraceResult
 from viewer.backends.interface import BackendInfo, OverlaySpec
 from viewer.backends.ugrid import GridTracer
 from viewer.cl import io as clio
+from viewer.cl.limits import new_buffer
 from viewer.effects import RayType
 from viewer.errors import RtwalkError
 from viewer.rays import HitBuffer, PassInfo, RayBatch
@@ -151,7 +152,7 @@ class PgridBackend:
             if self._tris is None or self._tris.size < f4.nbytes:
                 if self._tris is not None:
                     self._tris.release()
-                self._tris = cl.Buffer(ctx.context, cl.mem_flags.READ_ONLY, max(16, f4.nbytes))
+                self._tris = new_buffer(ctx, cl.mem_flags.READ_ONLY, f4.nbytes, "pgrid triangles")
             if f4.nbytes:
                 clio.copy(ctx.queue, self._tris, f4)
             self._box = scene_box(tris)

@@ -15,6 +15,7 @@ from viewer.accel.voxel_leaves import VoxelStructure
 from viewer.accel.voxel_octree import build_voxel_octree
 from viewer.accel.voxelize import Voxels
 from viewer.cl import io as clio
+from viewer.cl.limits import new_buffer
 from viewer.errors import RtwalkError
 
 HERE = Path(__file__).resolve().parent
@@ -67,7 +68,7 @@ class VoxelTracer:
             a = np.ascontiguousarray(a)
             if a.nbytes == 0:
                 a = np.zeros(4, np.uint8)
-            return clio.upload(self.ctx, a)
+            return new_buffer(self.ctx, mf.READ_ONLY, 0, "voxel structure", hostbuf=a)
 
         self.nodes = buf(structure.nodes)
         self.leaves = buf(structure.leaves)

@@ -20,6 +20,7 @@ import numpy as np
 
 from viewer.accel.grid import UniformGrid
 from viewer.cl import io as clio
+from viewer.cl.limits import new_buffer
 from viewer.errors import RtwalkError
 
 HERE = Path(__file__).resolve().parent
@@ -90,7 +91,7 @@ class VoxelWalker:
         if buf is None or buf.size < nbytes:
             if buf is not None:
                 buf.release()
-            buf = self.ctx.cl.Buffer(self.ctx.context, self.ctx.cl.mem_flags.READ_WRITE, max(16, int(nbytes)))
+            buf = new_buffer(self.ctx, self.ctx.cl.mem_flags.READ_WRITE, int(nbytes), f"voxelwalk {name}")
             self._bufs[name] = buf
         return buf
 
