@@ -31,7 +31,6 @@ from viewer.accel.bvh4 import BVH4, build_bvh4
 from viewer.backends.base import BackendContext, StatelessBackend, TraceResult
 from viewer.backends.interface import BackendInfo
 from viewer.cl import io as clio
-from viewer.cl.limits import new_buffer
 from viewer.rays import HitBuffer, PassInfo, RayBatch
 
 KERNEL = Path(__file__).resolve().parent / "trace.cl"
@@ -92,8 +91,8 @@ class ClbvhScene:
         cl = self.ctx.cl
         mf = cl.mem_flags
         knodes, blocks = pack_leaves(self.bvh4.nodes, triangles)
-        self.nodes = new_buffer(self.ctx, mf.READ_ONLY, 0, "clbvh nodes", hostbuf=knodes)
-        self.blocks = new_buffer(self.ctx, mf.READ_ONLY, 0, "clbvh leaf blocks", hostbuf=blocks)
+        self.nodes = clio.upload(self.ctx, knodes, what="clbvh nodes")
+        self.blocks = clio.upload(self.ctx, blocks, what="clbvh leaf blocks")
         prog = build(KERNEL, {"STACK_SIZE": self.stack_size, "WG": WG}, self.ctx)
         self.kernels = {False: clio.kernel(prog, "trace_closest"), True: clio.kernel(prog, "trace_any")}
         self.memory_bytes = knodes.nbytes + blocks.nbytes

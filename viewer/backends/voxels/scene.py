@@ -15,7 +15,6 @@ from viewer.accel.voxel_leaves import VoxelStructure
 from viewer.accel.voxel_octree import build_voxel_octree
 from viewer.accel.voxelize import Voxels
 from viewer.cl import io as clio
-from viewer.cl.limits import new_buffer
 from viewer.errors import RtwalkError
 
 HERE = Path(__file__).resolve().parent
@@ -68,7 +67,7 @@ class VoxelTracer:
             a = np.ascontiguousarray(a)
             if a.nbytes == 0:
                 a = np.zeros(4, np.uint8)
-            return new_buffer(self.ctx, mf.READ_ONLY, 0, "voxel structure", hostbuf=a)
+            return clio.upload(self.ctx, a, what="voxel structure")
 
         self.nodes = buf(structure.nodes)
         self.leaves = buf(structure.leaves)
