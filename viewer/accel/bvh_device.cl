@@ -261,3 +261,40 @@ __kernel void emit(uint m, __global const int4* st, __global const float4* nmin,
         }
     }
 }
+
+// Breadth-first renumbering: the kept nodes sorted (stably) by depth give `order` (BFS position ->
+// preorder index); `rank` is its inverse; `permute` gathers every field and renames the links.
+__kernel void depth_keys(uint m, __global const int* depth, __global uint* keys, __global uint* order) {
+    uint k = get_global_id(0);
+    if (k >= m) return;
+    keys[k] = (uint)depth[k];
+    order[k] = k;
+}
+
+__kernel void invert(uint m, __global const uint* order, __global int* rank) {
+    uint k = get_global_id(0);
+    if (k >= m) return;
+    rank[order[k]] = (int)k;
+}
+
+__kernel void permute(uint m, __global const uint* order, __global const int* rank,
+                      __global const float4* pmin, __global const float4* pmax, __global const int* pleft,
+                      __global const int* pright, __global const int* pfirst, __global const int* pcount,
+                      __global const int* pparent, __global const int* pdepth, __global const int* pheight,
+                      __global float4* omin, __global float4* omax, __global int* oleft, __global int* oright,
+                      __global int* ofirst, __global int* ocount, __global int* oparent, __global int* odepth,
+                      __global int* oheight) {
+    uint k = get_global_id(0);
+    if (k >= m) return;
+    uint s = order[k];
+    omin[k] = pmin[s];
+    omax[k] = pmax[s];
+    int l = pleft[s], r = pright[s], u = pparent[s];
+    oleft[k] = l >= 0 ? rank[l] : -1;
+    oright[k] = r >= 0 ? rank[r] : -1;
+    oparent[k] = u >= 0 ? rank[u] : -1;
+    ofirst[k] = pfirst[s];
+    ocount[k] = pcount[s];
+    odepth[k] = pdepth[s];
+    oheight[k] = pheight[s];
+}

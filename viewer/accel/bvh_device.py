@@ -8,7 +8,7 @@ Why: the binned SAH build (viewer.accel.bvh) is NumPy on one core, about 0.3 M t
 Algorithm (kernels in bvh_device.cl)
 ------------------------------------
 1. Triangle boxes (exact float32 min/max of the vertices) and box centres; the centres' bounds
-   (6 device reductions) span a 1024^3 grid; 30-bit Morton codes of the centres are sorted with
+   (6 device reductions) span a cubic 1024^3 grid; 30-bit Morton codes of the centres are sorted with
    the project's radix sort (viewer.cl.primitives, 4 digit passes).
 2. PLOC (Meister & Bittner 2018): the clusters (one per triangle at first) stay in Morton order;
    each finds the cluster within `radius` positions whose merged box has the least surface area
@@ -44,13 +44,14 @@ import numpy as np
 from viewer import iostats
 from viewer.accel.bvh import BVH, _validate, tree_stats
 from viewer.cl.pool import BufferPool
+from viewer.cl.primitives import WG as PWG
 
 KERNEL = Path(__file__).resolve().parent / "bvh_device.cl"
 WG = 64
 RADIUS = 8
 CHECK_EVERY = 4
 _KERNELS = ("tri_boxes", "morton", "init_leaves", "nearest", "merge", "count_kept", "scan_blocks", "scatter",
-            "jump_init", "jump", "emit")
+            "jump_init", "jump", "emit", "depth_keys", "invert", "permute")
 
 
 class DeviceBvhBuilder:
@@ -83,8 +84,10 @@ class DeviceBvhBuilder:
             iostats.cl_launch()
 
     def _task(self, name: str, n: int, *args: Any) -> None:
-        """n work-items in groups of 1 (block kernels: one work-item per block)."""
-        self._k[name](self.ctx.queue, (n,), None, *args)
+        """Block kernels: one work-item per block, n a multiple of the primitives' WG or 1 (a fixed
+        local size: PoCL compiles a work-group function per local size)."""
+        local = min(n, PWG)
+        self._k[name](self.ctx.queue, (-(-n // local) * local,), (local,), *args)
         iostats.cl_launch()
 
     def _buf(self, name: str, nbytes: int) -> Any:
@@ -133,9 +136,10 @@ class DeviceBvhBuilder:
         lo = np.array([self.prims.reduce(c, n, "min", np.float32) for c in (cx, cy, cz)], np.float32)
         hi = np.array([self.prims.reduce(c, n, "max", np.float32) for c in (cx, cy, cz)], np.float32)
         iostats.sync(6)
-        ext = hi.astype(np.float64) - lo
-        with np.errstate(divide="ignore"):
-            scale = np.where(ext > 0, 1024.0 / np.where(ext > 0, ext, 1.0), 0.0)
+        # one scale for all axes (a cube around the centres): per-axis scales would stretch a flat
+        # scene's thin axis over the whole code and order it worse
+        ext = float((hi.astype(np.float64) - lo).max())
+        scale = np.full(3, 1024.0 / ext if ext > 0 else 0.0)
         keys, perm = b("keys", 4 * n), b("perm", 4 * n)
         self._run("morton", n, cx, cy, cz, u(n), np.append(lo, 0).astype(np.float32),
                   np.append(scale, 0).astype(np.float32), keys, perm)
@@ -191,12 +195,22 @@ class DeviceBvhBuilder:
         for i in range(passes):
             self._run("jump", m_all, u(m_all), st[i % 2], st[1 - i % 2])
         st_final = st[passes % 2]
-        outs = {k: b("o" + k, 16 * m) for k in ("min", "max")}
         onames = ("left", "right", "first", "count", "parent", "depth", "height")
-        outs.update({k: b("o" + k, 4 * m) for k in onames})
+        pre = {k: b("p" + k, 16 * m) for k in ("min", "max")}
+        pre.update({k: b("p" + k, 4 * m) for k in onames})
         tri_order = b("tri_order", 4 * n)
         self._run("emit", m_all, u(m_all), st_final, nmin, nmax, left, right, parent, count, height, leaf_ok, perm,
-                  outs["min"], outs["max"], *(outs[k] for k in onames), tri_order)
+                  pre["min"], pre["max"], *(pre[k] for k in onames), tri_order)
+        # breadth-first order: stable sort of the preorder by depth (depth <= tree_height)
+        dkeys, order, rank = b("dkeys", 4 * m), b("order", 4 * m), b("rank", 4 * m)
+        self._run("depth_keys", m, u(m), pre["depth"], dkeys, order)
+        self.prims.sort_pairs(dkeys, order, m, key_bits=max(tree_height.bit_length(), 1))
+        iostats.cl_launch(3 * -(-tree_height.bit_length() // 8))
+        self._run("invert", m, u(m), order, rank)
+        outs = {k: b("o" + k, 16 * m) for k in ("min", "max")}
+        outs.update({k: b("o" + k, 4 * m) for k in onames})
+        self._run("permute", m, u(m), order, rank, *(pre[k] for k in ("min", "max", *onames)),
+                  *(outs[k] for k in ("min", "max", *onames)))
         t = self._phase("layout", t)
 
         host = {k: self._read(outs[k], 4 * m, np.float32).reshape(m, 4)[:, :3].copy() for k in ("min", "max")}
