@@ -25,7 +25,6 @@ from viewer.cli_args import (
     check_positive,
     parse_camera,
     parse_size,
-    parse_sizes,
     scene_from_args,
     settings_from,
 )
@@ -123,24 +122,9 @@ def cmd_bench(args) -> int:
 
 
 def cmd_bench_bvh(args) -> int:
-    from viewer.accel.bvh import bench_build
-    from viewer.bench.report import write_json
-    from viewer.procedural import make_city
+    from viewer.bench.bvh_build import run
 
-    sizes = parse_sizes(args.sizes)
-    out = check_output_dir(args.out, "--out")
-    rows = []
-    for n in sizes:
-        scene = make_city(n, args.seed)
-        r = bench_build(scene.triangles)
-        r["target"] = n
-        rows.append(r)
-        print(f"city {scene.triangle_count:>10,} tris: build {r['build_time_s']:.2f} s "
-              f"({r['throughput_mtris_per_s']:.2f} Mtri/s), {r['nodes']:,} nodes, depth {r['depth']}, "
-              f"SAH {r['sah_cost']:.1f}", flush=True)
-    write_json(out / "bvh-build.json", rows)
-    print(f"report: {out / 'bvh-build.json'}")
-    return 0
+    return run(args)
 
 
 def cmd_bench_cl(args) -> int:
@@ -278,11 +262,10 @@ def build_parser() -> argparse.ArgumentParser:
     add_bench_cl_args(sub.add_parser("bench-cl", help="OpenCL sort/scan/compact throughput next to NumPy"))
     bench_voxels.add_parser(sub)
 
-    bb = sub.add_parser("bench-bvh", help="BVH build throughput on the city scene")
-    bb.add_argument("--sizes", default="1000000,5000000",
-                    help="comma list of city triangle counts to build (each as --scene-size accepts)")
-    bb.add_argument("--seed", type=int, default=1, help="seed of the procedural city")
-    bb.add_argument("--out", default="out/bench", help="folder for bvh-build.json")
+    from viewer.bench.bvh_build import add_arguments as add_bench_bvh_args
+
+    add_bench_bvh_args(sub.add_parser("bench-bvh", help="BVH build time, throughput and SAH cost per builder "
+                                                        "on the city scene"))
 
     i = sub.add_parser("info", help="scene statistics")
     add_scene_args(i)

@@ -8,8 +8,8 @@ from dataclasses import dataclass
 import numpy as np
 from tqdm import tqdm
 
-from viewer.accel.bvh import BVH
 from viewer.accel.builders import build_scene_bvh, resolve_builder
+from viewer.accel.bvh import BVH
 from viewer.scene import Scene
 
 

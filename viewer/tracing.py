@@ -12,8 +12,8 @@ import hashlib
 import moderngl
 import numpy as np
 
-from viewer.accel.bvh import BVH
 from viewer.accel.builders import build_scene_bvh
+from viewer.accel.bvh import BVH
 from viewer.backends import create_backend
 from viewer.backends.base import BackendContext
 from viewer.effects import RayType

@@ -96,7 +96,7 @@ class DeviceBvhBuilder:
     def _read(self, buf: Any, count: int, dtype: Any, offset: int = 0) -> np.ndarray:
         out = np.empty(count, dtype)
         if count:
-            self.ctx.cl.enqueue_copy(self.ctx.queue, out, buf, device_offset=offset)
+            self.ctx.cl.enqueue_copy(self.ctx.queue, out, buf, src_offset=offset)
             iostats.to_host(out.nbytes)
             iostats.sync()
         return out
@@ -228,13 +228,18 @@ class DeviceBvhBuilder:
 _builders: dict[tuple, DeviceBvhBuilder] = {}
 
 
-def build_bvh_device(triangles: np.ndarray, radius: int = RADIUS, max_leaf: int = 4, min_leaf: int = 2,
-                     ctx: Any = None) -> BVH:
-    """Build on the default OpenCL device with a cached builder (kernels compiled once)."""
+def device_builder(ctx: Any = None, radius: int = RADIUS, max_leaf: int = 4, min_leaf: int = 2) -> DeviceBvhBuilder:
+    """The cached builder for a context and parameters (kernels compiled once, buffers reused)."""
     from viewer.cl import cl_context
 
     ctx = ctx or cl_context()
     key = (id(ctx), radius, max_leaf, min_leaf)
     if key not in _builders:
         _builders[key] = DeviceBvhBuilder(ctx, radius, max_leaf, min_leaf)
-    return _builders[key].build(triangles)
+    return _builders[key]
+
+
+def build_bvh_device(triangles: np.ndarray, radius: int = RADIUS, max_leaf: int = 4, min_leaf: int = 2,
+                     ctx: Any = None) -> BVH:
+    """Build on the default OpenCL device with the cached builder (see device_builder)."""
+    return device_builder(ctx, radius, max_leaf, min_leaf).build(triangles)
