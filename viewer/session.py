@@ -51,14 +51,14 @@ def prepare_scene(spec: str | None, scene_size: int | None = None, seed: int = 1
 
     scene = load_scene(spec, scene_size=scene_size, seed=seed, mirror_patterns=mirror_patterns,
                        progress=not quiet)
+    builder = resolve_builder(bvh_builder, scene.triangle_count)
     bar = tqdm(total=100, desc="BVH build", unit="%", bar_format="{l_bar}{bar}| [{elapsed}<{remaining}]",
-               disable=quiet or scene.triangle_count < 200_000, file=sys.stderr, leave=False)
+               disable=quiet or scene.triangle_count < 200_000 or builder != "sah", file=sys.stderr, leave=False)
     work = BuildWork(scene.triangle_count)
 
     def progress(placed: int, total: int) -> None:
         bar.update(round(100 * work.level_done(placed)) - bar.n)
 
-    builder = resolve_builder(bvh_builder, scene.triangle_count)
     bvh = build_scene_bvh(scene.triangles, builder, progress=progress)
     bar.close()
     st = bvh.stats

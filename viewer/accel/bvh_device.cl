@@ -21,6 +21,11 @@ inline uint expand10(uint v) {
     return v;
 }
 
+inline void block_range(uint b, uint nb, uint n, uint* s, uint* e) {
+    *s = (uint)(((ulong)b * n) / nb);
+    *e = (uint)(((ulong)(b + 1) * n) / nb);
+}
+
 // Triangle boxes (exact float32 min/max of the vertices) and box centres per axis.
 __kernel void tri_boxes(__global const float* tri, uint n, __global float4* bmin, __global float4* bmax,
                         __global float* cx, __global float* cy, __global float* cz) {
@@ -100,6 +105,60 @@ __kernel void nearest(__global const uint* cnt, uint p, __global const float4* c
     nn[i] = bj;
 }
 
+// The same nearest neighbours, one work-item per block of clusters: each pair (i, j), i < j <= i +
+// RADIUS, is measured once and offered to both ends (half the area computations). A ring of
+// RADIUS + 1 candidates holds the clusters i..i+RADIUS still open; ties again go to the lower index.
+__kernel void nearest_block(__global const uint* cnt, uint p, __global const float4* cmin,
+                            __global const float4* cmax, uint nb, __global uint* nn) {
+    uint b = get_global_id(0);
+    uint n = cnt[p];
+    if (b >= nb || n <= 1) return;
+    uint s, e;
+    block_range(b, nb, n, &s, &e);
+    if (s >= e) return;
+    float best[RADIUS + 1];
+    uint bj[RADIUS + 1];
+    for (uint k = 0; k <= RADIUS; ++k) {
+        best[(s + k) % (RADIUS + 1)] = INFINITY;
+        bj[(s + k) % (RADIUS + 1)] = 0xffffffffu;
+    }
+    // pairs from the RADIUS clusters before the block into it
+    for (uint i = s > RADIUS ? s - RADIUS : 0; i < s; ++i) {
+        float4 lo = cmin[i], hi = cmax[i];
+        uint jend = min(min(i + RADIUS, e - 1), n - 1);
+        for (uint j = s; j <= jend; ++j) {
+            float a = half_area(fmin(lo, cmin[j]), fmax(hi, cmax[j]));
+            if (isnan(a)) a = INFINITY;
+            uint r = j % (RADIUS + 1);
+            if (a < best[r] || (a == best[r] && i < bj[r])) {
+                best[r] = a;
+                bj[r] = i;
+            }
+        }
+    }
+    for (uint i = s; i < e; ++i) {
+        float4 lo = cmin[i], hi = cmax[i];
+        uint ri = i % (RADIUS + 1);
+        uint jend = min(i + RADIUS, n - 1);
+        for (uint j = i + 1; j <= jend; ++j) {
+            float a = half_area(fmin(lo, cmin[j]), fmax(hi, cmax[j]));
+            if (isnan(a)) a = INFINITY;
+            if (a < best[ri] || (a == best[ri] && j < bj[ri])) {
+                best[ri] = a;
+                bj[ri] = j;
+            }
+            uint r = j % (RADIUS + 1);
+            if (j < e && (a < best[r] || (a == best[r] && i < bj[r]))) {
+                best[r] = a;
+                bj[r] = i;
+            }
+        }
+        nn[i] = bj[ri];
+        best[ri] = INFINITY;  // the slot now holds cluster i + RADIUS + 1
+        bj[ri] = 0xffffffffu;
+    }
+}
+
 // Mutual nearest pairs (i < j) merge into a new node that takes cluster slot i; slot j is dropped
 // by the compaction. The node's SAH cost is the cheaper of a leaf and the split (traversal 1,
 // intersection 1 per triangle, in area units), as a bottom-up dynamic programme.
@@ -143,11 +202,6 @@ inline bool dropped(uint i, uint n, __global const uint* nn) {
     if (n <= 1) return false;
     uint j = nn[i];
     return j < i && nn[j] == i;
-}
-
-inline void block_range(uint b, uint nb, uint n, uint* s, uint* e) {
-    *s = (uint)(((ulong)b * n) / nb);
-    *e = (uint)(((ulong)(b + 1) * n) / nb);
 }
 
 __kernel void count_kept(__global const uint* cnt, uint p, __global const uint* nn, uint nb, __global uint* bsum) {

@@ -50,8 +50,8 @@ KERNEL = Path(__file__).resolve().parent / "bvh_device.cl"
 WG = 64
 RADIUS = 8
 CHECK_EVERY = 4
-_KERNELS = ("tri_boxes", "morton", "init_leaves", "nearest", "merge", "count_kept", "scan_blocks", "scatter",
-            "jump_init", "jump", "emit", "depth_keys", "invert", "permute")
+_KERNELS = ("tri_boxes", "morton", "init_leaves", "nearest", "nearest_block", "merge", "count_kept", "scan_blocks",
+            "scatter", "jump_init", "jump", "emit", "depth_keys", "invert", "permute")
 
 
 class DeviceBvhBuilder:
@@ -70,6 +70,7 @@ class DeviceBvhBuilder:
         self.prims = primitives(self.ctx)
         self.max_leaf, self.min_leaf = int(max_leaf), max(int(min_leaf), 1)
         self.check_every = max(int(check_every), 1)
+        self.block_nearest = True  # nearest_block (each pair once) rather than nearest (per cluster)
         prog = build(KERNEL, {"WG": WG, "RADIUS": int(radius), "MAX_LEAF": self.max_leaf,
                               "MIN_LEAF": self.min_leaf}, self.ctx)
         self._k = {name: self.ctx.cl.Kernel(prog, name) for name in _KERNELS}
@@ -169,10 +170,14 @@ class DeviceBvhBuilder:
         iters = 0
         while n_host > 1:
             nb = self.prims.nblocks(n_host)
+            nbn = max(PWG, min(-(-n_host // 256), 8 * self.prims.max_blocks) // PWG * PWG)
             bsum = b("bsum", 4 * nb)
             for _ in range(self.check_every):
                 s = p
-                self._run("nearest", n_host, cnt, u(p), cmin[s], cmax[s], nn)
+                if self.block_nearest:
+                    self._task("nearest_block", nbn, cnt, u(p), cmin[s], cmax[s], u(nbn), nn)
+                else:
+                    self._run("nearest", n_host, cnt, u(p), cmin[s], cmax[s], nn)
                 self._run("merge", n_host, cnt, u(p), nn, cnode[s], cmin[s], cmax[s], *node_args)
                 self._task("count_kept", nb, cnt, u(p), nn, u(nb), bsum)
                 self._task("scan_blocks", 1, bsum, u(nb), cnt, u(p))
