@@ -160,3 +160,21 @@ def test_glsl_on_device_tree_matches_float64(monkeypatch):
     rt, rtri = trace_float64(tris, o, d, lo, hi)
     st = compare_hits(t, tri, rt, rtri, tris)
     assert st["hitmiss_agree"] == 1.0 and st["n_bad_id"] == 0 and st["id_agree"] == 1.0, st
+
+
+def test_block_nearest_equals_per_cluster_nearest():
+    """The pair-once block kernel finds the same neighbours as the plain per-cluster search (so the
+    same tree), across block boundaries and with more blocks than clusters at the end."""
+    from viewer.accel.bvh_device import device_builder
+
+    tris = box_grid_tris(5000, seed=8)
+    b = device_builder()
+    try:
+        b.block_nearest = False
+        plain = b.build(tris)
+        b.block_nearest = True
+        block = b.build(tris)
+    finally:
+        b.block_nearest = True
+    for f in ("node_min", "node_max", "node_left", "node_right", "node_first", "node_count", "tri_order"):
+        assert np.array_equal(getattr(plain, f), getattr(block, f)), f
