@@ -388,7 +388,9 @@ def tree_stats(node_min: np.ndarray, node_max: np.ndarray, node_left: np.ndarray
     area = ext[0] * ext[1] + ext[1] * ext[2] + ext[2] * ext[0]
     root_area = area[0] if area[0] > 0 else 1.0
     sah = (area[~is_leaf].sum() + (area[is_leaf] * node_count[is_leaf]).sum()) / root_area
-    sizes, freq = np.unique(node_count[is_leaf], return_counts=True)
+    freq = np.bincount(node_count[is_leaf])  # leaf sizes are small: no sort (np.unique) needed
+    sizes = np.flatnonzero(freq)
+    freq = freq[sizes]
     n_inner = int((~is_leaf).sum())
     m = len(node_left)
     return BuildStats(

@@ -246,11 +246,20 @@ __kernel void scatter(__global const uint* cnt, uint p, __global const uint* nn,
 // term: as a right child it is preceded by its left sibling's triangles and kept nodes; every
 // non-root node is one below its parent. Summed over the path to the root they give the node's
 // first triangle slot, its preorder index among the kept nodes and its depth.
+// Nodes inside a leaf (an ancestor was chosen as a leaf) get ancestor -2: they take no part (no
+// kept node points at them) and `emit` skips them.
 __kernel void jump_init(uint m, __global const int* left, __global const int* right, __global const int* parent,
-                        __global const int* count, __global const int* kept_nodes, __global int4* st) {
+                        __global const int* count, __global const int* kept_nodes, __global const uchar* leaf_ok,
+                        __global int4* st) {
     uint v = get_global_id(0);
     if (v >= m) return;
     int u = parent[v];
+    for (int w = u; w >= 0 && count[w] <= MAX_LEAF; w = parent[w]) {
+        if (leaf_ok[w]) {
+            st[v] = (int4)(0, 0, 0, -2);
+            return;
+        }
+    }
     int4 s = (int4)(0, 0, 0, -1);
     if (u >= 0) {
         bool r = right[u] == (int)v;
@@ -281,12 +290,8 @@ __kernel void emit(uint m, __global const int4* st, __global const float4* nmin,
                    __global int* odepth, __global int* oheight, __global int* tri_order) {
     uint v = get_global_id(0);
     if (v >= m) return;
-    int u = parent[v];
-    while (u >= 0 && count[u] <= MAX_LEAF) {
-        if (leaf_ok[u]) return;  // inside a leaf
-        u = parent[u];
-    }
     int4 s = st[v];
+    if (s.w == -2) return;  // inside a leaf
     int o = s.y;
     omin[o] = nmin[v];
     omax[o] = nmax[v];

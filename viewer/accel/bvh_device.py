@@ -195,7 +195,7 @@ class DeviceBvhBuilder:
         m = int(hdr[0])
         tree_height = int(self._read(uheight, 1, np.uint32, 4 * root)[0])
         st = [b("st0", 16 * m_all), b("st1", 16 * m_all)]
-        self._run("jump_init", m_all, u(m_all), left, right, parent, count, kept_nodes, st[0])
+        self._run("jump_init", m_all, u(m_all), left, right, parent, count, kept_nodes, leaf_ok, st[0])
         passes = max(1, int(np.ceil(np.log2(tree_height + 1))) + 1)
         for i in range(passes):
             self._run("jump", m_all, u(m_all), st[i % 2], st[1 - i % 2])
