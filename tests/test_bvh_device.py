@@ -178,3 +178,29 @@ def test_block_nearest_equals_per_cluster_nearest():
         b.block_nearest = True
     for f in ("node_min", "node_max", "node_left", "node_right", "node_first", "node_count", "tri_order"):
         assert np.array_equal(getattr(plain, f), getattr(block, f)), f
+
+
+def test_refuses_builds_the_device_cannot_hold(monkeypatch):
+    from viewer.accel import bvh_device
+    from viewer.errors import RtwalkError
+
+    dev = bvh_device.device_builder().ctx.device
+    monkeypatch.setattr(bvh_device, "BYTES_PER_TRIANGLE", dev.global_mem_size)  # 2 triangles > memory
+    with pytest.raises(RtwalkError, match="device memory"):
+        device_bvh(random_tris(2))
+
+
+def test_builder_choice(monkeypatch):
+    from viewer.accel.builders import AUTO_DEVICE_MIN, resolve_builder
+    from viewer.errors import RtwalkError
+
+    monkeypatch.delenv("RTWALK_BVH_BUILDER", raising=False)
+    assert resolve_builder(None, 1000) == "sah"
+    assert resolve_builder(None, AUTO_DEVICE_MIN) == "device"
+    assert resolve_builder("sah", AUTO_DEVICE_MIN) == "sah"
+    monkeypatch.setenv("RTWALK_BVH_BUILDER", "device")
+    assert resolve_builder(None, 10) == "device"
+    assert resolve_builder("sah", 10) == "sah"  # the option wins over the environment
+    monkeypatch.setenv("RTWALK_BVH_BUILDER", "fast")
+    with pytest.raises(RtwalkError, match="RTWALK_BVH_BUILDER"):
+        resolve_builder(None, 10)

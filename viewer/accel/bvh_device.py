@@ -50,6 +50,10 @@ KERNEL = Path(__file__).resolve().parent / "bvh_device.cl"
 WG = 64
 RADIUS = 8
 CHECK_EVERY = 4
+#: device bytes per triangle of the buffers build() allocates (all kept for the next build): input,
+#: boxes, centres, keys + sort scratch, 2 nodes x (boxes, 8 int fields, flag), 2 x clusters, nn,
+#: 2 nodes x 2 pointer-jumping states, preorder + final outputs, BFS sort keys, tri_order
+BYTES_PER_TRIANGLE = 36 + 32 + 12 + 16 + 2 * (32 + 8 * 4 + 1) + 2 * 36 + 4 + 2 * 2 * 16 + 2 * 60 + 12 + 4
 _KERNELS = ("tri_boxes", "morton", "init_leaves", "nearest", "nearest_block", "merge", "count_kept", "scan_blocks",
             "scatter", "jump_init", "jump", "emit", "depth_keys", "invert", "permute")
 
@@ -112,6 +116,19 @@ class DeviceBvhBuilder:
         """Free the device buffers (about 300 bytes per triangle of the last build)."""
         self._bufs.release()
 
+    def check_memory(self, n: int) -> None:
+        """RtwalkError before allocating when the device cannot hold the build's buffers."""
+        from viewer.errors import RtwalkError
+
+        dev = self.ctx.device
+        largest = 16 * 2 * n  # node boxes and pointer-jumping state: 16 bytes per node
+        total = BYTES_PER_TRIANGLE * n
+        if largest > dev.max_mem_alloc_size or total > dev.global_mem_size:
+            raise RtwalkError(f"device BVH build of {n:,} triangles needs {total / 2**30:.1f} GiB of device memory "
+                              f"(buffers up to {largest / 2**20:.0f} MiB); {dev.name.strip()} has "
+                              f"{dev.global_mem_size / 2**30:.1f} GiB (buffers up to "
+                              f"{dev.max_mem_alloc_size / 2**20:.0f} MiB): use --bvh-builder sah")
+
     # -- build ------------------------------------------------------------------------------
     def build(self, triangles: np.ndarray) -> BVH:
         """The BVH of float32 triangles (N, 3, 3); same contract as viewer.accel.bvh.build_bvh."""
@@ -124,6 +141,7 @@ class DeviceBvhBuilder:
         cl, q = self.ctx.cl, self.ctx.queue
         u = np.uint32
         m_all = 2 * n - 1
+        self.check_memory(n)
         b = self._buf
         tri_buf = b("tri", tri.nbytes)
         cl.enqueue_copy(q, tri_buf, tri)
