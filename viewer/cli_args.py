@@ -80,6 +80,10 @@ def add_scene_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--mirror", action="append", default=[], metavar="PATTERN",
                    help="material name pattern made a mirror (repeatable, fnmatch, case-insensitive)")
     p.add_argument("--quiet", action="store_true", help="no progress output")
+    p.add_argument("--bvh-builder", default=None, choices=("auto", "sah", "device"),
+                   help="BVH builder on scene load: sah (CPU binned SAH, the quality reference), device "
+                        "(OpenCL Morton + PLOC) or auto (device from 500k triangles when OpenCL is there); "
+                        "default: $RTWALK_BVH_BUILDER, else auto")
 
 
 def add_effect_args(p: argparse.ArgumentParser, default: str) -> None:
@@ -168,7 +172,8 @@ def scene_from_args(args, recording=None):
         spec = rs.spec
         size = size if size is not None else rs.size
         seed = rs.seed if rs.seed is not None else seed
-    return prepare_scene(spec, scene_size=size, seed=seed, mirror_patterns=args.mirror, quiet=args.quiet)
+    return prepare_scene(spec, scene_size=size, seed=seed, mirror_patterns=args.mirror, quiet=args.quiet,
+                         bvh_builder=getattr(args, "bvh_builder", None))
 
 
 # ---------------------------------------------------------------------------------------------

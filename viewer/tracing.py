@@ -14,7 +14,8 @@ import hashlib
 import moderngl
 import numpy as np
 
-from viewer.accel.bvh import BVH, build_bvh
+from viewer.accel.builders import build_scene_bvh
+from viewer.accel.bvh import BVH
 from viewer.backends import DEFAULT_BACKEND, create_backend
 from viewer.backends.base import BackendContext
 from viewer.degenerate import unhittable
@@ -40,7 +41,7 @@ def _prepared(ctx: moderngl.Context, triangles: np.ndarray):
             for _, _, g, _ in _CACHE.values():
                 g.release()
             _CACHE.clear()
-        bvh = build_bvh(triangles)
+        bvh = build_scene_bvh(triangles)
         scene = Scene("rays", triangles, np.zeros(len(triangles), np.int32),
                       [Material("grey", np.full(3, 0.7, np.float32))]).reordered(bvh.tri_order)
         hit = (scene, bvh, GpuScene.upload(ctx, scene, bvh), ProgramCache(ctx))

@@ -19,7 +19,7 @@ from types import ModuleType
 
 BENCHMARKS: dict[str, str] = {
     "bench": "viewer.bench.replay",
-    "bench-bvh": "viewer.bench.bvh",
+    "bench-bvh": "viewer.bench.bvh_build",
     "bench-chcrt": "viewer.bench.chcrt",
     "bench-pgrid": "viewer.bench.pgrid",
     "bench-voxelwalk": "viewer.bench.voxelwalk",
