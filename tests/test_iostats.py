@@ -136,3 +136,23 @@ def test_gl_backend_bytes_do_not_grow_with_passes(backend, gl_ctx):
     assert io8.bytes_to_device == io4.bytes_to_device, (io4, io8)
     assert 0 <= io8.bytes_to_host - io4.bytes_to_host <= 8 * (io8.gl_draws - io4.gl_draws), (io4, io8)
     assert io4.bytes_to_device + io4.bytes_to_host < SIZE[0] * SIZE[1]  # no per-pixel traffic at all
+
+
+def test_panel_and_bench_summary_show_the_counters():
+    import io as pyio
+
+    from viewer.bench.replay import print_summary, summarize
+    from viewer.iostats import IoCounts
+    from viewer.ui.panel import io_lines
+
+    c = IoCounts(bytes_to_device=4 * 100, bytes_to_host=32 * 100, host_syncs=7, cl_launches=9, gl_draws=2)
+    lines = io_lines(c, (10, 10))
+    assert "4.0 B/px" in lines[0] and "32.0 B/px" in lines[1] and "host syncs 7" in lines[2]
+    rows = [{"gpu_ms": {"a": 1.0}, "wall_ms": 2.0, "rays": {}, "mrays_per_s": {"all": 0.0},
+             "io": IoCounts(bytes_to_device=b).as_dict()} for b in (999, 400, 600)]
+    s = summarize(rows)
+    assert s["io_mean"]["bytes_to_device"] == 500  # steady frames: the first is left out
+    out = pyio.StringIO()
+    print_summary({"summary": s, "size": [10, 10], "scene_name": "x", "triangles": 1, "backend": "b",
+                   "device": {"renderer": "r"}}, out)
+    assert "I/O per steady frame: to device 0.00 MB (5.0 B/px)" in out.getvalue()

@@ -117,8 +117,8 @@ class DeviceFrame:
         n = size[0] * size[1]
         mf = self.ctx.cl.mem_flags
         self.ids = self.ctx.cl.Buffer(self.ctx.context, mf.READ_WRITE | mf.ALLOC_HOST_PTR, 4 * n)
-        self.rays = RayStage(size, self.ctx)
-        self.hits = HitStage(size, self.ctx)
+        self.rays = RayStage(size, self.ctx, "rw")  # written by raygen, read by the tracer
+        self.hits = HitStage(size, self.ctx, "rw")  # written by the tracer, read by accumulate
         self.size = size
 
     def _acc(self, rt: RayType) -> Any:

@@ -61,14 +61,15 @@ def mapped(ctx: ClContext, buf: Any, shape: tuple[int, ...], dtype: Any, write: 
 
 
 class RayStage:
-    """CL copies of a RayBatch: `origin` and `dir` float4 buffers (layout above)."""
+    """CL copies of a RayBatch: `origin` and `dir` float4 buffers (layout above). `access` from the
+    kernels' side: "r" for staged rays, "rw" where a kernel makes them (the device-resident frame)."""
 
-    def __init__(self, size: tuple[int, int], ctx: ClContext | None = None):
+    def __init__(self, size: tuple[int, int], ctx: ClContext | None = None, access: str = "r"):
         self.ctx = ctx or cl_context()
         self.size = (int(size[0]), int(size[1]))
         self.n = self.size[0] * self.size[1]
-        self.origin = host_buffer(self.ctx, self.n * 16, "r")
-        self.dir = host_buffer(self.ctx, self.n * 16, "r")
+        self.origin = host_buffer(self.ctx, self.n * 16, access)
+        self.dir = host_buffer(self.ctx, self.n * 16, access)
 
     def upload(self, rays: RayBatch) -> None:
         """Read the ray textures into the CL buffers (blocks until GL has produced them)."""
@@ -104,14 +105,15 @@ class RayStage:
 
 
 class HitStage:
-    """CL result buffers for a HitBuffer: `t` float and `tri` int per ray (layout above)."""
+    """CL result buffers for a HitBuffer: `t` float and `tri` int per ray (layout above). `access`:
+    "w" for staged hits, "rw" where a kernel reads them too (the device-resident frame)."""
 
-    def __init__(self, size: tuple[int, int], ctx: ClContext | None = None):
+    def __init__(self, size: tuple[int, int], ctx: ClContext | None = None, access: str = "w"):
         self.ctx = ctx or cl_context()
         self.size = (int(size[0]), int(size[1]))
         self.n = self.size[0] * self.size[1]
-        self.t = host_buffer(self.ctx, self.n * 4, "w")
-        self.tri = host_buffer(self.ctx, self.n * 4, "w")
+        self.t = host_buffer(self.ctx, self.n * 4, access)
+        self.tri = host_buffer(self.ctx, self.n * 4, access)
 
     def download(self, hits: HitBuffer) -> None:
         """Write the CL results into the hit textures (waits for the queue's kernels)."""
