@@ -15,6 +15,7 @@ from viewer.bench import voxels as bench_voxels
 from viewer.cli_args import (
     DEFAULT_RECORDING,
     add_effect_args,
+    add_force_arg,
     add_progressive_args,
     add_scene_args,
     backend_options_from,
@@ -23,11 +24,13 @@ from viewer.cli_args import (
     check_image_output,
     check_output_dir,
     check_positive,
+    check_report_free,
     parse_camera,
     parse_size,
     parse_sizes,
     scene_from_args,
     settings_from,
+    warn_no_mirrors,
 )
 from viewer.errors import RtwalkError
 
@@ -59,6 +62,7 @@ def cmd_render(args) -> int:
     check_device(args.backend)
     ctx = create_headless_context()  # no EGL: fail before loading
     prepared = scene_from_args(args, rec)
+    warn_no_mirrors(settings, prepared.scene)
     if camera is None:
         camera = prepared.scene.default_camera
     renderer = Renderer(ctx, prepared.scene, prepared.bvh, size, args.backend, settings, backend_options)
@@ -66,6 +70,7 @@ def cmd_render(args) -> int:
     if rec is not None:  # an animated scene is shown at the recording's scene time of that frame
         renderer.set_scene_time(rec.scene_time_for_frame(args.frame))
     report = renderer.render(camera)
+    out.parent.mkdir(parents=True, exist_ok=True)
     Image.fromarray(renderer.read_image()).save(out)
     if not args.quiet:
         rays = ", ".join(f"{k} {v:,}" for k, v in report.rays.items()) or "none"
@@ -104,18 +109,27 @@ def cmd_bench(args) -> int:
     check_device(args.backend)
     ctx = create_headless_context()  # no EGL: fail before loading
     prepared = scene_from_args(args, rec)
+    warn_no_mirrors(settings, prepared.scene)
     stem = args.name or f"{prepared.scene.name}-{Path(rec_path).stem}-{args.backend}-{opts.size[0]}x{opts.size[1]}"
-    if getattr(args, "progressive", False):
-        import json
-
+    progressive = getattr(args, "progressive", False)
+    names = [f"{stem}-progressive.json"] if progressive else [f"{stem}.json", f"{stem}.png"]
+    check_report_free([out_dir / n for n in names], getattr(args, "force", False))
+    if progressive:
+        from viewer.bench.report import write_json
         from viewer.progressive import replay_progressive
 
         result = replay_progressive(prepared, rec, settings, opts, ctx, args.frame_target_ms, quiet=args.quiet)
-        path = out_dir / f"{stem}-progressive.json"
-        path.write_text(json.dumps(result, indent=1))
+        path = out_dir / names[0]
+        write_json(path, result)
         print(f"report: {path}")
         return 0
     report = run_bench(prepared, rec, settings, opts, ctx, quiet=args.quiet)
+    if not report["complete"]:  # interrupted (Ctrl-C): the frames done are kept, marked incomplete
+        if report["frames"]:
+            json_path, _ = write_report(report, out_dir, stem)
+            print(f"rtwalk: interrupted after {len(report['frames'])} frames: partial report {json_path} "
+                  "(\"complete\": false)", file=sys.stderr)
+        raise KeyboardInterrupt
     print_summary(report)
     json_path, png_path = write_report(report, out_dir, stem)
     print(f"report: {json_path}\nplot:   {png_path}")
@@ -129,6 +143,7 @@ def cmd_bench_bvh(args) -> int:
 
     sizes = parse_sizes(args.sizes)
     out = check_output_dir(args.out, "--out")
+    check_report_free([out / "bvh-build.json"], args.force)
     rows = []
     for n in sizes:
         scene = make_city(n, args.seed)
@@ -203,6 +218,7 @@ def cmd_demo(args) -> int:
     args.save_frames = "out/demo/frames"
     args.out = "out/demo"
     args.name = "city-near"
+    args.force = True  # the demo's own folder: each headless demo replaces the last one's report
     return cmd_bench(args)
 
 
@@ -283,6 +299,10 @@ def build_parser() -> argparse.ArgumentParser:
                     help="comma list of city triangle counts to build (each as --scene-size accepts)")
     bb.add_argument("--seed", type=int, default=1, help="seed of the procedural city")
     bb.add_argument("--out", default="out/bench", help="folder for bvh-build.json")
+
+    for name, parser in sub.choices.items():  # nothing lost: every report writer refuses to overwrite
+        if name.startswith("bench"):
+            add_force_arg(parser)
 
     i = sub.add_parser("info", help="scene statistics")
     add_scene_args(i)

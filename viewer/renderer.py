@@ -25,6 +25,7 @@ from viewer.backends.interface import OverlaySpec
 from viewer.camera import Camera
 from viewer.effects import EffectSettings, RayType
 from viewer.errors import RtwalkError
+from viewer.gl.limits import allocation_guard, check_target_size
 from viewer.gl.programs import FullscreenQuad, ProgramCache
 from viewer.gl.scene import GpuScene
 from viewer.iostats import IoCounts
@@ -97,13 +98,15 @@ class Renderer:
         self.programs = ProgramCache(ctx)
         self.profiler = GpuProfiler(ctx)
         self.quad = FullscreenQuad(ctx)
+        check_target_size(ctx, size)  # one line, before anything frame-sized is allocated
         self.gpu_scene = GpuScene.upload(ctx, scene, bvh)
-        self.gbuffer = GBufferPass(ctx, self.programs, self.gpu_scene, size, self.depth_scale, self.diagonal)
-        self.raygen = RayGenPass(ctx, self.programs, self.quad)
-        self.accumulate = AccumulatePass(ctx, self.programs, self.quad, size)
-        self.shade = ShadePass(ctx, self.programs, self.quad, size)
-        self.rays = RayBatch(ctx, size)
-        self.hits = HitBuffer(ctx, size)
+        with allocation_guard(size):
+            self.gbuffer = GBufferPass(ctx, self.programs, self.gpu_scene, size, self.depth_scale, self.diagonal)
+            self.raygen = RayGenPass(ctx, self.programs, self.quad)
+            self.accumulate = AccumulatePass(ctx, self.programs, self.quad, size)
+            self.shade = ShadePass(ctx, self.programs, self.quad, size)
+            self.rays = RayBatch(ctx, size)
+            self.hits = HitBuffer(ctx, size)
         self.frame_index = 0
         self.samples_done: dict[RayType, set[int]] = {}  # sample indices accumulated since the last clear
         # overlays: the pass to copy them from ((ray type, sample), first occurrence in the frame;
@@ -188,6 +191,7 @@ class Renderer:
     def resize(self, size: tuple[int, int]) -> None:
         if size == self.size:
             return
+        check_target_size(self.ctx, size, "render size")
         # never release a framebuffer that is still bound: bind one that survives the resize
         if self.ctx.screen is not None:
             self.ctx.screen.use()
@@ -196,15 +200,16 @@ class Renderer:
                 self._idle_fbo = self.ctx.simple_framebuffer((1, 1))
             self._idle_fbo.use()
         self.size = size
-        self.gbuffer.resize(size)
-        self.accumulate.resize(size)
-        self.shade.resize(size)
-        self.rays.release()
-        self.hits.release()
-        self.rays = RayBatch(self.ctx, size)
-        self.hits = HitBuffer(self.ctx, size)
-        if self._overlay is not None:
-            self._overlay.resize(size)
+        with allocation_guard(size, "render size"):
+            self.gbuffer.resize(size)
+            self.accumulate.resize(size)
+            self.shade.resize(size)
+            self.rays.release()
+            self.hits.release()
+            self.rays = RayBatch(self.ctx, size)
+            self.hits = HitBuffer(self.ctx, size)
+            if self._overlay is not None:
+                self._overlay.resize(size)
 
     @property
     def final_texture(self) -> moderngl.Texture:

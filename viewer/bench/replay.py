@@ -127,42 +127,47 @@ def run_bench(prepared: PreparedScene, rec, settings: EffectSettings, opts: Benc
         print(f"bench: {len(frames)} of the path's {rec.frame_count(opts.fps)} frames"
               + (f", {checked} checked against Embree (every {every})" if checked else ""), file=sys.stderr)
     t_start, t_render0 = time.perf_counter(), 0.0
-    for k, n in enumerate(tqdm(frames, desc=f"bench {opts.backend}", unit="frame", disable=quiet,
-                               file=sys.stderr)):
-        if k == 1 and not quiet:  # the first frame (rendered and checked) times the rest
-            first = time.perf_counter() - t_start
-            # a checked frame costs `first`, an unchecked one its render part
-            est = first * (checked - 1) + t_render0 * (len(frames) - checked) if checked else first * (len(frames) - 1)
-            tqdm.write(f"bench: estimated {est / 60:.1f} min more (first frame {first:.1f} s)", file=sys.stderr)
-        t_frame = time.perf_counter()
-        cam = rec.camera_for_frame(n, opts.fps)
-        renderer.set_scene_time(rec.scene_time_for_frame(n, opts.fps))
-        rep = renderer.render(cam)
-        row = frame_row(rep, rec, n, opts.fps)
-        if k == 0:
-            t_render0 = time.perf_counter() - t_frame
-        image = None
-        if tracer is not None and k % max(opts.reference_every, 1) == 0:
-            if tracer_version != renderer.scene.geometry_version:  # an animated scene moved: judge this frame's
-                tracer = EmbreeTracer(renderer.scene.triangles)
-                tracer_version = renderer.scene.geometry_version
-            err = reference_errors(renderer, cam, tracer)
-            image = err["image"]
-            row["error"] = err["rays"]
-            renderer.set_backend(opts.reference)  # the reference image: the backend of that name
-            renderer.render(cam)
-            ref_image = renderer.read_image()
-            renderer.set_backend(opts.backend)
-            row["image_error"] = image_error(image, ref_image)
-        if opts.frames_dir is not None and k % max(opts.frame_every, 1) == 0:
-            from PIL import Image
+    complete = True
+    try:
+        for k, n in enumerate(tqdm(frames, desc=f"bench {opts.backend}", unit="frame", disable=quiet,
+                                   file=sys.stderr)):
+            if k == 1 and not quiet:  # the first frame (rendered and checked) times the rest
+                first = time.perf_counter() - t_start
+                # a checked frame costs `first`, an unchecked one its render part
+                est = (first * (checked - 1) + t_render0 * (len(frames) - checked) if checked
+                       else first * (len(frames) - 1))
+                tqdm.write(f"bench: estimated {est / 60:.1f} min more (first frame {first:.1f} s)", file=sys.stderr)
+            t_frame = time.perf_counter()
+            cam = rec.camera_for_frame(n, opts.fps)
+            renderer.set_scene_time(rec.scene_time_for_frame(n, opts.fps))
+            rep = renderer.render(cam)
+            row = frame_row(rep, rec, n, opts.fps)
+            if k == 0:
+                t_render0 = time.perf_counter() - t_frame
+            image = None
+            if tracer is not None and k % max(opts.reference_every, 1) == 0:
+                if tracer_version != renderer.scene.geometry_version:  # an animated scene moved: judge this frame's
+                    tracer = EmbreeTracer(renderer.scene.triangles)
+                    tracer_version = renderer.scene.geometry_version
+                err = reference_errors(renderer, cam, tracer)
+                image = err["image"]
+                row["error"] = err["rays"]
+                renderer.set_backend(opts.reference)  # the reference image: the backend of that name
+                renderer.render(cam)
+                ref_image = renderer.read_image()
+                renderer.set_backend(opts.backend)
+                row["image_error"] = image_error(image, ref_image)
+            if opts.frames_dir is not None and k % max(opts.frame_every, 1) == 0:
+                from PIL import Image
 
-            if image is None:
-                image = renderer.read_image()
-            opts.frames_dir.mkdir(parents=True, exist_ok=True)
-            Image.fromarray(image).save(opts.frames_dir / f"frame_{n:05d}.png")
-            row["overlays"] = save_overlay_views(renderer, cam, opts.frames_dir, n)
-        records.append(row)
+                if image is None:
+                    image = renderer.read_image()
+                opts.frames_dir.mkdir(parents=True, exist_ok=True)
+                Image.fromarray(image).save(opts.frames_dir / f"frame_{n:05d}.png")
+                row["overlays"] = save_overlay_views(renderer, cam, opts.frames_dir, n)
+            records.append(row)
+    except KeyboardInterrupt:  # Ctrl-C: keep the frames done; the caller writes them marked incomplete
+        complete = False
     report = {
         "format": "rtwalk-bench", "version": 1,
         "scene": prepared.scene.identity, "scene_name": prepared.scene.name,
@@ -174,6 +179,7 @@ def run_bench(prepared: PreparedScene, rec, settings: EffectSettings, opts: Benc
         "device": {"renderer": ctx.info.get("GL_RENDERER"), "version": ctx.info.get("GL_VERSION"),
                    "phase_timing": renderer.profiler.method},
         "frames": records, "summary": summarize(records),
+        "complete": complete,  # False: interrupted; `frames` holds the frames finished before that
     }
     renderer.release()
     return report

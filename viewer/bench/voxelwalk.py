@@ -35,7 +35,7 @@ import numpy as np
 
 from viewer.bench.plots import figure, finish
 from viewer.bench.report import fmt, md_table, size_text, write_study
-from viewer.cli_args import parse_choices
+from viewer.cli_args import check_report_free, parse_choices
 from viewer.errors import RtwalkError
 
 STUDIES = ("table51", "iterations", "resolution")
@@ -476,6 +476,7 @@ def run(args) -> int:
         raise RtwalkError("--repeats must be >= 1")
     if args.chunk not in (16, 32, 64, 128, 256):
         raise RtwalkError(f"--chunk must be one of 16, 32, 64, 128, 256 (got {args.chunk})")
+    check_report_free([Path(args.out) / f"{s}.json" for s in studies], getattr(args, "force", False))
     cl_context()
     ctx = shared_context()
     Path(args.out).mkdir(parents=True, exist_ok=True)

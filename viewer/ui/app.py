@@ -155,6 +155,7 @@ def run_viewer(args) -> int:
         parse_size,
         scene_from_args,
         settings_from,
+        warn_no_mirrors,
     )
     from viewer.recording import load_recording
 
@@ -177,6 +178,7 @@ def run_viewer(args) -> int:
     if not quiet:
         log("rtwalk view: loading the scene before opening the window ...")
     prepared = scene_from_args(args, recording)
+    mirrors_note = warn_no_mirrors(settings, prepared.scene)
     window = open_window((size[0] + PANEL_WIDTH, size[1]), f"rtwalk - {prepared.scene.name}")
     app = None
     try:
@@ -186,6 +188,8 @@ def run_viewer(args) -> int:
                         quiet=quiet, progressive=getattr(args, "progressive", True),
                         frame_target_ms=getattr(args, "frame_target_ms", 100.0))
         app.renderer.view = view
+        if mirrors_note:
+            app.status = mirrors_note.removeprefix("rtwalk: warning: ")
         return app.run()
     finally:
         if app is not None:
@@ -227,6 +231,9 @@ class ViewerApp:
         self.last_report = None
         self.history = FrameHistory()
         self.frames = 0
+        self.last_frame_ms = 0.0  # the last loop iteration that rendered (the panel's fps line)
+        self.idle = False  # the last frame rendered nothing (progressive image converged)
+        self._rendered_last = False
         self._pending: list[Callable[[], None]] = []
 
         self.renderer = Renderer(self.ctx, prepared.scene, prepared.bvh, self._render_size(), backend, settings,
@@ -246,6 +253,8 @@ class ViewerApp:
         self._play_t0 = 0.0
         self._anim_t0 = time.perf_counter()  # scene time 0 of an animated scene (outside playback)
         self._looking = False
+        if recording is not None:  # --recording: the user asked to see it, play it from the first frame
+            self.toggle_playback()
 
         # imgui: context, renderer, extra keys (ctrl+A/C for the read-only camera field)
         imgui.create_context()
@@ -571,8 +580,11 @@ class ViewerApp:
         for action in pending:
             action()
         imgui.get_io().delta_time = max(dt, 1e-4)
+        if self._rendered_last and frame_ms > 0:  # frame_ms: the previous iteration, which rendered
+            self.last_frame_ms = frame_ms
         self.update_camera(now, dt)
         report = self._render()
+        self._rendered_last, self.idle = report is not None, report is None
         if report is not None:
             self.last_report = report
             self.history.add(frame_ms if frame_ms > 0 else report.wall_ms, sum(report.gpu_ms.values()),
