@@ -367,8 +367,8 @@ def test_every_bench_command_refuses_to_overwrite(tmp_path, capsys, command, rep
     from viewer.cli import main
 
     (tmp_path / report).write_text("kept")
-    extra = {"bench-bvh": ["--sizes", "1000"], "bench-cl": ["--sizes", "1000"], "bench-pgrid": ["--study", "table41"],
-             "bench-voxelwalk": ["--study", "table51"], "bench-trace": [], "bench-voxels": ["--scenes", "room"]}[command]
+    extra = {"bench-pgrid": ["--study", "table41"], "bench-voxelwalk": ["--study", "table51"],
+             "bench-voxels": ["--scenes", "room"]}.get(command, [])  # the rest: their defaults (nothing runs)
     assert main([command, *extra, "--out", str(tmp_path)]) == 2
     err = capsys.readouterr().err
     assert "--force" in err and report in err

@@ -102,6 +102,7 @@ class Renderer:
         self.gpu_scene = GpuScene.upload(ctx, scene, bvh)
         with allocation_guard(size):
             self.gbuffer = GBufferPass(ctx, self.programs, self.gpu_scene, size, self.depth_scale, self.diagonal)
+            self.gbuffer.set_bvh(bvh)
             self.raygen = RayGenPass(ctx, self.programs, self.quad)
             self.accumulate = AccumulatePass(ctx, self.programs, self.quad, size)
             self.shade = ShadePass(ctx, self.programs, self.quad, size)
@@ -182,6 +183,7 @@ class Renderer:
         with prof.phase("build:upload"):
             self.gpu_scene.update(scene, bvh)
         self.scene, self.bvh = scene, bvh
+        self.gbuffer.set_bvh(bvh)  # refit boxes cull the raster
         self._stale = set(self._backends)
         self._stale.discard(self.backend_name)
         self.backend.scene_changed(BackendContext(self.ctx, self.programs, self.profiler, self.gpu_scene,
