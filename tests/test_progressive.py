@@ -10,7 +10,7 @@ import pytest
 from tests.conftest import prepared_scene
 from viewer.camera import Camera
 from viewer.effects import parse_effects
-from viewer.progressive import Progressive
+from viewer.progressive import MIN_SCALE, Progressive, scaled_size
 from viewer.renderer import Renderer
 
 SIZE = (96, 54)
@@ -48,7 +48,7 @@ def test_converges_to_the_full_quality_frame(gl_ctx, room, target_ms):
         # one pass per effect while moving: 1 shadow pass per light, 1 soft pass per rect light, 1 AO pass
         assert s2.report.rays["ao"] > 0 and s2.report.rays["soft"] > 0
         if target_ms < 1:  # over the target: the moving image is smaller (upscaled when shown)
-            assert s2.scale == pytest.approx(0.25) and tuple(r.size) == (24, 14)
+            assert s2.scale == pytest.approx(MIN_SCALE) and tuple(r.size) == scaled_size(SIZE, MIN_SCALE)
         else:
             assert s2.scale == 1.0 and tuple(r.size) == SIZE
         steps = []

@@ -17,6 +17,7 @@ import pytest
 
 from viewer.camera import Camera, yaw_pitch_to_quat
 from viewer.errors import RtwalkError
+from viewer.progressive import MIN_SCALE, scaled_size
 from viewer.ui.camera_controller import (
     FAST_FACTOR,
     PITCH_LIMIT,
@@ -597,8 +598,8 @@ def test_view_progressive_panel_beside_the_image(tmp_path):
     steps = log["steps"]
     assert log["rc"] == 0 and len(steps) == 14 and not log["cut"], log["cut"]
     moving = steps[1:4]  # W held (pressed before frame 1, released before frame 4): the camera moves
-    assert all(s["moving"] and s["done"] == 1 and s["scale"] == 0.25 for s in moving), moving
-    assert all(s["size"] == [100, 60] for s in moving)
+    assert all(s["moving"] and s["done"] == 1 and s["scale"] == MIN_SCALE for s in moving), moving
+    assert all(s["size"] == list(scaled_size((400, 240), MIN_SCALE)) for s in moving)
     still = steps[4:]
     assert not any(s["moving"] for s in still)
     assert [s["done"] for s in still[:4]] == [1, 2, 3, 4] and all(s["size"] == [400, 240] for s in still)
@@ -608,3 +609,70 @@ def test_view_progressive_panel_beside_the_image(tmp_path):
     assert img.shape == (240, 400 + PANEL_WIDTH, 3)
     final = np.load(tmp_path / "final.npy")
     np.testing.assert_array_equal(img[:, PANEL_WIDTH:], final)  # the whole image, nothing under the panel
+
+
+# --------------------------------------------------------------------------- issue 23: the panel fits
+
+
+def test_fps_line_is_the_last_rendered_frame_or_idle():
+    from types import SimpleNamespace
+
+    from viewer.ui.panel import fps_line
+
+    hist = FrameHistory()
+    for ms in (100.0, 300.0, 1900.0):
+        hist.add(ms, ms)
+    assert "1.9 s" not in fps_line(SimpleNamespace(history=hist, last_frame_ms=1900.0, idle=False))
+    assert fps_line(SimpleNamespace(history=hist, last_frame_ms=1900.0, idle=False)).split()[0] == "0.5"
+    idle = fps_line(SimpleNamespace(history=hist, last_frame_ms=1900.0, idle=True))
+    assert idle.startswith("idle") and "fps" not in idle and "1,900 ms" in idle
+    assert fps_line(SimpleNamespace(history=FrameHistory(), last_frame_ms=0.0, idle=False)) == "- fps"
+
+
+def test_top_phases_fold_the_rest():
+    from viewer.ui.panel import TOP_PHASES, top_phases
+
+    few = {"gbuffer": 3.0, "shade": 1.0}
+    assert top_phases(few) == list(few.items())
+    many = {f"p{i}": float(i) for i in range(12)}
+    rows = top_phases(many)
+    assert len(rows) == TOP_PHASES + 1 and rows[-1][0] == f"other ({12 - TOP_PHASES} phases)"
+    assert sum(v for _, v in rows) == pytest.approx(sum(many.values()))
+    assert [k for k, _ in rows[:-1]] == [f"p{i}" for i in range(12 - TOP_PHASES, 12)]  # costliest, in order
+
+
+@pytest.mark.parametrize("backend", ["glsl", "pgrid"])
+def test_panel_fits_a_504_px_window(gl_ctx, backend, monkeypatch):
+    """The panel as it opens (sections folded but the timings) holds in the 504-px window with
+    this backend's phases and counters: nothing to scroll to, nothing below the edge."""
+    from imgui_bundle import imgui
+
+    from tests.conftest import opencl_missing, prepared_scene
+    from tests.view_helpers import draw_views
+
+    if backend == "pgrid" and opencl_missing():
+        pytest.skip(opencl_missing())
+    from viewer.effects import parse_effects
+    from viewer.renderer import Renderer
+    from viewer.ui import panel
+
+    room = prepared_scene("room")
+    cam = room.scene.default_camera
+    r = Renderer(gl_ctx, room.scene, room.bvh, (64, 36), backend, parse_effects("shadows,ao:2,reflections"))
+    seen = []
+    real_end = imgui.end
+
+    def end():
+        if imgui.get_window_size().x == 340:  # the panel window (not implot's)
+            seen.append((imgui.get_cursor_pos_y(), imgui.get_scroll_max_y(), imgui.get_window_size().y))
+        real_end()
+
+    monkeypatch.setattr(imgui, "end", end)
+    real_draw = panel.draw_panel
+    monkeypatch.setattr(panel, "draw_panel", lambda host, w, h: real_draw(host, w, 504))
+    try:
+        draw_views(r, cam, ("final", "final", "final"))  # the scroll range settles after a frame
+    finally:
+        r.release()
+    bottom, scroll_max, height = seen[-1]
+    assert height == 504 and scroll_max == 0 and bottom <= 504, seen

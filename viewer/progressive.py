@@ -29,6 +29,8 @@ from viewer.camera import Camera
 from viewer.renderer import FrameReport, Renderer
 
 SCALE_STEP = 1 / 16  # render scales are multiples of this (each change reallocates the targets)
+MIN_SCALE = 1 / 8  # floor of the moving frames' scale: 112x63 of an 896x504 window
+DEFAULT_TARGET_MS = 66.0  # moving frames: 15 fps
 
 
 @dataclass
@@ -57,8 +59,8 @@ def _camera_key(camera: Camera) -> tuple:
 
 
 class Progressive:
-    def __init__(self, renderer: Renderer, full_size: tuple[int, int], target_ms: float = 100.0,
-                 min_scale: float = 0.25, resize: Callable[[tuple[int, int]], None] | None = None):
+    def __init__(self, renderer: Renderer, full_size: tuple[int, int], target_ms: float = DEFAULT_TARGET_MS,
+                 min_scale: float = MIN_SCALE, resize: Callable[[tuple[int, int]], None] | None = None):
         """`resize`: how to resize the renderer (the window binds its screen first)."""
         self.renderer = renderer
         self.resize = resize or renderer.resize
@@ -69,6 +71,9 @@ class Progressive:
         self.shown_scale = 1.0
         self._key: tuple | None = None
         self._next = 0  # next sample index to accumulate at full scale (0: start over)
+        # per-frame time spent outside render() (the window's panel, blit and swap), measured by the
+        # caller: the budget is for the whole frame, so the render gets what that leaves
+        self.extra_ms = 0.0
 
     def invalidate(self) -> None:
         """Something outside (a screenshot render) used the renderer: start over."""
@@ -84,10 +89,12 @@ class Progressive:
                 self.full_size, r.scene_time)  # an animated scene's new time is a moving frame
 
     def _adapt(self, wall_ms: float) -> None:
-        """Scale for the next moving frame: cost ~ pixels ~ scale^2 (a dead band against flicker)."""
+        """Scale for the next moving frame from the measured frame time (the render's wall time plus
+        `extra_ms`), so the budget holds when other work slows the machine: cost ~ pixels ~ scale^2,
+        with a dead band against flicker."""
         if wall_ms <= 0:
             return
-        ideal = self.scale * math.sqrt(self.target_ms / wall_ms)
+        ideal = self.scale * math.sqrt(self.target_ms / (wall_ms + max(self.extra_ms, 0.0)))
         ideal = min(1.0, max(self.min_scale, ideal))
         if ideal < self.scale * 0.95 or ideal > self.scale * 1.15:
             self.scale = max(self.min_scale, min(1.0, math.floor(ideal / SCALE_STEP) * SCALE_STEP))
@@ -120,7 +127,8 @@ def _percentile(values: list[float], q: float) -> float:
     return float(np.percentile(np.asarray(values, np.float64), q)) if values else float("nan")
 
 
-def replay_progressive(prepared, rec, settings, opts, ctx, target_ms: float = 100.0, quiet: bool = False) -> dict:
+def replay_progressive(prepared, rec, settings, opts, ctx, target_ms: float = DEFAULT_TARGET_MS,
+                       quiet: bool = False) -> dict:
     """Headless replay in progressive mode: every replayed frame is a moving frame; at the last
     camera the path stops and passes are added until converged. Reports frame times (median, p95)
     while moving, the render scales used, the time to convergence after the stop, and the converged

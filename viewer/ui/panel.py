@@ -49,7 +49,7 @@ def counter_rows(stats: dict[str, float], declared: Sequence[str]) -> tuple[list
     return rows, [k for k in stats if k not in rows]
 
 
-TOP_PHASES = 5  # the timings section lists the costliest phases; the rest share one bar
+TOP_PHASES = 4  # the timings section lists the costliest phases; the rest share one bar
 
 
 def top_phases(gpu_ms: dict[str, float], n: int = TOP_PHASES) -> list[tuple[str, float]]:
@@ -197,7 +197,7 @@ def draw_panel(host, width: float, height: float) -> None:  # noqa: C901 (a flat
         rep = host.last_report
         frame = hist.array("frame")
         imgui.plot_lines("##frame", frame, overlay_text=f"frame ms (last {len(hist.frame_ms)})",
-                         scale_min=0.0, scale_max=float(max(frame.max() * 1.1, 1.0)), graph_size=(-1, 40))
+                         scale_min=0.0, scale_max=float(max(frame.max() * 1.1, 1.0)), graph_size=(-1, 36))
         if rep is not None:
             total = max(sum(rep.gpu_ms.values()), 1e-6)
             imgui.text(f"GPU {total:.1f} ms, wall {rep.wall_ms:.1f} ms")
