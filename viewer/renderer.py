@@ -131,6 +131,10 @@ class Renderer:
         self.backend_options = dict(backend_options or {})
         self.scene_time = float(scene.scene_time)  # wanted scene time; applied at the next render()
         self._stale: set[str] = set()  # created backends not yet told about the latest geometry
+        # where the G-buffer comes from: "raster" (exact conservative raster, cost ~ triangles in
+        # view) or "trace" (the backend's primary rays, cost ~ pixels); the progressive mode picks
+        # the cheaper one for its small moving frames (viewer.progressive)
+        self.gbuffer_source = "raster"
         self.set_backend(backend or backend_names()[0])
 
     # -- configuration -------------------------------------------------------------------------
@@ -387,14 +391,17 @@ class Renderer:
         for prog in (self.raygen.program, self.accumulate.program, self.shade.program):
             apply(prog, cam_u)
             apply(prog, light_u)
+        self.backend.overlays_enabled = self.overlays_wanted  # diagnostics cost time: only when shown or saved
+        self.backend.begin_frame(self.frame_index)
         if not keep:
-            with prof.phase("gbuffer"):
-                self.gbuffer.render(camera)
+            if self.gbuffer_source == "trace":
+                self._traced_gbuffer(camera)
+            else:
+                with prof.phase("gbuffer"):
+                    self.gbuffer.render(camera)
             self.accumulate.clear()
             self.samples_done = {}
         self.raygen.reset_count()
-        self.backend.overlays_enabled = self.overlays_wanted  # diagnostics cost time: only when shown or saved
-        self.backend.begin_frame(self.frame_index)
         lengths = {RayType.AO: s.ao_length * self.diagonal, RayType.DIFFUSE: self.diagonal}
         captured: list[CapturedPass] = []
         stats: dict[str, float] = {}
@@ -435,6 +442,17 @@ class Renderer:
         rays = {RayType(i).label: int(counts[i]) for i in range(6) if counts[i] > 0}
         return FrameReport(gpu_ms, prof.cpu_ms(), wall, rays, dict(prof.by_label), stats, captured,
                            self.overlay_source, iostats.end_frame())
+
+    def _traced_gbuffer(self, camera: Camera) -> None:
+        """The G-buffer from the backend's nearest hits of primary rays (gbuffer_source "trace"):
+        phases gbuffer:rays, the backend's trace:primary, gbuffer:fill. The rays are not counted
+        (raygen's counters are reset after the G-buffer) and no overlay is taken from this pass."""
+        prof = self.profiler
+        with prof.phase("gbuffer:rays"):
+            self.raygen.generate(self.rays, self.gbuffer, RayType.PRIMARY, 0, 0, 0.0, 0.0)
+        self.backend.trace(self.rays, PassInfo(RayType.PRIMARY, 0, 0, 1.0), self.hits)
+        with prof.phase("gbuffer:fill"):
+            self.gbuffer.fill_from_hits(camera, self.hits, self.quad)
 
     def read_image(self) -> np.ndarray:
         return self.shade.read_rgb()

@@ -2,6 +2,10 @@
 
 Only what can be seen is drawn: the BVH subtrees inside the view pyramid (viewer.passes.cull), as
 one multi-draw-indirect call; `cull = False` draws every triangle (tests compare the two).
+
+The raster's cost grows with the triangles in view, a traced G-buffer's with the pixels: for small
+images (moving frames at a low render scale) `fill_from_hits` writes the same targets from the
+backend's traced primary rays instead (the renderer's `gbuffer_source = "trace"`).
 """
 
 from __future__ import annotations
@@ -28,6 +32,7 @@ class GBufferPass(SizedTargets):
         self.depth_scale = depth_scale
         self.diagonal = scene_diagonal
         self.program = programs.get("gbuffer.vert", "gbuffer.frag", geometry="gbuffer.geom")
+        self.fill = programs.get("fullscreen.vert", "gbuffer_fill.frag")
         self.vao = ctx.vertex_array(self.program, [(gpu_scene.vertices, "3f", "in_pos")])
         self.cull = True  # frustum culling by BVH subtrees (False: draw every triangle)
         self.bvh: BVH | None = None
@@ -57,10 +62,7 @@ class GBufferPass(SizedTargets):
 
     def render(self, camera: Camera) -> None:
         ctx = self.ctx
-        self.fbo.use()
-        # The float clear colour reaches the R32I id attachment as raw bits: -1.0 -> 0xBF800000,
-        # a negative id, which every shader reads as "no triangle" (id < 0).
-        self.fbo.clear(-1.0, 0.0, 0.0, 0.0, depth=1.0)
+        self.clear()
         ctx.enable(ctx.DEPTH_TEST)
         ctx.disable(ctx.CULL_FACE | ctx.BLEND)
         ctx.depth_func = "<"
@@ -78,6 +80,33 @@ class GBufferPass(SizedTargets):
         apply(self.program, camera_uniforms(camera, self.size))
         self.gpu_scene.bind()
         self._draw(camera, w / h)
+        ctx.disable(ctx.DEPTH_TEST)
+
+    def clear(self) -> None:
+        self.fbo.use()
+        # The float clear colour reaches the R32I id attachment as raw bits: -1.0 -> 0xBF800000,
+        # a negative id, which every shader reads as "no triangle" (id < 0).
+        self.fbo.clear(-1.0, 0.0, 0.0, 0.0, depth=1.0)
+
+    def fill_from_hits(self, camera: Camera, hits, quad) -> None:
+        """The targets from traced primary rays (`hits`: a viewer.rays.HitBuffer of rays through the
+        pixel centres): per pixel the same outputs the raster writes for the hit triangle."""
+        ctx = self.ctx
+        self.clear()
+        ctx.enable(ctx.DEPTH_TEST)  # depth is written only with the test on; every pixel passes
+        ctx.disable(ctx.CULL_FACE | ctx.BLEND)
+        ctx.depth_func = "1"
+        p = self.fill
+        p["depthScale"].value = float(self.depth_scale)
+        apply(p, camera_uniforms(camera, self.size))
+        self.gpu_scene.bind()
+        hits.t.use(0)
+        hits.id.use(1)
+        p["hitT"] = 0
+        p["hitId"] = 1
+        iostats.gl_draw(1)
+        quad.render(p)
+        ctx.depth_func = "<"
         ctx.disable(ctx.DEPTH_TEST)
 
     def _draw(self, camera: Camera, aspect: float) -> None:

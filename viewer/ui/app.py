@@ -254,8 +254,9 @@ class ViewerApp:
         self._play_t0 = 0.0
         self._anim_t0 = time.perf_counter()  # scene time 0 of an animated scene (outside playback)
         self._looking = False
-        if recording is not None:  # --recording: the user asked to see it, play it from the first frame
-            self.toggle_playback()
+        # --recording: the user asked to see it: played from the start once the first frame (shader
+        # compilation, a full-size image) is up, so the path's clock does not run during that frame
+        self._autoplay = recording is not None
 
         # imgui: context, renderer, extra keys (ctrl+A/C for the read-only camera field)
         imgui.create_context()
@@ -621,6 +622,9 @@ class ViewerApp:
             draw_panel(self, panel_w, wh)
         imgui.render()
         self.imgui.render(imgui.get_draw_data())
+        if self._autoplay:
+            self._autoplay = False
+            self.toggle_playback()
 
     def save_window(self, path: str) -> Path:
         """The default framebuffer as it is now (scene + panel), as PNG."""
