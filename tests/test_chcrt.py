@@ -98,6 +98,15 @@ def _fallback_scene(name: str, path):
 _GLSL_FRAMES: dict = {}  # (scene, effects) -> the glsl reference frames (captured), rendered once
 
 
+@pytest.fixture(scope="module", autouse=True)
+def _release_module_caches():
+    """The scenes and reference frames cached here are dropped after this module (the session's
+    peak memory is not this module's plus the next ones')."""
+    yield
+    _GLSL_FRAMES.clear()
+    _SCENES.clear()
+
+
 def _glsl_frames(ctx, name: str, effects: str) -> list:
     """The glsl frames along the scene's path: the reference every chcrt configuration of this
     module is compared with (the pipeline is deterministic, so one rendering serves them all)."""
