@@ -14,6 +14,7 @@ from viewer.bench import BENCHMARKS, bench_module
 from viewer.cli_args import (
     DEFAULT_RECORDING,
     add_effect_args,
+    add_force_arg,
     add_progressive_args,
     add_scene_args,
     backend_options_from,
@@ -24,6 +25,7 @@ from viewer.cli_args import (
     parse_size,
     scene_from_args,
     settings_from,
+    warn_no_mirrors,
 )
 from viewer.errors import RtwalkError
 
@@ -53,6 +55,7 @@ def cmd_render(args) -> int:
     check_device(args.backend)
     ctx = create_headless_context()  # no EGL: fail before loading
     prepared = scene_from_args(args, rec)
+    warn_no_mirrors(settings, prepared.scene)
     if camera is None:
         camera = prepared.scene.default_camera
     renderer = Renderer(ctx, prepared.scene, prepared.bvh, size, args.backend, settings, backend_options)
@@ -60,6 +63,7 @@ def cmd_render(args) -> int:
     if rec is not None:  # an animated scene is shown at the recording's scene time of that frame
         renderer.set_scene_time(rec.scene_time_for_frame(args.frame))
     report = renderer.render(camera)
+    out.parent.mkdir(parents=True, exist_ok=True)
     Image.fromarray(renderer.read_image()).save(out)
     if not args.quiet:
         rays = ", ".join(f"{k} {v:,}" for k, v in report.rays.items()) or "none"
@@ -104,6 +108,7 @@ def cmd_demo(args) -> int:
     args.save_frames = "out/demo/frames"
     args.out = "out/demo"
     args.name = "city-near"
+    args.force = True  # the demo's own folder: each headless demo replaces the last one's report
     return bench_module("bench").run(args)
 
 
@@ -136,6 +141,10 @@ def build_parser() -> argparse.ArgumentParser:
     for command in BENCHMARKS:  # every benchmark registers itself (viewer/bench/__init__.py)
         module = bench_module(command)
         module.add_arguments(sub.add_parser(command, help=module.HELP))
+
+    for name, parser in sub.choices.items():  # nothing lost: every report writer refuses to overwrite
+        if name.startswith("bench"):
+            add_force_arg(parser)
 
     i = sub.add_parser("info", help="scene statistics, or a backend's description and parameters (--backend NAME)")
     add_scene_args(i)

@@ -11,6 +11,7 @@ from __future__ import annotations
 import argparse
 import math
 import os
+import sys
 import tempfile
 from pathlib import Path
 
@@ -110,9 +111,9 @@ def add_effect_args(p: argparse.ArgumentParser, default: str) -> None:
 def add_progressive_args(p: argparse.ArgumentParser, help_flag: str, default: bool = False) -> None:
     """--progressive / --no-progressive and --frame-target-ms (viewer.progressive)."""
     p.add_argument("--progressive", action=argparse.BooleanOptionalAction, default=default, help=help_flag)
-    p.add_argument("--frame-target-ms", type=float, default=100.0,
-                   help="progressive mode: frame time to keep while the camera moves, by lowering the render "
-                        "scale (default 100)")
+    p.add_argument("--frame-target-ms", type=float, default=66.0,
+                   help="progressive mode: frame time to keep while the camera moves (measured, so it holds "
+                        "under load), by lowering the render scale down to 1/8 (default 66: 15 fps)")
 
 
 def check_backend(name: str) -> str:
@@ -160,6 +161,18 @@ def settings_from(args):
     return s
 
 
+def warn_no_mirrors(settings, scene) -> str | None:
+    """Reflections asked for on a scene without mirror materials would render exactly as without
+    them: say so on stderr (a warning, not an error) and how to make materials mirrors."""
+    if not getattr(settings, "reflections", False) or any(m.mirror for m in scene.materials):
+        return None
+    msg = (f"rtwalk: warning: reflections are on but scene '{scene.name}' has no mirror materials, so nothing "
+           "reflects; make materials mirrors with --mirror PATTERN (fnmatch on material names, repeatable; "
+           "`rtwalk info SCENE` lists them)")
+    print(msg, file=sys.stderr, flush=True)
+    return msg
+
+
 def scene_from_args(args, recording=None):
     """Scene named on the command line, else the recording's scene, else the default city."""
     from viewer.session import prepare_scene
@@ -195,18 +208,41 @@ def check_at_least(value: int | None, low: int, flag: str) -> None:
 
 
 def _writable_dir(folder: Path, flag: str, given: str) -> None:
-    """Create `folder` (and parents) and prove a file can be written there."""
+    """Prove a file can be written in `folder` without creating it: a failed or refused run must
+    leave no empty folder behind (the writers create it when they write). The write test runs in
+    the folder, or where it is missing, in its nearest existing ancestor."""
+    where = "there" if Path(given) == folder else f"in {folder}"
+    probe = folder.absolute()
+    while not probe.exists() and probe != probe.parent:
+        probe = probe.parent
+    if not probe.is_dir():
+        raise RtwalkError(f"{flag} {given}: cannot write {where} ({probe} is not a folder)")
     try:
-        folder.mkdir(parents=True, exist_ok=True)
-        with tempfile.NamedTemporaryFile(dir=folder, prefix=".rtwalk-write-check-"):
+        with tempfile.NamedTemporaryFile(dir=probe, prefix=".rtwalk-write-check-"):
             pass
     except OSError as exc:
-        where = "there" if Path(given) == folder else f"in {folder}"
         raise RtwalkError(f"{flag} {given}: cannot write {where} ({exc.strerror or type(exc).__name__})") from None
 
 
+def check_report_free(paths: list[Path], force: bool, flag: str = "--out") -> None:
+    """Refuse to overwrite a report a finished (or interrupted) run left, unless --force: one line
+    naming the first such file, before any work starts."""
+    if force:
+        return
+    taken = [p for p in paths if p.exists()]
+    if taken:
+        more = f" (and {len(taken) - 1} more)" if len(taken) > 1 else ""
+        raise RtwalkError(f"{taken[0]} exists{more}: pass --force to overwrite it, or choose another {flag}")
+
+
+def add_force_arg(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--force", action="store_true",
+                   help="overwrite reports already in the output folder (default: refuse)")
+
+
 def check_image_output(path: str, flag: str = "-o/--output") -> Path:
-    """An image file path with a supported extension whose folder can be written (created here)."""
+    """An image file path with a supported extension whose folder can be written (the writer
+    creates the folder)."""
     from PIL import Image
 
     out = Path(path).expanduser()

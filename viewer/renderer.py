@@ -27,6 +27,7 @@ from viewer.cl.frame import frame_path
 from viewer.effects import EffectSettings, RayType
 from viewer.errors import RtwalkError
 from viewer.gl import io as glio
+from viewer.gl.limits import allocation_guard, check_target_size
 from viewer.gl.programs import FullscreenQuad, ProgramCache
 from viewer.gl.scene import GpuScene
 from viewer.iostats import IoCounts
@@ -99,13 +100,16 @@ class Renderer:
         self.programs = ProgramCache(ctx)
         self.profiler = GpuProfiler(ctx)
         self.quad = FullscreenQuad(ctx)
+        check_target_size(ctx, size)  # one line, before anything frame-sized is allocated
         self.gpu_scene = GpuScene.upload(ctx, scene, bvh)
-        self.gbuffer = GBufferPass(ctx, self.programs, self.gpu_scene, size, self.depth_scale, self.diagonal)
-        self.raygen = RayGenPass(ctx, self.programs, self.quad)
-        self.accumulate = AccumulatePass(ctx, self.programs, self.quad, size)
-        self.shade = ShadePass(ctx, self.programs, self.quad, size)
-        self.rays = RayBatch(ctx, size)
-        self.hits = HitBuffer(ctx, size)
+        with allocation_guard(size):
+            self.gbuffer = GBufferPass(ctx, self.programs, self.gpu_scene, size, self.depth_scale, self.diagonal)
+            self.gbuffer.set_bvh(bvh)
+            self.raygen = RayGenPass(ctx, self.programs, self.quad)
+            self.accumulate = AccumulatePass(ctx, self.programs, self.quad, size)
+            self.shade = ShadePass(ctx, self.programs, self.quad, size)
+            self.rays = RayBatch(ctx, size)
+            self.hits = HitBuffer(ctx, size)
         self.frame_index = 0
         self.samples_done: dict[RayType, set[int]] = {}  # sample indices accumulated since the last clear
         # overlays: the pass to copy them from ((ray type, sample), first occurrence in the frame;
@@ -131,6 +135,10 @@ class Renderer:
         self._stale: set[str] = set()  # created backends not yet told about the latest geometry
         self._device = None  # viewer.cl.frame.DeviceFrame, made on the first CL-resident frame
         self.frame_path = "batch"  # the last frame's: "device" (CL-resident) or "batch" (RayBatch)
+        # where the G-buffer comes from: "raster" (exact conservative raster, cost ~ triangles in
+        # view) or "trace" (the backend's primary rays, cost ~ pixels); the progressive mode picks
+        # the cheaper one for its small moving frames (viewer.progressive)
+        self.gbuffer_source = "raster"
         self.set_backend(backend or backend_names()[0])
 
     # -- configuration -------------------------------------------------------------------------
@@ -183,6 +191,7 @@ class Renderer:
         with prof.phase("build:upload"):
             self.gpu_scene.update(scene, bvh)
         self.scene, self.bvh = scene, bvh
+        self.gbuffer.set_bvh(bvh)  # refit boxes cull the raster
         self._stale = set(self._backends)
         self._stale.discard(self.backend_name)
         self.backend.scene_changed(BackendContext(self.ctx, self.programs, self.profiler, self.gpu_scene,
@@ -192,6 +201,7 @@ class Renderer:
     def resize(self, size: tuple[int, int]) -> None:
         if size == self.size:
             return
+        check_target_size(self.ctx, size, "render size")
         # never release a framebuffer that is still bound: bind one that survives the resize
         if self.ctx.screen is not None:
             self.ctx.screen.use()
@@ -200,15 +210,16 @@ class Renderer:
                 self._idle_fbo = self.ctx.simple_framebuffer((1, 1))
             self._idle_fbo.use()
         self.size = size
-        self.gbuffer.resize(size)
-        self.accumulate.resize(size)
-        self.shade.resize(size)
-        self.rays.release()
-        self.hits.release()
-        self.rays = RayBatch(self.ctx, size)
-        self.hits = HitBuffer(self.ctx, size)
-        if self._overlay is not None:
-            self._overlay.resize(size)
+        with allocation_guard(size, "render size"):
+            self.gbuffer.resize(size)
+            self.accumulate.resize(size)
+            self.shade.resize(size)
+            self.rays.release()
+            self.hits.release()
+            self.rays = RayBatch(self.ctx, size)
+            self.hits = HitBuffer(self.ctx, size)
+            if self._overlay is not None:
+                self._overlay.resize(size)
 
     @property
     def final_texture(self) -> moderngl.Texture:
@@ -383,15 +394,17 @@ class Renderer:
         for prog in (self.raygen.program, self.accumulate.program, self.shade.program):
             apply(prog, cam_u)
             apply(prog, light_u)
-        if not keep:
-            with prof.phase("gbuffer"):
-                self.gbuffer.render(camera)
-            iostats.gl_draw()  # the G-buffer's one draw (counted here: gbuffer.py draws it)
-            self.accumulate.clear()
-            self.samples_done = {}
         self.backend.overlays_enabled = self.overlays_wanted  # diagnostics cost time: only when shown or saved
         self.frame_path = frame_path(self.backend, overlays=self.overlays_wanted)
         self.backend.begin_frame(self.frame_index)
+        if not keep:
+            if self.gbuffer_source == "trace":
+                self._traced_gbuffer(camera)
+            else:
+                with prof.phase("gbuffer"):
+                    self.gbuffer.render(camera)
+            self.accumulate.clear()
+            self.samples_done = {}
         lengths = {RayType.AO: s.ao_length * self.diagonal, RayType.DIFFUSE: self.diagonal}
         captured: list[CapturedPass] = []
         stats: dict[str, float] = {}
@@ -487,6 +500,17 @@ class Renderer:
         with prof.cl_phase("device:accumulators", q):
             dev.write_accumulators(self.accumulate.textures, sorted(self.samples_done, key=int))
         return dev.read_counts()
+
+    def _traced_gbuffer(self, camera: Camera) -> None:
+        """The G-buffer from the backend's nearest hits of primary rays (gbuffer_source "trace"):
+        phases gbuffer:rays, the backend's trace:primary, gbuffer:fill. The rays are not counted
+        (raygen's counters are reset after the G-buffer) and no overlay is taken from this pass."""
+        prof = self.profiler
+        with prof.phase("gbuffer:rays"):
+            self.raygen.generate(self.rays, self.gbuffer, RayType.PRIMARY, 0, 0, 0.0, 0.0)
+        self.backend.trace(self.rays, PassInfo(RayType.PRIMARY, 0, 0, 1.0), self.hits)
+        with prof.phase("gbuffer:fill"):
+            self.gbuffer.fill_from_hits(camera, self.hits, self.quad)
 
     def read_image(self) -> np.ndarray:
         return self.shade.read_rgb()

@@ -13,7 +13,7 @@ import argparse
 import time
 
 from viewer.bench.common import add_count_option
-from viewer.cli_args import check_output_dir, parse_choices, parse_sizes
+from viewer.cli_args import check_output_dir, check_report_free, parse_choices, parse_sizes
 
 BUILDERS = ("sah", "device")
 
@@ -48,6 +48,7 @@ def run(args) -> int:
     sizes = parse_sizes(args.triangles, flag="--triangles")
     builders = parse_choices(args.builders, BUILDERS, "--builders")
     out = check_output_dir(args.out, "--out")
+    check_report_free([out / "bvh-build.json"], getattr(args, "force", False))
     if "device" in builders:
         from viewer.cl import cl_available
         from viewer.errors import RtwalkError

@@ -929,5 +929,8 @@ def run(args: argparse.Namespace) -> int:
             print(f"note: {n}")
         print(format_estimate(est))
         return 0
+    from viewer.cli_args import check_report_free
+
+    check_report_free([o.out / f"{s}.json" for s in o.studies], getattr(args, "force", False))
     run_studies(o)
     return 0

@@ -25,7 +25,7 @@ from viewer.bench.harness import load_average
 from viewer.bench.plots import bars, figure, finish
 from viewer.bench.report import md_table, write_study
 from viewer.cl import io as clio
-from viewer.cli_args import check_output_dir
+from viewer.cli_args import check_output_dir, check_report_free
 from viewer.errors import RtwalkError
 
 HELP = "OpenCL sort/scan/compact throughput next to NumPy"
@@ -204,6 +204,7 @@ def run(args: argparse.Namespace) -> int:
     if args.reps < 1:
         raise RtwalkError("--reps must be >= 1")
     out = check_output_dir(args.out, "--out")
+    check_report_free([out / "bench_cl.json"], getattr(args, "force", False))
     report = measure(sizes, ops, args.reps, getattr(args, "command_line", ""))
     files = write_study(out, "bench_cl", report, markdown(report))
     plot(report, files["png"])

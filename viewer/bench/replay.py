@@ -129,42 +129,47 @@ def run_bench(prepared: PreparedScene, rec, settings: EffectSettings, opts: Benc
         print(f"bench: {len(frames)} of the path's {rec.frame_count(opts.fps)} frames"
               + (f", {checked} checked against Embree (every {every})" if checked else ""), file=sys.stderr)
     t_start, t_render0 = time.perf_counter(), 0.0
-    for k, n in enumerate(tqdm(frames, desc=f"bench {opts.backend}", unit="frame", disable=quiet,
-                               file=sys.stderr)):
-        if k == 1 and not quiet:  # the first frame (rendered and checked) times the rest
-            first = time.perf_counter() - t_start
-            # a checked frame costs `first`, an unchecked one its render part
-            est = first * (checked - 1) + t_render0 * (len(frames) - checked) if checked else first * (len(frames) - 1)
-            tqdm.write(f"bench: estimated {est / 60:.1f} min more (first frame {first:.1f} s)", file=sys.stderr)
-        t_frame = time.perf_counter()
-        cam = rec.camera_for_frame(n, opts.fps)
-        renderer.set_scene_time(rec.scene_time_for_frame(n, opts.fps))
-        rep = renderer.render(cam)
-        row = frame_row(rep, rec, n, opts.fps)
-        if k == 0:
-            t_render0 = time.perf_counter() - t_frame
-        image = None
-        if tracer is not None and k % max(opts.reference_every, 1) == 0:
-            if tracer_version != renderer.scene.geometry_version:  # an animated scene moved: judge this frame's
-                tracer = EmbreeTracer(renderer.scene.triangles)
-                tracer_version = renderer.scene.geometry_version
-            err = reference_errors(renderer, cam, tracer)
-            image = err["image"]
-            row["error"] = err["rays"]
-            renderer.set_backend(opts.reference)  # the reference image: the backend of that name
-            renderer.render(cam)
-            ref_image = renderer.read_image()
-            renderer.set_backend(opts.backend)
-            row["image_error"] = image_error(image, ref_image)
-        if opts.frames_dir is not None and k % max(opts.frame_every, 1) == 0:
-            from PIL import Image
+    complete = True
+    try:
+        for k, n in enumerate(tqdm(frames, desc=f"bench {opts.backend}", unit="frame", disable=quiet,
+                                   file=sys.stderr)):
+            if k == 1 and not quiet:  # the first frame (rendered and checked) times the rest
+                first = time.perf_counter() - t_start
+                # a checked frame costs `first`, an unchecked one its render part
+                est = (first * (checked - 1) + t_render0 * (len(frames) - checked) if checked
+                       else first * (len(frames) - 1))
+                tqdm.write(f"bench: estimated {est / 60:.1f} min more (first frame {first:.1f} s)", file=sys.stderr)
+            t_frame = time.perf_counter()
+            cam = rec.camera_for_frame(n, opts.fps)
+            renderer.set_scene_time(rec.scene_time_for_frame(n, opts.fps))
+            rep = renderer.render(cam)
+            row = frame_row(rep, rec, n, opts.fps)
+            if k == 0:
+                t_render0 = time.perf_counter() - t_frame
+            image = None
+            if tracer is not None and k % max(opts.reference_every, 1) == 0:
+                if tracer_version != renderer.scene.geometry_version:  # an animated scene moved: judge this frame's
+                    tracer = EmbreeTracer(renderer.scene.triangles)
+                    tracer_version = renderer.scene.geometry_version
+                err = reference_errors(renderer, cam, tracer)
+                image = err["image"]
+                row["error"] = err["rays"]
+                renderer.set_backend(opts.reference)  # the reference image: the backend of that name
+                renderer.render(cam)
+                ref_image = renderer.read_image()
+                renderer.set_backend(opts.backend)
+                row["image_error"] = image_error(image, ref_image)
+            if opts.frames_dir is not None and k % max(opts.frame_every, 1) == 0:
+                from PIL import Image
 
-            if image is None:
-                image = renderer.read_image()
-            opts.frames_dir.mkdir(parents=True, exist_ok=True)
-            Image.fromarray(image).save(opts.frames_dir / f"frame_{n:05d}.png")
-            row["overlays"] = save_overlay_views(renderer, cam, opts.frames_dir, n)
-        records.append(row)
+                if image is None:
+                    image = renderer.read_image()
+                opts.frames_dir.mkdir(parents=True, exist_ok=True)
+                Image.fromarray(image).save(opts.frames_dir / f"frame_{n:05d}.png")
+                row["overlays"] = save_overlay_views(renderer, cam, opts.frames_dir, n)
+            records.append(row)
+    except KeyboardInterrupt:  # Ctrl-C: keep the frames done; the caller writes them marked incomplete
+        complete = False
     report = {
         "format": "rtwalk-bench", "version": 1,
         "scene": prepared.scene.identity, "scene_name": prepared.scene.name,
@@ -176,6 +181,7 @@ def run_bench(prepared: PreparedScene, rec, settings: EffectSettings, opts: Benc
         "device": {"renderer": ctx.info.get("GL_RENDERER"), "version": ctx.info.get("GL_VERSION"),
                    "phase_timing": renderer.profiler.method},
         "frames": records, "summary": summarize(records),
+        "complete": complete,  # False: interrupted; `frames` holds the frames finished before that
     }
     renderer.release()
     return report
@@ -308,9 +314,11 @@ def run(args: argparse.Namespace) -> int:
         check_device,
         check_output_dir,
         check_positive,
+        check_report_free,
         parse_size,
         scene_from_args,
         settings_from,
+        warn_no_mirrors,
     )
     from viewer.gl.context import create_headless_context
     from viewer.recording import load_recording
@@ -339,18 +347,26 @@ def run(args: argparse.Namespace) -> int:
     check_device(args.backend)
     ctx = create_headless_context()  # no EGL: fail before loading
     prepared = scene_from_args(args, rec)
+    warn_no_mirrors(settings, prepared.scene)
     stem = args.name or f"{prepared.scene.name}-{Path(rec_path).stem}-{args.backend}-{opts.size[0]}x{opts.size[1]}"
-    if getattr(args, "progressive", False):
-        import json
-
+    progressive = getattr(args, "progressive", False)
+    names = [f"{stem}-progressive.json"] if progressive else [f"{stem}.json", f"{stem}.png"]
+    check_report_free([out_dir / n for n in names], getattr(args, "force", False))
+    if progressive:
         from viewer.progressive import replay_progressive
 
         result = replay_progressive(prepared, rec, settings, opts, ctx, args.frame_target_ms, quiet=args.quiet)
-        path = out_dir / f"{stem}-progressive.json"
-        path.write_text(json.dumps(result, indent=1))
+        path = out_dir / names[0]
+        write_json(path, result)
         print(f"report: {path}")
         return 0
     report = run_bench(prepared, rec, settings, opts, ctx, quiet=args.quiet)
+    if not report["complete"]:  # interrupted (Ctrl-C): the frames done are kept, marked incomplete
+        if report["frames"]:
+            json_path, _ = write_report(report, out_dir, stem)
+            print(f"rtwalk: interrupted after {len(report['frames'])} frames: partial report {json_path} "
+                  "(\"complete\": false)", file=sys.stderr)
+        raise KeyboardInterrupt
     print_summary(report)
     json_path, png_path = write_report(report, out_dir, stem)
     print(f"report: {json_path}\nplot:   {png_path}")

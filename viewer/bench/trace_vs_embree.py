@@ -28,7 +28,7 @@ from viewer.bench.common import log
 from viewer.bench.harness import is_trace_phase
 from viewer.bench.plots import bars, figure, finish
 from viewer.bench.report import md_table, write_study
-from viewer.cli_args import check_output_dir, parse_image_sizes
+from viewer.cli_args import check_output_dir, check_report_free, parse_image_sizes
 from viewer.errors import RtwalkError
 from viewer.paths import resolve_recording
 
@@ -270,6 +270,7 @@ def run(args) -> int:
     recs = [resolve_recording(n) for n in args.recordings.split(",") if n.strip()]
     settings = parse_effects(args.effects)
     out = check_output_dir(args.out, "--out")
+    check_report_free([out / "bench_trace.json"], getattr(args, "force", False))
     ctx = shared_context()
     device_cl = ""
     if any(backend_info(b).device == "cl" for b in backends):

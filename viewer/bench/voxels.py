@@ -668,6 +668,10 @@ def run(args) -> int:
     if args.rounds < 1 or args.seq_len < 1 or not args.bias >= 0 or args.record_passes < 0:
         raise RtwalkError("--rounds and --seq-len must be >= 1, --bias and --record-passes >= 0")
     specs = [_scene_spec(s.strip()) for s in args.scenes.split(",") if s.strip()]
+    from viewer.cli_args import check_report_free
+
+    check_report_free([Path(args.out) / ("voxelize.json" if args.voxelize_only else "bench_voxels.json")],
+                      getattr(args, "force", False))
     if args.voxelize_only:
         return _voxelize_only(args, specs, sorted(resolutions), structures)
     ctx_gl = shared_context()

@@ -18,6 +18,7 @@
 #endif
 layout(triangles) in;
 layout(triangle_strip, max_vertices = 4) out;
+flat in int vTri[];  // the triangle id (leaf slot), from gl_VertexID: valid in every draw of a multi-draw
 
 // Screen rectangle (NDC) holding the projection of every point of the triangle that a pixel's
 // primary ray can hit, computed in float64 from the float32 vertices and camera (exact differences).
@@ -26,7 +27,7 @@ layout(triangle_strip, max_vertices = 4) out;
 // so clipping the triangle at w = wmin = c * planeDistance / 2 loses nothing that is on screen; the
 // clipped polygon (<= 4 corners, all in front) then projects to a bounded rectangle.
 bool coverageRect(out vec4 rect) {
-    Tri tri = tris[gl_PrimitiveIDIn];
+    Tri tri = tris[vTri[0]];
     dvec3 cp = dvec3(camPos);
     dvec3 a = dvec3(tri.v0) - cp, b = dvec3(tri.v1) - cp, c = dvec3(tri.v2) - cp;
     dvec3 n = cross(b - a, c - a);
@@ -70,7 +71,7 @@ void emitRect() {
     vec2 c[4] = vec2[4](r.xy, vec2(r.z, r.y), vec2(r.x, r.w), r.zw);
     for (int i = 0; i < 4; ++i) {
         gl_Position = vec4(c[i], 0.0, 1.0);
-        gl_PrimitiveID = gl_PrimitiveIDIn;
+        gl_PrimitiveID = vTri[0];
         EmitVertex();
     }
     EndPrimitive();
@@ -96,7 +97,7 @@ void main() {
     for (int i = 0; i < 3; ++i) {
         // any positive w works: depth comes from the exact ray distance in the fragment shader
         gl_Position = vec4(corners[i].xy, 0.0, 1.0);
-        gl_PrimitiveID = gl_PrimitiveIDIn;
+        gl_PrimitiveID = vTri[0];
         EmitVertex();
     }
     EndPrimitive();
