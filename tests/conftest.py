@@ -1,6 +1,10 @@
-"""Shared fixtures: one headless EGL context per test session, prepared scenes cached."""
+"""Shared fixtures: one headless EGL context per test session, prepared scenes cached; the session
+fails when the tests leave anything new in the checkout (they write under tmp_path)."""
 
 from __future__ import annotations
+
+import os
+from pathlib import Path
 
 import pytest
 
@@ -106,3 +110,45 @@ def checked_backend(name: str) -> str:
 
     backend_info(name)
     return name
+
+
+# ----------------------------------------------------------------------------------------------
+# the suite leaves the checkout as it was: every file or folder that appears in the repository
+# during the session (an empty out/bench/ included, which `git status` would not show) fails it
+# ----------------------------------------------------------------------------------------------
+
+REPO = Path(__file__).resolve().parents[1]
+_NOT_CHECKOUT = {".git", ".venv", "__pycache__", ".pytest_cache", ".ruff_cache", ".gl", ".whl"}  # tool caches
+
+
+def checkout_paths(root: Path = REPO) -> set[str]:
+    """Every file and folder under `root`, relative, outside version control's and tools' caches."""
+    found: set[str] = set()
+    for folder, dirs, files in os.walk(root):
+        dirs[:] = [d for d in dirs if d not in _NOT_CHECKOUT and not d.endswith(".egg-info")]
+        rel = Path(folder).relative_to(root)
+        found.update(str(rel / n) for n in dirs + files)
+    return found
+
+
+def pytest_sessionstart(session):
+    session.config.stash[_BEFORE] = checkout_paths()
+
+
+def pytest_sessionfinish(session, exitstatus):
+    before = session.config.stash.get(_BEFORE, None)
+    if before is None or hasattr(session.config, "workerinput"):  # an xdist worker: the controller checks
+        return
+    new = sorted(checkout_paths() - before)
+    if new:
+        shown = ", ".join(new[:10]) + (f" (+{len(new) - 10} more)" if len(new) > 10 else "")
+        msg = f"the tests left new files in the checkout {REPO} (write under tmp_path instead): {shown}"
+        reporter = session.config.pluginmanager.get_plugin("terminalreporter")
+        if reporter is not None:
+            reporter.write_line(msg, red=True, bold=True)
+        else:
+            print(msg)
+        session.exitstatus = pytest.ExitCode.TESTS_FAILED
+
+
+_BEFORE = pytest.StashKey[set]()

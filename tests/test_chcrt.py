@@ -95,20 +95,39 @@ def _fallback_scene(name: str, path):
     return scene.reordered(bvh.tri_order), bvh
 
 
+_GLSL_FRAMES: dict = {}  # (scene, effects) -> the glsl reference frames (captured), rendered once
+
+
+@pytest.fixture(scope="module", autouse=True)
+def _release_module_caches():
+    """The scenes and reference frames cached here are dropped after this module (the session's
+    peak memory is not this module's plus the next ones')."""
+    yield
+    _GLSL_FRAMES.clear()
+    _SCENES.clear()
+
+
+def _glsl_frames(ctx, name: str, effects: str) -> list:
+    """The glsl frames along the scene's path: the reference every chcrt configuration of this
+    module is compared with (the pipeline is deterministic, so one rendering serves them all)."""
+    key = (name, effects)
+    if key not in _GLSL_FRAMES:
+        scene, bvh, path = _load(name)
+        rg = Renderer(ctx, scene, bvh, SIZE, "glsl", parse_effects(effects))
+        try:
+            _GLSL_FRAMES[key] = [rg.render(cam, capture=True) for cam in path]
+        finally:
+            rg.release()
+    return _GLSL_FRAMES[key]
+
+
 def _render_both(ctx, name: str, effects: str = ALL, params: str = ""):
     scene, bvh, path = _load(name)
-    settings = parse_effects(effects)
-    rg = Renderer(ctx, scene, bvh, SIZE, "glsl", settings)
-    rc = Renderer(ctx, scene, bvh, SIZE, "chcrt", settings, {"chcrt": params})
+    ref = _glsl_frames(ctx, name, effects)
+    rc = Renderer(ctx, scene, bvh, SIZE, "chcrt", parse_effects(effects), {"chcrt": params})
     try:
-        frames = []
-        for cam in path:
-            a = rg.render(cam, capture=True)
-            b = rc.render(cam, capture=True)
-            frames.append((a, b))
-        return frames, scene, bvh
+        return [(a, rc.render(cam, capture=True)) for a, cam in zip(ref, path, strict=True)], scene, bvh
     finally:
-        rg.release()
         rc.release()
 
 

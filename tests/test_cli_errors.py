@@ -214,11 +214,11 @@ def test_missing_egl_before_the_scene(tmp_path, monkeypatch):
     assert "never-loaded" not in proc.stderr
 
 
-@pytest.mark.parametrize("sizes,needle", [("abc", "--sizes"), ("0", "out of range"), ("-5", "--sizes"),
-                                          ("1000,x", "--sizes"), ("40000001", "out of range")])
+@pytest.mark.parametrize("sizes,needle", [("abc", "--triangles"), ("0", "out of range"), ("-5", "--triangles"),
+                                          ("1000,x", "--triangles"), ("40000001", "out of range")])
 def test_bench_bvh_sizes(tmp_path, sizes, needle):
     """Same range as --scene-size; nothing is built (the first size is valid in the mixed case)."""
-    proc = run_cli("bench-bvh", "--sizes", sizes, "--out", str(tmp_path), timeout=60)
+    proc = run_cli("bench-bvh", "--triangles", sizes, "--out", str(tmp_path), timeout=60)
     assert_one_line_error(proc, needle)
     assert "tris: build" not in proc.stdout
 
@@ -322,3 +322,171 @@ def test_bench_prints_its_estimate(tmp_path):
     assert proc.returncode == 0, proc.stderr
     assert "3 of the path's" in proc.stderr and "2 checked against Embree" in proc.stderr, proc.stderr
     assert "estimated" in proc.stderr, proc.stderr
+
+
+def test_readme_is_a_short_manual_with_working_links():
+    """The README says what rtwalk is, how to set up and use it; architecture and measured studies
+    live in docs/ (a README of 900 lines hid the set-up commands). Every relative link resolves."""
+    import re
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    readme = (root / "README.md").read_text()
+    assert len(readme.splitlines()) < 250
+    for doc in [root / "README.md", *sorted((root / "docs").rglob("*.md"))]:
+        for target in re.findall(r"\]\(([^)#:]+)(?:#[^)]*)?\)", doc.read_text()):
+            assert (doc.parent / target).exists(), f"{doc.relative_to(root)} links to missing {target}"
+
+
+# ---------------------------------------------------------------------------------------------
+# issue 23: nothing lost, nothing silent
+
+
+def _long_room_path(tmp_path, seconds: float = 60.0):
+    """A room walk long enough that a bench of it is still running when interrupted."""
+    from viewer.camera import Camera
+    from viewer.recording import Keyframe, Recording, save_recording
+
+    cams = [Camera.look_at([-1.5, 1.2, 2.0], [0.5, 0.8, -1.0]), Camera.look_at([1.0, 1.4, 2.2], [-0.5, 0.6, -1.0])]
+    keys = [Keyframe.from_camera(t, c) for t, c in zip((0.0, seconds), cams, strict=True)]
+    return save_recording(Recording({"builtin": "room"}, (32, 18), 10.0, keys), tmp_path / "room-long.json")
+
+
+def test_bench_refuses_to_overwrite_a_report(tmp_path):
+    """A report already in --out/--name is kept: one line naming it and --force, exit 2, before any
+    work; with --force the run replaces it."""
+    path = _long_room_path(tmp_path, 0.2)
+    out = tmp_path / "bench"
+    out.mkdir()
+    old = out / "t.json"
+    old.write_text('{"finished": "earlier"}')
+    args = ["bench", "--recording", str(path), "--size", "16x9", "--effects", "primary", "--reference", "none",
+            "--frames", "1", "--out", str(out), "--name", "t", "--quiet"]
+    proc = run_cli(*args, timeout=120)
+    assert_one_line_error(proc, "--force")
+    assert str(old) in proc.stderr and old.read_text() == '{"finished": "earlier"}'
+    assert sorted(p.name for p in out.iterdir()) == ["t.json"]
+    proc = run_cli(*args, "--force", timeout=180)
+    assert proc.returncode == 0, proc.stderr
+    report = json.loads(old.read_text())
+    assert report["format"] == "rtwalk-bench" and report["complete"] is True and len(report["frames"]) == 1
+
+
+@pytest.mark.parametrize("command,report", [("bench-bvh", "bvh-build.json"), ("bench-cl", "bench_cl.json"),
+                                            ("bench-pgrid", "table41.json"), ("bench-voxelwalk", "table51.json"),
+                                            ("bench-trace", "bench_trace.json"),
+                                            ("bench-voxels", "bench_voxels.json")])
+def test_every_bench_command_refuses_to_overwrite(tmp_path, capsys, command, report):
+    """Each report-writing benchmark checks its report names before it measures anything."""
+    from viewer.cli import main
+
+    (tmp_path / report).write_text("kept")
+    extra = {"bench-pgrid": ["--study", "table41"], "bench-voxelwalk": ["--study", "table51"],
+             "bench-voxels": ["--scenes", "room"]}.get(command, [])  # the rest: their defaults (nothing runs)
+    assert main([command, *extra, "--out", str(tmp_path)]) == 2
+    err = capsys.readouterr().err
+    assert "--force" in err and report in err
+    assert (tmp_path / report).read_text() == "kept"
+
+
+def test_bench_chcrt_refuses_to_overwrite(tmp_path, capsys):
+    from viewer.cli import main
+
+    (tmp_path / "table4.json").write_text("kept")
+    assert main(["bench-chcrt", "--quick", "--study", "table4", "--out", str(tmp_path), "--quiet"]) == 2
+    assert "--force" in capsys.readouterr().err and (tmp_path / "table4.json").read_text() == "kept"
+
+
+def test_sigint_keeps_the_frames_done(tmp_path):
+    """Ctrl-C during a bench: the frames finished so far are written, marked "complete": false."""
+    import signal
+    import threading
+    import time
+
+    path = _long_room_path(tmp_path)
+    out = tmp_path / "bench"
+    proc = subprocess.Popen([sys.executable, "-m", "viewer.cli", "bench", "--recording", str(path), "--size", "16x9",
+                             "--effects", "primary", "--reference", "none", "--frames", "600", "--out", str(out),
+                             "--name", "cut"], stderr=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+    err: list[str] = []
+    reader = threading.Thread(target=lambda: err.extend(iter(lambda: proc.stderr.read(1), "")), daemon=True)
+    reader.start()
+    deadline = time.monotonic() + 240
+    while "bench: estimated" not in "".join(err):  # printed once the first frame is done
+        assert proc.poll() is None and time.monotonic() < deadline, "".join(err)[-2000:]
+        time.sleep(0.05)
+    proc.send_signal(signal.SIGINT)
+    assert proc.wait(timeout=120) == 130
+    reader.join(timeout=10)
+    text = "".join(err)
+    assert "Traceback" not in text and "partial report" in text, text[-2000:]
+    report = json.loads((out / "cut.json").read_text())
+    assert report["complete"] is False and 1 <= len(report["frames"]) < 600
+    assert report["summary"]["frames"] == len(report["frames"])
+
+
+def test_huge_size_is_one_line(tmp_path):
+    """--size 16384x16384: refused before allocation (here: the targets' memory estimate against a
+    16 GiB address-space limit), one line, exit 2."""
+    import resource
+
+    def limit():
+        resource.setrlimit(resource.RLIMIT_AS, (16 << 30, 16 << 30))
+
+    proc = subprocess.run([sys.executable, "-m", "viewer.cli", "render", "room", "--size", "16384x16384",
+                           "--effects", "primary", "-o", str(tmp_path / "x.png")], capture_output=True, text=True,
+                          timeout=180, preexec_fn=limit)
+    assert_one_line_error(proc, "16384x16384")
+    assert not (tmp_path / "x.png").exists()
+
+
+def test_target_limits_and_allocation_errors(gl_ctx, monkeypatch):
+    """The side limits the driver reports, the memory estimate, and moderngl's own failure at target
+    creation all end as one-line RtwalkErrors."""
+    import moderngl
+
+    from viewer import sysmem
+    from viewer.errors import RtwalkError
+    from viewer.gl import limits
+
+    side = limits.max_target_side(gl_ctx)
+    assert side == min(gl_ctx.info["GL_MAX_TEXTURE_SIZE"], gl_ctx.info["GL_MAX_RENDERBUFFER_SIZE"],
+                       *gl_ctx.info["GL_MAX_VIEWPORT_DIMS"])
+    with pytest.raises(RtwalkError, match="per side"):
+        limits.check_target_size(gl_ctx, (side + 1, 8))
+    limits.check_target_size(gl_ctx, (64, 36))
+    if limits.shares_system_memory(gl_ctx):
+        monkeypatch.setattr(sysmem, "available_bytes", lambda: 64 * 36 * limits.TARGET_BYTES_PER_PIXEL - 1)
+        with pytest.raises(RtwalkError, match="can be allocated"):
+            limits.check_target_size(gl_ctx, (64, 36))
+    with pytest.raises(RtwalkError) as exc:
+        with limits.allocation_guard((9000, 9000)):
+            raise moderngl.Error("the framebuffer is not complete")
+    assert "9000x9000" in str(exc.value) and "\n" not in str(exc.value)
+
+
+def test_reflections_without_mirrors_warn(tmp_path):
+    """--effects reflections on a scene without mirror materials: one warning line that says how to
+    add mirrors; the frame is still rendered (exit 0)."""
+    scene = tmp_path / "plain.obj"
+    scene.write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\nf 1 2 3\nf 1 2 4\n")
+    proc = run_cli("render", str(scene), "--effects", "reflections", "--size", "32x18", "-o",
+                   str(tmp_path / "x.png"), "--quiet", timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    lines = [ln for ln in proc.stderr.splitlines() if ln.strip()]
+    assert len(lines) == 1 and lines[0].startswith("rtwalk: warning:") and "--mirror PATTERN" in lines[0], lines
+    assert (tmp_path / "x.png").exists()
+
+
+def test_mirrors_or_no_reflections_do_not_warn(capsys):
+    from types import SimpleNamespace
+
+    from viewer.cli_args import warn_no_mirrors
+    from viewer.effects import parse_effects
+
+    plain = SimpleNamespace(name="plain", materials=[SimpleNamespace(mirror=False)])
+    mirrored = SimpleNamespace(name="m", materials=[SimpleNamespace(mirror=False), SimpleNamespace(mirror=True)])
+    assert warn_no_mirrors(parse_effects("shadows"), plain) is None
+    assert warn_no_mirrors(parse_effects("reflections"), mirrored) is None
+    assert capsys.readouterr().err == ""
+    assert "--mirror" in warn_no_mirrors(parse_effects("reflections"), plain)

@@ -10,7 +10,7 @@ import pytest
 from tests.conftest import prepared_scene
 from viewer.camera import Camera
 from viewer.effects import parse_effects
-from viewer.progressive import Progressive
+from viewer.progressive import MIN_SCALE, Progressive, scaled_size
 from viewer.renderer import Renderer
 
 SIZE = (96, 54)
@@ -48,7 +48,7 @@ def test_converges_to_the_full_quality_frame(gl_ctx, room, target_ms):
         # one pass per effect while moving: 1 shadow pass per light, 1 soft pass per rect light, 1 AO pass
         assert s2.report.rays["ao"] > 0 and s2.report.rays["soft"] > 0
         if target_ms < 1:  # over the target: the moving image is smaller (upscaled when shown)
-            assert s2.scale == pytest.approx(0.25) and tuple(r.size) == (24, 14)
+            assert s2.scale == pytest.approx(MIN_SCALE) and tuple(r.size) == scaled_size(SIZE, MIN_SCALE)
         else:
             assert s2.scale == 1.0 and tuple(r.size) == SIZE
         steps = []
@@ -121,3 +121,24 @@ def test_bench_progressive_report(tmp_path):
     assert rep["moving_ms"]["median"] <= rep["moving_ms"]["p95"] <= rep["moving_ms"]["max"]
     assert rep["converge"]["frames"] == 2 and rep["converge"]["seconds"] > 0  # samples 1 and 2 of 0..2
     assert rep["scale"]["max"] == 1.0 and rep["converged_vs_full_mae"] <= 1.0
+
+
+def test_moving_frames_pick_the_cheaper_gbuffer_source(gl_ctx, room):
+    """Each G-buffer source is measured on a moving frame; then the cheaper one (the traced one's
+    time scaled by the pixels) is used, the other tried again every PROBE_EVERY moving frames; still
+    frames always use the raster."""
+    from viewer.progressive import GBUFFER_SOURCES, PROBE_EVERY
+
+    a, b = _cams()
+    r = Renderer(gl_ctx, room.scene, room.bvh, SIZE, "glsl", parse_effects(EFFECTS))
+    try:
+        prog = Progressive(r, SIZE, target_ms=1e6)
+        prog.frame(a)
+        prog.frame(b)
+        assert set(prog._source_cost) == set(GBUFFER_SOURCES) and r.gbuffer_source == "raster"
+        prog._source_cost = {"raster": (50.0, 100), "trace": (40.0, 100)}
+        picks = [prog._pick_source(200) for _ in range(PROBE_EVERY)]  # trace: 80 ms at 200 px
+        assert picks[:-1] == ["raster"] * (PROBE_EVERY - 1) and picks[-1] == "trace"
+        assert prog._pick_source(100) == "trace"  # 40 ms < 50 ms
+    finally:
+        r.release()

@@ -11,6 +11,7 @@ from __future__ import annotations
 import argparse
 import math
 import os
+import sys
 import tempfile
 from pathlib import Path
 
@@ -80,35 +81,39 @@ def add_scene_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--mirror", action="append", default=[], metavar="PATTERN",
                    help="material name pattern made a mirror (repeatable, fnmatch, case-insensitive)")
     p.add_argument("--quiet", action="store_true", help="no progress output")
+    p.add_argument("--bvh-builder", default=None, choices=("auto", "sah", "device"),
+                   help="BVH builder on scene load: sah (CPU binned SAH, the quality reference), device "
+                        "(OpenCL Morton + PLOC) or auto (device from 500k triangles when OpenCL is there); "
+                        "default: $RTWALK_BVH_BUILDER, else auto")
 
 
 def add_effect_args(p: argparse.ArgumentParser, default: str) -> None:
-    from viewer.backends import backend_names
+    from viewer.backends import DEFAULT_BACKEND, PARAM_OPTIONS, backend_names
 
     p.add_argument("--effects", default=default,
                    help="comma list of primary,shadows,soft,ao,diffuse,reflections (NAME:N = N samples), "
                         "'all' or 'none'")
-    p.add_argument("--backend", default="glsl", help=f"tracing backend: {', '.join(backend_names())}")
+    p.add_argument("--backend", default=DEFAULT_BACKEND, help=f"tracing backend: {', '.join(backend_names())}")
     p.add_argument("--backend-params", default=None, metavar="KEY=VALUE,...",
-                   help="parameters of the chosen --backend (also RTWALK_<BACKEND> in the environment), "
-                        "e.g. --backend chcrt --backend-params visible_threshold=20,t_q=0.5")
+                   help="parameters of the chosen --backend (also RTWALK_<BACKEND> in the environment; "
+                        "`rtwalk info --backend NAME` lists them), e.g. key=value,key=value")
     p.add_argument("--size", default="640x360", help="WIDTHxHEIGHT")
     p.add_argument("--perturb", type=float, default=36.0, help="per-pixel sample rotation, degrees")
     p.add_argument("--ao-length", type=float, default=0.05, help="AO ray length, fraction of the scene diagonal")
     p.add_argument("--exposure", type=float, default=1.0,
                    help="multiplies the linear radiance before tone mapping (finite, > 0; default 1)")
-    p.add_argument("--chcrt", default=None, metavar="KEY=VALUE,...",
-                   help="chcrt backend parameters (alias kept from before --backend-params), e.g. "
-                        "'visible_threshold=20,t_q=0.5' (aggressive threshold in pixels, split rule, "
-                        "min_tile_fraction, max_subtree_height, max_batch, max_multi, ...)")
+    for option, name in PARAM_OPTIONS.items():
+        p.add_argument(option, default=None, metavar="KEY=VALUE,...",
+                       help=f"{name} backend parameters (alias kept from before --backend-params; "
+                            f"`rtwalk info --backend {name}` lists them)")
 
 
 def add_progressive_args(p: argparse.ArgumentParser, help_flag: str, default: bool = False) -> None:
     """--progressive / --no-progressive and --frame-target-ms (viewer.progressive)."""
     p.add_argument("--progressive", action=argparse.BooleanOptionalAction, default=default, help=help_flag)
-    p.add_argument("--frame-target-ms", type=float, default=100.0,
-                   help="progressive mode: frame time to keep while the camera moves, by lowering the render "
-                        "scale (default 100)")
+    p.add_argument("--frame-target-ms", type=float, default=66.0,
+                   help="progressive mode: frame time to keep while the camera moves (measured, so it holds "
+                        "under load), by lowering the render scale down to 1/8 (default 66: 15 fps)")
 
 
 def check_backend(name: str) -> str:
@@ -122,22 +127,24 @@ def check_backend(name: str) -> str:
 def backend_options_from(args) -> dict[str, str]:
     """Per-backend parameter text, {backend name: "key=value,..."}; checked here (unknown backend,
     unknown key, bad value) so bad input fails before any scene is loaded. `--backend-params`
-    belongs to `--backend`; `--chcrt` is the older spelling of chcrt's parameters."""
-    from viewer.backends import check_params
+    belongs to `--backend`; the registry's PARAM_OPTIONS are older spellings of one backend's."""
+    from viewer.backends import DEFAULT_BACKEND, PARAM_OPTIONS, check_params
 
     backend = getattr(args, "backend", None)
     if backend is not None:
         check_backend(backend)
     options: dict[str, str] = {}
-    text = getattr(args, "chcrt", None)
-    if text:
-        check_params("chcrt", text, "--chcrt")
-        options["chcrt"] = text
+    for option, name in PARAM_OPTIONS.items():
+        text = getattr(args, option.lstrip("-").replace("-", "_"), None)
+        if text:
+            check_params(name, text, option)
+            options[name] = text
     text = getattr(args, "backend_params", None)
     if text:
-        check_params(backend or "glsl", text, "--backend-params")
-        prev = options.get(backend or "glsl")
-        options[backend or "glsl"] = f"{prev},{text}" if prev else text  # --backend-params wins
+        target = backend or DEFAULT_BACKEND
+        check_params(target, text, "--backend-params")
+        prev = options.get(target)
+        options[target] = f"{prev},{text}" if prev else text  # --backend-params wins
     return options
 
 
@@ -154,6 +161,18 @@ def settings_from(args):
     return s
 
 
+def warn_no_mirrors(settings, scene) -> str | None:
+    """Reflections asked for on a scene without mirror materials would render exactly as without
+    them: say so on stderr (a warning, not an error) and how to make materials mirrors."""
+    if not getattr(settings, "reflections", False) or any(m.mirror for m in scene.materials):
+        return None
+    msg = (f"rtwalk: warning: reflections are on but scene '{scene.name}' has no mirror materials, so nothing "
+           "reflects; make materials mirrors with --mirror PATTERN (fnmatch on material names, repeatable; "
+           "`rtwalk info SCENE` lists them)")
+    print(msg, file=sys.stderr, flush=True)
+    return msg
+
+
 def scene_from_args(args, recording=None):
     """Scene named on the command line, else the recording's scene, else the default city."""
     from viewer.session import prepare_scene
@@ -166,7 +185,8 @@ def scene_from_args(args, recording=None):
         spec = rs.spec
         size = size if size is not None else rs.size
         seed = rs.seed if rs.seed is not None else seed
-    return prepare_scene(spec, scene_size=size, seed=seed, mirror_patterns=args.mirror, quiet=args.quiet)
+    return prepare_scene(spec, scene_size=size, seed=seed, mirror_patterns=args.mirror, quiet=args.quiet,
+                         bvh_builder=getattr(args, "bvh_builder", None))
 
 
 # ---------------------------------------------------------------------------------------------
@@ -188,18 +208,41 @@ def check_at_least(value: int | None, low: int, flag: str) -> None:
 
 
 def _writable_dir(folder: Path, flag: str, given: str) -> None:
-    """Create `folder` (and parents) and prove a file can be written there."""
+    """Prove a file can be written in `folder` without creating it: a failed or refused run must
+    leave no empty folder behind (the writers create it when they write). The write test runs in
+    the folder, or where it is missing, in its nearest existing ancestor."""
+    where = "there" if Path(given) == folder else f"in {folder}"
+    probe = folder.absolute()
+    while not probe.exists() and probe != probe.parent:
+        probe = probe.parent
+    if not probe.is_dir():
+        raise RtwalkError(f"{flag} {given}: cannot write {where} ({probe} is not a folder)")
     try:
-        folder.mkdir(parents=True, exist_ok=True)
-        with tempfile.NamedTemporaryFile(dir=folder, prefix=".rtwalk-write-check-"):
+        with tempfile.NamedTemporaryFile(dir=probe, prefix=".rtwalk-write-check-"):
             pass
     except OSError as exc:
-        where = "there" if Path(given) == folder else f"in {folder}"
         raise RtwalkError(f"{flag} {given}: cannot write {where} ({exc.strerror or type(exc).__name__})") from None
 
 
+def check_report_free(paths: list[Path], force: bool, flag: str = "--out") -> None:
+    """Refuse to overwrite a report a finished (or interrupted) run left, unless --force: one line
+    naming the first such file, before any work starts."""
+    if force:
+        return
+    taken = [p for p in paths if p.exists()]
+    if taken:
+        more = f" (and {len(taken) - 1} more)" if len(taken) > 1 else ""
+        raise RtwalkError(f"{taken[0]} exists{more}: pass --force to overwrite it, or choose another {flag}")
+
+
+def add_force_arg(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--force", action="store_true",
+                   help="overwrite reports already in the output folder (default: refuse)")
+
+
 def check_image_output(path: str, flag: str = "-o/--output") -> Path:
-    """An image file path with a supported extension whose folder can be written (created here)."""
+    """An image file path with a supported extension whose folder can be written (the writer
+    creates the folder)."""
     from PIL import Image
 
     out = Path(path).expanduser()

@@ -4,6 +4,9 @@ A `Progressive` drives a Renderer one call per displayed frame:
 - the camera (or the settings, view, backend or size) changed since the last call: a new image
   with one sample pass per effect (sample 0 of each), at a render scale chosen to keep the frame
   time near `target_ms` (the window upscales the smaller image when it blits);
+  its G-buffer from whichever source (Renderer.gbuffer_source: the raster, whose cost follows the
+  triangles in view, or the backend's primary rays, whose cost follows the pixels) measured
+  cheaper at that size (each is tried, and the other one again every PROBE_EVERY moving frames);
 - unchanged: at full scale, add the next sample pass of every effect that wants more into the
   accumulators (Renderer.render(samples=(k,), keep=True)) until the requested counts are reached;
 - all done: idle (nothing is rendered; the last image stays).
@@ -29,6 +32,10 @@ from viewer.camera import Camera
 from viewer.renderer import FrameReport, Renderer
 
 SCALE_STEP = 1 / 16  # render scales are multiples of this (each change reallocates the targets)
+MIN_SCALE = 1 / 8  # floor of the moving frames' scale: 112x63 of an 896x504 window
+DEFAULT_TARGET_MS = 66.0  # moving frames: 15 fps
+GBUFFER_SOURCES = ("raster", "trace")
+PROBE_EVERY = 24  # moving frames between two tries of the G-buffer source not in use
 
 
 @dataclass
@@ -57,8 +64,8 @@ def _camera_key(camera: Camera) -> tuple:
 
 
 class Progressive:
-    def __init__(self, renderer: Renderer, full_size: tuple[int, int], target_ms: float = 100.0,
-                 min_scale: float = 0.25, resize: Callable[[tuple[int, int]], None] | None = None):
+    def __init__(self, renderer: Renderer, full_size: tuple[int, int], target_ms: float = DEFAULT_TARGET_MS,
+                 min_scale: float = MIN_SCALE, resize: Callable[[tuple[int, int]], None] | None = None):
         """`resize`: how to resize the renderer (the window binds its screen first)."""
         self.renderer = renderer
         self.resize = resize or renderer.resize
@@ -69,6 +76,12 @@ class Progressive:
         self.shown_scale = 1.0
         self._key: tuple | None = None
         self._next = 0  # next sample index to accumulate at full scale (0: start over)
+        # per-frame time spent outside render() (the window's panel, blit and swap), measured by the
+        # caller: the budget is for the whole frame, so the render gets what that leaves
+        self.extra_ms = 0.0
+        self._source_cost: dict[str, tuple[float, int]] = {}  # source -> (frame ms, pixels) last measured
+        self._source_backend = ""
+        self._moving_frames = 0
 
     def invalidate(self) -> None:
         """Something outside (a screenshot render) used the renderer: start over."""
@@ -84,13 +97,33 @@ class Progressive:
                 self.full_size, r.scene_time)  # an animated scene's new time is a moving frame
 
     def _adapt(self, wall_ms: float) -> None:
-        """Scale for the next moving frame: cost ~ pixels ~ scale^2 (a dead band against flicker)."""
+        """Scale for the next moving frame from the measured frame time (the render's wall time plus
+        `extra_ms`), so the budget holds when other work slows the machine: cost ~ pixels ~ scale^2,
+        with a dead band against flicker."""
         if wall_ms <= 0:
             return
-        ideal = self.scale * math.sqrt(self.target_ms / wall_ms)
+        ideal = self.scale * math.sqrt(self.target_ms / (wall_ms + max(self.extra_ms, 0.0)))
         ideal = min(1.0, max(self.min_scale, ideal))
         if ideal < self.scale * 0.95 or ideal > self.scale * 1.15:
             self.scale = max(self.min_scale, min(1.0, math.floor(ideal / SCALE_STEP) * SCALE_STEP))
+
+    def _pick_source(self, pixels: int) -> str:
+        """The G-buffer source expected cheaper for a moving frame of `pixels`: the raster's frame
+        time taken as is (its cost follows the triangles in view), the traced one's scaled by the
+        pixels (one primary ray each); each source is measured first, and the other one again every
+        PROBE_EVERY moving frames (the view and the load change)."""
+        r = self.renderer
+        if r.backend_name != self._source_backend:
+            self._source_cost, self._source_backend = {}, r.backend_name
+        for src in GBUFFER_SOURCES:
+            if src not in self._source_cost:
+                return src
+        self._moving_frames += 1
+        (raster_ms, _), (trace_ms, trace_px) = self._source_cost["raster"], self._source_cost["trace"]
+        best = "raster" if raster_ms <= trace_ms * pixels / max(trace_px, 1) else "trace"
+        if self._moving_frames % PROBE_EVERY == 0:
+            return "trace" if best == "raster" else "raster"
+        return best
 
     def frame(self, camera: Camera) -> Step:
         r = self.renderer
@@ -98,11 +131,19 @@ class Progressive:
         requested = self.requested()
         if key != self._key:  # moving: one pass per effect at the adapted scale
             self._key = key
-            self.resize(scaled_size(self.full_size, self.scale))
-            report = r.render(camera, samples=(0,))
+            size = scaled_size(self.full_size, self.scale)
+            self.resize(size)
+            r.gbuffer_source = source = self._pick_source(size[0] * size[1])
+            try:
+                report = r.render(camera, samples=(0,))
+            finally:
+                r.gbuffer_source = "raster"  # still frames and everyone else: the exact raster
+            self._source_cost[source] = (report.wall_ms, size[0] * size[1])
             self.shown_scale = self.scale
             self._adapt(report.wall_ms)
-            self._next = 0 if self.scale < 1.0 else 1  # at full scale, sample 0 is already in
+            # at full scale from the raster, sample 0 is already in (a traced G-buffer: start over, so
+            # that the converged image is the full-quality frame exactly)
+            self._next = 0 if self.scale < 1.0 or source != "raster" else 1
             return Step(report, True, self.shown_scale, 1, requested, requested <= 1 and self._next == 1)
         if self._next == 0:  # stopped after a reduced-scale image: start over at full scale
             self.resize(self.full_size)
@@ -120,7 +161,8 @@ def _percentile(values: list[float], q: float) -> float:
     return float(np.percentile(np.asarray(values, np.float64), q)) if values else float("nan")
 
 
-def replay_progressive(prepared, rec, settings, opts, ctx, target_ms: float = 100.0, quiet: bool = False) -> dict:
+def replay_progressive(prepared, rec, settings, opts, ctx, target_ms: float = DEFAULT_TARGET_MS,
+                       quiet: bool = False) -> dict:
     """Headless replay in progressive mode: every replayed frame is a moving frame; at the last
     camera the path stops and passes are added until converged. Reports frame times (median, p95)
     while moving, the render scales used, the time to convergence after the stop, and the converged

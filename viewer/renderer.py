@@ -23,8 +23,11 @@ from viewer.backends import backend_names, create_backend
 from viewer.backends.base import BackendContext
 from viewer.backends.interface import OverlaySpec
 from viewer.camera import Camera
+from viewer.cl.frame import frame_path
 from viewer.effects import EffectSettings, RayType
 from viewer.errors import RtwalkError
+from viewer.gl import io as glio
+from viewer.gl.limits import allocation_guard, check_target_size
 from viewer.gl.programs import FullscreenQuad, ProgramCache
 from viewer.gl.scene import GpuScene
 from viewer.iostats import IoCounts
@@ -97,13 +100,16 @@ class Renderer:
         self.programs = ProgramCache(ctx)
         self.profiler = GpuProfiler(ctx)
         self.quad = FullscreenQuad(ctx)
+        check_target_size(ctx, size)  # one line, before anything frame-sized is allocated
         self.gpu_scene = GpuScene.upload(ctx, scene, bvh)
-        self.gbuffer = GBufferPass(ctx, self.programs, self.gpu_scene, size, self.depth_scale, self.diagonal)
-        self.raygen = RayGenPass(ctx, self.programs, self.quad)
-        self.accumulate = AccumulatePass(ctx, self.programs, self.quad, size)
-        self.shade = ShadePass(ctx, self.programs, self.quad, size)
-        self.rays = RayBatch(ctx, size)
-        self.hits = HitBuffer(ctx, size)
+        with allocation_guard(size):
+            self.gbuffer = GBufferPass(ctx, self.programs, self.gpu_scene, size, self.depth_scale, self.diagonal)
+            self.gbuffer.set_bvh(bvh)
+            self.raygen = RayGenPass(ctx, self.programs, self.quad)
+            self.accumulate = AccumulatePass(ctx, self.programs, self.quad, size)
+            self.shade = ShadePass(ctx, self.programs, self.quad, size)
+            self.rays = RayBatch(ctx, size)
+            self.hits = HitBuffer(ctx, size)
         self.frame_index = 0
         self.samples_done: dict[RayType, set[int]] = {}  # sample indices accumulated since the last clear
         # overlays: the pass to copy them from ((ray type, sample), first occurrence in the frame;
@@ -127,6 +133,12 @@ class Renderer:
         self.backend_options = dict(backend_options or {})
         self.scene_time = float(scene.scene_time)  # wanted scene time; applied at the next render()
         self._stale: set[str] = set()  # created backends not yet told about the latest geometry
+        self._device = None  # viewer.cl.frame.DeviceFrame, made on the first CL-resident frame
+        self.frame_path = "batch"  # the last frame's: "device" (CL-resident) or "batch" (RayBatch)
+        # where the G-buffer comes from: "raster" (exact conservative raster, cost ~ triangles in
+        # view) or "trace" (the backend's primary rays, cost ~ pixels); the progressive mode picks
+        # the cheaper one for its small moving frames (viewer.progressive)
+        self.gbuffer_source = "raster"
         self.set_backend(backend or backend_names()[0])
 
     # -- configuration -------------------------------------------------------------------------
@@ -179,6 +191,7 @@ class Renderer:
         with prof.phase("build:upload"):
             self.gpu_scene.update(scene, bvh)
         self.scene, self.bvh = scene, bvh
+        self.gbuffer.set_bvh(bvh)  # refit boxes cull the raster
         self._stale = set(self._backends)
         self._stale.discard(self.backend_name)
         self.backend.scene_changed(BackendContext(self.ctx, self.programs, self.profiler, self.gpu_scene,
@@ -188,6 +201,7 @@ class Renderer:
     def resize(self, size: tuple[int, int]) -> None:
         if size == self.size:
             return
+        check_target_size(self.ctx, size, "render size")
         # never release a framebuffer that is still bound: bind one that survives the resize
         if self.ctx.screen is not None:
             self.ctx.screen.use()
@@ -196,15 +210,16 @@ class Renderer:
                 self._idle_fbo = self.ctx.simple_framebuffer((1, 1))
             self._idle_fbo.use()
         self.size = size
-        self.gbuffer.resize(size)
-        self.accumulate.resize(size)
-        self.shade.resize(size)
-        self.rays.release()
-        self.hits.release()
-        self.rays = RayBatch(self.ctx, size)
-        self.hits = HitBuffer(self.ctx, size)
-        if self._overlay is not None:
-            self._overlay.resize(size)
+        with allocation_guard(size, "render size"):
+            self.gbuffer.resize(size)
+            self.accumulate.resize(size)
+            self.shade.resize(size)
+            self.rays.release()
+            self.hits.release()
+            self.rays = RayBatch(self.ctx, size)
+            self.hits = HitBuffer(self.ctx, size)
+            if self._overlay is not None:
+                self._overlay.resize(size)
 
     @property
     def final_texture(self) -> moderngl.Texture:
@@ -371,7 +386,6 @@ class Renderer:
             elif source is None:
                 self._overlay_unavailable(f"view '{self.view}' shows a traced pass's overlays, but no pass "
                                           "traces rays (turn an effect on)")
-        overlay_done = False
         iostats.begin_frame()
         prof.begin_frame()
         self.update_geometry()
@@ -380,17 +394,49 @@ class Renderer:
         for prog in (self.raygen.program, self.accumulate.program, self.shade.program):
             apply(prog, cam_u)
             apply(prog, light_u)
+        self.backend.overlays_enabled = self.overlays_wanted  # diagnostics cost time: only when shown or saved
+        self.frame_path = frame_path(self.backend, overlays=self.overlays_wanted)
+        self.backend.begin_frame(self.frame_index)
         if not keep:
-            with prof.phase("gbuffer"):
-                self.gbuffer.render(camera)
+            if self.gbuffer_source == "trace":
+                self._traced_gbuffer(camera)
+            else:
+                with prof.phase("gbuffer"):
+                    self.gbuffer.render(camera)
             self.accumulate.clear()
             self.samples_done = {}
-        self.raygen.reset_count()
-        self.backend.overlays_enabled = self.overlays_wanted  # diagnostics cost time: only when shown or saved
-        self.backend.begin_frame(self.frame_index)
         lengths = {RayType.AO: s.ao_length * self.diagonal, RayType.DIFFUSE: self.diagonal}
         captured: list[CapturedPass] = []
         stats: dict[str, float] = {}
+        if self.frame_path == "device":
+            counts = self._device_passes(passes, lengths, cam_u, light_u, keep, capture, captured, stats)
+            overlay_done = False
+        else:
+            counts, overlay_done = self._batch_passes(passes, lengths, source, capture, captured, stats)
+        with prof.phase("shade"):
+            if view_overlay and overlay_done and self.view in self.overlay.captured:
+                self.overlay.render_view(self.shade.fbo, self.view, self.overlay_tile_level(),
+                                         int(self.overlay_scale), self.overlay_log)
+            else:  # an overlay view without overlays (window): the final image under the message
+                self.shade.render(self.gbuffer, self.accumulate, s, "final" if view_overlay else self.view,
+                                  min(len(self.scene.point_lights), 8), self.depth_scale, self.acc_scale())
+        self.overlay_source = source if overlay_done else None
+        gpu_ms = prof.end_frame()
+        if prof.saturated:  # timer results charged their CPU time instead (see profiler.py)
+            stats["timer_saturated"] = float(prof.saturated)
+        glio.finish(self.ctx)
+        wall = (time.perf_counter() - t0) * 1e3
+        self.frame_index += 1
+        rays = {RayType(i).label: int(counts[i]) for i in range(6) if counts[i] > 0}
+        return FrameReport(gpu_ms, prof.cpu_ms(), wall, rays, dict(prof.by_label), stats, captured,
+                           self.overlay_source, iostats.end_frame())
+
+    def _batch_passes(self, passes, lengths, source, capture, captured, stats) -> tuple[np.ndarray, bool]:
+        """Every pass through the RayBatch / HitBuffer textures (GL backends, overlay frames):
+        (ray counts per type, whether the overlays were copied)."""
+        s, prof = self.settings, self.profiler
+        self.raygen.reset_count()
+        overlay_done = False
         for ray_type, sample, light, weight in passes:
             with prof.phase("raygen"):
                 self.raygen.generate(self.rays, self.gbuffer, ray_type, sample, light,
@@ -410,24 +456,61 @@ class Renderer:
                 with prof.phase("accumulate"):
                     self.accumulate.add(ray_type, self.rays, self.hits, self.gbuffer, light, weight)
                 self.samples_done.setdefault(ray_type, set()).add(sample)
-        with prof.phase("shade"):
-            if view_overlay and overlay_done and self.view in self.overlay.captured:
-                self.overlay.render_view(self.shade.fbo, self.view, self.overlay_tile_level(),
-                                         int(self.overlay_scale), self.overlay_log)
-            else:  # an overlay view without overlays (window): the final image under the message
-                self.shade.render(self.gbuffer, self.accumulate, s, "final" if view_overlay else self.view,
-                                  min(len(self.scene.point_lights), 8), self.depth_scale, self.acc_scale())
-        self.overlay_source = source if overlay_done else None
-        gpu_ms = prof.end_frame()
-        if prof.saturated:  # timer results charged their CPU time instead (see profiler.py)
-            stats["timer_saturated"] = float(prof.saturated)
-        counts = self.raygen.read_counts()
-        self.ctx.finish()
-        wall = (time.perf_counter() - t0) * 1e3
-        self.frame_index += 1
-        rays = {RayType(i).label: int(counts[i]) for i in range(6) if counts[i] > 0}
-        return FrameReport(gpu_ms, prof.cpu_ms(), wall, rays, dict(prof.by_label), stats, captured,
-                           self.overlay_source, iostats.end_frame())
+        return self.raygen.read_counts(), overlay_done
+
+    def _device_passes(self, passes, lengths, cam_u, light_u, keep, capture, captured, stats) -> np.ndarray:
+        """Every pass on the CL device (viewer.cl.frame): the G-buffer ids in once, rays made,
+        traced and accumulated there, the used accumulators out once, the ray counts read once.
+        Phases are timed by queue markers (no host wait per pass); the backend's `end_frame`
+        (optional) reports counters kept on the device over the frame."""
+        from viewer.cl.frame import DeviceFrame
+
+        s, prof = self.settings, self.profiler
+        if self._device is None:
+            self._device = DeviceFrame()
+        dev = self._device
+        q = dev.ctx.queue
+        dev.set_scene(self.scene)
+        with prof.cl_phase("device:ids", q):
+            dev.begin(self.size, self.gbuffer.tri_id, cam_u, light_u, keep)
+        prof.cl_deferred = True
+        try:
+            for ray_type, sample, light, weight in passes:
+                with prof.cl_phase("raygen", q):
+                    dev.generate(ray_type, sample, light, lengths.get(ray_type, 0.0), np.radians(s.perturb_deg))
+                prof.label = ray_type.label
+                result = self.backend.trace_device(dev.rays, PassInfo(ray_type, sample, light, weight), dev.hits)
+                prof.label = None
+                self.backend_overlays = tuple(result.overlays)
+                for k, v in result.stats.items():
+                    stats[k] = stats.get(k, 0) + v
+                if capture:  # verification only: the pass's rays and hits read back
+                    t, tri = dev.hits.read()
+                    captured.append(CapturedPass(ray_type, sample, light, dev.rays.read(), t, tri))
+                if ray_type != RayType.PRIMARY:
+                    with prof.cl_phase("accumulate", q):
+                        dev.accumulate(ray_type, light, weight)
+                    self.samples_done.setdefault(ray_type, set()).add(sample)
+        finally:
+            prof.cl_deferred = False
+        end = getattr(self.backend, "end_frame", None)
+        if callable(end):
+            for k, v in end().items():
+                stats[k] = stats.get(k, 0) + v
+        with prof.cl_phase("device:accumulators", q):
+            dev.write_accumulators(self.accumulate.textures, sorted(self.samples_done, key=int))
+        return dev.read_counts()
+
+    def _traced_gbuffer(self, camera: Camera) -> None:
+        """The G-buffer from the backend's nearest hits of primary rays (gbuffer_source "trace"):
+        phases gbuffer:rays, the backend's trace:primary, gbuffer:fill. The rays are not counted
+        (raygen's counters are reset after the G-buffer) and no overlay is taken from this pass."""
+        prof = self.profiler
+        with prof.phase("gbuffer:rays"):
+            self.raygen.generate(self.rays, self.gbuffer, RayType.PRIMARY, 0, 0, 0.0, 0.0)
+        self.backend.trace(self.rays, PassInfo(RayType.PRIMARY, 0, 0, 1.0), self.hits)
+        with prof.phase("gbuffer:fill"):
+            self.gbuffer.fill_from_hits(camera, self.hits, self.quad)
 
     def read_image(self) -> np.ndarray:
         return self.shade.read_rgb()
@@ -451,6 +534,9 @@ class Renderer:
             obj.release()
         if self._overlay is not None:
             self._overlay.release()
+        if self._device is not None:
+            self._device.release()
+            self._device = None
         if self._idle_fbo is not None:
             self._idle_fbo.release()
             self._overlay = None

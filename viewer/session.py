@@ -8,7 +8,8 @@ from dataclasses import dataclass
 import numpy as np
 from tqdm import tqdm
 
-from viewer.accel.bvh import BVH, build_bvh
+from viewer.accel.builders import build_scene_bvh, resolve_builder
+from viewer.accel.bvh import BVH
 from viewer.scene import Scene
 
 
@@ -44,25 +45,27 @@ class BuildWork:
 
 
 def prepare_scene(spec: str | None, scene_size: int | None = None, seed: int = 1,
-                  mirror_patterns: list[str] | None = None, quiet: bool = False) -> PreparedScene:
+                  mirror_patterns: list[str] | None = None, quiet: bool = False,
+                  bvh_builder: str | None = None) -> PreparedScene:
     from viewer.scene_io import load_scene
 
     scene = load_scene(spec, scene_size=scene_size, seed=seed, mirror_patterns=mirror_patterns,
                        progress=not quiet)
+    builder = resolve_builder(bvh_builder, scene.triangle_count)
     bar = tqdm(total=100, desc="BVH build", unit="%", bar_format="{l_bar}{bar}| [{elapsed}<{remaining}]",
-               disable=quiet or scene.triangle_count < 200_000, file=sys.stderr, leave=False)
+               disable=quiet or scene.triangle_count < 200_000 or builder != "sah", file=sys.stderr, leave=False)
     work = BuildWork(scene.triangle_count)
 
     def progress(placed: int, total: int) -> None:
         bar.update(round(100 * work.level_done(placed)) - bar.n)
 
-    bvh = build_bvh(scene.triangles, progress=progress)
+    bvh = build_scene_bvh(scene.triangles, builder, progress=progress)
     bar.close()
     st = bvh.stats
     if not quiet:
         log(f"scene {scene.name}: {scene.triangle_count:,} triangles, {len(scene.materials)} materials, "
             f"{len(scene.point_lights)} point / {len(scene.rect_lights)} area lights")
-        log(f"BVH: {st.nodes:,} nodes, depth {st.depth}, SAH cost {st.sah_cost:.1f}, "
+        log(f"BVH ({builder}): {st.nodes:,} nodes, depth {st.depth}, SAH cost {st.sah_cost:.1f}, "
             f"built in {st.build_time_s:.2f} s ({scene.triangle_count / max(st.build_time_s, 1e-9) / 1e6:.2f} Mtri/s), "
             f"{st.memory_bytes / 2**20:.1f} MiB of node + triangle buffers")
     ordered = scene.reordered(bvh.tri_order)

@@ -378,6 +378,34 @@ def _validate(triangles: np.ndarray) -> np.ndarray:
     return tri
 
 
+def tree_stats(node_min: np.ndarray, node_max: np.ndarray, node_left: np.ndarray, node_count: np.ndarray,
+               node_depth: np.ndarray, n_tri: int, build_time_s: float = 0.0) -> BuildStats:
+    """BuildStats of a canonical tree (shared by every builder, so their SAH costs compare).
+
+    The SAH cost is reported with traversal 1 and intersection 1 whatever the build costs."""
+    is_leaf = node_left < 0
+    ext = (node_max.astype(np.float64) - node_min).T
+    area = ext[0] * ext[1] + ext[1] * ext[2] + ext[2] * ext[0]
+    root_area = area[0] if area[0] > 0 else 1.0
+    sah = (area[~is_leaf].sum() + (area[is_leaf] * node_count[is_leaf]).sum()) / root_area
+    freq = np.bincount(node_count[is_leaf])  # leaf sizes are small: no sort (np.unique) needed
+    sizes = np.flatnonzero(freq)
+    freq = freq[sizes]
+    n_inner = int((~is_leaf).sum())
+    m = len(node_left)
+    return BuildStats(
+        build_time_s=build_time_s,
+        triangles=n_tri,
+        nodes=m,
+        inner_nodes=n_inner,
+        leaves=m - n_inner,
+        depth=int(node_depth[is_leaf].max()),
+        sah_cost=float(sah),
+        leaf_size_histogram={int(s): int(f) for s, f in zip(sizes, freq, strict=True)},
+        memory_bytes=max(n_inner, 1) * GPU_NODE_DTYPE.itemsize + n_tri * GPU_TRI_DTYPE.itemsize,
+    )
+
+
 def build_bvh(
     triangles: np.ndarray,
     bins: int = 16,
@@ -583,25 +611,7 @@ def build_bvh(
         height[inner] = 1 + np.maximum(height[bvh_left[inner]], height[bvh_right[inner]])
         lv_end = lv_begin
 
-    is_leaf = bvh_left < 0
-    ext = (node_max.astype(np.float64) - node_min).T
-    area = ext[0] * ext[1] + ext[1] * ext[2] + ext[2] * ext[0]
-    root_area = area[0] if area[0] > 0 else 1.0
-    # reported with traversal 1 and intersection 1 whatever the build costs, so builds compare
-    sah = (area[~is_leaf].sum() + (area[is_leaf] * count[is_leaf]).sum()) / root_area
-    sizes, freq = np.unique(count[is_leaf], return_counts=True)
-    n_inner = int((~is_leaf).sum())
-    stats = BuildStats(
-        build_time_s=0.0,
-        triangles=n_tri,
-        nodes=m,
-        inner_nodes=n_inner,
-        leaves=m - n_inner,
-        depth=int(node_depth[is_leaf].max()),
-        sah_cost=float(sah),
-        leaf_size_histogram={int(s): int(f) for s, f in zip(sizes, freq, strict=True)},
-        memory_bytes=max(n_inner, 1) * GPU_NODE_DTYPE.itemsize + n_tri * GPU_TRI_DTYPE.itemsize,
-    )
+    stats = tree_stats(node_min, node_max, bvh_left, count, node_depth, n_tri)
     bvh = BVH(
         node_min=node_min,
         node_max=node_max,

@@ -48,6 +48,7 @@ from typing import Any
 
 import numpy as np
 
+from viewer.cl import io as clio
 from viewer.cl.limits import DeviceLimits, check_alloc, check_total, device_limits
 from viewer.cl.pool import BufferPool
 from viewer.errors import RtwalkError
@@ -192,8 +193,7 @@ class UniformGrid:
         self.ctx = ctx or cl_context()
         self.prims = prims or primitives(self.ctx)
         prog = build(KERNEL, {"WG": WG}, self.ctx)
-        cl = self.ctx.cl
-        self._k = {name: cl.Kernel(prog, name) for name in ("grid_count", "grid_write", "grid_ranges",
+        self._k = {name: clio.kernel(prog, name) for name in ("grid_count", "grid_write", "grid_ranges",
                                                              "grid_block_counts", "grid_blocks")}
         self._bufs = BufferPool(self.ctx, "uniform grid")
         self.header_host = np.zeros(1, GRID_DTYPE)
@@ -236,7 +236,7 @@ class UniformGrid:
         coarsened = 0
         while True:
             self.header_host = grid_header(lo, hi, res)
-            cl.enqueue_copy(q, self.header, self.header_host)
+            clio.copy(q, self.header, self.header_host)
             self._run("grid_count", n, self.header, tris, u(n), counts)
             pairs = self._pair_total(counts, n)
             ncells = int(np.prod(res))
@@ -274,7 +274,7 @@ class UniformGrid:
         blocks = self._buf("blocks", GRID_BLOCK_DTYPE.itemsize * max(nblocks, 1))
         if nblocks:
             self._run("grid_blocks", ncells, cells, cell_blocks, vals, tris, u(ncells), blocks)
-        q.finish()
+        clio.finish(q)
         self.stats = GridStats(tuple(int(r) for r in res), ncells, int(pairs), int(nonempty),
                                (time.perf_counter() - t0) * 1e3, coarsened, int(total))
         return self.stats
@@ -288,7 +288,7 @@ class UniformGrid:
         if cmax * n < 2**32:
             return int(self.prims.exclusive_scan(counts, counts, n))
         host = np.empty(n, np.uint32)
-        self.ctx.cl.enqueue_copy(self.ctx.queue, host, counts)
+        clio.copy(self.ctx.queue, host, counts)
         total = int(host.sum(dtype=np.int64))
         if total < 2**32:
             self.prims.exclusive_scan(counts, counts, n)
@@ -306,9 +306,9 @@ class UniformGrid:
         cells = np.empty((self.stats.cells, 2), np.uint32)
         refs = np.empty(self.stats.pairs, np.uint32)
         q = self.ctx.queue
-        self.ctx.cl.enqueue_copy(q, cells, self.cells)
+        clio.copy(q, cells, self.cells)
         if self.stats.pairs:
-            self.ctx.cl.enqueue_copy(q, refs, self.refs)
+            clio.copy(q, refs, self.refs)
         return self.header_host.copy(), cells, refs
 
     def blocks_to_numpy(self) -> tuple[np.ndarray, np.ndarray]:
@@ -316,12 +316,12 @@ class UniformGrid:
         assert self.stats is not None, "build first"
         cb = np.empty(self.stats.cells, np.uint32)
         q = self.ctx.queue
-        self.ctx.cl.enqueue_copy(q, cb, self.cell_blocks)
+        clio.copy(q, cb, self.cell_blocks)
         counts = self.to_numpy()[1][:, 1].astype(np.int64)
         nb = int(((counts + 3) // 4).sum())
         blocks = np.empty(nb, GRID_BLOCK_DTYPE)
         if nb:
-            self.ctx.cl.enqueue_copy(q, blocks, self.blocks)
+            clio.copy(q, blocks, self.blocks)
         return cb, blocks
 
     def release(self) -> None:

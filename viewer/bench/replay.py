@@ -8,6 +8,7 @@ capture on (same rays: the pipeline is deterministic), so error checks never pol
 
 from __future__ import annotations
 
+import argparse
 import sys
 import time
 from dataclasses import dataclass, field
@@ -22,6 +23,7 @@ from viewer.bench.harness import frame_numbers, frame_row, image_error
 from viewer.bench.plots import figure, finish, stacked
 from viewer.bench.report import write_json
 from viewer.effects import EffectSettings
+from viewer.errors import RtwalkError
 from viewer.reference import REFERENCE_BACKEND
 from viewer.renderer import Renderer
 from viewer.session import PreparedScene
@@ -127,42 +129,47 @@ def run_bench(prepared: PreparedScene, rec, settings: EffectSettings, opts: Benc
         print(f"bench: {len(frames)} of the path's {rec.frame_count(opts.fps)} frames"
               + (f", {checked} checked against Embree (every {every})" if checked else ""), file=sys.stderr)
     t_start, t_render0 = time.perf_counter(), 0.0
-    for k, n in enumerate(tqdm(frames, desc=f"bench {opts.backend}", unit="frame", disable=quiet,
-                               file=sys.stderr)):
-        if k == 1 and not quiet:  # the first frame (rendered and checked) times the rest
-            first = time.perf_counter() - t_start
-            # a checked frame costs `first`, an unchecked one its render part
-            est = first * (checked - 1) + t_render0 * (len(frames) - checked) if checked else first * (len(frames) - 1)
-            tqdm.write(f"bench: estimated {est / 60:.1f} min more (first frame {first:.1f} s)", file=sys.stderr)
-        t_frame = time.perf_counter()
-        cam = rec.camera_for_frame(n, opts.fps)
-        renderer.set_scene_time(rec.scene_time_for_frame(n, opts.fps))
-        rep = renderer.render(cam)
-        row = frame_row(rep, rec, n, opts.fps)
-        if k == 0:
-            t_render0 = time.perf_counter() - t_frame
-        image = None
-        if tracer is not None and k % max(opts.reference_every, 1) == 0:
-            if tracer_version != renderer.scene.geometry_version:  # an animated scene moved: judge this frame's
-                tracer = EmbreeTracer(renderer.scene.triangles)
-                tracer_version = renderer.scene.geometry_version
-            err = reference_errors(renderer, cam, tracer)
-            image = err["image"]
-            row["error"] = err["rays"]
-            renderer.set_backend(opts.reference)  # the reference image: the backend of that name
-            renderer.render(cam)
-            ref_image = renderer.read_image()
-            renderer.set_backend(opts.backend)
-            row["image_error"] = image_error(image, ref_image)
-        if opts.frames_dir is not None and k % max(opts.frame_every, 1) == 0:
-            from PIL import Image
+    complete = True
+    try:
+        for k, n in enumerate(tqdm(frames, desc=f"bench {opts.backend}", unit="frame", disable=quiet,
+                                   file=sys.stderr)):
+            if k == 1 and not quiet:  # the first frame (rendered and checked) times the rest
+                first = time.perf_counter() - t_start
+                # a checked frame costs `first`, an unchecked one its render part
+                est = (first * (checked - 1) + t_render0 * (len(frames) - checked) if checked
+                       else first * (len(frames) - 1))
+                tqdm.write(f"bench: estimated {est / 60:.1f} min more (first frame {first:.1f} s)", file=sys.stderr)
+            t_frame = time.perf_counter()
+            cam = rec.camera_for_frame(n, opts.fps)
+            renderer.set_scene_time(rec.scene_time_for_frame(n, opts.fps))
+            rep = renderer.render(cam)
+            row = frame_row(rep, rec, n, opts.fps)
+            if k == 0:
+                t_render0 = time.perf_counter() - t_frame
+            image = None
+            if tracer is not None and k % max(opts.reference_every, 1) == 0:
+                if tracer_version != renderer.scene.geometry_version:  # an animated scene moved: judge this frame's
+                    tracer = EmbreeTracer(renderer.scene.triangles)
+                    tracer_version = renderer.scene.geometry_version
+                err = reference_errors(renderer, cam, tracer)
+                image = err["image"]
+                row["error"] = err["rays"]
+                renderer.set_backend(opts.reference)  # the reference image: the backend of that name
+                renderer.render(cam)
+                ref_image = renderer.read_image()
+                renderer.set_backend(opts.backend)
+                row["image_error"] = image_error(image, ref_image)
+            if opts.frames_dir is not None and k % max(opts.frame_every, 1) == 0:
+                from PIL import Image
 
-            if image is None:
-                image = renderer.read_image()
-            opts.frames_dir.mkdir(parents=True, exist_ok=True)
-            Image.fromarray(image).save(opts.frames_dir / f"frame_{n:05d}.png")
-            row["overlays"] = save_overlay_views(renderer, cam, opts.frames_dir, n)
-        records.append(row)
+                if image is None:
+                    image = renderer.read_image()
+                opts.frames_dir.mkdir(parents=True, exist_ok=True)
+                Image.fromarray(image).save(opts.frames_dir / f"frame_{n:05d}.png")
+                row["overlays"] = save_overlay_views(renderer, cam, opts.frames_dir, n)
+            records.append(row)
+    except KeyboardInterrupt:  # Ctrl-C: keep the frames done; the caller writes them marked incomplete
+        complete = False
     report = {
         "format": "rtwalk-bench", "version": 1,
         "scene": prepared.scene.identity, "scene_name": prepared.scene.name,
@@ -174,6 +181,7 @@ def run_bench(prepared: PreparedScene, rec, settings: EffectSettings, opts: Benc
         "device": {"renderer": ctx.info.get("GL_RENDERER"), "version": ctx.info.get("GL_VERSION"),
                    "phase_timing": renderer.profiler.method},
         "frames": records, "summary": summarize(records),
+        "complete": complete,  # False: interrupted; `frames` holds the frames finished before that
     }
     renderer.release()
     return report
@@ -193,6 +201,9 @@ def summarize(records: list[dict]) -> dict:
          "wall_ms_mean": _mean(r["wall_ms"] for r in records),
          "rays_mean": {p: _mean(r["rays"].get(p, 0) for r in records) for p in rays},
          "mrays_per_s_mean": {p: _mean(r["mrays_per_s"].get(p) for r in records) for p in rays + ["all"]}}
+    steady = [r["io"] for r in records[1:] if "io" in r] or [r["io"] for r in records if "io" in r]
+    if steady:  # steady frames: the first one also uploads, builds and compiles
+        s["io_mean"] = {k: _mean(io[k] for io in steady) for k in steady[0]}
     checked = [r for r in records if "error" in r]
     if checked:
         s["error"] = {}
@@ -229,6 +240,14 @@ def print_summary(report: dict, out=None) -> None:
         te = f"{e['p999_rel_t_error']:.1e}" if e else "-"
         tx = f"{e['t_beyond_tolerance']}" if e else "-"
         print(f"  {p:<14}{n:>12.0f}{s['mrays_per_s_mean'][p]:>10.2f}{ha:>11}{ia:>10}{te:>13}{tx:>9}", file=out)
+    io = s.get("io_mean")
+    if io:
+        px = max(w * h, 1)
+        print(f"  I/O per steady frame: to device {io['bytes_to_device'] / 1e6:.2f} MB "
+              f"({io['bytes_to_device'] / px:.1f} B/px), to host {io['bytes_to_host'] / 1e6:.2f} MB "
+              f"({io['bytes_to_host'] / px:.1f} B/px), host syncs {io['host_syncs']:.0f}, CL launches "
+              f"{io['cl_launches']:.0f}, GL draws {io['gl_draws']:.0f}, GL queries {io['gl_queries']:.0f}, "
+              f"host time {io['python_ms']:.1f} ms", file=out)
     if "image_mae_mean" in s:
         print(f"  image vs Embree: mean abs error {s['image_mae_mean']:.3f}/255, min PSNR "
               f"{s['image_psnr_min_db']:.1f} dB", file=out)
@@ -252,3 +271,103 @@ def plot_phases(report: dict, path: Path) -> None:
     stacked(ax, frames, layers, ylabel="ms", xlabel="frame", area=True,
             title=f"{report['scene_name']} - {report['backend']} - {w}x{h}: GPU time per phase")
     finish(fig, path)
+
+
+HELP = "replay a recording and report speed and error"
+FRAMES = 48  # default: frames spread over the path, a few minutes on 2 cores
+REFERENCE_EVERY = 6  # and an Embree check of every 6th of them
+
+
+def add_arguments(b: argparse.ArgumentParser) -> None:
+    from viewer.cli_args import add_effect_args, add_progressive_args, add_scene_args
+
+    add_scene_args(b)
+    add_effect_args(b, "shadows,ao:4,reflections")
+    b.add_argument("--recording", default=None, help="camera path (default: recordings/city-near.json for city)")
+    b.add_argument("--fps", type=float, default=None, help="sample the path at this rate (default: recording's)")
+    b.add_argument("--frames", type=int, default=FRAMES,
+                   help=f"at most this many frames (>= 1, default {FRAMES}), spread over the path "
+                        "(consecutive with --first-frame); a number >= the path's frame count replays all")
+    b.add_argument("--first-frame", type=int, default=None,
+                   help="replay consecutive frames from this one (temporal coherence as in a walkthrough)")
+    b.add_argument("--reference", choices=[REFERENCE_BACKEND, "none"], default=REFERENCE_BACKEND,
+                   help=f"check frames against {REFERENCE_BACKEND} (error columns), or none")
+    b.add_argument("--reference-every", type=int, default=REFERENCE_EVERY,
+                   help=f"check every Nth replayed frame against the reference (default {REFERENCE_EVERY}; "
+                        "1 = all, slow)")
+    b.add_argument("--save-frames", default=None, help="folder for PNG frames")
+    b.add_argument("--frame-every", type=int, default=10,
+                   help="with --save-frames: save every Nth replayed frame (and its overlay views)")
+    b.add_argument("--out", default="out/bench", help="folder for the JSON report and plot")
+    b.add_argument("--name", default=None, help="report file stem")
+    add_progressive_args(b, "replay in the window's progressive mode (one pass per effect while moving, "
+                            "refine after the path stops) and report its frame times, time to convergence and "
+                            "the converged image's error against the full-quality frame (no Embree check, "
+                            "no saved frames)")
+
+
+def run(args: argparse.Namespace) -> int:
+    from viewer.cli_args import (
+        DEFAULT_RECORDING,
+        backend_options_from,
+        check_at_least,
+        check_device,
+        check_output_dir,
+        check_positive,
+        check_report_free,
+        parse_size,
+        scene_from_args,
+        settings_from,
+        warn_no_mirrors,
+    )
+    from viewer.gl.context import create_headless_context
+    from viewer.recording import load_recording
+
+    rec_path = args.recording or (DEFAULT_RECORDING if args.scene in (None, "city") else None)
+    if rec_path is None:
+        raise RtwalkError("bench needs --recording FILE for this scene (see recordings/)")
+    # everything that needs no scene first: backend, parameters, numbers, output folders, devices
+    backend_options = backend_options_from(args)
+    size = parse_size(args.size)
+    settings = settings_from(args)
+    check_positive(args.fps, "--fps")
+    check_positive(getattr(args, "frame_target_ms", None), "--frame-target-ms")
+    check_at_least(args.frames, 1, "--frames")
+    check_at_least(args.reference_every, 1, "--reference-every")
+    check_at_least(args.frame_every, 1, "--frame-every")
+    check_at_least(getattr(args, "first_frame", None), 0, "--first-frame")
+    out_dir = check_output_dir(args.out, "--out")
+    frames_dir = check_output_dir(args.save_frames, "--save-frames")
+    rec = load_recording(rec_path)
+    opts = BenchOptions(backend=args.backend, size=size, fps=args.fps,
+                        max_frames=args.frames, reference=args.reference, reference_every=args.reference_every,
+                        frames_dir=frames_dir, frame_every=args.frame_every, backend_options=backend_options,
+                        first_frame=getattr(args, "first_frame", None))
+    frame_numbers(rec, opts.fps, opts.max_frames, opts.first_frame)  # --first-frame within the path
+    check_device(args.backend)
+    ctx = create_headless_context()  # no EGL: fail before loading
+    prepared = scene_from_args(args, rec)
+    warn_no_mirrors(settings, prepared.scene)
+    stem = args.name or f"{prepared.scene.name}-{Path(rec_path).stem}-{args.backend}-{opts.size[0]}x{opts.size[1]}"
+    progressive = getattr(args, "progressive", False)
+    names = [f"{stem}-progressive.json"] if progressive else [f"{stem}.json", f"{stem}.png"]
+    check_report_free([out_dir / n for n in names], getattr(args, "force", False))
+    if progressive:
+        from viewer.progressive import replay_progressive
+
+        result = replay_progressive(prepared, rec, settings, opts, ctx, args.frame_target_ms, quiet=args.quiet)
+        path = out_dir / names[0]
+        write_json(path, result)
+        print(f"report: {path}")
+        return 0
+    report = run_bench(prepared, rec, settings, opts, ctx, quiet=args.quiet)
+    if not report["complete"]:  # interrupted (Ctrl-C): the frames done are kept, marked incomplete
+        if report["frames"]:
+            json_path, _ = write_report(report, out_dir, stem)
+            print(f"rtwalk: interrupted after {len(report['frames'])} frames: partial report {json_path} "
+                  "(\"complete\": false)", file=sys.stderr)
+        raise KeyboardInterrupt
+    print_summary(report)
+    json_path, png_path = write_report(report, out_dir, stem)
+    print(f"report: {json_path}\nplot:   {png_path}")
+    return 0

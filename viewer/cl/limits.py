@@ -11,7 +11,8 @@ on the next. Builders therefore ask here first:
   budget(ctx)                     bytes one acceleration structure build may use in all (a share
                                   of global memory: other backends and the ray stages live beside
                                   it); builders coarsen or stop to stay within it
-  new_buffer(ctx, flags, nbytes, what, hostbuf)  cl.Buffer after check_alloc
+  new_buffer(ctx, flags, nbytes, what, hostbuf)  cl.Buffer after check_alloc (a hostbuf's bytes
+                                  count as host -> device traffic, viewer.iostats)
 
 RTWALK_CL_MAX_ALLOC_MIB and RTWALK_CL_GLOBAL_MIB lower the device's figures (never raise them):
 tests simulate a small device with them instead of allocating gigabytes.
@@ -23,6 +24,7 @@ import os
 from dataclasses import dataclass
 from typing import Any
 
+from viewer import iostats
 from viewer.errors import RtwalkError
 
 MAX_ALLOC_ENV = "RTWALK_CL_MAX_ALLOC_MIB"
@@ -116,6 +118,7 @@ def new_buffer(ctx: Any, flags: Any, nbytes: int, what: str, hostbuf: Any = None
     cl = ctx.cl
     try:
         if hostbuf is not None:
+            iostats.to_device(nbytes)  # the host array crosses once, at creation
             return cl.Buffer(ctx.context, flags | cl.mem_flags.COPY_HOST_PTR, hostbuf=hostbuf)
         return cl.Buffer(ctx.context, flags, max(16, nbytes))
     except cl.Error as e:

@@ -20,6 +20,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from viewer.cl import io as clio
 from viewer.cl.context import ClContext, cl_context
 from viewer.cl.limits import check_alloc
 
@@ -45,7 +46,7 @@ class _Mapped:
         self.flags = mflags.WRITE_INVALIDATE_REGION if write else mflags.READ
 
     def __enter__(self) -> np.ndarray:
-        self.array, _ = self.ctx.cl.enqueue_map_buffer(self.ctx.queue, self.buf, self.flags, 0, self.shape,
+        self.array, _ = clio.map_buffer(self.ctx.queue, self.buf, self.flags, 0, self.shape,
                                                        self.dtype, is_blocking=True)
         return self.array
 
@@ -60,14 +61,15 @@ def mapped(ctx: ClContext, buf: Any, shape: tuple[int, ...], dtype: Any, write: 
 
 
 class RayStage:
-    """CL copies of a RayBatch: `origin` and `dir` float4 buffers (layout above)."""
+    """CL copies of a RayBatch: `origin` and `dir` float4 buffers (layout above). `access` from the
+    kernels' side: "r" for staged rays, "rw" where a kernel makes them (the device-resident frame)."""
 
-    def __init__(self, size: tuple[int, int], ctx: ClContext | None = None):
+    def __init__(self, size: tuple[int, int], ctx: ClContext | None = None, access: str = "r"):
         self.ctx = ctx or cl_context()
         self.size = (int(size[0]), int(size[1]))
         self.n = self.size[0] * self.size[1]
-        self.origin = host_buffer(self.ctx, self.n * 16, "r")
-        self.dir = host_buffer(self.ctx, self.n * 16, "r")
+        self.origin = host_buffer(self.ctx, self.n * 16, access)
+        self.dir = host_buffer(self.ctx, self.n * 16, access)
 
     def upload(self, rays: RayBatch) -> None:
         """Read the ray textures into the CL buffers (blocks until GL has produced them)."""
@@ -88,20 +90,30 @@ class RayStage:
                 mapped(self.ctx, self.dir, (self.n, 4), np.float32) as d:
             return int(np.count_nonzero(d[:, 3] > o[:, 3]))
 
+    def read(self):
+        """The rays as viewer.rays.RayArrays (verification: capture mode, tests)."""
+        from viewer.rays import RayArrays
+
+        with mapped(self.ctx, self.origin, (self.n, 4), np.float32) as o, \
+                mapped(self.ctx, self.dir, (self.n, 4), np.float32) as d:
+            return RayArrays(np.ascontiguousarray(o[:, :3]), np.ascontiguousarray(d[:, :3]),
+                             np.ascontiguousarray(o[:, 3]), np.ascontiguousarray(d[:, 3]))
+
     def release(self) -> None:
         self.origin.release()
         self.dir.release()
 
 
 class HitStage:
-    """CL result buffers for a HitBuffer: `t` float and `tri` int per ray (layout above)."""
+    """CL result buffers for a HitBuffer: `t` float and `tri` int per ray (layout above). `access`:
+    "w" for staged hits, "rw" where a kernel reads them too (the device-resident frame)."""
 
-    def __init__(self, size: tuple[int, int], ctx: ClContext | None = None):
+    def __init__(self, size: tuple[int, int], ctx: ClContext | None = None, access: str = "w"):
         self.ctx = ctx or cl_context()
         self.size = (int(size[0]), int(size[1]))
         self.n = self.size[0] * self.size[1]
-        self.t = host_buffer(self.ctx, self.n * 4, "w")
-        self.tri = host_buffer(self.ctx, self.n * 4, "w")
+        self.t = host_buffer(self.ctx, self.n * 4, access)
+        self.tri = host_buffer(self.ctx, self.n * 4, access)
 
     def download(self, hits: HitBuffer) -> None:
         """Write the CL results into the hit textures (waits for the queue's kernels)."""
@@ -138,6 +150,30 @@ class PassStages:
             n = size[0] * size[1]
             self.parts = (RayStage(size, self.ctx), HitStage(size, self.ctx),
                           *(host_buffer(self.ctx, 4 * n, self.extra_access) for _ in range(self.extras)))
+            self.size = size
+        return self.parts
+
+    def release(self) -> None:
+        for part in self.parts:
+            part.release()
+        self.parts, self.size = (), None
+
+
+class PixelBuffers:
+    """`count` int32 per-pixel CL buffers at a ray-batch size, made again only when the size changes:
+    a backend's extra per-ray outputs in a device-resident frame (no RayStage / HitStage needed:
+    the frame owns those)."""
+
+    def __init__(self, ctx: ClContext, count: int, access: str = "w"):
+        self.ctx, self.count, self.access = ctx, int(count), access
+        self.size: tuple[int, int] | None = None
+        self.parts: tuple = ()
+
+    def get(self, size: tuple[int, int]) -> tuple:
+        size = (int(size[0]), int(size[1]))
+        if size != self.size:
+            self.release()
+            self.parts = tuple(host_buffer(self.ctx, 4 * size[0] * size[1], self.access) for _ in range(self.count))
             self.size = size
         return self.parts
 

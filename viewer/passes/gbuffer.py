@@ -1,14 +1,25 @@
-"""G-buffer pass: rasterizes position, facing normal, albedo, triangle id and ray-distance depth."""
+"""G-buffer pass: rasterizes position, facing normal, albedo, triangle id and ray-distance depth.
+
+Only what can be seen is drawn: the BVH subtrees inside the view pyramid (viewer.passes.cull), as
+one multi-draw-indirect call; `cull = False` draws every triangle (tests compare the two).
+
+The raster's cost grows with the triangles in view, a traced G-buffer's with the pixels: for small
+images (moving frames at a low render scale) `fill_from_hits` writes the same targets from the
+backend's traced primary rays instead (the renderer's `gbuffer_source = "trace"`).
+"""
 
 from __future__ import annotations
 
 import moderngl
 import numpy as np
 
+from viewer import iostats
+from viewer.accel.bvh import BVH
 from viewer.camera import Camera
 from viewer.gl.programs import ProgramCache
 from viewer.gl.scene import GpuScene
 from viewer.gl.textures import float_depth_texture, float_texture, int_texture
+from viewer.passes.cull import Cut, bvh_cut, indirect_commands, visible_ranges
 from viewer.passes.targets import SizedTargets
 from viewer.passes.uniforms import apply, camera_uniforms
 
@@ -21,8 +32,23 @@ class GBufferPass(SizedTargets):
         self.depth_scale = depth_scale
         self.diagonal = scene_diagonal
         self.program = programs.get("gbuffer.vert", "gbuffer.frag", geometry="gbuffer.geom")
+        self.fill = programs.get("fullscreen.vert", "gbuffer_fill.frag")
         self.vao = ctx.vertex_array(self.program, [(gpu_scene.vertices, "3f", "in_pos")])
+        self.cull = True  # frustum culling by BVH subtrees (False: draw every triangle)
+        self.bvh: BVH | None = None
+        self._cut: Cut | None = None
+        self._indirect: moderngl.Buffer | None = None
+        self.drawn_triangles = 0  # triangles submitted by the last render() (a panel/bench counter)
         self.resize(size)
+
+    def set_bvh(self, bvh: BVH) -> None:
+        """The tree whose boxes cull the raster (a refit keeps the topology, so the cut is kept)."""
+        if self._cut is None or self.bvh is None or len(bvh.node_count) != len(self.bvh.node_count):
+            self._cut = bvh_cut(bvh)
+            if self._indirect is not None:
+                self._indirect.release()
+            self._indirect = self.ctx.buffer(reserve=max(len(self._cut.nodes), 1) * 20)
+        self.bvh = bvh
 
     def create_targets(self, size: tuple[int, int]) -> None:
         self.position = float_texture(self.ctx, size, 4)
@@ -36,10 +62,7 @@ class GBufferPass(SizedTargets):
 
     def render(self, camera: Camera) -> None:
         ctx = self.ctx
-        self.fbo.use()
-        # The float clear colour reaches the R32I id attachment as raw bits: -1.0 -> 0xBF800000,
-        # a negative id, which every shader reads as "no triangle" (id < 0).
-        self.fbo.clear(-1.0, 0.0, 0.0, 0.0, depth=1.0)
+        self.clear()
         ctx.enable(ctx.DEPTH_TEST)
         ctx.disable(ctx.CULL_FACE | ctx.BLEND)
         ctx.depth_func = "<"
@@ -56,8 +79,50 @@ class GBufferPass(SizedTargets):
         self.program["depthScale"].value = float(self.depth_scale)
         apply(self.program, camera_uniforms(camera, self.size))
         self.gpu_scene.bind()
-        self.vao.render(moderngl.TRIANGLES, vertices=self.gpu_scene.triangle_count * 3)
+        self._draw(camera, w / h)
         ctx.disable(ctx.DEPTH_TEST)
+
+    def clear(self) -> None:
+        self.fbo.use()
+        # The float clear colour reaches the R32I id attachment as raw bits: -1.0 -> 0xBF800000,
+        # a negative id, which every shader reads as "no triangle" (id < 0).
+        self.fbo.clear(-1.0, 0.0, 0.0, 0.0, depth=1.0)
+
+    def fill_from_hits(self, camera: Camera, hits, quad) -> None:
+        """The targets from traced primary rays (`hits`: a viewer.rays.HitBuffer of rays through the
+        pixel centres): per pixel the same outputs the raster writes for the hit triangle."""
+        ctx = self.ctx
+        self.clear()
+        ctx.enable(ctx.DEPTH_TEST)  # depth is written only with the test on; every pixel passes
+        ctx.disable(ctx.CULL_FACE | ctx.BLEND)
+        ctx.depth_func = "1"
+        p = self.fill
+        p["depthScale"].value = float(self.depth_scale)
+        apply(p, camera_uniforms(camera, self.size))
+        self.gpu_scene.bind()
+        hits.t.use(0)
+        hits.id.use(1)
+        p["hitT"] = 0
+        p["hitId"] = 1
+        quad.render(p)  # counted by FullscreenQuad (viewer.gl.io)
+        ctx.depth_func = "<"
+        ctx.disable(ctx.DEPTH_TEST)
+
+    def _draw(self, camera: Camera, aspect: float) -> None:
+        """One draw: every triangle, or the visible subtrees' ranges as one multi-draw-indirect."""
+        iostats.gl_draw(1)
+        if not self.cull or self._cut is None or self.bvh is None:
+            self.drawn_triangles = self.gpu_scene.triangle_count
+            self.vao.render(moderngl.TRIANGLES, vertices=self.gpu_scene.triangle_count * 3)
+            return
+        ranges = visible_ranges(self._cut, self.bvh.node_min, self.bvh.node_max, camera, aspect)
+        self.drawn_triangles = int(ranges[:, 1].sum()) if len(ranges) else 0
+        if not len(ranges):
+            return
+        cmd = indirect_commands(ranges)
+        self._indirect.write(cmd.tobytes())
+        iostats.to_device(cmd.nbytes)
+        self.vao.render_indirect(self._indirect, moderngl.TRIANGLES, count=len(cmd))
 
     def release_targets(self) -> None:
         for obj in (self.fbo, self.position, self.normal, self.albedo, self.tri_id, self.depth):
@@ -66,3 +131,5 @@ class GBufferPass(SizedTargets):
     def release(self) -> None:
         self.release_targets()
         self.vao.release()
+        if self._indirect is not None:
+            self._indirect.release()

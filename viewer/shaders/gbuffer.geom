@@ -18,6 +18,7 @@
 #endif
 layout(triangles) in;
 layout(triangle_strip, max_vertices = 4) out;
+flat in int vTri[];  // the triangle id (leaf slot), from gl_VertexID: valid in every draw of a multi-draw
 
 // Screen rectangle (NDC) holding the projection of every point of the triangle that a pixel's
 // primary ray can hit, computed in float64 from the float32 vertices and camera (exact differences).
@@ -26,22 +27,22 @@ layout(triangle_strip, max_vertices = 4) out;
 // so clipping the triangle at w = wmin = c * planeDistance / 2 loses nothing that is on screen; the
 // clipped polygon (<= 4 corners, all in front) then projects to a bounded rectangle.
 bool coverageRect(out vec4 rect) {
-    Tri tri = tris[gl_PrimitiveIDIn];
+    Tri tri = tris[vTri[0]];
     dvec3 cp = dvec3(camPos);
     dvec3 a = dvec3(tri.v0) - cp, b = dvec3(tri.v1) - cp, c = dvec3(tri.v2) - cp;
     dvec3 n = cross(b - a, c - a);
     double nn = dot(n, n);
-    if (nn == 0.0) return false;  // zero area: the ray test never hits it
+    if (nn == 0.0lf) return false;  // zero area: the ray test never hits it
     double planeDist = abs(dot(n, a)) / sqrt(nn);
-    if (planeDist == 0.0) return false;  // the camera lies in its plane: only t = 0 hits, excluded
+    if (planeDist == 0.0lf) return false;  // the camera lies in its plane: only t = 0 hits, excluded
     double aspect = double(viewport.x) / double(viewport.y);
-    double tx = double(tanHalfFov) * aspect * 1.1, ty = double(tanHalfFov) * 1.1;
-    double wmin = 0.5 * planeDist / sqrt(1.0 + tx * tx + ty * ty);
+    double tx = double(tanHalfFov) * aspect * 1.1lf, ty = double(tanHalfFov) * 1.1lf;
+    double wmin = 0.5lf * planeDist / sqrt(1.0lf + tx * tx + ty * ty);
     dvec3 R = dvec3(camRight), U = dvec3(camUp), F = dvec3(camForward);
     dvec3 q[3] = dvec3[3](dvec3(dot(a, R), dot(a, U), dot(a, F)), dvec3(dot(b, R), dot(b, U), dot(b, F)),
                           dvec3(dot(c, R), dot(c, U), dot(c, F)));
-    dvec2 lo = dvec2(1e300), hi = dvec2(-1e300);
-    dvec2 scale = dvec2(1.0 / (double(tanHalfFov) * aspect), 1.0 / double(tanHalfFov));
+    dvec2 lo = dvec2(1e300lf), hi = dvec2(-1e300lf);
+    dvec2 scale = dvec2(1.0lf / (double(tanHalfFov) * aspect), 1.0lf / double(tanHalfFov));
     for (int i = 0; i < 3; ++i) {  // Sutherland-Hodgman against w >= wmin, folded into the bounds
         dvec3 p = q[i], s = q[(i + 1) % 3];
         if (p.z >= wmin) {
@@ -56,7 +57,7 @@ bool coverageRect(out vec4 rect) {
     }
     if (lo.x > hi.x) return false;  // entirely behind w = wmin: nothing on screen
     vec2 pad = 2.0 * (1.0 + EXPAND_PX) / viewport;  // a pixel and the push-out, in NDC units
-    vec2 flo = vec2(max(lo, dvec2(-2.0))) - pad, fhi = vec2(min(hi, dvec2(2.0))) + pad;
+    vec2 flo = vec2(max(lo, dvec2(-2.0lf))) - pad, fhi = vec2(min(hi, dvec2(2.0lf))) + pad;
     flo = max(flo, vec2(-1.0) - pad);
     fhi = min(fhi, vec2(1.0) + pad);
     if (flo.x > fhi.x || flo.y > fhi.y) return false;
@@ -70,7 +71,7 @@ void emitRect() {
     vec2 c[4] = vec2[4](r.xy, vec2(r.z, r.y), vec2(r.x, r.w), r.zw);
     for (int i = 0; i < 4; ++i) {
         gl_Position = vec4(c[i], 0.0, 1.0);
-        gl_PrimitiveID = gl_PrimitiveIDIn;
+        gl_PrimitiveID = vTri[0];
         EmitVertex();
     }
     EndPrimitive();
@@ -96,7 +97,7 @@ void main() {
     for (int i = 0; i < 3; ++i) {
         // any positive w works: depth comes from the exact ray distance in the fragment shader
         gl_Position = vec4(corners[i].xy, 0.0, 1.0);
-        gl_PrimitiveID = gl_PrimitiveIDIn;
+        gl_PrimitiveID = vTri[0];
         EmitVertex();
     }
     EndPrimitive();

@@ -49,6 +49,32 @@ def counter_rows(stats: dict[str, float], declared: Sequence[str]) -> tuple[list
     return rows, [k for k in stats if k not in rows]
 
 
+TOP_PHASES = 4  # the timings section lists the costliest phases; the rest share one bar
+
+
+def top_phases(gpu_ms: dict[str, float], n: int = TOP_PHASES) -> list[tuple[str, float]]:
+    """The `n` costliest phases in frame order, then one "other (k phases)" row for the rest, so the
+    section keeps its height whatever the backend times (a backend with a dozen phases)."""
+    items = list(gpu_ms.items())
+    if len(items) <= n + 1:
+        return items
+    keep = {k for k, _ in sorted(items, key=lambda kv: -kv[1])[:n]}
+    rest = [v for k, v in items if k not in keep]
+    return [(k, v) for k, v in items if k in keep] + [(f"other ({len(rest)} phases)", float(sum(rest)))]
+
+
+def fps_line(host) -> str:
+    """The panel's first line: the rate of the last frame actually rendered, or that the window is
+    idle (a converged image is not rendered again; a mean over older frames would go stale)."""
+    last = float(getattr(host, "last_frame_ms", 0.0) or 0.0)
+    if getattr(host, "idle", False):
+        return f"idle (converged; last frame {last:,.0f} ms)" if last > 0 else "idle (converged)"
+    if last <= 0:  # not measured yet (first frame), or a host that does not track it
+        hist = host.history
+        return f"{hist.fps:5.1f} fps  {hist.mean_ms:6.1f} ms/frame" if hist.frame_ms else "- fps"
+    return f"{1000.0 / last:5.1f} fps  {last:6.1f} ms/frame"
+
+
 class FrameHistory:
     """Last `n` frame times (ms), GPU totals, chart phases and backend counters."""
 
@@ -148,7 +174,7 @@ def draw_panel(host, width: float, height: float) -> None:  # noqa: C901 (a flat
 
     # -- status line --------------------------------------------------------------------------
     hist = host.history
-    imgui.text_wrapped(f"{hist.fps:5.1f} fps  {hist.mean_ms:6.1f} ms/frame  render {r.size[0]}x{r.size[1]}")
+    imgui.text_wrapped(fps_line(host) + f"  render {r.size[0]}x{r.size[1]}")
     imgui.text_wrapped(f"{scene.name}: {scene.triangle_count:,} tris, backend {r.backend_name}, view {r.view}")
     step = getattr(host, "step", None)
     if step is not None:
@@ -165,15 +191,17 @@ def draw_panel(host, width: float, height: float) -> None:  # noqa: C901 (a flat
         imgui.text_wrapped(host.status)
 
     # -- timings ------------------------------------------------------------------------------
+    # Sections fold (collapsing headers); only the timings are open at first, so the panel fits a
+    # 504-px window, and the window scrolls (wheel) whatever is opened
     if imgui.collapsing_header("Timings", imgui.TreeNodeFlags_.default_open):
         rep = host.last_report
         frame = hist.array("frame")
         imgui.plot_lines("##frame", frame, overlay_text=f"frame ms (last {len(hist.frame_ms)})",
-                         scale_min=0.0, scale_max=float(max(frame.max() * 1.1, 1.0)), graph_size=(-1, 56))
+                         scale_min=0.0, scale_max=float(max(frame.max() * 1.1, 1.0)), graph_size=(-1, 36))
         if rep is not None:
             total = max(sum(rep.gpu_ms.values()), 1e-6)
             imgui.text(f"GPU {total:.1f} ms, wall {rep.wall_ms:.1f} ms")
-            for name, ms in rep.gpu_ms.items():
+            for name, ms in top_phases(rep.gpu_ms):
                 imgui.progress_bar(min(ms / total, 1.0), (-1, 0), f"{name}  {ms:.2f} ms")
             rays = sum(rep.rays.values())
             if rep.rays:
@@ -189,14 +217,15 @@ def draw_panel(host, width: float, height: float) -> None:  # noqa: C901 (a flat
                 imgui.text(f"({mrays_frame:.1f} Mrays/s over the whole frame)")
             else:
                 imgui.text("no rays traced (all effects off)")
+            _draw_io(rep, r.size)
 
     # -- backend phases and counters (CHC+RT paper, Figure 8) ------------------------------------
-    if imgui.collapsing_header("Backend phases & counters", imgui.TreeNodeFlags_.default_open):
+    if imgui.collapsing_header("Backend phases & counters"):
         _draw_phase_chart(hist)
         _draw_counters(host.last_report, hist, r.backend.info.counters)
 
     # -- effects ------------------------------------------------------------------------------
-    if imgui.collapsing_header("Effects", imgui.TreeNodeFlags_.default_open):
+    if imgui.collapsing_header("Effects"):
         col = 150
 
         def toggle_with_samples(label: str, on: str, samples: str | None) -> None:
@@ -225,7 +254,7 @@ def draw_panel(host, width: float, height: float) -> None:  # noqa: C901 (a flat
         _, s.ambient = imgui.slider_float("ambient", s.ambient, 0.0, 1.0, "%.2f")
 
     # -- renderer -----------------------------------------------------------------------------
-    if imgui.collapsing_header("Renderer", imgui.TreeNodeFlags_.default_open):
+    if imgui.collapsing_header("Renderer"):
         names = backend_names()
         cur = names.index(r.backend_name) if r.backend_name in names else 0
         changed, idx = imgui.combo("backend", cur, names)
@@ -244,7 +273,7 @@ def draw_panel(host, width: float, height: float) -> None:  # noqa: C901 (a flat
         _, host.render_scale = imgui.slider_float("render scale", host.render_scale, 0.25, 1.0, "%.2f")
 
     # -- scene --------------------------------------------------------------------------------
-    if imgui.collapsing_header("Scene", imgui.TreeNodeFlags_.default_open):
+    if imgui.collapsing_header("Scene"):
         st = r.stats()
         imgui.text(f"{scene.name}: {scene.triangle_count:,} triangles")
         imgui.text(f"{len(scene.materials)} materials, {len(scene.point_lights)} point / "
@@ -254,7 +283,7 @@ def draw_panel(host, width: float, height: float) -> None:  # noqa: C901 (a flat
         imgui.text(f"GPU memory {_mib(st.get('gpu_memory_bytes', 0))}")
 
     # -- camera -------------------------------------------------------------------------------
-    if imgui.collapsing_header("Camera", imgui.TreeNodeFlags_.default_open):
+    if imgui.collapsing_header("Camera"):
         cam = host.current_camera()
         fly = host.fly
         p = cam.position
@@ -272,7 +301,7 @@ def draw_panel(host, width: float, height: float) -> None:  # noqa: C901 (a flat
             host.copy_to_clipboard(arg)
 
     # -- actions / keys -----------------------------------------------------------------------
-    if imgui.collapsing_header("Keys", imgui.TreeNodeFlags_.default_open):
+    if imgui.collapsing_header("Keys"):
         if imgui.button("Screenshot (F12)"):
             host.take_screenshot()
         imgui.same_line()
@@ -289,6 +318,28 @@ def draw_panel(host, width: float, height: float) -> None:  # noqa: C901 (a flat
 
 
 # --------------------------------------------------------------------------- backend phases, counters
+
+
+def io_lines(io, size: tuple[int, int]) -> list[str]:
+    """The "I/O per frame" lines: what crossed between host and devices and what the host
+    submitted (viewer.iostats), bytes also per pixel."""
+    px = max(size[0] * size[1], 1)
+    return [f"to device {_mib(io.bytes_to_device)} ({io.bytes_to_device / px:.1f} B/px)",
+            f"to host   {_mib(io.bytes_to_host)} ({io.bytes_to_host / px:.1f} B/px)",
+            f"host syncs {io.host_syncs}, CL launches {io.cl_launches}",
+            f"GL draws {io.gl_draws}, GL queries {io.gl_queries}, host {io.python_ms:.1f} ms"]
+
+
+def _draw_io(rep, size: tuple[int, int]) -> None:
+    from imgui_bundle import imgui
+
+    io = getattr(rep, "io", None)
+    if io is None:
+        return
+    imgui.separator()
+    imgui.text("I/O per frame")
+    for line in io_lines(io, size):
+        imgui.text(line)
 
 
 def _draw_phase_chart(hist: FrameHistory) -> None:
@@ -311,7 +362,7 @@ def _draw_phase_chart(hist: FrameHistory) -> None:
     implot.push_style_var(sv.legend_inner_padding, imgui.ImVec2(3, 3))  # a narrow legend beside the bars
     implot.push_style_var(sv.legend_spacing, imgui.ImVec2(2, 1))
     implot.push_style_var(sv.legend_padding, imgui.ImVec2(4, 4))
-    if implot.begin_plot("##phases", (-1, 170), flags):
+    if implot.begin_plot("##phases", (-1, 140), flags):
         implot.setup_axes("frames (newest right)", "GPU ms", implot.AxisFlags_.no_tick_labels)
         implot.setup_axis_limits(implot.ImAxis_.x1, -0.6, max(n, 8) - 0.4, implot.Cond_.always)
         implot.setup_axis_limits(implot.ImAxis_.y1, 0.0, ymax, implot.Cond_.always)

@@ -12,7 +12,7 @@ pairs, its device buffer bytes, the median trace ms, its ratio to clbvh's, and h
 with clbvh (ties at the same distance excepted). Peak RSS: one backend per process under
 /usr/bin/time -v. `--build-only`: the uniform grid alone (pairs, MiB, RSS), no tracing.
 
-  python -m viewer.bench.ugrid_far --scene dragon --offset 1e6 --backends clbvh,ugrid,pgrid,voxelwalk
+  python -m viewer.bench.grids_far --scene dragon --offset 1e6 --backends clbvh,ugrid,pgrid,voxelwalk
 """
 
 from __future__ import annotations
@@ -182,11 +182,10 @@ def build_only(args, tris: np.ndarray) -> int:
     """The uniform grid alone (the one ugrid, pgrid and voxelwalk build): pairs, MiB, RSS."""
     from viewer.accel.grid import GridSpec, UniformGrid, scene_box, triangles_f4
     from viewer.cl import cl_context
+    from viewer.cl import io as clio
 
     ctx = cl_context()
-    cl = ctx.cl
-    f4 = triangles_f4(tris)
-    buf = cl.Buffer(ctx.context, cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR, hostbuf=f4)
+    buf = clio.upload(ctx, triangles_f4(tris), what="bench triangles")
     grid = UniformGrid(ctx)
     st = grid.build(buf, len(tris), *scene_box(tris), GridSpec())
     mib = sum(b.size for b in grid._bufs.bufs.values()) / 2**20
@@ -248,7 +247,7 @@ def run(args) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m viewer.bench.ugrid_far", description=__doc__.split("\n")[0])
+    p = argparse.ArgumentParser(prog="python -m viewer.bench.grids_far", description=__doc__.split("\n")[0])
     add_arguments(p)
     args = p.parse_args(argv)
     try:

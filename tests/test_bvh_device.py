@@ -1,0 +1,206 @@
+"""Device BVH builder (viewer.accel.bvh_device): the tree checked against the triangles with plain
+NumPy (tests.test_bvh.check_tree: every triangle in one leaf, conservative exact float32 boxes,
+a valid binary tree in breadth-first order), traversal against float64 brute force and Embree,
+SAH quality against the binned SAH builder, and edge cases."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from tests.test_bvh import box_grid_tris, check_gpu_nodes, check_tree, clustered_tris, random_tris
+from tests.test_clbvh import CL_REASON, check_bvh4, random_rays
+from viewer.accel.bvh import build_bvh
+from viewer.accel.bvh4 import build_bvh4
+from viewer.reference import EmbreeTracer, compare_hits, trace_float64
+
+pytestmark = pytest.mark.skipif(CL_REASON is not None, reason=f"no OpenCL device: {CL_REASON}")
+
+
+def device_bvh(tris, **kw):
+    from viewer.accel.bvh_device import build_bvh_device
+
+    return build_bvh_device(tris, **kw)
+
+
+def walk_reaches_each_node_once(bvh) -> None:
+    """Independent of the parent links: a walk from the root meets every node exactly once."""
+    seen = np.zeros(len(bvh.node_left), np.int64)
+    stack = [0]
+    while stack:
+        v = stack.pop()
+        seen[v] += 1
+        if bvh.node_left[v] >= 0:
+            stack += [int(bvh.node_left[v]), int(bvh.node_right[v])]
+    assert (seen == 1).all()
+
+
+@pytest.mark.parametrize("n", [1, 2, 3, 5, 17, 100])
+def test_small_sizes(n):
+    tris = random_tris(n, seed=n)
+    bvh = device_bvh(tris)
+    check_tree(bvh, tris)
+    walk_reaches_each_node_once(bvh)
+    check_gpu_nodes(bvh)
+    if n <= 2:  # at most min_leaf triangles: one leaf
+        assert bvh.stats.nodes == 1
+
+
+@pytest.mark.parametrize("make", [random_tris, clustered_tris, box_grid_tris])
+def test_scenes_structure_and_bvh4(make):
+    tris = make(6000, seed=3)
+    bvh = device_bvh(tris)
+    check_tree(bvh, tris)
+    walk_reaches_each_node_once(bvh)
+    check_gpu_nodes(bvh)
+    check_bvh4(bvh.triangles_in_leaf_order(tris), build_bvh4(bvh), bool(bvh.is_leaf()[0]))
+
+
+def test_coincident_centroids():
+    """Equal Morton codes everywhere (every box centre exactly 0: v0 = a, v1 = -a, v2 inside):
+    ties are broken by index and the build still ends with valid leaves; identical triangles too."""
+    rng = np.random.default_rng(5)
+    a = rng.normal(0, 1, (300, 3)).astype(np.float32)
+    tris = np.stack([a, -a, a * rng.uniform(-1, 1, (300, 1)).astype(np.float32)], axis=1)
+    centre = (tris.min(axis=1) + tris.max(axis=1)) * np.float32(0.5)
+    assert (centre == 0).all()
+    bvh = device_bvh(tris)
+    check_tree(bvh, tris)
+    walk_reaches_each_node_once(bvh)
+    same = np.repeat(tris[:1], 64, axis=0)
+    bvh = device_bvh(same)
+    check_tree(bvh, same)
+    walk_reaches_each_node_once(bvh)
+
+
+def test_far_offset_scene():
+    """A scene 1e6 away from the origin: boxes stay exact and conservative, traversal agrees."""
+    tris = random_tris(3000, seed=9, extent=50.0, size=0.8) + np.float32(1e6)
+    bvh = device_bvh(tris)
+    check_tree(bvh, tris)
+    sah = build_bvh(tris)
+    assert bvh.stats.sah_cost <= 1.15 * sah.stats.sah_cost
+
+
+def test_sah_within_bound_of_sah_builder():
+    from viewer.procedural import make_city
+
+    tris = make_city(40000, 1).triangles
+    dev, ref = device_bvh(tris), build_bvh(tris)
+    check_tree(dev, tris)
+    assert dev.stats.sah_cost <= 1.10 * ref.stats.sah_cost, (dev.stats.sah_cost, ref.stats.sah_cost)
+
+
+def test_leaf_parameters():
+    tris = box_grid_tris(3000, seed=2)
+    bvh = device_bvh(tris, max_leaf=8, min_leaf=1)
+    check_tree(bvh, tris, max_leaf=8, min_leaf=1)
+
+
+def _trace_clbvh(tris, bvh, o, d, lo, hi, any_hit):
+    """clbvh on the given tree; ids mapped back to the input triangles."""
+    from viewer.backends.clbvh import ClbvhScene
+    from viewer.cl.transfer import HitStage, RayStage
+
+    n = len(o)
+    size = (n, 1)
+    scene = ClbvhScene(bvh.triangles_in_leaf_order(tris), bvh)
+    rs, hs = RayStage(size, scene.ctx), HitStage(size, scene.ctx)
+    try:
+        rs.upload_arrays(np.c_[o, lo], np.c_[d, hi])
+        scene.enqueue(rs.origin, rs.dir, hs.t, hs.tri, n, any_hit)
+        t, slot = hs.read()
+    finally:
+        rs.release()
+        hs.release()
+        scene.release()
+    t, slot = np.asarray(t).reshape(-1)[:n], np.asarray(slot).reshape(-1)[:n]
+    return t, np.where(slot >= 0, bvh.tri_order[np.maximum(slot, 0)], -1)
+
+
+@pytest.mark.parametrize("any_hit", [False, True])
+def test_clbvh_on_device_tree_matches_float64(any_hit):
+    tris = random_tris(400, seed=4, extent=20.0, size=2.0)
+    o, d = random_rays(3000, seed=4, lo=-2.0, hi=22.0)
+    lo = np.zeros(len(o), np.float32)
+    hi = np.full(len(o), np.inf, np.float32)
+    t, tri = _trace_clbvh(tris, device_bvh(tris), o, d, lo, hi, any_hit)
+    rt, rtri = trace_float64(tris, o, d, lo, hi, any_hit=any_hit)
+    st = compare_hits(t, tri, rt, rtri, tris)
+    assert st["hitmiss_agree"] == 1.0 and st["n_bad_id"] == 0, st
+    if not any_hit:
+        assert st["id_agree"] == 1.0 and st["max_rel_err"] < 1e-4, st
+
+
+def test_clbvh_on_device_tree_matches_embree():
+    tris = random_tris(20000, seed=2, extent=50.0, size=0.8)
+    o, d = random_rays(20000, seed=3, lo=-5.0, hi=55.0)
+    lo = np.zeros(len(o), np.float32)
+    hi = np.full(len(o), np.inf, np.float32)
+    t, tri = _trace_clbvh(tris, device_bvh(tris), o, d, lo, hi, False)
+    rt, rtri = EmbreeTracer(tris).trace(o, d, lo, hi, any_hit=False)
+    st = compare_hits(t, tri, rt, rtri, tris)
+    assert st["hitmiss_agree"] >= 0.9999 and st["n_bad_id"] == 0 and st["id_agree"] >= 0.9999, st
+
+
+def test_glsl_on_device_tree_matches_float64(monkeypatch):
+    """The GLSL backend through viewer.tracing with RTWALK_BVH_BUILDER=device."""
+    from viewer import tracing
+
+    monkeypatch.setenv("RTWALK_BVH_BUILDER", "device")
+    tracing._CACHE.clear()
+    tris = random_tris(300, seed=6, extent=20.0, size=2.0)
+    o, d = random_rays(2000, seed=6, lo=-2.0, hi=22.0)
+    lo = np.zeros(len(o), np.float32)
+    hi = np.full(len(o), np.inf, np.float32)
+    try:
+        t, tri = tracing.trace_rays(tris, o, d, lo, hi, backend="glsl")
+    finally:
+        tracing._CACHE.clear()
+    rt, rtri = trace_float64(tris, o, d, lo, hi)
+    st = compare_hits(t, tri, rt, rtri, tris)
+    assert st["hitmiss_agree"] == 1.0 and st["n_bad_id"] == 0 and st["id_agree"] == 1.0, st
+
+
+def test_block_nearest_equals_per_cluster_nearest():
+    """The pair-once block kernel finds the same neighbours as the plain per-cluster search (so the
+    same tree), across block boundaries and with more blocks than clusters at the end."""
+    from viewer.accel.bvh_device import device_builder
+
+    tris = box_grid_tris(5000, seed=8)
+    b = device_builder()
+    try:
+        b.block_nearest = False
+        plain = b.build(tris)
+        b.block_nearest = True
+        block = b.build(tris)
+    finally:
+        b.block_nearest = True
+    for f in ("node_min", "node_max", "node_left", "node_right", "node_first", "node_count", "tri_order"):
+        assert np.array_equal(getattr(plain, f), getattr(block, f)), f
+
+
+def test_refuses_builds_the_device_cannot_hold(monkeypatch):
+    from viewer.accel import bvh_device
+    from viewer.errors import RtwalkError
+
+    dev = bvh_device.device_builder().ctx.device
+    monkeypatch.setattr(bvh_device, "BYTES_PER_TRIANGLE", dev.global_mem_size)  # 2 triangles > memory
+    with pytest.raises(RtwalkError, match="device memory"):
+        device_bvh(random_tris(2))
+
+
+def test_builder_choice(monkeypatch):
+    from viewer.accel.builders import AUTO_DEVICE_MIN, resolve_builder
+    from viewer.errors import RtwalkError
+
+    monkeypatch.delenv("RTWALK_BVH_BUILDER", raising=False)
+    assert resolve_builder(None, 1000) == "sah"
+    assert resolve_builder(None, AUTO_DEVICE_MIN) == "device"
+    assert resolve_builder("sah", AUTO_DEVICE_MIN) == "sah"
+    monkeypatch.setenv("RTWALK_BVH_BUILDER", "device")
+    assert resolve_builder(None, 10) == "device"
+    assert resolve_builder("sah", 10) == "sah"  # the option wins over the environment
+    monkeypatch.setenv("RTWALK_BVH_BUILDER", "fast")
+    with pytest.raises(RtwalkError, match="RTWALK_BVH_BUILDER"):
+        resolve_builder(None, 10)

@@ -1,0 +1,259 @@
+"""BVH built on the OpenCL device: Morton order, PLOC clustering, SAH leaf collapse.
+
+Why: the binned SAH build (viewer.accel.bvh) is NumPy on one core, about 0.3 M triangles/s; a
+10 M scene waits more than 30 s for its first frame. This builder produces the same `BVH`
+(canonical nodes, node ranges, `tri_order`, `BuildStats`), so every backend, `gpu_nodes()` and
+`build_bvh4()` use it unchanged; the SAH build stays the quality reference.
+
+Algorithm (kernels in bvh_device.cl)
+------------------------------------
+1. Triangle boxes (exact float32 min/max of the vertices) and box centres; the centres' bounds
+   (6 device reductions) span a cubic 1024^3 grid; 30-bit Morton codes of the centres are sorted with
+   the project's radix sort (viewer.cl.primitives, 4 digit passes).
+2. PLOC (Meister & Bittner 2018): the clusters (one per triangle at first) stay in Morton order;
+   each finds the cluster within `radius` positions whose merged box has the least surface area
+   (ties to the lower index: the closest pair overall is always mutual, so every iteration
+   merges); mutual pairs merge into a new node in the lower slot, the other slot is compacted
+   away. An iteration is 5 launches (nearest, merge, per-block count, block scan, scatter); the
+   cluster count lives on the device, every kernel reads it there, and the host reads it back
+   only every `check_every` iterations (to shrink the launch sizes and to stop).
+3. While merging, each node gets the SAH cost of its best subtree (dynamic programme: the cheaper
+   of a leaf and the split, traversal 1, intersection 1 per triangle, as BuildStats reports):
+   a node of at most `max_leaf` triangles becomes a leaf when that is not dearer (always when
+   it holds at most `min_leaf`). Leaves are the topmost such nodes; nodes below them are dropped.
+4. Layout without a per-level loop: pointer jumping (ceil(log2(height + 1)) launches) sums, along
+   each node's path to the root, the triangles and kept nodes of left siblings and the depth, so
+   each kept node gets its first slot, its preorder index (children after parents, root 0) and
+   its depth; one launch writes the canonical arrays and the leaf order (`tri_order`).
+Host round trips: the 6 reductions, one count read every `check_every` PLOC iterations, the root
+height and kept-node count, and the final read-back of the tree (which the host-side `BVH`
+needs).
+
+Numerics: every box is an exact float32 min/max of the triangles' float32 vertices or of child
+boxes (never rounded, so never shrunk); the Morton grid only orders the triangles.
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from viewer.accel.bvh import BVH, _validate, tree_stats
+from viewer.cl import io as clio
+from viewer.cl.pool import BufferPool
+from viewer.cl.primitives import WG as PWG
+
+KERNEL = Path(__file__).resolve().parent / "bvh_device.cl"
+WG = 64
+RADIUS = 8
+CHECK_EVERY = 4
+#: device bytes per triangle of the buffers build() allocates (all kept for the next build): input,
+#: boxes, centres, keys + sort scratch, 2 nodes x (boxes, 8 int fields, flag), 2 x clusters, nn,
+#: 2 nodes x 2 pointer-jumping states, preorder + final outputs, BFS sort keys, tri_order
+BYTES_PER_TRIANGLE = 36 + 32 + 12 + 16 + 2 * (32 + 8 * 4 + 1) + 2 * 36 + 4 + 2 * 2 * 16 + 2 * 60 + 12 + 4
+_KERNELS = ("tri_boxes", "morton", "init_leaves", "nearest", "nearest_block", "merge", "count_kept", "scan_blocks",
+            "scatter", "jump_init", "jump", "emit", "depth_keys", "invert", "permute")
+
+
+class DeviceBvhBuilder:
+    """Kernels and reusable buffers for one context (see the module docstring)."""
+
+    def __init__(self, ctx: Any = None, radius: int = RADIUS, max_leaf: int = 4, min_leaf: int = 2,
+                 check_every: int = CHECK_EVERY):
+        from viewer.cl import build, cl_context
+        from viewer.cl.primitives import primitives
+
+        if radius < 1:
+            raise ValueError("radius must be >= 1")
+        if max_leaf < 1 or min_leaf > max_leaf:
+            raise ValueError("need 1 <= max_leaf and min_leaf <= max_leaf")
+        self.ctx = ctx or cl_context()
+        self.prims = primitives(self.ctx)
+        self.max_leaf, self.min_leaf = int(max_leaf), max(int(min_leaf), 1)
+        self.check_every = max(int(check_every), 1)
+        self.block_nearest = True  # nearest_block (each pair once) rather than nearest (per cluster)
+        prog = build(KERNEL, {"WG": WG, "RADIUS": int(radius), "MAX_LEAF": self.max_leaf,
+                              "MIN_LEAF": self.min_leaf}, self.ctx)
+        self._k = clio.kernels(prog, _KERNELS)
+        self._bufs = BufferPool(self.ctx)
+        self.phases: dict[str, float] = {}
+        self.iterations = 0
+
+    # -- helpers ----------------------------------------------------------------------------
+    def _run(self, name: str, n: int, *args: Any) -> None:
+        if n:
+            self._k[name](self.ctx.queue, (-(-n // WG) * WG,), (WG,), *args)
+
+    def _task(self, name: str, n: int, *args: Any) -> None:
+        """Block kernels: one work-item per block, n a multiple of the primitives' WG or 1 (a fixed
+        local size: PoCL compiles a work-group function per local size)."""
+        local = min(n, PWG)
+        self._k[name](self.ctx.queue, (-(-n // local) * local,), (local,), *args)
+
+    def _buf(self, name: str, nbytes: int) -> Any:
+        return self._bufs.get(name, nbytes)
+
+    def _read(self, buf: Any, count: int, dtype: Any, offset: int = 0) -> np.ndarray:
+        out = np.empty(count, dtype)
+        if count:
+            clio.copy(self.ctx.queue, out, buf, src_offset=offset)
+        return out
+
+    def _phase(self, name: str, t0: float) -> float:
+        self.ctx.finish()
+        t = time.perf_counter()
+        self.phases[name] = self.phases.get(name, 0.0) + (t - t0)
+        return t
+
+    def release(self) -> None:
+        """Free the device buffers (about 300 bytes per triangle of the last build)."""
+        self._bufs.release()
+
+    def check_memory(self, n: int) -> None:
+        """RtwalkError before allocating when the device cannot hold the build's buffers."""
+        from viewer.errors import RtwalkError
+
+        dev = self.ctx.device
+        largest = 16 * 2 * n  # node boxes and pointer-jumping state: 16 bytes per node
+        total = BYTES_PER_TRIANGLE * n
+        if largest > dev.max_mem_alloc_size or total > dev.global_mem_size:
+            raise RtwalkError(f"device BVH build of {n:,} triangles needs {total / 2**30:.1f} GiB of device memory "
+                              f"(buffers up to {largest / 2**20:.0f} MiB); {dev.name.strip()} has "
+                              f"{dev.global_mem_size / 2**30:.1f} GiB (buffers up to "
+                              f"{dev.max_mem_alloc_size / 2**20:.0f} MiB): use --bvh-builder sah")
+
+    # -- build ------------------------------------------------------------------------------
+    def build(self, triangles: np.ndarray) -> BVH:
+        """The BVH of float32 triangles (N, 3, 3); same contract as viewer.accel.bvh.build_bvh."""
+        t_start = time.perf_counter()
+        self.phases = {}
+        tri = _validate(triangles)
+        n = len(tri)
+        if n >= 2**30:
+            raise ValueError("at most 2**30 triangles")
+        q = self.ctx.queue
+        u = np.uint32
+        m_all = 2 * n - 1
+        self.check_memory(n)
+        b = self._buf
+        tri_buf = b("tri", tri.nbytes)
+        clio.copy(q, tri_buf, tri, is_blocking=False)
+        bmin, bmax = b("bmin", 16 * n), b("bmax", 16 * n)
+        cx, cy, cz = b("cx", 4 * n), b("cy", 4 * n), b("cz", 4 * n)
+        self._run("tri_boxes", n, tri_buf, u(n), bmin, bmax, cx, cy, cz)
+        t = self._phase("upload+boxes", t_start)
+
+        # -- Morton codes, sorted ---------------------------------------------------------------
+        lo = np.array([self.prims.reduce(c, n, "min", np.float32) for c in (cx, cy, cz)], np.float32)
+        hi = np.array([self.prims.reduce(c, n, "max", np.float32) for c in (cx, cy, cz)], np.float32)
+        # one scale for all axes (a cube around the centres): per-axis scales would stretch a flat
+        # scene's thin axis over the whole code and order it worse
+        ext = float((hi.astype(np.float64) - lo).max())
+        scale = np.full(3, 1024.0 / ext if ext > 0 else 0.0)
+        keys, perm = b("keys", 4 * n), b("perm", 4 * n)
+        self._run("morton", n, cx, cy, cz, u(n), np.append(lo, 0).astype(np.float32),
+                  np.append(scale, 0).astype(np.float32), keys, perm)
+        self.prims.sort_pairs(keys, perm, n, key_bits=30)
+        t = self._phase("morton+sort", t)
+
+        # -- PLOC ---------------------------------------------------------------------------------
+        nmin, nmax = b("nmin", 16 * m_all), b("nmax", 16 * m_all)
+        names = ("left", "right", "parent", "count", "kept_nodes", "height", "uheight", "cost")
+        left, right, parent, count, kept_nodes, height, uheight, cost = (b(k, 4 * m_all) for k in names)
+        leaf_ok = b("leaf_ok", m_all)
+        cnode = [b("cnode0", 4 * n), b("cnode1", 4 * n)]
+        cmin = [b("cmin0", 16 * n), b("cmin1", 16 * n)]
+        cmax = [b("cmax0", 16 * n), b("cmax1", 16 * n)]
+        nn = b("nn", 4 * n)
+        cnt = b("cnt", 8)
+        next_node = b("next_node", 4)
+        clio.copy(q, cnt, np.array([n, n], np.uint32))
+        clio.copy(q, next_node, np.array([n], np.uint32))
+        self._run("init_leaves", n, perm, bmin, bmax, u(n), nmin, nmax, left, right, parent, count, kept_nodes,
+                  height, uheight, cost, leaf_ok, cnode[0], cmin[0], cmax[0])
+        node_args = (next_node, nmin, nmax, left, right, parent, count, kept_nodes, height, uheight, cost, leaf_ok)
+        p = 0  # cnt[p] is the current cluster count; cluster arrays [p] are current
+        n_host = n
+        iters = 0
+        while n_host > 1:
+            nb = self.prims.nblocks(n_host)
+            nbn = max(PWG, min(-(-n_host // 256), 8 * self.prims.max_blocks) // PWG * PWG)
+            bsum = b("bsum", 4 * nb)
+            for _ in range(self.check_every):
+                s = p
+                if self.block_nearest:
+                    self._task("nearest_block", nbn, cnt, u(p), cmin[s], cmax[s], u(nbn), nn)
+                else:
+                    self._run("nearest", n_host, cnt, u(p), cmin[s], cmax[s], nn)
+                self._run("merge", n_host, cnt, u(p), nn, cnode[s], cmin[s], cmax[s], *node_args)
+                self._task("count_kept", nb, cnt, u(p), nn, u(nb), bsum)
+                self._task("scan_blocks", 1, bsum, u(nb), cnt, u(p))
+                self._task("scatter", nb, cnt, u(p), nn, u(nb), bsum, cnode[s], cmin[s], cmax[s],
+                           cnode[1 - s], cmin[1 - s], cmax[1 - s])
+                p = 1 - p
+                iters += 1
+            n_host = int(self._read(cnt, 2, np.uint32)[p])
+        self.iterations = iters
+        root = int(self._read(cnode[p], 1, np.uint32)[0])
+        t = self._phase("ploc", t)
+
+        # -- layout: pointer jumping, then the canonical arrays -------------------------------
+        hdr = self._read(kept_nodes, 1, np.int32, 4 * root)
+        m = int(hdr[0])
+        tree_height = int(self._read(uheight, 1, np.uint32, 4 * root)[0])
+        st = [b("st0", 16 * m_all), b("st1", 16 * m_all)]
+        self._run("jump_init", m_all, u(m_all), left, right, parent, count, kept_nodes, leaf_ok, st[0])
+        passes = max(1, int(np.ceil(np.log2(tree_height + 1))) + 1)
+        for i in range(passes):
+            self._run("jump", m_all, u(m_all), st[i % 2], st[1 - i % 2])
+        st_final = st[passes % 2]
+        onames = ("left", "right", "first", "count", "parent", "depth", "height")
+        pre = {k: b("p" + k, 16 * m) for k in ("min", "max")}
+        pre.update({k: b("p" + k, 4 * m) for k in onames})
+        tri_order = b("tri_order", 4 * n)
+        self._run("emit", m_all, u(m_all), st_final, nmin, nmax, left, right, parent, count, height, leaf_ok, perm,
+                  pre["min"], pre["max"], *(pre[k] for k in onames), tri_order)
+        # breadth-first order: stable sort of the preorder by depth (depth <= tree_height)
+        dkeys, order, rank = b("dkeys", 4 * m), b("order", 4 * m), b("rank", 4 * m)
+        self._run("depth_keys", m, u(m), pre["depth"], dkeys, order)
+        self.prims.sort_pairs(dkeys, order, m, key_bits=max(tree_height.bit_length(), 1))
+        self._run("invert", m, u(m), order, rank)
+        outs = {k: b("o" + k, 16 * m) for k in ("min", "max")}
+        outs.update({k: b("o" + k, 4 * m) for k in onames})
+        self._run("permute", m, u(m), order, rank, *(pre[k] for k in ("min", "max", *onames)),
+                  *(outs[k] for k in ("min", "max", *onames)))
+        t = self._phase("layout", t)
+
+        host = {k: self._read(outs[k], 4 * m, np.float32).reshape(m, 4)[:, :3].copy() for k in ("min", "max")}
+        host.update({k: self._read(outs[k], m, np.int32) for k in onames})
+        order = self._read(tri_order, n, np.int32)
+        stats = tree_stats(host["min"], host["max"], host["left"], host["count"], host["depth"], n)
+        bvh = BVH(node_min=host["min"], node_max=host["max"], node_left=host["left"], node_right=host["right"],
+                  node_first=host["first"], node_count=host["count"], node_parent=host["parent"],
+                  node_height=host["height"], node_depth=host["depth"], tri_order=order, stats=stats)
+        self._phase("read-back", t)
+        stats.build_time_s = time.perf_counter() - t_start
+        return bvh
+
+
+_builders: dict[tuple, DeviceBvhBuilder] = {}
+
+
+def device_builder(ctx: Any = None, radius: int = RADIUS, max_leaf: int = 4, min_leaf: int = 2) -> DeviceBvhBuilder:
+    """The cached builder for a context and parameters (kernels compiled once, buffers reused)."""
+    from viewer.cl import cl_context
+
+    ctx = ctx or cl_context()
+    key = (id(ctx), radius, max_leaf, min_leaf)
+    if key not in _builders:
+        _builders[key] = DeviceBvhBuilder(ctx, radius, max_leaf, min_leaf)
+    return _builders[key]
+
+
+def build_bvh_device(triangles: np.ndarray, radius: int = RADIUS, max_leaf: int = 4, min_leaf: int = 2,
+                     ctx: Any = None) -> BVH:
+    """Build on the default OpenCL device with the cached builder (see device_builder)."""
+    return device_builder(ctx, radius, max_leaf, min_leaf).build(triangles)

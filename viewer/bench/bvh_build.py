@@ -1,0 +1,91 @@
+"""`rtwalk bench-bvh`: build time, M triangles/s and SAH cost of each BVH builder on the city.
+
+One row per (size, builder) in bvh-build.json: BuildStats.to_dict() plus `builder`, `target`
+(the asked size), `build_time_s`, `throughput_mtris_per_s`, `sah_cost`, `sah_ratio` (to the
+SAH build of the same size when it ran), `bvh4_time_s` (host collapse to BVH4, build_bvh4) and, for
+the device builder, `phases_s` and `iterations` (PLOC). The device builder is warmed up on a small
+city first (kernel compilation is not build time).
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+from viewer.bench.common import add_count_option
+from viewer.cli_args import check_output_dir, check_report_free, parse_choices, parse_sizes
+
+BUILDERS = ("sah", "device")
+
+
+HELP = "BVH build time, throughput and SAH cost per builder on the city scene"
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    add_count_option(p, "--triangles", "1000000,5000000",
+                     "city triangle counts to build (each as --scene-size accepts)")
+    p.add_argument("--builders", default="sah",
+                   help="comma list of builders: sah (CPU binned SAH), device (OpenCL Morton + PLOC), or all")
+    p.add_argument("--seed", type=int, default=1, help="seed of the procedural city")
+    p.add_argument("--out", default="out/bench", help="folder for bvh-build.json")
+
+
+def _build(builder: str, tris):
+    if builder == "device":
+        from viewer.accel.bvh_device import build_bvh_device
+
+        return build_bvh_device(tris)
+    from viewer.accel.bvh import build_bvh
+
+    return build_bvh(tris)
+
+
+def run(args) -> int:
+    from viewer.accel.bvh4 import build_bvh4
+    from viewer.bench.report import write_json
+    from viewer.procedural import make_city
+
+    sizes = parse_sizes(args.triangles, flag="--triangles")
+    builders = parse_choices(args.builders, BUILDERS, "--builders")
+    out = check_output_dir(args.out, "--out")
+    check_report_free([out / "bvh-build.json"], getattr(args, "force", False))
+    if "device" in builders:
+        from viewer.cl import cl_available
+        from viewer.errors import RtwalkError
+
+        reason = cl_available()
+        if reason is not None:
+            raise RtwalkError(f"--builders device needs an OpenCL device: {reason}")
+        _build("device", make_city(2000, args.seed).triangles)  # compile and warm the kernels
+    rows = []
+    for n in sizes:
+        scene = make_city(n, args.seed)
+        sah_cost = None
+        for builder in builders:
+            bvh = _build(builder, scene.triangles)
+            t0 = time.perf_counter()
+            build_bvh4(bvh)
+            r = bvh.stats.to_dict()
+            r["bvh4_time_s"] = time.perf_counter() - t0
+            r["builder"] = builder
+            r["target"] = n
+            mtris = bvh.stats.triangles / max(bvh.stats.build_time_s, 1e-9) / 1e6
+            r["throughput_mtris_per_s"] = r["mtris_per_s"] = mtris
+            if builder == "device":
+                from viewer.accel.bvh_device import device_builder
+
+                b = device_builder()
+                r["phases_s"] = dict(b.phases)
+                r["iterations"] = b.iterations
+            if builder == "sah":
+                sah_cost = r["sah_cost"]
+            r["sah_ratio"] = r["sah_cost"] / sah_cost if sah_cost else None
+            rows.append(r)
+            ratio = f", {r['sah_ratio']:.3f}x sah" if r["sah_ratio"] is not None and builder != "sah" else ""
+            print(f"city {scene.triangle_count:>10,} tris {builder:>6}: build {r['build_time_s']:.2f} s "
+                  f"({r['throughput_mtris_per_s']:.2f} Mtri/s), {r['nodes']:,} nodes, depth {r['depth']}, "
+                  f"SAH {r['sah_cost']:.1f}{ratio}; BVH4 collapse (host) {r['bvh4_time_s']:.2f} s", flush=True)
+            del bvh
+    write_json(out / "bvh-build.json", rows)
+    print(f"report: {out / 'bvh-build.json'}")
+    return 0

@@ -1,0 +1,67 @@
+"""Device limits checked before the frame-sized render targets are allocated.
+
+A too-large `--size` must end in one line (RtwalkError), not in moderngl's "the framebuffer is not
+complete" traceback or an out-of-memory kill: the side limits the driver reports
+(GL_MAX_TEXTURE_SIZE, GL_MAX_RENDERBUFFER_SIZE, GL_MAX_VIEWPORT_DIMS) are checked first, then an
+estimate of the targets' memory against what the process may still allocate where the device
+shares system memory (a software rasterizer); on a discrete GPU core OpenGL cannot tell the free
+video memory, so the allocation itself is guarded (`allocation_guard`).
+"""
+
+from __future__ import annotations
+
+from contextlib import contextmanager
+
+import moderngl
+
+from viewer import sysmem
+from viewer.errors import RtwalkError
+
+# bytes per pixel of the renderer's own frame-sized targets: G-buffer (3 x RGBA32F + R32I id +
+# 32-bit depth), the accumulators (5 x RGBA32F), the shaded colour (RGBA8), rays (2 x RGBA32F) and
+# hits (R32F + R32I); backends add their own on top, so this is a lower bound
+TARGET_BYTES_PER_PIXEL = 3 * 16 + 4 + 4 + 5 * 16 + 4 + 2 * 16 + 8
+SOFTWARE_RENDERERS = ("llvmpipe", "softpipe", "swrast", "lavapipe")
+
+
+def max_target_side(ctx: moderngl.Context) -> int:
+    """The largest width or height a colour/depth target may have on this device."""
+    info = ctx.info
+    sides = [int(info.get("GL_MAX_TEXTURE_SIZE") or 0), int(info.get("GL_MAX_RENDERBUFFER_SIZE") or 0)]
+    dims = info.get("GL_MAX_VIEWPORT_DIMS")
+    if dims:
+        sides += [int(d) for d in dims]
+    sides = [s for s in sides if s > 0]
+    return min(sides) if sides else 16384
+
+
+def shares_system_memory(ctx: moderngl.Context) -> bool:
+    renderer = str(ctx.info.get("GL_RENDERER", "")).lower()
+    return any(name in renderer for name in SOFTWARE_RENDERERS)
+
+
+def check_target_size(ctx: moderngl.Context, size: tuple[int, int], what: str = "--size") -> None:
+    """RtwalkError (one line) when targets of `size` cannot exist on this device."""
+    w, h = size
+    side = max_target_side(ctx)
+    if w > side or h > side:
+        raise RtwalkError(f"{what} {w}x{h}: larger than this OpenGL device allows ({side} pixels per side, "
+                          f"{ctx.info.get('GL_RENDERER', 'unknown renderer')})")
+    need = w * h * TARGET_BYTES_PER_PIXEL
+    if shares_system_memory(ctx):
+        avail = sysmem.available_bytes()
+        if avail is not None and need > avail:
+            raise RtwalkError(f"{what} {w}x{h}: its render targets need at least {sysmem.gib(need)}, only "
+                              f"{sysmem.gib(avail)} can be allocated here; choose a smaller size")
+
+
+@contextmanager
+def allocation_guard(size: tuple[int, int], what: str = "--size"):
+    """Turn moderngl's allocation failures (incomplete framebuffer, out of memory) while creating
+    the targets of `size` into one line."""
+    try:
+        yield
+    except moderngl.Error as exc:
+        text = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        raise RtwalkError(f"{what} {size[0]}x{size[1]}: the render targets cannot be allocated on this "
+                          f"device ({text}); choose a smaller size") from None
