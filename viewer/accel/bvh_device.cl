@@ -7,6 +7,8 @@
 // (node id, box) triples in Morton order; an iteration is nearest -> merge -> count -> scan ->
 // scatter, all reading the cluster count from the device (cnt[p]) so the host need not read it.
 
+#define RING (RADIUS < 8 ? 8 : RADIUS < 16 ? 16 : RADIUS < 32 ? 32 : 64)
+
 inline float half_area(float4 lo, float4 hi) {
     float4 e = hi - lo;
     return e.x * e.y + e.y * e.z + e.z * e.x;
@@ -107,7 +109,8 @@ __kernel void nearest(__global const uint* cnt, uint p, __global const float4* c
 
 // The same nearest neighbours, one work-item per block of clusters: each pair (i, j), i < j <= i +
 // RADIUS, is measured once and offered to both ends (half the area computations). A ring of
-// RADIUS + 1 candidates holds the clusters i..i+RADIUS still open; ties again go to the lower index.
+// RING >= RADIUS + 1 candidates (a power of two: a mask, no division) holds the clusters i..i+RADIUS
+// still open; ties again go to the lower index.
 __kernel void nearest_block(__global const uint* cnt, uint p, __global const float4* cmin,
                             __global const float4* cmax, uint nb, __global uint* nn) {
     uint b = get_global_id(0);
@@ -116,11 +119,11 @@ __kernel void nearest_block(__global const uint* cnt, uint p, __global const flo
     uint s, e;
     block_range(b, nb, n, &s, &e);
     if (s >= e) return;
-    float best[RADIUS + 1];
-    uint bj[RADIUS + 1];
-    for (uint k = 0; k <= RADIUS; ++k) {
-        best[(s + k) % (RADIUS + 1)] = INFINITY;
-        bj[(s + k) % (RADIUS + 1)] = 0xffffffffu;
+    float best[RING];
+    uint bj[RING];
+    for (uint k = 0; k < RING; ++k) {  // clusters s .. s + RING - 1
+        best[(s + k) & (RING - 1)] = INFINITY;
+        bj[(s + k) & (RING - 1)] = 0xffffffffu;
     }
     // pairs from the RADIUS clusters before the block into it
     for (uint i = s > RADIUS ? s - RADIUS : 0; i < s; ++i) {
@@ -129,7 +132,7 @@ __kernel void nearest_block(__global const uint* cnt, uint p, __global const flo
         for (uint j = s; j <= jend; ++j) {
             float a = half_area(fmin(lo, cmin[j]), fmax(hi, cmax[j]));
             if (isnan(a)) a = INFINITY;
-            uint r = j % (RADIUS + 1);
+            uint r = j & (RING - 1);
             if (a < best[r] || (a == best[r] && i < bj[r])) {
                 best[r] = a;
                 bj[r] = i;
@@ -138,7 +141,7 @@ __kernel void nearest_block(__global const uint* cnt, uint p, __global const flo
     }
     for (uint i = s; i < e; ++i) {
         float4 lo = cmin[i], hi = cmax[i];
-        uint ri = i % (RADIUS + 1);
+        uint ri = i & (RING - 1);
         uint jend = min(i + RADIUS, n - 1);
         for (uint j = i + 1; j <= jend; ++j) {
             float a = half_area(fmin(lo, cmin[j]), fmax(hi, cmax[j]));
@@ -147,14 +150,14 @@ __kernel void nearest_block(__global const uint* cnt, uint p, __global const flo
                 best[ri] = a;
                 bj[ri] = j;
             }
-            uint r = j % (RADIUS + 1);
+            uint r = j & (RING - 1);
             if (j < e && (a < best[r] || (a == best[r] && i < bj[r]))) {
                 best[r] = a;
                 bj[r] = i;
             }
         }
         nn[i] = bj[ri];
-        best[ri] = INFINITY;  // the slot now holds cluster i + RADIUS + 1
+        best[ri] = INFINITY;  // the slot now holds cluster i + RING
         bj[ri] = 0xffffffffu;
     }
 }

@@ -66,8 +66,8 @@ class DeviceBvhBuilder:
         from viewer.cl import build, cl_context
         from viewer.cl.primitives import primitives
 
-        if radius < 1:
-            raise ValueError("radius must be >= 1")
+        if not 1 <= radius <= 63:
+            raise ValueError("radius must be in 1..63")
         if max_leaf < 1 or min_leaf > max_leaf:
             raise ValueError("need 1 <= max_leaf and min_leaf <= max_leaf")
         self.ctx = ctx or cl_context()
