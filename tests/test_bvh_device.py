@@ -191,16 +191,19 @@ def test_refuses_builds_the_device_cannot_hold(monkeypatch):
 
 
 def test_builder_choice(monkeypatch):
-    from viewer.accel.builders import AUTO_DEVICE_MIN, resolve_builder
+    from viewer.accel.builders import AUTO_DEVICE_MIN, per_frame_builder, resolve_builder
     from viewer.errors import RtwalkError
 
     monkeypatch.delenv("RTWALK_BVH_BUILDER", raising=False)
+    assert per_frame_builder() == "device"  # OpenCL is there (module skip otherwise)
     assert resolve_builder(None, 1000) == "sah"
     assert resolve_builder(None, AUTO_DEVICE_MIN) == "device"
     assert resolve_builder("sah", AUTO_DEVICE_MIN) == "sah"
     monkeypatch.setenv("RTWALK_BVH_BUILDER", "device")
     assert resolve_builder(None, 10) == "device"
     assert resolve_builder("sah", 10) == "sah"  # the option wins over the environment
+    monkeypatch.setenv("RTWALK_BVH_BUILDER", "sah")
+    assert per_frame_builder() == "sah"
     monkeypatch.setenv("RTWALK_BVH_BUILDER", "fast")
     with pytest.raises(RtwalkError, match="RTWALK_BVH_BUILDER"):
         resolve_builder(None, 10)
