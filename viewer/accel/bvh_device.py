@@ -1,9 +1,10 @@
 """BVH built on the OpenCL device: Morton order, PLOC clustering, SAH leaf collapse.
 
-Why: the binned SAH build (viewer.accel.bvh) is NumPy on one core, about 0.3 M triangles/s; a
-10 M scene waits more than 30 s for its first frame. This builder produces the same `BVH`
-(canonical nodes, node ranges, `tri_order`, `BuildStats`), so every backend, `gpu_nodes()` and
-`build_bvh4()` use it unchanged; the SAH build stays the quality reference.
+Why: the binned SAH build (viewer.accel.bvh) is NumPy on one core: a 10 M-triangle city took
+80 s on a 16-core host and 260-340 s on the loaded 2-core machine, and its first frame waited for
+it. This builder produces the same `BVH` (canonical nodes in breadth-first order, node ranges,
+`tri_order`, `BuildStats`), so every backend, `gpu_nodes()` and `build_bvh4()` use it unchanged;
+the SAH build stays the quality reference. Measured figures: docs/bvh-device.md.
 
 Algorithm (kernels in bvh_device.cl)
 ------------------------------------
@@ -14,20 +15,22 @@ Algorithm (kernels in bvh_device.cl)
    each finds the cluster within `radius` positions whose merged box has the least surface area
    (ties to the lower index: the closest pair overall is always mutual, so every iteration
    merges); mutual pairs merge into a new node in the lower slot, the other slot is compacted
-   away. An iteration is 5 launches (nearest, merge, per-block count, block scan, scatter); the
+   away. An iteration is 5 launches (nearest per block of clusters, each pair measured once;
+   merge; per-block count; block scan; scatter); the
    cluster count lives on the device, every kernel reads it there, and the host reads it back
    only every `check_every` iterations (to shrink the launch sizes and to stop).
 3. While merging, each node gets the SAH cost of its best subtree (dynamic programme: the cheaper
    of a leaf and the split, traversal 1, intersection 1 per triangle, as BuildStats reports):
    a node of at most `max_leaf` triangles becomes a leaf when that is not dearer (always when
    it holds at most `min_leaf`). Leaves are the topmost such nodes; nodes below them are dropped.
-4. Layout without a per-level loop: pointer jumping (ceil(log2(height + 1)) launches) sums, along
-   each node's path to the root, the triangles and kept nodes of left siblings and the depth, so
-   each kept node gets its first slot, its preorder index (children after parents, root 0) and
-   its depth; one launch writes the canonical arrays and the leaf order (`tri_order`).
+4. Layout without a per-level loop: pointer jumping (ceil(log2(height + 1)) + 1 launches) sums,
+   along each node's path to the root, the triangles and kept nodes of left siblings and the
+   depth, so each kept node gets its first slot, its preorder index and its depth; one launch
+   writes the tree in preorder and the leaf order (`tri_order`); a stable radix sort by depth (one
+   digit pass) and a gather put it in breadth-first order (root 0, children after parents).
 Host round trips: the 6 reductions, one count read every `check_every` PLOC iterations, the root
-height and kept-node count, and the final read-back of the tree (which the host-side `BVH`
-needs).
+height and kept-node count, one finish per timed phase (5), and the final read-back of the tree
+(the `BVH` is host-side; backends upload its gpu_nodes()). The BVH4 collapse stays on the host.
 
 Numerics: every box is an exact float32 min/max of the triangles' float32 vertices or of child
 boxes (never rounded, so never shrunk); the Morton grid only orders the triangles.
@@ -107,13 +110,15 @@ class DeviceBvhBuilder:
         return out
 
     def _phase(self, name: str, t0: float) -> float:
+        """Wall time of a phase (`phases`, seconds): one finish per phase, 5 per build."""
         self.ctx.finish()
+        iostats.sync()
         t = time.perf_counter()
         self.phases[name] = self.phases.get(name, 0.0) + (t - t0)
         return t
 
     def release(self) -> None:
-        """Free the device buffers (about 300 bytes per triangle of the last build)."""
+        """Free the device buffers (BYTES_PER_TRIANGLE per triangle of the largest build)."""
         self._bufs.release()
 
     def check_memory(self, n: int) -> None:
