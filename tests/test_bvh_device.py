@@ -207,3 +207,23 @@ def test_builder_choice(monkeypatch):
     monkeypatch.setenv("RTWALK_BVH_BUILDER", "fast")
     with pytest.raises(RtwalkError, match="RTWALK_BVH_BUILDER"):
         resolve_builder(None, 10)
+
+
+def test_no_host_round_trip_per_iteration():
+    """PLOC reads the cluster count back only every check_every iterations: the host syncs of a
+    build are a constant (reductions, phase finishes, read-back of the tree) plus iterations / k."""
+    import math
+
+    from viewer import iostats
+    from viewer.accel.bvh_device import device_builder
+
+    b = device_builder()
+    tris = box_grid_tris(20000, seed=1)
+    b.build(tris[:100])
+    iostats.begin_frame()
+    b.build(tris)
+    io = iostats.end_frame()
+    assert b.iterations >= 3 * b.check_every
+    assert io.host_syncs <= 24 + math.ceil(b.iterations / b.check_every), (io, b.iterations)
+    assert io.host_syncs < b.iterations
+    assert io.bytes_to_device >= tris.nbytes
