@@ -227,3 +227,21 @@ def test_no_host_round_trip_per_iteration():
     assert io.host_syncs <= 24 + math.ceil(b.iterations / b.check_every), (io, b.iterations)
     assert io.host_syncs < b.iterations
     assert io.bytes_to_device >= tris.nbytes
+
+
+def test_bench_bvh_rows_per_builder(tmp_path, capsys):
+    import json
+
+    from viewer.cli import main
+
+    assert main(["bench-bvh", "--builders", "sah,device", "--sizes", "3000,5000", "--out", str(tmp_path)]) == 0
+    rows = json.loads((tmp_path / "bvh-build.json").read_text())
+    rows = rows["rows"] if isinstance(rows, dict) and "rows" in rows else rows
+    assert [(r["builder"], r["target"]) for r in rows] == [("sah", 3000), ("device", 3000), ("sah", 5000),
+                                                           ("device", 5000)]
+    for r in rows:
+        assert r["build_time_s"] > 0 and r["sah_cost"] > 1
+        assert r["throughput_mtris_per_s"] == pytest.approx(r["triangles"] / r["build_time_s"] / 1e6)
+    sah, dev = rows[0], rows[1]
+    assert dev["sah_ratio"] == pytest.approx(dev["sah_cost"] / sah["sah_cost"])
+    assert "device" in capsys.readouterr().out
