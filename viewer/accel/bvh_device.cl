@@ -283,35 +283,55 @@ __kernel void jump(uint m, __global const int4* src, __global int4* dst) {
     dst[v] = s;
 }
 
-// Kept nodes (no ancestor chosen as a leaf) are written at their preorder index; a final leaf
-// writes its triangles (left subtree first) to tri_order.
-__kernel void emit(uint m, __global const int4* st, __global const float4* nmin, __global const float4* nmax,
+// Kept nodes (no ancestor chosen as a leaf) by preorder index: pnode[pre] = node; the depth is the
+// sort key that turns preorder into breadth-first order (`order`: BFS position -> preorder index).
+__kernel void preorder(uint m, __global const int4* st, __global uint* pnode, __global uint* keys,
+                       __global uint* order) {
+    uint v = get_global_id(0);
+    if (v >= m) return;
+    int4 s = st[v];
+    if (s.w == -2) return;  // inside a leaf
+    pnode[s.y] = v;
+    keys[s.y] = (uint)s.z;
+    order[s.y] = (uint)s.y;
+}
+
+__kernel void invert(uint m, __global const uint* order, __global int* rank) {
+    uint k = get_global_id(0);
+    if (k >= m) return;
+    rank[order[k]] = (int)k;
+}
+
+// The canonical tree in breadth-first order (rank: preorder index -> BFS position); a leaf also
+// writes its triangles (left subtree first) to tri_order at its first slot.
+__kernel void emit(uint m, __global const uint* order, __global const int* rank, __global const uint* pnode,
+                   __global const int4* st, __global const float4* nmin, __global const float4* nmax,
                    __global const int* left, __global const int* right, __global const int* parent,
                    __global const int* count, __global const int* height, __global const uchar* leaf_ok,
                    __global const uint* perm, __global float4* omin, __global float4* omax, __global int* oleft,
                    __global int* oright, __global int* ofirst, __global int* ocount, __global int* oparent,
                    __global int* odepth, __global int* oheight, __global int* tri_order) {
-    uint v = get_global_id(0);
-    if (v >= m) return;
+    uint k = get_global_id(0);
+    if (k >= m) return;
+    int v = (int)pnode[order[k]];
     int4 s = st[v];
-    if (s.w == -2) return;  // inside a leaf
-    int o = s.y;
-    omin[o] = nmin[v];
-    omax[o] = nmax[v];
-    ofirst[o] = s.x;
-    ocount[o] = count[v];
-    odepth[o] = s.z;
-    oheight[o] = height[v];
-    oparent[o] = parent[v] >= 0 ? st[parent[v]].y : -1;
+    omin[k] = nmin[v];
+    omax[k] = nmax[v];
+    ofirst[k] = s.x;
+    ocount[k] = count[v];
+    odepth[k] = s.z;
+    oheight[k] = height[v];
+    int u = parent[v];
+    oparent[k] = u >= 0 ? rank[st[u].y] : -1;
     if (!leaf_ok[v]) {
-        oleft[o] = st[left[v]].y;
-        oright[o] = st[right[v]].y;
+        oleft[k] = rank[st[left[v]].y];
+        oright[k] = rank[st[right[v]].y];
         return;
     }
-    oleft[o] = -1;
-    oright[o] = -1;
+    oleft[k] = -1;
+    oright[k] = -1;
     int stack[MAX_LEAF + 1];
-    int sp = 0, w = (int)v, slot = s.x;
+    int sp = 0, w = v, slot = s.x;
     for (;;) {
         if (left[w] < 0) {
             tri_order[slot++] = (int)perm[w];
@@ -322,41 +342,4 @@ __kernel void emit(uint m, __global const int4* st, __global const float4* nmin,
             w = left[w];
         }
     }
-}
-
-// Breadth-first renumbering: the kept nodes sorted (stably) by depth give `order` (BFS position ->
-// preorder index); `rank` is its inverse; `permute` gathers every field and renames the links.
-__kernel void depth_keys(uint m, __global const int* depth, __global uint* keys, __global uint* order) {
-    uint k = get_global_id(0);
-    if (k >= m) return;
-    keys[k] = (uint)depth[k];
-    order[k] = k;
-}
-
-__kernel void invert(uint m, __global const uint* order, __global int* rank) {
-    uint k = get_global_id(0);
-    if (k >= m) return;
-    rank[order[k]] = (int)k;
-}
-
-__kernel void permute(uint m, __global const uint* order, __global const int* rank,
-                      __global const float4* pmin, __global const float4* pmax, __global const int* pleft,
-                      __global const int* pright, __global const int* pfirst, __global const int* pcount,
-                      __global const int* pparent, __global const int* pdepth, __global const int* pheight,
-                      __global float4* omin, __global float4* omax, __global int* oleft, __global int* oright,
-                      __global int* ofirst, __global int* ocount, __global int* oparent, __global int* odepth,
-                      __global int* oheight) {
-    uint k = get_global_id(0);
-    if (k >= m) return;
-    uint s = order[k];
-    omin[k] = pmin[s];
-    omax[k] = pmax[s];
-    int l = pleft[s], r = pright[s], u = pparent[s];
-    oleft[k] = l >= 0 ? rank[l] : -1;
-    oright[k] = r >= 0 ? rank[r] : -1;
-    oparent[k] = u >= 0 ? rank[u] : -1;
-    ofirst[k] = pfirst[s];
-    ocount[k] = pcount[s];
-    odepth[k] = pdepth[s];
-    oheight[k] = pheight[s];
 }

@@ -25,9 +25,10 @@ Algorithm (kernels in bvh_device.cl)
    it holds at most `min_leaf`). Leaves are the topmost such nodes; nodes below them are dropped.
 4. Layout without a per-level loop: pointer jumping (ceil(log2(height + 1)) + 1 launches) sums,
    along each node's path to the root, the triangles and kept nodes of left siblings and the
-   depth, so each kept node gets its first slot, its preorder index and its depth; one launch
-   writes the tree in preorder and the leaf order (`tri_order`); a stable radix sort by depth (one
-   digit pass) and a gather put it in breadth-first order (root 0, children after parents).
+   depth, so each kept node gets its first slot, its preorder index and its depth; a stable radix
+   sort of the preorder by depth (one digit pass) gives breadth-first order (root 0, children
+   after parents), and one launch gathers the tree in that order and writes the leaf order
+   (`tri_order`).
 Host round trips: the 6 reductions, one count read every `check_every` PLOC iterations, the root
 height and kept-node count, one finish per timed phase (5), and the final read-back of the tree
 (the `BVH` is host-side; backends upload its gpu_nodes()). The BVH4 collapse stays on the host.
@@ -55,10 +56,10 @@ RADIUS = 8
 CHECK_EVERY = 4
 #: device bytes per triangle of the buffers build() allocates (all kept for the next build): input,
 #: boxes, centres, keys + sort scratch, 2 nodes x (boxes, 8 int fields, flag), 2 x clusters, nn,
-#: 2 nodes x 2 pointer-jumping states, preorder + final outputs, BFS sort keys, tri_order
-BYTES_PER_TRIANGLE = 36 + 32 + 12 + 16 + 2 * (32 + 8 * 4 + 1) + 2 * 36 + 4 + 2 * 2 * 16 + 2 * 60 + 12 + 4
+#: 2 nodes x 2 pointer-jumping states, outputs, preorder / BFS sort buffers, tri_order
+BYTES_PER_TRIANGLE = 36 + 32 + 12 + 16 + 2 * (32 + 8 * 4 + 1) + 2 * 36 + 4 + 2 * 2 * 16 + 60 + 16 + 4
 _KERNELS = ("tri_boxes", "morton", "init_leaves", "nearest", "nearest_block", "merge", "count_kept", "scan_blocks",
-            "scatter", "jump_init", "jump", "emit", "depth_keys", "invert", "permute")
+            "scatter", "jump_init", "jump", "preorder", "invert", "emit")
 
 
 class DeviceBvhBuilder:
@@ -223,22 +224,18 @@ class DeviceBvhBuilder:
         for i in range(passes):
             self._run("jump", m_all, u(m_all), st[i % 2], st[1 - i % 2])
         st_final = st[passes % 2]
-        onames = ("left", "right", "first", "count", "parent", "depth", "height")
-        pre = {k: b("p" + k, 16 * m) for k in ("min", "max")}
-        pre.update({k: b("p" + k, 4 * m) for k in onames})
-        tri_order = b("tri_order", 4 * n)
-        self._run("emit", m_all, u(m_all), st_final, nmin, nmax, left, right, parent, count, height, leaf_ok, perm,
-                  pre["min"], pre["max"], *(pre[k] for k in onames), tri_order)
         # breadth-first order: stable sort of the preorder by depth (depth <= tree_height)
-        dkeys, order, rank = b("dkeys", 4 * m), b("order", 4 * m), b("rank", 4 * m)
-        self._run("depth_keys", m, u(m), pre["depth"], dkeys, order)
+        pnode, dkeys, order, rank = b("pnode", 4 * m), b("dkeys", 4 * m), b("order", 4 * m), b("rank", 4 * m)
+        self._run("preorder", m_all, u(m_all), st_final, pnode, dkeys, order)
         self.prims.sort_pairs(dkeys, order, m, key_bits=max(tree_height.bit_length(), 1))
         iostats.cl_launch(3 * -(-tree_height.bit_length() // 8))
         self._run("invert", m, u(m), order, rank)
+        onames = ("left", "right", "first", "count", "parent", "depth", "height")
         outs = {k: b("o" + k, 16 * m) for k in ("min", "max")}
         outs.update({k: b("o" + k, 4 * m) for k in onames})
-        self._run("permute", m, u(m), order, rank, *(pre[k] for k in ("min", "max", *onames)),
-                  *(outs[k] for k in ("min", "max", *onames)))
+        tri_order = b("tri_order", 4 * n)
+        self._run("emit", m, u(m), order, rank, pnode, st_final, nmin, nmax, left, right, parent, count, height,
+                  leaf_ok, perm, outs["min"], outs["max"], *(outs[k] for k in onames), tri_order)
         t = self._phase("layout", t)
 
         host = {k: self._read(outs[k], 4 * m, np.float32).reshape(m, 4)[:, :3].copy() for k in ("min", "max")}
