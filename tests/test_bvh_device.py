@@ -244,3 +244,47 @@ def test_bench_bvh_rows_per_builder(tmp_path, capsys):
     sah, dev = rows[0], rows[1]
     assert dev["sah_ratio"] == pytest.approx(dev["sah_cost"] / sah["sah_cost"])
     assert "device" in capsys.readouterr().out
+
+
+def test_overflowing_areas():
+    """Coordinates so large that float32 surface areas overflow (inf, NaN costs): still a valid tree."""
+    tris = (random_tris(500, seed=4, extent=1.0, size=0.3) * np.float32(1e25)).astype(np.float32)
+    bvh = device_bvh(tris)
+    check_tree(bvh, tris)
+    walk_reaches_each_node_once(bvh)
+    check_gpu_nodes(bvh)
+
+
+@pytest.mark.parametrize("backend", ["glsl", "clbvh"])
+def test_renderer_on_device_tree_agrees_with_embree(backend, gl_ctx):
+    """prepare_scene with the device builder, then a Renderer frame (primary, shadows, AO)
+    traced by each BVH backend, every captured pass against Embree."""
+    from tests.test_clbvh import RECORDINGS
+    from viewer.effects import parse_effects
+    from viewer.recording import load_recording
+    from viewer.renderer import Renderer
+    from viewer.session import prepare_scene
+
+    prep = prepare_scene("city", scene_size=30_000, quiet=True, bvh_builder="device")
+    check_tree(prep.bvh, prep.scene.triangles[np.argsort(prep.bvh.tri_order)])
+    rec = load_recording(RECORDINGS / "city-near.json")
+    camera = rec.camera_for_frame(rec.frame_count() // 3)
+    r = Renderer(gl_ctx, prep.scene, prep.bvh, (160, 90), backend, parse_effects("primary,shadows,ao:2"))
+    try:
+        rep = r.render(camera, capture=True)
+    finally:
+        r.release()
+    embree = EmbreeTracer(prep.scene.triangles)
+    passes = 0
+    for cp in rep.captured:
+        act = cp.rays.active
+        if not act.any():
+            continue
+        passes += 1
+        o, d, lo, hi = cp.rays.origins[act], cp.rays.directions[act], cp.rays.tmin[act], cp.rays.tmax[act]
+        rt, rtri = embree.trace(o, d, lo, hi, any_hit=cp.ray_type.any_hit)
+        st = compare_hits(cp.t[act], cp.tri[act], rt, rtri, prep.scene.triangles)
+        assert st["hitmiss_agree"] >= 0.999 and st["n_bad_id"] == 0, (cp.ray_type.label, st)
+        if not cp.ray_type.any_hit:
+            assert st["id_agree"] >= 0.999, (cp.ray_type.label, st)
+    assert passes >= 3
