@@ -303,15 +303,24 @@ def test_bench_harness_drives_the_fake_backend(gl_ctx, tiny, tmp_path):
 
 # --------------------------------------------------------------------------- no backend names in generic code
 
-GENERIC = ["viewer/renderer.py", "viewer/ui/panel.py", *sorted(str(p.relative_to(REPO))
-                                                                  for p in (REPO / "viewer/passes").glob("*.py"))]
-# the bench harness package (modules named after a backend, e.g. that backend's studies, may name it)
+GENERIC = ["viewer/renderer.py", "viewer/cli.py", "viewer/cli_args.py", "viewer/tracing.py", "viewer/progressive.py",
+           "viewer/iostats.py",
+           *sorted(str(p.relative_to(REPO)) for folder in ("passes", "ui", "gl", "cl")
+                   for p in (REPO / "viewer" / folder).glob("*.py"))]
+# benchmark modules that are one backend's (or one paper's) studies and so may name backends; every
+# other module of viewer/bench is generic (an explicit list: a new study does not slip through by
+# its file name)
+BACKEND_STUDIES = {"chcrt.py", "chcrt_common.py", "chcrt_coherence.py", "chcrt_ooc.py", "pgrid.py",
+                   "pgrid_studies.py", "voxelwalk.py", "voxels.py", "gl_micro.py", "grids_far.py", "bvh_trace.py",
+                   "__init__.py"}  # the benchmark registry names the studies, as the backend registry does
+# names a generic module may use for something other than the backend: raw Embree (embreex) is the
+# independent timing reference of bench-trace, not the `embree` backend
+ALLOWED = {"viewer/bench/trace_vs_embree.py": {"embree"}}
 
 
 def _bench_modules() -> list:
-    names = list(BACKENDS)
     return [str(p.relative_to(REPO)) for p in sorted((REPO / "viewer/bench").glob("*.py"))
-            if not any(n in p.stem for n in names)]
+            if p.name not in BACKEND_STUDIES]
 
 
 def backend_names_in(source: str, names: list[str]) -> list[tuple[int, str]]:
@@ -343,7 +352,7 @@ def test_the_name_check_finds_names():
 
 @pytest.mark.parametrize("path", GENERIC + _bench_modules())
 def test_generic_modules_name_no_backend(path):
-    names = sorted(set(BACKENDS) | {"fake"})
+    names = sorted((set(BACKENDS) | {"fake"}) - ALLOWED.get(path, set()))
     found = backend_names_in((REPO / path).read_text(), names)
     assert not found, f"{path} names a backend: {found}"
 

@@ -17,7 +17,7 @@ def test_parse_sizes():
     assert bench.parse_sizes("1M,10M") == [1_000_000, 10_000_000]
     assert bench.parse_sizes("250k, 1.5M,77") == [250_000, 1_500_000, 77]
     for bad in ("", "ten", "0", "1G", "-5"):
-        with pytest.raises(RtwalkError, match="--sizes"):
+        with pytest.raises(RtwalkError, match="--elements"):
             bench.parse_sizes(bad)
 
 
@@ -26,7 +26,7 @@ def test_small_run_writes_json_markdown_plot(tmp_path, capsys):
     if reason is not None:
         pytest.skip(f"no OpenCL device: {reason}")
     out = tmp_path / "b"
-    assert cli_main(["bench-cl", "--sizes", "3000,20K", "--reps", "2", "--out", str(out)]) == 0
+    assert cli_main(["bench-cl", "--elements", "3000,20K", "--reps", "2", "--out", str(out)]) == 0
     report = json.loads((out / "bench_cl.json").read_text())
     rows = report["rows"]
     assert [(r["op"], r["n"]) for r in rows] == [(op, n) for n in (3000, 20000) for op in bench.OPS]
@@ -34,12 +34,13 @@ def test_small_run_writes_json_markdown_plot(tmp_path, capsys):
         assert len(r["numpy_samples_ms"]) == len(r["opencl_samples_ms"]) == 2
         assert r["opencl_ms"] > 0 and r["numpy_ms"] > 0 and r["speedup"] > 0
     md = (out / "bench_cl.md").read_text()
-    assert "| sort | 20,000 |" in md and "rtwalk bench-cl --sizes 3000,20K" in md
+    assert "| sort | 20,000 |" in md and "rtwalk bench-cl --elements 3000,20K" in md
     assert (out / "bench_cl.png").stat().st_size > 1000
     assert "speedup" in capsys.readouterr().out
 
 
-@pytest.mark.parametrize("argv,msg", [(["--sizes", "big"], "--sizes"), (["--ops", "sort,fft"], "--ops"),
+@pytest.mark.parametrize("argv,msg", [(["--elements", "big"], "--elements"), (["--sizes", "big"], "--elements"),
+                                      (["--ops", "sort,fft"], "--ops"),
                                       (["--reps", "0"], "--reps")])
 def test_bad_options_exit_2(tmp_path, capsys, argv, msg):
     assert cli_main(["bench-cl", *argv, "--out", str(tmp_path)]) == 2

@@ -10,6 +10,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
+from tests.timing import FLOOR_MS, grow_until_measurable
 from viewer.cl import context as clctx
 from viewer.cl import programs
 from viewer.errors import RtwalkError
@@ -171,19 +172,28 @@ def test_cl_phase_covers_kernel_time_and_counts_per_label(gl_ctx, tmp_path, meth
     buf = ctx.cl.Buffer(ctx.context, ctx.cl.mem_flags.READ_WRITE, 4 * 256)
     k(ctx.queue, (256,), (64,), buf, np.int32(10))
     ctx.finish()
+
+    def run(n: int) -> float:
+        t0 = time.perf_counter()
+        k(ctx.queue, (256,), (64,), buf, np.int32(n))
+        ctx.finish()
+        return (time.perf_counter() - t0) * 1e3
+
+    # iterations for a kernel of >= FLOOR_MS on this device (0.5 ms at 200,000 on an H100)
+    n, _ = grow_until_measurable(run, 20_000, 2**31 - 1)
     prof = GpuProfiler(gl_ctx, method=method)
     prof.begin_frame()
     t0 = time.perf_counter()
     prof.label = "ao"
     with prof.cl_phase("cl:spin", ctx.queue):
-        k(ctx.queue, (256,), (64,), buf, np.int32(200_000))  # returns before the kernel ends
+        k(ctx.queue, (256,), (64,), buf, np.int32(n))  # returns before the kernel ends
     prof.record("cl:extra", 2.5)
     prof.label = None
     with prof.phase("gl"):
         pass
     wall = (time.perf_counter() - t0) * 1e3
     ms = prof.end_frame()
-    assert wall > 10.0, "the kernel is too light to tell enqueue time from run time"
+    assert wall > 0.5 * FLOOR_MS, "the kernel is too light to tell enqueue time from run time"
     assert 0.8 * wall <= ms["cl:spin"] <= wall * 1.05 + 1.0, (ms, wall)
     assert ms["cl:extra"] == 2.5
     assert prof.by_label["ao"] == pytest.approx(ms["cl:spin"] + 2.5)

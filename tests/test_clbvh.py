@@ -189,9 +189,10 @@ def test_trace_matches_float64(n_tris, any_hit):
     if not any_hit:
         assert st["id_agree"] == 1.0, st
         assert st["max_rel_err"] < 1e-4, st
-        # t is the plane-equation distance evaluated in IEEE float32 without fused multiply-adds
-        # (as NumPy evaluates it), the normal rounded once from the exact float64 cross product of the
-        # float32 edges: bit for bit, wherever the normal is not perpendicular to d
+        # t is the plane-equation distance evaluated in IEEE float32 without fused multiply-adds and
+        # with a correctly rounded division (as NumPy evaluates it; docs/numerics.md), the normal
+        # rounded once from the exact float64 cross product of the float32 edges: bit for bit,
+        # wherever the normal is not perpendicular to d
         v = tris[tri[hit]].astype(np.float32)
         e1, e2 = (v[:, 1] - v[:, 0]).astype(np.float64), (v[:, 2] - v[:, 0]).astype(np.float64)
         n = np.stack([e1[:, 1] * e2[:, 2] - e1[:, 2] * e2[:, 1], e1[:, 2] * e2[:, 0] - e1[:, 0] * e2[:, 2],

@@ -19,7 +19,7 @@ def test_binding_points_are_unique_per_namespace():
         assert len(set(table.values())) == len(table), table
         assert all(k.startswith("BIND_") and v >= 0 for k, v in table.items())
     assert not set(bindings.SSBO) & set(bindings.IMAGE)
-    header = bindings.glsl_header()
+    header = bindings.shader_header()
     for name, value in {**bindings.SSBO, **bindings.IMAGE}.items():
         assert f"#define {name} {value}\n" in header
         assert getattr(bindings, name) == value

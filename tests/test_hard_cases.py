@@ -484,6 +484,52 @@ def test_degenerate_triangles_never_hit(backend):
     assert_matches(out, must_hit=np.ones(len(out.o), bool))
 
 
+def collinear_probe(seed: int = 1, n_rays: int = 3072):
+    """Issue 18's probe: float32 triangles with three distinct, exactly collinear vertices among
+    genuine ones and slivers, and rays aimed at points of the collinear segments (the float32
+    edge functions of such a triangle need not cancel: every backend reported hits on them).
+    Returns (triangles, origins, directions, degenerate mask)."""
+    rng = np.random.default_rng(seed)
+    q = 2.0 ** -20
+    n = 48
+    a = np.round(rng.uniform(-1, 1, (n, 3)) / q) * q
+    e = np.round(rng.uniform(-0.5, 0.5, (n, 3)) / q) * q
+    k = rng.integers(1, 4, n)[:, None]
+    exact_edges = np.stack([a, a + e, a + (1 + k) * e], 1)              # float32 edges
+    u = rng.integers(-3, 4, (16, 3)).astype(np.float64)
+    u[np.abs(u).sum(1) == 0] = [1, 2, 3]
+    s = np.array([2.0 ** -40, 1.0, 3.0])
+    wide = s[None, :, None] * u[:, None, :]                              # edges not float32
+    sliver = exact_edges[:16].copy()
+    sliver[:, 2, 0] += q                                                 # off the line by 2^-20
+    good = rng.uniform(-1.5, 1.5, (48, 1, 3)) + rng.uniform(-0.3, 0.3, (48, 3, 3))
+    tris = f32(np.concatenate([exact_edges, wide, sliver, good]))
+    degenerate = np.zeros(len(tris), bool)
+    degenerate[:n + len(u)] = True
+    order = rng.permutation(len(tris))
+    tris, degenerate = tris[order], degenerate[order]
+    v = tris.astype(np.float64)
+    pick = rng.choice(np.flatnonzero(degenerate | (np.arange(len(tris)) % 3 == 0)), n_rays)
+    w = rng.uniform(0, 1, (n_rays, 1))
+    target = v[pick, 0] + w * (v[pick, 2] - v[pick, 0])
+    o = target + rng.normal(0, 3, (n_rays, 3))
+    return tris, f32(o), f32(target - o), degenerate
+
+
+def test_float32_collinear_triangles_never_hit(backend):
+    """Random rays through zero-area triangles with distinct float32-collinear vertices (edges exact
+    in float32, and edges that are not), next to genuine slivers 2^-20 off the line: no backend
+    reports a zero-area triangle (closest and any hit), and all agree with the float64 reference."""
+    tris, o, d, degenerate = collinear_probe()
+    for any_hit in (False, True):
+        out = run_case(backend, tris, o, d, any_hit=any_hit)
+        assert not degenerate[out.rtri[out.rhit]].any()
+        bad = np.flatnonzero(out.hit & degenerate[np.maximum(out.tri, 0)])
+        assert len(bad) == 0, "a zero-area triangle was hit:\n" + out.describe(bad)
+        assert out.rhit.sum() > len(o) // 10
+        assert_matches(out)
+
+
 def test_camera_inside_closed_box(backend):
     """Primary-like rays from eyes inside a closed box (centre, off-centre, 1e-3 from a wall, near a
     corner): every ray hits, including rays aimed exactly at the corners and along the face diagonals."""

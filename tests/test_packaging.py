@@ -74,15 +74,34 @@ def test_wheel_holds_every_shader_and_kernel(wheel):
     assert not missing, f"not in {wheel.name}: {missing}"
 
 
+def _fresh_venv_seeing_our_packages(venv: Path) -> Path:
+    """A new virtual environment whose heavy dependencies are those of the interpreter running the
+    tests; returns its python. From a system Python that is --system-site-packages; from inside a
+    virtual environment (the project's .venv) that flag would give the base interpreter's packages
+    (no moderngl), so the new venv gets a .pth naming this one's site-packages instead: plain path
+    lines, after its own site-packages, and their .pth files (an editable install of the
+    checkout) are not run, so `viewer` can only come from the wheel."""
+    import site
+
+    inside = sys.prefix != sys.base_prefix
+    cmd = [sys.executable, "-m", "venv", *([] if inside else ["--system-site-packages"]), str(venv)]
+    proc = _run(cmd, cwd=venv.parent)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    py = venv / "bin" / "python"
+    if inside:
+        own = _run([str(py), "-c", "import sysconfig; print(sysconfig.get_paths()['purelib'])"], cwd=venv.parent)
+        assert own.returncode == 0, own.stderr[-3000:]
+        Path(own.stdout.strip(), "rtwalk-test-parent.pth").write_text("\n".join(site.getsitepackages()) + "\n")
+    return py
+
+
 def test_installed_wheel_renders_headless(wheel, tmp_path):
-    """Fresh venv (heavy dependencies from the system site-packages), the wheel installed without
+    """Fresh venv (heavy dependencies from the running interpreter's packages), the wheel installed without
     dependencies; run from outside the repo, `viewer` must come from the venv and render a frame."""
     from PIL import Image
 
     venv = tmp_path / "venv"
-    proc = _run([sys.executable, "-m", "venv", "--system-site-packages", str(venv)], cwd=tmp_path)
-    assert proc.returncode == 0, proc.stderr[-3000:]
-    py = venv / "bin" / "python"
+    py = _fresh_venv_seeing_our_packages(venv)
     proc = _run([str(py), "-m", "pip", "install", "--no-deps", "--disable-pip-version-check", "-q", str(wheel)],
                 cwd=tmp_path)
     assert proc.returncode == 0, proc.stderr[-3000:]

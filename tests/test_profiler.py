@@ -7,6 +7,7 @@ import time
 import numpy as np
 import pytest
 
+from tests.timing import FLOOR_MS, grow_until_measurable
 from viewer.profiler import GpuProfiler, choose_timing
 from viewer.timer_check import HEAVY_FS, HEAVY_VS
 
@@ -20,14 +21,40 @@ def _heavy_draw(ctx, size: int = 256, n: int = 400):
     return vao, fbo
 
 
+MAX_LOOP = 60_000  # llvmpipe ends a shader loop after 65,535 back-edges: grow the target beyond
+
+
+def _sized_heavy_draw(ctx):
+    """_heavy_draw grown until one draw takes >= FLOOR_MS here (0.31 ms at 256 x 256, n = 400 on an
+    H100): the loop count first, then the target size (256 x 256 is 16 bins; more stays multi-bin)."""
+    made: dict = {}
+
+    def run(work: int) -> float:
+        n = min(work, MAX_LOOP)
+        size = 256 * max(1, int(round((work / n) ** 0.5)))
+        if made:
+            made["vao"].release()
+            made["fbo"].release()
+        made["vao"], made["fbo"] = _heavy_draw(ctx, size, n)
+        made["fbo"].use()
+        made["vao"].render()  # compile the shader variant outside the measurement
+        ctx.finish()
+        t0 = time.perf_counter()
+        made["vao"].render()
+        ctx.finish()
+        return (time.perf_counter() - t0) * 1e3
+
+    grow_until_measurable(run, 400, MAX_LOOP * 256)
+    return made["vao"], made["fbo"]
+
+
 def test_phase_time_covers_a_multi_bin_draw(gl_ctx):
     """A full-screen draw over many 64x64 bins must be charged (almost) all of its wall time.
 
     llvmpipe's GL_TIME_ELAPSED charges about one bin per thread; the profiler must not."""
-    vao, fbo = _heavy_draw(gl_ctx)
+    vao, fbo = _sized_heavy_draw(gl_ctx)
     fbo.use()
     prof = GpuProfiler(gl_ctx)
-    vao.render()  # compile the shader variant outside the measurement
     for _ in range(2):
         prof.begin_frame()
         gl_ctx.finish()
@@ -37,7 +64,7 @@ def test_phase_time_covers_a_multi_bin_draw(gl_ctx):
         gl_ctx.finish()
         wall_ms = (time.perf_counter() - t0) * 1e3
         ms = prof.end_frame()["draw"]
-    assert wall_ms > 5.0, "the draw is too light to tell the methods apart"
+    assert wall_ms > 0.5 * FLOOR_MS, "the draw is too light to tell the methods apart"
     assert 0.6 * wall_ms <= ms <= wall_ms * 1.05 + 1.0, (prof.method, ms, wall_ms)
 
 
@@ -72,3 +99,20 @@ def test_saturated_timer_is_charged_cpu_time_not_zero(gl_ctx):
     ms = prof.end_frame()["long"]
     assert prof.saturated == 1
     assert ms >= 15.0
+
+
+def test_grow_until_measurable_reaches_the_floor_or_fails():
+    """The work-sizing helper of the timed tests: a fast device (0.1 us per unit) gets enough work
+    for FLOOR_MS; work that stays too light at its limit fails instead of asserting on noise."""
+    from tests.timing import FLOOR_MS, grow_until_measurable
+
+    sizes = []
+
+    def fast(n: int) -> float:
+        sizes.append(n)
+        return n * 1e-4
+
+    n, ms = grow_until_measurable(fast, 400, 10**9)
+    assert ms >= FLOOR_MS and n * 1e-4 == ms and sizes == sorted(sizes) and len(sizes) < 8
+    with pytest.raises(AssertionError, match="only"):
+        grow_until_measurable(fast, 400, 10_000)

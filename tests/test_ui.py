@@ -3,6 +3,7 @@ tests under xvfb-run (skipped where xvfb-run is missing)."""
 
 from __future__ import annotations
 
+import importlib.util
 import json
 import math
 import os
@@ -29,7 +30,14 @@ from viewer.ui.panel import PANEL_WIDTH, FrameHistory, camera_argument, chart_ph
 
 REPO = Path(__file__).resolve().parents[1]
 XVFB = shutil.which("xvfb-run")
-needs_xvfb = pytest.mark.skipif(XVFB is None, reason="xvfb-run is not installed (apt-get install xvfb xauth)")
+# the window tests need a virtual display and the window packages (imgui-bundle, moderngl-window,
+# pyglet): a machine that could not install one of them skips with the reason instead of failing
+_UI_PACKAGES = {"imgui_bundle": "imgui-bundle", "moderngl_window": "moderngl-window", "pyglet": "pyglet"}
+_MISSING_UI = [pip for mod, pip in _UI_PACKAGES.items() if importlib.util.find_spec(mod) is None]
+needs_xvfb = pytest.mark.skipif(
+    XVFB is None or bool(_MISSING_UI),
+    reason="xvfb-run is not installed (apt-get install xvfb xauth)" if XVFB is None
+    else f"window packages not installed: {', '.join(_MISSING_UI)} (pip install -e .)")
 
 
 def fly(yaw=0.0, pitch=0.0, speed=2.0):

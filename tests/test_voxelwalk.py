@@ -285,4 +285,5 @@ def test_bench_voxelwalk_end_to_end(tmp_path):
     assert [p["resolution"] for p in pts][:2] == [8, 16] and sum(p["auto"] for p in pts) == 1
     rb = subprocess.run([sys.executable, "-m", "viewer.cli", "bench-voxelwalk", "--sizes", "big"],
                         capture_output=True, text=True, timeout=120)
-    assert rb.returncode == 2 and rb.stderr.startswith("rtwalk: error: --sizes")
+    err = rb.stderr.strip().splitlines()
+    assert rb.returncode == 2 and len(err) == 1 and err[0].startswith("rtwalk: error: ") and "--sizes" in err[0]

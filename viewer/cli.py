@@ -6,9 +6,8 @@ import argparse
 import os
 import shlex
 import sys
-from pathlib import Path
 
-from viewer.bench import voxels as bench_voxels
+from viewer.bench import BENCHMARKS, bench_module
 
 # the argument helpers live in viewer.cli_args (the window and the benchmarks use them without
 # importing this module)
@@ -21,8 +20,6 @@ from viewer.cli_args import (
     check_at_least,
     check_device,
     check_image_output,
-    check_output_dir,
-    check_positive,
     parse_camera,
     parse_size,
     scene_from_args,
@@ -30,8 +27,6 @@ from viewer.cli_args import (
 )
 from viewer.errors import RtwalkError
 
-BENCH_FRAMES = 48  # default bench: frames spread over the path, a few minutes on 2 cores
-BENCH_REFERENCE_EVERY = 6  # and an Embree check of every 6th of them
 VIEW_SIZE = "896x504"  # the window's image; the panel is beside it (viewer.ui.panel.PANEL_WIDTH)
 
 
@@ -73,91 +68,13 @@ def cmd_render(args) -> int:
     return 0
 
 
-def cmd_bench(args) -> int:
-    from viewer.bench.harness import frame_numbers
-    from viewer.bench.replay import BenchOptions, print_summary, run_bench, write_report
-    from viewer.gl.context import create_headless_context
-    from viewer.recording import load_recording
-
-    rec_path = args.recording or (DEFAULT_RECORDING if args.scene in (None, "city") else None)
-    if rec_path is None:
-        raise RtwalkError("bench needs --recording FILE for this scene (see recordings/)")
-    # everything that needs no scene first: backend, parameters, numbers, output folders, devices
-    backend_options = backend_options_from(args)
-    size = parse_size(args.size)
-    settings = settings_from(args)
-    check_positive(args.fps, "--fps")
-    check_positive(getattr(args, "frame_target_ms", None), "--frame-target-ms")
-    check_at_least(args.frames, 1, "--frames")
-    check_at_least(args.reference_every, 1, "--reference-every")
-    check_at_least(args.frame_every, 1, "--frame-every")
-    check_at_least(getattr(args, "first_frame", None), 0, "--first-frame")
-    out_dir = check_output_dir(args.out, "--out")
-    frames_dir = check_output_dir(args.save_frames, "--save-frames")
-    rec = load_recording(rec_path)
-    opts = BenchOptions(backend=args.backend, size=size, fps=args.fps,
-                        max_frames=args.frames, reference=args.reference, reference_every=args.reference_every,
-                        frames_dir=frames_dir, frame_every=args.frame_every, backend_options=backend_options,
-                        first_frame=getattr(args, "first_frame", None))
-    frame_numbers(rec, opts.fps, opts.max_frames, opts.first_frame)  # --first-frame within the path
-    check_device(args.backend)
-    ctx = create_headless_context()  # no EGL: fail before loading
-    prepared = scene_from_args(args, rec)
-    stem = args.name or f"{prepared.scene.name}-{Path(rec_path).stem}-{args.backend}-{opts.size[0]}x{opts.size[1]}"
-    if getattr(args, "progressive", False):
-        import json
-
-        from viewer.progressive import replay_progressive
-
-        result = replay_progressive(prepared, rec, settings, opts, ctx, args.frame_target_ms, quiet=args.quiet)
-        path = out_dir / f"{stem}-progressive.json"
-        path.write_text(json.dumps(result, indent=1))
-        print(f"report: {path}")
-        return 0
-    report = run_bench(prepared, rec, settings, opts, ctx, quiet=args.quiet)
-    print_summary(report)
-    json_path, png_path = write_report(report, out_dir, stem)
-    print(f"report: {json_path}\nplot:   {png_path}")
-    return 0
-
-
-def cmd_bench_bvh(args) -> int:
-    from viewer.bench.bvh_build import run
-
-    return run(args)
-
-
-def cmd_bench_cl(args) -> int:
-    from viewer.bench.cl_primitives import run
-
-    return run(args)
-
-
-def cmd_bench_trace(args) -> int:
-    from viewer.bench.trace_vs_embree import run
-
-    return run(args)
-
-
-def cmd_bench_chcrt(args) -> int:
-    from viewer.bench.chcrt import cmd_bench_chcrt as run
-
-    return run(args)
-
-
-def cmd_bench_pgrid(args) -> int:
-    from viewer.bench.pgrid import run
-
-    return run(args)
-
-
-def cmd_bench_voxelwalk(args) -> int:
-    from viewer.bench.voxelwalk import run
-
-    return run(args)
-
-
 def cmd_info(args) -> int:
+    if args.backend:  # a backend's self-description; no scene needed
+        from viewer.backends import backend_info
+        from viewer.backends.interface import describe
+
+        print(describe(backend_info(args.backend)))
+        return 0
     prepared = scene_from_args(args)
     s = prepared.scene
     lo, hi = s.bounds
@@ -187,7 +104,7 @@ def cmd_demo(args) -> int:
     args.save_frames = "out/demo/frames"
     args.out = "out/demo"
     args.name = "city-near"
-    return cmd_bench(args)
+    return bench_module("bench").run(args)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -216,59 +133,13 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("-o", "--output", default="out/render.png",
                    help="image file (.png, .jpg, .bmp, .tif, .ppm, .webp, .tga); its folder is created")
 
-    b = sub.add_parser("bench", help="replay a recording and report speed and error")
-    add_scene_args(b)
-    add_effect_args(b, "shadows,ao:4,reflections")
-    b.add_argument("--recording", default=None, help="camera path (default: recordings/city-near.json for city)")
-    b.add_argument("--fps", type=float, default=None, help="sample the path at this rate (default: recording's)")
-    b.add_argument("--frames", type=int, default=BENCH_FRAMES,
-                   help=f"at most this many frames (>= 1, default {BENCH_FRAMES}), spread over the path "
-                        "(consecutive with --first-frame); a number >= the path's frame count replays all")
-    b.add_argument("--first-frame", type=int, default=None,
-                   help="replay consecutive frames from this one (temporal coherence as in a walkthrough)")
-    b.add_argument("--reference", choices=["embree", "none"], default="embree",
-                   help="check frames against Embree (error columns), or none")
-    b.add_argument("--reference-every", type=int, default=BENCH_REFERENCE_EVERY,
-                   help=f"check every Nth replayed frame against Embree (default {BENCH_REFERENCE_EVERY}; "
-                        "1 = all, slow)")
-    b.add_argument("--save-frames", default=None, help="folder for PNG frames")
-    b.add_argument("--frame-every", type=int, default=10,
-                   help="with --save-frames: save every Nth replayed frame (and its overlay views)")
-    b.add_argument("--out", default="out/bench", help="folder for the JSON report and plot")
-    b.add_argument("--name", default=None, help="report file stem")
-    add_progressive_args(b, "replay in the window's progressive mode (one pass per effect while moving, "
-                            "refine after the path stops) and report its frame times, time to convergence and "
-                            "the converged image's error against the full-quality frame (no Embree check, "
-                            "no saved frames)")
+    for command in BENCHMARKS:  # every benchmark registers itself (viewer/bench/__init__.py)
+        module = bench_module(command)
+        module.add_arguments(sub.add_parser(command, help=module.HELP))
 
-    from viewer.bench.chcrt import add_arguments as add_bench_chcrt_args
-
-    bc = sub.add_parser("bench-chcrt", help="CHC+RT paper tables: glsl vs chcrt, aggressive mode, phases, overhead")
-    add_bench_chcrt_args(bc)
-
-    from viewer.bench.pgrid import add_arguments as add_bench_pgrid_args
-
-    bp = sub.add_parser("bench-pgrid", help="perspective-grid thesis studies: pgrid vs uniform grid vs BVH")
-    add_bench_pgrid_args(bp)
-    from viewer.bench.voxelwalk import add_arguments as add_bench_voxelwalk_args
-
-    add_bench_voxelwalk_args(sub.add_parser("bench-voxelwalk", help="voxel-walk thesis studies: IVW vs EC on "
-                                            "reflection rays, with clbvh on the same rays"))
-    from viewer.bench.cl_primitives import add_arguments as add_bench_cl_args
-    from viewer.bench.trace_vs_embree import add_arguments as add_bench_trace_args
-
-    add_bench_trace_args(sub.add_parser("bench-trace", help="Mrays/s per ray type of backends and raw Embree "
-                                                          "on the same captured rays"))
-    add_bench_cl_args(sub.add_parser("bench-cl", help="OpenCL sort/scan/compact throughput next to NumPy"))
-    bench_voxels.add_parser(sub)
-
-    from viewer.bench.bvh_build import add_arguments as add_bench_bvh_args
-
-    add_bench_bvh_args(sub.add_parser("bench-bvh", help="BVH build time, throughput and SAH cost per builder "
-                                                        "on the city scene"))
-
-    i = sub.add_parser("info", help="scene statistics")
+    i = sub.add_parser("info", help="scene statistics, or a backend's description and parameters (--backend NAME)")
     add_scene_args(i)
+    i.add_argument("--backend", default=None, help="describe this backend: device, exactness, every parameter")
 
     d = sub.add_parser("demo", help="main job: window if a display exists, else headless replay + report")
     add_scene_args(d)
@@ -284,13 +155,13 @@ def main(argv: list[str] | None = None) -> int:
         argv = ["demo"] + argv  # bare `rtwalk [options]` runs the main job
     args = ap.parse_args(argv)
     args.command_line = shlex.join(["rtwalk", *argv])  # what the reports quote to reproduce a run
-    handlers = {"view": cmd_view, "render": cmd_render, "bench": cmd_bench, "bench-bvh": cmd_bench_bvh,
-                "bench-chcrt": cmd_bench_chcrt, "bench-pgrid": cmd_bench_pgrid, "bench-voxelwalk": cmd_bench_voxelwalk,
-                "bench-trace": cmd_bench_trace, "bench-cl": cmd_bench_cl, "bench-voxels": bench_voxels.run,
-                "info": cmd_info, "demo": cmd_demo}
+    handlers = {"view": cmd_view, "render": cmd_render, "info": cmd_info, "demo": cmd_demo}
+    handlers.update({command: bench_module(command).run for command in BENCHMARKS})
     if args.command == "demo":
         # demo reuses bench/view; fill in what their parsers would have set
-        for key, val in {"recording": None, "fps": None, "reference": "embree", "reference_every": 6,
+        from viewer.reference import REFERENCE_BACKEND
+
+        for key, val in {"recording": None, "fps": None, "reference": REFERENCE_BACKEND, "reference_every": 6,
                          "frame_every": 4, "save_frames": None, "out": "out/demo", "name": None}.items():
             if not hasattr(args, key):
                 setattr(args, key, val)

@@ -87,24 +87,24 @@ def add_scene_args(p: argparse.ArgumentParser) -> None:
 
 
 def add_effect_args(p: argparse.ArgumentParser, default: str) -> None:
-    from viewer.backends import backend_names
+    from viewer.backends import DEFAULT_BACKEND, PARAM_OPTIONS, backend_names
 
     p.add_argument("--effects", default=default,
                    help="comma list of primary,shadows,soft,ao,diffuse,reflections (NAME:N = N samples), "
                         "'all' or 'none'")
-    p.add_argument("--backend", default="glsl", help=f"tracing backend: {', '.join(backend_names())}")
+    p.add_argument("--backend", default=DEFAULT_BACKEND, help=f"tracing backend: {', '.join(backend_names())}")
     p.add_argument("--backend-params", default=None, metavar="KEY=VALUE,...",
-                   help="parameters of the chosen --backend (also RTWALK_<BACKEND> in the environment), "
-                        "e.g. --backend chcrt --backend-params visible_threshold=20,t_q=0.5")
+                   help="parameters of the chosen --backend (also RTWALK_<BACKEND> in the environment; "
+                        "`rtwalk info --backend NAME` lists them), e.g. key=value,key=value")
     p.add_argument("--size", default="640x360", help="WIDTHxHEIGHT")
     p.add_argument("--perturb", type=float, default=36.0, help="per-pixel sample rotation, degrees")
     p.add_argument("--ao-length", type=float, default=0.05, help="AO ray length, fraction of the scene diagonal")
     p.add_argument("--exposure", type=float, default=1.0,
                    help="multiplies the linear radiance before tone mapping (finite, > 0; default 1)")
-    p.add_argument("--chcrt", default=None, metavar="KEY=VALUE,...",
-                   help="chcrt backend parameters (alias kept from before --backend-params), e.g. "
-                        "'visible_threshold=20,t_q=0.5' (aggressive threshold in pixels, split rule, "
-                        "min_tile_fraction, max_subtree_height, max_batch, max_multi, ...)")
+    for option, name in PARAM_OPTIONS.items():
+        p.add_argument(option, default=None, metavar="KEY=VALUE,...",
+                       help=f"{name} backend parameters (alias kept from before --backend-params; "
+                            f"`rtwalk info --backend {name}` lists them)")
 
 
 def add_progressive_args(p: argparse.ArgumentParser, help_flag: str, default: bool = False) -> None:
@@ -126,22 +126,24 @@ def check_backend(name: str) -> str:
 def backend_options_from(args) -> dict[str, str]:
     """Per-backend parameter text, {backend name: "key=value,..."}; checked here (unknown backend,
     unknown key, bad value) so bad input fails before any scene is loaded. `--backend-params`
-    belongs to `--backend`; `--chcrt` is the older spelling of chcrt's parameters."""
-    from viewer.backends import check_params
+    belongs to `--backend`; the registry's PARAM_OPTIONS are older spellings of one backend's."""
+    from viewer.backends import DEFAULT_BACKEND, PARAM_OPTIONS, check_params
 
     backend = getattr(args, "backend", None)
     if backend is not None:
         check_backend(backend)
     options: dict[str, str] = {}
-    text = getattr(args, "chcrt", None)
-    if text:
-        check_params("chcrt", text, "--chcrt")
-        options["chcrt"] = text
+    for option, name in PARAM_OPTIONS.items():
+        text = getattr(args, option.lstrip("-").replace("-", "_"), None)
+        if text:
+            check_params(name, text, option)
+            options[name] = text
     text = getattr(args, "backend_params", None)
     if text:
-        check_params(backend or "glsl", text, "--backend-params")
-        prev = options.get(backend or "glsl")
-        options[backend or "glsl"] = f"{prev},{text}" if prev else text  # --backend-params wins
+        target = backend or DEFAULT_BACKEND
+        check_params(target, text, "--backend-params")
+        prev = options.get(target)
+        options[target] = f"{prev},{text}" if prev else text  # --backend-params wins
     return options
 
 

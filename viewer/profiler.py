@@ -23,6 +23,9 @@ from contextlib import contextmanager
 
 import moderngl
 
+from viewer import iostats
+from viewer.gl import io as glio
+
 TIMING_METHODS = ("timer", "sync")
 _SATURATED_NS = 0xFFFFFFFF  # moderngl's 32-bit read: the result is >= 4.29 s, or not available
 
@@ -34,6 +37,12 @@ def choose_timing(ctx: moderngl.Context) -> str:
         return env
     renderer = str(ctx.info.get("GL_RENDERER", "")).lower()
     return "sync" if ("llvmpipe" in renderer or "softpipe" in renderer) else "timer"
+
+
+def clfinish(queue) -> None:
+    """queue.finish() as one counted host sync (viewer.cl.io.finish without importing viewer.cl)."""
+    with iostats.timed_sync():
+        queue.finish()
 
 
 class GpuProfiler:
@@ -58,6 +67,9 @@ class GpuProfiler:
         self.by_label: dict[str, float] = {}
         self.saturated = 0
         self._queries = 0  # timer queries used this frame
+        # CL phases timed by queue markers, read after one finish at end_frame (no host sync per
+        # phase): set by the renderer around a device-resident frame's passes
+        self.cl_deferred = False
 
     def begin_frame(self) -> None:
         self._queries = 0
@@ -71,10 +83,10 @@ class GpuProfiler:
             t0 = time.perf_counter()
             yield
         elif self.method == "sync":
-            self.ctx.finish()  # work issued before the phase is not charged to it
+            glio.finish(self.ctx)  # work issued before the phase is not charged to it
             t0 = time.perf_counter()
             yield
-            self.ctx.finish()
+            glio.finish(self.ctx)
             self._used.append((name, (time.perf_counter() - t0) * 1e3, self.label, 0.0))
         else:
             t0 = time.perf_counter()
@@ -83,6 +95,7 @@ class GpuProfiler:
             if idx >= len(self._pool):
                 self._pool.append(self.ctx.query(time=True))
             q = self._pool[idx]
+            iostats.gl_query()
             with q:
                 yield
             self._used.append((name, q, self.label, (time.perf_counter() - t0) * 1e3))
@@ -95,14 +108,23 @@ class GpuProfiler:
         The queue is finished at the end, so the phase holds the kernels' run time even though
         enqueueing returns at once. In "sync" mode, GL work and CL work issued before the phase
         are finished first (not charged to it); in "timer" mode the queue is still drained first."""
+        if self.enabled and self.cl_deferred:
+            from viewer.cl import io as clio
+
+            t0 = time.perf_counter()
+            m0 = clio.marker(queue)
+            yield
+            self._used.append((name, (m0, clio.marker(queue), queue), self.label, 0.0))
+            self._cpu[name] = self._cpu.get(name, 0.0) + (time.perf_counter() - t0) * 1e3
+            return
         if self.enabled:
             if self.method == "sync":
-                self.ctx.finish()
-            queue.finish()
+                glio.finish(self.ctx)
+            clfinish(queue)
         t0 = time.perf_counter()
         yield
         if self.enabled:
-            queue.finish()
+            clfinish(queue)
             ms = (time.perf_counter() - t0) * 1e3
             self._used.append((name, ms, self.label, 0.0))
         self._cpu[name] = self._cpu.get(name, 0.0) + (time.perf_counter() - t0) * 1e3
@@ -119,9 +141,16 @@ class GpuProfiler:
         """GPU milliseconds per phase (waits for the queries)."""
         out: dict[str, float] = {}
         self.by_label = {}
+        if any(not isinstance(q, (float, tuple)) for _, q, _, _ in self._used):
+            iostats.sync()  # the first result read waits for the frame's GL work
+        queues = {id(q[2]): q[2] for _, q, _, _ in self._used if isinstance(q, tuple)}
+        for queue in queues.values():  # deferred CL phases: one wait, then the markers' times
+            clfinish(queue)
         for name, q, label, cpu_ms in self._used:
             if isinstance(q, float):
                 ms = q
+            elif isinstance(q, tuple):
+                ms = max(0.0, (q[1].profile.end - q[0].profile.end) / 1e6)
             else:
                 ns = q.elapsed
                 if ns >= _SATURATED_NS:

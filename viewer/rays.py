@@ -14,6 +14,7 @@ import moderngl
 import numpy as np
 
 from viewer.effects import RayType
+from viewer.gl import io as glio
 from viewer.gl.textures import float_texture, int_texture, read_texture
 
 
@@ -82,8 +83,8 @@ class HitBuffer:
         self.fbo = ctx.framebuffer(color_attachments=[self.t, self.id])
 
     def write(self, t: np.ndarray, tri: np.ndarray) -> None:
-        self.t.write(np.ascontiguousarray(t, np.float32).tobytes())
-        self.id.write(np.ascontiguousarray(tri, np.int32).tobytes())
+        glio.write(self.t, np.ascontiguousarray(t, np.float32).tobytes())
+        glio.write(self.id, np.ascontiguousarray(tri, np.int32).tobytes())
 
     def read(self) -> tuple[np.ndarray, np.ndarray]:
         return read_texture(self.t).reshape(-1).copy(), read_texture(self.id).reshape(-1).copy()

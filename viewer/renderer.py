@@ -23,8 +23,10 @@ from viewer.backends import backend_names, create_backend
 from viewer.backends.base import BackendContext
 from viewer.backends.interface import OverlaySpec
 from viewer.camera import Camera
+from viewer.cl.frame import frame_path
 from viewer.effects import EffectSettings, RayType
 from viewer.errors import RtwalkError
+from viewer.gl import io as glio
 from viewer.gl.programs import FullscreenQuad, ProgramCache
 from viewer.gl.scene import GpuScene
 from viewer.iostats import IoCounts
@@ -127,6 +129,8 @@ class Renderer:
         self.backend_options = dict(backend_options or {})
         self.scene_time = float(scene.scene_time)  # wanted scene time; applied at the next render()
         self._stale: set[str] = set()  # created backends not yet told about the latest geometry
+        self._device = None  # viewer.cl.frame.DeviceFrame, made on the first CL-resident frame
+        self.frame_path = "batch"  # the last frame's: "device" (CL-resident) or "batch" (RayBatch)
         self.set_backend(backend or backend_names()[0])
 
     # -- configuration -------------------------------------------------------------------------
@@ -371,7 +375,6 @@ class Renderer:
             elif source is None:
                 self._overlay_unavailable(f"view '{self.view}' shows a traced pass's overlays, but no pass "
                                           "traces rays (turn an effect on)")
-        overlay_done = False
         iostats.begin_frame()
         prof.begin_frame()
         self.update_geometry()
@@ -383,14 +386,44 @@ class Renderer:
         if not keep:
             with prof.phase("gbuffer"):
                 self.gbuffer.render(camera)
+            iostats.gl_draw()  # the G-buffer's one draw (counted here: gbuffer.py draws it)
             self.accumulate.clear()
             self.samples_done = {}
-        self.raygen.reset_count()
         self.backend.overlays_enabled = self.overlays_wanted  # diagnostics cost time: only when shown or saved
+        self.frame_path = frame_path(self.backend, overlays=self.overlays_wanted)
         self.backend.begin_frame(self.frame_index)
         lengths = {RayType.AO: s.ao_length * self.diagonal, RayType.DIFFUSE: self.diagonal}
         captured: list[CapturedPass] = []
         stats: dict[str, float] = {}
+        if self.frame_path == "device":
+            counts = self._device_passes(passes, lengths, cam_u, light_u, keep, capture, captured, stats)
+            overlay_done = False
+        else:
+            counts, overlay_done = self._batch_passes(passes, lengths, source, capture, captured, stats)
+        with prof.phase("shade"):
+            if view_overlay and overlay_done and self.view in self.overlay.captured:
+                self.overlay.render_view(self.shade.fbo, self.view, self.overlay_tile_level(),
+                                         int(self.overlay_scale), self.overlay_log)
+            else:  # an overlay view without overlays (window): the final image under the message
+                self.shade.render(self.gbuffer, self.accumulate, s, "final" if view_overlay else self.view,
+                                  min(len(self.scene.point_lights), 8), self.depth_scale, self.acc_scale())
+        self.overlay_source = source if overlay_done else None
+        gpu_ms = prof.end_frame()
+        if prof.saturated:  # timer results charged their CPU time instead (see profiler.py)
+            stats["timer_saturated"] = float(prof.saturated)
+        glio.finish(self.ctx)
+        wall = (time.perf_counter() - t0) * 1e3
+        self.frame_index += 1
+        rays = {RayType(i).label: int(counts[i]) for i in range(6) if counts[i] > 0}
+        return FrameReport(gpu_ms, prof.cpu_ms(), wall, rays, dict(prof.by_label), stats, captured,
+                           self.overlay_source, iostats.end_frame())
+
+    def _batch_passes(self, passes, lengths, source, capture, captured, stats) -> tuple[np.ndarray, bool]:
+        """Every pass through the RayBatch / HitBuffer textures (GL backends, overlay frames):
+        (ray counts per type, whether the overlays were copied)."""
+        s, prof = self.settings, self.profiler
+        self.raygen.reset_count()
+        overlay_done = False
         for ray_type, sample, light, weight in passes:
             with prof.phase("raygen"):
                 self.raygen.generate(self.rays, self.gbuffer, ray_type, sample, light,
@@ -410,24 +443,50 @@ class Renderer:
                 with prof.phase("accumulate"):
                     self.accumulate.add(ray_type, self.rays, self.hits, self.gbuffer, light, weight)
                 self.samples_done.setdefault(ray_type, set()).add(sample)
-        with prof.phase("shade"):
-            if view_overlay and overlay_done and self.view in self.overlay.captured:
-                self.overlay.render_view(self.shade.fbo, self.view, self.overlay_tile_level(),
-                                         int(self.overlay_scale), self.overlay_log)
-            else:  # an overlay view without overlays (window): the final image under the message
-                self.shade.render(self.gbuffer, self.accumulate, s, "final" if view_overlay else self.view,
-                                  min(len(self.scene.point_lights), 8), self.depth_scale, self.acc_scale())
-        self.overlay_source = source if overlay_done else None
-        gpu_ms = prof.end_frame()
-        if prof.saturated:  # timer results charged their CPU time instead (see profiler.py)
-            stats["timer_saturated"] = float(prof.saturated)
-        counts = self.raygen.read_counts()
-        self.ctx.finish()
-        wall = (time.perf_counter() - t0) * 1e3
-        self.frame_index += 1
-        rays = {RayType(i).label: int(counts[i]) for i in range(6) if counts[i] > 0}
-        return FrameReport(gpu_ms, prof.cpu_ms(), wall, rays, dict(prof.by_label), stats, captured,
-                           self.overlay_source, iostats.end_frame())
+        return self.raygen.read_counts(), overlay_done
+
+    def _device_passes(self, passes, lengths, cam_u, light_u, keep, capture, captured, stats) -> np.ndarray:
+        """Every pass on the CL device (viewer.cl.frame): the G-buffer ids in once, rays made,
+        traced and accumulated there, the used accumulators out once, the ray counts read once.
+        Phases are timed by queue markers (no host wait per pass); the backend's `end_frame`
+        (optional) reports counters kept on the device over the frame."""
+        from viewer.cl.frame import DeviceFrame
+
+        s, prof = self.settings, self.profiler
+        if self._device is None:
+            self._device = DeviceFrame()
+        dev = self._device
+        q = dev.ctx.queue
+        dev.set_scene(self.scene)
+        with prof.cl_phase("device:ids", q):
+            dev.begin(self.size, self.gbuffer.tri_id, cam_u, light_u, keep)
+        prof.cl_deferred = True
+        try:
+            for ray_type, sample, light, weight in passes:
+                with prof.cl_phase("raygen", q):
+                    dev.generate(ray_type, sample, light, lengths.get(ray_type, 0.0), np.radians(s.perturb_deg))
+                prof.label = ray_type.label
+                result = self.backend.trace_device(dev.rays, PassInfo(ray_type, sample, light, weight), dev.hits)
+                prof.label = None
+                self.backend_overlays = tuple(result.overlays)
+                for k, v in result.stats.items():
+                    stats[k] = stats.get(k, 0) + v
+                if capture:  # verification only: the pass's rays and hits read back
+                    t, tri = dev.hits.read()
+                    captured.append(CapturedPass(ray_type, sample, light, dev.rays.read(), t, tri))
+                if ray_type != RayType.PRIMARY:
+                    with prof.cl_phase("accumulate", q):
+                        dev.accumulate(ray_type, light, weight)
+                    self.samples_done.setdefault(ray_type, set()).add(sample)
+        finally:
+            prof.cl_deferred = False
+        end = getattr(self.backend, "end_frame", None)
+        if callable(end):
+            for k, v in end().items():
+                stats[k] = stats.get(k, 0) + v
+        with prof.cl_phase("device:accumulators", q):
+            dev.write_accumulators(self.accumulate.textures, sorted(self.samples_done, key=int))
+        return dev.read_counts()
 
     def read_image(self) -> np.ndarray:
         return self.shade.read_rgb()
@@ -451,6 +510,9 @@ class Renderer:
             obj.release()
         if self._overlay is not None:
             self._overlay.release()
+        if self._device is not None:
+            self._device.release()
+            self._device = None
         if self._idle_fbo is not None:
             self._idle_fbo.release()
             self._overlay = None

@@ -2,7 +2,9 @@
 
 Convention shared with viewer.reference: t is in units of |direction| (hit = o + t*d), +inf on a
 miss; tri is the index into the *input* triangle array, -1 on a miss; only tmin < t < tmax hit;
-rays with tmax <= tmin (or non-finite data) are inactive and miss.
+rays with tmax <= tmin (or non-finite data) are inactive and miss. Triangles no ray can hit (zero
+area, decided exactly, or a non-finite vertex: viewer.degenerate) are left out of what the backend
+builds, as the scene loader leaves them out: float32 edge functions need not cancel on them.
 """
 
 from __future__ import annotations
@@ -14,9 +16,11 @@ import numpy as np
 
 from viewer.accel.builders import build_scene_bvh
 from viewer.accel.bvh import BVH
-from viewer.backends import create_backend
+from viewer.backends import DEFAULT_BACKEND, create_backend
 from viewer.backends.base import BackendContext
+from viewer.degenerate import unhittable
 from viewer.effects import RayType
+from viewer.gl import io as glio
 from viewer.gl.context import shared_context
 from viewer.gl.programs import ProgramCache
 from viewer.gl.scene import GpuScene
@@ -46,8 +50,10 @@ def _prepared(ctx: moderngl.Context, triangles: np.ndarray):
 
 
 def trace_rays(triangles: np.ndarray, origins, directions, tmin, tmax, any_hit: bool = False,
-               backend: str = "glsl") -> tuple[np.ndarray, np.ndarray]:
+               backend: str = DEFAULT_BACKEND) -> tuple[np.ndarray, np.ndarray]:
     tris = np.ascontiguousarray(triangles, np.float32).reshape(-1, 3, 3)
+    ids = np.flatnonzero(~unhittable(tris)).astype(np.int32)  # built triangle -> input index
+    tris = np.ascontiguousarray(tris[ids])
     o = np.asarray(origins, np.float32).reshape(-1, 3)
     d = np.asarray(directions, np.float32).reshape(-1, 3)
     lo = np.asarray(tmin, np.float32).reshape(-1)
@@ -76,8 +82,8 @@ def trace_rays(triangles: np.ndarray, origins, directions, tmin, tmax, any_hit: 
     rays = RayBatch(ctx, size)
     hits = HitBuffer(ctx, size)
     try:
-        rays.origin.write(org.tobytes())
-        rays.direction.write(dirs.tobytes())
+        glio.write(rays.origin, org.tobytes())
+        glio.write(rays.direction, dirs.tobytes())
         bc = BackendContext(ctx, programs, GpuProfiler(ctx, enabled=False), gpu_scene, scene, bvh)
         be = create_backend(backend, bc)
         be.begin_frame(0)
@@ -90,5 +96,5 @@ def trace_rays(triangles: np.ndarray, origins, directions, tmin, tmax, any_hit: 
     t, slot = t[:n], slot[:n]
     hit = (slot >= 0) & active
     t_out[hit] = t[hit]
-    id_out[hit] = bvh.tri_order[slot[hit]]
+    id_out[hit] = ids[bvh.tri_order[slot[hit]]]
     return t_out, id_out

@@ -45,8 +45,8 @@ from typing import Any
 
 import numpy as np
 
-from viewer import iostats
 from viewer.accel.bvh import BVH, _validate, tree_stats
+from viewer.cl import io as clio
 from viewer.cl.pool import BufferPool
 from viewer.cl.primitives import WG as PWG
 
@@ -81,7 +81,7 @@ class DeviceBvhBuilder:
         self.block_nearest = True  # nearest_block (each pair once) rather than nearest (per cluster)
         prog = build(KERNEL, {"WG": WG, "RADIUS": int(radius), "MAX_LEAF": self.max_leaf,
                               "MIN_LEAF": self.min_leaf}, self.ctx)
-        self._k = {name: self.ctx.cl.Kernel(prog, name) for name in _KERNELS}
+        self._k = clio.kernels(prog, _KERNELS)
         self._bufs = BufferPool(self.ctx)
         self.phases: dict[str, float] = {}
         self.iterations = 0
@@ -90,14 +90,12 @@ class DeviceBvhBuilder:
     def _run(self, name: str, n: int, *args: Any) -> None:
         if n:
             self._k[name](self.ctx.queue, (-(-n // WG) * WG,), (WG,), *args)
-            iostats.cl_launch()
 
     def _task(self, name: str, n: int, *args: Any) -> None:
         """Block kernels: one work-item per block, n a multiple of the primitives' WG or 1 (a fixed
         local size: PoCL compiles a work-group function per local size)."""
         local = min(n, PWG)
         self._k[name](self.ctx.queue, (-(-n // local) * local,), (local,), *args)
-        iostats.cl_launch()
 
     def _buf(self, name: str, nbytes: int) -> Any:
         return self._bufs.get(name, nbytes)
@@ -105,9 +103,7 @@ class DeviceBvhBuilder:
     def _read(self, buf: Any, count: int, dtype: Any, offset: int = 0) -> np.ndarray:
         out = np.empty(count, dtype)
         if count:
-            self.ctx.cl.enqueue_copy(self.ctx.queue, out, buf, src_offset=offset)
-            iostats.to_host(out.nbytes)
-            iostats.sync()
+            clio.copy(self.ctx.queue, out, buf, src_offset=offset)
         return out
 
     def _phase(self, name: str, t0: float) -> float:
@@ -144,14 +140,13 @@ class DeviceBvhBuilder:
         n = len(tri)
         if n >= 2**30:
             raise ValueError("at most 2**30 triangles")
-        cl, q = self.ctx.cl, self.ctx.queue
+        q = self.ctx.queue
         u = np.uint32
         m_all = 2 * n - 1
         self.check_memory(n)
         b = self._buf
         tri_buf = b("tri", tri.nbytes)
-        cl.enqueue_copy(q, tri_buf, tri)
-        iostats.to_device(tri.nbytes)
+        clio.copy(q, tri_buf, tri, is_blocking=False)
         bmin, bmax = b("bmin", 16 * n), b("bmax", 16 * n)
         cx, cy, cz = b("cx", 4 * n), b("cy", 4 * n), b("cz", 4 * n)
         self._run("tri_boxes", n, tri_buf, u(n), bmin, bmax, cx, cy, cz)
@@ -160,7 +155,6 @@ class DeviceBvhBuilder:
         # -- Morton codes, sorted ---------------------------------------------------------------
         lo = np.array([self.prims.reduce(c, n, "min", np.float32) for c in (cx, cy, cz)], np.float32)
         hi = np.array([self.prims.reduce(c, n, "max", np.float32) for c in (cx, cy, cz)], np.float32)
-        iostats.sync(6)
         # one scale for all axes (a cube around the centres): per-axis scales would stretch a flat
         # scene's thin axis over the whole code and order it worse
         ext = float((hi.astype(np.float64) - lo).max())
@@ -169,7 +163,6 @@ class DeviceBvhBuilder:
         self._run("morton", n, cx, cy, cz, u(n), np.append(lo, 0).astype(np.float32),
                   np.append(scale, 0).astype(np.float32), keys, perm)
         self.prims.sort_pairs(keys, perm, n, key_bits=30)
-        iostats.cl_launch(24)  # 6 reductions, 4 sort passes
         t = self._phase("morton+sort", t)
 
         # -- PLOC ---------------------------------------------------------------------------------
@@ -183,9 +176,8 @@ class DeviceBvhBuilder:
         nn = b("nn", 4 * n)
         cnt = b("cnt", 8)
         next_node = b("next_node", 4)
-        cl.enqueue_copy(q, cnt, np.array([n, n], np.uint32))
-        cl.enqueue_copy(q, next_node, np.array([n], np.uint32))
-        iostats.to_device(12)
+        clio.copy(q, cnt, np.array([n, n], np.uint32))
+        clio.copy(q, next_node, np.array([n], np.uint32))
         self._run("init_leaves", n, perm, bmin, bmax, u(n), nmin, nmax, left, right, parent, count, kept_nodes,
                   height, uheight, cost, leaf_ok, cnode[0], cmin[0], cmax[0])
         node_args = (next_node, nmin, nmax, left, right, parent, count, kept_nodes, height, uheight, cost, leaf_ok)
@@ -228,7 +220,6 @@ class DeviceBvhBuilder:
         pnode, dkeys, order, rank = b("pnode", 4 * m), b("dkeys", 4 * m), b("order", 4 * m), b("rank", 4 * m)
         self._run("preorder", m_all, u(m_all), st_final, pnode, dkeys, order)
         self.prims.sort_pairs(dkeys, order, m, key_bits=max(tree_height.bit_length(), 1))
-        iostats.cl_launch(3 * -(-tree_height.bit_length() // 8))
         self._run("invert", m, u(m), order, rank)
         onames = ("left", "right", "first", "count", "parent", "depth", "height")
         outs = {k: b("o" + k, 16 * m) for k in ("min", "max")}

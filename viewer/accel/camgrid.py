@@ -41,6 +41,7 @@ from typing import Any
 
 import numpy as np
 
+from viewer.cl import io as clio
 from viewer.cl.pool import BufferPool
 
 KERNEL = Path(__file__).resolve().parent / "camgrid_build.cl"
@@ -132,16 +133,11 @@ def fit_camera(corners_o: np.ndarray, corners_d: np.ndarray, size: tuple[int, in
 
 
 def corner_rays(ray_o: Any, ray_d: Any, size: tuple[int, int], ctx: Any) -> tuple[np.ndarray, np.ndarray]:
-    """The (4, 4) origin and direction rows of the corner pixels from mapped ray buffers."""
-    from viewer.cl import mapped
-
+    """The (4, 4) origin and direction rows of the corner pixels (only those 8 rows are read)."""
     w, h = size
     idx = [0, w - 1, (h - 1) * w, h * w - 1]
-    with mapped(ctx, ray_o, (w * h, 4), np.float32) as o:
-        co = o[idx].copy()
-    with mapped(ctx, ray_d, (w * h, 4), np.float32) as d:
-        cd = d[idx].copy()
-    return co, cd
+    return (clio.read_rows(ctx.queue, ray_o, idx, (4,), np.float32),
+            clio.read_rows(ctx.queue, ray_d, idx, (4,), np.float32))
 
 
 def slab_params(z_lo: float, z_hi: float, slabs: int) -> tuple[float, float, float, float]:
@@ -184,9 +180,8 @@ class CameraGrid:
         self.ctx = ctx or cl_context()
         self.prims = prims or primitives(self.ctx)
         prog = build(KERNEL, {"WG": WG}, self.ctx)
-        cl = self.ctx.cl
-        self._k = {name: cl.Kernel(prog, name) for name in ("cg_tri_clip", "cg_tri_count", "cg_tri_write", "cg_ranges",
-                                                             "cg_classify")}
+        self._k = clio.kernels(prog, ("cg_tri_clip", "cg_tri_count", "cg_tri_write", "cg_ranges",
+                                          "cg_classify"))
         self._bufs = BufferPool(self.ctx)
         self.header_host = np.zeros(1, CGRID_DTYPE)
         self.header = self.buf("header", CGRID_DTYPE.itemsize)
@@ -223,7 +218,7 @@ class CameraGrid:
         t0 = time.perf_counter()
         self.camera = cam
         hd = self.header_for(cam, spec)
-        cl.enqueue_copy(q, self.header, hd)
+        clio.copy(q, self.header, hd)
         ntx, nty, ns = (int(x) for x in hd["tiles"][0, 1:])
         ncells = ntx * nty * ns
         nt = max(n_tris, 1)
@@ -237,7 +232,7 @@ class CameraGrid:
             z0, z1 = np.inf, -np.inf
         hd["slab"][0] = slab_params(z0, z1, ns)
         self.header_host = hd
-        cl.enqueue_copy(q, self.header, hd)
+        clio.copy(q, self.header, hd)
         self._run("cg_tri_count", n_tris, self.header, u(n_tris), flags, place, zlo, zhi, counts, place_slab)
         pairs = p.exclusive_scan(counts, offsets, n_tris) if n_tris else 0
         cells = self.buf("cells", 8 * ncells)
@@ -255,7 +250,7 @@ class CameraGrid:
         # culled counts on the device (count-only compactions): no per-triangle read-back
         frustum, back, near = (p.compact(n_tris, src=flags, predicate=f"x == {f}u") if n_tris else 0
                                for f in (FLAG_FRUSTUM, FLAG_BACK, FLAG_NEAR_EYE))
-        q.finish()
+        clio.finish(q)
         self.stats = CameraGridStats((ntx, nty), ns, n_tris, 0 if overflow else int(pairs), int(frustum), int(back),
                                      int(near), 0, 0, (time.perf_counter() - t0) * 1e3, overflow=overflow)
         return self.stats
@@ -267,7 +262,7 @@ class CameraGrid:
         outside, idx = self.buf("outside", 4 * max(n, 1)), self.buf("outside_idx", 4 * max(n, 1))
         self._run("cg_classify", n, self.header, ray_o, ray_d, np.uint32(n), outside)
         count = self.prims.compact(n, flags=outside, dst_index=idx) if n else 0
-        self.ctx.queue.finish()
+        clio.finish(self.ctx.queue)
         self.stats.rays, self.stats.outside = n, int(count)
         self.stats.classify_ms = (time.perf_counter() - t0) * 1e3
         return int(count)
@@ -294,9 +289,9 @@ class CameraGrid:
         ncells = int(self.header_host["cells"][0, 0])
         cells = np.empty((ncells, 2), np.uint32)
         refs = np.empty(max(self.stats.pairs, 1), np.uint32)
-        self.ctx.cl.enqueue_copy(self.ctx.queue, cells, self.cells)
+        clio.copy(self.ctx.queue, cells, self.cells)
         if self.stats.pairs:
-            self.ctx.cl.enqueue_copy(self.ctx.queue, refs, self.refs)
+            clio.copy(self.ctx.queue, refs, self.refs)
         return cells, refs[: self.stats.pairs]
 
     def release(self) -> None:

@@ -9,9 +9,19 @@ viewer/cl/kernels/grid.cl (include it from a trace kernel).
 
 Binning is box/box and conservative: a triangle is listed in every cell that its bounding box,
 grown by `eps` cells per axis and clipped to the grid, overlaps (a superset of the cells the
-triangle itself overlaps). The margin is 1e-3 cells plus 32 float32 ulps of the grid's largest
-coordinate, so a 3D-DDA whose float32 boundary distances are off by rounding still finds every
+triangle itself overlaps). Build and walk work in coordinates local to the grid (vertex or ray
+origin minus the grid's float32 corner `lo`: exact for nearby points by Sterbenz, else rounded at
+the local magnitude), so rounding is relative to the grid's extent and the ray's distance, never
+to how far the scene lies from the origin. The margin is therefore 1e-3 cells plus 32 float32
+ulps of the grid's extent in cell units (the same handful of cells' thousandths at the origin
+and at 1e6), so a 3D-DDA whose float32 boundary distances are off by rounding still finds every
 hit in a cell it visits.
+
+Memory is bounded (viewer.cl.limits): the pair count of a resolution is counted first, and the
+build's buffers (keys, values and sort scratch 16 bytes per pair, segments, blocks, cells) must
+fit the device's per-buffer limit and the structure budget (a share of its global memory). An
+automatic resolution over either is coarsened (GridStats.coarsened counts the steps); a fixed
+`resolution` over it, or a grid that cannot fit even coarse, stops with one RtwalkError line.
 
 Resolution (`grid_resolution`): cells per axis = extent_axis * cbrt(density * N / volume), i.e.
 about `density` cells per triangle, shaped like the scene's box (Wald/Kalojanov's rule); each
@@ -38,12 +48,15 @@ from typing import Any
 
 import numpy as np
 
+from viewer.cl import io as clio
+from viewer.cl.limits import DeviceLimits, check_alloc, check_total, device_limits
 from viewer.cl.pool import BufferPool
 from viewer.errors import RtwalkError
 
 KERNEL = Path(__file__).resolve().parent / "grid_build.cl"
 WG = 64
-MAX_PAIRS = 2**26  # pairs in one build (keys + values + sort scratch: 16 bytes per pair)
+MAX_PAIRS = 2**31  # pairs in one build (uint32 offsets); memory limits usually bind first
+PAIR_BYTES = 16  # keys + values + the radix sort's keys + values scratch, per pair
 
 GRID_DTYPE = np.dtype([("lo", "<f4", 4), ("hi", "<f4", 4), ("cell", "<f4", 4), ("inv", "<f4", 4),
                        ("eps", "<f4", 4), ("res", "<i4", 4)])
@@ -71,10 +84,25 @@ class GridStats:
     pairs: int
     nonempty: int
     build_ms: float
+    coarsened: int = 0  # resolution steps taken down to fit the device's memory (0: as asked)
+    nbytes: int = 0  # device bytes of the build's buffers (estimate before allocation)
 
     def as_dict(self) -> dict[str, float]:
         return {"grid_cells": float(self.cells), "grid_pairs": float(self.pairs),
-                "grid_nonempty": float(self.nonempty), "grid_build_ms": self.build_ms}
+                "grid_nonempty": float(self.nonempty), "grid_build_ms": self.build_ms,
+                "grid_coarsened": float(self.coarsened), "grid_mib": self.nbytes / 2**20}
+
+
+def build_bytes(pairs: int, ncells: int, n_tris: int) -> tuple[int, int]:
+    """(total bytes, largest buffer bytes) a build with `pairs` pairs over ncells cells needs:
+    pairs (PAIR_BYTES each), segments (12 bytes per non-empty cell), blocks (at most
+    pairs / 4 + non-empty cells of GRID_BLOCK_DTYPE), cells and block starts (12 bytes per cell),
+    per-triangle counts."""
+    seg = min(pairs, ncells)
+    nblocks = pairs // 4 + seg
+    blocks = GRID_BLOCK_DTYPE.itemsize * nblocks
+    largest = max(4 * pairs, blocks, 8 * ncells)
+    return PAIR_BYTES * pairs + 12 * seg + blocks + 12 * ncells + 4 * n_tris, largest
 
 
 def triangles_f4(triangles: np.ndarray) -> np.ndarray:
@@ -94,16 +122,32 @@ def scene_box(triangles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return v.min(0), v.max(0)
 
 
+def _f32_down(x: np.ndarray) -> np.ndarray:
+    """The largest float32 values <= x (float64 in, float64 out)."""
+    f = np.asarray(x, np.float64).astype(np.float32)
+    f = np.where(f.astype(np.float64) > x, np.nextafter(f, np.float32(-np.inf)), f)
+    return f.astype(np.float64)
+
+
+def _f32_up(x: np.ndarray) -> np.ndarray:
+    f = np.asarray(x, np.float64).astype(np.float32)
+    f = np.where(f.astype(np.float64) < x, np.nextafter(f, np.float32(np.inf)), f)
+    return f.astype(np.float64)
+
+
 def _padded_extent(lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Bounds grown so that no axis is flat and the boundary vertices sit inside (float64)."""
+    """Bounds grown so that no axis is flat and the boundary vertices sit inside (float64; the
+    corners are float32 values: the kernels subtract the float32 `lo`). The pad is relative to
+    the extent only: far from the origin the grid stays as tight as at it."""
     lo, hi = np.asarray(lo, np.float64), np.asarray(hi, np.float64)
     ext = hi - lo
-    big = max(float(ext.max()), 1e-6)
+    big = max(float(ext.max()), 1e-30)
     mag = max(float(np.abs(np.concatenate([lo, hi])).max()), 1e-30)
-    pad = np.maximum(1e-5 * big, 64 * float(np.spacing(np.float32(mag))))
+    big = max(big, 1e-6 * mag, 1e-6 if mag < 1 else 0.0)  # a point-like scene: some extent
+    pad = 1e-5 * big
     ext_min = 1e-3 * big
     grow = np.maximum(ext_min - ext, 0.0) / 2
-    return lo - pad - grow, hi + pad + grow
+    return _f32_down(lo - pad - grow), _f32_up(hi + pad + grow)
 
 
 def grid_resolution(lo: np.ndarray, hi: np.ndarray, n_tris: int, spec: GridSpec) -> np.ndarray:
@@ -127,12 +171,13 @@ def grid_header(lo: np.ndarray, hi: np.ndarray, res: np.ndarray) -> np.ndarray:
     res = np.asarray(res, np.int64)
     cell = (phi - plo) / res
     h = np.zeros(1, GRID_DTYPE)
-    h["lo"][0, :3] = plo
-    h["hi"][0, :3] = plo + cell * res
+    h["lo"][0, :3] = plo  # float32 exactly (_padded_extent)
+    h["hi"][0, :3] = _f32_up(plo + cell * res)
     h["cell"][0, :3] = cell
     h["inv"][0, :3] = 1.0 / cell
-    mag = max(float(np.abs(np.concatenate([plo, phi])).max()), 1e-30)
-    h["eps"][0, :3] = 1e-3 + 32 * float(np.spacing(np.float32(mag))) / cell
+    # local coordinates (see the module docstring): rounding relative to the grid's extent
+    ext = float((phi - plo).max())
+    h["eps"][0, :3] = 1e-3 + 32 * float(np.spacing(np.float32(ext))) / cell
     h["res"][0, :3] = res
     h["res"][0, 3] = int(np.prod(res))
     return h
@@ -148,10 +193,9 @@ class UniformGrid:
         self.ctx = ctx or cl_context()
         self.prims = prims or primitives(self.ctx)
         prog = build(KERNEL, {"WG": WG}, self.ctx)
-        cl = self.ctx.cl
-        self._k = {name: cl.Kernel(prog, name) for name in ("grid_count", "grid_write", "grid_ranges",
+        self._k = {name: clio.kernel(prog, name) for name in ("grid_count", "grid_write", "grid_ranges",
                                                              "grid_block_counts", "grid_blocks")}
-        self._bufs = BufferPool(self.ctx)
+        self._bufs = BufferPool(self.ctx, "uniform grid")
         self.header_host = np.zeros(1, GRID_DTYPE)
         self.header = self._buf("header", GRID_DTYPE.itemsize)
         self.stats: GridStats | None = None
@@ -179,25 +223,40 @@ class UniformGrid:
         if n:
             self._k[name](self.ctx.queue, (-(-n // WG) * WG,), (WG,), *args)
 
-    def build(self, tris: Any, n: int, lo: np.ndarray, hi: np.ndarray, spec: GridSpec | None = None) -> GridStats:
-        """Bin n triangles (device buffer in the `tris` layout) into a grid over lo..hi."""
+    def build(self, tris: Any, n: int, lo: np.ndarray, hi: np.ndarray, spec: GridSpec | None = None,
+              limits: DeviceLimits | None = None) -> GridStats:
+        """Bin n triangles (device buffer in the `tris` layout) into a grid over lo..hi; `limits`
+        (default: the device's, viewer.cl.limits) bound its memory (module docstring)."""
         spec = spec or GridSpec()
+        lim = limits or device_limits(self.ctx)
         cl, q, u = self.ctx.cl, self.ctx.queue, np.uint32
         t0 = time.perf_counter()
         res = grid_resolution(lo, hi, n, spec)
         counts = self._buf("counts", 4 * max(n, 1))
-        for _ in range(8):
+        coarsened = 0
+        while True:
             self.header_host = grid_header(lo, hi, res)
-            cl.enqueue_copy(q, self.header, self.header_host)
+            clio.copy(q, self.header, self.header_host)
             self._run("grid_count", n, self.header, tris, u(n), counts)
-            pairs = self.prims.exclusive_scan(counts, counts, n) if n else 0
-            if pairs <= MAX_PAIRS or spec.resolution > 0:
+            pairs = self._pair_total(counts, n)
+            ncells = int(np.prod(res))
+            total, largest = build_bytes(pairs, ncells, n)
+            fits = pairs <= MAX_PAIRS and largest <= lim.max_alloc and total <= lim.budget
+            if fits or spec.resolution > 0 or int(res.max()) == 1:
                 break
-            res = np.maximum(1, np.floor(res * 0.8)).astype(np.int64)  # auto resolution: coarser
+            # automatic resolution: coarser by the root of the excess (pairs shrink about with the
+            # cell count for big triangles, slower for small ones: at most a few rounds)
+            over = max(pairs / MAX_PAIRS, largest / lim.max_alloc, total / lim.budget)
+            f = min(0.8, float(over) ** (-1 / 3)) if over > 1 else 0.8
+            res = np.maximum(1, np.floor(res * f)).astype(np.int64)
+            coarsened += 1
+        what = f"uniform grid {tuple(int(r) for r in res)} ({pairs:,} triangle-cell pairs)"
         if pairs > MAX_PAIRS:
-            raise RtwalkError(f"uniform grid {tuple(res)} needs {pairs} triangle-cell pairs (at most {MAX_PAIRS}): "
-                              "choose a lower resolution")
-        ncells = int(np.prod(res))
+            raise RtwalkError(f"{what}: at most {MAX_PAIRS:,} pairs; choose a lower resolution")
+        if spec.resolution > 0 and (largest > lim.max_alloc or total > lim.budget):
+            what = f"{what} (choose a lower resolution)"
+        check_alloc(largest, what, limits=lim)
+        check_total(total, what, limits=lim)
         keys = self._buf("keys", 4 * pairs)
         vals = self._buf("vals", 4 * pairs)
         cells = self._buf("cells", 8 * ncells)
@@ -206,7 +265,7 @@ class UniformGrid:
         nonempty = 0
         if pairs:
             self.prims.sort_pairs(keys, vals, pairs, key_bits=max(1, (ncells - 1).bit_length()))
-            seg = self.prims.segments(keys, pairs, None, out=self._chunks(pairs))
+            seg = self.prims.segments(keys, pairs, None, out=self._chunks(min(pairs, ncells)))
             nonempty = seg.count
             self._run("grid_ranges", nonempty, seg.key, seg.start, seg.length, u(nonempty), cells)
         cell_blocks = self._buf("cell_blocks", 4 * ncells)
@@ -215,10 +274,25 @@ class UniformGrid:
         blocks = self._buf("blocks", GRID_BLOCK_DTYPE.itemsize * max(nblocks, 1))
         if nblocks:
             self._run("grid_blocks", ncells, cells, cell_blocks, vals, tris, u(ncells), blocks)
-        q.finish()
+        clio.finish(q)
         self.stats = GridStats(tuple(int(r) for r in res), ncells, int(pairs), int(nonempty),
-                               (time.perf_counter() - t0) * 1e3)
+                               (time.perf_counter() - t0) * 1e3, coarsened, int(total))
         return self.stats
+
+    def _pair_total(self, counts: Any, n: int) -> int:
+        """Exclusive scan of the per-triangle counts in place; the exact total even past 2**32
+        (the device scan wraps: then the counts are summed on the host, a rare large build)."""
+        if not n:
+            return 0
+        cmax = int(self.prims.reduce(counts, n, "max", np.uint32))
+        if cmax * n < 2**32:
+            return int(self.prims.exclusive_scan(counts, counts, n))
+        host = np.empty(n, np.uint32)
+        clio.copy(self.ctx.queue, host, counts)
+        total = int(host.sum(dtype=np.int64))
+        if total < 2**32:
+            self.prims.exclusive_scan(counts, counts, n)
+        return total
 
     def _chunks(self, pairs: int) -> Any:
         from viewer.cl.primitives import Chunks
@@ -232,9 +306,9 @@ class UniformGrid:
         cells = np.empty((self.stats.cells, 2), np.uint32)
         refs = np.empty(self.stats.pairs, np.uint32)
         q = self.ctx.queue
-        self.ctx.cl.enqueue_copy(q, cells, self.cells)
+        clio.copy(q, cells, self.cells)
         if self.stats.pairs:
-            self.ctx.cl.enqueue_copy(q, refs, self.refs)
+            clio.copy(q, refs, self.refs)
         return self.header_host.copy(), cells, refs
 
     def blocks_to_numpy(self) -> tuple[np.ndarray, np.ndarray]:
@@ -242,12 +316,12 @@ class UniformGrid:
         assert self.stats is not None, "build first"
         cb = np.empty(self.stats.cells, np.uint32)
         q = self.ctx.queue
-        self.ctx.cl.enqueue_copy(q, cb, self.cell_blocks)
+        clio.copy(q, cb, self.cell_blocks)
         counts = self.to_numpy()[1][:, 1].astype(np.int64)
         nb = int(((counts + 3) // 4).sum())
         blocks = np.empty(nb, GRID_BLOCK_DTYPE)
         if nb:
-            self.ctx.cl.enqueue_copy(q, blocks, self.blocks)
+            clio.copy(q, blocks, self.blocks)
         return cb, blocks
 
     def release(self) -> None:

@@ -44,6 +44,7 @@ from typing import Any
 
 import numpy as np
 
+from viewer.cl import io as clio
 from viewer.cl.pool import BufferPool
 from viewer.errors import RtwalkError
 
@@ -137,8 +138,7 @@ class PointGrid:
         self.ctx = ctx or cl_context()
         self.prims = prims or primitives(self.ctx)
         prog = build(KERNEL, {"WG": WG}, self.ctx)
-        cl = self.ctx.cl
-        self._k = {name: cl.Kernel(prog, name) for name in
+        self._k = {name: clio.kernel(prog, name) for name in
                    ("pg_classify", "pg_ray_keys", "pg_tri_count", "pg_tri_write", "pg_cell_counts")}
         self._bufs = BufferPool(self.ctx)
         self.header_host = np.zeros(1, PGRID_DTYPE)
@@ -176,7 +176,7 @@ class PointGrid:
         h["fwd"][0, :3], h["up"][0, :3], h["right"][0, :3] = fwd, up, right
         h["slab"][0, 2:] = (np.tan(spec.margin), d0)
         h["res"][0] = (1, 1, 1, 1)
-        cl.enqueue_copy(q, self.header, h)
+        clio.copy(q, self.header, h)
         alpha, theta = self.buf("alpha", 4 * n), self.buf("theta", 4 * n)
         dev, outside = self.buf("dev", 4 * n), self.buf("outside", 4 * n)
         self._run("pg_classify", n, self.header, ray_o, ray_d, u(n), alpha, theta, dev, outside)
@@ -209,7 +209,7 @@ class PointGrid:
         ncells = na * nt * ns
         h["res"][0] = (na, nt, ns, ncells)
         self.header_host = h
-        cl.enqueue_copy(q, self.header, h)
+        clio.copy(q, self.header, h)
         # triangles: (cell, triangle) pairs
         from viewer.cl.primitives import Chunks
 
@@ -234,7 +234,7 @@ class PointGrid:
         # culled / widened counts on the device (count-only compactions): no per-triangle read-back
         culled, widened = (p.compact(n_tris, src=flags, predicate=f"(x & {b}u) != 0u") if n_tris else 0
                            for b in (1, 2))
-        q.finish()
+        clio.finish(q)
         self.stats = PointGridStats((na, nt), ns, n, in_grid, self.outside_count, self.inactive_count, 0, int(pairs),
                                     int(culled), int(widened), (time.perf_counter() - t0) * 1e3)
 
@@ -253,7 +253,7 @@ class PointGrid:
         self.prims.sort_pairs(rk, rv, n, key_bits=max(1, (ntiles + 1).bit_length()))
         out = Chunks(0, self.buf("ch_key", 4 * n), self.buf("ch_start", 4 * n), self.buf("ch_len", 4 * n))
         self.chunks = self.prims.segments(rk, n, spec.chunk if balance else None, out=out)
-        self.ctx.queue.finish()
+        clio.finish(self.ctx.queue)
         sentinel = sum((-(-k // spec.chunk) if balance else 1) if k else 0
                        for k in (self.outside_count, self.inactive_count))
         self.stats.chunks = self.chunks.count - sentinel  # chunks of outside / inactive rays are not traced here

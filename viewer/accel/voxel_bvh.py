@@ -18,7 +18,7 @@ import time
 
 import numpy as np
 
-from viewer.accel.voxel_leaves import LEAF_SIZE, VoxelStructure, finish, segment_ids
+from viewer.accel.voxel_leaves import LEAF_SIZE, VoxelStructure, build_start, finish, segment_ids
 from viewer.accel.voxelize import Voxels
 
 NODE_DTYPE = np.dtype([("lo", "<u2", (2, 3)), ("hi", "<u2", (2, 3)), ("child", "<i4", (2,)), ("axis", "<u4")])
@@ -28,19 +28,14 @@ assert NODE_DTYPE.itemsize == 36
 def build_voxel_bvh(vox: Voxels) -> VoxelStructure:
     """Level by level, vectorised over the nodes of a level."""
     t0 = time.perf_counter()
-    c = vox.coords.astype(np.int32)
+    b = build_start(vox.coords)
+    c = b.coords.astype(np.int32)
     n = len(c)
     perm = np.arange(n)
     lo0 = c.min(axis=0) if n else np.zeros(3, np.int32)
     hi0 = c.max(axis=0) + 1 if n else np.zeros(3, np.int32)
     levels: list[np.ndarray] = []
-    leaf_s: list = []
-    leaf_c: list = []
-    leaf_d: list = []
-    if 0 < n <= LEAF_SIZE:
-        leaf_s, leaf_c, leaf_d = [0], [n], [0]
-    start = np.array([0] if n > LEAF_SIZE else [], np.int64)
-    count = np.array([n] if n > LEAF_SIZE else [], np.int64)
+    leaf_s, leaf_c, leaf_d, start, count = b.leaf_starts, b.leaf_counts, b.leaf_depths, b.start, b.count
     lo = lo0[None].astype(np.int64)
     hi = hi0[None].astype(np.int64)
     next_interior, depth = 1, 0

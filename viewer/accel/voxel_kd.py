@@ -21,7 +21,7 @@ import time
 
 import numpy as np
 
-from viewer.accel.voxel_leaves import EMPTY, LEAF_SIZE, VoxelStructure, finish, segment_ids
+from viewer.accel.voxel_leaves import EMPTY, LEAF_SIZE, VoxelStructure, build_start, finish, segment_ids
 from viewer.accel.voxelize import Voxels
 
 NODE_DTYPE = np.dtype([("child", "<i4", (2,)), ("plane", "<u2"), ("axis", "<u2")])
@@ -60,19 +60,14 @@ def sah_costs(coords: np.ndarray, seg: np.ndarray, lo: np.ndarray, hi: np.ndarra
 def build_voxel_kd(vox: Voxels) -> VoxelStructure:
     """Level by level, vectorised over the nodes of a level."""
     t0 = time.perf_counter()
-    c = vox.coords.astype(np.int64)
+    b = build_start(vox.coords)
+    c = b.coords
     n = len(c)
     perm = np.arange(n)
     lo0 = c.min(axis=0) if n else np.zeros(3, np.int64)
     hi0 = c.max(axis=0) + 1 if n else np.zeros(3, np.int64)
     levels: list[np.ndarray] = []
-    leaf_s: list = []
-    leaf_c: list = []
-    leaf_d: list = []
-    if 0 < n <= LEAF_SIZE:
-        leaf_s, leaf_c, leaf_d = [0], [n], [0]
-    start = np.array([0] if n > LEAF_SIZE else [], np.int64)
-    count = np.array([n] if n > LEAF_SIZE else [], np.int64)
+    leaf_s, leaf_c, leaf_d, start, count = b.leaf_starts, b.leaf_counts, b.leaf_depths, b.start, b.count
     lo, hi = lo0[None], hi0[None]
     next_interior, depth = 1, 0
     while len(start):

@@ -83,6 +83,32 @@ def finish(kind: str, resolution: int, nodes: np.ndarray, coords: np.ndarray, tr
     return s
 
 
+@dataclass
+class BuildStart:
+    """Where every level-by-level voxel build begins: the voxels' int64 coordinates, the leaf lists
+    (a structure of at most LEAF_SIZE voxels is one leaf at depth 0) and the first level's node
+    segments (start, count) over the voxel list (empty when the root is a leaf)."""
+
+    coords: np.ndarray  # int64 (N, 3)
+    leaf_starts: list = field(default_factory=list)
+    leaf_counts: list = field(default_factory=list)
+    leaf_depths: list = field(default_factory=list)
+    start: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    count: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+
+
+def build_start(coords: np.ndarray) -> BuildStart:
+    c = np.asarray(coords).astype(np.int64)
+    n = len(c)
+    b = BuildStart(c)
+    if 0 < n <= LEAF_SIZE:
+        b.leaf_starts, b.leaf_counts, b.leaf_depths = [0], [n], [0]
+    elif n > LEAF_SIZE:
+        b.start = np.array([0], np.int64)
+        b.count = np.array([n], np.int64)
+    return b
+
+
 def segment_ids(starts: np.ndarray, counts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(segment id, element position) of every element of the segments [start, start + count)."""
     counts = np.asarray(counts, np.int64)

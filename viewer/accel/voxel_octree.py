@@ -25,7 +25,7 @@ import time
 
 import numpy as np
 
-from viewer.accel.voxel_leaves import LEAF_SIZE, VoxelStructure, finish
+from viewer.accel.voxel_leaves import LEAF_SIZE, VoxelStructure, build_start, finish
 from viewer.accel.voxelize import Voxels
 
 NODE_DTYPE = np.dtype([("origin", "<u2", (3,)), ("level", "<u2"), ("first_child", "<i4"), ("first_leaf", "<i4"),
@@ -51,17 +51,11 @@ def build_voxel_octree(vox: Voxels) -> VoxelStructure:
     code = morton3(vox.coords, D)
     order = np.argsort(code, kind="stable")
     code = code[order]
-    c = vox.coords[order].astype(np.int64)
+    b = build_start(vox.coords[order])
+    c = b.coords
     tri = vox.tri[order]
-    n = len(c)
     levels: list[np.ndarray] = []
-    leaf_s: list = []
-    leaf_c: list = []
-    leaf_d: list = []
-    if 0 < n <= LEAF_SIZE:
-        leaf_s, leaf_c, leaf_d = [0], [n], [0]
-    start = np.array([0] if n > LEAF_SIZE else [], np.int64)
-    count = np.array([n] if n > LEAF_SIZE else [], np.int64)
+    leaf_s, leaf_c, leaf_d, start, count = b.leaf_starts, b.leaf_counts, b.leaf_depths, b.start, b.count
     origin = np.zeros((len(start), 3), np.int64)
     next_interior, level = 1, 0
     while len(start):

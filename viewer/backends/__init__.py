@@ -23,6 +23,11 @@ BACKENDS: dict[str, str] = {
     "voxelwalk": "viewer.backends.voxelwalk:VoxelwalkBackend",
     "voxels": "viewer.backends.voxels:VoxelsBackend",
 }
+#: the backend used when none is named: the first line (needs only OpenGL, exact)
+DEFAULT_BACKEND: str = next(iter(BACKENDS))
+#: older command-line spellings of a backend's parameters, kept working: option -> backend
+#: (read without importing the backend, so the CLI starts fast)
+PARAM_OPTIONS: dict[str, str] = {"--chcrt": "chcrt"}
 
 
 def backend_names() -> list[str]:

@@ -14,6 +14,7 @@ from dataclasses import dataclass, field
 import moderngl
 import numpy as np
 
+from viewer.gl import io as glio
 from viewer.gl.bindings import BIND_WORK
 from viewer.gl.programs import ProgramCache
 from viewer.profiler import GpuProfiler
@@ -76,14 +77,14 @@ class WorkCounters:
 
     def begin(self) -> None:
         if self.buf is not None:
-            self.buf.write(bytes(4 * 16))
+            glio.write(self.buf, bytes(4 * 16))
             self.buf.bind_to_storage_buffer(BIND_WORK)
 
     def end(self) -> dict[str, float]:
         if self.buf is None:
             return {}
         self.buf.ctx.memory_barrier(moderngl.BUFFER_UPDATE_BARRIER_BIT)  # SSBO writes -> glGetBufferSubData
-        v = np.frombuffer(self.buf.read(), np.uint32)
+        v = np.frombuffer(glio.read(self.buf), np.uint32)
         return {f"work_{name}": float(v[i]) for i, name in enumerate(WORK_SLOTS)}
 
     def release(self) -> None:

@@ -15,6 +15,7 @@ import numpy as np
 
 from viewer.backends.base import BackendContext, WorkCounters
 from viewer.errors import RtwalkError
+from viewer.gl import io as glio
 from viewer.gl.bindings import BIND_IMG_RESUME, BIND_RESUME_COUNTERS, BIND_RESUME_STATE
 from viewer.gl.programs import FullscreenQuad
 from viewer.gl.textures import int_texture
@@ -59,6 +60,7 @@ class ResumableTraversal:
         self.program["rayDir"] = 1
         self.quad = FullscreenQuad(bc.ctx)
         self.counters = bc.ctx.buffer(reserve=8)
+        self._zeros = bc.ctx.buffer(bytes(8))  # copied on the GPU: zeroing the counters sends nothing per pass
         self.capacity = 1024  # resume slots; grows to the number of unfinished rays
         self.state = bc.ctx.buffer(reserve=self.capacity * self._stride_bytes)
         self.slots: moderngl.Texture | None = None  # per pixel resume slot, -1 between traces
@@ -72,18 +74,18 @@ class ResumableTraversal:
             if self.slots is not None:
                 self.slots.release()
             self.slots = int_texture(self.bc.ctx, size)
-            self.slots.write(np.full(size[0] * size[1], -1, np.int32).tobytes())
+            glio.write(self.slots, np.full(size[0] * size[1], -1, np.int32).tobytes())
         return self.slots
 
     def bind_flags(self, size: tuple[int, int]) -> None:
         """Bind the slot image and zeroed counters (before the draws that may flag pixels)."""
         self._slot_image(size).bind_to_image(BIND_IMG_RESUME, read=True, write=True)
-        self.counters.write(np.zeros(2, np.int32).tobytes())
+        self.bc.ctx.copy_buffer(self.counters, self._zeros)
         self.counters.bind_to_storage_buffer(BIND_RESUME_COUNTERS)
 
     def _read_counters(self) -> tuple[int, int]:
         self.bc.ctx.memory_barrier(moderngl.BUFFER_UPDATE_BARRIER_BIT)
-        unfinished, allocated = np.frombuffer(self.counters.read(), np.int32)
+        unfinished, allocated = np.frombuffer(glio.read(self.counters), np.int32)
         return int(unfinished), int(allocated)
 
     def _grow(self, needed: int) -> None:
@@ -106,7 +108,7 @@ class ResumableTraversal:
             if resumed == 0:
                 return {"draws": 0, "resumed_rays": 0, "continuation_draws": 0}
             ctx.memory_barrier(barriers)
-            self.counters.write(np.zeros(2, np.int32).tobytes())
+            ctx.copy_buffer(self.counters, self._zeros)
         # a ray visits each node at most once: a draw that does not finish it advances it by max_visits
         # (or gives it a slot, once), so this many draws always suffice
         max_draws = 4 + 2 * (len(self.bc.bvh.node_left) // self.max_visits + 1)
@@ -133,14 +135,14 @@ class ResumableTraversal:
             if allocated > self.capacity:  # some rays got no slot (-2): make room, they restart
                 used = self.capacity
                 self._grow(allocated)
-                self.counters.write(np.array([0, used], np.int32).tobytes())
+                glio.write(self.counters, np.array([0, used], np.int32).tobytes())
             else:
-                self.counters.write(np.array([0, allocated], np.int32).tobytes())
+                glio.write(self.counters, np.array([0, allocated], np.int32).tobytes())
         return {"draws": draws, "resumed_rays": resumed,
                 "continuation_draws": draws - (0 if resume_only else 1)}
 
     def release(self) -> None:
-        for obj in (self.counters, self.state, self.slots):
+        for obj in (self.counters, self._zeros, self.state, self.slots):
             if obj is not None:
                 obj.release()
         self.slots = None

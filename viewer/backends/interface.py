@@ -22,7 +22,8 @@ if TYPE_CHECKING:  # the GL-side types live in viewer.rays / viewer.backends.bas
     from viewer.backends.base import BackendContext, TraceResult
     from viewer.rays import HitBuffer, RayBatch
 
-__all__ = ["PassInfo", "OverlaySpec", "BackendInfo", "Backend", "parse_params", "params_text", "resolve_params"]
+__all__ = ["PassInfo", "OverlaySpec", "BackendInfo", "Backend", "ParamDoc", "param", "param_docs", "parse_params",
+           "params_text", "resolve_params"]
 
 OVERLAY_KINDS = ("heat", "ids")
 DEVICES = ("gl", "cl", "cpu")
@@ -80,6 +81,51 @@ def _parse_bool(v: str) -> bool:
 
 _KINDS = {"float": float, "int": int, "str": str, "bool": _parse_bool,
           float: float, int: int, str: str, bool: _parse_bool}
+
+
+def param(default: Any, help: str) -> Any:
+    """A parameter field with its documentation: `stack: int = param(8, "short-stack entries")`.
+    The help is what `rtwalk info --backend NAME` prints and the window's panel shows as a tooltip."""
+    return dataclasses.field(default=default, metadata={"help": help})
+
+
+@dataclass(frozen=True)
+class ParamDoc:
+    """One documented backend parameter."""
+
+    name: str
+    type: str
+    default: Any
+    help: str
+
+
+def param_docs(cls: type | None) -> list[ParamDoc]:
+    """Name, type, default and help of every field of a parameter dataclass ([] for None)."""
+    if cls is None:
+        return []
+    out = []
+    for f in dataclasses.fields(cls):
+        kind = f.type if isinstance(f.type, str) else getattr(f.type, "__name__", str(f.type))
+        out.append(ParamDoc(f.name, kind, f.default, str(f.metadata.get("help", ""))))
+    return out
+
+
+def describe(info: BackendInfo) -> str:
+    """A backend's self-description for `rtwalk info --backend NAME`: what it is, its device,
+    whether it is exact, and every parameter with its default and help."""
+    lines = [f"backend {info.name}: {info.description}",
+             f"  device: {info.device}; {'exact' if info.exact else 'approximate by design'}",
+             f"  parameters (--backend-params key=value,... or {info.env_var}):"]
+    docs = param_docs(info.params)
+    if not docs:
+        lines[-1] = "  parameters: none"
+    for d in docs:
+        lines.append(f"    {d.name}={d.default} ({d.type}): {d.help}")
+    if info.overlays:
+        lines.append("  views: " + ", ".join(f"{o.name} ({o.label or o.kind})" for o in info.overlays))
+    if info.counters:
+        lines.append("  counters: " + ", ".join(info.counters))
+    return "\n".join(lines)
 
 
 def parse_params(cls: type | None, text: str | None, source: str) -> Any:

@@ -13,14 +13,18 @@ from __future__ import annotations
 import argparse
 import time
 
+from viewer.bench.common import add_count_option
 from viewer.cli_args import check_output_dir, parse_choices, parse_sizes
 
 BUILDERS = ("sah", "device")
 
 
+HELP = "BVH build time, throughput and SAH cost per builder on the city scene"
+
+
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--sizes", default="1000000,5000000",
-                   help="comma list of city triangle counts to build (each as --scene-size accepts)")
+    add_count_option(p, "--triangles", "1000000,5000000",
+                     "city triangle counts to build (each as --scene-size accepts)")
     p.add_argument("--builders", default="sah",
                    help="comma list of builders: sah (CPU binned SAH), device (OpenCL Morton + PLOC), or all")
     p.add_argument("--seed", type=int, default=1, help="seed of the procedural city")
@@ -43,7 +47,7 @@ def run(args) -> int:
     from viewer.bench.report import write_json
     from viewer.procedural import make_city
 
-    sizes = parse_sizes(args.sizes)
+    sizes = parse_sizes(args.triangles, flag="--triangles")
     builders = parse_choices(args.builders, BUILDERS, "--builders")
     out = check_output_dir(args.out, "--out")
     if "device" in builders:

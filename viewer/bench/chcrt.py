@@ -869,6 +869,9 @@ def run_studies(o: StudyOptions, out=None) -> list[dict]:
     return done
 
 
+HELP = "CHC+RT paper tables: glsl vs chcrt, aggressive mode, phases, overhead"
+
+
 def add_arguments(p: argparse.ArgumentParser) -> None:
     """The `bench-chcrt` subcommand's options (kept here so cli.py only registers it)."""
     p.description = (__doc__ or "").split("\n\n")[0].replace("`", "")
@@ -916,7 +919,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--quiet", action="store_true", help="no progress output")
 
 
-def cmd_bench_chcrt(args: argparse.Namespace) -> int:
+def run(args: argparse.Namespace) -> int:
     o = options_from_args(args)
     if args.dry_run:
         est = estimate(o)

@@ -20,34 +20,26 @@ from pathlib import Path
 
 import numpy as np
 
+from viewer.bench.common import add_count_option, parse_counts
 from viewer.bench.harness import load_average
 from viewer.bench.plots import bars, figure, finish
 from viewer.bench.report import md_table, write_study
+from viewer.cl import io as clio
 from viewer.cli_args import check_output_dir
 from viewer.errors import RtwalkError
 
+HELP = "OpenCL sort/scan/compact throughput next to NumPy"
 OPS = ("sort", "scan", "compact")
 NUMPY_NAMES = {"sort": 'np.argsort(kind="stable") + gather', "scan": "np.cumsum", "compact": "a[mask]"}
 
 
 def parse_sizes(text: str) -> list[int]:
     """"1M,10M" -> [1000000, 10000000] (suffixes K, M; plain integers too)."""
-    out = []
-    for part in text.split(","):
-        p = part.strip().upper()
-        mult = {"K": 1_000, "M": 1_000_000}.get(p[-1:], 1)
-        try:
-            v = int(float(p[:-1] if mult > 1 else p) * mult)
-        except ValueError:
-            raise RtwalkError(f"bad --sizes '{text}': expected sizes like 1M,10M") from None
-        if not 1 <= v <= 200_000_000:
-            raise RtwalkError(f"bad --sizes '{text}': each size must be in 1..200M")
-        out.append(v)
-    return out
+    return parse_counts(text, "--elements")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--sizes", default="1M,10M", help="element counts, e.g. 1M,10M (default %(default)s)")
+    add_count_option(parser, "--elements", "1M,10M", "element counts")
     parser.add_argument("--reps", type=int, default=7, help="interleaved repetitions per measurement (default 7)")
     parser.add_argument("--ops", default=",".join(OPS), help="subset of sort,scan,compact (default all)")
     parser.add_argument("--out", default="out/bench-cl", help="output folder (default %(default)s)")
@@ -71,7 +63,7 @@ class _Case:
         self.prepare: Callable[[], None] = ctx.finish
 
         def dev(a: np.ndarray):
-            return cl.Buffer(ctx.context, mf.READ_WRITE | mf.COPY_HOST_PTR, hostbuf=a)
+            return clio.upload(ctx, a, mf.READ_WRITE)
 
         if op == "sort":
             keys = rng.integers(0, 2**32, n, dtype=np.uint32)
@@ -83,8 +75,8 @@ class _Case:
                 return keys[order], order
 
             def prep():
-                cl.enqueue_copy(q, kb, k0)
-                cl.enqueue_copy(q, vb, v0)
+                clio.copy(q, kb, k0)
+                clio.copy(q, vb, v0)
                 ctx.finish()
 
             def cl_sort():
@@ -115,8 +107,8 @@ class _Case:
     @staticmethod
     def _check_sort(ctx, keys, kb, vb) -> None:
         k, v = np.empty_like(keys), np.empty_like(keys)
-        ctx.cl.enqueue_copy(ctx.queue, k, kb)
-        ctx.cl.enqueue_copy(ctx.queue, v, vb)
+        clio.copy(ctx.queue, k, kb)
+        clio.copy(ctx.queue, v, vb)
         eq = k[1:] == k[:-1]
         if not ((k[1:] >= k[:-1]).all() and (keys[v] == k).all() and (v[1:][eq] > v[:-1][eq]).all()):
             raise RuntimeError("OpenCL sort result is wrong")
@@ -124,14 +116,14 @@ class _Case:
     @staticmethod
     def _check_scan(ctx, a, ob) -> None:
         o = np.empty_like(a)
-        ctx.cl.enqueue_copy(ctx.queue, o, ob)
+        clio.copy(ctx.queue, o, ob)
         if not (o[0] == 0 and (o[1:] == np.cumsum(a, dtype=np.uint32)[:-1]).all()):
             raise RuntimeError("OpenCL scan result is wrong")
 
     @staticmethod
     def _check_compact(ctx, a, mask, ob, m) -> None:
         o = np.empty(m, np.uint32)
-        ctx.cl.enqueue_copy(ctx.queue, o, ob)
+        clio.copy(ctx.queue, o, ob)
         if m != mask.sum() or not (o == a[mask]).all():
             raise RuntimeError("OpenCL compaction result is wrong")
 
@@ -204,7 +196,7 @@ def plot(report: dict, path: Path) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    sizes = parse_sizes(args.sizes)
+    sizes = parse_sizes(args.elements)
     ops = [o.strip() for o in args.ops.split(",") if o.strip()]
     bad = [o for o in ops if o not in OPS]
     if bad or not ops:

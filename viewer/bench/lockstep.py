@@ -31,6 +31,8 @@ from pathlib import Path
 
 import numpy as np
 
+from viewer.cl import io as clio
+
 KINDS = {1: "interior", 2: "leaf", 3: "pop", 4: "restart"}
 
 
@@ -76,7 +78,7 @@ class DeviceLockstep:
 
         self.ctx = ctx
         self.max_width = max_width
-        self.kernel = ctx.cl.Kernel(build(Path(__file__).with_name("lockstep.cl"), {"MAXW": max_width}, ctx),
+        self.kernel = clio.kernel(build(Path(__file__).with_name("lockstep.cl"), {"MAXW": max_width}, ctx),
                                     "lockstep")
         self.host = np.empty(3 * max(max_rays, 1), np.int32)  # width 1 at most
         self.out = ctx.cl.Buffer(ctx.context, ctx.cl.mem_flags.WRITE_ONLY, self.host.nbytes)
@@ -90,8 +92,8 @@ class DeviceLockstep:
         self.kernel(self.ctx.queue, (g,), None, seq_b, rec_b, np.int32(n), np.int32(seq_len), np.int32(width),
                     self.out)
         res = self.host[: 3 * g]
-        self.ctx.cl.enqueue_copy(self.ctx.queue, res, self.out)
-        self.ctx.queue.finish()
+        clio.copy(self.ctx.queue, res, self.out)
+        clio.finish(self.ctx.queue)
         r = res.reshape(g, 3).astype(np.int64).sum(axis=0)
         return summary(r[0], r[1], r[2], g, width)
 

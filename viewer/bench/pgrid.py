@@ -32,32 +32,34 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import statistics
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
+from viewer.bench.common import log, study_scene
 from viewer.bench.pgrid_studies import study_anim, study_pairs, study_rearrange
 from viewer.bench.plots import figure, finish
 from viewer.bench.report import fmt, md_table, size_text, write_study
 from viewer.cli_args import parse_choices, parse_image_sizes
 from viewer.errors import RtwalkError
+from viewer.paths import SHARED_SCENES
 
 STUDIES = ("table41", "lightdist", "model", "pairs", "rearrange", "anim")
-REPO = Path(__file__).resolve().parents[2]
-SCENES_DIR = REPO.parent / "shared" / "scenes"
 SCENES = {"sibenik": ("sibenik/sibenik.obj", "sibenik-walk.json"),
           "conference": ("conference/conference.ply", "conference-walk.json"),
           "buddha": ("buddha/buddha_100k.obj", None), "city": ("city", "city-near.json")}
 BACKENDS = ("pgrid", "ugrid", "clbvh", "glsl")
 
 
+HELP = "perspective-grid thesis studies: pgrid vs uniform grid vs BVH"
+
+
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--study", default="all", help=f"comma list of {', '.join(STUDIES)} or 'all' (default all)")
     p.add_argument("--scenes", default="sibenik,conference,buddha,city",
                    help="comma list of " + ", ".join(SCENES) + " (default all four)")
-    p.add_argument("--scene-dir", default=str(SCENES_DIR), help="folder of the scene files")
+    p.add_argument("--scene-dir", default=str(SHARED_SCENES), help="folder of the scene files")
     p.add_argument("--city-size", type=int, default=100_000, help="triangles of the built-in city (default 100000)")
     p.add_argument("--sizes", default="640x360", help="comma list of WxH (thesis: 1024x1024,640x360)")
     p.add_argument("--frames", type=int, default=3, help="timed frames per configuration (default 3)")
@@ -73,32 +75,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--quiet", action="store_true", help="no progress output")
 
 
-def _sizes(text: str, option: str = "--sizes") -> list[tuple[int, int]]:
-    return parse_image_sizes(text, option)
-
-
-def _log(args, msg: str) -> None:
-    if not args.quiet:
-        print(f"bench-pgrid: {msg}", file=sys.stderr, flush=True)
-
-
 def load_scene(args, name: str):
     """(prepared scene, camera) for a study scene; the camera is a recording's middle frame."""
-    from viewer.recording import load_recording
-    from viewer.session import prepare_scene
-
-    rel, rec = SCENES[name]
-    if rel == "city":
-        prep = prepare_scene("city", scene_size=args.city_size, quiet=True)
-    else:
-        path = Path(args.scene_dir) / rel
-        if not path.exists():
-            raise RtwalkError(f"scene file {path} not found (--scene-dir)")
-        prep = prepare_scene(str(path), quiet=True)
-    cam = prep.scene.default_camera
-    if rec and (REPO / "recordings" / rec).exists():
-        r = load_recording(REPO / "recordings" / rec)
-        cam = r.camera_for_frame(r.frame_count() // 2)
+    prep, cam = study_scene(SCENES[name], args.scene_dir, builtin_size=args.city_size)
     if not prep.scene.point_lights:
         raise RtwalkError(f"scene {name} has no point light")
     return prep, cam
@@ -190,8 +169,8 @@ def study_table41(args, ctx) -> dict:
     for name in parse_choices(args.scenes, SCENES, "--scenes"):
         prep, cam = load_scene(args, name)
         builds = bvh_build_ms(prep)
-        for size in _sizes(args.sizes):
-            _log(args, f"table41 {name} {size_text(size)}")
+        for size in parse_image_sizes(args.sizes, "--sizes"):
+            log(args, f"bench-pgrid: table41 {name} {size_text(size)}")
             extra = args.pgrid_params
             configs = {"pgrid": ("pgrid", ",".join(x for x in ("rebuild=false", extra) if x)),
                        "ugrid": ("ugrid", "rebuild=true"), "clbvh": ("clbvh", ""), "glsl": ("glsl", "")}
@@ -281,7 +260,7 @@ def study_lightdist(args, ctx) -> dict:
     axis = l0.position.astype(np.float64) - centre
     axis = axis / np.linalg.norm(axis) if np.linalg.norm(axis) > 0 else np.array([0.0, 1.0, 0.0])
     dists = [float(x) for x in args.distances.split(",") if x.strip()]
-    size = _sizes(args.sizes)[0]
+    size = parse_image_sizes(args.sizes, "--sizes")[0]
     extra = args.pgrid_params
     # a fixed angular resolution (as the thesis's grid): tiles fill up as the light recedes, which is
     # what chunking is for (automatic tiling would keep ~tile_rays rays per tile at every distance)
@@ -293,7 +272,7 @@ def study_lightdist(args, ctx) -> dict:
     for k in dists:
         pos = (centre + axis * k * diag).astype(np.float32)
         scene = dataclasses.replace(prep.scene, point_lights=[PointLight(pos, l0.intensity)])
-        _log(args, f"lightdist {name} distance {k} diagonals")
+        log(args, f"bench-pgrid: lightdist {name} distance {k} diagonals")
         res = run_interleaved(ctx, prep, cam, size, "shadows", configs, args.frames, scene=scene)
         row = {"distance": k, "light": pos.tolist(), "configs": {}}
         for label, v in res.items():
@@ -392,14 +371,14 @@ def run(args) -> int:
     wanted = parse_choices(args.study, STUDIES, "--study")
     studies = [s for s in STUDIES if s in wanted]  # table41 before the studies built on it
     parse_choices(args.scenes, SCENES, "--scenes")
-    _sizes(args.sizes)
+    parse_image_sizes(args.sizes, "--sizes")
     if not 0 < args.light_tile_deg <= 90:
         raise RtwalkError("--light-tile-deg must be in (0, 90]")
     if args.frames < 1 or args.anim_frames < 1:
         raise RtwalkError("--frames and --anim-frames must be >= 1")
     if ("model" in studies or "rearrange" in studies) and "table41" not in studies:
         raise RtwalkError("--study: model and rearrange need table41 in the same run")
-    args.anim_size = _sizes(args.anim_size, "--anim-size")[0]
+    args.anim_size = parse_image_sizes(args.anim_size, "--anim-size")[0]
     cl_context()
     ctx = shared_context()
     Path(args.out).mkdir(parents=True, exist_ok=True)
@@ -413,12 +392,13 @@ def run(args) -> int:
         elif s == "model":
             print(study_model(args, t41)["markdown"], flush=True)
         elif s == "pairs":
-            _log(args, "pairs")
-            print(study_pairs(args, load_scene, _sizes(args.sizes), parse_choices(args.scenes, SCENES,
-                                                                                  "--scenes"))["markdown"], flush=True)
+            log(args, "bench-pgrid: pairs")
+            sizes = parse_image_sizes(args.sizes, "--sizes")
+            scenes = parse_choices(args.scenes, SCENES, "--scenes")
+            print(study_pairs(args, load_scene, sizes, scenes)["markdown"], flush=True)
         elif s == "rearrange":
             print(study_rearrange(args, t41)["markdown"], flush=True)
         elif s == "anim":
-            _log(args, "anim")
+            log(args, "bench-pgrid: anim")
             print(study_anim(args)["markdown"], flush=True)
     return 0

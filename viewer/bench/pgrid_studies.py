@@ -45,15 +45,15 @@ def study_pairs(args, load_scene, sizes, scenes) -> dict:
     from viewer.accel.camgrid import CameraGrid, CameraGridSpec, closed_outward, fit_camera
     from viewer.accel.grid import GridSpec, UniformGrid, scene_box, triangles_f4
     from viewer.cl import cl_context
+    from viewer.cl import io as clio
 
     ctx = cl_context()
-    cl = ctx.cl
     rows = []
     for name in scenes:
         prep, cam = load_scene(args, name)
         tris = np.asarray(prep.scene.triangles, np.float32).reshape(-1, 3, 3)
         f4 = triangles_f4(tris)
-        buf = cl.Buffer(ctx.context, cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR, hostbuf=f4)
+        buf = clio.upload(ctx, f4)
         ug, cg = UniformGrid(ctx), CameraGrid(ctx)
         try:
             box = scene_box(tris)

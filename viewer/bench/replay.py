@@ -8,6 +8,7 @@ capture on (same rays: the pipeline is deterministic), so error checks never pol
 
 from __future__ import annotations
 
+import argparse
 import sys
 import time
 from dataclasses import dataclass, field
@@ -22,6 +23,7 @@ from viewer.bench.harness import frame_numbers, frame_row, image_error
 from viewer.bench.plots import figure, finish, stacked
 from viewer.bench.report import write_json
 from viewer.effects import EffectSettings
+from viewer.errors import RtwalkError
 from viewer.reference import REFERENCE_BACKEND
 from viewer.renderer import Renderer
 from viewer.session import PreparedScene
@@ -193,6 +195,9 @@ def summarize(records: list[dict]) -> dict:
          "wall_ms_mean": _mean(r["wall_ms"] for r in records),
          "rays_mean": {p: _mean(r["rays"].get(p, 0) for r in records) for p in rays},
          "mrays_per_s_mean": {p: _mean(r["mrays_per_s"].get(p) for r in records) for p in rays + ["all"]}}
+    steady = [r["io"] for r in records[1:] if "io" in r] or [r["io"] for r in records if "io" in r]
+    if steady:  # steady frames: the first one also uploads, builds and compiles
+        s["io_mean"] = {k: _mean(io[k] for io in steady) for k in steady[0]}
     checked = [r for r in records if "error" in r]
     if checked:
         s["error"] = {}
@@ -229,6 +234,14 @@ def print_summary(report: dict, out=None) -> None:
         te = f"{e['p999_rel_t_error']:.1e}" if e else "-"
         tx = f"{e['t_beyond_tolerance']}" if e else "-"
         print(f"  {p:<14}{n:>12.0f}{s['mrays_per_s_mean'][p]:>10.2f}{ha:>11}{ia:>10}{te:>13}{tx:>9}", file=out)
+    io = s.get("io_mean")
+    if io:
+        px = max(w * h, 1)
+        print(f"  I/O per steady frame: to device {io['bytes_to_device'] / 1e6:.2f} MB "
+              f"({io['bytes_to_device'] / px:.1f} B/px), to host {io['bytes_to_host'] / 1e6:.2f} MB "
+              f"({io['bytes_to_host'] / px:.1f} B/px), host syncs {io['host_syncs']:.0f}, CL launches "
+              f"{io['cl_launches']:.0f}, GL draws {io['gl_draws']:.0f}, GL queries {io['gl_queries']:.0f}, "
+              f"host time {io['python_ms']:.1f} ms", file=out)
     if "image_mae_mean" in s:
         print(f"  image vs Embree: mean abs error {s['image_mae_mean']:.3f}/255, min PSNR "
               f"{s['image_psnr_min_db']:.1f} dB", file=out)
@@ -252,3 +265,93 @@ def plot_phases(report: dict, path: Path) -> None:
     stacked(ax, frames, layers, ylabel="ms", xlabel="frame", area=True,
             title=f"{report['scene_name']} - {report['backend']} - {w}x{h}: GPU time per phase")
     finish(fig, path)
+
+
+HELP = "replay a recording and report speed and error"
+FRAMES = 48  # default: frames spread over the path, a few minutes on 2 cores
+REFERENCE_EVERY = 6  # and an Embree check of every 6th of them
+
+
+def add_arguments(b: argparse.ArgumentParser) -> None:
+    from viewer.cli_args import add_effect_args, add_progressive_args, add_scene_args
+
+    add_scene_args(b)
+    add_effect_args(b, "shadows,ao:4,reflections")
+    b.add_argument("--recording", default=None, help="camera path (default: recordings/city-near.json for city)")
+    b.add_argument("--fps", type=float, default=None, help="sample the path at this rate (default: recording's)")
+    b.add_argument("--frames", type=int, default=FRAMES,
+                   help=f"at most this many frames (>= 1, default {FRAMES}), spread over the path "
+                        "(consecutive with --first-frame); a number >= the path's frame count replays all")
+    b.add_argument("--first-frame", type=int, default=None,
+                   help="replay consecutive frames from this one (temporal coherence as in a walkthrough)")
+    b.add_argument("--reference", choices=[REFERENCE_BACKEND, "none"], default=REFERENCE_BACKEND,
+                   help=f"check frames against {REFERENCE_BACKEND} (error columns), or none")
+    b.add_argument("--reference-every", type=int, default=REFERENCE_EVERY,
+                   help=f"check every Nth replayed frame against the reference (default {REFERENCE_EVERY}; "
+                        "1 = all, slow)")
+    b.add_argument("--save-frames", default=None, help="folder for PNG frames")
+    b.add_argument("--frame-every", type=int, default=10,
+                   help="with --save-frames: save every Nth replayed frame (and its overlay views)")
+    b.add_argument("--out", default="out/bench", help="folder for the JSON report and plot")
+    b.add_argument("--name", default=None, help="report file stem")
+    add_progressive_args(b, "replay in the window's progressive mode (one pass per effect while moving, "
+                            "refine after the path stops) and report its frame times, time to convergence and "
+                            "the converged image's error against the full-quality frame (no Embree check, "
+                            "no saved frames)")
+
+
+def run(args: argparse.Namespace) -> int:
+    from viewer.cli_args import (
+        DEFAULT_RECORDING,
+        backend_options_from,
+        check_at_least,
+        check_device,
+        check_output_dir,
+        check_positive,
+        parse_size,
+        scene_from_args,
+        settings_from,
+    )
+    from viewer.gl.context import create_headless_context
+    from viewer.recording import load_recording
+
+    rec_path = args.recording or (DEFAULT_RECORDING if args.scene in (None, "city") else None)
+    if rec_path is None:
+        raise RtwalkError("bench needs --recording FILE for this scene (see recordings/)")
+    # everything that needs no scene first: backend, parameters, numbers, output folders, devices
+    backend_options = backend_options_from(args)
+    size = parse_size(args.size)
+    settings = settings_from(args)
+    check_positive(args.fps, "--fps")
+    check_positive(getattr(args, "frame_target_ms", None), "--frame-target-ms")
+    check_at_least(args.frames, 1, "--frames")
+    check_at_least(args.reference_every, 1, "--reference-every")
+    check_at_least(args.frame_every, 1, "--frame-every")
+    check_at_least(getattr(args, "first_frame", None), 0, "--first-frame")
+    out_dir = check_output_dir(args.out, "--out")
+    frames_dir = check_output_dir(args.save_frames, "--save-frames")
+    rec = load_recording(rec_path)
+    opts = BenchOptions(backend=args.backend, size=size, fps=args.fps,
+                        max_frames=args.frames, reference=args.reference, reference_every=args.reference_every,
+                        frames_dir=frames_dir, frame_every=args.frame_every, backend_options=backend_options,
+                        first_frame=getattr(args, "first_frame", None))
+    frame_numbers(rec, opts.fps, opts.max_frames, opts.first_frame)  # --first-frame within the path
+    check_device(args.backend)
+    ctx = create_headless_context()  # no EGL: fail before loading
+    prepared = scene_from_args(args, rec)
+    stem = args.name or f"{prepared.scene.name}-{Path(rec_path).stem}-{args.backend}-{opts.size[0]}x{opts.size[1]}"
+    if getattr(args, "progressive", False):
+        import json
+
+        from viewer.progressive import replay_progressive
+
+        result = replay_progressive(prepared, rec, settings, opts, ctx, args.frame_target_ms, quiet=args.quiet)
+        path = out_dir / f"{stem}-progressive.json"
+        path.write_text(json.dumps(result, indent=1))
+        print(f"report: {path}")
+        return 0
+    report = run_bench(prepared, rec, settings, opts, ctx, quiet=args.quiet)
+    print_summary(report)
+    json_path, png_path = write_report(report, out_dir, stem)
+    print(f"report: {json_path}\nplot:   {png_path}")
+    return 0

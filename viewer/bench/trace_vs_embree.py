@@ -18,13 +18,13 @@ and size) and bench_trace.png (Mrays/s per ray type, log scale).
 from __future__ import annotations
 
 import statistics
-import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
+from viewer.bench.common import log
 from viewer.bench.harness import is_trace_phase
 from viewer.bench.plots import bars, figure, finish
 from viewer.bench.report import md_table, write_study
@@ -34,6 +34,9 @@ from viewer.paths import resolve_recording
 
 DEFAULT_RECORDINGS = "city-near.json,sponza-walk.json,conference-walk.json"
 DEFAULT_EFFECTS = "primary,shadows,soft,ao,diffuse,reflections"
+
+
+HELP = "Mrays/s per ray type of backends and raw Embree on the same captured rays"
 
 
 def add_arguments(p) -> None:
@@ -69,11 +72,6 @@ class Pass:
     @property
     def rays(self) -> int:
         return int(self.active.sum())
-
-
-def _log(args, msg: str) -> None:
-    if not args.quiet:
-        print(msg, file=sys.stderr, flush=True)
 
 
 def capture_passes(renderer, camera, tracer=None) -> list[Pass]:
@@ -203,7 +201,7 @@ def _markdown(report: dict) -> str:
     lines = [f"# Trace speed on the same rays ({report['device_cl']})", "",
              f"Command: `{report['command']}`", "",
              "Mrays/s = active rays / median time over interleaved rounds; a backend's time is its tracing phases "
-             "(trace:* and those it declares; clbvh: the kernel; '+transfer' adds the mapped ray/hit copies), "
+             "(trace:* and those it declares; '+transfer' adds a staged backend's ray/hit copies), "
              "Embree's the wall time of embreex run() on N Python threads. Ratios are per-round, then the median.", ""]
     backends = report["backends"]
     emb = [f"embree_{t}t" for t in report["embree_threads"]]
@@ -211,12 +209,13 @@ def _markdown(report: dict) -> str:
     for group in report["groups"]:
         lines += [f"## {group['recording']} frame {group['frame']} at {group['size'][0]}x{group['size'][1]}"
                   f" ({group['triangles']:,} triangles)", ""]
-        cols = [*backends, *[f"{b}+transfer" for b in backends if b != "glsl"], *emb]
-        ratio_cols = []
-        if "clbvh" in backends and "glsl" in backends:
-            ratio_cols.append(("clbvh/glsl", "clbvh vs glsl"))
-        if "clbvh" in backends and emb:
-            ratio_cols += [(f"clbvh/{e}", f"clbvh vs {e.replace('_', ' ')}") for e in emb]
+        transfer = [f"{b}+transfer" for b in backends
+                    if any(f"{b}+transfer" in row["ms"] for row in group["rows"])]
+        cols = [*backends, *transfer, *emb]
+        # every other backend against the first one named (the baseline), every backend against Embree
+        base = backends[0] if backends else None
+        ratio_cols = [(f"{b}/{base}", f"{b} vs {base}") for b in backends[1:]]
+        ratio_cols += [(f"{b}/{e}", f"{b} vs {e.replace('_', ' ')}") for b in backends for e in emb]
         head = ["ray type", "rays", *[f"{c} Mrays/s" for c in cols], *[r[1] for r in ratio_cols], "hit/miss vs Embree"]
         rows = [[row["ray_type"], f"{row['rays']:,}",
                  *[f"{row['mrays_s'].get(c, nan):.3g}" for c in cols],
@@ -244,7 +243,7 @@ def _plot(report: dict, path: Path) -> None:
 
 
 def run(args) -> int:
-    from viewer.backends import backend_info, backend_names
+    from viewer.backends import DEFAULT_BACKEND, backend_info, backend_names
     from viewer.effects import parse_effects
     from viewer.gl.context import shared_context
     from viewer.recording import load_recording, resolve_scene_spec
@@ -273,7 +272,7 @@ def run(args) -> int:
     out = check_output_dir(args.out, "--out")
     ctx = shared_context()
     device_cl = ""
-    if any(b == "clbvh" for b in backends):
+    if any(backend_info(b).device == "cl" for b in backends):
         from viewer.cl import cl_context
 
         device_cl = cl_context().name
@@ -283,14 +282,15 @@ def run(args) -> int:
     for rec_path in recs:
         rec = load_recording(rec_path)
         rs = resolve_scene_spec(rec, rec_path)
-        _log(args, f"bench-trace: loading {rec_path.name}")
+        log(args, f"bench-trace: loading {rec_path.name}")
         prep = prepare_scene(rs.spec, scene_size=rs.size, seed=rs.seed if rs.seed is not None else 1, quiet=True)
         reference = None
         tracer = EmbreeTracer(prep.scene.triangles) if threads or not args.no_check else None
         count = rec.frame_count()
         frames = sorted({int(count * (k + 1) / (args.frames + 1)) for k in range(args.frames)})
         for size in sizes:
-            renderer = Renderer(ctx, prep.scene, prep.bvh, size, backends[0] if backends else "glsl", settings)
+            renderer = Renderer(ctx, prep.scene, prep.bvh, size, backends[0] if backends else DEFAULT_BACKEND,
+                                settings)
             try:
                 for fr in frames:
                     passes = capture_passes(renderer, rec.camera_for_frame(fr), tracer if threads else None)
@@ -300,14 +300,14 @@ def run(args) -> int:
                     warm = list({p.any_hit: p for p in passes}.values())
                     for b in backends:
                         time_backend(renderer, b, warm)
-                    _log(args, f"bench-trace: {rec_path.stem} frame {fr} {size[0]}x{size[1]}: "
+                    log(args, f"bench-trace: {rec_path.stem} frame {fr} {size[0]}x{size[1]}: "
                                f"{sum(p.rays for p in passes):,} rays in {len(passes)} passes")
                     rows = study_frame(renderer, tracer, reference, passes, backends, threads, args.rounds,
                                        not args.no_check)
                     report["groups"].append({"recording": rec_path.stem, "frame": fr, "size": list(size),
                                              "triangles": prep.scene.triangle_count, "rows": rows})
                     for row in rows:
-                        _log(args, f"  {row['ray_type']:12s} " + "  ".join(
+                        log(args, f"  {row['ray_type']:12s} " + "  ".join(
                             f"{k} {v:.3g}" for k, v in row["mrays_s"].items()) + " Mrays/s")
             finally:
                 renderer.release()

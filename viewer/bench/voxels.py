@@ -38,22 +38,21 @@ from pathlib import Path
 
 import numpy as np
 
+from viewer.bench.common import log
+from viewer.cl import io as clio
 from viewer.errors import RtwalkError
+from viewer.paths import SHARED_SCENES
 
 SCENES = {"conference": "conference/conference.ply", "buddha": "buddha/buddha_100k.obj",
           "dragon": "dragon/dragon_100k.ply", "sponza": "sponza-dabrovic/sponza.obj",
           "sibenik": "sibenik/sibenik.obj", "bunny": "bunny/bun_zipper.ply"}
 RECORDINGS = {"conference": "conference-walk.json", "sponza": "sponza-walk.json", "sibenik": "sibenik-walk.json"}
-SHARED = Path(__file__).resolve().parents[2].parent / "shared" / "scenes"
 WIDTHS = (8, 32, 64)
 RAY_TYPES = ("primary", "shadows", "soft", "ao")
 CHUNK = 1 << 15  # rays per recording launch (a multiple of every W)
 
 
-def add_parser(sub) -> None:
-    """`rtwalk bench-voxels` on the CLI's subparsers."""
-    add_arguments(sub.add_parser("bench-voxels", help="voxel BVH / KD-tree / octree: coherency, time, stack 4 vs 8, "
-                                                      "speed against error"))
+HELP = "voxel BVH / KD-tree / octree: coherency, time, stack 4 vs 8, speed against error"
 
 
 def add_arguments(p) -> None:
@@ -80,11 +79,6 @@ def add_arguments(p) -> None:
     p.add_argument("--quiet", action="store_true", help="no progress output")
 
 
-def _log(args, msg: str) -> None:
-    if not args.quiet:
-        print(msg, file=sys.stderr, flush=True)
-
-
 def _ints(text: str, what: str) -> list[int]:
     try:
         return [int(x) for x in text.split(",") if x.strip()]
@@ -96,7 +90,7 @@ def _scene_spec(name: str) -> tuple[str, str, str | None]:
     if name in ("room", "city"):  # built-in scenes
         return name, name, None
     if name in SCENES:
-        path = SHARED / SCENES[name]
+        path = SHARED_SCENES / SCENES[name]
         if not path.exists():
             raise RtwalkError(f"--scenes: {path} not present")
         return name, str(path), RECORDINGS.get(name)
@@ -111,15 +105,11 @@ class _Rays:
     among the passes of its ray type (capture order)."""
 
     def __init__(self, ctx, p, ref_hits, index: int):
-        cl = ctx.cl
-        mf = cl.mem_flags
         a = p.active
         self.label, self.any_hit, self.n, self.index = p.label, p.any_hit, int(a.sum()), index
         self.sample, self.light = p.sample, p.light
-        self.o_b = cl.Buffer(ctx.context, mf.READ_ONLY | mf.COPY_HOST_PTR,
-                             hostbuf=np.ascontiguousarray(p.origin4.reshape(-1, 4)[a]))
-        self.d_b = cl.Buffer(ctx.context, mf.READ_ONLY | mf.COPY_HOST_PTR,
-                             hostbuf=np.ascontiguousarray(p.dir4.reshape(-1, 4)[a]))
+        self.o_b = clio.upload(ctx, np.ascontiguousarray(p.origin4.reshape(-1, 4)[a]))
+        self.d_b = clio.upload(ctx, np.ascontiguousarray(p.dir4.reshape(-1, 4)[a]))
         self.ref_hit = ref_hits[1][a] >= 0
         self.ref_t = None if self.any_hit else ref_hits[0][a].astype(np.float32)
 
@@ -163,7 +153,7 @@ def pick_passes(m: int, k: int) -> list[int]:
 def _time_kernel(ctx, tracer, rays: _Rays, outs, bias: float) -> float:
     t0 = time.perf_counter()
     tracer.enqueue(rays.o_b, rays.d_b, *outs, rays.n, rays.any_hit, bias)
-    ctx.queue.finish()
+    clio.finish(ctx.queue)
     return (time.perf_counter() - t0) * 1e3
 
 
@@ -186,7 +176,7 @@ class _Recorder:
     def __call__(self, tracer, rays: _Rays, bias: float) -> dict:
         from viewer.bench.lockstep import combine
 
-        cl, q = self.ctx.cl, self.ctx.queue
+        _cl, q = self.ctx.cl, self.ctx.queue
         parts: dict = {w: [] for w in WIDTHS}
         counts = np.zeros(4, np.int64)
         cut = 0
@@ -198,8 +188,8 @@ class _Recorder:
             for w in WIDTHS:
                 parts[w].append(self.lock(self.seq, self.rec, m, self.seq_len, w))
             rec = self.rec_host[:m]
-            cl.enqueue_copy(q, rec, self.rec)
-            q.finish()
+            clio.copy(q, rec, self.rec)
+            clio.finish(q)
             o.release()
             d.release()
             counts += rec.sum(axis=0, dtype=np.int64)
@@ -238,9 +228,9 @@ class _ErrorSums:
     def add(self, ctx, outs, rays: _Rays, scale: float) -> None:
         t = np.empty(rays.n, np.float32)
         tri = np.empty(rays.n, np.int32)
-        ctx.cl.enqueue_copy(ctx.queue, t, outs[0])
-        ctx.cl.enqueue_copy(ctx.queue, tri, outs[1])
-        ctx.queue.finish()
+        clio.copy(ctx.queue, t, outs[0])
+        clio.copy(ctx.queue, tri, outs[1])
+        clio.finish(ctx.queue)
         hv, hr = tri >= 0, rays.ref_hit
         self.n += rays.n
         self.disagree += int(np.count_nonzero(hv != hr))
@@ -301,20 +291,20 @@ def study_scene(args, ctx_gl, name: str, spec: str, recording: str | None, size,
     prepared = {}  # before the frame's rays are held: the builds' working memory does not add to them
     for res in resolutions:
         vox = voxels_for(scene.triangles, res, quiet=args.quiet)
-        _log(args, f"{clock} {name} {res}^3: {vox.count:,} voxels in {vox.stats['seconds']:.1f} s")
+        log(args, f"{clock} {name} {res}^3: {vox.count:,} voxels in {vox.stats['seconds']:.1f} s")
         built = {}
         for kind in structures:
             built[kind] = build_structure(kind, vox)
-            _log(args, f"{clock} {name} {res}^3 {kind}: built in {built[kind].stats['build_seconds']:.1f} s, "
+            log(args, f"{clock} {name} {res}^3 {kind}: built in {built[kind].stats['build_seconds']:.1f} s, "
                        f"{built[kind].stats['memory_bytes'] / 2**20:.0f} MiB")
         prepared[res] = (dict(vox.stats), vox.grid, built)
         del vox, built
-    _log(args, f"{clock} {name}: {scene.triangle_count:,} triangles; capturing one frame at {size[0]}x{size[1]}")
+    log(args, f"{clock} {name}: {scene.triangle_count:,} triangles; capturing one frame at {size[0]}x{size[1]}")
     r = Renderer(ctx_gl, scene, prep.bvh, size, args.reference, settings)
     ctx = cl_context()
     try:
         passes = _capture(r, camera)
-        _log(args, f"{clock} {name}: {len(passes)} passes captured; timing {args.reference}")
+        log(args, f"{clock} {name}: {len(passes)} passes captured; timing {args.reference}")
         ref_ms: dict = {}
         hits = None
         for rd in range(args.rounds):
@@ -325,7 +315,7 @@ def study_scene(args, ctx_gl, name: str, spec: str, recording: str | None, size,
                 per[p.label] = per.get(p.label, 0.0) + ms
             for lb, ms in per.items():
                 ref_ms.setdefault(lb, []).append(ms)
-            _log(args, f"{clock} {name}: {args.reference} round {rd + 1}/{args.rounds}: "
+            log(args, f"{clock} {name}: {args.reference} round {rd + 1}/{args.rounds}: "
                        + ", ".join(f"{lb} {ms:.0f} ms" for lb, ms in per.items()))
         ref_image = None
         if not args.no_image:
@@ -349,7 +339,7 @@ def study_scene(args, ctx_gl, name: str, spec: str, recording: str | None, size,
                  "rays": {lb: sum(x.n for x in rays if x.label == lb) for lb in labels}, "passes": n_pass,
                  "recorded_passes": picked, "reference": args.reference, "reference_ms": ref_time,
                  "resolutions": []}
-    _log(args, f"{clock} {name}: rays {out['rays']}; coherency recorded on passes "
+    log(args, f"{clock} {name}: rays {out['rays']}; coherency recorded on passes "
                + ", ".join(f"{lb} {len(picked[lb])}/{n_pass[lb]}" for lb in labels))
     maxn = max(x.n for x in rays)
     cl = ctx.cl
@@ -378,7 +368,7 @@ def study_scene(args, ctx_gl, name: str, spec: str, recording: str | None, size,
                             errs[x.label].add(ctx, outs, x, g.scale)
                     if time.perf_counter() - last > 30 or i == len(rays) - 1:
                         last = time.perf_counter()
-                        _log(args, f"{clock} {res}^3 timing round {rd + 1}/{args.rounds}: pass {i + 1}/{len(rays)} "
+                        log(args, f"{clock} {res}^3 timing round {rd + 1}/{args.rounds}: pass {i + 1}/{len(rays)} "
                                    f"({x.label})")
                 for c in configs:
                     for lb in labels:
@@ -397,14 +387,14 @@ def study_scene(args, ctx_gl, name: str, spec: str, recording: str | None, size,
                                                        n_pass[lb])
                 rec_tr.release()
                 rrow["structures"][kind]["stacks"][k] = krow
-                _log(args, f"{clock} {res}^3 {kind} stack {k}: " + ", ".join(
+                log(args, f"{clock} {res}^3 {kind} stack {k}: " + ", ".join(
                     f"{lb} {krow['ms'][lb]:.0f} ms U64 {100 * krow['record'][lb]['lanes'][64]['utilisation']:.0f}%"
                     for lb in labels))
             del built
             if ref_image is not None:
                 rrow["image_mae"] = _image_error(ctx_gl, prep, size, settings, camera, res, structures[0],
                                                  max(stacks), ref_image, args.bias)
-                _log(args, f"{clock} {res}^3: image error {rrow['image_mae']:.2f} (full render, {structures[0]})")
+                log(args, f"{clock} {res}^3: image error {rrow['image_mae']:.2f} (full render, {structures[0]})")
             out["resolutions"].append(rrow)
             if checkpoint is not None:
                 checkpoint(out)
@@ -635,7 +625,7 @@ def _voxelize_only(args, specs, resolutions: list[int], structures: list[str]) -
                              f"{st['node_bytes']} | {st['leaves']:,} x {st['leaf_bytes']} | "
                              f"{st['memory_bytes'] / 2**20:.1f} | {st['mean_leaf_depth']:.2f} | "
                              f"{st['var_leaf_depth']:.2f} | {st['build_seconds']:.2f} |")
-                _log(args, lines[-1])
+                log(args, lines[-1])
                 _write_voxelize(args, rows + [row], lines)  # a late failure (out of memory) keeps these
             rows.append(row)
             del vox

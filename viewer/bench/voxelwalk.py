@@ -25,7 +25,6 @@ from __future__ import annotations
 
 import argparse
 import statistics
-import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -33,24 +32,28 @@ from typing import Any
 
 import numpy as np
 
+from viewer.bench.common import log, study_scene
 from viewer.bench.plots import figure, finish
 from viewer.bench.report import fmt, md_table, size_text, write_study
-from viewer.cli_args import parse_choices
+from viewer.cl import io as clio
+from viewer.cli_args import parse_choices, parse_image_sizes
 from viewer.errors import RtwalkError
+from viewer.paths import SHARED_SCENES
 
 STUDIES = ("table51", "iterations", "resolution")
-REPO = Path(__file__).resolve().parents[2]
-SCENES_DIR = REPO.parent / "shared" / "scenes"
 SCENES = {"conference": ("conference/conference.ply", "conference-walk.json"),
           "buddha": ("buddha/buddha_100k.obj", None),
           "sibenik": ("sibenik/sibenik.obj", "sibenik-walk.json"),
           "room": ("room", None)}
 
 
+HELP = "voxel-walk thesis studies: IVW vs EC on reflection rays, with clbvh on the same rays"
+
+
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--study", default="all", help=f"comma list of {', '.join(STUDIES)} or 'all' (default all)")
     p.add_argument("--scenes", default="conference,buddha,sibenik", help="comma list of " + ", ".join(SCENES))
-    p.add_argument("--scene-dir", default=str(SCENES_DIR), help="folder of the scene files")
+    p.add_argument("--scene-dir", default=str(SHARED_SCENES), help="folder of the scene files")
     p.add_argument("--sizes", default="640x360", help="comma list of WxH (thesis: 1024x1024,640x360)")
     p.add_argument("--repeats", type=int, default=3, help="timed runs per configuration (median; default 3)")
     p.add_argument("--chunk", type=int, default=64, help="EC rays per work-group (default 64)")
@@ -58,23 +61,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="resolution study: cells on the longest axis (the auto choice is added)")
     p.add_argument("--out", default="out/bench-voxelwalk", help="output folder")
     p.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
-
-
-def _log(args, msg: str) -> None:
-    if not args.quiet:
-        print(f"bench-voxelwalk: {msg}", file=sys.stderr, flush=True)
-
-
-def _sizes(text: str) -> list[tuple[int, int]]:
-    out = []
-    for item in [s.strip() for s in text.split(",") if s.strip()]:
-        w, sep, h = item.lower().partition("x")
-        if not sep or not w.isdigit() or not h.isdigit() or int(w) < 1 or int(h) < 1:
-            raise RtwalkError(f"--sizes: expected WxH like 640x360 (got '{item}')")
-        out.append((int(w), int(h)))
-    if not out:
-        raise RtwalkError("--sizes: no size given")
-    return out
 
 
 def _ints(text: str, what: str) -> list[int]:
@@ -104,21 +90,7 @@ class RaySet:
 
 def load_scene(args, name: str):
     """(prepared scene, camera): the shipped presets give the mirrors."""
-    from viewer.recording import load_recording
-    from viewer.session import prepare_scene
-
-    rel, rec = SCENES[name]
-    if rel == "room":
-        prep = prepare_scene("room", quiet=True)
-    else:
-        path = Path(args.scene_dir) / rel
-        if not path.exists():
-            raise RtwalkError(f"scene file {path} not found (--scene-dir)")
-        prep = prepare_scene(str(path), quiet=True)
-    cam = prep.scene.default_camera
-    if rec and (REPO / "recordings" / rec).exists():
-        r = load_recording(REPO / "recordings" / rec)
-        cam = r.camera_for_frame(r.frame_count() // 2)
+    prep, cam = study_scene(SCENES[name], args.scene_dir)
     if not any(m.mirror for m in prep.scene.materials):
         raise RtwalkError(f"scene {name} has no mirror material (its preset did not apply)")
     return prep, cam
@@ -153,12 +125,10 @@ class Device:
         from viewer.cl import cl_context
 
         self.ctx = cl_context()
-        cl = self.ctx.cl
         tris = np.asarray(prep.scene.triangles, np.float32).reshape(-1, 3, 3)
         self.n_tris = len(tris)
         self.box = scene_box(tris)
-        self.tris = cl.Buffer(self.ctx.context, cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR,
-                              hostbuf=triangles_f4(tris))
+        self.tris = clio.upload(self.ctx, triangles_f4(tris))
         self.grid = UniformGrid(self.ctx)
         self.walker = VoxelWalker(self.ctx, self.grid, chunk=chunk, window=1)
         self.walker_all = VoxelWalker(self.ctx, self.grid, chunk=chunk, window=0)  # every pair at once
@@ -180,7 +150,7 @@ class Device:
         one iteration) or 'clbvh': (PassStats or None, wall ms)."""
         st, h = rs.stage, rs.hits
         q = self.ctx.queue
-        q.finish()
+        clio.finish(q)
         t0 = time.perf_counter()
         ps = None
         if what == "ivw":
@@ -191,7 +161,7 @@ class Device:
             ps = self.walker_all.trace_ec(self.tris, st.origin, st.dir, h.t, h.tri, st.n, stats=stats, size=rs.size)
         else:
             self.clbvh.enqueue(st.origin, st.dir, h.t, h.tri, st.n, False)
-        q.finish()
+        clio.finish(q)
         return ps, (time.perf_counter() - t0) * 1e3
 
     def release(self) -> None:
@@ -269,11 +239,11 @@ def collect(args, ctx_gl) -> list[dict]:
         try:
             gs, build_ms = dev.build(0, repeats=args.repeats)
             bvh_ms = bvh_build_ms(prep)["clbvh"]
-            for size in _sizes(args.sizes):
-                _log(args, f"{name} {size_text(size)}: capturing reflection rays")
+            for size in parse_image_sizes(args.sizes, "--sizes"):
+                log(args, f"bench-voxelwalk: {name} {size_text(size)}: capturing reflection rays")
                 rs = _rays_on_device(ctx_gl, dev, prep, cam, name, size)
                 try:
-                    _log(args, f"{name} {size_text(size)}: {rs.active} reflection rays, grid {gs.res}")
+                    log(args, f"bench-voxelwalk: {name} {size_text(size)}: {rs.active} reflection rays, grid {gs.res}")
                     row = {"scene": name, "triangles": prep.scene.triangle_count, "size": list(size),
                            "reflection_rays": rs.active, "grid_res": list(gs.res), "grid_pairs": gs.pairs,
                            "build_ms": build_ms, "clbvh_bvh_build_ms": bvh_ms,
@@ -403,7 +373,7 @@ def _plot_iterations(rows: list[dict], path: Path) -> None:
 
 
 def study_resolution(args, ctx_gl) -> dict:
-    size = _sizes(args.sizes)[0]
+    size = parse_image_sizes(args.sizes, "--sizes")[0]
     out = []
     for name in parse_choices(args.scenes, SCENES, "--scenes"):
         prep, cam = load_scene(args, name)
@@ -416,7 +386,7 @@ def study_resolution(args, ctx_gl) -> dict:
             fixed = [r for r in _ints(args.resolutions, "--resolutions") if r != max(auto.res)]
             for res in sorted([*fixed, 0], key=lambda r: r or max(auto.res)):  # 0: the automatic choice
                 gs, build_ms = dev.build(res, repeats=args.repeats)
-                _log(args, f"resolution {name} {res or 'auto'}: grid {gs.res}")
+                log(args, f"bench-voxelwalk: resolution {name} {res or 'auto'}: grid {gs.res}")
                 t = _timed(dev, rs, args.repeats)
                 pts.append({"resolution": res or max(gs.res), "grid_res": list(gs.res), "grid_pairs": gs.pairs,
                             "build_ms": build_ms, "auto": res == 0,
@@ -470,7 +440,7 @@ def run(args) -> int:
 
     studies = parse_choices(args.study, STUDIES, "--study")
     parse_choices(args.scenes, SCENES, "--scenes")
-    _sizes(args.sizes)
+    parse_image_sizes(args.sizes, "--sizes")
     _ints(args.resolutions, "--resolutions")
     if args.repeats < 1:
         raise RtwalkError("--repeats must be >= 1")

@@ -6,6 +6,8 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING, Any
 
+from viewer.cl.limits import new_buffer
+
 if TYPE_CHECKING:  # no OpenCL import at module load: the accel modules import this
     from viewer.cl.context import ClContext
 
@@ -13,8 +15,9 @@ if TYPE_CHECKING:  # no OpenCL import at module load: the accel modules import t
 class BufferPool:
     """READ_WRITE buffers by name, grown on demand (never shrunk), all freed by release()."""
 
-    def __init__(self, ctx: ClContext):
+    def __init__(self, ctx: ClContext, what: str = "buffer pool"):
         self.ctx = ctx
+        self.what = what  # names the structure in a limits error ("uniform grid blocks")
         self.bufs: dict[str, Any] = {}
 
     def get(self, name: str, nbytes: int) -> Any:
@@ -22,9 +25,15 @@ class BufferPool:
         if buf is None or buf.size < nbytes:
             if buf is not None:
                 buf.release()
-            buf = self.ctx.cl.Buffer(self.ctx.context, self.ctx.cl.mem_flags.READ_WRITE, max(16, int(nbytes)))
+                del self.bufs[name]
+            buf = new_buffer(self.ctx, self.ctx.cl.mem_flags.READ_WRITE, int(nbytes), f"{self.what} {name}")
             self.bufs[name] = buf
         return buf
+
+    @property
+    def nbytes(self) -> int:
+        """Bytes held by the pool's buffers."""
+        return int(sum(b.size for b in self.bufs.values()))
 
     def __getitem__(self, name: str) -> Any:
         return self.bufs[name]

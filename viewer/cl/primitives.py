@@ -27,7 +27,9 @@ from typing import Any
 
 import numpy as np
 
+from viewer.cl import io as clio
 from viewer.cl.context import ClContext, cl_context
+from viewer.cl.limits import new_buffer
 from viewer.cl.programs import build
 
 WG = 16  # work-items per work-group (fixed; PoCL compiles one variant per local size)
@@ -56,7 +58,7 @@ class Chunks:
 def _read(ctx: ClContext, buf: Any, n: int, dtype: Any) -> np.ndarray:
     out = np.empty(n, dtype)
     if n:
-        ctx.cl.enqueue_copy(ctx.queue, out, buf)
+        clio.copy(ctx.queue, out, buf)
     return out
 
 
@@ -65,11 +67,10 @@ class Primitives:
 
     def __init__(self, ctx: ClContext | None = None, max_blocks: int | None = None):
         self.ctx = ctx or cl_context()
-        cl = self.ctx.cl
         self.max_blocks = max_blocks or min(1024, max(WG, 64 * self.ctx.compute_units))
         self.max_blocks = -(-self.max_blocks // WG) * WG
         prog = build("primitives.cl", {"WG": WG}, self.ctx)
-        self._k = {name: cl.Kernel(prog, name) for name in (
+        self._k = {name: clio.kernel(prog, name) for name in (
             "scan_small", "block_sum", "block_scan", "radix_hist", "radix_scatter", "seg_last_start",
             "seg_count_chunks", "seg_write_chunks", "seg_chunk_counts")}
         self._variants: dict[tuple, dict[str, Any]] = {}
@@ -87,7 +88,8 @@ class Primitives:
         if buf is None or buf.size < nbytes:
             if buf is not None:
                 buf.release()
-            buf = self.ctx.cl.Buffer(self.ctx.context, self.ctx.cl.mem_flags.READ_WRITE, max(4, int(nbytes)))
+                del self._scratch[name]
+            buf = new_buffer(self.ctx, self.ctx.cl.mem_flags.READ_WRITE, int(nbytes), f"primitives scratch {name}")
             self._scratch[name] = buf
         return buf
 
@@ -96,7 +98,7 @@ class Primitives:
 
     def _read_u32(self, buf: Any) -> int:
         out = np.empty(1, np.uint32)
-        self.ctx.cl.enqueue_copy(self.ctx.queue, out, buf)
+        clio.copy(self.ctx.queue, out, buf)
         return int(out[0])
 
     def _scan_small(self, buf: Any, m: int, total: Any) -> None:
@@ -105,7 +107,7 @@ class Primitives:
     def _variant(self, key: tuple, defines: dict, prelude: str, names: tuple[str, ...]) -> dict[str, Any]:
         if key not in self._variants:
             prog = build("primitives.cl", {"WG": WG, **defines}, self.ctx, prelude=prelude)
-            self._variants[key] = {n: self.ctx.cl.Kernel(prog, n) for n in names}
+            self._variants[key] = {n: clio.kernel(prog, n) for n in names}
         return self._variants[key]
 
     # -- exclusive scan ---------------------------------------------------------------------
@@ -136,7 +138,7 @@ class Primitives:
         self._run(ks["reduce_block"], nb, src, np.uint32(n), np.uint32(nb), ident, part)
         ks["reduce_final"](self.ctx.queue, (WG,), (WG,), part, np.uint32(nb), ident, out)
         res = np.empty(1, dt)
-        self.ctx.cl.enqueue_copy(self.ctx.queue, res, out)
+        clio.copy(self.ctx.queue, res, out)
         return res[0]
 
     # -- radix sort -------------------------------------------------------------------------
@@ -169,8 +171,8 @@ class Primitives:
             src, dst = dst, src
         if src[0] is not keys:
             q = self.ctx.queue
-            self.ctx.cl.enqueue_copy(q, keys, src[0], byte_count=4 * n)
-            self.ctx.cl.enqueue_copy(q, vals, src[1], byte_count=4 * n)
+            clio.copy(q, keys, src[0], byte_count=4 * n)
+            clio.copy(q, vals, src[1], byte_count=4 * n)
 
     # -- compaction -------------------------------------------------------------------------
     def compact(self, n: int, flags: Any = None, src: Any = None, dst: Any = None, dst_index: Any = None,
@@ -208,7 +210,7 @@ class Primitives:
             raise ValueError("chunk length r must be >= 1")
         cl, ctx = self.ctx.cl, self.ctx
         if out is None:
-            mk = [cl.Buffer(ctx.context, cl.mem_flags.READ_WRITE, max(4, 4 * n)) for _ in range(3)]
+            mk = [new_buffer(ctx, cl.mem_flags.READ_WRITE, 4 * n, "segments") for _ in range(3)]
             out = Chunks(0, *mk)
         if n == 0:
             out.count = 0
@@ -264,7 +266,7 @@ def _upload(p: Primitives, a: np.ndarray) -> Any:
     a = np.ascontiguousarray(a)
     if a.nbytes == 0:
         return cl.Buffer(p.ctx.context, cl.mem_flags.READ_WRITE, 16)
-    return cl.Buffer(p.ctx.context, cl.mem_flags.READ_WRITE | cl.mem_flags.COPY_HOST_PTR, hostbuf=a)
+    return clio.upload(p.ctx, a, cl.mem_flags.READ_WRITE)
 
 
 def sort_pairs_np(keys: np.ndarray, vals: np.ndarray, key_bits: int | None = None,
@@ -301,7 +303,7 @@ def compact_np(values: np.ndarray, flags: np.ndarray | None = None, predicate: s
     m = p.compact(n, flags=fb, src=vb, dst=db, dst_index=ib, predicate=predicate, itemsize=itemsize)
     out = np.empty((m, *values.shape[1:]), values.dtype)
     if m:
-        cl.enqueue_copy(p.ctx.queue, out, db)
+        clio.copy(p.ctx.queue, out, db)
     return out, _read(p.ctx, ib, m, np.uint32)
 
 

@@ -5,6 +5,12 @@ viewer/cl/kernels (so backend folders can include the shared headers). Each file
 once per program (include guards are not needed). The cache key is (expanded source, defines,
 device), so an edited .cl file or another define builds a new program; PoCL keeps the binaries
 across runs in POCL_CACHE_DIR (see context.ensure_pocl_cache_dir).
+
+One numeric contract on every device (docs/numerics.md): every program's source starts with
+NUMERIC_PRELUDE (`#pragma OPENCL FP_CONTRACT OFF`: no a*b+c fused into an FMA, which NVIDIA does
+by default and PoCL does not), and is built with `-cl-fp32-correctly-rounded-divide-sqrt` where the
+device offers it (OpenCL allows 2.5 ulp for float `/` otherwise) and never with a fast-math option,
+so a kernel gives the bits of IEEE float32 evaluated operation by operation, as NumPy does.
 """
 
 from __future__ import annotations
@@ -20,6 +26,12 @@ from viewer.errors import RtwalkError
 
 KERNELS_DIR = Path(__file__).resolve().parent / "kernels"
 _INCLUDE = re.compile(r'^[ \t]*#[ \t]*include[ \t]*"([^"]+)"[ \t]*$', re.M)
+
+NUMERIC_PRELUDE = "#pragma OPENCL FP_CONTRACT OFF\n"
+CORRECT_DIV_SQRT = "-cl-fp32-correctly-rounded-divide-sqrt"
+# options that would let the compiler trade the contract for speed: never passed (tests check)
+FORBIDDEN_OPTIONS = ("-cl-mad-enable", "-cl-fast-relaxed-math", "-cl-unsafe-math-optimizations",
+                     "-cl-finite-math-only", "-cl-no-signed-zeros", "-cl-denorms-are-zero")
 
 _cache: dict[tuple[str, tuple[tuple[str, str], ...], int], Any] = {}
 
@@ -68,18 +80,32 @@ def _options(defines: Mapping[str, Any] | None) -> tuple[tuple[str, str], ...]:
     return tuple(sorted((str(k), "" if v is None else str(v)) for k, v in (defines or {}).items()))
 
 
+def program_source(path: str | Path, search: Iterable[Path] = (), prelude: str = "") -> str:
+    """The exact text `build` compiles: NUMERIC_PRELUDE first (so no kernel can forget it), then
+    `prelude`, then the expanded file."""
+    return NUMERIC_PRELUDE + (prelude + "\n" if prelude else "") + expand(path, search)
+
+
+def build_options(defines: Mapping[str, Any] | None, ctx: ClContext) -> list[str]:
+    """-D options for `defines` plus the numeric-contract options for ctx's device."""
+    args = [f"-D{k}={v}" if v != "" else f"-D{k}" for k, v in _options(defines)]
+    if int(ctx.device.single_fp_config) & int(ctx.cl.device_fp_config.CORRECTLY_ROUNDED_DIVIDE_SQRT):
+        args.append(CORRECT_DIV_SQRT)
+    return args
+
+
 def build(path: str | Path, defines: Mapping[str, Any] | None = None, ctx: ClContext | None = None,
           search: Iterable[Path] = (), prelude: str = "") -> Any:
     """The built pyopencl.Program for a kernel file and defines ({"WG": 64, "FAST": None} ->
     -D WG=64 -D FAST), cached per (expanded source, defines, device). `prelude` is source text put
     before the file (for macros with spaces or parentheses, e.g. a predicate)."""
     ctx = ctx or cl_context()
-    src = (prelude + "\n" if prelude else "") + expand(path, search)
+    src = program_source(path, search, prelude)
     opts = _options(defines)
     key = (src, opts, int(ctx.device.int_ptr))
     prog = _cache.get(key)
     if prog is None:
-        args = [f"-D{k}={v}" if v != "" else f"-D{k}" for k, v in opts]
+        args = build_options(defines, ctx)
         try:
             prog = ctx.cl.Program(ctx.context, src).build(options=args)
         except ctx.cl.Error as e:  # RuntimeError (build log) or LogicError (bad options, invalid program)

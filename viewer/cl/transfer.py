@@ -20,7 +20,9 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from viewer.cl import io as clio
 from viewer.cl.context import ClContext, cl_context
+from viewer.cl.limits import check_alloc
 
 if TYPE_CHECKING:
     from viewer.rays import HitBuffer, RayBatch
@@ -31,6 +33,7 @@ def host_buffer(ctx: ClContext, nbytes: int, access: str = "rw") -> Any:
     the kernels' point of view."""
     mf = ctx.cl.mem_flags
     flags = {"r": mf.READ_ONLY, "w": mf.WRITE_ONLY, "rw": mf.READ_WRITE}[access]
+    check_alloc(int(nbytes), "ray/hit stage", ctx)
     return ctx.cl.Buffer(ctx.context, flags | mf.ALLOC_HOST_PTR, max(int(nbytes), 4))
 
 
@@ -43,7 +46,7 @@ class _Mapped:
         self.flags = mflags.WRITE_INVALIDATE_REGION if write else mflags.READ
 
     def __enter__(self) -> np.ndarray:
-        self.array, _ = self.ctx.cl.enqueue_map_buffer(self.ctx.queue, self.buf, self.flags, 0, self.shape,
+        self.array, _ = clio.map_buffer(self.ctx.queue, self.buf, self.flags, 0, self.shape,
                                                        self.dtype, is_blocking=True)
         return self.array
 
@@ -85,6 +88,15 @@ class RayStage:
         with mapped(self.ctx, self.origin, (self.n, 4), np.float32) as o, \
                 mapped(self.ctx, self.dir, (self.n, 4), np.float32) as d:
             return int(np.count_nonzero(d[:, 3] > o[:, 3]))
+
+    def read(self):
+        """The rays as viewer.rays.RayArrays (verification: capture mode, tests)."""
+        from viewer.rays import RayArrays
+
+        with mapped(self.ctx, self.origin, (self.n, 4), np.float32) as o, \
+                mapped(self.ctx, self.dir, (self.n, 4), np.float32) as d:
+            return RayArrays(np.ascontiguousarray(o[:, :3]), np.ascontiguousarray(d[:, :3]),
+                             np.ascontiguousarray(o[:, 3]), np.ascontiguousarray(d[:, 3]))
 
     def release(self) -> None:
         self.origin.release()
@@ -136,6 +148,30 @@ class PassStages:
             n = size[0] * size[1]
             self.parts = (RayStage(size, self.ctx), HitStage(size, self.ctx),
                           *(host_buffer(self.ctx, 4 * n, self.extra_access) for _ in range(self.extras)))
+            self.size = size
+        return self.parts
+
+    def release(self) -> None:
+        for part in self.parts:
+            part.release()
+        self.parts, self.size = (), None
+
+
+class PixelBuffers:
+    """`count` int32 per-pixel CL buffers at a ray-batch size, made again only when the size changes:
+    a backend's extra per-ray outputs in a device-resident frame (no RayStage / HitStage needed:
+    the frame owns those)."""
+
+    def __init__(self, ctx: ClContext, count: int, access: str = "w"):
+        self.ctx, self.count, self.access = ctx, int(count), access
+        self.size: tuple[int, int] | None = None
+        self.parts: tuple = ()
+
+    def get(self, size: tuple[int, int]) -> tuple:
+        size = (int(size[0]), int(size[1]))
+        if size != self.size:
+            self.release()
+            self.parts = tuple(host_buffer(self.ctx, 4 * size[0] * size[1], self.access) for _ in range(self.count))
             self.size = size
         return self.parts
 

@@ -1,6 +1,6 @@
 """The one table of SSBO and image binding points, for Python and GLSL alike.
 
-Python binds with these constants; every shader gets them as `#define BIND_...` (glsl_header(),
+Python binds with these constants; every shader gets them as `#define BIND_...` (shader_header(),
 injected by viewer.gl.programs after #version) and writes `layout(std430, binding = BIND_NODES)`
 instead of a number, so a binding point is decided here once. SSBO and image units are separate
 GL namespaces: numbers may repeat between the two tables, never within one.
@@ -50,6 +50,6 @@ BIND_RESUME_STATE = SSBO["BIND_RESUME_STATE"]
 BIND_IMG_RESUME = IMAGE["BIND_IMG_RESUME"]
 
 
-def glsl_header() -> str:
+def shader_header() -> str:
     """`#define BIND_... N` lines for every binding point (inserted after #version)."""
     return "".join(f"#define {k} {v}\n" for k, v in {**SSBO, **IMAGE}.items())

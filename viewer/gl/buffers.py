@@ -5,6 +5,8 @@ from __future__ import annotations
 import moderngl
 import numpy as np
 
+from viewer.gl import io as glio
+
 
 class StreamBuffer:
     """An SSBO of records, re-specified (orphaned) before every upload so draws still queued keep
@@ -28,7 +30,7 @@ class StreamBuffer:
         else:
             self.buf.orphan(self.capacity * self.itemsize)
         if data:
-            self.buf.write(data)
+            glio.write(self.buf, data)
         self.buf.bind_to_storage_buffer(self.binding)
 
     def release(self) -> None:

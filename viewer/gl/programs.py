@@ -4,6 +4,11 @@ Shaders are files: `#include "file"` is expanded (each file once), `#version 450
 binding-point header (viewer.gl.bindings) and the caller's `#define`s are put in front. Files are
 looked up along a search path: a backend folder (viewer/backends/NAME/) can keep its own shaders
 beside its code and still include the shared ones from viewer/shaders/, which always come last.
+
+Numeric contract (docs/numerics.md): NUMERIC_PRAGMAS follow `#version` in every shader, asking
+NVIDIA's compiler for IEEE arithmetic (no fast math, full precision); other compilers ignore
+pragmas they do not know. The intersection math itself is `precise` (intersect.glsl), which is
+the part GLSL guarantees.
 """
 
 from __future__ import annotations
@@ -14,9 +19,12 @@ from pathlib import Path
 
 import moderngl
 
-from viewer.gl.bindings import glsl_header
+from viewer.gl import io as glio
+from viewer.gl.bindings import shader_header
 
 SHADER_DIR = Path(__file__).resolve().parents[1] / "shaders"
+
+NUMERIC_PRAGMAS = "#pragma optionNV(fastmath off)\n#pragma optionNV(fastprecision off)\n"
 
 _INCLUDE = re.compile(r'^\s*#include\s+"([^"]+)"\s*$', re.MULTILINE)
 
@@ -39,8 +47,8 @@ def find_shader(name: str, search: Sequence[Path | str] = (), near: Path | None 
 
 def load_shader_source(name: str, defines: dict[str, object] | None = None,
                        search: Sequence[Path | str] = ()) -> str:
-    """Shader text with `#include "file"` expanded and the binding header and `#define`s inserted
-    after #version."""
+    """Shader text with `#include "file"` expanded and NUMERIC_PRAGMAS, the binding header and the
+    `#define`s inserted after #version."""
     seen: set[Path] = set()
 
     def expand(path: Path) -> str:
@@ -51,7 +59,7 @@ def load_shader_source(name: str, defines: dict[str, object] | None = None,
         return _INCLUDE.sub(lambda m: expand(find_shader(m.group(1), search, path.parent)), text)
 
     body = expand(find_shader(name, search))
-    header = "#version 450 core\n" + glsl_header()
+    header = "#version 450 core\n" + NUMERIC_PRAGMAS + shader_header()
     for key, value in (defines or {}).items():
         header += f"#define {key} {value}\n"
     return header + body
@@ -107,7 +115,7 @@ class FullscreenQuad:
         if vao is None:
             vao = self.ctx.vertex_array(program, [])
             self._vaos[id(program)] = vao
-        vao.render(moderngl.TRIANGLES, vertices=3)
+        glio.draw(vao, moderngl.TRIANGLES, vertices=3)
 
     def release(self) -> None:
         for vao in self._vaos.values():

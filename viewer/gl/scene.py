@@ -8,6 +8,7 @@ import moderngl
 import numpy as np
 
 from viewer.accel.bvh import BVH, gpu_triangles
+from viewer.gl import io as glio
 from viewer.gl.bindings import BIND_MATERIALS, BIND_NODES, BIND_TRIS
 from viewer.scene import Scene
 
@@ -50,7 +51,7 @@ class GpuScene:
         for buf, data in ((self.nodes, nodes), (self.tris, tris), (self.vertices, verts)):
             if buf.size != len(data):
                 raise ValueError(f"GpuScene.update: {len(data)} bytes for a {buf.size}-byte buffer")
-            buf.write(data)
+            glio.write(buf, data)
 
     def bind(self) -> None:
         self.nodes.bind_to_storage_buffer(BIND_NODES)

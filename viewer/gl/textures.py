@@ -6,6 +6,7 @@ import moderngl
 import numpy as np
 
 from viewer.errors import RtwalkError
+from viewer.gl import io as glio
 
 
 def float_texture(ctx: moderngl.Context, size: tuple[int, int], components: int) -> moderngl.Texture:
@@ -23,7 +24,7 @@ def int_texture(ctx: moderngl.Context, size: tuple[int, int]) -> moderngl.Textur
 def read_texture(tex: moderngl.Texture) -> np.ndarray:
     """Texture contents as (H, W, C) in GL order (row 0 = bottom)."""
     dtype = {"f4": np.float32, "i4": np.int32, "u4": np.uint32, "f1": np.uint8, "u1": np.uint8}[tex.dtype]
-    data = np.frombuffer(tex.read(), dtype=dtype)
+    data = np.frombuffer(glio.read(tex), dtype=dtype)
     return data.reshape(tex.height, tex.width, tex.components)
 
 
@@ -109,7 +110,7 @@ class IntTextures:
                 tex.release()
             tex = int_texture(self.ctx, size)
             self.textures[name] = tex
-        tex.write(np.ascontiguousarray(data, np.int32))
+        glio.write(tex, np.ascontiguousarray(data, np.int32))
         return tex
 
     def release(self) -> None:

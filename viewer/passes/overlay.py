@@ -33,6 +33,7 @@ import numpy as np
 from viewer.backends import backend_class, backend_names
 from viewer.backends.interface import BackendInfo, OverlaySpec
 from viewer.errors import RtwalkError
+from viewer.gl import io as glio
 from viewer.gl.programs import FullscreenQuad, ProgramCache
 from viewer.gl.textures import read_texture
 from viewer.passes.shade import SHADE_MODES
@@ -336,7 +337,7 @@ class OverlayPass:
         """(max value, max counts) over the view's capture, at least 0: 8 bytes read back."""
         cap = self._captured(view)
         self._reduce(cap)
-        v = np.frombuffer(cap.steps[-1][0].read(), np.int32)
+        v = np.frombuffer(glio.read(cap.steps[-1][0]), np.int32)
         return int(v[0]), int(v[1])
 
     def read(self, view: str) -> np.ndarray:

@@ -6,6 +6,7 @@ import moderngl
 import numpy as np
 
 from viewer.effects import RayType
+from viewer.gl import io as glio
 from viewer.gl.bindings import BIND_COUNTERS
 from viewer.gl.programs import FullscreenQuad, ProgramCache
 from viewer.passes.gbuffer import GBufferPass
@@ -54,7 +55,7 @@ class RayGenPass:
         self.quad.render(p)
 
     def reset_count(self) -> None:
-        self.counters.write(self._zero)
+        glio.write(self.counters, self._zero)
 
     def read_counts(self) -> np.ndarray:
-        return np.frombuffer(self.counters.read(), np.uint32).astype(np.int64)
+        return np.frombuffer(glio.read(self.counters), np.uint32).astype(np.int64)

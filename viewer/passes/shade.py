@@ -6,6 +6,7 @@ import moderngl
 import numpy as np
 
 from viewer.effects import EffectSettings, RayType
+from viewer.gl import io as glio
 from viewer.gl.programs import FullscreenQuad, ProgramCache
 from viewer.passes.accumulate import AccumulatePass
 from viewer.passes.gbuffer import GBufferPass
@@ -58,7 +59,7 @@ class ShadePass(SizedTargets):
 
     def read_rgb(self) -> np.ndarray:
         """uint8 (H, W, 3), top row first (ready for PNG)."""
-        data = np.frombuffer(self.color.read(), np.uint8).reshape(self.size[1], self.size[0], 4)
+        data = np.frombuffer(glio.read(self.color), np.uint8).reshape(self.size[1], self.size[0], 4)
         return np.ascontiguousarray(data[::-1, :, :3])
 
     def release_targets(self) -> None:

@@ -7,8 +7,9 @@ uniform float tanHalfFov;
 uniform vec2 viewport;   // width, height in pixels
 
 vec3 primaryDir(vec2 fragCoord) {
-    vec2 ndc = fragCoord / viewport * 2.0 - 1.0;  // fragCoord is the pixel centre (x + 0.5, y + 0.5)
-    float aspect = viewport.x / viewport.y;
-    vec3 d = camRight * (ndc.x * tanHalfFov * aspect) + camUp * (ndc.y * tanHalfFov) + camForward;
+    // precise: no fused multiply-adds, the same directions on every driver (docs/numerics.md)
+    precise vec2 ndc = fragCoord / viewport * 2.0 - 1.0;  // fragCoord is the pixel centre (x + 0.5, y + 0.5)
+    precise float aspect = viewport.x / viewport.y;
+    precise vec3 d = camRight * (ndc.x * tanHalfFov * aspect) + camUp * (ndc.y * tanHalfFov) + camForward;
     return normalize(d);
 }

@@ -31,17 +31,17 @@ bool coverageRect(out vec4 rect) {
     dvec3 a = dvec3(tri.v0) - cp, b = dvec3(tri.v1) - cp, c = dvec3(tri.v2) - cp;
     dvec3 n = cross(b - a, c - a);
     double nn = dot(n, n);
-    if (nn == 0.0) return false;  // zero area: the ray test never hits it
+    if (nn == 0.0lf) return false;  // zero area: the ray test never hits it
     double planeDist = abs(dot(n, a)) / sqrt(nn);
-    if (planeDist == 0.0) return false;  // the camera lies in its plane: only t = 0 hits, excluded
+    if (planeDist == 0.0lf) return false;  // the camera lies in its plane: only t = 0 hits, excluded
     double aspect = double(viewport.x) / double(viewport.y);
-    double tx = double(tanHalfFov) * aspect * 1.1, ty = double(tanHalfFov) * 1.1;
-    double wmin = 0.5 * planeDist / sqrt(1.0 + tx * tx + ty * ty);
+    double tx = double(tanHalfFov) * aspect * 1.1lf, ty = double(tanHalfFov) * 1.1lf;
+    double wmin = 0.5lf * planeDist / sqrt(1.0lf + tx * tx + ty * ty);
     dvec3 R = dvec3(camRight), U = dvec3(camUp), F = dvec3(camForward);
     dvec3 q[3] = dvec3[3](dvec3(dot(a, R), dot(a, U), dot(a, F)), dvec3(dot(b, R), dot(b, U), dot(b, F)),
                           dvec3(dot(c, R), dot(c, U), dot(c, F)));
-    dvec2 lo = dvec2(1e300), hi = dvec2(-1e300);
-    dvec2 scale = dvec2(1.0 / (double(tanHalfFov) * aspect), 1.0 / double(tanHalfFov));
+    dvec2 lo = dvec2(1e300lf), hi = dvec2(-1e300lf);
+    dvec2 scale = dvec2(1.0lf / (double(tanHalfFov) * aspect), 1.0lf / double(tanHalfFov));
     for (int i = 0; i < 3; ++i) {  // Sutherland-Hodgman against w >= wmin, folded into the bounds
         dvec3 p = q[i], s = q[(i + 1) % 3];
         if (p.z >= wmin) {
@@ -56,7 +56,7 @@ bool coverageRect(out vec4 rect) {
     }
     if (lo.x > hi.x) return false;  // entirely behind w = wmin: nothing on screen
     vec2 pad = 2.0 * (1.0 + EXPAND_PX) / viewport;  // a pixel and the push-out, in NDC units
-    vec2 flo = vec2(max(lo, dvec2(-2.0))) - pad, fhi = vec2(min(hi, dvec2(2.0))) + pad;
+    vec2 flo = vec2(max(lo, dvec2(-2.0lf))) - pad, fhi = vec2(min(hi, dvec2(2.0lf))) + pad;
     flo = max(flo, vec2(-1.0) - pad);
     fhi = min(fhi, vec2(1.0) + pad);
     if (flo.x > fhi.x || flo.y > fhi.y) return false;

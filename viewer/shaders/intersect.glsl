@@ -4,6 +4,11 @@
 //  * Conservative slab test: the far distance is scaled by 1 + 2*gamma(3) (Ize 2013) and
 //    reciprocals of zero components are replaced by a huge finite value of the same sign
 //    (no 0 * inf = NaN for axis-parallel rays).
+//  * Numeric contract (docs/numerics.md): every value a hit/miss decision or t depends on is
+//    `precise` (evaluated as written: no a*b+c fused into an FMA, which NVIDIA does otherwise), dot
+//    products are written out in the order the OpenCL kernels (geometry.cl) and the float32
+//    emulation of the tests use, and divisions are correctly rounded (divRounded), so the same ray
+//    gives the same bits on every driver.
 #ifndef STACK_SIZE
 #define STACK_SIZE 64
 #endif
@@ -33,10 +38,25 @@ struct RayPre {
     vec3 S;  // shear constants Sx, Sy, Sz
 };
 
+// a / b correctly rounded to float32 on every driver: GLSL allows 2.5 ulp for a float `/` (NVIDIA
+// uses a reciprocal), while the quotient of two floats is never within a few double ulps of a
+// float32 rounding boundary, so rounding a double quotient gives the IEEE float32 quotient
+// (infinities and NaN as in float32).
+float divRounded(float a, float b) {
+    precise double q = double(a) / double(b);
+    return float(q);
+}
+
+// x . y summed left to right: ((x0 y0 + x1 y1) + x2 y2), no fused multiply-add
+float dotPrecise(vec3 x, vec3 y) {
+    precise float s = x.x * y.x + x.y * y.y + x.z * y.z;
+    return s;
+}
+
 float safeRcp(float x) {
     // keep the sign of -0.0: floatBitsToInt(-0.0) < 0
     float s = floatBitsToInt(x) < 0 ? -1.0 : 1.0;
-    return abs(x) < 1e-30 ? s * 1e30 : 1.0 / x;
+    return abs(x) < 1e-30 ? s * 1e30 : divRounded(1.0, x);
 }
 
 RayPre prepareRay(vec3 o, vec3 d) {
@@ -50,7 +70,7 @@ RayPre prepareRay(vec3 o, vec3 d) {
     int ky = (kx + 1) % 3;
     if (d[kz] < 0.0) { int tmp = kx; kx = ky; ky = tmp; }
     r.kx = kx; r.ky = ky; r.kz = kz;
-    r.S = vec3(d[kx] / d[kz], d[ky] / d[kz], 1.0 / d[kz]);
+    r.S = vec3(divRounded(d[kx], d[kz]), divRounded(d[ky], d[kz]), divRounded(1.0, d[kz]));
     return r;
 }
 
@@ -59,28 +79,29 @@ RayPre prepareRay(vec3 o, vec3 d) {
 // cancels instead: relative error ~1e-7 / sin of the angle between them, up to 1e-1 at aspect 1e4.
 vec3 crossRounded(vec3 a, vec3 b) {
     dvec3 da = dvec3(a), db = dvec3(b);
-    return vec3(da.y * db.z - da.z * db.y, da.z * db.x - da.x * db.z, da.x * db.y - da.y * db.x);
+    precise dvec3 c = dvec3(da.y * db.z - da.z * db.y, da.z * db.x - da.x * db.z, da.x * db.y - da.y * db.x);
+    return vec3(c);
 }
 
 // Returns true and the distance t (tmin < t < tmax) on a hit; bary receives (u, v) weights of v1, v2.
 bool intersectTriangle(RayPre r, vec3 v0, vec3 v1, vec3 v2, float tmin, float tmax, out float t, out vec2 bary) {
-    vec3 A = v0 - r.o, B = v1 - r.o, C = v2 - r.o;
-    float Ax = A[r.kx] - r.S.x * A[r.kz], Ay = A[r.ky] - r.S.y * A[r.kz];
-    float Bx = B[r.kx] - r.S.x * B[r.kz], By = B[r.ky] - r.S.y * B[r.kz];
-    float Cx = C[r.kx] - r.S.x * C[r.kz], Cy = C[r.ky] - r.S.y * C[r.kz];
-    float U = Cx * By - Cy * Bx;
-    float V = Ax * Cy - Ay * Cx;
-    float W = Bx * Ay - By * Ax;
+    precise vec3 A = v0 - r.o, B = v1 - r.o, C = v2 - r.o;
+    precise float Ax = A[r.kx] - r.S.x * A[r.kz], Ay = A[r.ky] - r.S.y * A[r.kz];
+    precise float Bx = B[r.kx] - r.S.x * B[r.kz], By = B[r.ky] - r.S.y * B[r.kz];
+    precise float Cx = C[r.kx] - r.S.x * C[r.kz], Cy = C[r.ky] - r.S.y * C[r.kz];
+    precise float U = Cx * By - Cy * Bx;
+    precise float V = Ax * Cy - Ay * Cx;
+    precise float W = Bx * Ay - By * Ax;
     if (U == 0.0 || V == 0.0 || W == 0.0) {
-        double CxBy = double(Cx) * double(By), CyBx = double(Cy) * double(Bx);
-        double AxCy = double(Ax) * double(Cy), AyCx = double(Ay) * double(Cx);
-        double BxAy = double(Bx) * double(Ay), ByAx = double(By) * double(Ax);
+        precise double CxBy = double(Cx) * double(By), CyBx = double(Cy) * double(Bx);
+        precise double AxCy = double(Ax) * double(Cy), AyCx = double(Ay) * double(Cx);
+        precise double BxAy = double(Bx) * double(Ay), ByAx = double(By) * double(Ax);
         U = float(CxBy - CyBx);
         V = float(AxCy - AyCx);
         W = float(BxAy - ByAx);
     }
     if ((U < 0.0 || V < 0.0 || W < 0.0) && (U > 0.0 || V > 0.0 || W > 0.0)) return false;
-    float det = U + V + W;
+    precise float det = U + V + W;
     if (det == 0.0) return false;
     // Distance from the plane equation t = dot(n, v0 - o) / dot(n, d), n = cross(v1 - v0, v2 - v0):
     // far more accurate than the sheared-space T / det for grazing rays and thin triangles (the
@@ -91,16 +112,18 @@ bool intersectTriangle(RayPre r, vec3 v0, vec3 v1, vec3 v2, float tmin, float tm
     // within an ulp per component and t is as exact as v0 - o and the two float dot products allow,
     // for any triangle shape. A ray parallel to the computed plane (dot(n, d) == 0) falls back to
     // T / det.
-    vec3 n = crossRounded(v1 - v0, v2 - v0);
-    float dn = dot(n, r.d);
+    precise vec3 e1 = v1 - v0, e2 = v2 - v0;
+    precise vec3 n = crossRounded(e1, e2);
+    precise float dn = dotPrecise(n, r.d);
     if (dn != 0.0) {
-        t = dot(n, A) / dn;
+        t = divRounded(dotPrecise(n, A), dn);
     } else {
-        float Az = r.S.z * A[r.kz], Bz = r.S.z * B[r.kz], Cz = r.S.z * C[r.kz];
-        t = (U * Az + V * Bz + W * Cz) / det;
+        precise float Az = r.S.z * A[r.kz], Bz = r.S.z * B[r.kz], Cz = r.S.z * C[r.kz];
+        precise float T = U * Az + V * Bz + W * Cz;
+        t = divRounded(T, det);
     }
     if (!(t > tmin && t < tmax)) return false;
-    bary = vec2(V, W) / det;
+    bary = vec2(divRounded(V, det), divRounded(W, det));
     return true;
 }
 
@@ -109,11 +132,11 @@ const float GAMMA3_SCALE = 1.0 + 2.0 * (3.0 * 5.960464477539063e-08) / (1.0 - 3.
 // Conservative slab test; tEntry is the (clamped) entry distance.
 bool intersectBox(RayPre r, vec3 bmin, vec3 bmax, float tmin, float tmax, out float tEntry) {
     WORK(workBox);
-    vec3 t0 = (bmin - r.o) * r.invD;
-    vec3 t1 = (bmax - r.o) * r.invD;
+    precise vec3 t0 = (bmin - r.o) * r.invD;
+    precise vec3 t1 = (bmax - r.o) * r.invD;
     vec3 tn = min(t0, t1), tf = max(t0, t1);
     float enter = max(max(tn.x, tn.y), max(tn.z, tmin));
-    float exit = min(min(tf.x, tf.y), tf.z) * GAMMA3_SCALE;
+    precise float exit = min(min(tf.x, tf.y), tf.z) * GAMMA3_SCALE;
     exit = min(exit, tmax);
     tEntry = enter;
     return enter <= exit;

@@ -41,14 +41,14 @@ void main() {
             Tri tri = tris[id];
             vec3 n = normalize(cross(tri.v1 - tri.v0, tri.v2 - tri.v0));
             float tHit; vec2 b;
-            vec3 p;
+            precise vec3 p;  // no fused multiply-adds (docs/numerics.md)
             if (intersectTriangle(prepareRay(camPos, dPrim), tri.v0, tri.v1, tri.v2, 0.0, 1e30, tHit, b)) {
                 p = tri.v0 * (1.0 - b.x - b.y) + tri.v1 * b.x + tri.v2 * b.y;
             } else {  // pixel centre covered by rasterization but on the far side of an edge
-                p = camPos + dPrim * (dot(tri.v0 - camPos, n) / dot(dPrim, n));
+                p = camPos + dPrim * divRounded(dotPrecise(tri.v0 - camPos, n), dotPrecise(dPrim, n));
             }
             if (dot(n, dPrim) > 0.0) n = -n;  // face the viewer
-            vec3 po = offsetRayOrigin(p, n);
+            precise vec3 po = offsetRayOrigin(p, n);
             vec2 rnd = pixelRandom2(px, stream);
             if (rayType == RAY_SHADOW) {
                 vec3 l = pointPos[lightIndex] - po;

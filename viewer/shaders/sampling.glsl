@@ -54,7 +54,8 @@ vec3 offsetRayOrigin(vec3 p, vec3 n) {
         intBitsToFloat(floatBitsToInt(p.x) + (p.x < 0.0 ? -ofi.x : ofi.x)),
         intBitsToFloat(floatBitsToInt(p.y) + (p.y < 0.0 ? -ofi.y : ofi.y)),
         intBitsToFloat(floatBitsToInt(p.z) + (p.z < 0.0 ? -ofi.z : ofi.z)));
-    return vec3(abs(p.x) < originEps ? p.x + floatScale * n.x : pi.x,
-                abs(p.y) < originEps ? p.y + floatScale * n.y : pi.y,
-                abs(p.z) < originEps ? p.z + floatScale * n.z : pi.z);
+    precise vec3 q = vec3(abs(p.x) < originEps ? p.x + floatScale * n.x : pi.x,
+                          abs(p.y) < originEps ? p.y + floatScale * n.y : pi.y,
+                          abs(p.z) < originEps ? p.z + floatScale * n.z : pi.z);
+    return q;
 }

@@ -189,6 +189,7 @@ def draw_panel(host, width: float, height: float) -> None:  # noqa: C901 (a flat
                 imgui.text(f"({mrays_frame:.1f} Mrays/s over the whole frame)")
             else:
                 imgui.text("no rays traced (all effects off)")
+            _draw_io(rep, r.size)
 
     # -- backend phases and counters (CHC+RT paper, Figure 8) ------------------------------------
     if imgui.collapsing_header("Backend phases & counters", imgui.TreeNodeFlags_.default_open):
@@ -289,6 +290,28 @@ def draw_panel(host, width: float, height: float) -> None:  # noqa: C901 (a flat
 
 
 # --------------------------------------------------------------------------- backend phases, counters
+
+
+def io_lines(io, size: tuple[int, int]) -> list[str]:
+    """The "I/O per frame" lines: what crossed between host and devices and what the host
+    submitted (viewer.iostats), bytes also per pixel."""
+    px = max(size[0] * size[1], 1)
+    return [f"to device {_mib(io.bytes_to_device)} ({io.bytes_to_device / px:.1f} B/px)",
+            f"to host   {_mib(io.bytes_to_host)} ({io.bytes_to_host / px:.1f} B/px)",
+            f"host syncs {io.host_syncs}, CL launches {io.cl_launches}",
+            f"GL draws {io.gl_draws}, GL queries {io.gl_queries}, host {io.python_ms:.1f} ms"]
+
+
+def _draw_io(rep, size: tuple[int, int]) -> None:
+    from imgui_bundle import imgui
+
+    io = getattr(rep, "io", None)
+    if io is None:
+        return
+    imgui.separator()
+    imgui.text("I/O per frame")
+    for line in io_lines(io, size):
+        imgui.text(line)
 
 
 def _draw_phase_chart(hist: FrameHistory) -> None:

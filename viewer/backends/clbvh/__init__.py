@@ -6,9 +6,14 @@ from viewer/cl/kernels/geometry.cl) follow glsl's conventions: watertight triang
 double fallback, conservative slab test, safe reciprocals, hits only for tmin < t < tmax; the
 any-hit kernel (shadow, soft, AO) exits on the first hit.
 
-Per pass: the ray textures are read into mapped CL buffers (phase "clbvh:upload"), the kernel
-runs (phase "trace:<ray type>", as glsl's draw), the hits are written back to the hit textures
-("clbvh:download"). The kernel also counts the active rays, the `rays` counter: the first
+Device-resident frames (viewer.cl.frame, the renderer's choice for CL backends): `trace_device`
+traces the frame's CL ray buffers into its CL hit buffers, nothing crosses per pass; the `rays`
+counter sums over the frame on the device and is read once (`end_frame`).
+
+RayBatch frames (overlays, tools): per pass the ray textures are read into mapped CL buffers
+(phase "clbvh:upload"), the kernel runs (phase "trace:<ray type>", as glsl's draw), the hits are
+written back to the hit textures ("clbvh:download"). The kernel also counts the active rays, the
+`rays` counter: the first
 work-item of each work-group counts its group's, one global atomic per work-group, no barrier
 (measured: no cost against the kernel without the count). The work-group size is fixed (WG):
 PoCL compiles one work-group function per size, and the size made no difference to speed in a
@@ -25,6 +30,7 @@ import numpy as np
 from viewer.accel.bvh4 import BVH4, build_bvh4
 from viewer.backends.base import BackendContext, StatelessBackend, TraceResult
 from viewer.backends.interface import BackendInfo
+from viewer.cl import io as clio
 from viewer.rays import HitBuffer, PassInfo, RayBatch
 
 KERNEL = Path(__file__).resolve().parent / "trace.cl"
@@ -85,28 +91,33 @@ class ClbvhScene:
         cl = self.ctx.cl
         mf = cl.mem_flags
         knodes, blocks = pack_leaves(self.bvh4.nodes, triangles)
-        self.nodes = cl.Buffer(self.ctx.context, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=knodes)
-        self.blocks = cl.Buffer(self.ctx.context, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=blocks)
+        self.nodes = clio.upload(self.ctx, knodes, what="clbvh nodes")
+        self.blocks = clio.upload(self.ctx, blocks, what="clbvh leaf blocks")
         prog = build(KERNEL, {"STACK_SIZE": self.stack_size, "WG": WG}, self.ctx)
-        self.kernels = {False: cl.Kernel(prog, "trace_closest"), True: cl.Kernel(prog, "trace_any")}
+        self.kernels = {False: clio.kernel(prog, "trace_closest"), True: clio.kernel(prog, "trace_any")}
         self.memory_bytes = knodes.nbytes + blocks.nbytes
         self.active = cl.Buffer(self.ctx.context, mf.READ_WRITE, 4)  # active rays of the last enqueue
 
-    def enqueue(self, ray_o, ray_d, out_t, out_id, n: int, any_hit: bool):
+    def enqueue(self, ray_o, ray_d, out_t, out_id, n: int, any_hit: bool, reset: bool = True):
         """Enqueue the trace of n rays (buffers as viewer/cl/transfer.py lays them out); the kernel
-        counts the active ones into `self.active` (read with active_count)."""
-        cl, q = self.ctx.cl, self.ctx.queue
-        cl.enqueue_fill_buffer(q, self.active, np.int32(0), 0, 4)
+        counts the active ones into `self.active` (read with active_count), zeroed first unless
+        `reset` is False (the count then sums over enqueues: a device-resident frame's passes)."""
+        q = self.ctx.queue
+        if reset:
+            self.reset_count()
         if n == 0:
             return None
         gsize = -(-n // WG) * WG
         return self.kernels[bool(any_hit)](q, (gsize,), (WG,), self.nodes, self.blocks,
                                            ray_o, ray_d, out_t, out_id, np.int32(n), self.active)
 
+    def reset_count(self) -> None:
+        self.ctx.cl.enqueue_fill_buffer(self.ctx.queue, self.active, np.int32(0), 0, 4)
+
     def active_count(self) -> int:
         """Active rays of the last enqueue (a 4-byte blocking read: waits for the kernel)."""
         out = np.zeros(1, np.int32)
-        self.ctx.cl.enqueue_copy(self.ctx.queue, out, self.active)
+        clio.copy(self.ctx.queue, out, self.active)
         return int(out[0])
 
     def release(self) -> None:
@@ -127,6 +138,10 @@ class ClbvhBackend(StatelessBackend):
         self.ctx = cl_context()
         self.scene = ClbvhScene(bc.scene.triangles, bc.bvh, self.ctx)
         self.stages = PassStages(self.ctx)
+        self._device_frame = False  # this frame's passes came through trace_device
+
+    def begin_frame(self, frame_index: int) -> None:
+        self._device_frame = False
 
     def scene_changed(self, bc: BackendContext) -> None:
         """Rebuild the BVH4 (collapsed from the refitted binary BVH) and re-upload it with the
@@ -149,6 +164,20 @@ class ClbvhBackend(StatelessBackend):
         with prof.cl_phase("clbvh:download", q):
             hs.download(hits)
         return TraceResult(stats={"rays": self.scene.active_count()})  # the pass's active rays
+
+    def trace_device(self, rays, pinfo: PassInfo, hits) -> TraceResult:
+        """Trace CL ray buffers (viewer.cl.RayStage layout) into CL hit buffers (HitStage): no
+        transfer, no host wait."""
+        if not self._device_frame:
+            self.scene.reset_count()
+            self._device_frame = True
+        with self.bc.profiler.cl_phase(f"trace:{pinfo.ray_type.label}", self.ctx.queue):
+            self.scene.enqueue(rays.origin, rays.dir, hits.t, hits.tri, rays.n, pinfo.any_hit, reset=False)
+        return TraceResult()
+
+    def end_frame(self) -> dict[str, float]:
+        """Counters of a device-resident frame: its active rays (one 4-byte read)."""
+        return {"rays": float(self.scene.active_count())} if self._device_frame else {}
 
     def release(self) -> None:
         self.stages.release()

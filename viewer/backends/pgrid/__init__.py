@@ -43,6 +43,8 @@ from viewer.accel.pointgrid import PointGrid, PointGridSpec
 from viewer.backends.base import BackendContext, TraceResult
 from viewer.backends.interface import BackendInfo, OverlaySpec
 from viewer.backends.ugrid import GridTracer
+from viewer.cl import io as clio
+from viewer.cl.limits import new_buffer
 from viewer.effects import RayType
 from viewer.errors import RtwalkError
 from viewer.rays import HitBuffer, PassInfo, RayBatch
@@ -121,14 +123,13 @@ class PgridBackend:
         self.tracer = GridTracer(self.ctx, self.grid)
         self.pgrid = PointGrid(self.ctx, self.grid.prims)
         self.camgrid = CameraGrid(self.ctx, self.grid.prims)
-        cl = self.ctx.cl
         self._kernels, self._camera_kernels = {}, {}
         for count in (False, True):
             extra = {"COUNT_TESTS": None} if count else {}
             prog = build(KERNEL, {"WG": self.params.chunk, **extra}, self.ctx)
-            self._kernels[count] = cl.Kernel(prog, "pg_trace")
+            self._kernels[count] = clio.kernel(prog, "pg_trace")
             prog = build(CAMERA_KERNEL, {"CN": CAMERA_N, **extra}, self.ctx)
-            self._camera_kernels[count] = cl.Kernel(prog, "cg_trace")
+            self._camera_kernels[count] = clio.kernel(prog, "cg_trace")
         self._closed: tuple[tuple[int, int], bool] | None = None
         self._grid_fresh = False
         self._tris = None
@@ -151,9 +152,9 @@ class PgridBackend:
             if self._tris is None or self._tris.size < f4.nbytes:
                 if self._tris is not None:
                     self._tris.release()
-                self._tris = cl.Buffer(ctx.context, cl.mem_flags.READ_ONLY, max(16, f4.nbytes))
+                self._tris = new_buffer(ctx, cl.mem_flags.READ_ONLY, f4.nbytes, "pgrid triangles")
             if f4.nbytes:
-                cl.enqueue_copy(ctx.queue, self._tris, f4)
+                clio.copy(ctx.queue, self._tris, f4)
             self._box = scene_box(tris)
             self._n_tris = len(tris)
         self._tris_key = self._geometry_key()
@@ -188,8 +189,6 @@ class PgridBackend:
     # -- tracing --------------------------------------------------------------------------
     def _centre(self, pinfo: PassInfo, rs) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
         """(centre, sampled origins, sampled directions) for a point-grid pass, else None."""
-        from viewer.cl import mapped
-
         rt = pinfo.ray_type
         lights = getattr(self.bc.scene, "point_lights", [])
         if rt == RayType.SHADOW and 0 <= pinfo.light < len(lights):
@@ -199,10 +198,9 @@ class PgridBackend:
         else:
             return None
         step = max(1, rs.n // SAMPLE)
-        with mapped(self.ctx, rs.origin, (rs.n, 4), np.float32) as o:
-            so = o[::step].copy()
-        with mapped(self.ctx, rs.dir, (rs.n, 4), np.float32) as d:
-            sd = d[::step].copy()
+        count = -(-rs.n // step)  # rows 0, step, ... (as o[::step]); only these cross
+        so = clio.read_strided(self.ctx.queue, rs.origin, step, count, (4,), np.float32)
+        sd = clio.read_strided(self.ctx.queue, rs.dir, step, count, (4,), np.float32)
         if centre is None:
             act = np.flatnonzero(sd[:, 3] > so[:, 3])
             if len(act) == 0:
@@ -211,18 +209,28 @@ class PgridBackend:
         return centre, so, sd
 
     def trace(self, rays: RayBatch, pinfo: PassInfo, hits: HitBuffer) -> TraceResult:
-        prof = self.bc.profiler
         rs, hs, tests = self.stages.get(rays.size)
-        q = self.ctx.queue
-        count = bool(self.overlays_enabled)
-        label = pinfo.ray_type.label
-        with prof.cl_phase("pgrid:upload", q):
+        with self.bc.profiler.cl_phase("pgrid:upload", self.ctx.queue):
             rs.upload(rays)
+        return self._trace(rs, hs, tests, pinfo, rays.size, hits)
+
+    def trace_device(self, rays, pinfo: PassInfo, hits) -> TraceResult:
+        """Trace CL ray buffers (viewer.cl.RayStage layout) into CL hit buffers (HitStage): only the
+        few rays the point and camera grids are placed from cross (strided sample, corner rays)."""
+        return self._trace(rays, hits, None, pinfo, rays.size, None)
+
+    def _trace(self, rs, hs, tests, pinfo: PassInfo, size: tuple[int, int], hits: HitBuffer | None) -> TraceResult:
+        """One pass on CL buffers; `hits` (a RayBatch frame) gets the hits written back."""
+        prof = self.bc.profiler
+        q = self.ctx.queue
+        count = bool(self.overlays_enabled) and tests is not None
+        label = pinfo.ray_type.label
+        rays_size = size
         stats: dict[str, float] = {"rays": float(rs.n)}
-        cam = self._camera(pinfo, rs, rays.size) if rs.n else None
+        cam = self._camera(pinfo, rs, rays_size) if rs.n else None
         point = self._centre(pinfo, rs) if rs.n and cam is None else None
         if cam is not None:
-            self._trace_camera(cam, rs, hs, tests if count else None, rays.size, stats, label)
+            self._trace_camera(cam, rs, hs, tests if count else None, rays_size, stats, label)
         elif point is None:
             self._ensure_grid()
             with prof.cl_phase(f"trace:{label}", q):
@@ -255,19 +263,20 @@ class PgridBackend:
             stats.update(st.as_dict(self.params.chunk))
             # the same per ray type (the renderer sums a frame's passes)
             stats.update({f"{k}_{label}": v for k, v in st.as_dict(self.params.chunk).items()})
-        with prof.cl_phase("pgrid:download", q):
-            hs.download(hits)
+        if hits is not None:
+            with prof.cl_phase("pgrid:download", q):
+                hs.download(hits)
         overlays = {}
         if count:
             from viewer.cl import mapped
 
             with mapped(self.ctx, tests, (rs.n,), np.int32) as a:
                 stats["tests_per_ray"] = float(a.sum()) / max(rs.active_count(), 1)  # per active ray
-                overlays["triangle_tests"] = self.textures.write("triangle_tests", rays.size, a)
+                overlays["triangle_tests"] = self.textures.write("triangle_tests", rays_size, a)
             if point is not None and cam is None:
                 chunk_of, tile_rays = self._chunk_maps(rs.n)
-                overlays["light_chunks"] = self.textures.write("light_chunks", rays.size, chunk_of)
-                overlays["tile_rays"] = self.textures.write("tile_rays", rays.size, tile_rays)
+                overlays["light_chunks"] = self.textures.write("light_chunks", rays_size, chunk_of)
+                overlays["tile_rays"] = self.textures.write("tile_rays", rays_size, tile_rays)
         return TraceResult(stats=stats, overlays=overlays)
 
     def _from_far(self, centre: np.ndarray) -> bool:
@@ -328,7 +337,7 @@ class PgridBackend:
         pg = self.pgrid
         key, start, length = pg.chunks.to_numpy(self.ctx)
         vals = np.empty(n, np.uint32)
-        self.ctx.cl.enqueue_copy(self.ctx.queue, vals, pg.ray_vals)
+        clio.copy(self.ctx.queue, vals, pg.ray_vals)
         ntiles = pg.stats.tiles[0] * pg.stats.tiles[1]
         inside = key < ntiles
         chunk_of = np.full(n, -1, np.int32)

@@ -24,6 +24,8 @@ import numpy as np
 from viewer.accel.grid import GridSpec, UniformGrid, scene_box, triangles_f4
 from viewer.backends.base import BackendContext, TraceResult
 from viewer.backends.interface import BackendInfo, OverlaySpec
+from viewer.cl import io as clio
+from viewer.cl.limits import new_buffer
 from viewer.errors import RtwalkError
 from viewer.rays import HitBuffer, PassInfo, RayBatch
 
@@ -57,15 +59,14 @@ class GridTracer:
         from viewer.cl import build
 
         self.ctx, self.grid = ctx, grid
-        cl = ctx.cl
         self.kernels = {}
         for count in (False, True):
             defines: dict[str, Any] = {"WG": WG, **({"COUNT_TESTS": None} if count else {})}
             prog = build(KERNEL, defines, ctx)
             for idx in (False, True):
                 sfx = "_idx" if idx else ""
-                self.kernels[(False, count, idx)] = cl.Kernel(prog, "trace_closest" + sfx)
-                self.kernels[(True, count, idx)] = cl.Kernel(prog, "trace_any" + sfx)
+                self.kernels[(False, count, idx)] = clio.kernel(prog, "trace_closest" + sfx)
+                self.kernels[(True, count, idx)] = clio.kernel(prog, "trace_any" + sfx)
 
     def enqueue(self, ray_o: Any, ray_d: Any, out_t: Any, out_id: Any, n: int, any_hit: bool,
                 tests: Any = None, index: Any = None) -> None:
@@ -116,9 +117,9 @@ class UgridBackend:
             if self._tris is None or self._tris.size < f4.nbytes:
                 if self._tris is not None:
                     self._tris.release()
-                self._tris = cl.Buffer(ctx.context, cl.mem_flags.READ_ONLY, max(16, f4.nbytes))
+                self._tris = new_buffer(ctx, cl.mem_flags.READ_ONLY, f4.nbytes, "ugrid triangles")
             if f4.nbytes:
-                cl.enqueue_copy(ctx.queue, self._tris, f4)
+                clio.copy(ctx.queue, self._tris, f4)
             lo, hi = scene_box(tris)
             self.grid.build(self._tris, len(tris), lo, hi, self.params.spec())
         self._tris_key = self._geometry_key()
@@ -142,24 +143,33 @@ class UgridBackend:
 
     # -- tracing --------------------------------------------------------------------------
     def trace(self, rays: RayBatch, pinfo: PassInfo, hits: HitBuffer) -> TraceResult:
-        prof = self.bc.profiler
         rs, hs, tests = self.stages.get(rays.size)
-        q = self.ctx.queue
-        count = bool(self.overlays_enabled)
-        with prof.cl_phase("ugrid:upload", q):
+        with self.bc.profiler.cl_phase("ugrid:upload", self.ctx.queue):
             rs.upload(rays)
+        return self._trace(rs, hs, tests, pinfo, rays.size, hits)
+
+    def trace_device(self, rays, pinfo: PassInfo, hits) -> TraceResult:
+        """Trace CL ray buffers (viewer.cl.RayStage layout) into CL hit buffers (HitStage)."""
+        return self._trace(rays, hits, None, pinfo, rays.size, None)
+
+    def _trace(self, rs, hs, tests, pinfo: PassInfo, size: tuple[int, int], hits: HitBuffer | None) -> TraceResult:
+        """One pass on CL buffers; `hits` (a RayBatch frame) gets the hits written back."""
+        prof = self.bc.profiler
+        q = self.ctx.queue
+        count = bool(self.overlays_enabled) and tests is not None
         with prof.cl_phase(f"trace:{pinfo.ray_type.label}", q):
             self.tracer.enqueue(rs.origin, rs.dir, hs.t, hs.tri, rs.n, pinfo.any_hit,
                                 tests if count else None)
-        with prof.cl_phase("ugrid:download", q):
-            hs.download(hits)
+        if hits is not None:
+            with prof.cl_phase("ugrid:download", q):
+                hs.download(hits)
         stats = {"rays": float(rs.n)}
         if getattr(self, "_grid_stats_due", True):
             stats.update(self.grid.stats.as_dict())
             self._grid_stats_due = False
         overlays = {}
         if count:
-            overlays["triangle_tests"], total = self._overlay_texture(rays.size, tests, rs.n)
+            overlays["triangle_tests"], total = self._overlay_texture(size, tests, rs.n)
             stats["tests_per_ray"] = total / max(rs.active_count(), 1)  # per active ray
         return TraceResult(stats=stats, overlays=overlays)
 

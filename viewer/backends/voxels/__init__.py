@@ -82,6 +82,7 @@ class VoxelsBackend:
 
     def __init__(self, bc: BackendContext, params: VoxelsParams | None = None):
         from viewer.cl import PassStages, cl_context
+        from viewer.cl.transfer import PixelBuffers
 
         self.bc = bc
         self.params = params or VoxelsParams()
@@ -95,6 +96,7 @@ class VoxelsBackend:
               f" = {st['memory_bytes'] / 2**20:.1f} MiB, mean leaf depth {st['mean_leaf_depth']:.2f}",
               file=sys.stderr, flush=True)
         self.stages = PassStages(self.ctx, extras=1, extra_access="rw")  # + hit voxel per ray
+        self.vox_buffers = PixelBuffers(self.ctx, 1, "rw")  # the hit voxel per ray of device-resident frames
 
     def _voxelize(self, bc: BackendContext) -> None:
         """Voxelize the scene's triangles and build the chosen structure and its tracer."""
@@ -123,20 +125,31 @@ class VoxelsBackend:
         return -1
 
     def trace(self, rays: RayBatch, pinfo: PassInfo, hits: HitBuffer) -> TraceResult:
-        prof = self.bc.profiler
         rs, hs, vox = self.stages.get(rays.size)
+        with self.bc.profiler.cl_phase("voxels:upload", self.ctx.queue):
+            rs.upload(rays)
+        return self._trace(rs, hs, vox, pinfo, hits)
+
+    def trace_device(self, rays, pinfo: PassInfo, hits) -> TraceResult:
+        """Trace CL ray buffers (viewer.cl.RayStage layout) into CL hit buffers (HitStage)."""
+        vox = self.vox_buffers.get(rays.size)[0]
+        return self._trace(rays, hits, vox, pinfo, None)
+
+    def _trace(self, rs, hs, vox, pinfo: PassInfo, hits: HitBuffer | None) -> TraceResult:
+        """One pass on CL buffers; `hits` (a RayBatch frame) gets the hits written back."""
+        prof = self.bc.profiler
         q = self.ctx.queue
         secondary = pinfo.ray_type != RayType.PRIMARY
         bias = self.params.bias if secondary else 0.0
-        with prof.cl_phase("voxels:upload", q):
-            rs.upload(rays)
         with prof.cl_phase(f"trace:{pinfo.ray_type.label}", q):
             self.tracer.enqueue(rs.origin, rs.dir, hs.t, hs.tri, vox, rs.n, pinfo.any_hit, bias,
                                 leave=secondary and self.params.leave, gap=self.params.gap)
-        with prof.cl_phase("voxels:download", q):
-            hs.download(hits)
+        if hits is not None:
+            with prof.cl_phase("voxels:download", q):
+                hs.download(hits)
         return TraceResult(stats={"rays": rs.n, "voxels": self.voxels.count})
 
     def release(self) -> None:
         self.stages.release()
+        self.vox_buffers.release()
         self.tracer.release()

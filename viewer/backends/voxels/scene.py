@@ -14,6 +14,7 @@ from viewer.accel.voxel_kd import build_voxel_kd
 from viewer.accel.voxel_leaves import VoxelStructure
 from viewer.accel.voxel_octree import build_voxel_octree
 from viewer.accel.voxelize import Voxels
+from viewer.cl import io as clio
 from viewer.errors import RtwalkError
 
 HERE = Path(__file__).resolve().parent
@@ -66,7 +67,7 @@ class VoxelTracer:
             a = np.ascontiguousarray(a)
             if a.nbytes == 0:
                 a = np.zeros(4, np.uint8)
-            return cl.Buffer(c, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=a)
+            return clio.upload(self.ctx, a, what="voxel structure")
 
         self.nodes = buf(structure.nodes)
         self.leaves = buf(structure.leaves)
@@ -80,7 +81,7 @@ class VoxelTracer:
             defines["RECORD"] = None
             defines["SEQ_LEN"] = self.seq_len
         prog = build(HERE / f"{structure.kind}.cl", defines, self.ctx)
-        self.kernel = cl.Kernel(prog, "trace")
+        self.kernel = clio.kernel(prog, "trace")
         self.root_lo = np.zeros(4, np.float32)
         self.root_lo[:3] = structure.root_lo
         self.root_hi = np.zeros(4, np.float32)
@@ -113,8 +114,8 @@ class VoxelTracer:
         mf = cl.mem_flags
         c = self.ctx.context
         n = len(o4)
-        o_b = cl.Buffer(c, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=np.ascontiguousarray(o4, np.float32))
-        d_b = cl.Buffer(c, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=np.ascontiguousarray(d4, np.float32))
+        o_b = clio.upload(self.ctx, np.ascontiguousarray(o4, np.float32))
+        d_b = clio.upload(self.ctx, np.ascontiguousarray(d4, np.float32))
         t = np.empty(n, np.float32)
         tri = np.empty(n, np.int32)
         vox = np.empty(n, np.int32)
@@ -126,19 +127,19 @@ class VoxelTracer:
         seq = np.zeros((n, self.seq_len), np.uint8) if self.seq_len else None
         seq_b = None  # cleared: the kernel writes only the steps a ray takes, 0 after them is this copy's
         if seq is not None:
-            seq_b = cl.Buffer(c, mf.READ_WRITE | mf.COPY_HOST_PTR, hostbuf=seq) if seq.nbytes else \
+            seq_b = clio.upload(self.ctx, seq, mf.READ_WRITE) if seq.nbytes else \
                 cl.Buffer(c, mf.WRITE_ONLY, 16)
         q = self.ctx.queue
         self.enqueue(o_b, d_b, t_b, tri_b, vox_b, n, any_hit, bias, rec_b, seq_b, leave, gap)
         if n:
-            cl.enqueue_copy(q, t, t_b)
-            cl.enqueue_copy(q, tri, tri_b)
-            cl.enqueue_copy(q, vox, vox_b)
+            clio.copy(q, t, t_b)
+            clio.copy(q, tri, tri_b)
+            clio.copy(q, vox, vox_b)
             if rec is not None:
-                cl.enqueue_copy(q, rec, rec_b)
+                clio.copy(q, rec, rec_b)
             if seq is not None:
-                cl.enqueue_copy(q, seq, seq_b)
-        q.finish()
+                clio.copy(q, seq, seq_b)
+        clio.finish(q)
         for b in (o_b, d_b, t_b, tri_b, vox_b, rec_b, seq_b):
             if b is not None:
                 b.release()

@@ -38,6 +38,8 @@ from viewer.accel.grid import GridSpec, UniformGrid, scene_box, triangles_f4
 from viewer.backends.base import BackendContext, TraceResult
 from viewer.backends.interface import BackendInfo, OverlaySpec
 from viewer.backends.voxelwalk.engine import PassStats, VoxelWalker, tile_divergence
+from viewer.cl import io as clio
+from viewer.cl.limits import new_buffer
 from viewer.errors import RtwalkError
 from viewer.rays import HitBuffer, PassInfo, RayBatch
 
@@ -123,9 +125,9 @@ class VoxelwalkBackend:
             if self._tris is None or self._tris.size < f4.nbytes:
                 if self._tris is not None:
                     self._tris.release()
-                self._tris = cl.Buffer(ctx.context, cl.mem_flags.READ_ONLY, max(16, f4.nbytes))
+                self._tris = new_buffer(ctx, cl.mem_flags.READ_ONLY, f4.nbytes, "voxelwalk triangles")
             if f4.nbytes:
-                cl.enqueue_copy(ctx.queue, self._tris, f4)
+                clio.copy(ctx.queue, self._tris, f4)
             gs = self.grid.build(self._tris, len(tris), *scene_box(tris), self.params.spec())
         self._tris_key = self._geometry_key()
         self._build_ms += gs.build_ms  # reported by the next frame
@@ -156,21 +158,30 @@ class VoxelwalkBackend:
 
     # -- tracing --------------------------------------------------------------------------
     def trace(self, rays: RayBatch, pinfo: PassInfo, hits: HitBuffer) -> TraceResult:
-        prof = self.bc.profiler
         rs, hs = self.stages.get(rays.size)
+        with self.bc.profiler.cl_phase("voxelwalk:upload", self.ctx.queue):
+            rs.upload(rays)
+        return self._trace(rs, hs, pinfo, rays.size, hits)
+
+    def trace_device(self, rays, pinfo: PassInfo, hits) -> TraceResult:
+        """Trace CL ray buffers (viewer.cl.RayStage layout) into CL hit buffers (HitStage)."""
+        return self._trace(rays, hits, pinfo, rays.size, None)
+
+    def _trace(self, rs, hs, pinfo: PassInfo, size: tuple[int, int], hits: HitBuffer | None) -> TraceResult:
+        """One pass on CL buffers; `hits` (a RayBatch frame) gets the hits written back."""
+        prof = self.bc.profiler
         q = self.ctx.queue
         want = bool(self.overlays_enabled or self.params.stats)
-        with prof.cl_phase("voxelwalk:upload", q):
-            rs.upload(rays)
         ec = self.params.mode == "ec" and not pinfo.any_hit
         with prof.cl_phase(f"trace:{pinfo.ray_type.label}", q):
             if ec:
                 ps = self.walker.trace_ec(self._tris, rs.origin, rs.dir, hs.t, hs.tri, rs.n, stats=want,
-                                          size=rays.size)
+                                          size=size)
             else:
                 ps = self.walker.trace_ivw(self._tris, rs.origin, rs.dir, hs.t, hs.tri, rs.n, pinfo.any_hit, stats=want)
-        with prof.cl_phase("voxelwalk:download", q):
-            hs.download(hits)
+        if hits is not None:
+            with prof.cl_phase("voxelwalk:download", q):
+                hs.download(hits)
         self.last_stats = ps
         # per frame: grid figures once (first pass); ratios per ray type (the renderer sums a frame's passes)
         stats = {"rays": float(rs.n), **self._frame_stats}
@@ -193,13 +204,13 @@ class VoxelwalkBackend:
             stats[f"iterations_max_{label}"] = float(walked.max()) if len(walked) else 0.0
             div = None
             if ps.first_cell is not None:
-                div, per_tile = tile_divergence(ps.first_cell, rays.size)
+                div, per_tile = tile_divergence(ps.first_cell, size)
                 if len(per_tile):
                     stats[f"tile_divergence_{label}"] = float(per_tile.mean())
             if self.overlays_enabled:
-                overlays["iterations"] = self.textures.write("iterations", rays.size, ps.iters)
+                overlays["iterations"] = self.textures.write("iterations", size, ps.iters)
                 if div is not None:
-                    overlays["tile_divergence"] = self.textures.write("tile_divergence", rays.size, div)
+                    overlays["tile_divergence"] = self.textures.write("tile_divergence", size, div)
         return TraceResult(stats=stats, overlays=overlays)
 
     def release(self) -> None:

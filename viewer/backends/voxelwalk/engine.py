@@ -19,6 +19,8 @@ from typing import Any
 import numpy as np
 
 from viewer.accel.grid import UniformGrid
+from viewer.cl import io as clio
+from viewer.cl.limits import new_buffer
 from viewer.errors import RtwalkError
 
 HERE = Path(__file__).resolve().parent
@@ -77,12 +79,11 @@ class VoxelWalker:
 
         self.ctx, self.grid, self.chunk, self.window = ctx, grid, int(chunk), int(window)
         self.prims = grid.prims
-        cl = ctx.cl
         ivw = build(HERE / "ivw.cl", {"WG": WG_IVW}, ctx)
         ec = build(HERE / "ec.cl", {"WG": self.chunk}, ctx)
-        self.k = {"ivw": cl.Kernel(ivw, "ivw_trace")}
+        self.k = {"ivw": clio.kernel(ivw, "ivw_trace")}
         for name in ("ec_init", "ec_count", "ec_write", "ec_process", "ec_resolve", "ec_finish"):
-            self.k[name] = cl.Kernel(ec, name)
+            self.k[name] = clio.kernel(ec, name)
         self._bufs: dict[str, Any] = {}
 
     def _buf(self, name: str, nbytes: int) -> Any:
@@ -90,7 +91,7 @@ class VoxelWalker:
         if buf is None or buf.size < nbytes:
             if buf is not None:
                 buf.release()
-            buf = self.ctx.cl.Buffer(self.ctx.context, self.ctx.cl.mem_flags.READ_WRITE, max(16, int(nbytes)))
+            buf = new_buffer(self.ctx, self.ctx.cl.mem_flags.READ_WRITE, int(nbytes), f"voxelwalk {name}")
             self._bufs[name] = buf
         return buf
 
@@ -101,7 +102,7 @@ class VoxelWalker:
     def _read(self, buf: Any, n: int, dtype: Any) -> np.ndarray:
         out = np.empty(n, dtype)
         if n:
-            self.ctx.cl.enqueue_copy(self.ctx.queue, out, buf)
+            clio.copy(self.ctx.queue, out, buf)
         return out
 
     # -- IVW ------------------------------------------------------------------------------
@@ -112,7 +113,7 @@ class VoxelWalker:
         t0 = time.perf_counter()
         self._run("ivw", n, g.header, g.cells, g.refs, tris, ray_o, ray_d, out_t, out_id, np.int32(n),
                   np.int32(bool(any_hit)), iters, first, wg=WG_IVW)
-        q.finish()
+        clio.finish(q)
         ps = PassStats("ivw", trace_ms=(time.perf_counter() - t0) * 1e3)
         if stats:
             ps.iters = self._read(iters, n, np.int32)
@@ -167,11 +168,11 @@ class VoxelWalker:
                 out = Chunks(0, self._buf("ck", 4 * p), self._buf("cs", 4 * p), self._buf("cl", 4 * p))
                 ch = self.prims.segments(pk, p, r=self.chunk, out=out)
                 chunks = ch.count
-                q.finish()
+                clio.finish(q)
                 t1 = time.perf_counter()
                 self.k["ec_process"](q, (chunks * self.chunk,), (self.chunk,), g.cells, g.refs, tris, ray_o, ray_d,
                                      ch.key, ch.start, ch.length, pv, keys)
-                q.finish()
+                clio.finish(q)
                 trace_s += time.perf_counter() - t1
                 if stats and it == 0:
                     ck, _, cl_ = ch.to_numpy(self.ctx)
@@ -198,7 +199,7 @@ class VoxelWalker:
             it += 1
         self._bufs["act"], self._bufs["act2"] = act, act2
         self._run("ec_finish", n, keys, u(n), out_t, out_id)
-        q.finish()
+        clio.finish(q)
         ps.iterations = it
         ps.trace_ms = trace_s * 1e3
         ps.reorder_ms = (time.perf_counter() - t0) * 1e3 - ps.trace_ms

@@ -9,6 +9,10 @@
 // plane position each step (no accumulated drift); axes with a zero direction component never
 // step; a ray lying in a cell plane is binned to one side and the eps margin puts triangles
 // touching that plane from the other side into its cells too.
+// Local coordinates: the walk works on the ray origin minus the grid corner lo (as the build
+// works on vertices minus lo) and cell planes at c * cell from it, so its rounding is relative to
+// the grid's extent and the ray's distance, not to the absolute position (a scene at 1e6 walks
+// as precisely as at the origin and eps need not grow with the coordinates).
 #include "geometry.cl"
 
 typedef struct {
@@ -31,10 +35,16 @@ typedef struct {
     float t_exit;   // where the ray leaves the grid (conservative), clipped to tmax
 } GridWalk;
 
+// Ray origin in grid-local coordinates.
+inline float3 grid_local_origin(const Grid *g, const RayPre *r) {
+    return r->o - g->lo.xyz;
+}
+
 inline float grid_next_plane(const Grid *g, const RayPre *r, int axis, int c, int step) {
     if (step == 0) return INFINITY;
-    float plane = rt_comp(g->lo.xyz, axis) + (float)(c + (step > 0 ? 1 : 0)) * rt_comp(g->cell.xyz, axis);
-    return (plane - rt_comp(r->o, axis)) * rt_comp(r->inv, axis);
+    float plane = (float)(c + (step > 0 ? 1 : 0)) * rt_comp(g->cell.xyz, axis);
+    float o = rt_comp(r->o, axis) - rt_comp(g->lo.xyz, axis);
+    return (plane - o) * rt_comp(r->inv, axis);
 }
 
 // Starts a walk for the ray segment (tmin, tmax); false when the segment misses the grid box.
@@ -49,8 +59,8 @@ inline bool grid_walk_begin(const Grid *g, const RayPre *r, float tmin, float tm
         box_exit_t = fmax(t0, t1);
     }
     w->t_exit = fmin(fmin(fmin(box_exit_t.x, box_exit_t.y), box_exit_t.z) * RT_GAMMA3_SCALE, tmax);
-    float3 p = r->o + enter * r->d;
-    float3 fc = floor((p - g->lo.xyz) * g->inv.xyz);
+    float3 p = grid_local_origin(g, r) + enter * r->d;
+    float3 fc = floor(p * g->inv.xyz);
     float3 top = convert_float3(g->res.xyz - 1);
     fc = fmin(fmax(fc, (float3)(0.0f)), top);
     w->cell = convert_int3(fc);

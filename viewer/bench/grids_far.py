@@ -1,0 +1,222 @@
+"""Grid study: far-from-origin and mixed-scale scenes (issue 18), grids against clbvh.
+
+Scenes (`--scene`):
+  dragon        the shared 100k-triangle dragon (../shared/scenes) moved by `--offset` along
+                (1, 1, 1): the grids' float32 coordinates there are coarse against the cells
+  mixed         a 1e-3-tall detailed mesh (the shared bunny, else an icosphere) standing on a
+                2e4-wide ground with a 1e4-tall wall behind it (the teapot-in-a-stadium case)
+Primary rays of a pinhole camera framing the small object (`--size`, default 320x180) are traced
+by each backend (`--backends`) through Backend.trace (upload, kernel, download) in interleaved
+rounds; reported per backend: the grid's triangle-cell pairs, its device buffer bytes, the median
+trace ms, its ratio to clbvh's, and hits that disagree with clbvh. Peak RSS: run one backend per
+process under /usr/bin/time -v.
+
+  python -m viewer.bench.grids_far --scene dragon --offset 1e6 --backends clbvh,ugrid,pgrid,voxelwalk
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import resource
+import statistics
+import sys
+import time
+from typing import Any
+
+import numpy as np
+
+from viewer.errors import RtwalkError
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--scene", default="dragon", choices=("dragon", "mixed"))
+    p.add_argument("--offset", type=float, default=0.0, help="dragon: translation along (1,1,1) (default 0)")
+    p.add_argument("--size", default="320x180", help="WxH of the primary rays (default 320x180)")
+    p.add_argument("--backends", default="clbvh,ugrid,pgrid,voxelwalk")
+    p.add_argument("--rounds", type=int, default=3, help="interleaved timing rounds (default 3)")
+    p.add_argument("--json", default="", help="write the rows to this file")
+
+
+def _mesh(name: str) -> np.ndarray:
+    from viewer.scene_io import load_scene
+
+    return np.asarray(load_scene(name, progress=False).triangles, np.float64).reshape(-1, 3, 3)
+
+
+def _icosphere() -> np.ndarray:
+    from viewer.procedural import _icosphere as ico
+
+    return np.asarray(ico(6, 1.0, (0.0, 0.0, 0.0)), np.float64).reshape(-1, 3, 3)
+
+
+def scene_dragon(offset: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(triangles float32, camera position, look-at point), float64 points."""
+    tris = _mesh("dragon/dragon_100k.ply")
+    lo, hi = tris.reshape(-1, 3).min(0), tris.reshape(-1, 3).max(0)
+    tris = tris - (lo + hi) / 2 + offset
+    size = float((hi - lo).max())
+    target = np.full(3, offset)
+    eye = target + size * np.array([0.2, 0.25, 0.9])
+    return tris.astype(np.float32), eye, target
+
+
+def scene_mixed() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A 1e-3-tall object on a 2e4 ground (y = 0) in front of a 1e4-tall wall."""
+    try:
+        obj = _mesh("bunny/bun_zipper.ply")
+    except (RtwalkError, OSError):
+        obj = _icosphere()
+    lo, hi = obj.reshape(-1, 3).min(0), obj.reshape(-1, 3).max(0)
+    s = 1e-3 / float(hi[1] - lo[1])
+    obj = (obj - [(lo[0] + hi[0]) / 2, lo[1], (lo[2] + hi[2]) / 2]) * s
+    g, w = 1e4, 1e4
+    ground = np.array([[[-g, 0, -g], [g, 0, -g], [g, 0, g]], [[-g, 0, -g], [g, 0, g], [-g, 0, g]]])
+    wall = np.array([[[-g, 0, -w / 2], [g, 0, -w / 2], [g, w, -w / 2]], [[-g, 0, -w / 2], [g, w, -w / 2],
+                                                                         [-g, w, -w / 2]]])
+    tris = np.concatenate([obj, ground, wall]).astype(np.float32)
+    target = np.array([0.0, 0.5e-3, 0.0])
+    eye = np.array([0.4e-3, 1.2e-3, 2.5e-3])
+    return tris, eye, target
+
+
+def primary_rays(eye: np.ndarray, target: np.ndarray, size: tuple[int, int], fov_deg: float = 45.0):
+    """Pinhole rays (origins, unit directions) float32, row-major pixels."""
+    w, h = size
+    f = target - eye
+    f /= np.linalg.norm(f)
+    r = np.cross(f, [0.0, 1.0, 0.0])
+    r /= np.linalg.norm(r)
+    u = np.cross(r, f)
+    k = np.tan(np.radians(fov_deg) / 2)
+    x = (2 * (np.arange(w) + 0.5) / w - 1) * k * w / h
+    y = (1 - 2 * (np.arange(h) + 0.5) / h) * k
+    X, Y = np.meshgrid(x, y)
+    d = f + X[..., None] * r + Y[..., None] * u
+    d /= np.linalg.norm(d, axis=-1, keepdims=True)
+    d = d.reshape(-1, 3).astype(np.float32)
+    o = np.broadcast_to(eye.astype(np.float32), d.shape).copy()
+    return o, d
+
+
+class Runner:
+    """One backend over the scene, tracing the same rays again and again."""
+
+    def __init__(self, name: str, tris: np.ndarray, o: np.ndarray, d: np.ndarray):
+        from viewer.accel.bvh import build_bvh
+        from viewer.backends import create_backend
+        from viewer.backends.base import BackendContext
+        from viewer.effects import RayType
+        from viewer.gl.context import shared_context
+        from viewer.gl.programs import ProgramCache
+        from viewer.gl.scene import GpuScene
+        from viewer.profiler import GpuProfiler
+        from viewer.rays import HitBuffer, PassInfo, RayBatch
+        from viewer.scene import Material, Scene
+        from viewer.tracing import ROW
+
+        ctx = shared_context()
+        self.bvh = build_bvh(tris)
+        scene = Scene("rays", tris, np.zeros(len(tris), np.int32),
+                      [Material("grey", np.full(3, 0.7, np.float32))]).reordered(self.bvh.tri_order)
+        self.gpu = GpuScene.upload(ctx, scene, self.bvh)
+        n = len(o)
+        width = min(n, ROW)
+        height = -(-n // width)
+        pad = width * height
+        org = np.zeros((pad, 4), np.float32)
+        dirs = np.zeros((pad, 4), np.float32)
+        dirs[:, 2], dirs[:, 3] = 1.0, -1.0
+        org[:n, :3], dirs[:n, :3] = o, d
+        dirs[:n, 3] = 3.4e38
+        self.rays, self.hits = RayBatch(ctx, (width, height)), HitBuffer(ctx, (width, height))
+        self.rays.origin.write(org.tobytes())
+        self.rays.direction.write(dirs.tobytes())
+        self.n = n
+        bc = BackendContext(ctx, ProgramCache(ctx), GpuProfiler(ctx, enabled=False), self.gpu, scene, self.bvh)
+        t0 = time.perf_counter()
+        self.be = create_backend(name, bc)
+        self.be.begin_frame(0)
+        self.build_ms = (time.perf_counter() - t0) * 1e3
+        self.pinfo = PassInfo(RayType.PRIMARY)
+
+    def trace(self) -> tuple[float, np.ndarray]:
+        t0 = time.perf_counter()
+        self.be.trace(self.rays, self.pinfo, self.hits)
+        t, slot = self.hits.read()
+        ms = (time.perf_counter() - t0) * 1e3
+        slot = np.asarray(slot[: self.n])
+        ids = np.where(slot >= 0, self.bvh.tri_order[np.maximum(slot, 0)], -1)
+        return ms, ids
+
+    def grid_figures(self) -> dict[str, Any]:
+        g = getattr(self.be, "grid", None)
+        if g is None or getattr(g, "stats", None) is None:
+            return {}
+        out = {k: v for k, v in g.stats.as_dict().items()}
+        out["grid_res"] = list(g.stats.res)
+        pool = getattr(g, "_bufs", None)
+        if pool is not None:
+            out["grid_bytes"] = int(sum(b.size for b in pool.bufs.values()))
+        return out
+
+    def release(self) -> None:
+        self.be.release()
+        self.rays.release()
+        self.hits.release()
+        self.gpu.release()
+
+
+def run(args) -> int:
+    from viewer.cli_args import parse_image_sizes
+
+    size = parse_image_sizes(args.size)[0]
+    tris, eye, target = scene_dragon(args.offset) if args.scene == "dragon" else scene_mixed()
+    o, d = primary_rays(eye, target, size)
+    names = [b for b in args.backends.split(",") if b]
+    runners, rows = {}, {}
+    for name in names:
+        runners[name] = Runner(name, tris, o, d)
+        rows[name] = {"backend": name, "build_ms": runners[name].build_ms, **runners[name].grid_figures(),
+                      "times": []}
+    ids_of: dict[str, np.ndarray] = {}
+    for _ in range(max(1, args.rounds)):
+        for name in names:
+            ms, ids = runners[name].trace()
+            rows[name]["times"].append(ms)
+            ids_of[name] = ids
+    ref = ids_of.get("clbvh")
+    base = statistics.median(rows["clbvh"]["times"]) if "clbvh" in rows else None
+    print(f"scene {args.scene} offset {args.offset:g} triangles {len(tris)} rays {len(o)}")
+    for name in names:
+        r = rows[name]
+        r["ms"] = statistics.median(r["times"])
+        r["vs_clbvh"] = r["ms"] / base if base else None
+        r["hits"] = int((ids_of[name] >= 0).sum())
+        r["disagree"] = int((ids_of[name] != ref).sum()) if ref is not None else None
+        mib = r.get("grid_bytes", 0) / 2**20
+        print(f"{name:10s} pairs {int(r.get('grid_pairs', 0)):>10d} res {r.get('grid_res', '-')!s:>16s} "
+              f"grid {mib:8.1f} MiB  build {r['build_ms']:8.0f} ms  trace {r['ms']:9.1f} ms "
+              f"x{(r['vs_clbvh'] or 0):6.2f}  hits {r['hits']}  disagree {r['disagree']}", flush=True)
+    print(f"peak RSS {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024:.0f} MiB")
+    for r in runners.values():
+        r.release()
+    if args.json:
+        with open(args.json, "w") as fh:
+            json.dump({"scene": args.scene, "offset": args.offset, "rows": list(rows.values())}, fh, indent=1)
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="python -m viewer.bench.grids_far", description=__doc__.split("\n")[0])
+    add_arguments(p)
+    args = p.parse_args(argv)
+    try:
+        return run(args)
+    except RtwalkError as e:
+        print(f"rtwalk: error: {e}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,41 @@
+"""Counted GL reads, writes, draws and finishes (viewer.iostats): generic code moves data between
+the host and GL objects through these so every frame's bytes, waits and draws are counted.
+
+  read(obj, **kw) -> bytes      texture / buffer / framebuffer read: to_host + one sync
+  write(obj, data, **kw)        texture / buffer write from host memory: to_device
+  draw(vao, *args, **kw)        vao.render(...): one gl_draw
+  finish(ctx)                   ctx.finish() as one timed host sync
+A GL texture read straight into a mapped CL buffer (or written from one) is a staged GL <-> CL
+hop, counted once by the CL map (viewer/cl/io.py), not here.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from viewer import iostats
+
+
+def read(obj: Any, **kw: Any) -> bytes:
+    with iostats.timed_sync():
+        data = obj.read(**kw)
+    iostats.to_host(len(data))
+    return data
+
+
+def write(obj: Any, data: Any, **kw: Any) -> None:
+    n = data.nbytes if isinstance(data, (np.ndarray, memoryview)) else len(data)
+    iostats.to_device(n)
+    obj.write(data, **kw)
+
+
+def draw(vao: Any, *args: Any, **kw: Any) -> None:
+    iostats.gl_draw()
+    vao.render(*args, **kw)
+
+
+def finish(ctx: Any) -> None:
+    with iostats.timed_sync():
+        ctx.finish()
