@@ -211,22 +211,25 @@ def test_builder_choice(monkeypatch):
 
 def test_no_host_round_trip_per_iteration():
     """PLOC reads the cluster count back only every check_every iterations: the host syncs of a
-    build are a constant (reductions, phase finishes, read-back of the tree) plus iterations / k."""
+    build are a constant (reductions, phase finishes, read-back of the tree), the same for every
+    size, plus iterations / check_every."""
     import math
 
     from viewer import iostats
     from viewer.accel.bvh_device import device_builder
 
     b = device_builder()
-    tris = box_grid_tris(20000, seed=1)
-    b.build(tris[:100])
-    iostats.begin_frame()
-    b.build(tris)
-    io = iostats.end_frame()
-    assert b.iterations >= 3 * b.check_every
-    assert io.host_syncs <= 24 + math.ceil(b.iterations / b.check_every), (io, b.iterations)
-    assert io.host_syncs < b.iterations
-    assert io.bytes_to_device >= tris.nbytes
+    b.build(random_tris(100))
+    fixed = []
+    for n in (2000, 20000):
+        tris = box_grid_tris(n, seed=1)
+        iostats.begin_frame()
+        b.build(tris)
+        io = iostats.end_frame()
+        assert b.iterations >= 3 * b.check_every
+        assert io.bytes_to_device >= tris.nbytes
+        fixed.append(io.host_syncs - math.ceil(b.iterations / b.check_every))
+    assert fixed[0] == fixed[1] <= 30, fixed
 
 
 def test_bench_bvh_rows_per_builder(tmp_path, capsys):
@@ -242,7 +245,8 @@ def test_bench_bvh_rows_per_builder(tmp_path, capsys):
         assert r["build_time_s"] > 0 and r["sah_cost"] > 1
         assert r["throughput_mtris_per_s"] == pytest.approx(r["triangles"] / r["build_time_s"] / 1e6)
     sah, dev = rows[0], rows[1]
-    assert dev["io"]["cl_launches"] >= 5 * dev["iterations"] and dev["io"]["host_syncs"] < dev["iterations"]
+    assert dev["io"]["cl_launches"] >= 5 * dev["iterations"]
+    assert dev["io"]["host_syncs"] <= 30 + -(-dev["iterations"] // 4)
     assert sah["io"]["cl_launches"] == 0
     assert dev["sah_ratio"] == pytest.approx(dev["sah_cost"] / sah["sah_cost"])
     assert "device" in capsys.readouterr().out

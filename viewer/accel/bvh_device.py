@@ -108,8 +108,7 @@ class DeviceBvhBuilder:
 
     def _phase(self, name: str, t0: float) -> float:
         """Wall time of a phase (`phases`, seconds): one finish per phase, 5 per build."""
-        self.ctx.finish()
-        iostats.sync()
+        clio.finish(self.ctx.queue)
         t = time.perf_counter()
         self.phases[name] = self.phases.get(name, 0.0) + (t - t0)
         return t
