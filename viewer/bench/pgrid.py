@@ -7,10 +7,10 @@ Studies (``--study``, comma list or ``all``):
   pgrid's primary data-structure build (camera grid and the rays' tile check), primary
   traversal, shadow data-structure build (light grid), data rearrangement (shadow-ray sort into
   chunks), shadow traversal, total and fps; the uniform grid (ugrid, rebuilt every frame) and
-  clbvh / glsl on the same frames, with and without a per-frame BVH build (build_bvh, plus the
-  BVH4 collapse for clbvh, timed on the scene). Also the counters behind the times
-  (triangle-cell pairs of each grid, culled triangles, chunks and their occupancy, rays outside
-  the grids).
+  clbvh / glsl on the same frames, with and without a per-frame BVH build (the per-frame builder,
+  viewer.accel.builders.per_frame_builder, plus the BVH4 collapse for clbvh, timed on the scene).
+  Also the counters behind the times (triangle-cell pairs of each grid, culled triangles, chunks
+  and their occupancy, rays outside the grids).
 - ``lightdist`` (thesis Figure 4.9): shadow time (build + rearrangement + traversal) as the light
   moves away from the model along the line from its centre through the scene's light, for chunk
   sizes 64/128/256 and without load balancing, at a fixed angular resolution (--light-tile-deg) so
