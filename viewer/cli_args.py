@@ -166,7 +166,13 @@ def scene_from_args(args, recording=None):
         spec = rs.spec
         size = size if size is not None else rs.size
         seed = rs.seed if rs.seed is not None else seed
-    return prepare_scene(spec, scene_size=size, seed=seed, mirror_patterns=args.mirror, quiet=args.quiet)
+    cameras = None
+    if recording is not None:  # default lights for what the recording looks at, not only its first view
+        from viewer.session import recording_cameras
+
+        cameras = recording_cameras(recording)
+    return prepare_scene(spec, scene_size=size, seed=seed, mirror_patterns=args.mirror, quiet=args.quiet,
+                         light_cameras=cameras)
 
 
 # ---------------------------------------------------------------------------------------------
