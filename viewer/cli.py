@@ -14,6 +14,7 @@ from viewer.bench import voxels as bench_voxels
 # importing this module)
 from viewer.cli_args import (
     DEFAULT_RECORDING,
+    add_denoise_arg,
     add_effect_args,
     add_progressive_args,
     add_scene_args,
@@ -66,11 +67,14 @@ def cmd_render(args) -> int:
     if rec is not None:  # an animated scene is shown at the recording's scene time of that frame
         renderer.set_scene_time(rec.scene_time_for_frame(args.frame))
     report = renderer.render(camera)
-    Image.fromarray(renderer.read_image()).save(out)
+    denoise = getattr(args, "denoise", "off") == "on"
+    Image.fromarray(renderer.read_denoised("library", camera) if denoise else renderer.read_image()).save(out)
     if not args.quiet:
+        from viewer.denoise import filter_line
+
         rays = ", ".join(f"{k} {v:,}" for k, v in report.rays.items()) or "none"
-        print(f"wrote {out} ({size[0]}x{size[1]}, GPU {sum(report.gpu_ms.values()):.1f} ms; rays: {rays})",
-              file=sys.stderr)
+        print(f"wrote {out} ({size[0]}x{size[1]}, GPU {sum(report.gpu_ms.values()):.1f} ms; rays: {rays}"
+              f"{filter_line(denoise, renderer.view)})", file=sys.stderr)
     return 0
 
 
@@ -99,7 +103,8 @@ def cmd_bench(args) -> int:
     opts = BenchOptions(backend=args.backend, size=size, fps=args.fps,
                         max_frames=args.frames, reference=args.reference, reference_every=args.reference_every,
                         frames_dir=frames_dir, frame_every=args.frame_every, backend_options=backend_options,
-                        first_frame=getattr(args, "first_frame", None))
+                        first_frame=getattr(args, "first_frame", None),
+                        denoise=getattr(args, "denoise", "off") == "on")
     frame_numbers(rec, opts.fps, opts.max_frames, opts.first_frame)  # --first-frame within the path
     check_device(args.backend)
     ctx = create_headless_context()  # no EGL: fail before loading
@@ -225,6 +230,7 @@ def build_parser() -> argparse.ArgumentParser:
     add_progressive_args(v, "progressive refinement (default): one pass per effect at a reduced scale while the "
                             "camera moves, more passes when it stops; --no-progressive: full quality every frame",
                          default=True)
+    add_denoise_arg(v)
     v.set_defaults(size=VIEW_SIZE)
 
     r = sub.add_parser("render", help="render one frame headless to PNG")
@@ -237,6 +243,7 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--view", default="final", help="final or one pass alone (albedo, normal, depth, shadows, ...)")
     r.add_argument("-o", "--output", default="out/render.png",
                    help="image file (.png, .jpg, .bmp, .tif, .ppm, .webp, .tga); its folder is created")
+    add_denoise_arg(r)
 
     b = sub.add_parser("bench", help="replay a recording and report speed and error")
     add_scene_args(b)
@@ -258,6 +265,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="with --save-frames: save every Nth replayed frame (and its overlay views)")
     b.add_argument("--out", default="out/bench", help="folder for the JSON report and plot")
     b.add_argument("--name", default=None, help="report file stem")
+    add_denoise_arg(b, "off")  # only the saved frames (--save-frames); the errors are measured raw
     add_progressive_args(b, "replay in the window's progressive mode (one pass per effect while moving, "
                             "refine after the path stops) and report its frame times, time to convergence and "
                             "the converged image's error against the full-quality frame (no Embree check, "
@@ -301,6 +309,7 @@ def build_parser() -> argparse.ArgumentParser:
     add_scene_args(d)
     add_effect_args(d, "shadows,ao:4,reflections")
     d.add_argument("--frames", type=int, default=24, help="without a display: frames replayed (>= 1)")
+    add_denoise_arg(d)
     return ap
 
 

@@ -103,6 +103,14 @@ def add_effect_args(p: argparse.ArgumentParser, default: str) -> None:
                         "min_tile_fraction, max_subtree_height, max_batch, max_multi, ...)")
 
 
+def add_denoise_arg(p: argparse.ArgumentParser, default: str = "on") -> None:
+    """--denoise on|off: filter the picture shown or saved (viewer.denoise); measurements stay raw."""
+    p.add_argument("--denoise", choices=["on", "off"], default=default,
+                   help="denoise the picture shown or saved, guided by the G-buffer's albedo and normal: "
+                        "Open Image Denoise (pyoidn) for stills, replays and screenshots, an a-trous filter "
+                        f"on the device for moving frames (default {default}; errors are measured raw)")
+
+
 def add_progressive_args(p: argparse.ArgumentParser, help_flag: str, default: bool = False) -> None:
     """--progressive / --no-progressive and --frame-target-ms (viewer.progressive)."""
     p.add_argument("--progressive", action=argparse.BooleanOptionalAction, default=default, help=help_flag)

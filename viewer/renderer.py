@@ -120,6 +120,7 @@ class Renderer:
         self.overlay_missing = ""
         self.backend_overlays: tuple[str, ...] | None = None  # textures the backend returned last (None: not traced)
         self._overlay: OverlayPass | None = None
+        self._atrous = None  # viewer.passes.denoise.AtrousPass, created on first use
         self._idle_fbo: moderngl.Framebuffer | None = None  # bound during a headless resize
         self.backend_name = ""
         self.backend = None
@@ -205,6 +206,8 @@ class Renderer:
         self.hits = HitBuffer(self.ctx, size)
         if self._overlay is not None:
             self._overlay.resize(size)
+        if self._atrous is not None:
+            self._atrous.resize(size)
 
     @property
     def final_texture(self) -> moderngl.Texture:
@@ -430,7 +433,56 @@ class Renderer:
                            self.overlay_source, iostats.end_frame())
 
     def read_image(self) -> np.ndarray:
+        """The raw frame (uint8 (H, W, 3), top row first): what tests and the bench compare."""
         return self.shade.read_rgb()
+
+    # -- denoising of the picture shown or saved (viewer.denoise); read_image stays raw ----------
+    @property
+    def device_denoiser(self):
+        """The a-trous pass (viewer.passes.denoise), created on first use."""
+        if self._atrous is None:
+            from viewer.passes.denoise import AtrousPass
+
+            self._atrous = AtrousPass(self.ctx, self.programs, self.quad, self.size)
+        self._atrous.resize(self.size)
+        return self._atrous
+
+    def denoise_on_device(self, camera: Camera) -> moderngl.Texture:
+        """Filter the last frame on the device (a few draws, no read-back); the filtered texture.
+        A shade view other than "final" (one effect alone, a diagnostic) is shown unfiltered."""
+        if self.view != "final":
+            return self.final_texture
+        return self.device_denoiser.render(self.final_texture, self.gbuffer, camera.fov_y)
+
+    def read_guides(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(albedo, normal) float32 (H, W, 3) and kept (H, W) bool (background or mirror pixels),
+        top row first, from the G-buffer of the last frame."""
+        from viewer.gl.textures import read_texture
+
+        alb, nrm, ids = (read_texture(t)[::-1] for t in (self.gbuffer.albedo, self.gbuffer.normal, self.gbuffer.tri_id))
+        iostats.to_host(alb.nbytes + nrm.nbytes + ids.nbytes)
+        nrm, ids = nrm[..., :3], ids[..., 0]
+        kept = (ids < 0) | (alb[..., 3] > 0.5)
+        return np.ascontiguousarray(alb[..., :3]), np.ascontiguousarray(nrm), kept
+
+    def read_denoised(self, method: str = "library", camera: Camera | None = None,
+                      image: np.ndarray | None = None) -> np.ndarray:
+        """The last frame filtered, uint8 (H, W, 3), top row first. "library": Open Image Denoise
+        on `image` (default read_image(); the device filter where pyoidn is missing); "device":
+        the a-trous pass on the shaded texture (`camera`, the frame's, gives the pixel footprint).
+        Views other than "final" come back raw."""
+        from viewer.denoise import library_denoise, library_missing
+
+        if self.view != "final":
+            return self.read_image() if image is None else image
+        if method == "library" and library_missing() is None:
+            alb, nrm, kept = self.read_guides()
+            return library_denoise(self.read_image() if image is None else image, alb, nrm, kept)
+        fov = camera.fov_y if camera is not None else 60.0
+        tex = self.device_denoiser.render(self.final_texture, self.gbuffer, fov)
+        data = np.frombuffer(tex.read(), np.uint8).reshape(self.size[1], self.size[0], 4)
+        iostats.to_host(data.nbytes)
+        return np.ascontiguousarray(data[::-1, :, :3])
 
     def read_gbuffer_ids(self) -> np.ndarray:
         """int32 (H*W,) raster triangle id per pixel (row 0 = bottom), -1 = background."""
@@ -451,6 +503,9 @@ class Renderer:
             obj.release()
         if self._overlay is not None:
             self._overlay.release()
+        if self._atrous is not None:
+            self._atrous.release()
+            self._atrous = None
         if self._idle_fbo is not None:
             self._idle_fbo.release()
             self._overlay = None

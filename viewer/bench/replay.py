@@ -40,6 +40,7 @@ class BenchOptions:
     frame_every: int = 10
     backend_options: dict[str, str] | None = None  # per backend: parameter text (--backend-params)
     first_frame: int | None = None  # consecutive frames from here (None: spread over the path)
+    denoise: bool = False  # saved frames denoised (viewer.denoise); every error is measured on the raw image
 
 
 def reference_errors(renderer: Renderer, camera, tracer) -> dict:
@@ -159,6 +160,8 @@ def run_bench(prepared: PreparedScene, rec, settings: EffectSettings, opts: Benc
 
             if image is None:
                 image = renderer.read_image()
+            if opts.denoise:  # the picture only: the errors above were taken on the raw image
+                image = renderer.read_denoised("library", cam, image)
             opts.frames_dir.mkdir(parents=True, exist_ok=True)
             Image.fromarray(image).save(opts.frames_dir / f"frame_{n:05d}.png")
             row["overlays"] = save_overlay_views(renderer, cam, opts.frames_dir, n)
