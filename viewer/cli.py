@@ -178,6 +178,12 @@ def cmd_bench_voxelwalk(args) -> int:
     return run(args)
 
 
+def cmd_bench_denoise(args) -> int:
+    from viewer.bench.denoise import run
+
+    return run(args)
+
+
 def cmd_bench_light(args) -> int:
     from viewer.bench.lit import run
 
@@ -291,7 +297,11 @@ def build_parser() -> argparse.ArgumentParser:
                                                           "on the same captured rays"))
     add_bench_cl_args(sub.add_parser("bench-cl", help="OpenCL sort/scan/compact throughput next to NumPy"))
     bench_voxels.add_parser(sub)
+    from viewer.bench.denoise import add_arguments as add_bench_denoise_args
     from viewer.bench.lit import add_arguments as add_bench_light_args
+
+    add_bench_denoise_args(sub.add_parser("bench-denoise", help="denoisers (OIDN, device a-trous) against a "
+                                          "256-sample reference: MAE raw vs filtered and cost in ms"))
 
     add_bench_light_args(sub.add_parser("bench-light", help="share of directly lit pixels (--view shadows) "
                                         "along the shipped recordings, every 60th frame"))
@@ -322,8 +332,9 @@ def main(argv: list[str] | None = None) -> int:
     args.command_line = shlex.join(["rtwalk", *argv])  # what the reports quote to reproduce a run
     handlers = {"view": cmd_view, "render": cmd_render, "bench": cmd_bench, "bench-bvh": cmd_bench_bvh,
                 "bench-chcrt": cmd_bench_chcrt, "bench-pgrid": cmd_bench_pgrid, "bench-voxelwalk": cmd_bench_voxelwalk,
-                "bench-trace": cmd_bench_trace, "bench-cl": cmd_bench_cl, "bench-light": cmd_bench_light, "bench-voxels": bench_voxels.run,
+                "bench-trace": cmd_bench_trace, "bench-cl": cmd_bench_cl, "bench-voxels": bench_voxels.run,
                 "info": cmd_info, "demo": cmd_demo}
+    handlers.update({"bench-light": cmd_bench_light, "bench-denoise": cmd_bench_denoise})
     if args.command == "demo":
         # demo reuses bench/view; fill in what their parsers would have set
         for key, val in {"recording": None, "fps": None, "reference": "embree", "reference_every": 6,

@@ -1,7 +1,8 @@
 """Where the repository's data lives: the one home of the folders scenes and recordings are looked up in.
 
 The scenes shared between checkouts sit beside the repository (../shared/scenes, or
-$RTWALK_SHARED/scenes); the recordings ship in recordings/. Scene loading, recordings, the CLI and the benchmarks all resolve names here.
+$RTWALK_SHARED/scenes); the recordings ship in recordings/. Scene loading, recordings, the CLI and the
+benchmarks all resolve names here.
 """
 
 from __future__ import annotations

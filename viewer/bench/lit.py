@@ -12,8 +12,6 @@ from __future__ import annotations
 import argparse
 import sys
 
-import numpy as np
-
 from viewer.errors import RtwalkError
 from viewer.paths import RECORDINGS
 
