@@ -67,6 +67,7 @@ def measure(prepared, rec, frame: int, settings, size: tuple[int, int], ctx, ref
                 lib = renderer.read_denoised("library", cam, raw)
                 lib_ms.append((time.perf_counter() - t0) * 1e3)
             out.update(library_mae=image_mae(lib, ref), library_ms=float(np.median(lib_ms)))
+        out["kept"] = renderer.read_guides()[2]  # background and mirror pixels (left unfiltered)
         out["images"] = {"raw": raw, "reference": ref, "device": dev,
                          **({"library": lib} if out["library_missing"] is None else {})}
         return out
