@@ -452,7 +452,7 @@ class Renderer:
         A shade view other than "final" (one effect alone, a diagnostic) is shown unfiltered."""
         if self.view != "final":
             return self.final_texture
-        return self.device_denoiser.render(self.final_texture, self.gbuffer, camera.fov_y)
+        return self.device_denoiser.render(self.final_texture, self.gbuffer)
 
     def read_guides(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(albedo, normal) float32 (H, W, 3) and kept (H, W) bool (background or mirror pixels),
@@ -478,8 +478,7 @@ class Renderer:
         if method == "library" and library_missing() is None:
             alb, nrm, kept = self.read_guides()
             return library_denoise(self.read_image() if image is None else image, alb, nrm, kept)
-        fov = camera.fov_y if camera is not None else 60.0
-        tex = self.device_denoiser.render(self.final_texture, self.gbuffer, fov)
+        tex = self.device_denoiser.render(self.final_texture, self.gbuffer)
         data = np.frombuffer(tex.read(), np.uint8).reshape(self.size[1], self.size[0], 4)
         iostats.to_host(data.nbytes)
         return np.ascontiguousarray(data[::-1, :, :3])
