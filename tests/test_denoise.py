@@ -77,9 +77,21 @@ def test_denoising_leaves_the_raw_frame_alone(gl_ctx):
         after = r.read_image()
         np.testing.assert_array_equal(before, after)
         assert (dev != before).any() and (lib != before).any()
+        # in the frame (the window's moving frames): a phase of the report, a fixed number of
+        # draws, the raw frame unchanged, the shown picture the filtered one
+        off = r.render(cam)
+        r.denoise = True
+        on = r.render(cam)
+        assert "denoise" in on.gpu_ms and "denoise" not in off.gpu_ms
+        assert on.io.gl_draws - off.io.gl_draws == r.device_denoiser.draws <= 6
+        np.testing.assert_array_equal(r.read_image(), before)
+        assert r.shown_texture is not r.final_texture
+        shown = np.frombuffer(r.shown_texture.read(), np.uint8).reshape(54, 96, 4)[::-1, :, :3]
+        np.testing.assert_array_equal(shown, dev)
         r.view = "ao"  # a single effect shown alone is a diagnostic: never filtered
         r.render(cam)
         np.testing.assert_array_equal(r.read_denoised("library", cam), r.read_image())
+        assert r.shown_texture is r.final_texture
     finally:
         r.release()
 

@@ -121,6 +121,11 @@ class Renderer:
         self.backend_overlays: tuple[str, ...] | None = None  # textures the backend returned last (None: not traced)
         self._overlay: OverlayPass | None = None
         self._atrous = None  # viewer.passes.denoise.AtrousPass, created on first use
+        # the window's moving frames: run the device filter inside render() (phase "denoise", in the
+        # frame's time, so a render scale that follows the frame time pays for it too); the result
+        # is `shown_texture`, read_image() stays raw
+        self.denoise = False
+        self.denoised = False
         self._idle_fbo: moderngl.Framebuffer | None = None  # bound during a headless resize
         self.backend_name = ""
         self.backend = None
@@ -420,6 +425,11 @@ class Renderer:
             else:  # an overlay view without overlays (window): the final image under the message
                 self.shade.render(self.gbuffer, self.accumulate, s, "final" if view_overlay else self.view,
                                   min(len(self.scene.point_lights), 8), self.depth_scale, self.acc_scale())
+        self.denoised = False
+        if self.denoise and self.view == "final":  # the picture shown; shade.color stays raw
+            with prof.phase("denoise"):
+                self.device_denoiser.render(self.shade.color, self.gbuffer)
+            self.denoised = True
         self.overlay_source = source if overlay_done else None
         gpu_ms = prof.end_frame()
         if prof.saturated:  # timer results charged their CPU time instead (see profiler.py)
@@ -447,7 +457,12 @@ class Renderer:
         self._atrous.resize(self.size)
         return self._atrous
 
-    def denoise_on_device(self, camera: Camera) -> moderngl.Texture:
+    @property
+    def shown_texture(self) -> moderngl.Texture:
+        """The picture of the last frame: device-filtered when `denoise` filtered it, else raw."""
+        return self._atrous.color if self.denoised and self._atrous is not None else self.final_texture
+
+    def denoise_on_device(self, camera: Camera | None = None) -> moderngl.Texture:
         """Filter the last frame on the device (a few draws, no read-back); the filtered texture.
         A shade view other than "final" (one effect alone, a diagnostic) is shown unfiltered."""
         if self.view != "final":

@@ -239,6 +239,7 @@ class ViewerApp:
         from viewer.ui.denoise_view import DisplayDenoiser
 
         self.denoiser = DisplayDenoiser(self.ctx) if denoise else None  # --denoise on: the picture shown
+        self.renderer.denoise = denoise  # the device filter runs inside each frame (its cost is timed)
         start = self.scene.default_camera or _overview_camera(self.scene)
         self.fly = FlyCamera.from_camera(start, self.renderer.diagonal)
         self.camera: Camera = self.fly.camera()

@@ -1,10 +1,10 @@
 """Which filter the window's picture goes through (--denoise on): cost chosen by frame budget.
 
-Moving, refining or full-quality-every-frame: the device a-trous pass (a few draws, no
-read-back), every rendered frame. Converged (the still camera has all its samples, the window
-then idles): Open Image Denoise once on that final image (a few hundred ms, paid once, not per
-frame), uploaded to a texture shown until the next change. Where pyoidn is missing the device
-filter stays. Views other than "final" are shown raw.
+Moving, refining or full-quality-every-frame: the device a-trous pass (a few draws, no read-back),
+run inside every rendered frame (Renderer.denoise: phase "denoise" of its report). Converged (the
+still camera has all its samples, the window then idles): Open Image Denoise once on that final
+image (a few hundred ms, paid once, not per frame), uploaded to a texture shown until the next
+change. Where pyoidn is missing the device filter stays. Views other than "final" are shown raw.
 """
 
 from __future__ import annotations
@@ -44,8 +44,9 @@ class DisplayDenoiser:
             self.still.write(data.tobytes())
             iostats.to_device(data.nbytes)
             self.shown, self.method = self.still, "library"
-        else:
-            self.shown, self.method = renderer.denoise_on_device(camera), "device"
+        else:  # filtered inside the frame (Renderer.denoise), its cost in the frame's time
+            self.shown = renderer.shown_texture
+            self.method = "device" if renderer.denoised else ""
         return self.shown
 
     def release(self) -> None:
