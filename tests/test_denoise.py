@@ -92,6 +92,10 @@ def test_denoising_leaves_the_raw_frame_alone(gl_ctx):
         r.render(cam)
         np.testing.assert_array_equal(r.read_denoised("library", cam), r.read_image())
         assert r.shown_texture is r.final_texture
+        r.view, r.settings = "final", parse_effects("shadows")  # exact effects only: nothing to filter
+        rep = r.render(cam)
+        assert "denoise" not in rep.gpu_ms and r.shown_texture is r.final_texture
+        np.testing.assert_array_equal(r.read_denoised("library", cam), r.read_image())
     finally:
         r.release()
 

@@ -74,7 +74,7 @@ def cmd_render(args) -> int:
 
         rays = ", ".join(f"{k} {v:,}" for k, v in report.rays.items()) or "none"
         print(f"wrote {out} ({size[0]}x{size[1]}, GPU {sum(report.gpu_ms.values()):.1f} ms; rays: {rays}"
-              f"{filter_line(denoise, renderer.view)})", file=sys.stderr)
+              f"{filter_line(denoise, renderer)})", file=sys.stderr)
     return 0
 
 

@@ -11,7 +11,8 @@ the raw frame (backend agreement, image tests and the bench's Embree comparison 
 - "device": the a-trous wavelet pass on the GPU (viewer.passes.denoise): moving frames in the
   window, a few ms of full-screen draws, and the fallback where pyoidn is missing.
 
-`--denoise on|off` (view, demo, render; on by default) picks whether the picture is filtered.
+`--denoise on|off` (view, demo, render; on by default) picks whether the picture is filtered;
+frames without sampled effects (only point-light shadows and mirrors: exact) are never filtered.
 """
 
 from __future__ import annotations
@@ -52,9 +53,11 @@ def image_mae(a: np.ndarray, b: np.ndarray) -> float:
     return float(np.abs(a.astype(np.float64) - b.astype(np.float64)).mean())
 
 
-def filter_line(denoise: bool, view: str) -> str:
+def filter_line(denoise: bool, renderer) -> str:
     """What the saved picture went through, for a CLI's closing line."""
-    if not denoise or view != "final":
+    if not denoise or renderer.view != "final":
         return ""
+    if not renderer.noisy:
+        return "; not denoised: no sampled effect (soft, ao, diffuse)"
     why = library_missing()
     return "; denoised: Open Image Denoise" if why is None else f"; denoised: device a-trous filter ({why})"

@@ -426,7 +426,7 @@ class Renderer:
                 self.shade.render(self.gbuffer, self.accumulate, s, "final" if view_overlay else self.view,
                                   min(len(self.scene.point_lights), 8), self.depth_scale, self.acc_scale())
         self.denoised = False
-        if self.denoise and self.view == "final":  # the picture shown; shade.color stays raw
+        if self.denoise and self.view == "final" and self.noisy:  # the picture shown; shade.color stays raw
             with prof.phase("denoise"):
                 self.device_denoiser.render(self.shade.color, self.gbuffer)
             self.denoised = True
@@ -458,6 +458,13 @@ class Renderer:
         return self._atrous
 
     @property
+    def noisy(self) -> bool:
+        """The final image has sampled (Monte Carlo) effects: soft shadows, AO or diffuse. Point-light
+        shadows and mirror reflections are one exact ray per pixel: nothing to denoise."""
+        s = self.settings
+        return bool(s.soft or s.ao or s.diffuse)
+
+    @property
     def shown_texture(self) -> moderngl.Texture:
         """The picture of the last frame: device-filtered when `denoise` filtered it, else raw."""
         return self._atrous.color if self.denoised and self._atrous is not None else self.final_texture
@@ -484,11 +491,11 @@ class Renderer:
                       image: np.ndarray | None = None) -> np.ndarray:
         """The last frame filtered, uint8 (H, W, 3), top row first. "library": Open Image Denoise
         on `image` (default read_image(); the device filter where pyoidn is missing); "device":
-        the a-trous pass on the shaded texture (`camera`, the frame's, gives the pixel footprint).
-        Views other than "final" come back raw."""
+        the a-trous pass on the shaded texture. Views other than "final", and frames without
+        sampled effects (`noisy`), come back raw."""
         from viewer.denoise import library_denoise, library_missing
 
-        if self.view != "final":
+        if self.view != "final" or not self.noisy:
             return self.read_image() if image is None else image
         if method == "library" and library_missing() is None:
             alb, nrm, kept = self.read_guides()

@@ -27,7 +27,7 @@ class DisplayDenoiser:
         refinement); `rendered`: a frame was rendered this call (False: idle, keep the last)."""
         from viewer.denoise import library_missing
 
-        if renderer.view != "final" or renderer.is_overlay_view:
+        if renderer.view != "final" or renderer.is_overlay_view or not renderer.noisy:
             self.method = ""
             return renderer.final_texture
         if not rendered and self.shown is not None:
