@@ -191,16 +191,106 @@ def test_refuses_builds_the_device_cannot_hold(monkeypatch):
 
 
 def test_builder_choice(monkeypatch):
-    from viewer.accel.builders import AUTO_DEVICE_MIN, resolve_builder
+    from viewer.accel.builders import AUTO_DEVICE_MIN, per_frame_builder, resolve_builder
     from viewer.errors import RtwalkError
 
     monkeypatch.delenv("RTWALK_BVH_BUILDER", raising=False)
+    assert per_frame_builder() == "device"  # OpenCL is there (module skip otherwise)
     assert resolve_builder(None, 1000) == "sah"
     assert resolve_builder(None, AUTO_DEVICE_MIN) == "device"
     assert resolve_builder("sah", AUTO_DEVICE_MIN) == "sah"
     monkeypatch.setenv("RTWALK_BVH_BUILDER", "device")
     assert resolve_builder(None, 10) == "device"
     assert resolve_builder("sah", 10) == "sah"  # the option wins over the environment
+    monkeypatch.setenv("RTWALK_BVH_BUILDER", "sah")
+    assert per_frame_builder() == "sah"
     monkeypatch.setenv("RTWALK_BVH_BUILDER", "fast")
     with pytest.raises(RtwalkError, match="RTWALK_BVH_BUILDER"):
         resolve_builder(None, 10)
+
+
+def test_no_host_round_trip_per_iteration():
+    """PLOC reads the cluster count back only every check_every iterations: the host syncs of a
+    build are a constant (reductions, phase finishes, read-back of the tree), the same for every
+    size, plus iterations / check_every."""
+    import math
+
+    from viewer import iostats
+    from viewer.accel.bvh_device import device_builder
+
+    b = device_builder()
+    b.build(random_tris(100))
+    fixed = []
+    for n in (2000, 20000):
+        tris = box_grid_tris(n, seed=1)
+        iostats.begin_frame()
+        b.build(tris)
+        io = iostats.end_frame()
+        assert b.iterations >= 3 * b.check_every
+        assert io.bytes_to_device >= tris.nbytes
+        fixed.append(io.host_syncs - math.ceil(b.iterations / b.check_every))
+    assert fixed[0] == fixed[1] <= 30, fixed
+
+
+def test_bench_bvh_rows_per_builder(tmp_path, capsys):
+    import json
+
+    from viewer.cli import main
+
+    assert main(["bench-bvh", "--builders", "sah,device", "--sizes", "3000,5000", "--out", str(tmp_path)]) == 0
+    rows = json.loads((tmp_path / "bvh-build.json").read_text())
+    assert [(r["builder"], r["target"]) for r in rows] == [("sah", 3000), ("device", 3000), ("sah", 5000),
+                                                           ("device", 5000)]
+    for r in rows:
+        assert r["build_time_s"] > 0 and r["sah_cost"] > 1
+        assert r["throughput_mtris_per_s"] == pytest.approx(r["triangles"] / r["build_time_s"] / 1e6)
+    sah, dev = rows[0], rows[1]
+    assert dev["io"]["cl_launches"] >= 5 * dev["iterations"]
+    assert dev["io"]["host_syncs"] <= 30 + -(-dev["iterations"] // 4)
+    assert sah["io"]["cl_launches"] == 0
+    assert dev["sah_ratio"] == pytest.approx(dev["sah_cost"] / sah["sah_cost"])
+    assert "device" in capsys.readouterr().out
+
+
+def test_overflowing_areas():
+    """Coordinates so large that float32 surface areas overflow (inf, NaN costs): still a valid tree."""
+    tris = (random_tris(500, seed=4, extent=1.0, size=0.3) * np.float32(1e25)).astype(np.float32)
+    bvh = device_bvh(tris)
+    check_tree(bvh, tris)
+    walk_reaches_each_node_once(bvh)
+    check_gpu_nodes(bvh)
+
+
+@pytest.mark.parametrize("backend", ["glsl", "clbvh"])
+def test_renderer_on_device_tree_agrees_with_embree(backend, gl_ctx):
+    """prepare_scene with the device builder, then a Renderer frame (primary, shadows, AO)
+    traced by each BVH backend, every captured pass against Embree."""
+    from tests.test_clbvh import RECORDINGS
+    from viewer.effects import parse_effects
+    from viewer.recording import load_recording
+    from viewer.renderer import Renderer
+    from viewer.session import prepare_scene
+
+    prep = prepare_scene("city", scene_size=30_000, quiet=True, bvh_builder="device")
+    check_tree(prep.bvh, prep.scene.triangles[np.argsort(prep.bvh.tri_order)])
+    rec = load_recording(RECORDINGS / "city-near.json")
+    camera = rec.camera_for_frame(rec.frame_count() // 3)
+    r = Renderer(gl_ctx, prep.scene, prep.bvh, (160, 90), backend, parse_effects("primary,shadows,ao:2"))
+    try:
+        rep = r.render(camera, capture=True)
+    finally:
+        r.release()
+    embree = EmbreeTracer(prep.scene.triangles)
+    passes = 0
+    for cp in rep.captured:
+        act = cp.rays.active
+        if not act.any():
+            continue
+        passes += 1
+        o, d, lo, hi = cp.rays.origins[act], cp.rays.directions[act], cp.rays.tmin[act], cp.rays.tmax[act]
+        rt, rtri = embree.trace(o, d, lo, hi, any_hit=cp.ray_type.any_hit)
+        st = compare_hits(cp.t[act], cp.tri[act], rt, rtri, prep.scene.triangles)
+        assert st["hitmiss_agree"] >= 0.999 and st["n_bad_id"] == 0, (cp.ray_type.label, st)
+        if not cp.ray_type.any_hit:
+            assert st["id_agree"] >= 0.999, (cp.ray_type.label, st)
+    assert passes >= 3

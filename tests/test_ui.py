@@ -577,8 +577,12 @@ _PROGRESSIVE_DRIVER = textwrap.dedent('''
         log["steps"].append({"moving": st.moving, "scale": st.scale, "done": st.samples_done,
                              "requested": st.samples_requested, "idle": st.report is None,
                              "size": list(self.renderer.size), "line": st.line()})
-        if n == 13:
-            np.save("final.npy", self.renderer.read_image())
+        if n == 13:  # the picture shown: the converged frame through Open Image Denoise (--denoise on)
+            tex = self.denoiser.shown
+            shown = np.frombuffer(tex.read(), np.uint8).reshape(tex.height, tex.width, tex.components)
+            np.save("final.npy", shown[::-1, :, :3])
+            np.save("raw.npy", self.renderer.read_image())
+            log["method"] = self.denoiser.method
 
     ui_app.ViewerApp.frame = frame
     args = cli.build_parser().parse_args(["view", "room", "--size", "400x240", "--effects", "shadows,ao:4",
@@ -617,6 +621,10 @@ def test_view_progressive_panel_beside_the_image(tmp_path):
     assert img.shape == (240, 400 + PANEL_WIDTH, 3)
     final = np.load(tmp_path / "final.npy")
     np.testing.assert_array_equal(img[:, PANEL_WIDTH:], final)  # the whole image, nothing under the panel
+    from viewer.denoise import library_missing
+
+    assert log["method"] == ("library" if library_missing() is None else "device")
+    assert (final != np.load(tmp_path / "raw.npy")).any()  # denoised: not the raw frame
 
 
 # --------------------------------------------------------------------------- issue 23: the panel fits

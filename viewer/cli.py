@@ -13,6 +13,7 @@ from viewer.bench import BENCHMARKS, bench_module
 # importing this module)
 from viewer.cli_args import (
     DEFAULT_RECORDING,
+    add_denoise_arg,
     add_effect_args,
     add_force_arg,
     add_progressive_args,
@@ -64,11 +65,14 @@ def cmd_render(args) -> int:
         renderer.set_scene_time(rec.scene_time_for_frame(args.frame))
     report = renderer.render(camera)
     out.parent.mkdir(parents=True, exist_ok=True)
-    Image.fromarray(renderer.read_image()).save(out)
+    denoise = getattr(args, "denoise", "off") == "on"
+    Image.fromarray(renderer.read_denoised("library", camera) if denoise else renderer.read_image()).save(out)
     if not args.quiet:
+        from viewer.denoise import filter_line
+
         rays = ", ".join(f"{k} {v:,}" for k, v in report.rays.items()) or "none"
-        print(f"wrote {out} ({size[0]}x{size[1]}, GPU {sum(report.gpu_ms.values()):.1f} ms; rays: {rays})",
-              file=sys.stderr)
+        print(f"wrote {out} ({size[0]}x{size[1]}, GPU {sum(report.gpu_ms.values()):.1f} ms; rays: {rays}"
+              f"{filter_line(denoise, renderer)})", file=sys.stderr)
     return 0
 
 
@@ -125,6 +129,7 @@ def build_parser() -> argparse.ArgumentParser:
     add_progressive_args(v, "progressive refinement (default): one pass per effect at a reduced scale while the "
                             "camera moves, more passes when it stops; --no-progressive: full quality every frame",
                          default=True)
+    add_denoise_arg(v)
     v.set_defaults(size=VIEW_SIZE)
 
     r = sub.add_parser("render", help="render one frame headless to PNG")
@@ -137,6 +142,7 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--view", default="final", help="final or one pass alone (albedo, normal, depth, shadows, ...)")
     r.add_argument("-o", "--output", default="out/render.png",
                    help="image file (.png, .jpg, .bmp, .tif, .ppm, .webp, .tga); its folder is created")
+    add_denoise_arg(r)
 
     for command in BENCHMARKS:  # every benchmark registers itself (viewer/bench/__init__.py)
         module = bench_module(command)
@@ -154,6 +160,7 @@ def build_parser() -> argparse.ArgumentParser:
     add_scene_args(d)
     add_effect_args(d, "shadows,ao:4,reflections")
     d.add_argument("--frames", type=int, default=24, help="without a display: frames replayed (>= 1)")
+    add_denoise_arg(d)
     return ap
 
 

@@ -108,6 +108,14 @@ def add_effect_args(p: argparse.ArgumentParser, default: str) -> None:
                             f"`rtwalk info --backend {name}` lists them)")
 
 
+def add_denoise_arg(p: argparse.ArgumentParser, default: str = "on") -> None:
+    """--denoise on|off: filter the picture shown or saved (viewer.denoise); measurements stay raw."""
+    p.add_argument("--denoise", choices=["on", "off"], default=default,
+                   help="denoise the picture shown or saved, guided by the G-buffer's albedo and normal: "
+                        "Open Image Denoise (pyoidn) for stills, replays and screenshots, an a-trous filter "
+                        f"on the device for moving frames (default {default}; errors are measured raw)")
+
+
 def add_progressive_args(p: argparse.ArgumentParser, help_flag: str, default: bool = False) -> None:
     """--progressive / --no-progressive and --frame-target-ms (viewer.progressive)."""
     p.add_argument("--progressive", action=argparse.BooleanOptionalAction, default=default, help=help_flag)
@@ -185,8 +193,13 @@ def scene_from_args(args, recording=None):
         spec = rs.spec
         size = size if size is not None else rs.size
         seed = rs.seed if rs.seed is not None else seed
+    cameras = None
+    if recording is not None:  # default lights for what the recording looks at, not only its first view
+        from viewer.session import recording_cameras
+
+        cameras = recording_cameras(recording)
     return prepare_scene(spec, scene_size=size, seed=seed, mirror_patterns=args.mirror, quiet=args.quiet,
-                         bvh_builder=getattr(args, "bvh_builder", None))
+                         bvh_builder=getattr(args, "bvh_builder", None), light_cameras=cameras)
 
 
 # ---------------------------------------------------------------------------------------------

@@ -22,6 +22,12 @@ from viewer.scene import PointLight, RectLight, Scene
 
 GRID = (32, 18)  # camera rays for the visible samples
 KEEP_GUESS = 0.85  # the loader's guess stays if it lights this share of the best candidate's samples
+PATH_GRID = (16, 9)  # camera rays per camera of a walk (place_set)
+MAX_SET_LIGHTS = 4  # lights for a walk: each costs one shadow pass (the shade pass takes up to 8)
+MAX_RECT = 4  # the rect lights the shaders take (lighting.glsl MAX_RECT_LIGHTS)
+SET_TARGET = 0.6  # a camera's lit pixel share beyond which more light on it scores nothing more
+SET_MIN_GAIN = 0.01  # per camera: a light adding less than this to the capped score is not added
+PATH_CAMERA_STEP = 20  # frames between the recording cameras lights are chosen for
 
 
 @dataclass
@@ -46,10 +52,11 @@ def _normals(tris: np.ndarray, ids: np.ndarray) -> np.ndarray:
     return n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-300)
 
 
-def visible_samples(scene: Scene, bvh: BVH, camera) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def visible_samples(scene: Scene, bvh: BVH, camera, grid: tuple[int, int] = GRID
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(points (K, 3), normals facing the camera (K, 3), ray directions (K, 3)) on a coarse grid."""
-    o, d = camera.primary_rays(*GRID)
-    o = np.broadcast_to(np.asarray(o, np.float64).reshape(-1, 3), (GRID[0] * GRID[1], 3))
+    o, d = camera.primary_rays(*grid)
+    o = np.broadcast_to(np.asarray(o, np.float64).reshape(-1, 3), (grid[0] * grid[1], 3))
     d = np.asarray(d, np.float64).reshape(-1, 3)
     t, ids = cast_rays(bvh, scene.triangles, o, d)
     hit = ids >= 0
@@ -135,18 +142,62 @@ def place(scene: Scene, bvh: BVH, guess: np.ndarray) -> Placement | None:
     return Placement(pos, float(share[best]), float(nearest[idx[best]]), p[sel].mean(0), float(np.median(dists)))
 
 
-def apply(scene: Scene, bvh: BVH) -> Placement | None:
-    """Replace the loader's guessed lights (scene.auto_lights) by the ray-cast placement. The point
-    light gives irradiance ~1 at the median distance of the samples it lights; the rect light (soft
-    shadows) sits at the same spot, facing them, small enough to stay in free space."""
-    if not scene.auto_lights or not scene.point_lights:
-        return None
-    guess = np.asarray(scene.point_lights[0].position, np.float64)
-    pl = place(scene, bvh, guess)
-    if pl is None or np.array_equal(pl.position, guess):
-        return pl
+def place_set(scene: Scene, bvh: BVH, guess: np.ndarray, cameras: list,
+              max_lights: int = MAX_SET_LIGHTS) -> list[Placement]:
+    """A few free-space lights that together light what every camera of a walk sees.
+
+    One light placed for the first camera leaves the rest of a walk (conference-walk: the far end
+    of the room, the corridor) in the dark. Here every camera contributes its visible samples
+    (PATH_GRID rays, misses included, so a camera's share is a share of its pixels) and its own
+    candidates; lights are then chosen greedily, each maximising sum over cameras of
+    min(share of that camera's pixels lit by the chosen set, SET_TARGET): the cap makes a light that
+    lifts a dark camera worth more than one that brightens a lit one. Stops at `max_lights` or when
+    no light adds SET_MIN_GAIN."""
+    diag = max(scene.diagonal, 1e-12)
+    pts, nrm, owner, cand = [], [], [], [np.asarray(guess, np.float64)[None]]
+    rays_per_camera = PATH_GRID[0] * PATH_GRID[1]
+    for c, cam in enumerate(cameras):
+        p, n, _ = visible_samples(scene, bvh, cam, PATH_GRID)
+        pts.append(p)
+        nrm.append(n)
+        owner.append(np.full(len(p), c))
+        if len(p):
+            cand.append(candidates(scene, cam, np.asarray(guess, np.float64), p)[1:])
+    p, n, owner = np.concatenate(pts), np.concatenate(nrm), np.concatenate(owner)
+    if len(p) == 0:
+        return []
+    cand = np.concatenate(cand)
+    nearest = clearance(scene, bvh, cand)
+    idx = np.flatnonzero(nearest > 0.01 * diag)
+    if len(idx) == 0:
+        return []
+    _, lit = lit_share(scene, bvh, cand[idx], p, n, 1e-4 * diag)
+    onehot = np.zeros((len(p), len(cameras)))
+    onehot[np.arange(len(p)), owner] = 1.0 / rays_per_camera
+    per_cam = lit.astype(np.float64) @ onehot  # (L, C): share of each camera's pixels each light lights
+    covered = np.zeros(len(p), bool)
+    chosen: list[Placement] = []
+    score = 0.0
+    for _ in range(max_lights):
+        gain_lit = (lit & ~covered).astype(np.float64) @ onehot + (covered.astype(np.float64) @ onehot)[None]
+        scores = np.minimum(gain_lit, SET_TARGET).sum(1) + 1e-3 * per_cam.sum(1)
+        best = int(np.argmax(scores))
+        if scores[best] - score < SET_MIN_GAIN * len(cameras):
+            break
+        new = lit[best] & ~covered
+        sel = new if new.any() else lit[best]
+        pos = cand[idx[best]]
+        dists = np.linalg.norm(p[sel] - pos, axis=1)
+        chosen.append(Placement(pos, float(lit[best].mean()), float(nearest[idx[best]]), p[sel].mean(0),
+                                float(np.median(dists))))
+        covered |= lit[best]
+        score = float(scores[best])
+    return chosen
+
+
+def _rect_light(scene: Scene, pl: Placement) -> RectLight:
+    """A small rect light at the placement, facing its lit samples, power matched to the point light."""
     reach = max(pl.reach, 1e-9)
-    scene.point_lights = [PointLight(pl.position.astype(np.float32), np.full(3, reach ** 2, np.float32))]
     w = pl.target - pl.position
     w /= max(np.linalg.norm(w), 1e-300)
     helper = np.array([0.0, 1.0, 0.0]) if abs(w[1]) < 0.9 else np.array([1.0, 0.0, 0.0])
@@ -156,6 +207,35 @@ def apply(scene: Scene, bvh: BVH) -> Placement | None:
     lo, hi = scene.bounds
     side = min(0.1 * float(max(hi[0] - lo[0], hi[2] - lo[2], 1e-6)), pl.clearance)
     corner = pl.position - 0.5 * side * (u + v)
-    scene.rect_lights = [RectLight(corner.astype(np.float32), (side * u).astype(np.float32),
-                                   (side * v).astype(np.float32), np.full(3, reach ** 2 / (side * side), np.float32))]
+    return RectLight(corner.astype(np.float32), (side * u).astype(np.float32), (side * v).astype(np.float32),
+                     np.full(3, reach ** 2 / (side * side), np.float32))
+
+
+def _point_light(pl: Placement) -> PointLight:
+    reach = max(pl.reach, 1e-9)
+    return PointLight(pl.position.astype(np.float32), np.full(3, reach ** 2, np.float32))
+
+
+def apply(scene: Scene, bvh: BVH, cameras: list | None = None) -> Placement | None:
+    """Replace the loader's guessed lights (scene.auto_lights) by the ray-cast placement. The point
+    light gives irradiance ~1 at the median distance of the samples it lights; the rect light (soft
+    shadows) sits at the same spot, facing them, small enough to stay in free space.
+
+    `cameras` (a recording's cameras along its path): a small set of lights (place_set) lighting
+    what every one of them sees, each with its point and rect light; None: one light for the
+    default camera. Returns the first placement (None: the guess kept)."""
+    if not scene.auto_lights or not scene.point_lights:
+        return None
+    guess = np.asarray(scene.point_lights[0].position, np.float64)
+    if cameras:
+        placed = place_set(scene, bvh, guess, list(cameras))
+        if placed:
+            scene.point_lights = [_point_light(pl) for pl in placed]
+            scene.rect_lights = [_rect_light(scene, pl) for pl in placed[:MAX_RECT]]
+            return placed[0]
+    pl = place(scene, bvh, guess)
+    if pl is None or np.array_equal(pl.position, guess):
+        return pl
+    scene.point_lights = [_point_light(pl)]
+    scene.rect_lights = [_rect_light(scene, pl)]
     return pl

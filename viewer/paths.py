@@ -1,17 +1,20 @@
 """Where the repository's data lives: the one home of the folders scenes and recordings are looked up in.
 
-The scenes shared between checkouts sit beside the repository (../shared/scenes); the recordings ship
-in recordings/. Scene loading, recordings, the CLI and the benchmarks all resolve names here.
+The scenes shared between checkouts sit beside the repository (../shared/scenes, or
+$RTWALK_SHARED/scenes); the recordings ship in recordings/. Scene loading, recordings, the CLI and the
+benchmarks all resolve names here.
 """
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 from viewer.errors import RtwalkError
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
-SHARED_SCENES = REPO_ROOT.parent / "shared" / "scenes"
+# RTWALK_SHARED: the shared folder elsewhere (a git worktree beside others, a CI cache)
+SHARED_SCENES = Path(os.environ.get("RTWALK_SHARED") or REPO_ROOT.parent / "shared").expanduser() / "scenes"
 RECORDINGS = REPO_ROOT / "recordings"
 
 

@@ -126,6 +126,12 @@ class Renderer:
         self.overlay_missing = ""
         self.backend_overlays: tuple[str, ...] | None = None  # textures the backend returned last (None: not traced)
         self._overlay: OverlayPass | None = None
+        self._atrous = None  # viewer.passes.denoise.AtrousPass, created on first use
+        # the window's moving frames: run the device filter inside render() (phase "denoise", in the
+        # frame's time, so a render scale that follows the frame time pays for it too); the result
+        # is `shown_texture`, read_image() stays raw
+        self.denoise = False
+        self.denoised = False
         self._idle_fbo: moderngl.Framebuffer | None = None  # bound during a headless resize
         self.backend_name = ""
         self.backend = None
@@ -220,6 +226,8 @@ class Renderer:
             self.hits = HitBuffer(self.ctx, size)
             if self._overlay is not None:
                 self._overlay.resize(size)
+            if self._atrous is not None:
+                self._atrous.resize(size)
 
     @property
     def final_texture(self) -> moderngl.Texture:
@@ -420,6 +428,11 @@ class Renderer:
             else:  # an overlay view without overlays (window): the final image under the message
                 self.shade.render(self.gbuffer, self.accumulate, s, "final" if view_overlay else self.view,
                                   min(len(self.scene.point_lights), 8), self.depth_scale, self.acc_scale())
+        self.denoised = False
+        if self.denoise and self.view == "final" and self.noisy:  # the picture shown; shade.color stays raw
+            with prof.phase("denoise"):
+                self.device_denoiser.render(self.shade.color, self.gbuffer)
+            self.denoised = True
         self.overlay_source = source if overlay_done else None
         gpu_ms = prof.end_frame()
         if prof.saturated:  # timer results charged their CPU time instead (see profiler.py)
@@ -513,7 +526,67 @@ class Renderer:
             self.gbuffer.fill_from_hits(camera, self.hits, self.quad)
 
     def read_image(self) -> np.ndarray:
+        """The raw frame (uint8 (H, W, 3), top row first): what tests and the bench compare."""
         return self.shade.read_rgb()
+
+    # -- denoising of the picture shown or saved (viewer.denoise); read_image stays raw ----------
+    @property
+    def device_denoiser(self):
+        """The a-trous pass (viewer.passes.denoise), created on first use."""
+        if self._atrous is None:
+            from viewer.passes.denoise import AtrousPass
+
+            self._atrous = AtrousPass(self.ctx, self.programs, self.quad, self.size)
+        self._atrous.resize(self.size)
+        return self._atrous
+
+    @property
+    def noisy(self) -> bool:
+        """The final image has sampled (Monte Carlo) effects: soft shadows, AO or diffuse. Point-light
+        shadows and mirror reflections are one exact ray per pixel: nothing to denoise."""
+        s = self.settings
+        return bool(s.soft or s.ao or s.diffuse)
+
+    @property
+    def shown_texture(self) -> moderngl.Texture:
+        """The picture of the last frame: device-filtered when `denoise` filtered it, else raw."""
+        return self._atrous.color if self.denoised and self._atrous is not None else self.final_texture
+
+    def denoise_on_device(self, camera: Camera | None = None) -> moderngl.Texture:
+        """Filter the last frame on the device (a few draws, no read-back); the filtered texture.
+        A shade view other than "final" (one effect alone, a diagnostic) is shown unfiltered."""
+        if self.view != "final":
+            return self.final_texture
+        return self.device_denoiser.render(self.final_texture, self.gbuffer)
+
+    def read_guides(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(albedo, normal) float32 (H, W, 3) and kept (H, W) bool (background or mirror pixels),
+        top row first, from the G-buffer of the last frame."""
+        from viewer.gl.textures import read_texture
+
+        alb, nrm, ids = (read_texture(t)[::-1] for t in (self.gbuffer.albedo, self.gbuffer.normal, self.gbuffer.tri_id))
+        iostats.to_host(alb.nbytes + nrm.nbytes + ids.nbytes)
+        nrm, ids = nrm[..., :3], ids[..., 0]
+        kept = (ids < 0) | (alb[..., 3] > 0.5)
+        return np.ascontiguousarray(alb[..., :3]), np.ascontiguousarray(nrm), kept
+
+    def read_denoised(self, method: str = "library", camera: Camera | None = None,
+                      image: np.ndarray | None = None) -> np.ndarray:
+        """The last frame filtered, uint8 (H, W, 3), top row first. "library": Open Image Denoise
+        on `image` (default read_image(); the device filter where pyoidn is missing); "device":
+        the a-trous pass on the shaded texture. Views other than "final", and frames without
+        sampled effects (`noisy`), come back raw."""
+        from viewer.denoise import library_denoise, library_missing
+
+        if self.view != "final" or not self.noisy:
+            return self.read_image() if image is None else image
+        if method == "library" and library_missing() is None:
+            alb, nrm, kept = self.read_guides()
+            return library_denoise(self.read_image() if image is None else image, alb, nrm, kept)
+        tex = self.device_denoiser.render(self.final_texture, self.gbuffer)
+        data = np.frombuffer(tex.read(), np.uint8).reshape(self.size[1], self.size[0], 4)
+        iostats.to_host(data.nbytes)
+        return np.ascontiguousarray(data[::-1, :, :3])
 
     def read_gbuffer_ids(self) -> np.ndarray:
         """int32 (H*W,) raster triangle id per pixel (row 0 = bottom), -1 = background."""
@@ -537,6 +610,9 @@ class Renderer:
         if self._device is not None:
             self._device.release()
             self._device = None
+        if self._atrous is not None:
+            self._atrous.release()
+            self._atrous = None
         if self._idle_fbo is not None:
             self._idle_fbo.release()
             self._overlay = None

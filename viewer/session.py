@@ -44,9 +44,32 @@ class BuildWork:
         return min(self.done / (self.done + remaining), 1.0)
 
 
+def recording_cameras(rec) -> list:
+    """The cameras default lights are chosen for along a recording: every PATH_CAMERA_STEP-th
+    frame and the last one (its keyframes alone can skip what the path turns towards)."""
+    from viewer.default_lights import PATH_CAMERA_STEP
+
+    count = rec.frame_count()
+    frames = sorted(set(range(0, count, PATH_CAMERA_STEP)) | {count - 1})
+    return [rec.camera_for_frame(n) for n in frames]
+
+
+def prepare_scene_for_recording(rec, scene_size: int | None = None, seed: int | None = None,
+                                mirror_patterns: list[str] | None = None, quiet: bool = False) -> PreparedScene:
+    """The recording's scene, with default lights chosen for the recording's cameras."""
+    from viewer.recording import resolve_scene_spec
+
+    rs = resolve_scene_spec(rec)
+    return prepare_scene(rs.spec, scene_size=scene_size if scene_size is not None else rs.size,
+                         seed=rs.seed if rs.seed is not None else (seed if seed is not None else 1),
+                         mirror_patterns=mirror_patterns, quiet=quiet, light_cameras=recording_cameras(rec))
+
+
 def prepare_scene(spec: str | None, scene_size: int | None = None, seed: int = 1,
                   mirror_patterns: list[str] | None = None, quiet: bool = False,
-                  bvh_builder: str | None = None) -> PreparedScene:
+                  bvh_builder: str | None = None, light_cameras: list | None = None) -> PreparedScene:
+    """`light_cameras`: default lights (scenes without their own) light what these cameras see
+    (a recording's path); None: what the default camera sees."""
     from viewer.scene_io import load_scene
 
     scene = load_scene(spec, scene_size=scene_size, seed=seed, mirror_patterns=mirror_patterns,
@@ -72,8 +95,12 @@ def prepare_scene(spec: str | None, scene_size: int | None = None, seed: int = 1
     if ordered.auto_lights:
         from viewer.default_lights import apply
 
-        placed = apply(ordered, bvh)
+        placed = apply(ordered, bvh, light_cameras)
         if placed is not None and not quiet:
-            pos = ", ".join(f"{v:.3g}" for v in placed.position)
-            log(f"default light at ({pos}): lights {100 * placed.lit:.0f}% of the surfaces the camera sees")
+            if light_cameras:
+                log(f"default lights: {len(ordered.point_lights)} placed for {len(light_cameras)} cameras "
+                    "along the recording")
+            else:
+                pos = ", ".join(f"{v:.3g}" for v in placed.position)
+                log(f"default light at ({pos}): lights {100 * placed.lit:.0f}% of the surfaces the camera sees")
     return PreparedScene(ordered, bvh)

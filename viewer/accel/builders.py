@@ -1,7 +1,9 @@
 """Which BVH builder a scene load uses: the CPU binned SAH build (viewer.accel.bvh, the quality
 reference) or the OpenCL build (viewer.accel.bvh_device, Morton + PLOC).
 
-Choice: `--bvh-builder` (scene commands), else the environment variable RTWALK_BVH_BUILDER, else
+Per-frame rebuilds (the dynamic-scene studies) use `per_frame_builder()`.
+
+Choice on scene load: `--bvh-builder` (scene commands), else the environment variable RTWALK_BVH_BUILDER, else
 "auto": the device build for scenes of at least AUTO_DEVICE_MIN triangles when an OpenCL device
 is there (it is many times faster and its SAH cost stays within about 10% of the SAH build on the
 study scenes, see docs/bvh-device.md), the SAH build below (where it takes well under a second).
@@ -47,6 +49,19 @@ def resolve_builder(name: str | None, n_triangles: int) -> str:
         if reason is not None:
             raise RtwalkError(f"the device BVH builder needs an OpenCL device: {reason}")
     return name
+
+
+def per_frame_builder() -> str:
+    """The builder for per-frame rebuilds of animated scenes: the fastest one whose trees keep the
+    trace within 10% of the SAH build's, i.e. the device build when OpenCL is there (SAH cost
+    0.80-1.07x the SAH build's on the study scenes, docs/bvh-device.md), else the SAH build.
+    RTWALK_BVH_BUILDER=sah|device overrides it."""
+    env = check_builder(os.environ.get(ENV), ENV)
+    if env in ("sah", "device"):
+        return resolve_builder(env, 0)
+    from viewer.cl import cl_available
+
+    return "device" if cl_available() is None else "sah"
 
 
 def build_scene_bvh(triangles: np.ndarray, builder: str | None = None,

@@ -7,6 +7,8 @@
 // (node id, box) triples in Morton order; an iteration is nearest -> merge -> count -> scan ->
 // scatter, all reading the cluster count from the device (cnt[p]) so the host need not read it.
 
+#define RING (RADIUS < 8 ? 8 : RADIUS < 16 ? 16 : RADIUS < 32 ? 32 : 64)
+
 inline float half_area(float4 lo, float4 hi) {
     float4 e = hi - lo;
     return e.x * e.y + e.y * e.z + e.z * e.x;
@@ -107,7 +109,8 @@ __kernel void nearest(__global const uint* cnt, uint p, __global const float4* c
 
 // The same nearest neighbours, one work-item per block of clusters: each pair (i, j), i < j <= i +
 // RADIUS, is measured once and offered to both ends (half the area computations). A ring of
-// RADIUS + 1 candidates holds the clusters i..i+RADIUS still open; ties again go to the lower index.
+// RING >= RADIUS + 1 candidates (a power of two: a mask, no division) holds the clusters i..i+RADIUS
+// still open; ties again go to the lower index.
 __kernel void nearest_block(__global const uint* cnt, uint p, __global const float4* cmin,
                             __global const float4* cmax, uint nb, __global uint* nn) {
     uint b = get_global_id(0);
@@ -116,11 +119,11 @@ __kernel void nearest_block(__global const uint* cnt, uint p, __global const flo
     uint s, e;
     block_range(b, nb, n, &s, &e);
     if (s >= e) return;
-    float best[RADIUS + 1];
-    uint bj[RADIUS + 1];
-    for (uint k = 0; k <= RADIUS; ++k) {
-        best[(s + k) % (RADIUS + 1)] = INFINITY;
-        bj[(s + k) % (RADIUS + 1)] = 0xffffffffu;
+    float best[RING];
+    uint bj[RING];
+    for (uint k = 0; k < RING; ++k) {  // clusters s .. s + RING - 1
+        best[(s + k) & (RING - 1)] = INFINITY;
+        bj[(s + k) & (RING - 1)] = 0xffffffffu;
     }
     // pairs from the RADIUS clusters before the block into it
     for (uint i = s > RADIUS ? s - RADIUS : 0; i < s; ++i) {
@@ -129,7 +132,7 @@ __kernel void nearest_block(__global const uint* cnt, uint p, __global const flo
         for (uint j = s; j <= jend; ++j) {
             float a = half_area(fmin(lo, cmin[j]), fmax(hi, cmax[j]));
             if (isnan(a)) a = INFINITY;
-            uint r = j % (RADIUS + 1);
+            uint r = j & (RING - 1);
             if (a < best[r] || (a == best[r] && i < bj[r])) {
                 best[r] = a;
                 bj[r] = i;
@@ -138,7 +141,7 @@ __kernel void nearest_block(__global const uint* cnt, uint p, __global const flo
     }
     for (uint i = s; i < e; ++i) {
         float4 lo = cmin[i], hi = cmax[i];
-        uint ri = i % (RADIUS + 1);
+        uint ri = i & (RING - 1);
         uint jend = min(i + RADIUS, n - 1);
         for (uint j = i + 1; j <= jend; ++j) {
             float a = half_area(fmin(lo, cmin[j]), fmax(hi, cmax[j]));
@@ -147,14 +150,14 @@ __kernel void nearest_block(__global const uint* cnt, uint p, __global const flo
                 best[ri] = a;
                 bj[ri] = j;
             }
-            uint r = j % (RADIUS + 1);
+            uint r = j & (RING - 1);
             if (j < e && (a < best[r] || (a == best[r] && i < bj[r]))) {
                 best[r] = a;
                 bj[r] = i;
             }
         }
         nn[i] = bj[ri];
-        best[ri] = INFINITY;  // the slot now holds cluster i + RADIUS + 1
+        best[ri] = INFINITY;  // the slot now holds cluster i + RING
         bj[ri] = 0xffffffffu;
     }
 }
@@ -280,35 +283,55 @@ __kernel void jump(uint m, __global const int4* src, __global int4* dst) {
     dst[v] = s;
 }
 
-// Kept nodes (no ancestor chosen as a leaf) are written at their preorder index; a final leaf
-// writes its triangles (left subtree first) to tri_order.
-__kernel void emit(uint m, __global const int4* st, __global const float4* nmin, __global const float4* nmax,
+// Kept nodes (no ancestor chosen as a leaf) by preorder index: pnode[pre] = node; the depth is the
+// sort key that turns preorder into breadth-first order (`order`: BFS position -> preorder index).
+__kernel void preorder(uint m, __global const int4* st, __global uint* pnode, __global uint* keys,
+                       __global uint* order) {
+    uint v = get_global_id(0);
+    if (v >= m) return;
+    int4 s = st[v];
+    if (s.w == -2) return;  // inside a leaf
+    pnode[s.y] = v;
+    keys[s.y] = (uint)s.z;
+    order[s.y] = (uint)s.y;
+}
+
+__kernel void invert(uint m, __global const uint* order, __global int* rank) {
+    uint k = get_global_id(0);
+    if (k >= m) return;
+    rank[order[k]] = (int)k;
+}
+
+// The canonical tree in breadth-first order (rank: preorder index -> BFS position); a leaf also
+// writes its triangles (left subtree first) to tri_order at its first slot.
+__kernel void emit(uint m, __global const uint* order, __global const int* rank, __global const uint* pnode,
+                   __global const int4* st, __global const float4* nmin, __global const float4* nmax,
                    __global const int* left, __global const int* right, __global const int* parent,
                    __global const int* count, __global const int* height, __global const uchar* leaf_ok,
                    __global const uint* perm, __global float4* omin, __global float4* omax, __global int* oleft,
                    __global int* oright, __global int* ofirst, __global int* ocount, __global int* oparent,
                    __global int* odepth, __global int* oheight, __global int* tri_order) {
-    uint v = get_global_id(0);
-    if (v >= m) return;
+    uint k = get_global_id(0);
+    if (k >= m) return;
+    int v = (int)pnode[order[k]];
     int4 s = st[v];
-    if (s.w == -2) return;  // inside a leaf
-    int o = s.y;
-    omin[o] = nmin[v];
-    omax[o] = nmax[v];
-    ofirst[o] = s.x;
-    ocount[o] = count[v];
-    odepth[o] = s.z;
-    oheight[o] = height[v];
-    oparent[o] = parent[v] >= 0 ? st[parent[v]].y : -1;
+    omin[k] = nmin[v];
+    omax[k] = nmax[v];
+    ofirst[k] = s.x;
+    ocount[k] = count[v];
+    odepth[k] = s.z;
+    oheight[k] = height[v];
+    int u = parent[v];
+    oparent[k] = u >= 0 ? rank[st[u].y] : -1;
     if (!leaf_ok[v]) {
-        oleft[o] = st[left[v]].y;
-        oright[o] = st[right[v]].y;
+        oleft[k] = rank[st[left[v]].y];
+        oright[k] = rank[st[right[v]].y];
         return;
     }
-    oleft[o] = -1;
-    oright[o] = -1;
+    oleft[k] = -1;
+    oright[k] = -1;
     int stack[MAX_LEAF + 1];
-    int sp = 0, w = (int)v, slot = s.x;
+    int sp = 0, w = v, slot = s.x;
     for (;;) {
         if (left[w] < 0) {
             tri_order[slot++] = (int)perm[w];
@@ -319,41 +342,4 @@ __kernel void emit(uint m, __global const int4* st, __global const float4* nmin,
             w = left[w];
         }
     }
-}
-
-// Breadth-first renumbering: the kept nodes sorted (stably) by depth give `order` (BFS position ->
-// preorder index); `rank` is its inverse; `permute` gathers every field and renames the links.
-__kernel void depth_keys(uint m, __global const int* depth, __global uint* keys, __global uint* order) {
-    uint k = get_global_id(0);
-    if (k >= m) return;
-    keys[k] = (uint)depth[k];
-    order[k] = k;
-}
-
-__kernel void invert(uint m, __global const uint* order, __global int* rank) {
-    uint k = get_global_id(0);
-    if (k >= m) return;
-    rank[order[k]] = (int)k;
-}
-
-__kernel void permute(uint m, __global const uint* order, __global const int* rank,
-                      __global const float4* pmin, __global const float4* pmax, __global const int* pleft,
-                      __global const int* pright, __global const int* pfirst, __global const int* pcount,
-                      __global const int* pparent, __global const int* pdepth, __global const int* pheight,
-                      __global float4* omin, __global float4* omax, __global int* oleft, __global int* oright,
-                      __global int* ofirst, __global int* ocount, __global int* oparent, __global int* odepth,
-                      __global int* oheight) {
-    uint k = get_global_id(0);
-    if (k >= m) return;
-    uint s = order[k];
-    omin[k] = pmin[s];
-    omax[k] = pmax[s];
-    int l = pleft[s], r = pright[s], u = pparent[s];
-    oleft[k] = l >= 0 ? rank[l] : -1;
-    oright[k] = r >= 0 ? rank[r] : -1;
-    oparent[k] = u >= 0 ? rank[u] : -1;
-    ofirst[k] = pfirst[s];
-    ocount[k] = pcount[s];
-    odepth[k] = pdepth[s];
-    oheight[k] = pheight[s];
 }

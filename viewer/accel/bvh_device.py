@@ -1,9 +1,10 @@
 """BVH built on the OpenCL device: Morton order, PLOC clustering, SAH leaf collapse.
 
-Why: the binned SAH build (viewer.accel.bvh) is NumPy on one core, about 0.3 M triangles/s; a
-10 M scene waits more than 30 s for its first frame. This builder produces the same `BVH`
-(canonical nodes, node ranges, `tri_order`, `BuildStats`), so every backend, `gpu_nodes()` and
-`build_bvh4()` use it unchanged; the SAH build stays the quality reference.
+Why: the binned SAH build (viewer.accel.bvh) is NumPy on one core: a 10 M-triangle city took
+80 s on a 16-core host and 260-340 s on the loaded 2-core machine, and its first frame waited for
+it. This builder produces the same `BVH` (canonical nodes in breadth-first order, node ranges,
+`tri_order`, `BuildStats`), so every backend, `gpu_nodes()` and `build_bvh4()` use it unchanged;
+the SAH build stays the quality reference. Measured figures: docs/bvh-device.md.
 
 Algorithm (kernels in bvh_device.cl)
 ------------------------------------
@@ -14,20 +15,23 @@ Algorithm (kernels in bvh_device.cl)
    each finds the cluster within `radius` positions whose merged box has the least surface area
    (ties to the lower index: the closest pair overall is always mutual, so every iteration
    merges); mutual pairs merge into a new node in the lower slot, the other slot is compacted
-   away. An iteration is 5 launches (nearest, merge, per-block count, block scan, scatter); the
+   away. An iteration is 5 launches (nearest per block of clusters, each pair measured once;
+   merge; per-block count; block scan; scatter); the
    cluster count lives on the device, every kernel reads it there, and the host reads it back
    only every `check_every` iterations (to shrink the launch sizes and to stop).
 3. While merging, each node gets the SAH cost of its best subtree (dynamic programme: the cheaper
    of a leaf and the split, traversal 1, intersection 1 per triangle, as BuildStats reports):
    a node of at most `max_leaf` triangles becomes a leaf when that is not dearer (always when
    it holds at most `min_leaf`). Leaves are the topmost such nodes; nodes below them are dropped.
-4. Layout without a per-level loop: pointer jumping (ceil(log2(height + 1)) launches) sums, along
-   each node's path to the root, the triangles and kept nodes of left siblings and the depth, so
-   each kept node gets its first slot, its preorder index (children after parents, root 0) and
-   its depth; one launch writes the canonical arrays and the leaf order (`tri_order`).
+4. Layout without a per-level loop: pointer jumping (ceil(log2(height + 1)) + 1 launches) sums,
+   along each node's path to the root, the triangles and kept nodes of left siblings and the
+   depth, so each kept node gets its first slot, its preorder index and its depth; a stable radix
+   sort of the preorder by depth (one digit pass) gives breadth-first order (root 0, children
+   after parents), and one launch gathers the tree in that order and writes the leaf order
+   (`tri_order`).
 Host round trips: the 6 reductions, one count read every `check_every` PLOC iterations, the root
-height and kept-node count, and the final read-back of the tree (which the host-side `BVH`
-needs).
+height and kept-node count, one finish per timed phase (5), and the final read-back of the tree
+(the `BVH` is host-side; backends upload its gpu_nodes()). The BVH4 collapse stays on the host.
 
 Numerics: every box is an exact float32 min/max of the triangles' float32 vertices or of child
 boxes (never rounded, so never shrunk); the Morton grid only orders the triangles.
@@ -52,10 +56,10 @@ RADIUS = 8
 CHECK_EVERY = 4
 #: device bytes per triangle of the buffers build() allocates (all kept for the next build): input,
 #: boxes, centres, keys + sort scratch, 2 nodes x (boxes, 8 int fields, flag), 2 x clusters, nn,
-#: 2 nodes x 2 pointer-jumping states, preorder + final outputs, BFS sort keys, tri_order
-BYTES_PER_TRIANGLE = 36 + 32 + 12 + 16 + 2 * (32 + 8 * 4 + 1) + 2 * 36 + 4 + 2 * 2 * 16 + 2 * 60 + 12 + 4
+#: 2 nodes x 2 pointer-jumping states, outputs, preorder / BFS sort buffers, tri_order
+BYTES_PER_TRIANGLE = 36 + 32 + 12 + 16 + 2 * (32 + 8 * 4 + 1) + 2 * 36 + 4 + 2 * 2 * 16 + 60 + 16 + 4
 _KERNELS = ("tri_boxes", "morton", "init_leaves", "nearest", "nearest_block", "merge", "count_kept", "scan_blocks",
-            "scatter", "jump_init", "jump", "emit", "depth_keys", "invert", "permute")
+            "scatter", "jump_init", "jump", "preorder", "invert", "emit")
 
 
 class DeviceBvhBuilder:
@@ -66,8 +70,8 @@ class DeviceBvhBuilder:
         from viewer.cl import build, cl_context
         from viewer.cl.primitives import primitives
 
-        if radius < 1:
-            raise ValueError("radius must be >= 1")
+        if not 1 <= radius <= 63:
+            raise ValueError("radius must be in 1..63")
         if max_leaf < 1 or min_leaf > max_leaf:
             raise ValueError("need 1 <= max_leaf and min_leaf <= max_leaf")
         self.ctx = ctx or cl_context()
@@ -103,13 +107,14 @@ class DeviceBvhBuilder:
         return out
 
     def _phase(self, name: str, t0: float) -> float:
-        self.ctx.finish()
+        """Wall time of a phase (`phases`, seconds): one finish per phase, 5 per build."""
+        clio.finish(self.ctx.queue)
         t = time.perf_counter()
         self.phases[name] = self.phases.get(name, 0.0) + (t - t0)
         return t
 
     def release(self) -> None:
-        """Free the device buffers (about 300 bytes per triangle of the last build)."""
+        """Free the device buffers (BYTES_PER_TRIANGLE per triangle of the largest build)."""
         self._bufs.release()
 
     def check_memory(self, n: int) -> None:
@@ -210,21 +215,17 @@ class DeviceBvhBuilder:
         for i in range(passes):
             self._run("jump", m_all, u(m_all), st[i % 2], st[1 - i % 2])
         st_final = st[passes % 2]
-        onames = ("left", "right", "first", "count", "parent", "depth", "height")
-        pre = {k: b("p" + k, 16 * m) for k in ("min", "max")}
-        pre.update({k: b("p" + k, 4 * m) for k in onames})
-        tri_order = b("tri_order", 4 * n)
-        self._run("emit", m_all, u(m_all), st_final, nmin, nmax, left, right, parent, count, height, leaf_ok, perm,
-                  pre["min"], pre["max"], *(pre[k] for k in onames), tri_order)
         # breadth-first order: stable sort of the preorder by depth (depth <= tree_height)
-        dkeys, order, rank = b("dkeys", 4 * m), b("order", 4 * m), b("rank", 4 * m)
-        self._run("depth_keys", m, u(m), pre["depth"], dkeys, order)
+        pnode, dkeys, order, rank = b("pnode", 4 * m), b("dkeys", 4 * m), b("order", 4 * m), b("rank", 4 * m)
+        self._run("preorder", m_all, u(m_all), st_final, pnode, dkeys, order)
         self.prims.sort_pairs(dkeys, order, m, key_bits=max(tree_height.bit_length(), 1))
         self._run("invert", m, u(m), order, rank)
+        onames = ("left", "right", "first", "count", "parent", "depth", "height")
         outs = {k: b("o" + k, 16 * m) for k in ("min", "max")}
         outs.update({k: b("o" + k, 4 * m) for k in onames})
-        self._run("permute", m, u(m), order, rank, *(pre[k] for k in ("min", "max", *onames)),
-                  *(outs[k] for k in ("min", "max", *onames)))
+        tri_order = b("tri_order", 4 * n)
+        self._run("emit", m, u(m), order, rank, pnode, st_final, nmin, nmax, left, right, parent, count, height,
+                  leaf_ok, perm, outs["min"], outs["max"], *(outs[k] for k in onames), tri_order)
         t = self._phase("layout", t)
 
         host = {k: self._read(outs[k], 4 * m, np.float32).reshape(m, 4)[:, :3].copy() for k in ("min", "max")}

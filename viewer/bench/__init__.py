@@ -26,6 +26,8 @@ BENCHMARKS: dict[str, str] = {
     "bench-trace": "viewer.bench.trace_vs_embree",
     "bench-cl": "viewer.bench.cl_primitives",
     "bench-voxels": "viewer.bench.voxels",
+    "bench-denoise": "viewer.bench.denoise",
+    "bench-light": "viewer.bench.lit",
 }
 
 

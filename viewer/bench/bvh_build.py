@@ -3,8 +3,9 @@
 One row per (size, builder) in bvh-build.json: BuildStats.to_dict() plus `builder`, `target`
 (the asked size), `build_time_s`, `throughput_mtris_per_s`, `sah_cost`, `sah_ratio` (to the
 SAH build of the same size when it ran), `bvh4_time_s` (host collapse to BVH4, build_bvh4) and, for
-the device builder, `phases_s` and `iterations` (PLOC). The device builder is warmed up on a small
-city first (kernel compilation is not build time).
+the device builder, `phases_s` and `iterations` (PLOC); `io`: the build's launches, host syncs and
+bytes (viewer.iostats). The device builder is warmed up on a small city first (kernel compilation
+is not build time); each size's first device build still pays for first-touching its buffers.
 """
 
 from __future__ import annotations
@@ -41,6 +42,7 @@ def _build(builder: str, tris):
 
 
 def run(args) -> int:
+    from viewer import iostats
     from viewer.accel.bvh4 import build_bvh4
     from viewer.bench.report import write_json
     from viewer.procedural import make_city
@@ -62,12 +64,15 @@ def run(args) -> int:
         scene = make_city(n, args.seed)
         sah_cost = None
         for builder in builders:
+            iostats.begin_frame()
             bvh = _build(builder, scene.triangles)
+            io = iostats.end_frame()
             t0 = time.perf_counter()
             build_bvh4(bvh)
             r = bvh.stats.to_dict()
             r["bvh4_time_s"] = time.perf_counter() - t0
             r["builder"] = builder
+            r["io"] = io.as_dict()  # launches, host syncs and bytes of the build (device builder)
             r["target"] = n
             mtris = bvh.stats.triangles / max(bvh.stats.build_time_s, 1e-9) / 1e6
             r["throughput_mtris_per_s"] = r["mtris_per_s"] = mtris

@@ -7,10 +7,10 @@ Studies (``--study``, comma list or ``all``):
   pgrid's primary data-structure build (camera grid and the rays' tile check), primary
   traversal, shadow data-structure build (light grid), data rearrangement (shadow-ray sort into
   chunks), shadow traversal, total and fps; the uniform grid (ugrid, rebuilt every frame) and
-  clbvh / glsl on the same frames, with and without a per-frame BVH build (build_bvh, plus the
-  BVH4 collapse for clbvh, timed on the scene). Also the counters behind the times
-  (triangle-cell pairs of each grid, culled triangles, chunks and their occupancy, rays outside
-  the grids).
+  clbvh / glsl on the same frames, with and without a per-frame BVH build (the per-frame builder,
+  viewer.accel.builders.per_frame_builder, plus the BVH4 collapse for clbvh, timed on the scene).
+  Also the counters behind the times (triangle-cell pairs of each grid, culled triangles, chunks
+  and their occupancy, rays outside the grids).
 - ``lightdist`` (thesis Figure 4.9): shadow time (build + rearrangement + traversal) as the light
   moves away from the model along the line from its centre through the scene's light, for chunk
   sizes 64/128/256 and without load balancing, at a fixed angular resolution (--light-tile-deg) so
@@ -84,17 +84,19 @@ def load_scene(args, name: str):
 
 
 def bvh_build_ms(prep) -> dict[str, float]:
-    """Per-frame BVH cost of a dynamic scene: the binary SAH build (glsl), plus the BVH4 collapse
-    and leaf packing (clbvh). Median of three."""
-    from viewer.accel.bvh import build_bvh
+    """Per-frame BVH cost of a dynamic scene: the binary build (glsl) with the per-frame builder
+    (viewer.accel.builders.per_frame_builder: the device build when OpenCL is there), plus the BVH4
+    collapse and leaf packing (clbvh). Median of three."""
+    from viewer.accel.builders import build_scene_bvh, per_frame_builder
     from viewer.accel.bvh4 import build_bvh4
     from viewer.backends.clbvh import pack_leaves
 
     tris = prep.scene.triangles
+    builder = per_frame_builder()
     b, c = [], []
     for _ in range(3):
         t0 = time.perf_counter()
-        bvh = build_bvh(tris)
+        bvh = build_scene_bvh(tris, builder)
         t1 = time.perf_counter()
         b4 = build_bvh4(bvh)
         pack_leaves(b4.nodes, bvh.triangles_in_leaf_order(tris))

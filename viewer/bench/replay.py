@@ -42,6 +42,7 @@ class BenchOptions:
     frame_every: int = 10
     backend_options: dict[str, str] | None = None  # per backend: parameter text (--backend-params)
     first_frame: int | None = None  # consecutive frames from here (None: spread over the path)
+    denoise: bool = False  # saved frames denoised (viewer.denoise); every error is measured on the raw image
 
 
 def reference_errors(renderer: Renderer, camera, tracer) -> dict:
@@ -164,6 +165,8 @@ def run_bench(prepared: PreparedScene, rec, settings: EffectSettings, opts: Benc
 
                 if image is None:
                     image = renderer.read_image()
+                if opts.denoise:  # the picture only: the errors above were taken on the raw image
+                    image = renderer.read_denoised("library", cam, image)
                 opts.frames_dir.mkdir(parents=True, exist_ok=True)
                 Image.fromarray(image).save(opts.frames_dir / f"frame_{n:05d}.png")
                 row["overlays"] = save_overlay_views(renderer, cam, opts.frames_dir, n)
@@ -279,7 +282,7 @@ REFERENCE_EVERY = 6  # and an Embree check of every 6th of them
 
 
 def add_arguments(b: argparse.ArgumentParser) -> None:
-    from viewer.cli_args import add_effect_args, add_progressive_args, add_scene_args
+    from viewer.cli_args import add_denoise_arg, add_effect_args, add_progressive_args, add_scene_args
 
     add_scene_args(b)
     add_effect_args(b, "shadows,ao:4,reflections")
@@ -300,6 +303,7 @@ def add_arguments(b: argparse.ArgumentParser) -> None:
                    help="with --save-frames: save every Nth replayed frame (and its overlay views)")
     b.add_argument("--out", default="out/bench", help="folder for the JSON report and plot")
     b.add_argument("--name", default=None, help="report file stem")
+    add_denoise_arg(b, "off")  # only the saved frames (--save-frames); the errors are measured raw
     add_progressive_args(b, "replay in the window's progressive mode (one pass per effect while moving, "
                             "refine after the path stops) and report its frame times, time to convergence and "
                             "the converged image's error against the full-quality frame (no Embree check, "
@@ -342,7 +346,8 @@ def run(args: argparse.Namespace) -> int:
     opts = BenchOptions(backend=args.backend, size=size, fps=args.fps,
                         max_frames=args.frames, reference=args.reference, reference_every=args.reference_every,
                         frames_dir=frames_dir, frame_every=args.frame_every, backend_options=backend_options,
-                        first_frame=getattr(args, "first_frame", None))
+                        first_frame=getattr(args, "first_frame", None),
+                        denoise=getattr(args, "denoise", "off") == "on")
     frame_numbers(rec, opts.fps, opts.max_frames, opts.first_frame)  # --first-frame within the path
     check_device(args.backend)
     ctx = create_headless_context()  # no EGL: fail before loading

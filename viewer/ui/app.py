@@ -186,7 +186,8 @@ def run_viewer(args) -> int:
                         recording=recording,
                         scene_arg=getattr(args, "scene", None), max_frames=max_frames, window_shot=shot,
                         quiet=quiet, progressive=getattr(args, "progressive", True),
-                        frame_target_ms=getattr(args, "frame_target_ms", 66.0))
+                        frame_target_ms=getattr(args, "frame_target_ms", 66.0),
+                        denoise=getattr(args, "denoise", "on") == "on")
         app.renderer.view = view
         if mirrors_note:
             app.status = mirrors_note.removeprefix("rtwalk: warning: ")
@@ -209,7 +210,7 @@ class ViewerApp:
     def __init__(self, window, prepared, settings, backend: str, recording=None, scene_arg: str | None = None,
                  backend_options: dict[str, str] | None = None, max_frames: int | None = None,
                  window_shot: str | None = None, quiet: bool = False, progressive: bool = True,
-                 frame_target_ms: float = 66.0):
+                 frame_target_ms: float = 66.0, denoise: bool = True):
         from imgui_bundle import imgui, implot
         from moderngl_window.integrations.imgui_bundle import ModernglWindowRenderer
 
@@ -243,6 +244,10 @@ class ViewerApp:
         self.progressive = (Progressive(self.renderer, self._render_size(), frame_target_ms,
                                         resize=self._resize_renderer) if progressive else None)
         self.step = None  # the progressive step of the last frame (the panel shows it)
+        from viewer.ui.denoise_view import DisplayDenoiser
+
+        self.denoiser = DisplayDenoiser(self.ctx) if denoise else None  # --denoise on: the picture shown
+        self.renderer.denoise = denoise  # the device filter runs inside each frame (its cost is timed)
         start = self.scene.default_camera or _overview_camera(self.scene)
         self.fly = FlyCamera.from_camera(start, self.renderer.diagonal)
         self.camera: Camera = self.fly.camera()
@@ -370,7 +375,8 @@ class ViewerApp:
         if self.renderer.overlay_missing:  # the image is not the view asked for: say so, save nothing
             self.say(f"screenshot not saved: {overlay_missing_line(self.renderer)}")
             return
-        img = self.renderer.read_image()
+        img = (self.renderer.read_denoised("library", self.camera) if self.denoiser is not None
+               else self.renderer.read_image())
         stamp = time.strftime("%Y%m%d-%H%M%S")
         path = SCREENSHOT_DIR / f"rtwalk-{stamp}.png"
         n = 1
@@ -597,6 +603,10 @@ class ViewerApp:
             self.history.add(frame_ms if frame_ms > 0 else report.wall_ms, sum(report.gpu_ms.values()),
                              chart_phases(report.gpu_ms, self.renderer.backend.info.phases), report.backend_stats)
 
+        # --denoise on: the device filter or the library's still (viewer.ui.denoise_view), drawn
+        # into their own targets before the window's framebuffer is set up
+        shown = (self.renderer.final_texture if self.denoiser is None
+                 else self.denoiser.texture(self.renderer, self.camera, self.step, report is not None))
         ctx = self.ctx
         w, h = self.wnd.buffer_size
         vx, vy, vw, vh = self.viewport()
@@ -607,7 +617,7 @@ class ViewerApp:
         ctx.clear(0.0, 0.0, 0.0, 1.0)
         ctx.viewport = (vx, vy, vw, vh)
         self.sampler.use(0)
-        self.renderer.final_texture.use(0)
+        shown.use(0)
         self.blit["viewport"] = (float(vw), float(vh))
         self.blit["origin"] = (float(vx), float(vy))
         self.blit_vao.render(moderngl.TRIANGLES, vertices=3)
@@ -678,6 +688,8 @@ class ViewerApp:
             for obj in (self.blit_vao, self.sampler):
                 obj.release()
             self.programs.release()
+            if self.denoiser is not None:
+                self.denoiser.release()
             self.renderer.release()
 
 
