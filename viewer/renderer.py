@@ -565,7 +565,6 @@ class Renderer:
         from viewer.gl.textures import read_texture
 
         alb, nrm, ids = (read_texture(t)[::-1] for t in (self.gbuffer.albedo, self.gbuffer.normal, self.gbuffer.tri_id))
-        iostats.to_host(alb.nbytes + nrm.nbytes + ids.nbytes)
         nrm, ids = nrm[..., :3], ids[..., 0]
         kept = (ids < 0) | (alb[..., 3] > 0.5)
         return np.ascontiguousarray(alb[..., :3]), np.ascontiguousarray(nrm), kept
@@ -584,8 +583,7 @@ class Renderer:
             alb, nrm, kept = self.read_guides()
             return library_denoise(self.read_image() if image is None else image, alb, nrm, kept)
         tex = self.device_denoiser.render(self.final_texture, self.gbuffer)
-        data = np.frombuffer(tex.read(), np.uint8).reshape(self.size[1], self.size[0], 4)
-        iostats.to_host(data.nbytes)
+        data = np.frombuffer(glio.read(tex), np.uint8).reshape(self.size[1], self.size[0], 4)
         return np.ascontiguousarray(data[::-1, :, :3])
 
     def read_gbuffer_ids(self) -> np.ndarray:

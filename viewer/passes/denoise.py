@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import moderngl
 
-from viewer import iostats
 from viewer.gl.programs import FullscreenQuad, ProgramCache
 from viewer.gl.textures import float_texture
 from viewer.passes.gbuffer import GBufferPass
@@ -76,8 +75,7 @@ class AtrousPass(SizedTargets):
             p["stepPx"] = 1 << k
             (self.fbo if last else self.ping_fbos[(k + 1) % 2]).use()
             self.quad.render(p)
-        iostats.gl_draw(self.draws)
-        return self.color
+        return self.color  # the draws are counted by FullscreenQuad (viewer.gl.io)
 
     def release_targets(self) -> None:
         for obj in (self.prepare_fbo, *self.ping_fbos, *self.ping, self.guide, self.fbo, self.color):
