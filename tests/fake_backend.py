@@ -26,7 +26,7 @@ import moderngl
 import numpy as np
 
 from viewer.backends.base import BackendContext, TraceResult
-from viewer.backends.interface import BackendInfo, OverlaySpec
+from viewer.backends.interface import BackendInfo, OverlaySpec, param
 from viewer.errors import RtwalkError
 from viewer.gl.textures import int_texture
 from viewer.rays import HitBuffer, PassInfo, RayBatch
@@ -37,8 +37,8 @@ PAIRS_PER_BLOCK = 1 << 18  # (ray, triangle) pairs live at once: ~20 MB of float
 
 @dataclass
 class FakeParams:
-    tile_level: int = 2  # screen-tile level of the id view's outlines and per-tile counts (capped by the size)
-    max_triangles: int = 4096  # refuse bigger scenes: the brute force is O(rays x triangles)
+    tile_level: int = param(2, "screen-tile level of the id view's outlines and per-tile counts (capped by the size)")
+    max_triangles: int = param(4096, "refuse bigger scenes: the brute force is O(rays x triangles)")
 
     def validate(self, source: str = "--backend-params") -> None:
         if not 0 <= self.tile_level <= 8:

@@ -361,3 +361,27 @@ def test_fake_params_defaults_validate():
     FakeParams().validate()
     with pytest.raises(RtwalkError, match="max_triangles"):
         FakeParams(max_triangles=0).validate("RTWALK_FAKE")
+
+
+def test_every_parameter_is_documented():
+    """Every parameter of every registered backend carries a help text (interface.param): it is
+    what `rtwalk info --backend NAME` prints and the panel's tooltips show."""
+    from viewer.backends import backend_info, backend_names
+    from viewer.backends.interface import describe, param_docs
+
+    for name in backend_names():
+        info = backend_info(name)
+        missing = [d.name for d in param_docs(info.params) if not d.help.strip()]
+        assert not missing, f"{name}: parameters without help: {missing}"
+        text = describe(info)
+        assert all(f"{d.name}=" in text for d in param_docs(info.params))
+
+
+def test_panel_lists_the_backend_parameters_with_their_help():
+    from types import SimpleNamespace
+
+    from viewer.ui.panel import param_rows
+
+    backend = SimpleNamespace(info=FakeBackend.info, params=FakeParams(max_triangles=7))
+    rows = dict(param_rows(backend))
+    assert "max_triangles = 7" in rows

@@ -58,7 +58,7 @@ from viewer.backends.base import BackendContext, TraceResult, WorkCounters
 from viewer.backends.chcrt_cache import MB, CachePlan, SubtreeCache
 from viewer.backends.chcrt_front import INNER, INVISIBLE, VISIBLE, NodeTables, PairFront
 from viewer.backends.gl_traversal import ResumableTraversal, max_visits
-from viewer.backends.interface import BackendInfo, OverlaySpec
+from viewer.backends.interface import BackendInfo, OverlaySpec, param
 from viewer.effects import RayType
 from viewer.errors import RtwalkError
 from viewer.gl.bindings import (
@@ -90,32 +90,32 @@ MAX_LEAF_CACHE = 16
 
 @dataclass
 class ChcrtParams:
-    t_q: float = 0.5  # split in object space if A_node/A_root > t_q * A_tile/A_screen
-    min_tile_fraction: float = 0.015  # smallest tile, fraction of the screen (paper: 200x200 at 1080p)
-    max_subtree_height: int = 24  # scheduled subtrees: traversal stack bound (paper: 24)
-    max_subtree_tris: int = 4096  # scheduled subtrees: triangle bound
-    requery_interval: int = 3  # n: visible leaves are re-queried every n frames
-    schedule_batch: int = 16  # m: newly visible leaves are intersected in batches of m
-    max_batch: int = 24  # subtree roots per intersection draw
-    max_multi: int = 24  # invisible pairs per multi-query
-    visible_threshold: int = 0  # aggressive mode: a pair with <= this many passing pixels is culled
-    overdraw_overlay: bool = True  # allow the overlays (the renderer turns them on only when shown/saved)
-    front_to_back: bool = True  # order scheduled subtrees by a representative ray (primary/shadows)
-    sync_phases: bool = False  # glFinish at the end of each phase: exact per-phase times (diagnostics)
-    # "hw": one hardware occlusion query and one scissored draw per query or batch (the paper);
-    # "batched": a wave of queries (or all batches of an intersection step) in one instanced draw,
-    # queries counted by shader atomics (same pass condition as the depth test)
-    query_mode: str = "batched"
-    # leaf cache (paper 5.2): leaves a ray enters are collected, up to this many, and their triangles
-    # tested together in one loop (coherent delayed tests); 0 tests each leaf at once
-    leaf_cache: int = 0
-    # out-of-core (paper 5.4): GPU budget for the ray tracer's BVH + triangles, in MB, or as a fraction
-    # of the scene's (0 = everything resident); scheduled subtrees then live in a round-robin cache
-    gpu_budget_mb: float = 0.0
-    gpu_budget_fraction: float = 0.0
-    seed: int = 1
-    # False: every frame starts cold from (screen, root) (measures what temporal coherence buys)
-    temporal: bool = True
+    t_q: float = param(0.5, "split in object space if A_node/A_root > t_q * A_tile/A_screen")
+    min_tile_fraction: float = param(0.015, "smallest tile, fraction of the screen (paper: 200x200 at 1080p)")
+    max_subtree_height: int = param(24, "scheduled subtrees: traversal stack bound (paper: 24)")
+    max_subtree_tris: int = param(4096, "scheduled subtrees: triangle bound")
+    requery_interval: int = param(3, "n: visible leaves are re-queried every n frames")
+    schedule_batch: int = param(16, "m: newly visible leaves are intersected in batches of m")
+    max_batch: int = param(24, "subtree roots per intersection draw")
+    max_multi: int = param(24, "invisible pairs per multi-query")
+    visible_threshold: int = param(0, "aggressive mode: a pair with <= this many passing pixels is culled")
+    overdraw_overlay: bool = param(True, "allow the overlays (the renderer turns them on only when shown/saved)")
+    front_to_back: bool = param(True, "order scheduled subtrees by a representative ray (primary/shadows)")
+    sync_phases: bool = param(False, "glFinish at the end of each phase: exact per-phase times (diagnostics)")
+    query_mode: str = param("batched",
+                            "'hw': one hardware occlusion query and one scissored draw per query or batch (the paper); "
+                            "'batched': a wave of queries (or all batches of an intersection step) in one instanced "
+                            "draw, queries counted by shader atomics (same pass condition as the depth test)")
+    leaf_cache: int = param(0,
+                            "leaf cache (paper 5.2): leaves a ray enters are collected, up to this many, and their "
+                            "triangles tested together in one loop (coherent delayed tests); 0 tests each leaf at once")
+    gpu_budget_mb: float = param(0.0, "out-of-core (paper 5.4): GPU budget for the ray tracer's BVH + "
+                                 "triangles in MB (0 = everything resident); scheduled subtrees then live in a "
+                                 "round-robin cache")
+    gpu_budget_fraction: float = param(0.0, "out-of-core budget as a fraction of the scene's BVH + triangles (0 = off)")
+    seed: int = param(1, "random phase of the visible-leaf re-queries")
+    temporal: bool = param(True,
+                           "False: every frame starts cold from (screen, root) (measures what temporal coherence buys)")
 
     def validate(self, source: str = "chcrt") -> None:
         if not (1 <= self.max_batch <= 24 and 1 <= self.max_multi <= 24):

@@ -271,6 +271,7 @@ def draw_panel(host, width: float, height: float) -> None:  # noqa: C901 (a flat
             r.view = views[idx]
         _draw_overlay_controls(r, host.last_report)
         _, host.render_scale = imgui.slider_float("render scale", host.render_scale, 0.25, 1.0, "%.2f")
+        _draw_params(r.backend)
 
     # -- scene --------------------------------------------------------------------------------
     if imgui.collapsing_header("Scene"):
@@ -315,6 +316,28 @@ def draw_panel(host, width: float, height: float) -> None:  # noqa: C901 (a flat
 
     imgui.pop_item_width()
     imgui.end()
+
+
+def param_rows(backend) -> list[tuple[str, str]]:
+    """("name = value", help) of the active backend's parameters, from its documented fields."""
+    from viewer.backends.interface import param_docs
+
+    params = getattr(backend, "params", None)
+    return [(f"{d.name} = {getattr(params, d.name, d.default)}", d.help) for d in param_docs(backend.info.params)]
+
+
+def _draw_params(backend) -> None:
+    """The backend's parameters as set (--backend-params / RTWALK_<NAME>), each with its help as a
+    tooltip, folded under one tree node."""
+    from imgui_bundle import imgui
+
+    rows = param_rows(backend)
+    if rows and imgui.tree_node(f"{backend.info.name} parameters ({len(rows)})"):
+        for text, help_text in rows:
+            imgui.text(text)
+            if help_text and imgui.is_item_hovered():
+                imgui.set_tooltip(help_text)
+        imgui.tree_pop()
 
 
 # --------------------------------------------------------------------------- backend phases, counters

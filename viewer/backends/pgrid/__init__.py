@@ -41,7 +41,7 @@ from viewer.accel.camgrid import N as CAMERA_N
 from viewer.accel.grid import GridSpec, UniformGrid, scene_box, triangles_f4
 from viewer.accel.pointgrid import PointGrid, PointGridSpec
 from viewer.backends.base import BackendContext, TraceResult
-from viewer.backends.interface import BackendInfo, OverlaySpec
+from viewer.backends.interface import BackendInfo, OverlaySpec, param
 from viewer.backends.ugrid import GridTracer
 from viewer.cl import io as clio
 from viewer.cl.limits import new_buffer
@@ -56,20 +56,20 @@ SAMPLE = 4096  # rays sampled (strided) to choose the spherical frame
 
 @dataclass
 class PgridParams:
-    chunk: int = 64  # rays per chunk = work-group size
-    tile_rays: int = 32  # automatic tiling: ~rays per angular tile (32: fewer triangles per tile than 64)
-    tiles: int = 0  # >0: tiles along the longer side of the angular rectangle
-    tile_deg: float = 0.0  # >0: light tiles of this many degrees (fixed angular resolution)
-    slabs: int = 16  # distance slabs per tile
-    margin: float = 0.004  # angular margin (radians) a ray may deviate from its tile direction
-    primary: str = "image"  # image: camera perspective grid; angular: eye-centred grid; grid: uniform grid
-    k: int = 1  # camera grid: indirect mapping (tiles of k x 8 pixels)
-    backface: str = "auto"  # camera grid: auto (where exact), on, off
-    order: str = "auto"  # light grid slab order for any hit: light (outward), surface (inward), auto
-    balance: bool = True  # cut tiles into chunks of `chunk` rays (False: one work-group per tile)
-    rebuild: bool = False  # rebuild the uniform grid every frame (animated scenes; timing studies)
-    density: float = 2.0  # uniform grid (other ray types): ~cells per triangle
-    resolution: int = 0  # uniform grid: cells on the longest axis (0 = from density)
+    chunk: int = param(64, "rays per chunk = work-group size")
+    tile_rays: int = param(32, "automatic tiling: ~rays per angular tile (32: fewer triangles per tile than 64)")
+    tiles: int = param(0, ">0: tiles along the longer side of the angular rectangle")
+    tile_deg: float = param(0.0, ">0: light tiles of this many degrees (fixed angular resolution)")
+    slabs: int = param(16, "distance slabs per tile")
+    margin: float = param(0.004, "angular margin (radians) a ray may deviate from its tile direction")
+    primary: str = param("image", "image: camera perspective grid; angular: eye-centred grid; grid: uniform grid")
+    k: int = param(1, "camera grid: indirect mapping (tiles of k x 8 pixels)")
+    backface: str = param("auto", "camera grid: auto (where exact), on, off")
+    order: str = param("auto", "light grid slab order for any hit: light (outward), surface (inward), auto")
+    balance: bool = param(True, "cut tiles into chunks of `chunk` rays (False: one work-group per tile)")
+    rebuild: bool = param(False, "rebuild the uniform grid every frame (animated scenes; timing studies)")
+    density: float = param(2.0, "uniform grid (other ray types): ~cells per triangle")
+    resolution: int = param(0, "uniform grid: cells on the longest axis (0 = from density)")
 
     def validate(self, source: str) -> None:
         if self.chunk not in (16, 32, 64, 128, 256):

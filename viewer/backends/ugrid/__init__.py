@@ -23,7 +23,7 @@ import numpy as np
 
 from viewer.accel.grid import GridSpec, UniformGrid, scene_box, triangles_f4
 from viewer.backends.base import BackendContext, TraceResult
-from viewer.backends.interface import BackendInfo, OverlaySpec
+from viewer.backends.interface import BackendInfo, OverlaySpec, param
 from viewer.cl import io as clio
 from viewer.cl.limits import new_buffer
 from viewer.errors import RtwalkError
@@ -35,10 +35,10 @@ WG = 64
 
 @dataclass
 class UgridParams:
-    density: float = 2.0  # ~cells per triangle (automatic resolution, per axis by the scene's extent)
-    resolution: int = 0  # >0: cells along the longest axis instead
-    max_axis: int = 512  # cap on cells per axis
-    rebuild: bool = False  # rebuild every frame (animated scenes; timing studies)
+    density: float = param(2.0, "~cells per triangle (automatic resolution, per axis by the scene's extent)")
+    resolution: int = param(0, ">0: cells along the longest axis instead")
+    max_axis: int = param(512, "cap on cells per axis")
+    rebuild: bool = param(False, "rebuild every frame (animated scenes; timing studies)")
 
     def validate(self, source: str) -> None:
         if not self.density > 0:

@@ -24,7 +24,7 @@ import numpy as np
 
 from viewer.accel.voxelize import Voxels, check_resolution, voxelize
 from viewer.backends.base import BackendContext, TraceResult
-from viewer.backends.interface import BackendInfo
+from viewer.backends.interface import BackendInfo, param
 from viewer.backends.voxels.scene import STACK_RANGE, STRUCTURES, VoxelTracer, build_structure
 from viewer.effects import RayType
 from viewer.errors import RtwalkError
@@ -33,12 +33,12 @@ from viewer.rays import HitBuffer, PassInfo, RayBatch
 
 @dataclass
 class VoxelsParams:
-    structure: str = "bvh"  # bvh | kd | octree
-    resolution: int = 256  # voxels per side (power of two)
-    stack: int = 8  # short-stack entries (the paper: 4-8); restart from the root when it runs empty
-    bias: float = 1.5  # secondary rays start this many voxel widths along the ray
-    leave: bool = False  # secondary rays skip the run of voxels they start in (the surface they leave)
-    gap: float = 0.5  # leave: voxels starting within this many voxel widths of the previous exit are one run
+    structure: str = param("bvh", "bvh | kd | octree")
+    resolution: int = param(256, "voxels per side (power of two)")
+    stack: int = param(8, "short-stack entries (the paper: 4-8); restart from the root when it runs empty")
+    bias: float = param(1.5, "secondary rays start this many voxel widths along the ray")
+    leave: bool = param(False, "secondary rays skip the run of voxels they start in (the surface they leave)")
+    gap: float = param(0.5, "leave: voxels starting within this many voxel widths of the previous exit are one run")
 
     def validate(self, source: str = "voxels") -> None:
         if self.structure not in STRUCTURES:

@@ -36,7 +36,7 @@ import numpy as np
 
 from viewer.accel.grid import GridSpec, UniformGrid, scene_box, triangles_f4
 from viewer.backends.base import BackendContext, TraceResult
-from viewer.backends.interface import BackendInfo, OverlaySpec
+from viewer.backends.interface import BackendInfo, OverlaySpec, param
 from viewer.backends.voxelwalk.engine import PassStats, VoxelWalker, tile_divergence
 from viewer.cl import io as clio
 from viewer.cl.limits import new_buffer
@@ -51,13 +51,13 @@ CHUNKS = (16, 32, 64, 128, 256)
 
 @dataclass
 class VoxelwalkParams:
-    mode: str = "ec"  # closest-hit rays: ivw (independent walk) or ec (enforced coherence)
-    chunk: int = 64  # EC: rays per chunk = work-group size
-    resolution: str = "auto"  # auto (grid.py's rule from the scene) or N cells on the longest axis
-    cells: int = 1  # EC: non-empty cells per ray per iteration (0: every cell the ray crosses at once)
-    density: float = 2.0  # auto resolution: about this many cells per triangle
-    rebuild: bool = False  # rebuild the grid every frame (animated scenes; timing studies)
-    stats: bool = False  # per-iteration statistics every pass (else only while overlays are shown)
+    mode: str = param("ec", "closest-hit rays: ivw (independent walk) or ec (enforced coherence)")
+    chunk: int = param(64, "EC: rays per chunk = work-group size")
+    resolution: str = param("auto", "auto (grid.py's rule from the scene) or N cells on the longest axis")
+    cells: int = param(1, "EC: non-empty cells per ray per iteration (0: every cell the ray crosses at once)")
+    density: float = param(2.0, "auto resolution: about this many cells per triangle")
+    rebuild: bool = param(False, "rebuild the grid every frame (animated scenes; timing studies)")
+    stats: bool = param(False, "per-iteration statistics every pass (else only while overlays are shown)")
 
     def validate(self, source: str) -> None:
         if self.mode not in MODES:
