@@ -27,7 +27,9 @@ MAX_SET_LIGHTS = 4  # lights for a walk: each costs one shadow pass (the shade p
 MAX_RECT = 4  # the rect lights the shaders take (lighting.glsl MAX_RECT_LIGHTS)
 SET_TARGET = 0.6  # a camera's lit pixel share beyond which more light on it scores nothing more
 SET_MIN_GAIN = 0.01  # per camera: a light adding less than this to the capped score is not added
-PATH_CAMERA_STEP = 20  # frames between the recording cameras lights are chosen for
+PATH_CAMERA_STEP = 30  # frames between the recording cameras lights are chosen for
+SUBSET = 384  # place_set stage 1: samples every candidate is tried on
+SHORTLIST = 24  # place_set stage 2: candidates tried on every sample (greedy set choice)
 
 
 @dataclass
@@ -149,7 +151,8 @@ def place_set(scene: Scene, bvh: BVH, guess: np.ndarray, cameras: list,
     One light placed for the first camera leaves the rest of a walk (conference-walk: the far end
     of the room, the corridor) in the dark. Here every camera contributes its visible samples
     (PATH_GRID rays, misses included, so a camera's share is a share of its pixels) and its own
-    candidates; lights are then chosen greedily, each maximising sum over cameras of
+    candidates (tried on a sample subset first, the SHORTLIST best then on all samples: a few
+    hundred thousand shadow rays in all); lights are then chosen greedily, each maximising sum over cameras of
     min(share of that camera's pixels lit by the chosen set, SET_TARGET): the cap makes a light that
     lifts a dark camera worth more than one that brightens a lit one. Stops at `max_lights` or when
     no light adds SET_MIN_GAIN."""
@@ -171,9 +174,14 @@ def place_set(scene: Scene, bvh: BVH, guess: np.ndarray, cameras: list,
     idx = np.flatnonzero(nearest > 0.01 * diag)
     if len(idx) == 0:
         return []
-    _, lit = lit_share(scene, bvh, cand[idx], p, n, 1e-4 * diag)
     onehot = np.zeros((len(p), len(cameras)))
     onehot[np.arange(len(p)), owner] = 1.0 / rays_per_camera
+    if len(idx) > SHORTLIST:  # stage 1: every candidate on a sample subset, keep the best few
+        sub = np.random.default_rng(0).choice(len(p), min(SUBSET, len(p)), replace=False)
+        _, lit_sub = lit_share(scene, bvh, cand[idx], p[sub], n[sub], 1e-4 * diag)
+        rough = np.minimum(lit_sub.astype(np.float64) @ onehot[sub] * (len(p) / len(sub)), SET_TARGET).sum(1)
+        idx = idx[np.argsort(-rough, kind="stable")[:SHORTLIST]]
+    _, lit = lit_share(scene, bvh, cand[idx], p, n, 1e-4 * diag)
     per_cam = lit.astype(np.float64) @ onehot  # (L, C): share of each camera's pixels each light lights
     covered = np.zeros(len(p), bool)
     chosen: list[Placement] = []
