@@ -18,14 +18,12 @@ from viewer.cli_args import (
     add_force_arg,
     add_progressive_args,
     add_scene_args,
-    backend_options_from,
     check_at_least,
     check_device,
     check_image_output,
     parse_camera,
-    parse_size,
+    request_from,
     scene_from_args,
-    settings_from,
     warn_no_mirrors,
 )
 from viewer.errors import RtwalkError
@@ -43,10 +41,9 @@ def cmd_render(args) -> int:
     from viewer.renderer import Renderer
 
     # everything that needs no scene first: backend, parameters, view, size, effects, output, devices
-    backend_options = backend_options_from(args)
+    req = request_from(args, device=False)
+    backend_options, size, settings = req.backend_options, req.size, req.settings
     check_view(args.view, backend_info(args.backend))
-    size = parse_size(args.size)
-    settings = settings_from(args)
     check_at_least(args.frame, 0, "--frame")
     camera = parse_camera(args.camera) if args.camera else None
     out = check_image_output(args.output)

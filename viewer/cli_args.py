@@ -13,6 +13,7 @@ import math
 import os
 import sys
 import tempfile
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -294,6 +295,29 @@ def check_device(backend: str) -> None:
         reason = cl_available()
         if reason is not None:
             raise RtwalkError(f"--backend {backend} needs an OpenCL device: {reason}")
+
+
+@dataclass
+class RenderRequest:
+    """What every rendering command (render, bench, view, demo) checks before loading a scene:
+    the backend and its parameter text, the image size and the effect settings."""
+
+    backend: str
+    backend_options: dict[str, str]
+    size: tuple[int, int]
+    settings: object  # viewer.effects.EffectSettings
+
+
+def request_from(args, device: bool = True) -> RenderRequest:
+    """The fail-fast sequence shared by the commands: backend known and its parameters valid,
+    size and effects parsed, and (device=True) the backend's device there; one RtwalkError line
+    otherwise, before any scene work."""
+    backend_options = backend_options_from(args)
+    size = parse_size(args.size)
+    settings = settings_from(args)
+    if device:
+        check_device(args.backend)
+    return RenderRequest(args.backend, backend_options, size, settings)
 
 
 def parse_sizes(text: str, scene: str = "city", flag: str = "--sizes") -> list[int]:

@@ -313,15 +313,13 @@ def add_arguments(b: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     from viewer.cli_args import (
         DEFAULT_RECORDING,
-        backend_options_from,
         check_at_least,
         check_device,
         check_output_dir,
         check_positive,
         check_report_free,
-        parse_size,
+        request_from,
         scene_from_args,
-        settings_from,
         warn_no_mirrors,
     )
     from viewer.gl.context import create_headless_context
@@ -331,9 +329,8 @@ def run(args: argparse.Namespace) -> int:
     if rec_path is None:
         raise RtwalkError("bench needs --recording FILE for this scene (see recordings/)")
     # everything that needs no scene first: backend, parameters, numbers, output folders, devices
-    backend_options = backend_options_from(args)
-    size = parse_size(args.size)
-    settings = settings_from(args)
+    req = request_from(args, device=False)
+    backend_options, size, settings = req.backend_options, req.size, req.settings
     check_positive(args.fps, "--fps")
     check_positive(getattr(args, "frame_target_ms", None), "--frame-target-ms")
     check_at_least(args.frames, 1, "--frames")

@@ -147,16 +147,7 @@ def _first_line(exc: BaseException) -> str:
 
 
 def run_viewer(args) -> int:
-    from viewer.backends import BACKENDS
-    from viewer.cli_args import (
-        backend_options_from,
-        check_device,
-        check_image_output,
-        parse_size,
-        scene_from_args,
-        settings_from,
-        warn_no_mirrors,
-    )
+    from viewer.cli_args import check_image_output, request_from, scene_from_args, warn_no_mirrors
     from viewer.recording import load_recording
 
     max_frames = frame_limit(args)
@@ -166,12 +157,8 @@ def run_viewer(args) -> int:
     if shot:
         check_image_output(shot, "RTWALK_VIEW_SCREENSHOT")
     window_class()  # fail on a missing display before spending time on the scene
-    settings = settings_from(args)
-    backend_options = backend_options_from(args)
-    size = parse_size(args.size)
-    if args.backend not in BACKENDS:
-        raise RtwalkError(f"unknown backend '{args.backend}' (choose from {', '.join(BACKENDS)})")
-    check_device(args.backend)
+    req = request_from(args)
+    settings, backend_options, size = req.settings, req.backend_options, req.size
     rec_path = getattr(args, "recording", None)
     recording = load_recording(rec_path) if rec_path else None
     quiet = bool(getattr(args, "quiet", False))

@@ -38,13 +38,13 @@ import numpy as np
 
 from viewer.accel.camgrid import CameraGrid, CameraGridSpec, closed_outward, corner_rays, fit_camera
 from viewer.accel.camgrid import N as CAMERA_N
-from viewer.accel.grid import GridSpec, UniformGrid, scene_box, triangles_f4
+from viewer.accel.grid import GridSpec, UniformGrid, scene_box
 from viewer.accel.pointgrid import PointGrid, PointGridSpec
 from viewer.backends.base import BackendContext, TraceResult
+from viewer.backends.cl_geometry import GeometryBackend
 from viewer.backends.interface import BackendInfo, OverlaySpec, param
 from viewer.backends.ugrid import GridTracer
 from viewer.cl import io as clio
-from viewer.cl.limits import new_buffer
 from viewer.effects import RayType
 from viewer.errors import RtwalkError
 from viewer.rays import HitBuffer, PassInfo, RayBatch
@@ -99,7 +99,7 @@ class PgridParams:
                              margin=self.margin)
 
 
-class PgridBackend:
+class PgridBackend(GeometryBackend):
     info = BackendInfo(
         "pgrid", "OpenCL: per-pass point-centred grids (light / eye) with rays sorted into chunks; uniform grid for "
         "the other rays", params=PgridParams,
@@ -132,32 +132,18 @@ class PgridBackend:
             self._camera_kernels[count] = clio.kernel(prog, "cg_trace")
         self._closed: tuple[tuple[int, int], bool] | None = None
         self._grid_fresh = False
-        self._tris = None
-        self._tris_key = None
         self._box = (np.zeros(3), np.ones(3))
         self.stages = PassStages(self.ctx, extras=1)  # + triangle tests per ray
         self.textures = IntTextures(bc.ctx)
         self._rebuild()
 
-    # -- geometry -------------------------------------------------------------------------
-    def _geometry_key(self) -> tuple[int, int]:
-        return id(self.bc.scene.triangles), int(getattr(self.bc.scene, "geometry_version", 0))
-
+    # -- geometry (viewer.backends.cl_geometry) --------------------------------------------
     def _rebuild(self) -> None:
         """The moved triangles to the device; the uniform grid is rebuilt when a pass needs it."""
-        cl, ctx = self.ctx.cl, self.ctx
-        tris = np.asarray(self.bc.scene.triangles, np.float32).reshape(-1, 3, 3)
-        with self.bc.profiler.cl_phase("pgrid:triangles", ctx.queue):
-            f4 = triangles_f4(tris)
-            if self._tris is None or self._tris.size < f4.nbytes:
-                if self._tris is not None:
-                    self._tris.release()
-                self._tris = new_buffer(ctx, cl.mem_flags.READ_ONLY, f4.nbytes, "pgrid triangles")
-            if f4.nbytes:
-                clio.copy(ctx.queue, self._tris, f4)
+        with self.bc.profiler.cl_phase("pgrid:triangles", self.ctx.queue):
+            tris = self._upload_triangles("pgrid triangles")
             self._box = scene_box(tris)
             self._n_tris = len(tris)
-        self._tris_key = self._geometry_key()
         self._grid_fresh = False
 
     def _ensure_grid(self) -> None:
@@ -169,22 +155,6 @@ class PgridBackend:
             self.grid.build(self._tris, self._n_tris, *self._box,
                             GridSpec(density=self.params.density, resolution=self.params.resolution))
         self._grid_fresh = True
-
-    def scene_changed(self, bc: BackendContext) -> None:
-        """The triangles moved: upload them now (the per-pass grids are built per pass anyway; the
-        uniform grid when a pass first needs it)."""
-        self.bc = bc
-        self._rebuild()
-
-    def begin_frame(self, frame_index: int) -> None:
-        if self.params.rebuild or self._geometry_key() != self._tris_key:
-            self._rebuild()
-
-    def reset(self) -> None:
-        pass
-
-    def tile_level(self, size: tuple[int, int]) -> int:
-        return -1
 
     # -- tracing --------------------------------------------------------------------------
     def _centre(self, pinfo: PassInfo, rs) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:

@@ -21,11 +21,11 @@ from typing import Any
 
 import numpy as np
 
-from viewer.accel.grid import GridSpec, UniformGrid, scene_box, triangles_f4
+from viewer.accel.grid import GridSpec, UniformGrid, scene_box
 from viewer.backends.base import BackendContext, TraceResult
+from viewer.backends.cl_geometry import GeometryBackend
 from viewer.backends.interface import BackendInfo, OverlaySpec, param
 from viewer.cl import io as clio
-from viewer.cl.limits import new_buffer
 from viewer.errors import RtwalkError
 from viewer.rays import HitBuffer, PassInfo, RayBatch
 
@@ -80,7 +80,7 @@ class GridTracer:
           out_t, out_id, np.int32(n), tests if tests is not None else out_id, *extra)
 
 
-class UgridBackend:
+class UgridBackend(GeometryBackend):
     info = BackendInfo("ugrid", "OpenCL: uniform grid (sorted triangle-cell pairs) walked by 3D-DDA, one ray per "
                        "work-item", params=UgridParams,
                        overlays=(OverlaySpec("triangle_tests", "heat", "triangle_tests", "triangles tested per ray"),),
@@ -96,50 +96,21 @@ class UgridBackend:
         self.ctx = cl_context()
         self.grid = UniformGrid(self.ctx)
         self.tracer = GridTracer(self.ctx, self.grid)
-        self._tris = None
-        self._tris_key: tuple[int, int] | None = None
         self.stages = PassStages(self.ctx, extras=1)  # + triangle tests per ray
         self.textures = IntTextures(bc.ctx)
         self._grid_stats_due = True
         self._rebuild()
 
-    # -- geometry -------------------------------------------------------------------------
-    def _geometry_key(self) -> tuple[int, int]:
-        tris = self.bc.scene.triangles
-        return id(tris), int(getattr(self.bc.scene, "geometry_version", 0))
-
+    # -- geometry (viewer.backends.cl_geometry) --------------------------------------------
     def _rebuild(self) -> None:
         """Upload the triangles and build the grid (phase "ugrid:build")."""
-        cl, ctx = self.ctx.cl, self.ctx
-        tris = np.asarray(self.bc.scene.triangles, np.float32).reshape(-1, 3, 3)
-        with self.bc.profiler.cl_phase("ugrid:build", ctx.queue):
-            f4 = triangles_f4(tris)
-            if self._tris is None or self._tris.size < f4.nbytes:
-                if self._tris is not None:
-                    self._tris.release()
-                self._tris = new_buffer(ctx, cl.mem_flags.READ_ONLY, f4.nbytes, "ugrid triangles")
-            if f4.nbytes:
-                clio.copy(ctx.queue, self._tris, f4)
+        with self.bc.profiler.cl_phase("ugrid:build", self.ctx.queue):
+            tris = self._upload_triangles("ugrid triangles")
             lo, hi = scene_box(tris)
             self.grid.build(self._tris, len(tris), lo, hi, self.params.spec())
-        self._tris_key = self._geometry_key()
 
-    def scene_changed(self, bc: BackendContext) -> None:
-        """The triangles moved: rebuild the grid now (Kalojanov-style sort build, timed as this
-        backend's build phase) rather than lazily at the next begin_frame."""
-        self.bc = bc
-        self._rebuild()
-
-    def begin_frame(self, frame_index: int) -> None:
-        if self.params.rebuild or self._geometry_key() != self._tris_key:
-            self._rebuild()
+    def _frame_started(self) -> None:
         self._grid_stats_due = True  # the grid's counters go with the frame's first pass only
-
-    def reset(self) -> None:
-        pass
-
-    def tile_level(self, size: tuple[int, int]) -> int:
-        return -1
 
     # -- tracing --------------------------------------------------------------------------
     def trace(self, rays: RayBatch, pinfo: PassInfo, hits: HitBuffer) -> TraceResult:

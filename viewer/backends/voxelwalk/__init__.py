@@ -32,14 +32,11 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import numpy as np
-
-from viewer.accel.grid import GridSpec, UniformGrid, scene_box, triangles_f4
+from viewer.accel.grid import GridSpec, UniformGrid, scene_box
 from viewer.backends.base import BackendContext, TraceResult
+from viewer.backends.cl_geometry import GeometryBackend
 from viewer.backends.interface import BackendInfo, OverlaySpec, param
 from viewer.backends.voxelwalk.engine import PassStats, VoxelWalker, tile_divergence
-from viewer.cl import io as clio
-from viewer.cl.limits import new_buffer
 from viewer.errors import RtwalkError
 from viewer.rays import HitBuffer, PassInfo, RayBatch
 
@@ -82,7 +79,7 @@ class VoxelwalkParams:
         return GridSpec(density=self.density, resolution=res, max_axis=max(512, res))
 
 
-class VoxelwalkBackend:
+class VoxelwalkBackend(GeometryBackend):
     info = BackendInfo(
         "voxelwalk", "OpenCL: uniform grid walked by each ray alone (IVW) or with coherence enforced by sorting "
         "ray-cell pairs by cell (EC)", params=VoxelwalkParams,
@@ -104,8 +101,6 @@ class VoxelwalkBackend:
         self.ctx = cl_context()
         self.grid = UniformGrid(self.ctx)
         self.walker = VoxelWalker(self.ctx, self.grid, self.params.chunk, self.params.cells)
-        self._tris = None
-        self._tris_key: tuple[int, int] | None = None
         self.stages = PassStages(self.ctx)
         self.textures = IntTextures(bc.ctx)
         self.last_stats: PassStats | None = None
@@ -113,48 +108,22 @@ class VoxelwalkBackend:
         self._build_ms = 0.0
         self._rebuild()
 
-    # -- geometry -------------------------------------------------------------------------
-    def _geometry_key(self) -> tuple[int, int]:
-        return id(self.bc.scene.triangles), int(getattr(self.bc.scene, "geometry_version", 0))
-
+    # -- geometry (viewer.backends.cl_geometry) --------------------------------------------
     def _rebuild(self) -> None:
-        cl, ctx = self.ctx.cl, self.ctx
-        tris = np.asarray(self.bc.scene.triangles, np.float32).reshape(-1, 3, 3)
-        with self.bc.profiler.cl_phase("voxelwalk:build", ctx.queue):
-            f4 = triangles_f4(tris)
-            if self._tris is None or self._tris.size < f4.nbytes:
-                if self._tris is not None:
-                    self._tris.release()
-                self._tris = new_buffer(ctx, cl.mem_flags.READ_ONLY, f4.nbytes, "voxelwalk triangles")
-            if f4.nbytes:
-                clio.copy(ctx.queue, self._tris, f4)
+        with self.bc.profiler.cl_phase("voxelwalk:build", self.ctx.queue):
+            tris = self._upload_triangles("voxelwalk triangles")
             gs = self.grid.build(self._tris, len(tris), *scene_box(tris), self.params.spec())
-        self._tris_key = self._geometry_key()
         self._build_ms += gs.build_ms  # reported by the next frame
 
     @property
     def resolution(self) -> tuple[int, int, int]:
         return self.grid.stats.res
 
-    def scene_changed(self, bc: BackendContext) -> None:
-        """The triangles moved: rebuild the grid now (Kalojanov-style sort build, timed as this
-        backend's build phase) rather than lazily at the next begin_frame."""
-        self.bc = bc
-        self._rebuild()
-
-    def begin_frame(self, frame_index: int) -> None:
-        if self.params.rebuild or self._geometry_key() != self._tris_key:
-            self._rebuild()
+    def _frame_started(self) -> None:
         gs = self.grid.stats
         self._frame_stats = {"res_x": float(gs.res[0]), "res_y": float(gs.res[1]), "res_z": float(gs.res[2]),
                              "grid_pairs": float(gs.pairs), "grid_build_ms": self._build_ms}
         self._build_ms = 0.0
-
-    def reset(self) -> None:
-        pass
-
-    def tile_level(self, size: tuple[int, int]) -> int:
-        return -1
 
     # -- tracing --------------------------------------------------------------------------
     def trace(self, rays: RayBatch, pinfo: PassInfo, hits: HitBuffer) -> TraceResult:
