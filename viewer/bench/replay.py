@@ -355,7 +355,7 @@ def run(args: argparse.Namespace) -> int:
     names = [f"{stem}-progressive.json"] if progressive else [f"{stem}.json", f"{stem}.png"]
     check_report_free([out_dir / n for n in names], getattr(args, "force", False))
     if progressive:
-        from viewer.progressive import replay_progressive
+        from viewer.bench.progressive import replay_progressive
 
         result = replay_progressive(prepared, rec, settings, opts, ctx, args.frame_target_ms, quiet=args.quiet)
         path = out_dir / names[0]
