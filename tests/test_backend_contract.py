@@ -22,7 +22,7 @@ import pytest
 from tests.fake_backend import FakeBackend, FakeParams
 from tests.view_helpers import draw_views, image_gl, record_overlays, tile_edges
 from viewer.accel.bvh import build_bvh
-from viewer.backends import BACKENDS, backend_info, backend_names, check_params
+from viewer.backends import BACKENDS, backend_info, backend_names, check_params, registered_infos
 from viewer.camera import Camera
 from viewer.effects import RayType, parse_effects
 from viewer.errors import RtwalkError
@@ -104,15 +104,16 @@ def test_registry_and_views_come_from_info():
     info = FakeBackend.info
     assert view_names(info)[0] == "final" and view_names(info)[-2:] == ["fake_crossings", "fake_tris"]
     assert cycled_views(info) == ["final", "fake_crossings", "fake_tris"]
-    assert backends_with_view("fake_tris") == ["fake"]
-    check_view("fake_tris", info)
-    check_view("normal", info)
+    infos = registered_infos()
+    assert backends_with_view("fake_tris", infos) == ["fake"]
+    check_view("fake_tris", info, infos)
+    check_view("normal", info, infos)
     for other in backend_names():
         if other != "fake":
             with pytest.raises(RtwalkError, match=rf"view 'fake_tris' .* backend '{other}' .*backends that do: fake"):
-                check_view("fake_tris", backend_info(other))
+                check_view("fake_tris", backend_info(other), infos)
     with pytest.raises(RtwalkError, match="unknown view 'xray'"):
-        check_view("xray", info)
+        check_view("xray", info, infos)
     spec = info.overlays[1]
     assert ids_labels(spec) == ("hit triangle", "distinct triangles hit in the tile")
 

@@ -34,7 +34,7 @@ VIEW_SIZE = "896x504"  # the window's image; the panel is beside it (viewer.ui.p
 def cmd_render(args) -> int:
     from PIL import Image
 
-    from viewer.backends import backend_info
+    from viewer.backends import backend_info, registered_infos
     from viewer.gl.context import create_headless_context
     from viewer.passes.overlay import check_view
     from viewer.recording import load_recording
@@ -43,7 +43,7 @@ def cmd_render(args) -> int:
     # everything that needs no scene first: backend, parameters, view, size, effects, output, devices
     req = request_from(args, device=False)
     backend_options, size, settings = req.backend_options, req.size, req.settings
-    check_view(args.view, backend_info(args.backend))
+    check_view(args.view, backend_info(args.backend), registered_infos())
     check_at_least(args.frame, 0, "--frame")
     camera = parse_camera(args.camera) if args.camera else None
     out = check_image_output(args.output)

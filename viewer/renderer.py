@@ -19,7 +19,7 @@ import numpy as np
 
 from viewer import iostats
 from viewer.accel.bvh import BVH, refit_bvh
-from viewer.backends import backend_names, create_backend
+from viewer.backends import backend_names, create_backend, registered_infos
 from viewer.backends.base import BackendContext
 from viewer.backends.interface import OverlaySpec
 from viewer.camera import Camera
@@ -388,7 +388,7 @@ class Renderer:
         if self._overlay is not None:
             self._overlay.begin_frame()
         if view_overlay:
-            missing = view_unavailable(self.view, self.backend.info)
+            missing = view_unavailable(self.view, self.backend.info, registered_infos())
             if missing:
                 self._overlay_unavailable(missing)
             elif source is None:

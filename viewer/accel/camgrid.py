@@ -87,7 +87,7 @@ class CameraGridStats:
                 "culled": float(self.culled_frustum + self.culled_backface),
                 "culled_frustum": float(self.culled_frustum), "culled_backface": float(self.culled_backface),
                 "near_eye": float(self.near_eye), "outside_rays": float(self.outside),
-                "pgrid_build_ms": self.build_ms, "rearrange_ms": self.classify_ms}
+                "grid_build_ms": self.build_ms, "rearrange_ms": self.classify_ms}
 
 
 @dataclass

@@ -90,7 +90,7 @@ class PointGridStats:
                 "chunk_occupancy": self.in_grid / max(self.chunks * chunk, 1), "culled": float(self.culled),
                 "widened": float(self.widened), "outside_rays": float(self.outside),
                 "inactive_rays": float(self.inactive), "grid_rays": float(self.in_grid),
-                "tiles": float(self.tiles[0] * self.tiles[1]), "pgrid_build_ms": self.build_ms,
+                "tiles": float(self.tiles[0] * self.tiles[1]), "grid_build_ms": self.build_ms,
                 "rearrange_ms": self.rearrange_ms}
 
 

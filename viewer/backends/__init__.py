@@ -56,3 +56,15 @@ def create_backend(name: str, bc: BackendContext, params: str | None = None) -> 
     """`params`: the backend's "key=value,..." text (--backend-params), or None for defaults."""
     cls = backend_class(name)
     return cls(bc, resolve_params(cls.info, params))
+
+
+def registered_infos() -> list[BackendInfo]:
+    """Every registered backend's `info` whose module imports here (a backend whose package is
+    missing offers no views): what view checks and the window's view list are made from."""
+    infos = []
+    for name in backend_names():
+        try:
+            infos.append(backend_class(name).info)
+        except Exception:  # noqa: BLE001 (an optional backend's import error of any kind)
+            continue
+    return infos

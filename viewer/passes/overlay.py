@@ -25,12 +25,12 @@ set instead (compare frames). The NumPy functions below mirror the shader (legen
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from functools import lru_cache
 
 import moderngl
 import numpy as np
 
-from viewer.backends import backend_class, backend_names
 from viewer.backends.interface import BackendInfo, OverlaySpec
 from viewer.errors import RtwalkError
 from viewer.gl import io as glio
@@ -72,44 +72,35 @@ def cycled_views(info: BackendInfo) -> list[str]:
     return ["final", *overlay_view_names(info)]
 
 
-def _registered_infos() -> list[BackendInfo]:
-    infos = []
-    for name in backend_names():
-        try:
-            infos.append(backend_class(name).info)
-        except Exception:  # a backend whose package or device is missing offers no views
-            continue
-    return infos
+def backends_with_view(view: str, infos: Sequence[BackendInfo]) -> list[str]:
+    """The backends among `infos` (the registry's: viewer.backends.registered_infos) that produce
+    the overlay view `view`."""
+    return [info.name for info in infos if overlay_spec(info, view) is not None]
 
 
-def backends_with_view(view: str) -> list[str]:
-    """Registered backends that produce the overlay view `view` (from their `info`)."""
-    return [info.name for info in _registered_infos() if overlay_spec(info, view) is not None]
-
-
-def all_view_names() -> list[str]:
-    """The shade pass's views and every registered backend's overlay views (no duplicates)."""
+def all_view_names(infos: Sequence[BackendInfo]) -> list[str]:
+    """The shade pass's views and every overlay view of `infos` (no duplicates)."""
     out = list(SHADE_MODES)
-    for info in _registered_infos():
+    for info in infos:
         out += [n for n in overlay_view_names(info) if n not in out]
     return out
 
 
-def view_unavailable(view: str, info: BackendInfo) -> str:
+def view_unavailable(view: str, info: BackendInfo, infos: Sequence[BackendInfo] = ()) -> str:
     """Why backend `info` cannot show `view` ('' when it can): an unknown view, or an overlay
-    that other registered backends produce (named from the registry)."""
+    that other backends of `infos` produce (named in the message)."""
     if view in SHADE_MODES or overlay_spec(info, view) is not None:
         return ""
-    producers = backends_with_view(view)
+    producers = backends_with_view(view, infos)
     if not producers:
         return f"unknown view '{view}' (choose from {', '.join(view_names(info))})"
     return (f"view '{view}' is an overlay that backend '{info.name}' does not produce "
             f"(backends that do: {', '.join(producers)})")
 
 
-def check_view(view: str, info: BackendInfo) -> None:
+def check_view(view: str, info: BackendInfo, infos: Sequence[BackendInfo] = ()) -> None:
     """RtwalkError unless backend `info` can show `view` (the CLI's check before loading a scene)."""
-    msg = view_unavailable(view, info)
+    msg = view_unavailable(view, info, infos)
     if msg:
         raise RtwalkError(msg)
 

@@ -94,9 +94,10 @@ def render_scale_from_env() -> float:
 def initial_view(args) -> str:
     """`--view` if the parser has it, else RTWALK_VIEW_MODE, else final; checked before the window
     against every registered backend's views (the window says so when the active one lacks it)."""
+    from viewer.backends import registered_infos
     from viewer.passes.overlay import all_view_names
 
-    views = all_view_names()
+    views = all_view_names(registered_infos())
     view = getattr(args, "view", None)
     source = "--view"
     if view is None:

@@ -107,7 +107,7 @@ class PgridBackend(GeometryBackend):
                   OverlaySpec("light_tiles", "ids", "light_chunks", "chunks (colours) and rays per tile",
                               counts="tile_rays")),
         counters=("rays", "pairs", "chunks", "chunk_occupancy", "culled", "culled_frustum", "culled_backface",
-                  "near_eye", "widened", "outside_rays", "inactive_rays", "tests_per_ray", "pgrid_build_ms",
+                  "near_eye", "widened", "outside_rays", "inactive_rays", "tests_per_ray", "grid_build_ms",
                   "rearrange_ms"),
         device="cl")
 
