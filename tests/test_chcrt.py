@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from viewer.accel.bvh import build_bvh
-from viewer.backends.chcrt_front import (
+from viewer.backends.chcrt.chcrt_front import (
     DEAD,
     INNER,
     INVISIBLE,
@@ -268,7 +268,7 @@ def test_trace_rays_entry_point_matches_glsl():
     from viewer.tracing import trace_rays
 
     # random rays inside a small city: many subtrees per tile and per ray (this caught a Mesa
-    # llvmpipe miscompilation of repeated traversal loops, see shaders/chc_intersect.frag)
+    # llvmpipe miscompilation of repeated traversal loops, see backends/chcrt/chc_intersect.frag)
     tris = make_city(20_000, 1).triangles
     n = 50_000
     rng = np.random.default_rng(1)
@@ -452,7 +452,7 @@ def test_out_of_core_budget_checked(gl_ctx):
 def test_round_robin_ring_never_overlaps_live_entries():
     """The cache's ring allocator against a slot-owner array: every live entry keeps its slots,
     would_evict() predicts place(), and entries are evicted only when overwritten or at a wrap."""
-    from viewer.backends.chcrt_cache import Entry, RingAllocator
+    from viewer.backends.chcrt.chcrt_cache import Entry, RingAllocator
 
     rng = np.random.default_rng(0)
     for cap in (10, 37, 100):

@@ -1,7 +1,7 @@
 """CHC+RT (Mattausch, Bittner, Jaspe, Gobbetti, Wimmer, Pajarola, EG 2015): coherent hierarchical
 culling for ray tracing, with the rasterizer's occlusion queries.
 
-Query pairs are (screen tile, BVH node) (see chcrt_front). Per pass (Algorithm 1 of the paper):
+Query pairs are (screen tile, BVH node) (see chcrt_front.py). Per pass (Algorithm 1 of the paper):
 
 1. ``chc:1-intersect-visible``: clear, then intersect the pairs that were visible last frame
    (their scheduled subtrees, batched by tile, up to `max_batch` per draw). This primes the
@@ -25,7 +25,7 @@ stale image read only costs work. Conservative mode (visible_threshold = 0) ther
 the glsl baseline's nearest hit, bit for bit in t, except on ties: two triangles at the same true
 distance (shared edges, coplanar overlaps), where the winner depends on the visiting order in
 glsl too. Any-hit rays agree on hit/miss (which occluder is reported depends on the order).
-See shaders/chc_intersect.frag for llvmpipe's loop limit and how rays that would reach it are finished.
+See chc_intersect.frag for llvmpipe's loop limit and how rays that would reach it are finished.
 
 Overlays (TraceResult.overlays, R32I at the ray-batch size, overwritten by the next pass):
 ``query_overdraw`` (query fragments per pixel, imageAtomicAdd) and ``subtree_id`` (canonical BVH
@@ -50,33 +50,38 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass
+from pathlib import Path
 
 import moderngl
 import numpy as np
 
 from viewer.backends.base import BackendContext, TraceResult, WorkCounters
-from viewer.backends.chcrt_cache import MB, CachePlan, SubtreeCache
-from viewer.backends.chcrt_front import INNER, INVISIBLE, VISIBLE, NodeTables, PairFront
+from viewer.backends.chcrt.chcrt_cache import MB, CachePlan, SubtreeCache
+from viewer.backends.chcrt.chcrt_front import INNER, INVISIBLE, VISIBLE, NodeTables, PairFront
 from viewer.backends.gl_traversal import ResumableTraversal, max_visits
 from viewer.backends.interface import BackendInfo, OverlaySpec
 from viewer.effects import RayType
 from viewer.errors import RtwalkError
-from viewer.gl.bindings import (
-    BIND_CHC_COUNT,
-    BIND_CHC_DRAWS,
-    BIND_CHC_ITEMS,
-    BIND_CHC_QUERY_COUNTS,
-    BIND_IMG_CHC_BATCH,
-    BIND_IMG_CHC_BEST,
-    BIND_IMG_CHC_OVERDRAW,
-    BIND_NODES,
-    BIND_TRIS,
-)
+from viewer.gl.bindings import BIND_NODES, BIND_TRIS, backend_bindings
 from viewer.gl.buffers import StreamBuffer
 from viewer.gl.programs import FullscreenQuad
 from viewer.gl.textures import float_depth_texture, float_texture, int_texture
 from viewer.rays import HitBuffer, PassInfo, RayBatch
 from viewer.screen_tiles import max_tile_level
+
+HERE = Path(__file__).resolve().parent  # the chc_* shaders
+
+# chcrt's own binding points (viewer.gl.bindings.backend_bindings checks them against the table)
+SSBO = {"BIND_CHC_ITEMS": 5,  # (tile, node) items of a batch draw
+        "BIND_CHC_COUNT": 6,  # active ray count
+        "BIND_CHC_DRAWS": 7,  # per-instance tile draws
+        "BIND_CHC_QUERY_COUNTS": 8}  # per-query passed-fragment counts
+IMAGE = {"BIND_IMG_CHC_BEST": 0,  # packed closest hit per pixel
+         "BIND_IMG_CHC_OVERDRAW": 1,  # query fragments per pixel (overlay)
+         "BIND_IMG_CHC_BATCH": 2}  # subtrees in the pixel's batches (overlay)
+BINDINGS = backend_bindings(SSBO, IMAGE)
+BIND_CHC_ITEMS, BIND_CHC_COUNT, BIND_CHC_DRAWS, BIND_CHC_QUERY_COUNTS = SSBO.values()
+BIND_IMG_CHC_BEST, BIND_IMG_CHC_OVERDRAW, BIND_IMG_CHC_BATCH = IMAGE.values()
 
 ITEM_DTYPE = np.dtype([("bmin", "<f4", 3), ("ref", "<i4"), ("bmax", "<f4", 3), ("count", "<i4"),
                        ("id", "<i4"), ("pad", "<i4", 3)])
@@ -193,15 +198,15 @@ class ChcrtBackend:
         diag = max(float(getattr(bc.scene, "diagonal", 1.0)), 1e-30)
         e = min(max(math.frexp(diag)[1] + 24, -100), 100)
         self.depth_scale = float(np.float32(math.ldexp(1.0, -e)))  # exact power of two
-        progs = bc.programs
+        progs = bc.programs.with_path(HERE)
         self.work = WorkCounters(self.ctx)
-        wd = self.work.defines
+        wd = {**self.work.defines, **BINDINGS}
         stack = self.p.max_batch + max(self.p.max_subtree_height, 1) + 2
         iwd = {**wd, "LEAF_CACHE": int(self.p.leaf_cache)}  # intersection programs only
         self.cache = self._make_cache(bc)
         if self.cache is not None:
             iwd["CHC_OOC"] = 1
-        self.prog_init = progs.get("fullscreen.vert", "chc_init.frag")
+        self.prog_init = progs.get("fullscreen.vert", "chc_init.frag", BINDINGS)
         self.prog_query = progs.get("fullscreen.vert", "chc_query.frag", {"CHC_MAX_ITEMS": MAX_BOXES, **wd})
         # rays that would reach llvmpipe's loop limit are finished by the glsl resumable traversal
         self.finisher = ResumableTraversal(bc)
@@ -210,7 +215,7 @@ class ChcrtBackend:
         self.prog_isect = progs.get("fullscreen.vert", "chc_intersect.frag",
                                     {"CHC_MAX_ITEMS": self.p.max_batch, "STACK_SIZE": stack, "CHC_MAX_VISITS": visits,
                                      **iwd})
-        self.prog_gather = progs.get("fullscreen.vert", "chc_gather.frag")
+        self.prog_gather = progs.get("fullscreen.vert", "chc_gather.frag", BINDINGS)
         self.batched = self.p.query_mode == "batched"
         self.prog_query_b = progs.get("chc_tile.vert", "chc_query.frag",
                                       {"CHC_MAX_ITEMS": MAX_BOXES, "CHC_BATCHED": 1, **wd})
