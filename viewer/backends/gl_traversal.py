@@ -15,6 +15,7 @@ from pathlib import Path
 import moderngl
 import numpy as np
 
+from viewer import iostats
 from viewer.backends.base import BackendContext, WorkCounters
 from viewer.errors import RtwalkError
 from viewer.gl.bindings import BIND_IMG_RESUME, BIND_RESUME_COUNTERS, BIND_RESUME_STATE
@@ -76,17 +77,25 @@ class ResumableTraversal:
                 self.slots.release()
             self.slots = int_texture(self.bc.ctx, size)
             self.slots.write(np.full(size[0] * size[1], -1, np.int32).tobytes())
+            iostats.to_device(4 * size[0] * size[1])
         return self.slots
 
     def bind_flags(self, size: tuple[int, int]) -> None:
         """Bind the slot image and zeroed counters (before the draws that may flag pixels)."""
         self._slot_image(size).bind_to_image(BIND_IMG_RESUME, read=True, write=True)
-        self.counters.write(np.zeros(2, np.int32).tobytes())
+        self._write_counters(0, 0)
         self.counters.bind_to_storage_buffer(BIND_RESUME_COUNTERS)
+
+    def _write_counters(self, unfinished: int, allocated: int) -> None:
+        self.counters.write(np.array([unfinished, allocated], np.int32).tobytes())
+        iostats.to_device(8)
 
     def _read_counters(self) -> tuple[int, int]:
         self.bc.ctx.memory_barrier(moderngl.BUFFER_UPDATE_BARRIER_BIT)
-        unfinished, allocated = np.frombuffer(self.counters.read(), np.int32)
+        with iostats.timed_sync():  # waits for the draws that count
+            data = self.counters.read()
+        iostats.to_host(len(data))
+        unfinished, allocated = np.frombuffer(data, np.int32)
         return int(unfinished), int(allocated)
 
     def _grow(self, needed: int) -> None:
@@ -109,7 +118,7 @@ class ResumableTraversal:
             if resumed == 0:
                 return {"draws": 0, "resumed_rays": 0, "continuation_draws": 0}
             ctx.memory_barrier(barriers)
-            self.counters.write(np.zeros(2, np.int32).tobytes())
+            self._write_counters(0, 0)
         # a ray visits each node at most once: a draw that does not finish it advances it by max_visits
         # (or gives it a slot, once), so this many draws always suffice
         max_draws = 4 + 2 * (len(self.bc.bvh.node_left) // self.max_visits + 1)
@@ -124,6 +133,7 @@ class ResumableTraversal:
             self.program["resume"] = int(draws > 0 or resume_only)
             self.program["capacity"] = self.capacity
             self.quad.render(self.program)
+            iostats.gl_draw()
             draws += 1
             unfinished, allocated = self._read_counters()
             if draws == 1 and not resume_only:
@@ -136,9 +146,9 @@ class ResumableTraversal:
             if allocated > self.capacity:  # some rays got no slot (-2): make room, they restart
                 used = self.capacity
                 self._grow(allocated)
-                self.counters.write(np.array([0, used], np.int32).tobytes())
+                self._write_counters(0, used)
             else:
-                self.counters.write(np.array([0, allocated], np.int32).tobytes())
+                self._write_counters(0, allocated)
         return {"draws": draws, "resumed_rays": resumed,
                 "continuation_draws": draws - (0 if resume_only else 1)}
 

@@ -46,10 +46,12 @@ void main() {
     float stackT[STACK_SIZE];
     int sp = 0;
     bool done = false;
+    uint entered = 0u;
     for (int i = ITEM_COUNT - 1; i >= 0; --i) {  // farthest at the bottom
         ChcItem it = items[ITEM_BASE + i];
         float te;
         if (intersectBox(r, it.bmin, it.bmax, tmin, hit.t, te)) {
+            ++entered;
             if (it.count > 0) {  // a scheduled BVH leaf: intersect it now
                 if (visitLeaf(r, it.ref, it.count, tmin, hit) && any) done = true;
             } else {
@@ -111,6 +113,9 @@ void main() {
     }
     if (!done && flushLeaves(r, tmin, hit) && any) done = true;  // the leaf cache's last leaves
     workFlush(0);
+#ifdef COUNT_WORK
+    atomicAdd(workTotals[8], entered);
+#endif
     if (hit.id < 0) discard;
 #ifdef CHC_OOC
     hit.id = tris[hit.id].id;  // out-of-core: cache slot -> the triangle's leaf-order slot

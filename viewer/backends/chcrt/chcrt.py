@@ -55,6 +55,7 @@ from pathlib import Path
 import moderngl
 import numpy as np
 
+from viewer import iostats
 from viewer.backends.base import BackendContext, TraceResult, WorkCounters
 from viewer.backends.chcrt.chcrt_cache import MB, CachePlan, SubtreeCache
 from viewer.backends.chcrt.chcrt_front import INNER, INVISIBLE, VISIBLE, NodeTables, PairFront
@@ -64,7 +65,7 @@ from viewer.effects import RayType
 from viewer.errors import RtwalkError
 from viewer.gl.bindings import BIND_NODES, BIND_TRIS, backend_bindings
 from viewer.gl.buffers import StreamBuffer
-from viewer.gl.programs import FullscreenQuad
+from viewer.gl.programs import FullscreenQuad, load_shader_source
 from viewer.gl.textures import float_depth_texture, float_texture, int_texture
 from viewer.rays import HitBuffer, PassInfo, RayBatch
 from viewer.screen_tiles import max_tile_level
@@ -75,12 +76,15 @@ HERE = Path(__file__).resolve().parent  # the chc_* shaders
 SSBO = {"BIND_CHC_ITEMS": 5,  # (tile, node) items of a batch draw
         "BIND_CHC_COUNT": 6,  # active ray count
         "BIND_CHC_DRAWS": 7,  # per-instance tile draws
-        "BIND_CHC_QUERY_COUNTS": 8}  # per-query passed-fragment counts
+        "BIND_CHC_QUERY_COUNTS": 8,  # per-query passed-fragment counts
+        "BIND_CHC_CANDIDATES": 4,  # GPU-driven: per query, the intersection record if it passes
+        "BIND_CHC_INDIRECT": 12}  # GPU-driven: the indirect draw command of the newly visible pairs
 IMAGE = {"BIND_IMG_CHC_BEST": 0,  # packed closest hit per pixel
          "BIND_IMG_CHC_OVERDRAW": 1,  # query fragments per pixel (overlay)
          "BIND_IMG_CHC_BATCH": 2}  # subtrees in the pixel's batches (overlay)
 BINDINGS = backend_bindings(SSBO, IMAGE)
-BIND_CHC_ITEMS, BIND_CHC_COUNT, BIND_CHC_DRAWS, BIND_CHC_QUERY_COUNTS = SSBO.values()
+BIND_CHC_ITEMS, BIND_CHC_COUNT, BIND_CHC_DRAWS, BIND_CHC_QUERY_COUNTS, BIND_CHC_CANDIDATES, BIND_CHC_INDIRECT = (
+    SSBO.values())
 BIND_IMG_CHC_BEST, BIND_IMG_CHC_OVERDRAW, BIND_IMG_CHC_BATCH = IMAGE.values()
 
 ITEM_DTYPE = np.dtype([("bmin", "<f4", 3), ("ref", "<i4"), ("bmax", "<f4", 3), ("count", "<i4"),
@@ -89,6 +93,7 @@ assert ITEM_DTYPE.itemsize == 48
 DRAW_DTYPE = np.dtype([("rect", "<i4", 4), ("info", "<i4", 4)])  # x, y, w, h; item base, count, query slot
 QUERY_MODES = ("batched", "hw")
 COUNT_SLOTS = 64
+COUNT_BYTES = 4 * COUNT_SLOTS  # GPU-driven counts buffer: ray counts, then query counts from this offset
 MAX_BOXES = 48  # boxes per query draw (max_multi pairs x 2 child boxes)
 MAX_LEAF_CACHE = 16
 
@@ -121,6 +126,16 @@ class ChcrtParams:
     seed: int = 1
     # False: every frame starts cold from (screen, root) (measures what temporal coherence buys)
     temporal: bool = True
+    # GPU-driven steady state (query_mode=batched, no GPU budget): after a front's first (cold) pass,
+    # all its invisible pairs are queried in one instanced draw, a compute pass turns the passing
+    # queries into the records of ONE indirect draw that intersects them in the same pass, and the
+    # host reads the counts once at the end of the pass to refine the front for the next frame
+    # (children of a pair found visible are queried next frame). A fixed number of draws per pass.
+    # False: the synchronous algorithm every pass (query waves read back within the pass).
+    gpu_driven: bool = True
+    # a tile with more visible subtrees than this traverses their lowest common ancestor instead,
+    # one item (0 = never): bounds the items per ray and needs no second batch for the tile
+    lca_subtrees: int = 24
 
     def validate(self, source: str = "chcrt") -> None:
         if not (1 <= self.max_batch <= 24 and 1 <= self.max_multi <= 24):
@@ -133,8 +148,21 @@ class ChcrtParams:
             raise RtwalkError(f"{source}: query_mode must be one of {', '.join(QUERY_MODES)}")
         if not (self.t_q > 0 and 0 < self.min_tile_fraction <= 1 and self.max_subtree_height >= 1
                 and self.max_subtree_tris >= 1 and self.requery_interval >= 1 and self.schedule_batch >= 1
-                and self.visible_threshold >= 0):
+                and self.visible_threshold >= 0 and self.lca_subtrees >= 0):
             raise RtwalkError(f"{source}: t_q and min_tile_fraction must be > 0, thresholds >= 0, counts >= 1")
+
+
+def _host_read(read) -> bytes:
+    """A blocking device -> host read, counted (viewer.iostats: bytes, one host sync)."""
+    with iostats.timed_sync():
+        data = read()
+    iostats.to_host(len(data))
+    return data
+
+
+def _upload(sb: StreamBuffer, data: np.ndarray | bytes) -> None:
+    sb.upload(data)
+    iostats.to_device(data.nbytes if isinstance(data, np.ndarray) else len(data))
 
 
 class _Targets:
@@ -201,7 +229,8 @@ class ChcrtBackend:
         progs = bc.programs.with_path(HERE)
         self.work = WorkCounters(self.ctx)
         wd = {**self.work.defines, **BINDINGS}
-        stack = self.p.max_batch + max(self.p.max_subtree_height, 1) + 2
+        # subtrees found visible by the GPU-driven pass, and lowest common ancestors, can be as high as the tree
+        stack = self.p.max_batch + max(self.p.max_subtree_height, int(self.nt.height[0]), 1) + 2
         iwd = {**wd, "LEAF_CACHE": int(self.p.leaf_cache)}  # intersection programs only
         self.cache = self._make_cache(bc)
         if self.cache is not None:
@@ -236,6 +265,13 @@ class ChcrtBackend:
         self.query_counts = StreamBuffer(self.ctx, 4, BIND_CHC_QUERY_COUNTS)
         self.count_buf = self.ctx.buffer(reserve=4 * COUNT_SLOTS)
         self._zero_counts = bytes(4 * COUNT_SLOTS)
+        # GPU-driven steady state (ChcrtParams.gpu_driven)
+        self.gpu_driven = self.p.gpu_driven and self.batched and self.cache is None
+        self.compact = self.ctx.compute_shader(load_shader_source("chc_compact.comp", BINDINGS, (HERE,)))
+        self.candidates = StreamBuffer(self.ctx, DRAW_DTYPE.itemsize, BIND_CHC_CANDIDATES)
+        self.visible_draws = self.ctx.buffer(reserve=DRAW_DTYPE.itemsize * 4096)
+        self.indirect = self.ctx.buffer(reserve=16)
+        self.gpu_counts = self.ctx.buffer(reserve=COUNT_BYTES + 4 * 4096)
         self.queries: list[moderngl.Query] = []
         self.targets: _Targets | None = None
         self.fronts: dict[tuple, PairFront] = {}
@@ -269,8 +305,10 @@ class ChcrtBackend:
         if self.targets is not None:
             self.targets.release()
             self.targets = None
-        for sb in (self.items, self.draws, self.query_counts):
+        for sb in (self.items, self.draws, self.query_counts, self.candidates):
             sb.buf.release()
+        for obj in (self.compact, self.visible_draws, self.indirect, self.gpu_counts):
+            obj.release()
         for vao in (self.vao_query_b, self.vao_isect_b):
             vao.release()
         self.count_buf.release()
@@ -365,11 +403,14 @@ class _Pass:
                                      "invisible_pairs", "subtrees_scheduled", "draws", "rays",
                                      "intersect_draws", "batch_tiles", "tile_batches_1", "tile_batches_2",
                                      "tile_batches_3plus", "query_waves", "pull_ups", "phase1_subtrees",
-                                     "query_pixels", "requeries", "batches", "upload_bvh_mb", "upload_geom_mb")}
+                                     "query_pixels", "requeries", "batches", "upload_bvh_mb", "upload_geom_mb",
+                                     "lca_tiles", "gpu_driven", "newly_visible_queries")}
         self.rep: tuple[np.ndarray, np.ndarray] | None = None  # representative rays per finest tile
         self.rays_read = False
         self.threshold = int(self.p.visible_threshold)
         self.overlays = bool(self.p.overdraw_overlay and be.overlays_enabled)
+        # GPU-driven steady state: a front's first pass runs the synchronous algorithm (builds the front)
+        self.gpu = be.gpu_driven and front.frames > 0
 
     # -- GL helpers -------------------------------------------------------------------------------
     def _bind(self) -> None:
@@ -383,11 +424,15 @@ class _Pass:
         tg.best.bind_to_image(BIND_IMG_CHC_BEST, read=True, write=True)
         tg.overdraw.bind_to_image(BIND_IMG_CHC_OVERDRAW, read=True, write=True)
         tg.batch.bind_to_image(BIND_IMG_CHC_BATCH, read=True, write=True)
-        self.be.count_buf.bind_to_storage_buffer(BIND_CHC_COUNT)
+        if self.gpu:
+            self.be.gpu_counts.bind_to_storage_buffer(BIND_CHC_COUNT, 0, COUNT_BYTES)
+        else:
+            self.be.count_buf.bind_to_storage_buffer(BIND_CHC_COUNT)
 
     def _init(self) -> None:
         ctx = self.ctx
-        self.be.count_buf.write(self.be._zero_counts)
+        (self.be.gpu_counts if self.gpu else self.be.count_buf).write(self.be._zero_counts)
+        iostats.to_device(COUNT_BYTES)
         fbo = self.hit_fbo
         fbo.use()
         fbo.scissor = None
@@ -396,6 +441,7 @@ class _Pass:
         ctx.depth_func = "1"
         self.be.quad.render(self.be.prog_init)
         self.stats["draws"] += 1
+        iostats.gl_draw()
 
     def _gather(self) -> None:
         """Representative rays per finest tile, for the front-to-back order of subtrees."""
@@ -408,9 +454,10 @@ class _Pass:
         tg.gather_fbo.scissor = None
         self.be.quad.render(prog)
         self.stats["draws"] += 1
+        iostats.gl_draw()
         g = tg.gather_size[0]
-        o, d = (np.frombuffer(tg.gather_fbo.read(components=4, dtype="f4", attachment=a), np.float32)
-                .reshape(g, g, 4) for a in (0, 1))
+        o, d = (np.frombuffer(_host_read(lambda a=a: tg.gather_fbo.read(components=4, dtype="f4", attachment=a)),
+                              np.float32).reshape(g, g, 4) for a in (0, 1))
         self.rep = (o, d)
         self.ctx.enable(moderngl.DEPTH_TEST)
 
@@ -420,7 +467,7 @@ class _Pass:
 
     def _read_ray_count(self) -> None:
         if not self.rays_read:
-            self.stats["rays"] = int(np.frombuffer(self.be.count_buf.read(), np.uint32).sum())
+            self.stats["rays"] = int(np.frombuffer(_host_read(self.be.count_buf.read), np.uint32).sum())
             self.rays_read = True
 
     # -- queries ------------------------------------------------------------------------------------
@@ -443,7 +490,7 @@ class _Pass:
         items["bmin"] = bmin
         items["bmax"] = bmax
         items["id"] = f.node[pairs][owner]
-        self.be.items.upload(items)
+        _upload(self.be.items, items)
         first = np.cumsum(sizes) - sizes
         rects = f.rects(pairs[first])
         live = (rects[:, 2] > 0) & (rects[:, 3] > 0)
@@ -466,8 +513,8 @@ class _Pass:
         recs["info"][:, 1] = nbox
         recs["info"][:, 2] = np.arange(nq)
         recs = recs[live]
-        self.be.draws.upload(recs)
-        self.be.query_counts.upload(bytes(4 * nq))
+        _upload(self.be.draws, recs)
+        _upload(self.be.query_counts, bytes(4 * nq))
         prog = self.be.prog_query_b
         prog["countOverdraw"] = int(self.overlays)
         prog["raySize"] = tuple(self.size)
@@ -478,8 +525,10 @@ class _Pass:
         if len(recs):
             self.be.vao_query_b.render(moderngl.TRIANGLES, vertices=6, instances=len(recs))
             self.stats["draws"] += 1
+            iostats.gl_draw()
         self.ctx.memory_barrier(moderngl.BUFFER_UPDATE_BARRIER_BIT)
-        out = np.frombuffer(self.be.query_counts.buf.read(size=4 * nq), np.uint32).astype(np.int64)
+        out = np.frombuffer(_host_read(lambda: self.be.query_counts.buf.read(size=4 * nq)),
+                            np.uint32).astype(np.int64)
         self.ctx.enable(moderngl.DEPTH_TEST)
         return out
 
@@ -505,8 +554,15 @@ class _Pass:
             with q:
                 render(prog)
             used.append(q)
-        self.stats["draws"] += int(live.sum())
-        return np.array([q.samples if q is not None else 0 for q in used], np.int64)
+        n = int(live.sum())
+        self.stats["draws"] += n
+        iostats.gl_draw(n)
+        iostats.gl_query(n)
+        with iostats.timed_sync():  # the first result waits for the draws; the others are then ready
+            out = np.array([q.samples if q is not None else 0 for q in used], np.int64)
+        iostats.sync(max(n - 1, 0))  # one result read per query object
+        iostats.to_host(8 * n)
+        return out
 
     # -- intersection -------------------------------------------------------------------------------
     def _order_keys(self, pairs: np.ndarray) -> np.ndarray:
@@ -556,25 +612,35 @@ class _Pass:
         """Intersect scheduled pairs: grouped by tile, up to max_batch subtree roots per batch."""
         if len(pairs) == 0:
             return
-        f, nt = self.front, self.nt
+        f = self.front
         tile = f.tile_key(pairs)
-        order = np.lexsort((self._order_keys(pairs), tile))
+        # the GPU-driven pass never splits a tile into batches: the shader sorts a ray's subtrees itself
+        keys = np.zeros(len(pairs)) if self.gpu else self._order_keys(pairs)
+        order = np.lexsort((keys, tile))
         pairs = pairs[order]
         tile = tile[order]
         starts = np.flatnonzero(np.r_[True, tile[1:] != tile[:-1]])
         ends = np.r_[starts[1:], len(pairs)]
         mb = self.p.max_batch
-        nd = f.node[pairs]
-        items = np.zeros(len(pairs), ITEM_DTYPE)
-        items["bmin"] = nt.box_min[nd]
-        items["bmax"] = nt.box_max[nd]
-        items["ref"] = nt.gpu_ref[nd] if self.be.cache is None else self.be.cache.item_refs(nd)
-        items["count"] = nt.gpu_count[nd]
-        items["id"] = nd
-        items["pad"][:, 0] = self.be.bvh_first[nd]
-        items["pad"][:, 1] = nt.count[nd]
-        self.be.items.upload(items)
+        nd = f.node[pairs].astype(np.int64)
         rects = f.rects(pairs[starts])
+        self.stats["subtrees_scheduled"] += len(pairs)
+        lca_max = self.p.lca_subtrees
+        if lca_max > 0 and self.be.cache is None and ((ends - starts) > lca_max).any():
+            # tiles that see many subtrees traverse their lowest common ancestor once
+            many = (ends - starts) > lca_max
+            lca = self.nt.group_lca(nd, starts)
+            keep = ~np.repeat(many, ends - starts)
+            tile_of_item = np.repeat(np.arange(len(starts)), ends - starts)
+            nd = np.concatenate([nd[keep], lca[many]])
+            tile_of_item = np.concatenate([tile_of_item[keep], np.flatnonzero(many)])
+            o = np.argsort(tile_of_item, kind="stable")
+            nd = nd[o]
+            counts = np.bincount(tile_of_item, minlength=len(starts))
+            starts = np.cumsum(counts) - counts
+            ends = starts + counts
+            self.stats["lca_tiles"] += int(many.sum())
+        _upload(self.be.items, self._subtree_items(nd))
         # batches: per tile, consecutive runs of at most max_batch subtrees (nearest first)
         nbatch = -(-(ends - starts) // mb)
         tile_of = np.repeat(np.arange(len(starts)), nbatch)
@@ -587,7 +653,6 @@ class _Pass:
         self.stats["tile_batches_3plus"] += int((nbatch >= 3).sum())
         self.stats["batch_tiles"] += len(starts)
         self.stats["batches"] += int(live.sum())
-        self.stats["subtrees_scheduled"] += len(pairs)
         self.ctx.enable(moderngl.DEPTH_TEST)
         self.ctx.depth_func = "<"
         fbo = self.hit_fbo
@@ -599,7 +664,7 @@ class _Pass:
             recs["rect"] = rects[tile_of[live]]
             recs["info"][:, 0] = bstart[live]
             recs["info"][:, 1] = bcount[live]
-            self.be.draws.upload(recs)
+            _upload(self.be.draws, recs)
             draws = 0
             if len(recs):
                 fbo.scissor = None
@@ -621,6 +686,20 @@ class _Pass:
                 draws += 1
         self.stats["intersect_draws"] += draws
         self.stats["draws"] += draws
+        iostats.gl_draw(draws)
+
+    def _subtree_items(self, nd: np.ndarray) -> np.ndarray:
+        """Intersection items of scheduled subtrees (canonical BVH nodes `nd`)."""
+        nt = self.nt
+        items = np.zeros(len(nd), ITEM_DTYPE)
+        items["bmin"] = nt.box_min[nd]
+        items["bmax"] = nt.box_max[nd]
+        items["ref"] = nt.gpu_ref[nd] if self.be.cache is None else self.be.cache.item_refs(nd)
+        items["count"] = nt.gpu_count[nd]
+        items["id"] = nd
+        items["pad"][:, 0] = self.be.bvh_first[nd]
+        items["pad"][:, 1] = nt.count[nd]
+        return items
 
     def _isect_uniforms(self, prog: moderngl.Program) -> None:
         prog["anyHit"] = int(self.any_hit)
@@ -628,89 +707,13 @@ class _Pass:
 
     # -- Algorithm 1 --------------------------------------------------------------------------------
     def run(self) -> dict[str, float]:
-        be, f, p = self.be, self.front, self.p
-        prof = be.bc.profiler
-        thr = self.threshold
+        be, f = self.be, self.front
         self._sync()  # diagnostics: do not charge the ray generation to phase 1
         try:
-            with prof.phase("chc:1-intersect-visible"):
-                self._bind()
-                self._init()
-                if p.front_to_back and self.ray_type in (RayType.PRIMARY, RayType.SHADOW, RayType.SOFT):
-                    self._gather()
-                visible = f.leaves(VISIBLE)
-                self._intersect(visible)
-                self.stats["phase1_subtrees"] = len(visible)
-                self._sync()
-
-            with prof.phase("chc:2-queries"):
-                invisible = f.leaves(INVISIBLE)
-                groups = f.multi_query_groups(invisible, p.max_multi)
-                multi = [len(g) > 1 for g in groups]
-                due = visible[f.requery_due(visible, self.frame_number())] if len(visible) else visible
-                groups += [due[i:i + 1] for i in range(len(due))]
-                self.stats["requeries"] = len(due)
-                multi += [False] * len(due)
-                res = self._run_queries(groups)
-                n_inv_groups = len(groups) - len(due)
-                became_visible = []
-                retry: list[np.ndarray] = []
-                for i in range(n_inv_groups):
-                    g = groups[i]
-                    if multi[i]:
-                        self.stats["multi_queries"] += 1
-                        if res[i] > thr:
-                            self.stats["failed_multi_queries"] += 1
-                            retry.append(g)
-                    elif res[i] > thr:
-                        became_visible.append(g)
-                        f.pixels[g] = res[i]
-                    if res[i] <= thr:
-                        f.age[g] += 1
-                if len(due):
-                    rq = res[n_inv_groups:]
-                    f.state[due[rq <= thr]] = INVISIBLE
-                    f.age[due] = 0
-                    f.pixels[due] = rq
-                wave = np.concatenate(became_visible) if became_visible else np.zeros(0, np.int64)
-                pending = np.concatenate(retry) if retry else np.zeros(0, np.int64)
-                self._sync()
-
-            with prof.phase("chc:3-traversal"):
-                scheduled: list[np.ndarray] = []
-                n_sched = 0
-                while True:
-                    if len(wave):
-                        term, obj, _ = f.classify(wave, self.nt, p.t_q, p.max_subtree_height,
-                                                  p.max_subtree_tris)
-                        done = wave[term]
-                        f.state[done] = VISIBLE
-                        if len(done):
-                            scheduled.append(done)
-                            n_sched += len(done)
-                        split = wave[~term]
-                        children = f.subdivide(split, obj[~term], self.nt) if len(split) else split
-                        pending = np.concatenate([pending, children])
-                        wave = np.zeros(0, np.int64)
-                    if n_sched >= p.schedule_batch:
-                        self._intersect(np.concatenate(scheduled))
-                        scheduled, n_sched = [], 0
-                    if len(pending) == 0:
-                        break
-                    self.stats["query_waves"] += 1
-                    res = self._run_queries([np.array([i]) for i in pending])
-                    vis = res > thr
-                    f.pixels[pending] = res
-                    f.age[pending[~vis]] += 1
-                    wave = pending[vis]
-                    pending = np.zeros(0, np.int64)
-                self._sync()
-
-            with prof.phase("chc:4-final-intersect"):
-                if scheduled:
-                    self._intersect(np.concatenate(scheduled))
-                self._read_ray_count()
-                self._sync()
+            if self.gpu:
+                self._run_gpu()
+            else:
+                self._run_sync()
         finally:
             if be.cache is not None:
                 be.bc.gpu_scene.bind()  # later passes (shading) read the scene's triangles
@@ -722,11 +725,259 @@ class _Pass:
             self.ctx.depth_func = "<"
             self.hit_fbo.scissor = None
             self.tg.query_fbo.scissor = None
-        self.stats["pull_ups"] = f.pull_up()
+        self.stats["pull_ups"] = f.pull_up(1 if be.gpu_driven else 0)
         self.stats["visible_pairs"] = int((f.state[: f.n] == VISIBLE).sum())
         self.stats["invisible_pairs"] = int((f.state[: f.n] == INVISIBLE).sum())
         self.stats["inner_pairs"] = int((f.state[: f.n] == INNER).sum())
+        self.stats["gpu_driven"] = int(self.gpu)
         return {k: float(v) for k, v in self.stats.items()}
+
+    def _run_sync(self) -> None:
+        """Algorithm 1 with query results read back within the pass (waves of queries)."""
+        be, f, p = self.be, self.front, self.p
+        prof = be.bc.profiler
+        thr = self.threshold
+        with prof.phase("chc:1-intersect-visible"):
+            self._bind()
+            self._init()
+            if p.front_to_back and self.ray_type in (RayType.PRIMARY, RayType.SHADOW, RayType.SOFT):
+                self._gather()
+            visible = f.leaves(VISIBLE)
+            self._intersect(visible)
+            self.stats["phase1_subtrees"] = len(visible)
+            self._sync()
+
+        with prof.phase("chc:2-queries"):
+            invisible = f.leaves(INVISIBLE)
+            groups = f.multi_query_groups(invisible, p.max_multi)
+            multi = [len(g) > 1 for g in groups]
+            due = visible[f.requery_due(visible, self.frame_number())] if len(visible) else visible
+            groups += [due[i:i + 1] for i in range(len(due))]
+            self.stats["requeries"] = len(due)
+            multi += [False] * len(due)
+            res = self._run_queries(groups)
+            n_inv_groups = len(groups) - len(due)
+            became_visible = []
+            retry: list[np.ndarray] = []
+            for i in range(n_inv_groups):
+                g = groups[i]
+                if multi[i]:
+                    self.stats["multi_queries"] += 1
+                    if res[i] > thr:
+                        self.stats["failed_multi_queries"] += 1
+                        retry.append(g)
+                elif res[i] > thr:
+                    became_visible.append(g)
+                    f.pixels[g] = res[i]
+                if res[i] <= thr:
+                    f.age[g] += 1
+            if len(due):
+                rq = res[n_inv_groups:]
+                f.state[due[rq <= thr]] = INVISIBLE
+                f.age[due] = 0
+                f.pixels[due] = rq
+            wave = np.concatenate(became_visible) if became_visible else np.zeros(0, np.int64)
+            pending = np.concatenate(retry) if retry else np.zeros(0, np.int64)
+            self._sync()
+
+        with prof.phase("chc:3-traversal"):
+            scheduled: list[np.ndarray] = []
+            n_sched = 0
+            while True:
+                if len(wave):
+                    term, obj, _ = f.classify(wave, self.nt, p.t_q, p.max_subtree_height,
+                                              p.max_subtree_tris)
+                    done = wave[term]
+                    f.state[done] = VISIBLE
+                    if len(done):
+                        scheduled.append(done)
+                        n_sched += len(done)
+                    split = wave[~term]
+                    children = f.subdivide(split, obj[~term], self.nt) if len(split) else split
+                    pending = np.concatenate([pending, children])
+                    wave = np.zeros(0, np.int64)
+                if n_sched >= p.schedule_batch:
+                    self._intersect(np.concatenate(scheduled))
+                    scheduled, n_sched = [], 0
+                if len(pending) == 0:
+                    break
+                self.stats["query_waves"] += 1
+                res = self._run_queries([np.array([i]) for i in pending])
+                vis = res > thr
+                f.pixels[pending] = res
+                f.age[pending[~vis]] += 1
+                wave = pending[vis]
+                pending = np.zeros(0, np.int64)
+            self._sync()
+
+        with prof.phase("chc:4-final-intersect"):
+            if scheduled:
+                self._intersect(np.concatenate(scheduled))
+            self._read_ray_count()
+            self._sync()
+
+    # -- GPU-driven steady state ------------------------------------------------------------------
+    def _run_gpu(self) -> None:
+        """One pass in a fixed number of draws: visible pairs (1 draw), every query (1 draw), the
+        compaction of the passing ones (1 dispatch) and their intersection (1 indirect draw), then
+        one read of the ray and query counts; the front is refined on the host for the next frame."""
+        be, f, p = self.be, self.front, self.p
+        prof = be.bc.profiler
+        with prof.phase("chc:1-intersect-visible"):
+            visible = f.leaves(VISIBLE)
+            invisible = f.leaves(INVISIBLE)
+            need = COUNT_BYTES + 4 * (len(visible) + len(invisible) + 1)
+            if be.gpu_counts.size < need:
+                be.gpu_counts.release()
+                be.gpu_counts = self.ctx.buffer(reserve=1 << (need - 1).bit_length())
+            self._bind()
+            self._init()
+            self._draw_subtrees(visible)
+            self.stats["phase1_subtrees"] = len(visible)
+            self._sync()
+        with prof.phase("chc:2-queries"):
+            groups = f.multi_query_groups(invisible, p.max_multi)
+            n_inv = len(groups)
+            due = visible[f.requery_due(visible, self.frame_number())] if len(visible) else visible
+            groups += [due[i:i + 1] for i in range(len(due))]
+            self.stats["requeries"] = len(due)
+            n_cand = self._gpu_queries(groups, n_inv)
+            self._sync()
+        with prof.phase("chc:3-traversal"):
+            self._gpu_intersect_passing(n_cand)
+            self._sync()
+        with prof.phase("chc:4-final-intersect"):
+            nq = len(groups)
+            raw = np.frombuffer(_host_read(lambda: be.gpu_counts.read(size=COUNT_BYTES + 4 * nq)), np.uint32)
+            self.stats["rays"] = int(raw[:COUNT_SLOTS].sum())
+            self.rays_read = True
+            self._refine(groups, n_inv, raw[COUNT_SLOTS:].astype(np.int64))
+
+    def _gpu_queries(self, groups: list[np.ndarray], n_inv: int) -> int:
+        """All queries in one instanced draw, counted into gpu_counts (not read here). Uploads the
+        candidates: per query of invisible pairs, the record that intersects them if it passes.
+        Returns the number of candidates."""
+        nq = len(groups)
+        if nq == 0:
+            return 0
+        be, f, nt = self.be, self.front, self.nt
+        sizes = np.array([len(g) for g in groups])
+        pairs = np.concatenate(groups)
+        owner, bmin, bmax = nt.query_boxes(f.node[pairs])
+        gbox = np.repeat(np.arange(nq), sizes)[owner]
+        nbox = np.bincount(gbox, minlength=nq)
+        base = np.cumsum(nbox) - nbox
+        first = np.cumsum(sizes) - sizes
+        n_inv_pairs = int(sizes[:n_inv].sum())
+        qitems = np.zeros(len(owner), ITEM_DTYPE)
+        qitems["bmin"] = bmin
+        qitems["bmax"] = bmax
+        qitems["id"] = f.node[pairs][owner]
+        sub = self._subtree_items(f.node[pairs[:n_inv_pairs]].astype(np.int64))
+        _upload(be.items, np.concatenate([qitems, sub]))
+        rects = f.rects(pairs[first])
+        live = (rects[:, 2] > 0) & (rects[:, 3] > 0)
+        self.stats["query_pixels"] += int((rects[:, 2] * rects[:, 3]).sum())
+        self.stats["queries"] += int(live.sum())
+        recs = np.zeros(nq, DRAW_DTYPE)
+        recs["rect"] = rects
+        recs["info"][:, 0] = base
+        recs["info"][:, 1] = nbox
+        recs["info"][:, 2] = np.arange(nq)
+        _upload(be.draws, recs[live])
+        cand = np.zeros(n_inv, DRAW_DTYPE)
+        cand["rect"] = rects[:n_inv]
+        cand["info"][:, 0] = len(owner) + first[:n_inv]
+        cand["info"][:, 1] = sizes[:n_inv]
+        cand["info"][:, 2] = np.arange(n_inv)
+        cand = cand[live[:n_inv]]
+        _upload(be.candidates, cand)
+        be.gpu_counts.write(bytes(4 * nq), offset=COUNT_BYTES)
+        iostats.to_device(4 * nq)
+        be.gpu_counts.bind_to_storage_buffer(BIND_CHC_QUERY_COUNTS, COUNT_BYTES, 4 * nq)
+        prog = be.prog_query_b
+        prog["countOverdraw"] = int(self.overlays)
+        prog["raySize"] = tuple(self.size)
+        fbo = self.tg.query_fbo
+        fbo.use()
+        fbo.scissor = None
+        self.ctx.disable(moderngl.DEPTH_TEST)
+        if live.any():
+            be.vao_query_b.render(moderngl.TRIANGLES, vertices=6, instances=int(live.sum()))
+            self.stats["draws"] += 1
+            iostats.gl_draw()
+        self.ctx.enable(moderngl.DEPTH_TEST)
+        return len(cand)
+
+    def _gpu_intersect_passing(self, n_cand: int) -> None:
+        """Compact the passing queries into the indirect draw's records (compute), then intersect
+        their pairs in one indirect instanced draw."""
+        if n_cand == 0:
+            return
+        be = self.be
+        need = n_cand * DRAW_DTYPE.itemsize
+        if be.visible_draws.size < need:
+            be.visible_draws.release()
+            be.visible_draws = self.ctx.buffer(reserve=1 << (need - 1).bit_length())
+        be.indirect.write(np.array([6, 0, 0, 0], np.uint32).tobytes())
+        iostats.to_device(16)
+        be.visible_draws.bind_to_storage_buffer(BIND_CHC_DRAWS)
+        be.indirect.bind_to_storage_buffer(BIND_CHC_INDIRECT)
+        self.ctx.memory_barrier(moderngl.SHADER_STORAGE_BARRIER_BIT)  # query counts -> compaction
+        be.compact["nCandidates"] = n_cand
+        be.compact["threshold"] = self.threshold
+        be.compact.run(-(-n_cand // 64))
+        self.ctx.memory_barrier(moderngl.COMMAND_BARRIER_BIT | moderngl.SHADER_STORAGE_BARRIER_BIT)
+        self.ctx.enable(moderngl.DEPTH_TEST)
+        self.ctx.depth_func = "<"
+        fbo = self.hit_fbo
+        fbo.use()
+        fbo.scissor = None
+        prog = be.prog_isect_b
+        prog["raySize"] = tuple(self.size)
+        self._isect_uniforms(prog)
+        be.vao_isect_b.render_indirect(be.indirect, moderngl.TRIANGLES, count=1)
+        self.stats["draws"] += 2
+        self.stats["intersect_draws"] += 1
+        iostats.gl_draw(2)
+
+    def _refine(self, groups: list[np.ndarray], n_inv: int, res: np.ndarray) -> None:
+        """Apply this pass's query results to the front (for the next frame): a single query of an
+        invisible pair that passed makes the pair visible (terminated) or splits it (its children
+        are queried next frame); the pairs of a failed multi-query are queried one by one next frame
+        (age 0 makes the CHC++ grouping put them in queries of their own); culled pairs age; visible
+        leaves whose re-query failed become invisible."""
+        nq = len(groups)
+        if nq == 0:
+            return
+        f, p, thr = self.front, self.p, self.threshold
+        res = res[:nq]
+        sizes = np.array([len(g) for g in groups])
+        pairs = np.concatenate(groups)
+        gp = np.repeat(np.arange(nq), sizes)
+        passed = res > thr
+        inv = np.arange(nq) < n_inv
+        multi = sizes > 1
+        self.stats["multi_queries"] += int((multi & inv).sum())
+        self.stats["failed_multi_queries"] += int((multi & inv & passed).sum())
+        self.stats["newly_visible_queries"] += int((inv & passed).sum())
+        self.stats["subtrees_scheduled"] += int(sizes[inv & passed].sum())
+        pi, pp, pm = inv[gp], passed[gp], multi[gp]
+        f.age[pairs[pi & pm & pp]] = 0
+        f.age[pairs[pi & ~pp]] += 1
+        wave = pairs[pi & ~pm & pp]
+        f.pixels[wave] = res[gp[pi & ~pm & pp]]
+        due = pairs[~pi]
+        rq = res[gp[~pi]]
+        f.state[due[rq <= thr]] = INVISIBLE
+        f.age[due] = 0
+        f.pixels[due] = rq
+        if len(wave):
+            term, obj, _ = f.classify(wave, self.nt, p.t_q, p.max_subtree_height, p.max_subtree_tris)
+            f.state[wave[term]] = VISIBLE
+            split = wave[~term]
+            if len(split):
+                f.subdivide(split, obj[~term], self.nt)
 
     def frame_number(self) -> int:
         return self.be.frame
