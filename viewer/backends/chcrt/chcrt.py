@@ -68,7 +68,7 @@ from viewer.gl.buffers import StreamBuffer
 from viewer.gl.programs import FullscreenQuad, load_shader_source
 from viewer.gl.textures import float_depth_texture, float_texture, int_texture
 from viewer.rays import HitBuffer, PassInfo, RayBatch
-from viewer.screen_tiles import max_tile_level
+from viewer.screen_tiles import max_tile_level, tile_rects
 
 HERE = Path(__file__).resolve().parent  # the chc_* shaders
 
@@ -136,6 +136,8 @@ class ChcrtParams:
     # a tile with more visible subtrees than this traverses their lowest common ancestor instead,
     # one item (0 = never): bounds the items per ray and needs no second batch for the tile
     lca_subtrees: int = 24
+    # GPU-driven: a pixel's visible subtrees of all tile levels in one record (one fragment per pixel)
+    merge_tiles: bool = True
 
     def validate(self, source: str = "chcrt") -> None:
         if not (1 <= self.max_batch <= 24 and 1 <= self.max_multi <= 24):
@@ -150,6 +152,20 @@ class ChcrtParams:
                 and self.max_subtree_tris >= 1 and self.requery_interval >= 1 and self.schedule_batch >= 1
                 and self.visible_threshold >= 0 and self.lca_subtrees >= 0):
             raise RtwalkError(f"{source}: t_q and min_tile_fraction must be > 0, thresholds >= 0, counts >= 1")
+
+
+def _to_finest_tiles(nd: np.ndarray, lvl: np.ndarray, tx: np.ndarray,
+                     ty: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Each (node, tile) copied onto the tiles of the deepest level present that its tile covers
+    (a tile of level L is exactly its four children of level L + 1)."""
+    top = int(lvl.max())
+    sh = top - lvl
+    copies = np.left_shift(1, 2 * sh)
+    idx = np.repeat(np.arange(len(nd)), copies)
+    k = np.arange(len(idx)) - np.repeat(np.cumsum(copies) - copies, copies)
+    s = sh[idx]
+    side = np.left_shift(1, s)
+    return (nd[idx], np.full(len(idx), top, np.int64), (tx[idx] << s) + k % side, (ty[idx] << s) + k // side)
 
 
 def _host_read(read) -> bytes:
@@ -613,18 +629,25 @@ class _Pass:
         if len(pairs) == 0:
             return
         f = self.front
-        tile = f.tile_key(pairs)
-        # the GPU-driven pass never splits a tile into batches: the shader sorts a ray's subtrees itself
-        keys = np.zeros(len(pairs)) if self.gpu else self._order_keys(pairs)
-        order = np.lexsort((keys, tile))
-        pairs = pairs[order]
-        tile = tile[order]
-        starts = np.flatnonzero(np.r_[True, tile[1:] != tile[:-1]])
-        ends = np.r_[starts[1:], len(pairs)]
-        mb = self.p.max_batch
-        nd = f.node[pairs].astype(np.int64)
-        rects = f.rects(pairs[starts])
         self.stats["subtrees_scheduled"] += len(pairs)
+        nd, lvl, tx, ty = (f.node[pairs].astype(np.int64), f.level[pairs].astype(np.int64),
+                           f.tx[pairs].astype(np.int64), f.ty[pairs].astype(np.int64))
+        if self.gpu:
+            # the GPU-driven pass never splits a tile into batches (the shader sorts a ray's subtrees
+            # itself); merged, a pixel's subtrees of every tile level are one record: one fragment
+            # traverses them all with one stack and one shrinking tmax
+            if self.p.merge_tiles:
+                nd, lvl, tx, ty = _to_finest_tiles(nd, lvl, tx, ty)
+            keys = np.zeros(len(nd))
+        else:
+            keys = self._order_keys(pairs)
+        tile = (lvl << 40) | (tx << 20) | ty
+        order = np.lexsort((keys, tile))
+        nd, lvl, tx, ty, tile = nd[order], lvl[order], tx[order], ty[order], tile[order]
+        starts = np.flatnonzero(np.r_[True, tile[1:] != tile[:-1]])
+        ends = np.r_[starts[1:], len(nd)]
+        mb = self.p.max_batch
+        rects = tile_rects(lvl[starts], tx[starts], ty[starts], self.size)
         lca_max = self.p.lca_subtrees
         if lca_max > 0 and self.be.cache is None and ((ends - starts) > lca_max).any():
             # tiles that see many subtrees traverse their lowest common ancestor once
