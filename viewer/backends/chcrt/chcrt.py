@@ -78,13 +78,15 @@ SSBO = {"BIND_CHC_ITEMS": 5,  # (tile, node) items of a batch draw
         "BIND_CHC_DRAWS": 7,  # per-instance tile draws
         "BIND_CHC_QUERY_COUNTS": 8,  # per-query passed-fragment counts
         "BIND_CHC_CANDIDATES": 4,  # GPU-driven: per query, the intersection record if it passes
-        "BIND_CHC_INDIRECT": 12}  # GPU-driven: the indirect draw command of the newly visible pairs
+        "BIND_CHC_INDIRECT": 12,  # GPU-driven: the indirect draw command being built
+        "BIND_CHC_QUERIES": 13,  # GPU-driven: every query record of the pass, before the coarse cull
+        "BIND_CHC_TILES": 14}  # GPU-driven: per finest tile, ray origin box and farthest reach
 IMAGE = {"BIND_IMG_CHC_BEST": 0,  # packed closest hit per pixel
          "BIND_IMG_CHC_OVERDRAW": 1,  # query fragments per pixel (overlay)
          "BIND_IMG_CHC_BATCH": 2}  # subtrees in the pixel's batches (overlay)
 BINDINGS = backend_bindings(SSBO, IMAGE)
-BIND_CHC_ITEMS, BIND_CHC_COUNT, BIND_CHC_DRAWS, BIND_CHC_QUERY_COUNTS, BIND_CHC_CANDIDATES, BIND_CHC_INDIRECT = (
-    SSBO.values())
+(BIND_CHC_ITEMS, BIND_CHC_COUNT, BIND_CHC_DRAWS, BIND_CHC_QUERY_COUNTS, BIND_CHC_CANDIDATES, BIND_CHC_INDIRECT,
+ BIND_CHC_QUERIES, BIND_CHC_TILES) = SSBO.values()
 BIND_IMG_CHC_BEST, BIND_IMG_CHC_OVERDRAW, BIND_IMG_CHC_BATCH = IMAGE.values()
 
 ITEM_DTYPE = np.dtype([("bmin", "<f4", 3), ("ref", "<i4"), ("bmax", "<f4", 3), ("count", "<i4"),
@@ -138,6 +140,9 @@ class ChcrtParams:
     lca_subtrees: int = 24
     # GPU-driven: a pixel's visible subtrees of all tile levels in one record (one fragment per pixel)
     merge_tiles: bool = True
+    # GPU-driven: a compute pass culls the queries whose boxes lie beyond the farthest distance any ray
+    # of their tile may still reach (ray origin box + nearest hits so far); only the others are drawn
+    coarse_cull: bool = True
 
     def validate(self, source: str = "chcrt") -> None:
         if not (1 <= self.max_batch <= 24 and 1 <= self.max_multi <= 24):
@@ -284,6 +289,14 @@ class ChcrtBackend:
         # GPU-driven steady state (ChcrtParams.gpu_driven)
         self.gpu_driven = self.p.gpu_driven and self.batched and self.cache is None
         self.compact = self.ctx.compute_shader(load_shader_source("chc_compact.comp", BINDINGS, (HERE,)))
+        self.tilebounds = self.ctx.compute_shader(load_shader_source("chc_tilebounds.comp", BINDINGS, (HERE,)))
+        self.querycull = self.ctx.compute_shader(load_shader_source("chc_querycull.comp", BINDINGS, (HERE,)))
+        self.tilebounds["rayOrigin"] = 0
+        self.tilebounds["rayDir"] = 1
+        self.all_queries = StreamBuffer(self.ctx, DRAW_DTYPE.itemsize, BIND_CHC_QUERIES)
+        self.survivors = self.ctx.buffer(reserve=DRAW_DTYPE.itemsize * 4096)
+        self.query_indirect = self.ctx.buffer(reserve=16)
+        self.tile_bounds = self.ctx.buffer(reserve=32 * 64)
         self.candidates = StreamBuffer(self.ctx, DRAW_DTYPE.itemsize, BIND_CHC_CANDIDATES)
         self.visible_draws = self.ctx.buffer(reserve=DRAW_DTYPE.itemsize * 4096)
         self.indirect = self.ctx.buffer(reserve=16)
@@ -321,9 +334,10 @@ class ChcrtBackend:
         if self.targets is not None:
             self.targets.release()
             self.targets = None
-        for sb in (self.items, self.draws, self.query_counts, self.candidates):
+        for sb in (self.items, self.draws, self.query_counts, self.candidates, self.all_queries):
             sb.buf.release()
-        for obj in (self.compact, self.visible_draws, self.indirect, self.gpu_counts):
+        for obj in (self.compact, self.visible_draws, self.indirect, self.gpu_counts, self.tilebounds,
+                    self.querycull, self.survivors, self.query_indirect, self.tile_bounds):
             obj.release()
         for vao in (self.vao_query_b, self.vao_isect_b):
             vao.release()
@@ -420,13 +434,14 @@ class _Pass:
                                      "intersect_draws", "batch_tiles", "tile_batches_1", "tile_batches_2",
                                      "tile_batches_3plus", "query_waves", "pull_ups", "phase1_subtrees",
                                      "query_pixels", "requeries", "batches", "upload_bvh_mb", "upload_geom_mb",
-                                     "lca_tiles", "gpu_driven", "newly_visible_queries")}
+                                     "lca_tiles", "gpu_driven", "newly_visible_queries", "queries_drawn")}
         self.rep: tuple[np.ndarray, np.ndarray] | None = None  # representative rays per finest tile
         self.rays_read = False
         self.threshold = int(self.p.visible_threshold)
         self.overlays = bool(self.p.overdraw_overlay and be.overlays_enabled)
         # GPU-driven steady state: a front's first pass runs the synchronous algorithm (builds the front)
         self.gpu = be.gpu_driven and front.frames > 0
+        self.culled = False  # this pass's queries went through the coarse cull (stats read late)
 
     # -- GL helpers -------------------------------------------------------------------------------
     def _bind(self) -> None:
@@ -849,7 +864,7 @@ class _Pass:
         with prof.phase("chc:1-intersect-visible"):
             visible = f.leaves(VISIBLE)
             invisible = f.leaves(INVISIBLE)
-            need = COUNT_BYTES + 4 * (len(visible) + len(invisible) + 1)
+            need = COUNT_BYTES + 4 * (len(visible) + len(invisible) + 3)
             if be.gpu_counts.size < need:
                 be.gpu_counts.release()
                 be.gpu_counts = self.ctx.buffer(reserve=1 << (need - 1).bit_length())
@@ -871,8 +886,11 @@ class _Pass:
             self._sync()
         with prof.phase("chc:4-final-intersect"):
             nq = len(groups)
-            raw = np.frombuffer(_host_read(lambda: be.gpu_counts.read(size=COUNT_BYTES + 4 * nq)), np.uint32)
+            raw = np.frombuffer(_host_read(lambda: be.gpu_counts.read(size=COUNT_BYTES + 4 * (nq + 2))), np.uint32)
             self.stats["rays"] = int(raw[:COUNT_SLOTS].sum())
+            if self.culled:
+                self.stats["query_pixels"] = int(raw[COUNT_SLOTS + nq])
+                self.stats["queries_drawn"] = int(raw[COUNT_SLOTS + nq + 1])
             self.rays_read = True
             self._refine(groups, n_inv, raw[COUNT_SLOTS:].astype(np.int64))
 
@@ -907,7 +925,10 @@ class _Pass:
         recs["info"][:, 0] = base
         recs["info"][:, 1] = nbox
         recs["info"][:, 2] = np.arange(nq)
-        _upload(be.draws, recs[live])
+        qp = pairs[first]
+        recs["info"][:, 3] = ((f.level[qp].astype(np.int32) << 24) | (f.tx[qp].astype(np.int32) << 12)
+                              | f.ty[qp].astype(np.int32))
+        recs = recs[live]
         cand = np.zeros(n_inv, DRAW_DTYPE)
         cand["rect"] = rects[:n_inv]
         cand["info"][:, 0] = len(owner) + first[:n_inv]
@@ -915,22 +936,63 @@ class _Pass:
         cand["info"][:, 2] = np.arange(n_inv)
         cand = cand[live[:n_inv]]
         _upload(be.candidates, cand)
-        be.gpu_counts.write(bytes(4 * nq), offset=COUNT_BYTES)
-        iostats.to_device(4 * nq)
-        be.gpu_counts.bind_to_storage_buffer(BIND_CHC_QUERY_COUNTS, COUNT_BYTES, 4 * nq)
+        be.gpu_counts.write(bytes(4 * (nq + 2)), offset=COUNT_BYTES)
+        iostats.to_device(4 * (nq + 2))
+        be.gpu_counts.bind_to_storage_buffer(BIND_CHC_QUERY_COUNTS, COUNT_BYTES, 4 * (nq + 2))
         prog = be.prog_query_b
         prog["countOverdraw"] = int(self.overlays)
         prog["raySize"] = tuple(self.size)
+        if self.p.coarse_cull and len(recs):
+            self._coarse_cull(recs, nq)
+        elif len(recs):
+            _upload(be.draws, recs)
         fbo = self.tg.query_fbo
         fbo.use()
         fbo.scissor = None
         self.ctx.disable(moderngl.DEPTH_TEST)
-        if live.any():
-            be.vao_query_b.render(moderngl.TRIANGLES, vertices=6, instances=int(live.sum()))
+        if len(recs):
+            if self.culled:
+                be.vao_query_b.render_indirect(be.query_indirect, moderngl.TRIANGLES, count=1)
+            else:
+                be.vao_query_b.render(moderngl.TRIANGLES, vertices=6, instances=len(recs))
             self.stats["draws"] += 1
             iostats.gl_draw()
         self.ctx.enable(moderngl.DEPTH_TEST)
         return len(cand)
+
+    def _coarse_cull(self, recs: np.ndarray, nq: int) -> None:
+        """Per finest tile, the rays' origin box and farthest reach (one dispatch); then every query
+        record is tested against its tile's (one dispatch): the survivors become the records of the
+        indirect query draw (ChcrtParams.coarse_cull)."""
+        be, ctx = self.be, self.ctx
+        level = self.front.max_level
+        ntiles = 1 << (2 * level)
+        if be.tile_bounds.size < 32 * ntiles:
+            be.tile_bounds.release()
+            be.tile_bounds = ctx.buffer(reserve=32 * ntiles)
+        need = len(recs) * DRAW_DTYPE.itemsize
+        if be.survivors.size < need:
+            be.survivors.release()
+            be.survivors = ctx.buffer(reserve=1 << (need - 1).bit_length())
+        _upload(be.all_queries, recs)
+        be.query_indirect.write(np.array([6, 0, 0, 0], np.uint32).tobytes())
+        iostats.to_device(16)
+        be.tile_bounds.bind_to_storage_buffer(BIND_CHC_TILES)
+        be.survivors.bind_to_storage_buffer(BIND_CHC_DRAWS)
+        be.query_indirect.bind_to_storage_buffer(BIND_CHC_INDIRECT)
+        ctx.memory_barrier(moderngl.SHADER_IMAGE_ACCESS_BARRIER_BIT)  # bestBits of the visible pairs
+        be.tilebounds["raySize"] = tuple(self.size)
+        be.tilebounds["level"] = level
+        be.tilebounds.run(ntiles)
+        ctx.memory_barrier(moderngl.SHADER_STORAGE_BARRIER_BIT)
+        be.querycull["nQueries"] = len(recs)
+        be.querycull["level"] = level
+        be.querycull["pixelSlot"] = nq
+        be.querycull.run(-(-len(recs) // 64))
+        ctx.memory_barrier(moderngl.COMMAND_BARRIER_BIT | moderngl.SHADER_STORAGE_BARRIER_BIT)
+        self.stats["draws"] += 2
+        iostats.gl_draw(2)
+        self.culled = True
 
     def _gpu_intersect_passing(self, n_cand: int) -> None:
         """Compact the passing queries into the indirect draw's records (compute), then intersect
