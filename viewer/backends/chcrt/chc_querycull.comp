@@ -1,9 +1,10 @@
-// CHC+RT, GPU-driven queries, step 2: one invocation per query record. A query whose boxes all lie
-// farther from every ray origin of its tile than the farthest distance a ray of the tile may still
-// reach (chc_tilebounds.comp) cannot pass: it is culled here, without a fragment. The others are
-// appended to the records of ONE indirect instanced query draw. Conservative: the gap between the
-// origin box and a query box is a lower bound of every ray's entry distance; a relative margin
-// covers the rounding of both sides.
+// CHC+RT, GPU-driven queries, step 2: one invocation per query record. The query is split onto the
+// finest tiles it covers; on each, only the query boxes that some ray of that tile may still enter
+// are kept: a box farther from every ray origin of the tile than the farthest distance a ray of the
+// tile may still reach (chc_tilebounds.comp) cannot pass. A finest tile with boxes left becomes one
+// record of ONE indirect instanced query draw, with its own compacted box list; the query slot stays
+// the query's, so the counts are the query's. Conservative: the gap between the origin box and a
+// query box is a lower bound of every ray's entry distance; a relative margin covers the rounding.
 layout(local_size_x = 64) in;
 struct ChcDraw { ivec4 rect; ivec4 info; };  // info.w = level << 24 | tx << 12 | ty of the query's tile
 struct ChcItem { vec3 bmin; int ref; vec3 bmax; int count; int id; int p0; int p1; int p2; };
@@ -12,41 +13,46 @@ layout(std430, binding = BIND_CHC_ITEMS) readonly buffer ChcItems { ChcItem item
 layout(std430, binding = BIND_CHC_QUERIES) readonly buffer ChcQueries { ChcDraw queries[]; };
 layout(std430, binding = BIND_CHC_TILES) readonly buffer ChcTiles { TileBound tiles[]; };
 layout(std430, binding = BIND_CHC_DRAWS) writeonly buffer ChcSurvivors { ChcDraw survivors[]; };
+// the kept boxes (the candidates' binding point: candidates are uploaded after the query draw)
+layout(std430, binding = BIND_CHC_CANDIDATES) writeonly buffer ChcKeptBoxes { ChcItem kept[]; };
 layout(std430, binding = BIND_CHC_INDIRECT) buffer ChcIndirect { uint cmdCount; uint cmdInstances; uint cmdFirst;
                                                                  uint cmdBase; };
-// slots pixelSlot, pixelSlot + 1 of the query counts: pixels and number of the queries drawn (stats)
+// slots pixelSlot .. pixelSlot + 2 of the query counts: pixels and records drawn (stats), kept boxes
 layout(std430, binding = BIND_CHC_QUERY_COUNTS) buffer ChcQueryCounts { uint chcPassed[]; };
 uniform int pixelSlot;
 uniform int nQueries;
 uniform int level;  // finest tile level
+uniform ivec2 raySize;
+
+bool reachable(ChcItem it, TileBound t) {
+    vec3 gap = max(max(it.bmin - t.omax.xyz, t.omin.xyz - it.bmax), vec3(0.0));
+    return length(gap) * (1.0 - 1e-4) <= t.omin.w * (1.0 + 1e-4);
+}
+
 void main() {
     int i = int(gl_GlobalInvocationID.x);
     if (i >= nQueries) return;
     ChcDraw q = queries[i];
     int ql = q.info.w >> 24, qx = (q.info.w >> 12) & 4095, qy = q.info.w & 4095;
     int s = level - ql, n = 1 << level;
-    vec3 omin = vec3(3.0e38), omax = vec3(-3.0e38);
-    float dmax = -1.0;
     for (int y = qy << s; y < (qy + 1) << s; ++y) {
         for (int x = qx << s; x < (qx + 1) << s; ++x) {
             TileBound t = tiles[y * n + x];
-            if (t.omax.w > 0.0) {
-                omin = min(omin, t.omin.xyz);
-                omax = max(omax, t.omax.xyz);
-                dmax = max(dmax, t.omin.w);
+            if (t.omax.w <= 0.0 || t.omin.w < 0.0) continue;  // no ray in this tile may still hit
+            int nb = 0;
+            for (int k = 0; k < q.info.y; ++k) nb += reachable(items[q.info.x + k], t) ? 1 : 0;
+            if (nb == 0) continue;
+            int base = int(atomicAdd(chcPassed[pixelSlot + 2], uint(nb)));
+            int j = base;
+            for (int k = 0; k < q.info.y; ++k) {
+                ChcItem it = items[q.info.x + k];
+                if (reachable(it, t)) kept[j++] = it;
             }
-        }
-    }
-    if (dmax < 0.0) return;  // no active ray in the tile
-    float reach = dmax * (1.0 + 1e-4);
-    for (int k = 0; k < q.info.y; ++k) {
-        ChcItem it = items[q.info.x + k];
-        vec3 gap = max(max(it.bmin - omax, omin - it.bmax), vec3(0.0));
-        if (length(gap) * (1.0 - 1e-4) <= reach) {
-            survivors[atomicAdd(cmdInstances, 1u)] = q;
-            atomicAdd(chcPassed[pixelSlot], uint(q.rect.z * q.rect.w));
+            ivec2 lo = (ivec2(x, y) * raySize) >> level;
+            ivec2 hi = (ivec2(x + 1, y + 1) * raySize) >> level;
+            survivors[atomicAdd(cmdInstances, 1u)] = ChcDraw(ivec4(lo, hi - lo), ivec4(base, nb, q.info.z, q.info.w));
+            atomicAdd(chcPassed[pixelSlot], uint((hi.x - lo.x) * (hi.y - lo.y)));
             atomicAdd(chcPassed[pixelSlot + 1], 1u);
-            return;
         }
     }
 }

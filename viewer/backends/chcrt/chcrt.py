@@ -295,6 +295,7 @@ class ChcrtBackend:
         self.tilebounds["rayDir"] = 1
         self.all_queries = StreamBuffer(self.ctx, DRAW_DTYPE.itemsize, BIND_CHC_QUERIES)
         self.survivors = self.ctx.buffer(reserve=DRAW_DTYPE.itemsize * 4096)
+        self.kept_boxes = self.ctx.buffer(reserve=ITEM_DTYPE.itemsize * 4096)
         self.query_indirect = self.ctx.buffer(reserve=16)
         self.tile_bounds = self.ctx.buffer(reserve=32 * 64)
         self.candidates = StreamBuffer(self.ctx, DRAW_DTYPE.itemsize, BIND_CHC_CANDIDATES)
@@ -337,7 +338,7 @@ class ChcrtBackend:
         for sb in (self.items, self.draws, self.query_counts, self.candidates, self.all_queries):
             sb.buf.release()
         for obj in (self.compact, self.visible_draws, self.indirect, self.gpu_counts, self.tilebounds,
-                    self.querycull, self.survivors, self.query_indirect, self.tile_bounds):
+                    self.querycull, self.survivors, self.query_indirect, self.tile_bounds, self.kept_boxes):
             obj.release()
         for vao in (self.vao_query_b, self.vao_isect_b):
             vao.release()
@@ -434,7 +435,7 @@ class _Pass:
                                      "intersect_draws", "batch_tiles", "tile_batches_1", "tile_batches_2",
                                      "tile_batches_3plus", "query_waves", "pull_ups", "phase1_subtrees",
                                      "query_pixels", "requeries", "batches", "upload_bvh_mb", "upload_geom_mb",
-                                     "lca_tiles", "gpu_driven", "newly_visible_queries", "queries_drawn")}
+                                     "lca_tiles", "gpu_driven", "newly_visible_queries", "query_records_drawn")}
         self.rep: tuple[np.ndarray, np.ndarray] | None = None  # representative rays per finest tile
         self.rays_read = False
         self.threshold = int(self.p.visible_threshold)
@@ -442,6 +443,7 @@ class _Pass:
         # GPU-driven steady state: a front's first pass runs the synchronous algorithm (builds the front)
         self.gpu = be.gpu_driven and front.frames > 0
         self.culled = False  # this pass's queries went through the coarse cull (stats read late)
+        self.cand = np.zeros(0, DRAW_DTYPE)  # GPU-driven: intersection records of the invisible pairs' queries
 
     # -- GL helpers -------------------------------------------------------------------------------
     def _bind(self) -> None:
@@ -864,7 +866,7 @@ class _Pass:
         with prof.phase("chc:1-intersect-visible"):
             visible = f.leaves(VISIBLE)
             invisible = f.leaves(INVISIBLE)
-            need = COUNT_BYTES + 4 * (len(visible) + len(invisible) + 3)
+            need = COUNT_BYTES + 4 * (len(visible) + len(invisible) + 4)
             if be.gpu_counts.size < need:
                 be.gpu_counts.release()
                 be.gpu_counts = self.ctx.buffer(reserve=1 << (need - 1).bit_length())
@@ -890,7 +892,7 @@ class _Pass:
             self.stats["rays"] = int(raw[:COUNT_SLOTS].sum())
             if self.culled:
                 self.stats["query_pixels"] = int(raw[COUNT_SLOTS + nq])
-                self.stats["queries_drawn"] = int(raw[COUNT_SLOTS + nq + 1])
+                self.stats["query_records_drawn"] = int(raw[COUNT_SLOTS + nq + 1])
             self.rays_read = True
             self._refine(groups, n_inv, raw[COUNT_SLOTS:].astype(np.int64))
 
@@ -934,11 +936,10 @@ class _Pass:
         cand["info"][:, 0] = len(owner) + first[:n_inv]
         cand["info"][:, 1] = sizes[:n_inv]
         cand["info"][:, 2] = np.arange(n_inv)
-        cand = cand[live[:n_inv]]
-        _upload(be.candidates, cand)
-        be.gpu_counts.write(bytes(4 * (nq + 2)), offset=COUNT_BYTES)
-        iostats.to_device(4 * (nq + 2))
-        be.gpu_counts.bind_to_storage_buffer(BIND_CHC_QUERY_COUNTS, COUNT_BYTES, 4 * (nq + 2))
+        self.cand = cand[live[:n_inv]]  # uploaded after the query draw (the cull uses the binding point)
+        be.gpu_counts.write(bytes(4 * (nq + 3)), offset=COUNT_BYTES)
+        iostats.to_device(4 * (nq + 3))
+        be.gpu_counts.bind_to_storage_buffer(BIND_CHC_QUERY_COUNTS, COUNT_BYTES, 4 * (nq + 3))
         prog = be.prog_query_b
         prog["countOverdraw"] = int(self.overlays)
         prog["raySize"] = tuple(self.size)
@@ -952,13 +953,15 @@ class _Pass:
         self.ctx.disable(moderngl.DEPTH_TEST)
         if len(recs):
             if self.culled:
+                be.kept_boxes.bind_to_storage_buffer(BIND_CHC_ITEMS)  # the query draw tests the kept boxes
                 be.vao_query_b.render_indirect(be.query_indirect, moderngl.TRIANGLES, count=1)
+                be.items.buf.bind_to_storage_buffer(BIND_CHC_ITEMS)
             else:
                 be.vao_query_b.render(moderngl.TRIANGLES, vertices=6, instances=len(recs))
             self.stats["draws"] += 1
             iostats.gl_draw()
         self.ctx.enable(moderngl.DEPTH_TEST)
-        return len(cand)
+        return len(self.cand)
 
     def _coarse_cull(self, recs: np.ndarray, nq: int) -> None:
         """Per finest tile, the rays' origin box and farthest reach (one dispatch); then every query
@@ -970,10 +973,16 @@ class _Pass:
         if be.tile_bounds.size < 32 * ntiles:
             be.tile_bounds.release()
             be.tile_bounds = ctx.buffer(reserve=32 * ntiles)
-        need = len(recs) * DRAW_DTYPE.itemsize
+        copies = np.left_shift(1, 2 * (level - (recs["info"][:, 3] >> 24).astype(np.int64)))
+        need = int(copies.sum()) * DRAW_DTYPE.itemsize
         if be.survivors.size < need:
             be.survivors.release()
             be.survivors = ctx.buffer(reserve=1 << (need - 1).bit_length())
+        need = max(int((copies * recs["info"][:, 1]).sum()), 1) * ITEM_DTYPE.itemsize
+        if be.kept_boxes.size < need:
+            be.kept_boxes.release()
+            be.kept_boxes = ctx.buffer(reserve=1 << (need - 1).bit_length())
+        be.kept_boxes.bind_to_storage_buffer(BIND_CHC_CANDIDATES)
         _upload(be.all_queries, recs)
         be.query_indirect.write(np.array([6, 0, 0, 0], np.uint32).tobytes())
         iostats.to_device(16)
@@ -988,6 +997,7 @@ class _Pass:
         be.querycull["nQueries"] = len(recs)
         be.querycull["level"] = level
         be.querycull["pixelSlot"] = nq
+        be.querycull["raySize"] = tuple(self.size)
         be.querycull.run(-(-len(recs) // 64))
         ctx.memory_barrier(moderngl.COMMAND_BARRIER_BIT | moderngl.SHADER_STORAGE_BARRIER_BIT)
         self.stats["draws"] += 2
@@ -1000,6 +1010,7 @@ class _Pass:
         if n_cand == 0:
             return
         be = self.be
+        _upload(be.candidates, self.cand)
         need = n_cand * DRAW_DTYPE.itemsize
         if be.visible_draws.size < need:
             be.visible_draws.release()
