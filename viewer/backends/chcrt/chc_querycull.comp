@@ -1,10 +1,11 @@
-// CHC+RT, GPU-driven queries, step 2: one invocation per query record. The query is split onto the
-// finest tiles it covers; on each, only the query boxes that some ray of that tile may still enter
-// are kept: a box farther from every ray origin of the tile than the farthest distance a ray of the
-// tile may still reach (chc_tilebounds.comp) cannot pass. A finest tile with boxes left becomes one
-// record of ONE indirect instanced query draw, with its own compacted box list; the query slot stays
-// the query's, so the counts are the query's. Conservative: the gap between the origin box and a
-// query box is a lower bound of every ray's entry distance; a relative margin covers the rounding.
+// CHC+RT, GPU-driven pass, step 2: one invocation per group of invisible pairs of one tile (a
+// CHC++ multi-query). The group is split onto the finest tiles it covers; on each, only the pairs
+// whose box some ray of that tile may still enter are kept: a box farther from every ray origin of
+// the tile than the farthest distance a ray of the tile may still reach (chc_tilebounds.comp)
+// cannot be entered. A finest tile with pairs left becomes one record of ONE indirect instanced
+// intersection draw (chc_intersect.frag with CHC_COUNT_ITEMS) with its own compacted item list;
+// each item keeps its pair's count slot. Conservative: the gap between the origin box and a pair's
+// box is a lower bound of every ray's entry distance; a relative margin covers the rounding.
 layout(local_size_x = 64) in;
 struct ChcDraw { ivec4 rect; ivec4 info; };  // info.w = level << 24 | tx << 12 | ty of the query's tile
 struct ChcItem { vec3 bmin; int ref; vec3 bmax; int count; int id; int p0; int p1; int p2; };
@@ -23,8 +24,10 @@ uniform int pixelSlot;
 uniform int nQueries;
 uniform int level;  // finest tile level
 uniform ivec2 raySize;
+uniform int cull;  // 0: keep every box (ChcrtParams.coarse_cull off)
 
 bool reachable(ChcItem it, TileBound t) {
+    if (cull == 0) return true;
     vec3 gap = max(max(it.bmin - t.omax.xyz, t.omin.xyz - it.bmax), vec3(0.0));
     return length(gap) * (1.0 - 1e-4) <= t.omin.w * (1.0 + 1e-4);
 }

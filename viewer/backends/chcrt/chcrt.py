@@ -77,7 +77,7 @@ SSBO = {"BIND_CHC_ITEMS": 5,  # (tile, node) items of a batch draw
         "BIND_CHC_COUNT": 6,  # active ray count
         "BIND_CHC_DRAWS": 7,  # per-instance tile draws
         "BIND_CHC_QUERY_COUNTS": 8,  # per-query passed-fragment counts
-        "BIND_CHC_CANDIDATES": 4,  # GPU-driven: per query, the intersection record if it passes
+        "BIND_CHC_CANDIDATES": 4,  # GPU-driven: the invisible pairs the cull kept (items)
         "BIND_CHC_INDIRECT": 12,  # GPU-driven: the indirect draw command being built
         "BIND_CHC_QUERIES": 13,  # GPU-driven: every query record of the pass, before the coarse cull
         "BIND_CHC_TILES": 14}  # GPU-driven: per finest tile, ray origin box and farthest reach
@@ -159,8 +159,8 @@ class ChcrtParams:
             raise RtwalkError(f"{source}: t_q and min_tile_fraction must be > 0, thresholds >= 0, counts >= 1")
 
 
-def _to_finest_tiles(nd: np.ndarray, lvl: np.ndarray, tx: np.ndarray,
-                     ty: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+def _to_finest_tiles(nd: np.ndarray, lvl: np.ndarray, tx: np.ndarray, ty: np.ndarray,
+                     sl: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Each (node, tile) copied onto the tiles of the deepest level present that its tile covers
     (a tile of level L is exactly its four children of level L + 1)."""
     top = int(lvl.max())
@@ -170,7 +170,8 @@ def _to_finest_tiles(nd: np.ndarray, lvl: np.ndarray, tx: np.ndarray,
     k = np.arange(len(idx)) - np.repeat(np.cumsum(copies) - copies, copies)
     s = sh[idx]
     side = np.left_shift(1, s)
-    return (nd[idx], np.full(len(idx), top, np.int64), (tx[idx] << s) + k % side, (ty[idx] << s) + k // side)
+    return (nd[idx], np.full(len(idx), top, np.int64), (tx[idx] << s) + k % side, (ty[idx] << s) + k // side,
+            sl[idx])
 
 
 def _host_read(read) -> bytes:
@@ -274,8 +275,13 @@ class ChcrtBackend:
                                        "CHC_MAX_VISITS": visits, **iwd})
         self.vao_query_b = self.ctx.vertex_array(self.prog_query_b, [])
         self.vao_isect_b = self.ctx.vertex_array(self.prog_isect_b, [])
+        # GPU-driven: the same intersection, counting box entries into the pairs' slots (the queries)
+        self.prog_isect_g = progs.get("chc_tile.vert", "chc_intersect.frag",
+                                      {"CHC_MAX_ITEMS": self.p.max_batch, "CHC_BATCHED": 1, "STACK_SIZE": stack,
+                                       "CHC_MAX_VISITS": visits, "CHC_COUNT_ITEMS": 1, **iwd})
+        self.vao_isect_g = self.ctx.vertex_array(self.prog_isect_g, [])
         for prog in (self.prog_init, self.prog_query, self.prog_isect, self.prog_gather, self.prog_query_b,
-                     self.prog_isect_b):
+                     self.prog_isect_b, self.prog_isect_g):
             prog["rayOrigin"] = 0
             prog["rayDir"] = 1
             if prog.get("depthScale", None) is not None:
@@ -288,7 +294,6 @@ class ChcrtBackend:
         self._zero_counts = bytes(4 * COUNT_SLOTS)
         # GPU-driven steady state (ChcrtParams.gpu_driven)
         self.gpu_driven = self.p.gpu_driven and self.batched and self.cache is None
-        self.compact = self.ctx.compute_shader(load_shader_source("chc_compact.comp", BINDINGS, (HERE,)))
         self.tilebounds = self.ctx.compute_shader(load_shader_source("chc_tilebounds.comp", BINDINGS, (HERE,)))
         self.querycull = self.ctx.compute_shader(load_shader_source("chc_querycull.comp", BINDINGS, (HERE,)))
         self.tilebounds["rayOrigin"] = 0
@@ -298,9 +303,6 @@ class ChcrtBackend:
         self.kept_boxes = self.ctx.buffer(reserve=ITEM_DTYPE.itemsize * 4096)
         self.query_indirect = self.ctx.buffer(reserve=16)
         self.tile_bounds = self.ctx.buffer(reserve=32 * 64)
-        self.candidates = StreamBuffer(self.ctx, DRAW_DTYPE.itemsize, BIND_CHC_CANDIDATES)
-        self.visible_draws = self.ctx.buffer(reserve=DRAW_DTYPE.itemsize * 4096)
-        self.indirect = self.ctx.buffer(reserve=16)
         self.gpu_counts = self.ctx.buffer(reserve=COUNT_BYTES + 4 * 4096)
         self.queries: list[moderngl.Query] = []
         self.targets: _Targets | None = None
@@ -335,9 +337,9 @@ class ChcrtBackend:
         if self.targets is not None:
             self.targets.release()
             self.targets = None
-        for sb in (self.items, self.draws, self.query_counts, self.candidates, self.all_queries):
+        for sb in (self.items, self.draws, self.query_counts, self.all_queries):
             sb.buf.release()
-        for obj in (self.compact, self.visible_draws, self.indirect, self.gpu_counts, self.tilebounds,
+        for obj in (self.vao_isect_g, self.gpu_counts, self.tilebounds,
                     self.querycull, self.survivors, self.query_indirect, self.tile_bounds, self.kept_boxes):
             obj.release()
         for vao in (self.vao_query_b, self.vao_isect_b):
@@ -443,7 +445,8 @@ class _Pass:
         # GPU-driven steady state: a front's first pass runs the synchronous algorithm (builds the front)
         self.gpu = be.gpu_driven and front.frames > 0
         self.culled = False  # this pass's queries went through the coarse cull (stats read late)
-        self.cand = np.zeros(0, DRAW_DTYPE)  # GPU-driven: intersection records of the invisible pairs' queries
+        self.n_survivor_groups = 0
+        self.lca_pairs: np.ndarray | None = None  # GPU-driven: slots of visible pairs drawn through an LCA
 
     # -- GL helpers -------------------------------------------------------------------------------
     def _bind(self) -> None:
@@ -641,26 +644,28 @@ class _Pass:
             chunk.append(n)
         self._draw_subtrees(rest[np.isin(rest_nd, chunk)])
 
-    def _draw_subtrees(self, pairs: np.ndarray) -> None:
-        """Intersect scheduled pairs: grouped by tile, up to max_batch subtree roots per batch."""
+    def _draw_subtrees(self, pairs: np.ndarray, slots: np.ndarray | None = None) -> None:
+        """Intersect scheduled pairs: grouped by tile, up to max_batch subtree roots per batch.
+        `slots` (GPU-driven): per pair, the count slot its rays' box entries are counted into."""
         if len(pairs) == 0:
             return
         f = self.front
         self.stats["subtrees_scheduled"] += len(pairs)
         nd, lvl, tx, ty = (f.node[pairs].astype(np.int64), f.level[pairs].astype(np.int64),
                            f.tx[pairs].astype(np.int64), f.ty[pairs].astype(np.int64))
+        sl = np.full(len(pairs), -1, np.int64) if slots is None else np.asarray(slots, np.int64)
         if self.gpu:
             # the GPU-driven pass never splits a tile into batches (the shader sorts a ray's subtrees
             # itself); merged, a pixel's subtrees of every tile level are one record: one fragment
             # traverses them all with one stack and one shrinking tmax
             if self.p.merge_tiles:
-                nd, lvl, tx, ty = _to_finest_tiles(nd, lvl, tx, ty)
+                nd, lvl, tx, ty, sl = _to_finest_tiles(nd, lvl, tx, ty, sl)
             keys = np.zeros(len(nd))
         else:
             keys = self._order_keys(pairs)
         tile = (lvl << 40) | (tx << 20) | ty
         order = np.lexsort((keys, tile))
-        nd, lvl, tx, ty, tile = nd[order], lvl[order], tx[order], ty[order], tile[order]
+        nd, lvl, tx, ty, tile, sl = nd[order], lvl[order], tx[order], ty[order], tile[order], sl[order]
         starts = np.flatnonzero(np.r_[True, tile[1:] != tile[:-1]])
         ends = np.r_[starts[1:], len(nd)]
         mb = self.p.max_batch
@@ -671,16 +676,19 @@ class _Pass:
             many = (ends - starts) > lca_max
             lca = self.nt.group_lca(nd, starts)
             keep = ~np.repeat(many, ends - starts)
+            covered = sl[~keep]
+            self.lca_pairs = covered[covered >= 0]
             tile_of_item = np.repeat(np.arange(len(starts)), ends - starts)
             nd = np.concatenate([nd[keep], lca[many]])
+            sl = np.concatenate([sl[keep], np.full(int(many.sum()), -1, np.int64)])  # not counted
             tile_of_item = np.concatenate([tile_of_item[keep], np.flatnonzero(many)])
             o = np.argsort(tile_of_item, kind="stable")
-            nd = nd[o]
+            nd, sl = nd[o], sl[o]
             counts = np.bincount(tile_of_item, minlength=len(starts))
             starts = np.cumsum(counts) - counts
             ends = starts + counts
             self.stats["lca_tiles"] += int(many.sum())
-        _upload(self.be.items, self._subtree_items(nd))
+        _upload(self.be.items, self._subtree_items(nd, sl))
         # batches: per tile, consecutive runs of at most max_batch subtrees (nearest first)
         nbatch = -(-(ends - starts) // mb)
         tile_of = np.repeat(np.arange(len(starts)), nbatch)
@@ -698,7 +706,7 @@ class _Pass:
         fbo = self.hit_fbo
         fbo.use()
         if self.be.batched:
-            prog = self.be.prog_isect_b
+            prog = self.be.prog_isect_g if self.gpu else self.be.prog_isect_b
             prog["raySize"] = tuple(self.size)
             recs = np.zeros(int(live.sum()), DRAW_DTYPE)
             recs["rect"] = rects[tile_of[live]]
@@ -709,7 +717,8 @@ class _Pass:
             if len(recs):
                 fbo.scissor = None
                 self._isect_uniforms(prog)
-                self.be.vao_isect_b.render(moderngl.TRIANGLES, vertices=6, instances=len(recs))
+                (self.be.vao_isect_g if self.gpu else self.be.vao_isect_b).render(
+                    moderngl.TRIANGLES, vertices=6, instances=len(recs))
                 draws = 1
         else:
             prog = self.be.prog_isect
@@ -728,8 +737,9 @@ class _Pass:
         self.stats["draws"] += draws
         iostats.gl_draw(draws)
 
-    def _subtree_items(self, nd: np.ndarray) -> np.ndarray:
-        """Intersection items of scheduled subtrees (canonical BVH nodes `nd`)."""
+    def _subtree_items(self, nd: np.ndarray, slots: np.ndarray | None = None) -> np.ndarray:
+        """Intersection items of scheduled subtrees (canonical BVH nodes `nd`); pad[2] = the count
+        slot of the pair (GPU-driven), -1 for none."""
         nt = self.nt
         items = np.zeros(len(nd), ITEM_DTYPE)
         items["bmin"] = nt.box_min[nd]
@@ -739,6 +749,7 @@ class _Pass:
         items["id"] = nd
         items["pad"][:, 0] = self.be.bvh_first[nd]
         items["pad"][:, 1] = nt.count[nd]
+        items["pad"][:, 2] = -1 if slots is None else slots
         return items
 
     def _isect_uniforms(self, prog: moderngl.Program) -> None:
@@ -858,123 +869,80 @@ class _Pass:
 
     # -- GPU-driven steady state ------------------------------------------------------------------
     def _run_gpu(self) -> None:
-        """One pass in a fixed number of draws: visible pairs (1 draw), every query (1 draw), the
-        compaction of the passing ones (1 dispatch) and their intersection (1 indirect draw), then
-        one read of the ray and query counts; the front is refined on the host for the next frame."""
+        """One pass in a fixed number of launches: the visible pairs (1 draw), the ray bounds of every
+        finest tile (1 dispatch), the cull of the invisible pairs against them (1 dispatch) and the
+        intersection of the survivors (1 indirect draw). The query is the intersection itself: a
+        ray that enters a pair's box before its nearest hit so far counts into the pair's slot (the
+        query's pass condition), so no separate query pass runs. One read of the counts at the end;
+        the front is refined on the host for the next frame."""
         be, f, p = self.be, self.front, self.p
         prof = be.bc.profiler
         with prof.phase("chc:1-intersect-visible"):
             visible = f.leaves(VISIBLE)
             invisible = f.leaves(INVISIBLE)
-            need = COUNT_BYTES + 4 * (len(visible) + len(invisible) + 4)
+            nslots = len(visible) + len(invisible)
+            need = COUNT_BYTES + 4 * (nslots + 3)
             if be.gpu_counts.size < need:
                 be.gpu_counts.release()
                 be.gpu_counts = self.ctx.buffer(reserve=1 << (need - 1).bit_length())
             self._bind()
             self._init()
-            self._draw_subtrees(visible)
+            be.gpu_counts.write(bytes(4 * (nslots + 3)), offset=COUNT_BYTES)
+            iostats.to_device(4 * (nslots + 3))
+            be.gpu_counts.bind_to_storage_buffer(BIND_CHC_QUERY_COUNTS, COUNT_BYTES, 4 * (nslots + 3))
+            self._draw_subtrees(visible, np.arange(len(visible)))
             self.stats["phase1_subtrees"] = len(visible)
             self._sync()
         with prof.phase("chc:2-queries"):
             groups = f.multi_query_groups(invisible, p.max_multi)
-            n_inv = len(groups)
-            due = visible[f.requery_due(visible, self.frame_number())] if len(visible) else visible
-            groups += [due[i:i + 1] for i in range(len(due))]
-            self.stats["requeries"] = len(due)
-            n_cand = self._gpu_queries(groups, n_inv)
+            self._cull_invisible(groups, len(visible), nslots)
             self._sync()
         with prof.phase("chc:3-traversal"):
-            self._gpu_intersect_passing(n_cand)
+            self._intersect_survivors()
             self._sync()
         with prof.phase("chc:4-final-intersect"):
-            nq = len(groups)
-            raw = np.frombuffer(_host_read(lambda: be.gpu_counts.read(size=COUNT_BYTES + 4 * (nq + 2))), np.uint32)
+            raw = np.frombuffer(_host_read(lambda: be.gpu_counts.read(size=COUNT_BYTES + 4 * (nslots + 3))),
+                                np.uint32).astype(np.int64)
             self.stats["rays"] = int(raw[:COUNT_SLOTS].sum())
-            if self.culled:
-                self.stats["query_pixels"] = int(raw[COUNT_SLOTS + nq])
-                self.stats["query_records_drawn"] = int(raw[COUNT_SLOTS + nq + 1])
+            cnt = raw[COUNT_SLOTS:]
+            self.stats["query_pixels"] = int(cnt[nslots])
+            self.stats["query_records_drawn"] = int(cnt[nslots + 1])
             self.rays_read = True
-            self._refine(groups, n_inv, raw[COUNT_SLOTS:].astype(np.int64))
+            self._refine(visible, invisible, cnt[:nslots])
 
-    def _gpu_queries(self, groups: list[np.ndarray], n_inv: int) -> int:
-        """All queries in one instanced draw, counted into gpu_counts (not read here). Uploads the
-        candidates: per query of invisible pairs, the record that intersects them if it passes.
-        Returns the number of candidates."""
-        nq = len(groups)
-        if nq == 0:
-            return 0
-        be, f, nt = self.be, self.front, self.nt
+    def _cull_invisible(self, groups: list[np.ndarray], slot0: int, nslots: int) -> None:
+        """Upload the invisible pairs (grouped per tile as CHC++ multi-queries, as intersection items
+        with their count slots), then on the GPU: per finest tile the rays' origin box and farthest
+        reach (chc_tilebounds.comp), and per group and finest tile the pairs some ray may still enter
+        (chc_querycull.comp), appended to the records of the indirect intersection draw."""
+        self.n_survivor_groups = len(groups)
+        if not groups:
+            return
+        be, ctx, f = self.be, self.ctx, self.front
         sizes = np.array([len(g) for g in groups])
         pairs = np.concatenate(groups)
-        owner, bmin, bmax = nt.query_boxes(f.node[pairs])
-        gbox = np.repeat(np.arange(nq), sizes)[owner]
-        nbox = np.bincount(gbox, minlength=nq)
-        base = np.cumsum(nbox) - nbox
         first = np.cumsum(sizes) - sizes
-        n_inv_pairs = int(sizes[:n_inv].sum())
-        qitems = np.zeros(len(owner), ITEM_DTYPE)
-        qitems["bmin"] = bmin
-        qitems["bmax"] = bmax
-        qitems["id"] = f.node[pairs][owner]
-        sub = self._subtree_items(f.node[pairs[:n_inv_pairs]].astype(np.int64))
-        _upload(be.items, np.concatenate([qitems, sub]))
-        rects = f.rects(pairs[first])
-        live = (rects[:, 2] > 0) & (rects[:, 3] > 0)
-        self.stats["query_pixels"] += int((rects[:, 2] * rects[:, 3]).sum())
-        self.stats["queries"] += int(live.sum())
-        recs = np.zeros(nq, DRAW_DTYPE)
-        recs["rect"] = rects
-        recs["info"][:, 0] = base
-        recs["info"][:, 1] = nbox
-        recs["info"][:, 2] = np.arange(nq)
         qp = pairs[first]
+        rects = f.rects(qp)
+        live = (rects[:, 2] > 0) & (rects[:, 3] > 0)
+        _upload(be.items, self._subtree_items(f.node[pairs].astype(np.int64), slot0 + np.arange(len(pairs))))
+        recs = np.zeros(len(groups), DRAW_DTYPE)
+        recs["rect"] = rects
+        recs["info"][:, 0] = first
+        recs["info"][:, 1] = sizes
+        recs["info"][:, 2] = 1  # a query record (the query_overdraw overlay counts its fragments)
         recs["info"][:, 3] = ((f.level[qp].astype(np.int32) << 24) | (f.tx[qp].astype(np.int32) << 12)
                               | f.ty[qp].astype(np.int32))
         recs = recs[live]
-        cand = np.zeros(n_inv, DRAW_DTYPE)
-        cand["rect"] = rects[:n_inv]
-        cand["info"][:, 0] = len(owner) + first[:n_inv]
-        cand["info"][:, 1] = sizes[:n_inv]
-        cand["info"][:, 2] = np.arange(n_inv)
-        self.cand = cand[live[:n_inv]]  # uploaded after the query draw (the cull uses the binding point)
-        be.gpu_counts.write(bytes(4 * (nq + 3)), offset=COUNT_BYTES)
-        iostats.to_device(4 * (nq + 3))
-        be.gpu_counts.bind_to_storage_buffer(BIND_CHC_QUERY_COUNTS, COUNT_BYTES, 4 * (nq + 3))
-        prog = be.prog_query_b
-        prog["countOverdraw"] = int(self.overlays)
-        prog["raySize"] = tuple(self.size)
-        if self.p.coarse_cull and len(recs):
-            self._coarse_cull(recs, nq)
-        elif len(recs):
-            _upload(be.draws, recs)
-        fbo = self.tg.query_fbo
-        fbo.use()
-        fbo.scissor = None
-        self.ctx.disable(moderngl.DEPTH_TEST)
-        if len(recs):
-            if self.culled:
-                be.kept_boxes.bind_to_storage_buffer(BIND_CHC_ITEMS)  # the query draw tests the kept boxes
-                be.vao_query_b.render_indirect(be.query_indirect, moderngl.TRIANGLES, count=1)
-                be.items.buf.bind_to_storage_buffer(BIND_CHC_ITEMS)
-            else:
-                be.vao_query_b.render(moderngl.TRIANGLES, vertices=6, instances=len(recs))
-            self.stats["draws"] += 1
-            iostats.gl_draw()
-        self.ctx.enable(moderngl.DEPTH_TEST)
-        return len(self.cand)
-
-    def _coarse_cull(self, recs: np.ndarray, nq: int) -> None:
-        """Per finest tile, the rays' origin box and farthest reach (one dispatch); then every query
-        record is tested against its tile's (one dispatch): the survivors become the records of the
-        indirect query draw (ChcrtParams.coarse_cull)."""
-        be, ctx = self.be, self.ctx
-        level = self.front.max_level
+        self.stats["queries"] += int(sizes[live].sum())
+        self.stats["multi_queries"] += int((sizes[live] > 1).sum())
+        level = f.max_level
         ntiles = 1 << (2 * level)
         if be.tile_bounds.size < 32 * ntiles:
             be.tile_bounds.release()
             be.tile_bounds = ctx.buffer(reserve=32 * ntiles)
         copies = np.left_shift(1, 2 * (level - (recs["info"][:, 3] >> 24).astype(np.int64)))
-        need = int(copies.sum()) * DRAW_DTYPE.itemsize
+        need = max(int(copies.sum()), 1) * DRAW_DTYPE.itemsize
         if be.survivors.size < need:
             be.survivors.release()
             be.survivors = ctx.buffer(reserve=1 << (need - 1).bit_length())
@@ -982,10 +950,10 @@ class _Pass:
         if be.kept_boxes.size < need:
             be.kept_boxes.release()
             be.kept_boxes = ctx.buffer(reserve=1 << (need - 1).bit_length())
-        be.kept_boxes.bind_to_storage_buffer(BIND_CHC_CANDIDATES)
         _upload(be.all_queries, recs)
         be.query_indirect.write(np.array([6, 0, 0, 0], np.uint32).tobytes())
         iostats.to_device(16)
+        be.kept_boxes.bind_to_storage_buffer(BIND_CHC_CANDIDATES)
         be.tile_bounds.bind_to_storage_buffer(BIND_CHC_TILES)
         be.survivors.bind_to_storage_buffer(BIND_CHC_DRAWS)
         be.query_indirect.bind_to_storage_buffer(BIND_CHC_INDIRECT)
@@ -996,84 +964,69 @@ class _Pass:
         ctx.memory_barrier(moderngl.SHADER_STORAGE_BARRIER_BIT)
         be.querycull["nQueries"] = len(recs)
         be.querycull["level"] = level
-        be.querycull["pixelSlot"] = nq
+        be.querycull["pixelSlot"] = nslots
         be.querycull["raySize"] = tuple(self.size)
-        be.querycull.run(-(-len(recs) // 64))
+        be.querycull["cull"] = int(self.p.coarse_cull)
+        be.querycull.run(max(-(-len(recs) // 64), 1))
         ctx.memory_barrier(moderngl.COMMAND_BARRIER_BIT | moderngl.SHADER_STORAGE_BARRIER_BIT)
         self.stats["draws"] += 2
         iostats.gl_draw(2)
-        self.culled = True
 
-    def _gpu_intersect_passing(self, n_cand: int) -> None:
-        """Compact the passing queries into the indirect draw's records (compute), then intersect
-        their pairs in one indirect instanced draw."""
-        if n_cand == 0:
+    def _intersect_survivors(self) -> None:
+        """The invisible pairs that survived the cull, in one indirect instanced draw (items: the
+        kept pairs, records: the survivors), counting into the pairs' slots."""
+        if not self.n_survivor_groups:
             return
         be = self.be
-        _upload(be.candidates, self.cand)
-        need = n_cand * DRAW_DTYPE.itemsize
-        if be.visible_draws.size < need:
-            be.visible_draws.release()
-            be.visible_draws = self.ctx.buffer(reserve=1 << (need - 1).bit_length())
-        be.indirect.write(np.array([6, 0, 0, 0], np.uint32).tobytes())
-        iostats.to_device(16)
-        be.visible_draws.bind_to_storage_buffer(BIND_CHC_DRAWS)
-        be.indirect.bind_to_storage_buffer(BIND_CHC_INDIRECT)
-        self.ctx.memory_barrier(moderngl.SHADER_STORAGE_BARRIER_BIT)  # query counts -> compaction
-        be.compact["nCandidates"] = n_cand
-        be.compact["threshold"] = self.threshold
-        be.compact.run(-(-n_cand // 64))
-        self.ctx.memory_barrier(moderngl.COMMAND_BARRIER_BIT | moderngl.SHADER_STORAGE_BARRIER_BIT)
+        be.kept_boxes.bind_to_storage_buffer(BIND_CHC_ITEMS)
+        be.survivors.bind_to_storage_buffer(BIND_CHC_DRAWS)
         self.ctx.enable(moderngl.DEPTH_TEST)
         self.ctx.depth_func = "<"
         fbo = self.hit_fbo
         fbo.use()
         fbo.scissor = None
-        prog = be.prog_isect_b
+        prog = be.prog_isect_g
         prog["raySize"] = tuple(self.size)
         self._isect_uniforms(prog)
-        be.vao_isect_b.render_indirect(be.indirect, moderngl.TRIANGLES, count=1)
-        self.stats["draws"] += 2
+        be.vao_isect_g.render_indirect(be.query_indirect, moderngl.TRIANGLES, count=1)
+        self.stats["draws"] += 1
         self.stats["intersect_draws"] += 1
-        iostats.gl_draw(2)
+        iostats.gl_draw()
 
-    def _refine(self, groups: list[np.ndarray], n_inv: int, res: np.ndarray) -> None:
-        """Apply this pass's query results to the front (for the next frame): a single query of an
-        invisible pair that passed makes the pair visible (terminated) or splits it (its children
-        are queried next frame); the pairs of a failed multi-query are queried one by one next frame
-        (age 0 makes the CHC++ grouping put them in queries of their own); culled pairs age; visible
-        leaves whose re-query failed become invisible."""
-        nq = len(groups)
-        if nq == 0:
-            return
+    def _refine(self, visible: np.ndarray, invisible: np.ndarray, cnt: np.ndarray) -> None:
+        """Apply this pass's counts to the front (for the next frame): an invisible pair that rays
+        entered becomes visible (terminated) or is split (its children are tested next frame);
+        culled pairs age; a visible leaf whose re-query is due and that no ray entered (its own
+        count, or a lowest common ancestor standing for it: then it is left visible) becomes
+        invisible."""
         f, p, thr = self.front, self.p, self.threshold
-        res = res[:nq]
-        sizes = np.array([len(g) for g in groups])
-        pairs = np.concatenate(groups)
-        gp = np.repeat(np.arange(nq), sizes)
-        passed = res > thr
-        inv = np.arange(nq) < n_inv
-        multi = sizes > 1
-        self.stats["multi_queries"] += int((multi & inv).sum())
-        self.stats["failed_multi_queries"] += int((multi & inv & passed).sum())
-        self.stats["newly_visible_queries"] += int((inv & passed).sum())
-        self.stats["subtrees_scheduled"] += int(sizes[inv & passed].sum())
-        pi, pp, pm = inv[gp], passed[gp], multi[gp]
-        f.age[pairs[pi & pm & pp]] = 0
-        f.age[pairs[pi & ~pp]] += 1
-        wave = pairs[pi & ~pm & pp]
-        f.pixels[wave] = res[gp[pi & ~pm & pp]]
-        due = pairs[~pi]
-        rq = res[gp[~pi]]
-        f.state[due[rq <= thr]] = INVISIBLE
-        f.age[due] = 0
-        f.pixels[due] = rq
+        nv = len(visible)
+        cv, ci = cnt[:nv], cnt[nv:]
+        seen = ci > thr
+        wave = invisible[seen]
+        f.pixels[wave] = ci[seen]
+        f.age[invisible[~seen]] += 1
+        self.stats["newly_visible_queries"] += int(seen.sum())
+        if nv:
+            due = f.requery_due(visible, self.frame_number())
+            self.stats["requeries"] = int(due.sum())
+            gone = due & (cv <= thr) & ~self.lca_covered(visible)
+            f.state[visible[gone]] = INVISIBLE
+            f.age[visible[due]] = 0
+            f.pixels[visible[due]] = cv[due]
         if len(wave):
             term, obj, _ = f.classify(wave, self.nt, p.t_q, p.max_subtree_height, p.max_subtree_tris)
             f.state[wave[term]] = VISIBLE
             split = wave[~term]
             if len(split):
                 f.subdivide(split, obj[~term], self.nt)
+
+    def lca_covered(self, visible: np.ndarray) -> np.ndarray:
+        """Visible pairs drawn through a lowest common ancestor this pass (their counts are not theirs)."""
+        out = np.zeros(len(visible), bool)
+        if self.lca_pairs is not None:
+            out[self.lca_pairs] = True
+        return out
 
     def frame_number(self) -> int:
         return self.be.frame
