@@ -159,11 +159,11 @@ class ChcrtParams:
             raise RtwalkError(f"{source}: t_q and min_tile_fraction must be > 0, thresholds >= 0, counts >= 1")
 
 
-def _to_finest_tiles(nd: np.ndarray, lvl: np.ndarray, tx: np.ndarray, ty: np.ndarray,
-                     sl: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Each (node, tile) copied onto the tiles of the deepest level present that its tile covers
-    (a tile of level L is exactly its four children of level L + 1)."""
-    top = int(lvl.max())
+def _to_finest_tiles(nd: np.ndarray, lvl: np.ndarray, tx: np.ndarray, ty: np.ndarray, sl: np.ndarray,
+                     top: int | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Each (node, tile) copied onto the tiles of level `top` (default: the deepest present) that its
+    tile covers (a tile of level L is exactly its four children of level L + 1)."""
+    top = int(lvl.max()) if top is None else top
     sh = top - lvl
     copies = np.left_shift(1, 2 * sh)
     idx = np.repeat(np.arange(len(nd)), copies)
@@ -875,7 +875,7 @@ class _Pass:
         ray that enters a pair's box before its nearest hit so far counts into the pair's slot (the
         query's pass condition), so no separate query pass runs. One read of the counts at the end;
         the front is refined on the host for the next frame."""
-        be, f, p = self.be, self.front, self.p
+        be, f = self.be, self.front
         prof = be.bc.profiler
         with prof.phase("chc:1-intersect-visible"):
             visible = f.leaves(VISIBLE)
@@ -894,8 +894,7 @@ class _Pass:
             self.stats["phase1_subtrees"] = len(visible)
             self._sync()
         with prof.phase("chc:2-queries"):
-            groups = f.multi_query_groups(invisible, p.max_multi)
-            self._cull_invisible(groups, len(visible), nslots)
+            self._cull_invisible(invisible, len(visible), nslots)
             self._sync()
         with prof.phase("chc:3-traversal"):
             self._intersect_survivors()
@@ -910,47 +909,45 @@ class _Pass:
             self.rays_read = True
             self._refine(visible, invisible, cnt[:nslots])
 
-    def _cull_invisible(self, groups: list[np.ndarray], slot0: int, nslots: int) -> None:
-        """Upload the invisible pairs (grouped per tile as CHC++ multi-queries, as intersection items
-        with their count slots), then on the GPU: per finest tile the rays' origin box and farthest
-        reach (chc_tilebounds.comp), and per group and finest tile the pairs some ray may still enter
-        (chc_querycull.comp), appended to the records of the indirect intersection draw."""
-        self.n_survivor_groups = len(groups)
-        if not groups:
+    def _cull_invisible(self, invisible: np.ndarray, slot0: int, nslots: int) -> None:
+        """Upload the invisible pairs copied onto the finest tiles they cover (intersection items
+        with their count slots, sorted by tile), then on the GPU: per finest tile the rays' origin box
+        and farthest reach (chc_tilebounds.comp), and per finest tile the pairs some ray may still
+        enter (chc_querycull.comp), as records of the indirect intersection draw."""
+        self.n_survivor_groups = len(invisible)
+        if not len(invisible):
             return
         be, ctx, f = self.be, self.ctx, self.front
-        sizes = np.array([len(g) for g in groups])
-        pairs = np.concatenate(groups)
-        first = np.cumsum(sizes) - sizes
-        qp = pairs[first]
-        rects = f.rects(qp)
-        live = (rects[:, 2] > 0) & (rects[:, 3] > 0)
-        _upload(be.items, self._subtree_items(f.node[pairs].astype(np.int64), slot0 + np.arange(len(pairs))))
-        recs = np.zeros(len(groups), DRAW_DTYPE)
-        recs["rect"] = rects
-        recs["info"][:, 0] = first
-        recs["info"][:, 1] = sizes
-        recs["info"][:, 2] = 1  # a query record (the query_overdraw overlay counts its fragments)
-        recs["info"][:, 3] = ((f.level[qp].astype(np.int32) << 24) | (f.tx[qp].astype(np.int32) << 12)
-                              | f.ty[qp].astype(np.int32))
-        recs = recs[live]
-        self.stats["queries"] += int(sizes[live].sum())
-        self.stats["multi_queries"] += int((sizes[live] > 1).sum())
         level = f.max_level
-        ntiles = 1 << (2 * level)
+        n = 1 << level
+        ntiles = n * n
+        nd, _, tx, ty, sl = _to_finest_tiles(
+            f.node[invisible].astype(np.int64), f.level[invisible].astype(np.int64),
+            f.tx[invisible].astype(np.int64), f.ty[invisible].astype(np.int64),
+            slot0 + np.arange(len(invisible), dtype=np.int64), level)
+        tile = ty * n + tx
+        order = np.argsort(tile, kind="stable")
+        _upload(be.items, self._subtree_items(nd[order], sl[order]))
+        counts = np.bincount(tile, minlength=ntiles)
+        ranges = np.zeros(ntiles, DRAW_DTYPE)
+        all_t = np.arange(ntiles)
+        ranges["rect"] = tile_rects(np.full(ntiles, level), all_t % n, all_t // n, self.size)
+        ranges["info"][:, 0] = np.cumsum(counts) - counts
+        ranges["info"][:, 1] = counts
+        self.stats["queries"] += len(invisible)
+        mb = self.p.max_batch
         if be.tile_bounds.size < 32 * ntiles:
             be.tile_bounds.release()
             be.tile_bounds = ctx.buffer(reserve=32 * ntiles)
-        copies = np.left_shift(1, 2 * (level - (recs["info"][:, 3] >> 24).astype(np.int64)))
-        need = max(int(copies.sum()), 1) * DRAW_DTYPE.itemsize
+        need = max(int((-(-counts // mb)).sum()), 1) * DRAW_DTYPE.itemsize
         if be.survivors.size < need:
             be.survivors.release()
             be.survivors = ctx.buffer(reserve=1 << (need - 1).bit_length())
-        need = max(int((copies * recs["info"][:, 1]).sum()), 1) * ITEM_DTYPE.itemsize
+        need = max(len(nd), 1) * ITEM_DTYPE.itemsize
         if be.kept_boxes.size < need:
             be.kept_boxes.release()
             be.kept_boxes = ctx.buffer(reserve=1 << (need - 1).bit_length())
-        _upload(be.all_queries, recs)
+        _upload(be.all_queries, ranges)
         be.query_indirect.write(np.array([6, 0, 0, 0], np.uint32).tobytes())
         iostats.to_device(16)
         be.kept_boxes.bind_to_storage_buffer(BIND_CHC_CANDIDATES)
@@ -962,12 +959,11 @@ class _Pass:
         be.tilebounds["level"] = level
         be.tilebounds.run(ntiles)
         ctx.memory_barrier(moderngl.SHADER_STORAGE_BARRIER_BIT)
-        be.querycull["nQueries"] = len(recs)
-        be.querycull["level"] = level
+        be.querycull["nQueries"] = ntiles
+        be.querycull["maxItems"] = mb
         be.querycull["pixelSlot"] = nslots
-        be.querycull["raySize"] = tuple(self.size)
         be.querycull["cull"] = int(self.p.coarse_cull)
-        be.querycull.run(max(-(-len(recs) // 64), 1))
+        be.querycull.run(-(-ntiles // 64))
         ctx.memory_barrier(moderngl.COMMAND_BARRIER_BIT | moderngl.SHADER_STORAGE_BARRIER_BIT)
         self.stats["draws"] += 2
         iostats.gl_draw(2)
