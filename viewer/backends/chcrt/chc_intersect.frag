@@ -40,7 +40,8 @@ void main() {
     ivec2 px = ivec2(gl_FragCoord.xy);
     if (countOverlays != 0) imageAtomicAdd(batchSubtrees, px, ITEM_COUNT);
 #ifdef CHC_COUNT_ITEMS
-    if (countOverlays != 0 && vQuery != 0) imageAtomicAdd(overdraw, px, 1);  // a query record's fragment
+    // a query record (invisible pairs tested by intersecting them): one query test per pair
+    if (countOverlays != 0 && vQuery != 0) imageAtomicAdd(overdraw, px, ITEM_COUNT);
 #endif
     int best = imageLoad(bestBits, px).r;
     if (best < 0) discard;

@@ -18,7 +18,8 @@ layout(std430, binding = BIND_CHC_DRAWS) writeonly buffer ChcSurvivors { ChcDraw
 layout(std430, binding = BIND_CHC_CANDIDATES) writeonly buffer ChcKeptBoxes { ChcItem kept[]; };
 layout(std430, binding = BIND_CHC_INDIRECT) buffer ChcIndirect { uint cmdCount; uint cmdInstances; uint cmdFirst;
                                                                  uint cmdBase; };
-// slots pixelSlot .. pixelSlot + 2 of the query counts: pixels and records drawn (stats), kept boxes
+// slots pixelSlot .. pixelSlot + 2 of the query counts: pair tests x pixels and records drawn (stats),
+// kept pairs
 layout(std430, binding = BIND_CHC_QUERY_COUNTS) buffer ChcQueryCounts { uint chcPassed[]; };
 uniform int pixelSlot;
 uniform int nQueries;
@@ -47,8 +48,9 @@ void main() {
         if (reachable(it, t)) kept[j++] = it;
     }
     for (int b = 0; b < nb; b += maxItems) {  // records of at most maxItems pairs (the shader's bound)
-        survivors[atomicAdd(cmdInstances, 1u)] = ChcDraw(q.rect, ivec4(base + b, min(maxItems, nb - b), 1, 0));
-        atomicAdd(chcPassed[pixelSlot], uint(q.rect.z * q.rect.w));
+        int m = min(maxItems, nb - b);
+        survivors[atomicAdd(cmdInstances, 1u)] = ChcDraw(q.rect, ivec4(base + b, m, 1, 0));
+        atomicAdd(chcPassed[pixelSlot], uint(q.rect.z * q.rect.w * m));  // query tests (overlay)
         atomicAdd(chcPassed[pixelSlot + 1], 1u);
     }
 }

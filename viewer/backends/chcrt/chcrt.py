@@ -232,7 +232,7 @@ class ChcrtBackend:
     info = BackendInfo(
         "chcrt", "CHC+RT: occlusion-query culling of (screen tile, BVH node) pairs, temporal fronts",
         params=ChcrtParams,
-        overlays=(OverlaySpec("query_overdraw", "heat", "query_overdraw", "query fragments per pixel"),
+        overlays=(OverlaySpec("query_overdraw", "heat", "query_overdraw", "query tests per pixel"),
                   OverlaySpec("subtree_batches", "ids", "subtree_id", "hit subtree; subtrees in the tile's batches",
                               counts="batch_subtrees")),
         counters=COUNTERS, phases=PHASES)
@@ -880,6 +880,10 @@ class _Pass:
         with prof.phase("chc:1-intersect-visible"):
             visible = f.leaves(VISIBLE)
             invisible = f.leaves(INVISIBLE)
+            if self.threshold > 0 and len(invisible):
+                # aggressive mode: a pair culled before (<= threshold rays entered) is not tested again
+                # until its re-query is due
+                invisible = invisible[(f.age[invisible] == 0) | f.requery_due(invisible, self.frame_number())]
             nslots = len(visible) + len(invisible)
             need = COUNT_BYTES + 4 * (nslots + 3)
             if be.gpu_counts.size < need:
