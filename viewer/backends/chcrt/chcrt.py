@@ -41,6 +41,13 @@ places each instance on its tile); query fragments make the depth test's compari
 against bestBits and count into their query's slot with an atomic add, read back once per wave.
 Same query results (bestBits can only be stale towards passing), far fewer draws and waits.
 
+GPU-driven steady state (``gpu_driven``, default; docs/chcrt.md). Only a front's first pass runs
+the algorithm above. Every later pass is a fixed number of launches: the visible pairs (one draw,
+all subtrees over a finest tile in one record), per finest tile the rays' origin box and reach (one
+dispatch), the invisible pairs some ray may still enter (one dispatch) and their intersection (one
+indirect draw). The intersection is the query: box entries before the nearest hit so far are
+counted per pair, read once after the pass, and the front is refined for the next frame.
+
 Parameters come from ChcrtParams: `--backend-params "visible_threshold=20,t_q=0.4"` (alias
 `--chcrt`) on the command line, or the RTWALK_CHCRT environment variable (the registry merges them).
 """
