@@ -138,8 +138,8 @@ def test_bad_input_is_one_line(capsys, args, needle):
 
 
 def test_tuning_sweep_counts_work(quick_run):
-    """The sweep's work counters: glsl makes no queries; chcrt's query fragments and tests are
-    counted; a larger t_q (fewer object-space splits) never needs more queries here."""
+    """The sweep's work counters: glsl makes no queries; chcrt's queries and tests are counted; a
+    larger t_q (fewer object-space splits) never needs more queries here."""
     from viewer.bench.chcrt import tuning_configs
 
     _, out = quick_run
@@ -148,7 +148,8 @@ def test_tuning_sweep_counts_work(quick_run):
     glsl, a, b = rows
     assert glsl["queries"] == 0 and glsl["query_fragments_per_ray"] == 0 and glsl["tests_per_ray"] > 1
     for r in (a, b):
-        assert r["queries"] > 0 and r["query_fragments_per_ray"] > 0 and r["query_box_tests_per_ray"] > 0
+        # after the cold frame the GPU-driven pass makes its queries by intersecting (no query fragments)
+        assert r["queries"] > 0 and r["query_fragments_per_ray"] >= 0 and r["box_tests_per_ray"] > 0
         assert r["tests_per_ray"] == pytest.approx(r["box_tests_per_ray"] + r["query_box_tests_per_ray"]
                                                    + r["tri_tests_per_ray"])
         # the same rays hit the same triangles: triangle tests differ only by the traversal order

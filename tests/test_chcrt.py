@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from viewer.accel.bvh import build_bvh
-from viewer.backends.chcrt_front import (
+from viewer.backends.chcrt.chcrt_front import (
     DEAD,
     INNER,
     INVISIBLE,
@@ -198,8 +198,9 @@ def test_conservative_equals_glsl_every_ray_type(name, mode, gl_ctx):
     # temporal coherence was exercised: later frames start from the previous fronts
     later = [b.backend_stats for _, b in frames[1:]]
     assert sum(s["phase1_subtrees"] for s in later) > 0
-    assert sum(s["multi_queries"] for s in later) > 0
-    assert sum(s["query_waves"] + s["pull_ups"] for s in later) > 0  # the fronts moved
+    # multi-queries (synchronous passes) or the GPU-driven pass, which tests every invisible pair
+    assert sum(s["multi_queries"] + s["gpu_driven"] for s in later) > 0
+    assert sum(s["query_waves"] + s["pull_ups"] + s["newly_visible_queries"] for s in later) > 0  # fronts moved
     print(f"{name}: {ties} tied closest hits over {len(frames)} frames")
 
 
@@ -287,7 +288,7 @@ def test_trace_rays_entry_point_matches_glsl():
     from viewer.tracing import trace_rays
 
     # random rays inside a small city: many subtrees per tile and per ray (this caught a Mesa
-    # llvmpipe miscompilation of repeated traversal loops, see shaders/chc_intersect.frag)
+    # llvmpipe miscompilation of repeated traversal loops, see backends/chcrt/chc_intersect.frag)
     tris = make_city(20_000, 1).triangles
     n = 50_000
     rng = np.random.default_rng(1)
@@ -471,7 +472,7 @@ def test_out_of_core_budget_checked(gl_ctx):
 def test_round_robin_ring_never_overlaps_live_entries():
     """The cache's ring allocator against a slot-owner array: every live entry keeps its slots,
     would_evict() predicts place(), and entries are evicted only when overwritten or at a wrap."""
-    from viewer.backends.chcrt_cache import Entry, RingAllocator
+    from viewer.backends.chcrt.chcrt_cache import Entry, RingAllocator
 
     rng = np.random.default_rng(0)
     for cap in (10, 37, 100):
@@ -493,3 +494,34 @@ def test_round_robin_ring_never_overlaps_live_entries():
                 assert (owner[s:s + n] == k).all()
             assert sum(n for s, n in live.values()) <= cap
         assert evicted > 100
+
+
+def _submission_counts(ctx, size: tuple[int, int], params: str) -> tuple[int, int]:
+    """(gl_draws + gl_queries, host_syncs) of chcrt on a steady frame (the fourth of a short walk)."""
+    from viewer.procedural import make_city
+
+    if "small-city" not in _SCENES:
+        scene = make_city(3_000, 2)
+        bvh = build_bvh(scene.triangles)
+        _SCENES["small-city"] = (scene.reordered(bvh.tri_order), bvh, None)
+    scene, bvh, _ = _SCENES["small-city"]
+    lo, hi = scene.triangles.reshape(-1, 3).min(0), scene.triangles.reshape(-1, 3).max(0)
+    ext = hi - lo
+    eye, target = lo + np.array([0.1, 0.1, 0.1]) * ext, lo + np.array([0.6, 0.02, 0.7]) * ext
+    r = Renderer(ctx, scene, bvh, size, "chcrt", parse_effects("primary"), {"chcrt": params})
+    try:
+        for i in range(4):
+            io = r.render(Camera.look_at(eye + i * 0.01 * ext, target)).io
+    finally:
+        r.release()
+    return io.gl_draws + io.gl_queries, io.host_syncs
+
+
+def test_submission_does_not_grow_with_the_image(gl_ctx):
+    """GPU-shaped submission (viewer.iostats): on a steady frame, the draws and queries of a pass
+    are a fixed number, not one per tile, query wave or visible subtree, so 1280x720 needs at most
+    1.3x the count at 320x180; the host waits for the device a fixed small number of times."""
+    small, small_syncs = _submission_counts(gl_ctx, (320, 180), "")
+    big, big_syncs = _submission_counts(gl_ctx, (1280, 720), "min_tile_fraction=0.0009")  # 16x the tiles
+    assert 0 < big <= 1.3 * small, (small, big)
+    assert big_syncs <= 3 and small_syncs <= 3, (small_syncs, big_syncs)

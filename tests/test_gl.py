@@ -8,6 +8,7 @@ import re
 import numpy as np
 import pytest
 
+from viewer.backends.gl_traversal import SHADER_DIR as GLSL_DIR
 from viewer.gl import bindings
 from viewer.gl.programs import SHADER_DIR, ProgramCache, load_shader_source
 
@@ -35,7 +36,7 @@ def test_shaders_name_binding_points(path):
 
 
 def test_loaded_source_carries_the_binding_header():
-    src = load_shader_source("trace_glsl.frag", {"STACK_SIZE": 24})
+    src = load_shader_source("trace_glsl.frag", {"STACK_SIZE": 24}, search=[GLSL_DIR])
     lines = src.splitlines()
     assert lines[0] == "#version 450 core"
     assert "#define BIND_NODES 0" in lines and "#define STACK_SIZE 24" in lines

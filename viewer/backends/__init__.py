@@ -14,8 +14,8 @@ from viewer.backends.interface import Backend, BackendInfo, params_text, resolve
 from viewer.errors import RtwalkError
 
 BACKENDS: dict[str, str] = {
-    "glsl": "viewer.backends.glsl:GlslBackend",
-    "chcrt": "viewer.backends.chcrt:ChcrtBackend",
+    "glsl": "viewer.backends.glsl.glsl:GlslBackend",
+    "chcrt": "viewer.backends.chcrt.chcrt:ChcrtBackend",
     "embree": "viewer.backends.embree:EmbreeBackend",
     "clbvh": "viewer.backends.clbvh:ClbvhBackend",
     "ugrid": "viewer.backends.ugrid:UgridBackend",

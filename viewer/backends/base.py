@@ -58,7 +58,8 @@ class StatelessBackend:
 
 
 WORK_SLOTS = ("invocations", "nodes", "box_tests", "tri_tests",
-              "query_fragments", "query_nodes", "query_box_tests", "query_tri_tests")
+              "query_fragments", "query_nodes", "query_box_tests", "query_tri_tests",
+              "subtrees_entered")  # chcrt: scheduled subtrees whose box a ray entered
 
 
 class WorkCounters:

@@ -5,10 +5,12 @@ loop back-edges per invocation, so each ray visits at most `max_visits` BVH node
 unfinished ray saves its traversal state and further draws continue the unfinished rays until an
 atomic counter says none is left (stats: resumed_rays, continuation_draws). The glsl backend traces
 every ray with it; chcrt finishes the rays its own shader gave up on. A module of its own so that no
-backend imports another.
+backend imports another. Its shader, trace_glsl.frag, lives in the glsl backend's folder.
 """
 
 from __future__ import annotations
+
+from pathlib import Path
 
 import moderngl
 import numpy as np
@@ -21,6 +23,7 @@ from viewer.gl.programs import FullscreenQuad
 from viewer.gl.textures import int_texture
 from viewer.rays import HitBuffer, PassInfo, RayBatch
 
+SHADER_DIR = Path(__file__).resolve().parent / "glsl"  # trace_glsl.frag lives in the glsl backend's folder
 LOOP_LIMIT = 65_535  # llvmpipe: loop back-edges per shader invocation, shared by all loops
 SIMD_WIDTH = 16  # fragments per llvmpipe shader invocation, assumed wide (8 with 256-bit vectors)
 
@@ -53,7 +56,7 @@ class ResumableTraversal:
         self.max_leaf = max(int(k) for k in hist)
         self.stack_size = int(bc.gpu_scene.stack_size)
         self.max_visits = max_visits(self.max_leaf, self.stack_size)
-        self.program = bc.programs.get("fullscreen.vert", "trace_glsl.frag",
+        self.program = bc.programs.with_path(SHADER_DIR).get("fullscreen.vert", "trace_glsl.frag",
                                        {"STACK_SIZE": self.stack_size, "MAX_VISITS": self.max_visits,
                                         **self.work.defines})
         self.program["rayOrigin"] = 0

@@ -103,7 +103,7 @@ def configs(fractions: list[float]) -> list[tuple[str, str]]:
 def study_ooc(b) -> dict:
     """Paper Tables 1 and 3 analogs (module docstring). `b` is bench.chcrt.Bench."""
     from viewer.backends.chcrt import ChcrtParams
-    from viewer.backends.chcrt_cache import NODE_BYTES, TRI_BYTES, CachePlan
+    from viewer.backends.chcrt.chcrt_cache import NODE_BYTES, TRI_BYTES, CachePlan
     from viewer.backends.interface import parse_params
 
     o = b.o

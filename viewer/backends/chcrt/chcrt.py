@@ -1,7 +1,7 @@
 """CHC+RT (Mattausch, Bittner, Jaspe, Gobbetti, Wimmer, Pajarola, EG 2015): coherent hierarchical
 culling for ray tracing, with the rasterizer's occlusion queries.
 
-Query pairs are (screen tile, BVH node) (see chcrt_front). Per pass (Algorithm 1 of the paper):
+Query pairs are (screen tile, BVH node) (see chcrt_front.py). Per pass (Algorithm 1 of the paper):
 
 1. ``chc:1-intersect-visible``: clear, then intersect the pairs that were visible last frame
    (their scheduled subtrees, batched by tile, up to `max_batch` per draw). This primes the
@@ -25,7 +25,7 @@ stale image read only costs work. Conservative mode (visible_threshold = 0) ther
 the glsl baseline's nearest hit, bit for bit in t, except on ties: two triangles at the same true
 distance (shared edges, coplanar overlaps), where the winner depends on the visiting order in
 glsl too. Any-hit rays agree on hit/miss (which occluder is reported depends on the order).
-See shaders/chc_intersect.frag for llvmpipe's loop limit and how rays that would reach it are finished.
+See chc_intersect.frag for llvmpipe's loop limit and how rays that would reach it are finished.
 
 Overlays (TraceResult.overlays, R32I at the ray-batch size, overwritten by the next pass):
 ``query_overdraw`` (query fragments per pixel, imageAtomicAdd) and ``subtree_id`` (canonical BVH
@@ -41,6 +41,13 @@ places each instance on its tile); query fragments make the depth test's compari
 against bestBits and count into their query's slot with an atomic add, read back once per wave.
 Same query results (bestBits can only be stale towards passing), far fewer draws and waits.
 
+GPU-driven steady state (``gpu_driven``, default; docs/chcrt.md). Only a front's first pass runs
+the algorithm above. Every later pass is a fixed number of launches: the visible pairs (one draw,
+all subtrees over a finest tile in one record), per finest tile the rays' origin box and reach (one
+dispatch), the invisible pairs some ray may still enter (one dispatch) and their intersection (one
+indirect draw). The intersection is the query: box entries before the nearest hit so far are
+counted per pair, read once after the pass, and the front is refined for the next frame.
+
 Parameters come from ChcrtParams: `--backend-params "visible_threshold=20,t_q=0.4"` (alias
 `--chcrt`) on the command line, or the RTWALK_CHCRT environment variable (the registry merges them).
 """
@@ -50,33 +57,44 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass
+from pathlib import Path
 
 import moderngl
 import numpy as np
 
+from viewer import iostats
 from viewer.backends.base import BackendContext, TraceResult, WorkCounters
-from viewer.backends.chcrt_cache import MB, CachePlan, SubtreeCache
-from viewer.backends.chcrt_front import INNER, INVISIBLE, VISIBLE, NodeTables, PairFront
+from viewer.backends.chcrt.chcrt_cache import MB, CachePlan, SubtreeCache
+from viewer.backends.chcrt.chcrt_front import INNER, INVISIBLE, VISIBLE, NodeTables, PairFront
 from viewer.backends.gl_traversal import ResumableTraversal, max_visits
 from viewer.backends.interface import BackendInfo, OverlaySpec, param
 from viewer.effects import RayType
 from viewer.errors import RtwalkError
-from viewer.gl.bindings import (
-    BIND_CHC_COUNT,
-    BIND_CHC_DRAWS,
-    BIND_CHC_ITEMS,
-    BIND_CHC_QUERY_COUNTS,
-    BIND_IMG_CHC_BATCH,
-    BIND_IMG_CHC_BEST,
-    BIND_IMG_CHC_OVERDRAW,
-    BIND_NODES,
-    BIND_TRIS,
-)
+from viewer.gl.bindings import BIND_NODES, BIND_TRIS, backend_bindings
 from viewer.gl.buffers import StreamBuffer
-from viewer.gl.programs import FullscreenQuad
+from viewer.gl.programs import FullscreenQuad, load_shader_source
 from viewer.gl.textures import float_depth_texture, float_texture, int_texture
 from viewer.rays import HitBuffer, PassInfo, RayBatch
-from viewer.screen_tiles import max_tile_level
+from viewer.screen_tiles import max_tile_level, tile_rects
+
+HERE = Path(__file__).resolve().parent  # the chc_* shaders
+
+# chcrt's own binding points (viewer.gl.bindings.backend_bindings checks them against the table)
+SSBO = {"BIND_CHC_ITEMS": 5,  # (tile, node) items of a batch draw
+        "BIND_CHC_COUNT": 6,  # active ray count
+        "BIND_CHC_DRAWS": 7,  # per-instance tile draws
+        "BIND_CHC_QUERY_COUNTS": 8,  # per-query passed-fragment counts
+        "BIND_CHC_CANDIDATES": 4,  # GPU-driven: the invisible pairs the cull kept (items)
+        "BIND_CHC_INDIRECT": 12,  # GPU-driven: the indirect draw command being built
+        "BIND_CHC_QUERIES": 13,  # GPU-driven: every query record of the pass, before the coarse cull
+        "BIND_CHC_TILES": 14}  # GPU-driven: per finest tile, ray origin box and farthest reach
+IMAGE = {"BIND_IMG_CHC_BEST": 0,  # packed closest hit per pixel
+         "BIND_IMG_CHC_OVERDRAW": 1,  # query fragments per pixel (overlay)
+         "BIND_IMG_CHC_BATCH": 2}  # subtrees in the pixel's batches (overlay)
+BINDINGS = backend_bindings(SSBO, IMAGE)
+(BIND_CHC_ITEMS, BIND_CHC_COUNT, BIND_CHC_DRAWS, BIND_CHC_QUERY_COUNTS, BIND_CHC_CANDIDATES, BIND_CHC_INDIRECT,
+ BIND_CHC_QUERIES, BIND_CHC_TILES) = SSBO.values()
+BIND_IMG_CHC_BEST, BIND_IMG_CHC_OVERDRAW, BIND_IMG_CHC_BATCH = IMAGE.values()
 
 ITEM_DTYPE = np.dtype([("bmin", "<f4", 3), ("ref", "<i4"), ("bmax", "<f4", 3), ("count", "<i4"),
                        ("id", "<i4"), ("pad", "<i4", 3)])
@@ -84,6 +102,7 @@ assert ITEM_DTYPE.itemsize == 48
 DRAW_DTYPE = np.dtype([("rect", "<i4", 4), ("info", "<i4", 4)])  # x, y, w, h; item base, count, query slot
 QUERY_MODES = ("batched", "hw")
 COUNT_SLOTS = 64
+COUNT_BYTES = 4 * COUNT_SLOTS  # GPU-driven counts buffer: ray counts, then query counts from this offset
 MAX_BOXES = 48  # boxes per query draw (max_multi pairs x 2 child boxes)
 MAX_LEAF_CACHE = 16
 
@@ -116,6 +135,15 @@ class ChcrtParams:
     seed: int = param(1, "random phase of the visible-leaf re-queries")
     temporal: bool = param(True,
                            "False: every frame starts cold from (screen, root) (measures what temporal coherence buys)")
+    gpu_driven: bool = param(True, "GPU-driven steady state (query_mode=batched, no GPU budget): after a front's "
+                             "first pass, its invisible pairs are queried in one instanced draw, a compute pass "
+                             "turns the passing queries into one indirect intersection draw, and the counts are "
+                             "read once at the end of the pass; False: the synchronous algorithm every pass")
+    lca_subtrees: int = param(24, "a tile with more visible subtrees than this traverses their lowest common "
+                              "ancestor instead (0 = never)")
+    merge_tiles: bool = param(True, "GPU-driven: a pixel's visible subtrees of all tile levels in one record")
+    coarse_cull: bool = param(True, "GPU-driven: a compute pass culls the queries whose boxes lie beyond the "
+                              "farthest distance any ray of their tile may still reach")
 
     def validate(self, source: str = "chcrt") -> None:
         if not (1 <= self.max_batch <= 24 and 1 <= self.max_multi <= 24):
@@ -128,8 +156,35 @@ class ChcrtParams:
             raise RtwalkError(f"{source}: query_mode must be one of {', '.join(QUERY_MODES)}")
         if not (self.t_q > 0 and 0 < self.min_tile_fraction <= 1 and self.max_subtree_height >= 1
                 and self.max_subtree_tris >= 1 and self.requery_interval >= 1 and self.schedule_batch >= 1
-                and self.visible_threshold >= 0):
+                and self.visible_threshold >= 0 and self.lca_subtrees >= 0):
             raise RtwalkError(f"{source}: t_q and min_tile_fraction must be > 0, thresholds >= 0, counts >= 1")
+
+
+def _to_finest_tiles(nd: np.ndarray, lvl: np.ndarray, tx: np.ndarray, ty: np.ndarray, sl: np.ndarray,
+                     top: int | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Each (node, tile) copied onto the tiles of level `top` (default: the deepest present) that its
+    tile covers (a tile of level L is exactly its four children of level L + 1)."""
+    top = int(lvl.max()) if top is None else top
+    sh = top - lvl
+    copies = np.left_shift(1, 2 * sh)
+    idx = np.repeat(np.arange(len(nd)), copies)
+    k = np.arange(len(idx)) - np.repeat(np.cumsum(copies) - copies, copies)
+    s = sh[idx]
+    side = np.left_shift(1, s)
+    return (nd[idx], np.full(len(idx), top, np.int64), (tx[idx] << s) + k % side, (ty[idx] << s) + k // side,
+            sl[idx])
+
+
+def _host_read(read) -> bytes:
+    """A blocking device -> host read, counted (viewer.iostats: bytes, one host sync)."""
+    with iostats.timed_sync():
+        data = read()
+    iostats.to_host(len(data))
+    return data
+
+
+def _upload(sb: StreamBuffer, data: np.ndarray | bytes) -> None:
+    sb.upload(data)  # counted by StreamBuffer (viewer.gl.io)
 
 
 class _Targets:
@@ -177,7 +232,7 @@ class ChcrtBackend:
     info = BackendInfo(
         "chcrt", "CHC+RT: occlusion-query culling of (screen tile, BVH node) pairs, temporal fronts",
         params=ChcrtParams,
-        overlays=(OverlaySpec("query_overdraw", "heat", "query_overdraw", "query fragments per pixel"),
+        overlays=(OverlaySpec("query_overdraw", "heat", "query_overdraw", "query tests per pixel"),
                   OverlaySpec("subtree_batches", "ids", "subtree_id", "hit subtree; subtrees in the tile's batches",
                               counts="batch_subtrees")),
         counters=COUNTERS, phases=PHASES)
@@ -193,15 +248,16 @@ class ChcrtBackend:
         diag = max(float(getattr(bc.scene, "diagonal", 1.0)), 1e-30)
         e = min(max(math.frexp(diag)[1] + 24, -100), 100)
         self.depth_scale = float(np.float32(math.ldexp(1.0, -e)))  # exact power of two
-        progs = bc.programs
+        progs = bc.programs.with_path(HERE)
         self.work = WorkCounters(self.ctx)
-        wd = self.work.defines
-        stack = self.p.max_batch + max(self.p.max_subtree_height, 1) + 2
+        wd = {**self.work.defines, **BINDINGS}
+        # subtrees found visible by the GPU-driven pass, and lowest common ancestors, can be as high as the tree
+        stack = self.p.max_batch + max(self.p.max_subtree_height, int(self.nt.height[0]), 1) + 2
         iwd = {**wd, "LEAF_CACHE": int(self.p.leaf_cache)}  # intersection programs only
         self.cache = self._make_cache(bc)
         if self.cache is not None:
             iwd["CHC_OOC"] = 1
-        self.prog_init = progs.get("fullscreen.vert", "chc_init.frag")
+        self.prog_init = progs.get("fullscreen.vert", "chc_init.frag", BINDINGS)
         self.prog_query = progs.get("fullscreen.vert", "chc_query.frag", {"CHC_MAX_ITEMS": MAX_BOXES, **wd})
         # rays that would reach llvmpipe's loop limit are finished by the glsl resumable traversal
         self.finisher = ResumableTraversal(bc)
@@ -210,7 +266,7 @@ class ChcrtBackend:
         self.prog_isect = progs.get("fullscreen.vert", "chc_intersect.frag",
                                     {"CHC_MAX_ITEMS": self.p.max_batch, "STACK_SIZE": stack, "CHC_MAX_VISITS": visits,
                                      **iwd})
-        self.prog_gather = progs.get("fullscreen.vert", "chc_gather.frag")
+        self.prog_gather = progs.get("fullscreen.vert", "chc_gather.frag", BINDINGS)
         self.batched = self.p.query_mode == "batched"
         self.prog_query_b = progs.get("chc_tile.vert", "chc_query.frag",
                                       {"CHC_MAX_ITEMS": MAX_BOXES, "CHC_BATCHED": 1, **wd})
@@ -219,8 +275,13 @@ class ChcrtBackend:
                                        "CHC_MAX_VISITS": visits, **iwd})
         self.vao_query_b = self.ctx.vertex_array(self.prog_query_b, [])
         self.vao_isect_b = self.ctx.vertex_array(self.prog_isect_b, [])
+        # GPU-driven: the same intersection, counting box entries into the pairs' slots (the queries)
+        self.prog_isect_g = progs.get("chc_tile.vert", "chc_intersect.frag",
+                                      {"CHC_MAX_ITEMS": self.p.max_batch, "CHC_BATCHED": 1, "STACK_SIZE": stack,
+                                       "CHC_MAX_VISITS": visits, "CHC_COUNT_ITEMS": 1, **iwd})
+        self.vao_isect_g = self.ctx.vertex_array(self.prog_isect_g, [])
         for prog in (self.prog_init, self.prog_query, self.prog_isect, self.prog_gather, self.prog_query_b,
-                     self.prog_isect_b):
+                     self.prog_isect_b, self.prog_isect_g):
             prog["rayOrigin"] = 0
             prog["rayDir"] = 1
             if prog.get("depthScale", None) is not None:
@@ -231,6 +292,18 @@ class ChcrtBackend:
         self.query_counts = StreamBuffer(self.ctx, 4, BIND_CHC_QUERY_COUNTS)
         self.count_buf = self.ctx.buffer(reserve=4 * COUNT_SLOTS)
         self._zero_counts = bytes(4 * COUNT_SLOTS)
+        # GPU-driven steady state (ChcrtParams.gpu_driven)
+        self.gpu_driven = self.p.gpu_driven and self.batched and self.cache is None
+        self.tilebounds = self.ctx.compute_shader(load_shader_source("chc_tilebounds.comp", BINDINGS, (HERE,)))
+        self.querycull = self.ctx.compute_shader(load_shader_source("chc_querycull.comp", BINDINGS, (HERE,)))
+        self.tilebounds["rayOrigin"] = 0
+        self.tilebounds["rayDir"] = 1
+        self.all_queries = StreamBuffer(self.ctx, DRAW_DTYPE.itemsize, BIND_CHC_QUERIES)
+        self.survivors = self.ctx.buffer(reserve=DRAW_DTYPE.itemsize * 4096)
+        self.kept_boxes = self.ctx.buffer(reserve=ITEM_DTYPE.itemsize * 4096)
+        self.query_indirect = self.ctx.buffer(reserve=16)
+        self.tile_bounds = self.ctx.buffer(reserve=32 * 64)
+        self.gpu_counts = self.ctx.buffer(reserve=COUNT_BYTES + 4 * 4096)
         self.queries: list[moderngl.Query] = []
         self.targets: _Targets | None = None
         self.fronts: dict[tuple, PairFront] = {}
@@ -264,8 +337,11 @@ class ChcrtBackend:
         if self.targets is not None:
             self.targets.release()
             self.targets = None
-        for sb in (self.items, self.draws, self.query_counts):
+        for sb in (self.items, self.draws, self.query_counts, self.all_queries):
             sb.buf.release()
+        for obj in (self.vao_isect_g, self.gpu_counts, self.tilebounds,
+                    self.querycull, self.survivors, self.query_indirect, self.tile_bounds, self.kept_boxes):
+            obj.release()
         for vao in (self.vao_query_b, self.vao_isect_b):
             vao.release()
         self.count_buf.release()
@@ -360,11 +436,17 @@ class _Pass:
                                      "invisible_pairs", "subtrees_scheduled", "draws", "rays",
                                      "intersect_draws", "batch_tiles", "tile_batches_1", "tile_batches_2",
                                      "tile_batches_3plus", "query_waves", "pull_ups", "phase1_subtrees",
-                                     "query_pixels", "requeries", "batches", "upload_bvh_mb", "upload_geom_mb")}
+                                     "query_pixels", "requeries", "batches", "upload_bvh_mb", "upload_geom_mb",
+                                     "lca_tiles", "gpu_driven", "newly_visible_queries", "query_records_drawn")}
         self.rep: tuple[np.ndarray, np.ndarray] | None = None  # representative rays per finest tile
         self.rays_read = False
         self.threshold = int(self.p.visible_threshold)
         self.overlays = bool(self.p.overdraw_overlay and be.overlays_enabled)
+        # GPU-driven steady state: a front's first pass runs the synchronous algorithm (builds the front)
+        self.gpu = be.gpu_driven and front.frames > 0
+        self.culled = False  # this pass's queries went through the coarse cull (stats read late)
+        self.n_survivor_groups = 0
+        self.lca_pairs: np.ndarray | None = None  # GPU-driven: slots of visible pairs drawn through an LCA
 
     # -- GL helpers -------------------------------------------------------------------------------
     def _bind(self) -> None:
@@ -378,18 +460,22 @@ class _Pass:
         tg.best.bind_to_image(BIND_IMG_CHC_BEST, read=True, write=True)
         tg.overdraw.bind_to_image(BIND_IMG_CHC_OVERDRAW, read=True, write=True)
         tg.batch.bind_to_image(BIND_IMG_CHC_BATCH, read=True, write=True)
-        self.be.count_buf.bind_to_storage_buffer(BIND_CHC_COUNT)
+        if self.gpu:
+            self.be.gpu_counts.bind_to_storage_buffer(BIND_CHC_COUNT, 0, COUNT_BYTES)
+        else:
+            self.be.count_buf.bind_to_storage_buffer(BIND_CHC_COUNT)
 
     def _init(self) -> None:
         ctx = self.ctx
-        self.be.count_buf.write(self.be._zero_counts)
+        (self.be.gpu_counts if self.gpu else self.be.count_buf).write(self.be._zero_counts)
+        iostats.to_device(COUNT_BYTES)
         fbo = self.hit_fbo
         fbo.use()
         fbo.scissor = None
         fbo.depth_mask = True
         ctx.enable(moderngl.DEPTH_TEST)
         ctx.depth_func = "1"
-        self.be.quad.render(self.be.prog_init)
+        self.be.quad.render(self.be.prog_init)  # draws through FullscreenQuad are counted there
         self.stats["draws"] += 1
 
     def _gather(self) -> None:
@@ -404,8 +490,8 @@ class _Pass:
         self.be.quad.render(prog)
         self.stats["draws"] += 1
         g = tg.gather_size[0]
-        o, d = (np.frombuffer(tg.gather_fbo.read(components=4, dtype="f4", attachment=a), np.float32)
-                .reshape(g, g, 4) for a in (0, 1))
+        o, d = (np.frombuffer(_host_read(lambda a=a: tg.gather_fbo.read(components=4, dtype="f4", attachment=a)),
+                              np.float32).reshape(g, g, 4) for a in (0, 1))
         self.rep = (o, d)
         self.ctx.enable(moderngl.DEPTH_TEST)
 
@@ -415,7 +501,7 @@ class _Pass:
 
     def _read_ray_count(self) -> None:
         if not self.rays_read:
-            self.stats["rays"] = int(np.frombuffer(self.be.count_buf.read(), np.uint32).sum())
+            self.stats["rays"] = int(np.frombuffer(_host_read(self.be.count_buf.read), np.uint32).sum())
             self.rays_read = True
 
     # -- queries ------------------------------------------------------------------------------------
@@ -438,7 +524,7 @@ class _Pass:
         items["bmin"] = bmin
         items["bmax"] = bmax
         items["id"] = f.node[pairs][owner]
-        self.be.items.upload(items)
+        _upload(self.be.items, items)
         first = np.cumsum(sizes) - sizes
         rects = f.rects(pairs[first])
         live = (rects[:, 2] > 0) & (rects[:, 3] > 0)
@@ -461,8 +547,8 @@ class _Pass:
         recs["info"][:, 1] = nbox
         recs["info"][:, 2] = np.arange(nq)
         recs = recs[live]
-        self.be.draws.upload(recs)
-        self.be.query_counts.upload(bytes(4 * nq))
+        _upload(self.be.draws, recs)
+        _upload(self.be.query_counts, bytes(4 * nq))
         prog = self.be.prog_query_b
         prog["countOverdraw"] = int(self.overlays)
         prog["raySize"] = tuple(self.size)
@@ -473,8 +559,10 @@ class _Pass:
         if len(recs):
             self.be.vao_query_b.render(moderngl.TRIANGLES, vertices=6, instances=len(recs))
             self.stats["draws"] += 1
+            iostats.gl_draw()
         self.ctx.memory_barrier(moderngl.BUFFER_UPDATE_BARRIER_BIT)
-        out = np.frombuffer(self.be.query_counts.buf.read(size=4 * nq), np.uint32).astype(np.int64)
+        out = np.frombuffer(_host_read(lambda: self.be.query_counts.buf.read(size=4 * nq)),
+                            np.uint32).astype(np.int64)
         self.ctx.enable(moderngl.DEPTH_TEST)
         return out
 
@@ -500,8 +588,14 @@ class _Pass:
             with q:
                 render(prog)
             used.append(q)
-        self.stats["draws"] += int(live.sum())
-        return np.array([q.samples if q is not None else 0 for q in used], np.int64)
+        n = int(live.sum())
+        self.stats["draws"] += n  # (the scissored quads count themselves, viewer.gl.io)
+        iostats.gl_query(n)
+        with iostats.timed_sync():  # the first result waits for the draws; the others are then ready
+            out = np.array([q.samples if q is not None else 0 for q in used], np.int64)
+        iostats.sync(max(n - 1, 0))  # one result read per query object
+        iostats.to_host(8 * n)
+        return out
 
     # -- intersection -------------------------------------------------------------------------------
     def _order_keys(self, pairs: np.ndarray) -> np.ndarray:
@@ -547,29 +641,51 @@ class _Pass:
             chunk.append(n)
         self._draw_subtrees(rest[np.isin(rest_nd, chunk)])
 
-    def _draw_subtrees(self, pairs: np.ndarray) -> None:
-        """Intersect scheduled pairs: grouped by tile, up to max_batch subtree roots per batch."""
+    def _draw_subtrees(self, pairs: np.ndarray, slots: np.ndarray | None = None) -> None:
+        """Intersect scheduled pairs: grouped by tile, up to max_batch subtree roots per batch.
+        `slots` (GPU-driven): per pair, the count slot its rays' box entries are counted into."""
         if len(pairs) == 0:
             return
-        f, nt = self.front, self.nt
-        tile = f.tile_key(pairs)
-        order = np.lexsort((self._order_keys(pairs), tile))
-        pairs = pairs[order]
-        tile = tile[order]
+        f = self.front
+        self.stats["subtrees_scheduled"] += len(pairs)
+        nd, lvl, tx, ty = (f.node[pairs].astype(np.int64), f.level[pairs].astype(np.int64),
+                           f.tx[pairs].astype(np.int64), f.ty[pairs].astype(np.int64))
+        sl = np.full(len(pairs), -1, np.int64) if slots is None else np.asarray(slots, np.int64)
+        if self.gpu:
+            # the GPU-driven pass never splits a tile into batches (the shader sorts a ray's subtrees
+            # itself); merged, a pixel's subtrees of every tile level are one record: one fragment
+            # traverses them all with one stack and one shrinking tmax
+            if self.p.merge_tiles:
+                nd, lvl, tx, ty, sl = _to_finest_tiles(nd, lvl, tx, ty, sl)
+            keys = np.zeros(len(nd))
+        else:
+            keys = self._order_keys(pairs)
+        tile = (lvl << 40) | (tx << 20) | ty
+        order = np.lexsort((keys, tile))
+        nd, lvl, tx, ty, tile, sl = nd[order], lvl[order], tx[order], ty[order], tile[order], sl[order]
         starts = np.flatnonzero(np.r_[True, tile[1:] != tile[:-1]])
-        ends = np.r_[starts[1:], len(pairs)]
+        ends = np.r_[starts[1:], len(nd)]
         mb = self.p.max_batch
-        nd = f.node[pairs]
-        items = np.zeros(len(pairs), ITEM_DTYPE)
-        items["bmin"] = nt.box_min[nd]
-        items["bmax"] = nt.box_max[nd]
-        items["ref"] = nt.gpu_ref[nd] if self.be.cache is None else self.be.cache.item_refs(nd)
-        items["count"] = nt.gpu_count[nd]
-        items["id"] = nd
-        items["pad"][:, 0] = self.be.bvh_first[nd]
-        items["pad"][:, 1] = nt.count[nd]
-        self.be.items.upload(items)
-        rects = f.rects(pairs[starts])
+        rects = tile_rects(lvl[starts], tx[starts], ty[starts], self.size)
+        lca_max = self.p.lca_subtrees
+        if lca_max > 0 and self.be.cache is None and ((ends - starts) > lca_max).any():
+            # tiles that see many subtrees traverse their lowest common ancestor once
+            many = (ends - starts) > lca_max
+            lca = self.nt.group_lca(nd, starts)
+            keep = ~np.repeat(many, ends - starts)
+            covered = sl[~keep]
+            self.lca_pairs = covered[covered >= 0]
+            tile_of_item = np.repeat(np.arange(len(starts)), ends - starts)
+            nd = np.concatenate([nd[keep], lca[many]])
+            sl = np.concatenate([sl[keep], np.full(int(many.sum()), -1, np.int64)])  # not counted
+            tile_of_item = np.concatenate([tile_of_item[keep], np.flatnonzero(many)])
+            o = np.argsort(tile_of_item, kind="stable")
+            nd, sl = nd[o], sl[o]
+            counts = np.bincount(tile_of_item, minlength=len(starts))
+            starts = np.cumsum(counts) - counts
+            ends = starts + counts
+            self.stats["lca_tiles"] += int(many.sum())
+        _upload(self.be.items, self._subtree_items(nd, sl))
         # batches: per tile, consecutive runs of at most max_batch subtrees (nearest first)
         nbatch = -(-(ends - starts) // mb)
         tile_of = np.repeat(np.arange(len(starts)), nbatch)
@@ -582,25 +698,26 @@ class _Pass:
         self.stats["tile_batches_3plus"] += int((nbatch >= 3).sum())
         self.stats["batch_tiles"] += len(starts)
         self.stats["batches"] += int(live.sum())
-        self.stats["subtrees_scheduled"] += len(pairs)
         self.ctx.enable(moderngl.DEPTH_TEST)
         self.ctx.depth_func = "<"
         fbo = self.hit_fbo
         fbo.use()
         if self.be.batched:
-            prog = self.be.prog_isect_b
+            prog = self.be.prog_isect_g if self.gpu else self.be.prog_isect_b
             prog["raySize"] = tuple(self.size)
             recs = np.zeros(int(live.sum()), DRAW_DTYPE)
             recs["rect"] = rects[tile_of[live]]
             recs["info"][:, 0] = bstart[live]
             recs["info"][:, 1] = bcount[live]
-            self.be.draws.upload(recs)
+            _upload(self.be.draws, recs)
             draws = 0
             if len(recs):
                 fbo.scissor = None
                 self._isect_uniforms(prog)
-                self.be.vao_isect_b.render(moderngl.TRIANGLES, vertices=6, instances=len(recs))
+                (self.be.vao_isect_g if self.gpu else self.be.vao_isect_b).render(
+                    moderngl.TRIANGLES, vertices=6, instances=len(recs))
                 draws = 1
+                iostats.gl_draw()  # an instanced draw straight on the VAO (quads count themselves)
         else:
             prog = self.be.prog_isect
             self._isect_uniforms(prog)
@@ -617,95 +734,34 @@ class _Pass:
         self.stats["intersect_draws"] += draws
         self.stats["draws"] += draws
 
+    def _subtree_items(self, nd: np.ndarray, slots: np.ndarray | None = None) -> np.ndarray:
+        """Intersection items of scheduled subtrees (canonical BVH nodes `nd`); pad[2] = the count
+        slot of the pair (GPU-driven), -1 for none."""
+        nt = self.nt
+        items = np.zeros(len(nd), ITEM_DTYPE)
+        items["bmin"] = nt.box_min[nd]
+        items["bmax"] = nt.box_max[nd]
+        items["ref"] = nt.gpu_ref[nd] if self.be.cache is None else self.be.cache.item_refs(nd)
+        items["count"] = nt.gpu_count[nd]
+        items["id"] = nd
+        items["pad"][:, 0] = self.be.bvh_first[nd]
+        items["pad"][:, 1] = nt.count[nd]
+        items["pad"][:, 2] = -1 if slots is None else slots
+        return items
+
     def _isect_uniforms(self, prog: moderngl.Program) -> None:
         prog["anyHit"] = int(self.any_hit)
         prog["countOverlays"] = int(self.overlays)
 
     # -- Algorithm 1 --------------------------------------------------------------------------------
     def run(self) -> dict[str, float]:
-        be, f, p = self.be, self.front, self.p
-        prof = be.bc.profiler
-        thr = self.threshold
+        be, f = self.be, self.front
         self._sync()  # diagnostics: do not charge the ray generation to phase 1
         try:
-            with prof.phase("chc:1-intersect-visible"):
-                self._bind()
-                self._init()
-                if p.front_to_back and self.ray_type in (RayType.PRIMARY, RayType.SHADOW, RayType.SOFT):
-                    self._gather()
-                visible = f.leaves(VISIBLE)
-                self._intersect(visible)
-                self.stats["phase1_subtrees"] = len(visible)
-                self._sync()
-
-            with prof.phase("chc:2-queries"):
-                invisible = f.leaves(INVISIBLE)
-                groups = f.multi_query_groups(invisible, p.max_multi)
-                multi = [len(g) > 1 for g in groups]
-                due = visible[f.requery_due(visible, self.frame_number())] if len(visible) else visible
-                groups += [due[i:i + 1] for i in range(len(due))]
-                self.stats["requeries"] = len(due)
-                multi += [False] * len(due)
-                res = self._run_queries(groups)
-                n_inv_groups = len(groups) - len(due)
-                became_visible = []
-                retry: list[np.ndarray] = []
-                for i in range(n_inv_groups):
-                    g = groups[i]
-                    if multi[i]:
-                        self.stats["multi_queries"] += 1
-                        if res[i] > thr:
-                            self.stats["failed_multi_queries"] += 1
-                            retry.append(g)
-                    elif res[i] > thr:
-                        became_visible.append(g)
-                        f.pixels[g] = res[i]
-                    if res[i] <= thr:
-                        f.age[g] += 1
-                if len(due):
-                    rq = res[n_inv_groups:]
-                    f.state[due[rq <= thr]] = INVISIBLE
-                    f.age[due] = 0
-                    f.pixels[due] = rq
-                wave = np.concatenate(became_visible) if became_visible else np.zeros(0, np.int64)
-                pending = np.concatenate(retry) if retry else np.zeros(0, np.int64)
-                self._sync()
-
-            with prof.phase("chc:3-traversal"):
-                scheduled: list[np.ndarray] = []
-                n_sched = 0
-                while True:
-                    if len(wave):
-                        term, obj, _ = f.classify(wave, self.nt, p.t_q, p.max_subtree_height,
-                                                  p.max_subtree_tris)
-                        done = wave[term]
-                        f.state[done] = VISIBLE
-                        if len(done):
-                            scheduled.append(done)
-                            n_sched += len(done)
-                        split = wave[~term]
-                        children = f.subdivide(split, obj[~term], self.nt) if len(split) else split
-                        pending = np.concatenate([pending, children])
-                        wave = np.zeros(0, np.int64)
-                    if n_sched >= p.schedule_batch:
-                        self._intersect(np.concatenate(scheduled))
-                        scheduled, n_sched = [], 0
-                    if len(pending) == 0:
-                        break
-                    self.stats["query_waves"] += 1
-                    res = self._run_queries([np.array([i]) for i in pending])
-                    vis = res > thr
-                    f.pixels[pending] = res
-                    f.age[pending[~vis]] += 1
-                    wave = pending[vis]
-                    pending = np.zeros(0, np.int64)
-                self._sync()
-
-            with prof.phase("chc:4-final-intersect"):
-                if scheduled:
-                    self._intersect(np.concatenate(scheduled))
-                self._read_ray_count()
-                self._sync()
+            if self.gpu:
+                self._run_gpu()
+            else:
+                self._run_sync()
         finally:
             if be.cache is not None:
                 be.bc.gpu_scene.bind()  # later passes (shading) read the scene's triangles
@@ -717,11 +773,257 @@ class _Pass:
             self.ctx.depth_func = "<"
             self.hit_fbo.scissor = None
             self.tg.query_fbo.scissor = None
-        self.stats["pull_ups"] = f.pull_up()
+        self.stats["pull_ups"] = f.pull_up(1 if be.gpu_driven else 0)
         self.stats["visible_pairs"] = int((f.state[: f.n] == VISIBLE).sum())
         self.stats["invisible_pairs"] = int((f.state[: f.n] == INVISIBLE).sum())
         self.stats["inner_pairs"] = int((f.state[: f.n] == INNER).sum())
+        self.stats["gpu_driven"] = int(self.gpu)
         return {k: float(v) for k, v in self.stats.items()}
+
+    def _run_sync(self) -> None:
+        """Algorithm 1 with query results read back within the pass (waves of queries)."""
+        be, f, p = self.be, self.front, self.p
+        prof = be.bc.profiler
+        thr = self.threshold
+        with prof.phase("chc:1-intersect-visible"):
+            self._bind()
+            self._init()
+            if p.front_to_back and self.ray_type in (RayType.PRIMARY, RayType.SHADOW, RayType.SOFT):
+                self._gather()
+            visible = f.leaves(VISIBLE)
+            self._intersect(visible)
+            self.stats["phase1_subtrees"] = len(visible)
+            self._sync()
+
+        with prof.phase("chc:2-queries"):
+            invisible = f.leaves(INVISIBLE)
+            groups = f.multi_query_groups(invisible, p.max_multi)
+            multi = [len(g) > 1 for g in groups]
+            due = visible[f.requery_due(visible, self.frame_number())] if len(visible) else visible
+            groups += [due[i:i + 1] for i in range(len(due))]
+            self.stats["requeries"] = len(due)
+            multi += [False] * len(due)
+            res = self._run_queries(groups)
+            n_inv_groups = len(groups) - len(due)
+            became_visible = []
+            retry: list[np.ndarray] = []
+            for i in range(n_inv_groups):
+                g = groups[i]
+                if multi[i]:
+                    self.stats["multi_queries"] += 1
+                    if res[i] > thr:
+                        self.stats["failed_multi_queries"] += 1
+                        retry.append(g)
+                elif res[i] > thr:
+                    became_visible.append(g)
+                    f.pixels[g] = res[i]
+                if res[i] <= thr:
+                    f.age[g] += 1
+            if len(due):
+                rq = res[n_inv_groups:]
+                f.state[due[rq <= thr]] = INVISIBLE
+                f.age[due] = 0
+                f.pixels[due] = rq
+            wave = np.concatenate(became_visible) if became_visible else np.zeros(0, np.int64)
+            pending = np.concatenate(retry) if retry else np.zeros(0, np.int64)
+            self._sync()
+
+        with prof.phase("chc:3-traversal"):
+            scheduled: list[np.ndarray] = []
+            n_sched = 0
+            while True:
+                if len(wave):
+                    term, obj, _ = f.classify(wave, self.nt, p.t_q, p.max_subtree_height,
+                                              p.max_subtree_tris)
+                    done = wave[term]
+                    f.state[done] = VISIBLE
+                    if len(done):
+                        scheduled.append(done)
+                        n_sched += len(done)
+                    split = wave[~term]
+                    children = f.subdivide(split, obj[~term], self.nt) if len(split) else split
+                    pending = np.concatenate([pending, children])
+                    wave = np.zeros(0, np.int64)
+                if n_sched >= p.schedule_batch:
+                    self._intersect(np.concatenate(scheduled))
+                    scheduled, n_sched = [], 0
+                if len(pending) == 0:
+                    break
+                self.stats["query_waves"] += 1
+                res = self._run_queries([np.array([i]) for i in pending])
+                vis = res > thr
+                f.pixels[pending] = res
+                f.age[pending[~vis]] += 1
+                wave = pending[vis]
+                pending = np.zeros(0, np.int64)
+            self._sync()
+
+        with prof.phase("chc:4-final-intersect"):
+            if scheduled:
+                self._intersect(np.concatenate(scheduled))
+            self._read_ray_count()
+            self._sync()
+
+    # -- GPU-driven steady state ------------------------------------------------------------------
+    def _run_gpu(self) -> None:
+        """One pass in a fixed number of launches: the visible pairs (1 draw), the ray bounds of every
+        finest tile (1 dispatch), the cull of the invisible pairs against them (1 dispatch) and the
+        intersection of the survivors (1 indirect draw). The query is the intersection itself: a
+        ray that enters a pair's box before its nearest hit so far counts into the pair's slot (the
+        query's pass condition), so no separate query pass runs. One read of the counts at the end;
+        the front is refined on the host for the next frame."""
+        be, f = self.be, self.front
+        prof = be.bc.profiler
+        with prof.phase("chc:1-intersect-visible"):
+            visible = f.leaves(VISIBLE)
+            invisible = f.leaves(INVISIBLE)
+            if self.threshold > 0 and len(invisible):
+                # aggressive mode: a pair culled before (<= threshold rays entered) is not tested again
+                # until its re-query is due
+                invisible = invisible[(f.age[invisible] == 0) | f.requery_due(invisible, self.frame_number())]
+            nslots = len(visible) + len(invisible)
+            need = COUNT_BYTES + 4 * (nslots + 3)
+            if be.gpu_counts.size < need:
+                be.gpu_counts.release()
+                be.gpu_counts = self.ctx.buffer(reserve=1 << (need - 1).bit_length())
+            self._bind()
+            self._init()
+            be.gpu_counts.write(bytes(4 * (nslots + 3)), offset=COUNT_BYTES)
+            iostats.to_device(4 * (nslots + 3))
+            be.gpu_counts.bind_to_storage_buffer(BIND_CHC_QUERY_COUNTS, COUNT_BYTES, 4 * (nslots + 3))
+            self._draw_subtrees(visible, np.arange(len(visible)))
+            self.stats["phase1_subtrees"] = len(visible)
+            self._sync()
+        with prof.phase("chc:2-queries"):
+            self._cull_invisible(invisible, len(visible), nslots)
+            self._sync()
+        with prof.phase("chc:3-traversal"):
+            self._intersect_survivors()
+            self._sync()
+        with prof.phase("chc:4-final-intersect"):
+            raw = np.frombuffer(_host_read(lambda: be.gpu_counts.read(size=COUNT_BYTES + 4 * (nslots + 3))),
+                                np.uint32).astype(np.int64)
+            self.stats["rays"] = int(raw[:COUNT_SLOTS].sum())
+            cnt = raw[COUNT_SLOTS:]
+            self.stats["query_pixels"] = int(cnt[nslots])
+            self.stats["query_records_drawn"] = int(cnt[nslots + 1])
+            self.rays_read = True
+            self._refine(visible, invisible, cnt[:nslots])
+
+    def _cull_invisible(self, invisible: np.ndarray, slot0: int, nslots: int) -> None:
+        """Upload the invisible pairs copied onto the finest tiles they cover (intersection items
+        with their count slots, sorted by tile), then on the GPU: per finest tile the rays' origin box
+        and farthest reach (chc_tilebounds.comp), and per finest tile the pairs some ray may still
+        enter (chc_querycull.comp), as records of the indirect intersection draw."""
+        self.n_survivor_groups = len(invisible)
+        if not len(invisible):
+            return
+        be, ctx, f = self.be, self.ctx, self.front
+        level = f.max_level
+        n = 1 << level
+        ntiles = n * n
+        nd, _, tx, ty, sl = _to_finest_tiles(
+            f.node[invisible].astype(np.int64), f.level[invisible].astype(np.int64),
+            f.tx[invisible].astype(np.int64), f.ty[invisible].astype(np.int64),
+            slot0 + np.arange(len(invisible), dtype=np.int64), level)
+        tile = ty * n + tx
+        order = np.argsort(tile, kind="stable")
+        _upload(be.items, self._subtree_items(nd[order], sl[order]))
+        counts = np.bincount(tile, minlength=ntiles)
+        ranges = np.zeros(ntiles, DRAW_DTYPE)
+        all_t = np.arange(ntiles)
+        ranges["rect"] = tile_rects(np.full(ntiles, level), all_t % n, all_t // n, self.size)
+        ranges["info"][:, 0] = np.cumsum(counts) - counts
+        ranges["info"][:, 1] = counts
+        self.stats["queries"] += len(invisible)
+        mb = self.p.max_batch
+        if be.tile_bounds.size < 32 * ntiles:
+            be.tile_bounds.release()
+            be.tile_bounds = ctx.buffer(reserve=32 * ntiles)
+        need = max(int((-(-counts // mb)).sum()), 1) * DRAW_DTYPE.itemsize
+        if be.survivors.size < need:
+            be.survivors.release()
+            be.survivors = ctx.buffer(reserve=1 << (need - 1).bit_length())
+        need = max(len(nd), 1) * ITEM_DTYPE.itemsize
+        if be.kept_boxes.size < need:
+            be.kept_boxes.release()
+            be.kept_boxes = ctx.buffer(reserve=1 << (need - 1).bit_length())
+        _upload(be.all_queries, ranges)
+        be.query_indirect.write(np.array([6, 0, 0, 0], np.uint32).tobytes())
+        iostats.to_device(16)
+        be.kept_boxes.bind_to_storage_buffer(BIND_CHC_CANDIDATES)
+        be.tile_bounds.bind_to_storage_buffer(BIND_CHC_TILES)
+        be.survivors.bind_to_storage_buffer(BIND_CHC_DRAWS)
+        be.query_indirect.bind_to_storage_buffer(BIND_CHC_INDIRECT)
+        ctx.memory_barrier(moderngl.SHADER_IMAGE_ACCESS_BARRIER_BIT)  # bestBits of the visible pairs
+        be.tilebounds["raySize"] = tuple(self.size)
+        be.tilebounds["level"] = level
+        be.tilebounds.run(ntiles)
+        ctx.memory_barrier(moderngl.SHADER_STORAGE_BARRIER_BIT)
+        be.querycull["nQueries"] = ntiles
+        be.querycull["maxItems"] = mb
+        be.querycull["pixelSlot"] = nslots
+        be.querycull["cull"] = int(self.p.coarse_cull)
+        be.querycull.run(-(-ntiles // 64))
+        ctx.memory_barrier(moderngl.COMMAND_BARRIER_BIT | moderngl.SHADER_STORAGE_BARRIER_BIT)
+        self.stats["draws"] += 2
+        iostats.gl_draw(2)
+
+    def _intersect_survivors(self) -> None:
+        """The invisible pairs that survived the cull, in one indirect instanced draw (items: the
+        kept pairs, records: the survivors), counting into the pairs' slots."""
+        if not self.n_survivor_groups:
+            return
+        be = self.be
+        be.kept_boxes.bind_to_storage_buffer(BIND_CHC_ITEMS)
+        be.survivors.bind_to_storage_buffer(BIND_CHC_DRAWS)
+        self.ctx.enable(moderngl.DEPTH_TEST)
+        self.ctx.depth_func = "<"
+        fbo = self.hit_fbo
+        fbo.use()
+        fbo.scissor = None
+        prog = be.prog_isect_g
+        prog["raySize"] = tuple(self.size)
+        self._isect_uniforms(prog)
+        be.vao_isect_g.render_indirect(be.query_indirect, moderngl.TRIANGLES, count=1)
+        self.stats["draws"] += 1
+        self.stats["intersect_draws"] += 1
+        iostats.gl_draw()
+
+    def _refine(self, visible: np.ndarray, invisible: np.ndarray, cnt: np.ndarray) -> None:
+        """Apply this pass's counts to the front (for the next frame): an invisible pair that rays
+        entered becomes visible (terminated) or is split (its children are tested next frame);
+        culled pairs age; a visible leaf whose re-query is due and that no ray entered (its own
+        count, or a lowest common ancestor standing for it: then it is left visible) becomes
+        invisible."""
+        f, p, thr = self.front, self.p, self.threshold
+        nv = len(visible)
+        cv, ci = cnt[:nv], cnt[nv:]
+        seen = ci > thr
+        wave = invisible[seen]
+        f.pixels[wave] = ci[seen]
+        f.age[invisible[~seen]] += 1
+        self.stats["newly_visible_queries"] += int(seen.sum())
+        if nv:
+            due = f.requery_due(visible, self.frame_number())
+            self.stats["requeries"] = int(due.sum())
+            gone = due & (cv <= thr) & ~self.lca_covered(visible)
+            f.state[visible[gone]] = INVISIBLE
+            f.age[visible[due]] = 0
+            f.pixels[visible[due]] = cv[due]
+        if len(wave):
+            term, obj, _ = f.classify(wave, self.nt, p.t_q, p.max_subtree_height, p.max_subtree_tris)
+            f.state[wave[term]] = VISIBLE
+            split = wave[~term]
+            if len(split):
+                f.subdivide(split, obj[~term], self.nt)
+
+    def lca_covered(self, visible: np.ndarray) -> np.ndarray:
+        """Visible pairs drawn through a lowest common ancestor this pass (their counts are not theirs)."""
+        out = np.zeros(len(visible), bool)
+        if self.lca_pairs is not None:
+            out[self.lca_pairs] = True
+        return out
 
     def frame_number(self) -> int:
         return self.be.frame

@@ -26,6 +26,7 @@ from dataclasses import dataclass
 import moderngl
 import numpy as np
 
+from viewer import iostats
 from viewer.accel.bvh import GPU_NODE_DTYPE, GPU_TRI_DTYPE, gpu_triangles
 from viewer.errors import RtwalkError
 
@@ -225,7 +226,8 @@ class SubtreeCache:
         if not self.in_flight.isdisjoint(old.seq for old in ev1 + ev2):
             # llvmpipe does not order glBufferSubData after queued draws that read the buffer as an
             # SSBO: wait for them before overwriting what they read
-            self.ctx.finish()
+            with iostats.timed_sync():
+                self.ctx.finish()
             self.in_flight.clear()
             self.t.syncs += 1
         for old in ev1 + ev2:
@@ -237,6 +239,7 @@ class SubtreeCache:
         f = int(self.first[node])
         tris = self.host_tris[f:f + n_tris]
         self.tris_buf.write(tris.tobytes(), offset=e.tri_base * TRI_BYTES)
+        iostats.to_device(tris.nbytes)
         if n_nodes:
             sub = self._subtree_inner(node)  # inner GPU indices, root first
             g = self.host_nodes[sub].copy()
@@ -254,6 +257,7 @@ class SubtreeCache:
                 ref[~inner] = ~(e.tri_base + (~ref[~inner] - f))
                 g[side] = ref.astype(np.int32)
             self.nodes_buf.write(g.tobytes(), offset=e.node_base * NODE_BYTES)
+            iostats.to_device(g.nbytes)
         self.t.uploads += 1
         self.t.bvh_bytes += n_nodes * NODE_BYTES
         self.t.geom_bytes += n_tris * TRI_BYTES

@@ -46,6 +46,8 @@ class NodeTables:
     box_max: np.ndarray  # float32 (M, 3)
     gpu_ref: np.ndarray  # int32: GPU inner-node index (inner) or first triangle slot (leaf)
     gpu_count: np.ndarray  # int32: 0 for inner nodes, triangle count for leaves
+    parent: np.ndarray  # int32, -1 for the root
+    depth: np.ndarray  # int32, 0 for the root
 
     @staticmethod
     def from_bvh(bvh) -> NodeTables:
@@ -57,10 +59,46 @@ class NodeTables:
         inner_idx = bvh.inner_index_of_node()
         gpu_ref = np.where(is_leaf, bvh.node_first, inner_idx).astype(np.int32)
         gpu_count = np.where(is_leaf, bvh.node_count, 0).astype(np.int32)
-        return NodeTables(bvh.node_left.astype(np.int32), bvh.node_right.astype(np.int32), is_leaf,
-                          bvh.node_height.astype(np.int32), bvh.node_count.astype(np.int32), area / root,
+        left = bvh.node_left.astype(np.int32)
+        right = bvh.node_right.astype(np.int32)
+        parent = np.full(len(left), -1, np.int32)
+        inner = np.flatnonzero(left >= 0)
+        parent[left[inner]] = inner
+        parent[right[inner]] = inner
+        depth = np.zeros(len(left), np.int32)
+        level = np.array([0])
+        d = 0
+        while len(level):  # breadth first: one NumPy step per tree level
+            depth[level] = d
+            kids = level[left[level] >= 0]
+            level = np.concatenate([left[kids], right[kids]])
+            d += 1
+        return NodeTables(left, right, is_leaf, bvh.node_height.astype(np.int32),
+                          bvh.node_count.astype(np.int32), area / root,
                           np.ascontiguousarray(bvh.node_min, np.float32),
-                          np.ascontiguousarray(bvh.node_max, np.float32), gpu_ref, gpu_count)
+                          np.ascontiguousarray(bvh.node_max, np.float32), gpu_ref, gpu_count, parent, depth)
+
+    def group_lca(self, nodes: np.ndarray, starts: np.ndarray) -> np.ndarray:
+        """Lowest common ancestor of each group of `nodes` (groups are the runs that begin at
+        `starts`): every node is lifted to its group's shallowest depth, then all are lifted one
+        level at a time until each group agrees. Vectorised over groups: one step per tree level."""
+        nodes = np.asarray(nodes, np.int64).copy()
+        if len(nodes) == 0:
+            return nodes
+        group = np.repeat(np.arange(len(starts)), np.diff(np.r_[starts, len(nodes)]))
+        target = np.minimum.reduceat(self.depth[nodes], starts)[group]
+        while True:
+            deep = self.depth[nodes] > target
+            if not deep.any():
+                break
+            nodes[deep] = self.parent[nodes[deep]]
+        while True:
+            lo = np.minimum.reduceat(nodes, starts)
+            hi = np.maximum.reduceat(nodes, starts)
+            differ = (lo != hi)[group]
+            if not differ.any():
+                return lo
+            nodes[differ] = self.parent[nodes[differ]]
 
     def query_boxes(self, nodes: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Boxes a query of `nodes` rasterises ("tighter bounds": both children of an inner node,
@@ -231,11 +269,13 @@ class PairFront:
             out.append(c)
         return np.concatenate(out) if out else np.zeros(0, np.int64)
 
-    def pull_up(self) -> int:
+    def pull_up(self, min_age: int = 0) -> int:
         """Merge inner pairs whose children are all invisible leaves into one invisible leaf.
 
-        One level per call (the paper pulls invisibility up one level per frame). Returns the
-        number of merged parents.
+        One level per call (the paper pulls invisibility up one level per frame). With `min_age`
+        only children culled by at least that many queries merge (the GPU-driven pass refines a pair
+        at the end of a frame and queries its fresh children in the next: they must not be merged
+        back before they were queried). Returns the number of merged parents.
         """
         n = self.n
         inner = np.flatnonzero(self.state[:n] == INNER)
@@ -247,7 +287,7 @@ class PairFront:
             if len(p) == 0:
                 continue
             kids = self.child[p][:, None] + np.arange(k)[None, :]
-            ok = (self.state[kids] == INVISIBLE).all(axis=1)
+            ok = ((self.state[kids] == INVISIBLE) & (self.age[kids] >= min_age)).all(axis=1)
             if ok.any():
                 merge.append((p[ok], kids[ok].reshape(-1)))
         total = 0

@@ -1,4 +1,4 @@
-// Shared by the CHC+RT shaders (viewer/backends/chcrt.py).
+// Shared by the CHC+RT shaders (viewer/backends/chcrt/chcrt.py).
 //  * Rays come from the ray batch textures (origin+tmin, direction+tmax; tmax <= tmin = no ray).
 //  * Depth = distance along the ray, t * depthScale with depthScale a power of two (exact, so the
 //    depth test compares distances exactly), clamped to 0.5. The depth buffer holds, per pixel,

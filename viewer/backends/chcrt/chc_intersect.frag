@@ -30,10 +30,19 @@ layout(location = 2) out int outSub;
 #endif
 layout(r32i, binding = BIND_IMG_RESUME) uniform coherent iimage2D resumeSlot;  // gl_traversal.py ResumableTraversal
 layout(std430, binding = BIND_RESUME_COUNTERS) buffer ResumeCounters { int unfinished; int allocated; };
+#ifdef CHC_COUNT_ITEMS
+// GPU-driven pass: the intersection is the query. A ray that enters an item's box before its
+// nearest hit so far (the query's pass condition) counts into the item's pair slot (p2 >= 0).
+layout(std430, binding = BIND_CHC_QUERY_COUNTS) buffer ChcQueryCounts { uint chcPassed[]; };
+#endif
 
 void main() {
     ivec2 px = ivec2(gl_FragCoord.xy);
     if (countOverlays != 0) imageAtomicAdd(batchSubtrees, px, ITEM_COUNT);
+#ifdef CHC_COUNT_ITEMS
+    // a query record (invisible pairs tested by intersecting them): one query test per pair
+    if (countOverlays != 0 && vQuery != 0) imageAtomicAdd(overdraw, px, ITEM_COUNT);
+#endif
     int best = imageLoad(bestBits, px).r;
     if (best < 0) discard;
     vec4 ot = texelFetch(rayOrigin, px, 0);
@@ -46,10 +55,15 @@ void main() {
     float stackT[STACK_SIZE];
     int sp = 0;
     bool done = false;
+    uint entered = 0u;
     for (int i = ITEM_COUNT - 1; i >= 0; --i) {  // farthest at the bottom
         ChcItem it = items[ITEM_BASE + i];
         float te;
         if (intersectBox(r, it.bmin, it.bmax, tmin, hit.t, te)) {
+            ++entered;
+#ifdef CHC_COUNT_ITEMS
+            if (it.p2 >= 0) atomicAdd(chcPassed[it.p2], 1u);
+#endif
             if (it.count > 0) {  // a scheduled BVH leaf: intersect it now
                 if (visitLeaf(r, it.ref, it.count, tmin, hit) && any) done = true;
             } else {
@@ -111,6 +125,9 @@ void main() {
     }
     if (!done && flushLeaves(r, tmin, hit) && any) done = true;  // the leaf cache's last leaves
     workFlush(0);
+#ifdef COUNT_WORK
+    atomicAdd(workTotals[8], entered);
+#endif
     if (hit.id < 0) discard;
 #ifdef CHC_OOC
     hit.id = tris[hit.id].id;  // out-of-core: cache slot -> the triangle's leaf-order slot

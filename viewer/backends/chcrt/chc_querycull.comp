@@ -1,0 +1,56 @@
+// CHC+RT, GPU-driven pass, step 2: one invocation per finest tile. Of the invisible pairs whose
+// tile covers it (the host copies each pair onto the finest tiles of its tile), only those whose box
+// some ray of the tile may still enter are kept: a box farther from every ray origin of the tile
+// than the farthest distance a ray of the tile may still reach (chc_tilebounds.comp) cannot be
+// entered. The kept pairs of a tile become records of at most maxItems pairs of ONE indirect
+// instanced intersection draw (chc_intersect.frag with CHC_COUNT_ITEMS), each item keeping its
+// pair's count slot. Conservative: the gap between the origin box and a pair's box is a lower bound
+// of every ray's entry distance; a relative margin covers the rounding.
+layout(local_size_x = 64) in;
+struct ChcDraw { ivec4 rect; ivec4 info; };
+struct ChcItem { vec3 bmin; int ref; vec3 bmax; int count; int id; int p0; int p1; int p2; };
+struct TileBound { vec4 omin; vec4 omax; };
+layout(std430, binding = BIND_CHC_ITEMS) readonly buffer ChcItems { ChcItem items[]; };
+layout(std430, binding = BIND_CHC_QUERIES) readonly buffer ChcQueries { ChcDraw queries[]; };
+layout(std430, binding = BIND_CHC_TILES) readonly buffer ChcTiles { TileBound tiles[]; };
+layout(std430, binding = BIND_CHC_DRAWS) writeonly buffer ChcSurvivors { ChcDraw survivors[]; };
+// the kept boxes (the candidates' binding point: candidates are uploaded after the query draw)
+layout(std430, binding = BIND_CHC_CANDIDATES) writeonly buffer ChcKeptBoxes { ChcItem kept[]; };
+layout(std430, binding = BIND_CHC_INDIRECT) buffer ChcIndirect { uint cmdCount; uint cmdInstances; uint cmdFirst;
+                                                                 uint cmdBase; };
+// slots pixelSlot .. pixelSlot + 2 of the query counts: pair tests x pixels and records drawn (stats),
+// kept pairs
+layout(std430, binding = BIND_CHC_QUERY_COUNTS) buffer ChcQueryCounts { uint chcPassed[]; };
+uniform int pixelSlot;
+uniform int nQueries;
+uniform int maxItems;  // items per intersection record (CHC_MAX_ITEMS of the intersection program)
+uniform int cull;  // 0: keep every box (ChcrtParams.coarse_cull off)
+
+bool reachable(ChcItem it, TileBound t) {
+    if (cull == 0) return true;
+    vec3 gap = max(max(it.bmin - t.omax.xyz, t.omin.xyz - it.bmax), vec3(0.0));
+    return length(gap) * (1.0 - 1e-4) <= t.omin.w * (1.0 + 1e-4);
+}
+
+void main() {
+    int i = int(gl_GlobalInvocationID.x);  // finest tile i = ty * 2^level + tx (chc_tilebounds.comp)
+    if (i >= nQueries) return;
+    ChcDraw q = queries[i];  // the tile's rectangle; info.x, info.y = its invisible pairs' item range
+    TileBound t = tiles[i];
+    if (q.info.y == 0 || t.omax.w <= 0.0 || t.omin.w < 0.0) return;  // no ray here may still hit
+    int nb = 0;
+    for (int k = 0; k < q.info.y; ++k) nb += reachable(items[q.info.x + k], t) ? 1 : 0;
+    if (nb == 0) return;
+    int base = int(atomicAdd(chcPassed[pixelSlot + 2], uint(nb)));
+    int j = base;
+    for (int k = 0; k < q.info.y; ++k) {
+        ChcItem it = items[q.info.x + k];
+        if (reachable(it, t)) kept[j++] = it;
+    }
+    for (int b = 0; b < nb; b += maxItems) {  // records of at most maxItems pairs (the shader's bound)
+        int m = min(maxItems, nb - b);
+        survivors[atomicAdd(cmdInstances, 1u)] = ChcDraw(q.rect, ivec4(base + b, m, 1, 0));
+        atomicAdd(chcPassed[pixelSlot], uint(q.rect.z * q.rect.w * m));  // query tests (overlay)
+        atomicAdd(chcPassed[pixelSlot + 1], 1u);
+    }
+}

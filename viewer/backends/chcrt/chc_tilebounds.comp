@@ -1,0 +1,49 @@
+// CHC+RT, GPU-driven queries, step 1: per finest tile, what its rays can still reach after the
+// visible pairs were intersected: the box around the active rays' origins and the largest
+// distance to their nearest hit so far (bestBits, or tmax without a hit), in world units
+// (t * |d|). One work group per tile; a tile without an active ray gets maxDist = -1.
+layout(local_size_x = 64) in;
+layout(r32i, binding = BIND_IMG_CHC_BEST) uniform coherent iimage2D bestBits;
+uniform sampler2D rayOrigin;
+uniform sampler2D rayDir;
+uniform ivec2 raySize;
+uniform int level;  // the finest tile level: 2^level x 2^level tiles
+struct TileBound { vec4 omin; vec4 omax; };  // origin box; omin.w = max distance, omax.w = active rays
+layout(std430, binding = BIND_CHC_TILES) writeonly buffer ChcTiles { TileBound tiles[]; };
+shared vec3 sMin[64];
+shared vec3 sMax[64];
+shared float sDist[64];
+shared float sCount[64];
+void main() {
+    int n = 1 << level;
+    int tx = int(gl_WorkGroupID.x) % n, ty = int(gl_WorkGroupID.x) / n;
+    ivec2 lo = (ivec2(tx, ty) * raySize) >> level;
+    ivec2 hi = (ivec2(tx + 1, ty + 1) * raySize) >> level;
+    int w = hi.x - lo.x, count = w * (hi.y - lo.y);
+    uint li = gl_LocalInvocationIndex;
+    vec3 omin = vec3(3.0e38), omax = vec3(-3.0e38);
+    float dmax = -1.0, nActive = 0.0;
+    for (int k = int(li); k < count; k += 64) {
+        ivec2 px = lo + ivec2(k % w, k / w);
+        int best = imageLoad(bestBits, px).r;
+        if (best < 0) continue;  // no ray, or an any-hit ray that is done
+        vec4 o = texelFetch(rayOrigin, px, 0);
+        vec4 d = texelFetch(rayDir, px, 0);
+        omin = min(omin, o.xyz);
+        omax = max(omax, o.xyz);
+        dmax = max(dmax, intBitsToFloat(best) * length(d.xyz));
+        nActive += 1.0;
+    }
+    sMin[li] = omin; sMax[li] = omax; sDist[li] = dmax; sCount[li] = nActive;
+    barrier();
+    for (uint s = 32u; s > 0u; s >>= 1) {
+        if (li < s) {
+            sMin[li] = min(sMin[li], sMin[li + s]);
+            sMax[li] = max(sMax[li], sMax[li + s]);
+            sDist[li] = max(sDist[li], sDist[li + s]);
+            sCount[li] += sCount[li + s];
+        }
+        barrier();
+    }
+    if (li == 0u) tiles[gl_WorkGroupID.x] = TileBound(vec4(sMin[0], sDist[0]), vec4(sMax[0], sCount[0]));
+}
