@@ -41,7 +41,7 @@ places each instance on its tile); query fragments make the depth test's compari
 against bestBits and count into their query's slot with an atomic add, read back once per wave.
 Same query results (bestBits can only be stale towards passing), far fewer draws and waits.
 
-GPU-driven steady state (``gpu_driven``, default; docs/chcrt.md). Only a front's first pass runs
+GPU-driven steady state (``gpu_driven``, default; docs/backends/chcrt-submission.md). Only a front's first pass runs
 the algorithm above. Every later pass is a fixed number of launches: the visible pairs (one draw,
 all subtrees over a finest tile in one record), per finest tile the rays' origin box and reach (one
 dispatch), the invisible pairs some ray may still enter (one dispatch) and their intersection (one
