@@ -172,7 +172,12 @@ def resolve_params(info: BackendInfo, text: str | None, source: str = "--backend
 
 
 class Backend(Protocol):
-    """Every backend: a class with `info`, constructed as cls(bc, params) by the registry."""
+    """Every backend: a class with `info`, constructed as cls(bc, params) by the registry.
+
+    Optional, for `info.device == "cl"` (viewer/cl/frame.py picks the device-resident frame when
+    present): `trace_device(rays, pinfo, hits) -> TraceResult` traces CL ray buffers
+    (viewer.cl.RayStage layout) into CL hit buffers (HitStage) with nothing crossing the host, and
+    `end_frame() -> dict[str, float]` returns counters kept on the device over such a frame."""
 
     info: ClassVar[BackendInfo]
     params: Any  # an instance of info.params, or None

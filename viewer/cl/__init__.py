@@ -23,7 +23,15 @@ Programs (viewer/cl/programs.py)
       Path(__file__).parent / "trace.cl"). `#include "x.cl"` is expanded from the including
       file's folder, then `search`, then viewer/cl/kernels. defines: {"WG": 64, "FLAG": None}.
       Cached per (expanded source, defines, device); build errors raise RtwalkError.
-      Keep kernels: `k = pyopencl.Kernel(prog, "name")` once, then `k(queue, gsize, lsize, *args)`.
+      Keep kernels: `k = viewer.cl.io.kernel(prog, "name")` once, then `k(queue, gsize, lsize, *args)`.
+
+Counted launches and transfers (viewer/cl/io.py): kernel/kernels, copy, map_buffer, upload,
+  read_rows/read_strided, finish, marker -- the only callers of pyopencl's Kernel, enqueue_copy
+  and enqueue_map_buffer (viewer.iostats counts; tests/test_iostats.py enforces it).
+
+Device-resident frame (viewer/cl/frame.py, kernels/frame.cl): DeviceFrame (ids in once, surface /
+  raygen / accumulate kernels, accumulators out once), frame_path(backend) picks it for CL
+  backends with trace_device; interop_available() is the hook for a zero-copy path.
   warm_up([(path, defines), ...]) -> ms   build + create kernels before the first frame.
   expand(path, search=()) -> str      the expanded source.
 

@@ -86,12 +86,14 @@ class DeviceFrame:
         prog = build("frame.cl", {}, self.ctx)
         self.k_raygen = clio.kernel(prog, "raygen")
         self.k_accumulate = clio.kernel(prog, "accumulate")
+        self.k_surface = clio.kernel(prog, "surface")
         mf = self.ctx.cl.mem_flags
         self.params = self.ctx.cl.Buffer(self.ctx.context, mf.READ_ONLY, FRAME_PARAMS * 16)
         self.counts = self.ctx.cl.Buffer(self.ctx.context, mf.READ_WRITE, 4 * MAX_COUNTERS)
         self._params_host = np.zeros((FRAME_PARAMS, 4), np.float32)  # kept alive for the async write
         self.size: tuple[int, int] | None = None
         self.ids = self.rays = self.hits = None
+        self.surf: tuple = ()
         self.acc: dict[RayType, Any] = {}
         self.tris = self.mats = None
         self.scene_key: tuple | None = None
@@ -117,6 +119,8 @@ class DeviceFrame:
         n = size[0] * size[1]
         mf = self.ctx.cl.mem_flags
         self.ids = self.ctx.cl.Buffer(self.ctx.context, mf.READ_WRITE | mf.ALLOC_HOST_PTR, 4 * n)
+        # per pixel, made once per frame on the device: normal, secondary-ray origin, G-buffer position
+        self.surf = tuple(self.ctx.cl.Buffer(self.ctx.context, mf.READ_WRITE, 16 * n) for _ in range(3))
         self.rays = RayStage(size, self.ctx, "rw")  # written by raygen, read by the tracer
         self.hits = HitStage(size, self.ctx, "rw")  # written by the tracer, read by accumulate
         self.size = size
@@ -143,6 +147,9 @@ class DeviceFrame:
         self._params_host[...] = frame_params(cam_u, light_u)
         clio.copy(q, self.params, self._params_host, is_blocking=False)
         self.ctx.cl.enqueue_fill_buffer(q, self.counts, np.uint32(0), 0, 4 * MAX_COUNTERS)
+        w, h = self.size
+        self.k_surface(q, self._gsize(), (WG,), self.ids, self.tris, self.params, np.int32(w), np.int32(h),
+                       *self.surf)
         if not keep:
             for buf in self.acc.values():
                 self.ctx.cl.enqueue_fill_buffer(q, buf, np.float32(0), 0, 16 * n)
@@ -157,7 +164,8 @@ class DeviceFrame:
 
         w, h = self.size
         stream = (int(ray_type) * 7919 + sample * 104729 + light * 15485863) & 0xFFFFFFFF
-        self.k_raygen(self.ctx.queue, self._gsize(), (WG,), self.ids, self.tris, self.mats, self.params,
+        self.k_raygen(self.ctx.queue, self._gsize(), (WG,), self.ids, self.tris, self.mats, self.surf[0],
+                      self.surf[1], self.params,
                       np.int32(w), np.int32(h), np.int32(int(ray_type)), np.int32(light),
                       np.array(halton2(sample), np.float32), np.float32(perturb_rad), np.float32(ray_length),
                       np.uint32(stream), self.rays.origin, self.rays.dir, self.counts)
@@ -165,7 +173,8 @@ class DeviceFrame:
     def accumulate(self, ray_type: RayType, light: int, weight: float) -> None:
         """accumulate.frag: add the traced pass (self.rays, self.hits) to its effect's accumulator."""
         w, h = self.size
-        self.k_accumulate(self.ctx.queue, self._gsize(), (WG,), self.ids, self.tris, self.mats, self.params,
+        self.k_accumulate(self.ctx.queue, self._gsize(), (WG,), self.ids, self.tris, self.mats, self.surf[0],
+                          self.surf[2], self.params,
                           np.int32(w), np.int32(h), np.int32(int(ray_type)), np.int32(light), np.float32(weight),
                           self.rays.origin, self.rays.dir, self.hits.t, self.hits.tri, self._acc(ray_type))
 
@@ -198,10 +207,13 @@ class DeviceFrame:
                 part.release()
         if self.ids is not None:
             self.ids.release()
+            for b in self.surf:
+                b.release()
         for buf in self.acc.values():
             buf.release()
         self.acc = {}
         self.ids = self.rays = self.hits = None
+        self.surf = ()
         self.size = None
 
     def release(self) -> None:

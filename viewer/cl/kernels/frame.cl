@@ -166,8 +166,32 @@ inline float3 primary_hit(__global const float4 *tris, int id, float3 cam, float
     return p;
 }
 
+/* Once per frame: per pixel of the G-buffer, the facing normal (w = 1 where the pixel has a
+ * surface), the secondary rays' origin (raygen.frag: the barycentric hit point moved off the surface
+ * by offsetRayOrigin) and gbuffer.frag's position (cam + dPrim * t, accumulate.frag's gPos). Every
+ * pass then reads them instead of intersecting again. */
+__kernel void surface(__global const int *gid, __global const float4 *tris, __constant float4 *P, int w, int h,
+                      __global float4 *out_n, __global float4 *out_po, __global float4 *out_gp) {
+    int i = (int)get_global_id(0);
+    if (i >= w * h) return;
+    int id = gid[i];
+    if (id < 0) {
+        out_n[i] = (float4)(0.0f);
+        return;
+    }
+    int2 px = (int2)(i % w, i / w);
+    float3 cam = v3(P, P_CAM_POS);
+    float3 dPrim = primary_dir(P, (float2)((float)px.x + 0.5f, (float)px.y + 0.5f));
+    float3 n;
+    float3 p = primary_hit(tris, id, cam, dPrim, true, &n);
+    float3 gp = primary_hit(tris, id, cam, dPrim, false, &n);
+    out_n[i] = (float4)(n, 1.0f);
+    out_po[i] = (float4)(offset_ray_origin(p, n), 0.0f);
+    out_gp[i] = (float4)(gp, 0.0f);
+}
+
 __kernel void raygen(__global const int *gid, __global const float4 *tris, __global const float4 *mats,
-                     __constant float4 *P, int w, int h, int rayType, int lightIndex, float2 sampleUV,
+                     __global const float4 *surf_n, __global const float4 *surf_po, __constant float4 *P, int w, int h, int rayType, int lightIndex, float2 sampleUV,
                      float perturbAngle, float rayLength, uint stream, __global float4 *out_o,
                      __global float4 *out_d, __global uint *counters) {
     __local uint group_active;
@@ -186,9 +210,8 @@ __kernel void raygen(__global const int *gid, __global const float4 *tris, __glo
         } else {
             int id = gid[i];
             if (id >= 0) {
-                float3 n;
-                float3 p = primary_hit(tris, id, cam, dPrim, true, &n);
-                float3 po = offset_ray_origin(p, n);
+                float3 n = surf_n[i].xyz;  /* the surface kernel's, once per frame */
+                float3 po = surf_po[i].xyz;
                 float2 rnd = pixel_random2(px, stream);
                 if (rayType == RAY_SHADOW) {
                     float3 l = v3(P, P_POINT_POS + lightIndex) - po;
@@ -268,7 +291,7 @@ inline float3 shade_secondary_hit(__constant float4 *P, float3 p, float3 n, floa
 
 /* accumulate.frag: acc[i] += this pass's contribution (the GL pass blends ONE, ONE). */
 __kernel void accumulate(__global const int *gid, __global const float4 *tris, __global const float4 *mats,
-                         __constant float4 *P, int w, int h, int effect, int lightIndex, float weight,
+                         __global const float4 *surf_n, __global const float4 *surf_gp, __constant float4 *P, int w, int h, int effect, int lightIndex, float weight,
                          __global const float4 *ray_o, __global const float4 *ray_d, __global const float *hit_t,
                          __global const int *hit_id, __global float4 *acc) {
     int i = (int)get_global_id(0);
@@ -279,14 +302,8 @@ __kernel void accumulate(__global const int *gid, __global const float4 *tris, _
     int id = hit_id[i];
     float vis = id < 0 ? 1.0f : 0.0f;
     /* the G-buffer's position and facing normal of the pixel (gbuffer.frag), from its triangle id */
-    int g = gid[i];
-    float3 p = (float3)(0.0f), n = (float3)(0.0f);
-    if (g >= 0) {
-        int2 px = (int2)(i % w, i / w);
-        float3 cam = v3(P, P_CAM_POS);
-        float3 dPrim = primary_dir(P, (float2)((float)px.x + 0.5f, (float)px.y + 0.5f));
-        p = primary_hit(tris, g, cam, dPrim, false, &n);
-    }
+    float3 p = surf_gp[i].xyz, n = surf_n[i].xyz;  /* zero where the pixel has no surface (as the G-buffer) */
+    if (gid[i] < 0) p = (float3)(0.0f);
     float4 out;
     if (effect == RAY_SHADOW) {
         out = (float4)(point_irradiance(P, lightIndex, p, n) * vis, vis) * weight;
