@@ -524,4 +524,6 @@ def test_submission_does_not_grow_with_the_image(gl_ctx):
     small, small_syncs = _submission_counts(gl_ctx, (320, 180), "")
     big, big_syncs = _submission_counts(gl_ctx, (1280, 720), "min_tile_fraction=0.0009")  # 16x the tiles
     assert 0 < big <= 1.3 * small, (small, big)
-    assert big_syncs <= 3 and small_syncs <= 3, (small_syncs, big_syncs)
+    # the frame's waits (the profiler's per-phase finishes on llvmpipe, the G-buffer and shade passes,
+    # chcrt's one count read per pass) are a fixed number: 16x the tiles adds none
+    assert big_syncs == small_syncs <= 24, (small_syncs, big_syncs)
