@@ -106,46 +106,6 @@ inline float3 offset_ray_origin(float3 p, float3 n) {
 
 inline float fract1(float x) { return x - floor(x); }
 
-/* geometry.cl's rt_intersect_triangle (same operations, double fallback included) that also
- * returns the barycentric weights (V, W) / det of v1 and v2, as intersect.glsl's intersectTriangle. */
-inline bool fr_intersect_bary(const RayPre *r, float3 v0, float3 v1, float3 v2, float tmin, float tmax,
-                              float *t, float2 *bary) {
-    float3 A = v0 - r->o, B = v1 - r->o, C = v2 - r->o;
-    float Akz = rt_comp(A, r->kz), Bkz = rt_comp(B, r->kz), Ckz = rt_comp(C, r->kz);
-    float Ax = rt_comp(A, r->kx) - r->Sx * Akz, Ay = rt_comp(A, r->ky) - r->Sy * Akz;
-    float Bx = rt_comp(B, r->kx) - r->Sx * Bkz, By = rt_comp(B, r->ky) - r->Sy * Bkz;
-    float Cx = rt_comp(C, r->kx) - r->Sx * Ckz, Cy = rt_comp(C, r->ky) - r->Sy * Ckz;
-    float U = Cx * By - Cy * Bx;
-    float V = Ax * Cy - Ay * Cx;
-    float W = Bx * Ay - By * Ax;
-#ifdef RT_HAVE_FP64
-    if (U == 0.0f || V == 0.0f || W == 0.0f) {
-        double CxBy = (double)Cx * (double)By, CyBx = (double)Cy * (double)Bx;
-        double AxCy = (double)Ax * (double)Cy, AyCx = (double)Ay * (double)Cx;
-        double BxAy = (double)Bx * (double)Ay, ByAx = (double)By * (double)Ax;
-        U = (float)(CxBy - CyBx);
-        V = (float)(AxCy - AyCx);
-        W = (float)(BxAy - ByAx);
-    }
-#endif
-    if ((U < 0.0f || V < 0.0f || W < 0.0f) && (U > 0.0f || V > 0.0f || W > 0.0f)) return false;
-    float det = U + V + W;
-    if (det == 0.0f) return false;
-    float3 n = rt_cross_rounded(v1 - v0, v2 - v0);
-    float dn = rt_dot(n, r->d);
-    float tt;
-    if (dn != 0.0f) {
-        tt = rt_dot(n, A) / dn;
-    } else {
-        float Az = r->Sz * Akz, Bz = r->Sz * Bkz, Cz = r->Sz * Ckz;
-        tt = (U * Az + V * Bz + W * Cz) / det;
-    }
-    if (!(tt > tmin && tt < tmax)) return false;
-    *t = tt;
-    *bary = (float2)(V, W) / det;
-    return true;
-}
-
 /* The pixel's primary hit on triangle `id` (the G-buffer's): the facing normal, and the hit point
  * as raygen.frag makes it (`bary`: barycentric point of the exact hit, else the plane point) or
  * as gbuffer.frag stores it (cam + dPrim * t). */
@@ -156,7 +116,7 @@ inline float3 primary_hit(__global const float4 *tris, int id, float3 cam, float
     float t;
     float2 b;
     float3 p;
-    if (fr_intersect_bary(&r, v0, v1, v2, 0.0f, 1e30f, &t, &b)) {
+    if (rt_intersect_triangle_bary(&r, v0, v1, v2, 0.0f, 1e30f, &t, &b)) {
         p = bary ? v0 * (1.0f - b.x - b.y) + v1 * b.x + v2 * b.y : cam + dPrim * t;
     } else {  /* pixel centre covered by rasterization but on the far side of an edge */
         p = cam + dPrim * (rt_dot(v0 - cam, n) / rt_dot(dPrim, n));

@@ -75,9 +75,10 @@ inline float rt_dot(float3 a, float3 b) {
     return a.x * b.x + a.y * b.y + a.z * b.z;
 }
 
-// True and *t (tmin < *t < tmax) on a hit.
-inline bool rt_intersect_triangle(const RayPre *r, float3 v0, float3 v1, float3 v2, float tmin, float tmax,
-                                  float *t) {
+// True and *t (tmin < *t < tmax) on a hit; *bary (when not null): the barycentric weights (V, W) / det
+// of v1 and v2, as intersect.glsl's intersectTriangle returns them.
+inline bool rt_intersect_triangle_bary(const RayPre *r, float3 v0, float3 v1, float3 v2, float tmin, float tmax,
+                                       float *t, float2 *bary) {
     float3 A = v0 - r->o, B = v1 - r->o, C = v2 - r->o;
     float Akz = rt_comp(A, r->kz), Bkz = rt_comp(B, r->kz), Ckz = rt_comp(C, r->kz);
     float Ax = rt_comp(A, r->kx) - r->Sx * Akz, Ay = rt_comp(A, r->ky) - r->Sy * Akz;
@@ -110,7 +111,14 @@ inline bool rt_intersect_triangle(const RayPre *r, float3 v0, float3 v1, float3 
     }
     if (!(tt > tmin && tt < tmax)) return false;
     *t = tt;
+    if (bary) *bary = (float2)(V, W) / det;
     return true;
+}
+
+// True and *t (tmin < *t < tmax) on a hit.
+inline bool rt_intersect_triangle(const RayPre *r, float3 v0, float3 v1, float3 v2, float tmin, float tmax,
+                                  float *t) {
+    return rt_intersect_triangle_bary(r, v0, v1, v2, tmin, tmax, t, 0);
 }
 
 // One box: conservative slab test, *t_entry = max(entry, tmin).
