@@ -447,8 +447,8 @@ class Renderer:
 
     def _device_passes(self, passes, lengths, cam_u, light_u, keep, capture, captured, stats) -> np.ndarray:
         """Every pass on the CL device (viewer.cl.frame): the G-buffer ids in once, rays made,
-        traced and accumulated there, the used accumulators out once, the ray counts read once.
-        Phases are timed by queue markers (no host wait per pass); the backend's `end_frame`
+        traced and accumulated there, the used accumulators out once, the ray counts read with
+        them. Phases are timed by queue markers (no host wait per phase or pass); the backend's `end_frame`
         (optional) reports counters kept on the device over the frame."""
         from viewer.cl.frame import DeviceFrame
 
@@ -458,10 +458,10 @@ class Renderer:
         dev = self._device
         q = dev.ctx.queue
         dev.set_scene(self.scene)
-        with prof.cl_phase("device:ids", q):
-            dev.begin(self.size, self.gbuffer.tri_id, cam_u, light_u, keep)
-        prof.cl_deferred = True
+        prof.cl_deferred = True  # every CL phase of the frame timed by markers: no wait per phase
         try:
+            with prof.cl_phase("device:ids", q):
+                dev.begin(self.size, self.gbuffer.tri_id, cam_u, light_u, keep)
             for ray_type, sample, light, weight in passes:
                 with prof.cl_phase("raygen", q):
                     dev.generate(ray_type, sample, light, lengths.get(ray_type, 0.0), np.radians(s.perturb_deg))
@@ -478,14 +478,15 @@ class Renderer:
                     with prof.cl_phase("accumulate", q):
                         dev.accumulate(ray_type, light, weight)
                     self.samples_done.setdefault(ray_type, set()).add(sample)
+            end = getattr(self.backend, "end_frame", None)
+            if callable(end):
+                for k, v in end().items():
+                    stats[k] = stats.get(k, 0) + v
+            dev.request_counts()  # arrives with the accumulators' reads (no wait of its own)
+            with prof.cl_phase("device:accumulators", q):
+                dev.write_accumulators(self.accumulate.textures, sorted(self.samples_done, key=int))
         finally:
             prof.cl_deferred = False
-        end = getattr(self.backend, "end_frame", None)
-        if callable(end):
-            for k, v in end().items():
-                stats[k] = stats.get(k, 0) + v
-        with prof.cl_phase("device:accumulators", q):
-            dev.write_accumulators(self.accumulate.textures, sorted(self.samples_done, key=int))
         return dev.read_counts()
 
     def read_image(self) -> np.ndarray:
