@@ -75,6 +75,7 @@ class FrameReport:
     captured: list[CapturedPass] = field(default_factory=list)
     overlay_source: tuple[RayType, int] | None = None  # the pass whose overlays were copied
     io: IoCounts = field(default_factory=IoCounts)  # bytes, syncs, launches, draws, queries (viewer.iostats)
+    phase_io: dict[str, dict[str, int]] = field(default_factory=dict)  # per phase: cl_launches, host_syncs
 
     @property
     def trace_ms(self) -> float:
@@ -416,7 +417,8 @@ class Renderer:
         self.frame_index += 1
         rays = {RayType(i).label: int(counts[i]) for i in range(6) if counts[i] > 0}
         return FrameReport(gpu_ms, prof.cpu_ms(), wall, rays, dict(prof.by_label), stats, captured,
-                           self.overlay_source, iostats.end_frame())
+                           self.overlay_source, iostats.end_frame(),
+                           {k: dict(v) for k, v in prof.io_by_phase.items()})
 
     def _batch_passes(self, passes, lengths, source, capture, captured, stats) -> tuple[np.ndarray, bool]:
         """Every pass through the RayBatch / HitBuffer textures (GL backends, overlay frames):
