@@ -100,7 +100,7 @@ class GpuProfiler:
                 yield
 
     @contextmanager
-    def _cl_phase(self, name: str, queue):
+    def cl_phase(self, name: str, queue):
         """Time OpenCL work enqueued on `queue` (see _cl_phase), counting its launches and syncs."""
         with self._io(name):
             with self._cl_phase(name, queue):

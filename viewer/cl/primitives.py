@@ -27,6 +27,7 @@ kernels' block ranges shrink to the device count; launches are sized for the bou
   sort_pairs_dev(keys, vals, n_buf, bound, key_bits)           (keys/vals hold >= bound items)
   compact_dev(n_buf, bound, count_buf, flags=..., src=..., dst=..., dst_index=..., predicate=...)
   segments_dev(keys, n_buf, bound, r, out, count_buf)          (out: Chunks with room for bound)
+  reduce_dev(src, n, op, dtype, out)                            (n on the host; result in `out`)
 """
 
 from __future__ import annotations
@@ -149,6 +150,19 @@ class Primitives:
         res = np.empty(1, dt)
         clio.copy(self.ctx.queue, res, out)
         return res[0]
+
+    def reduce_dev(self, src: Any, n: int, op: str, dtype: Any, out: Any) -> None:
+        """reduce of n >= 1 elements into the 4-byte device buffer `out` (no read-back: several
+        reductions can come back in one wait)."""
+        dt = np.dtype(dtype)
+        ctype, hi, lo = _RTYPES[dt]
+        ks = self._variant(("reduce", ctype, op), {"RT": ctype, "RMIN": int(op == "min")}, "",
+                           ("reduce_block", "reduce_final"))
+        ident = dt.type(hi if op == "min" else lo)
+        nb = self.nblocks(n)
+        part = self.scratch(f"reduce_part_{op}_{ctype}", 4 * nb)
+        self._run(ks["reduce_block"], nb, src, np.uint32(n), np.uint32(nb), ident, part)
+        ks["reduce_final"](self.ctx.queue, (WG,), (WG,), part, np.uint32(nb), ident, out)
 
     # -- radix sort -------------------------------------------------------------------------
     def sort_pairs(self, keys: Any, vals: Any, n: int, key_bits: int | None = None) -> None:
