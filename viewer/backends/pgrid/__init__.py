@@ -200,8 +200,8 @@ class PgridBackend:
             return None
         step = max(1, rs.n // SAMPLE)
         count = -(-rs.n // step)  # rows 0, step, ... (as o[::step]); only these cross
-        so = clio.read_strided(self.ctx.queue, rs.origin, step, count, (4,), np.float32)
-        sd = clio.read_strided(self.ctx.queue, rs.dir, step, count, (4,), np.float32)
+        so = clio.read_strided(self.ctx.queue, rs.origin, step, count, (4,), np.float32, is_blocking=False)
+        sd = clio.read_strided(self.ctx.queue, rs.dir, step, count, (4,), np.float32)  # one wait for both
         if centre is None:
             act = np.flatnonzero(sd[:, 3] > so[:, 3])
             if len(act) == 0:
