@@ -198,6 +198,7 @@ class UniformGrid:
         self._bufs = BufferPool(self.ctx, "uniform grid")
         self.header_host = np.zeros(1, GRID_DTYPE)
         self.header = self._buf("header", GRID_DTYPE.itemsize)
+        self._count_hosts: dict[str, np.ndarray] = {}
         self.stats: GridStats | None = None
 
     def _buf(self, name: str, nbytes: int) -> Any:
@@ -235,8 +236,8 @@ class UniformGrid:
         counts = self._buf("counts", 4 * max(n, 1))
         coarsened = 0
         while True:
-            self.header_host = grid_header(lo, hi, res)
-            clio.copy(q, self.header, self.header_host)
+            self.header_host = grid_header(lo, hi, res)  # kept (a new array per round) until it lands
+            clio.copy(q, self.header, self.header_host, is_blocking=False)
             self._run("grid_count", n, self.header, tris, u(n), counts)
             pairs = self._pair_total(counts, n)
             ncells = int(np.prod(res))
@@ -265,28 +266,55 @@ class UniformGrid:
         nonempty = 0
         if pairs:
             self.prims.sort_pairs(keys, vals, pairs, key_bits=max(1, (ncells - 1).bit_length()))
-            seg = self.prims.segments(keys, pairs, None, out=self._chunks(min(pairs, ncells)))
-            nonempty = seg.count
-            self._run("grid_ranges", nonempty, seg.key, seg.start, seg.length, u(nonempty), cells)
+            # segments and blocks on device counts (launched for bounds): no wait until the end
+            seg = self.prims.segments_dev(keys, self._count_buf("pairs", pairs), pairs, None,
+                                          self._chunks(min(pairs, ncells)), self._count_buf("nonempty"))
+            self._run("grid_ranges", min(pairs, ncells), seg.key, seg.start, seg.length,
+                      self._bufs["count_nonempty"], cells)
         cell_blocks = self._buf("cell_blocks", 4 * ncells)
         self._run("grid_block_counts", ncells, cells, u(ncells), cell_blocks)
-        nblocks = self.prims.exclusive_scan(cell_blocks, cell_blocks, ncells)
-        blocks = self._buf("blocks", GRID_BLOCK_DTYPE.itemsize * max(nblocks, 1))
-        if nblocks:
+        self.prims.exclusive_scan_dev(cell_blocks, cell_blocks, self._count_buf("ncells", ncells), ncells,
+                                      self._count_buf("nblocks"))
+        # at most pairs / 4 + one partial block per non-empty cell (build_bytes counts this bound)
+        blocks = self._buf("blocks", GRID_BLOCK_DTYPE.itemsize * max(pairs // 4 + min(pairs, ncells), 1))
+        if pairs:
             self._run("grid_blocks", ncells, cells, cell_blocks, vals, tris, u(ncells), blocks)
-        clio.finish(q)
+        got = np.zeros(1, np.uint32)
+        if pairs:
+            clio.copy(q, got, self._bufs["count_nonempty"])  # the build's one wait (statistics, timing)
+        else:
+            clio.finish(q)
+        nonempty = int(got[0])
         self.stats = GridStats(tuple(int(r) for r in res), ncells, int(pairs), int(nonempty),
                                (time.perf_counter() - t0) * 1e3, coarsened, int(total))
         return self.stats
+
+    def _count_buf(self, name: str, value: int | None = None) -> Any:
+        """A uint32 device count (a device-count primitive's input or output); `value` is written
+        to it without a wait."""
+        buf = self._buf(f"count_{name}", 4)
+        if value is not None:
+            host = np.array([value], np.uint32)
+            self._count_hosts[name] = host  # kept alive for the asynchronous write
+            clio.copy(self.ctx.queue, buf, host, is_blocking=False)
+        return buf
 
     def _pair_total(self, counts: Any, n: int) -> int:
         """Exclusive scan of the per-triangle counts in place; the exact total even past 2**32
         (the device scan wraps: then the counts are summed on the host, a rare large build)."""
         if not n:
             return 0
-        cmax = int(self.prims.reduce(counts, n, "max", np.uint32))
+        # the largest count and the scan's total in one wait (the scan is redone below when it wrapped)
+        got = np.zeros(2, np.uint32)
+        self.prims.reduce_dev(counts, n, "max", np.uint32, self._count_buf("cmax"))
+        self.prims.exclusive_scan_dev(counts, self._buf("offsets_tmp", 4 * n), self._count_buf("n_tris", n), n,
+                                      self._count_buf("total"))
+        clio.copy(self.ctx.queue, got[0:1], self._bufs["count_cmax"], is_blocking=False)
+        clio.copy(self.ctx.queue, got[1:2], self._bufs["count_total"])
+        cmax = int(got[0])
         if cmax * n < 2**32:
-            return int(self.prims.exclusive_scan(counts, counts, n))
+            clio.copy(self.ctx.queue, counts, self._bufs["offsets_tmp"], byte_count=4 * n)
+            return int(got[1])
         host = np.empty(n, np.uint32)
         clio.copy(self.ctx.queue, host, counts)
         total = int(host.sum(dtype=np.int64))
