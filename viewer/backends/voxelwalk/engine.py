@@ -21,7 +21,7 @@ import numpy as np
 
 from viewer.accel.grid import UniformGrid
 from viewer.cl import io as clio
-from viewer.cl.limits import new_buffer
+from viewer.cl.limits import device_limits, new_buffer
 from viewer.errors import RtwalkError
 
 HERE = Path(__file__).resolve().parent
@@ -154,7 +154,8 @@ class VoxelWalker:
         batch one read of the active count says whether to go on. A batch is as long as the last
         pass's iteration count (at least EC_BATCH), then doubles, so a steady pass waits once.
         Iterations past the end find no active rays and do nothing. `window` 0 (every cell at
-        once) has no pair bound: its pair count is read each iteration to size the pair buffers.
+        once), or a window whose bound does not fit the device, reads its pair count each
+        iteration to size the pair buffers.
         With `stats`, every iteration is read back (the study's per-iteration rows)."""
         g, q, u = self.grid, self.ctx.queue, np.uint32
         ps = PassStats("ec")
@@ -182,7 +183,10 @@ class VoxelWalker:
         limit = int(sum(g.stats.res)) + 8  # a 3D-DDA visits at most rx + ry + rz - 2 cells
         gs = self._ray_gsize(n)
         groups = max(1, min(n * max(self.window, 1), 16 * max(1, int(self.ctx.compute_units))))
-        pcap = n * self.window
+        # pairs per iteration: at most window per active ray, and a walk crosses at most rx+ry+rz cells;
+        # without a bound that fits (window 0, or a wide window) the pair count is read each iteration
+        pcap = n * min(self.window, limit)
+        read_pairs = self.window == 0 or 5 * 4 * pcap > device_limits(self.ctx).budget
         events = []
         it = 0
         batch = 1 if stats else max(EC_BATCH, self._last_iterations)
@@ -193,7 +197,7 @@ class VoxelWalker:
                 k["ec_count"](q, gs, (WG_SMALL,), g.header, g.cells, ray_o, ray_d, keys, nxt, act, m_cur,
                               u(self.window), counts)
                 self.prims.exclusive_scan_dev(counts, counts, m_cur, n, cb["p"])
-                if self.window == 0:  # no bound on the pairs: read their count (one wait per iteration)
+                if read_pairs:  # no usable bound on the pairs: read their count (one wait per iteration)
                     pcap = max(1, int(self._read(cb["p"], 1, np.uint32)[0]))
                 pk, pv = self._buf("pkeys", 4 * pcap), self._buf("pvals", 4 * pcap)
                 k["ec_write"](q, gs, (WG_SMALL,), g.header, g.cells, ray_o, ray_d, keys, nxt, act, m_cur,
