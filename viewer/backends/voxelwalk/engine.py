@@ -29,6 +29,7 @@ WG_IVW = 64
 WG_SMALL = 64  # local size of the one-per-ray EC kernels
 TILE = 8  # screen tile edge for the divergence statistics (pixels)
 EC_BATCH = 8  # EC iterations enqueued before the first look at the active count (at least)
+EC_GROUPS_PER_CU = 64  # persistent ec_process work-groups per compute unit (each takes chunks in turn)
 
 
 @dataclass
@@ -182,7 +183,7 @@ class VoxelWalker:
         key_bits = max(1, (int(g.stats.cells) - 1).bit_length())
         limit = int(sum(g.stats.res)) + 8  # a 3D-DDA visits at most rx + ry + rz - 2 cells
         gs = self._ray_gsize(n)
-        groups = max(1, min(n * max(self.window, 1), 16 * max(1, int(self.ctx.compute_units))))
+        groups = max(1, min(n * max(self.window, 1), EC_GROUPS_PER_CU * max(1, int(self.ctx.compute_units))))
         # pairs per iteration: at most window per active ray, and a walk crosses at most rx+ry+rz cells;
         # without a bound that fits (window 0, or a wide window) the pair count is read each iteration
         pcap = n * min(self.window, limit)
