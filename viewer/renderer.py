@@ -392,7 +392,12 @@ class Renderer:
             self.samples_done = {}
         self.backend.overlays_enabled = self.overlays_wanted  # diagnostics cost time: only when shown or saved
         self.frame_path = frame_path(self.backend, overlays=self.overlays_wanted)
-        self.backend.begin_frame(self.frame_index)
+        # a device frame's per-frame builds (begin_frame) are timed by queue markers too: no waits
+        prof.cl_deferred = self.frame_path == "device"
+        try:
+            self.backend.begin_frame(self.frame_index)
+        finally:
+            prof.cl_deferred = False
         lengths = {RayType.AO: s.ao_length * self.diagonal, RayType.DIFFUSE: self.diagonal}
         captured: list[CapturedPass] = []
         stats: dict[str, float] = {}

@@ -120,8 +120,8 @@ class UgridBackend:
                 if self._tris is not None:
                     self._tris.release()
                 self._tris = new_buffer(ctx, cl.mem_flags.READ_ONLY, f4.nbytes, "ugrid triangles")
-            if f4.nbytes:
-                clio.copy(ctx.queue, self._tris, f4)
+            if f4.nbytes:  # no wait: the copy holds f4 until it has landed
+                clio.copy(ctx.queue, self._tris, f4, is_blocking=False)
             lo, hi = scene_box(tris)
             self.grid.build(self._tris, len(tris), lo, hi, self.params.spec())
         self._tris_key = self._geometry_key()

@@ -126,8 +126,8 @@ class VoxelwalkBackend:
                 if self._tris is not None:
                     self._tris.release()
                 self._tris = new_buffer(ctx, cl.mem_flags.READ_ONLY, f4.nbytes, "voxelwalk triangles")
-            if f4.nbytes:
-                clio.copy(ctx.queue, self._tris, f4)
+            if f4.nbytes:  # no wait: the copy holds f4 until it has landed
+                clio.copy(ctx.queue, self._tris, f4, is_blocking=False)
             gs = self.grid.build(self._tris, len(tris), *scene_box(tris), self.params.spec())
         self._tris_key = self._geometry_key()
         self._build_ms += gs.build_ms  # reported by the next frame
