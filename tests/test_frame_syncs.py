@@ -150,3 +150,38 @@ def test_ec_pass_waits_once_and_launches_a_fixed_number_per_iteration():
         walker.release()
         grid.release()
         tb.release()
+
+
+def test_grid_rebuild_waits_once_and_retries_on_overflow():
+    """A rebuild at the last resolution sizes its pair buffers from the last build and waits once;
+    it equals an exact build, and when the pairs outgrow the buffers it builds again exactly."""
+    from tests.conftest import prepared_scene
+    from viewer.accel.grid import GridSpec, UniformGrid, scene_box, triangles_f4
+    from viewer.cl import cl_context
+    from viewer.cl import io as clio
+
+    ctx = cl_context()
+    tris = np.asarray(prepared_scene("city", 60_000).scene.triangles, np.float32).reshape(-1, 3, 3)
+    tb = clio.upload(ctx, triangles_f4(tris))
+    box = scene_box(tris)
+    exact, again = UniformGrid(ctx), UniformGrid(ctx)
+    try:
+        exact.build(tb, len(tris), *box, GridSpec())
+        ref = exact.to_numpy(), exact.blocks_to_numpy()
+        again.build(tb, len(tris), *box, GridSpec())
+        clio.finish(ctx.queue)
+        iostats.begin_frame()
+        st = again.build(tb, len(tris), *box, GridSpec())
+        io = iostats.end_frame()
+        assert io.host_syncs == 1, io
+        assert st.pairs == exact.stats.pairs and st.nonempty == exact.stats.nonempty
+        for a, b in zip(again.to_numpy()[1:] + again.blocks_to_numpy(), ref[0][1:] + ref[1], strict=True):
+            assert a.tobytes() == b.tobytes()
+        again._last = (again._last[0], 10)  # buffers far too small: the overflow is seen, then an exact build
+        st = again.build(tb, len(tris), *box, GridSpec())
+        assert st.pairs == exact.stats.pairs
+        assert again.to_numpy()[2].tobytes() == ref[0][2].tobytes()
+    finally:
+        exact.release()
+        again.release()
+        tb.release()
