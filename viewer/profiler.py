@@ -67,18 +67,47 @@ class GpuProfiler:
         self.by_label: dict[str, float] = {}
         self.saturated = 0
         self._queries = 0  # timer queries used this frame
+        # per phase this frame: CL launches and host syncs issued inside it (viewer.iostats deltas;
+        # the studies report them beside the phase's milliseconds)
+        self.io_by_phase: dict[str, dict[str, int]] = {}
         # CL phases timed by queue markers, read after one finish at end_frame (no host sync per
         # phase): set by the renderer around a device-resident frame's passes
         self.cl_deferred = False
 
     def begin_frame(self) -> None:
+        self.io_by_phase = {}
         self._queries = 0
         self._used.clear()
         self._cpu.clear()
         self.saturated = 0
 
     @contextmanager
+    def _io(self, name: str):
+        """Adds the launches and host syncs issued inside the block to io_by_phase[name]."""
+        c0 = iostats.current()
+        try:
+            yield
+        finally:
+            c1 = iostats.current()
+            d = self.io_by_phase.setdefault(name, {"cl_launches": 0, "host_syncs": 0})
+            d["cl_launches"] += c1.cl_launches - c0.cl_launches
+            d["host_syncs"] += c1.host_syncs - c0.host_syncs
+
+    @contextmanager
     def phase(self, name: str):
+        with self._io(name):
+            with self._phase(name):
+                yield
+
+    @contextmanager
+    def cl_phase(self, name: str, queue):
+        """Time OpenCL work enqueued on `queue` (see _cl_phase), counting its launches and syncs."""
+        with self._io(name):
+            with self._cl_phase(name, queue):
+                yield
+
+    @contextmanager
+    def _phase(self, name: str):
         if not self.enabled:
             t0 = time.perf_counter()
             yield
@@ -102,7 +131,7 @@ class GpuProfiler:
         self._cpu[name] = self._cpu.get(name, 0.0) + (time.perf_counter() - t0) * 1e3
 
     @contextmanager
-    def cl_phase(self, name: str, queue):
+    def _cl_phase(self, name: str, queue):
         """Time OpenCL work enqueued on `queue` (a pyopencl.CommandQueue) as phase `name`.
 
         The queue is finished at the end, so the phase holds the kernels' run time even though

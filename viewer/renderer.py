@@ -76,6 +76,7 @@ class FrameReport:
     captured: list[CapturedPass] = field(default_factory=list)
     overlay_source: tuple[RayType, int] | None = None  # the pass whose overlays were copied
     io: IoCounts = field(default_factory=IoCounts)  # bytes, syncs, launches, draws, queries (viewer.iostats)
+    phase_io: dict[str, dict[str, int]] = field(default_factory=dict)  # per phase: cl_launches, host_syncs
 
     @property
     def trace_ms(self) -> float:
@@ -404,7 +405,12 @@ class Renderer:
             apply(prog, light_u)
         self.backend.overlays_enabled = self.overlays_wanted  # diagnostics cost time: only when shown or saved
         self.frame_path = frame_path(self.backend, overlays=self.overlays_wanted)
-        self.backend.begin_frame(self.frame_index)
+        # a device frame's per-frame builds (begin_frame) are timed by queue markers too: no waits
+        prof.cl_deferred = self.frame_path == "device"
+        try:
+            self.backend.begin_frame(self.frame_index)
+        finally:
+            prof.cl_deferred = False
         if not keep:
             if self.gbuffer_source == "trace":
                 self._traced_gbuffer(camera)
@@ -442,7 +448,8 @@ class Renderer:
         self.frame_index += 1
         rays = {RayType(i).label: int(counts[i]) for i in range(6) if counts[i] > 0}
         return FrameReport(gpu_ms, prof.cpu_ms(), wall, rays, dict(prof.by_label), stats, captured,
-                           self.overlay_source, iostats.end_frame())
+                           self.overlay_source, iostats.end_frame(),
+                           {k: dict(v) for k, v in prof.io_by_phase.items()})
 
     def _batch_passes(self, passes, lengths, source, capture, captured, stats) -> tuple[np.ndarray, bool]:
         """Every pass through the RayBatch / HitBuffer textures (GL backends, overlay frames):
@@ -473,8 +480,8 @@ class Renderer:
 
     def _device_passes(self, passes, lengths, cam_u, light_u, keep, capture, captured, stats) -> np.ndarray:
         """Every pass on the CL device (viewer.cl.frame): the G-buffer ids in once, rays made,
-        traced and accumulated there, the used accumulators out once, the ray counts read once.
-        Phases are timed by queue markers (no host wait per pass); the backend's `end_frame`
+        traced and accumulated there, the used accumulators out once, the ray counts read with
+        them. Phases are timed by queue markers (no host wait per phase or pass); the backend's `end_frame`
         (optional) reports counters kept on the device over the frame."""
         from viewer.cl.frame import DeviceFrame
 
@@ -484,10 +491,10 @@ class Renderer:
         dev = self._device
         q = dev.ctx.queue
         dev.set_scene(self.scene)
-        with prof.cl_phase("device:ids", q):
-            dev.begin(self.size, self.gbuffer.tri_id, cam_u, light_u, keep)
-        prof.cl_deferred = True
+        prof.cl_deferred = True  # every CL phase of the frame timed by markers: no wait per phase
         try:
+            with prof.cl_phase("device:ids", q):
+                dev.begin(self.size, self.gbuffer.tri_id, cam_u, light_u, keep)
             for ray_type, sample, light, weight in passes:
                 with prof.cl_phase("raygen", q):
                     dev.generate(ray_type, sample, light, lengths.get(ray_type, 0.0), np.radians(s.perturb_deg))
@@ -504,14 +511,15 @@ class Renderer:
                     with prof.cl_phase("accumulate", q):
                         dev.accumulate(ray_type, light, weight)
                     self.samples_done.setdefault(ray_type, set()).add(sample)
+            end = getattr(self.backend, "end_frame", None)
+            if callable(end):
+                for k, v in end().items():
+                    stats[k] = stats.get(k, 0) + v
+            dev.request_counts()  # arrives with the accumulators' reads (no wait of its own)
+            with prof.cl_phase("device:accumulators", q):
+                dev.write_accumulators(self.accumulate.textures, sorted(self.samples_done, key=int))
         finally:
             prof.cl_deferred = False
-        end = getattr(self.backend, "end_frame", None)
-        if callable(end):
-            for k, v in end().items():
-                stats[k] = stats.get(k, 0) + v
-        with prof.cl_phase("device:accumulators", q):
-            dev.write_accumulators(self.accumulate.textures, sorted(self.samples_done, key=int))
         return dev.read_counts()
 
     def _traced_gbuffer(self, camera: Camera) -> None:

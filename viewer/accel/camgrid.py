@@ -138,8 +138,12 @@ def corner_rays(ray_o: Any, ray_d: Any, size: tuple[int, int], ctx: Any) -> tupl
     """The (4, 4) origin and direction rows of the corner pixels (only those 8 rows are read)."""
     w, h = size
     idx = [0, w - 1, (h - 1) * w, h * w - 1]
-    return (clio.read_rows(ctx.queue, ray_o, idx, (4,), np.float32),
-            clio.read_rows(ctx.queue, ray_d, idx, (4,), np.float32))
+    out = np.empty((2, 4, 4), np.float32)
+    for j, buf in enumerate((ray_o, ray_d)):  # eight small copies, one wait
+        for k, r in enumerate(idx):
+            last = j == 1 and k == 3
+            clio.copy(ctx.queue, out[j, k], buf, src_offset=16 * int(r), is_blocking=last)
+    return out[0], out[1]
 
 
 def slab_params(z_lo: float, z_hi: float, slabs: int) -> tuple[float, float, float, float]:
@@ -220,7 +224,8 @@ class CameraGrid:
         t0 = time.perf_counter()
         self.camera = cam
         hd = self.header_for(cam, spec)
-        clio.copy(q, self.header, hd)
+        self._header0 = hd.copy()  # kept alive for the asynchronous write
+        clio.copy(q, self.header, self._header0, is_blocking=False)
         ntx, nty, ns = (int(x) for x in hd["tiles"][0, 1:])
         ncells = ntx * nty * ns
         nt = max(n_tris, 1)
@@ -228,15 +233,30 @@ class CameraGrid:
         place, place_slab = self.buf("place", 16 * nt), self.buf("place_slab", 8 * nt)
         zlo, zhi = self.buf("zlo", 4 * nt), self.buf("zhi", 4 * nt)
         self._run("cg_tri_clip", n_tris, self.header, tris, u(n_tris), flags, place, zlo, zhi)
-        if n_tris:
-            z0, z1 = float(p.reduce(zlo, n_tris, "min", np.float32)), float(p.reduce(zhi, n_tris, "max", np.float32))
+        if n_tris:  # the visible depth range: two reductions, one wait
+            zr = np.zeros(2, np.float32)
+            p.reduce_dev(zlo, n_tris, "min", np.float32, self.buf("zmin", 4))
+            p.reduce_dev(zhi, n_tris, "max", np.float32, self.buf("zmax", 4))
+            clio.copy(q, zr[0:1], self._bufs["zmin"], is_blocking=False)
+            clio.copy(q, zr[1:2], self._bufs["zmax"])
+            z0, z1 = float(zr[0]), float(zr[1])
         else:
             z0, z1 = np.inf, -np.inf
         hd["slab"][0] = slab_params(z0, z1, ns)
         self.header_host = hd
-        clio.copy(q, self.header, hd)
+        clio.copy(q, self.header, hd, is_blocking=False)  # hd is kept (header_host) until it lands
         self._run("cg_tri_count", n_tris, self.header, u(n_tris), flags, place, zlo, zhi, counts, place_slab)
-        pairs = p.exclusive_scan(counts, offsets, n_tris) if n_tris else 0
+        # the pair total and the culled counts (count-only compactions): one wait
+        got = np.zeros(4, np.uint32)
+        if n_tris:
+            pairs_buf = self.buf("pairs", 4)
+            p.exclusive_scan_dev(counts, offsets, self._n_buf(n_tris), n_tris, pairs_buf)
+            for k, f in enumerate((FLAG_FRUSTUM, FLAG_BACK, FLAG_NEAR_EYE)):
+                cb = self.buf(f"culled{k}", 4)
+                p.compact_dev(self._bufs["n"], n_tris, cb, src=flags, predicate=f"x == {f}u")
+                clio.copy(q, got[k + 1:k + 2], cb, is_blocking=False)
+            clio.copy(q, got[0:1], pairs_buf)
+        pairs, frustum, back, near = (int(x) for x in got)
         cells = self.buf("cells", 8 * ncells)
         cl.enqueue_fill_buffer(q, cells, np.uint32(0), 0, 8 * ncells)
         overflow = pairs > min(MAX_PAIRS, pair_cap(self.ctx, PAIR_BYTES))  # device limits too
@@ -244,30 +264,49 @@ class CameraGrid:
             keys, refs = self.buf("keys", 4 * pairs), self.buf("refs", 4 * pairs)
             self._run("cg_tri_write", n_tris, self.header, u(n_tris), offsets, counts, place, place_slab, keys, refs)
             p.sort_pairs(keys, refs, pairs, key_bits=max(1, (ncells - 1).bit_length()))
-            seg = p.segments(keys, pairs, None, out=Chunks(0, self.buf("seg_key", 4 * pairs),
-                                                            self.buf("seg_start", 4 * pairs),
-                                                            self.buf("seg_len", 4 * pairs)))
-            self._run("cg_ranges", seg.count, seg.key, seg.start, seg.length, u(seg.count), cells)
+            seg = p.segments_dev(keys, self._bufs["pairs"], pairs, None,
+                                 Chunks(0, self.buf("seg_key", 4 * pairs), self.buf("seg_start", 4 * pairs),
+                                        self.buf("seg_len", 4 * pairs)), self.buf("seg_count", 4))
+            self._run("cg_ranges", pairs, seg.key, seg.start, seg.length, self._bufs["seg_count"], cells)
         self.buf("refs", 4 * max(pairs, 1) if not overflow else 4)
-        # culled counts on the device (count-only compactions): no per-triangle read-back
-        frustum, back, near = (p.compact(n_tris, src=flags, predicate=f"x == {f}u") if n_tris else 0
-                               for f in (FLAG_FRUSTUM, FLAG_BACK, FLAG_NEAR_EYE))
-        clio.finish(q)
         self.stats = CameraGridStats((ntx, nty), ns, n_tris, 0 if overflow else int(pairs), int(frustum), int(back),
                                      int(near), 0, 0, (time.perf_counter() - t0) * 1e3, overflow=overflow)
         return self.stats
 
+    def _n_buf(self, n: int) -> Any:
+        """A device uint32 holding n (the count the device-count primitives read)."""
+        self._n_host = np.array([n], np.uint32)  # kept alive for the asynchronous write
+        buf = self.buf("n", 4)
+        clio.copy(self.ctx.queue, buf, self._n_host, is_blocking=False)
+        return buf
+
     def classify(self, ray_o: Any, ray_d: Any, n: int) -> int:
-        """Step 4: flag and list the rays the grid cannot trace; returns how many."""
-        assert self.stats is not None, "build first"
+        """Step 4: flag and list the rays the grid cannot trace; returns how many (a wait: tests
+        and studies; frames use classify_device)."""
         t0 = time.perf_counter()
-        outside, idx = self.buf("outside", 4 * max(n, 1)), self.buf("outside_idx", 4 * max(n, 1))
-        self._run("cg_classify", n, self.header, ray_o, ray_d, np.uint32(n), outside)
-        count = self.prims.compact(n, flags=outside, dst_index=idx) if n else 0
-        clio.finish(self.ctx.queue)
-        self.stats.rays, self.stats.outside = n, int(count)
+        self.classify_device(ray_o, ray_d, n)
+        got = np.zeros(1, np.uint32)
+        if n:
+            clio.copy(self.ctx.queue, got, self.outside_count)
+        self.stats.rays, self.stats.outside = n, int(got[0])
         self.stats.classify_ms = (time.perf_counter() - t0) * 1e3
-        return int(count)
+        return int(got[0])
+
+    def classify_device(self, ray_o: Any, ray_d: Any, n: int) -> None:
+        """Step 4 without a wait: the outside rays listed in outside_index, their count in the
+        device buffer outside_count (a trace kernel reads it)."""
+        assert self.stats is not None, "build first"
+        outside, idx = self.buf("outside", 4 * max(n, 1)), self.buf("outside_idx", 4 * max(n, 1))
+        count = self.buf("outside_count", 4)
+        self.ctx.cl.enqueue_fill_buffer(self.ctx.queue, count, np.uint32(0), 0, 4)
+        self._run("cg_classify", n, self.header, ray_o, ray_d, np.uint32(n), outside)
+        if n:
+            self.prims.compact_dev(self._n_buf(n), n, count, flags=outside, dst_index=idx)
+        self.stats.rays = n
+
+    @property
+    def outside_count(self) -> Any:
+        return self._bufs["outside_count"]
 
     @property
     def cells(self) -> Any:

@@ -147,9 +147,9 @@ void cg_tri_write(__global const CGrid *grid, const uint n, __global const uint 
 // Cell ranges from the segments of the sorted keys (cells zero-filled before).
 __kernel __attribute__((reqd_work_group_size(WG, 1, 1)))
 void cg_ranges(__global const uint *seg_key, __global const uint *seg_start, __global const uint *seg_len,
-               const uint m, __global uint2 *cells) {
+               __global const uint *m_ptr, __global uint2 *cells) {
     uint i = get_global_id(0);
-    if (i >= m) return;
+    if (i >= *m_ptr) return;  // the segment count, on the device (launched for a bound)
     cells[seg_key[i]] = (uint2)(seg_start[i], seg_len[i]);
 }
 

@@ -193,11 +193,13 @@ class UniformGrid:
         self.ctx = ctx or cl_context()
         self.prims = prims or primitives(self.ctx)
         prog = build(KERNEL, {"WG": WG}, self.ctx)
-        self._k = {name: clio.kernel(prog, name) for name in ("grid_count", "grid_write", "grid_ranges",
+        self._k = {name: clio.kernel(prog, name) for name in ("grid_count", "grid_write", "grid_ranges", "grid_clamp",
                                                              "grid_block_counts", "grid_blocks")}
         self._bufs = BufferPool(self.ctx, "uniform grid")
         self.header_host = np.zeros(1, GRID_DTYPE)
         self.header = self._buf("header", GRID_DTYPE.itemsize)
+        self._count_hosts: dict[str, np.ndarray] = {}
+        self._last: tuple[tuple, int] | None = None  # ((resolution, triangles), pairs) of the last exact-size build
         self.stats: GridStats | None = None
 
     def _buf(self, name: str, nbytes: int) -> Any:
@@ -232,11 +234,17 @@ class UniformGrid:
         cl, q, u = self.ctx.cl, self.ctx.queue, np.uint32
         t0 = time.perf_counter()
         res = grid_resolution(lo, hi, n, spec)
+        key = (tuple(int(r) for r in res), int(n))
+        if self._last is not None and self._last[0] == key:  # a rebuild: buffers sized from the last one
+            st = self._build_sized(tris, n, lo, hi, res, self._last[1], lim, t0)
+            if st is not None:
+                self._last = (key, st.pairs)
+                return st
         counts = self._buf("counts", 4 * max(n, 1))
         coarsened = 0
         while True:
-            self.header_host = grid_header(lo, hi, res)
-            clio.copy(q, self.header, self.header_host)
+            self.header_host = grid_header(lo, hi, res)  # kept (a new array per round) until it lands
+            clio.copy(q, self.header, self.header_host, is_blocking=False)
             self._run("grid_count", n, self.header, tris, u(n), counts)
             pairs = self._pair_total(counts, n)
             ncells = int(np.prod(res))
@@ -261,32 +269,105 @@ class UniformGrid:
         vals = self._buf("vals", 4 * pairs)
         cells = self._buf("cells", 8 * ncells)
         cl.enqueue_fill_buffer(q, cells, np.uint32(0), 0, 8 * ncells)
-        self._run("grid_write", n, self.header, tris, u(n), counts, keys, vals)
+        self._run("grid_write", n, self.header, tris, u(n), counts, keys, vals, u(pairs))
         nonempty = 0
         if pairs:
             self.prims.sort_pairs(keys, vals, pairs, key_bits=max(1, (ncells - 1).bit_length()))
-            seg = self.prims.segments(keys, pairs, None, out=self._chunks(min(pairs, ncells)))
-            nonempty = seg.count
-            self._run("grid_ranges", nonempty, seg.key, seg.start, seg.length, u(nonempty), cells)
+            # segments and blocks on device counts (launched for bounds): no wait until the end
+            seg = self.prims.segments_dev(keys, self._count_buf("pairs", pairs), pairs, None,
+                                          self._chunks(min(pairs, ncells)), self._count_buf("nonempty"))
+            self._run("grid_ranges", min(pairs, ncells), seg.key, seg.start, seg.length,
+                      self._bufs["count_nonempty"], cells)
         cell_blocks = self._buf("cell_blocks", 4 * ncells)
         self._run("grid_block_counts", ncells, cells, u(ncells), cell_blocks)
-        nblocks = self.prims.exclusive_scan(cell_blocks, cell_blocks, ncells)
-        blocks = self._buf("blocks", GRID_BLOCK_DTYPE.itemsize * max(nblocks, 1))
-        if nblocks:
+        self.prims.exclusive_scan_dev(cell_blocks, cell_blocks, self._count_buf("ncells", ncells), ncells,
+                                      self._count_buf("nblocks"))
+        # at most pairs / 4 + one partial block per non-empty cell (build_bytes counts this bound)
+        blocks = self._buf("blocks", GRID_BLOCK_DTYPE.itemsize * max(pairs // 4 + min(pairs, ncells), 1))
+        if pairs:
             self._run("grid_blocks", ncells, cells, cell_blocks, vals, tris, u(ncells), blocks)
-        clio.finish(q)
+        got = np.zeros(1, np.uint32)
+        if pairs:
+            clio.copy(q, got, self._bufs["count_nonempty"])  # the build's one wait (statistics, timing)
+        else:
+            clio.finish(q)
+        nonempty = int(got[0])
         self.stats = GridStats(tuple(int(r) for r in res), ncells, int(pairs), int(nonempty),
                                (time.perf_counter() - t0) * 1e3, coarsened, int(total))
+        self._last = (key, int(pairs)) if coarsened == 0 else None
         return self.stats
+
+    def _build_sized(self, tris: Any, n: int, lo: np.ndarray, hi: np.ndarray, res: np.ndarray, last_pairs: int,
+                     lim: DeviceLimits, t0: float) -> GridStats | None:
+        """A rebuild at the last build's resolution with one wait: the pair buffers are sized
+        from the last build's pairs (+25%), every count stays on the device, and the pair total
+        read at the end says whether they sufficed. None when they did not (or the 32-bit scan
+        could have wrapped, or the bound does not fit the device): the caller builds exactly."""
+        q, u = self.ctx.queue, np.uint32
+        ncells = int(np.prod(res))
+        cap = int(last_pairs * 1.25) + 1024
+        nbytes, largest = build_bytes(cap, ncells, n)
+        if cap > MAX_PAIRS or largest > lim.max_alloc or nbytes > lim.budget or n == 0:
+            return None
+        self.header_host = grid_header(lo, hi, res)
+        clio.copy(q, self.header, self.header_host, is_blocking=False)
+        counts = self._buf("counts", 4 * n)
+        self._run("grid_count", n, self.header, tris, u(n), counts)
+        self.prims.reduce_dev(counts, n, "max", np.uint32, self._count_buf("cmax"))
+        self.prims.exclusive_scan_dev(counts, counts, self._count_buf("n_tris", n), n, self._count_buf("total"))
+        used = self._count_buf("pairs")
+        self._run("grid_clamp", 1, self._bufs["count_total"], u(cap), used)
+        keys, vals = self._buf("keys", 4 * cap), self._buf("vals", 4 * cap)
+        cells = self._buf("cells", 8 * ncells)
+        self.ctx.cl.enqueue_fill_buffer(q, cells, np.uint32(0), 0, 8 * ncells)
+        self._run("grid_write", n, self.header, tris, u(n), counts, keys, vals, u(cap))
+        self.prims.sort_pairs_dev(keys, vals, used, cap, max(1, (ncells - 1).bit_length()))
+        seg = self.prims.segments_dev(keys, used, cap, None, self._chunks(min(cap, ncells)),
+                                      self._count_buf("nonempty"))
+        self._run("grid_ranges", min(cap, ncells), seg.key, seg.start, seg.length, self._bufs["count_nonempty"], cells)
+        cell_blocks = self._buf("cell_blocks", 4 * ncells)
+        self._run("grid_block_counts", ncells, cells, u(ncells), cell_blocks)
+        self.prims.exclusive_scan_dev(cell_blocks, cell_blocks, self._count_buf("ncells", ncells), ncells,
+                                      self._count_buf("nblocks"))
+        blocks = self._buf("blocks", GRID_BLOCK_DTYPE.itemsize * max(cap // 4 + min(cap, ncells), 1))
+        self._run("grid_blocks", ncells, cells, cell_blocks, vals, tris, u(ncells), blocks)
+        got = np.zeros(3, np.uint32)  # pair total, largest count, non-empty cells: the build's one wait
+        for k, name in ((1, "count_cmax"), (2, "count_nonempty")):
+            clio.copy(q, got[k:k + 1], self._bufs[name], is_blocking=False)
+        clio.copy(q, got[0:1], self._bufs["count_total"])
+        pairs, cmax, nonempty = (int(x) for x in got)
+        if cmax * n >= 2**32 or pairs > cap:
+            return None  # overflow (rare: the scene grew): build again with exact buffers
+        self.stats = GridStats(tuple(int(r) for r in res), ncells, pairs, nonempty,
+                               (time.perf_counter() - t0) * 1e3, 0, int(build_bytes(pairs, ncells, n)[0]))
+        return self.stats
+
+    def _count_buf(self, name: str, value: int | None = None) -> Any:
+        """A uint32 device count (a device-count primitive's input or output); `value` is written
+        to it without a wait."""
+        buf = self._buf(f"count_{name}", 4)
+        if value is not None:
+            host = np.array([value], np.uint32)
+            self._count_hosts[name] = host  # kept alive for the asynchronous write
+            clio.copy(self.ctx.queue, buf, host, is_blocking=False)
+        return buf
 
     def _pair_total(self, counts: Any, n: int) -> int:
         """Exclusive scan of the per-triangle counts in place; the exact total even past 2**32
         (the device scan wraps: then the counts are summed on the host, a rare large build)."""
         if not n:
             return 0
-        cmax = int(self.prims.reduce(counts, n, "max", np.uint32))
+        # the largest count and the scan's total in one wait (the scan is redone below when it wrapped)
+        got = np.zeros(2, np.uint32)
+        self.prims.reduce_dev(counts, n, "max", np.uint32, self._count_buf("cmax"))
+        self.prims.exclusive_scan_dev(counts, self._buf("offsets_tmp", 4 * n), self._count_buf("n_tris", n), n,
+                                      self._count_buf("total"))
+        clio.copy(self.ctx.queue, got[0:1], self._bufs["count_cmax"], is_blocking=False)
+        clio.copy(self.ctx.queue, got[1:2], self._bufs["count_total"])
+        cmax = int(got[0])
         if cmax * n < 2**32:
-            return int(self.prims.exclusive_scan(counts, counts, n))
+            clio.copy(self.ctx.queue, counts, self._bufs["offsets_tmp"], byte_count=4 * n)
+            return int(got[1])
         host = np.empty(n, np.uint32)
         clio.copy(self.ctx.queue, host, counts)
         total = int(host.sum(dtype=np.int64))

@@ -41,9 +41,11 @@ void grid_count(__global const Grid *grid, __global const float4 *tris, const ui
     counts[i] = cnt;
 }
 
+// Pairs past `cap` (the buffers' room, when sized from the last build) are not written: the host
+// sees the total exceed it and builds again with exact buffers.
 __kernel __attribute__((reqd_work_group_size(WG, 1, 1)))
 void grid_write(__global const Grid *grid, __global const float4 *tris, const uint n, __global const uint *offsets,
-                __global uint *keys, __global uint *vals) {
+                __global uint *keys, __global uint *vals, const uint cap) {
     uint i = get_global_id(0);
     if (i >= n) return;
     Grid g = *grid;
@@ -53,18 +55,25 @@ void grid_write(__global const Grid *grid, __global const float4 *tris, const ui
     for (int z = c0.z; z <= c1.z; ++z)
         for (int y = c0.y; y <= c1.y; ++y)
             for (int x = c0.x; x <= c1.x; ++x) {
+                if (o >= cap) return;
                 keys[o] = (uint)grid_cell_id(&g, (int3)(x, y, z));
                 vals[o] = i;
                 ++o;
             }
 }
 
+// n_out = min(total, cap): the pairs a build sized from the last one sorts.
+__kernel __attribute__((reqd_work_group_size(WG, 1, 1)))
+void grid_clamp(__global const uint *total, const uint cap, __global uint *n_out) {
+    if (get_global_id(0) == 0) *n_out = min(*total, cap);
+}
+
 // Cell ranges from the segments of the sorted keys (one chunk per non-empty cell).
 __kernel __attribute__((reqd_work_group_size(WG, 1, 1)))
 void grid_ranges(__global const uint *seg_key, __global const uint *seg_start, __global const uint *seg_len,
-                 const uint m, __global uint2 *cells) {
+                 __global const uint *m_ptr, __global uint2 *cells) {
     uint i = get_global_id(0);
-    if (i >= m) return;
+    if (i >= *m_ptr) return;  // the segment count, on the device (launched for a bound)
     cells[seg_key[i]] = (uint2)(seg_start[i], seg_len[i]);
 }
 

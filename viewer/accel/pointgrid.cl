@@ -233,8 +233,9 @@ void pg_tri_write(__global const PGrid *grid, const uint n, __global const uint 
 
 // counts per cell from the segments of the sorted pair keys (zero-filled before)
 __kernel __attribute__((reqd_work_group_size(WG, 1, 1)))
-void pg_cell_counts(__global const uint *seg_key, __global const uint *seg_len, const uint m, __global uint *counts) {
+void pg_cell_counts(__global const uint *seg_key, __global const uint *seg_len, __global const uint *m_ptr,
+                    __global uint *counts) {
     uint i = get_global_id(0);
-    if (i >= m) return;
+    if (i >= *m_ptr) return;  // the segment count, on the device (launched for a bound)
     counts[seg_key[i]] = seg_len[i];
 }

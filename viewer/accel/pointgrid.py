@@ -149,6 +149,7 @@ class PointGrid:
         self.chunks = None
         self.outside_count = 0
         self.inactive_count = 0
+        self._n_hosts: dict[str, np.ndarray] = {}
 
     def buf(self, name: str, nbytes: int) -> Any:
         return self._bufs.get(name, nbytes)
@@ -178,23 +179,36 @@ class PointGrid:
         h["fwd"][0, :3], h["up"][0, :3], h["right"][0, :3] = fwd, up, right
         h["slab"][0, 2:] = (np.tan(spec.margin), d0)
         h["res"][0] = (1, 1, 1, 1)
-        clio.copy(q, self.header, h)
+        self._header0 = h.copy()  # kept alive for the asynchronous write (h changes below)
+        clio.copy(q, self.header, self._header0, is_blocking=False)
         alpha, theta = self.buf("alpha", 4 * n), self.buf("theta", 4 * n)
         dev, outside = self.buf("dev", 4 * n), self.buf("outside", 4 * n)
         self._run("pg_classify", n, self.header, ray_o, ray_d, u(n), alpha, theta, dev, outside)
         out_idx = self.buf("outside_idx", 4 * n)
-        self.outside_count = p.compact(n, src=outside, predicate="x == 1u", dst_index=out_idx) if n else 0
-        self.inactive_count = p.compact(n, src=outside, predicate="x == 2u") if n else 0
+        # the rays' counts (outside, inactive) and reductions (largest deviation, angular
+        # rectangle) on the device, read back together: one wait
+        cnt, red = np.zeros(2, np.uint32), np.zeros(5, np.float32)
+        if n:
+            n_buf = self._n_buf(n)
+            p.compact_dev(n_buf, n, self.buf("c_out", 4), src=outside, predicate="x == 1u", dst_index=out_idx)
+            p.compact_dev(n_buf, n, self.buf("c_inact", 4), src=outside, predicate="x == 2u")
+            for k, (src, op) in enumerate(((dev, "max"), (alpha, "min"), (alpha, "max"), (theta, "min"),
+                                           (theta, "max"))):
+                rb = self.buf(f"red{k}", 4)
+                p.reduce_dev(src, n, op, np.float32, rb)
+                clio.copy(q, red[k:k + 1], rb, is_blocking=False)
+            clio.copy(q, cnt[1:2], self._bufs["c_inact"], is_blocking=False)
+            clio.copy(q, cnt[0:1], self._bufs["c_out"])
+        self.outside_count, self.inactive_count = int(cnt[0]), int(cnt[1])
         in_grid = n - self.outside_count - self.inactive_count
         # margin: the largest deviation of a ray in the grid (at most spec.margin), plus float slack
-        m = float(p.reduce(dev, n, "max", np.float32)) * (1 + 1e-4) + 1e-6 if in_grid else spec.margin
+        m = float(red[0]) * (1 + 1e-4) + 1e-6 if in_grid else spec.margin
         m = min(m, spec.margin)
         h["centre"][0, 3] = m
         self.margin = m
         # the rays' angular rectangle, grown by the margin
         if in_grid:
-            a0, a1 = float(p.reduce(alpha, n, "min", np.float32)), float(p.reduce(alpha, n, "max", np.float32))
-            e0, e1 = float(p.reduce(theta, n, "min", np.float32)), float(p.reduce(theta, n, "max", np.float32))
+            a0, a1, e0, e1 = (float(x) for x in red[1:])
         else:
             a0 = a1 = e0 = e1 = 0.0
         a0, a1 = max(a0 - 2 * m, -np.pi), min(a1 + 2 * m, np.pi)
@@ -211,14 +225,24 @@ class PointGrid:
         ncells = na * nt * ns
         h["res"][0] = (na, nt, ns, ncells)
         self.header_host = h
-        clio.copy(q, self.header, h)
+        clio.copy(q, self.header, h, is_blocking=False)  # h is kept (header_host) until it lands
         # triangles: (cell, triangle) pairs
         from viewer.cl.primitives import Chunks
 
         counts, flags = self.buf("tri_counts", 4 * max(n_tris, 1)), self.buf("tri_flags", 4 * max(n_tris, 1))
         place, place_slab = self.buf("tri_place", 16 * max(n_tris, 1)), self.buf("tri_slab", 4 * max(n_tris, 1))
         self._run("pg_tri_count", n_tris, self.header, tris, u(n_tris), counts, flags, place, place_slab)
-        pairs = p.exclusive_scan(counts, counts, n_tris) if n_tris else 0
+        # the pair total and the culled / widened counts (count-only compactions): one wait
+        got = np.zeros(3, np.uint32)
+        if n_tris:
+            nt_buf = self._n_buf(n_tris, "n_tris")
+            p.exclusive_scan_dev(counts, counts, nt_buf, n_tris, self.buf("pairs", 4))
+            for k, b in enumerate((1, 2)):
+                cb = self.buf(f"flagged{b}", 4)
+                p.compact_dev(nt_buf, n_tris, cb, src=flags, predicate=f"(x & {b}u) != 0u")
+                clio.copy(q, got[k + 1:k + 2], cb, is_blocking=False)
+            clio.copy(q, got[0:1], self._bufs["pairs"])
+        pairs, culled, widened = (int(x) for x in got)
         cap = min(MAX_PAIRS, pair_cap(self.ctx, PAIR_BYTES))  # the device's memory bounds it too
         if pairs > cap:
             raise RtwalkError(f"point grid {na}x{nt}x{ns} needs {pairs:,} triangle-cell pairs (at most {cap:,} "
@@ -229,21 +253,26 @@ class PointGrid:
         cl.enqueue_fill_buffer(q, cell_start, np.uint32(0), 0, 4 * (ncells + 1))
         if pairs:
             p.sort_pairs(keys, refs, pairs, key_bits=max(1, (ncells - 1).bit_length()))
-            seg = p.segments(keys, pairs, None, out=Chunks(0, self.buf("seg_key", 4 * pairs),
-                                                            self.buf("seg_start", 4 * pairs),
-                                                            self.buf("seg_len", 4 * pairs)))
-            self._run("pg_cell_counts", seg.count, seg.key, seg.length, u(seg.count), cell_start)
-        p.exclusive_scan(cell_start, cell_start, ncells + 1)
-        # culled / widened counts on the device (count-only compactions): no per-triangle read-back
-        culled, widened = (p.compact(n_tris, src=flags, predicate=f"(x & {b}u) != 0u") if n_tris else 0
-                           for b in (1, 2))
-        clio.finish(q)
+            seg = p.segments_dev(keys, self._bufs["pairs"], pairs, None,
+                                 Chunks(0, self.buf("seg_key", 4 * pairs), self.buf("seg_start", 4 * pairs),
+                                        self.buf("seg_len", 4 * pairs)), self.buf("seg_count", 4))
+            self._run("pg_cell_counts", pairs, seg.key, seg.length, self._bufs["seg_count"], cell_start)
+        p.exclusive_scan_dev(cell_start, cell_start, self._n_buf(ncells + 1, "n_cells"), ncells + 1,
+                             self.buf("cells_total", 4))
         self.stats = PointGridStats((na, nt), ns, n, in_grid, self.outside_count, self.inactive_count, 0, int(pairs),
                                     int(culled), int(widened), (time.perf_counter() - t0) * 1e3)
 
+    def _n_buf(self, n: int, name: str = "n") -> Any:
+        """A device uint32 holding n (the count the device-count primitives read)."""
+        host = np.array([n], np.uint32)
+        self._n_hosts[name] = host  # kept alive for the asynchronous write
+        buf = self.buf(name, 4)
+        clio.copy(self.ctx.queue, buf, host, is_blocking=False)
+        return buf
+
     def rearrange(self, n: int, spec: PointGridSpec, balance: bool = True) -> PointGridStats:
         """Step 4: (tile, ray) pairs sorted, chunks of at most spec.chunk rays (balance=False: one
-        chunk per tile, whatever its size)."""
+        chunk per tile, whatever its size). One wait: the chunk count sizes the trace launch."""
         from viewer.cl.primitives import Chunks
 
         assert self.stats is not None, "place first"
@@ -256,7 +285,6 @@ class PointGrid:
         self.prims.sort_pairs(rk, rv, n, key_bits=max(1, (ntiles + 1).bit_length()))
         out = Chunks(0, self.buf("ch_key", 4 * n), self.buf("ch_start", 4 * n), self.buf("ch_len", 4 * n))
         self.chunks = self.prims.segments(rk, n, spec.chunk if balance else None, out=out)
-        clio.finish(self.ctx.queue)
         sentinel = sum((-(-k // spec.chunk) if balance else 1) if k else 0
                        for k in (self.outside_count, self.inactive_count))
         self.stats.chunks = self.chunks.count - sentinel  # chunks of outside / inactive rays are not traced here

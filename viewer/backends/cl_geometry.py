@@ -46,8 +46,8 @@ class GeometryBackend(StatelessBackend):
             if self._tris is not None:
                 self._tris.release()
             self._tris = new_buffer(ctx, ctx.cl.mem_flags.READ_ONLY, f4.nbytes, label)
-        if f4.nbytes:
-            clio.copy(ctx.queue, self._tris, f4)
+        if f4.nbytes:  # no wait: pyopencl holds f4 until the copy has landed
+            clio.copy(ctx.queue, self._tris, f4, is_blocking=False)
         self._tris_key = self._geometry_key()
         return tris
 

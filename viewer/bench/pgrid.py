@@ -109,7 +109,8 @@ def bvh_build_ms(prep) -> dict[str, float]:
 def run_interleaved(ctx, prep, camera, size, effects: str, configs: dict[str, tuple[str, str]], frames: int,
                     scene=None) -> dict[str, dict]:
     """configs: label -> (backend, params). Returns label -> {"phases": {phase: median ms},
-    "stats": last frame's counters}."""
+    "stats": last frame's counters, "phase_io": last frame's launches and host syncs per phase,
+    "io": last frame's viewer.iostats counts}."""
     from viewer.effects import parse_effects
     from viewer.renderer import Renderer
 
@@ -121,12 +122,16 @@ def run_interleaved(ctx, prep, camera, size, effects: str, configs: dict[str, tu
                                         backend_options={backend: params} if params else None)
         samples: dict[str, list[dict]] = {k: [] for k in configs}
         stats: dict[str, dict] = {}
+        phase_io: dict[str, dict] = {}
+        io: dict[str, dict] = {}
         for f in range(frames + 1):
             for label, r in renderers.items():
                 rep = r.render(camera)
                 if f > 0:
                     samples[label].append(dict(rep.gpu_ms))
                     stats[label] = dict(rep.backend_stats)
+                    phase_io[label] = dict(rep.phase_io)
+                    io[label] = rep.io.as_dict()
     finally:
         for r in renderers.values():
             r.release()
@@ -134,7 +139,7 @@ def run_interleaved(ctx, prep, camera, size, effects: str, configs: dict[str, tu
     for label, frames_ms in samples.items():
         keys = sorted({k for s in frames_ms for k in s})
         out[label] = {"phases": {k: statistics.median(s.get(k, 0.0) for s in frames_ms) for k in keys},
-                      "stats": stats.get(label, {})}
+                      "stats": stats.get(label, {}), "phase_io": phase_io.get(label, {}), "io": io.get(label, {})}
     return out
 
 
@@ -177,7 +182,9 @@ def study_table41(args, ctx) -> dict:
             res = run_interleaved(ctx, prep, cam, size, "primary,shadows,soft:1,diffuse:1", configs, args.frames)
             rows.append({"scene": name, "triangles": prep.scene.triangle_count, "size": list(size),
                          "terms": _terms(res, builds), "phases": {k: v["phases"] for k, v in res.items()},
-                         "stats": {k: v["stats"] for k, v in res.items()}, "bvh_build_ms": builds})
+                         "stats": {k: v["stats"] for k, v in res.items()}, "bvh_build_ms": builds,
+                         "phase_io": {k: v["phase_io"] for k, v in res.items()},
+                         "io": {k: v["io"] for k, v in res.items()}})
     md = ["# Thesis Table 4.1 analog: primary + shadow rays, one point light (ms per frame, medians)", "",
           f"Command: `{args.command_line}`", ""]
     head = ["scene", "size", "backend", "prim. DS build", "prim. trace", "shadow DS build", "rearrange",
@@ -214,10 +221,37 @@ def study_table41(args, ctx) -> dict:
     md.append(md_table(head, body))
     md += ["", "Hard pass: pgrid's light grid (build + rearrangement + trace) for the point light; soft pass: one "
            "area-light sample pass, which pgrid traces through its uniform grid (the rays do not meet in one point)."]
+    md += ["", "## Build phases: time, launches and host waits (last frame)", ""]
+    md.append(md_table(["scene", "size", "backend", "phase", "ms", "CL launches", "host syncs"],
+                       build_phase_rows(rows)))
+    md += ["", "Per-frame build and rearrangement phases of the grid backends: OpenCL kernel launches and host "
+           "synchronisations issued inside each (viewer.iostats, counted by the profiler per phase), and the "
+           "frame's totals ('frame')."]
     _plot_table41(rows, Path(args.out) / "table41.png")
     res = write_study(Path(args.out), "table41", {"rows": rows, "command": args.command_line}, "\n".join(md))
     res["rows"] = rows
     return res
+
+
+def _is_build_phase(phase: str) -> bool:
+    return any(t in phase for t in (":build", ":rearrange"))
+
+
+def build_phase_rows(rows: list[dict]) -> list[list[str]]:
+    """Table rows: per scene, size and grid backend, each build phase's ms, launches and syncs,
+    then the frame's totals."""
+    body = []
+    for r in rows:
+        for b in ("pgrid", "ugrid"):
+            pio, ph = r.get("phase_io", {}).get(b, {}), r["phases"].get(b, {})
+            for phase in sorted(k for k in pio if _is_build_phase(k)):
+                body.append([r["scene"], size_text(tuple(r["size"])), b, phase, fmt(ph.get(phase, 0.0), 2),
+                             str(pio[phase]["cl_launches"]), str(pio[phase]["host_syncs"])])
+            io = r.get("io", {}).get(b)
+            if io:
+                body.append([r["scene"], size_text(tuple(r["size"])), b, "frame", "", str(io["cl_launches"]),
+                             str(io["host_syncs"])])
+    return body
 
 
 def _plot_table41(rows: list[dict], path: Path) -> None:

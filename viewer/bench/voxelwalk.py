@@ -32,6 +32,7 @@ from typing import Any
 
 import numpy as np
 
+from viewer import iostats
 from viewer.bench.common import log, study_scene
 from viewer.bench.plots import figure, finish
 from viewer.bench.report import fmt, md_table, size_text, write_study
@@ -115,6 +116,12 @@ def capture_reflection_rays(ctx, prep, camera, size: tuple[int, int]):
     return o4, d4, int(ra.active.sum())
 
 
+def _io_delta(c0) -> dict[str, int]:
+    """CL launches and host syncs since the viewer.iostats snapshot c0."""
+    c1 = iostats.current()
+    return {"cl_launches": c1.cl_launches - c0.cl_launches, "host_syncs": c1.host_syncs - c0.host_syncs}
+
+
 class Device:
     """Triangles, grid, walker and clbvh for one scene on the OpenCL device."""
 
@@ -141,7 +148,9 @@ class Device:
         spec = GridSpec(resolution=resolution, max_axis=max(512, resolution))
         ms = []
         for _ in range(max(1, repeats)):
+            c0 = iostats.current()
             st = self.grid.build(self.tris, self.n_tris, *self.box, spec)
+            self.last_io = _io_delta(c0)
             ms.append(st.build_ms)
         return st, statistics.median(ms)
 
@@ -152,6 +161,7 @@ class Device:
         q = self.ctx.queue
         clio.finish(q)
         t0 = time.perf_counter()
+        c0 = iostats.current()
         ps = None
         if what == "ivw":
             ps = self.walker.trace_ivw(self.tris, st.origin, st.dir, h.t, h.tri, st.n, False, stats=stats)
@@ -161,6 +171,7 @@ class Device:
             ps = self.walker_all.trace_ec(self.tris, st.origin, st.dir, h.t, h.tri, st.n, stats=stats, size=rs.size)
         else:
             self.clbvh.enqueue(st.origin, st.dir, h.t, h.tri, st.n, False)
+        self.last_io = _io_delta(c0)  # before the timing wait below (the caller's, not the method's)
         clio.finish(q)
         return ps, (time.perf_counter() - t0) * 1e3
 
@@ -199,9 +210,12 @@ def _timed(dev: Device, rs: RaySet, repeats: int) -> dict[str, Any]:
     ivw, clb, ec_total, ec_reorder, ec_trace, ec_all, all_pairs = [], [], [], [], [], [], 0
     for what in ("ivw", "ec", "ec_all", "clbvh"):  # warm-up (kernels compile on first use)
         dev.run(what, rs)
+    io = {}
     for _ in range(repeats):
         ivw.append(dev.run("ivw", rs)[1])
+        io["ivw"] = dev.last_io
         ps, ms = dev.run("ec", rs)
+        io["ec"] = dev.last_io
         ec_total.append(ms)
         ec_reorder.append(ps.reorder_ms)
         ec_trace.append(ps.trace_ms)
@@ -212,7 +226,7 @@ def _timed(dev: Device, rs: RaySet, repeats: int) -> dict[str, Any]:
     med = statistics.median
     return {"ivw_ms": med(ivw), "ec_ms": med(ec_total), "ec_reorder_ms": med(ec_reorder),
             "ec_trace_ms": med(ec_trace), "ec_all_ms": med(ec_all), "ec_all_pairs": all_pairs, "clbvh_ms": med(clb),
-            "runs": {"ivw": ivw, "ec": ec_total, "ec_all": ec_all, "clbvh": clb}}
+            "runs": {"ivw": ivw, "ec": ec_total, "ec_all": ec_all, "clbvh": clb}, "io": io}
 
 
 def _walk_stats(dev: Device, rs: RaySet) -> dict[str, Any]:
@@ -238,6 +252,7 @@ def collect(args, ctx_gl) -> list[dict]:
         dev = Device(prep, args.chunk)
         try:
             gs, build_ms = dev.build(0, repeats=args.repeats)
+            build_io = dev.last_io
             bvh_ms = bvh_build_ms(prep)["clbvh"]
             for size in parse_image_sizes(args.sizes, "--sizes"):
                 log(args, f"bench-voxelwalk: {name} {size_text(size)}: capturing reflection rays")
@@ -246,7 +261,7 @@ def collect(args, ctx_gl) -> list[dict]:
                     log(args, f"bench-voxelwalk: {name} {size_text(size)}: {rs.active} reflection rays, grid {gs.res}")
                     row = {"scene": name, "triangles": prep.scene.triangle_count, "size": list(size),
                            "reflection_rays": rs.active, "grid_res": list(gs.res), "grid_pairs": gs.pairs,
-                           "build_ms": build_ms, "clbvh_bvh_build_ms": bvh_ms,
+                           "build_ms": build_ms, "clbvh_bvh_build_ms": bvh_ms, "build_io": build_io,
                            **_timed(dev, rs, args.repeats), "walk": _walk_stats(dev, rs),
                            "agreement": _agreement(dev, rs)}
                 finally:
@@ -275,6 +290,16 @@ def study_table51(args, rows: list[dict]) -> dict:
                      fmt(r["build_ms"] + r["ivw_ms"]), fmt(r["build_ms"] + r["ec_ms"]),
                      fmt(r["clbvh_bvh_build_ms"] + r["clbvh_ms"])])
     md.append(md_table(head, body))
+    md += ["", "## Launches and host waits per phase (one run each)", ""]
+    body = []
+    for r in rows:
+        io = r.get("io", {})
+        for phase, d, ms in (("grid build", r.get("build_io"), r["build_ms"]), ("IVW", io.get("ivw"), r["ivw_ms"]),
+                             ("EC", io.get("ec"), r["ec_ms"])):
+            if d:
+                body.append([r["scene"], size_text(tuple(r["size"])), phase, fmt(ms), str(d["cl_launches"]),
+                             str(d["host_syncs"])])
+    md.append(md_table(["scene", "size", "phase", "ms", "CL launches", "host syncs"], body))
     md += ["", "## Why: the walk behind the times", ""]
     head = ["scene", "size", "pairs per ray", "iterations per ray", "EC iterations", "rays per cell (1st it.)",
             "max rays per cell", "cells per 8x8 tile (1st it.)", "IVW = clbvh", "EC = clbvh", "EC all = clbvh"]

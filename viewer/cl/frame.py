@@ -18,7 +18,8 @@ Buffers (n = width * height, row-major, row 0 = bottom):
   rays   RayStage        origin float4 (x, y, z, tmin), dir float4 (dx, dy, dz, tmax)
   hits   HitStage        t float (+inf miss), tri int (-1 miss)
   acc    float4[n] per accumulated effect (passes.accumulate.ACCUMULATED), summed over passes
-  counts uint[8]         active rays per ray type (raygen), read once per frame
+  counts uint[8]         active rays per ray type (raygen), read once per frame (with the
+                         accumulators' reads: request_counts / read_counts)
   tris   GPU_TRI_DTYPE (48 B per triangle), mats float4 per material: once per scene change
   params float4[FRAME_PARAMS] the frame's camera and lights (frame.cl's P_* layout)
 """
@@ -97,6 +98,8 @@ class DeviceFrame:
         self.acc: dict[RayType, Any] = {}
         self.tris = self.mats = None
         self.scene_key: tuple | None = None
+        self._counts_host: np.ndarray | None = None  # the counts' pending read (request_counts)
+        self._counts_waited = False
 
     # -- per scene --------------------------------------------------------------------------
     def set_scene(self, scene: Any) -> None:
@@ -187,10 +190,23 @@ class DeviceFrame:
                 continue
             with mapped(self.ctx, buf, (n, 4), np.float32) as a:
                 textures[rt].write(a)  # a staged CL -> GL hop: counted once, by the map
+            self._counts_waited = True  # a blocking map: earlier commands (the counts' read) are done
+
+    def request_counts(self) -> None:
+        """Enqueue the ray counts' read without waiting: a later blocking read or map on the
+        (in-order) queue completes it, so the counts cost no host sync of their own."""
+        self._counts_host = np.zeros(MAX_COUNTERS, np.uint32)
+        clio.copy(self.ctx.queue, self._counts_host, self.counts, is_blocking=False)
+        self._counts_waited = False
 
     def read_counts(self) -> np.ndarray:
-        out = np.zeros(MAX_COUNTERS, np.uint32)
-        clio.copy(self.ctx.queue, out, self.counts)
+        """The active rays per ray type: from `request_counts` when a blocking read has waited for
+        it since (write_accumulators), else read now."""
+        if getattr(self, "_counts_host", None) is None:
+            self.request_counts()
+        if not self._counts_waited:
+            clio.finish(self.ctx.queue)
+        out, self._counts_host = self._counts_host, None
         return out.astype(np.int64)
 
     # -- release ----------------------------------------------------------------------------

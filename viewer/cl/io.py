@@ -126,15 +126,17 @@ def read_rows(queue: Any, buf: Any, rows, row_shape: tuple[int, ...], dtype: Any
     return out
 
 
-def read_strided(queue: Any, buf: Any, step: int, count: int, row_shape: tuple[int, ...], dtype: Any) -> np.ndarray:
+def read_strided(queue: Any, buf: Any, step: int, count: int, row_shape: tuple[int, ...], dtype: Any,
+                 is_blocking: bool = True) -> np.ndarray:
     """Rows 0, step, 2 * step, ... (`count` of them) in one rectangular copy: a strided sample
-    of a buffer of fixed-size rows without reading the rest."""
+    of a buffer of fixed-size rows without reading the rest (is_blocking=False: valid after a
+    later wait on the queue, e.g. the next blocking read)."""
     dt = np.dtype(dtype)
     rb = int(np.prod(row_shape)) * dt.itemsize
     out = np.empty((int(count), *row_shape), dt)
     if count:
         copy(queue, out, buf, buffer_origin=(0, 0), host_origin=(0, 0), region=(rb, int(count)),
-             buffer_pitches=(int(step) * rb,), host_pitches=(rb,))
+             buffer_pitches=(int(step) * rb,), host_pitches=(rb,), is_blocking=is_blocking)
     return out
 
 

@@ -18,6 +18,16 @@ On Buffers (results stay on the device; counts/totals come back as Python ints):
       scan / chunks / compact" pipeline of perspective grids (thesis Fig. 4.2).
   reduce(src, n, "min"|"max", dtype) -> scalar  uint32, int32 or float32 (NaN: unspecified).
 NumPy wrappers with the same names and an `_np` suffix upload, run and read back (tests, bench).
+
+Device-count variants (`*_dev`): the element count is a uint32 in a device buffer (written by an
+earlier kernel: a scan's total, a compaction's count) and `bound` >= it is known on the host; the
+result count goes to a device buffer too. A chain of them runs with no host round trip (the
+kernels' block ranges shrink to the device count; launches are sized for the bound):
+  exclusive_scan_dev(src, dst, n_buf, bound, total_buf)
+  sort_pairs_dev(keys, vals, n_buf, bound, key_bits)           (keys/vals hold >= bound items)
+  compact_dev(n_buf, bound, count_buf, flags=..., src=..., dst=..., dst_index=..., predicate=...)
+  segments_dev(keys, n_buf, bound, r, out, count_buf)          (out: Chunks with room for bound)
+  reduce_dev(src, n, op, dtype, out)                            (n on the host; result in `out`)
 """
 
 from __future__ import annotations
@@ -141,6 +151,19 @@ class Primitives:
         clio.copy(self.ctx.queue, res, out)
         return res[0]
 
+    def reduce_dev(self, src: Any, n: int, op: str, dtype: Any, out: Any) -> None:
+        """reduce of n >= 1 elements into the 4-byte device buffer `out` (no read-back: several
+        reductions can come back in one wait)."""
+        dt = np.dtype(dtype)
+        ctype, hi, lo = _RTYPES[dt]
+        ks = self._variant(("reduce", ctype, op), {"RT": ctype, "RMIN": int(op == "min")}, "",
+                           ("reduce_block", "reduce_final"))
+        ident = dt.type(hi if op == "min" else lo)
+        nb = self.nblocks(n)
+        part = self.scratch(f"reduce_part_{op}_{ctype}", 4 * nb)
+        self._run(ks["reduce_block"], nb, src, np.uint32(n), np.uint32(nb), ident, part)
+        ks["reduce_final"](self.ctx.queue, (WG,), (WG,), part, np.uint32(nb), ident, out)
+
     # -- radix sort -------------------------------------------------------------------------
     def sort_pairs(self, keys: Any, vals: Any, n: int, key_bits: int | None = None) -> None:
         """Stable sort of n uint32 (key, value) pairs by key, in place in `keys`/`vals`.
@@ -228,6 +251,74 @@ class Primitives:
         mb = self.nblocks(m)
         self._run(self._k["seg_chunk_counts"], mb, out.start, u(m), u(mb), u(n), out.length)
         out.count = m
+        return out
+
+    # -- device-count variants (see the module docstring) ------------------------------------
+    def _ndev(self) -> dict[str, Any]:
+        return self._variant(("ndev",), {"NDEV": 1}, "", (
+            "block_sum", "block_scan", "radix_hist", "radix_scatter", "seg_last_start", "seg_count_chunks",
+            "seg_write_chunks", "seg_chunk_counts"))
+
+    def exclusive_scan_dev(self, src: Any, dst: Any, n_buf: Any, bound: int, total: Any) -> None:
+        """exclusive_scan of the first *n_buf elements; the total goes to `total` (device)."""
+        ks, nb = self._ndev(), self.nblocks(max(1, bound))
+        sums = self.scratch("scan_sums", 4 * nb)
+        self._run(ks["block_sum"], nb, src, n_buf, np.uint32(nb), sums)
+        self._scan_small(sums, nb, total)
+        self._run(ks["block_scan"], nb, src, dst, n_buf, np.uint32(nb), sums)
+
+    def sort_pairs_dev(self, keys: Any, vals: Any, n_buf: Any, bound: int, key_bits: int) -> None:
+        """sort_pairs of the first *n_buf pairs (<= bound); keys < 2**key_bits."""
+        passes = -(-int(key_bits) // 8)
+        if passes == 0 or bound <= 1:
+            return
+        ks, nb, u = self._ndev(), self.nblocks(bound), np.uint32
+        hist, total = self.scratch("radix_hist", 4 * 256 * nb), self.scratch("radix_total", 4)
+        tk, tv = self.scratch("radix_keys", 4 * bound), self.scratch("radix_vals", 4 * bound)
+        src, dst = (keys, vals), (tk, tv)
+        for p in range(passes):
+            shift = u(8 * p)
+            self._run(ks["radix_hist"], nb, src[0], n_buf, u(nb), shift, hist)
+            self._scan_small(hist, 256 * nb, total)
+            self._run(ks["radix_scatter"], nb, src[0], src[1], n_buf, u(nb), shift, hist, dst[0], dst[1])
+            src, dst = dst, src
+        if src[0] is not keys:
+            q = self.ctx.queue
+            clio.copy(q, keys, src[0], byte_count=4 * bound)
+            clio.copy(q, vals, src[1], byte_count=4 * bound)
+
+    def compact_dev(self, n_buf: Any, bound: int, count: Any, flags: Any = None, src: Any = None, dst: Any = None,
+                    dst_index: Any = None, predicate: str | None = None, itemsize: int = 4) -> None:
+        """compact of the first *n_buf elements (<= bound); the kept count goes to `count` (device,
+        not n_buf: the write kernel still reads n)."""
+        if (flags is None) == (predicate is None):
+            raise ValueError("compact needs exactly one of flags and predicate")
+        item = _ITEMS[itemsize]
+        prelude = f"inline bool rt_keep({item} x) {{ return ({predicate}); }}\n#define PRED(v) rt_keep(v)" \
+            if predicate else ""
+        ks = self._variant(("compact", item, predicate, "ndev"), {"ITEM": item, "NDEV": 1}, prelude,
+                           ("compact_count", "compact_write"))
+        nb = self.nblocks(max(1, bound))
+        counts, dummy = self.scratch("compact_counts", 4 * nb), self.scratch("compact_dummy", 16)
+        u = np.uint32
+        s, f = src if src is not None else dummy, flags if flags is not None else dummy
+        self._run(ks["compact_count"], nb, s, f, n_buf, u(nb), counts)
+        self._scan_small(counts, nb, count)
+        self._run(ks["compact_write"], nb, s, f, n_buf, u(nb), counts, count, dst if dst is not None else dummy,
+                  dst_index if dst_index is not None else dummy, u(dst is not None), u(dst_index is not None))
+
+    def segments_dev(self, keys: Any, n_buf: Any, bound: int, r: int | None, out: Chunks, count: Any) -> Chunks:
+        """segments of the first *n_buf sorted keys (<= bound); the chunk count goes to `count`
+        (device; out.count is left at the bound)."""
+        ks, nb, u = self._ndev(), self.nblocks(max(1, bound)), np.uint32
+        rr = u(min(int(r), 0xFFFFFFFF) if r is not None else 0xFFFFFFFF)
+        last, counts = self.scratch("seg_last", 4 * nb), self.scratch("seg_counts", 4 * nb)
+        self._run(ks["seg_last_start"], nb, keys, n_buf, u(nb), last)
+        self._run(ks["seg_count_chunks"], nb, keys, n_buf, u(nb), rr, last, counts)
+        self._scan_small(counts, nb, count)
+        self._run(ks["seg_write_chunks"], nb, keys, n_buf, u(nb), rr, last, counts, out.key, out.start)
+        self._run(ks["seg_chunk_counts"], nb, out.start, count, u(nb), n_buf, out.length)
+        out.count = int(bound)
         return out
 
     def release(self) -> None:

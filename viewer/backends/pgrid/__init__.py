@@ -131,6 +131,7 @@ class PgridBackend(GeometryBackend):
             prog = build(CAMERA_KERNEL, {"CN": CAMERA_N, **extra}, self.ctx)
             self._camera_kernels[count] = clio.kernel(prog, "cg_trace")
         self._closed: tuple[tuple[int, int], bool] | None = None
+        self._cam_outside: np.ndarray | None = None  # the last primary pass's outside count (read late)
         self._grid_fresh = False
         self._box = (np.zeros(3), np.ones(3))
         self.stages = PassStages(self.ctx, extras=1)  # + triangle tests per ray
@@ -169,8 +170,8 @@ class PgridBackend(GeometryBackend):
             return None
         step = max(1, rs.n // SAMPLE)
         count = -(-rs.n // step)  # rows 0, step, ... (as o[::step]); only these cross
-        so = clio.read_strided(self.ctx.queue, rs.origin, step, count, (4,), np.float32)
-        sd = clio.read_strided(self.ctx.queue, rs.dir, step, count, (4,), np.float32)
+        so = clio.read_strided(self.ctx.queue, rs.origin, step, count, (4,), np.float32, is_blocking=False)
+        sd = clio.read_strided(self.ctx.queue, rs.dir, step, count, (4,), np.float32)  # one wait for both
         if centre is None:
             act = np.flatnonzero(sd[:, 3] > so[:, 3])
             if len(act) == 0:
@@ -283,9 +284,9 @@ class PgridBackend(GeometryBackend):
         with prof.cl_phase(f"pgrid:build:{label}", q):
             st = cg.build(self._tris, self._n_tris, cam, spec)
         with prof.cl_phase(f"pgrid:rearrange:{label}", q):
-            outside = cg.classify(rs.origin, rs.dir, rs.n) if not st.overflow else rs.n
-        if outside:
-            self._ensure_grid()
+            if not st.overflow:  # the outside rays' list and count stay on the device (no wait)
+                cg.classify_device(rs.origin, rs.dir, rs.n)
+        self._ensure_grid()  # once per geometry: the outside rays (a count only the device knows)
         with prof.cl_phase(f"trace:{label}", q):
             if st.overflow:  # too many pairs for one sort: the uniform grid takes every ray
                 self.tracer.enqueue(rs.origin, rs.dir, hs.t, hs.tri, rs.n, False, tests)
@@ -296,7 +297,12 @@ class PgridBackend(GeometryBackend):
                 self._camera_kernels[tests is not None](q, gsize, (CAMERA_N, CAMERA_N), cg.header, cg.cells, cg.refs,
                                                         self._tris, rs.origin, rs.dir, cg.outside, hs.t, hs.tri,
                                                         dummy)
-                self.tracer.enqueue(rs.origin, rs.dir, hs.t, hs.tri, outside, False, tests, index=cg.outside_index)
+                self.tracer.enqueue(rs.origin, rs.dir, hs.t, hs.tri, rs.n, False, tests, index=cg.outside_index,
+                                    n_device=cg.outside_count)
+                # statistics only: the count is read without a wait and reported by the next frame
+                prev, self._cam_outside = self._cam_outside, np.zeros(1, np.uint32)
+                clio.copy(q, self._cam_outside, cg.outside_count, is_blocking=False)
+                st.outside = int(prev[0]) if prev is not None else 0
         d = st.as_dict()
         d["backface"] = float(spec.backface)
         stats.update(d)

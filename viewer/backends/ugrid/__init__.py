@@ -63,21 +63,23 @@ class GridTracer:
         for count in (False, True):
             defines: dict[str, Any] = {"WG": WG, **({"COUNT_TESTS": None} if count else {})}
             prog = build(KERNEL, defines, ctx)
-            for idx in (False, True):
-                sfx = "_idx" if idx else ""
+            for idx, sfx in ((False, ""), (True, "_idx"), ("device", "_idxd")):
                 self.kernels[(False, count, idx)] = clio.kernel(prog, "trace_closest" + sfx)
                 self.kernels[(True, count, idx)] = clio.kernel(prog, "trace_any" + sfx)
 
     def enqueue(self, ray_o: Any, ray_d: Any, out_t: Any, out_id: Any, n: int, any_hit: bool,
-                tests: Any = None, index: Any = None) -> None:
-        """Trace rays 0..n-1, or with `index` (uint32 buffer) the n rays it lists."""
+                tests: Any = None, index: Any = None, n_device: Any = None) -> None:
+        """Trace rays 0..n-1, or with `index` (uint32 buffer) the n rays it lists; with `n_device`
+        (a uint32 device buffer) the count listed is read there and n is only its bound."""
         if n == 0:
             return
         g = self.grid
-        k = self.kernels[(bool(any_hit), tests is not None, index is not None)]
+        mode = "device" if n_device is not None else index is not None
+        k = self.kernels[(bool(any_hit), tests is not None, mode)]
         extra = (index,) if index is not None else ()
         k(self.ctx.queue, (-(-n // WG) * WG,), (WG,), g.header, g.cells, g.blocks, g.cell_blocks, ray_o, ray_d,
-          out_t, out_id, np.int32(n), tests if tests is not None else out_id, *extra)
+          out_t, out_id, n_device if n_device is not None else np.int32(n), tests if tests is not None else out_id,
+          *extra)
 
 
 class UgridBackend(GeometryBackend):

@@ -60,11 +60,12 @@ done:
 #define STORE_TESTS
 #endif
 
-#define TRACE_KERNEL(name, ANY, INDEX_ARG, RAY)                                                              \
+#define TRACE_KERNEL(name, ANY, INDEX_ARG, RAY, N_ARG, N_GET)                                                \
 __kernel __attribute__((reqd_work_group_size(WG, 1, 1)))                                                    \
 void name(__global const Grid *grid, __global const uint2 *cells, __global const float4 *blocks,           \
           __global const uint *cell_blocks, __global const float4 *ray_o, __global const float4 *ray_d,     \
-          __global float *out_t, __global int *out_id, const int n, __global int *tests_out INDEX_ARG) {    \
+          __global float *out_t, __global int *out_id, N_ARG, __global int *tests_out INDEX_ARG) {          \
+    N_GET                                                                                                   \
     int j = get_global_id(0);                                                                               \
     if (j >= n) return;                                                                                     \
     int i = RAY;                                                                                            \
@@ -79,8 +80,15 @@ void name(__global const Grid *grid, __global const uint2 *cells, __global const
 
 #define NO_INDEX
 #define WITH_INDEX , __global const uint *index
-// every ray of the batch, or (the _idx kernels) only the rays listed in `index`
-TRACE_KERNEL(trace_closest, false, NO_INDEX, j)
-TRACE_KERNEL(trace_any, true, NO_INDEX, j)
-TRACE_KERNEL(trace_closest_idx, false, WITH_INDEX, (int)index[j])
-TRACE_KERNEL(trace_any_idx, true, WITH_INDEX, (int)index[j])
+#define N_HOST const int n
+#define N_DEVICE __global const uint *n_ptr
+#define GET_N_HOST
+#define GET_N_DEVICE const int n = (int)*n_ptr;
+// every ray of the batch, or (the _idx kernels) only the rays listed in `index`; the _idxd kernels
+// read how many are listed from the device (a compaction's count: launched for a bound, no wait)
+TRACE_KERNEL(trace_closest, false, NO_INDEX, j, N_HOST, GET_N_HOST)
+TRACE_KERNEL(trace_any, true, NO_INDEX, j, N_HOST, GET_N_HOST)
+TRACE_KERNEL(trace_closest_idx, false, WITH_INDEX, (int)index[j], N_HOST, GET_N_HOST)
+TRACE_KERNEL(trace_any_idx, true, WITH_INDEX, (int)index[j], N_HOST, GET_N_HOST)
+TRACE_KERNEL(trace_closest_idxd, false, WITH_INDEX, (int)index[j], N_DEVICE, GET_N_DEVICE)
+TRACE_KERNEL(trace_any_idxd, true, WITH_INDEX, (int)index[j], N_DEVICE, GET_N_DEVICE)

@@ -1,5 +1,8 @@
 // voxelwalk EC (Enforced Coherence, Guntury 2011 ch. 5), in iterations over the active rays:
 //   ec_init     every ray: miss key, its first cell (VW_NONE: inactive or misses the grid)
+// Counts (active rays, pairs, chunks) stay on the device: the kernels read them, the primitives'
+// device-count variants write them, and the host enqueues iterations in batches without reading
+// back in between (viewer/backends/voxelwalk/engine.py).
 //   ec_count    each active ray counts the (ray, cell) pairs of its next WINDOW non-empty cells
 //               (WINDOW 0: all the cells it crosses up to its current hit or tmax)
 //   (exclusive scan of the counts: viewer/cl/primitives.py)
@@ -77,85 +80,103 @@ inline uint ec_walk(const Grid *g, __global const uint2 *cells, uint i, float4 o
     return count;
 }
 
+// The per-ray kernels read the active count m from the device (the last compaction wrote it)
+// and stride over it: the host launches them for a bound, with no read-back between iterations.
 __kernel void ec_count(__global const Grid *grid, __global const uint2 *cells, __global const float4 *ray_o,
                        __global const float4 *ray_d, __global const ulong *keys, __global const uint *next_cell,
-                       __global const uint *act, const uint m, const uint window, __global uint *counts) {
-    uint j = get_global_id(0);
-    if (j >= m) return;
+                       __global const uint *act, __global const uint *m_ptr, const uint window,
+                       __global uint *counts) {
+    uint m = *m_ptr;
     Grid g = *grid;
-    uint i = act[j];
-    counts[j] = ec_walk(&g, cells, i, ray_o[i], ray_d[i], keys[i], next_cell[i], window, false, 0u,
-                        0, 0, 0, 0, 0);
+    for (uint j = get_global_id(0); j < m; j += get_global_size(0)) {
+        uint i = act[j];
+        counts[j] = ec_walk(&g, cells, i, ray_o[i], ray_d[i], keys[i], next_cell[i], window, false, 0u,
+                            0, 0, 0, 0, 0);
+    }
 }
 
 __kernel void ec_write(__global const Grid *grid, __global const uint2 *cells, __global const float4 *ray_o,
                        __global const float4 *ray_d, __global const ulong *keys, __global uint *next_cell,
-                       __global const uint *act, const uint m, const uint window, __global const uint *offsets,
-                       __global uint *pkeys, __global uint *pvals, __global float *win_exit,
-                       __global uint *first_cell, __global int *iters) {
-    uint j = get_global_id(0);
-    if (j >= m) return;
+                       __global const uint *act, __global const uint *m_ptr, const uint window,
+                       __global const uint *offsets, __global uint *pkeys, __global uint *pvals,
+                       __global float *win_exit, __global uint *first_cell, __global int *iters) {
+    uint m = *m_ptr;
     Grid g = *grid;
-    uint i = act[j];
-    uint c = ec_walk(&g, cells, i, ray_o[i], ray_d[i], keys[i], next_cell[i], window, true, offsets[j],
-                     pkeys, pvals, next_cell, win_exit, first_cell);
-    if (c) iters[i] += (int)c;
+    for (uint j = get_global_id(0); j < m; j += get_global_size(0)) {
+        uint i = act[j];
+        uint c = ec_walk(&g, cells, i, ray_o[i], ray_d[i], keys[i], next_cell[i], window, true, offsets[j],
+                         pkeys, pvals, next_cell, win_exit, first_cell);
+        if (c) iters[i] += (int)c;
+    }
 }
 
 __kernel __attribute__((reqd_work_group_size(WG, 1, 1)))
 void ec_process(__global const uint2 *cells, __global const uint *refs, __global const float4 *tris,
                 __global const float4 *ray_o, __global const float4 *ray_d, __global const uint *chunk_key,
                 __global const uint *chunk_start, __global const uint *chunk_len, __global const uint *pvals,
-                __global ulong *keys) {
+                __global ulong *keys, __global const uint *nchunks_ptr) {
     __local float4 sv[3 * WG];
     __local uint sslot[WG];
-    uint c = get_group_id(0);
-    uint lid = get_local_id(0);
-    uint2 cr = cells[chunk_key[c]];
-    uint len = chunk_len[c];
-    bool mine = lid < len;
-    uint i = mine ? pvals[chunk_start[c] + lid] : 0u;
-    float4 ot = mine ? ray_o[i] : (float4)(0.0f);
-    float4 dt = mine ? ray_d[i] : (float4)(0.0f, 0.0f, 1.0f, -1.0f);
-    float tmin = ot.w;
-    // bound: the ray's tmax, or just beyond its current hit (a hit at the same distance on a lower
-    // slot must still win the minimum, whichever chunk ran first)
-    ulong key0 = mine ? keys[i] : VW_MISS_KEY;
-    float hit_t = !mine ? -1.0f : (key0 == VW_MISS_KEY ? dt.w : fmin(dt.w, nextafter(vw_key_t(key0), INFINITY)));
-    uint hit_slot = VW_NONE;
-    RayPre r = rt_prepare_ray(ot.xyz, dt.xyz);
-    for (uint base = 0; base < cr.y; base += WG) {
-        uint cnt = min((uint)WG, cr.y - base);
-        barrier(CLK_LOCAL_MEM_FENCE);
-        if (lid < cnt) {
-            uint slot = refs[cr.x + base + lid];
-            sslot[lid] = slot;
-            sv[3 * lid] = tris[3 * slot];
-            sv[3 * lid + 1] = tris[3 * slot + 1];
-            sv[3 * lid + 2] = tris[3 * slot + 2];
-        }
-        barrier(CLK_LOCAL_MEM_FENCE);
-        if (mine) {
-            for (uint k = 0; k < cnt; ++k) {
-                float t;
-                if (rt_intersect_triangle(&r, sv[3 * k].xyz, sv[3 * k + 1].xyz, sv[3 * k + 2].xyz, tmin, hit_t, &t)) {
-                    hit_t = t;  // strict: on equal distances the first in the cell's list, the lowest slot
-                    hit_slot = sslot[k];
+    // persistent work-groups: each takes chunks group_id, group_id + groups, ... below the
+    // chunk count the segmentation wrote (uniform per group: the barriers below are safe)
+    uint nchunks = *nchunks_ptr;
+    for (uint c = get_group_id(0); c < nchunks; c += get_num_groups(0)) {
+        uint lid = get_local_id(0);
+        uint2 cr = cells[chunk_key[c]];
+        uint len = chunk_len[c];
+        bool mine = lid < len;
+        uint i = mine ? pvals[chunk_start[c] + lid] : 0u;
+        float4 ot = mine ? ray_o[i] : (float4)(0.0f);
+        float4 dt = mine ? ray_d[i] : (float4)(0.0f, 0.0f, 1.0f, -1.0f);
+        float tmin = ot.w;
+        // bound: the ray's tmax, or just beyond its current hit (a hit at the same distance on a lower
+        // slot must still win the minimum, whichever chunk ran first)
+        ulong key0 = mine ? keys[i] : VW_MISS_KEY;
+        float hit_t = !mine ? -1.0f : (key0 == VW_MISS_KEY ? dt.w : fmin(dt.w, nextafter(vw_key_t(key0), INFINITY)));
+        uint hit_slot = VW_NONE;
+        RayPre r = rt_prepare_ray(ot.xyz, dt.xyz);
+        for (uint base = 0; base < cr.y; base += WG) {
+            uint cnt = min((uint)WG, cr.y - base);
+            barrier(CLK_LOCAL_MEM_FENCE);
+            if (lid < cnt) {
+                uint slot = refs[cr.x + base + lid];
+                sslot[lid] = slot;
+                sv[3 * lid] = tris[3 * slot];
+                sv[3 * lid + 1] = tris[3 * slot + 1];
+                sv[3 * lid + 2] = tris[3 * slot + 2];
+            }
+            barrier(CLK_LOCAL_MEM_FENCE);
+            if (mine) {
+                for (uint k = 0; k < cnt; ++k) {
+                    float t;
+                    if (rt_intersect_triangle(&r, sv[3 * k].xyz, sv[3 * k + 1].xyz, sv[3 * k + 2].xyz, tmin, hit_t, &t)) {
+                        hit_t = t;  // strict: on equal distances the first in the cell's list, the lowest slot
+                        hit_slot = sslot[k];
+                    }
                 }
             }
         }
+        if (mine && hit_slot != VW_NONE) atom_min(&keys[i], vw_pack(hit_t, hit_slot));
     }
-    if (mine && hit_slot != VW_NONE) atom_min(&keys[i], vw_pack(hit_t, hit_slot));
 }
 
+// Work-item 0 also adds the iteration to the pass's totals (iterations, ray-cell pairs, chunks)
+// when rays were active: the host reads them once, with the pass's last count.
 __kernel void ec_resolve(__global const ulong *keys, __global const uint *next_cell, __global const float *win_exit,
-                         __global const uint *act, const uint m, __global uint *keep) {
-    uint j = get_global_id(0);
-    if (j >= m) return;
-    uint i = act[j];
-    ulong key = keys[i];
-    bool done = next_cell[i] == VW_NONE || (key != VW_MISS_KEY && vw_key_t(key) <= win_exit[i]);
-    keep[j] = done ? 0u : 1u;
+                         __global const uint *act, __global const uint *m_ptr, __global uint *keep,
+                         __global const uint *pairs_ptr, __global const uint *chunks_ptr, __global uint *totals) {
+    uint m = *m_ptr;
+    if (get_global_id(0) == 0 && m) {
+        totals[0] += 1u;
+        totals[1] += *pairs_ptr;
+        totals[2] += *chunks_ptr;
+    }
+    for (uint j = get_global_id(0); j < m; j += get_global_size(0)) {
+        uint i = act[j];
+        ulong key = keys[i];
+        bool done = next_cell[i] == VW_NONE || (key != VW_MISS_KEY && vw_key_t(key) <= win_exit[i]);
+        keep[j] = done ? 0u : 1u;
+    }
 }
 
 __kernel void ec_finish(__global const ulong *keys, const uint n, __global float *out_t, __global int *out_id) {

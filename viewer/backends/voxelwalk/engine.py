@@ -6,7 +6,8 @@ file. With `stats` on, each pass also records what the study and the overlays ne
 (`PassStats`): per-ray iterations and first non-empty cell, and for EC per iteration the active
 rays, ray-cell pairs, work-groups after compaction, resolved rays and the distinct cells per
 screen tile; rays per cell at the first iteration. The per-iteration host statistics read small
-device arrays back, so they cost time: timing runs leave `stats` off.
+device arrays back, so they cost time: timing runs leave `stats` off. Without them a pass waits
+on the host once per batch of EC iterations (usually once) and IVW not at all.
 """
 
 from __future__ import annotations
@@ -20,13 +21,15 @@ import numpy as np
 
 from viewer.accel.grid import UniformGrid
 from viewer.cl import io as clio
-from viewer.cl.limits import new_buffer
+from viewer.cl.limits import device_limits, new_buffer
 from viewer.errors import RtwalkError
 
 HERE = Path(__file__).resolve().parent
 WG_IVW = 64
 WG_SMALL = 64  # local size of the one-per-ray EC kernels
 TILE = 8  # screen tile edge for the divergence statistics (pixels)
+EC_BATCH = 8  # EC iterations enqueued before the first look at the active count (at least)
+EC_GROUPS_PER_CU = 64  # persistent ec_process work-groups per compute unit (each takes chunks in turn)
 
 
 @dataclass
@@ -85,6 +88,8 @@ class VoxelWalker:
         for name in ("ec_init", "ec_count", "ec_write", "ec_process", "ec_resolve", "ec_finish"):
             self.k[name] = clio.kernel(ec, name)
         self._bufs: dict[str, Any] = {}
+        self._host_n = np.zeros(1, np.uint32)  # kept alive for its asynchronous write
+        self._last_iterations = 0  # the last EC pass's iterations: the next pass's first batch
 
     def _buf(self, name: str, nbytes: int) -> Any:
         buf = self._bufs.get(name)
@@ -113,9 +118,10 @@ class VoxelWalker:
         t0 = time.perf_counter()
         self._run("ivw", n, g.header, g.cells, g.refs, tris, ray_o, ray_d, out_t, out_id, np.int32(n),
                   np.int32(bool(any_hit)), iters, first, wg=WG_IVW)
-        clio.finish(q)
-        ps = PassStats("ivw", trace_ms=(time.perf_counter() - t0) * 1e3)
-        if stats:
+        ps = PassStats("ivw")
+        if stats:  # timed only with statistics (a wait; frames leave the kernel in flight)
+            clio.finish(q)
+            ps.trace_ms = (time.perf_counter() - t0) * 1e3
             ps.iters = self._read(iters, n, np.int32)
             ps.first_cell = self._read(first, n, np.uint32)
             ps.rays = self._active(ray_o, ray_d, n)
@@ -131,8 +137,27 @@ class VoxelWalker:
             return int(np.count_nonzero(d[:, 3] > o[:, 3]))
 
     # -- EC -------------------------------------------------------------------------------
+    def _count_bufs(self) -> dict[str, Any]:
+        """Device-side counts of the EC loop (uint32 each; totals: iterations, pairs, chunks)."""
+        return {name: self._buf(f"count_{name}", 4 * k) for name, k in
+                (("n", 1), ("m0", 1), ("m1", 1), ("p", 1), ("chunks", 1), ("totals", 4))}
+
+    def _ray_gsize(self, n: int) -> tuple[int]:
+        """Work-items of the per-ray EC kernels (they stride over the device's active count)."""
+        cap = WG_SMALL * 64 * max(1, int(self.ctx.compute_units))
+        return (min(-(-n // WG_SMALL) * WG_SMALL, cap),)
+
     def trace_ec(self, tris: Any, ray_o: Any, ray_d: Any, out_t: Any, out_id: Any, n: int,
                  stats: bool = False, size: tuple[int, int] | None = None) -> PassStats:
+        """EC over rays 0..n-1. Iterations are enqueued in batches with no host round trip
+        between them: the active count, the pair count and the chunk count live on the device
+        (kernels read them; launches are sized for bounds: n rays, n * window pairs), and after a
+        batch one read of the active count says whether to go on. A batch is as long as the last
+        pass's iteration count (at least EC_BATCH), then doubles, so a steady pass waits once.
+        Iterations past the end find no active rays and do nothing. `window` 0 (every cell at
+        once), or a window whose bound does not fit the device, reads its pair count each
+        iteration to size the pair buffers.
+        With `stats`, every iteration is read back (the study's per-iteration rows)."""
         g, q, u = self.grid, self.ctx.queue, np.uint32
         ps = PassStats("ec")
         if n == 0:
@@ -141,71 +166,99 @@ class VoxelWalker:
         iters, first = self._buf("iters", 4 * n), self._buf("first", 4 * n)
         win_exit = self._buf("win_exit", 4 * n)
         act, act2, flags = self._buf("act", 4 * n), self._buf("act2", 4 * n), self._buf("flags", 4 * n)
+        counts = self._buf("counts", 4 * n)
+        cb = self._count_bufs()
+        cl = self.ctx.cl
         t0 = time.perf_counter()
+        self._host_n[0] = n
+        clio.copy(q, cb["n"], self._host_n, is_blocking=False)
+        cl.enqueue_fill_buffer(q, cb["totals"], u(0), 0, 16)
         self._run("ec_init", n, g.header, ray_o, ray_d, u(n), keys, nxt, iters)
-        m = self.prims.compact(n, predicate="x != 0xffffffffu", src=nxt, dst_index=act)
-        ps.rays = self._active(ray_o, ray_d, n) if stats else m
+        m_cur, m_nxt = cb["m0"], cb["m1"]
+        self.prims.compact_dev(cb["n"], n, m_cur, predicate="x != 0xffffffffu", src=nxt, dst_index=act)
+        host = np.zeros(5, np.uint32)  # initial active rays, then totals (iterations, pairs, chunks), active left
+        clio.copy(q, host[0:1], m_cur, is_blocking=False)
         if stats and size is not None:
             ps.first_cell = np.full(n, 0xFFFFFFFF, np.uint32)  # no active ray: no cell anywhere
         key_bits = max(1, (int(g.stats.cells) - 1).bit_length())
         limit = int(sum(g.stats.res)) + 8  # a 3D-DDA visits at most rx + ry + rz - 2 cells
-        trace_s = 0.0
+        gs = self._ray_gsize(n)
+        groups = max(1, min(n * max(self.window, 1), EC_GROUPS_PER_CU * max(1, int(self.ctx.compute_units))))
+        # pairs per iteration: at most window per active ray, and a walk crosses at most rx+ry+rz cells;
+        # without a bound that fits (window 0, or a wide window) the pair count is read each iteration
+        pcap = n * min(self.window, limit)
+        read_pairs = self.window == 0 or 5 * 4 * pcap > device_limits(self.ctx).budget
+        events = []
         it = 0
-        while m:
-            if it > limit:
-                raise RtwalkError(f"voxelwalk EC did not converge in {limit} iterations ({m} rays left)")
-            counts = self._buf("counts", 4 * m)
-            self._run("ec_count", m, g.header, g.cells, ray_o, ray_d, keys, nxt, act, u(m), u(self.window), counts)
-            p = self.prims.exclusive_scan(counts, counts, m)
-            pk, pv = self._buf("pkeys", 4 * p), self._buf("pvals", 4 * p)
-            self._run("ec_write", m, g.header, g.cells, ray_o, ray_d, keys, nxt, act, u(m), u(self.window), counts,
-                      pk, pv, win_exit, first, iters)
-            chunks = 0
-            if p:
-                self.prims.sort_pairs(pk, pv, p, key_bits=key_bits)
+        batch = 1 if stats else max(EC_BATCH, self._last_iterations)
+        m_prev = int(self._read(m_cur, 1, np.uint32)[0]) if stats else n
+        while True:
+            for _ in range(batch):
+                k = self.k
+                k["ec_count"](q, gs, (WG_SMALL,), g.header, g.cells, ray_o, ray_d, keys, nxt, act, m_cur,
+                              u(self.window), counts)
+                self.prims.exclusive_scan_dev(counts, counts, m_cur, n, cb["p"])
+                if read_pairs:  # no usable bound on the pairs: read their count (one wait per iteration)
+                    pcap = max(1, int(self._read(cb["p"], 1, np.uint32)[0]))
+                pk, pv = self._buf("pkeys", 4 * pcap), self._buf("pvals", 4 * pcap)
+                k["ec_write"](q, gs, (WG_SMALL,), g.header, g.cells, ray_o, ray_d, keys, nxt, act, m_cur,
+                              u(self.window), counts, pk, pv, win_exit, first, iters)
+                self.prims.sort_pairs_dev(pk, pv, cb["p"], pcap, key_bits)
                 from viewer.cl.primitives import Chunks
 
-                out = Chunks(0, self._buf("ck", 4 * p), self._buf("cs", 4 * p), self._buf("cl", 4 * p))
-                ch = self.prims.segments(pk, p, r=self.chunk, out=out)
-                chunks = ch.count
-                clio.finish(q)
-                t1 = time.perf_counter()
-                self.k["ec_process"](q, (chunks * self.chunk,), (self.chunk,), g.cells, g.refs, tris, ray_o, ray_d,
-                                     ch.key, ch.start, ch.length, pv, keys)
-                clio.finish(q)
-                trace_s += time.perf_counter() - t1
-                if stats and it == 0:
-                    ck, _, cl_ = ch.to_numpy(self.ctx)
-                    ps.rays_per_cell = np.bincount(np.searchsorted(np.unique(ck), ck), weights=cl_).astype(np.int64)
-            self._run("ec_resolve", m, keys, nxt, win_exit, act, u(m), flags)
-            m_next = self.prims.compact(m, flags=flags, src=act, dst=act2)
-            if stats:
-                row = {"active": float(m), "pairs": float(p), "workgroups": float(chunks),
-                       "resolved": float(m - m_next)}
-                if size is not None:
-                    a = self._read(act, m, np.uint32)
-                    fc = np.full(n, 0xFFFFFFFF, np.uint32)
-                    fc[a] = self._read(first, n, np.uint32)[a]
-                    _, per_tile = tile_divergence(fc, size)
-                    row["tile_cells_mean"] = float(per_tile.mean()) if len(per_tile) else 0.0
-                    row["tiles"] = float(len(per_tile))
-                    if it == 0:
-                        ps.first_cell = fc
-                ps.per_iter.append(row)
-            ps.pairs += p
-            ps.workgroups += chunks
-            act, act2 = act2, act
-            m = m_next
-            it += 1
+                ch = Chunks(0, self._buf("ck", 4 * pcap), self._buf("cs", 4 * pcap), self._buf("cl", 4 * pcap))
+                self.prims.segments_dev(pk, cb["p"], pcap, self.chunk, ch, cb["chunks"])
+                events.append(k["ec_process"](q, (groups * self.chunk,), (self.chunk,), g.cells, g.refs, tris,
+                                              ray_o, ray_d, ch.key, ch.start, ch.length, pv, keys, cb["chunks"]))
+                k["ec_resolve"](q, gs, (WG_SMALL,), keys, nxt, win_exit, act, m_cur, flags, cb["p"],
+                                cb["chunks"], cb["totals"])
+                self.prims.compact_dev(m_cur, n, m_nxt, flags=flags, src=act, dst=act2)
+                if stats:
+                    self._stats_row(ps, it, m_prev, cb, m_nxt, ch, act, first, n, size)
+                act, act2 = act2, act
+                m_cur, m_nxt = m_nxt, m_cur
+                it += 1
+            clio.copy(q, host[1:4], cb["totals"], is_blocking=False)
+            clio.copy(q, host[4:5], m_cur)  # the one wait of a batch
+            m_prev = int(host[4])
+            if m_prev == 0:
+                break
+            if it > limit:
+                raise RtwalkError(f"voxelwalk EC did not converge in {limit} iterations ({m_prev} rays left)")
+            batch = 1 if stats else max(EC_BATCH, it)
         self._bufs["act"], self._bufs["act2"] = act, act2
         self._run("ec_finish", n, keys, u(n), out_t, out_id)
-        clio.finish(q)
-        ps.iterations = it
-        ps.trace_ms = trace_s * 1e3
-        ps.reorder_ms = (time.perf_counter() - t0) * 1e3 - ps.trace_ms
+        wall_ms = (time.perf_counter() - t0) * 1e3
+        ps.rays = self._active(ray_o, ray_d, n) if stats else int(host[0])
+        ps.iterations, ps.pairs, ps.workgroups = int(host[1]), int(host[2]), int(host[3])
+        self._last_iterations = ps.iterations
+        ps.trace_ms = sum(max(0, e.profile.end - e.profile.start) for e in events) / 1e6
+        ps.reorder_ms = max(0.0, wall_ms - ps.trace_ms)
         if stats:
             ps.iters = self._read(iters, n, np.int32)
         return ps
+
+    def _stats_row(self, ps: PassStats, it: int, m: int, cb: dict, m_next_buf: Any, ch: Any, act: Any,
+                   first: Any, n: int, size: tuple[int, int] | None) -> None:
+        """The study's per-iteration row (reads the iteration's counts back: stats runs only)."""
+        p = int(self._read(cb["p"], 1, np.uint32)[0])
+        chunks = int(self._read(cb["chunks"], 1, np.uint32)[0]) if p else 0
+        m_next = int(self._read(m_next_buf, 1, np.uint32)[0])
+        if it == 0 and chunks:
+            ch.count = chunks
+            ck, _, cl_ = ch.to_numpy(self.ctx)
+            ps.rays_per_cell = np.bincount(np.searchsorted(np.unique(ck), ck), weights=cl_).astype(np.int64)
+        row = {"active": float(m), "pairs": float(p), "workgroups": float(chunks), "resolved": float(m - m_next)}
+        if size is not None:
+            a = self._read(act, m, np.uint32)
+            fc = np.full(n, 0xFFFFFFFF, np.uint32)
+            fc[a] = self._read(first, n, np.uint32)[a]
+            _, per_tile = tile_divergence(fc, size)
+            row["tile_cells_mean"] = float(per_tile.mean()) if len(per_tile) else 0.0
+            row["tiles"] = float(len(per_tile))
+            if it == 0:
+                ps.first_cell = fc
+        ps.per_iter.append(row)
 
     def release(self) -> None:
         for buf in self._bufs.values():

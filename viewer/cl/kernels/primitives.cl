@@ -14,6 +14,18 @@
 #endif
 #define WG_ATTR __attribute__((reqd_work_group_size(WG, 1, 1)))
 
+/* NDEV: element counts are read from device memory (a count an earlier kernel wrote: a scan's
+ * total, a compaction's count) instead of passed by value, so a chain of primitives runs with no
+ * host round trip; the host launches `nblocks` for an upper bound and the blocks' ranges shrink
+ * to the count on the device. */
+#ifdef NDEV
+#define NARG(name) __global const uint *name##_ptr
+#define NGET(name) const uint name = *name##_ptr
+#else
+#define NARG(name) uint name
+#define NGET(name)
+#endif
+
 /* ---- scans over small arrays (per-block totals): one work-item ------------------------- */
 
 /* In-place exclusive scan of a[0..m); *total = sum. */
@@ -26,7 +38,8 @@ __kernel WG_ATTR void scan_small(__global uint *a, uint m, __global uint *total)
 
 /* ---- exclusive scan -------------------------------------------------------------------- */
 
-__kernel WG_ATTR void block_sum(__global const uint *src, uint n, uint nblocks, __global uint *sums) {
+__kernel WG_ATTR void block_sum(__global const uint *src, NARG(n), uint nblocks, __global uint *sums) {
+    NGET(n);
     uint b = get_global_id(0);
     if (b >= nblocks) return;
     uint2 r = rt_block_range(n, b, nblocks);
@@ -40,8 +53,9 @@ __kernel WG_ATTR void block_sum(__global const uint *src, uint n, uint nblocks, 
 
 /* dst may alias src: each element is read before it is written, by the same work-item. Four
  * elements at a time with an in-register prefix sum (shortens the serial add chain). */
-__kernel WG_ATTR void block_scan(__global const uint *src, __global uint *dst, uint n, uint nblocks,
+__kernel WG_ATTR void block_scan(__global const uint *src, __global uint *dst, NARG(n), uint nblocks,
                                  __global const uint *offsets) {
+    NGET(n);
     uint b = get_global_id(0);
     if (b >= nblocks) return;
     uint2 r = rt_block_range(n, b, nblocks);
@@ -61,8 +75,9 @@ __kernel WG_ATTR void block_scan(__global const uint *src, __global uint *dst, u
 /* hist[d * nblocks + b] = number of keys in block b whose digit at `shift` is d: scanned in this
  * digit-major order the counts give each (digit, block) its first output slot, which keeps the
  * sort stable. */
-__kernel WG_ATTR void radix_hist(__global const uint *keys, uint n, uint nblocks, uint shift,
+__kernel WG_ATTR void radix_hist(__global const uint *keys, NARG(n), uint nblocks, uint shift,
                                  __global uint *hist) {
+    NGET(n);
     uint b = get_global_id(0);
     if (b >= nblocks) return;
     uint2 r = rt_block_range(n, b, nblocks);
@@ -72,9 +87,10 @@ __kernel WG_ATTR void radix_hist(__global const uint *keys, uint n, uint nblocks
     for (uint d = 0; d < 256; ++d) hist[d * nblocks + b] = h[d];
 }
 
-__kernel WG_ATTR void radix_scatter(__global const uint *keys, __global const uint *vals, uint n, uint nblocks,
+__kernel WG_ATTR void radix_scatter(__global const uint *keys, __global const uint *vals, NARG(n), uint nblocks,
                                     uint shift, __global const uint *offsets,
                                     __global uint *keys_out, __global uint *vals_out) {
+    NGET(n);
     uint b = get_global_id(0);
     if (b >= nblocks) return;
     uint2 r = rt_block_range(n, b, nblocks);
@@ -99,8 +115,9 @@ __kernel WG_ATTR void radix_scatter(__global const uint *keys, __global const ui
 #define ITEM uint
 #endif
 
-__kernel WG_ATTR void compact_count(__global const ITEM *src, __global const uint *flags, uint n, uint nblocks,
+__kernel WG_ATTR void compact_count(__global const ITEM *src, __global const uint *flags, NARG(n), uint nblocks,
                                     __global uint *counts) {
+    NGET(n);
     uint b = get_global_id(0);
     if (b >= nblocks) return;
     uint2 r = rt_block_range(n, b, nblocks);
@@ -113,10 +130,11 @@ __kernel WG_ATTR void compact_count(__global const ITEM *src, __global const uin
  * element is written to slot o (the next free one) and o advances only when it is kept: no
  * data-dependent branch, so a random mask costs no mispredictions. Slots up to the block's end
  * (the next block's offset) only, which keeps blocks from overwriting each other. */
-__kernel WG_ATTR void compact_write(__global const ITEM *src, __global const uint *flags, uint n, uint nblocks,
+__kernel WG_ATTR void compact_write(__global const ITEM *src, __global const uint *flags, NARG(n), uint nblocks,
                                     __global const uint *offsets, __global const uint *total,
                                     __global ITEM *dst, __global uint *dst_index,
                                     uint write_items, uint write_index) {
+    NGET(n);
     uint b = get_global_id(0);
     if (b >= nblocks) return;
     uint2 r = rt_block_range(n, b, nblocks);
@@ -133,7 +151,8 @@ __kernel WG_ATTR void compact_write(__global const ITEM *src, __global const uin
 /* ---- segments of a sorted key array, chunked to at most r elements ---------------------- */
 
 /* last[b] = the last segment start (i == 0 or key[i] != key[i-1]) in block b, or -1. */
-__kernel WG_ATTR void seg_last_start(__global const uint *keys, uint n, uint nblocks, __global int *last) {
+__kernel WG_ATTR void seg_last_start(__global const uint *keys, NARG(n), uint nblocks, __global int *last) {
+    NGET(n);
     uint b = get_global_id(0);
     if (b >= nblocks) return;
     uint2 r = rt_block_range(n, b, nblocks);
@@ -154,8 +173,9 @@ inline uint seg_incoming(__global const int *last, uint b) {
 /* A chunk starts where a segment starts and every r elements after that. */
 #define CHUNK_START(i) ((i) == seg || ((i) - seg) % r == 0u)
 
-__kernel WG_ATTR void seg_count_chunks(__global const uint *keys, uint n, uint nblocks, uint r,
+__kernel WG_ATTR void seg_count_chunks(__global const uint *keys, NARG(n), uint nblocks, uint r,
                                        __global const int *last, __global uint *counts) {
+    NGET(n);
     uint b = get_global_id(0);
     if (b >= nblocks) return;
     uint2 rg = rt_block_range(n, b, nblocks);
@@ -167,9 +187,10 @@ __kernel WG_ATTR void seg_count_chunks(__global const uint *keys, uint n, uint n
     counts[b] = c;
 }
 
-__kernel WG_ATTR void seg_write_chunks(__global const uint *keys, uint n, uint nblocks, uint r,
+__kernel WG_ATTR void seg_write_chunks(__global const uint *keys, NARG(n), uint nblocks, uint r,
                                        __global const int *last, __global const uint *offsets,
                                        __global uint *chunk_key, __global uint *chunk_start) {
+    NGET(n);
     uint b = get_global_id(0);
     if (b >= nblocks) return;
     uint2 rg = rt_block_range(n, b, nblocks);
@@ -181,8 +202,10 @@ __kernel WG_ATTR void seg_write_chunks(__global const uint *keys, uint n, uint n
 }
 
 /* count[c] = start[c+1] - start[c] (chunks tile [0, n)); one work-item per block of chunks. */
-__kernel WG_ATTR void seg_chunk_counts(__global const uint *chunk_start, uint m, uint nblocks, uint n,
+__kernel WG_ATTR void seg_chunk_counts(__global const uint *chunk_start, NARG(m), uint nblocks, NARG(n),
                                        __global uint *chunk_count) {
+    NGET(n);
+    NGET(m);
     uint b = get_global_id(0);
     if (b >= nblocks) return;
     uint2 rg = rt_block_range(m, b, nblocks);
