@@ -95,3 +95,20 @@ def parse_effects(text: str, base: EffectSettings | None = None) -> EffectSettin
             if name in ("soft", "ao", "diffuse"):
                 setattr(s, f"{name}_samples", int(count))
     return s
+
+
+# The sample pattern of an effect's passes: pass k of every pixel shares Halton point k (CHC+RT 5.3),
+# the same on every device (raygen.frag and the OpenCL ray generation take it as a uniform).
+def radical_inverse(base: int, index: int) -> float:
+    """Van der Corput radical inverse of `index` in `base` (Halton component)."""
+    inv, f, i = 0.0, 1.0 / base, index
+    while i > 0:
+        inv += f * (i % base)
+        i //= base
+        f /= base
+    return inv
+
+
+def halton2(index: int) -> tuple[float, float]:
+    """The index-th 2D Halton point (bases 2 and 3); index 0 is skipped (it is (0, 0))."""
+    return radical_inverse(2, index + 1), radical_inverse(3, index + 1)

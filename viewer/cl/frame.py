@@ -163,7 +163,7 @@ class DeviceFrame:
 
     def generate(self, ray_type: RayType, sample: int, light: int, ray_length: float, perturb_rad: float) -> None:
         """raygen.frag's rays of one pass into `self.rays` (and its active rays into the counts)."""
-        from viewer.passes.raygen import halton2
+        from viewer.effects import halton2
 
         w, h = self.size
         stream = (int(ray_type) * 7919 + sample * 104729 + light * 15485863) & 0xFFFFFFFF

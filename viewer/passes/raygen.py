@@ -5,27 +5,12 @@ from __future__ import annotations
 import moderngl
 import numpy as np
 
-from viewer.effects import RayType
+from viewer.effects import RayType, halton2
 from viewer.gl import io as glio
 from viewer.gl.bindings import BIND_COUNTERS
 from viewer.gl.programs import FullscreenQuad, ProgramCache
 from viewer.passes.gbuffer import GBufferPass
 from viewer.rays import RayBatch
-
-
-def radical_inverse(base: int, index: int) -> float:
-    """Van der Corput radical inverse of `index` in `base` (Halton component)."""
-    inv, f, i = 0.0, 1.0 / base, index
-    while i > 0:
-        inv += f * (i % base)
-        i //= base
-        f /= base
-    return inv
-
-
-def halton2(index: int) -> tuple[float, float]:
-    """The index-th 2D Halton point (bases 2 and 3); index 0 is skipped (it is (0, 0))."""
-    return radical_inverse(2, index + 1), radical_inverse(3, index + 1)
 
 
 class RayGenPass:
