@@ -93,7 +93,7 @@ def test_built_program_carries_contract_and_evaluates_unfused(tmp_path):
 
 
 def test_shaders_get_the_numeric_pragmas():
-    src = load_shader_source("trace_glsl.frag", {"STACK_SIZE": 24})
+    src = load_shader_source("raygen.frag")
     first = src.split("\n", 1)
     assert first[0].startswith("#version")
     assert first[1].startswith(NUMERIC_PRAGMAS)

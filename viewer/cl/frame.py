@@ -31,8 +31,8 @@ from typing import Any
 
 import numpy as np
 
+import viewer.cl.io as clio
 from viewer.accel.bvh import gpu_triangles
-from viewer.cl import io as clio
 from viewer.cl.context import ClContext, cl_context
 from viewer.cl.programs import build
 from viewer.cl.transfer import HitStage, RayStage, mapped

@@ -37,7 +37,7 @@ from typing import Any
 
 import numpy as np
 
-from viewer.cl import io as clio
+import viewer.cl.io as clio
 from viewer.cl.context import ClContext, cl_context
 from viewer.cl.limits import new_buffer
 from viewer.cl.programs import build

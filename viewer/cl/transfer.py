@@ -20,7 +20,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from viewer.cl import io as clio
+import viewer.cl.io as clio
 from viewer.cl.context import ClContext, cl_context
 from viewer.cl.limits import check_alloc
 
