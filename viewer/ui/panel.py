@@ -217,10 +217,11 @@ def draw_panel(host, width: float, height: float) -> None:  # noqa: C901 (a flat
                 imgui.text(f"({mrays_frame:.1f} Mrays/s over the whole frame)")
             else:
                 imgui.text("no rays traced (all effects off)")
-            _draw_io(rep, r.size)
 
     # -- backend phases and counters (CHC+RT paper, Figure 8) ------------------------------------
-    if imgui.collapsing_header("Backend phases & counters"):
+    if imgui.collapsing_header("Backend phases, counters & I/O"):
+        if host.last_report is not None:  # what crosses between host and device (viewer.iostats)
+            _draw_io(host.last_report, r.size)
         _draw_phase_chart(hist)
         _draw_counters(host.last_report, hist, r.backend.info.counters)
 
