@@ -20,6 +20,8 @@ from types import ModuleType
 BENCHMARKS: dict[str, str] = {
     "bench": "viewer.bench.replay",
     "bench-bvh": "viewer.bench.bvh_build",
+    "bench-bvh-trace": "viewer.bench.bvh_trace",
+    "bench-grids": "viewer.bench.grids_far",
     "bench-chcrt": "viewer.bench.chcrt",
     "bench-pgrid": "viewer.bench.pgrid",
     "bench-voxelwalk": "viewer.bench.voxelwalk",

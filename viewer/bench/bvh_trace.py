@@ -1,6 +1,7 @@
-"""Trace speed of clbvh on the SAH tree and on the device-built tree, same scene and rays.
+"""`rtwalk bench-bvh-trace`: trace speed of clbvh on the SAH tree and on the device-built tree,
+same scene and rays.
 
-    python -m viewer.bench.bvh_trace [city_triangles] [rays] [scene file]
+    rtwalk bench-bvh-trace [--triangles N] [--rays N] [--scene FILE]
 
 Rays: origins spread over the top of the scene box looking down at random angles (primary-like,
 coherent enough to be typical), plus random rays inside the box (secondary-like). Each tree is
@@ -26,6 +27,23 @@ def make_rays(tris: np.ndarray, n: int, seed: int = 1) -> tuple[np.ndarray, np.n
     o[:half, 1] = hi[1] + 0.1 * (hi[1] - lo[1])  # from above, looking down
     d[:half, 1] = -np.abs(d[:half, 1]) - 0.5
     return o, d
+
+
+HELP = "clbvh trace speed and SAH cost on the SAH-built and the device-built BVH, same rays"
+
+
+def add_arguments(p) -> None:
+    p.add_argument("--triangles", type=int, default=200_000, help="procedural city size (without --scene)")
+    p.add_argument("--rays", type=int, default=200_000, help="rays traced per tree and round")
+    p.add_argument("--scene", default=None, help="a scene file instead of the city (e.g. ../shared/scenes/...)")
+
+
+def run(args) -> int:
+    from viewer.cli_args import check_at_least
+
+    check_at_least(args.triangles, 1, "--triangles")
+    check_at_least(args.rays, 1, "--rays")
+    return main([str(args.triangles), str(args.rays), *([args.scene] if args.scene else [])])
 
 
 def main(argv: list[str]) -> int:

@@ -12,7 +12,7 @@ pairs, its device buffer bytes, the median trace ms, its ratio to clbvh's, and h
 with clbvh (ties at the same distance excepted). Peak RSS: one backend per process under
 /usr/bin/time -v. `--build-only`: the uniform grid alone (pairs, MiB, RSS), no tracing.
 
-  python -m viewer.bench.grids_far --scene dragon --offset 1e6 --backends clbvh,ugrid,pgrid,voxelwalk
+  rtwalk bench-grids --scene dragon --offset 1e6 --backends clbvh,ugrid,pgrid,voxelwalk
 """
 
 from __future__ import annotations
@@ -29,6 +29,8 @@ from typing import Any
 import numpy as np
 
 from viewer.errors import RtwalkError
+
+HELP = "grids against clbvh far from the origin (--offset) and on a mixed-scale scene: pairs, MiB, trace ms"
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -247,7 +249,7 @@ def run(args) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m viewer.bench.grids_far", description=__doc__.split("\n")[0])
+    p = argparse.ArgumentParser(prog="rtwalk bench-grids", description=__doc__.split("\n")[0])
     add_arguments(p)
     args = p.parse_args(argv)
     try:
