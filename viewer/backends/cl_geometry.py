@@ -33,6 +33,20 @@ class GeometryBackend(StatelessBackend):
     _tris: Any = None  # float4 triangle buffer (3 float4 per triangle, viewer.accel.grid.triangles_f4)
     _tris_key: tuple[int, int] | None = None
 
+    def _start(self, bc: BackendContext, params: Any) -> None:
+        """The common start of a constructor: the context, the parameters (the info's defaults when
+        None), no overlays, the shared CL context, a uniform grid, and int textures for overlays."""
+        from viewer.accel.grid import UniformGrid
+        from viewer.cl import cl_context
+        from viewer.gl.textures import IntTextures
+
+        self.bc = bc
+        self.params = params or self.info.params()
+        self.overlays_enabled = False
+        self.ctx = cl_context()
+        self.grid = UniformGrid(self.ctx)
+        self.textures = IntTextures(bc.ctx)
+
     def _geometry_key(self) -> tuple[int, int]:
         return id(self.bc.scene.triangles), int(getattr(self.bc.scene, "geometry_version", 0))
 
@@ -67,3 +81,12 @@ class GeometryBackend(StatelessBackend):
         if getattr(self.params, "rebuild", False) or self._geometry_key() != self._tris_key:
             self._rebuild()
         self._frame_started()
+
+    def _release_own(self) -> None:
+        """Release what _start and _upload_triangles made (and the ray stages)."""
+        self.stages.release()
+        self.textures.release()
+        if self._tris is not None:
+            self._tris.release()
+            self._tris = None
+        self.grid.release()

@@ -38,7 +38,7 @@ import numpy as np
 
 from viewer.accel.camgrid import CameraGrid, CameraGridSpec, closed_outward, corner_rays, fit_camera
 from viewer.accel.camgrid import N as CAMERA_N
-from viewer.accel.grid import GridSpec, UniformGrid, scene_box
+from viewer.accel.grid import GridSpec, scene_box
 from viewer.accel.pointgrid import PointGrid, PointGridSpec
 from viewer.backends.base import BackendContext, TraceResult
 from viewer.backends.cl_geometry import GeometryBackend
@@ -112,14 +112,9 @@ class PgridBackend(GeometryBackend):
         device="cl")
 
     def __init__(self, bc: BackendContext, params: PgridParams | None = None):
-        from viewer.cl import PassStages, build, cl_context
-        from viewer.gl.textures import IntTextures
+        from viewer.cl import PassStages, build
 
-        self.bc = bc
-        self.params = params or PgridParams()
-        self.overlays_enabled = False
-        self.ctx = cl_context()
-        self.grid = UniformGrid(self.ctx)
+        self._start(bc, params)
         self.tracer = GridTracer(self.ctx, self.grid)
         self.pgrid = PointGrid(self.ctx, self.grid.prims)
         self.camgrid = CameraGrid(self.ctx, self.grid.prims)
@@ -135,7 +130,6 @@ class PgridBackend(GeometryBackend):
         self._grid_fresh = False
         self._box = (np.zeros(3), np.ones(3))
         self.stages = PassStages(self.ctx, extras=1)  # + triangle tests per ray
-        self.textures = IntTextures(bc.ctx)
         self._rebuild()
 
     # -- geometry (viewer.backends.cl_geometry) --------------------------------------------
@@ -327,11 +321,6 @@ class PgridBackend(GeometryBackend):
         return chunk_of, tile_rays
 
     def release(self) -> None:
-        self.stages.release()
-        self.textures.release()
-        if self._tris is not None:
-            self._tris.release()
-            self._tris = None
         self.pgrid.release()
         self.camgrid.release()
-        self.grid.release()
+        self._release_own()

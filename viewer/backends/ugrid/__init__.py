@@ -89,17 +89,11 @@ class UgridBackend(GeometryBackend):
                        counters=("rays", "grid_pairs", "grid_nonempty", "grid_build_ms", "tests_per_ray"), device="cl")
 
     def __init__(self, bc: BackendContext, params: UgridParams | None = None):
-        from viewer.cl import PassStages, cl_context
-        from viewer.gl.textures import IntTextures
+        from viewer.cl import PassStages
 
-        self.bc = bc
-        self.params = params or UgridParams()
-        self.overlays_enabled = False
-        self.ctx = cl_context()
-        self.grid = UniformGrid(self.ctx)
+        self._start(bc, params)
         self.tracer = GridTracer(self.ctx, self.grid)
         self.stages = PassStages(self.ctx, extras=1)  # + triangle tests per ray
-        self.textures = IntTextures(bc.ctx)
         self._grid_stats_due = True
         self._rebuild()
 
@@ -155,9 +149,4 @@ class UgridBackend(GeometryBackend):
         return tex, total
 
     def release(self) -> None:
-        self.stages.release()
-        self.textures.release()
-        if self._tris is not None:
-            self._tris.release()
-            self._tris = None
-        self.grid.release()
+        self._release_own()

@@ -32,7 +32,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from viewer.accel.grid import GridSpec, UniformGrid, scene_box
+from viewer.accel.grid import GridSpec, scene_box
 from viewer.backends.base import BackendContext, TraceResult
 from viewer.backends.cl_geometry import GeometryBackend
 from viewer.backends.interface import BackendInfo, OverlaySpec, param
@@ -92,17 +92,11 @@ class VoxelwalkBackend(GeometryBackend):
         device="cl")
 
     def __init__(self, bc: BackendContext, params: VoxelwalkParams | None = None):
-        from viewer.cl import PassStages, cl_context
-        from viewer.gl.textures import IntTextures
+        from viewer.cl import PassStages
 
-        self.bc = bc
-        self.params = params or VoxelwalkParams()
-        self.overlays_enabled = False
-        self.ctx = cl_context()
-        self.grid = UniformGrid(self.ctx)
+        self._start(bc, params)
         self.walker = VoxelWalker(self.ctx, self.grid, self.params.chunk, self.params.cells)
         self.stages = PassStages(self.ctx)
-        self.textures = IntTextures(bc.ctx)
         self.last_stats: PassStats | None = None
         self._frame_stats: dict[str, float] = {}  # reported by the frame's first pass (the renderer sums passes)
         self._build_ms = 0.0
@@ -183,10 +177,5 @@ class VoxelwalkBackend(GeometryBackend):
         return TraceResult(stats=stats, overlays=overlays)
 
     def release(self) -> None:
-        self.stages.release()
-        self.textures.release()
-        if self._tris is not None:
-            self._tris.release()
-            self._tris = None
         self.walker.release()
-        self.grid.release()
+        self._release_own()
