@@ -34,10 +34,12 @@ HELP = "grids against clbvh far from the origin (--offset) and on a mixed-scale 
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--scene", default="dragon", choices=("dragon", "mixed"))
+    p.add_argument("--scene", default="dragon", choices=("dragon", "mixed"),
+                   help="dragon: the shared 100k dragon moved by --offset; mixed: a 1e-3 object on a 2e4 ground")
     p.add_argument("--offset", type=float, default=0.0, help="dragon: translation along (1,1,1) (default 0)")
     p.add_argument("--size", default="320x180", help="WxH of the primary rays (default 320x180)")
-    p.add_argument("--backends", default="clbvh,ugrid,pgrid,voxelwalk")
+    p.add_argument("--backends", default="clbvh,ugrid,pgrid,voxelwalk",
+                   help="comma list of registered backends to trace (clbvh is the reference for ratios)")
     p.add_argument("--rounds", type=int, default=3, help="interleaved timing rounds (default 3)")
     p.add_argument("--scene-dir", default="", help="folder of the shared scenes (default ../shared/scenes)")
     p.add_argument("--json", default="", help="write the rows to this file")
