@@ -134,29 +134,30 @@ class HitStage:
 
 class PassStages:
     """A CL backend's staging at the ray-batch size: a RayStage, a HitStage and `extras` int32
-    per-pixel buffers (e.g. per-ray counters), made again only when the size changes (every
-    backend needs the same, so it lives here)."""
+    per-pixel buffers (e.g. per-ray counters, a PixelBuffers), made again only when the size
+    changes (every backend needs the same, so it lives here)."""
 
     def __init__(self, ctx: ClContext, extras: int = 0, extra_access: str = "w"):
-        self.ctx, self.extras, self.extra_access = ctx, int(extras), extra_access
+        self.ctx = ctx
+        self.extra = PixelBuffers(ctx, extras, extra_access)
         self.size: tuple[int, int] | None = None
-        self.parts: tuple = ()
+        self.stages: tuple = ()
 
     def get(self, size: tuple[int, int]) -> tuple:
         """(RayStage, HitStage, *extra buffers) for a ray batch of `size`."""
         size = (int(size[0]), int(size[1]))
         if size != self.size:
-            self.release()
-            n = size[0] * size[1]
-            self.parts = (RayStage(size, self.ctx), HitStage(size, self.ctx),
-                          *(host_buffer(self.ctx, 4 * n, self.extra_access) for _ in range(self.extras)))
+            for part in self.stages:
+                part.release()
+            self.stages = (RayStage(size, self.ctx), HitStage(size, self.ctx))
             self.size = size
-        return self.parts
+        return (*self.stages, *self.extra.get(size))
 
     def release(self) -> None:
-        for part in self.parts:
+        for part in self.stages:
             part.release()
-        self.parts, self.size = (), None
+        self.extra.release()
+        self.stages, self.size = (), None
 
 
 class PixelBuffers:
