@@ -67,6 +67,7 @@ def test_culled_gbuffer_equals_the_full_raster(gl_ctx, city):
     from viewer.renderer import Renderer
 
     r = Renderer(gl_ctx, city.scene, city.bvh, SIZE, "glsl")
+    r.gbuffer.occlusion = False  # the frustum culling alone (occlusion: the next test)
     try:
         drawn = []
         for cam in _cameras(city.scene):
@@ -84,6 +85,63 @@ def test_culled_gbuffer_equals_the_full_raster(gl_ctx, city):
         assert drawn[-1] == 0  # looking away from the scene
         assert min(drawn[1:3]) < n // 2  # street views draw a fraction of the city
     finally:
+        r.release()
+
+
+def _walk(scene, n: int = 8) -> list[Camera]:
+    """A street-level walk that turns: what was hidden comes into view (the occlusion state is
+    carried from frame to frame), then a jump back to the first view and one looking away."""
+    lo, hi = (np.asarray(v, np.float64) for v in scene.bounds)
+    c = (lo + hi) / 2
+    street = c + np.array([0.0, -0.45, 0.0]) * (hi - lo)
+    cams = []
+    for k in range(n):
+        a = 2 * np.pi * k / n
+        eye = street + np.array([np.cos(a), 0.0, np.sin(a)]) * 0.05 * (hi - lo)
+        cams.append(Camera.look_at(eye, eye + [np.cos(a + 1.3), 0.02, np.sin(a + 1.3)]))
+    return [*cams, cams[0], _cameras(scene)[3]]
+
+
+@pytest.mark.parametrize("preview", [False, True], ids=["exact", "preview"])
+def test_occlusion_culled_gbuffer_equals_the_unculled_one(gl_ctx, city, preview):
+    """Occlusion culling (two device passes over a distance pyramid, with last frame's visible set
+    first) draws a fraction of the frustum-culled triangles along a walk and changes no pixel: the
+    same triangle, position, normal and albedo everywhere, except where two triangles meet at the
+    same distance (a tie the draw order decides). The preview raster too, with its depth test's
+    resolution."""
+    from viewer.renderer import Renderer
+
+    r = Renderer(gl_ctx, city.scene, city.bvh, SIZE, "glsl")
+    g = r.gbuffer
+    try:
+        ratios, totals = [], np.zeros(2)
+        for cam in _walk(city.scene):
+            out, drawn = {}, {}
+            for occlusion in (False, True):  # the culled frame last: its state carries to the next
+                g.occlusion = occlusion
+                g.render(cam, preview=preview)
+                out[occlusion] = [read_texture(t).copy().reshape(SIZE[1], SIZE[0], -1)
+                                  for t in (g.tri_id, g.position, g.normal, g.albedo)]
+                drawn[occlusion] = g.drawn_triangles
+            ids_a, ids_b = out[False][0][..., 0], out[True][0][..., 0]
+            same = ids_a == ids_b
+            # a tie: the same distance (exact: the ray test's t; preview: within the resolution of
+            # the rasterizer's float depth far from its near plane, ~1e-4 relative)
+            tie = np.isclose(out[False][1][..., 3], out[True][1][..., 3], rtol=1e-3 if preview else 1e-6, atol=0)
+            bad = [tuple(b) for b in np.argwhere(~(same | tie))[:5]]
+            assert not bad, [(b, out[False][1][b][3], out[True][1][b][3]) for b in bad]
+            assert same.mean() >= 0.995
+            for a, b in zip(out[False][1:], out[True][1:], strict=True):
+                np.testing.assert_array_equal(a[same], b[same])
+            totals += drawn[False], drawn[True]
+            if drawn[False]:
+                ratios.append(drawn[True] / drawn[False])
+            else:
+                assert drawn[True] == 0
+        # street views hide much of what is in the pyramid (city-near at 112x63: 58 % drawn)
+        assert totals[1] <= 0.85 * totals[0] and min(ratios) < 0.5, ratios
+    finally:
+        g.occlusion = True
         r.release()
 
 
@@ -111,3 +169,58 @@ def test_traced_gbuffer_equals_the_raster(gl_ctx, city):
                 np.testing.assert_array_equal(a[same[..., 0]], b[same[..., 0]])
     finally:
         r.release()
+
+
+def test_preview_raster_is_the_exact_one_away_from_edges(gl_ctx, city):
+    """gbuffer_source "preview" (moving frames: the plain raster, no geometry shader) sees the same
+    triangle as the exact conservative raster on nearly every pixel, and where the triangle is
+    the same, the same position, normal and albedo (both come from the same ray test; a preview
+    pixel the exact test misses keeps the plane distance, so only edge pixels may differ)."""
+    from viewer.renderer import Renderer
+
+    r = Renderer(gl_ctx, city.scene, city.bvh, SIZE, "glsl")
+    g = r.gbuffer
+    try:
+        for cam in _cameras(city.scene)[:3]:
+            out = {}
+            for source in ("raster", "preview"):
+                r.gbuffer_source = source
+                report = r.render(cam)
+                out[source] = [read_texture(t).copy().reshape(SIZE[1], SIZE[0], -1)
+                               for t in (g.tri_id, g.position, g.normal, g.albedo)]
+            assert "gbuffer:preview" in report.gpu_ms  # the preview pass ran
+            ids_r, ids_p = out["raster"][0], out["preview"][0]
+            same = (ids_r == ids_p)[..., 0]
+            assert same.mean() >= 0.98, same.mean()
+            assert ((ids_r >= 0) == (ids_p >= 0)).mean() >= 0.99
+            hit = same & (ids_r[..., 0] >= 0)
+            for a, b in zip(out["raster"][1:], out["preview"][1:], strict=True):
+                np.testing.assert_allclose(a[hit], b[hit], rtol=1e-5, atol=1e-5 * city.scene.diagonal)
+    finally:
+        r.gbuffer_source = "raster"
+        r.release()
+
+
+def test_bench_gbuffer_reports_culling_and_refuses_to_overwrite(tmp_path):
+    """`rtwalk bench-gbuffer`: the four configurations with ms and triangles per frame, occlusion
+    drawing no more than the frustum culling and changing (almost) no pixel; a second run into the
+    same folder is refused in one line."""
+    import json
+    import subprocess
+    import sys
+
+    cmd = [sys.executable, "-m", "viewer.cli", "bench-gbuffer", "--frames", "3", "--first-frame", "100",
+           "--size", "64x36", "--out", str(tmp_path), "--quiet"]
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr
+    rep = json.loads((tmp_path / "gbuffer.json").read_text())
+    assert (tmp_path / "gbuffer.png").exists() and (tmp_path / "gbuffer.md").exists()
+    cfg = rep["configs"]
+    assert set(cfg) == {"exact+frustum", "exact+occlusion", "preview+frustum", "preview+occlusion"}
+    for kind in ("exact", "preview"):
+        occ, fr = cfg[f"{kind}+occlusion"], cfg[f"{kind}+frustum"]
+        assert len(occ["ms"]) == 3 and all(t > 0 for t in occ["ms"])
+        assert all(0 < a <= b for a, b in zip(occ["triangles"], fr["triangles"], strict=True))
+        assert occ["max_differing_pixels"] <= 0.01
+    again = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
+    assert again.returncode == 2 and again.stderr.count("\n") == 1 and "--force" in again.stderr

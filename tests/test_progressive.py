@@ -119,14 +119,14 @@ def test_bench_progressive_report(tmp_path):
     rep = json.loads((tmp_path / "out" / "p-progressive.json").read_text())
     assert rep["frames"] == 7 and len(rep["moving_ms"]["all"]) == 7
     assert rep["moving_ms"]["median"] <= rep["moving_ms"]["p95"] <= rep["moving_ms"]["max"]
-    assert rep["converge"]["frames"] == 2 and rep["converge"]["seconds"] > 0  # samples 1 and 2 of 0..2
+    assert rep["converge"]["frames"] == 3 and rep["converge"]["seconds"] > 0  # samples 0..2 at full size
     assert rep["scale"]["max"] == 1.0 and rep["converged_vs_full_mae"] <= 1.0
 
 
 def test_moving_frames_pick_the_cheaper_gbuffer_source(gl_ctx, room):
     """Each G-buffer source is measured on a moving frame; then the cheaper one (the traced one's
     time scaled by the pixels) is used, the other tried again every PROBE_EVERY moving frames; still
-    frames always use the raster."""
+    frames always use the exact raster."""
     from viewer.progressive import GBUFFER_SOURCES, PROBE_EVERY
 
     a, b = _cams()
@@ -136,9 +136,9 @@ def test_moving_frames_pick_the_cheaper_gbuffer_source(gl_ctx, room):
         prog.frame(a)
         prog.frame(b)
         assert set(prog._source_cost) == set(GBUFFER_SOURCES) and r.gbuffer_source == "raster"
-        prog._source_cost = {"raster": (50.0, 100), "trace": (40.0, 100)}
+        prog._source_cost = {"preview": (50.0, 100), "trace": (40.0, 100)}
         picks = [prog._pick_source(200) for _ in range(PROBE_EVERY)]  # trace: 80 ms at 200 px
-        assert picks[:-1] == ["raster"] * (PROBE_EVERY - 1) and picks[-1] == "trace"
+        assert picks[:-1] == ["preview"] * (PROBE_EVERY - 1) and picks[-1] == "trace"
         assert prog._pick_source(100) == "trace"  # 40 ms < 50 ms
     finally:
         r.release()

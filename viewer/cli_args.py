@@ -119,10 +119,12 @@ def add_denoise_arg(p: argparse.ArgumentParser, default: str = "on") -> None:
 
 def add_progressive_args(p: argparse.ArgumentParser, help_flag: str, default: bool = False) -> None:
     """--progressive / --no-progressive and --frame-target-ms (viewer.progressive)."""
+    from viewer.progressive import DEFAULT_TARGET_MS
+
     p.add_argument("--progressive", action=argparse.BooleanOptionalAction, default=default, help=help_flag)
-    p.add_argument("--frame-target-ms", type=float, default=66.0,
+    p.add_argument("--frame-target-ms", type=float, default=DEFAULT_TARGET_MS,
                    help="progressive mode: frame time to keep while the camera moves (measured, so it holds "
-                        "under load), by lowering the render scale down to 1/8 (default 66: 15 fps)")
+                        "under load), by lowering the render scale down to 1/16 (default 60: 16.7 fps)")
 
 
 def check_backend(name: str) -> str:

@@ -4,9 +4,11 @@ A `Progressive` drives a Renderer one call per displayed frame:
 - the camera (or the settings, view, backend or size) changed since the last call: a new image
   with one sample pass per effect (sample 0 of each), at a render scale chosen to keep the frame
   time near `target_ms` (the window upscales the smaller image when it blits);
-  its G-buffer from whichever source (Renderer.gbuffer_source: the raster, whose cost follows the
-  triangles in view, or the backend's primary rays, whose cost follows the pixels) measured
-  cheaper at that size (each is tried, and the other one again every PROBE_EVERY moving frames);
+  its G-buffer from whichever source (Renderer.gbuffer_source: the plain "preview" raster, whose
+  cost follows the triangles in view, or the backend's primary rays, whose cost follows the
+  pixels) measured cheaper at that size (each is tried, and the other one again every PROBE_EVERY
+  moving frames); a moving image is replaced as soon as the camera stops, so it does not need the
+  exact raster's coverage;
 - unchanged: at full scale, add the next sample pass of every effect that wants more into the
   accumulators (Renderer.render(samples=(k,), keep=True)) until the requested counts are reached;
 - all done: idle (nothing is rendered; the last image stays).
@@ -29,10 +31,10 @@ import numpy as np
 from viewer.camera import Camera
 from viewer.renderer import FrameReport, Renderer
 
-SCALE_STEP = 1 / 16  # render scales are multiples of this (each change reallocates the targets)
-MIN_SCALE = 1 / 8  # floor of the moving frames' scale: 112x63 of an 896x504 window
-DEFAULT_TARGET_MS = 66.0  # moving frames: 15 fps
-GBUFFER_SOURCES = ("raster", "trace")
+SCALE_RUNGS_PER_OCTAVE = 4  # render scales step by 2^(1/4) (~19 %): each change reallocates the targets
+MIN_SCALE = 1 / 16  # floor of the moving frames' scale (56x32 of an 896x504 window), reached only under load
+DEFAULT_TARGET_MS = 60.0  # moving frames: 16.7 fps, a margin over 15 for the load's jitter
+GBUFFER_SOURCES = ("preview", "trace")  # moving frames; still frames use the exact "raster"
 PROBE_EVERY = 24  # moving frames between two tries of the G-buffer source not in use
 
 
@@ -103,7 +105,16 @@ class Progressive:
         ideal = self.scale * math.sqrt(self.target_ms / (wall_ms + max(self.extra_ms, 0.0)))
         ideal = min(1.0, max(self.min_scale, ideal))
         if ideal < self.scale * 0.95 or ideal > self.scale * 1.15:
-            self.scale = max(self.min_scale, min(1.0, math.floor(ideal / SCALE_STEP) * SCALE_STEP))
+            self.scale = self._rung(ideal)
+
+    def _rung(self, ideal: float) -> float:
+        """The largest scale of the ladder min_scale * 2^(k / SCALE_RUNGS_PER_OCTAVE) (and 1) not above
+        `ideal`: steps relative to the scale, so a small scale can climb back one step at a time
+        (fixed steps of 1/16 kept a 1/16 image there until the frame took a quarter of the budget)."""
+        if ideal >= 1.0:
+            return 1.0
+        k = math.floor(SCALE_RUNGS_PER_OCTAVE * math.log2(ideal / self.min_scale) + 1e-9)
+        return min(1.0, max(self.min_scale, self.min_scale * 2.0 ** (k / SCALE_RUNGS_PER_OCTAVE)))
 
     def _pick_source(self, pixels: int) -> str:
         """The G-buffer source expected cheaper for a moving frame of `pixels`: the raster's frame
@@ -117,10 +128,10 @@ class Progressive:
             if src not in self._source_cost:
                 return src
         self._moving_frames += 1
-        (raster_ms, _), (trace_ms, trace_px) = self._source_cost["raster"], self._source_cost["trace"]
-        best = "raster" if raster_ms <= trace_ms * pixels / max(trace_px, 1) else "trace"
+        (raster_ms, _), (trace_ms, trace_px) = self._source_cost["preview"], self._source_cost["trace"]
+        best = "preview" if raster_ms <= trace_ms * pixels / max(trace_px, 1) else "trace"
         if self._moving_frames % PROBE_EVERY == 0:
-            return "trace" if best == "raster" else "raster"
+            return "trace" if best == "preview" else "preview"
         return best
 
     def frame(self, camera: Camera) -> Step:
@@ -139,9 +150,9 @@ class Progressive:
             self._source_cost[source] = (report.wall_ms, size[0] * size[1])
             self.shown_scale = self.scale
             self._adapt(report.wall_ms)
-            # at full scale from the raster, sample 0 is already in (a traced G-buffer: start over, so
-            # that the converged image is the full-quality frame exactly)
-            self._next = 0 if self.scale < 1.0 or source != "raster" else 1
+            # a moving image is never part of the converged one: once the camera stops, start over at
+            # full scale from the exact raster (the converged image is the full-quality frame exactly)
+            self._next = 0
             return Step(report, True, self.shown_scale, 1, requested, requested <= 1 and self._next == 1)
         if self._next == 0:  # stopped after a reduced-scale image: start over at full scale
             self.resize(self.full_size)

@@ -143,8 +143,9 @@ class Renderer:
         self._device = None  # viewer.cl.frame.DeviceFrame, made on the first CL-resident frame
         self.frame_path = "batch"  # the last frame's: "device" (CL-resident) or "batch" (RayBatch)
         # where the G-buffer comes from: "raster" (exact conservative raster, cost ~ triangles in
-        # view) or "trace" (the backend's primary rays, cost ~ pixels); the progressive mode picks
-        # the cheaper one for its small moving frames (viewer.progressive)
+        # view), "preview" (plain raster, not exact at edges; moving frames only) or "trace" (the
+        # backend's primary rays, cost ~ pixels); the progressive mode picks the cheaper of
+        # preview and trace for its moving frames (viewer.progressive)
         self.gbuffer_source = "raster"
         self.set_backend(backend or backend_names()[0])
 
@@ -415,8 +416,8 @@ class Renderer:
             if self.gbuffer_source == "trace":
                 self._traced_gbuffer(camera)
             else:
-                with prof.phase("gbuffer"):
-                    self.gbuffer.render(camera)
+                with prof.phase("gbuffer:preview" if self.gbuffer_source == "preview" else "gbuffer"):
+                    self.gbuffer.render(camera, preview=self.gbuffer_source == "preview")
             self.accumulate.clear()
             self.samples_done = {}
         lengths = {RayType.AO: s.ao_length * self.diagonal, RayType.DIFFUSE: self.diagonal}

@@ -30,6 +30,7 @@ BENCHMARKS: dict[str, str] = {
     "bench-voxels": "viewer.bench.voxels",
     "bench-denoise": "viewer.bench.denoise",
     "bench-light": "viewer.bench.lit",
+    "bench-gbuffer": "viewer.bench.gbuffer",
 }
 
 

@@ -23,11 +23,16 @@ SSBO: dict[str, int] = {
     "BIND_RESUME_COUNTERS": 10,  # glsl resumable traversal: unfinished rays, slots allocated
     "BIND_RESUME_STATE": 11,  # glsl resumable traversal: saved traversal states
     "BIND_MICRO": 15,  # the GL micro-benchmark's per-instance counts
+    "BIND_CULL_NODES": 16,  # G-buffer occlusion culling: the cut's boxes and slot ranges
+    "BIND_CULL_VISIBLE": 17,  # G-buffer occlusion culling: visible last frame, per cut node
+    "BIND_CULL_CMDS": 18,  # G-buffer occlusion culling: the indirect draw commands written
+    "BIND_CULL_STATS": 19,  # G-buffer occlusion culling: triangles and nodes drawn per phase
 }
 
 # image units (imageLoad/imageStore/imageAtomic*)
 IMAGE: dict[str, int] = {
     "BIND_IMG_RESUME": 4,  # glsl resumable traversal: resume slot per pixel (-1 finished)
+    "BIND_IMG_HIZ": 5,  # G-buffer occlusion culling: the level of the distance pyramid written
 }
 
 BIND_NODES = SSBO["BIND_NODES"]
@@ -39,6 +44,11 @@ BIND_MICRO = SSBO["BIND_MICRO"]
 BIND_RESUME_COUNTERS = SSBO["BIND_RESUME_COUNTERS"]
 BIND_RESUME_STATE = SSBO["BIND_RESUME_STATE"]
 BIND_IMG_RESUME = IMAGE["BIND_IMG_RESUME"]
+BIND_CULL_NODES = SSBO["BIND_CULL_NODES"]
+BIND_CULL_VISIBLE = SSBO["BIND_CULL_VISIBLE"]
+BIND_CULL_CMDS = SSBO["BIND_CULL_CMDS"]
+BIND_CULL_STATS = SSBO["BIND_CULL_STATS"]
+BIND_IMG_HIZ = IMAGE["BIND_IMG_HIZ"]
 
 BACKEND_SSBO = (*range(4, 9), *range(12, 15))  # SSBO binding points left to backends' own names
 BACKEND_IMAGE = range(0, 4)  # image units left to backends' own names

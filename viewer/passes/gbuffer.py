@@ -1,11 +1,19 @@
 """G-buffer pass: rasterizes position, facing normal, albedo, triangle id and ray-distance depth.
 
-Only what can be seen is drawn: the BVH subtrees inside the view pyramid (viewer.passes.cull), as
-one multi-draw-indirect call; `cull = False` draws every triangle (tests compare the two).
+Only what can be seen is drawn: the BVH subtrees inside the view pyramid (viewer.passes.cull) and,
+of those, the ones not hidden behind what was drawn (viewer.passes.occlusion: GPU-driven, two
+multi-draw-indirect calls). `occlusion = False` keeps the frustum culling alone (one multi-draw
+from the host's list), `cull = False` draws every triangle; tests compare the three.
 
-The raster's cost grows with the triangles in view, a traced G-buffer's with the pixels: for small
-images (moving frames at a low render scale) `fill_from_hits` writes the same targets from the
-backend's traced primary rays instead (the renderer's `gbuffer_source = "trace"`).
+The exact raster pays for its coverage: a geometry shader in doubles expands every triangle so the
+fragment shader can keep exactly the pixels whose primary ray hits it. Moving frames in the window
+need no such exactness, only speed, so two cheaper sources serve them (the renderer's
+`gbuffer_source`):
+- "preview": `render(camera, preview=True)`, a plain raster of the same culled triangles without
+  the geometry shader (edge pixels may differ from the traced primary rays by the rasterizer's
+  sub-pixel rules);
+- "trace": `fill_from_hits` writes the same targets from the backend's traced primary rays (cost
+  follows the pixels, not the triangles).
 """
 
 from __future__ import annotations
@@ -20,6 +28,7 @@ from viewer.gl.programs import ProgramCache
 from viewer.gl.scene import GpuScene
 from viewer.gl.textures import float_depth_texture, float_texture, int_texture
 from viewer.passes.cull import Cut, bvh_cut, indirect_commands, visible_ranges
+from viewer.passes.occlusion import OcclusionCuller
 from viewer.passes.targets import SizedTargets
 from viewer.passes.uniforms import apply, camera_uniforms
 
@@ -34,11 +43,15 @@ class GBufferPass(SizedTargets):
         self.program = programs.get("gbuffer.vert", "gbuffer.frag", geometry="gbuffer.geom")
         self.fill = programs.get("fullscreen.vert", "gbuffer_fill.frag")
         self.vao = ctx.vertex_array(self.program, [(gpu_scene.vertices, "3f", "in_pos")])
+        self._programs = programs
+        self._preview: tuple[moderngl.Program, moderngl.VertexArray] | None = None  # made on first use
         self.cull = True  # frustum culling by BVH subtrees (False: draw every triangle)
+        self.occlusion = True  # and occlusion culling on the device (False: frustum culling alone)
         self.bvh: BVH | None = None
         self._cut: Cut | None = None
         self._indirect: moderngl.Buffer | None = None
-        self.drawn_triangles = 0  # triangles submitted by the last render() (a panel/bench counter)
+        self._occluder: OcclusionCuller | None = None
+        self._drawn_host = 0  # triangles the last host-listed draw submitted
         self.resize(size)
 
     def set_bvh(self, bvh: BVH) -> None:
@@ -48,7 +61,20 @@ class GBufferPass(SizedTargets):
             if self._indirect is not None:
                 self._indirect.release()
             self._indirect = self.ctx.buffer(reserve=max(len(self._cut.nodes), 1) * 20)
+            if self._occluder is not None:
+                self._occluder.release()
+            self._occluder = OcclusionCuller(self.ctx, self._cut, bvh)
+        elif self._occluder is not None and bvh is not self.bvh:
+            self._occluder.set_boxes(bvh)
         self.bvh = bvh
+
+    @property
+    def drawn_triangles(self) -> int:
+        """Triangles submitted by the last render() (a panel/test counter; with occlusion culling
+        a read-back of the device's count)."""
+        if self._drawn_host < 0 and self._occluder is not None:
+            return self._occluder.drawn()[0]
+        return self._drawn_host
 
     def create_targets(self, size: tuple[int, int]) -> None:
         self.position = float_texture(self.ctx, size, 4)
@@ -60,7 +86,15 @@ class GBufferPass(SizedTargets):
         self.fbo = self.ctx.framebuffer(color_attachments=[self.position, self.normal, self.albedo, self.tri_id],
                                         depth_attachment=self.depth)
 
-    def render(self, camera: Camera) -> None:
+    def _preview_program(self) -> tuple[moderngl.Program, moderngl.VertexArray]:
+        if self._preview is None:
+            prog = self._programs.get("gbuffer.vert", "gbuffer.frag", {"PREVIEW": 1})
+            self._preview = prog, self.ctx.vertex_array(prog, [(self.gpu_scene.vertices, "3f", "in_pos")])
+        return self._preview
+
+    def render(self, camera: Camera, preview: bool = False) -> None:
+        """The exact conservative raster, or with `preview` the plain one (moving frames only)."""
+        program, vao = self._preview_program() if preview else (self.program, self.vao)
         ctx = self.ctx
         self.clear()
         ctx.enable(ctx.DEPTH_TEST)
@@ -74,12 +108,13 @@ class GBufferPass(SizedTargets):
         view_rot = np.eye(4)
         view_rot[:3, :3] = camera.rotation.T
         vp = (proj @ view_rot).astype(np.float32)
-        self.program["viewProjRel"].write(vp.T.tobytes())  # GL expects column-major
-        self.program["camPosV"].value = tuple(float(x) for x in pos)
-        self.program["depthScale"].value = float(self.depth_scale)
-        apply(self.program, camera_uniforms(camera, self.size))
+        program["viewProjRel"].write(vp.T.tobytes())  # GL expects column-major
+        program["camPosV"].value = tuple(float(x) for x in pos)
+        if "depthScale" in program:  # the preview uses the rasterizer's depth
+            program["depthScale"].value = float(self.depth_scale)
+        apply(program, camera_uniforms(camera, self.size))
         self.gpu_scene.bind()
-        self._draw(camera, w / h)
+        self._draw(vao, camera, (w, h))
         ctx.disable(ctx.DEPTH_TEST)
 
     def clear(self) -> None:
@@ -108,21 +143,26 @@ class GBufferPass(SizedTargets):
         ctx.depth_func = "<"
         ctx.disable(ctx.DEPTH_TEST)
 
-    def _draw(self, camera: Camera, aspect: float) -> None:
-        """One draw: every triangle, or the visible subtrees' ranges as one multi-draw-indirect."""
+    def _draw(self, vao: moderngl.VertexArray, camera: Camera, size: tuple[int, int]) -> None:
+        """Every triangle; the visible subtrees' ranges as one multi-draw-indirect; or, with
+        occlusion culling, the device's two multi-draws."""
+        if self.cull and self.occlusion and self._occluder is not None:
+            self._drawn_host = -1  # counted on the device
+            self._occluder.draw(vao, camera, size, self.position, self.tri_id)
+            return
         iostats.gl_draw(1)
         if not self.cull or self._cut is None or self.bvh is None:
-            self.drawn_triangles = self.gpu_scene.triangle_count
-            self.vao.render(moderngl.TRIANGLES, vertices=self.gpu_scene.triangle_count * 3)
+            self._drawn_host = self.gpu_scene.triangle_count
+            vao.render(moderngl.TRIANGLES, vertices=self.gpu_scene.triangle_count * 3)
             return
-        ranges = visible_ranges(self._cut, self.bvh.node_min, self.bvh.node_max, camera, aspect)
-        self.drawn_triangles = int(ranges[:, 1].sum()) if len(ranges) else 0
+        ranges = visible_ranges(self._cut, self.bvh.node_min, self.bvh.node_max, camera, size[0] / size[1])
+        self._drawn_host = int(ranges[:, 1].sum()) if len(ranges) else 0
         if not len(ranges):
             return
         cmd = indirect_commands(ranges)
         self._indirect.write(cmd.tobytes())
         iostats.to_device(cmd.nbytes)
-        self.vao.render_indirect(self._indirect, moderngl.TRIANGLES, count=len(cmd))
+        vao.render_indirect(self._indirect, moderngl.TRIANGLES, count=len(cmd))
 
     def release_targets(self) -> None:
         for obj in (self.fbo, self.position, self.normal, self.albedo, self.tri_id, self.depth):
@@ -131,5 +171,9 @@ class GBufferPass(SizedTargets):
     def release(self) -> None:
         self.release_targets()
         self.vao.release()
+        if self._preview is not None:
+            self._preview[1].release()  # the program belongs to the cache
         if self._indirect is not None:
             self._indirect.release()
+        if self._occluder is not None:
+            self._occluder.release()

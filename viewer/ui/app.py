@@ -32,6 +32,7 @@ import numpy as np
 from viewer.camera import Camera
 from viewer.errors import RtwalkError
 from viewer.gl.programs import ProgramCache
+from viewer.progressive import DEFAULT_TARGET_MS
 from viewer.ui.camera_controller import FlyCamera
 from viewer.ui.panel import (
     PANEL_WIDTH,
@@ -174,7 +175,7 @@ def run_viewer(args) -> int:
                         recording=recording,
                         scene_arg=getattr(args, "scene", None), max_frames=max_frames, window_shot=shot,
                         quiet=quiet, progressive=getattr(args, "progressive", True),
-                        frame_target_ms=getattr(args, "frame_target_ms", 66.0),
+                        frame_target_ms=getattr(args, "frame_target_ms", DEFAULT_TARGET_MS),
                         denoise=getattr(args, "denoise", "on") == "on")
         app.renderer.view = view
         if mirrors_note:
@@ -198,7 +199,7 @@ class ViewerApp:
     def __init__(self, window, prepared, settings, backend: str, recording=None, scene_arg: str | None = None,
                  backend_options: dict[str, str] | None = None, max_frames: int | None = None,
                  window_shot: str | None = None, quiet: bool = False, progressive: bool = True,
-                 frame_target_ms: float = 66.0, denoise: bool = True):
+                 frame_target_ms: float = DEFAULT_TARGET_MS, denoise: bool = True):
         from imgui_bundle import imgui, implot
         from moderngl_window.integrations.imgui_bundle import ModernglWindowRenderer
 

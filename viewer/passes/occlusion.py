@@ -1,0 +1,149 @@
+"""GPU-driven occlusion culling of the G-buffer raster (CHC++'s temporal coherence, as two passes).
+
+CHC++ (Mattausch, Bittner, Wimmer 2008) draws what was visible last frame first and then queries
+the rest against the depth that drew. Waiting for occlusion query results is what a GPU-shaped
+frame must not do, so the queries here are a compute pass over a distance pyramid (Hi-Z) instead,
+and the draws are multi-draw-indirect commands written on the device; the host sends camera
+uniforms and reads nothing. Per frame, over the BVH cut of viewer.passes.cull:
+
+1. `occlusion_select.comp` phase 1: a draw command per cut node in the view pyramid that was
+   visible last frame (the others get zero instances); one multi-draw-indirect.
+2. `hiz.comp`: the farthest drawn distance per pyramid texel, level 0 from the G-buffer, then one
+   dispatch per level (log2 of the size: the count does not depend on the scene).
+3. phase 2: draw the other nodes in the view pyramid whose box the pyramid cannot prove hidden;
+   one multi-draw-indirect.
+4. the pyramid again, and phase 3: the nodes not hidden by the final image are next frame's set.
+
+Exact: a node is dropped only when every fragment it could produce would fail the depth test, so
+the G-buffer is the unculled one (tests/test_gbuffer_cull.py; ties between equal distances on shared
+edges may resolve in the other order, as the draw order changes). A camera jump costs one frame
+more raster work (phase 2 draws what became visible), never a wrong pixel.
+
+Buffers (std430): nodes (K, 8) of {vec3 lo; int first; vec3 hi; int count} = 32 bytes per node,
+visible uint32 (K,), two command buffers uint32 (K, 5) (DrawArraysIndirectCommand + a padding word,
+moderngl's stride), stats uint32 [tris, nodes] per phase 1 and 2.
+"""
+
+from __future__ import annotations
+
+import math
+
+import moderngl
+import numpy as np
+
+from viewer import iostats
+from viewer.accel.bvh import BVH
+from viewer.camera import Camera
+from viewer.gl import io as glio
+from viewer.gl.bindings import BIND_CULL_CMDS, BIND_CULL_NODES, BIND_CULL_STATS, BIND_CULL_VISIBLE, BIND_IMG_HIZ
+from viewer.gl.programs import load_shader_source
+from viewer.passes.cull import Cut, frustum_planes
+from viewer.passes.uniforms import apply, camera_uniforms
+
+HIZ_TEXTURE_UNIT = 7  # texture units used while culling (the G-buffer pass binds none of its own)
+
+
+class OcclusionCuller:
+    """The device state of the two-pass culling for one cut; `draw` replaces the raster's draw."""
+
+    def __init__(self, ctx: moderngl.Context, cut: Cut, bvh: BVH):
+        self.ctx = ctx
+        self.select = ctx.compute_shader(load_shader_source("occlusion_select.comp"))
+        self.reduce = ctx.compute_shader(load_shader_source("hiz.comp"))
+        self.count = len(cut.nodes)
+        k = max(self.count, 1)
+        self.nodes = ctx.buffer(reserve=k * 32)
+        self.visible = ctx.buffer(np.ones(k, np.uint32).tobytes())  # first frame: everything in view
+        self.cmds = (ctx.buffer(reserve=k * 20), ctx.buffer(reserve=k * 20))
+        self.stats = ctx.buffer(reserve=16)
+        self._hiz: moderngl.Texture | None = None
+        self._cut = cut
+        self.set_boxes(bvh)
+
+    def set_boxes(self, bvh: BVH) -> None:
+        """The cut nodes' boxes (again after a refit: same topology, new boxes)."""
+        rec = np.zeros((max(self.count, 1), 8), np.float32)
+        n = self.count
+        rec[:n, 0:3] = bvh.node_min[self._cut.nodes]
+        rec[:n, 4:7] = bvh.node_max[self._cut.nodes]
+        ints = rec.view(np.int32)
+        ints[:n, 3] = self._cut.first
+        ints[:n, 7] = self._cut.count
+        glio.write(self.nodes, rec)
+
+    def _pyramid(self, size: tuple[int, int]) -> moderngl.Texture:
+        if self._hiz is None or self._hiz.size != tuple(size):
+            if self._hiz is not None:
+                self._hiz.release()
+            self._hiz = self.ctx.texture(size, 1, dtype="f4")
+            self._hiz.build_mipmaps()  # allocates every level (written by hiz.comp)
+            self._hiz.filter = (moderngl.NEAREST_MIPMAP_NEAREST, moderngl.NEAREST)
+        return self._hiz
+
+    def _build_pyramid(self, position: moderngl.Texture, tri_id: moderngl.Texture) -> int:
+        """Levels 0..L of the distance pyramid from the G-buffer as drawn so far; returns L + 1."""
+        ctx, red = self.ctx, self.reduce
+        hiz = self._pyramid(position.size)
+        w, h = position.size
+        levels = 1 + int(math.floor(math.log2(max(w, h))))
+        position.use(HIZ_TEXTURE_UNIT)
+        tri_id.use(HIZ_TEXTURE_UNIT + 1)
+        hiz.use(HIZ_TEXTURE_UNIT + 2)
+        red["gPosition"] = HIZ_TEXTURE_UNIT
+        red["gTriId"] = HIZ_TEXTURE_UNIT + 1
+        red["src"] = HIZ_TEXTURE_UNIT + 2
+        ctx.memory_barrier(moderngl.TEXTURE_FETCH_BARRIER_BIT | moderngl.FRAMEBUFFER_BARRIER_BIT)
+        for level in range(levels):  # log2 of the image size: fixed per size, not per scene
+            lw, lh = max(1, w >> level), max(1, h >> level)
+            hiz.bind_to_image(BIND_IMG_HIZ, read=False, write=True, level=level)
+            red["srcLevel"] = level - 1
+            red.run(-(-lw // 8), -(-lh // 8))
+            ctx.memory_barrier(moderngl.TEXTURE_FETCH_BARRIER_BIT | moderngl.SHADER_IMAGE_ACCESS_BARRIER_BIT)
+        iostats.gl_draw(levels)
+        return levels
+
+    def _run(self, phase: int, levels: int) -> None:
+        self.select["phase"] = phase
+        self.select["hizLevels"] = levels
+        self.select.run(-(-max(self.count, 1) // 64))
+        self.ctx.memory_barrier(moderngl.COMMAND_BARRIER_BIT | moderngl.SHADER_STORAGE_BARRIER_BIT)
+        iostats.gl_draw()
+
+    def draw(self, vao: moderngl.VertexArray, camera: Camera, size: tuple[int, int],
+             position: moderngl.Texture, tri_id: moderngl.Texture) -> None:
+        """The raster's draw, culled: 3 selection dispatches, 2 multi-draws, 2 pyramids."""
+        if self.count == 0:
+            return
+        sel = self.select
+        eye = np.asarray(camera.position, np.float64)
+        apply(sel, camera_uniforms(camera, size))
+        sel["nNodes"] = self.count
+        sel["planes"].write(frustum_planes(camera, size[0] / size[1]).astype(np.float32).tobytes())
+        sel["apexTol"] = 4.0 * float(np.spacing(np.float32(np.abs(eye).max())))
+        sel["hiz"] = HIZ_TEXTURE_UNIT + 2
+        self.nodes.bind_to_storage_buffer(BIND_CULL_NODES)
+        self.visible.bind_to_storage_buffer(BIND_CULL_VISIBLE)
+        self.stats.bind_to_storage_buffer(BIND_CULL_STATS)
+        self.stats.clear()
+        levels = 1 + int(math.floor(math.log2(max(size))))
+        self._pyramid(size).use(HIZ_TEXTURE_UNIT + 2)
+        for phase, cmds in ((1, self.cmds[0]), (2, self.cmds[1])):
+            if phase == 2:
+                levels = self._build_pyramid(position, tri_id)
+            cmds.bind_to_storage_buffer(BIND_CULL_CMDS)
+            self._run(phase, levels)
+            iostats.gl_draw()
+            vao.render_indirect(cmds, moderngl.TRIANGLES, count=self.count)
+        self._build_pyramid(position, tri_id)
+        self._run(3, levels)
+
+    def drawn(self) -> tuple[int, int]:
+        """(triangles, nodes) the last `draw` submitted: a read-back, for panels and tests."""
+        s = np.frombuffer(glio.read(self.stats), np.uint32)
+        return int(s[0] + s[2]), int(s[1] + s[3])
+
+    def release(self) -> None:
+        for obj in (self.select, self.reduce, self.nodes, self.visible, *self.cmds, self.stats):
+            obj.release()
+        if self._hiz is not None:
+            self._hiz.release()
