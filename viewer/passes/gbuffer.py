@@ -55,8 +55,11 @@ class GBufferPass(SizedTargets):
         self.resize(size)
 
     def set_bvh(self, bvh: BVH) -> None:
-        """The tree whose boxes cull the raster (a refit keeps the topology, so the cut is kept)."""
-        if self._cut is None or self.bvh is None or len(bvh.node_count) != len(self.bvh.node_count):
+        """The tree whose boxes cull the raster (a refit keeps the topology, so the cut is kept; a
+        rebuild, even to as many nodes, gets a new cut)."""
+        same_topology = (self.bvh is not None and np.array_equal(bvh.node_first, self.bvh.node_first)
+                         and np.array_equal(bvh.node_count, self.bvh.node_count))
+        if self._cut is None or not same_topology:
             self._cut = bvh_cut(bvh)
             if self._indirect is not None:
                 self._indirect.release()
