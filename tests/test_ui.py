@@ -275,10 +275,20 @@ def test_view_smoke_under_xvfb(tmp_path):
     from PIL import Image
 
     shot = tmp_path / "tmp.png"
-    res = _xvfb([sys.executable, "-m", "viewer.cli", "view", "room", "--size", "320x180"], tmp_path,
-                _env(RTWALK_VIEW_FRAMES="5", RTWALK_VIEW_SCREENSHOT=str(shot)))
+    flog = tmp_path / "frames.json"
+    cmd = [sys.executable, "-m", "viewer.cli", "view", "room", "--size", "320x180", "--frame-log", str(flog)]
+    res = _xvfb(cmd, tmp_path, _env(RTWALK_VIEW_FRAMES="5", RTWALK_VIEW_SCREENSHOT=str(shot)))
     assert res.returncode == 0, res.stderr[-3000:]
     assert shot.is_file(), res.stderr[-3000:]
+    # --frame-log: every iteration, with the window's own times, written on close
+    log = json.loads(flog.read_text())
+    assert [f["n"] for f in log["frames"]] == list(range(5))
+    assert all(f["iteration_ms"] >= f["render_ms"] >= 0 for f in log["frames"])
+    assert log["frames"][0]["gbuffer"] == "preview" and log["frames"][0]["gpu_ms"]  # the first image: moving
+    assert any(f["gbuffer"] == "raster" for f in log["frames"][1:])  # then refined from the exact raster
+    assert log["summary"]["frames"] == 5 and "frame log:" in res.stderr
+    again = subprocess.run(cmd, cwd=tmp_path, env=_env(), capture_output=True, text=True, timeout=60)
+    assert again.returncode == 2 and again.stderr.count("\n") == 1 and "exists" in again.stderr
     img = np.asarray(Image.open(shot).convert("RGB"))
     assert img.shape == (180, 320 + PANEL_WIDTH, 3)  # the panel is beside the image
     assert len(np.unique(img.reshape(-1, 3), axis=0)) > 50  # panel text + rendered scene, not a flat colour

@@ -123,6 +123,9 @@ def build_parser() -> argparse.ArgumentParser:
     v.add_argument("--recording", default=None, help="play this recording (P toggles)")
     v.add_argument("--max-frames", type=int, default=None,
                    help="quit after N frames (also RTWALK_VIEW_FRAMES; RTWALK_VIEW_SCREENSHOT=PNG saves the window)")
+    v.add_argument("--frame-log", default=None,
+                   help="write each frame's time, render scale, G-buffer source and phases to this JSON file "
+                        "when the window closes, with fps medians (moving, refining)")
     add_progressive_args(v, "progressive refinement (default): one pass per effect at a reduced scale while the "
                             "camera moves, more passes when it stops; --no-progressive: full quality every frame",
                          default=True)

@@ -151,6 +151,7 @@ def _first_line(exc: BaseException) -> str:
 def run_viewer(args) -> int:
     from viewer.cli_args import check_image_output, request_from, scene_from_args, warn_no_mirrors
     from viewer.recording import load_recording
+    from viewer.ui.frame_log import check_frame_log
 
     max_frames = frame_limit(args)
     render_scale_from_env()  # bad values fail before the window opens
@@ -158,6 +159,9 @@ def run_viewer(args) -> int:
     shot = os.environ.get("RTWALK_VIEW_SCREENSHOT", "").strip() or None
     if shot:
         check_image_output(shot, "RTWALK_VIEW_SCREENSHOT")
+    frame_log = getattr(args, "frame_log", None)
+    if frame_log:
+        check_frame_log(frame_log)
     window_class()  # fail on a missing display before spending time on the scene
     req = request_from(args)
     settings, backend_options, size = req.settings, req.backend_options, req.size
@@ -176,7 +180,8 @@ def run_viewer(args) -> int:
                         scene_arg=getattr(args, "scene", None), max_frames=max_frames, window_shot=shot,
                         quiet=quiet, progressive=getattr(args, "progressive", True),
                         frame_target_ms=getattr(args, "frame_target_ms", DEFAULT_TARGET_MS),
-                        denoise=getattr(args, "denoise", "on") == "on")
+                        denoise=getattr(args, "denoise", "on") == "on",
+                        frame_log=getattr(args, "frame_log", None))
         app.renderer.view = view
         if mirrors_note:
             app.status = mirrors_note.removeprefix("rtwalk: warning: ")
@@ -199,7 +204,7 @@ class ViewerApp:
     def __init__(self, window, prepared, settings, backend: str, recording=None, scene_arg: str | None = None,
                  backend_options: dict[str, str] | None = None, max_frames: int | None = None,
                  window_shot: str | None = None, quiet: bool = False, progressive: bool = True,
-                 frame_target_ms: float = DEFAULT_TARGET_MS, denoise: bool = True):
+                 frame_target_ms: float = DEFAULT_TARGET_MS, denoise: bool = True, frame_log: str | None = None):
         from imgui_bundle import imgui, implot
         from moderngl_window.integrations.imgui_bundle import ModernglWindowRenderer
 
@@ -214,6 +219,9 @@ class ViewerApp:
         self.quiet = quiet
         self.max_frames = max_frames
         self.window_shot = window_shot
+        from viewer.ui.frame_log import FrameLog
+
+        self.frame_log = FrameLog(frame_log) if frame_log else None  # --frame-log: written on close
         self.render_scale = render_scale_from_env()
         self.show_panel = True
         self.status = ""
@@ -646,25 +654,41 @@ class ViewerApp:
                 "R record, P play, V view (final/overlays), O overlay pass, F1 panel, Esc quits")
         last = time.perf_counter()
         frame_ms = 0.0
-        while not self.wnd.is_closing:
-            now = time.perf_counter()
-            dt = min(now - last, MAX_DT) if self.frames else 0.0
-            if self.frames:
-                frame_ms = (now - last) * 1e3
-            last = now
-            self.frame(now, dt, frame_ms)
-            self.frames += 1
-            if self.max_frames is not None and self.frames >= self.max_frames:
-                if self.window_shot:
-                    p = self.save_window(self.window_shot)
-                    if not self.quiet:
-                        log(f"window screenshot: {p}")
+        try:
+            while not self.wnd.is_closing:
+                now = time.perf_counter()
+                dt = min(now - last, MAX_DT) if self.frames else 0.0
+                if self.frames:
+                    frame_ms = (now - last) * 1e3
+                    self._log_frame(frame_ms)
+                last = now
+                self.frame(now, dt, frame_ms)
+                self._logged = (self.step, self.last_report if self._rendered_last else None,
+                                self._render_ms, tuple(self.renderer.size))
+                self.frames += 1
+                if self.max_frames is not None and self.frames >= self.max_frames:
+                    if self.window_shot:
+                        p = self.save_window(self.window_shot)
+                        if not self.quiet:
+                            log(f"window screenshot: {p}")
+                    self.wnd.swap_buffers()
+                    self._log_frame((time.perf_counter() - last) * 1e3)
+                    break
                 self.wnd.swap_buffers()
-                break
-            self.wnd.swap_buffers()
+        finally:
+            if self.frame_log is not None:
+                path = self.frame_log.write()
+                if not self.quiet:
+                    log(f"{self.frame_log.line()} ({path})")
         if self.recorder.recording:  # do not lose a path when the window is closed while recording
             self._stop_recording()
         return 0
+
+    def _log_frame(self, iteration_ms: float) -> None:
+        """--frame-log: the iteration that just ended (its frame's step, report and sizes)."""
+        if self.frame_log is not None and getattr(self, "_logged", None) is not None:
+            step, report, render_ms, size = self._logged
+            self.frame_log.add(self.frames - 1, iteration_ms, render_ms, step, report, size)
 
     def release(self) -> None:
         from imgui_bundle import imgui, implot
