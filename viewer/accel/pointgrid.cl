@@ -139,9 +139,14 @@ inline float pg_seg_dist2(float2 p, float2 q) {  // squared distance from the or
 
 inline bool pg_tri(const PGrid *g, __global const float4 *tris, uint i, int4 *range, int *slab, bool *full) {
     float3 E = g->centre.xyz;
-    float3 v0 = tris[3 * i].xyz - E, v1 = tris[3 * i + 1].xyz - E, v2 = tris[3 * i + 2].xyz - E;
+    float4 w0 = tris[3 * i], w1 = tris[3 * i + 1], w2 = tris[3 * i + 2];
+    float3 v0 = w0.xyz - E, v1 = w1.xyz - E, v2 = w2.xyz - E;
     *full = false;
     if (!(all(isfinite(v0)) && all(isfinite(v1)) && all(isfinite(v2)))) return false;
+    // a triangle collapsed to one point (common far from the origin, where float32 snaps a small
+    // mesh onto a coarse lattice) is never hit: its edge functions are all exactly 0, so the
+    // watertight test's determinant is 0 (geometry.cl)
+    if (all(w0.xyz == w1.xyz) && all(w1.xyz == w2.xyz)) return false;
     float m = g->centre.w;
     // slab: a lower bound of the triangle's distance from E
     float3 ctr = (v0 + v1 + v2) / 3.0f;
@@ -158,7 +163,12 @@ inline bool pg_tri(const PGrid *g, __global const float4 *tris, uint i, int4 *ra
     float vmax = fmax(fmax(length(v0), length(v1)), length(v2));
     float err = 4e-7f * vmax;
     float c0 = p0.x * p1.y - p0.y * p1.x, c1 = p1.x * p2.y - p1.y * p2.x, c2 = p2.x * p0.y - p2.y * p0.x;
-    bool around = (c0 >= 0.0f && c1 >= 0.0f && c2 >= 0.0f) || (c0 <= 0.0f && c1 <= 0.0f && c2 <= 0.0f);
+    // the origin inside the projected triangle (rho_min = 0). All three products zero: the
+    // projection is a point or a segment on a line through the origin, whose distance from the
+    // origin the segment distances give (0 when it reaches the origin); treating it as
+    // "around" widened every such triangle to all azimuths
+    bool flat = c0 == 0.0f && c1 == 0.0f && c2 == 0.0f;
+    bool around = !flat && ((c0 >= 0.0f && c1 >= 0.0f && c2 >= 0.0f) || (c0 <= 0.0f && c1 <= 0.0f && c2 <= 0.0f));
     float rho_min = around ? 0.0f : sqrt(fmin(fmin(pg_seg_dist2(p0, p1), pg_seg_dist2(p1, p2)),
                                               pg_seg_dist2(p2, p0)));
     bool near_axis = rho_min <= 1e-3f * vmax;
