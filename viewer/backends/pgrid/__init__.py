@@ -205,6 +205,8 @@ class PgridBackend(GeometryBackend):
             centre, so, sd = point
             pg = self.pgrid
             spec = self.params.point_spec()
+            # primary rays meet in the eye: back faces are culled where that is exact (as the camera grid)
+            spec.backface = pinfo.ray_type == RayType.PRIMARY and self._backface(centre)
             with prof.cl_phase(f"pgrid:build:{label}", q):
                 pg.place(self._tris, self._n_tris, *self._box, rs.origin, rs.dir, rs.n, centre, (so, sd), spec)
             with prof.cl_phase(f"pgrid:rearrange:{label}", q):
