@@ -101,6 +101,10 @@ inline uint pg_ord(float f) {
     return (u & 0x80000000u) ? ~u : (u | 0x80000000u);
 }
 
+inline float pg_unord(uint k) {
+    return as_float((k & 0x80000000u) ? (k & 0x7fffffffu) : ~k);
+}
+
 // Indices into the grid's statistics buffer (host-initialised before pg_classify, read in two
 // batches): counts by atomic add, reductions by atomic min / max on pg_ord keys.
 #define PG_ST_OUTSIDE 0   // rays traced another way (also the length of the outside list)
@@ -113,6 +117,7 @@ inline uint pg_ord(float f) {
 #define PG_ST_CULLED 7    // triangles culled (pg_tri_count)
 #define PG_ST_WIDENED 8   // triangles widened to every azimuth
 #define PG_ST_BACK 9      // triangles culled as back faces (among the culled)
+#define PG_ST_DNEAR 10    // min over the binned triangles of their distance lower bound from E
 
 // Per ray: angles of u (0 for rays not in the grid) and outside: 0 in the grid, 1 outside it
 // (traced another way: its index appended to out_idx), 2 inactive (nothing to trace). The counts
@@ -208,17 +213,18 @@ inline float pg_seg_dist2(float2 p, float2 q) {  // squared distance from the or
 }
 
 inline bool pg_tri(const PGrid *g, __global const float4 *tris, uint i, int4 *range, int *slab, bool *full,
-                   bool *back) {
+                   bool *back, float *dmin_out) {
     float3 E = g->centre.xyz;
     float4 w0 = tris[3 * i], w1 = tris[3 * i + 1], w2 = tris[3 * i + 2];
     float3 v0 = w0.xyz - E, v1 = w1.xyz - E, v2 = w2.xyz - E;
     *full = false;
     *back = false;
     if (!(all(isfinite(v0)) && all(isfinite(v1)) && all(isfinite(v2)))) return false;
-    // a triangle collapsed to one point (common far from the origin, where float32 snaps a small
-    // mesh onto a coarse lattice) is never hit: its edge functions are all exactly 0, so the
-    // watertight test's determinant is 0 (geometry.cl)
-    if (all(w0.xyz == w1.xyz) && all(w1.xyz == w2.xyz)) return false;
+    // a triangle with two equal vertices (a point or a segment: common far from the origin, where
+    // float32 snaps a small mesh onto a coarse lattice; 91% of the dragon at 1e6) is never hit:
+    // with A == B the watertight test's W is exactly 0 and U == -V, so (in float and in its
+    // double fallback) det = U + V + W = 0 and geometry.cl rejects it; culling it is exact
+    if (all(w0.xyz == w1.xyz) || all(w1.xyz == w2.xyz) || all(w2.xyz == w0.xyz)) return false;
 #ifdef RT_HAVE_FP64
     if (g->fwd.w > 0.0f) {  // back-face culling (closed outward geometry seen from outside): E clearly
         // behind the triangle's plane, in double as the camera grid decides it (camgrid_build.cl)
@@ -238,6 +244,7 @@ inline bool pg_tri(const PGrid *g, __global const float4 *tris, uint i, int4 *ra
     float dplane = nl > 0.0f ? fabs(rt_dot(nrm, v0)) / nl : 0.0f;
     float dmin = fmax(fmax(dplane, length(ctr) - rad), 0.0f) * (1.0f - 1e-5f);
     *slab = clamp((int)floor((dmin - g->slab.w) * g->slab.y), 0, g->res.z - 1);
+    *dmin_out = dmin;
     float3 R = g->right.xyz, U = g->up.xyz, F = g->fwd.xyz;
     float2 p0 = (float2)(rt_dot(v0, F), rt_dot(v0, R)), p1 = (float2)(rt_dot(v1, F), rt_dot(v1, R));
     float2 p2 = (float2)(rt_dot(v2, F), rt_dot(v2, R));
@@ -263,7 +270,10 @@ inline bool pg_tri(const PGrid *g, __global const float4 *tris, uint i, int4 *ra
     thi = fmin(thi + m + 1e-6f + PG_ATAN_SLACK, M_PI_2_F);
     float amin = -M_PI_F, amax = M_PI_F;
     // sin m <= m; asin x <= x / sqrt(1 - x^2) (tan y >= y): an upper bound without asin
-    float ct = cos(fmax(fabs(tlo), fabs(thi))) * 0.9999f, x = m / ct;
+    // a lower bound of cos(largest |theta|) without libm's cos (slow on CPU devices): the Taylor
+    // series cut after a negative term, 1 - t^2/2 + t^4/24 - t^6/720 <= cos t, less float slack
+    float tm = fmax(fabs(tlo), fabs(thi)), t2 = tm * tm;
+    float ct = (1.0f - t2 * (0.5f - t2 * (1.0f / 24.0f - t2 * (1.0f / 720.0f)))) * 0.9999f - 1e-6f, x = m / ct;
     if (near_axis || !(ct > 0.0f && x < 0.999f)) {  // cos(pi / 2) is -4e-8 in float32
         *full = true;
     } else {
@@ -291,17 +301,21 @@ inline bool pg_tri(const PGrid *g, __global const float4 *tris, uint i, int4 *ra
 // ia1, it0, it1) and place_slab[i] for pg_tri_write
 __kernel __attribute__((reqd_work_group_size(WG, 1, 1)))
 void pg_tri_count(__global const PGrid *grid, __global const float4 *tris, const uint n, __global uint *counts,
-                  __global uint *flags, __global int4 *place, __global int *place_slab, __global uint *st) {
-    __local uint tally[3];
+                  __global uint *flags, __global int4 *place, __global int *place_slab, __global float *tri_dmin,
+                  __global uint *st) {
+    __local uint tally[4];
     uint i = get_global_id(0), lid = get_local_id(0);
-    if (lid == 0) { tally[0] = 0u; tally[1] = 0u; tally[2] = 0u; }
+    if (lid == 0) { tally[0] = 0u; tally[1] = 0u; tally[2] = 0u; tally[3] = 0xffffffffu; }
     barrier(CLK_LOCAL_MEM_FENCE);
     if (i < n) {
         PGrid g = *grid;
         int4 r = (int4)(0);
         int slab = 0;
         bool full, back;
-        bool ok = pg_tri(&g, tris, i, &r, &slab, &full, &back);
+        float dmin = 0.0f;
+        bool ok = pg_tri(&g, tris, i, &r, &slab, &full, &back, &dmin);
+        tri_dmin[i] = dmin;
+        if (ok) atomic_min(&tally[3], pg_ord(dmin));
         counts[i] = ok ? (uint)(r.y - r.x + 1) * (uint)(r.w - r.z + 1) : 0u;
         flags[i] = (ok ? 0u : 1u) | (full ? 2u : 0u);
         place[i] = r;
@@ -315,33 +329,59 @@ void pg_tri_count(__global const PGrid *grid, __global const float4 *tris, const
         if (tally[0]) atomic_add(&st[PG_ST_CULLED], tally[0]);
         if (tally[1]) atomic_add(&st[PG_ST_WIDENED], tally[1]);
         if (tally[2]) atomic_add(&st[PG_ST_BACK], tally[2]);
+        if (tally[3] != 0xffffffffu) atomic_min(&st[PG_ST_DNEAR], tally[3]);
     }
+}
+
+// Distance levels within a cell: QB = up.w bits (0: none) of the triangles' distance lower bounds
+// from dnear (the nearest, PG_ST_DNEAR) to the end of the last slab, on the float's own bit
+// pattern (monotone in a positive float and close to log2: no libm log / exp, which are slow on CPU
+// devices): level = (bits(d) - bits(dnear)) >> shift, with shift fitting the span into QB bits.
+// The pair key is (cell << QB) | level, so the sort leaves every cell's triangles nearest first and
+// a closest-hit ray can stop inside a cell (trace.cl): every triangle of level >= q is at least
+// as_float(bits(dnear) + (q << shift)) from E, exactly. levels[0] = (dnear, shift, 0, 0).
+inline float2 pg_levels(const PGrid *g, __global const uint *st) {
+    uint qb = (uint)g->up.w;
+    float dmax = g->slab.w + (float)g->res.z * g->slab.x;
+    float dnear = pg_unord(st[PG_ST_DNEAR]);
+    if (!(dnear > 0.0f && dnear < dmax && isfinite(dmax)) || qb == 0u) return (float2)(0.0f, -1.0f);
+    uint span = as_uint(dmax) - as_uint(dnear);
+    int bits = 32 - (int)clz(span);
+    return (float2)(dnear, (float)max(0, bits - (int)qb));
 }
 
 __kernel __attribute__((reqd_work_group_size(WG, 1, 1)))
 void pg_tri_write(__global const PGrid *grid, const uint n, __global const uint *offsets,
                   __global const int4 *place, __global const int *place_slab, __global const uint *flags,
+                  __global const float *tri_dmin, __global const uint *st, __global float4 *levels,
                   __global uint *keys, __global uint *vals) {
     uint i = get_global_id(0);
+    PGrid g = *grid;
+    float2 lv = pg_levels(&g, st);
+    if (i == 0) levels[0] = (float4)(lv.x, lv.y, 0.0f, 0.0f);
     if (i >= n) return;
     if (flags[i] & 1u) return;
-    PGrid g = *grid;
     int4 r = place[i];
     int slab = place_slab[i];
+    uint qb = (uint)g.up.w, q = 0u;
+    float d = tri_dmin[i];
+    if (lv.y >= 0.0f && d > lv.x)
+        q = min((1u << qb) - 1u, (as_uint(d) - as_uint(lv.x)) >> (uint)lv.y);
     uint o = offsets[i];
     for (int it = r.z; it <= r.w; ++it)
         for (int ia = r.x; ia <= r.y; ++ia) {
-            keys[o] = (uint)((ia + g.res.x * it) * g.res.z + slab);
+            keys[o] = ((uint)((ia + g.res.x * it) * g.res.z + slab) << qb) | q;
             vals[o] = i;
             ++o;
         }
 }
 
-// counts per cell from the segments of the sorted pair keys (zero-filled before)
+// counts per cell from the segments of the sorted pair keys (zero-filled before; a cell's
+// segments are its distance levels)
 __kernel __attribute__((reqd_work_group_size(WG, 1, 1)))
 void pg_cell_counts(__global const uint *seg_key, __global const uint *seg_len, __global const uint *m_ptr,
-                    __global uint *counts) {
+                    const uint qb, __global uint *counts) {
     uint i = get_global_id(0);
     if (i >= *m_ptr) return;  // the segment count, on the device (launched for a bound)
-    counts[seg_key[i]] = seg_len[i];
+    atomic_add(&counts[seg_key[i] >> qb], seg_len[i]);
 }

@@ -101,7 +101,8 @@ class PointGridStats:
 
 RAY_ANGLE_ERR = 3e-6  # radians: pg_angles' error (2e-6 from pg_atan2_fast, plus float rounding of u)
 ST_CULLED = 7  # pointgrid.cl PG_ST_*: outside, inactive, deviation, alpha min/max, theta min/max, culled, widened
-ST_INIT = np.array([0, 0, 0, 0xFFFFFFFF, 0, 0xFFFFFFFF, 0, 0, 0, 0], np.uint32)
+ST_INIT = np.array([0, 0, 0, 0xFFFFFFFF, 0, 0xFFFFFFFF, 0, 0, 0, 0, 0xFFFFFFFF, 0], np.uint32)
+LEVEL_BITS = 8  # distance levels per cell (pointgrid.cl pg_levels), fewer when the cell ids need the bits
 
 
 def decode_ord(keys: np.ndarray) -> np.ndarray:
@@ -237,6 +238,9 @@ class PointGrid:
         h["slab"][0, :2] = (width, 1.0 / width)
         ncells = na * nt * ns
         h["res"][0] = (na, nt, ns, ncells)
+        cell_bits = max(1, (ncells - 1).bit_length())
+        qbits = max(0, min(LEVEL_BITS, 32 - cell_bits))
+        h["up"][0, 3] = qbits
         self.header_host = h
         clio.copy(q, self.header, h, is_blocking=False)  # h is kept (header_host) until it lands
         # triangles: (cell, triangle) pairs
@@ -244,7 +248,9 @@ class PointGrid:
 
         counts, flags = self.buf("tri_counts", 4 * max(n_tris, 1)), self.buf("tri_flags", 4 * max(n_tris, 1))
         place, place_slab = self.buf("tri_place", 16 * max(n_tris, 1)), self.buf("tri_slab", 4 * max(n_tris, 1))
-        self._run("pg_tri_count", n_tris, self.header, tris, u(n_tris), counts, flags, place, place_slab, st_buf)
+        dmin = self.buf("tri_dmin", 4 * max(n_tris, 1))
+        self._run("pg_tri_count", n_tris, self.header, tris, u(n_tris), counts, flags, place, place_slab, dmin,
+                  st_buf)
         # the pair total and the culled / widened counts (count-only compactions): one wait
         got = np.zeros(4, np.uint32)
         if n_tris:
@@ -258,15 +264,16 @@ class PointGrid:
             raise RtwalkError(f"point grid {na}x{nt}x{ns} needs {pairs:,} triangle-cell pairs (at most {cap:,} "
                               "on this OpenCL device): use fewer tiles")
         keys, refs = self.buf("keys", 4 * pairs), self.buf("refs", 4 * pairs)
-        self._run("pg_tri_write", n_tris, self.header, u(n_tris), counts, place, place_slab, flags, keys, refs)
+        self._run("pg_tri_write", max(n_tris, 1), self.header, u(n_tris), counts, place, place_slab, flags, dmin,
+                  st_buf, self.buf("levels", 16), keys, refs)
         cell_start = self.buf("cell_start", 4 * (ncells + 1))
         cl.enqueue_fill_buffer(q, cell_start, np.uint32(0), 0, 4 * (ncells + 1))
         if pairs:
-            p.sort_pairs(keys, refs, pairs, key_bits=max(1, (ncells - 1).bit_length()))
+            p.sort_pairs(keys, refs, pairs, key_bits=cell_bits + qbits)
             seg = p.segments_dev(keys, self._bufs["pairs"], pairs, None,
                                  Chunks(0, self.buf("seg_key", 4 * pairs), self.buf("seg_start", 4 * pairs),
                                         self.buf("seg_len", 4 * pairs)), self.buf("seg_count", 4))
-            self._run("pg_cell_counts", pairs, seg.key, seg.length, self._bufs["seg_count"], cell_start)
+            self._run("pg_cell_counts", pairs, seg.key, seg.length, self._bufs["seg_count"], u(qbits), cell_start)
         p.exclusive_scan_dev(cell_start, cell_start, self._n_buf(ncells + 1, "n_cells"), ncells + 1,
                              self.buf("cells_total", 4))
         self.stats = PointGridStats((na, nt), ns, n, in_grid, self.outside_count, self.inactive_count, 0, int(pairs),
@@ -304,6 +311,16 @@ class PointGrid:
     @property
     def cell_start(self) -> Any:
         return self._bufs["cell_start"]
+
+    @property
+    def keys(self) -> Any:
+        """Sorted pair keys (cell << up.w bits | distance level): the trace's in-cell stop."""
+        return self._bufs["keys"]
+
+    @property
+    def levels(self) -> Any:
+        """float4 (dnear, shift, 0, 0) of the distance levels (pointgrid.cl pg_levels; shift < 0: none)."""
+        return self._bufs["levels"]
 
     @property
     def refs(self) -> Any:
