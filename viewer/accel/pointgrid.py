@@ -9,31 +9,39 @@ Build (kernels in pointgrid.cl beside this file, primitives from viewer.cl.primi
  2. rays: per ray, its direction u from the centre and an upper bound of how far (in angle) its
     segment strays from u where it could meet geometry: h / max(nearest along-ray distance,
     sqrt(d0^2 - h^2)), h = distance of the ray's line from the centre, d0 = distance from the
-    centre to the scene box (computed in double). Rays above `margin` ("outside": other origins,
-    inactive rays, segments through the centre) are compacted into a list and traced another
-    way; the grid's margin is the largest bound of the rays it keeps (a max-reduce), so rays
-    that meet exactly in the centre (the eye) or lights outside the scene box cost no margin.
- 3. angular rectangle of the rays (min/max reduce), grown by the margin; tiles over it
-    (~tile_rays rays per tile, `tiles` on the longer side, or tiles of `tile_angle` radians); slabs
-    by distance from the centre.
+    centre to the scene box (computed in double; a ray leaving from the centre itself is 0 at
+    once). Rays above `margin` ("outside": other origins, segments through the centre) are
+    appended to a list and traced another way; the grid's margin is the largest bound of the rays
+    it keeps, so rays that meet exactly in the centre (the eye) or lights outside the scene box
+    cost no margin. The angles come from a polynomial atan2 (RAY_ANGLE_ERR is added to the
+    margin). Counts and reductions are done in the same kernel (work-group reduction, one
+    atomic per group and value, into a small statistics buffer read back with one wait).
+ 3. angular rectangle of the rays, grown by the margin; tiles over it (~tile_rays rays per tile,
+    `tiles` on the longer side, or tiles of `tile_angle` radians); slabs by distance from the
+    centre.
  4. (tile, ray) pairs radix-sorted; segments cut into chunks of at most `chunk` rays.
- 5. triangles: a conservative (alpha, theta) box of the triangle itself (pointgrid.cl: azimuths
-    at the vertices, elevations bounded through the triangle's distance from the pole axis;
-    full azimuth when it surrounds or nears the pole axis or crosses the seam: "widened"),
-    grown by the margin; clipped to the rays' rectangle (triangles
-    outside it are culled: frustum culling for the eye); one slab from a lower bound of the
-    triangle's distance to the centre. (cell = tile * slabs + slab, triangle) pairs counted,
-    scanned, written, sorted; per-cell counts from the segments, then an exclusive scan gives
-    cell_start (ncells + 1 entries), so a tile's triangles are contiguous and in slab order.
+ 5. triangles: culled when two vertices are equal (never hit: far from the origin float32 snaps
+    small meshes onto a coarse lattice, 91% of the dragon at 1e6) or, with `backface`, facing away
+    from the centre (double); else a conservative (alpha, theta) box of the triangle itself
+    (pointgrid.cl: azimuths at the vertices, elevations bounded through the triangle's distance
+    from the pole axis; full azimuth when it surrounds or nears the pole axis or crosses the
+    seam: "widened"; a projection that is a point or a segment on a line through the pole axis
+    is judged by its distance from the axis, not as "around" it), grown by the margin; clipped
+    to the rays' rectangle (triangles outside it are culled: frustum culling for the eye); one
+    slab from a lower bound d of the triangle's distance to the centre. (cell = tile * slabs +
+    slab, triangle) pairs counted, scanned, written with key (cell << LEVEL_BITS) | level(d)
+    (a log-like distance level from the float bits, pg_levels), sorted; per-cell counts from the
+    segments, then an exclusive scan gives cell_start (ncells + 1 entries), so a tile's triangles
+    are contiguous, in slab order and nearest first within a cell (the trace's in-cell stop).
 
 Layouts: header PGRID_DTYPE (112 bytes: float4 centre (w = margin), fwd (w = 1: back-face
-culling), up, right, rect (alpha0,
-theta0, tiles per radian in alpha and theta), slab (width, 1 / width, tan(margin), d0 = distance
-from the centre to the scene box, where slab 0 starts); int4 res
-(tiles alpha, tiles theta, slabs, cells)); cell_start uint32 (ncells + 1,); refs uint32 (pairs,)
-triangle slots; chunks: viewer.cl.primitives.Chunks over the sorted ray keys (key = tile,
-ntiles for rays outside the grid, ntiles + 1 for inactive rays: neither is traced here, so the
-caller writes misses first), ray_vals uint32 (n,) ray indices in that order.
+culling), up (w = distance level bits), right, rect (alpha0, theta0, tiles per radian in alpha
+and theta), slab (width, 1 / width, tan(margin), d0 = distance from the centre to the scene box,
+where slab 0 starts); int4 res (tiles alpha, tiles theta, slabs, cells)); cell_start uint32
+(ncells + 1,); keys uint32 (pairs,) sorted pair keys and refs uint32 (pairs,) triangle slots;
+levels float4 (dnear, shift, 0, 0); chunks: viewer.cl.primitives.Chunks over the sorted ray keys
+(key = tile, ntiles for rays outside the grid, ntiles + 1 for inactive rays: neither is traced
+here, so the caller writes misses first), ray_vals uint32 (n,) ray indices in that order.
 """
 
 from __future__ import annotations

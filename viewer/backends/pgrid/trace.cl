@@ -5,7 +5,10 @@
 //  * any hit (shadow rays towards a light): a ray stops at its first hit; the chunk stops when all
 //    its rays have stopped or the next slab starts beyond the farthest point of its rays.
 //  * closest hit (primary rays from the eye): after slab s a ray whose hit lies nearer to the
-//    centre than where slab s+1 starts is done (slab check); the chunk stops when all are done.
+//    centre than where slab s+1 starts is done (slab check); within a cell, whose triangles are
+//    sorted by distance level (pointgrid.cl pg_levels), likewise before each further batch; the
+//    chunk stops when all are done.
+// A tile without triangles (background) writes misses at once; empty slabs are skipped.
 // Chunks whose key is the "outside" tile (ntiles) return at once: those rays go another way.
 // A chunk of more than WG rays (load balancing off: whole tiles) is traced WG rays at a time.
 // With COUNT_TESTS, each ray's triangle tests are written to `tests`.
