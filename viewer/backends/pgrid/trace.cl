@@ -100,13 +100,30 @@ void pg_trace(__global const PGrid *grid, __global const uint *chunk_key, __glob
     uint qb = (uint)g.up.w, qmask = (1u << qb) - 1u;  // distance level bits of the pair keys
     float4 lv = levels[0];
     if (!(lv.y >= 0.0f)) qb = 0u;  // no levels this build (pointgrid.cl pg_levels)
-    for (int step = 0; step < g.res.z; ++step) {
-        int s = back ? s_far - step : step;
-        if (s < 0) break;
+    // the slabs with triangles in visiting order; empty slabs are skipped by a plain loop (no
+    // barrier inside: PoCL runs every iteration of a loop holding a barrier once per work-item,
+    // which made the empty slabs of a tile cost as much as its tests)
+    int step = 0;
+    for (;;) {
+        int s = -1;
+        uint a = 0u, b = 0u;
+        for (; step < g.res.z; ++step) {
+            int t = back ? s_far - step : step;
+            if (t < 0) { step = g.res.z; break; }
+            a = cell_start[cell0 + t];
+            b = cell_start[cell0 + t + 1];
+            if (a != b) { s = t; break; }
+        }
+        if (s < 0) break;  // same value in every work-item
+        ++step;
         float slab_lo = g.slab.w + ((float)s - 0.001f) * g.slab.x;
+        if (!any_hit && !done && hit_id >= 0 && outward && base + hit_t * dlen + h < slab_lo) {
+            // slab check: every triangle of this and the later slabs is at least slab_lo from E
+            done = true;
+            atomic_dec(&remaining);
+        }
+        barrier(CLK_LOCAL_MEM_FENCE);
         if (remaining == 0 || slab_lo > chunk_far) break;  // same value in every work-item
-        uint a = cell_start[cell0 + s], b = cell_start[cell0 + s + 1];
-        if (a == b) continue;  // an empty slab: nothing to stage or test (uniform for the work-group)
         for (uint base_i = a; base_i < b; base_i += WG) {
             uint cnt = min((uint)WG, b - base_i);
             barrier(CLK_LOCAL_MEM_FENCE);
@@ -144,13 +161,6 @@ void pg_trace(__global const PGrid *grid, __global const uint *chunk_key, __glob
                 if (remaining == 0) break;
             }
         }
-        if (!any_hit && !done && hit_id >= 0 && outward) {
-            // slab check: every triangle of the later slabs is at least this far from E
-            float next_lo = g.slab.w + ((float)(s + 1) - 0.001f) * g.slab.x;
-            float dist = base + hit_t * dlen + h;
-            if (dist < next_lo) { done = true; atomic_dec(&remaining); }
-        }
-        barrier(CLK_LOCAL_MEM_FENCE);
     }
     if (mine) {
         out_t[ri] = hit_id >= 0 ? hit_t : INFINITY;
