@@ -23,10 +23,30 @@ typedef struct {
     int4 res;       // tiles in alpha, tiles in theta, slabs, tiles * slabs
 } PGrid;
 
+
+// atan2 by an 11th-order minimax polynomial on [0, 1] after octant reduction: |error| <= 2e-6 rad
+// (1.8e-6 measured in float32 over [0, 1]; tests/test_grid.py checks it), so bounds from it get
+// PG_ATAN_SLACK. Five of these per triangle instead of libm's atan2 halve the binning time.
+#define PG_ATAN_SLACK 4e-6f
+inline float pg_atan2_fast(float y, float x) {
+    float ax = fabs(x), ay = fabs(y);
+    float mx = fmax(ax, ay), mn = fmin(ax, ay);
+    float a = mx > 0.0f ? mn / mx : 0.0f;
+    float s = a * a;
+    float r = a * (0.99997726f + s * (-0.33262347f + s * (0.19354346f + s * (-0.11643287f + s * (0.05265332f
+              + s * -0.01172120f)))));
+    if (ay > ax) r = M_PI_2_F - r;
+    if (x < 0.0f) r = M_PI_F - r;
+    return y < 0.0f ? -r : r;
+}
+
+
+// A ray's angles (alpha, theta) by the polynomial atan2 (libm's atan2 and asin cost 3x the whole
+// classification on CPU devices): off by at most 2e-6 rad each (plus float rounding of u's
+// coordinates), which the host adds to the grid's margin (RAY_ANGLE_ERR in pointgrid.py).
 inline float2 pg_angles(const PGrid *g, float3 u) {
-    float a = atan2(rt_dot(u, g->right.xyz), rt_dot(u, g->fwd.xyz));
-    float t = asin(clamp(rt_dot(u, g->up.xyz), -1.0f, 1.0f));
-    return (float2)(a, t);
+    float x = rt_dot(u, g->right.xyz), z = rt_dot(u, g->fwd.xyz), y = rt_dot(u, g->up.xyz);
+    return (float2)(pg_atan2_fast(x, z), pg_atan2_fast(y, sqrt(x * x + z * z)));
 }
 
 // A ray's place in the grid: false when its segment does not stay within the margin cap
@@ -39,6 +59,17 @@ inline bool pg_ray(const PGrid *g, float4 ot, float4 dt, float3 *u_out, float *d
     if (!(dt.w > ot.w) || !isfinite(ot.x) || !isfinite(ot.y) || !isfinite(ot.z) || !isfinite(ot.w) ||
         !isfinite(dt.x) || !isfinite(dt.y) || !isfinite(dt.z) || isnan(dt.w))
         return false;
+    // a ray leaving from E itself (every primary ray: E is the eye) lies on its own direction:
+    // h = 0, so its deviation is 0 (what the double path below gives), and u in float is off by
+    // a few ulps (~3e-7 rad), within the grid's 1e-6 rad slack (pointgrid.py)
+    if (ot.x == g->centre.x && ot.y == g->centre.y && ot.z == g->centre.z && ot.w >= 0.0f) {
+        float len = length(dt.xyz);
+        if (len > 0.0f && isfinite(len)) {  // else (under- or overflow) the double path decides
+            *u_out = dt.xyz / len;
+            *dev = 1e-30f;
+            return true;
+        }
+    }
 #ifdef RT_HAVE_FP64
     double3 w = convert_double3(ot.xyz) - convert_double3(g->centre.xyz);
     double3 d = convert_double3(dt.xyz);
@@ -64,23 +95,83 @@ inline bool pg_ray(const PGrid *g, float4 ot, float4 dt, float3 *u_out, float *d
 #endif
 }
 
-// Per ray: angles of u (0 for rays not in the grid), its deviation bound (0 when not in the grid)
-// and outside: 0 in the grid, 1 outside it (traced another way), 2 inactive (nothing to trace).
+// Order-preserving map float -> uint (atomic_min / atomic_max on floats); pointgrid.py decodes it.
+inline uint pg_ord(float f) {
+    uint u = as_uint(f);
+    return (u & 0x80000000u) ? ~u : (u | 0x80000000u);
+}
+
+inline float pg_unord(uint k) {
+    return as_float((k & 0x80000000u) ? (k & 0x7fffffffu) : ~k);
+}
+
+// Indices into the grid's statistics buffer (host-initialised before pg_classify, read in two
+// batches): counts by atomic add, reductions by atomic min / max on pg_ord keys.
+#define PG_ST_OUTSIDE 0   // rays traced another way (also the length of the outside list)
+#define PG_ST_INACTIVE 1
+#define PG_ST_DEV 2       // max deviation bound of a ray in the grid
+#define PG_ST_A0 3        // min / max alpha, min / max theta of the rays in the grid
+#define PG_ST_A1 4
+#define PG_ST_T0 5
+#define PG_ST_T1 6
+#define PG_ST_CULLED 7    // triangles culled (pg_tri_count)
+#define PG_ST_WIDENED 8   // triangles widened to every azimuth
+#define PG_ST_BACK 9      // triangles culled as back faces (among the culled)
+#define PG_ST_DNEAR 10    // min over the binned triangles of their distance lower bound from E
+
+// Per ray: angles of u (0 for rays not in the grid) and outside: 0 in the grid, 1 outside it
+// (traced another way: its index appended to out_idx), 2 inactive (nothing to trace). The counts
+// and the rays' angular rectangle and largest deviation go to `st` in the same launch (one local
+// reduction per work-group, then one global atomic per value): no separate reduce / compact passes.
 __kernel __attribute__((reqd_work_group_size(WG, 1, 1)))
 void pg_classify(__global const PGrid *grid, __global const float4 *ray_o, __global const float4 *ray_d, const uint n,
-                 __global float *alpha, __global float *theta, __global float *dev, __global uint *outside) {
-    uint i = get_global_id(0);
-    if (i >= n) return;
-    PGrid g = *grid;
-    float3 u;
+                 __global float *alpha, __global float *theta, __global uint *outside, __global uint *st,
+                 __global uint *out_idx) {
+    __local float la[WG], lt[WG], ld[WG];
+    __local uint lk[WG];
+    uint i = get_global_id(0), lid = get_local_id(0);
+    uint kind = 2u;
+    float2 at = (float2)(0.0f);
     float dv = 0.0f;
-    float4 ot = ray_o[i], dt = ray_d[i];
-    bool ok = pg_ray(&g, ot, dt, &u, &dv);
-    float2 at = ok ? pg_angles(&g, u) : (float2)(0.0f);
-    alpha[i] = at.x;
-    theta[i] = at.y;
-    dev[i] = ok ? dv : 0.0f;
-    outside[i] = ok ? 0u : (dt.w > ot.w ? 1u : 2u);
+    if (i < n) {
+        PGrid g = *grid;
+        float3 u;
+        float4 ot = ray_o[i], dt = ray_d[i];
+        bool ok = pg_ray(&g, ot, dt, &u, &dv);
+        at = ok ? pg_angles(&g, u) : (float2)(0.0f);
+        alpha[i] = at.x;
+        theta[i] = at.y;
+        kind = ok ? 0u : (dt.w > ot.w ? 1u : 2u);
+        outside[i] = kind;
+        if (kind == 1u) out_idx[atomic_inc(&st[PG_ST_OUTSIDE])] = i;  // order within the list does not matter
+    }
+    la[lid] = at.x;
+    lt[lid] = at.y;
+    ld[lid] = dv;
+    lk[lid] = kind;
+    barrier(CLK_LOCAL_MEM_FENCE);
+    if (lid == 0) {  // the group's reductions by one work-item (64 entries), then one atomic per value
+        float dmax = 0.0f, a0 = INFINITY, a1 = -INFINITY, t0 = INFINITY, t1 = -INFINITY;
+        uint in_grid = 0u, inactive = 0u;
+        for (uint k = 0; k < WG; ++k) {
+            if (lk[k] == 0u) {
+                ++in_grid;
+                dmax = fmax(dmax, ld[k]);
+                a0 = fmin(a0, la[k]); a1 = fmax(a1, la[k]);
+                t0 = fmin(t0, lt[k]); t1 = fmax(t1, lt[k]);
+            } else if (lk[k] == 2u && get_group_id(0) * WG + k < n) {
+                ++inactive;
+            }
+        }
+        if (inactive) atomic_add(&st[PG_ST_INACTIVE], inactive);
+        if (in_grid) {
+            atomic_max(&st[PG_ST_DEV], pg_ord(dmax));
+            atomic_min(&st[PG_ST_A0], pg_ord(a0));
+            atomic_max(&st[PG_ST_A1], pg_ord(a1));
+            atomic_min(&st[PG_ST_T0], pg_ord(t0));
+            atomic_max(&st[PG_ST_T1], pg_ord(t1));
+        }
+    }
 }
 
 __kernel __attribute__((reqd_work_group_size(WG, 1, 1)))
@@ -113,22 +204,6 @@ void pg_ray_keys(__global const PGrid *grid, __global const float *alpha, __glob
 // radians; a triangle within 1e-3 |v|max of the up axis takes the full azimuth range; the angles come
 // from pg_atan2_fast (PG_ATAN_SLACK). The box is then grown by the rays' margin m (in azimuth by
 // asin(sin m / cos theta): the same angle nearer the poles).
-// atan2 by an 11th-order minimax polynomial on [0, 1] after octant reduction: |error| <= 2e-6 rad
-// (1.8e-6 measured in float32 over [0, 1]; tests/test_grid.py checks it), so bounds from it get
-// PG_ATAN_SLACK. Five of these per triangle instead of libm's atan2 halve the binning time.
-#define PG_ATAN_SLACK 4e-6f
-inline float pg_atan2_fast(float y, float x) {
-    float ax = fabs(x), ay = fabs(y);
-    float mx = fmax(ax, ay), mn = fmin(ax, ay);
-    float a = mx > 0.0f ? mn / mx : 0.0f;
-    float s = a * a;
-    float r = a * (0.99997726f + s * (-0.33262347f + s * (0.19354346f + s * (-0.11643287f + s * (0.05265332f
-              + s * -0.01172120f)))));
-    if (ay > ax) r = M_PI_2_F - r;
-    if (x < 0.0f) r = M_PI_F - r;
-    return y < 0.0f ? -r : r;
-}
-
 inline float pg_seg_dist2(float2 p, float2 q) {  // squared distance from the origin to segment pq
     float2 d = q - p;
     float dd = d.x * d.x + d.y * d.y;
@@ -137,11 +212,29 @@ inline float pg_seg_dist2(float2 p, float2 q) {  // squared distance from the or
     return c.x * c.x + c.y * c.y;
 }
 
-inline bool pg_tri(const PGrid *g, __global const float4 *tris, uint i, int4 *range, int *slab, bool *full) {
+inline bool pg_tri(const PGrid *g, __global const float4 *tris, uint i, int4 *range, int *slab, bool *full,
+                   bool *back, float *dmin_out) {
     float3 E = g->centre.xyz;
-    float3 v0 = tris[3 * i].xyz - E, v1 = tris[3 * i + 1].xyz - E, v2 = tris[3 * i + 2].xyz - E;
+    float4 w0 = tris[3 * i], w1 = tris[3 * i + 1], w2 = tris[3 * i + 2];
+    float3 v0 = w0.xyz - E, v1 = w1.xyz - E, v2 = w2.xyz - E;
     *full = false;
+    *back = false;
     if (!(all(isfinite(v0)) && all(isfinite(v1)) && all(isfinite(v2)))) return false;
+    // a triangle with two equal vertices (a point or a segment: common far from the origin, where
+    // float32 snaps a small mesh onto a coarse lattice; 91% of the dragon at 1e6) is never hit:
+    // with A == B the watertight test's W is exactly 0 and U == -V, so (in float and in its
+    // double fallback) det = U + V + W = 0 and geometry.cl rejects it; culling it is exact
+    if (all(w0.xyz == w1.xyz) || all(w1.xyz == w2.xyz) || all(w2.xyz == w0.xyz)) return false;
+#ifdef RT_HAVE_FP64
+    if (g->fwd.w > 0.0f) {  // back-face culling (closed outward geometry seen from outside): E clearly
+        // behind the triangle's plane, in double as the camera grid decides it (camgrid_build.cl)
+        double3 Ed = convert_double3(E);
+        double3 d0 = convert_double3(w0.xyz) - Ed, d1 = convert_double3(w1.xyz) - Ed,
+                d2 = convert_double3(w2.xyz) - Ed;
+        double3 nd = cross(d1 - d0, d2 - d0);
+        if (dot(nd, d0) > 1e-9 * length(nd) * length(d0)) { *back = true; return false; }
+    }
+#endif
     float m = g->centre.w;
     // slab: a lower bound of the triangle's distance from E
     float3 ctr = (v0 + v1 + v2) / 3.0f;
@@ -151,6 +244,7 @@ inline bool pg_tri(const PGrid *g, __global const float4 *tris, uint i, int4 *ra
     float dplane = nl > 0.0f ? fabs(rt_dot(nrm, v0)) / nl : 0.0f;
     float dmin = fmax(fmax(dplane, length(ctr) - rad), 0.0f) * (1.0f - 1e-5f);
     *slab = clamp((int)floor((dmin - g->slab.w) * g->slab.y), 0, g->res.z - 1);
+    *dmin_out = dmin;
     float3 R = g->right.xyz, U = g->up.xyz, F = g->fwd.xyz;
     float2 p0 = (float2)(rt_dot(v0, F), rt_dot(v0, R)), p1 = (float2)(rt_dot(v1, F), rt_dot(v1, R));
     float2 p2 = (float2)(rt_dot(v2, F), rt_dot(v2, R));
@@ -158,7 +252,12 @@ inline bool pg_tri(const PGrid *g, __global const float4 *tris, uint i, int4 *ra
     float vmax = fmax(fmax(length(v0), length(v1)), length(v2));
     float err = 4e-7f * vmax;
     float c0 = p0.x * p1.y - p0.y * p1.x, c1 = p1.x * p2.y - p1.y * p2.x, c2 = p2.x * p0.y - p2.y * p0.x;
-    bool around = (c0 >= 0.0f && c1 >= 0.0f && c2 >= 0.0f) || (c0 <= 0.0f && c1 <= 0.0f && c2 <= 0.0f);
+    // the origin inside the projected triangle (rho_min = 0). All three products zero: the
+    // projection is a point or a segment on a line through the origin, whose distance from the
+    // origin the segment distances give (0 when it reaches the origin); treating it as
+    // "around" widened every such triangle to all azimuths
+    bool flat = c0 == 0.0f && c1 == 0.0f && c2 == 0.0f;
+    bool around = !flat && ((c0 >= 0.0f && c1 >= 0.0f && c2 >= 0.0f) || (c0 <= 0.0f && c1 <= 0.0f && c2 <= 0.0f));
     float rho_min = around ? 0.0f : sqrt(fmin(fmin(pg_seg_dist2(p0, p1), pg_seg_dist2(p1, p2)),
                                               pg_seg_dist2(p2, p0)));
     bool near_axis = rho_min <= 1e-3f * vmax;
@@ -171,7 +270,10 @@ inline bool pg_tri(const PGrid *g, __global const float4 *tris, uint i, int4 *ra
     thi = fmin(thi + m + 1e-6f + PG_ATAN_SLACK, M_PI_2_F);
     float amin = -M_PI_F, amax = M_PI_F;
     // sin m <= m; asin x <= x / sqrt(1 - x^2) (tan y >= y): an upper bound without asin
-    float ct = cos(fmax(fabs(tlo), fabs(thi))) * 0.9999f, x = m / ct;
+    // a lower bound of cos(largest |theta|) without libm's cos (slow on CPU devices): the Taylor
+    // series cut after a negative term, 1 - t^2/2 + t^4/24 - t^6/720 <= cos t, less float slack
+    float tm = fmax(fabs(tlo), fabs(thi)), t2 = tm * tm;
+    float ct = (1.0f - t2 * (0.5f - t2 * (1.0f / 24.0f - t2 * (1.0f / 720.0f)))) * 0.9999f - 1e-6f, x = m / ct;
     if (near_axis || !(ct > 0.0f && x < 0.999f)) {  // cos(pi / 2) is -4e-8 in float32
         *full = true;
     } else {
@@ -194,48 +296,92 @@ inline bool pg_tri(const PGrid *g, __global const float4 *tris, uint i, int4 *ra
     return true;
 }
 
-// counts[i] = tiles of triangle i; flags[i]: bit 0 culled, bit 1 widened (pole or seam);
-// place[i] = (tile range ia0, ia1, it0, it1) and place_slab[i] for pg_tri_write
+// counts[i] = tiles of triangle i; flags[i]: bit 0 culled, bit 1 widened (pole or seam), also
+// counted into st (one local count per work-group, one global add); place[i] = (tile range ia0,
+// ia1, it0, it1) and place_slab[i] for pg_tri_write
 __kernel __attribute__((reqd_work_group_size(WG, 1, 1)))
 void pg_tri_count(__global const PGrid *grid, __global const float4 *tris, const uint n, __global uint *counts,
-                  __global uint *flags, __global int4 *place, __global int *place_slab) {
-    uint i = get_global_id(0);
-    if (i >= n) return;
-    PGrid g = *grid;
-    int4 r = (int4)(0);
-    int slab = 0;
-    bool full;
-    bool ok = pg_tri(&g, tris, i, &r, &slab, &full);
-    counts[i] = ok ? (uint)(r.y - r.x + 1) * (uint)(r.w - r.z + 1) : 0u;
-    flags[i] = (ok ? 0u : 1u) | (full ? 2u : 0u);
-    place[i] = r;
-    place_slab[i] = slab;
+                  __global uint *flags, __global int4 *place, __global int *place_slab, __global float *tri_dmin,
+                  __global uint *st) {
+    __local uint tally[4];
+    uint i = get_global_id(0), lid = get_local_id(0);
+    if (lid == 0) { tally[0] = 0u; tally[1] = 0u; tally[2] = 0u; tally[3] = 0xffffffffu; }
+    barrier(CLK_LOCAL_MEM_FENCE);
+    if (i < n) {
+        PGrid g = *grid;
+        int4 r = (int4)(0);
+        int slab = 0;
+        bool full, back;
+        float dmin = 0.0f;
+        bool ok = pg_tri(&g, tris, i, &r, &slab, &full, &back, &dmin);
+        tri_dmin[i] = dmin;
+        if (ok) atomic_min(&tally[3], pg_ord(dmin));
+        counts[i] = ok ? (uint)(r.y - r.x + 1) * (uint)(r.w - r.z + 1) : 0u;
+        flags[i] = (ok ? 0u : 1u) | (full ? 2u : 0u);
+        place[i] = r;
+        place_slab[i] = slab;
+        if (!ok) atomic_inc(&tally[0]);
+        if (full) atomic_inc(&tally[1]);
+        if (back) atomic_inc(&tally[2]);
+    }
+    barrier(CLK_LOCAL_MEM_FENCE);
+    if (lid == 0) {
+        if (tally[0]) atomic_add(&st[PG_ST_CULLED], tally[0]);
+        if (tally[1]) atomic_add(&st[PG_ST_WIDENED], tally[1]);
+        if (tally[2]) atomic_add(&st[PG_ST_BACK], tally[2]);
+        if (tally[3] != 0xffffffffu) atomic_min(&st[PG_ST_DNEAR], tally[3]);
+    }
+}
+
+// Distance levels within a cell: QB = up.w bits (0: none) of the triangles' distance lower bounds
+// from dnear (the nearest, PG_ST_DNEAR) to the end of the last slab, on the float's own bit
+// pattern (monotone in a positive float and close to log2: no libm log / exp, which are slow on CPU
+// devices): level = (bits(d) - bits(dnear)) >> shift, with shift fitting the span into QB bits.
+// The pair key is (cell << QB) | level, so the sort leaves every cell's triangles nearest first and
+// a closest-hit ray can stop inside a cell (trace.cl): every triangle of level >= q is at least
+// as_float(bits(dnear) + (q << shift)) from E, exactly. levels[0] = (dnear, shift, 0, 0).
+inline float2 pg_levels(const PGrid *g, __global const uint *st) {
+    uint qb = (uint)g->up.w;
+    float dmax = g->slab.w + (float)g->res.z * g->slab.x;
+    float dnear = pg_unord(st[PG_ST_DNEAR]);
+    if (!(dnear > 0.0f && dnear < dmax && isfinite(dmax)) || qb == 0u) return (float2)(0.0f, -1.0f);
+    uint span = as_uint(dmax) - as_uint(dnear);
+    int bits = 32 - (int)clz(span);
+    return (float2)(dnear, (float)max(0, bits - (int)qb));
 }
 
 __kernel __attribute__((reqd_work_group_size(WG, 1, 1)))
 void pg_tri_write(__global const PGrid *grid, const uint n, __global const uint *offsets,
                   __global const int4 *place, __global const int *place_slab, __global const uint *flags,
+                  __global const float *tri_dmin, __global const uint *st, __global float4 *levels,
                   __global uint *keys, __global uint *vals) {
     uint i = get_global_id(0);
+    PGrid g = *grid;
+    float2 lv = pg_levels(&g, st);
+    if (i == 0) levels[0] = (float4)(lv.x, lv.y, 0.0f, 0.0f);
     if (i >= n) return;
     if (flags[i] & 1u) return;
-    PGrid g = *grid;
     int4 r = place[i];
     int slab = place_slab[i];
+    uint qb = (uint)g.up.w, q = 0u;
+    float d = tri_dmin[i];
+    if (lv.y >= 0.0f && d > lv.x)
+        q = min((1u << qb) - 1u, (as_uint(d) - as_uint(lv.x)) >> (uint)lv.y);
     uint o = offsets[i];
     for (int it = r.z; it <= r.w; ++it)
         for (int ia = r.x; ia <= r.y; ++ia) {
-            keys[o] = (uint)((ia + g.res.x * it) * g.res.z + slab);
+            keys[o] = ((uint)((ia + g.res.x * it) * g.res.z + slab) << qb) | q;
             vals[o] = i;
             ++o;
         }
 }
 
-// counts per cell from the segments of the sorted pair keys (zero-filled before)
+// counts per cell from the segments of the sorted pair keys (zero-filled before; a cell's
+// segments are its distance levels)
 __kernel __attribute__((reqd_work_group_size(WG, 1, 1)))
 void pg_cell_counts(__global const uint *seg_key, __global const uint *seg_len, __global const uint *m_ptr,
-                    __global uint *counts) {
+                    const uint qb, __global uint *counts) {
     uint i = get_global_id(0);
     if (i >= *m_ptr) return;  // the segment count, on the device (launched for a bound)
-    counts[seg_key[i]] = seg_len[i];
+    atomic_add(&counts[seg_key[i] >> qb], seg_len[i]);
 }

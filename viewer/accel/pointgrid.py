@@ -9,30 +9,39 @@ Build (kernels in pointgrid.cl beside this file, primitives from viewer.cl.primi
  2. rays: per ray, its direction u from the centre and an upper bound of how far (in angle) its
     segment strays from u where it could meet geometry: h / max(nearest along-ray distance,
     sqrt(d0^2 - h^2)), h = distance of the ray's line from the centre, d0 = distance from the
-    centre to the scene box (computed in double). Rays above `margin` ("outside": other origins,
-    inactive rays, segments through the centre) are compacted into a list and traced another
-    way; the grid's margin is the largest bound of the rays it keeps (a max-reduce), so rays
-    that meet exactly in the centre (the eye) or lights outside the scene box cost no margin.
- 3. angular rectangle of the rays (min/max reduce), grown by the margin; tiles over it
-    (~tile_rays rays per tile, `tiles` on the longer side, or tiles of `tile_angle` radians); slabs
-    by distance from the centre.
+    centre to the scene box (computed in double; a ray leaving from the centre itself is 0 at
+    once). Rays above `margin` ("outside": other origins, segments through the centre) are
+    appended to a list and traced another way; the grid's margin is the largest bound of the rays
+    it keeps, so rays that meet exactly in the centre (the eye) or lights outside the scene box
+    cost no margin. The angles come from a polynomial atan2 (RAY_ANGLE_ERR is added to the
+    margin). Counts and reductions are done in the same kernel (work-group reduction, one
+    atomic per group and value, into a small statistics buffer read back with one wait).
+ 3. angular rectangle of the rays, grown by the margin; tiles over it (~tile_rays rays per tile,
+    `tiles` on the longer side, or tiles of `tile_angle` radians); slabs by distance from the
+    centre.
  4. (tile, ray) pairs radix-sorted; segments cut into chunks of at most `chunk` rays.
- 5. triangles: a conservative (alpha, theta) box of the triangle itself (pointgrid.cl: azimuths
-    at the vertices, elevations bounded through the triangle's distance from the pole axis;
-    full azimuth when it surrounds or nears the pole axis or crosses the seam: "widened"),
-    grown by the margin; clipped to the rays' rectangle (triangles
-    outside it are culled: frustum culling for the eye); one slab from a lower bound of the
-    triangle's distance to the centre. (cell = tile * slabs + slab, triangle) pairs counted,
-    scanned, written, sorted; per-cell counts from the segments, then an exclusive scan gives
-    cell_start (ncells + 1 entries), so a tile's triangles are contiguous and in slab order.
+ 5. triangles: culled when two vertices are equal (never hit: far from the origin float32 snaps
+    small meshes onto a coarse lattice, 91% of the dragon at 1e6) or, with `backface`, facing away
+    from the centre (double); else a conservative (alpha, theta) box of the triangle itself
+    (pointgrid.cl: azimuths at the vertices, elevations bounded through the triangle's distance
+    from the pole axis; full azimuth when it surrounds or nears the pole axis or crosses the
+    seam: "widened"; a projection that is a point or a segment on a line through the pole axis
+    is judged by its distance from the axis, not as "around" it), grown by the margin; clipped
+    to the rays' rectangle (triangles outside it are culled: frustum culling for the eye); one
+    slab from a lower bound d of the triangle's distance to the centre. (cell = tile * slabs +
+    slab, triangle) pairs counted, scanned, written with key (cell << LEVEL_BITS) | level(d)
+    (a log-like distance level from the float bits, pg_levels), sorted; per-cell counts from the
+    segments, then an exclusive scan gives cell_start (ncells + 1 entries), so a tile's triangles
+    are contiguous, in slab order and nearest first within a cell (the trace's in-cell stop).
 
-Layouts: header PGRID_DTYPE (112 bytes: float4 centre (w = margin), fwd, up, right, rect (alpha0,
-theta0, tiles per radian in alpha and theta), slab (width, 1 / width, tan(margin), d0 = distance
-from the centre to the scene box, where slab 0 starts); int4 res
-(tiles alpha, tiles theta, slabs, cells)); cell_start uint32 (ncells + 1,); refs uint32 (pairs,)
-triangle slots; chunks: viewer.cl.primitives.Chunks over the sorted ray keys (key = tile,
-ntiles for rays outside the grid, ntiles + 1 for inactive rays: neither is traced here, so the
-caller writes misses first), ray_vals uint32 (n,) ray indices in that order.
+Layouts: header PGRID_DTYPE (112 bytes: float4 centre (w = margin), fwd (w = 1: back-face
+culling), up (w = distance level bits), right, rect (alpha0, theta0, tiles per radian in alpha
+and theta), slab (width, 1 / width, tan(margin), d0 = distance from the centre to the scene box,
+where slab 0 starts); int4 res (tiles alpha, tiles theta, slabs, cells)); cell_start uint32
+(ncells + 1,); keys uint32 (pairs,) sorted pair keys and refs uint32 (pairs,) triangle slots;
+levels float4 (dnear, shift, 0, 0); chunks: viewer.cl.primitives.Chunks over the sorted ray keys
+(key = tile, ntiles for rays outside the grid, ntiles + 1 for inactive rays: neither is traced
+here, so the caller writes misses first), ray_vals uint32 (n,) ray indices in that order.
 """
 
 from __future__ import annotations
@@ -68,6 +77,8 @@ class PointGridSpec:
     tile_angle: float = 0.0  # >0: tiles of this many radians (a fixed angular resolution) instead
     slabs: int = 16
     margin: float = 0.004  # radians
+    backface: bool = False  # cull triangles facing away from the centre (exact only for closed, outward-facing
+    # geometry seen from outside it: the eye of a primary pass, see PgridBackend._backface)
 
 
 @dataclass
@@ -84,14 +95,29 @@ class PointGridStats:
     widened: int
     build_ms: float
     rearrange_ms: float = 0.0
+    culled_backface: int = 0  # among `culled`
 
     def as_dict(self, chunk: int) -> dict[str, float]:
         return {"pairs": float(self.pairs), "chunks": float(self.chunks),
                 "chunk_occupancy": self.in_grid / max(self.chunks * chunk, 1), "culled": float(self.culled),
+                "culled_backface": float(self.culled_backface),
                 "widened": float(self.widened), "outside_rays": float(self.outside),
                 "inactive_rays": float(self.inactive), "grid_rays": float(self.in_grid),
                 "tiles": float(self.tiles[0] * self.tiles[1]), "grid_build_ms": self.build_ms,
                 "rearrange_ms": self.rearrange_ms}
+
+
+RAY_ANGLE_ERR = 3e-6  # radians: pg_angles' error (2e-6 from pg_atan2_fast, plus float rounding of u)
+ST_CULLED = 7  # pointgrid.cl PG_ST_*: outside, inactive, deviation, alpha min/max, theta min/max, culled, widened
+ST_INIT = np.array([0, 0, 0, 0xFFFFFFFF, 0, 0xFFFFFFFF, 0, 0, 0, 0, 0xFFFFFFFF, 0], np.uint32)
+LEVEL_BITS = 8  # distance levels per cell (pointgrid.cl pg_levels), fewer when the cell ids need the bits
+
+
+def decode_ord(keys: np.ndarray) -> np.ndarray:
+    """float32 values of pg_ord keys (pointgrid.cl: the order-preserving float -> uint map)."""
+    k = np.asarray(keys, np.uint32)
+    bits = np.where(k & np.uint32(0x80000000), k & np.uint32(0x7FFFFFFF), ~k)
+    return bits.astype(np.uint32).view(np.float32)
 
 
 def choose_frame(centre: np.ndarray, origins: np.ndarray, dirs: np.ndarray) -> tuple[np.ndarray, ...]:
@@ -177,33 +203,29 @@ class PointGrid:
         h = np.zeros(1, PGRID_DTYPE)
         h["centre"][0, :3], h["centre"][0, 3] = centre, spec.margin
         h["fwd"][0, :3], h["up"][0, :3], h["right"][0, :3] = fwd, up, right
+        h["fwd"][0, 3] = 1.0 if spec.backface else 0.0  # the kernels' back-face switch
         h["slab"][0, 2:] = (np.tan(spec.margin), d0)
         h["res"][0] = (1, 1, 1, 1)
         self._header0 = h.copy()  # kept alive for the asynchronous write (h changes below)
         clio.copy(q, self.header, self._header0, is_blocking=False)
         alpha, theta = self.buf("alpha", 4 * n), self.buf("theta", 4 * n)
-        dev, outside = self.buf("dev", 4 * n), self.buf("outside", 4 * n)
-        self._run("pg_classify", n, self.header, ray_o, ray_d, u(n), alpha, theta, dev, outside)
-        out_idx = self.buf("outside_idx", 4 * n)
-        # the rays' counts (outside, inactive) and reductions (largest deviation, angular
-        # rectangle) on the device, read back together: one wait
-        cnt, red = np.zeros(2, np.uint32), np.zeros(5, np.float32)
+        outside, out_idx = self.buf("outside", 4 * n), self.buf("outside_idx", 4 * n)
+        # the rays' counts (outside, inactive), largest deviation and angular rectangle, and the
+        # triangles' culled / widened counts: one small buffer, reset by this (asynchronous) write,
+        # filled by pg_classify and pg_tri_count with atomics, read back in two batches (one wait each)
+        self._st0 = ST_INIT.copy()
+        st_buf = self.buf("st", ST_INIT.nbytes)
+        clio.copy(q, st_buf, self._st0, is_blocking=False)
+        self._run("pg_classify", n, self.header, ray_o, ray_d, u(n), alpha, theta, outside, st_buf, out_idx)
+        st = np.zeros(7, np.uint32)
         if n:
-            n_buf = self._n_buf(n)
-            p.compact_dev(n_buf, n, self.buf("c_out", 4), src=outside, predicate="x == 1u", dst_index=out_idx)
-            p.compact_dev(n_buf, n, self.buf("c_inact", 4), src=outside, predicate="x == 2u")
-            for k, (src, op) in enumerate(((dev, "max"), (alpha, "min"), (alpha, "max"), (theta, "min"),
-                                           (theta, "max"))):
-                rb = self.buf(f"red{k}", 4)
-                p.reduce_dev(src, n, op, np.float32, rb)
-                clio.copy(q, red[k:k + 1], rb, is_blocking=False)
-            clio.copy(q, cnt[1:2], self._bufs["c_inact"], is_blocking=False)
-            clio.copy(q, cnt[0:1], self._bufs["c_out"])
+            clio.copy(q, st, st_buf)
+        cnt, red = st[:2], decode_ord(st[2:7])
         self.outside_count, self.inactive_count = int(cnt[0]), int(cnt[1])
         in_grid = n - self.outside_count - self.inactive_count
         # margin: the largest deviation of a ray in the grid (at most spec.margin), plus float slack
         m = float(red[0]) * (1 + 1e-4) + 1e-6 if in_grid else spec.margin
-        m = min(m, spec.margin)
+        m = min(m, spec.margin) + RAY_ANGLE_ERR  # the rays' angles come from a polynomial atan2
         h["centre"][0, 3] = m
         self.margin = m
         # the rays' angular rectangle, grown by the margin
@@ -224,6 +246,9 @@ class PointGrid:
         h["slab"][0, :2] = (width, 1.0 / width)
         ncells = na * nt * ns
         h["res"][0] = (na, nt, ns, ncells)
+        cell_bits = max(1, (ncells - 1).bit_length())
+        qbits = max(0, min(LEVEL_BITS, 32 - cell_bits))
+        h["up"][0, 3] = qbits
         self.header_host = h
         clio.copy(q, self.header, h, is_blocking=False)  # h is kept (header_host) until it lands
         # triangles: (cell, triangle) pairs
@@ -231,36 +256,36 @@ class PointGrid:
 
         counts, flags = self.buf("tri_counts", 4 * max(n_tris, 1)), self.buf("tri_flags", 4 * max(n_tris, 1))
         place, place_slab = self.buf("tri_place", 16 * max(n_tris, 1)), self.buf("tri_slab", 4 * max(n_tris, 1))
-        self._run("pg_tri_count", n_tris, self.header, tris, u(n_tris), counts, flags, place, place_slab)
+        dmin = self.buf("tri_dmin", 4 * max(n_tris, 1))
+        self._run("pg_tri_count", n_tris, self.header, tris, u(n_tris), counts, flags, place, place_slab, dmin,
+                  st_buf)
         # the pair total and the culled / widened counts (count-only compactions): one wait
-        got = np.zeros(3, np.uint32)
+        got = np.zeros(4, np.uint32)
         if n_tris:
             nt_buf = self._n_buf(n_tris, "n_tris")
             p.exclusive_scan_dev(counts, counts, nt_buf, n_tris, self.buf("pairs", 4))
-            for k, b in enumerate((1, 2)):
-                cb = self.buf(f"flagged{b}", 4)
-                p.compact_dev(nt_buf, n_tris, cb, src=flags, predicate=f"(x & {b}u) != 0u")
-                clio.copy(q, got[k + 1:k + 2], cb, is_blocking=False)
+            clio.copy(q, got[1:4], st_buf, src_offset=4 * ST_CULLED, is_blocking=False)
             clio.copy(q, got[0:1], self._bufs["pairs"])
-        pairs, culled, widened = (int(x) for x in got)
+        pairs, culled, widened, back = (int(x) for x in got)
         cap = min(MAX_PAIRS, pair_cap(self.ctx, PAIR_BYTES))  # the device's memory bounds it too
         if pairs > cap:
             raise RtwalkError(f"point grid {na}x{nt}x{ns} needs {pairs:,} triangle-cell pairs (at most {cap:,} "
                               "on this OpenCL device): use fewer tiles")
         keys, refs = self.buf("keys", 4 * pairs), self.buf("refs", 4 * pairs)
-        self._run("pg_tri_write", n_tris, self.header, u(n_tris), counts, place, place_slab, flags, keys, refs)
+        self._run("pg_tri_write", max(n_tris, 1), self.header, u(n_tris), counts, place, place_slab, flags, dmin,
+                  st_buf, self.buf("levels", 16), keys, refs)
         cell_start = self.buf("cell_start", 4 * (ncells + 1))
         cl.enqueue_fill_buffer(q, cell_start, np.uint32(0), 0, 4 * (ncells + 1))
         if pairs:
-            p.sort_pairs(keys, refs, pairs, key_bits=max(1, (ncells - 1).bit_length()))
+            p.sort_pairs(keys, refs, pairs, key_bits=cell_bits + qbits)
             seg = p.segments_dev(keys, self._bufs["pairs"], pairs, None,
                                  Chunks(0, self.buf("seg_key", 4 * pairs), self.buf("seg_start", 4 * pairs),
                                         self.buf("seg_len", 4 * pairs)), self.buf("seg_count", 4))
-            self._run("pg_cell_counts", pairs, seg.key, seg.length, self._bufs["seg_count"], cell_start)
+            self._run("pg_cell_counts", pairs, seg.key, seg.length, self._bufs["seg_count"], u(qbits), cell_start)
         p.exclusive_scan_dev(cell_start, cell_start, self._n_buf(ncells + 1, "n_cells"), ncells + 1,
                              self.buf("cells_total", 4))
         self.stats = PointGridStats((na, nt), ns, n, in_grid, self.outside_count, self.inactive_count, 0, int(pairs),
-                                    int(culled), int(widened), (time.perf_counter() - t0) * 1e3)
+                                    int(culled), int(widened), (time.perf_counter() - t0) * 1e3, culled_backface=back)
 
     def _n_buf(self, n: int, name: str = "n") -> Any:
         """A device uint32 holding n (the count the device-count primitives read)."""
@@ -294,6 +319,16 @@ class PointGrid:
     @property
     def cell_start(self) -> Any:
         return self._bufs["cell_start"]
+
+    @property
+    def keys(self) -> Any:
+        """Sorted pair keys (cell << up.w bits | distance level): the trace's in-cell stop."""
+        return self._bufs["keys"]
+
+    @property
+    def levels(self) -> Any:
+        """float4 (dnear, shift, 0, 0) of the distance levels (pointgrid.cl pg_levels; shift < 0: none)."""
+        return self._bufs["levels"]
 
     @property
     def refs(self) -> Any:

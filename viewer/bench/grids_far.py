@@ -153,11 +153,12 @@ class Runner:
         self.be.begin_frame(0)
         self.build_ms = (time.perf_counter() - t0) * 1e3
         self.pinfo = PassInfo(RayType.PRIMARY)
-        self.be.trace(self.rays, self.pinfo, self.hits)  # untimed: kernels compile at first enqueue
+        # untimed: kernels compile at first enqueue; `stats`: the last trace's counters
+        self.stats = self.be.trace(self.rays, self.pinfo, self.hits).stats
 
     def trace(self) -> tuple[float, np.ndarray, np.ndarray]:
         t0 = time.perf_counter()
-        self.be.trace(self.rays, self.pinfo, self.hits)
+        self.stats = self.be.trace(self.rays, self.pinfo, self.hits).stats
         t, slot = self.hits.read()
         ms = (time.perf_counter() - t0) * 1e3
         slot = np.asarray(slot[: self.n])
@@ -230,6 +231,11 @@ def run(args) -> int:
         r["ms"] = statistics.median(r["times"])
         r["vs_clbvh"] = r["ms"] / base if base else None
         r["hits"] = int((ids_of[name] >= 0).sum())
+        st = runners[name].stats  # a per-pass grid's own pairs (pgrid's point grid), where it reports them
+        if not r.get("grid_pairs") and "pairs" in st:
+            r["grid_pairs"] = st["pairs"]
+            r["pass_stats"] = {k: st[k] for k in ("pairs", "culled", "culled_backface", "widened", "tiles")
+                               if k in st}
         if ref is not None:  # another triangle at the same distance is a tie, not a disagreement
             t_ref = t_of["clbvh"].astype(np.float64)
             same_t = np.isclose(t_of[name].astype(np.float64), t_ref, rtol=1e-5, atol=0) | \
@@ -240,7 +246,8 @@ def run(args) -> int:
         mib = r.get("grid_bytes", 0) / 2**20
         print(f"{name:10s} pairs {int(r.get('grid_pairs', 0)):>10d} res {r.get('grid_res', '-')!s:>16s} "
               f"grid {mib:8.1f} MiB  build {r['build_ms']:8.0f} ms  trace {r['ms']:9.1f} ms "
-              f"x{(r['vs_clbvh'] or 0):6.2f}  hits {r['hits']}  disagree {r['disagree']}", flush=True)
+              f"x{(r['vs_clbvh'] or 0):6.2f}  hits {r['hits']}  disagree {r['disagree']}"
+              + "".join(f"  {k} {int(v)}" for k, v in r.get("pass_stats", {}).items() if k != "pairs"), flush=True)
     print(f"peak RSS {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024:.0f} MiB")
     for r in runners.values():
         r.release()

@@ -205,6 +205,8 @@ class PgridBackend(GeometryBackend):
             centre, so, sd = point
             pg = self.pgrid
             spec = self.params.point_spec()
+            # primary rays meet in the eye: back faces are culled where that is exact (as the camera grid)
+            spec.backface = pinfo.ray_type == RayType.PRIMARY and self._backface(centre)
             with prof.cl_phase(f"pgrid:build:{label}", q):
                 pg.place(self._tris, self._n_tris, *self._box, rs.origin, rs.dir, rs.n, centre, (so, sd), spec)
             with prof.cl_phase(f"pgrid:rearrange:{label}", q):
@@ -222,7 +224,7 @@ class PgridBackend(GeometryBackend):
                     self._kernels[count](q, (pg.chunks.count * self.params.chunk,), (self.params.chunk,), pg.header,
                                          ch.key, ch.start, ch.length, pg.ray_vals, pg.cell_start, pg.refs, self._tris,
                                          rs.origin, rs.dir, hs.t, hs.tri, np.int32(pinfo.any_hit), tests,
-                                         np.int32(self._from_far(centre)))
+                                         np.int32(self._from_far(centre)), pg.keys, pg.levels)
                 self.tracer.enqueue(rs.origin, rs.dir, hs.t, hs.tri, st.outside, pinfo.any_hit,
                                     tests if count else None, index=pg.outside_index)
             stats.update(st.as_dict(self.params.chunk))

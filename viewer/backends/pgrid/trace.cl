@@ -5,7 +5,10 @@
 //  * any hit (shadow rays towards a light): a ray stops at its first hit; the chunk stops when all
 //    its rays have stopped or the next slab starts beyond the farthest point of its rays.
 //  * closest hit (primary rays from the eye): after slab s a ray whose hit lies nearer to the
-//    centre than where slab s+1 starts is done (slab check); the chunk stops when all are done.
+//    centre than where slab s+1 starts is done (slab check); within a cell, whose triangles are
+//    sorted by distance level (pointgrid.cl pg_levels), likewise before each further batch; the
+//    chunk stops when all are done.
+// A tile without triangles (background) writes misses at once; empty slabs are skipped.
 // Chunks whose key is the "outside" tile (ntiles) return at once: those rays go another way.
 // A chunk of more than WG rays (load balancing off: whole tiles) is traced WG rays at a time.
 // With COUNT_TESTS, each ray's triangle tests are written to `tests`.
@@ -33,7 +36,8 @@ void pg_trace(__global const PGrid *grid, __global const uint *chunk_key, __glob
               __global const uint *chunk_len, __global const uint *ray_index, __global const uint *cell_start,
               __global const uint *refs, __global const float4 *tris, __global const float4 *ray_o,
               __global const float4 *ray_d, __global float *out_t, __global int *out_id, const int any_hit,
-              __global int *tests_out, const int from_far) {
+              __global int *tests_out, const int from_far, __global const uint *keys,
+              __global const float4 *levels) {
     __local float4 sv[9 * (WG / 4)];  // staged triangles, four per block in SoA form
     __local int sslot[WG];
     __local int remaining;
@@ -45,6 +49,20 @@ void pg_trace(__global const PGrid *grid, __global const uint *chunk_key, __glob
     uint ntiles = (uint)(g.res.x * g.res.y);
     if (key >= ntiles) return;  // uniform for the whole work-group
     uint len = chunk_len[c];
+    uint cell0 = key * (uint)g.res.z;
+    if (cell_start[cell0] == cell_start[cell0 + (uint)g.res.z]) {
+        // no triangle in the whole tile (often most of a view: sky, background): every ray of the
+        // chunk misses, without the slab loop and its barriers (uniform for the work-group)
+        for (uint k = lid; k < len; k += WG) {
+            uint ri = ray_index[chunk_start[c] + k];
+            out_t[ri] = INFINITY;
+            out_id[ri] = -1;
+#ifdef COUNT_TESTS
+            tests_out[ri] = 0;
+#endif
+        }
+        return;
+    }
     // a chunk longer than WG (no load balancing: one work-group per tile) is done WG rays at a time
     for (uint rb = 0; rb < len; rb += WG) {
     barrier(CLK_LOCAL_MEM_FENCE);
@@ -74,18 +92,38 @@ void pg_trace(__global const PGrid *grid, __global const uint *chunk_key, __glob
     barrier(CLK_LOCAL_MEM_FENCE);
     bool done = !active;
     float chunk_far = as_float(far_bits);
-    uint cell0 = key * (uint)g.res.z;
     // closest hit: front to back (the slab check needs it). Any hit: front to back, or with
     // `from_far` from the farthest slab the chunk's rays reach back towards the centre (occluders
     // next to the surface points first: the better order when the light is outside the scene)
     int s_far = clamp((int)floor((chunk_far - g.slab.w) * g.slab.y + 0.001f), 0, g.res.z - 1);
     bool back = any_hit && from_far;
-    for (int step = 0; step < g.res.z; ++step) {
-        int s = back ? s_far - step : step;
-        if (s < 0) break;
+    uint qb = (uint)g.up.w, qmask = (1u << qb) - 1u;  // distance level bits of the pair keys
+    float4 lv = levels[0];
+    if (!(lv.y >= 0.0f)) qb = 0u;  // no levels this build (pointgrid.cl pg_levels)
+    // the slabs with triangles in visiting order; empty slabs are skipped by a plain loop (no
+    // barrier inside: PoCL runs every iteration of a loop holding a barrier once per work-item,
+    // which made the empty slabs of a tile cost as much as its tests)
+    int step = 0;
+    for (;;) {
+        int s = -1;
+        uint a = 0u, b = 0u;
+        for (; step < g.res.z; ++step) {
+            int t = back ? s_far - step : step;
+            if (t < 0) { step = g.res.z; break; }
+            a = cell_start[cell0 + t];
+            b = cell_start[cell0 + t + 1];
+            if (a != b) { s = t; break; }
+        }
+        if (s < 0) break;  // same value in every work-item
+        ++step;
         float slab_lo = g.slab.w + ((float)s - 0.001f) * g.slab.x;
+        if (!any_hit && !done && hit_id >= 0 && outward && base + hit_t * dlen + h < slab_lo) {
+            // slab check: every triangle of this and the later slabs is at least slab_lo from E
+            done = true;
+            atomic_dec(&remaining);
+        }
+        barrier(CLK_LOCAL_MEM_FENCE);
         if (remaining == 0 || slab_lo > chunk_far) break;  // same value in every work-item
-        uint a = cell_start[cell0 + s], b = cell_start[cell0 + s + 1];
         for (uint base_i = a; base_i < b; base_i += WG) {
             uint cnt = min((uint)WG, b - base_i);
             barrier(CLK_LOCAL_MEM_FENCE);
@@ -109,14 +147,20 @@ void pg_trace(__global const PGrid *grid, __global const uint *chunk_key, __glob
             }
             barrier(CLK_LOCAL_MEM_FENCE);
             if (any_hit && remaining == 0) break;
+            if (!any_hit && qb && base_i + WG < b) {
+                // a cell's triangles are sorted by distance level (pointgrid.cl pg_levels): every
+                // triangle from the next batch on is at least `lo` from E, so a hit nearer than that
+                // is final (the slab check inside the cell)
+                uint q = keys[base_i + WG] & qmask;
+                float lo = q ? as_float(as_uint(lv.x) + (q << (uint)lv.y)) * (1.0f - 1e-5f) : 0.0f;
+                if (!done && hit_id >= 0 && outward && base + hit_t * dlen + h < lo) {
+                    done = true;
+                    atomic_dec(&remaining);
+                }
+                barrier(CLK_LOCAL_MEM_FENCE);
+                if (remaining == 0) break;
+            }
         }
-        if (!any_hit && !done && hit_id >= 0 && outward) {
-            // slab check: every triangle of the later slabs is at least this far from E
-            float next_lo = g.slab.w + ((float)(s + 1) - 0.001f) * g.slab.x;
-            float dist = base + hit_t * dlen + h;
-            if (dist < next_lo) { done = true; atomic_dec(&remaining); }
-        }
-        barrier(CLK_LOCAL_MEM_FENCE);
     }
     if (mine) {
         out_t[ri] = hit_id >= 0 ? hit_t : INFINITY;
