@@ -36,7 +36,8 @@ from viewer.accel.grid import GridSpec, scene_box
 from viewer.backends.base import BackendContext, TraceResult
 from viewer.backends.cl_geometry import GeometryBackend
 from viewer.backends.interface import BackendInfo, OverlaySpec, param
-from viewer.backends.voxelwalk.engine import PassStats, VoxelWalker, tile_divergence
+from viewer.backends.voxelwalk.engine import EC_SORTS, PassStats, VoxelWalker, tile_divergence
+from viewer.effects import RayType
 from viewer.errors import RtwalkError
 from viewer.rays import HitBuffer, PassInfo, RayBatch
 
@@ -52,6 +53,12 @@ class VoxelwalkParams:
     chunk: int = param(64, "EC: rays per chunk = work-group size")
     resolution: str = param("auto", "auto (grid.py's rule from the scene) or N cells on the longest axis")
     cells: int = param(1, "EC: non-empty cells per ray per iteration (0: every cell the ray crosses at once)")
+    primary: str = param("ivw", "closest-hit primary rays: ivw (they share the eye, so neighbouring pixels already "
+                         "walk the same cells together and sorting them adds nothing: the IVW fast path) or "
+                         "ec (EC them too)")
+    sort: str = param("tile", "EC: tile (every iteration in one launch: one work-group per screen-tile partition "
+                      "sorts its rays by cell on the device) or global (the thesis: a global radix sort per "
+                      "iteration, launches grow with the iterations); cells != 1 always sorts globally")
     density: float = param(2.0, "auto resolution: about this many cells per triangle")
     rebuild: bool = param(False, "rebuild the grid every frame (animated scenes; timing studies)")
     stats: bool = param(False, "per-iteration statistics every pass (else only while overlays are shown)")
@@ -69,6 +76,10 @@ class VoxelwalkParams:
                     from None
             if not 1 <= r <= 1024:
                 raise RtwalkError(f"{source}: resolution must be auto or in 1..1024 (got {r})")
+        if self.primary not in MODES:
+            raise RtwalkError(f"{source}: primary must be ivw or ec (got '{self.primary}')")
+        if self.sort not in EC_SORTS:
+            raise RtwalkError(f"{source}: sort must be tile or global (got '{self.sort}')")
         if not 0 <= self.cells <= 4096:
             raise RtwalkError(f"{source}: cells must be in 0..4096 (got {self.cells})")
         if not self.density > 0:
@@ -95,7 +106,7 @@ class VoxelwalkBackend(GeometryBackend):
         from viewer.cl import PassStages
 
         self._start(bc, params)
-        self.walker = VoxelWalker(self.ctx, self.grid, self.params.chunk, self.params.cells)
+        self.walker = VoxelWalker(self.ctx, self.grid, self.params.chunk, self.params.cells, self.params.sort)
         self.stages = PassStages(self.ctx)
         self.last_stats: PassStats | None = None
         self._frame_stats: dict[str, float] = {}  # reported by the frame's first pass (the renderer sums passes)
@@ -135,7 +146,8 @@ class VoxelwalkBackend(GeometryBackend):
         prof = self.bc.profiler
         q = self.ctx.queue
         want = bool(self.overlays_enabled or self.params.stats)
-        ec = self.params.mode == "ec" and not pinfo.any_hit
+        ec = self.params.mode == "ec" and not pinfo.any_hit and \
+            (pinfo.ray_type != RayType.PRIMARY or self.params.primary == "ec")
         with prof.cl_phase(f"trace:{pinfo.ray_type.label}", q):
             if ec:
                 ps = self.walker.trace_ec(self._tris, rs.origin, rs.dir, hs.t, hs.tri, rs.n, stats=want,

@@ -30,6 +30,32 @@ WG_SMALL = 64  # local size of the one-per-ray EC kernels
 TILE = 8  # screen tile edge for the divergence statistics (pixels)
 EC_BATCH = 8  # EC iterations enqueued before the first look at the active count (at least)
 EC_GROUPS_PER_CU = 64  # persistent ec_process work-groups per compute unit (each takes chunks in turn)
+EC_SORTS = ("tile", "global")
+EC_FUSE = 1
+EC_STAGE_MIN = 8  # ec_tile: cells with at least this many of a partition's rays get their triangles staged
+TILE_BYTES_PER_RAY = 76  # ec_tile.cl's local arrays per partition ray (20 ray state + 16 lists + 24 table + 12 chunks)
+
+
+def tile_partition(local_mem: int, wg: int) -> int:
+    """Rays per ec_tile work-group: the largest power of two <= 1024 whose local arrays (and the
+    staged triangle blocks, 160 bytes per work-item) fit half the device's local memory."""
+    p = 1024
+    while p > wg and TILE_BYTES_PER_RAY * p + 160 * wg > local_mem // 2:
+        p //= 2
+    return max(p, wg)
+
+
+def tile_order(size: tuple[int, int], n: int, p: int) -> np.ndarray:
+    """Ray indices 0..n-1 (row-major pixels of `size`) in screen-tile order: square tiles of p
+    pixels (or the nearest 2:1 rectangle), then the rays past the image."""
+    w, h = int(size[0]), int(size[1])
+    tw = 1 << ((p.bit_length() - 1 + 1) // 2)
+    th = max(1, p // tw)
+    pix = np.arange(min(n, w * h), dtype=np.int64)
+    x, y = pix % w, pix // w
+    tile = (y // th) * (-(-w // tw)) + x // tw
+    order = np.lexsort((pix, tile))
+    return np.concatenate([pix[order], np.arange(w * h, n, dtype=np.int64)]).astype(np.uint32)
 
 
 @dataclass
@@ -77,16 +103,25 @@ def tile_divergence(cells: np.ndarray, size: tuple[int, int], tile: int = TILE) 
 class VoxelWalker:
     """IVW and EC kernels over a UniformGrid and its triangles (device buffers)."""
 
-    def __init__(self, ctx: Any, grid: UniformGrid, chunk: int = 64, window: int = 1):
+    def __init__(self, ctx: Any, grid: UniformGrid, chunk: int = 64, window: int = 1, ec_sort: str = "tile"):
         from viewer.cl import build
 
+        if ec_sort not in EC_SORTS:
+            raise ValueError(f"ec_sort must be one of {EC_SORTS}")
         self.ctx, self.grid, self.chunk, self.window = ctx, grid, int(chunk), int(window)
+        self.ec_sort = ec_sort
         self.prims = grid.prims
         ivw = build(HERE / "ivw.cl", {"WG": WG_IVW}, ctx)
         ec = build(HERE / "ec.cl", {"WG": self.chunk}, ctx)
+        self.partition = tile_partition(int(ctx.device.local_mem_size), self.chunk)
+        ect = build(HERE / "ec_tile.cl", {"WG": self.chunk, "P": self.partition, "STAGE_MIN": EC_STAGE_MIN,
+                                          "FUSE": EC_FUSE}, ctx)
         self.k = {"ivw": clio.kernel(ivw, "ivw_trace")}
         for name in ("ec_init", "ec_count", "ec_write", "ec_process", "ec_resolve", "ec_finish"):
             self.k[name] = clio.kernel(ec, name)
+        for name in ("ec_tile", "ec_tile_flags"):
+            self.k[name] = clio.kernel(ect, name)
+        self._perm_key: tuple | None = None
         self._bufs: dict[str, Any] = {}
         self._host_n = np.zeros(1, np.uint32)  # kept alive for its asynchronous write
         self._last_iterations = 0  # the last EC pass's iterations: the next pass's first batch
@@ -116,7 +151,7 @@ class VoxelWalker:
         g, q = self.grid, self.ctx.queue
         iters, first = self._buf("iters", 4 * n), self._buf("first", 4 * n)
         t0 = time.perf_counter()
-        self._run("ivw", n, g.header, g.cells, g.refs, tris, ray_o, ray_d, out_t, out_id, np.int32(n),
+        self._run("ivw", n, g.header, g.cells, g.blocks, g.cell_blocks, ray_o, ray_d, out_t, out_id, np.int32(n),
                   np.int32(bool(any_hit)), iters, first, wg=WG_IVW)
         ps = PassStats("ivw")
         if stats:  # timed only with statistics (a wait; frames leave the kernel in flight)
@@ -149,7 +184,67 @@ class VoxelWalker:
 
     def trace_ec(self, tris: Any, ray_o: Any, ray_d: Any, out_t: Any, out_id: Any, n: int,
                  stats: bool = False, size: tuple[int, int] | None = None) -> PassStats:
-        """EC over rays 0..n-1. Iterations are enqueued in batches with no host round trip
+        """EC over rays 0..n-1: the one-launch tile loop (ec_sort "tile", one non-empty cell per
+        iteration), else the thesis's global sort per iteration (ec_sort "global", or `window` != 1)."""
+        if self.ec_sort == "tile" and self.window == 1:
+            return self._trace_ec_tile(ray_o, ray_d, out_t, out_id, n, stats, size)
+        return self._trace_ec_global(tris, ray_o, ray_d, out_t, out_id, n, stats, size)
+
+    def _perm(self, size: tuple[int, int] | None, n: int) -> Any:
+        """The rays' screen-tile order on the device (uploaded once per size)."""
+        key = (tuple(size) if size is not None else None, n, self.partition)
+        if self._perm_key != key:
+            order = tile_order(size, n, self.partition) if size is not None else np.arange(n, dtype=np.uint32)
+            buf = self._buf("perm", 4 * n)
+            clio.copy(self.ctx.queue, buf, order, is_blocking=False)
+            self._perm_host, self._perm_key = order, key  # kept alive for the asynchronous write
+        return self._bufs["perm"]
+
+    def _trace_ec_tile(self, ray_o: Any, ray_d: Any, out_t: Any, out_id: Any, n: int, stats: bool,
+                       size: tuple[int, int] | None) -> PassStats:
+        """EC with every iteration on the device (ec_tile.cl): rays entering the grid are compacted
+        in screen-tile order, then one work-group per partition of them loops over its iterations
+        (walk, counting sort by cell, chunks with staged triangles, resolve). A fixed 5 launches
+        per pass whatever the iteration count; one wait, for the per-group totals."""
+        g, q, u = self.grid, self.ctx.queue, np.uint32
+        ps = PassStats("ec")
+        if n == 0:
+            return ps
+        t0 = time.perf_counter()
+        iters, first = self._buf("iters", 4 * n), self._buf("first", 4 * n)
+        flags, act = self._buf("flags", 4 * n), self._buf("act", 4 * n)
+        cb = self._count_bufs()
+        perm = self._perm(size, n)
+        self._host_n[0] = n
+        clio.copy(q, cb["n"], self._host_n, is_blocking=False)
+        self._run("ec_tile_flags", n, g.header, ray_o, ray_d, perm, u(n), flags, out_t, out_id, iters, first)
+        self.prims.compact_dev(cb["n"], n, cb["m0"], flags=flags, src=perm, dst=act)
+        groups = -(-n // self.partition)
+        totals = self._buf("tile_totals", 16 * groups)
+        ev = self.k["ec_tile"](q, (groups * self.chunk,), (self.chunk,), g.header, g.cells, g.blocks, g.cell_blocks,
+                               ray_o, ray_d, act, cb["m0"], out_t, out_id, iters, first, totals)
+        tot = self._read(totals, 4 * groups, np.uint32).reshape(groups, 4)  # the pass's one wait
+        ps.iterations, ps.pairs = int(tot[:, 0].max()), int(tot[:, 1].sum())
+        ps.workgroups, ps.rays = int(tot[:, 2].sum()), int(tot[:, 3].sum())
+        self._last_iterations = ps.iterations
+        ps.trace_ms = max(0, ev.profile.end - ev.profile.start) / 1e6
+        ps.reorder_ms = max(0.0, (time.perf_counter() - t0) * 1e3 - ps.trace_ms)
+        if stats:
+            ps.iters = self._read(iters, n, np.int32)
+            fc = self._read(first, n, np.uint32)
+            ps.first_cell = fc if size is not None else None
+            fc = fc[fc != 0xFFFFFFFF]
+            ps.rays_per_cell = np.unique(fc, return_counts=True)[1] if len(fc) else np.zeros(0, np.int64)
+            walked = ps.iters[ps.iters > 0]
+            for k in range(1, ps.iterations + 1):  # derived per iteration: one cell per active ray
+                active = float(np.count_nonzero(walked >= k))
+                ps.per_iter.append({"active": active, "pairs": active,
+                                    "resolved": float(np.count_nonzero(walked == k))})
+        return ps
+
+    def _trace_ec_global(self, tris: Any, ray_o: Any, ray_d: Any, out_t: Any, out_id: Any, n: int,
+                         stats: bool = False, size: tuple[int, int] | None = None) -> PassStats:
+        """EC over rays 0..n-1 with the thesis's global sort. Iterations are enqueued in batches with no host round trip
         between them: the active count, the pair count and the chunk count live on the device
         (kernels read them; launches are sized for bounds: n rays, n * window pairs), and after a
         batch one read of the active count says whether to go on. A batch is as long as the last
