@@ -6,13 +6,22 @@ OpenCL device at creation and again when the scene's triangles change (or every 
 rebuild=true, as an animated scene needs).
 
 * IVW (mode=ivw): one work-item per ray walks the grid by 3D-DDA and stops at the first cell that
-  holds a hit inside the cell (ivw.cl). Any-hit rays (shadow, soft, AO) always go this way,
-  stopping at their first hit.
-* EC (mode=ec, closest-hit rays): in iterations, every active ray enumerates the (ray, cell)
-  pairs of its next `cells` non-empty cells (count, scan, write), the pairs are radix-sorted by
-  cell, cut at the cell boundaries into chunks of at most `chunk` rays, compacted, and one
-  work-group per chunk tests the cell's triangles staged in local memory; nearest hits by an
-  atomic minimum on packed (distance, triangle) keys, so the result is deterministic (ec.cl).
+  holds a hit inside the cell (ivw.cl), testing each cell's triangles four at a time. Any-hit rays
+  (shadow, soft, AO) always go this way, stopping at their first hit, and so do primary rays
+  unless primary=ec: they share the eye, so neighbouring pixels already walk the same cells in the
+  same order and sorting them by cell adds nothing (the IVW fast path).
+* EC (mode=ec, other closest-hit rays), in iterations of one non-empty cell per ray, rays of the
+  same cell processed together, resolved rays dropping out:
+  - sort=tile (default, ec_tile.cl): every iteration on the device in one launch: one
+    work-group per screen-tile partition of the active rays loops over its iterations (walk to the
+    next non-empty cell, counting sort by cell through a local hash table, chunks of at most
+    `chunk` rays of one cell with the cell's triangles staged in local memory, resolve). A fixed
+    5 launches and one wait per pass whatever the iteration count; hits equal IVW's bit for bit.
+  - sort=global (the thesis's, ec.cl; also whenever cells != 1): each active ray emits its
+    (ray, cell) pairs for its next `cells` non-empty cells (count, scan, write), the pairs are
+    radix-sorted by cell over all rays, cut into chunks of at most `chunk` rays, compacted, and
+    one work-group per chunk tests the staged triangles; nearest hits by an atomic minimum on
+    packed (distance, triangle) keys. About 24 launches per iteration (one wait per pass).
 
 Both are exact (the watertight test of viewer/cl/kernels/geometry.cl, the grid's conservative
 binning, and the hit-inside-cell rule). Resolution: `auto` takes grid.py's rule (about `density`

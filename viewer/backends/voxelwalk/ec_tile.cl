@@ -4,12 +4,16 @@
 //   walk     each active ray moves to its next non-empty cell (3D-DDA resumed from a cell id,
 //            walk.cl) and inserts that cell into a local hash table (atomic compare-and-swap on
 //            the key, atomic increment for its rank in the cell)
-//   sort     a counting sort by cell: a scan over the table gives each cell its offset and its
-//            chunks (at most WG rays of one cell); the rays are scattered into cell order, which
-//            is also the compaction (resolved rays inserted nothing)
-//   process  chunk by chunk: the cell's SoA triangle blocks (grid.py GRID_BLOCK_DTYPE) are staged
-//            in local memory WG at a time and every ray of the chunk tests them (the float4
-//            watertight test of geometry.cl); rays of the same cell are processed together
+//   sort     a counting sort by cell: a scan over the table (only 2 entries per active ray) gives
+//            each cell its offset and its chunks (at most WG rays of one cell); the rays are
+//            scattered into cell order, which is also the compaction (resolved rays inserted
+//            nothing)
+//   process  cells holding at least STAGE_MIN of the partition's rays, chunk by chunk: the cell's
+//            SoA triangle blocks (grid.py GRID_BLOCK_DTYPE) are staged in local memory WG at a
+//            time and every ray of the chunk tests them (the float4 watertight test of
+//            geometry.cl); cells with fewer rays: consecutive work-items take the cell-sorted rays
+//            and read the blocks from global memory (staging a cell for one or two rays costs more
+//            than it saves). Either way rays of the same cell are processed together.
 //   resolve  a ray is done when its hit lies inside the cell (the hit-inside-cell rule) or its
 //            walk leaves the grid; then it writes its hit. The others walk on (next iteration).
 // The loop ends on the partition's own active count (local), so the host never looks between
@@ -27,9 +31,6 @@
 #endif
 #define H (2 * P)  // hash table entries (power of two, load <= 1/2)
 #define SB WG  // triangle blocks staged per round
-#ifndef FUSE
-#define FUSE 1
-#endif
 #ifndef STAGE_MIN
 #define STAGE_MIN 8  // a cell with fewer rays in the partition is not staged: its rays test from global memory
 #endif
@@ -231,10 +232,8 @@ void ec_tile(__global const Grid *grid, __global const uint2 *cells, __global co
             }
             hit[j] = hit_t;
             slot[j] = hit_slot;
-#if FUSE
             ect_resolve(&g, cells, &r, i, j, k, hit_t, hit_slot, hsize, cur, nit, bucket, rank, hkey, hcnt, out_t,
                         out_id, iters_out);
-#endif
         }
         // process, cells with many rays: one chunk (at most WG rays of one cell) at a time, the
         // cell's blocks staged in local memory (the thesis's chunk)
@@ -275,12 +274,7 @@ void ec_tile(__global const Grid *grid, __global const uint2 *cells, __global co
         }
         barrier(CLK_LOCAL_MEM_FENCE);
         // resolve the staged chunks' rays
-#if FUSE
         for (uint k = lid; k < mb; k += WG) {
-#else
-        barrier(CLK_LOCAL_MEM_FENCE);
-        for (uint k = lid; k < m; k += WG) {
-#endif
             uint j = srt[k], i = ray[j];
             float4 ot = ray_o[i], dt = ray_d[i];
             RayPre r = rt_prepare_ray(ot.xyz, dt.xyz);

@@ -31,7 +31,6 @@ TILE = 8  # screen tile edge for the divergence statistics (pixels)
 EC_BATCH = 8  # EC iterations enqueued before the first look at the active count (at least)
 EC_GROUPS_PER_CU = 64  # persistent ec_process work-groups per compute unit (each takes chunks in turn)
 EC_SORTS = ("tile", "global")
-EC_FUSE = 1
 EC_STAGE_MIN = 8  # ec_tile: cells with at least this many of a partition's rays get their triangles staged
 TILE_BYTES_PER_RAY = 76  # ec_tile.cl's local arrays per partition ray (20 ray state + 16 lists + 24 table + 12 chunks)
 
@@ -114,8 +113,7 @@ class VoxelWalker:
         ivw = build(HERE / "ivw.cl", {"WG": WG_IVW}, ctx)
         ec = build(HERE / "ec.cl", {"WG": self.chunk}, ctx)
         self.partition = tile_partition(int(ctx.device.local_mem_size), self.chunk)
-        ect = build(HERE / "ec_tile.cl", {"WG": self.chunk, "P": self.partition, "STAGE_MIN": EC_STAGE_MIN,
-                                          "FUSE": EC_FUSE}, ctx)
+        ect = build(HERE / "ec_tile.cl", {"WG": self.chunk, "P": self.partition, "STAGE_MIN": EC_STAGE_MIN}, ctx)
         self.k = {"ivw": clio.kernel(ivw, "ivw_trace")}
         for name in ("ec_init", "ec_count", "ec_write", "ec_process", "ec_resolve", "ec_finish"):
             self.k[name] = clio.kernel(ec, name)
