@@ -160,9 +160,14 @@ def _dda_float64(header, cells, o, d, tmax):
     return np.concatenate(rows) if rows else np.zeros((0, 3), np.int64)
 
 
-def test_first_cells_and_iterations_match_a_float64_walk():
+@pytest.mark.parametrize("resolution", [12, 64])
+def test_first_cells_and_iterations_match_a_float64_walk(resolution):
+    """IVW and the one-launch EC skip empty macro cells (walk.cl); the global-sort EC walks cell by
+    cell: all three visit the same non-empty cells, and the first ones are the float64 walk's."""
+    from viewer.backends.voxelwalk import VoxelWalker
+
     tris = _scene()
-    ctx, grid, tb, walker = _walker(tris, resolution=12)
+    ctx, grid, tb, walker = _walker(tris, resolution=resolution)
     from viewer.cl import HitStage, RayStage
 
     n = 4096
@@ -177,6 +182,12 @@ def test_first_cells_and_iterations_match_a_float64_walk():
     t_ivw, id_ivw = hs.read()
     ec = walker.trace_ec(tb, rs.origin, rs.dir, hs.t, hs.tri, n, stats=True, size=size)
     t_ec, id_ec = hs.read()
+    glob = VoxelWalker(ctx, grid, chunk=64, window=1, ec_sort="global")
+    ecg = glob.trace_ec(tb, rs.origin, rs.dir, hs.t, hs.tri, n, stats=True, size=size)
+    t_g, id_g = hs.read()
+    glob.release()
+    assert np.array_equal(ivw.iters, ecg.iters) and np.array_equal(ivw.first_cell, ecg.first_cell)
+    assert np.array_equal(t_g, t_ivw) and ((id_g == id_ivw) | (id_g >= 0)).all()
     # same hits, and the same walk: per ray the same iterations and the same first non-empty cell
     assert np.array_equal(t_ivw, t_ec) and np.array_equal(id_ivw, id_ec)
     assert np.array_equal(ivw.iters, ec.iters)

@@ -27,6 +27,7 @@ from viewer.errors import RtwalkError
 HERE = Path(__file__).resolve().parent
 WG_IVW = 64
 WG_SMALL = 64  # local size of the one-per-ray EC kernels
+MACRO_SHIFT = 3  # log2 of the grid cells per macro-cell edge (walk.cl VW_MSHIFT: empty-space skipping)
 TILE = 8  # screen tile edge for the divergence statistics (pixels)
 EC_BATCH = 8  # EC iterations enqueued before the first look at the active count (at least)
 EC_GROUPS_PER_CU = 64  # persistent ec_process work-groups per compute unit (each takes chunks in turn)
@@ -110,11 +111,13 @@ class VoxelWalker:
         self.ctx, self.grid, self.chunk, self.window = ctx, grid, int(chunk), int(window)
         self.ec_sort = ec_sort
         self.prims = grid.prims
-        ivw = build(HERE / "ivw.cl", {"WG": WG_IVW}, ctx)
+        ivw = build(HERE / "ivw.cl", {"WG": WG_IVW, "VW_MSHIFT": MACRO_SHIFT}, ctx)
         ec = build(HERE / "ec.cl", {"WG": self.chunk}, ctx)
         self.partition = tile_partition(int(ctx.device.local_mem_size), self.chunk)
-        ect = build(HERE / "ec_tile.cl", {"WG": self.chunk, "P": self.partition, "STAGE_MIN": EC_STAGE_MIN}, ctx)
-        self.k = {"ivw": clio.kernel(ivw, "ivw_trace")}
+        ect = build(HERE / "ec_tile.cl", {"WG": self.chunk, "P": self.partition, "STAGE_MIN": EC_STAGE_MIN,
+                                          "VW_MSHIFT": MACRO_SHIFT}, ctx)
+        self.k = {"ivw": clio.kernel(ivw, "ivw_trace"), "macro": clio.kernel(ivw, "vw_macro_build")}
+        self._macro_of: Any = None  # the GridStats whose macro cells are built
         for name in ("ec_init", "ec_count", "ec_write", "ec_process", "ec_resolve", "ec_finish"):
             self.k[name] = clio.kernel(ec, name)
         for name in ("ec_tile", "ec_tile_flags"):
@@ -133,6 +136,18 @@ class VoxelWalker:
             self._bufs[name] = buf
         return buf
 
+    def _macro(self) -> Any:
+        """Macro-cell occupancy of the current grid (walk.cl's empty-space skipping): rebuilt by one
+        launch when the grid was built again (a new GridStats)."""
+        st = self.grid.stats
+        if self._macro_of is not st:
+            mr = [-(-int(r) // (1 << MACRO_SHIFT)) for r in st.res]
+            n = mr[0] * mr[1] * mr[2]
+            buf = self._buf("macro", max(16, n))
+            self._run("macro", n, self.grid.header, self.grid.cells, buf)
+            self._macro_of = st
+        return self._bufs["macro"]
+
     def _run(self, name: str, n: int, *args: Any, wg: int = WG_SMALL) -> None:
         if n:
             self.k[name](self.ctx.queue, (-(-n // wg) * wg,), (wg,), *args)
@@ -149,8 +164,9 @@ class VoxelWalker:
         g, q = self.grid, self.ctx.queue
         iters, first = self._buf("iters", 4 * n), self._buf("first", 4 * n)
         t0 = time.perf_counter()
+        macro = self._macro()
         self._run("ivw", n, g.header, g.cells, g.blocks, g.cell_blocks, ray_o, ray_d, out_t, out_id, np.int32(n),
-                  np.int32(bool(any_hit)), iters, first, wg=WG_IVW)
+                  np.int32(bool(any_hit)), iters, first, macro, wg=WG_IVW)
         ps = PassStats("ivw")
         if stats:  # timed only with statistics (a wait; frames leave the kernel in flight)
             clio.finish(q)
@@ -213,6 +229,7 @@ class VoxelWalker:
         flags, act = self._buf("flags", 4 * n), self._buf("act", 4 * n)
         cb = self._count_bufs()
         perm = self._perm(size, n)
+        macro = self._macro()
         self._host_n[0] = n
         clio.copy(q, cb["n"], self._host_n, is_blocking=False)
         self._run("ec_tile_flags", n, g.header, ray_o, ray_d, perm, u(n), flags, out_t, out_id, iters, first)
@@ -220,7 +237,7 @@ class VoxelWalker:
         groups = -(-n // self.partition)
         totals = self._buf("tile_totals", 16 * groups)
         ev = self.k["ec_tile"](q, (groups * self.chunk,), (self.chunk,), g.header, g.cells, g.blocks, g.cell_blocks,
-                               ray_o, ray_d, act, cb["m0"], out_t, out_id, iters, first, totals)
+                               ray_o, ray_d, act, cb["m0"], out_t, out_id, iters, first, totals, macro)
         tot = self._read(totals, 4 * groups, np.uint32).reshape(groups, 4)  # the pass's one wait
         ps.iterations, ps.pairs = int(tot[:, 0].max()), int(tot[:, 1].sum())
         ps.workgroups, ps.rays = int(tot[:, 2].sum()), int(tot[:, 3].sum())

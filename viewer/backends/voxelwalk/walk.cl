@@ -56,3 +56,75 @@ inline float vw_key_t(ulong key) {
 inline int vw_key_id(ulong key) {
     return key == VW_MISS_KEY ? -1 : (int)(uint)(key & 0xffffffffUL);
 }
+
+// Empty-space skipping: a macro cell is VW_MACRO^3 cells of the grid (clipped at its far faces);
+// `macro` holds one uchar per macro cell (mx + mrx * (my + mry * mz)), 0 when all of its cells
+// are empty (vw_macro_build). Primary rays that miss the scene spend most of their walk stepping
+// through empty cells; a walk entering an empty macro cell jumps straight to the first cell past
+// it, with the exact state the cell-by-cell walk would have there.
+#ifndef VW_MSHIFT
+#define VW_MSHIFT 3
+#endif
+#define VW_MACRO (1 << VW_MSHIFT)
+
+inline int3 vw_macro_res(const Grid *g) {
+    return (g->res.xyz + (VW_MACRO - 1)) >> VW_MSHIFT;
+}
+
+inline bool vw_macro_empty(const Grid *g, __global const uchar *macro, int3 c) {
+    int3 mr = vw_macro_res(g), m = c >> VW_MSHIFT;
+    return macro[m.x + mr.x * (m.y + mr.y * m.z)] == 0;
+}
+
+// Moves w from a cell of an empty macro cell to the first cell past that macro cell, as
+// grid_walk_step repeated would (false where that walk ends first: leaving the grid, passing
+// t_limit or the grid exit). The cell-by-cell walk is a merge of each axis's boundary crossings
+// in time order (each axis's crossing distances grow with the cell index: the plane is recomputed
+// from the index, with monotone float operations), ties going to the lowest axis. The macro cell
+// is left at the first of the three crossings of its far faces (in that order); every other
+// axis has made exactly its crossings that come before it in that order, and the boundary
+// distances are a function of the cell index, so the state there is the walk's own.
+inline bool vw_skip_macro(const Grid *g, const RayPre *r, GridWalk *w, float t_limit) {
+    int c[3] = {w->cell.x, w->cell.y, w->cell.z};
+    int st[3] = {w->step.x, w->step.y, w->step.z};
+    int res[3] = {g->res.x, g->res.y, g->res.z};
+    float tn[3] = {w->tnext.x, w->tnext.y, w->tnext.z};
+    int far[3];
+    float tf[3];
+    for (int a = 0; a < 3; ++a) {
+        int lo = (c[a] >> VW_MSHIFT) << VW_MSHIFT;
+        far[a] = st[a] > 0 ? min(res[a] - 1, lo + VW_MACRO - 1) : lo;
+        tf[a] = st[a] == 0 ? INFINITY : (far[a] == c[a] ? tn[a] : grid_next_plane(g, r, a, far[a], st[a]));
+    }
+    int ax = (tf[0] <= tf[1]) ? ((tf[0] <= tf[2]) ? 0 : 2) : ((tf[1] <= tf[2]) ? 1 : 2);
+    float t = tf[ax];
+    if (!(t < t_limit) || !(t <= w->t_exit)) return false;
+    for (int b = 0; b < 3; ++b) {
+        if (b == ax || st[b] == 0) continue;
+        while (c[b] != far[b] && (tn[b] < t || (tn[b] == t && b < ax))) {
+            c[b] += st[b];
+            tn[b] = grid_next_plane(g, r, b, c[b], st[b]);
+        }
+    }
+    c[ax] = far[ax] + st[ax];
+    if (c[ax] < 0 || c[ax] >= res[ax]) return false;
+    tn[ax] = grid_next_plane(g, r, ax, c[ax], st[ax]);
+    w->cell = (int3)(c[0], c[1], c[2]);
+    w->tnext = (float3)(tn[0], tn[1], tn[2]);
+    return true;
+}
+
+// vw_next_nonempty with empty macro cells skipped whole: the same non-empty cells, in the same
+// order, with the same walk state.
+inline bool vw_next_nonempty_skip(const Grid *g, __global const uint2 *cells, __global const uchar *macro,
+                                  const RayPre *r, GridWalk *w, float t_limit, uint2 *cr) {
+    while (true) {
+        if (vw_macro_empty(g, macro, w->cell)) {
+            if (!vw_skip_macro(g, r, w, t_limit)) return false;
+            continue;
+        }
+        uint2 c = cells[grid_cell_id(g, w->cell)];
+        if (c.y) { *cr = c; return true; }
+        if (!grid_walk_step(g, r, w, t_limit)) return false;
+    }
+}
