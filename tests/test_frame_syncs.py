@@ -163,14 +163,15 @@ def test_ec_global_sort_waits_once_and_launches_a_fixed_number_per_iteration():
 
 
 def test_ec_launches_do_not_grow_with_iterations():
-    """EC in one launch (ec_tile.cl): the same few launches and one wait per pass whether the rays
-    take 2 or 50 iterations (coarse and fine grids, short and long rays), and IVW's hits bit for bit."""
+    """EC in one launch (ec_tile.cl): the same few launches and no wait per pass whether the rays
+    take 2 or 50 iterations (coarse and fine grids, short and long rays), and IVW's hits bit for
+    bit. Its totals come back with a later wait (here the test's queue finish before pass 2)."""
     runs = {}
     for res, tmax in ((8, 0.02), (0, np.inf), (96, np.inf)):
         per_pass, (t_ec, id_ec), (t_ivw, id_ivw) = _ec_passes(res, "tile", tmax)
         assert np.array_equal(id_ec, id_ivw) and np.array_equal(t_ec, t_ivw)
         for io, _ps in per_pass:
-            assert io.host_syncs == 1, io
+            assert io.host_syncs == 0, io
         runs[(res, tmax)] = per_pass[1]
     its = sorted(ps.iterations for _, ps in runs.values())
     assert its[0] <= 4 and its[-1] >= 4 * its[0] and its[-1] >= 16, its

@@ -123,6 +123,8 @@ class VoxelWalker:
         for name in ("ec_tile", "ec_tile_flags"):
             self.k[name] = clio.kernel(ect, name)
         self._perm_key: tuple | None = None
+        self._pending: list[tuple[np.ndarray, Any, Any]] = []  # one-launch EC totals on their way back
+        self._last_totals: tuple[int, int, int, int, float] = (0, 0, 0, 0, 0.0)
         self._bufs: dict[str, Any] = {}
         self._host_n = np.zeros(1, np.uint32)  # kept alive for its asynchronous write
         self._last_iterations = 0  # the last EC pass's iterations: the next pass's first batch
@@ -214,17 +216,31 @@ class VoxelWalker:
             self._perm_host, self._perm_key = order, key  # kept alive for the asynchronous write
         return self._bufs["perm"]
 
+    def _harvest(self, force: bool = False) -> None:
+        """Takes the per-group totals of the one-launch EC passes that have come back (all of them,
+        waiting, with `force`): iterations (the largest), pairs, chunks, rays, kernel ms."""
+        cl = self.ctx.cl
+        while self._pending:
+            host, copy_ev, kernel_ev = self._pending[0]
+            if not force and copy_ev.command_execution_status != cl.command_execution_status.COMPLETE:
+                break
+            self._pending.pop(0)
+            ms = max(0, kernel_ev.profile.end - kernel_ev.profile.start) / 1e6
+            self._last_totals = (int(host[:, 0].max()), int(host[:, 1].sum()), int(host[:, 2].sum()),
+                                 int(host[:, 3].sum()), ms)
+
     def _trace_ec_tile(self, ray_o: Any, ray_d: Any, out_t: Any, out_id: Any, n: int, stats: bool,
                        size: tuple[int, int] | None) -> PassStats:
         """EC with every iteration on the device (ec_tile.cl): rays entering the grid are compacted
         in screen-tile order, then one work-group per partition of them loops over its iterations
         (walk, counting sort by cell, chunks with staged triangles, resolve). A fixed 5 launches
-        per pass whatever the iteration count; one wait, for the per-group totals."""
+        per pass whatever the iteration count and no wait: the per-group totals (iterations, pairs,
+        chunks) come back with a later wait and are reported by a later pass (with `stats`: this
+        pass's own, after one wait)."""
         g, q, u = self.grid, self.ctx.queue, np.uint32
         ps = PassStats("ec")
         if n == 0:
             return ps
-        t0 = time.perf_counter()
         iters, first = self._buf("iters", 4 * n), self._buf("first", 4 * n)
         flags, act = self._buf("flags", 4 * n), self._buf("act", 4 * n)
         cb = self._count_bufs()
@@ -238,12 +254,14 @@ class VoxelWalker:
         totals = self._buf("tile_totals", 16 * groups)
         ev = self.k["ec_tile"](q, (groups * self.chunk,), (self.chunk,), g.header, g.cells, g.blocks, g.cell_blocks,
                                ray_o, ray_d, act, cb["m0"], out_t, out_id, iters, first, totals, macro)
-        tot = self._read(totals, 4 * groups, np.uint32).reshape(groups, 4)  # the pass's one wait
-        ps.iterations, ps.pairs = int(tot[:, 0].max()), int(tot[:, 1].sum())
-        ps.workgroups, ps.rays = int(tot[:, 2].sum()), int(tot[:, 3].sum())
-        self._last_iterations = ps.iterations
-        ps.trace_ms = max(0, ev.profile.end - ev.profile.start) / 1e6
-        ps.reorder_ms = max(0.0, (time.perf_counter() - t0) * 1e3 - ps.trace_ms)
+        host = np.empty((groups, 4), np.uint32)
+        self._pending.append((host, clio.copy(q, host, totals, is_blocking=stats), ev))
+        if stats:  # the study's run: this pass's own figures (one wait)
+            self._harvest(force=True)
+        else:  # no wait: the last pass whose totals are back (usually the previous pass of the frame)
+            self._harvest()
+        ps.iterations, ps.pairs, ps.workgroups, ps.rays, ps.trace_ms = self._last_totals
+        ps.reorder_ms = 0.0  # the sort runs inside the one kernel (trace_ms)
         if stats:
             ps.iters = self._read(iters, n, np.int32)
             fc = self._read(first, n, np.uint32)
