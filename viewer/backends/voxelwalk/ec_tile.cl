@@ -59,7 +59,8 @@ inline uint ect_insert(__local volatile uint *hkey, __local volatile uint *hcnt,
 // Resolve of ray j (list position k) after the tests of its cell: done when its hit lies inside
 // the cell (the hit-inside-cell rule) or its walk ends, then it writes its result; else it walks
 // on to its next non-empty cell and inserts it into the table (size entries) for the next iteration.
-inline void ect_resolve(const Grid *g, __global const uint2 *cells, __global const uchar *macro, const RayPre *r,
+inline void ect_resolve(const Grid *g, __global const uint2 *cells, __global const uchar *occ_fine,
+                        __global const uchar *occ_coarse, const RayPre *r,
                         uint i, uint j, uint k, float hit_t, uint hit_slot, uint size, __local uint *cur, __local uint *nit,
                         __local uint *bucket, __local uint *rank, __local volatile uint *hkey,
                         __local volatile uint *hcnt, __global float *out_t, __global int *out_id,
@@ -70,7 +71,7 @@ inline void ect_resolve(const Grid *g, __global const uint2 *cells, __global con
     uint c = VW_NONE;
     uint2 cr;
     if (!(got && hit_t <= grid_cell_exit(&w)) && grid_walk_step(g, r, &w, hit_t) &&
-        vw_next_nonempty_skip(g, cells, macro, r, &w, hit_t, &cr))
+        vw_next_nonempty_skip(g, cells, occ_fine, occ_coarse, r, &w, hit_t, &cr))
         c = (uint)grid_cell_id(g, w.cell);
     if (c == VW_NONE) {
         out_t[i] = got ? hit_t : INFINITY;
@@ -91,7 +92,7 @@ void ec_tile(__global const Grid *grid, __global const uint2 *cells, __global co
              __global const uint *cell_blocks, __global const float4 *ray_o, __global const float4 *ray_d,
              __global const uint *act, __global const uint *m_ptr, __global float *out_t, __global int *out_id,
              __global int *iters_out, __global uint *first_out, __global uint *totals,
-             __global const uchar *macro) {
+             __global const uchar *occ_fine, __global const uchar *occ_coarse) {
     __local uint ray[P], cur[P], slot[P], nit[P];
     __local float hit[P];
     __local uint lst_a[P], lst_b[P], bucket[P], rank[P];
@@ -122,7 +123,7 @@ void ec_tile(__global const Grid *grid, __global const uint2 *cells, __global co
         float t_enter;
         uint c = VW_NONE;
         uint2 cr;
-        if (grid_walk_begin(&g, &r, ot.w, dt.w, &w, &t_enter) && vw_next_nonempty_skip(&g, cells, macro, &r, &w, dt.w, &cr))
+        if (grid_walk_begin(&g, &r, ot.w, dt.w, &w, &t_enter) && vw_next_nonempty_skip(&g, cells, occ_fine, occ_coarse, &r, &w, dt.w, &cr))
             c = (uint)grid_cell_id(&g, w.cell);
         ray[j] = i;
         hit[j] = dt.w;
@@ -233,7 +234,7 @@ void ec_tile(__global const Grid *grid, __global const uint2 *cells, __global co
             }
             hit[j] = hit_t;
             slot[j] = hit_slot;
-            ect_resolve(&g, cells, macro, &r, i, j, k, hit_t, hit_slot, hsize, cur, nit, bucket, rank, hkey, hcnt, out_t,
+            ect_resolve(&g, cells, occ_fine, occ_coarse, &r, i, j, k, hit_t, hit_slot, hsize, cur, nit, bucket, rank, hkey, hcnt, out_t,
                         out_id, iters_out);
         }
         // process, cells with many rays: one chunk (at most WG rays of one cell) at a time, the
@@ -279,7 +280,7 @@ void ec_tile(__global const Grid *grid, __global const uint2 *cells, __global co
             uint j = srt[k], i = ray[j];
             float4 ot = ray_o[i], dt = ray_d[i];
             RayPre r = rt_prepare_ray(ot.xyz, dt.xyz);
-            ect_resolve(&g, cells, macro, &r, i, j, k, hit[j], slot[j], hsize, cur, nit, bucket, rank, hkey, hcnt, out_t,
+            ect_resolve(&g, cells, occ_fine, occ_coarse, &r, i, j, k, hit[j], slot[j], hsize, cur, nit, bucket, rank, hkey, hcnt, out_t,
                         out_id, iters_out);
         }
         if (lid == 0) sh[2] = m;

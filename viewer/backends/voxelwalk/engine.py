@@ -27,7 +27,7 @@ from viewer.errors import RtwalkError
 HERE = Path(__file__).resolve().parent
 WG_IVW = 64
 WG_SMALL = 64  # local size of the one-per-ray EC kernels
-MACRO_SHIFT = 3  # log2 of the grid cells per macro-cell edge (walk.cl VW_MSHIFT: empty-space skipping)
+SKIP_SHIFTS = (3, 0)  # walk.cl empty-space skipping: blocks of 8^3 cells, no coarse level (VW_SHIFT_FINE, _COARSE)
 TILE = 8  # screen tile edge for the divergence statistics (pixels)
 EC_BATCH = 8  # EC iterations enqueued before the first look at the active count (at least)
 EC_GROUPS_PER_CU = 64  # persistent ec_process work-groups per compute unit (each takes chunks in turn)
@@ -111,11 +111,13 @@ class VoxelWalker:
         self.ctx, self.grid, self.chunk, self.window = ctx, grid, int(chunk), int(window)
         self.ec_sort = ec_sort
         self.prims = grid.prims
-        ivw = build(HERE / "ivw.cl", {"WG": WG_IVW, "VW_MSHIFT": MACRO_SHIFT}, ctx)
+        self.skip_shifts = SKIP_SHIFTS
+        skip = {"VW_SHIFT_FINE": SKIP_SHIFTS[0], "VW_SHIFT_COARSE": SKIP_SHIFTS[1]}
+        ivw = build(HERE / "ivw.cl", {"WG": WG_IVW, **skip}, ctx)
         ec = build(HERE / "ec.cl", {"WG": self.chunk}, ctx)
         self.partition = tile_partition(int(ctx.device.local_mem_size), self.chunk)
         ect = build(HERE / "ec_tile.cl", {"WG": self.chunk, "P": self.partition, "STAGE_MIN": EC_STAGE_MIN,
-                                          "VW_MSHIFT": MACRO_SHIFT}, ctx)
+                                          **skip}, ctx)
         self.k = {"ivw": clio.kernel(ivw, "ivw_trace"), "macro": clio.kernel(ivw, "vw_macro_build")}
         self._macro_of: Any = None  # the GridStats whose macro cells are built
         for name in ("ec_init", "ec_count", "ec_write", "ec_process", "ec_resolve", "ec_finish"):
@@ -138,17 +140,20 @@ class VoxelWalker:
             self._bufs[name] = buf
         return buf
 
-    def _macro(self) -> Any:
-        """Macro-cell occupancy of the current grid (walk.cl's empty-space skipping): rebuilt by one
-        launch when the grid was built again (a new GridStats)."""
+    def _macro(self) -> tuple[Any, Any]:
+        """Block occupancy of the current grid at both levels of walk.cl's empty-space skipping:
+        rebuilt (one launch per level) when the grid was built again (a new GridStats)."""
         st = self.grid.stats
         if self._macro_of is not st:
-            mr = [-(-int(r) // (1 << MACRO_SHIFT)) for r in st.res]
-            n = mr[0] * mr[1] * mr[2]
-            buf = self._buf("macro", max(16, n))
-            self._run("macro", n, self.grid.header, self.grid.cells, buf)
+            fine = self.skip_shifts[0]
+            for shift in self.skip_shifts:
+                shift = shift or fine  # one level: the coarse buffer is the fine one again
+                br = [-(-int(r) // (1 << shift)) for r in st.res]
+                n = br[0] * br[1] * br[2]
+                buf = self._buf(f"occ{shift}", max(16, n))
+                self._run("macro", n, self.grid.header, self.grid.cells, np.int32(shift), buf)
             self._macro_of = st
-        return self._bufs["macro"]
+        return tuple(self._bufs[f"occ{s or self.skip_shifts[0]}"] for s in self.skip_shifts)
 
     def _run(self, name: str, n: int, *args: Any, wg: int = WG_SMALL) -> None:
         if n:
@@ -168,7 +173,7 @@ class VoxelWalker:
         t0 = time.perf_counter()
         macro = self._macro()
         self._run("ivw", n, g.header, g.cells, g.blocks, g.cell_blocks, ray_o, ray_d, out_t, out_id, np.int32(n),
-                  np.int32(bool(any_hit)), iters, first, macro, wg=WG_IVW)
+                  np.int32(bool(any_hit)), iters, first, *macro, wg=WG_IVW)
         ps = PassStats("ivw")
         if stats:  # timed only with statistics (a wait; frames leave the kernel in flight)
             clio.finish(q)
@@ -253,7 +258,7 @@ class VoxelWalker:
         groups = -(-n // self.partition)
         totals = self._buf("tile_totals", 16 * groups)
         ev = self.k["ec_tile"](q, (groups * self.chunk,), (self.chunk,), g.header, g.cells, g.blocks, g.cell_blocks,
-                               ray_o, ray_d, act, cb["m0"], out_t, out_id, iters, first, totals, macro)
+                               ray_o, ray_d, act, cb["m0"], out_t, out_id, iters, first, totals, *macro)
         host = np.empty((groups, 4), np.uint32)
         self._pending.append((host, clio.copy(q, host, totals, is_blocking=stats), ev))
         if stats:  # the study's run: this pass's own figures (one wait)

@@ -15,7 +15,8 @@ __kernel __attribute__((reqd_work_group_size(WG, 1, 1)))
 void ivw_trace(__global const Grid *grid, __global const uint2 *cells, __global const float4 *blocks,
                __global const uint *cell_blocks, __global const float4 *ray_o, __global const float4 *ray_d,
                __global float *out_t, __global int *out_id, const int n, const int any_hit,
-               __global int *iters_out, __global uint *first_out, __global const uchar *macro) {
+               __global int *iters_out, __global uint *first_out, __global const uchar *occ_fine,
+               __global const uchar *occ_coarse) {
     int i = get_global_id(0);
     if (i >= n) return;
     Grid g = *grid;
@@ -30,7 +31,7 @@ void ivw_trace(__global const Grid *grid, __global const uint2 *cells, __global 
         float t_enter;
         uint2 cr;
         if (grid_walk_begin(&g, &r, tmin, hit_t, &w, &t_enter)) {
-            while (vw_next_nonempty_skip(&g, cells, macro, &r, &w, hit_t, &cr)) {
+            while (vw_next_nonempty_skip(&g, cells, occ_fine, occ_coarse, &r, &w, hit_t, &cr)) {
                 if (iters == 0) first = (uint)grid_cell_id(&g, w.cell);
                 ++iters;
                 __global const float4 *blk = blocks + 10 * cell_blocks[grid_cell_id(&g, w.cell)];
@@ -56,17 +57,19 @@ done:
     first_out[i] = first;
 }
 
-// Macro-cell occupancy for empty-space skipping (walk.cl): one work-item per macro cell.
-__kernel void vw_macro_build(__global const Grid *grid, __global const uint2 *cells, __global uchar *macro) {
+// Block occupancy for empty-space skipping (walk.cl), one level (blocks of 2^shift cells on a
+// side): one work-item per block.
+__kernel void vw_macro_build(__global const Grid *grid, __global const uint2 *cells, const int shift,
+                             __global uchar *occ) {
     Grid g = *grid;
-    int3 mr = vw_macro_res(&g);
+    int3 br = vw_block_res(&g, shift);
     int id = get_global_id(0);
-    if (id >= mr.x * mr.y * mr.z) return;
-    int3 m = (int3)(id % mr.x, (id / mr.x) % mr.y, id / (mr.x * mr.y));
-    int3 lo = m << VW_MSHIFT, hi = min(lo + VW_MACRO, g.res.xyz);
+    if (id >= br.x * br.y * br.z) return;
+    int3 b = (int3)(id % br.x, (id / br.x) % br.y, id / (br.x * br.y));
+    int3 lo = b << shift, hi = min(lo + (1 << shift), g.res.xyz);
     uchar any = 0;
-    for (int z = lo.z; z < hi.z; ++z)
-        for (int y = lo.y; y < hi.y; ++y)
+    for (int z = lo.z; z < hi.z && !any; ++z)
+        for (int y = lo.y; y < hi.y && !any; ++y)
             for (int x = lo.x; x < hi.x; ++x) any |= cells[grid_cell_id(&g, (int3)(x, y, z))].y != 0u ? 1 : 0;
-    macro[id] = any;
+    occ[id] = any;
 }
