@@ -23,10 +23,12 @@ rebuild=true, as an animated scene needs).
     one work-group per chunk tests the staged triangles; nearest hits by an atomic minimum on
     packed (distance, triangle) keys. About 24 launches per iteration (one wait per pass).
 
-Both are exact (the watertight test of viewer/cl/kernels/geometry.cl, the grid's conservative
-binning, and the hit-inside-cell rule). Resolution: `auto` takes grid.py's rule (about `density`
-cells per triangle, shaped like the scene's box: extents per axis and triangle density), N fixes
-N cells on the longest axis (the thesis used 128^3); the cells per axis are counters res_x/y/z.
+IVW and the one-launch EC skip empty 8^3 blocks of cells whole, landing on the cell and walk state
+the cell-by-cell 3D-DDA would reach (walk.cl). Both modes are exact (the watertight test of
+viewer/cl/kernels/geometry.cl, the grid's conservative binning, and the hit-inside-cell rule).
+Resolution: `auto` takes grid.py's rule (about `density` cells per triangle, shaped like
+the scene's box: extents per axis and triangle density), N fixes N cells on the longest axis (the
+thesis used 128^3); the cells per axis are counters res_x/y/z.
 
 Overlays: "iterations" (non-empty cells visited per ray) and "tile_divergence" (distinct first
 cells per 8x8 pixel tile). Counters: the grid (res_x/y/z, pairs, build time; once per frame),

@@ -6,8 +6,10 @@ file. With `stats` on, each pass also records what the study and the overlays ne
 (`PassStats`): per-ray iterations and first non-empty cell, and for EC per iteration the active
 rays, ray-cell pairs, work-groups after compaction, resolved rays and the distinct cells per
 screen tile; rays per cell at the first iteration. The per-iteration host statistics read small
-device arrays back, so they cost time: timing runs leave `stats` off. Without them a pass waits
-on the host once per batch of EC iterations (usually once) and IVW not at all.
+device arrays back, so they cost time: timing runs leave `stats` off. Without them IVW and the
+one-launch EC (ec_sort "tile", ec_tile.cl: 5 launches per pass) do not wait on the host at all, and
+the global-sort EC (ec.cl) waits once per batch of iterations (usually once). IVW and the one-launch
+EC skip empty 8^3 blocks of cells (walk.cl; the occupancy is rebuilt after each grid build).
 """
 
 from __future__ import annotations
