@@ -305,3 +305,21 @@ def test_bench_voxelwalk_end_to_end(tmp_path):
                         capture_output=True, text=True, timeout=120)
     err = rb.stderr.strip().splitlines()
     assert rb.returncode == 2 and len(err) == 1 and err[0].startswith("rtwalk: error: ") and "--sizes" in err[0]
+
+
+def test_tile_order_is_a_permutation_of_square_tiles():
+    """The one-launch EC's ray order: every ray once, pixels grouped in tiles of p (32x32 for 1024;
+    16x32 for 512), rays past the image last; partitions fit half the device's local memory."""
+    from viewer.backends.voxelwalk.engine import tile_order, tile_partition
+
+    w, h, n = 100, 70, 7100
+    order = tile_order((w, h), n, 1024)
+    assert np.array_equal(np.sort(order), np.arange(n))
+    assert np.array_equal(order[w * h:], np.arange(w * h, n))
+    first = order[:1024].astype(np.int64)  # the first full tile
+    assert set(first % w) == set(range(32)) and set(first // w) == set(range(32))
+    second = tile_order((w, h), w * h, 512)[:512].astype(np.int64)
+    assert set(second % w) == set(range(32)) and set(second // w) == set(range(16))
+    assert tile_partition(512 * 1024, 64) == 1024
+    assert tile_partition(48 * 1024, 64) == 128  # a 48 KiB GPU: 72 B x 128 + 172 B x 64 <= 24 KiB
+    assert tile_partition(1024, 256) == 256  # never below one ray per work-item

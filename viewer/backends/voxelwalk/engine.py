@@ -35,14 +35,15 @@ EC_BATCH = 8  # EC iterations enqueued before the first look at the active count
 EC_GROUPS_PER_CU = 64  # persistent ec_process work-groups per compute unit (each takes chunks in turn)
 EC_SORTS = ("tile", "global")
 EC_STAGE_MIN = 8  # ec_tile: cells with at least this many of a partition's rays get their triangles staged
-TILE_BYTES_PER_RAY = 76  # ec_tile.cl's local arrays per partition ray (20 ray state + 16 lists + 24 table + 12 chunks)
+TILE_BYTES_PER_RAY = 72  # ec_tile.cl's local arrays per partition ray (20 ray state + 16 lists + 24 table + 12 chunks)
 
 
 def tile_partition(local_mem: int, wg: int) -> int:
     """Rays per ec_tile work-group: the largest power of two <= 1024 whose local arrays (and the
-    staged triangle blocks, 160 bytes per work-item) fit half the device's local memory."""
+    staged triangle blocks and scan partials, 172 bytes per work-item) fit half the device's local
+    memory (a partition larger than the work-group keeps chunks full; half: the compiler's own)."""
     p = 1024
-    while p > wg and TILE_BYTES_PER_RAY * p + 160 * wg > local_mem // 2:
+    while p > wg and TILE_BYTES_PER_RAY * p + 172 * wg > local_mem // 2:
         p //= 2
     return max(p, wg)
 
