@@ -60,8 +60,8 @@ inline uint ect_insert(__local volatile uint *hkey, __local volatile uint *hcnt,
 // the cell (the hit-inside-cell rule) or its walk ends, then it writes its result; else it walks
 // on to its next non-empty cell and inserts it into the table (size entries) for the next iteration.
 inline void ect_resolve(const Grid *g, __global const uint2 *cells, __global const uchar *occ_fine,
-                        __global const uchar *occ_coarse, const RayPre *r,
-                        uint i, uint j, uint k, float hit_t, uint hit_slot, uint size, __local uint *cur, __local uint *nit,
+                        __global const uchar *occ_coarse, const RayPre *r, uint i, uint j, uint k, float hit_t,
+                        uint hit_slot, uint size, __local uint *cur, __local uint *nit,
                         __local uint *bucket, __local uint *rank, __local volatile uint *hkey,
                         __local volatile uint *hcnt, __global float *out_t, __global int *out_id,
                         __global int *iters_out) {
@@ -123,7 +123,8 @@ void ec_tile(__global const Grid *grid, __global const uint2 *cells, __global co
         float t_enter;
         uint c = VW_NONE;
         uint2 cr;
-        if (grid_walk_begin(&g, &r, ot.w, dt.w, &w, &t_enter) && vw_next_nonempty_skip(&g, cells, occ_fine, occ_coarse, &r, &w, dt.w, &cr))
+        if (grid_walk_begin(&g, &r, ot.w, dt.w, &w, &t_enter) &&
+            vw_next_nonempty_skip(&g, cells, occ_fine, occ_coarse, &r, &w, dt.w, &cr))
             c = (uint)grid_cell_id(&g, w.cell);
         ray[j] = i;
         hit[j] = dt.w;
@@ -234,8 +235,8 @@ void ec_tile(__global const Grid *grid, __global const uint2 *cells, __global co
             }
             hit[j] = hit_t;
             slot[j] = hit_slot;
-            ect_resolve(&g, cells, occ_fine, occ_coarse, &r, i, j, k, hit_t, hit_slot, hsize, cur, nit, bucket, rank, hkey, hcnt, out_t,
-                        out_id, iters_out);
+            ect_resolve(&g, cells, occ_fine, occ_coarse, &r, i, j, k, hit_t, hit_slot, hsize, cur, nit, bucket,
+                        rank, hkey, hcnt, out_t, out_id, iters_out);
         }
         // process, cells with many rays: one chunk (at most WG rays of one cell) at a time, the
         // cell's blocks staged in local memory (the thesis's chunk)
@@ -264,7 +265,8 @@ void ec_tile(__global const Grid *grid, __global const uint2 *cells, __global co
                         int lane = rt_intersect_triangle4_local(&r, blk, slots >= (int4)(0), ot.w, hit_t, &t);
                         if (lane >= 0) {
                             hit_t = t;
-                            hit_slot = (uint)(lane == 0 ? slots.x : (lane == 1 ? slots.y : (lane == 2 ? slots.z : slots.w)));
+                            hit_slot = (uint)(lane == 0 ? slots.x : (lane == 1 ? slots.y :
+                                                                      (lane == 2 ? slots.z : slots.w)));
                         }
                     }
                 }
@@ -280,8 +282,8 @@ void ec_tile(__global const Grid *grid, __global const uint2 *cells, __global co
             uint j = srt[k], i = ray[j];
             float4 ot = ray_o[i], dt = ray_d[i];
             RayPre r = rt_prepare_ray(ot.xyz, dt.xyz);
-            ect_resolve(&g, cells, occ_fine, occ_coarse, &r, i, j, k, hit[j], slot[j], hsize, cur, nit, bucket, rank, hkey, hcnt, out_t,
-                        out_id, iters_out);
+            ect_resolve(&g, cells, occ_fine, occ_coarse, &r, i, j, k, hit[j], slot[j], hsize, cur, nit, bucket,
+                        rank, hkey, hcnt, out_t, out_id, iters_out);
         }
         if (lid == 0) sh[2] = m;
         __local uint *tmp = lst;

@@ -1,10 +1,11 @@
 // voxelwalk IVW (Independent Voxel Walk, Guntury 2011 ch. 5): one work-item per ray walks the
 // uniform grid by 3D-DDA from its origin, tests the triangles of each non-empty cell (watertight
 // test of geometry.cl) and stops at the first cell that holds a hit inside the cell (closest
-// hit) or at the first hit (any hit: shadow, soft, AO). Triangles are tested four at a time from the
-// cell's SoA blocks (grid.py GRID_BLOCK_DTYPE; cell order = slot order, so ties go to the lowest slot). iters[i] = non-empty cells the ray
-// visited (its iterations); first[i] = its first non-empty cell (VW_NONE: none), for the tile
-// divergence statistics.
+// hit) or at the first hit (any hit: shadow, soft, AO). Triangles are tested four at a time from
+// the cell's SoA blocks (grid.py GRID_BLOCK_DTYPE; cell order = slot order, so ties go to the
+// lowest slot); empty 8^3 blocks of cells are skipped whole (walk.cl). iters[i] = non-empty cells
+// the ray visited (its iterations); first[i] = its first non-empty cell (VW_NONE: none), for the
+// tile divergence statistics.
 #include "walk.cl"
 
 #ifndef WG
