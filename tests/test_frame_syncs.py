@@ -41,6 +41,11 @@ def _scene(lights: int):
 
 def _steady_io(backend: str, effects: str, lights: int = 1):
     """The counts of the second frame of a two-frame replay of city-near."""
+    return _steady_report(backend, effects, lights).io
+
+
+def _steady_report(backend: str, effects: str, lights: int = 1):
+    """The FrameReport of the second frame of a two-frame replay of city-near."""
     from viewer.effects import parse_effects
     from viewer.gl.context import shared_context
     from viewer.paths import RECORDINGS
@@ -54,7 +59,7 @@ def _steady_io(backend: str, effects: str, lights: int = 1):
         r.render(rec.camera_for_frame(10))
         rep = r.render(rec.camera_for_frame(11))
         assert r.frame_path == "device"
-        return rep.io
+        return rep
     finally:
         r.release()
 
@@ -73,6 +78,19 @@ def test_steady_frame_host_syncs_bounded_and_independent_of_passes_and_lights(ba
     io8 = _steady_io(backend, "primary,shadows,ao:8", lights=2)
     assert io8.cl_launches > io4.cl_launches, (io4, io8)  # the extra passes and the second light ran
     assert io8.host_syncs == io4.host_syncs, (io4, io8)
+
+
+def test_voxelwalk_frame_launches_do_not_grow_with_ec_iterations(monkeypatch, gl_ctx):
+    """A steady frame with EC passes (diffuse: closest hits) makes the same launches and waits on
+    a coarse grid and on a fine one, whose walks take several times the iterations."""
+    reps = {}
+    for res in (12, 160):
+        monkeypatch.setenv("RTWALK_VOXELWALK", f"resolution={res}")
+        reps[res] = _steady_report("voxelwalk", "primary,diffuse:2")
+    its = {res: rep.backend_stats["iterations"] for res, rep in reps.items()}
+    assert its[160] >= 2 * its[12] > 0, its
+    assert reps[160].io.cl_launches == reps[12].io.cl_launches, (reps[12].io, reps[160].io)
+    assert reps[160].io.host_syncs == reps[12].io.host_syncs <= MAX_SYNCS, (reps[12].io, reps[160].io)
 
 
 def test_pgrid_waits_do_not_grow_with_passes_and_stay_few_per_light(gl_ctx):
