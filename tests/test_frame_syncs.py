@@ -41,6 +41,11 @@ def _scene(lights: int):
 
 def _steady_io(backend: str, effects: str, lights: int = 1):
     """The counts of the second frame of a two-frame replay of city-near."""
+    return _steady_report(backend, effects, lights).io
+
+
+def _steady_report(backend: str, effects: str, lights: int = 1):
+    """The FrameReport of the second frame of a two-frame replay of city-near."""
     from viewer.effects import parse_effects
     from viewer.gl.context import shared_context
     from viewer.paths import RECORDINGS
@@ -54,7 +59,7 @@ def _steady_io(backend: str, effects: str, lights: int = 1):
         r.render(rec.camera_for_frame(10))
         rep = r.render(rec.camera_for_frame(11))
         assert r.frame_path == "device"
-        return rep.io
+        return rep
     finally:
         r.release()
 
@@ -73,6 +78,19 @@ def test_steady_frame_host_syncs_bounded_and_independent_of_passes_and_lights(ba
     io8 = _steady_io(backend, "primary,shadows,ao:8", lights=2)
     assert io8.cl_launches > io4.cl_launches, (io4, io8)  # the extra passes and the second light ran
     assert io8.host_syncs == io4.host_syncs, (io4, io8)
+
+
+def test_voxelwalk_frame_launches_do_not_grow_with_ec_iterations(monkeypatch, gl_ctx):
+    """A steady frame with EC passes (diffuse: closest hits) makes the same launches and waits on
+    a coarse grid and on a fine one, whose walks take several times the iterations."""
+    reps = {}
+    for res in (12, 160):
+        monkeypatch.setenv("RTWALK_VOXELWALK", f"resolution={res}")
+        reps[res] = _steady_report("voxelwalk", "primary,diffuse:2")
+    its = {res: rep.backend_stats["iterations"] for res, rep in reps.items()}
+    assert its[160] >= 2 * its[12] > 0, its
+    assert reps[160].io.cl_launches == reps[12].io.cl_launches, (reps[12].io, reps[160].io)
+    assert reps[160].io.host_syncs == reps[12].io.host_syncs <= MAX_SYNCS, (reps[12].io, reps[160].io)
 
 
 def test_pgrid_waits_do_not_grow_with_passes_and_stay_few_per_light(gl_ctx):
@@ -107,9 +125,10 @@ def _reflection_like_rays(n_side: int = 48):
     return tris, o, d, (n_side, n_side)
 
 
-def test_ec_pass_waits_once_and_launches_a_fixed_number_per_iteration():
-    """EC: one host wait per pass however many iterations; launches grow by a fixed number per
-    iteration (no per-iteration host work), and the result equals IVW's."""
+def _ec_passes(resolution: int, ec_sort: str, tmax: float = np.inf):
+    """Two EC passes over the reflection-like rays (tmax: a fraction of the scene's diagonal) on a
+    grid of `resolution` cells on the longest axis (0: auto): [(io, PassStats) per pass], and the
+    hits of the second pass and of IVW."""
     from viewer.accel.grid import GridSpec, UniformGrid, scene_box, triangles_f4
     from viewer.backends.voxelwalk import VoxelWalker
     from viewer.cl import HitStage, RayStage, cl_context
@@ -117,39 +136,65 @@ def test_ec_pass_waits_once_and_launches_a_fixed_number_per_iteration():
 
     ctx = cl_context()
     tris, o, d, size = _reflection_like_rays()
+    lo, hi = scene_box(tris)
+    d[d[:, 3] > 0, 3] = np.float32(tmax * float(np.linalg.norm(hi - lo)))
     tb = clio.upload(ctx, triangles_f4(tris))
     grid = UniformGrid(ctx)
-    grid.build(tb, len(tris), *scene_box(tris), GridSpec())
-    walker = VoxelWalker(ctx, grid, chunk=64, window=1)
+    grid.build(tb, len(tris), *scene_box(tris), GridSpec(resolution=resolution))
+    walker = VoxelWalker(ctx, grid, chunk=64, window=1, ec_sort=ec_sort)
     rs, hs = RayStage(size, ctx), HitStage(size, ctx)
     try:
         rs.upload_arrays(o, d)
         walker.trace_ivw(tb, rs.origin, rs.dir, hs.t, hs.tri, rs.n, False)
-        t_ivw, id_ivw = hs.read()
+        ivw = hs.read()
         per_pass = []
         for _ in range(2):  # the second pass knows the iteration count from the first
             clio.finish(ctx.queue)
             iostats.begin_frame()
-            ps = walker.trace_ec(tb, rs.origin, rs.dir, hs.t, hs.tri, rs.n)
+            ps = walker.trace_ec(tb, rs.origin, rs.dir, hs.t, hs.tri, rs.n, size=size)
             per_pass.append((iostats.end_frame(), ps))
-        t_ec, id_ec = hs.read()
-        io, ps = per_pass[1]
-        assert ps.iterations >= 8, ps.iterations  # enough iterations to tell per-iteration waits apart
-        assert io.host_syncs == 1, io
-        # launches: a fixed number per enqueued iteration, and no more iterations enqueued than run
-        io1, ps1 = per_pass[0]
-        per_iter = 40
-        assert io.cl_launches <= per_iter * ps.iterations + 16, io
-        assert io1.host_syncs <= 1 + int(np.ceil(np.log2(max(ps1.iterations, 8) / 8))) + 1, io1
-        same = (id_ec == id_ivw) | ((id_ec >= 0) & (t_ec == t_ivw))
-        assert same.all()
-        assert np.array_equal(np.isinf(t_ec), np.isinf(t_ivw))
+        return per_pass, hs.read(), ivw
     finally:
         rs.release()
         hs.release()
         walker.release()
         grid.release()
         tb.release()
+
+
+def test_ec_global_sort_waits_once_and_launches_a_fixed_number_per_iteration():
+    """EC with the thesis's global sort: one host wait per pass however many iterations; launches
+    grow by a fixed number per iteration (no per-iteration host work), and the result equals IVW's
+    (up to ties: its atomic minimum takes the lowest slot at equal distances)."""
+    per_pass, (t_ec, id_ec), (t_ivw, id_ivw) = _ec_passes(0, "global")
+    io, ps = per_pass[1]
+    assert ps.iterations >= 8, ps.iterations  # enough iterations to tell per-iteration waits apart
+    assert io.host_syncs == 1, io
+    # launches: a fixed number per enqueued iteration, and no more iterations enqueued than run
+    io1, ps1 = per_pass[0]
+    per_iter = 40
+    assert io.cl_launches <= per_iter * ps.iterations + 16, io
+    assert io1.host_syncs <= 1 + int(np.ceil(np.log2(max(ps1.iterations, 8) / 8))) + 1, io1
+    same = (id_ec == id_ivw) | ((id_ec >= 0) & (t_ec == t_ivw))
+    assert same.all()
+    assert np.array_equal(np.isinf(t_ec), np.isinf(t_ivw))
+
+
+def test_ec_launches_do_not_grow_with_iterations():
+    """EC in one launch (ec_tile.cl): the same few launches and no wait per pass whether the rays
+    take 2 or 50 iterations (coarse and fine grids, short and long rays), and IVW's hits bit for
+    bit. Its totals come back with a later wait (here the test's queue finish before pass 2)."""
+    runs = {}
+    for res, tmax in ((8, 0.02), (0, np.inf), (96, np.inf)):
+        per_pass, (t_ec, id_ec), (t_ivw, id_ivw) = _ec_passes(res, "tile", tmax)
+        assert np.array_equal(id_ec, id_ivw) and np.array_equal(t_ec, t_ivw)
+        for io, _ps in per_pass:
+            assert io.host_syncs == 0, io
+        runs[(res, tmax)] = per_pass[1]
+    its = sorted(ps.iterations for _, ps in runs.values())
+    assert its[0] <= 4 and its[-1] >= 4 * its[0] and its[-1] >= 16, its
+    launches = {io.cl_launches for io, _ in runs.values()}
+    assert launches == {5}, runs  # tile flags, compaction (3), the EC loop
 
 
 def test_grid_rebuild_waits_once_and_retries_on_overflow():

@@ -1,7 +1,9 @@
-"""voxelwalk beyond the registry-driven tests (which run its defaults: EC for closest hits, IVW
-any-hit): every mode and parameter shape against Embree, EC's determinism whatever the chunk size
-(atomic minimum on packed keys), the walk statistics against a float64 NumPy 3D-DDA and a
-brute-force tile count, and the overlays through `render --view`."""
+"""voxelwalk beyond the registry-driven tests (which run its defaults: IVW for primary and any-hit
+rays, EC for other closest hits; viewer.tracing traces closest hits as primary rays, so the EC
+shapes here say primary=ec): every mode and parameter shape against Embree, EC's determinism
+whatever the chunk size and sort (one launch, or global with an atomic minimum on packed keys),
+the walk statistics against a float64 NumPy 3D-DDA and a brute-force tile count, and the
+overlays through `render --view`."""
 
 from __future__ import annotations
 
@@ -43,9 +45,13 @@ def reference():
         trace_rays(tris, o, d, lo, hi, any_hit=True, backend="embree")
 
 
-@pytest.mark.parametrize("params", ["mode=ivw", "mode=ec", "mode=ec,cells=0", "mode=ec,cells=3,chunk=16",
-                                    "mode=ec,chunk=256,resolution=4", "mode=ivw,resolution=300",
-                                    "mode=ec,resolution=1"])
+EC = "mode=ec,primary=ec"
+
+
+@pytest.mark.parametrize("params", ["mode=ivw", "mode=ec", EC, f"{EC},sort=global", f"{EC},cells=0",
+                                    f"{EC},cells=3,chunk=16", f"{EC},chunk=256,resolution=4",
+                                    f"{EC},chunk=16,resolution=40", "mode=ivw,resolution=300",
+                                    f"{EC},resolution=1", f"{EC},sort=global,resolution=1"])
 def test_modes_match_embree(monkeypatch, reference, params):
     from viewer.tracing import trace_rays
 
@@ -63,14 +69,15 @@ def test_modes_match_embree(monkeypatch, reference, params):
 
 def test_ec_is_deterministic_across_chunk_sizes(monkeypatch):
     """Duplicated triangles (every hit is a tie between two slots): EC gives the same bits for every
-    chunk size and window, and the id is one of the tied pair."""
+    chunk size, sort and window, as IVW does, and the id is one of the tied pair."""
     from viewer.tracing import trace_rays
 
     base = _scene()
     tris = np.concatenate([base, base])  # triangle k and k + len(base) coincide
     o, d, lo, hi = _rays(3000, seed=5)
     out = []
-    for params in ("mode=ec,chunk=16", "mode=ec,chunk=256", "mode=ec,cells=0,chunk=64", "mode=ec,cells=4,chunk=32"):
+    for params in (f"{EC},chunk=16", f"{EC},chunk=256", f"{EC},sort=global,chunk=64", f"{EC},cells=0,chunk=64",
+                   f"{EC},cells=4,chunk=32", "mode=ivw"):
         monkeypatch.setenv("RTWALK_VOXELWALK", params)
         out.append(trace_rays(tris, o, d, lo, hi, backend="voxelwalk"))
     for t, i in out[1:]:
@@ -83,7 +90,7 @@ def test_ec_is_deterministic_across_chunk_sizes(monkeypatch):
 
 
 @pytest.mark.parametrize("text", ["mode=fast", "chunk=48", "resolution=big", "resolution=0", "cells=-1",
-                                  "density=0", "colour=red"])
+                                  "density=0", "colour=red", "sort=random", "primary=maybe"])
 def test_bad_parameters_raise(text):
     from viewer.backends import check_params
 
@@ -153,9 +160,14 @@ def _dda_float64(header, cells, o, d, tmax):
     return np.concatenate(rows) if rows else np.zeros((0, 3), np.int64)
 
 
-def test_first_cells_and_iterations_match_a_float64_walk():
+@pytest.mark.parametrize("resolution", [12, 64])
+def test_first_cells_and_iterations_match_a_float64_walk(resolution):
+    """IVW and the one-launch EC skip empty macro cells (walk.cl); the global-sort EC walks cell by
+    cell: all three visit the same non-empty cells, and the first ones are the float64 walk's."""
+    from viewer.backends.voxelwalk import VoxelWalker
+
     tris = _scene()
-    ctx, grid, tb, walker = _walker(tris, resolution=12)
+    ctx, grid, tb, walker = _walker(tris, resolution=resolution)
     from viewer.cl import HitStage, RayStage
 
     n = 4096
@@ -170,6 +182,12 @@ def test_first_cells_and_iterations_match_a_float64_walk():
     t_ivw, id_ivw = hs.read()
     ec = walker.trace_ec(tb, rs.origin, rs.dir, hs.t, hs.tri, n, stats=True, size=size)
     t_ec, id_ec = hs.read()
+    glob = VoxelWalker(ctx, grid, chunk=64, window=1, ec_sort="global")
+    ecg = glob.trace_ec(tb, rs.origin, rs.dir, hs.t, hs.tri, n, stats=True, size=size)
+    t_g, id_g = hs.read()
+    glob.release()
+    assert np.array_equal(ivw.iters, ecg.iters) and np.array_equal(ivw.first_cell, ecg.first_cell)
+    assert np.array_equal(t_g, t_ivw) and ((id_g == id_ivw) | (id_g >= 0)).all()
     # same hits, and the same walk: per ray the same iterations and the same first non-empty cell
     assert np.array_equal(t_ivw, t_ec) and np.array_equal(id_ivw, id_ec)
     assert np.array_equal(ivw.iters, ec.iters)
@@ -277,7 +295,7 @@ def test_bench_voxelwalk_end_to_end(tmp_path):
             assert (tmp_path / f"{study}.{ext}").stat().st_size > 100, (study, ext)
     rows = json.loads((tmp_path / "table51.json").read_text())["rows"]
     (row,) = rows
-    assert row["reflection_rays"] > 0 and row["agreement"] == {"ivw": 1.0, "ec": 1.0, "ec_all": 1.0}
+    assert row["reflection_rays"] > 0 and row["agreement"] == {"ivw": 1.0, "ec": 1.0, "ec_global": 1.0, "ec_all": 1.0}
     w = row["walk"]
     assert w["pairs"] >= w["rays"] > 0 and w["workgroups"] >= len(w["rays_per_cell"]) > 0
     assert abs(sum(w["resolved"]) - 1.0) < 1e-9  # every active reflection ray resolved at some iteration
@@ -287,3 +305,21 @@ def test_bench_voxelwalk_end_to_end(tmp_path):
                         capture_output=True, text=True, timeout=120)
     err = rb.stderr.strip().splitlines()
     assert rb.returncode == 2 and len(err) == 1 and err[0].startswith("rtwalk: error: ") and "--sizes" in err[0]
+
+
+def test_tile_order_is_a_permutation_of_square_tiles():
+    """The one-launch EC's ray order: every ray once, pixels grouped in tiles of p (32x32 for 1024;
+    16x32 for 512), rays past the image last; partitions fit half the device's local memory."""
+    from viewer.backends.voxelwalk.engine import tile_order, tile_partition
+
+    w, h, n = 100, 70, 7100
+    order = tile_order((w, h), n, 1024)
+    assert np.array_equal(np.sort(order), np.arange(n))
+    assert np.array_equal(order[w * h:], np.arange(w * h, n))
+    first = order[:1024].astype(np.int64)  # the first full tile
+    assert set(first % w) == set(range(32)) and set(first // w) == set(range(32))
+    second = tile_order((w, h), w * h, 512)[:512].astype(np.int64)
+    assert set(second % w) == set(range(32)) and set(second // w) == set(range(16))
+    assert tile_partition(512 * 1024, 64) == 1024
+    assert tile_partition(48 * 1024, 64) == 128  # a 48 KiB GPU: 72 B x 128 + 172 B x 64 <= 24 KiB
+    assert tile_partition(1024, 256) == 256  # never below one ray per work-item

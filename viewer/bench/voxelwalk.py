@@ -137,7 +137,8 @@ class Device:
         self.box = scene_box(tris)
         self.tris = clio.upload(self.ctx, triangles_f4(tris))
         self.grid = UniformGrid(self.ctx)
-        self.walker = VoxelWalker(self.ctx, self.grid, chunk=chunk, window=1)
+        self.walker = VoxelWalker(self.ctx, self.grid, chunk=chunk, window=1)  # EC: iterations in one launch
+        self.walker_global = VoxelWalker(self.ctx, self.grid, chunk=chunk, window=1, ec_sort="global")  # the thesis's
         self.walker_all = VoxelWalker(self.ctx, self.grid, chunk=chunk, window=0)  # every pair at once
         self.clbvh = ClbvhScene(prep.scene.triangles, prep.bvh, self.ctx)
 
@@ -155,8 +156,9 @@ class Device:
         return st, statistics.median(ms)
 
     def run(self, what: str, rs, stats: bool = False):
-        """One trace of the rays of `rs` by 'ivw', 'ec', 'ec_all' (every ray-cell pair up to tmax in
-        one iteration) or 'clbvh': (PassStats or None, wall ms)."""
+        """One trace of the rays of `rs` by 'ivw', 'ec' (iterations in one launch), 'ec_global' (a
+        global sort per iteration), 'ec_all' (every ray-cell pair up to tmax in one iteration) or
+        'clbvh': (PassStats or None, wall ms)."""
         st, h = rs.stage, rs.hits
         q = self.ctx.queue
         clio.finish(q)
@@ -167,6 +169,9 @@ class Device:
             ps = self.walker.trace_ivw(self.tris, st.origin, st.dir, h.t, h.tri, st.n, False, stats=stats)
         elif what == "ec":
             ps = self.walker.trace_ec(self.tris, st.origin, st.dir, h.t, h.tri, st.n, stats=stats, size=rs.size)
+        elif what == "ec_global":
+            ps = self.walker_global.trace_ec(self.tris, st.origin, st.dir, h.t, h.tri, st.n, stats=stats,
+                                             size=rs.size)
         elif what == "ec_all":
             ps = self.walker_all.trace_ec(self.tris, st.origin, st.dir, h.t, h.tri, st.n, stats=stats, size=rs.size)
         else:
@@ -177,6 +182,7 @@ class Device:
 
     def release(self) -> None:
         self.walker.release()
+        self.walker_global.release()
         self.walker_all.release()
         self.grid.release()
         self.clbvh.release()
@@ -197,7 +203,7 @@ def _agreement(dev: Device, rs: RaySet) -> dict[str, float]:
     out = {}
     dev.run("clbvh", rs)
     t_ref, id_ref = rs.hits.read()
-    for mode in ("ivw", "ec", "ec_all"):
+    for mode in ("ivw", "ec", "ec_global", "ec_all"):
         dev.run(mode, rs)
         t, ids = rs.hits.read()
         same = (ids == id_ref) | ((ids >= 0) & (id_ref >= 0) & (t == t_ref))
@@ -206,32 +212,36 @@ def _agreement(dev: Device, rs: RaySet) -> dict[str, float]:
 
 
 def _timed(dev: Device, rs: RaySet, repeats: int) -> dict[str, Any]:
-    """Medians of interleaved runs: IVW, EC (total, reorder, trace), EC with every pair at once, clbvh."""
-    ivw, clb, ec_total, ec_reorder, ec_trace, ec_all, all_pairs = [], [], [], [], [], [], 0
-    for what in ("ivw", "ec", "ec_all", "clbvh"):  # warm-up (kernels compile on first use)
+    """Medians of interleaved runs: IVW, EC (total, reorder, trace) in one launch and with the global
+    sort per iteration, EC with every pair at once, clbvh."""
+    names = ("ivw", "ec", "ec_global", "ec_all", "clbvh")
+    for what in names:  # warm-up (kernels compile on first use)
         dev.run(what, rs)
+    runs: dict[str, list[float]] = {k: [] for k in names}
+    parts: dict[str, list[Any]] = {k: [] for k in names}
     io = {}
     for _ in range(repeats):
-        ivw.append(dev.run("ivw", rs)[1])
-        io["ivw"] = dev.last_io
-        ps, ms = dev.run("ec", rs)
-        io["ec"] = dev.last_io
-        ec_total.append(ms)
-        ec_reorder.append(ps.reorder_ms)
-        ec_trace.append(ps.trace_ms)
-        pa, ms = dev.run("ec_all", rs)
-        ec_all.append(ms)
-        all_pairs = pa.pairs
-        clb.append(dev.run("clbvh", rs)[1])
+        for what in names:
+            ps, ms = dev.run(what, rs)
+            runs[what].append(ms)
+            parts[what].append(ps)
+            io[what] = dev.last_io
     med = statistics.median
-    return {"ivw_ms": med(ivw), "ec_ms": med(ec_total), "ec_reorder_ms": med(ec_reorder),
-            "ec_trace_ms": med(ec_trace), "ec_all_ms": med(ec_all), "ec_all_pairs": all_pairs, "clbvh_ms": med(clb),
-            "runs": {"ivw": ivw, "ec": ec_total, "ec_all": ec_all, "clbvh": clb}, "io": io}
+    return {"ivw_ms": med(runs["ivw"]), "ec_ms": med(runs["ec"]),
+            "ec_reorder_ms": med(p.reorder_ms for p in parts["ec"]),
+            "ec_trace_ms": med(p.trace_ms for p in parts["ec"]), "ec_workgroups": parts["ec"][-1].workgroups,
+            "ec_iterations": parts["ec"][-1].iterations,
+            "ec_global_ms": med(runs["ec_global"]),
+            "ec_global_reorder_ms": med(p.reorder_ms for p in parts["ec_global"]),
+            "ec_global_trace_ms": med(p.trace_ms for p in parts["ec_global"]),
+            "ec_all_ms": med(runs["ec_all"]), "ec_all_pairs": parts["ec_all"][-1].pairs, "clbvh_ms": med(runs["clbvh"]),
+            "runs": runs, "io": io}
 
 
 def _walk_stats(dev: Device, rs: RaySet) -> dict[str, Any]:
-    """The statistics run (EC with per-iteration statistics; IVW gives the same walk)."""
-    ps, _ = dev.run("ec", rs, stats=True)
+    """The statistics run (EC with the global sort and per-iteration statistics; IVW and EC in one
+    launch walk the same cells)."""
+    ps, _ = dev.run("ec_global", rs, stats=True)
     rpc = ps.rays_per_cell if ps.rays_per_cell is not None else np.zeros(0)
     return {"rays": ps.rays, "pairs": ps.pairs, "workgroups": ps.workgroups, "iterations": ps.iterations,
             "per_iter": ps.per_iter, "resolved": ps.resolved_fraction().tolist(),
@@ -276,16 +286,19 @@ def collect(args, ctx_gl) -> list[dict]:
 def study_table51(args, rows: list[dict]) -> dict:
     md = ["# Thesis Table 5.1 analog: reflection rays through the uniform grid, IVW vs EC (ms, medians)", "",
           f"Command: `{args.command_line}`", ""]
-    head = ["scene", "size", "refl. rays", "grid", "DS build", "ray-cell pairs", "work-groups", "EC reorder",
-            "EC trace", "EC total", "IVW trace", "IVW/EC", "EC all pairs: pairs / total", "clbvh trace",
-            "frame: build+IVW", "frame: build+EC", "frame: BVH build+clbvh"]
+    head = ["scene", "size", "refl. rays", "grid", "DS build", "ray-cell pairs", "work-groups (global / one launch)",
+            "EC global: reorder", "trace", "total", "EC one launch: total", "IVW trace", "IVW/EC",
+            "IVW/EC global", "EC all pairs: pairs / total", "clbvh trace", "frame: build+IVW", "frame: build+EC",
+            "frame: BVH build+clbvh"]
     body = []
     for r in rows:
         w = r["walk"]
         body.append([r["scene"], size_text(tuple(r["size"])), f"{r['reflection_rays']:,}",
                      "x".join(str(x) for x in r["grid_res"]), fmt(r["build_ms"]), f"{w['pairs']:,}",
-                     f"{w['workgroups']:,}", fmt(r["ec_reorder_ms"]), fmt(r["ec_trace_ms"]), fmt(r["ec_ms"]),
+                     f"{w['workgroups']:,} / {r['ec_workgroups']:,}", fmt(r["ec_global_reorder_ms"]),
+                     fmt(r["ec_global_trace_ms"]), fmt(r["ec_global_ms"]), fmt(r["ec_ms"]),
                      fmt(r["ivw_ms"]), fmt(r["ivw_ms"] / max(r["ec_ms"], 1e-9), 2),
+                     fmt(r["ivw_ms"] / max(r["ec_global_ms"], 1e-9), 2),
                      f"{r['ec_all_pairs']:,} / {fmt(r['ec_all_ms'])}", fmt(r["clbvh_ms"]),
                      fmt(r["build_ms"] + r["ivw_ms"]), fmt(r["build_ms"] + r["ec_ms"]),
                      fmt(r["clbvh_bvh_build_ms"] + r["clbvh_ms"])])
@@ -295,14 +308,16 @@ def study_table51(args, rows: list[dict]) -> dict:
     for r in rows:
         io = r.get("io", {})
         for phase, d, ms in (("grid build", r.get("build_io"), r["build_ms"]), ("IVW", io.get("ivw"), r["ivw_ms"]),
-                             ("EC", io.get("ec"), r["ec_ms"])):
+                             ("EC one launch", io.get("ec"), r["ec_ms"]),
+                             ("EC global sort", io.get("ec_global"), r["ec_global_ms"])):
             if d:
                 body.append([r["scene"], size_text(tuple(r["size"])), phase, fmt(ms), str(d["cl_launches"]),
                              str(d["host_syncs"])])
     md.append(md_table(["scene", "size", "phase", "ms", "CL launches", "host syncs"], body))
     md += ["", "## Why: the walk behind the times", ""]
     head = ["scene", "size", "pairs per ray", "iterations per ray", "EC iterations", "rays per cell (1st it.)",
-            "max rays per cell", "cells per 8x8 tile (1st it.)", "IVW = clbvh", "EC = clbvh", "EC all = clbvh"]
+            "max rays per cell", "cells per 8x8 tile (1st it.)", "IVW = clbvh", "EC = clbvh", "EC global = clbvh",
+            "EC all = clbvh"]
     body = []
     for r in rows:
         w = r["walk"]
@@ -312,10 +327,13 @@ def study_table51(args, rows: list[dict]) -> dict:
                      fmt(w["iters_mean"], 2), str(w["iterations"]), fmt(rpc.mean() if len(rpc) else 0, 1),
                      fmt(rpc.max() if len(rpc) else 0, 0), fmt(first.get("tile_cells_mean", float("nan")), 2),
                      f"{100 * r['agreement']['ivw']:.3f}%", f"{100 * r['agreement']['ec']:.3f}%",
-                     f"{100 * r['agreement']['ec_all']:.3f}%"])
+                     f"{100 * r['agreement']['ec_global']:.3f}%", f"{100 * r['agreement']['ec_all']:.3f}%"])
     md.append(md_table(head, body))
     md += ["", "EC: one non-empty cell per ray per iteration, rays resolved by the hit-inside-cell rule drop out "
-           "(the thesis's iterations). EC all pairs: every (ray, non-empty cell) pair up to tmax enumerated, sorted "
+           "(the thesis's iterations). EC global: the thesis's global radix sort of the ray-cell pairs per iteration "
+           "(launches grow with the iterations); EC one launch: every iteration on the device, one work-group per "
+           "screen-tile partition sorting its rays by cell (ec_tile.cl). "
+           "EC all pairs: every (ray, non-empty cell) pair up to tmax enumerated, sorted "
            "and processed at once (no early exit). "
            "IVW/EC > 1: EC faster. 'frame' columns: an animated scene, where the grid (or clbvh's BVH: "
            "binary SAH build + BVH4 collapse on the CPU) is rebuilt every frame before the reflection pass. "

@@ -6,18 +6,29 @@ OpenCL device at creation and again when the scene's triangles change (or every 
 rebuild=true, as an animated scene needs).
 
 * IVW (mode=ivw): one work-item per ray walks the grid by 3D-DDA and stops at the first cell that
-  holds a hit inside the cell (ivw.cl). Any-hit rays (shadow, soft, AO) always go this way,
-  stopping at their first hit.
-* EC (mode=ec, closest-hit rays): in iterations, every active ray enumerates the (ray, cell)
-  pairs of its next `cells` non-empty cells (count, scan, write), the pairs are radix-sorted by
-  cell, cut at the cell boundaries into chunks of at most `chunk` rays, compacted, and one
-  work-group per chunk tests the cell's triangles staged in local memory; nearest hits by an
-  atomic minimum on packed (distance, triangle) keys, so the result is deterministic (ec.cl).
+  holds a hit inside the cell (ivw.cl), testing each cell's triangles four at a time. Any-hit rays
+  (shadow, soft, AO) always go this way, stopping at their first hit, and so do primary rays
+  unless primary=ec: they share the eye, so neighbouring pixels already walk the same cells in the
+  same order and sorting them by cell adds nothing (the IVW fast path).
+* EC (mode=ec, other closest-hit rays), in iterations of one non-empty cell per ray, rays of the
+  same cell processed together, resolved rays dropping out:
+  - sort=tile (default, ec_tile.cl): every iteration on the device in one launch: one
+    work-group per screen-tile partition of the active rays loops over its iterations (walk to the
+    next non-empty cell, counting sort by cell through a local hash table, chunks of at most
+    `chunk` rays of one cell with the cell's triangles staged in local memory, resolve). A fixed
+    5 launches and one wait per pass whatever the iteration count; hits equal IVW's bit for bit.
+  - sort=global (the thesis's, ec.cl; also whenever cells != 1): each active ray emits its
+    (ray, cell) pairs for its next `cells` non-empty cells (count, scan, write), the pairs are
+    radix-sorted by cell over all rays, cut into chunks of at most `chunk` rays, compacted, and
+    one work-group per chunk tests the staged triangles; nearest hits by an atomic minimum on
+    packed (distance, triangle) keys. About 24 launches per iteration (one wait per pass).
 
-Both are exact (the watertight test of viewer/cl/kernels/geometry.cl, the grid's conservative
-binning, and the hit-inside-cell rule). Resolution: `auto` takes grid.py's rule (about `density`
-cells per triangle, shaped like the scene's box: extents per axis and triangle density), N fixes
-N cells on the longest axis (the thesis used 128^3); the cells per axis are counters res_x/y/z.
+IVW and the one-launch EC skip empty 8^3 blocks of cells whole, landing on the cell and walk state
+the cell-by-cell 3D-DDA would reach (walk.cl). Both modes are exact (the watertight test of
+viewer/cl/kernels/geometry.cl, the grid's conservative binning, and the hit-inside-cell rule).
+Resolution: `auto` takes grid.py's rule (about `density` cells per triangle, shaped like
+the scene's box: extents per axis and triangle density), N fixes N cells on the longest axis (the
+thesis used 128^3); the cells per axis are counters res_x/y/z.
 
 Overlays: "iterations" (non-empty cells visited per ray) and "tile_divergence" (distinct first
 cells per 8x8 pixel tile). Counters: the grid (res_x/y/z, pairs, build time; once per frame),
@@ -36,7 +47,8 @@ from viewer.accel.grid import GridSpec, scene_box
 from viewer.backends.base import BackendContext, TraceResult
 from viewer.backends.cl_geometry import GeometryBackend
 from viewer.backends.interface import BackendInfo, OverlaySpec, param
-from viewer.backends.voxelwalk.engine import PassStats, VoxelWalker, tile_divergence
+from viewer.backends.voxelwalk.engine import EC_SORTS, PassStats, VoxelWalker, tile_divergence
+from viewer.effects import RayType
 from viewer.errors import RtwalkError
 from viewer.rays import HitBuffer, PassInfo, RayBatch
 
@@ -52,6 +64,12 @@ class VoxelwalkParams:
     chunk: int = param(64, "EC: rays per chunk = work-group size")
     resolution: str = param("auto", "auto (grid.py's rule from the scene) or N cells on the longest axis")
     cells: int = param(1, "EC: non-empty cells per ray per iteration (0: every cell the ray crosses at once)")
+    primary: str = param("ivw", "closest-hit primary rays: ivw (they share the eye, so neighbouring pixels already "
+                         "walk the same cells together and sorting them adds nothing: the IVW fast path) or "
+                         "ec (EC them too)")
+    sort: str = param("tile", "EC: tile (every iteration in one launch: one work-group per screen-tile partition "
+                      "sorts its rays by cell on the device) or global (the thesis: a global radix sort per "
+                      "iteration, launches grow with the iterations); cells != 1 always sorts globally")
     density: float = param(2.0, "auto resolution: about this many cells per triangle")
     rebuild: bool = param(False, "rebuild the grid every frame (animated scenes; timing studies)")
     stats: bool = param(False, "per-iteration statistics every pass (else only while overlays are shown)")
@@ -69,6 +87,10 @@ class VoxelwalkParams:
                     from None
             if not 1 <= r <= 1024:
                 raise RtwalkError(f"{source}: resolution must be auto or in 1..1024 (got {r})")
+        if self.primary not in MODES:
+            raise RtwalkError(f"{source}: primary must be ivw or ec (got '{self.primary}')")
+        if self.sort not in EC_SORTS:
+            raise RtwalkError(f"{source}: sort must be tile or global (got '{self.sort}')")
         if not 0 <= self.cells <= 4096:
             raise RtwalkError(f"{source}: cells must be in 0..4096 (got {self.cells})")
         if not self.density > 0:
@@ -95,7 +117,7 @@ class VoxelwalkBackend(GeometryBackend):
         from viewer.cl import PassStages
 
         self._start(bc, params)
-        self.walker = VoxelWalker(self.ctx, self.grid, self.params.chunk, self.params.cells)
+        self.walker = VoxelWalker(self.ctx, self.grid, self.params.chunk, self.params.cells, self.params.sort)
         self.stages = PassStages(self.ctx)
         self.last_stats: PassStats | None = None
         self._frame_stats: dict[str, float] = {}  # reported by the frame's first pass (the renderer sums passes)
@@ -135,7 +157,8 @@ class VoxelwalkBackend(GeometryBackend):
         prof = self.bc.profiler
         q = self.ctx.queue
         want = bool(self.overlays_enabled or self.params.stats)
-        ec = self.params.mode == "ec" and not pinfo.any_hit
+        ec = self.params.mode == "ec" and not pinfo.any_hit and \
+            (pinfo.ray_type != RayType.PRIMARY or self.params.primary == "ec")
         with prof.cl_phase(f"trace:{pinfo.ray_type.label}", q):
             if ec:
                 ps = self.walker.trace_ec(self._tris, rs.origin, rs.dir, hs.t, hs.tri, rs.n, stats=want,

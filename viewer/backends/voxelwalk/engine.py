@@ -6,8 +6,10 @@ file. With `stats` on, each pass also records what the study and the overlays ne
 (`PassStats`): per-ray iterations and first non-empty cell, and for EC per iteration the active
 rays, ray-cell pairs, work-groups after compaction, resolved rays and the distinct cells per
 screen tile; rays per cell at the first iteration. The per-iteration host statistics read small
-device arrays back, so they cost time: timing runs leave `stats` off. Without them a pass waits
-on the host once per batch of EC iterations (usually once) and IVW not at all.
+device arrays back, so they cost time: timing runs leave `stats` off. Without them IVW and the
+one-launch EC (ec_sort "tile", ec_tile.cl: 5 launches per pass) do not wait on the host at all, and
+the global-sort EC (ec.cl) waits once per batch of iterations (usually once). IVW and the one-launch
+EC skip empty 8^3 blocks of cells (walk.cl; the occupancy is rebuilt after each grid build).
 """
 
 from __future__ import annotations
@@ -27,9 +29,36 @@ from viewer.errors import RtwalkError
 HERE = Path(__file__).resolve().parent
 WG_IVW = 64
 WG_SMALL = 64  # local size of the one-per-ray EC kernels
+SKIP_SHIFTS = (3, 0)  # walk.cl empty-space skipping: blocks of 8^3 cells, no coarse level (VW_SHIFT_FINE, _COARSE)
 TILE = 8  # screen tile edge for the divergence statistics (pixels)
 EC_BATCH = 8  # EC iterations enqueued before the first look at the active count (at least)
 EC_GROUPS_PER_CU = 64  # persistent ec_process work-groups per compute unit (each takes chunks in turn)
+EC_SORTS = ("tile", "global")
+EC_STAGE_MIN = 8  # ec_tile: cells with at least this many of a partition's rays get their triangles staged
+TILE_BYTES_PER_RAY = 72  # ec_tile.cl's local arrays per partition ray (20 ray state + 16 lists + 24 table + 12 chunks)
+
+
+def tile_partition(local_mem: int, wg: int) -> int:
+    """Rays per ec_tile work-group: the largest power of two <= 1024 whose local arrays (and the
+    staged triangle blocks and scan partials, 172 bytes per work-item) fit half the device's local
+    memory (a partition larger than the work-group keeps chunks full; half: the compiler's own)."""
+    p = 1024
+    while p > wg and TILE_BYTES_PER_RAY * p + 172 * wg > local_mem // 2:
+        p //= 2
+    return max(p, wg)
+
+
+def tile_order(size: tuple[int, int], n: int, p: int) -> np.ndarray:
+    """Ray indices 0..n-1 (row-major pixels of `size`) in screen-tile order: square tiles of p
+    pixels (or the nearest 2:1 rectangle), then the rays past the image."""
+    w, h = int(size[0]), int(size[1])
+    tw = 1 << ((p.bit_length() - 1 + 1) // 2)
+    th = max(1, p // tw)
+    pix = np.arange(min(n, w * h), dtype=np.int64)
+    x, y = pix % w, pix // w
+    tile = (y // th) * (-(-w // tw)) + x // tw
+    order = np.lexsort((pix, tile))
+    return np.concatenate([pix[order], np.arange(w * h, n, dtype=np.int64)]).astype(np.uint32)
 
 
 @dataclass
@@ -77,16 +106,30 @@ def tile_divergence(cells: np.ndarray, size: tuple[int, int], tile: int = TILE) 
 class VoxelWalker:
     """IVW and EC kernels over a UniformGrid and its triangles (device buffers)."""
 
-    def __init__(self, ctx: Any, grid: UniformGrid, chunk: int = 64, window: int = 1):
+    def __init__(self, ctx: Any, grid: UniformGrid, chunk: int = 64, window: int = 1, ec_sort: str = "tile"):
         from viewer.cl import build
 
+        if ec_sort not in EC_SORTS:
+            raise ValueError(f"ec_sort must be one of {EC_SORTS}")
         self.ctx, self.grid, self.chunk, self.window = ctx, grid, int(chunk), int(window)
+        self.ec_sort = ec_sort
         self.prims = grid.prims
-        ivw = build(HERE / "ivw.cl", {"WG": WG_IVW}, ctx)
+        self.skip_shifts = SKIP_SHIFTS
+        skip = {"VW_SHIFT_FINE": SKIP_SHIFTS[0], "VW_SHIFT_COARSE": SKIP_SHIFTS[1]}
+        ivw = build(HERE / "ivw.cl", {"WG": WG_IVW, **skip}, ctx)
         ec = build(HERE / "ec.cl", {"WG": self.chunk}, ctx)
-        self.k = {"ivw": clio.kernel(ivw, "ivw_trace")}
+        self.partition = tile_partition(int(ctx.device.local_mem_size), self.chunk)
+        ect = build(HERE / "ec_tile.cl", {"WG": self.chunk, "P": self.partition, "STAGE_MIN": EC_STAGE_MIN,
+                                          **skip}, ctx)
+        self.k = {"ivw": clio.kernel(ivw, "ivw_trace"), "macro": clio.kernel(ivw, "vw_macro_build")}
+        self._macro_of: Any = None  # the GridStats whose macro cells are built
         for name in ("ec_init", "ec_count", "ec_write", "ec_process", "ec_resolve", "ec_finish"):
             self.k[name] = clio.kernel(ec, name)
+        for name in ("ec_tile", "ec_tile_flags"):
+            self.k[name] = clio.kernel(ect, name)
+        self._perm_key: tuple | None = None
+        self._pending: list[tuple[np.ndarray, Any, Any]] = []  # one-launch EC totals on their way back
+        self._last_totals: tuple[int, int, int, int, float] = (0, 0, 0, 0, 0.0)
         self._bufs: dict[str, Any] = {}
         self._host_n = np.zeros(1, np.uint32)  # kept alive for its asynchronous write
         self._last_iterations = 0  # the last EC pass's iterations: the next pass's first batch
@@ -99,6 +142,21 @@ class VoxelWalker:
             buf = new_buffer(self.ctx, self.ctx.cl.mem_flags.READ_WRITE, int(nbytes), f"voxelwalk {name}")
             self._bufs[name] = buf
         return buf
+
+    def _macro(self) -> tuple[Any, Any]:
+        """Block occupancy of the current grid at both levels of walk.cl's empty-space skipping:
+        rebuilt (one launch per level) when the grid was built again (a new GridStats)."""
+        st = self.grid.stats
+        if self._macro_of is not st:
+            fine = self.skip_shifts[0]
+            for shift in self.skip_shifts:
+                shift = shift or fine  # one level: the coarse buffer is the fine one again
+                br = [-(-int(r) // (1 << shift)) for r in st.res]
+                n = br[0] * br[1] * br[2]
+                buf = self._buf(f"occ{shift}", max(16, n))
+                self._run("macro", n, self.grid.header, self.grid.cells, np.int32(shift), buf)
+            self._macro_of = st
+        return tuple(self._bufs[f"occ{s or self.skip_shifts[0]}"] for s in self.skip_shifts)
 
     def _run(self, name: str, n: int, *args: Any, wg: int = WG_SMALL) -> None:
         if n:
@@ -116,8 +174,9 @@ class VoxelWalker:
         g, q = self.grid, self.ctx.queue
         iters, first = self._buf("iters", 4 * n), self._buf("first", 4 * n)
         t0 = time.perf_counter()
-        self._run("ivw", n, g.header, g.cells, g.refs, tris, ray_o, ray_d, out_t, out_id, np.int32(n),
-                  np.int32(bool(any_hit)), iters, first, wg=WG_IVW)
+        macro = self._macro()
+        self._run("ivw", n, g.header, g.cells, g.blocks, g.cell_blocks, ray_o, ray_d, out_t, out_id, np.int32(n),
+                  np.int32(bool(any_hit)), iters, first, *macro, wg=WG_IVW)
         ps = PassStats("ivw")
         if stats:  # timed only with statistics (a wait; frames leave the kernel in flight)
             clio.finish(q)
@@ -149,7 +208,84 @@ class VoxelWalker:
 
     def trace_ec(self, tris: Any, ray_o: Any, ray_d: Any, out_t: Any, out_id: Any, n: int,
                  stats: bool = False, size: tuple[int, int] | None = None) -> PassStats:
-        """EC over rays 0..n-1. Iterations are enqueued in batches with no host round trip
+        """EC over rays 0..n-1: the one-launch tile loop (ec_sort "tile", one non-empty cell per
+        iteration), else the thesis's global sort per iteration (ec_sort "global", or `window` != 1)."""
+        if self.ec_sort == "tile" and self.window == 1:
+            return self._trace_ec_tile(ray_o, ray_d, out_t, out_id, n, stats, size)
+        return self._trace_ec_global(tris, ray_o, ray_d, out_t, out_id, n, stats, size)
+
+    def _perm(self, size: tuple[int, int] | None, n: int) -> Any:
+        """The rays' screen-tile order on the device (uploaded once per size)."""
+        key = (tuple(size) if size is not None else None, n, self.partition)
+        if self._perm_key != key:
+            order = tile_order(size, n, self.partition) if size is not None else np.arange(n, dtype=np.uint32)
+            buf = self._buf("perm", 4 * n)
+            clio.copy(self.ctx.queue, buf, order, is_blocking=False)
+            self._perm_host, self._perm_key = order, key  # kept alive for the asynchronous write
+        return self._bufs["perm"]
+
+    def _harvest(self, force: bool = False) -> None:
+        """Takes the per-group totals of the one-launch EC passes that have come back (all of them,
+        waiting, with `force`): iterations (the largest), pairs, chunks, rays, kernel ms."""
+        cl = self.ctx.cl
+        while self._pending:
+            host, copy_ev, kernel_ev = self._pending[0]
+            if not force and copy_ev.command_execution_status != cl.command_execution_status.COMPLETE:
+                break
+            self._pending.pop(0)
+            ms = max(0, kernel_ev.profile.end - kernel_ev.profile.start) / 1e6
+            self._last_totals = (int(host[:, 0].max()), int(host[:, 1].sum()), int(host[:, 2].sum()),
+                                 int(host[:, 3].sum()), ms)
+
+    def _trace_ec_tile(self, ray_o: Any, ray_d: Any, out_t: Any, out_id: Any, n: int, stats: bool,
+                       size: tuple[int, int] | None) -> PassStats:
+        """EC with every iteration on the device (ec_tile.cl): rays entering the grid are compacted
+        in screen-tile order, then one work-group per partition of them loops over its iterations
+        (walk, counting sort by cell, chunks with staged triangles, resolve). A fixed 5 launches
+        per pass whatever the iteration count and no wait: the per-group totals (iterations, pairs,
+        chunks) come back with a later wait and are reported by a later pass (with `stats`: this
+        pass's own, after one wait)."""
+        g, q, u = self.grid, self.ctx.queue, np.uint32
+        ps = PassStats("ec")
+        if n == 0:
+            return ps
+        iters, first = self._buf("iters", 4 * n), self._buf("first", 4 * n)
+        flags, act = self._buf("flags", 4 * n), self._buf("act", 4 * n)
+        cb = self._count_bufs()
+        perm = self._perm(size, n)
+        macro = self._macro()
+        self._host_n[0] = n
+        clio.copy(q, cb["n"], self._host_n, is_blocking=False)
+        self._run("ec_tile_flags", n, g.header, ray_o, ray_d, perm, u(n), flags, out_t, out_id, iters, first)
+        self.prims.compact_dev(cb["n"], n, cb["m0"], flags=flags, src=perm, dst=act)
+        groups = -(-n // self.partition)
+        totals = self._buf("tile_totals", 16 * groups)
+        ev = self.k["ec_tile"](q, (groups * self.chunk,), (self.chunk,), g.header, g.cells, g.blocks, g.cell_blocks,
+                               ray_o, ray_d, act, cb["m0"], out_t, out_id, iters, first, totals, *macro)
+        host = np.empty((groups, 4), np.uint32)
+        self._pending.append((host, clio.copy(q, host, totals, is_blocking=stats), ev))
+        if stats:  # the study's run: this pass's own figures (one wait)
+            self._harvest(force=True)
+        else:  # no wait: the last pass whose totals are back (usually the previous pass of the frame)
+            self._harvest()
+        ps.iterations, ps.pairs, ps.workgroups, ps.rays, ps.trace_ms = self._last_totals
+        ps.reorder_ms = 0.0  # the sort runs inside the one kernel (trace_ms)
+        if stats:
+            ps.iters = self._read(iters, n, np.int32)
+            fc = self._read(first, n, np.uint32)
+            ps.first_cell = fc if size is not None else None
+            fc = fc[fc != 0xFFFFFFFF]
+            ps.rays_per_cell = np.unique(fc, return_counts=True)[1] if len(fc) else np.zeros(0, np.int64)
+            walked = ps.iters[ps.iters > 0]
+            for k in range(1, ps.iterations + 1):  # derived per iteration: one cell per active ray
+                active = float(np.count_nonzero(walked >= k))
+                ps.per_iter.append({"active": active, "pairs": active,
+                                    "resolved": float(np.count_nonzero(walked == k))})
+        return ps
+
+    def _trace_ec_global(self, tris: Any, ray_o: Any, ray_d: Any, out_t: Any, out_id: Any, n: int,
+                         stats: bool = False, size: tuple[int, int] | None = None) -> PassStats:
+        """EC over rays 0..n-1 with the thesis's global sort. Iterations are enqueued in batches with no host round trip
         between them: the active count, the pair count and the chunk count live on the device
         (kernels read them; launches are sized for bounds: n rays, n * window pairs), and after a
         batch one read of the active count says whether to go on. A batch is as long as the last

@@ -1,9 +1,11 @@
 // voxelwalk IVW (Independent Voxel Walk, Guntury 2011 ch. 5): one work-item per ray walks the
 // uniform grid by 3D-DDA from its origin, tests the triangles of each non-empty cell (watertight
 // test of geometry.cl) and stops at the first cell that holds a hit inside the cell (closest
-// hit) or at the first hit (any hit: shadow, soft, AO). iters[i] = non-empty cells the ray
-// visited (its iterations); first[i] = its first non-empty cell (VW_NONE: none), for the tile
-// divergence statistics.
+// hit) or at the first hit (any hit: shadow, soft, AO). Triangles are tested four at a time from
+// the cell's SoA blocks (grid.py GRID_BLOCK_DTYPE; cell order = slot order, so ties go to the
+// lowest slot); empty 8^3 blocks of cells are skipped whole (walk.cl). iters[i] = non-empty cells
+// the ray visited (its iterations); first[i] = its first non-empty cell (VW_NONE: none), for the
+// tile divergence statistics.
 #include "walk.cl"
 
 #ifndef WG
@@ -11,10 +13,11 @@
 #endif
 
 __kernel __attribute__((reqd_work_group_size(WG, 1, 1)))
-void ivw_trace(__global const Grid *grid, __global const uint2 *cells, __global const uint *refs,
-               __global const float4 *tris, __global const float4 *ray_o, __global const float4 *ray_d,
+void ivw_trace(__global const Grid *grid, __global const uint2 *cells, __global const float4 *blocks,
+               __global const uint *cell_blocks, __global const float4 *ray_o, __global const float4 *ray_d,
                __global float *out_t, __global int *out_id, const int n, const int any_hit,
-               __global int *iters_out, __global uint *first_out) {
+               __global int *iters_out, __global uint *first_out, __global const uchar *occ_fine,
+               __global const uchar *occ_coarse) {
     int i = get_global_id(0);
     if (i >= n) return;
     Grid g = *grid;
@@ -29,16 +32,17 @@ void ivw_trace(__global const Grid *grid, __global const uint2 *cells, __global 
         float t_enter;
         uint2 cr;
         if (grid_walk_begin(&g, &r, tmin, hit_t, &w, &t_enter)) {
-            while (vw_next_nonempty(&g, cells, &r, &w, hit_t, &cr)) {
+            while (vw_next_nonempty_skip(&g, cells, occ_fine, occ_coarse, &r, &w, hit_t, &cr)) {
                 if (iters == 0) first = (uint)grid_cell_id(&g, w.cell);
                 ++iters;
-                for (uint k = 0; k < cr.y; ++k) {
-                    uint slot = refs[cr.x + k];
-                    __global const float4 *v = tris + 3 * slot;
+                __global const float4 *blk = blocks + 10 * cell_blocks[grid_cell_id(&g, w.cell)];
+                for (uint k = 0; k < cr.y; k += 4, blk += 10) {
+                    int4 slots = as_int4(blk[9]);
                     float t;
-                    if (rt_intersect_triangle(&r, v[0].xyz, v[1].xyz, v[2].xyz, tmin, hit_t, &t)) {
+                    int lane = rt_intersect_triangle4(&r, blk, slots >= (int4)(0), tmin, hit_t, &t);
+                    if (lane >= 0) {
                         hit_t = t;
-                        hit_id = (int)slot;
+                        hit_id = lane == 0 ? slots.x : (lane == 1 ? slots.y : (lane == 2 ? slots.z : slots.w));
                         if (any_hit) goto done;
                     }
                 }
@@ -52,4 +56,21 @@ done:
     out_id[i] = hit_id;
     iters_out[i] = iters;
     first_out[i] = first;
+}
+
+// Block occupancy for empty-space skipping (walk.cl), one level (blocks of 2^shift cells on a
+// side): one work-item per block.
+__kernel void vw_macro_build(__global const Grid *grid, __global const uint2 *cells, const int shift,
+                             __global uchar *occ) {
+    Grid g = *grid;
+    int3 br = vw_block_res(&g, shift);
+    int id = get_global_id(0);
+    if (id >= br.x * br.y * br.z) return;
+    int3 b = (int3)(id % br.x, (id / br.x) % br.y, id / (br.x * br.y));
+    int3 lo = b << shift, hi = min(lo + (1 << shift), g.res.xyz);
+    uchar any = 0;
+    for (int z = lo.z; z < hi.z && !any; ++z)
+        for (int y = lo.y; y < hi.y && !any; ++y)
+            for (int x = lo.x; x < hi.x; ++x) any |= cells[grid_cell_id(&g, (int3)(x, y, z))].y != 0u ? 1 : 0;
+    occ[id] = any;
 }
