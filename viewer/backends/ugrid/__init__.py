@@ -47,6 +47,8 @@ class UgridParams:
     levels: int = param(2, "2: dense cells get sub-grids (two-level grid, viewer.accel.grid2); 1: uniform grid")
     sub_min: int = param(16, "small triangles a top cell needs for a sub-grid (levels=2)")
     sub_density: float = param(2.0, "sub-cells per small triangle (levels=2)")
+    sub_big: float = param(0.5, "a triangle whose box spans this many top cells on an axis is 'big': kept in its "
+                           "cells' short lists, not in their sub-grids (levels=2)")
 
     def validate(self, source: str) -> None:
         if not self.density > 0:
@@ -61,12 +63,14 @@ class UgridParams:
             raise RtwalkError(f"{source}: sub_min must be >= 1 (got {self.sub_min})")
         if not self.sub_density > 0:
             raise RtwalkError(f"{source}: sub_density must be > 0 (got {self.sub_density})")
+        if not self.sub_big > 0:
+            raise RtwalkError(f"{source}: sub_big must be > 0 (got {self.sub_big})")
 
     def spec(self) -> GridSpec:
         return GridSpec(density=self.density, resolution=self.resolution, max_axis=self.max_axis)
 
     def sub_spec(self) -> SubSpec:
-        return SubSpec(min_small=self.sub_min, density=self.sub_density)
+        return SubSpec(min_small=self.sub_min, big_frac=self.sub_big, density=self.sub_density)
 
 
 class GridTracer:
