@@ -183,3 +183,42 @@ def test_forced_configuration_uses_sub_grids(big):
     assert (st.big > 0) == (big < 1)
     grid.release()
     tbuf.release()
+
+
+def test_two_level_build_waits_as_the_uniform_grid():
+    """The sub level adds no wait: a first build waits twice, a rebuild at the same resolution
+    once (its counts ride on the top build's last wait), and the rebuild equals a fresh build."""
+    if CL_REASON is not None:
+        pytest.skip(CL_REASON)
+    from viewer import iostats
+    from viewer.accel.grid import scene_box, triangles_f4
+    from viewer.accel.grid2 import TwoLevelGrid
+    from viewer.cl import cl_context
+    from viewer.cl import io as clio
+
+    ctx = cl_context()
+    tris = mixed_scene(4)
+    tb = clio.upload(ctx, triangles_f4(tris), what="test triangles")
+    box = scene_box(tris)
+    exact, again = TwoLevelGrid(ctx), TwoLevelGrid(ctx)
+    try:
+        clio.finish(ctx.queue)
+        iostats.begin_frame()
+        st = exact.build(tb, len(tris), *box)
+        assert iostats.end_frame().host_syncs == 2
+        assert st.subgrids >= 1 and st.big >= 1
+        ref = exact.sub_to_numpy()
+        again.build(tb, len(tris), *box)
+        clio.finish(ctx.queue)
+        iostats.begin_frame()
+        st2 = again.build(tb, len(tris), *box)
+        io = iostats.end_frame()
+        assert io.host_syncs == 1, io
+        assert (st2.subgrids, st2.subcells, st2.subpairs, st2.big) == (st.subgrids, st.subcells, st.subpairs, st.big)
+        got = again.sub_to_numpy()
+        for k in ("sub_of", "subs", "scells"):
+            assert got[k].tobytes() == ref[k].tobytes(), k
+    finally:
+        exact.release()
+        again.release()
+        tb.release()

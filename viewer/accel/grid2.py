@@ -10,7 +10,8 @@ and nested walk: viewer/cl/kernels/grid2.cl):
   per sub-grid: box = union of the small triangles' boxes (padded), ~`density` cells per small
   triangle shaped like that box; scan of the cell counts -> first sub-cell ids;
   per top pair: count the sub-cell pairs of a small triangle, flag a big one; two scans;
-  (one wait: the totals size the buffers and are checked against viewer.cl.limits)
+  (their totals come back with the top build's last wait, no wait of their own: they size the
+  buffers and are checked against viewer.cl.limits)
   per top pair: write the sub pairs (global sub-cell id, triangle) and the big lists; radix sort,
   segments and cell ranges as in the top grid; SoA blocks of the sub-cells and of the big lists.
 
@@ -101,6 +102,8 @@ class TwoLevelGrid(UniformGrid):
         prog = build(KERNEL, {"WG": WG}, self.ctx)
         self._k2 = {name: clio.kernel(prog, name) for name in ("g2_flags", "g2_setup", "g2_pair_count",
                                                               "g2_pair_write", "g2_big_ranges", "g2_finish")}
+        self._density = self.sub.density
+        self._sub_got = np.zeros(4, np.uint32)  # the sub level's totals (_sub_read)
         self.stats: Grid2Stats | None = None
 
     def _run2(self, name: str, n: int, *args: Any) -> None:
@@ -133,19 +136,22 @@ class TwoLevelGrid(UniformGrid):
 
     def build(self, tris: Any, n: int, lo: np.ndarray, hi: np.ndarray, spec: GridSpec | None = None,
               limits: DeviceLimits | None = None) -> Grid2Stats:
-        """The top grid (UniformGrid.build), then the sub level from its pairs."""
+        """The top grid (UniformGrid.build; the sub level's counting rides on its last wait), then
+        the sub level's pairs, sort and blocks with no further wait."""
         t0 = time.perf_counter()
         lim = limits or device_limits(self.ctx)
+        self._density = self.sub.density
         top = super().build(tris, n, lo, hi, spec, lim)
+        got = tuple(int(x) for x in self._sub_got)
         density, shrunk = self.sub.density, 0
         while True:
-            got = self._sub_count(tris, top, density)
             total, largest = sub_bytes(top.pairs, top.cells, *got)
-            room = lim.budget - top.nbytes
-            if (largest <= lim.max_alloc and total <= room) or density == 0.0:
+            if (largest <= lim.max_alloc and total <= lim.budget - top.nbytes) or density == 0.0:
                 break
             shrunk += 1
             density = density / 8 if shrunk < 4 else 0.0  # 0: no sub-grids (the top grid alone)
+            self._sub_count(tris, self._bufs["count_pairs"], max(top.pairs, 1), top.cells, density)
+            got = tuple(int(x) for x in self._sub_read(blocking=True))
         nsub, subcells, subpairs, big = got
         if nsub:
             self._sub_write(tris, top, nsub, subcells, subpairs, big)
@@ -157,11 +163,24 @@ class TwoLevelGrid(UniformGrid):
         self.stats = st
         return st
 
-    def _sub_count(self, tris: Any, top: GridStats, density: float) -> tuple[int, int, int, int]:
-        """Flags, sub-grid records and per-pair counts; returns the device totals (one wait):
-        sub-grids, sub-cells, sub pairs, big pairs."""
+    def _before_last_wait(self, tris: Any, n_pairs: Any, bound: int, ncells: int) -> None:
+        """The sub level's counting, its totals read back with the top build's last wait."""
+        self._sub_count(tris, n_pairs, bound, ncells, self._density)
+        self._sub_read(blocking=False)
+
+    def _sub_read(self, blocking: bool) -> np.ndarray:
+        """Sub-grids, sub-cells, sub pairs, big pairs (device totals) into self._sub_got."""
+        self._sub_got = got = np.zeros(4, np.uint32)
+        q = self.ctx.queue
+        for k, name in enumerate(("nsub", "subcells", "subpairs", "big")):
+            clio.copy(q, got[k:k + 1], self._bufs[f"count_{name}"], is_blocking=blocking and k == 3)
+        return got
+
+    def _sub_count(self, tris: Any, n_pairs: Any, P: int, ncells: int, density: float) -> None:
+        """Flags, sub-grid records and per-pair counts of the first *n_pairs (<= P) sorted top
+        pairs, and their scans (no wait)."""
         u, f = np.uint32, np.float32
-        sp, ncells, P = self.sub, top.cells, top.pairs
+        sp = self.sub
         min_small = u(sp.min_small if density > 0 else 0xFFFFFFFF)
         flags = self._buf("g2_flags", 4 * ncells)
         self._run2("g2_flags", ncells, self.header, self.cells, self.refs, tris, u(ncells), min_small,
@@ -179,23 +198,12 @@ class TwoLevelGrid(UniformGrid):
         sub_base = self._buf("g2_sub_base", 4 * nsub_bound)
         self.prims.exclusive_scan_dev(nsubc, sub_base, self._bufs["count_nsub"], nsub_bound,
                                       self._count_buf("subcells"))
-        cnt = self._buf("g2_cnt", 4 * max(P, 1))
-        bigf = self._buf("g2_bigf", 4 * max(P, 1))
-        self._run2("g2_pair_count", P, self.header, self._bufs["keys"] if P else cnt, self.refs if P else cnt, tris,
-                   u(P), sub_of, subs, f(sp.big_frac), cnt, bigf)
-        if P:
-            pn = self._count_buf("P", P)
-            self.prims.exclusive_scan_dev(cnt, cnt, pn, P, self._count_buf("subpairs"))
-            self.prims.exclusive_scan_dev(bigf, bigf, pn, P, self._count_buf("big"))
-        else:
-            for name in ("subpairs", "big"):
-                self._count_buf(name, 0)
-        got = np.zeros(4, np.uint32)
-        q = self.ctx.queue
-        for k, name in enumerate(("nsub", "subcells", "subpairs")):
-            clio.copy(q, got[k:k + 1], self._bufs[f"count_{name}"], is_blocking=False)
-        clio.copy(q, got[3:4], self._bufs["count_big"])  # the sub level's one wait
-        return tuple(int(x) for x in got)  # type: ignore[return-value]
+        cnt = self._buf("g2_cnt", 4 * P)
+        bigf = self._buf("g2_bigf", 4 * P)
+        self._run2("g2_pair_count", P, self.header, self._buf("keys", 4 * P), self._buf("vals", 4 * P), tris,
+                   n_pairs, sub_of, subs, f(sp.big_frac), cnt, bigf)
+        self.prims.exclusive_scan_dev(cnt, cnt, n_pairs, P, self._count_buf("subpairs"))
+        self.prims.exclusive_scan_dev(bigf, bigf, n_pairs, P, self._count_buf("big"))
 
     def _sub_write(self, tris: Any, top: GridStats, nsub: int, subcells: int, subpairs: int, big: int) -> None:
         """Pairs, sort, ranges and blocks of the sub level (no wait)."""
@@ -204,12 +212,13 @@ class TwoLevelGrid(UniformGrid):
         keys2 = self._buf("g2_keys", 4 * max(subpairs, 1))
         vals2 = self._buf("g2_vals", 4 * max(subpairs, 1))
         bigrefs = self._buf("g2_bigrefs", 4 * max(big, 1))
-        self._run2("g2_pair_write", P, self.header, self._bufs["keys"], self.refs, tris, u(P), self.sub_of,
+        n_pairs = self._bufs["count_pairs"]
+        self._run2("g2_pair_write", P, self.header, self._bufs["keys"], self.refs, tris, n_pairs, self.sub_of,
                    self.subs, self._bufs["g2_sub_base"], f(self.sub.big_frac), self._bufs["g2_cnt"],
                    self._bufs["g2_bigf"], keys2, vals2, bigrefs)
         bigcells = self._buf("g2_bigcells", 8 * nsub)
         self._run2("g2_big_ranges", ncells, self.cells, self.sub_of, self._bufs["g2_bigf"], self._bufs["count_big"],
-                   u(P), u(ncells), bigcells)
+                   n_pairs, u(ncells), bigcells)
         scells = self._buf("scells", 8 * subcells)
         cl.enqueue_fill_buffer(q, scells, u(0), 0, 8 * subcells)
         if subpairs:

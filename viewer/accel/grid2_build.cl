@@ -125,10 +125,10 @@ inline bool g2_range(const SubGrid *s, float3 mn, float3 mx, int3 *c0, int3 *c1)
 // Per top-level pair: sub-cell pairs of a small triangle (cnt), 1 for a big one (bigf).
 __kernel __attribute__((reqd_work_group_size(WG, 1, 1)))
 void g2_pair_count(__global const Grid *grid, __global const uint *keys, __global const uint *vals,
-                   __global const float4 *tris, const uint npairs, __global const int *sub_of,
+                   __global const float4 *tris, __global const uint *np, __global const int *sub_of,
                    __global const SubGrid *subs, const float big_frac, __global uint *cnt, __global uint *bigf) {
     uint i = get_global_id(0);
-    if (i >= npairs) return;
+    if (i >= *np) return;  // the pair count on the device (launched for a bound)
     int s = sub_of[keys[i]];
     uint nc = 0, nb = 0;
     if (s >= 0) {
@@ -152,12 +152,12 @@ void g2_pair_count(__global const Grid *grid, __global const uint *keys, __globa
 // Writes the sub-cell pairs (key: global sub-cell id) and the big lists' triangles.
 __kernel __attribute__((reqd_work_group_size(WG, 1, 1)))
 void g2_pair_write(__global const Grid *grid, __global const uint *keys, __global const uint *vals,
-                   __global const float4 *tris, const uint npairs, __global const int *sub_of,
+                   __global const float4 *tris, __global const uint *np, __global const int *sub_of,
                    __global const SubGrid *subs, __global const uint *sub_base, const float big_frac,
                    __global const uint *off, __global const uint *bigoff, __global uint *keys2,
                    __global uint *vals2, __global uint *bigrefs) {
     uint i = get_global_id(0);
-    if (i >= npairs) return;
+    if (i >= *np) return;
     int s = sub_of[keys[i]];
     if (s < 0) return;
     Grid g = *grid;
@@ -185,14 +185,15 @@ void g2_pair_write(__global const Grid *grid, __global const uint *keys, __globa
 // consecutive: the top pairs are sorted by cell and the scan is in pair order).
 __kernel __attribute__((reqd_work_group_size(WG, 1, 1)))
 void g2_big_ranges(__global const uint2 *cells, __global const int *sub_of, __global const uint *bigoff,
-                   __global const uint *big_total, const uint npairs, const uint ncells, __global uint2 *bigcells) {
+                   __global const uint *big_total, __global const uint *np, const uint ncells,
+                   __global uint2 *bigcells) {
     uint c = get_global_id(0);
     if (c >= ncells) return;
     int s = sub_of[c];
     if (s < 0) return;
     uint2 cr = cells[c];
     uint start = bigoff[cr.x];
-    uint end = cr.x + cr.y < npairs ? bigoff[cr.x + cr.y] : *big_total;
+    uint end = cr.x + cr.y < *np ? bigoff[cr.x + cr.y] : *big_total;
     bigcells[s] = (uint2)(start, end - start);
 }
 
