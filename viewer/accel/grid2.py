@@ -59,7 +59,7 @@ class SubSpec:
 
     min_small: int = 16  # small triangles a top cell needs for a sub-grid
     big_frac: float = 0.5  # a triangle spanning this many top cells on an axis is "big"
-    density: float = 2.0  # sub-cells per small triangle
+    density: float = 0.5  # sub-cells per small triangle (docs/results/grids-far-and-mixed.md: measured)
     max_axis: int = 256
     max_cells: int = 2**21  # per sub-grid
 

@@ -46,7 +46,7 @@ class UgridParams:
     rebuild: bool = param(False, "rebuild every frame (animated scenes; timing studies)")
     levels: int = param(2, "2: dense cells get sub-grids (two-level grid, viewer.accel.grid2); 1: uniform grid")
     sub_min: int = param(16, "small triangles a top cell needs for a sub-grid (levels=2)")
-    sub_density: float = param(2.0, "sub-cells per small triangle (levels=2)")
+    sub_density: float = param(0.5, "sub-cells per small triangle (levels=2)")
     sub_big: float = param(0.5, "a triangle whose box spans this many top cells on an axis is 'big': kept in its "
                            "cells' short lists, not in their sub-grids (levels=2)")
 
