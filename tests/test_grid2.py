@@ -222,3 +222,64 @@ def test_two_level_build_waits_as_the_uniform_grid():
         exact.release()
         again.release()
         tb.release()
+
+
+def test_sub_level_stays_within_the_memory_budget():
+    """A budget the top grid fits but the sub level does not: the sub density is lowered (or the
+    sub-grids dropped) until the whole build fits, and the grid still answers as the reference."""
+    if CL_REASON is not None:
+        pytest.skip(CL_REASON)
+    from viewer.accel.grid import scene_box, triangles_f4
+    from viewer.accel.grid2 import SubSpec, TwoLevelGrid
+    from viewer.backends.ugrid import GridTracer
+    from viewer.cl import cl_context
+    from viewer.cl import io as clio
+    from viewer.cl.limits import BUDGET_SHARE, DeviceLimits
+    from viewer.reference import trace_float64
+
+    ctx = cl_context()
+    tris = mixed_scene(4)
+    tb = clio.upload(ctx, triangles_f4(tris), what="test triangles")
+    box = scene_box(tris)
+    grid = TwoLevelGrid(ctx, sub=SubSpec(density=8.0))
+    try:
+        full = grid.build(tb, len(tris), *box)
+        top = _top_bytes(grid, tb, tris, box)
+        sub_part = full.nbytes - top
+        assert full.shrunk == 0 and sub_part > 0
+        budget = top + sub_part // 3
+        lim = DeviceLimits(max_alloc=2**40, global_mem=int(budget / BUDGET_SHARE) + 1)
+        st = grid.build(tb, len(tris), *box, limits=lim)
+        assert st.shrunk >= 1 and st.nbytes <= lim.budget, (st, lim.budget, top)
+        rng = np.random.default_rng(25)
+        o, d = mixed_rays(rng, 500)
+        n = len(o)
+        ot, dt = np.zeros((n, 4), F32), np.zeros((n, 4), F32)
+        ot[:, :3], dt[:, :3], dt[:, 3] = o, d, np.inf
+        rays = [clio.upload(ctx, a, what="test rays") for a in (ot, dt)]
+        rw = ctx.cl.mem_flags.READ_WRITE
+        out_t, out_id = (clio.upload(ctx, np.zeros(n, t), rw, "test hits") for t in (F32, np.int32))
+        GridTracer(ctx, grid).enqueue(rays[0], rays[1], out_t, out_id, n, False)
+        got, got_t = np.empty(n, np.int32), np.empty(n, F32)
+        clio.copy(ctx.queue, got, out_id)
+        clio.copy(ctx.queue, got_t, out_t)
+        ref_t, ref = trace_float64(tris, o, d, np.zeros(n, F32), np.full(n, np.inf, F32))
+        # a different triangle at the same distance is a tie (the ground's two halves meet under the sphere)
+        same = (got == ref) | np.isclose(got_t, ref_t, rtol=1e-5, atol=0)
+        assert same.all(), (np.flatnonzero(~same)[:8], st)
+        for b in (*rays, out_t, out_id):
+            b.release()
+    finally:
+        grid.release()
+        tb.release()
+
+
+def _top_bytes(grid, tb, tris, box) -> int:
+    """Device bytes of the top level alone (the same uniform grid, built on its own)."""
+    from viewer.accel.grid import UniformGrid
+
+    g = UniformGrid(grid.ctx)
+    try:
+        return g.build(tb, len(tris), *box).nbytes
+    finally:
+        g.release()
