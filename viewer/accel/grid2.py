@@ -165,6 +165,8 @@ class TwoLevelGrid(UniformGrid):
 
     def _before_last_wait(self, tris: Any, n_pairs: Any, bound: int, ncells: int) -> None:
         """The sub level's counting, its totals read back with the top build's last wait."""
+        if isinstance(n_pairs, int):  # the exact build knows its pairs on the host
+            n_pairs = self._count_buf("pairs", n_pairs)
         self._sub_count(tris, n_pairs, bound, ncells, self._density)
         self._sub_read(blocking=False)
 
