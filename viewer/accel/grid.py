@@ -286,6 +286,7 @@ class UniformGrid:
         blocks = self._buf("blocks", GRID_BLOCK_DTYPE.itemsize * max(pairs // 4 + min(pairs, ncells), 1))
         if pairs:
             self._run("grid_blocks", ncells, cells, cell_blocks, vals, tris, u(ncells), blocks)
+        self._before_last_wait(tris, pairs, max(pairs, 1), ncells)
         got = np.zeros(1, np.uint32)
         if pairs:
             clio.copy(q, got, self._bufs["count_nonempty"])  # the build's one wait (statistics, timing)
@@ -331,6 +332,7 @@ class UniformGrid:
                                       self._count_buf("nblocks"))
         blocks = self._buf("blocks", GRID_BLOCK_DTYPE.itemsize * max(cap // 4 + min(cap, ncells), 1))
         self._run("grid_blocks", ncells, cells, cell_blocks, vals, tris, u(ncells), blocks)
+        self._before_last_wait(tris, used, cap, ncells)
         got = np.zeros(3, np.uint32)  # pair total, largest count, non-empty cells: the build's one wait
         for k, name in ((1, "count_cmax"), (2, "count_nonempty")):
             clio.copy(q, got[k:k + 1], self._bufs[name], is_blocking=False)
@@ -341,6 +343,11 @@ class UniformGrid:
         self.stats = GridStats(tuple(int(r) for r in res), ncells, pairs, nonempty,
                                (time.perf_counter() - t0) * 1e3, 0, int(build_bytes(pairs, ncells, n)[0]))
         return self.stats
+
+    def _before_last_wait(self, tris: Any, n_pairs: Any, bound: int, ncells: int) -> None:
+        """Work a subclass enqueues on the finished cells and sorted pairs (n_pairs of them: an int,
+        or a uint32 device count; at most `bound`) before the build's last wait, so that its counts
+        come back with that wait (viewer.accel.grid2); nothing here."""
 
     def _count_buf(self, name: str, value: int | None = None) -> Any:
         """A uint32 device count (a device-count primitive's input or output); `value` is written

@@ -40,7 +40,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--size", default="320x180", help="WxH of the primary rays (default 320x180)")
     p.add_argument("--backends", default="clbvh,ugrid,pgrid,voxelwalk",
                    help="comma list of registered backends to trace (clbvh is the reference for ratios); "
-                        "NAME:k=v+k=v traces NAME with those parameters, e.g. voxelwalk:mode=ivw")
+                        "NAME:k=v+k=v traces NAME with those parameters (its --backend-params, '+' for ','), "
+                        "e.g. ugrid:levels=1 or voxelwalk:primary=ec")
     p.add_argument("--rounds", type=int, default=3, help="interleaved timing rounds (default 3)")
     p.add_argument("--scene-dir", default="", help="folder of the shared scenes (default ../shared/scenes)")
     p.add_argument("--json", default="", help="write the rows to this file")
@@ -118,7 +119,7 @@ class Runner:
     """One backend over the scene, tracing the same rays again and again."""
 
     def __init__(self, name: str, tris: np.ndarray, o: np.ndarray, d: np.ndarray):
-        """`name`: a backend, or NAME:k=v+k=v (that backend with those parameters)."""
+        """`name`: a backend, or "backend:key=value+key=value" (its --backend-params, '+' for ',')."""
         from viewer.accel.bvh import build_bvh
         from viewer.backends import create_backend
         from viewer.backends.base import BackendContext
@@ -247,9 +248,11 @@ def run(args) -> int:
         else:
             r["disagree"] = None
         mib = r.get("grid_bytes", 0) / 2**20
+        sub = f"  sub-grids {int(r['grid2_subgrids'])} sub pairs {int(r['grid2_subpairs'])}" \
+            if "grid2_subgrids" in r else ""
         print(f"{name:24s} pairs {int(r.get('grid_pairs', 0)):>10d} res {r.get('grid_res', '-')!s:>16s} "
               f"grid {mib:8.1f} MiB  build {r['build_ms']:8.0f} ms  trace {r['ms']:9.1f} ms "
-              f"x{(r['vs_clbvh'] or 0):6.2f}  hits {r['hits']}  disagree {r['disagree']}"
+              f"x{(r['vs_clbvh'] or 0):6.2f}  hits {r['hits']}  disagree {r['disagree']}{sub}"
               + "".join(f"  {k} {int(v)}" for k, v in r.get("pass_stats", {}).items() if k != "pairs"), flush=True)
     print(f"peak RSS {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024:.0f} MiB")
     for r in runners.values():

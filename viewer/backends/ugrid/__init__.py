@@ -7,9 +7,13 @@ watertight test of viewer/cl/kernels/geometry.cl. Every ray type is traced the s
 closest-hit rays stop after the first cell that contains their nearest hit, any-hit rays at
 the first hit.
 
+By default (levels=2) the grid is two-level (viewer.accel.grid2: dense top cells get a sub-grid
+fitted to their small triangles and a short list of their big ones; the teapot-in-a-stadium case,
+docs/results/grids-far-and-mixed.md); levels=1 walks the uniform grid alone.
+
 Parameters (`--backend-params`): density (cells per triangle for the automatic resolution),
 resolution (cells along the longest axis; 0 = automatic), max_axis (cap per axis), rebuild
-(rebuild the grid every frame, as an animated scene needs).
+(rebuild the grid every frame, as an animated scene needs), levels, sub_min, sub_density.
 Overlay "triangle_tests": triangles tested per ray of the last pass (heat).
 """
 
@@ -22,6 +26,7 @@ from typing import Any
 import numpy as np
 
 from viewer.accel.grid import GridSpec, UniformGrid, scene_box
+from viewer.accel.grid2 import SubSpec, TwoLevelGrid
 from viewer.backends.base import BackendContext, TraceResult
 from viewer.backends.cl_geometry import GeometryBackend
 from viewer.backends.interface import BackendInfo, OverlaySpec, param
@@ -39,6 +44,11 @@ class UgridParams:
     resolution: int = param(0, ">0: cells along the longest axis instead")
     max_axis: int = param(512, "cap on cells per axis")
     rebuild: bool = param(False, "rebuild every frame (animated scenes; timing studies)")
+    levels: int = param(2, "2: dense cells get sub-grids (two-level grid, viewer.accel.grid2); 1: uniform grid")
+    sub_min: int = param(16, "small triangles a top cell needs for a sub-grid (levels=2)")
+    sub_density: float = param(0.5, "sub-cells per small triangle (levels=2)")
+    sub_big: float = param(0.5, "a triangle whose box spans this many top cells on an axis is 'big': kept in its "
+                           "cells' short lists, not in their sub-grids (levels=2)")
 
     def validate(self, source: str) -> None:
         if not self.density > 0:
@@ -47,21 +57,35 @@ class UgridParams:
             raise RtwalkError(f"{source}: resolution must be in 0..2048 (got {self.resolution})")
         if not 1 <= self.max_axis <= 2048:
             raise RtwalkError(f"{source}: max_axis must be in 1..2048 (got {self.max_axis})")
+        if self.levels not in (1, 2):
+            raise RtwalkError(f"{source}: levels must be 1 or 2 (got {self.levels})")
+        if not self.sub_min >= 1:
+            raise RtwalkError(f"{source}: sub_min must be >= 1 (got {self.sub_min})")
+        if not self.sub_density > 0:
+            raise RtwalkError(f"{source}: sub_density must be > 0 (got {self.sub_density})")
+        if not self.sub_big > 0:
+            raise RtwalkError(f"{source}: sub_big must be > 0 (got {self.sub_big})")
 
     def spec(self) -> GridSpec:
         return GridSpec(density=self.density, resolution=self.resolution, max_axis=self.max_axis)
 
+    def sub_spec(self) -> SubSpec:
+        return SubSpec(min_small=self.sub_min, big_frac=self.sub_big, density=self.sub_density)
+
 
 class GridTracer:
-    """The ugrid trace kernels over a UniformGrid and the device copy of the triangles."""
+    """The ugrid trace kernels over a UniformGrid (or a TwoLevelGrid: the nested walk) and the
+    device copy of the triangles."""
 
     def __init__(self, ctx: Any, grid: UniformGrid):
         from viewer.cl import build
 
         self.ctx, self.grid = ctx, grid
+        self.two_level = isinstance(grid, TwoLevelGrid)
         self.kernels = {}
         for count in (False, True):
-            defines: dict[str, Any] = {"WG": WG, **({"COUNT_TESTS": None} if count else {})}
+            defines: dict[str, Any] = {"WG": WG, **({"COUNT_TESTS": None} if count else {}),
+                                       **({"TWO_LEVEL": None} if self.two_level else {})}
             prog = build(KERNEL, defines, ctx)
             for idx, sfx in ((False, ""), (True, "_idx"), ("device", "_idxd")):
                 self.kernels[(False, count, idx)] = clio.kernel(prog, "trace_closest" + sfx)
@@ -77,7 +101,8 @@ class GridTracer:
         mode = "device" if n_device is not None else index is not None
         k = self.kernels[(bool(any_hit), tests is not None, mode)]
         extra = (index,) if index is not None else ()
-        k(self.ctx.queue, (-(-n // WG) * WG,), (WG,), g.header, g.cells, g.blocks, g.cell_blocks, ray_o, ray_d,
+        sub = (g.sub_of, g.subs, g.scells, g.sblocks, g.scb, g.bblocks) if self.two_level else ()
+        k(self.ctx.queue, (-(-n // WG) * WG,), (WG,), g.header, g.cells, g.blocks, g.cell_blocks, *sub, ray_o, ray_d,
           out_t, out_id, n_device if n_device is not None else np.int32(n), tests if tests is not None else out_id,
           *extra)
 
@@ -86,12 +111,16 @@ class UgridBackend(GeometryBackend):
     info = BackendInfo("ugrid", "OpenCL: uniform grid (sorted triangle-cell pairs) walked by 3D-DDA, one ray per "
                        "work-item", params=UgridParams,
                        overlays=(OverlaySpec("triangle_tests", "heat", "triangle_tests", "triangles tested per ray"),),
-                       counters=("rays", "grid_pairs", "grid_nonempty", "grid_build_ms", "tests_per_ray"), device="cl")
+                       counters=("rays", "grid_pairs", "grid_nonempty", "grid_build_ms", "grid2_subgrids",
+                                 "grid2_subpairs", "tests_per_ray"), device="cl")
 
     def __init__(self, bc: BackendContext, params: UgridParams | None = None):
         from viewer.cl import PassStages
 
         self._start(bc, params)
+        if self.params.levels == 2:
+            self.grid.release()
+            self.grid = TwoLevelGrid(self.ctx, sub=self.params.sub_spec())
         self.tracer = GridTracer(self.ctx, self.grid)
         self.stages = PassStages(self.ctx, extras=1)  # + triangle tests per ray
         self._grid_stats_due = True
