@@ -77,11 +77,16 @@ def mixed_rays(rng: np.random.Generator, n: int) -> tuple[np.ndarray, np.ndarray
     return o.astype(F32), d.astype(F32)
 
 
-@pytest.fixture
-def ugrid_default():
+@pytest.fixture(params=["ugrid", "voxelwalk"])
+def ugrid_default(request):
+    """The backends whose default walks the two-level grid: ugrid, and voxelwalk's IVW (its any-hit
+    rays and primary rays; closest hits go through IVW with mode=ivw, set here)."""
     if CL_REASON is not None:
         pytest.skip(CL_REASON)
-    return "ugrid"
+    if request.param == "voxelwalk":
+        monkeypatch = request.getfixturevalue("monkeypatch")
+        monkeypatch.setenv("RTWALK_VOXELWALK", "mode=ivw")
+    return request.param
 
 
 @pytest.mark.parametrize("any_hit", [False, True])

@@ -73,6 +73,8 @@ class VoxelwalkParams:
     density: float = param(2.0, "auto resolution: about this many cells per triangle")
     rebuild: bool = param(False, "rebuild the grid every frame (animated scenes; timing studies)")
     stats: bool = param(False, "per-iteration statistics every pass (else only while overlays are shown)")
+    levels: int = param(2, "IVW walks: 2: dense cells' sub-grids too (the two-level grid of viewer.accel.grid2, "
+                        "as ugrid's); 1: the uniform grid alone. EC always walks the top level")
 
     def validate(self, source: str) -> None:
         if self.mode not in MODES:
@@ -95,6 +97,8 @@ class VoxelwalkParams:
             raise RtwalkError(f"{source}: cells must be in 0..4096 (got {self.cells})")
         if not self.density > 0:
             raise RtwalkError(f"{source}: density must be > 0 (got {self.density})")
+        if self.levels not in (1, 2):
+            raise RtwalkError(f"{source}: levels must be 1 or 2 (got {self.levels})")
 
     def spec(self) -> GridSpec:
         res = 0 if self.resolution == "auto" else int(self.resolution)
@@ -117,6 +121,11 @@ class VoxelwalkBackend(GeometryBackend):
         from viewer.cl import PassStages
 
         self._start(bc, params)
+        if self.params.levels == 2:
+            from viewer.accel.grid2 import TwoLevelGrid
+
+            self.grid.release()
+            self.grid = TwoLevelGrid(self.ctx)
         self.walker = VoxelWalker(self.ctx, self.grid, self.params.chunk, self.params.cells, self.params.sort)
         self.stages = PassStages(self.ctx)
         self.last_stats: PassStats | None = None

@@ -116,7 +116,10 @@ class VoxelWalker:
         self.prims = grid.prims
         self.skip_shifts = SKIP_SHIFTS
         skip = {"VW_SHIFT_FINE": SKIP_SHIFTS[0], "VW_SHIFT_COARSE": SKIP_SHIFTS[1]}
-        ivw = build(HERE / "ivw.cl", {"WG": WG_IVW, **skip}, ctx)
+        from viewer.accel.grid2 import TwoLevelGrid
+
+        self.two_level = isinstance(grid, TwoLevelGrid)  # IVW walks its sub-grids; EC the top level
+        ivw = build(HERE / "ivw.cl", {"WG": WG_IVW, **skip, **({"TWO_LEVEL": None} if self.two_level else {})}, ctx)
         ec = build(HERE / "ec.cl", {"WG": self.chunk}, ctx)
         self.partition = tile_partition(int(ctx.device.local_mem_size), self.chunk)
         ect = build(HERE / "ec_tile.cl", {"WG": self.chunk, "P": self.partition, "STAGE_MIN": EC_STAGE_MIN,
@@ -175,7 +178,8 @@ class VoxelWalker:
         iters, first = self._buf("iters", 4 * n), self._buf("first", 4 * n)
         t0 = time.perf_counter()
         macro = self._macro()
-        self._run("ivw", n, g.header, g.cells, g.blocks, g.cell_blocks, ray_o, ray_d, out_t, out_id, np.int32(n),
+        sub = (g.sub_of, g.subs, g.scells, g.sblocks, g.scb, g.bblocks) if self.two_level else ()
+        self._run("ivw", n, g.header, g.cells, g.blocks, g.cell_blocks, *sub, ray_o, ray_d, out_t, out_id, np.int32(n),
                   np.int32(bool(any_hit)), iters, first, *macro, wg=WG_IVW)
         ps = PassStats("ivw")
         if stats:  # timed only with statistics (a wait; frames leave the kernel in flight)

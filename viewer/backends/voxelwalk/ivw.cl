@@ -5,8 +5,12 @@
 // the cell's SoA blocks (grid.py GRID_BLOCK_DTYPE; cell order = slot order, so ties go to the
 // lowest slot); empty 8^3 blocks of cells are skipped whole (walk.cl). iters[i] = non-empty cells
 // the ray visited (its iterations); first[i] = its first non-empty cell (VW_NONE: none), for the
-// tile divergence statistics.
+// tile divergence statistics. With TWO_LEVEL (levels=2), a top cell with a sub-grid (the two-level
+// grid of viewer/accel/grid2.py, as ugrid's) is walked through it instead of its own list: the
+// teapot-in-a-stadium case. The top lists stay whole, so EC (ec.cl, ec_tile.cl) walks the top
+// level as before.
 #include "walk.cl"
+#include "grid2_walk.cl"
 
 #ifndef WG
 #define WG 64
@@ -14,7 +18,7 @@
 
 __kernel __attribute__((reqd_work_group_size(WG, 1, 1)))
 void ivw_trace(__global const Grid *grid, __global const uint2 *cells, __global const float4 *blocks,
-               __global const uint *cell_blocks, __global const float4 *ray_o, __global const float4 *ray_d,
+               __global const uint *cell_blocks G2_PARAMS, __global const float4 *ray_o, __global const float4 *ray_d,
                __global float *out_t, __global int *out_id, const int n, const int any_hit,
                __global int *iters_out, __global uint *first_out, __global const uchar *occ_fine,
                __global const uchar *occ_coarse) {
@@ -33,19 +37,20 @@ void ivw_trace(__global const Grid *grid, __global const uint2 *cells, __global 
         uint2 cr;
         if (grid_walk_begin(&g, &r, tmin, hit_t, &w, &t_enter)) {
             while (vw_next_nonempty_skip(&g, cells, occ_fine, occ_coarse, &r, &w, hit_t, &cr)) {
-                if (iters == 0) first = (uint)grid_cell_id(&g, w.cell);
+                int cid = grid_cell_id(&g, w.cell);
+                if (iters == 0) first = (uint)cid;
                 ++iters;
-                __global const float4 *blk = blocks + 10 * cell_blocks[grid_cell_id(&g, w.cell)];
-                for (uint k = 0; k < cr.y; k += 4, blk += 10) {
-                    int4 slots = as_int4(blk[9]);
-                    float t;
-                    int lane = rt_intersect_triangle4(&r, blk, slots >= (int4)(0), tmin, hit_t, &t);
-                    if (lane >= 0) {
-                        hit_t = t;
-                        hit_id = lane == 0 ? slots.x : (lane == 1 ? slots.y : (lane == 2 ? slots.z : slots.w));
-                        if (any_hit) goto done;
-                    }
-                }
+                int tests = 0;
+#ifdef TWO_LEVEL
+                int s = sub_of[cid];
+                if (s >= 0) {
+                    SubGrid sg = subs[s];
+                    if (walk_sub(&r, &sg, scells, sblocks, scb, bblocks, tmin, &hit_t, &hit_id, any_hit, &tests))
+                        goto done;
+                } else
+#endif
+                if (test_blocks(&r, blocks + 10 * cell_blocks[cid], cr.y, tmin, &hit_t, &hit_id, any_hit, &tests))
+                    goto done;
                 if (hit_id >= 0 && hit_t <= grid_cell_exit(&w)) break;  // the hit lies inside this cell
                 if (!grid_walk_step(&g, &r, &w, hit_t)) break;
             }
