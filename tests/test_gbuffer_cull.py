@@ -145,6 +145,13 @@ def test_occlusion_culled_gbuffer_equals_the_unculled_one(gl_ctx, city, preview)
         r.release()
 
 
+def _render_targets(r, cam, source: str, textures) -> tuple[list[np.ndarray], object]:
+    """The G-buffer `textures` (H, W, C) after rendering `cam` from G-buffer `source`, and the report."""
+    r.gbuffer_source = source
+    report = r.render(cam)
+    return [read_texture(t).copy().reshape(SIZE[1], SIZE[0], -1) for t in textures], report
+
+
 def test_traced_gbuffer_equals_the_raster(gl_ctx, city):
     """gbuffer_source "trace" (the backend's primary rays, then the raster's outputs per hit
     triangle) gives the raster's G-buffer: the same triangle per pixel (ties on shared edges
@@ -155,12 +162,8 @@ def test_traced_gbuffer_equals_the_raster(gl_ctx, city):
     g = r.gbuffer
     try:
         for cam in _cameras(city.scene)[:3]:
-            out = {}
-            for source in ("raster", "trace"):
-                r.gbuffer_source = source
-                r.render(cam)
-                out[source] = [read_texture(t).copy().reshape(SIZE[1], SIZE[0], -1)
-                               for t in (g.tri_id, g.position, g.normal, g.albedo, g.depth)]
+            out = {source: _render_targets(r, cam, source, (g.tri_id, g.position, g.normal, g.albedo, g.depth))[0]
+                   for source in ("raster", "trace")}
             ids_r, ids_t = out["raster"][0], out["trace"][0]
             same = ids_r == ids_t
             assert same.mean() >= 0.995, same.mean()
@@ -174,21 +177,19 @@ def test_traced_gbuffer_equals_the_raster(gl_ctx, city):
 def test_preview_raster_is_the_exact_one_away_from_edges(gl_ctx, city):
     """gbuffer_source "preview" (moving frames: the plain raster, no geometry shader) sees the same
     triangle as the exact conservative raster on nearly every pixel, and where the triangle is
-    the same, the same position, normal and albedo (both come from the same ray test; a preview
-    pixel the exact test misses keeps the plane distance, so only edge pixels may differ)."""
+    the same, the same position (to rounding: the preview takes the distance to the triangle's
+    plane, the exact raster the ray test's), normal and albedo; only edge pixels may differ."""
     from viewer.renderer import Renderer
 
     r = Renderer(gl_ctx, city.scene, city.bvh, SIZE, "glsl")
     g = r.gbuffer
     try:
         for cam in _cameras(city.scene)[:3]:
-            out = {}
+            out, reports = {}, {}
+            targets = (g.tri_id, g.position, g.normal, g.albedo)
             for source in ("raster", "preview"):
-                r.gbuffer_source = source
-                report = r.render(cam)
-                out[source] = [read_texture(t).copy().reshape(SIZE[1], SIZE[0], -1)
-                               for t in (g.tri_id, g.position, g.normal, g.albedo)]
-            assert "gbuffer:preview" in report.gpu_ms  # the preview pass ran
+                out[source], reports[source] = _render_targets(r, cam, source, targets)
+            assert "gbuffer:preview" in reports["preview"].gpu_ms  # the preview pass ran
             ids_r, ids_p = out["raster"][0], out["preview"][0]
             same = (ids_r == ids_p)[..., 0]
             assert same.mean() >= 0.98, same.mean()

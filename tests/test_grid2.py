@@ -190,21 +190,32 @@ def test_forced_configuration_uses_sub_grids(big):
     tbuf.release()
 
 
-def test_two_level_build_waits_as_the_uniform_grid():
-    """The sub level adds no wait: a first build waits twice, a rebuild at the same resolution
-    once (its counts ride on the top build's last wait), and the rebuild equals a fresh build."""
+@pytest.fixture
+def mixed_on_device():
+    """(CL context, the mixed scene's triangles, their device buffer, the scene box)."""
     if CL_REASON is not None:
         pytest.skip(CL_REASON)
-    from viewer import iostats
     from viewer.accel.grid import scene_box, triangles_f4
-    from viewer.accel.grid2 import TwoLevelGrid
     from viewer.cl import cl_context
     from viewer.cl import io as clio
 
     ctx = cl_context()
     tris = mixed_scene(4)
     tb = clio.upload(ctx, triangles_f4(tris), what="test triangles")
-    box = scene_box(tris)
+    try:
+        yield ctx, tris, tb, scene_box(tris)
+    finally:
+        tb.release()
+
+
+def test_two_level_build_waits_as_the_uniform_grid(mixed_on_device):
+    """The sub level adds no wait: a first build waits twice, a rebuild at the same resolution
+    once (its counts ride on the top build's last wait), and the rebuild equals a fresh build."""
+    from viewer import iostats
+    from viewer.accel.grid2 import TwoLevelGrid
+    from viewer.cl import io as clio
+
+    ctx, tris, tb, box = mixed_on_device
     exact, again = TwoLevelGrid(ctx), TwoLevelGrid(ctx)
     try:
         clio.finish(ctx.queue)
@@ -226,26 +237,18 @@ def test_two_level_build_waits_as_the_uniform_grid():
     finally:
         exact.release()
         again.release()
-        tb.release()
 
 
-def test_sub_level_stays_within_the_memory_budget():
+def test_sub_level_stays_within_the_memory_budget(mixed_on_device):
     """A budget the top grid fits but the sub level does not: the sub density is lowered (or the
     sub-grids dropped) until the whole build fits, and the grid still answers as the reference."""
-    if CL_REASON is not None:
-        pytest.skip(CL_REASON)
-    from viewer.accel.grid import scene_box, triangles_f4
     from viewer.accel.grid2 import SubSpec, TwoLevelGrid
     from viewer.backends.ugrid import GridTracer
-    from viewer.cl import cl_context
     from viewer.cl import io as clio
     from viewer.cl.limits import BUDGET_SHARE, DeviceLimits
     from viewer.reference import trace_float64
 
-    ctx = cl_context()
-    tris = mixed_scene(4)
-    tb = clio.upload(ctx, triangles_f4(tris), what="test triangles")
-    box = scene_box(tris)
+    ctx, tris, tb, box = mixed_on_device
     grid = TwoLevelGrid(ctx, sub=SubSpec(density=8.0))
     try:
         full = grid.build(tb, len(tris), *box)
@@ -276,7 +279,6 @@ def test_sub_level_stays_within_the_memory_budget():
             b.release()
     finally:
         grid.release()
-        tb.release()
 
 
 def _top_bytes(grid, tb, tris, box) -> int:

@@ -26,18 +26,10 @@ def _sphere(offset: float, subdivisions: int = 4) -> np.ndarray:
 
 
 def _pinhole(eye: np.ndarray, target: np.ndarray, size=SIZE, fov_deg: float = 50.0):
-    """Row-major pinhole rays from `eye` (float32 origins and directions)."""
-    w, h = size
-    f = (target - eye) / np.linalg.norm(target - eye)
-    r = np.cross(f, [0.0, 1.0, 0.0])
-    r /= np.linalg.norm(r)
-    u = np.cross(r, f)
-    k = np.tan(np.radians(fov_deg) / 2)
-    x = (2 * (np.arange(w) + 0.5) / w - 1) * k * w / h
-    y = (1 - 2 * (np.arange(h) + 0.5) / h) * k
-    X, Y = np.meshgrid(x, y)
-    d = (f + X[..., None] * r + Y[..., None] * u).reshape(-1, 3)
-    return np.broadcast_to(eye.astype(F32), d.shape).copy(), d.astype(F32)
+    """Row-major pinhole rays from `eye` (float32 origins and unit directions), as bench-grids traces."""
+    from viewer.bench.grids_far import primary_rays
+
+    return primary_rays(np.asarray(eye, np.float64), np.asarray(target, np.float64), size, fov_deg)
 
 
 def _eye_and_target(offset: float) -> tuple[np.ndarray, np.ndarray]:

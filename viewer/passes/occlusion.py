@@ -43,6 +43,11 @@ from viewer.passes.uniforms import apply, camera_uniforms
 HIZ_TEXTURE_UNIT = 7  # texture units used while culling (the G-buffer pass binds none of its own)
 
 
+def pyramid_levels(size: tuple[int, int]) -> int:
+    """Mip levels down to 1x1 (GL's floor halving): log2 of the larger side, plus one."""
+    return 1 + int(math.floor(math.log2(max(size))))
+
+
 class OcclusionCuller:
     """The device state of the two-pass culling for one cut; `draw` replaces the raster's draw."""
 
@@ -85,7 +90,7 @@ class OcclusionCuller:
         ctx, red = self.ctx, self.reduce
         hiz = self._pyramid(position.size)
         w, h = position.size
-        levels = 1 + int(math.floor(math.log2(max(w, h))))
+        levels = pyramid_levels((w, h))
         position.use(HIZ_TEXTURE_UNIT)
         tri_id.use(HIZ_TEXTURE_UNIT + 1)
         hiz.use(HIZ_TEXTURE_UNIT + 2)
@@ -125,7 +130,7 @@ class OcclusionCuller:
         self.visible.bind_to_storage_buffer(BIND_CULL_VISIBLE)
         self.stats.bind_to_storage_buffer(BIND_CULL_STATS)
         self.stats.clear()
-        levels = 1 + int(math.floor(math.log2(max(size))))
+        levels = pyramid_levels(size)
         self._pyramid(size).use(HIZ_TEXTURE_UNIT + 2)
         for phase, cmds in ((1, self.cmds[0]), (2, self.cmds[1])):
             if phase == 2:

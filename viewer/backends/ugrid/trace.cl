@@ -32,20 +32,9 @@ inline void trace_ray(const Grid *g, __global const uint2 *cells, __global const
         if (grid_walk_begin(g, &r, tmin, hit_t, &w, &t_enter)) {
             while (true) {
                 int cid = grid_cell_id(g, w.cell);
-#ifdef TWO_LEVEL
-                int s = sub_of[cid];
-                if (s >= 0) {
-                    SubGrid sg = subs[s];
-                    if (walk_sub(&r, &sg, scells, sblocks, scb, bblocks, tmin, &hit_t, &hit_id, any_hit, &tests))
-                        goto done;
-                } else
-#endif
-                {
-                    uint cnt = cells[cid].y;
-                    if (cnt > 0 && test_blocks(&r, blocks + 10 * cell_blocks[cid], cnt, tmin, &hit_t, &hit_id, any_hit,
-                                               &tests))
-                        goto done;
-                }
+                if (test_cell(&r, cid, cells[cid].y, blocks, cell_blocks G2_ARGS, tmin, &hit_t, &hit_id, any_hit,
+                              &tests))
+                    goto done;
                 if (hit_id >= 0 && hit_t <= grid_cell_exit(&w)) break;
                 if (!grid_walk_step(g, &r, &w, hit_t)) break;
             }

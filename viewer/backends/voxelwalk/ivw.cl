@@ -41,15 +41,7 @@ void ivw_trace(__global const Grid *grid, __global const uint2 *cells, __global 
                 if (iters == 0) first = (uint)cid;
                 ++iters;
                 int tests = 0;
-#ifdef TWO_LEVEL
-                int s = sub_of[cid];
-                if (s >= 0) {
-                    SubGrid sg = subs[s];
-                    if (walk_sub(&r, &sg, scells, sblocks, scb, bblocks, tmin, &hit_t, &hit_id, any_hit, &tests))
-                        goto done;
-                } else
-#endif
-                if (test_blocks(&r, blocks + 10 * cell_blocks[cid], cr.y, tmin, &hit_t, &hit_id, any_hit, &tests))
+                if (test_cell(&r, cid, cr.y, blocks, cell_blocks G2_ARGS, tmin, &hit_t, &hit_id, any_hit, &tests))
                     goto done;
                 if (hit_id >= 0 && hit_t <= grid_cell_exit(&w)) break;  // the hit lies inside this cell
                 if (!grid_walk_step(&g, &r, &w, hit_t)) break;

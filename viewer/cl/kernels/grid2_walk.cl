@@ -54,4 +54,19 @@ inline bool walk_sub(const RayPre *r, const SubGrid *s, __global const uint2 *sc
 #define G2_ARGS
 #endif
 
+// One top cell `cid` holding `cnt` triangles: its sub-grid when it has one (TWO_LEVEL), else its
+// own list. True when an any-hit ray is done.
+inline bool test_cell(const RayPre *r, int cid, uint cnt, __global const float4 *blocks,
+                      __global const uint *cell_blocks G2_PARAMS, float tmin, float *hit_t, int *hit_id,
+                      const bool any_hit, int *tests) {
+#ifdef TWO_LEVEL
+    int s = sub_of[cid];
+    if (s >= 0) {
+        SubGrid sg = subs[s];
+        return walk_sub(r, &sg, scells, sblocks, scb, bblocks, tmin, hit_t, hit_id, any_hit, tests);
+    }
+#endif
+    return cnt > 0 && test_blocks(r, blocks + 10 * cell_blocks[cid], cnt, tmin, hit_t, hit_id, any_hit, tests);
+}
+
 #endif
