@@ -1,15 +1,16 @@
 """Uniform grid built on the OpenCL device by sorting triangle-cell pairs (Kalojanov & Slusallek 2009).
 
 Shared by the grid backends (ugrid, pgrid's rays without a preferred direction, voxel walks).
-Per build: one work-item per triangle counts the cells its box overlaps, an exclusive scan gives
+Per build: one work-item per triangle counts the cells it meets, an exclusive scan gives
 each triangle its place, the (cell, triangle) pairs are written, radix-sorted by cell
 (viewer.cl.primitives), and each cell's range is read off the segment boundaries of the sorted
 keys. Kernels: grid_build.cl beside this file; the layout and the 3D-DDA walk:
 viewer/cl/kernels/grid.cl (include it from a trace kernel).
 
-Binning is box/box and conservative: a triangle is listed in every cell that its bounding box,
-grown by `eps` cells per axis and clipped to the grid, overlaps (a superset of the cells the
-triangle itself overlaps). Build and walk work in coordinates local to the grid (vertex or ray
+Binning is triangle/cell and conservative: a triangle is listed in every cell whose box, grown by
+`eps` cells per axis, the triangle meets (grid_build.cl clips it row by row), not in every cell
+of its bounding box: a long diagonal triangle costs its cells, not its box's. Build and walk work
+in coordinates local to the grid (vertex or ray
 origin minus the grid's float32 corner `lo`: exact for nearby points by Sterbenz, else rounded at
 the local magnitude), so rounding is relative to the grid's extent and the ray's distance, never
 to how far the scene lies from the origin. The margin is therefore 1e-3 cells plus 32 float32
@@ -26,7 +27,9 @@ automatic resolution over either is coarsened (GridStats.coarsened counts the st
 Resolution (`grid_resolution`): cells per axis = extent_axis * cbrt(density * N / volume), i.e.
 about `density` cells per triangle, shaped like the scene's box (Wald/Kalojanov's rule); each
 axis in [1, max_axis] and the total at most max_cells. `resolution` > 0 instead fixes the cells
-along the longest axis (the others by extent).
+along the longest axis (the others by extent). An automatic resolution whose triangles meet more
+than GridSpec.max_cells_per_triangle cells each on average (long thin triangles, which the rule does not
+foresee) is coarsened like one over the memory bound.
 
 Layouts (device buffers, all little-endian):
   header : GRID_DTYPE, one record (96 bytes; float4 lo, hi, cell, inv, eps; int4 res, res.w =
@@ -75,6 +78,10 @@ class GridSpec:
     resolution: int = 0
     max_axis: int = 512
     max_cells: int = 2**24
+    # an automatic resolution whose triangles meet more cells than this each, on average, is too
+    # fine for them (the density rule assumes small triangles; a fan of long needles met 325
+    # each) and is coarsened; 0: no such bound
+    max_cells_per_triangle: float = 32.0
 
 
 @dataclass
@@ -84,7 +91,7 @@ class GridStats:
     pairs: int
     nonempty: int
     build_ms: float
-    coarsened: int = 0  # resolution steps taken down to fit the device's memory (0: as asked)
+    coarsened: int = 0  # resolution steps taken down (device memory, or triangles meeting too many cells; 0: as asked)
     nbytes: int = 0  # device bytes of the build's buffers (estimate before allocation)
 
     def as_dict(self) -> dict[str, float]:
@@ -250,12 +257,18 @@ class UniformGrid:
             ncells = int(np.prod(res))
             total, largest = build_bytes(pairs, ncells, n)
             fits = pairs <= MAX_PAIRS and largest <= lim.max_alloc and total <= lim.budget
-            if fits or spec.resolution > 0 or int(res.max()) == 1:
+            per_tri = spec.max_cells_per_triangle
+            coarse_enough = per_tri <= 0 or pairs <= per_tri * max(n, 1)
+            if (fits and coarse_enough) or spec.resolution > 0 or int(res.max()) == 1:
                 break
-            # automatic resolution: coarser by the root of the excess (pairs shrink about with the
-            # cell count for big triangles, slower for small ones: at most a few rounds)
+            # automatic resolution: coarser by a root of the excess (pairs shrink about with the
+            # cell count for big triangles, with the cells per axis for long thin ones, slower for
+            # small ones: at most a few rounds)
             over = max(pairs / MAX_PAIRS, largest / lim.max_alloc, total / lim.budget)
+            dense = pairs / (per_tri * max(n, 1)) if per_tri > 0 else 0.0
             f = min(0.8, float(over) ** (-1 / 3)) if over > 1 else 0.8
+            if dense > 1:
+                f = min(f, max(0.25, float(dense) ** (-1 / 2)))
             res = np.maximum(1, np.floor(res * f)).astype(np.int64)
             coarsened += 1
         what = f"uniform grid {tuple(int(r) for r in res)} ({pairs:,} triangle-cell pairs)"
