@@ -47,7 +47,7 @@ from viewer.accel.grid import GridSpec, scene_box
 from viewer.backends.base import BackendContext, TraceResult
 from viewer.backends.cl_geometry import GeometryBackend
 from viewer.backends.interface import BackendInfo, OverlaySpec, param
-from viewer.backends.voxelwalk.engine import EC_SORTS, PassStats, VoxelWalker, tile_divergence
+from viewer.backends.voxelwalk.engine import EC_SORTS, SKIPS, PassStats, VoxelWalker, tile_divergence
 from viewer.effects import RayType
 from viewer.errors import RtwalkError
 from viewer.rays import HitBuffer, PassInfo, RayBatch
@@ -73,8 +73,11 @@ class VoxelwalkParams:
     density: float = param(2.0, "auto resolution: about this many cells per triangle")
     rebuild: bool = param(False, "rebuild the grid every frame (animated scenes; timing studies)")
     stats: bool = param(False, "per-iteration statistics every pass (else only while overlays are shown)")
-    levels: int = param(2, "IVW walks: 2: dense cells' sub-grids too (the two-level grid of viewer.accel.grid2, "
-                        "as ugrid's); 1: the uniform grid alone. EC always walks the top level")
+    levels: int = param(2, "2: dense cells' sub-grids too (the two-level grid of viewer.accel.grid2, as ugrid's), "
+                        "walked by IVW and the one-launch EC (sort=tile; sort=global walks the top level); "
+                        "1: the uniform grid alone")
+    skip: str = param("none", "walks that skip empty 8^3 blocks of top cells whole: none, ivw, ec or all (the same "
+                      "cells either way; measured slower on the mixed-scale and dragon benches)")
 
     def validate(self, source: str) -> None:
         if self.mode not in MODES:
@@ -97,6 +100,8 @@ class VoxelwalkParams:
             raise RtwalkError(f"{source}: cells must be in 0..4096 (got {self.cells})")
         if not self.density > 0:
             raise RtwalkError(f"{source}: density must be > 0 (got {self.density})")
+        if self.skip not in SKIPS:
+            raise RtwalkError(f"{source}: skip must be none, ivw, ec or all (got '{self.skip}')")
         if self.levels not in (1, 2):
             raise RtwalkError(f"{source}: levels must be 1 or 2 (got {self.levels})")
 
@@ -126,7 +131,8 @@ class VoxelwalkBackend(GeometryBackend):
 
             self.grid.release()
             self.grid = TwoLevelGrid(self.ctx)
-        self.walker = VoxelWalker(self.ctx, self.grid, self.params.chunk, self.params.cells, self.params.sort)
+        self.walker = VoxelWalker(self.ctx, self.grid, self.params.chunk, self.params.cells, self.params.sort,
+                                  self.params.skip)
         self.stages = PassStages(self.ctx)
         self.last_stats: PassStats | None = None
         self._frame_stats: dict[str, float] = {}  # reported by the frame's first pass (the renderer sums passes)

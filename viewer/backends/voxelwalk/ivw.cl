@@ -16,16 +16,11 @@
 #define WG 64
 #endif
 
-__kernel __attribute__((reqd_work_group_size(WG, 1, 1)))
-void ivw_trace(__global const Grid *grid, __global const uint2 *cells, __global const float4 *blocks,
-               __global const uint *cell_blocks G2_PARAMS, __global const float4 *ray_o, __global const float4 *ray_d,
-               __global float *out_t, __global int *out_id, const int n, const int any_hit,
-               __global int *iters_out, __global uint *first_out, __global const uchar *occ_fine,
-               __global const uchar *occ_coarse) {
-    int i = get_global_id(0);
-    if (i >= n) return;
-    Grid g = *grid;
-    float4 ot = ray_o[i], dt = ray_d[i];
+// One ray (any_hit a literal at each call: the two copies are specialised, as ugrid's kernels are).
+inline void ivw_ray(const Grid *g, __global const uint2 *cells, __global const float4 *blocks,
+                    __global const uint *cell_blocks G2_PARAMS, float4 ot, float4 dt, const bool any_hit,
+                    __global const uchar *occ_fine, __global const uchar *occ_coarse, float *out_t, int *out_id,
+                    int *out_iters, uint *out_first) {
     float tmin = ot.w, hit_t = dt.w;
     int hit_id = -1;
     int iters = 0;
@@ -35,22 +30,45 @@ void ivw_trace(__global const Grid *grid, __global const uint2 *cells, __global 
         GridWalk w;
         float t_enter;
         uint2 cr;
-        if (grid_walk_begin(&g, &r, tmin, hit_t, &w, &t_enter)) {
-            while (vw_next_nonempty_skip(&g, cells, occ_fine, occ_coarse, &r, &w, hit_t, &cr)) {
-                int cid = grid_cell_id(&g, w.cell);
+        if (grid_walk_begin(g, &r, tmin, hit_t, &w, &t_enter)) {
+            while (VW_NEXT(g, cells, occ_fine, occ_coarse, &r, &w, hit_t, &cr)) {
+                int cid = grid_cell_id(g, w.cell);
                 if (iters == 0) first = (uint)cid;
                 ++iters;
                 int tests = 0;
                 if (test_cell(&r, cid, cr.y, blocks, cell_blocks G2_ARGS, tmin, &hit_t, &hit_id, any_hit, &tests))
-                    goto done;
+                    break;
                 if (hit_id >= 0 && hit_t <= grid_cell_exit(&w)) break;  // the hit lies inside this cell
-                if (!grid_walk_step(&g, &r, &w, hit_t)) break;
+                if (!grid_walk_step(g, &r, &w, hit_t)) break;
             }
         }
     }
-done:
-    out_t[i] = hit_id >= 0 ? hit_t : INFINITY;
-    out_id[i] = hit_id;
+    *out_t = hit_id >= 0 ? hit_t : INFINITY;
+    *out_id = hit_id;
+    *out_iters = iters;
+    *out_first = first;
+}
+
+__kernel __attribute__((reqd_work_group_size(WG, 1, 1)))
+void ivw_trace(__global const Grid *grid, __global const uint2 *cells, __global const float4 *blocks,
+               __global const uint *cell_blocks G2_PARAMS, __global const float4 *ray_o, __global const float4 *ray_d,
+               __global float *out_t, __global int *out_id, const int n, const int any_hit,
+               __global int *iters_out, __global uint *first_out, __global const uchar *occ_fine,
+               __global const uchar *occ_coarse) {
+    int i = get_global_id(0);
+    if (i >= n) return;
+    Grid g = *grid;
+    float t;
+    int id, iters;
+    uint first;
+    if (any_hit)
+        ivw_ray(&g, cells, blocks, cell_blocks G2_ARGS, ray_o[i], ray_d[i], true, occ_fine, occ_coarse, &t, &id,
+                &iters, &first);
+    else
+        ivw_ray(&g, cells, blocks, cell_blocks G2_ARGS, ray_o[i], ray_d[i], false, occ_fine, occ_coarse, &t, &id,
+                &iters, &first);
+    out_t[i] = t;
+    out_id[i] = id;
     iters_out[i] = iters;
     first_out[i] = first;
 }
