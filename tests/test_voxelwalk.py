@@ -156,7 +156,7 @@ def test_bad_parameters_cli_one_line():
 # statistics against independent computations
 # ----------------------------------------------------------------------------------------------
 
-def _walker(tris: np.ndarray, resolution: int, chunk: int = 64):
+def _walker(tris: np.ndarray, resolution: int, chunk: int = 64, skip: str = "none"):
     from viewer.accel.grid import GridSpec, UniformGrid, scene_box, triangles_f4
     from viewer.backends.voxelwalk import VoxelWalker
     from viewer.cl import cl_context
@@ -166,7 +166,7 @@ def _walker(tris: np.ndarray, resolution: int, chunk: int = 64):
     grid = UniformGrid(ctx)
     tb = cl.Buffer(ctx.context, cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR, hostbuf=triangles_f4(tris))
     grid.build(tb, len(tris), *scene_box(tris), GridSpec(resolution=resolution))
-    return ctx, grid, tb, VoxelWalker(ctx, grid, chunk=chunk, window=1)
+    return ctx, grid, tb, VoxelWalker(ctx, grid, chunk=chunk, window=1, skip=skip)
 
 
 def _dda_float64(header, cells, o, d, tmax):
@@ -206,14 +206,15 @@ def _dda_float64(header, cells, o, d, tmax):
     return np.concatenate(rows) if rows else np.zeros((0, 3), np.int64)
 
 
-@pytest.mark.parametrize("resolution", [12, 64])
-def test_first_cells_and_iterations_match_a_float64_walk(resolution):
-    """IVW and the one-launch EC skip empty macro cells (walk.cl); the global-sort EC walks cell by
-    cell: all three visit the same non-empty cells, and the first ones are the float64 walk's."""
+@pytest.mark.parametrize("resolution,skip", [(12, "all"), (64, "all"), (64, "none")])
+def test_first_cells_and_iterations_match_a_float64_walk(resolution, skip):
+    """IVW and the one-launch EC with skip=all skip empty 8^3 blocks (walk.cl); the global-sort EC
+    walks cell by cell: all three visit the same non-empty cells, and the first ones are the
+    float64 walk's."""
     from viewer.backends.voxelwalk import VoxelWalker
 
     tris = _scene()
-    ctx, grid, tb, walker = _walker(tris, resolution=resolution)
+    ctx, grid, tb, walker = _walker(tris, resolution=resolution, skip=skip)
     from viewer.cl import HitStage, RayStage
 
     n = 4096

@@ -2,8 +2,9 @@
 // device): one work-group per partition of at most P active rays (screen-tile order, compacted)
 // runs every EC iteration of its rays, with only work-group barriers:
 //   walk     each active ray moves to its next non-empty cell (3D-DDA resumed from a cell id,
-//            walk.cl) and inserts that cell into a local hash table (atomic compare-and-swap on
-//            the key, atomic increment for its rank in the cell)
+//            walk.cl; with TWO_LEVEL its next unit: a top cell, a sub-grid's big list or one of
+//            its non-empty sub-cells, below) and inserts it into a local hash table (atomic
+//            compare-and-swap on the key, atomic increment for its rank in the cell)
 //   sort     a counting sort by cell: a scan over the table (only 2 entries per active ray) gives
 //            each cell its offset and its chunks (at most WG rays of one cell); the rays are
 //            scattered into cell order, which is also the compaction (resolved rays inserted

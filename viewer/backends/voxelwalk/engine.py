@@ -1,4 +1,5 @@
-"""The voxel-walk tracer on the device, without GL: IVW and EC over the shared uniform grid.
+"""The voxel-walk tracer on the device, without GL: IVW and EC over the shared uniform grid (or
+the two-level grid of viewer.accel.grid2, whose sub-grids IVW and the one-launch EC walk).
 
 `VoxelWalker.trace(origin, dir, n, any_hit, mode)` traces n rays held in device buffers (the
 viewer/cl/transfer.py layout) into (t, tri) device buffers; kernels ivw.cl and ec.cl beside this
@@ -8,8 +9,9 @@ rays, ray-cell pairs, work-groups after compaction, resolved rays and the distin
 screen tile; rays per cell at the first iteration. The per-iteration host statistics read small
 device arrays back, so they cost time: timing runs leave `stats` off. Without them IVW and the
 one-launch EC (ec_sort "tile", ec_tile.cl: 5 launches per pass) do not wait on the host at all, and
-the global-sort EC (ec.cl) waits once per batch of iterations (usually once). IVW and the one-launch
-EC skip empty 8^3 blocks of cells (walk.cl; the occupancy is rebuilt after each grid build).
+the global-sort EC (ec.cl) waits once per batch of iterations (usually once). With `skip`, IVW
+and/or the one-launch EC skip empty 8^3 blocks of cells (walk.cl VW_SKIP; the occupancy is rebuilt
+after each grid build; off by default: measured slower).
 """
 
 from __future__ import annotations

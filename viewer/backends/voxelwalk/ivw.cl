@@ -3,12 +3,12 @@
 // test of geometry.cl) and stops at the first cell that holds a hit inside the cell (closest
 // hit) or at the first hit (any hit: shadow, soft, AO). Triangles are tested four at a time from
 // the cell's SoA blocks (grid.py GRID_BLOCK_DTYPE; cell order = slot order, so ties go to the
-// lowest slot); empty 8^3 blocks of cells are skipped whole (walk.cl). iters[i] = non-empty cells
-// the ray visited (its iterations); first[i] = its first non-empty cell (VW_NONE: none), for the
-// tile divergence statistics. With TWO_LEVEL (levels=2), a top cell with a sub-grid (the two-level
+// lowest slot); with VW_SKIP empty 8^3 blocks of cells are skipped whole (walk.cl). iters[i] =
+// non-empty (top) cells the ray visited (its iterations); first[i] = its first non-empty cell
+// (VW_NONE: none), for the tile divergence statistics. With TWO_LEVEL (levels=2), a top cell with a sub-grid (the two-level
 // grid of viewer/accel/grid2.py, as ugrid's) is walked through it instead of its own list: the
-// teapot-in-a-stadium case. The top lists stay whole, so EC (ec.cl, ec_tile.cl) walks the top
-// level as before.
+// teapot-in-a-stadium case. The one-launch EC (ec_tile.cl) walks the same sub-grids in the same
+// order; the global-sort EC (ec.cl) the top lists, which stay whole.
 #include "walk.cl"
 #include "grid2_walk.cl"
 
