@@ -294,7 +294,9 @@ class VoxelWalker:
             fc = fc[fc != 0xFFFFFFFF]
             ps.rays_per_cell = np.unique(fc, return_counts=True)[1] if len(fc) else np.zeros(0, np.int64)
             walked = ps.iters[ps.iters > 0]
-            for k in range(1, ps.iterations + 1):  # derived per iteration: one cell per active ray
+            # derived per iteration: one cell per active ray (on the two-level grid an iteration's
+            # unit may be a sub-cell or a big list, while iters counts top cells: an approximation)
+            for k in range(1, ps.iterations + 1):
                 active = float(np.count_nonzero(walked >= k))
                 ps.per_iter.append({"active": active, "pairs": active,
                                     "resolved": float(np.count_nonzero(walked == k))})
