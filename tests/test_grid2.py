@@ -77,15 +77,17 @@ def mixed_rays(rng: np.random.Generator, n: int) -> tuple[np.ndarray, np.ndarray
     return o.astype(F32), d.astype(F32)
 
 
-@pytest.fixture(params=["ugrid", "voxelwalk"])
+@pytest.fixture(params=["ugrid", "voxelwalk", "voxelwalk-ec"])
 def ugrid_default(request):
-    """The backends whose default walks the two-level grid: ugrid, and voxelwalk's IVW (its any-hit
-    rays and primary rays; closest hits go through IVW with mode=ivw, set here)."""
+    """The backends whose default walks the two-level grid: ugrid, voxelwalk's IVW (its any-hit
+    rays and primary rays; closest hits go through IVW with mode=ivw, set here) and voxelwalk's
+    one-launch EC (closest hits; viewer.tracing traces them as primary rays, hence primary=ec)."""
     if CL_REASON is not None:
         pytest.skip(CL_REASON)
-    if request.param == "voxelwalk":
+    if request.param.startswith("voxelwalk"):
         monkeypatch = request.getfixturevalue("monkeypatch")
-        monkeypatch.setenv("RTWALK_VOXELWALK", "mode=ivw")
+        monkeypatch.setenv("RTWALK_VOXELWALK", "mode=ec,primary=ec" if request.param.endswith("ec") else "mode=ivw")
+        return "voxelwalk"
     return request.param
 
 

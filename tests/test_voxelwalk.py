@@ -89,8 +89,54 @@ def test_ec_is_deterministic_across_chunk_sizes(monkeypatch):
     assert (out[0][1][hit] % len(base) == i0[hit] % len(base)).mean() > 0.999
 
 
+def _two_level_walker(tris: np.ndarray, big: float, chunk: int, skip: str):
+    """A two-level grid with sub-grids forced (a 3-cell top grid, every occupied cell a sub-grid;
+    with big=0.25 the longer triangles in the cells' big lists) and a walker over it."""
+    from viewer.accel.grid import GridSpec, scene_box, triangles_f4
+    from viewer.accel.grid2 import SubSpec, TwoLevelGrid
+    from viewer.backends.voxelwalk import VoxelWalker
+    from viewer.cl import cl_context
+    from viewer.cl import io as clio
+
+    ctx = cl_context()
+    grid = TwoLevelGrid(ctx, sub=SubSpec(min_small=1, big_frac=big, density=4.0))
+    tb = clio.upload(ctx, triangles_f4(tris), what="test triangles")
+    st = grid.build(tb, len(tris), *scene_box(tris), GridSpec(resolution=3))
+    assert st.subgrids > 0 and (st.big > 0) == (big < 1.0)
+    return ctx, grid, tb, VoxelWalker(ctx, grid, chunk=chunk, window=1, skip=skip)
+
+
+@pytest.mark.parametrize("big,chunk,skip", [(1e9, 64, "none"), (0.25, 16, "none"), (0.25, 64, "all")])
+def test_ec_walks_the_sub_grids_bit_for_bit_as_ivw(reference, big, chunk, skip):
+    """The one-launch EC on a two-level grid sorts rays by sub-cell (and big list) and returns IVW's
+    hits bit for bit, with IVW's per-ray iterations (non-empty top cells) and first cells; both
+    match Embree."""
+    from viewer.cl import HitStage, RayStage
+
+    tris, (o, d, _, _), (t0, i0), _ = reference
+    ctx, grid, tb, walker = _two_level_walker(tris, big, chunk, skip)
+    n = len(o)
+    size = (100, n // 100)
+    rs, hs = RayStage(size, ctx), HitStage(size, ctx)
+    rs.upload_arrays(np.c_[o, np.zeros(n, np.float32)], np.c_[d, np.full(n, 1e30, np.float32)])
+    ivw = walker.trace_ivw(tb, rs.origin, rs.dir, hs.t, hs.tri, n, False, stats=True)
+    t_ivw, id_ivw = hs.read()
+    ec = walker.trace_ec(tb, rs.origin, rs.dir, hs.t, hs.tri, n, stats=True, size=size)
+    t_ec, id_ec = hs.read()
+    t_ivw, id_ivw, t_ec, id_ec = (np.asarray(a).reshape(-1)[:n] for a in (t_ivw, id_ivw, t_ec, id_ec))
+    assert np.array_equal(t_ec.view(np.uint32), t_ivw.view(np.uint32)) and np.array_equal(id_ec, id_ivw)
+    assert np.array_equal(ec.iters, ivw.iters) and np.array_equal(ec.first_cell, ivw.first_cell)
+    assert ec.pairs >= int(ec.iters.sum())  # sub-cells and big lists: more units than top cells
+    hit = i0 >= 0
+    assert ((id_ec >= 0) == hit).all()
+    np.testing.assert_allclose(t_ec[hit], t0[hit], rtol=1e-5)
+    for x in (rs, hs, walker, grid, tb):
+        x.release()
+
+
 @pytest.mark.parametrize("text", ["mode=fast", "chunk=48", "resolution=big", "resolution=0", "cells=-1",
-                                  "density=0", "colour=red", "sort=random", "primary=maybe"])
+                                  "density=0", "colour=red", "sort=random", "primary=maybe",
+                                  "skip=some", "levels=3"])
 def test_bad_parameters_raise(text):
     from viewer.backends import check_params
 
@@ -110,7 +156,7 @@ def test_bad_parameters_cli_one_line():
 # statistics against independent computations
 # ----------------------------------------------------------------------------------------------
 
-def _walker(tris: np.ndarray, resolution: int, chunk: int = 64):
+def _walker(tris: np.ndarray, resolution: int, chunk: int = 64, skip: str = "none"):
     from viewer.accel.grid import GridSpec, UniformGrid, scene_box, triangles_f4
     from viewer.backends.voxelwalk import VoxelWalker
     from viewer.cl import cl_context
@@ -120,7 +166,7 @@ def _walker(tris: np.ndarray, resolution: int, chunk: int = 64):
     grid = UniformGrid(ctx)
     tb = cl.Buffer(ctx.context, cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR, hostbuf=triangles_f4(tris))
     grid.build(tb, len(tris), *scene_box(tris), GridSpec(resolution=resolution))
-    return ctx, grid, tb, VoxelWalker(ctx, grid, chunk=chunk, window=1)
+    return ctx, grid, tb, VoxelWalker(ctx, grid, chunk=chunk, window=1, skip=skip)
 
 
 def _dda_float64(header, cells, o, d, tmax):
@@ -160,14 +206,15 @@ def _dda_float64(header, cells, o, d, tmax):
     return np.concatenate(rows) if rows else np.zeros((0, 3), np.int64)
 
 
-@pytest.mark.parametrize("resolution", [12, 64])
-def test_first_cells_and_iterations_match_a_float64_walk(resolution):
-    """IVW and the one-launch EC skip empty macro cells (walk.cl); the global-sort EC walks cell by
-    cell: all three visit the same non-empty cells, and the first ones are the float64 walk's."""
+@pytest.mark.parametrize("resolution,skip", [(12, "all"), (64, "all"), (64, "none")])
+def test_first_cells_and_iterations_match_a_float64_walk(resolution, skip):
+    """IVW and the one-launch EC with skip=all skip empty 8^3 blocks (walk.cl); the global-sort EC
+    walks cell by cell: all three visit the same non-empty cells, and the first ones are the
+    float64 walk's."""
     from viewer.backends.voxelwalk import VoxelWalker
 
     tris = _scene()
-    ctx, grid, tb, walker = _walker(tris, resolution=resolution)
+    ctx, grid, tb, walker = _walker(tris, resolution=resolution, skip=skip)
     from viewer.cl import HitStage, RayStage
 
     n = 4096

@@ -9,8 +9,11 @@ Primary rays of a pinhole camera framing the small object (`--size`, default 320
 by each backend (`--backends`) through Backend.trace (upload, kernel, download) once untimed
 (kernel compilation), then in interleaved rounds; reported per backend: the grid's triangle-cell
 pairs, its device buffer bytes, the median trace ms, its ratio to clbvh's, and hits that disagree
-with clbvh (ties at the same distance excepted). Peak RSS: one backend per process under
-/usr/bin/time -v. `--build-only`: the uniform grid alone (pairs, MiB, RSS), no tracing.
+with clbvh (ties at the same distance excepted). `--rays reflect` traces, instead, those primary
+rays mirrored off their first hits (found by clbvh; float32 hit point, tmin 1e-4 of the primary
+hit distance; rays that missed stay inactive) as reflection rays (voxelwalk's EC by default).
+Peak RSS: one backend per process under /usr/bin/time -v. `--build-only`: the uniform grid alone
+(pairs, MiB, RSS), no tracing.
 
   rtwalk bench-grids --scene dragon --offset 1e6 --backends clbvh,ugrid,pgrid,voxelwalk
 """
@@ -42,6 +45,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="comma list of registered backends to trace (clbvh is the reference for ratios); "
                         "NAME:k=v+k=v traces NAME with those parameters (its --backend-params, '+' for ','), "
                         "e.g. ugrid:levels=1 or voxelwalk:primary=ec")
+    p.add_argument("--rays", default="primary", choices=("primary", "reflect"),
+                   help="primary: the pinhole rays; reflect: them mirrored off their first hits (clbvh's), "
+                        "traced as reflection rays")
     p.add_argument("--rounds", type=int, default=3, help="interleaved timing rounds (default 3)")
     p.add_argument("--scene-dir", default="", help="folder of the shared scenes (default ../shared/scenes)")
     p.add_argument("--json", default="", help="write the rows to this file")
@@ -118,8 +124,10 @@ def primary_rays(eye: np.ndarray, target: np.ndarray, size: tuple[int, int], fov
 class Runner:
     """One backend over the scene, tracing the same rays again and again."""
 
-    def __init__(self, name: str, tris: np.ndarray, o: np.ndarray, d: np.ndarray):
-        """`name`: a backend, or "backend:key=value+key=value" (its --backend-params, '+' for ',')."""
+    def __init__(self, name: str, tris: np.ndarray, o: np.ndarray, d: np.ndarray, tmin: np.ndarray | None = None,
+                 ray_type: Any = None):
+        """`name`: a backend, or "backend:key=value+key=value" (its --backend-params, '+' for ',').
+        `tmin`: per ray (default 0; NaN: an inactive ray); `ray_type`: the pass's (default primary)."""
         from viewer.accel.bvh import build_bvh
         from viewer.backends import create_backend
         from viewer.backends.base import BackendContext
@@ -146,6 +154,10 @@ class Runner:
         dirs[:, 2], dirs[:, 3] = 1.0, -1.0
         org[:n, :3], dirs[:n, :3] = o, d
         dirs[:n, 3] = 3.4e38
+        if tmin is not None:
+            dead = np.isnan(tmin)
+            org[:n, 3] = np.where(dead, 0.0, tmin)
+            dirs[:n, 3][dead] = -1.0
         self.rays, self.hits = RayBatch(ctx, (width, height)), HitBuffer(ctx, (width, height))
         self.rays.origin.write(org.tobytes())
         self.rays.direction.write(dirs.tobytes())
@@ -156,7 +168,7 @@ class Runner:
         self.be = create_backend(backend, bc, params.replace("+", ",") or None)
         self.be.begin_frame(0)
         self.build_ms = (time.perf_counter() - t0) * 1e3
-        self.pinfo = PassInfo(RayType.PRIMARY)
+        self.pinfo = PassInfo(ray_type if ray_type is not None else RayType.PRIMARY)
         # untimed: kernels compile at first enqueue; `stats`: the last trace's counters
         self.stats = self.be.trace(self.rays, self.pinfo, self.hits).stats
 
@@ -187,6 +199,26 @@ class Runner:
         self.gpu.release()
 
 
+def reflect_rays(tris: np.ndarray, o: np.ndarray, d: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The rays (o, d) mirrored off their first hits (clbvh's): float32 hit points, directions
+    mirrored about the hit triangle's plane, tmin 1e-4 of the hit distance (the hit point's
+    rounding is relative to it); a ray that missed gets tmin NaN (inactive)."""
+    ref = Runner("clbvh", tris, o, d)
+    _, ids, t = ref.trace()
+    ref.release()
+    hit = ids >= 0
+    tv = np.where(hit, t, 0.0).astype(np.float64)
+    p = (o.astype(np.float64) + tv[:, None] * d).astype(np.float32)
+    v = tris[np.maximum(ids, 0)].astype(np.float64)
+    nrm = np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0])
+    nrm /= np.maximum(np.linalg.norm(nrm, axis=1, keepdims=True), 1e-300)
+    dd = d.astype(np.float64)
+    r = dd - 2.0 * (dd * nrm).sum(1, keepdims=True) * nrm
+    r = np.where(hit[:, None], r, dd).astype(np.float32)
+    tmin = np.where(hit, 1e-4 * tv, np.nan).astype(np.float32)
+    return p, r, tmin
+
+
 def build_only(args, tris: np.ndarray) -> int:
     """The uniform grid alone (the one ugrid, pgrid and voxelwalk build): pairs, MiB, RSS."""
     from viewer.accel.grid import GridSpec, UniformGrid, scene_box, triangles_f4
@@ -214,10 +246,16 @@ def run(args) -> int:
     if args.build_only:
         return build_only(args, tris)
     o, d = primary_rays(eye, target, size)
+    tmin, ray_type = None, None
+    if args.rays == "reflect":
+        from viewer.effects import RayType
+
+        o, d, tmin = reflect_rays(tris, o, d)
+        ray_type = RayType.REFLECT
     names = [b for b in args.backends.split(",") if b]
     runners, rows = {}, {}
     for name in names:
-        runners[name] = Runner(name, tris, o, d)
+        runners[name] = Runner(name, tris, o, d, tmin, ray_type)
         rows[name] = {"backend": name, "build_ms": runners[name].build_ms, **runners[name].grid_figures(),
                       "times": []}
     ids_of: dict[str, np.ndarray] = {}
@@ -229,7 +267,9 @@ def run(args) -> int:
             ids_of[name], t_of[name] = ids, t
     ref = ids_of.get("clbvh")
     base = statistics.median(rows["clbvh"]["times"]) if "clbvh" in rows else None
-    print(f"scene {args.scene} offset {args.offset:g} triangles {len(tris)} rays {len(o)}")
+    active = len(o) if tmin is None else int((~np.isnan(tmin)).sum())
+    print(f"scene {args.scene} offset {args.offset:g} triangles {len(tris)} rays {len(o)} ({args.rays}, "
+          f"{active} active)")
     for name in names:
         r = rows[name]
         r["ms"] = statistics.median(r["times"])

@@ -1,31 +1,39 @@
 """voxelwalk: reflection rays through a uniform grid, walked by each ray alone or with coherence
 enforced by sorting (Guntury, "Raytracing Dynamic Scenes on GPU", IIIT Hyderabad 2011, ch. 5).
 
-The grid is the shared one of viewer.accel.grid (sorted triangle-cell pairs), built on the
-OpenCL device at creation and again when the scene's triangles change (or every frame with
-rebuild=true, as an animated scene needs).
+The grid is the shared one of viewer.accel.grid (sorted triangle-cell pairs), by default with
+ugrid's second level (viewer.accel.grid2: dense top cells get a sub-grid and a short list of their
+big triangles; levels=1: the uniform grid alone), built on the OpenCL device at creation and again
+when the scene's triangles change (or every frame with rebuild=true, as an animated scene needs).
 
 * IVW (mode=ivw): one work-item per ray walks the grid by 3D-DDA and stops at the first cell that
   holds a hit inside the cell (ivw.cl), testing each cell's triangles four at a time. Any-hit rays
   (shadow, soft, AO) always go this way, stopping at their first hit, and so do primary rays
   unless primary=ec: they share the eye, so neighbouring pixels already walk the same cells in the
-  same order and sorting them by cell adds nothing (the IVW fast path).
+  same order and sorting them by cell adds nothing (the IVW fast path). A top cell with a
+  sub-grid is walked through it (big list, then sub-cells; grid2_walk.cl, shared with ugrid).
 * EC (mode=ec, other closest-hit rays), in iterations of one non-empty cell per ray, rays of the
   same cell processed together, resolved rays dropping out:
   - sort=tile (default, ec_tile.cl): every iteration on the device in one launch: one
     work-group per screen-tile partition of the active rays loops over its iterations (walk to the
     next non-empty cell, counting sort by cell through a local hash table, chunks of at most
-    `chunk` rays of one cell with the cell's triangles staged in local memory, resolve). A fixed
-    5 launches and one wait per pass whatever the iteration count; hits equal IVW's bit for bit.
+    `chunk` rays of one cell with the cell's triangles staged in local memory, resolve). On the
+    two-level grid the unit of an iteration is a top cell without sub-grid, a sub-grid's big list
+    or one of its non-empty sub-cells (in IVW's order), so rays reaching a dense object are sorted
+    by its sub-cells. A fixed 5 launches and one wait per pass whatever the iteration count; hits
+    equal IVW's bit for bit.
   - sort=global (the thesis's, ec.cl; also whenever cells != 1): each active ray emits its
     (ray, cell) pairs for its next `cells` non-empty cells (count, scan, write), the pairs are
     radix-sorted by cell over all rays, cut into chunks of at most `chunk` rays, compacted, and
     one work-group per chunk tests the staged triangles; nearest hits by an atomic minimum on
-    packed (distance, triangle) keys. About 24 launches per iteration (one wait per pass).
+    packed (distance, triangle) keys. About 24 launches per iteration (one wait per pass). It
+    walks the top level only (the top lists stay whole on the two-level grid).
 
-IVW and the one-launch EC skip empty 8^3 blocks of cells whole, landing on the cell and walk state
-the cell-by-cell 3D-DDA would reach (walk.cl). Both modes are exact (the watertight test of
-viewer/cl/kernels/geometry.cl, the grid's conservative binning, and the hit-inside-cell rule).
+With skip=ivw/ec/all, IVW and/or the one-launch EC skip empty 8^3 blocks of top cells whole,
+landing on the cell and walk state the cell-by-cell 3D-DDA would reach (walk.cl); off by default
+(measured slower on the mixed-scale and dragon benches, docs/backends/voxelwalk.md). Both modes
+are exact (the watertight test of viewer/cl/kernels/geometry.cl, the grid's conservative binning,
+and the hit-inside-cell rule).
 Resolution: `auto` takes grid.py's rule (about `density` cells per triangle, shaped like
 the scene's box: extents per axis and triangle density), N fixes N cells on the longest axis (the
 thesis used 128^3); the cells per axis are counters res_x/y/z.
@@ -47,7 +55,7 @@ from viewer.accel.grid import GridSpec, scene_box
 from viewer.backends.base import BackendContext, TraceResult
 from viewer.backends.cl_geometry import GeometryBackend
 from viewer.backends.interface import BackendInfo, OverlaySpec, param
-from viewer.backends.voxelwalk.engine import EC_SORTS, PassStats, VoxelWalker, tile_divergence
+from viewer.backends.voxelwalk.engine import EC_SORTS, SKIPS, PassStats, VoxelWalker, tile_divergence
 from viewer.effects import RayType
 from viewer.errors import RtwalkError
 from viewer.rays import HitBuffer, PassInfo, RayBatch
@@ -73,8 +81,11 @@ class VoxelwalkParams:
     density: float = param(2.0, "auto resolution: about this many cells per triangle")
     rebuild: bool = param(False, "rebuild the grid every frame (animated scenes; timing studies)")
     stats: bool = param(False, "per-iteration statistics every pass (else only while overlays are shown)")
-    levels: int = param(2, "IVW walks: 2: dense cells' sub-grids too (the two-level grid of viewer.accel.grid2, "
-                        "as ugrid's); 1: the uniform grid alone. EC always walks the top level")
+    levels: int = param(2, "2: dense cells' sub-grids too (the two-level grid of viewer.accel.grid2, as ugrid's), "
+                        "walked by IVW and the one-launch EC (sort=tile; sort=global walks the top level); "
+                        "1: the uniform grid alone")
+    skip: str = param("none", "walks that skip empty 8^3 blocks of top cells whole: none, ivw, ec or all (the same "
+                      "cells either way; measured slower on the mixed-scale and dragon benches)")
 
     def validate(self, source: str) -> None:
         if self.mode not in MODES:
@@ -97,6 +108,8 @@ class VoxelwalkParams:
             raise RtwalkError(f"{source}: cells must be in 0..4096 (got {self.cells})")
         if not self.density > 0:
             raise RtwalkError(f"{source}: density must be > 0 (got {self.density})")
+        if self.skip not in SKIPS:
+            raise RtwalkError(f"{source}: skip must be none, ivw, ec or all (got '{self.skip}')")
         if self.levels not in (1, 2):
             raise RtwalkError(f"{source}: levels must be 1 or 2 (got {self.levels})")
 
@@ -126,7 +139,8 @@ class VoxelwalkBackend(GeometryBackend):
 
             self.grid.release()
             self.grid = TwoLevelGrid(self.ctx)
-        self.walker = VoxelWalker(self.ctx, self.grid, self.params.chunk, self.params.cells, self.params.sort)
+        self.walker = VoxelWalker(self.ctx, self.grid, self.params.chunk, self.params.cells, self.params.sort,
+                                  self.params.skip)
         self.stages = PassStages(self.ctx)
         self.last_stats: PassStats | None = None
         self._frame_stats: dict[str, float] = {}  # reported by the frame's first pass (the renderer sums passes)

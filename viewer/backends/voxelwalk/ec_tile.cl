@@ -2,8 +2,9 @@
 // device): one work-group per partition of at most P active rays (screen-tile order, compacted)
 // runs every EC iteration of its rays, with only work-group barriers:
 //   walk     each active ray moves to its next non-empty cell (3D-DDA resumed from a cell id,
-//            walk.cl) and inserts that cell into a local hash table (atomic compare-and-swap on
-//            the key, atomic increment for its rank in the cell)
+//            walk.cl; with TWO_LEVEL its next unit: a top cell, a sub-grid's big list or one of
+//            its non-empty sub-cells, below) and inserts it into a local hash table (atomic
+//            compare-and-swap on the key, atomic increment for its rank in the cell)
 //   sort     a counting sort by cell: a scan over the table (only 2 entries per active ray) gives
 //            each cell its offset and its chunks (at most WG rays of one cell); the rays are
 //            scattered into cell order, which is also the compaction (resolved rays inserted
@@ -22,6 +23,8 @@
 // IVW return bit-identical hits. Per-group totals (iterations, ray-cell pairs, chunks, rays) go to
 // `totals` (4 uints per group): the host reads them once per pass.
 #include "walk.cl"
+// with TWO_LEVEL: grid2.cl's sub-walk and G2_PARAMS / G2_ARGS
+#include "grid2_walk.cl"
 
 #ifndef WG
 #define WG 64
@@ -56,44 +59,172 @@ inline uint ect_insert(__local volatile uint *hkey, __local volatile uint *hcnt,
     return h;
 }
 
-// Resolve of ray j (list position k) after the tests of its cell: done when its hit lies inside
-// the cell (the hit-inside-cell rule) or its walk ends, then it writes its result; else it walks
-// on to its next non-empty cell and inserts it into the table (size entries) for the next iteration.
-inline void ect_resolve(const Grid *g, __global const uint2 *cells, __global const uchar *occ_fine,
-                        __global const uchar *occ_coarse, const RayPre *r, uint i, uint j, uint k, float hit_t,
-                        uint hit_slot, uint size, __local uint *cur, __local uint *nit,
-                        __local uint *bucket, __local uint *rank, __local volatile uint *hkey,
-                        __local volatile uint *hcnt, __global float *out_t, __global int *out_id,
-                        __global int *iters_out) {
-    bool got = hit_slot != VW_NONE;
-    GridWalk w;
-    vw_walk_at(g, r, cur[j], hit_t, &w);
-    uint c = VW_NONE;
+// Units: what one EC iteration of a ray tests, the sort key. A top cell without a sub-grid is
+// unit c (< ncells: its own list). With TWO_LEVEL a top cell with sub-grid s is walked as IVW's
+// test_cell walks it (grid2_walk.cl): its big list first (unit ncells + nsubc + s, when it has
+// one), then its non-empty sub-cells in sub-walk order (unit ncells + global sub-cell id), so rays
+// reaching a dense object are sorted by its sub-cells, not by the one top cell holding all of it.
+// The ray's top cell is kept beside its unit (top[j]).
+#ifdef TWO_LEVEL
+#define ECT_G2 G2_PARAMS, const uint nsubc
+#define ECT_G2_ARGS G2_ARGS, nsubc
+#else
+#define ECT_G2
+#define ECT_G2_ARGS
+#endif
+
+// The unit's triangle blocks (10 float4 per block of 4) and its triangle count.
+inline __global const float4 *ect_unit(uint u, uint ncells, __global const uint2 *cells,
+                                       __global const float4 *blocks, __global const uint *cell_blocks
+                                       ECT_G2, uint *cnt) {
+#ifdef TWO_LEVEL
+    if (u >= ncells) {
+        uint v = u - ncells;
+        if (v < nsubc) {
+            *cnt = scells[v].y;
+            return sblocks + 10u * scb[v];
+        }
+        uint4 big = subs[v - nsubc].big;
+        *cnt = big.y;
+        return bblocks + 10u * big.x;
+    }
+#endif
+    *cnt = cells[u].y;
+    return blocks + 10u * cell_blocks[u];
+}
+
+#ifdef TWO_LEVEL
+// Sub-walk state of ray r in sub-cell `sid` (global id) of sub-grid s, as g2_walk_begin and its
+// steps left it there: every plane distance is a function of the sub-cell index (g2_next_plane),
+// and the exit t1 = min(tmax, box exit) acts only through t < hit_t <= tmax, so the current hit
+// distance as tmax gives the same steps and the same hit-inside checks.
+inline void ect_sub_at(const SubGrid *s, const RayPre *r, uint sid, float tmax, SubWalk *w) {
+    g2real3 cell = convert_g2real3(s->cell.xyz);
+    g2real3 hi = cell * convert_g2real3(s->res.xyz);
+    w->o = convert_g2real3(r->o) - convert_g2real3(s->lo.xyz);
+    w->d = convert_g2real3(r->d);
+    g2real t0 = -G2_INF, t1 = (g2real)tmax;
+    g2_slab(w->o.x, w->d.x, hi.x, &t0, &t1);
+    g2_slab(w->o.y, w->d.y, hi.y, &t0, &t1);
+    g2_slab(w->o.z, w->d.z, hi.z, &t0, &t1);
+    w->t_exit = t1;
+    int loc = (int)sid - s->res.w;
+    w->cell = (int3)(loc % s->res.x, (loc / s->res.x) % s->res.y, loc / (s->res.x * s->res.y));
+    w->step = (int3)(w->d.x > 0 ? 1 : (w->d.x < 0 ? -1 : 0), w->d.y > 0 ? 1 : (w->d.y < 0 ? -1 : 0),
+                     w->d.z > 0 ? 1 : (w->d.z < 0 ? -1 : 0));
+    w->tnext = (g2real3)(g2_next_plane(w->o.x, w->d.x, cell.x, w->cell.x, w->step.x),
+                         g2_next_plane(w->o.y, w->d.y, cell.y, w->cell.y, w->step.y),
+                         g2_next_plane(w->o.z, w->d.z, cell.z, w->cell.z, w->step.z));
+}
+
+// The next non-empty sub-cell from w's (the current one included when `here`), as a unit;
+// VW_NONE when the sub-walk ends first. IVW's sub-walk also stops at an empty sub-cell holding
+// the hit, but there its next step fails too (t >= hit_t or t > t_exit): the same tests.
+inline uint ect_sub_next(const SubGrid *s, SubWalk *w, bool here, float hit_t, __global const uint2 *scells,
+                         uint ncells) {
+    if (!here && !g2_walk_step(s, w, hit_t)) return VW_NONE;
+    while (true) {
+        int sid = g2_cell_id(s, w->cell);
+        if (scells[sid].y > 0u) return ncells + (uint)sid;
+        if (!g2_walk_step(s, w, hit_t)) return VW_NONE;
+    }
+}
+#endif
+
+// The first unit of the walk w from its current top cell on (w is moved to that unit's top cell,
+// *topc); VW_NONE when the walk ends first: it leaves the grid or passes the hit, or a top cell
+// whose sub-walk tested nothing holds the hit (IVW's hit-inside-cell rule, checked there too).
+// *nv counts the non-empty top cells entered (IVW's iterations; *first: the first of them).
+inline uint ect_find(const Grid *g, __global const uint2 *cells, __global const uchar *occ_fine,
+                     __global const uchar *occ_coarse ECT_G2, const RayPre *r, GridWalk *w, float tmin,
+                     float hit_t, bool got, uint ncells, uint *topc, uint *nv, uint *first) {
     uint2 cr;
-    if (!(got && hit_t <= grid_cell_exit(&w)) && grid_walk_step(g, r, &w, hit_t) &&
-        vw_next_nonempty_skip(g, cells, occ_fine, occ_coarse, r, &w, hit_t, &cr))
-        c = (uint)grid_cell_id(g, w.cell);
-    if (c == VW_NONE) {
+    while (VW_NEXT(g, cells, occ_fine, occ_coarse, r, w, hit_t, &cr)) {
+        int c = grid_cell_id(g, w->cell);
+        *topc = (uint)c;
+        if ((*nv)++ == 0u) *first = (uint)c;
+#ifdef TWO_LEVEL
+        int si = sub_of[c];
+        if (si < 0) return (uint)c;
+        SubGrid sg = subs[si];
+        if (sg.big.y > 0u) return ncells + nsubc + (uint)si;
+        SubWalk sw;
+        if (g2_walk_begin(&sg, r, tmin, hit_t, &sw)) {
+            uint u = ect_sub_next(&sg, &sw, true, hit_t, scells, ncells);
+            if (u != VW_NONE) return u;
+        }
+        if (got && hit_t <= grid_cell_exit(w)) return VW_NONE;
+        if (!grid_walk_step(g, r, w, hit_t)) return VW_NONE;
+#else
+        return (uint)c;
+#endif
+    }
+    return VW_NONE;
+}
+
+// The ray's next unit after the tests of unit u in top cell c (VW_NONE: it is done), as IVW's
+// walk goes on: within c's sub-walk (after the big list: its first non-empty sub-cell; after a
+// sub-cell: stop there when it holds the hit, else the next non-empty one), then past c (done
+// when c holds the hit), then the next top cell's first unit.
+inline uint ect_next(const Grid *g, __global const uint2 *cells, __global const uchar *occ_fine,
+                     __global const uchar *occ_coarse ECT_G2, const RayPre *r, uint u, uint *c, float tmin,
+                     float hit_t, bool got, uint ncells, uint *nv) {
+#ifdef TWO_LEVEL
+    if (u >= ncells) {
+        SubGrid sg = subs[sub_of[*c]];
+        SubWalk sw;
+        uint v = VW_NONE;
+        if (u - ncells >= nsubc) {  // the big list: the sub-walk begins
+            if (g2_walk_begin(&sg, r, tmin, hit_t, &sw)) v = ect_sub_next(&sg, &sw, true, hit_t, scells, ncells);
+        } else {
+            ect_sub_at(&sg, r, u - ncells, hit_t, &sw);
+            if (!(got && (g2real)hit_t <= g2_cell_exit(&sw))) v = ect_sub_next(&sg, &sw, false, hit_t, scells, ncells);
+        }
+        if (v != VW_NONE) return v;
+    }
+#endif
+    GridWalk w;
+    vw_walk_at(g, r, *c, hit_t, &w);
+    if (got && hit_t <= grid_cell_exit(&w)) return VW_NONE;
+    if (!grid_walk_step(g, r, &w, hit_t)) return VW_NONE;
+    uint first;
+    return ect_find(g, cells, occ_fine, occ_coarse ECT_G2_ARGS, r, &w, tmin, hit_t, got, ncells, c, nv, &first);
+}
+
+// Resolve of ray j (list position k) after the tests of its unit: done when its walk ends (the hit
+// lies inside its cell, or it leaves the grid), then it writes its result; else it moves to its
+// next unit and inserts it into the table (size entries) for the next iteration.
+inline void ect_resolve(const Grid *g, __global const uint2 *cells, __global const uchar *occ_fine,
+                        __global const uchar *occ_coarse ECT_G2, const RayPre *r, float tmin, uint ncells, uint i,
+                        uint j, uint k, float hit_t, uint hit_slot, uint size, __local uint *cur,
+                        __local uint *top, __local uint *nit, __local uint *bucket, __local uint *rank,
+                        __local volatile uint *hkey, __local volatile uint *hcnt, __global float *out_t,
+                        __global int *out_id, __global int *iters_out) {
+    bool got = hit_slot != VW_NONE;
+    uint c = top[j], nv = nit[j];
+    uint u = ect_next(g, cells, occ_fine, occ_coarse ECT_G2_ARGS, r, cur[j], &c, tmin, hit_t, got, ncells, &nv);
+    if (u == VW_NONE) {
         out_t[i] = got ? hit_t : INFINITY;
         out_id[i] = got ? (int)hit_slot : -1;
-        iters_out[i] = (int)nit[j];
+        iters_out[i] = (int)nv;
         bucket[k] = VW_NONE;
     } else {
-        cur[j] = c;
-        nit[j] += 1u;
+        cur[j] = u;
+        top[j] = c;
+        nit[j] = nv;
         uint rk;
-        bucket[k] = ect_insert(hkey, hcnt, c, size, &rk);
+        bucket[k] = ect_insert(hkey, hcnt, u, size, &rk);
         rank[k] = rk;
     }
 }
 
 __kernel __attribute__((reqd_work_group_size(WG, 1, 1)))
 void ec_tile(__global const Grid *grid, __global const uint2 *cells, __global const float4 *blocks,
-             __global const uint *cell_blocks, __global const float4 *ray_o, __global const float4 *ray_d,
+             __global const uint *cell_blocks ECT_G2, __global const float4 *ray_o, __global const float4 *ray_d,
              __global const uint *act, __global const uint *m_ptr, __global float *out_t, __global int *out_id,
              __global int *iters_out, __global uint *first_out, __global uint *totals,
              __global const uchar *occ_fine, __global const uchar *occ_coarse) {
-    __local uint ray[P], cur[P], slot[P], nit[P];
+    __local uint ray[P], cur[P], top[P], slot[P], nit[P];
     __local float hit[P];
     __local uint lst_a[P], lst_b[P], bucket[P], rank[P];
     __local volatile uint hkey[H], hcnt[H];
@@ -109,6 +240,7 @@ void ec_tile(__global const Grid *grid, __global const uint2 *cells, __global co
     const uint base = grp * (uint)P;
     const uint m0 = base < m_all ? min((uint)P, m_all - base) : 0u;
     Grid g = *grid;
+    const uint ncells = (uint)(g.res.x * g.res.y * g.res.z);
     uint t_iters = 0, t_pairs = 0, t_chunks = 0;
 
     for (uint h = lid; h < H; h += WG) { hkey[h] = VW_NONE; hcnt[h] = 0u; }
@@ -121,17 +253,17 @@ void ec_tile(__global const Grid *grid, __global const uint2 *cells, __global co
         RayPre r = rt_prepare_ray(ot.xyz, dt.xyz);
         GridWalk w;
         float t_enter;
-        uint c = VW_NONE;
-        uint2 cr;
-        if (grid_walk_begin(&g, &r, ot.w, dt.w, &w, &t_enter) &&
-            vw_next_nonempty_skip(&g, cells, occ_fine, occ_coarse, &r, &w, dt.w, &cr))
-            c = (uint)grid_cell_id(&g, w.cell);
+        uint c = VW_NONE, tc = VW_NONE, nv = 0u, first = VW_NONE;
+        if (grid_walk_begin(&g, &r, ot.w, dt.w, &w, &t_enter))
+            c = ect_find(&g, cells, occ_fine, occ_coarse ECT_G2_ARGS, &r, &w, ot.w, dt.w, false, ncells, &tc, &nv,
+                         &first);
         ray[j] = i;
         hit[j] = dt.w;
         slot[j] = VW_NONE;
         cur[j] = c;
-        nit[j] = c == VW_NONE ? 0u : 1u;
-        first_out[i] = c;
+        top[j] = tc;
+        nit[j] = nv;
+        first_out[i] = first;
         lst_a[j] = j;
         uint rk = 0u;
         bucket[j] = c == VW_NONE ? VW_NONE : ect_insert(hkey, hcnt, c, ect_size(m0), &rk);
@@ -139,7 +271,7 @@ void ec_tile(__global const Grid *grid, __global const uint2 *cells, __global co
         if (c == VW_NONE) {
             out_t[i] = INFINITY;
             out_id[i] = -1;
-            iters_out[i] = 0;
+            iters_out[i] = (int)nv;
         }
     }
     if (lid == 0) sh[2] = m0;
@@ -221,9 +353,8 @@ void ec_tile(__global const Grid *grid, __global const uint2 *cells, __global co
             float4 ot = ray_o[i], dt = ray_d[i];
             RayPre r = rt_prepare_ray(ot.xyz, dt.xyz);
             float hit_t = hit[j];
-            uint hit_slot = slot[j], cid = cur[j];
-            uint nt = cells[cid].y;
-            __global const float4 *blk = blocks + 10u * cell_blocks[cid];
+            uint hit_slot = slot[j], nt;
+            __global const float4 *blk = ect_unit(cur[j], ncells, cells, blocks, cell_blocks ECT_G2_ARGS, &nt);
             for (uint q = 0; q < nt; q += 4, blk += 10) {
                 int4 slots = as_int4(blk[9]);
                 float t;
@@ -235,15 +366,16 @@ void ec_tile(__global const Grid *grid, __global const uint2 *cells, __global co
             }
             hit[j] = hit_t;
             slot[j] = hit_slot;
-            ect_resolve(&g, cells, occ_fine, occ_coarse, &r, i, j, k, hit_t, hit_slot, hsize, cur, nit, bucket,
-                        rank, hkey, hcnt, out_t, out_id, iters_out);
+            ect_resolve(&g, cells, occ_fine, occ_coarse ECT_G2_ARGS, &r, ot.w, ncells, i, j, k, hit_t, hit_slot,
+                        hsize, cur, top, nit, bucket, rank, hkey, hcnt, out_t, out_id, iters_out);
         }
         // process, cells with many rays: one chunk (at most WG rays of one cell) at a time, the
         // cell's blocks staged in local memory (the thesis's chunk)
         t_chunks += nch;
         for (uint c = 0; c < nch; ++c) {
-            uint cid = ch_cell[c], start = ch_start[c], len = ch_len[c];
-            uint nb = (cells[cid].y + 3u) / 4u, b0 = cell_blocks[cid];
+            uint start = ch_start[c], len = ch_len[c], nt;
+            __global const float4 *ub = ect_unit(ch_cell[c], ncells, cells, blocks, cell_blocks ECT_G2_ARGS, &nt);
+            uint nb = (nt + 3u) / 4u;
             bool mine = lid < len;
             uint j = mine ? srt[start + lid] : 0u;
             uint i = ray[j];
@@ -255,7 +387,7 @@ void ec_tile(__global const Grid *grid, __global const uint2 *cells, __global co
             for (uint s = 0; s < nb; s += SB) {
                 uint cnt = min((uint)SB, nb - s);
                 barrier(CLK_LOCAL_MEM_FENCE);
-                for (uint e = lid; e < 10u * cnt; e += WG) sv[e] = blocks[10u * (b0 + s) + e];
+                for (uint e = lid; e < 10u * cnt; e += WG) sv[e] = ub[10u * s + e];
                 barrier(CLK_LOCAL_MEM_FENCE);
                 if (mine) {
                     for (uint k = 0; k < cnt; ++k) {
@@ -282,8 +414,8 @@ void ec_tile(__global const Grid *grid, __global const uint2 *cells, __global co
             uint j = srt[k], i = ray[j];
             float4 ot = ray_o[i], dt = ray_d[i];
             RayPre r = rt_prepare_ray(ot.xyz, dt.xyz);
-            ect_resolve(&g, cells, occ_fine, occ_coarse, &r, i, j, k, hit[j], slot[j], hsize, cur, nit, bucket,
-                        rank, hkey, hcnt, out_t, out_id, iters_out);
+            ect_resolve(&g, cells, occ_fine, occ_coarse ECT_G2_ARGS, &r, ot.w, ncells, i, j, k, hit[j], slot[j],
+                        hsize, cur, top, nit, bucket, rank, hkey, hcnt, out_t, out_id, iters_out);
         }
         if (lid == 0) sh[2] = m;
         __local uint *tmp = lst;

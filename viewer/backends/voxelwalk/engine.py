@@ -1,4 +1,5 @@
-"""The voxel-walk tracer on the device, without GL: IVW and EC over the shared uniform grid.
+"""The voxel-walk tracer on the device, without GL: IVW and EC over the shared uniform grid (or
+the two-level grid of viewer.accel.grid2, whose sub-grids IVW and the one-launch EC walk).
 
 `VoxelWalker.trace(origin, dir, n, any_hit, mode)` traces n rays held in device buffers (the
 viewer/cl/transfer.py layout) into (t, tri) device buffers; kernels ivw.cl and ec.cl beside this
@@ -8,8 +9,9 @@ rays, ray-cell pairs, work-groups after compaction, resolved rays and the distin
 screen tile; rays per cell at the first iteration. The per-iteration host statistics read small
 device arrays back, so they cost time: timing runs leave `stats` off. Without them IVW and the
 one-launch EC (ec_sort "tile", ec_tile.cl: 5 launches per pass) do not wait on the host at all, and
-the global-sort EC (ec.cl) waits once per batch of iterations (usually once). IVW and the one-launch
-EC skip empty 8^3 blocks of cells (walk.cl; the occupancy is rebuilt after each grid build).
+the global-sort EC (ec.cl) waits once per batch of iterations (usually once). With `skip`, IVW
+and/or the one-launch EC skip empty 8^3 blocks of cells (walk.cl VW_SKIP; the occupancy is rebuilt
+after each grid build; off by default: measured slower).
 """
 
 from __future__ import annotations
@@ -34,8 +36,9 @@ TILE = 8  # screen tile edge for the divergence statistics (pixels)
 EC_BATCH = 8  # EC iterations enqueued before the first look at the active count (at least)
 EC_GROUPS_PER_CU = 64  # persistent ec_process work-groups per compute unit (each takes chunks in turn)
 EC_SORTS = ("tile", "global")
+SKIPS = ("none", "ivw", "ec", "all")
 EC_STAGE_MIN = 8  # ec_tile: cells with at least this many of a partition's rays get their triangles staged
-TILE_BYTES_PER_RAY = 72  # ec_tile.cl's local arrays per partition ray (20 ray state + 16 lists + 24 table + 12 chunks)
+TILE_BYTES_PER_RAY = 76  # ec_tile.cl's local arrays per partition ray (24 ray state + 16 lists + 24 table + 12 chunks)
 
 
 def tile_partition(local_mem: int, wg: int) -> int:
@@ -106,24 +109,33 @@ def tile_divergence(cells: np.ndarray, size: tuple[int, int], tile: int = TILE) 
 class VoxelWalker:
     """IVW and EC kernels over a UniformGrid and its triangles (device buffers)."""
 
-    def __init__(self, ctx: Any, grid: UniformGrid, chunk: int = 64, window: int = 1, ec_sort: str = "tile"):
+    def __init__(self, ctx: Any, grid: UniformGrid, chunk: int = 64, window: int = 1, ec_sort: str = "tile",
+                 skip: str = "none"):
+        """`skip`: which walks skip empty 8^3 blocks of top cells whole (walk.cl VW_SKIP): none, ivw,
+        ec or all (the same cells are visited either way)."""
         from viewer.cl import build
 
         if ec_sort not in EC_SORTS:
             raise ValueError(f"ec_sort must be one of {EC_SORTS}")
+        if skip not in SKIPS:
+            raise ValueError(f"skip must be one of {SKIPS}")
         self.ctx, self.grid, self.chunk, self.window = ctx, grid, int(chunk), int(window)
         self.ec_sort = ec_sort
         self.prims = grid.prims
         self.skip_shifts = SKIP_SHIFTS
-        skip = {"VW_SHIFT_FINE": SKIP_SHIFTS[0], "VW_SHIFT_COARSE": SKIP_SHIFTS[1]}
+        shifts = {"VW_SHIFT_FINE": SKIP_SHIFTS[0], "VW_SHIFT_COARSE": SKIP_SHIFTS[1]}
+        self.skip = skip
         from viewer.accel.grid2 import TwoLevelGrid
 
-        self.two_level = isinstance(grid, TwoLevelGrid)  # IVW walks its sub-grids; EC the top level
-        ivw = build(HERE / "ivw.cl", {"WG": WG_IVW, **skip, **({"TWO_LEVEL": None} if self.two_level else {})}, ctx)
+        self.two_level = isinstance(grid, TwoLevelGrid)  # IVW and the one-launch EC walk its sub-grids
+        two = {"TWO_LEVEL": None} if self.two_level else {}
+        ivw_skip = {"VW_SKIP": None} if skip in ("ivw", "all") else {}
+        ec_skip = {"VW_SKIP": None} if skip in ("ec", "all") else {}
+        ivw = build(HERE / "ivw.cl", {"WG": WG_IVW, **shifts, **ivw_skip, **two}, ctx)
         ec = build(HERE / "ec.cl", {"WG": self.chunk}, ctx)
         self.partition = tile_partition(int(ctx.device.local_mem_size), self.chunk)
         ect = build(HERE / "ec_tile.cl", {"WG": self.chunk, "P": self.partition, "STAGE_MIN": EC_STAGE_MIN,
-                                          **skip}, ctx)
+                                          **shifts, **ec_skip, **two}, ctx)
         self.k = {"ivw": clio.kernel(ivw, "ivw_trace"), "macro": clio.kernel(ivw, "vw_macro_build")}
         self._macro_of: Any = None  # the GridStats whose macro cells are built
         for name in ("ec_init", "ec_count", "ec_write", "ec_process", "ec_resolve", "ec_finish"):
@@ -264,8 +276,9 @@ class VoxelWalker:
         self.prims.compact_dev(cb["n"], n, cb["m0"], flags=flags, src=perm, dst=act)
         groups = -(-n // self.partition)
         totals = self._buf("tile_totals", 16 * groups)
+        sub = (g.sub_of, g.subs, g.scells, g.sblocks, g.scb, g.bblocks, u(g.stats.subcells)) if self.two_level else ()
         ev = self.k["ec_tile"](q, (groups * self.chunk,), (self.chunk,), g.header, g.cells, g.blocks, g.cell_blocks,
-                               ray_o, ray_d, act, cb["m0"], out_t, out_id, iters, first, totals, *macro)
+                               *sub, ray_o, ray_d, act, cb["m0"], out_t, out_id, iters, first, totals, *macro)
         host = np.empty((groups, 4), np.uint32)
         self._pending.append((host, clio.copy(q, host, totals, is_blocking=stats), ev))
         if stats:  # the study's run: this pass's own figures (one wait)
@@ -281,7 +294,9 @@ class VoxelWalker:
             fc = fc[fc != 0xFFFFFFFF]
             ps.rays_per_cell = np.unique(fc, return_counts=True)[1] if len(fc) else np.zeros(0, np.int64)
             walked = ps.iters[ps.iters > 0]
-            for k in range(1, ps.iterations + 1):  # derived per iteration: one cell per active ray
+            # derived per iteration: one cell per active ray (on the two-level grid an iteration's
+            # unit may be a sub-cell or a big list, while iters counts top cells: an approximation)
+            for k in range(1, ps.iterations + 1):
                 active = float(np.count_nonzero(walked >= k))
                 ps.per_iter.append({"active": active, "pairs": active,
                                     "resolved": float(np.count_nonzero(walked == k))})

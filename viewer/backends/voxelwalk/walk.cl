@@ -158,3 +158,13 @@ inline bool vw_next_nonempty_skip(const Grid *g, __global const uint2 *cells, __
         if (!grid_walk_step(g, r, w, t_limit)) return false;
     }
 }
+
+// The walks' "next non-empty cell": with VW_SKIP, empty blocks skipped whole; without it, cell by
+// cell (the same cells in the same order either way; skipping measured slower on the mixed-scale
+// and dragon benches, docs/backends/voxelwalk.md).
+#ifdef VW_SKIP
+#define VW_NEXT(g, cells, occ_fine, occ_coarse, r, w, t_limit, cr) \
+    vw_next_nonempty_skip(g, cells, occ_fine, occ_coarse, r, w, t_limit, cr)
+#else
+#define VW_NEXT(g, cells, occ_fine, occ_coarse, r, w, t_limit, cr) vw_next_nonempty(g, cells, r, w, t_limit, cr)
+#endif
