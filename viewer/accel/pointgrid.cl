@@ -221,17 +221,14 @@ inline float pg_cos_lower(float tlo, float thi) {
     return (1.0f - t2 * (0.5f - t2 * (1.0f / 24.0f - t2 * (1.0f / 720.0f)))) * 0.9999f - 1e-6f;
 }
 
-// Triangle i relative to E (v0, v1, v2); false: never hit, so culled exactly: not finite, two
-// equal vertices, or (*back) a back face where back-face culling is on.
-inline bool pg_tri_load(const PGrid *g, __global const float4 *tris, uint i, float3 *v0, float3 *v1, float3 *v2,
-                        bool *back) {
+inline bool pg_tri(const PGrid *g, __global const float4 *tris, uint i, int4 *range, int *slab, bool *full,
+                   bool *back, float *dmin_out, float4 *box) {
     float3 E = g->centre.xyz;
     float4 w0 = tris[3 * i], w1 = tris[3 * i + 1], w2 = tris[3 * i + 2];
-    *v0 = w0.xyz - E;
-    *v1 = w1.xyz - E;
-    *v2 = w2.xyz - E;
+    float3 v0 = w0.xyz - E, v1 = w1.xyz - E, v2 = w2.xyz - E;
+    *full = false;
     *back = false;
-    if (!(all(isfinite(*v0)) && all(isfinite(*v1)) && all(isfinite(*v2)))) return false;
+    if (!(all(isfinite(v0)) && all(isfinite(v1)) && all(isfinite(v2)))) return false;
     // a triangle with two equal vertices (a point or a segment: common far from the origin, where
     // float32 snaps a small mesh onto a coarse lattice; 91% of the dragon at 1e6) is never hit:
     // with A == B the watertight test's W is exactly 0 and U == -V, so (in float and in its
@@ -247,215 +244,131 @@ inline bool pg_tri_load(const PGrid *g, __global const float4 *tris, uint i, flo
         if (dot(nd, d0) > 1e-9 * length(nd) * length(d0)) { *back = true; return false; }
     }
 #endif
-    return true;
-}
-
-// The angular box (alpha min, max, theta min, max, grown by the margin m) of a ball around ctr
-// (relative to E, at distance dc) of radius rr < dc / 4 that holds the geometry, coordinates'
-// rounding included: a cone of half-angle asin(rr / dc) around ctr's direction, so elevation
-// tc +- asin(rr / dc), azimuth ac +- asin(rr / rho) (the projected disk at distance rho from the
-// up axis), each bounded by x / sqrt(1 - x^2) >= asin x; the full azimuth range near the up axis.
-// Two atan2, no segment distances: a detailed mesh seen from afar (the mixed scene's bunny) is
-// boxed at a fraction of the exact triangle box's cost (pg_tri_box).
-inline float4 pg_ball_box(const PGrid *g, float3 ctr, float dc, float rr, bool *full) {
     float m = g->centre.w;
-    float3 R = g->right.xyz, U = g->up.xyz, F = g->fwd.xyz;
-    float cx = rt_dot(ctr, R), cy = rt_dot(ctr, U), cz = rt_dot(ctr, F);
-    float rho = sqrt(cx * cx + cz * cz);
-    float sb = rr / dc, beta = sb / sqrt(1.0f - sb * sb) * 1.001f;
-    float tc = pg_atan2_fast(cy, rho);
-    float tlo = fmax(tc - beta - m - 1e-6f - PG_ATAN_SLACK, -M_PI_2_F);
-    float thi = fmin(tc + beta + m + 1e-6f + PG_ATAN_SLACK, M_PI_2_F);
-    float ct = pg_cos_lower(tlo, thi), x = m / ct;
-    float amin = -M_PI_F, amax = M_PI_F;
-    if (rho - rr <= 1e-3f * (dc + rr) || !(ct > 0.0f && x < 0.999f)) {  // near the up axis
-        *full = true;
-    } else {
-        float sa = rr / rho;
-        float da = sa / sqrt(1.0f - sa * sa) * 1.001f + x / sqrt(1.0f - x * x) * 1.001f + 1e-6f +
-                   2.0f * PG_ATAN_SLACK;
-        float ac = pg_atan2_fast(cx, cz);
-        amin = ac - da;
-        amax = ac + da;
-        if (amin <= -M_PI_F || amax >= M_PI_F) { amin = -M_PI_F; amax = M_PI_F; *full = true; }
-    }
-    return (float4)(amin, amax, tlo, thi);
-}
-
-// The exact angular box of a triangle (v relative to E), grown by the margin (comment above).
-inline float4 pg_tri_box(const PGrid *g, float3 v0, float3 v1, float3 v2, bool *full) {
-    float m = g->centre.w;
-    float3 R = g->right.xyz, U = g->up.xyz, F = g->fwd.xyz;
-    float2 p0 = (float2)(rt_dot(v0, F), rt_dot(v0, R)), p1 = (float2)(rt_dot(v1, F), rt_dot(v1, R));
-    float2 p2 = (float2)(rt_dot(v2, F), rt_dot(v2, R));
-    float y0 = rt_dot(v0, U), y1 = rt_dot(v1, U), y2 = rt_dot(v2, U);
-    float vmax = fmax(fmax(length(v0), length(v1)), length(v2));
-    float err = 4e-7f * vmax;
-    float c0 = p0.x * p1.y - p0.y * p1.x, c1 = p1.x * p2.y - p1.y * p2.x, c2 = p2.x * p0.y - p2.y * p0.x;
-    // the origin inside the projected triangle (rho_min = 0). All three products zero: the
-    // projection is a point or a segment on a line through the origin, whose distance from the
-    // origin the segment distances give (0 when it reaches the origin); treating it as
-    // "around" widened every such triangle to all azimuths
-    bool flat = c0 == 0.0f && c1 == 0.0f && c2 == 0.0f;
-    bool around = !flat && ((c0 >= 0.0f && c1 >= 0.0f && c2 >= 0.0f) || (c0 <= 0.0f && c1 <= 0.0f && c2 <= 0.0f));
-    float rho_min = around ? 0.0f : sqrt(fmin(fmin(pg_seg_dist2(p0, p1), pg_seg_dist2(p1, p2)),
-                                              pg_seg_dist2(p2, p0)));
-    bool near_axis = rho_min <= 1e-3f * vmax;
-    float rho_lo = fmax(rho_min - err, 0.0f);
-    float rho_max = fmax(fmax(length(p0), length(p1)), length(p2)) + err;
-    float ymax = fmax(fmax(y0, y1), y2) + err, ymin = fmin(fmin(y0, y1), y2) - err;
-    float thi = ymax > 0.0f ? (rho_lo > 0.0f ? pg_atan2_fast(ymax, rho_lo) : M_PI_2_F) : pg_atan2_fast(ymax, rho_max);
-    float tlo = ymin < 0.0f ? (rho_lo > 0.0f ? pg_atan2_fast(ymin, rho_lo) : -M_PI_2_F) : pg_atan2_fast(ymin, rho_max);
-    tlo = fmax(tlo - m - 1e-6f - PG_ATAN_SLACK, -M_PI_2_F);
-    thi = fmin(thi + m + 1e-6f + PG_ATAN_SLACK, M_PI_2_F);
-    float ct = pg_cos_lower(tlo, thi), x = m / ct;
-    float amin = -M_PI_F, amax = M_PI_F;
-    if (near_axis || !(ct > 0.0f && x < 0.999f)) {  // cos(pi / 2) is -4e-8 in float32
-        *full = true;
-    } else {
-        float a0 = pg_atan2_fast(p0.y, p0.x), lo = 0.0f, hi = 0.0f;
-        float d1 = pg_atan2_fast(p1.y, p1.x) - a0, d2 = pg_atan2_fast(p2.y, p2.x) - a0;
-        d1 = d1 > M_PI_F ? d1 - 2.0f * M_PI_F : (d1 < -M_PI_F ? d1 + 2.0f * M_PI_F : d1);
-        d2 = d2 > M_PI_F ? d2 - 2.0f * M_PI_F : (d2 < -M_PI_F ? d2 + 2.0f * M_PI_F : d2);
-        lo = fmin(lo, fmin(d1, d2));
-        hi = fmax(hi, fmax(d1, d2));
-        float da = x / sqrt(1.0f - x * x) * 1.001f + 1e-6f + 2.0f * PG_ATAN_SLACK + err / rho_min;
-        amin = a0 + lo - da;
-        amax = a0 + hi + da;
-        if (amin <= -M_PI_F || amax >= M_PI_F) { amin = -M_PI_F; amax = M_PI_F; *full = true; }
-    }
-    return (float4)(amin, amax, tlo, thi);
-}
-
-// A lower bound of a triangle's distance from E: its bounding ball's near side, for a large
-// triangle also its plane's distance (for a small one the ball is nearly as tight).
-inline float pg_tri_dmin(float3 v0, float3 v1, float3 v2, float3 ctr, float dc, float rad, bool small) {
+    // slab: a lower bound of the triangle's distance from E (the plane's distance, needed for
+    // large triangles only: a small one's bounding sphere is nearly as tight)
+    float3 ctr = (v0 + v1 + v2) / 3.0f;
+    float3 e0 = v0 - ctr, e1 = v1 - ctr, e2 = v2 - ctr;
+    float rad = sqrt(fmax(fmax(rt_dot(e0, e0), rt_dot(e1, e1)), rt_dot(e2, e2)));
+    float dc = length(ctr);
+    float rr = rad * 1.00001f + 4e-7f * (dc + rad) + 1e-6f * dc;
+    bool small = rr < 0.25f * dc;
     float dplane = 0.0f;
     if (!small) {
         float3 nrm = rt_cross(v1 - v0, v2 - v0);
         float nl = length(nrm);
         dplane = nl > 0.0f ? fabs(rt_dot(nrm, v0)) / nl : 0.0f;
     }
-    return fmax(fmax(dplane, dc - rad), 0.0f) * (1.0f - 1e-5f);
-}
-
-// Clusters: the triangles are binned four at a time, slots 4c .. 4c + 3 (the scene is in BVH leaf
-// order, leaves of at most four triangles, so a cluster is mostly one leaf: a small compact
-// piece). A cluster's box is the angular box of one ball around its live triangles when every
-// one of them is small (ball radius under a quarter of its distance: pg_ball_box), else the union
-// of the triangles' own boxes (pg_tri_box, or pg_ball_box for the small ones); its distance bound
-// the smallest of theirs. lanes: bit k = slot 4c + k is live (binned; never hit otherwise).
-// Binning clusters instead of triangles: 4x fewer boxes, pairs and sort keys per frame; the
-// trace tests a ray against a cluster's box, then its live triangles four-wide (one SoA block).
-inline bool pg_cluster(const PGrid *g, __global const float4 *tris, uint c, uint n, int4 *range, int *slab,
-                       bool *full, float *dmin_out, float4 *box, uint *lanes, uint *n_dead, uint *n_back) {
-    float3 v[4][3];
-    float3 ctr[4];
-    float dcs[4], rads[4];
-    uint live = 0u, dead = 0u, back = 0u;
-    bool small = true;
-    float3 csum = (float3)(0.0f);
-    for (uint k = 0; k < 4; ++k) {
-        uint i = 4u * c + k;
-        if (i >= n) break;
-        bool bk;
-        if (!pg_tri_load(g, tris, i, &v[k][0], &v[k][1], &v[k][2], &bk)) {
-            ++dead;
-            back += bk ? 1u : 0u;
-            continue;
-        }
-        live |= 1u << k;
-        ctr[k] = (v[k][0] + v[k][1] + v[k][2]) / 3.0f;
-        float3 e0 = v[k][0] - ctr[k], e1 = v[k][1] - ctr[k], e2 = v[k][2] - ctr[k];
-        rads[k] = sqrt(fmax(fmax(rt_dot(e0, e0), rt_dot(e1, e1)), rt_dot(e2, e2)));
-        dcs[k] = length(ctr[k]);
-        small = small && rads[k] * 1.00001f + 4e-7f * (dcs[k] + rads[k]) + 1e-6f * dcs[k] < 0.25f * dcs[k];
-        csum += ctr[k];
-    }
-    *lanes = live;
-    *n_dead = dead;
-    *n_back = back;
-    *full = false;
-    if (!live) return false;
-    uint cnt = popcount(live);
-    float dmin = INFINITY;
-    float4 b = (float4)(INFINITY, -INFINITY, INFINITY, -INFINITY);
-    if (small) {  // one ball around the cluster: centre the mean of the centroids
-        float3 C = csum / (float)cnt;
-        float r = 0.0f;
-        for (uint k = 0; k < 4; ++k) {
-            if (!(live & (1u << k))) continue;
-            r = fmax(r, length(ctr[k] - C) + rads[k]);
-            dmin = fmin(dmin, pg_tri_dmin(v[k][0], v[k][1], v[k][2], ctr[k], dcs[k], rads[k], true));
-        }
-        float dC = length(C);
-        // the ball holds every live triangle (radius rounded up, coordinates' error 4e-7 (dC + r),
-        // the centre's rounding 1e-6 dC); small only when it stays under a quarter of dC
-        float rr = r * 1.00001f + 4e-7f * (dC + r) + 1e-6f * dC;
-        small = rr < 0.25f * dC;
-        if (small) b = pg_ball_box(g, C, dC, rr, full);
-    }
-    if (!small) {  // the union of the triangles' own boxes
-        dmin = INFINITY;
-        for (uint k = 0; k < 4; ++k) {
-            if (!(live & (1u << k))) continue;
-            float rr = rads[k] * 1.00001f + 4e-7f * (dcs[k] + rads[k]) + 1e-6f * dcs[k];
-            bool sm = rr < 0.25f * dcs[k];
-            bool fk = false;
-            float4 bk = sm ? pg_ball_box(g, ctr[k], dcs[k], rr, &fk) : pg_tri_box(g, v[k][0], v[k][1], v[k][2], &fk);
-            *full = *full || fk;
-            b = (float4)(fmin(b.x, bk.x), fmax(b.y, bk.y), fmin(b.z, bk.z), fmax(b.w, bk.w));
-            dmin = fmin(dmin, pg_tri_dmin(v[k][0], v[k][1], v[k][2], ctr[k], dcs[k], rads[k], sm));
-        }
-    }
-    *box = b;
-    *dmin_out = dmin;
+    float dmin = fmax(fmax(dplane, dc - rad), 0.0f) * (1.0f - 1e-5f);
     *slab = clamp((int)floor((dmin - g->slab.w) * g->slab.y), 0, g->res.z - 1);
-    float fa0 = (b.x - g->rect.x) * g->rect.z, fa1 = (b.y - g->rect.x) * g->rect.z;
-    float ft0 = (b.z - g->rect.y) * g->rect.w, ft1 = (b.w - g->rect.y) * g->rect.w;
+    *dmin_out = dmin;
+    float3 R = g->right.xyz, U = g->up.xyz, F = g->fwd.xyz;
+    float amin = -M_PI_F, amax = M_PI_F, tlo, thi;
+    // A small triangle (a detailed mesh seen from afar: 69k bunny triangles fill 8% of the mixed
+    // scene's view) is boxed through its bounding sphere (centroid, radius rr grown by the
+    // coordinates' error 4e-7 (dc + rad) and the centre's rounding 1e-6 dc): a cone of half-angle
+    // asin(rr / dc) around the centre's direction, so elevation tc +- asin(rr / dc), azimuth
+    // ac +- asin(rr / rho) (the projected disk at distance rho from the up axis), each bounded by
+    // x / sqrt(1 - x^2) >= asin x. Two atan2 instead of five and no segment distances: half the
+    // binning time, for a box at most ~2x the triangle's own (the trace tests rays against it).
+    if (small) {
+        float cx = rt_dot(ctr, R), cy = rt_dot(ctr, U), cz = rt_dot(ctr, F);
+        float rho = sqrt(cx * cx + cz * cz);
+        float sb = rr / dc, beta = sb / sqrt(1.0f - sb * sb) * 1.001f;
+        float tc = pg_atan2_fast(cy, rho);
+        tlo = fmax(tc - beta - m - 1e-6f - PG_ATAN_SLACK, -M_PI_2_F);
+        thi = fmin(tc + beta + m + 1e-6f + PG_ATAN_SLACK, M_PI_2_F);
+        float ct = pg_cos_lower(tlo, thi), x = m / ct;
+        if (rho - rr <= 1e-3f * (dc + rad) || !(ct > 0.0f && x < 0.999f)) {  // near the up axis
+            *full = true;
+        } else {
+            float sa = rr / rho;
+            float da = sa / sqrt(1.0f - sa * sa) * 1.001f + x / sqrt(1.0f - x * x) * 1.001f + 1e-6f +
+                       2.0f * PG_ATAN_SLACK;
+            float ac = pg_atan2_fast(cx, cz);
+            amin = ac - da;
+            amax = ac + da;
+            if (amin <= -M_PI_F || amax >= M_PI_F) { amin = -M_PI_F; amax = M_PI_F; *full = true; }
+        }
+    } else {
+        float2 p0 = (float2)(rt_dot(v0, F), rt_dot(v0, R)), p1 = (float2)(rt_dot(v1, F), rt_dot(v1, R));
+        float2 p2 = (float2)(rt_dot(v2, F), rt_dot(v2, R));
+        float y0 = rt_dot(v0, U), y1 = rt_dot(v1, U), y2 = rt_dot(v2, U);
+        float vmax = fmax(fmax(length(v0), length(v1)), length(v2));
+        float err = 4e-7f * vmax;
+        float c0 = p0.x * p1.y - p0.y * p1.x, c1 = p1.x * p2.y - p1.y * p2.x, c2 = p2.x * p0.y - p2.y * p0.x;
+        // the origin inside the projected triangle (rho_min = 0). All three products zero: the
+        // projection is a point or a segment on a line through the origin, whose distance from the
+        // origin the segment distances give (0 when it reaches the origin); treating it as
+        // "around" widened every such triangle to all azimuths
+        bool flat = c0 == 0.0f && c1 == 0.0f && c2 == 0.0f;
+        bool around = !flat && ((c0 >= 0.0f && c1 >= 0.0f && c2 >= 0.0f) || (c0 <= 0.0f && c1 <= 0.0f && c2 <= 0.0f));
+        float rho_min = around ? 0.0f : sqrt(fmin(fmin(pg_seg_dist2(p0, p1), pg_seg_dist2(p1, p2)),
+                                                  pg_seg_dist2(p2, p0)));
+        bool near_axis = rho_min <= 1e-3f * vmax;
+        float rho_lo = fmax(rho_min - err, 0.0f);
+        float rho_max = fmax(fmax(length(p0), length(p1)), length(p2)) + err;
+        float ymax = fmax(fmax(y0, y1), y2) + err, ymin = fmin(fmin(y0, y1), y2) - err;
+        thi = ymax > 0.0f ? (rho_lo > 0.0f ? pg_atan2_fast(ymax, rho_lo) : M_PI_2_F) : pg_atan2_fast(ymax, rho_max);
+        tlo = ymin < 0.0f ? (rho_lo > 0.0f ? pg_atan2_fast(ymin, rho_lo) : -M_PI_2_F) : pg_atan2_fast(ymin, rho_max);
+        tlo = fmax(tlo - m - 1e-6f - PG_ATAN_SLACK, -M_PI_2_F);
+        thi = fmin(thi + m + 1e-6f + PG_ATAN_SLACK, M_PI_2_F);
+        float ct = pg_cos_lower(tlo, thi), x = m / ct;
+        if (near_axis || !(ct > 0.0f && x < 0.999f)) {  // cos(pi / 2) is -4e-8 in float32
+            *full = true;
+        } else {
+            float a0 = pg_atan2_fast(p0.y, p0.x), lo = 0.0f, hi = 0.0f;
+            float d1 = pg_atan2_fast(p1.y, p1.x) - a0, d2 = pg_atan2_fast(p2.y, p2.x) - a0;
+            d1 = d1 > M_PI_F ? d1 - 2.0f * M_PI_F : (d1 < -M_PI_F ? d1 + 2.0f * M_PI_F : d1);
+            d2 = d2 > M_PI_F ? d2 - 2.0f * M_PI_F : (d2 < -M_PI_F ? d2 + 2.0f * M_PI_F : d2);
+            lo = fmin(lo, fmin(d1, d2));
+            hi = fmax(hi, fmax(d1, d2));
+            float da = x / sqrt(1.0f - x * x) * 1.001f + 1e-6f + 2.0f * PG_ATAN_SLACK + err / rho_min;
+            amin = a0 + lo - da;
+            amax = a0 + hi + da;
+            if (amin <= -M_PI_F || amax >= M_PI_F) { amin = -M_PI_F; amax = M_PI_F; *full = true; }
+        }
+    }
+    *box = (float4)(amin, amax, tlo, thi);
+    float fa0 = (amin - g->rect.x) * g->rect.z, fa1 = (amax - g->rect.x) * g->rect.z;
+    float ft0 = (tlo - g->rect.y) * g->rect.w, ft1 = (thi - g->rect.y) * g->rect.w;
     if (fa1 < 0.0f || ft1 < 0.0f || fa0 >= (float)g->res.x || ft0 >= (float)g->res.y) return false;
     *range = (int4)(clamp((int)floor(fa0), 0, g->res.x - 1), clamp((int)floor(fa1), 0, g->res.x - 1),
                     clamp((int)floor(ft0), 0, g->res.y - 1), clamp((int)floor(ft1), 0, g->res.y - 1));
     return true;
 }
 
-// Per cluster c (n triangles, ceil(n / 4) clusters): counts[c] = its tiles; flags[c]: bit 0 culled,
-// bit 1 widened (pole or seam); place[c] = (tile range ia0, ia1, it0, it1) and place_slab[c] for
-// pg_tri_write; tri_dmin[c] its distance bound; tri_box[c] its angular box (the trace tests each
-// ray's angles against it before the triangles: the tile test at full resolution); tri_lanes[c] its
-// live triangles. The triangles culled (never hit, or in a cluster outside the rays' rectangle),
-// widened and culled as back faces are counted into st (one local count per work-group, one global
-// add per value).
+// counts[i] = tiles of triangle i; flags[i]: bit 0 culled, bit 1 widened (pole or seam), also
+// counted into st (one local count per work-group, one global add); place[i] = (tile range ia0,
+// ia1, it0, it1) and place_slab[i] for pg_tri_write; box[i] = the triangle's angular box (alpha
+// min, max, theta min, max, grown by the margin), which the trace tests each ray's angles against
+// before the triangle itself (the tile test at full resolution)
 __kernel __attribute__((reqd_work_group_size(WG, 1, 1)))
 void pg_tri_count(__global const PGrid *grid, __global const float4 *tris, const uint n, __global uint *counts,
                   __global uint *flags, __global int4 *place, __global int *place_slab, __global float *tri_dmin,
-                  __global uint *st, __global float4 *tri_box, __global uint *tri_lanes) {
+                  __global uint *st, __global float4 *tri_box) {
     __local uint tally[4];
-    uint c = get_global_id(0), lid = get_local_id(0);
-    uint nc = (n + 3u) / 4u;
+    uint i = get_global_id(0), lid = get_local_id(0);
     if (lid == 0) { tally[0] = 0u; tally[1] = 0u; tally[2] = 0u; tally[3] = 0xffffffffu; }
     barrier(CLK_LOCAL_MEM_FENCE);
-    if (c < nc) {
+    if (i < n) {
         PGrid g = *grid;
         int4 r = (int4)(0);
         int slab = 0;
-        bool full;
+        bool full, back;
         float dmin = 0.0f;
         float4 box = (float4)(0.0f);
-        uint lanes, dead, back;
-        bool ok = pg_cluster(&g, tris, c, n, &r, &slab, &full, &dmin, &box, &lanes, &dead, &back);
-        tri_dmin[c] = dmin;
-        tri_box[c] = box;
-        tri_lanes[c] = ok ? lanes : 0u;
+        bool ok = pg_tri(&g, tris, i, &r, &slab, &full, &back, &dmin, &box);
+        tri_dmin[i] = dmin;
+        tri_box[i] = box;
         if (ok) atomic_min(&tally[3], pg_ord(dmin));
-        counts[c] = ok ? (uint)(r.y - r.x + 1) * (uint)(r.w - r.z + 1) : 0u;
-        flags[c] = (ok ? 0u : 1u) | (full ? 2u : 0u);
-        place[c] = r;
-        place_slab[c] = slab;
-        uint culled = ok ? dead : dead + popcount(lanes);
-        if (culled) atomic_add(&tally[0], culled);
-        if (full && ok) atomic_add(&tally[1], popcount(lanes));
-        if (back) atomic_add(&tally[2], back);
+        counts[i] = ok ? (uint)(r.y - r.x + 1) * (uint)(r.w - r.z + 1) : 0u;
+        flags[i] = (ok ? 0u : 1u) | (full ? 2u : 0u);
+        place[i] = r;
+        place_slab[i] = slab;
+        if (!ok) atomic_inc(&tally[0]);
+        if (full) atomic_inc(&tally[1]);
+        if (back) atomic_inc(&tally[2]);
     }
     barrier(CLK_LOCAL_MEM_FENCE);
     if (lid == 0) {

@@ -20,28 +20,22 @@ Build (kernels in pointgrid.cl beside this file, primitives from viewer.cl.primi
     `tiles` on the longer side, or tiles of `tile_angle` radians); slabs by distance from the
     centre.
  4. (tile, ray) pairs radix-sorted; segments cut into chunks of at most `chunk` rays.
- 5. triangles, binned four at a time: a cluster is the slots 4c .. 4c + 3 (the scene is in BVH
-    leaf order, leaves of at most four triangles, so mostly one leaf). A triangle is culled when
-    two vertices are equal (never hit: far from the origin float32 snaps small meshes onto a
-    coarse lattice, 91% of the dragon at 1e6) or, with `backface`, facing away from the centre
-    (double); the rest are the cluster's live lanes. The cluster's conservative (alpha, theta)
-    box: when every live triangle is small (bounding ball under a quarter of its distance) and so
-    is one ball around them all, the box of that ball (pointgrid.cl pg_ball_box: two atan2);
-    else the union of the triangles' boxes, each the box of its own ball when small, else of the
-    triangle itself (pg_tri_box: azimuths at the vertices, elevations bounded through the
-    triangle's distance from the pole axis; full azimuth when it surrounds or nears the pole axis
-    or crosses the seam: "widened"; a projection that is a point or a segment on a line through
-    the pole axis is judged by its distance from the axis, not as "around" it); grown by the
-    margin and stored per cluster (tri_box: the trace tests each ray's angles against it before
-    the cluster's triangles, the tile test at full resolution); clipped to the rays' rectangle
-    (clusters outside it are culled: frustum culling for the eye); one slab from d, the smallest
-    lower bound of its triangles' distances to the centre. (cell = tile * slabs + slab, cluster)
-    pairs counted, scanned, written with key (cell << level_bits) | level(d) (a log-like
-    distance level from the float bits, pg_levels), sorted; per-cell counts from the segments,
-    then an exclusive scan gives cell_start (ncells + 1 entries), so a tile's clusters are
-    contiguous, in slab order and nearest first within a cell (the trace's in-cell stop).
-    Clusters instead of triangles: on the mixed scene (69k bunny triangles in 8% of the view)
-    49,620 pairs instead of 106,720 and a quarter of the boxes per frame.
+ 5. triangles: culled when two vertices are equal (never hit: far from the origin float32 snaps
+    small meshes onto a coarse lattice, 91% of the dragon at 1e6) or, with `backface`, facing away
+    from the centre (double); else a conservative (alpha, theta) box of the triangle itself
+    (pointgrid.cl: azimuths at the vertices, elevations bounded through the triangle's distance
+    from the pole axis; full azimuth when it surrounds or nears the pole axis or crosses the
+    seam: "widened"; a projection that is a point or a segment on a line through the pole axis
+    is judged by its distance from the axis, not as "around" it; a small triangle, bounding
+    sphere under a quarter of its distance, is boxed through that sphere: two atan2 instead of
+    five), grown by the margin; stored per triangle (tri_box: the trace tests each ray's angles
+    against it before the triangle, the tile test at full resolution); clipped
+    to the rays' rectangle (triangles outside it are culled: frustum culling for the eye); one
+    slab from a lower bound d of the triangle's distance to the centre. (cell = tile * slabs +
+    slab, triangle) pairs counted, scanned, written with key (cell << level_bits) | level(d)
+    (a log-like distance level from the float bits, pg_levels), sorted; per-cell counts from the
+    segments, then an exclusive scan gives cell_start (ncells + 1 entries), so a tile's triangles
+    are contiguous, in slab order and nearest first within a cell (the trace's in-cell stop).
 
 Asynchronous host writes keep their pyopencl events until the next build (`_async`): a dropped
 event of a non-blocking host copy waits for the copy, a hidden host sync that stalled each
@@ -51,12 +45,11 @@ Layouts: header PGRID_DTYPE (112 bytes: float4 centre (w = margin), fwd (w = 1: 
 culling), up (w = distance level bits), right, rect (alpha0, theta0, tiles per radian in alpha
 and theta), slab (width, 1 / width, tan(margin), d0 = distance from the centre to the scene box,
 where slab 0 starts); int4 res (tiles alpha, tiles theta, slabs, cells)); cell_start uint32
-(ncells + 1,); keys uint32 (pairs,) sorted pair keys and refs uint32 (pairs,) cluster ids c;
-levels float4 (dnear, shift, 0, 0); tri_box float4 (clusters,) angular boxes (alpha min, max,
-theta min, max), tri_lanes uint32 (clusters,) live slots (bit k: slot 4c + k); chunks:
-viewer.cl.primitives.Chunks over the sorted ray keys (key = tile, ntiles for rays outside the
-grid, ntiles + 1 for inactive rays: neither is traced here, so the caller writes misses first),
-ray_vals uint32 (n,) ray indices in that order.
+(ncells + 1,); keys uint32 (pairs,) sorted pair keys and refs uint32 (pairs,) triangle slots;
+levels float4 (dnear, shift, 0, 0); tri_box float4 (n_tris,) angular boxes (alpha min, max,
+theta min, max); chunks: viewer.cl.primitives.Chunks over the sorted ray keys (key = tile,
+ntiles for rays outside the grid, ntiles + 1 for inactive rays: neither is traced here, so the
+caller writes misses first), ray_vals uint32 (n,) ray indices in that order.
 """
 
 from __future__ import annotations
@@ -279,19 +272,16 @@ class PointGrid:
         # triangles: (cell, triangle) pairs
         from viewer.cl.primitives import Chunks
 
-        # clusters of four triangle slots (pointgrid.cl pg_cluster): one box, one pair per tile
-        ncl = -(-n_tris // 4)
-        nb = max(ncl, 1)
-        counts, flags = self.buf("tri_counts", 4 * nb), self.buf("tri_flags", 4 * nb)
-        place, place_slab = self.buf("tri_place", 16 * nb), self.buf("tri_slab", 4 * nb)
-        dmin, box, lanes = self.buf("tri_dmin", 4 * nb), self.buf("tri_box", 16 * nb), self.buf("tri_lanes", 4 * nb)
-        self._run("pg_tri_count", ncl, self.header, tris, u(n_tris), counts, flags, place, place_slab, dmin,
-                  st_buf, box, lanes)
+        counts, flags = self.buf("tri_counts", 4 * max(n_tris, 1)), self.buf("tri_flags", 4 * max(n_tris, 1))
+        place, place_slab = self.buf("tri_place", 16 * max(n_tris, 1)), self.buf("tri_slab", 4 * max(n_tris, 1))
+        dmin, box = self.buf("tri_dmin", 4 * max(n_tris, 1)), self.buf("tri_box", 16 * max(n_tris, 1))
+        self._run("pg_tri_count", n_tris, self.header, tris, u(n_tris), counts, flags, place, place_slab, dmin,
+                  st_buf, box)
         # the pair total and the culled / widened counts (count-only compactions): one wait
         got = np.zeros(4, np.uint32)
         if n_tris:
-            nt_buf = self._n_buf(ncl, "n_tris")
-            p.exclusive_scan_dev(counts, counts, nt_buf, ncl, self.buf("pairs", 4))
+            nt_buf = self._n_buf(n_tris, "n_tris")
+            p.exclusive_scan_dev(counts, counts, nt_buf, n_tris, self.buf("pairs", 4))
             ev = clio.copy(q, got[1:4], st_buf, src_offset=4 * ST_CULLED, is_blocking=False)
             clio.copy(q, got[0:1], self._bufs["pairs"])  # the one wait (ev is done with it)
             del ev
@@ -301,7 +291,7 @@ class PointGrid:
             raise RtwalkError(f"point grid {na}x{nt}x{ns} needs {pairs:,} triangle-cell pairs (at most {cap:,} "
                               "on this OpenCL device): use fewer tiles")
         keys, refs = self.buf("keys", 4 * pairs), self.buf("refs", 4 * pairs)
-        self._run("pg_tri_write", nb, self.header, u(ncl), counts, place, place_slab, flags, dmin,
+        self._run("pg_tri_write", max(n_tris, 1), self.header, u(n_tris), counts, place, place_slab, flags, dmin,
                   st_buf, self.buf("levels", 16), keys, refs)
         cell_start = self.buf("cell_start", 4 * (ncells + 1))
         cl.enqueue_fill_buffer(q, cell_start, np.uint32(0), 0, 4 * (ncells + 1))
@@ -373,14 +363,9 @@ class PointGrid:
 
     @property
     def tri_box(self) -> Any:
-        """float4 per cluster (triangle slots 4c .. 4c + 3): its angular box (alpha min, max, theta
-        min, max), grown by the margin (valid for the binned clusters)."""
+        """float4 per triangle slot: its angular box (alpha min, max, theta min, max), grown by the
+        margin (valid for the binned triangles)."""
         return self._bufs["tri_box"]
-
-    @property
-    def tri_lanes(self) -> Any:
-        """uint32 per cluster: bit k set when slot 4c + k is binned (0: the cluster is not)."""
-        return self._bufs["tri_lanes"]
 
     @property
     def ray_angles(self) -> tuple[Any, Any]:

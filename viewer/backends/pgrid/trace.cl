@@ -1,15 +1,14 @@
 // pgrid: one work-group per chunk of at most WG rays that share a tile of the point-centred grid
-// (viewer/accel/pointgrid.cl). The tile's clusters (four triangle slots each, pg_cluster) are
-// staged in local memory WG at a time (one SoA block per cluster, stage.cl), nearest to the centre
-// first; a ray tests a staged cluster only when its own direction lies in the cluster's angular
-// box, and then its live triangles four at a time (watertight rt_intersect_triangle4).
+// (viewer/accel/pointgrid.cl). The tile's triangles are staged in local memory WG at a time
+// (four per SoA block, stage.cl), nearest to the centre first, and every ray of the chunk tests
+// every staged triangle, four at a time (watertight rt_intersect_triangle4).
 //  * any hit (shadow rays towards a light): slab by slab; a ray stops at its first hit; the chunk
 //    stops when all its rays have stopped or the next slab starts beyond the farthest point of its
 //    rays.
 //  * closest hit (primary rays from the eye): the tile's pairs, sorted by slab and then distance
-//    level (pointgrid.cl pg_levels), are staged in batches straight through the slabs; a ray
-//    whose hit lies nearer to the centre than the next cluster's lower bound is done (the slab
-//    check, per cluster); the chunk stops when all are done.
+//    level (pointgrid.cl pg_levels), are staged in batches straight through the slabs; before
+//    each batch a ray whose hit lies nearer to the centre than the batch's lower bound is done
+//    (the slab check); the chunk stops when all are done.
 // A tile without triangles (background) writes misses at once; empty slabs are skipped.
 // Chunks whose key is the "outside" tile (ntiles) return at once: those rays go another way.
 // A chunk of more than WG rays (load balancing off: whole tiles) is traced WG rays at a time.
@@ -33,23 +32,22 @@ typedef struct {
 
 #define MAX_SLABS 256
 
-// Cluster c (pointgrid.cl pg_cluster: triangle slots 4c .. 4c + 3, the live ones in tri_lanes[c])
-// into staging entry k: its triangles as SoA block k (lanes of dead or missing triangles are left
-// as they are and masked off), its id, lane mask and angular box (alpha min, max, theta min, max,
-// grown by the rays' margin). A ray whose direction u lies outside a cluster's box cannot meet any
-// of its triangles: this is the test that bins clusters into tiles, at full resolution.
-inline void pg_stage_cluster(__local float4 *sv, __local uint *sclu, __local int4 *slanes, __local float4 *sbox,
-                             uint k, __global const float4 *tris, __global const float4 *tri_box,
-                             __global const uint *tri_lanes, uint c) {
-    uint live = tri_lanes[c];
-    for (uint j = 0; j < 4; ++j)
-        if (live & (1u << j)) stage_triangle(sv, 4 * k + j, tris, 4 * c + j);
-    sclu[k] = c;
-    slanes[k] = (int4)((live & 1u) ? -1 : 0, (live & 2u) ? -1 : 0, (live & 4u) ? -1 : 0, (live & 8u) ? -1 : 0);
-    sbox[k] = tri_box[c];
+// A triangle's angular box (pointgrid.cl pg_tri: alpha min, max, theta min, max, grown by the
+// rays' margin) into lane k % 4 of SoA block k / 4 (four float4 rows: alpha min, alpha max, theta
+// min, theta max). A ray whose direction u lies outside a triangle's box cannot meet it: this is
+// the test that bins triangles into tiles, at full resolution instead of the tile's.
+inline void pg_stage_box(__local float4 *boxes, uint k, float4 b) {
+    __local float *f = (__local float *)(boxes + 4 * (k / 4));
+    uint lane = k % 4;
+    f[lane] = b.x; f[4 + lane] = b.y; f[8 + lane] = b.z; f[12 + lane] = b.w;
 }
 
-// A lower bound of the distance from E of the cluster of a sorted pair key ((cell << up.w) |
+// Lanes (-1) of the staged block at `boxes` whose angular box holds the ray's angles (a, t).
+inline int4 pg_box_lanes(__local const float4 *boxes, float a, float t) {
+    return (a >= boxes[0]) & (a <= boxes[1]) & (t >= boxes[2]) & (t <= boxes[3]);
+}
+
+// A lower bound of the distance from E of the triangle of a sorted pair key ((cell << up.w) |
 // distance level, cell = tile * slabs + slab; pointgrid.cl pg_tri_write): where its slab starts,
 // and where its level starts when the build made levels (lv.y >= 0: pg_levels). Monotone in the
 // key within a tile (slab and level are both monotone in the triangle's distance bound), so the
@@ -71,12 +69,11 @@ void pg_trace(__global const PGrid *grid, __global const uint *chunk_key, __glob
               __global const float4 *ray_d, __global float *out_t, __global int *out_id, const int any_hit,
               __global int *tests_out, const int from_far, __global const uint *keys,
               __global const float4 *levels, __global const float *ray_alpha, __global const float *ray_theta,
-              __global const float4 *tri_box, __global const uint *tri_lanes) {
-    __local float4 sv[9 * WG];  // staged clusters: four triangles each, one SoA block per cluster
-    __local uint sclu[WG];  // their cluster ids (triangle slots 4c .. 4c + 3)
-    __local int4 slanes[WG];  // their live triangles (lane masks)
-    __local float slo[WG];  // closest hit: lower bounds of the staged clusters' distances from E
-    __local float4 sbox[WG];  // the staged clusters' angular boxes
+              __global const float4 *tri_box) {
+    __local float4 sv[9 * (WG / 4)];  // staged triangles, four per block in SoA form
+    __local int sslot[WG];
+    __local float slo[WG];  // closest hit: lower bounds of the staged triangles' distances from E
+    __local float4 sbox[WG];  // the staged triangles' angular boxes, four per block in SoA form
     __local int remaining;
     __local uint far_bits;
     PGrid g = *grid;
@@ -156,26 +153,28 @@ void pg_trace(__global const PGrid *grid, __global const uint *chunk_key, __glob
             if (remaining == 0 || lo > chunk_far) break;  // same value in every work-item
             uint cnt = min((uint)WG, pb - base_i);
             if (lid < cnt) {
+                uint slot = refs[base_i + lid];
+                sslot[lid] = (int)slot;
                 slo[lid] = pg_pair_lo(&g, keys[base_i + lid], cell0, lv);
-                pg_stage_cluster(sv, sclu, slanes, sbox, lid, tris, tri_box, tri_lanes, refs[base_i + lid]);
+                stage_triangle(sv, lid, tris, slot);
+                pg_stage_box(sbox, lid, tri_box[slot]);
             }
             barrier(CLK_LOCAL_MEM_FENCE);
             if (!done && lo <= far) {  // this ray's segment may reach these triangles
-                for (uint k = 0; k < cnt; ++k) {
+                for (uint k = 0; k < cnt; k += 4) {
                     float t;
                     if (hit_id >= 0 && outward && base + hit_t * dlen + h < slo[k]) {
-                        done = true;  // every cluster from k on is at least slo[k] from E
+                        done = true;  // every triangle from k on is at least slo[k] from E
                         atomic_dec(&remaining);
                         break;
                     }
-                    float4 b = sbox[k];
-                    if (!(ra >= b.x && ra <= b.y && rth >= b.z && rth <= b.w)) continue;  // u outside its box
-                    int4 lanes = slanes[k];
+                    int4 lanes = stage_lanes(k, cnt) & pg_box_lanes(sbox + k, ra, rth);
+                    if (!any(lanes)) continue;  // u outside the four triangles' angular boxes
                     tests += (int)(-(lanes.x + lanes.y + lanes.z + lanes.w));
-                    int lane = rt_intersect_triangle4_local(&r, sv + 9 * k, lanes, tmin, hit_t, &t);
+                    int lane = rt_intersect_triangle4_local(&r, sv + 9 * (k / 4), lanes, tmin, hit_t, &t);
                     if (lane >= 0) {
                         hit_t = t;
-                        hit_id = (int)(4u * sclu[k]) + lane;
+                        hit_id = sslot[k + lane];
                     }
                 }
             }
@@ -202,20 +201,23 @@ void pg_trace(__global const PGrid *grid, __global const uint *chunk_key, __glob
         for (uint base_i = a; base_i < b; base_i += WG) {
             uint cnt = min((uint)WG, b - base_i);
             barrier(CLK_LOCAL_MEM_FENCE);
-            if (lid < cnt)
-                pg_stage_cluster(sv, sclu, slanes, sbox, lid, tris, tri_box, tri_lanes, refs[base_i + lid]);
+            if (lid < cnt) {
+                uint slot = refs[base_i + lid];
+                sslot[lid] = (int)slot;
+                stage_triangle(sv, lid, tris, slot);
+                pg_stage_box(sbox, lid, tri_box[slot]);
+            }
             barrier(CLK_LOCAL_MEM_FENCE);
             if (!done && slab_lo <= far) {  // this ray's segment may reach this slab
-                for (uint k = 0; k < cnt; ++k) {
+                for (uint k = 0; k < cnt; k += 4) {
                     float t;
-                    float4 b = sbox[k];
-                    if (!(ra >= b.x && ra <= b.y && rth >= b.z && rth <= b.w)) continue;  // u outside its box
-                    int4 lanes = slanes[k];
+                    int4 lanes = stage_lanes(k, cnt) & pg_box_lanes(sbox + k, ra, rth);
+                    if (!any(lanes)) continue;  // u outside the four triangles' angular boxes
                     tests += (int)(-(lanes.x + lanes.y + lanes.z + lanes.w));
-                    int lane = rt_intersect_triangle4_local(&r, sv + 9 * k, lanes, tmin, hit_t, &t);
+                    int lane = rt_intersect_triangle4_local(&r, sv + 9 * (k / 4), lanes, tmin, hit_t, &t);
                     if (lane >= 0) {  // any hit: this ray is done
                         hit_t = t;
-                        hit_id = (int)(4u * sclu[k]) + lane;
+                        hit_id = sslot[k + lane];
                         done = true;
                         atomic_dec(&remaining);
                         break;
