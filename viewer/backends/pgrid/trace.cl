@@ -7,8 +7,10 @@
 //    rays.
 //  * closest hit (primary rays from the eye): the tile's pairs, sorted by slab and then distance
 //    level (pointgrid.cl pg_levels), are staged in batches straight through the slabs; before
-//    each batch a ray whose hit lies nearer to the centre than the batch's lower bound is done
-//    (the slab check); the chunk stops when all are done.
+//    each batch and each staged block of four, a ray whose hit lies nearer to the centre than the
+//    lower bound of what follows is done (the slab check); the chunk stops when all are done.
+//  * both: a ray tests a staged triangle only when its own angles lie in the triangle's angular
+//    box (tri_box: the box it was binned by), the binning test at full resolution.
 // A tile without triangles (background) writes misses at once; empty slabs are skipped.
 // Chunks whose key is the "outside" tile (ntiles) return at once: those rays go another way.
 // A chunk of more than WG rays (load balancing off: whole tiles) is traced WG rays at a time.
