@@ -585,7 +585,9 @@ def _all_hits(tris, o, d, tmin, tmax, rounds: int = 12) -> list[tuple[np.ndarray
 @pytest.mark.parametrize("light", [[5.0, 5.0, 5.0], [5.0, 30.0, 5.0], [5.0, 12.0, 5.0], "boxed"])
 def test_light_grid_lists_every_occluder_in_the_rays_tile(light):
     """Conservative binning of the spherical grid: every triangle a shadow segment meets (float64
-    reference, all of them, not only the first) is listed in the cells of that ray's light tile.
+    reference, all of them, not only the first) is listed in the cells of that ray's light tile,
+    and the ray's angles lie in that triangle's angular box (the trace's per-ray test; small
+    triangles are boxed through their bounding sphere, large ones exactly).
     Lights inside, far outside and right above the soup; "boxed": a light inside a small closed
     box in the middle of the soup, so rays come from every direction and the box faces pierced by
     the grid's pole axis surround the pole (their azimuth range is everything)."""
@@ -627,8 +629,13 @@ def test_light_grid_lists_every_occluder_in_the_rays_tile(light):
         tile_of = np.full(len(vals), -1, np.int64)
         ch = np.repeat(np.arange(len(key)), length.astype(np.int64))
         tile_of[vals] = np.where(key[ch] < na * nt, key[ch].astype(np.int64), -1)
+        boxes = np.empty((len(be.bc.bvh.tri_order), 4), np.float32)
+        cl.enqueue_copy(q, boxes, pg.tri_box)
+        angles = [np.empty(len(vals), np.float32) for _ in range(2)]
+        for a, buf in zip(angles, pg.ray_angles, strict=True):
+            cl.enqueue_copy(q, a, buf)
         grid.update(tile_of=tile_of, cell_start=cell_start, refs=refs[: pg.stats.pairs], ns=ns,
-                    order=be.bc.bvh.tri_order)
+                    order=be.bc.bvh.tri_order, boxes=boxes, angles=angles)
 
     trace_centred(tris, o, d, tmin, tmax, RayType.SHADOW, light=light, keep=keep)
     tile_of = grid["tile_of"][:n]
@@ -636,6 +643,7 @@ def test_light_grid_lists_every_occluder_in_the_rays_tile(light):
     slot_of = np.empty(len(grid["order"]), np.int64)
     slot_of[grid["order"]] = np.arange(len(grid["order"]))
     cs, refs, ns = grid["cell_start"], grid["refs"], grid["ns"]
+    boxes, (alpha, theta) = grid["boxes"], grid["angles"]
     checked = 0
     for rays, tri in _all_hits(tris, o, d, tmin, tmax):
         keep_ = tile_of[rays] >= 0
@@ -643,6 +651,10 @@ def test_light_grid_lists_every_occluder_in_the_rays_tile(light):
             tile = tile_of[r]
             listed = refs[cs[tile * ns]:cs[(tile + 1) * ns]]
             assert t in listed, f"ray {r}: occluder slot {t} not in light tile {tile}"
+            # the trace tests the ray's angles against the triangle's own angular box first
+            b = boxes[t]
+            assert b[0] <= alpha[r] <= b[1] and b[2] <= theta[r] <= b[3], \
+                f"ray {r} (alpha {alpha[r]}, theta {theta[r]}): outside occluder slot {t}'s box {b}"
             checked += 1
     assert checked > 0.2 * n
 

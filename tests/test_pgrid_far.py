@@ -64,6 +64,33 @@ def test_point_grid_primary_far_from_origin(offset):
 
 
 @needs_cl
+@pytest.mark.parametrize("eye", [(0.4e-3, 1.2e-3, 2.5e-3), (3e-4, 2e-5, 1.5e-3)])
+def test_point_grid_primary_mixed_scale(eye):
+    """The mixed scene in small (bench-grids' `mixed`): a 1e-3 icosphere (5,120 triangles, all
+    boxed through their bounding spheres) on a 2e4 ground before a 1e4 wall, primary rays through
+    the eye-centred point grid (the bench's layout) from 1e-3 away and from just above the ground
+    (grazing it): every hit matches the float64 reference, although each ray now tests only the
+    triangles whose angular box holds it and stops at the first staged block beyond its hit."""
+    from viewer.bench.grids_far import scene_mixed
+    from viewer.procedural import _icosphere
+
+    ball = np.asarray(_icosphere(5, 0.5e-3, (0.0, 0.5e-3, 0.0)), F32).reshape(-1, 3, 3)
+    big = scene_mixed()[0][-4:]  # the ground and the wall
+    tris = np.concatenate([ball, big])
+    o, d = _pinhole(np.asarray(eye), np.array([0.0, 0.5e-3, 0.0]))
+    n = len(o)
+    tmin, tmax = np.zeros(n, F32), np.full(n, np.inf, F32)
+    t, tri, st = trace_centred(tris, o, d, tmin, tmax, RayType.PRIMARY, params="primary=angular")
+    assert st["outside_rays"] == 0, st
+    out = _judge(tris, o, d, tmin, tmax, t, tri, False)
+    hit_ball = np.isin(out.rtri, np.arange(len(ball)))
+    assert hit_ball.sum() > 0.05 * n and (out.rtri >= len(ball)).sum() > 0.05 * n  # both scales seen
+    # judged at the ball's scale: the default distance tolerance and edge band are relative to the
+    # 1e4 scene (8 ulps, 1e-6 x 1e4), wider than the ball, so any hit on it would pass as a tie
+    assert_matches(out, abs_tol=8 * float(np.spacing(F32(3e-3))), edge_rel=3e-13)  # edge band 3e-9
+
+
+@needs_cl
 @pytest.mark.parametrize("offset", [0.0, 1e6])
 def test_camera_grid_primary_far_from_origin(offset):
     """The same rays as a pinhole image (the camera perspective grid) at the origin and at 1e6."""

@@ -26,22 +26,30 @@ Build (kernels in pointgrid.cl beside this file, primitives from viewer.cl.primi
     (pointgrid.cl: azimuths at the vertices, elevations bounded through the triangle's distance
     from the pole axis; full azimuth when it surrounds or nears the pole axis or crosses the
     seam: "widened"; a projection that is a point or a segment on a line through the pole axis
-    is judged by its distance from the axis, not as "around" it), grown by the margin; clipped
+    is judged by its distance from the axis, not as "around" it; a small triangle, bounding
+    sphere under a quarter of its distance, is boxed through that sphere: two atan2 instead of
+    five), grown by the margin; stored per triangle (tri_box: the trace tests each ray's angles
+    against it before the triangle, the tile test at full resolution); clipped
     to the rays' rectangle (triangles outside it are culled: frustum culling for the eye); one
     slab from a lower bound d of the triangle's distance to the centre. (cell = tile * slabs +
-    slab, triangle) pairs counted, scanned, written with key (cell << LEVEL_BITS) | level(d)
+    slab, triangle) pairs counted, scanned, written with key (cell << level_bits) | level(d)
     (a log-like distance level from the float bits, pg_levels), sorted; per-cell counts from the
     segments, then an exclusive scan gives cell_start (ncells + 1 entries), so a tile's triangles
     are contiguous, in slab order and nearest first within a cell (the trace's in-cell stop).
+
+Asynchronous host writes keep their pyopencl events until the next build (`_async`): a dropped
+event of a non-blocking host copy waits for the copy, a hidden host sync that stalled each
+build three times.
 
 Layouts: header PGRID_DTYPE (112 bytes: float4 centre (w = margin), fwd (w = 1: back-face
 culling), up (w = distance level bits), right, rect (alpha0, theta0, tiles per radian in alpha
 and theta), slab (width, 1 / width, tan(margin), d0 = distance from the centre to the scene box,
 where slab 0 starts); int4 res (tiles alpha, tiles theta, slabs, cells)); cell_start uint32
 (ncells + 1,); keys uint32 (pairs,) sorted pair keys and refs uint32 (pairs,) triangle slots;
-levels float4 (dnear, shift, 0, 0); chunks: viewer.cl.primitives.Chunks over the sorted ray keys
-(key = tile, ntiles for rays outside the grid, ntiles + 1 for inactive rays: neither is traced
-here, so the caller writes misses first), ray_vals uint32 (n,) ray indices in that order.
+levels float4 (dnear, shift, 0, 0); tri_box float4 (n_tris,) angular boxes (alpha min, max,
+theta min, max); chunks: viewer.cl.primitives.Chunks over the sorted ray keys (key = tile,
+ntiles for rays outside the grid, ntiles + 1 for inactive rays: neither is traced here, so the
+caller writes misses first), ray_vals uint32 (n,) ray indices in that order.
 """
 
 from __future__ import annotations
@@ -110,7 +118,17 @@ class PointGridStats:
 RAY_ANGLE_ERR = 3e-6  # radians: pg_angles' error (2e-6 from pg_atan2_fast, plus float rounding of u)
 ST_CULLED = 7  # pointgrid.cl PG_ST_*: outside, inactive, deviation, alpha min/max, theta min/max, culled, widened
 ST_INIT = np.array([0, 0, 0, 0xFFFFFFFF, 0, 0xFFFFFFFF, 0, 0, 0, 0, 0xFFFFFFFF, 0], np.uint32)
-LEVEL_BITS = 8  # distance levels per cell (pointgrid.cl pg_levels), fewer when the cell ids need the bits
+LEVEL_BITS = 8  # at least this many distance level bits (pointgrid.cl pg_levels) where the cell ids leave
+# room, rounded up to fill the radix sort's last 8-bit digit (no extra pass): the closest-hit trace stops a
+# ray at the first staged block whose level bound lies beyond its hit, so finer levels are free up to there
+# (the mixed scene: 15 cell bits + 9 level bits; 12 bits, a fourth sort pass, traced no faster)
+
+
+def level_bits(cell_bits: int) -> int:
+    """Distance level bits of the pair keys: LEVEL_BITS, rounded up to fill the radix sort's last
+    8-bit digit, within 32 key bits."""
+    total = min(32, -(-(cell_bits + LEVEL_BITS) // 8) * 8)
+    return max(0, total - cell_bits)
 
 
 def decode_ord(keys: np.ndarray) -> np.ndarray:
@@ -175,7 +193,8 @@ class PointGrid:
         self.chunks = None
         self.outside_count = 0
         self.inactive_count = 0
-        self._n_hosts: dict[str, np.ndarray] = {}
+        self._n_hosts: dict[str, tuple[int, int]] = {}  # name -> (n, buffer id) last written
+        self._pending: list[Any] = []  # events of asynchronous host writes (see _async)
 
     def buf(self, name: str, nbytes: int) -> Any:
         return self._bufs.get(name, nbytes)
@@ -206,16 +225,15 @@ class PointGrid:
         h["fwd"][0, 3] = 1.0 if spec.backface else 0.0  # the kernels' back-face switch
         h["slab"][0, 2:] = (np.tan(spec.margin), d0)
         h["res"][0] = (1, 1, 1, 1)
-        self._header0 = h.copy()  # kept alive for the asynchronous write (h changes below)
-        clio.copy(q, self.header, self._header0, is_blocking=False)
+        self._pending = []  # the last pass's asynchronous writes are done (its rearrange waited)
+        self._async(self.header, h.copy())  # a copy: h changes below
         alpha, theta = self.buf("alpha", 4 * n), self.buf("theta", 4 * n)
         outside, out_idx = self.buf("outside", 4 * n), self.buf("outside_idx", 4 * n)
         # the rays' counts (outside, inactive), largest deviation and angular rectangle, and the
         # triangles' culled / widened counts: one small buffer, reset by this (asynchronous) write,
         # filled by pg_classify and pg_tri_count with atomics, read back in two batches (one wait each)
-        self._st0 = ST_INIT.copy()
         st_buf = self.buf("st", ST_INIT.nbytes)
-        clio.copy(q, st_buf, self._st0, is_blocking=False)
+        self._async(st_buf, ST_INIT.copy())
         self._run("pg_classify", n, self.header, ray_o, ray_d, u(n), alpha, theta, outside, st_buf, out_idx)
         st = np.zeros(7, np.uint32)
         if n:
@@ -247,25 +265,26 @@ class PointGrid:
         ncells = na * nt * ns
         h["res"][0] = (na, nt, ns, ncells)
         cell_bits = max(1, (ncells - 1).bit_length())
-        qbits = max(0, min(LEVEL_BITS, 32 - cell_bits))
+        qbits = level_bits(cell_bits)
         h["up"][0, 3] = qbits
         self.header_host = h
-        clio.copy(q, self.header, h, is_blocking=False)  # h is kept (header_host) until it lands
+        self._async(self.header, h)
         # triangles: (cell, triangle) pairs
         from viewer.cl.primitives import Chunks
 
         counts, flags = self.buf("tri_counts", 4 * max(n_tris, 1)), self.buf("tri_flags", 4 * max(n_tris, 1))
         place, place_slab = self.buf("tri_place", 16 * max(n_tris, 1)), self.buf("tri_slab", 4 * max(n_tris, 1))
-        dmin = self.buf("tri_dmin", 4 * max(n_tris, 1))
+        dmin, box = self.buf("tri_dmin", 4 * max(n_tris, 1)), self.buf("tri_box", 16 * max(n_tris, 1))
         self._run("pg_tri_count", n_tris, self.header, tris, u(n_tris), counts, flags, place, place_slab, dmin,
-                  st_buf)
+                  st_buf, box)
         # the pair total and the culled / widened counts (count-only compactions): one wait
         got = np.zeros(4, np.uint32)
         if n_tris:
             nt_buf = self._n_buf(n_tris, "n_tris")
             p.exclusive_scan_dev(counts, counts, nt_buf, n_tris, self.buf("pairs", 4))
-            clio.copy(q, got[1:4], st_buf, src_offset=4 * ST_CULLED, is_blocking=False)
-            clio.copy(q, got[0:1], self._bufs["pairs"])
+            ev = clio.copy(q, got[1:4], st_buf, src_offset=4 * ST_CULLED, is_blocking=False)
+            clio.copy(q, got[0:1], self._bufs["pairs"])  # the one wait (ev is done with it)
+            del ev
         pairs, culled, widened, back = (int(x) for x in got)
         cap = min(MAX_PAIRS, pair_cap(self.ctx, PAIR_BYTES))  # the device's memory bounds it too
         if pairs > cap:
@@ -287,12 +306,20 @@ class PointGrid:
         self.stats = PointGridStats((na, nt), ns, n, in_grid, self.outside_count, self.inactive_count, 0, int(pairs),
                                     int(culled), int(widened), (time.perf_counter() - t0) * 1e3, culled_backface=back)
 
+    def _async(self, buf: Any, host: np.ndarray) -> None:
+        """An asynchronous write of `host` to `buf`. pyopencl's event of a non-blocking host copy
+        waits for the copy when it is dropped (it guards the host array), so a dropped event is a
+        hidden host sync that stalls the queue: each build lost ~5 ms to three of them. The events
+        are kept until the next build (the queue has waited for them by then)."""
+        self._pending.append(clio.copy(self.ctx.queue, buf, host, is_blocking=False))
+
     def _n_buf(self, n: int, name: str = "n") -> Any:
-        """A device uint32 holding n (the count the device-count primitives read)."""
-        host = np.array([n], np.uint32)
-        self._n_hosts[name] = host  # kept alive for the asynchronous write
+        """A device uint32 holding n (the count the device-count primitives read); written only
+        when n changes."""
         buf = self.buf(name, 4)
-        clio.copy(self.ctx.queue, buf, host, is_blocking=False)
+        if self._n_hosts.get(name) != (n, id(buf)):
+            self._n_hosts[name] = (n, id(buf))
+            self._async(buf, np.array([n], np.uint32))
         return buf
 
     def rearrange(self, n: int, spec: PointGridSpec, balance: bool = True) -> PointGridStats:
@@ -335,6 +362,17 @@ class PointGrid:
         return self._bufs["refs"]
 
     @property
+    def tri_box(self) -> Any:
+        """float4 per triangle slot: its angular box (alpha min, max, theta min, max), grown by the
+        margin (valid for the binned triangles)."""
+        return self._bufs["tri_box"]
+
+    @property
+    def ray_angles(self) -> tuple[Any, Any]:
+        """float per ray: alpha, theta of its direction u (valid for the rays in the grid)."""
+        return self._bufs["alpha"], self._bufs["theta"]
+
+    @property
     def ray_vals(self) -> Any:
         return self._bufs["ray_vals"]
 
@@ -343,4 +381,6 @@ class PointGrid:
         return self._bufs["outside_idx"]
 
     def release(self) -> None:
+        self._pending.clear()
+        self._n_hosts.clear()
         self._bufs.release()

@@ -14,6 +14,10 @@
   `chunk` rays, one work-group per chunk with the tile's triangles staged in local memory slab by
   slab, any-hit early exit (trace.cl beside this file); slabs from the light outwards, or from the
   surface end when the light is outside the scene box (`order=auto`).
+* Both point grids: a ray is tested only against the staged triangles whose angular box holds
+  its own direction (the binning test at full resolution: 2.7-3.4 instead of 20.6 triangle tests
+  per ray on the mixed scene); closest-hit tiles are staged straight through their slabs, and a
+  ray stops at the first staged block whose distance bound lies beyond its hit.
 * Soft shadows, AO, diffuse and reflection rays, and any ray a grid cannot take (checked per ray,
   in double): the uniform grid of ugrid (viewer.accel.grid, built once per scene geometry when a
   pass first needs it: primary and shadow passes build it only for rays their grids decline), so
@@ -224,7 +228,8 @@ class PgridBackend(GeometryBackend):
                     self._kernels[count](q, (pg.chunks.count * self.params.chunk,), (self.params.chunk,), pg.header,
                                          ch.key, ch.start, ch.length, pg.ray_vals, pg.cell_start, pg.refs, self._tris,
                                          rs.origin, rs.dir, hs.t, hs.tri, np.int32(pinfo.any_hit), tests,
-                                         np.int32(self._from_far(centre)), pg.keys, pg.levels)
+                                         np.int32(self._from_far(centre)), pg.keys, pg.levels, *pg.ray_angles,
+                                         pg.tri_box)
                 self.tracer.enqueue(rs.origin, rs.dir, hs.t, hs.tri, st.outside, pinfo.any_hit,
                                     tests if count else None, index=pg.outside_index)
             stats.update(st.as_dict(self.params.chunk))

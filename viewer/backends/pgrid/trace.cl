@@ -1,13 +1,16 @@
 // pgrid: one work-group per chunk of at most WG rays that share a tile of the point-centred grid
 // (viewer/accel/pointgrid.cl). The tile's triangles are staged in local memory WG at a time
-// (four per SoA block, stage.cl), slab by slab (nearest to the centre first), and every ray of the
-// chunk tests every staged triangle, four at a time (watertight rt_intersect_triangle4).
-//  * any hit (shadow rays towards a light): a ray stops at its first hit; the chunk stops when all
-//    its rays have stopped or the next slab starts beyond the farthest point of its rays.
-//  * closest hit (primary rays from the eye): after slab s a ray whose hit lies nearer to the
-//    centre than where slab s+1 starts is done (slab check); within a cell, whose triangles are
-//    sorted by distance level (pointgrid.cl pg_levels), likewise before each further batch; the
-//    chunk stops when all are done.
+// (four per SoA block, stage.cl), nearest to the centre first, and every ray of the chunk tests
+// every staged triangle, four at a time (watertight rt_intersect_triangle4).
+//  * any hit (shadow rays towards a light): slab by slab; a ray stops at its first hit; the chunk
+//    stops when all its rays have stopped or the next slab starts beyond the farthest point of its
+//    rays.
+//  * closest hit (primary rays from the eye): the tile's pairs, sorted by slab and then distance
+//    level (pointgrid.cl pg_levels), are staged in batches straight through the slabs; before
+//    each batch and each staged block of four, a ray whose hit lies nearer to the centre than the
+//    lower bound of what follows is done (the slab check); the chunk stops when all are done.
+//  * both: a ray tests a staged triangle only when its own angles lie in the triangle's angular
+//    box (tri_box: the box it was binned by), the binning test at full resolution.
 // A tile without triangles (background) writes misses at once; empty slabs are skipped.
 // Chunks whose key is the "outside" tile (ntiles) return at once: those rays go another way.
 // A chunk of more than WG rays (load balancing off: whole tiles) is traced WG rays at a time.
@@ -31,15 +34,48 @@ typedef struct {
 
 #define MAX_SLABS 256
 
+// A triangle's angular box (pointgrid.cl pg_tri: alpha min, max, theta min, max, grown by the
+// rays' margin) into lane k % 4 of SoA block k / 4 (four float4 rows: alpha min, alpha max, theta
+// min, theta max). A ray whose direction u lies outside a triangle's box cannot meet it: this is
+// the test that bins triangles into tiles, at full resolution instead of the tile's.
+inline void pg_stage_box(__local float4 *boxes, uint k, float4 b) {
+    __local float *f = (__local float *)(boxes + 4 * (k / 4));
+    uint lane = k % 4;
+    f[lane] = b.x; f[4 + lane] = b.y; f[8 + lane] = b.z; f[12 + lane] = b.w;
+}
+
+// Lanes (-1) of the staged block at `boxes` whose angular box holds the ray's angles (a, t).
+inline int4 pg_box_lanes(__local const float4 *boxes, float a, float t) {
+    return (a >= boxes[0]) & (a <= boxes[1]) & (t >= boxes[2]) & (t <= boxes[3]);
+}
+
+// A lower bound of the distance from E of the triangle of a sorted pair key ((cell << up.w) |
+// distance level, cell = tile * slabs + slab; pointgrid.cl pg_tri_write): where its slab starts,
+// and where its level starts when the build made levels (lv.y >= 0: pg_levels). Monotone in the
+// key within a tile (slab and level are both monotone in the triangle's distance bound), so the
+// bound of a tile's pair also bounds every later pair of the tile.
+inline float pg_pair_lo(const PGrid *g, uint key, uint cell0, float4 lv) {
+    uint qb = (uint)g->up.w;
+    int s = (int)((key >> qb) - cell0);
+    float lo = g->slab.w + ((float)s - 0.001f) * g->slab.x;
+    uint q = qb ? key & ((1u << qb) - 1u) : 0u;
+    if (lv.y >= 0.0f && q)
+        lo = fmax(lo, as_float(as_uint(lv.x) + (q << (uint)lv.y)) * (1.0f - 1e-5f));
+    return lo;
+}
+
 __kernel __attribute__((reqd_work_group_size(WG, 1, 1)))
 void pg_trace(__global const PGrid *grid, __global const uint *chunk_key, __global const uint *chunk_start,
               __global const uint *chunk_len, __global const uint *ray_index, __global const uint *cell_start,
               __global const uint *refs, __global const float4 *tris, __global const float4 *ray_o,
               __global const float4 *ray_d, __global float *out_t, __global int *out_id, const int any_hit,
               __global int *tests_out, const int from_far, __global const uint *keys,
-              __global const float4 *levels) {
+              __global const float4 *levels, __global const float *ray_alpha, __global const float *ray_theta,
+              __global const float4 *tri_box) {
     __local float4 sv[9 * (WG / 4)];  // staged triangles, four per block in SoA form
     __local int sslot[WG];
+    __local float slo[WG];  // closest hit: lower bounds of the staged triangles' distances from E
+    __local float4 sbox[WG];  // the staged triangles' angular boxes, four per block in SoA form
     __local int remaining;
     __local uint far_bits;
     PGrid g = *grid;
@@ -71,6 +107,7 @@ void pg_trace(__global const PGrid *grid, __global const uint *chunk_key, __glob
     float4 ot = mine ? ray_o[ri] : (float4)(0.0f);
     float4 dt = mine ? ray_d[ri] : (float4)(0.0f, 0.0f, 1.0f, -1.0f);
     bool active = mine && dt.w > ot.w;
+    float ra = mine ? ray_alpha[ri] : 0.0f, rth = mine ? ray_theta[ri] : 0.0f;  // the angles of u
     float tmin = ot.w, hit_t = dt.w;
     int hit_id = -1;
     int tests = 0;
@@ -97,10 +134,55 @@ void pg_trace(__global const PGrid *grid, __global const uint *chunk_key, __glob
     // next to the surface points first: the better order when the light is outside the scene)
     int s_far = clamp((int)floor((chunk_far - g.slab.w) * g.slab.y + 0.001f), 0, g.res.z - 1);
     bool back = any_hit && from_far;
-    uint qb = (uint)g.up.w, qmask = (1u << qb) - 1u;  // distance level bits of the pair keys
     float4 lv = levels[0];
-    if (!(lv.y >= 0.0f)) qb = 0u;  // no levels this build (pointgrid.cl pg_levels)
-    // the slabs with triangles in visiting order; empty slabs are skipped by a plain loop (no
+    if (!any_hit) {
+        // closest hit: the tile's pairs are contiguous and sorted by (slab, distance level), both
+        // monotone in the triangle's distance lower bound from E, so they are staged WG at a time
+        // straight through the slabs (two barriers per batch, none per slab: on a CPU device a
+        // barrier region is a pass over the work-group, and a tile of a few large triangles in
+        // several slabs, the ground and the wall, paid one per slab). Before each batch, every
+        // triangle from it on is at least `lo` from E (its first pair's slab start and level):
+        // a hit nearer than that is final (the slab check, at batch granularity)
+        // (and again before each block of four: the staged `slo`, so a ray stops within a batch)
+        uint pa = cell_start[cell0], pb = cell_start[cell0 + (uint)g.res.z];
+        for (uint base_i = pa; base_i < pb; base_i += WG) {
+            float lo = pg_pair_lo(&g, keys[base_i], cell0, lv);
+            if (!done && hit_id >= 0 && outward && base + hit_t * dlen + h < lo) {
+                done = true;
+                atomic_dec(&remaining);
+            }
+            barrier(CLK_LOCAL_MEM_FENCE);  // also: every ray is done with the previous batch
+            if (remaining == 0 || lo > chunk_far) break;  // same value in every work-item
+            uint cnt = min((uint)WG, pb - base_i);
+            if (lid < cnt) {
+                uint slot = refs[base_i + lid];
+                sslot[lid] = (int)slot;
+                slo[lid] = pg_pair_lo(&g, keys[base_i + lid], cell0, lv);
+                stage_triangle(sv, lid, tris, slot);
+                pg_stage_box(sbox, lid, tri_box[slot]);
+            }
+            barrier(CLK_LOCAL_MEM_FENCE);
+            if (!done && lo <= far) {  // this ray's segment may reach these triangles
+                for (uint k = 0; k < cnt; k += 4) {
+                    float t;
+                    if (hit_id >= 0 && outward && base + hit_t * dlen + h < slo[k]) {
+                        done = true;  // every triangle from k on is at least slo[k] from E
+                        atomic_dec(&remaining);
+                        break;
+                    }
+                    int4 lanes = stage_lanes(k, cnt) & pg_box_lanes(sbox + k, ra, rth);
+                    if (!any(lanes)) continue;  // u outside the four triangles' angular boxes
+                    tests += (int)(-(lanes.x + lanes.y + lanes.z + lanes.w));
+                    int lane = rt_intersect_triangle4_local(&r, sv + 9 * (k / 4), lanes, tmin, hit_t, &t);
+                    if (lane >= 0) {
+                        hit_t = t;
+                        hit_id = sslot[k + lane];
+                    }
+                }
+            }
+        }
+    } else {
+    // any hit: the slabs with triangles in visiting order; empty slabs are skipped by a plain loop (no
     // barrier inside: PoCL runs every iteration of a loop holding a barrier once per work-item,
     // which made the empty slabs of a tile cost as much as its tests)
     int step = 0;
@@ -117,12 +199,6 @@ void pg_trace(__global const PGrid *grid, __global const uint *chunk_key, __glob
         if (s < 0) break;  // same value in every work-item
         ++step;
         float slab_lo = g.slab.w + ((float)s - 0.001f) * g.slab.x;
-        if (!any_hit && !done && hit_id >= 0 && outward && base + hit_t * dlen + h < slab_lo) {
-            // slab check: every triangle of this and the later slabs is at least slab_lo from E
-            done = true;
-            atomic_dec(&remaining);
-        }
-        barrier(CLK_LOCAL_MEM_FENCE);
         if (remaining == 0 || slab_lo > chunk_far) break;  // same value in every work-item
         for (uint base_i = a; base_i < b; base_i += WG) {
             uint cnt = min((uint)WG, b - base_i);
@@ -131,36 +207,29 @@ void pg_trace(__global const PGrid *grid, __global const uint *chunk_key, __glob
                 uint slot = refs[base_i + lid];
                 sslot[lid] = (int)slot;
                 stage_triangle(sv, lid, tris, slot);
+                pg_stage_box(sbox, lid, tri_box[slot]);
             }
             barrier(CLK_LOCAL_MEM_FENCE);
             if (!done && slab_lo <= far) {  // this ray's segment may reach this slab
                 for (uint k = 0; k < cnt; k += 4) {
                     float t;
-                    tests += (int)min(4u, cnt - k);
-                    int lane = rt_intersect_triangle4_local(&r, sv + 9 * (k / 4), stage_lanes(k, cnt), tmin, hit_t, &t);
-                    if (lane >= 0) {
+                    int4 lanes = stage_lanes(k, cnt) & pg_box_lanes(sbox + k, ra, rth);
+                    if (!any(lanes)) continue;  // u outside the four triangles' angular boxes
+                    tests += (int)(-(lanes.x + lanes.y + lanes.z + lanes.w));
+                    int lane = rt_intersect_triangle4_local(&r, sv + 9 * (k / 4), lanes, tmin, hit_t, &t);
+                    if (lane >= 0) {  // any hit: this ray is done
                         hit_t = t;
                         hit_id = sslot[k + lane];
-                        if (any_hit) { done = true; atomic_dec(&remaining); break; }
+                        done = true;
+                        atomic_dec(&remaining);
+                        break;
                     }
                 }
             }
             barrier(CLK_LOCAL_MEM_FENCE);
-            if (any_hit && remaining == 0) break;
-            if (!any_hit && qb && base_i + WG < b) {
-                // a cell's triangles are sorted by distance level (pointgrid.cl pg_levels): every
-                // triangle from the next batch on is at least `lo` from E, so a hit nearer than that
-                // is final (the slab check inside the cell)
-                uint q = keys[base_i + WG] & qmask;
-                float lo = q ? as_float(as_uint(lv.x) + (q << (uint)lv.y)) * (1.0f - 1e-5f) : 0.0f;
-                if (!done && hit_id >= 0 && outward && base + hit_t * dlen + h < lo) {
-                    done = true;
-                    atomic_dec(&remaining);
-                }
-                barrier(CLK_LOCAL_MEM_FENCE);
-                if (remaining == 0) break;
-            }
+            if (remaining == 0) break;
         }
+    }
     }
     if (mine) {
         out_t[ri] = hit_id >= 0 ? hit_t : INFINITY;
