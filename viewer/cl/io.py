@@ -15,6 +15,11 @@ so every launch, byte and host wait lands in viewer.iostats.
                                   counts to_device
   finish(queue)                   queue.finish() as one timed host sync
 
+A non-blocking host copy's pyopencl event waits for the copy when it is dropped (it guards the
+host array), which would make every "asynchronous" write a hidden, uncounted host sync. copy()
+therefore keeps those events (and so their host arrays) per queue until the queue next waits
+for the host (a blocking copy or map, or finish()), when they are complete and free to drop.
+
 A staged GL <-> CL hop (a GL texture read straight into a mapped CL buffer, or written from one)
 crosses once and is counted once, by the map (viewer/cl/transfer.py).
 """
@@ -80,6 +85,16 @@ def _nbytes(x: Any) -> int:
     return int(getattr(x, "size", 0))
 
 
+_in_flight: dict[int, list[Any]] = {}  # id(queue) -> events of non-blocking host copies not yet waited for
+MAX_IN_FLIGHT = 4096  # past this many, the queue is finished (one counted sync) to bound them
+
+
+def _completed(queue: Any) -> None:
+    """The queue has just waited for the host: every earlier command is done, so the kept events
+    (an in-order queue) are complete and dropping them waits for nothing."""
+    _in_flight.pop(id(queue), None)
+
+
 def copy(queue: Any, dest: Any, src: Any, **kw: Any) -> Any:
     """pyopencl.enqueue_copy, counted (see the module docstring)."""
     cl = _cl()
@@ -89,7 +104,15 @@ def copy(queue: Any, dest: Any, src: Any, **kw: Any) -> Any:
         (iostats.to_host if host_dst else iostats.to_device)(n)
         if kw.get("is_blocking", True):
             with iostats.timed_sync():
-                return cl.enqueue_copy(queue, dest, src, **kw)
+                event = cl.enqueue_copy(queue, dest, src, **kw)
+            _completed(queue)
+            return event
+        event = cl.enqueue_copy(queue, dest, src, **kw)
+        kept = _in_flight.setdefault(id(queue), [])
+        kept.append(event)
+        if len(kept) > MAX_IN_FLIGHT:
+            finish(queue)
+        return event
     return cl.enqueue_copy(queue, dest, src, **kw)
 
 
@@ -101,7 +124,9 @@ def map_buffer(queue: Any, buf: Any, flags: Any, offset: int, shape: Any, dtype:
     (iostats.to_host if flags & cl.map_flags.READ else iostats.to_device)(nbytes)
     if is_blocking:
         with iostats.timed_sync():
-            return cl.enqueue_map_buffer(queue, buf, flags, offset, shape, dtype, is_blocking=True)
+            mapped = cl.enqueue_map_buffer(queue, buf, flags, offset, shape, dtype, is_blocking=True)
+        _completed(queue)
+        return mapped
     return cl.enqueue_map_buffer(queue, buf, flags, offset, shape, dtype, is_blocking=False)
 
 
@@ -149,3 +174,4 @@ def finish(queue: Any) -> None:
     """queue.finish() counted as one host sync (its wait kept out of python_ms)."""
     with iostats.timed_sync():
         queue.finish()
+    _completed(queue)
