@@ -71,6 +71,26 @@ def test_in_process_runs_match_the_interpreter(monkeypatch):
     assert os.getcwd() == cwd and "RTWALK_TEST_LEAK" not in os.environ
 
 
+def test_in_process_render_leaves_the_shared_context_working(gl_ctx, tmp_path):
+    """A render in this process makes (and run_cli releases) its own EGL context; the session's
+    shared context still draws and reads back afterwards."""
+    import numpy as np
+
+    def clear_and_read() -> list[int]:
+        fbo = gl_ctx.simple_framebuffer((4, 4))
+        fbo.use()
+        gl_ctx.clear(0.25, 0.5, 0.75, 1.0)
+        px = np.frombuffer(fbo.read(components=4), np.uint8)[:4].tolist()
+        fbo.release()
+        return px
+
+    before = clear_and_read()
+    proc = run_cli("render", "room", "--size", "32x18", "--effects", "primary", "-o", str(tmp_path / "x.png"),
+                   "--quiet")
+    assert proc.returncode == 0 and proc.stderr == "" and (tmp_path / "x.png").stat().st_size > 0, proc.stderr
+    assert clear_and_read() == before == [64, 128, 191, 255]
+
+
 def test_missing_scene_file(tmp_path):
     missing = tmp_path / "nope.obj"
     assert_one_line_error(run_cli("render", str(missing), "-o", str(tmp_path / "x.png")), "nope.obj")
