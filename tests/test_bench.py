@@ -9,6 +9,7 @@ import sys
 
 import numpy as np
 
+from tests.cli_runner import run_cli
 from viewer.camera import Camera
 from viewer.recording import Keyframe, Recording, save_recording
 
@@ -69,8 +70,7 @@ def test_bench_chcrt_consecutive_frames_saves_overlays(tmp_path):
         final = np.asarray(Image.open(frames_dir / f"frame_{f['frame']:05d}.png"))
         heat = np.asarray(Image.open(frames_dir / f["overlays"][0]))
         assert heat.shape == final.shape and not np.array_equal(heat, final)
-    bad = subprocess.run([sys.executable, "-m", "viewer.cli", "bench", "--recording", str(path), "--first-frame",
-                          "99", "--quiet"], capture_output=True, text=True, timeout=120)
+    bad = run_cli("bench", "--recording", str(path), "--first-frame", "99", "--quiet")
     assert bad.returncode == 2 and bad.stderr.strip().startswith("rtwalk: error:") and "Traceback" not in bad.stderr
 
 

@@ -1,4 +1,8 @@
-"""Bad input: one line on stderr, exit code 2, no traceback."""
+"""Bad input: one line on stderr, exit code 2, no traceback.
+
+`run_cli` runs the command in this process (tests/cli_runner.py); the tests where the process
+boundary matters (signals, resource limits, environment read at library load, warnings, every
+line a process prints, the entry points' exit status) run a real child (`subprocess=True`)."""
 
 from __future__ import annotations
 
@@ -6,13 +10,11 @@ import argparse
 import json
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 
-
-def run_cli(*args: str, timeout: float = 180) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "viewer.cli", *args], capture_output=True, text=True,
-                          timeout=timeout)
+from tests.cli_runner import run_cli
 
 
 def assert_one_line_error(proc: subprocess.CompletedProcess, needle: str) -> None:
@@ -21,6 +23,72 @@ def assert_one_line_error(proc: subprocess.CompletedProcess, needle: str) -> Non
     assert len(lines) == 1, proc.stderr
     assert "Traceback" not in proc.stderr, proc.stderr
     assert needle in lines[0], lines[0]
+
+
+def _entry_point(kind: str) -> list[str]:
+    if kind == "module":
+        return [sys.executable, "-m", "viewer.cli"]
+    script = Path(sys.executable).with_name("rtwalk")  # the console script of this environment
+    if not script.exists():
+        pytest.skip(f"no console script {script} (pip install -e .)")
+    return [str(script)]
+
+
+@pytest.mark.parametrize("kind", ["module", "script"])
+def test_entry_points_exit_2_with_one_line(tmp_path, kind):
+    """What the shell sees from a real process: `python -m viewer.cli` and the installed `rtwalk`
+    script exit 2 with one line, no traceback, for a bad scene (RtwalkError) and a bad flag value
+    (argparse's usage line)."""
+    cmd = _entry_point(kind)
+    proc = subprocess.run([*cmd, "render", str(tmp_path / "nope.obj"), "-o", str(tmp_path / "x.png")],
+                          capture_output=True, text=True, timeout=60)
+    assert_one_line_error(proc, "nope.obj")
+    proc = subprocess.run([*cmd, "render", "room", "--frame", "x"], capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 2 and "usage: rtwalk render" in proc.stderr, proc.stderr
+    assert "Traceback" not in proc.stderr and "invalid int value" in proc.stderr, proc.stderr
+
+
+def test_in_process_runs_match_the_interpreter(monkeypatch):
+    """run_cli in this process: argparse's exit is its status (2 with usage, 0 for --help), an
+    escaping exception is exit 1 with its traceback on stderr, and process state comes back."""
+    import os
+
+    proc = run_cli("render", "room", "--frame", "x")
+    assert proc.returncode == 2 and "usage: rtwalk render" in proc.stderr and "invalid int value" in proc.stderr
+    assert run_cli("info", "--help").returncode == 0
+
+    import viewer.cli
+
+    def boom(args) -> int:
+        os.environ["RTWALK_TEST_LEAK"] = "1"
+        os.chdir("/")
+        raise ValueError("escaped")
+
+    monkeypatch.setattr(viewer.cli, "cmd_info", boom)
+    cwd = os.getcwd()
+    proc = run_cli("info", "room")
+    assert proc.returncode == 1 and "Traceback" in proc.stderr and "ValueError: escaped" in proc.stderr
+    assert os.getcwd() == cwd and "RTWALK_TEST_LEAK" not in os.environ
+
+
+def test_in_process_render_leaves_the_shared_context_working(gl_ctx, tmp_path):
+    """A render in this process makes (and run_cli releases) its own EGL context; the session's
+    shared context still draws and reads back afterwards."""
+    import numpy as np
+
+    def clear_and_read() -> list[int]:
+        fbo = gl_ctx.simple_framebuffer((4, 4))
+        fbo.use()
+        gl_ctx.clear(0.25, 0.5, 0.75, 1.0)
+        px = np.frombuffer(fbo.read(components=4), np.uint8)[:4].tolist()
+        fbo.release()
+        return px
+
+    before = clear_and_read()
+    proc = run_cli("render", "room", "--size", "32x18", "--effects", "primary", "-o", str(tmp_path / "x.png"),
+                   "--quiet")
+    assert proc.returncode == 0 and proc.stderr == "" and (tmp_path / "x.png").stat().st_size > 0, proc.stderr
+    assert clear_and_read() == before == [64, 128, 191, 255]
 
 
 def test_missing_scene_file(tmp_path):
@@ -200,8 +268,9 @@ def test_missing_opencl_device_before_the_scene(tmp_path, monkeypatch):
     if not cl_backends:
         pytest.skip("no OpenCL backend registered")
     monkeypatch.setenv("RTWALK_CL_DEVICE", "no-such-device-anywhere")
+    # a child: the device is chosen once per process (viewer.cl.context caches it)
     proc = run_cli("render", _never_loaded(tmp_path), "--backend", cl_backends[0], "-o", str(tmp_path / "x.png"),
-                   timeout=60)
+                   timeout=60, subprocess=True)
     assert_one_line_error(proc, "OpenCL")
     assert "never-loaded" not in proc.stderr
 
@@ -209,7 +278,8 @@ def test_missing_opencl_device_before_the_scene(tmp_path, monkeypatch):
 def test_missing_egl_before_the_scene(tmp_path, monkeypatch):
     """No EGL vendor library (glvnd finds no device): one line about EGL, before any loading."""
     monkeypatch.setenv("__EGL_VENDOR_LIBRARY_FILENAMES", str(tmp_path / "no-vendor.json"))
-    proc = run_cli("render", _never_loaded(tmp_path), "-o", str(tmp_path / "x.png"), timeout=60)
+    # a child: glvnd reads the variable when libEGL is loaded
+    proc = run_cli("render", _never_loaded(tmp_path), "-o", str(tmp_path / "x.png"), timeout=60, subprocess=True)
     assert_one_line_error(proc, "EGL")
     assert "never-loaded" not in proc.stderr
 
@@ -236,12 +306,10 @@ def test_scene_size_memory_estimate_refuses_before_building():
     """Under a 3 GiB address-space limit the largest city (40M triangles, ~16 GiB) is refused with
     the figure, at once; a small one still loads under the same limit."""
     limit = _address_space_limit(3)
-    proc = subprocess.run([sys.executable, "-m", "viewer.cli", "info", "--scene-size", "40000000"],
-                          capture_output=True, text=True, timeout=60, preexec_fn=limit)
+    proc = run_cli("info", "--scene-size", "40000000", timeout=60, subprocess=True, preexec_fn=limit)
     assert_one_line_error(proc, "GiB")
     assert "40,000,000" in proc.stderr and "available" in proc.stderr
-    ok = subprocess.run([sys.executable, "-m", "viewer.cli", "info", "--scene-size", "2000", "--quiet"],
-                        capture_output=True, text=True, timeout=120, preexec_fn=limit)
+    ok = run_cli("info", "--scene-size", "2000", "--quiet", timeout=120, subprocess=True, preexec_fn=limit)
     assert ok.returncode == 0, ok.stderr
 
 
@@ -262,7 +330,7 @@ def test_memory_estimate_covers_a_measured_build():
 def test_nan_vertices_one_line_no_numpy_warning(tmp_path):
     mesh = tmp_path / "partly-nan.obj"
     mesh.write_text("v nan 0 0\nv 1 0 0\nv 0 1 0\nv inf 1 1\nv 0 0 1\nf 1 2 3\nf 2 3 4\nf 2 3 5\n")
-    proc = run_cli("info", str(mesh), timeout=60)
+    proc = run_cli("info", str(mesh), timeout=60, subprocess=True)  # what a fresh interpreter prints
     assert proc.returncode == 0, proc.stderr
     assert "Warning" not in proc.stderr, proc.stderr
     assert sum("dropped 2 triangles with NaN/Inf" in ln for ln in proc.stderr.splitlines()) == 1, proc.stderr
@@ -416,9 +484,10 @@ def test_sigint_keeps_the_frames_done(tmp_path):
         assert proc.poll() is None and time.monotonic() < deadline, "".join(err)[-2000:]
         time.sleep(0.05)
     proc.send_signal(signal.SIGINT)
-    assert proc.wait(timeout=120) == 130
+    code = proc.wait(timeout=120)
     reader.join(timeout=10)
     text = "".join(err)
+    assert code == 130, "\n".join(ln for ln in text.replace("\r", "\n").splitlines() if "frame/s" not in ln)[-3000:]
     assert "Traceback" not in text and "partial report" in text, text[-2000:]
     report = json.loads((out / "cut.json").read_text())
     assert report["complete"] is False and 1 <= len(report["frames"]) < 600
@@ -433,9 +502,8 @@ def test_huge_size_is_one_line(tmp_path):
     def limit():
         resource.setrlimit(resource.RLIMIT_AS, (16 << 30, 16 << 30))
 
-    proc = subprocess.run([sys.executable, "-m", "viewer.cli", "render", "room", "--size", "16384x16384",
-                           "--effects", "primary", "-o", str(tmp_path / "x.png")], capture_output=True, text=True,
-                          timeout=180, preexec_fn=limit)
+    proc = run_cli("render", "room", "--size", "16384x16384", "--effects", "primary", "-o", str(tmp_path / "x.png"),
+                   timeout=180, subprocess=True, preexec_fn=limit)
     assert_one_line_error(proc, "16384x16384")
     assert not (tmp_path / "x.png").exists()
 
@@ -470,8 +538,9 @@ def test_reflections_without_mirrors_warn(tmp_path):
     add mirrors; the frame is still rendered (exit 0)."""
     scene = tmp_path / "plain.obj"
     scene.write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\nf 1 2 3\nf 1 2 4\n")
+    # a child: every line on the process's stderr counts, also what Mesa or PoCL would print there
     proc = run_cli("render", str(scene), "--effects", "reflections", "--size", "32x18", "-o",
-                   str(tmp_path / "x.png"), "--quiet", timeout=120)
+                   str(tmp_path / "x.png"), "--quiet", timeout=120, subprocess=True)
     assert proc.returncode == 0, proc.stderr
     lines = [ln for ln in proc.stderr.splitlines() if ln.strip()]
     assert len(lines) == 1 and lines[0].startswith("rtwalk: warning:") and "--mirror PATTERN" in lines[0], lines

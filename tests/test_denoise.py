@@ -12,6 +12,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from tests.cli_runner import run_cli
 from viewer.denoise import library_missing
 
 SIZE = (160, 90)
@@ -116,6 +117,5 @@ def test_cli_denoise_flag(tmp_path):
         assert ("denoised" in proc.stderr) == (mode == "on"), proc.stderr
         outs[mode] = np.asarray(Image.open(out))
     assert (outs["on"] != outs["off"]).any()
-    proc = subprocess.run([sys.executable, "-m", "viewer.cli", "render", "--denoise", "maybe"],
-                          capture_output=True, text=True, timeout=60)
+    proc = run_cli("render", "--denoise", "maybe")
     assert proc.returncode == 2 and "--denoise" in proc.stderr

@@ -5,12 +5,10 @@ an overlay view without overlays fails with one clear error (window: a panel lin
 
 from __future__ import annotations
 
-import subprocess
-import sys
-
 import numpy as np
 import pytest
 
+from tests.cli_runner import run_cli
 from tests.conftest import prepared_scene
 from tests.view_helpers import draw_views, image_gl, record_overlays, tile_edges
 from viewer.effects import RayType, parse_effects
@@ -258,9 +256,8 @@ def test_overlay_view_without_overlays_is_an_error(gl_ctx, city):
 
 
 def test_render_cli_overlay_view_with_glsl_fails_with_one_line(tmp_path):
-    res = subprocess.run([sys.executable, "-m", "viewer.cli", "render", "room", "--backend", "glsl",
-                          "--view", "query_overdraw", "--size", "64x36", "-o", str(tmp_path / "o.png"), "--quiet"],
-                         capture_output=True, text=True, timeout=120)
+    res = run_cli("render", "room", "--backend", "glsl", "--view", "query_overdraw", "--size", "64x36",
+                  "-o", str(tmp_path / "o.png"), "--quiet")
     assert res.returncode == 2, res.stderr
     lines = res.stderr.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("rtwalk: error: ") and "chcrt" in lines[0], res.stderr

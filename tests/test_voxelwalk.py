@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 import trimesh
 
+from tests.cli_runner import run_cli
 from tests.conftest import opencl_missing
 from viewer.errors import RtwalkError
 
@@ -348,8 +349,10 @@ def test_bench_voxelwalk_end_to_end(tmp_path):
     assert abs(sum(w["resolved"]) - 1.0) < 1e-9  # every active reflection ray resolved at some iteration
     pts = json.loads((tmp_path / "resolution.json").read_text())["scenes"][0]["points"]
     assert [p["resolution"] for p in pts][:2] == [8, 16] and sum(p["auto"] for p in pts) == 1
-    rb = subprocess.run([sys.executable, "-m", "viewer.cli", "bench-voxelwalk", "--sizes", "big"],
-                        capture_output=True, text=True, timeout=120)
+
+
+def test_bench_voxelwalk_bad_sizes_is_one_line():
+    rb = run_cli("bench-voxelwalk", "--sizes", "big")
     err = rb.stderr.strip().splitlines()
     assert rb.returncode == 2 and len(err) == 1 and err[0].startswith("rtwalk: error: ") and "--sizes" in err[0]
 
