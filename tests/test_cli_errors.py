@@ -559,3 +559,27 @@ def test_mirrors_or_no_reflections_do_not_warn(capsys):
     assert warn_no_mirrors(parse_effects("reflections"), mirrored) is None
     assert capsys.readouterr().err == ""
     assert "--mirror" in warn_no_mirrors(parse_effects("reflections"), plain)
+
+
+def test_deferred_interrupt_sets_a_flag_then_raises():
+    """viewer.interrupt: the first SIGINT inside the block only sets the flag (nothing is raised
+    wherever the interpreter happens to be, e.g. in a destructor); a second one raises
+    KeyboardInterrupt; the previous handler is back after the block."""
+    import os
+    import signal
+
+    from viewer.interrupt import deferred_interrupt
+
+    before = signal.getsignal(signal.SIGINT)
+    with deferred_interrupt() as ctrl_c:
+        assert not ctrl_c.requested
+        os.kill(os.getpid(), signal.SIGINT)
+        for _ in range(1000):  # the handler runs at the next bytecode boundary
+            if ctrl_c.requested:
+                break
+        assert ctrl_c.requested
+        with pytest.raises(KeyboardInterrupt):
+            os.kill(os.getpid(), signal.SIGINT)
+            for _ in range(1000):
+                pass
+    assert signal.getsignal(signal.SIGINT) is before

@@ -24,6 +24,7 @@ from viewer.bench.plots import figure, finish, stacked
 from viewer.bench.report import write_json
 from viewer.effects import EffectSettings
 from viewer.errors import RtwalkError
+from viewer.interrupt import deferred_interrupt
 from viewer.reference import REFERENCE_BACKEND
 from viewer.renderer import Renderer
 from viewer.session import PreparedScene
@@ -131,47 +132,53 @@ def run_bench(prepared: PreparedScene, rec, settings: EffectSettings, opts: Benc
               + (f", {checked} checked against Embree (every {every})" if checked else ""), file=sys.stderr)
     t_start, t_render0 = time.perf_counter(), 0.0
     complete = True
-    try:
-        for k, n in enumerate(tqdm(frames, desc=f"bench {opts.backend}", unit="frame", disable=quiet,
-                                   file=sys.stderr)):
-            if k == 1 and not quiet:  # the first frame (rendered and checked) times the rest
-                first = time.perf_counter() - t_start
-                # a checked frame costs `first`, an unchecked one its render part
-                est = (first * (checked - 1) + t_render0 * (len(frames) - checked) if checked
-                       else first * (len(frames) - 1))
-                tqdm.write(f"bench: estimated {est / 60:.1f} min more (first frame {first:.1f} s)", file=sys.stderr)
-            t_frame = time.perf_counter()
-            cam = rec.camera_for_frame(n, opts.fps)
-            renderer.set_scene_time(rec.scene_time_for_frame(n, opts.fps))
-            rep = renderer.render(cam)
-            row = frame_row(rep, rec, n, opts.fps)
-            if k == 0:
-                t_render0 = time.perf_counter() - t_frame
-            image = None
-            if tracer is not None and k % max(opts.reference_every, 1) == 0:
-                if tracer_version != renderer.scene.geometry_version:  # an animated scene moved: judge this frame's
-                    tracer = EmbreeTracer(renderer.scene.triangles)
-                    tracer_version = renderer.scene.geometry_version
-                err = reference_errors(renderer, cam, tracer)
-                image = err["image"]
-                row["error"] = err["rays"]
-                renderer.set_backend(opts.reference)  # the reference image: the backend of that name
-                renderer.render(cam)
-                ref_image = renderer.read_image()
-                renderer.set_backend(opts.backend)
-                row["image_error"] = image_error(image, ref_image)
-            if opts.frames_dir is not None and k % max(opts.frame_every, 1) == 0:
-                from PIL import Image
+    with deferred_interrupt() as ctrl_c:  # Ctrl-C: stop after the frame in hand (viewer.interrupt)
+        try:
+            for k, n in enumerate(tqdm(frames, desc=f"bench {opts.backend}", unit="frame", disable=quiet,
+                                       file=sys.stderr)):
+                if ctrl_c.requested:  # Ctrl-C arrived during the last frame: keep the frames done
+                    complete = False
+                    break
+                if k == 1 and not quiet:  # the first frame (rendered and checked) times the rest
+                    first = time.perf_counter() - t_start
+                    # a checked frame costs `first`, an unchecked one its render part
+                    est = (first * (checked - 1) + t_render0 * (len(frames) - checked) if checked
+                           else first * (len(frames) - 1))
+                    tqdm.write(f"bench: estimated {est / 60:.1f} min more (first frame {first:.1f} s)", file=sys.stderr)
+                t_frame = time.perf_counter()
+                cam = rec.camera_for_frame(n, opts.fps)
+                renderer.set_scene_time(rec.scene_time_for_frame(n, opts.fps))
+                rep = renderer.render(cam)
+                row = frame_row(rep, rec, n, opts.fps)
+                if k == 0:
+                    t_render0 = time.perf_counter() - t_frame
+                image = None
+                if tracer is not None and k % max(opts.reference_every, 1) == 0:
+                    if tracer_version != renderer.scene.geometry_version:  # an animated scene moved: judge this frame's
+                        tracer = EmbreeTracer(renderer.scene.triangles)
+                        tracer_version = renderer.scene.geometry_version
+                    err = reference_errors(renderer, cam, tracer)
+                    image = err["image"]
+                    row["error"] = err["rays"]
+                    renderer.set_backend(opts.reference)  # the reference image: the backend of that name
+                    renderer.render(cam)
+                    ref_image = renderer.read_image()
+                    renderer.set_backend(opts.backend)
+                    row["image_error"] = image_error(image, ref_image)
+                if opts.frames_dir is not None and k % max(opts.frame_every, 1) == 0:
+                    from PIL import Image
 
-                if image is None:
-                    image = renderer.read_image()
-                if opts.denoise:  # the picture only: the errors above were taken on the raw image
-                    image = renderer.read_denoised("library", cam, image)
-                opts.frames_dir.mkdir(parents=True, exist_ok=True)
-                Image.fromarray(image).save(opts.frames_dir / f"frame_{n:05d}.png")
-                row["overlays"] = save_overlay_views(renderer, cam, opts.frames_dir, n)
-            records.append(row)
-    except KeyboardInterrupt:  # Ctrl-C: keep the frames done; the caller writes them marked incomplete
+                    if image is None:
+                        image = renderer.read_image()
+                    if opts.denoise:  # the picture only: the errors above were taken on the raw image
+                        image = renderer.read_denoised("library", cam, image)
+                    opts.frames_dir.mkdir(parents=True, exist_ok=True)
+                    Image.fromarray(image).save(opts.frames_dir / f"frame_{n:05d}.png")
+                    row["overlays"] = save_overlay_views(renderer, cam, opts.frames_dir, n)
+                records.append(row)
+        except KeyboardInterrupt:  # a second Ctrl-C: keep the frames done; the caller writes them marked incomplete
+            complete = False
+    if ctrl_c.requested:  # after the last frame
         complete = False
     report = {
         "format": "rtwalk-bench", "version": 1,
