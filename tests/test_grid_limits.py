@@ -130,14 +130,15 @@ def test_over_budget_grid_coarsens_and_stays_exact(monkeypatch):
 
 @needs_cl
 def test_needles_coarsen_the_automatic_resolution():
-    """A fan of 20,000 needles meeting at one point: the density rule's resolution gives each
-    needle hundreds of cells (triangle/cell binning still lists only the cells it meets); the
-    automatic resolution coarsens until they meet at most max_cells_per_triangle each, and the
-    binning passes the float64 check. A fixed resolution is left as asked."""
-    tris = closed_disk(20_000)
-    unbounded, *_ = build_grid(tris, GridSpec(max_cells_per_triangle=0))
+    """A fan of 2,000 needles meeting at one point: the density rule's resolution gives each needle
+    over a hundred cells (triangle/cell binning still lists only the cells it meets; the 62,832
+    needles of test_exactness met 325 each); the automatic resolution coarsens until they meet at
+    most max_cells_per_triangle each, and the binning passes the float64 check. A fixed
+    resolution is left as asked."""
+    tris = closed_disk(2_000)
+    unbounded, *_ = build_grid(tris, GridSpec(density=16.0, max_cells_per_triangle=0))
     assert unbounded.coarsened == 0 and unbounded.pairs > 100 * len(tris), unbounded
-    bounded = check_grid(tris, GridSpec())["stats"]
+    bounded = check_grid(tris, GridSpec(density=16.0))["stats"]
     assert bounded.coarsened > 0 and bounded.pairs <= GridSpec().max_cells_per_triangle * len(tris), bounded
     assert bounded.pairs > 4 * len(tris)  # not coarser than it needs: still several cells per needle
     fixed, *_ = build_grid(tris, GridSpec(resolution=unbounded.res[0]))
