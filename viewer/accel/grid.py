@@ -10,13 +10,12 @@ viewer/cl/kernels/grid.cl (include it from a trace kernel).
 Binning is triangle/cell and conservative: a triangle is listed in every cell whose box, grown by
 `eps` cells per axis, the triangle meets (grid_build.cl clips it row by row), not in every cell
 of its bounding box: a long diagonal triangle costs its cells, not its box's. Build and walk work
-in coordinates local to the grid (vertex or ray
-origin minus the grid's float32 corner `lo`: exact for nearby points by Sterbenz, else rounded at
-the local magnitude), so rounding is relative to the grid's extent and the ray's distance, never
-to how far the scene lies from the origin. The margin is therefore 1e-3 cells plus 32 float32
-ulps of the grid's extent in cell units (the same handful of cells' thousandths at the origin
-and at 1e6), so a 3D-DDA whose float32 boundary distances are off by rounding still finds every
-hit in a cell it visits.
+in coordinates local to the grid (vertex or ray origin minus the grid's float32 corner `lo`: exact
+for nearby points by Sterbenz, else rounded at the local magnitude), so rounding is relative to
+the grid's extent and the ray's distance, never to how far the scene lies from the origin. The
+margin is therefore 1e-3 cells plus 32 float32 ulps of the grid's extent in cell units (the same
+handful of cells' thousandths at the origin and at 1e6), so a 3D-DDA whose float32 boundary
+distances are off by rounding still finds every hit in a cell it visits.
 
 Memory is bounded (viewer.cl.limits): the pair count of a resolution is counted first, and the
 build's buffers (keys, values and sort scratch 16 bytes per pair, segments, blocks, cells) must
