@@ -77,13 +77,17 @@ def mixed_rays(rng: np.random.Generator, n: int) -> tuple[np.ndarray, np.ndarray
     return o.astype(F32), d.astype(F32)
 
 
-@pytest.fixture(params=["ugrid", "voxelwalk", "voxelwalk-ec"])
+@pytest.fixture(params=["ugrid", "voxelwalk", "voxelwalk-ec", "pgrid"])
 def ugrid_default(request):
     """The backends whose default walks the two-level grid: ugrid, voxelwalk's IVW (its any-hit
-    rays and primary rays; closest hits go through IVW with mode=ivw, set here) and voxelwalk's
-    one-launch EC (closest hits; viewer.tracing traces them as primary rays, hence primary=ec)."""
+    rays and primary rays; closest hits go through IVW with mode=ivw, set here), voxelwalk's
+    one-launch EC (closest hits; viewer.tracing traces them as primary rays, hence primary=ec) and
+    pgrid's grid for the rays its per-pass grids do not take (primary=grid sends these there)."""
     if CL_REASON is not None:
         pytest.skip(CL_REASON)
+    if request.param == "pgrid":
+        request.getfixturevalue("monkeypatch").setenv("RTWALK_PGRID", "primary=grid")
+        return "pgrid"
     if request.param.startswith("voxelwalk"):
         monkeypatch = request.getfixturevalue("monkeypatch")
         monkeypatch.setenv("RTWALK_VOXELWALK", "mode=ec,primary=ec" if request.param.endswith("ec") else "mode=ivw")

@@ -22,7 +22,9 @@
   in double): the uniform grid of ugrid (viewer.accel.grid, built once per scene geometry when a
   pass first needs it: primary and shadow passes build it only for rays their grids decline), so
   every ray is traced exactly. Soft-shadow rays end at different points of an area light, so
-  they take this way.
+  they take this way. It is the two-level grid by default (levels=2: dense cells get sub-grids,
+  as ugrid's), so rays reaching a small detailed object in a big scene do not test all of its
+  triangles in one cell (reflection rays of bench-grids' mixed scene: 8.8 s -> 37 ms).
 
 Parameters: primary (image | angular | grid), k (indirect mapping), backface (auto | on | off),
 order (any-hit slab order: auto | light | surface), chunk (rays per work-group: 16..256),
@@ -74,6 +76,8 @@ class PgridParams:
     rebuild: bool = param(False, "rebuild the uniform grid every frame (animated scenes; timing studies)")
     density: float = param(2.0, "uniform grid (other ray types): ~cells per triangle")
     resolution: int = param(0, "uniform grid: cells on the longest axis (0 = from density)")
+    levels: int = param(2, "uniform grid: 2: dense cells get sub-grids (ugrid's two-level grid, viewer.accel.grid2: a "
+                        "small detailed object in a big scene is not one cell of thousands of triangles); 1: one level")
 
     def validate(self, source: str) -> None:
         if self.chunk not in (16, 32, 64, 128, 256):
@@ -96,6 +100,8 @@ class PgridParams:
             raise RtwalkError(f"{source}: k must be in 1..16 (got {self.k})")
         if not self.density > 0 or not 0 <= self.resolution <= 2048:
             raise RtwalkError(f"{source}: density must be > 0 and resolution in 0..2048")
+        if self.levels not in (1, 2):
+            raise RtwalkError(f"{source}: levels must be 1 or 2 (got {self.levels})")
 
     def point_spec(self) -> PointGridSpec:
         return PointGridSpec(chunk=self.chunk, tile_rays=self.tile_rays, tiles=self.tiles,
@@ -119,6 +125,11 @@ class PgridBackend(GeometryBackend):
         from viewer.cl import PassStages, build
 
         self._start(bc, params)
+        if self.params.levels == 2:
+            from viewer.accel.grid2 import TwoLevelGrid
+
+            self.grid.release()
+            self.grid = TwoLevelGrid(self.ctx)
         self.tracer = GridTracer(self.ctx, self.grid)
         self.pgrid = PointGrid(self.ctx, self.grid.prims)
         self.camgrid = CameraGrid(self.ctx, self.grid.prims)
