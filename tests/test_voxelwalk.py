@@ -136,7 +136,7 @@ def test_ec_walks_the_sub_grids_bit_for_bit_as_ivw(reference, big, chunk, skip):
 
 
 @pytest.mark.parametrize("text", ["mode=fast", "chunk=48", "resolution=big", "resolution=0", "cells=-1",
-                                  "density=0", "colour=red", "sort=random", "primary=maybe",
+                                  "density=-1", "colour=red", "sort=random", "primary=maybe",
                                   "skip=some", "levels=3"])
 def test_bad_parameters_raise(text):
     from viewer.backends import check_params

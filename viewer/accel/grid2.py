@@ -53,13 +53,19 @@ SUBGRID_DTYPE = np.dtype([("lo", "<f4", 4), ("cell", "<f4", 4), ("res", "<i4", 4
 assert SUBGRID_DTYPE.itemsize == 64
 
 
+# Top cells per triangle of a two-level grid (Kalojanov, Billeter & Slusallek 2011: a coarse top
+# level, fine sub-grids where the triangles are): with the one-level density (2) a 1e-3 object on a
+# 2e4 ground left rays crossing ~100 empty top cells (docs/results/grids-far-and-mixed.md)
+TOP_DENSITY = 0.25
+
+
 @dataclass
 class SubSpec:
     """Which top cells get a sub-grid and how fine it is."""
 
     min_small: int = 16  # small triangles a top cell needs for a sub-grid
     big_frac: float = 0.5  # a triangle spanning this many top cells on an axis is "big"
-    density: float = 0.5  # sub-cells per small triangle (docs/results/grids-far-and-mixed.md: measured)
+    density: float = 1.0  # sub-cells per small triangle (docs/results/grids-far-and-mixed.md: measured)
     max_axis: int = 256
     max_cells: int = 2**21  # per sub-grid
 

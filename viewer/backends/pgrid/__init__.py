@@ -49,7 +49,7 @@ from viewer.accel.pointgrid import PointGrid, PointGridSpec
 from viewer.backends.base import BackendContext, TraceResult
 from viewer.backends.cl_geometry import GeometryBackend
 from viewer.backends.interface import BackendInfo, OverlaySpec, param
-from viewer.backends.ugrid import GridTracer
+from viewer.backends.ugrid import GridTracer, top_density
 from viewer.cl import io as clio
 from viewer.effects import RayType
 from viewer.errors import RtwalkError
@@ -74,7 +74,8 @@ class PgridParams:
     order: str = param("auto", "light grid slab order for any hit: light (outward), surface (inward), auto")
     balance: bool = param(True, "cut tiles into chunks of `chunk` rays (False: one work-group per tile)")
     rebuild: bool = param(False, "rebuild the uniform grid every frame (animated scenes; timing studies)")
-    density: float = param(2.0, "uniform grid (other ray types): ~cells per triangle")
+    density: float = param(0.0, "uniform grid (other ray types): ~cells per triangle (0: ugrid's default for the "
+                           "levels)")
     resolution: int = param(0, "uniform grid: cells on the longest axis (0 = from density)")
     levels: int = param(2, "uniform grid: 2: dense cells get sub-grids (ugrid's two-level grid, viewer.accel.grid2: a "
                         "small detailed object in a big scene is not one cell of thousands of triangles); 1: one level")
@@ -98,8 +99,8 @@ class PgridParams:
             raise RtwalkError(f"{source}: backface must be auto, on or off (got {self.backface})")
         if not 1 <= self.k <= 16:
             raise RtwalkError(f"{source}: k must be in 1..16 (got {self.k})")
-        if not self.density > 0 or not 0 <= self.resolution <= 2048:
-            raise RtwalkError(f"{source}: density must be > 0 and resolution in 0..2048")
+        if not self.density >= 0 or not 0 <= self.resolution <= 2048:
+            raise RtwalkError(f"{source}: density must be >= 0 (0: automatic) and resolution in 0..2048")
         if self.levels not in (1, 2):
             raise RtwalkError(f"{source}: levels must be 1 or 2 (got {self.levels})")
 
@@ -163,7 +164,8 @@ class PgridBackend(GeometryBackend):
             return
         with self.bc.profiler.cl_phase("pgrid:ugrid_build", self.ctx.queue):
             self.grid.build(self._tris, self._n_tris, *self._box,
-                            GridSpec(density=self.params.density, resolution=self.params.resolution))
+                            GridSpec(density=top_density(self.params.density, self.params.levels),
+                                     resolution=self.params.resolution))
         self._grid_fresh = True
 
     # -- tracing --------------------------------------------------------------------------

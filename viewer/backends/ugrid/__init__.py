@@ -11,7 +11,9 @@ By default (levels=2) the grid is two-level (viewer.accel.grid2: dense top cells
 fitted to their small triangles and a short list of their big ones; the teapot-in-a-stadium case,
 docs/results/grids-far-and-mixed.md); levels=1 walks the uniform grid alone.
 
-Parameters (`--backend-params`): density (cells per triangle for the automatic resolution),
+Parameters (`--backend-params`): density (cells per triangle for the automatic resolution; 0, the
+default: 2 for levels=1, a coarse 0.25 for the top of the two-level grid, whose dense cells get
+the sub-grids),
 resolution (cells along the longest axis; 0 = automatic), max_axis (cap per axis), rebuild
 (rebuild the grid every frame, as an animated scene needs), levels, sub_min, sub_density.
 Overlay "triangle_tests": triangles tested per ray of the last pass (heat).
@@ -26,7 +28,7 @@ from typing import Any
 import numpy as np
 
 from viewer.accel.grid import GridSpec, UniformGrid, scene_box
-from viewer.accel.grid2 import SubSpec, TwoLevelGrid
+from viewer.accel.grid2 import TOP_DENSITY, SubSpec, TwoLevelGrid
 from viewer.backends.base import BackendContext, TraceResult
 from viewer.backends.cl_geometry import GeometryBackend
 from viewer.backends.interface import BackendInfo, OverlaySpec, param
@@ -38,21 +40,30 @@ KERNEL = Path(__file__).resolve().parent / "trace.cl"
 WG = 64
 
 
+def top_density(density: float, levels: int) -> float:
+    """The grid's cells per triangle: `density`, or for 0 the default of a one-level grid (2) or
+    of a two-level grid's coarse top level (viewer.accel.grid2.TOP_DENSITY)."""
+    if density > 0:
+        return density
+    return TOP_DENSITY if levels == 2 else GridSpec().density
+
+
 @dataclass
 class UgridParams:
-    density: float = param(2.0, "~cells per triangle (automatic resolution, per axis by the scene's extent)")
+    density: float = param(0.0, "~cells per triangle (automatic resolution, per axis by the scene's extent); 0: 2 "
+                           "for levels=1, a coarse 0.25 top level for levels=2 (viewer.accel.grid2.TOP_DENSITY)")
     resolution: int = param(0, ">0: cells along the longest axis instead")
     max_axis: int = param(512, "cap on cells per axis")
     rebuild: bool = param(False, "rebuild every frame (animated scenes; timing studies)")
     levels: int = param(2, "2: dense cells get sub-grids (two-level grid, viewer.accel.grid2); 1: uniform grid")
     sub_min: int = param(16, "small triangles a top cell needs for a sub-grid (levels=2)")
-    sub_density: float = param(0.5, "sub-cells per small triangle (levels=2)")
+    sub_density: float = param(1.0, "sub-cells per small triangle (levels=2)")
     sub_big: float = param(0.5, "a triangle whose box spans this many top cells on an axis is 'big': kept in its "
                            "cells' short lists, not in their sub-grids (levels=2)")
 
     def validate(self, source: str) -> None:
-        if not self.density > 0:
-            raise RtwalkError(f"{source}: density must be > 0 (got {self.density})")
+        if not self.density >= 0:
+            raise RtwalkError(f"{source}: density must be >= 0 (0: automatic; got {self.density})")
         if not 0 <= self.resolution <= 2048:
             raise RtwalkError(f"{source}: resolution must be in 0..2048 (got {self.resolution})")
         if not 1 <= self.max_axis <= 2048:
@@ -67,7 +78,8 @@ class UgridParams:
             raise RtwalkError(f"{source}: sub_big must be > 0 (got {self.sub_big})")
 
     def spec(self) -> GridSpec:
-        return GridSpec(density=self.density, resolution=self.resolution, max_axis=self.max_axis)
+        return GridSpec(density=top_density(self.density, self.levels), resolution=self.resolution,
+                        max_axis=self.max_axis)
 
     def sub_spec(self) -> SubSpec:
         return SubSpec(min_small=self.sub_min, big_frac=self.sub_big, density=self.sub_density)

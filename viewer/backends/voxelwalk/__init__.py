@@ -55,6 +55,7 @@ from viewer.accel.grid import GridSpec, scene_box
 from viewer.backends.base import BackendContext, TraceResult
 from viewer.backends.cl_geometry import GeometryBackend
 from viewer.backends.interface import BackendInfo, OverlaySpec, param
+from viewer.backends.ugrid import top_density
 from viewer.backends.voxelwalk.engine import EC_SORTS, SKIPS, PassStats, VoxelWalker, tile_divergence
 from viewer.effects import RayType
 from viewer.errors import RtwalkError
@@ -78,7 +79,8 @@ class VoxelwalkParams:
     sort: str = param("tile", "EC: tile (every iteration in one launch: one work-group per screen-tile partition "
                       "sorts its rays by cell on the device) or global (the thesis: a global radix sort per "
                       "iteration, launches grow with the iterations); cells != 1 always sorts globally")
-    density: float = param(2.0, "auto resolution: about this many cells per triangle")
+    density: float = param(0.0, "auto resolution: about this many cells per triangle (0: 2 for levels=1, a coarse "
+                           "0.25 top level for levels=2, ugrid's default)")
     rebuild: bool = param(False, "rebuild the grid every frame (animated scenes; timing studies)")
     stats: bool = param(False, "per-iteration statistics every pass (else only while overlays are shown)")
     levels: int = param(2, "2: dense cells' sub-grids too (the two-level grid of viewer.accel.grid2, as ugrid's), "
@@ -106,8 +108,8 @@ class VoxelwalkParams:
             raise RtwalkError(f"{source}: sort must be tile or global (got '{self.sort}')")
         if not 0 <= self.cells <= 4096:
             raise RtwalkError(f"{source}: cells must be in 0..4096 (got {self.cells})")
-        if not self.density > 0:
-            raise RtwalkError(f"{source}: density must be > 0 (got {self.density})")
+        if not self.density >= 0:
+            raise RtwalkError(f"{source}: density must be >= 0 (0: automatic; got {self.density})")
         if self.skip not in SKIPS:
             raise RtwalkError(f"{source}: skip must be none, ivw, ec or all (got '{self.skip}')")
         if self.levels not in (1, 2):
@@ -115,7 +117,7 @@ class VoxelwalkParams:
 
     def spec(self) -> GridSpec:
         res = 0 if self.resolution == "auto" else int(self.resolution)
-        return GridSpec(density=self.density, resolution=res, max_axis=max(512, res))
+        return GridSpec(density=top_density(self.density, self.levels), resolution=res, max_axis=max(512, res))
 
 
 class VoxelwalkBackend(GeometryBackend):
