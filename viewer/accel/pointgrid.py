@@ -37,9 +37,9 @@ Build (kernels in pointgrid.cl beside this file, primitives from viewer.cl.primi
     segments, then an exclusive scan gives cell_start (ncells + 1 entries), so a tile's triangles
     are contiguous, in slab order and nearest first within a cell (the trace's in-cell stop).
 
-Asynchronous host writes keep their pyopencl events until the next build (`_async`): a dropped
-event of a non-blocking host copy waits for the copy, a hidden host sync that stalled each
-build three times.
+Asynchronous host writes (`_async`) do not wait: viewer.cl.io keeps their events until the
+queue next waits (a dropped pyopencl event of a non-blocking host copy would wait for the copy,
+a hidden host sync that stalled each build three times).
 
 Layouts: header PGRID_DTYPE (112 bytes: float4 centre (w = margin), fwd (w = 1: back-face
 culling), up (w = distance level bits), right, rect (alpha0, theta0, tiles per radian in alpha
@@ -194,7 +194,6 @@ class PointGrid:
         self.outside_count = 0
         self.inactive_count = 0
         self._n_hosts: dict[str, tuple[int, int]] = {}  # name -> (n, buffer id) last written
-        self._pending: list[Any] = []  # events of asynchronous host writes (see _async)
 
     def buf(self, name: str, nbytes: int) -> Any:
         return self._bufs.get(name, nbytes)
@@ -225,7 +224,6 @@ class PointGrid:
         h["fwd"][0, 3] = 1.0 if spec.backface else 0.0  # the kernels' back-face switch
         h["slab"][0, 2:] = (np.tan(spec.margin), d0)
         h["res"][0] = (1, 1, 1, 1)
-        self._pending = []  # the last pass's asynchronous writes are done (its rearrange waited)
         self._async(self.header, h.copy())  # a copy: h changes below
         alpha, theta = self.buf("alpha", 4 * n), self.buf("theta", 4 * n)
         outside, out_idx = self.buf("outside", 4 * n), self.buf("outside_idx", 4 * n)
@@ -307,11 +305,9 @@ class PointGrid:
                                     int(culled), int(widened), (time.perf_counter() - t0) * 1e3, culled_backface=back)
 
     def _async(self, buf: Any, host: np.ndarray) -> None:
-        """An asynchronous write of `host` to `buf`. pyopencl's event of a non-blocking host copy
-        waits for the copy when it is dropped (it guards the host array), so a dropped event is a
-        hidden host sync that stalls the queue: each build lost ~5 ms to three of them. The events
-        are kept until the next build (the queue has waited for them by then)."""
-        self._pending.append(clio.copy(self.ctx.queue, buf, host, is_blocking=False))
+        """An asynchronous write of `host` to `buf` (viewer.cl.io keeps its event, and so `host`,
+        until the queue next waits: no hidden host sync)."""
+        clio.copy(self.ctx.queue, buf, host, is_blocking=False)
 
     def _n_buf(self, n: int, name: str = "n") -> Any:
         """A device uint32 holding n (the count the device-count primitives read); written only
@@ -381,6 +377,5 @@ class PointGrid:
         return self._bufs["outside_idx"]
 
     def release(self) -> None:
-        self._pending.clear()
         self._n_hosts.clear()
         self._bufs.release()

@@ -44,6 +44,14 @@ inline void pg_stage_box(__local float4 *boxes, uint k, float4 b) {
     f[lane] = b.x; f[4 + lane] = b.y; f[8 + lane] = b.z; f[12 + lane] = b.w;
 }
 
+// Stages triangle `slot` (vertices, slot id, angular box) as entry k of the local arrays.
+inline void pg_stage(__local float4 *sv, __local int *sslot, __local float4 *sbox, uint k,
+                     __global const float4 *tris, __global const float4 *tri_box, uint slot) {
+    sslot[k] = (int)slot;
+    stage_triangle(sv, k, tris, slot);
+    pg_stage_box(sbox, k, tri_box[slot]);
+}
+
 // Lanes (-1) of the staged block at `boxes` whose angular box holds the ray's angles (a, t).
 inline int4 pg_box_lanes(__local const float4 *boxes, float a, float t) {
     return (a >= boxes[0]) & (a <= boxes[1]) & (t >= boxes[2]) & (t <= boxes[3]);
@@ -155,11 +163,8 @@ void pg_trace(__global const PGrid *grid, __global const uint *chunk_key, __glob
             if (remaining == 0 || lo > chunk_far) break;  // same value in every work-item
             uint cnt = min((uint)WG, pb - base_i);
             if (lid < cnt) {
-                uint slot = refs[base_i + lid];
-                sslot[lid] = (int)slot;
                 slo[lid] = pg_pair_lo(&g, keys[base_i + lid], cell0, lv);
-                stage_triangle(sv, lid, tris, slot);
-                pg_stage_box(sbox, lid, tri_box[slot]);
+                pg_stage(sv, sslot, sbox, lid, tris, tri_box, refs[base_i + lid]);
             }
             barrier(CLK_LOCAL_MEM_FENCE);
             if (!done && lo <= far) {  // this ray's segment may reach these triangles
@@ -204,10 +209,7 @@ void pg_trace(__global const PGrid *grid, __global const uint *chunk_key, __glob
             uint cnt = min((uint)WG, b - base_i);
             barrier(CLK_LOCAL_MEM_FENCE);
             if (lid < cnt) {
-                uint slot = refs[base_i + lid];
-                sslot[lid] = (int)slot;
-                stage_triangle(sv, lid, tris, slot);
-                pg_stage_box(sbox, lid, tri_box[slot]);
+                pg_stage(sv, sslot, sbox, lid, tris, tri_box, refs[base_i + lid]);
             }
             barrier(CLK_LOCAL_MEM_FENCE);
             if (!done && slab_lo <= far) {  // this ray's segment may reach this slab
