@@ -123,6 +123,23 @@ def test_camera_grid_large_and_near_eye_triangles():
 
 
 @needs_cl
+def test_camera_grid_huge_triangles_whose_shared_edge_passes_by_the_eye():
+    """A 2e4-wide ground (two triangles) 1.2e-3 below the eye, their shared edge 1.5e-3 from it:
+    the float32 test puts that edge up to ~1e-3 away from where it is (a few ulps of 1.4e4), so a
+    grid that bins the exact triangles loses every hit the float test gives to the other one
+    (before the float reach was binned: 5% of the rays of bench-grids' mixed scene)."""
+    g = 1e4
+    ground = [[[-g, 0, -g], [g, 0, -g], [g, 0, g]], [[-g, 0, -g], [g, 0, g], [-g, 0, g]]]
+    tris = np.array(ground, F32)
+    cam = Camera.look_at([0.4e-3, 1.2e-3, 2.5e-3], [0.0, 0.5e-3, 0.0], fov_y=45)
+    out, stats, grid = trace_image(tris, cam)
+    down = out.d[:, 1] < 0
+    assert down.sum() > 0.5 * len(out.o) and stats["outside_rays"] == 0, stats
+    assert_matches(out, must_hit=down)
+    assert_binned(out, grid)
+
+
+@needs_cl
 @pytest.mark.parametrize("k", [1, 2])
 @pytest.mark.parametrize("offset", [0.0, -0.5, 0.5])
 def test_camera_grid_edges_on_tile_planes(k, offset):

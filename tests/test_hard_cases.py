@@ -421,6 +421,28 @@ def test_translated_scene(backend):
     assert_matches(out, must_hit=must)
 
 
+def test_huge_triangles_shared_edge_near_the_origin(backend):
+    """Mixed scale: a 2e4-wide ground of two triangles whose shared edge passes 1.5e-3 from the ray
+    origins (1.2e-3 above it), with a 1e-3 box standing on it. The float32 test moves that edge by
+    up to a few ulps of 1.4e4 (~1e-3): an acceleration structure that lists only the triangle a ray
+    hits exactly loses the rays the float test gives to the other one. Every ray going down must hit
+    (the ground is one closed surface for them), whichever ground triangle it reports."""
+    rng = np.random.default_rng(11)
+    g = 1e4
+    ground = np.array([[[-g, 0, -g], [g, 0, -g], [g, 0, g]], [[-g, 0, -g], [g, 0, g], [-g, 0, g]]])
+    box = dyadic_box().triangles * 1e-3 / 2 + np.array([0.0, 0.5e-3, 0.0])  # standing on the ground
+    tris = f32(np.concatenate([ground, box]))
+    eye = np.array([0.4e-3, 1.2e-3, 2.5e-3])
+    n = 4000
+    d = rng.normal(size=(n, 3))
+    d[:, 1] = -np.abs(d[:, 1]) - 0.05  # downwards
+    o = np.broadcast_to(eye, (n, 3)).copy()
+    o[n // 2:] += rng.normal(scale=1e-3, size=(n - n // 2, 3)) * [1, 0, 1]  # other origins at that height
+    out = run_case(backend, tris, o, d)
+    assert out.rhit.all()
+    assert_matches(out, must_hit=np.ones(n, bool))
+
+
 @pytest.mark.parametrize("where", ["near_origin", "magnitude_one"])
 def test_tiny_triangles(backend, where):
     """Triangles of size 1e-6 hit at their centres: along -z (exact transverse position) and, near the

@@ -14,13 +14,25 @@
 #define CG_CULL_FRUSTUM 2u
 #define CG_NEAR_EYE 4u
 
+// The float32 intersection test (geometry.cl) decides hit or miss from vertex coordinates taken
+// relative to the ray origin (here the eye), each rounded, so near an edge its answer is that of
+// the triangle moved by up to a few float32 ulps of the vertices' distance from the eye: far away
+// in absolute terms when a huge triangle passes close to the eye (a 2e4 ground 1e-3 below it: the
+// two ground triangles' shared edge lies 1e-3 from the eye and float32 puts hits 1.1e-3 on the far
+// side of it). A grid that binned the exact triangle would lose those hits (the other triangle's
+// float test misses them: watertight, one of the two is hit). So every triangle is binned grown by
+// CG_FLOAT_REACH * (largest vertex coordinate relative to the eye): 32 ulps (2^-24 each), several
+// times the test's bound (about 6 ulps: the sheared coordinates' rounding, 3 ulps each, through
+// the edge functions' products), and tiny for ordinary triangles (2e-6 of their distance).
+#define CG_FLOAT_REACH (32.0 / 16777216.0)
+
 #ifdef RT_HAVE_FP64
-// The part of the convex polygon p[0..n) with dot(plane, x) >= 0, written to out; returns its size.
-inline int cg_clip(const double3 *p, int n, double3 plane, double3 *out) {
+// The part of the convex polygon p[0..n) with dot(plane, x) + off >= 0, written to out; its size.
+inline int cg_clip(const double3 *p, int n, double3 plane, double off, double3 *out) {
     int m = 0;
     for (int i = 0; i < n; ++i) {
         double3 a = p[i], b = p[(i + 1) % n];
-        double da = dot(plane, a), db = dot(plane, b);
+        double da = dot(plane, a) + off, db = dot(plane, b) + off;
         if (da >= 0.0) out[m++] = a;
         if ((da >= 0.0) != (db >= 0.0)) out[m++] = a + (da / (da - db)) * (b - a);
     }
@@ -39,15 +51,22 @@ inline bool cg_tri(const CGrid *g, __global const float4 *tris, uint i, int4 *ra
         if (dot(nrm, v0) > 1e-9 * length(nrm) * length(v0)) { *flag = CG_CULL_BACK; return false; }
     }
     double W = g->screen.x, H = g->screen.y, m = g->screen.z;
+    // the float test's reach (CG_FLOAT_REACH) in world units, and what it moves q = M^-1 v by
+    double big_v = fmax(fmax(fmax(fabs(v0.x), fabs(v0.y)), fmax(fabs(v0.z), fabs(v1.x))),
+                        fmax(fmax(fabs(v1.y), fabs(v1.z)), fmax(fabs(v2.x), fmax(fabs(v2.y), fabs(v2.z)))));
+    double reach = CG_FLOAT_REACH * big_v;
+    double3 r0 = g->minv[0].xyz, r1 = g->minv[1].xyz, r2 = g->minv[2].xyz;
+    double dx = reach * length(r0), dy = reach * length(r1), dz = reach * length(r2);
     double3 a[7], b[7];
     a[0] = cg_project(g, v0);
     a[1] = cg_project(g, v1);
     a[2] = cg_project(g, v2);
     int n = 3;
-    n = cg_clip(a, n, (double3)(1.0, 0.0, m), b);
-    n = cg_clip(b, n, (double3)(-1.0, 0.0, W + m), a);
-    n = cg_clip(a, n, (double3)(0.0, 1.0, m), b);
-    n = cg_clip(b, n, (double3)(0.0, -1.0, H + m), a);
+    // the frustum grown by the margin (pixels) and by the reach (world: plane offset reach * |M^-T p|)
+    n = cg_clip(a, n, (double3)(1.0, 0.0, m), reach * length(r0 + m * r2), b);
+    n = cg_clip(b, n, (double3)(-1.0, 0.0, W + m), reach * length((W + m) * r2 - r0), a);
+    n = cg_clip(a, n, (double3)(0.0, 1.0, m), reach * length(r1 + m * r2), b);
+    n = cg_clip(b, n, (double3)(0.0, -1.0, H + m), reach * length((H + m) * r2 - r1), a);
     if (n == 0) { *flag = CG_CULL_FRUSTUM; return false; }
     double zmin = INFINITY, zmax = -INFINITY, big = 0.0;
     for (int k = 0; k < n; ++k) {
@@ -55,13 +74,19 @@ inline bool cg_tri(const CGrid *g, __global const float4 *tris, uint i, int4 *ra
         zmax = fmax(zmax, a[k].z);
         big = fmax(big, fmax(fabs(a[k].x), fmax(fabs(a[k].y), fabs(a[k].z))));
     }
+    zmin -= dz;
+    zmax += dz;
     if (!(zmax > 0.0)) { *flag = CG_CULL_FRUSTUM; return false; }
     double x0 = 0.0, x1 = W, y0 = 0.0, y1 = H;
-    if (zmin > 1e-9 * big) {  // else the polygon reaches the eye: it may cover any pixel
+    if (zmin > 1e-9 * big) {  // else the grown polygon reaches the eye: it may cover any pixel
+        // each vertex's box q +- (dx, dy, dz) (z > 0 throughout): pixel extremes at its corners;
+        // along an edge the pixel bounds are linear-fractional, so the vertices bound them
         x0 = INFINITY; x1 = -INFINITY; y0 = INFINITY; y1 = -INFINITY;
         for (int k = 0; k < n; ++k) {
-            double x = a[k].x / a[k].z, y = a[k].y / a[k].z;
-            x0 = fmin(x0, x); x1 = fmax(x1, x); y0 = fmin(y0, y); y1 = fmax(y1, y);
+            double zn = a[k].z - dz, zf = a[k].z + dz;
+            double xl = a[k].x - dx, xh = a[k].x + dx, yl = a[k].y - dy, yh = a[k].y + dy;
+            x0 = fmin(x0, fmin(xl / zn, xl / zf)); x1 = fmax(x1, fmax(xh / zn, xh / zf));
+            y0 = fmin(y0, fmin(yl / zn, yl / zf)); y1 = fmax(y1, fmax(yh / zn, yh / zf));
         }
     } else {
         *flag = CG_NEAR_EYE;

@@ -125,9 +125,11 @@ class Runner:
     """One backend over the scene, tracing the same rays again and again."""
 
     def __init__(self, name: str, tris: np.ndarray, o: np.ndarray, d: np.ndarray, tmin: np.ndarray | None = None,
-                 ray_type: Any = None):
+                 ray_type: Any = None, image: tuple[int, int] | None = None):
         """`name`: a backend, or "backend:key=value+key=value" (its --backend-params, '+' for ',').
-        `tmin`: per ray (default 0; NaN: an inactive ray); `ray_type`: the pass's (default primary)."""
+        `tmin`: per ray (default 0; NaN: an inactive ray); `ray_type`: the pass's (default primary);
+        `image`: (w, h) when the rays are a pinhole image's pixels, row-major: the batch then has the
+        image's shape, as the renderer's primary pass has (pgrid's camera grid needs it)."""
         from viewer.accel.bvh import build_bvh
         from viewer.backends import create_backend
         from viewer.backends.base import BackendContext
@@ -146,8 +148,7 @@ class Runner:
                       [Material("grey", np.full(3, 0.7, np.float32))]).reordered(self.bvh.tri_order)
         self.gpu = GpuScene.upload(ctx, scene, self.bvh)
         n = len(o)
-        width = min(n, ROW)
-        height = -(-n // width)
+        width, height = image if image is not None and image[0] * image[1] == n else (min(n, ROW), -(-n // ROW))
         pad = width * height
         org = np.zeros((pad, 4), np.float32)
         dirs = np.zeros((pad, 4), np.float32)
@@ -255,7 +256,7 @@ def run(args) -> int:
     names = [b for b in args.backends.split(",") if b]
     runners, rows = {}, {}
     for name in names:
-        runners[name] = Runner(name, tris, o, d, tmin, ray_type)
+        runners[name] = Runner(name, tris, o, d, tmin, ray_type, image=size if args.rays == "primary" else None)
         rows[name] = {"backend": name, "build_ms": runners[name].build_ms, **runners[name].grid_figures(),
                       "times": []}
     ids_of: dict[str, np.ndarray] = {}
