@@ -33,6 +33,7 @@ def trace_image(tris, cam: Camera, params: str = "", size=SIZE):
     def keep(be):
         grid["cells"], grid["refs"] = be.camgrid.to_numpy()
         grid["header"] = be.camgrid.header_host.copy()
+        grid["bounds"] = be.camgrid.bounds_numpy()
         grid["order"] = be.bc.bvh.tri_order
 
     t, tri, stats = trace_centred(tris, o, d, tmin, tmax, RayType.PRIMARY, params=params, size=size, keep=keep)
@@ -44,19 +45,23 @@ def assert_binned(out, grid, size=SIZE) -> None:
     (computed here from the header in float64): the binning is conservative where it matters."""
     hd = grid["header"][0]
     tile, ntx, nty, ns = (int(x) for x in hd["tiles"])
-    log_lo, per_log = float(hd["slab"][0]), float(hd["slab"][1])
+    bounds = grid["bounds"]
     minv = hd["minv"][:, :3]
     hit = np.flatnonzero(out.rtri >= 0)
     px, py = hit % size[0], hit // size[0]
     p = out.o[hit].astype(np.float64) + out.rt[hit, None] * out.d[hit].astype(np.float64)
     z = (p - hd["eye"][:3]) @ minv[2]
-    slab = np.clip(np.floor((np.log(z) - log_lo) * per_log), 0, ns - 1).astype(np.int64)
-    cell = ((py // tile) * ntx + px // tile) * ns + slab
+    slab = np.clip(np.searchsorted(bounds[1:ns], z, side="right"), 0, ns - 1).astype(np.int64)
+    big = ((py // tile) * ntx + px // tile) * (ns + 1)  # the tile's big list
+    cell = big + 1 + slab
     slot_of = np.empty(len(grid["order"]), np.int64)
     slot_of[grid["order"]] = np.arange(len(grid["order"]))
     want = slot_of[out.rtri[hit]]
     cells, refs = grid["cells"], grid["refs"]
-    listed = np.array([want[i] in refs[cells[c, 0]:cells[c, 0] + cells[c, 1]] for i, c in enumerate(cell)])
+    def in_cell(i: int, c: int) -> bool:
+        return want[i] in refs[cells[c, 0]:cells[c, 0] + cells[c, 1]]
+
+    listed = np.array([in_cell(i, cell[i]) or in_cell(i, big[i]) for i in range(len(want))])
     assert listed.all(), f"{(~listed).sum()} reference hits not in their cell"
 
 

@@ -12,10 +12,11 @@ and helpers: viewer/cl/kernels/camgrid.cl):
     with no vertex inside it); the clipped polygon's pixel rectangle gives its tiles, its depth
     range (rounded outwards to float32) its slabs. A polygon that reaches the eye could cover
     any pixel and is listed in every tile ("near_eye").
- 2. slabs: the visible depth range (min/max-reduce of the triangles' depth ranges) [z_lo, z_hi],
-    z_lo >= z_hi / 1024, cut geometrically (perspective: a tile's footprint grows with depth, so
-    the slabs do too); then one pair per (tile, slab) cell the triangle overlaps -- not the
-    4-cell assumption of the 2008 paper.
+ 2. slabs: placed on the device at quantiles of the visible triangles' nearest depths (a
+    strided sample of 2,048 sorted in one work-group; the bounds in a small double buffer), so
+    each slab holds about as many triangles: a perspective grid's uniform-in-log slabs
+    put a 1e-3 object before a 1e4 wall into one slab; then one pair per (tile, slab) cell the
+    triangle overlaps -- not the 4-cell assumption of the 2008 paper.
  3. (cell, triangle) pairs counted, scanned, written, radix-sorted by cell (viewer.cl.primitives);
     cell ranges from the segments.
  4. rays: primary rays are already in image order, so no sort is needed: each ray is checked to
@@ -26,10 +27,15 @@ Indirect mapping: tiles are k x N pixels (N = work-group side, 8): k > 1 gives k
 tiles and fewer pairs (cheaper sort) at the price of more triangles per tile (more tests per ray);
 the trace still uses N x N work-groups, k x k of them per tile.
 
-Layouts: header CGRID_DTYPE (224 bytes: float64 eye, M^-1 rows, screen (W, H, margin, 0), slab
-(log z_lo, slabs per log unit, z_lo, z_hi); int32 tiles (T, tiles x, tiles y, slabs), cells
-(tiles * slabs, W, H, flags)); cells uint32 (ncells, 2) (first ref, count), cell id
-(ty * tiles_x + tx) * slabs + s; refs uint32 (pairs,) triangle slots; outside_index uint32.
+Layouts: header CGRID_DTYPE (224 bytes: float64 eye, M^-1 rows, screen (W, H, margin, 0), norms
+(|rows of M^-1|, 0); int32 tiles (T, tiles x, tiles y, slabs), cells (tiles * (slabs + 1), W, H, flags));
+rect float32 (triangles, 4): each triangle's pixel rectangle x0, x1, y0, y1 (grown by the margin
+and the float test's reach; rays from the eye outside it cannot meet it); slab bounds float64
+(slabs + 1,): slab s holds depths [bounds[s], bounds[s + 1]), slab 0 also
+nearer ones, the last farther ones; cells uint32 (ncells, 2) (first ref, count), cell id
+(ty * tiles_x + tx) * (slabs + 1) + c, c = 0: the tile's big list (triangles reaching more than
+two slabs: tested once, before the slabs), c = s + 1: slab s; keys uint32 (pairs,) the sorted
+cell ids of refs; refs uint32 (pairs,) triangle slots; outside_index uint32.
 """
 
 from __future__ import annotations
@@ -50,9 +56,9 @@ WG = 64
 N = 8  # work-group side in pixels (CN of the trace kernel)
 MAX_PAIRS = 2**26
 PAIR_BYTES = 28  # keys, refs, radix scratch (8), segments (12)
-NEAR_RATIO = 1024.0  # z_lo >= z_hi / NEAR_RATIO
+BOUNDS_WG = 256  # camgrid_build.cl's cg_slab_bounds work-group
 
-CGRID_DTYPE = np.dtype([("eye", "<f8", 4), ("minv", "<f8", (3, 4)), ("screen", "<f8", 4), ("slab", "<f8", 4),
+CGRID_DTYPE = np.dtype([("eye", "<f8", 4), ("minv", "<f8", (3, 4)), ("screen", "<f8", 4), ("norms", "<f8", 4),
                         ("tiles", "<i4", 4), ("cells", "<i4", 4)])
 assert CGRID_DTYPE.itemsize == 224
 
@@ -146,17 +152,6 @@ def corner_rays(ray_o: Any, ray_d: Any, size: tuple[int, int], ctx: Any) -> tupl
     return out[0], out[1]
 
 
-def slab_params(z_lo: float, z_hi: float, slabs: int) -> tuple[float, float, float, float]:
-    """The header's slab record (log z_lo, slabs per unit of log z, z_lo, z_hi) for the visible depth
-    range [z_lo, z_hi] (z_lo raised to z_hi / NEAR_RATIO; (1, 2) when nothing is visible)."""
-    if not (np.isfinite(z_hi) and z_hi > 0):
-        z_lo, z_hi = 1.0, 2.0
-    z_hi = float(z_hi) * (1 + 1e-6)
-    z_lo = max(float(z_lo), z_hi / NEAR_RATIO)
-    z_hi = max(z_hi, z_lo * (1 + 1e-6))
-    return np.log(z_lo), slabs / np.log(z_hi / z_lo), z_lo, z_hi
-
-
 def closed_outward(triangles: np.ndarray) -> bool:
     """True when the triangles (float (n, 3, 3)) close volumes they face out of: every edge shared
     by exactly two triangles with opposite orientation (trimesh, vertices merged) and each connected
@@ -186,8 +181,8 @@ class CameraGrid:
         self.ctx = ctx or cl_context()
         self.prims = prims or primitives(self.ctx)
         prog = build(KERNEL, {"WG": WG}, self.ctx)
-        self._k = clio.kernels(prog, ("cg_tri_clip", "cg_tri_count", "cg_tri_write", "cg_ranges",
-                                          "cg_classify"))
+        self._k = clio.kernels(prog, ("cg_tri_clip", "cg_slab_bounds", "cg_tri_count",
+                                          "cg_tri_write", "cg_ranges", "cg_classify"))
         self._bufs = BufferPool(self.ctx, "camera grid")
         self.header_host = np.zeros(1, CGRID_DTYPE)
         self.header = self.buf("header", CGRID_DTYPE.itemsize)
@@ -208,10 +203,10 @@ class CameraGrid:
         hd = np.zeros(1, CGRID_DTYPE)
         hd["eye"][0, :3] = cam.eye
         hd["minv"][0, :, :3] = np.linalg.inv(cam.m)
+        hd["norms"][0, :3] = np.linalg.norm(hd["minv"][0, :, :3], axis=1) * (1 + 1e-12)  # rounded up
         hd["screen"][0] = (w, h, spec.margin, 0.0)
-        hd["slab"][0] = slab_params(1.0, 2.0, ns)  # placed by build() from the visible depths
         hd["tiles"][0] = (t, ntx, nty, ns)
-        hd["cells"][0] = (ntx * nty * ns, w, h, 1 if spec.backface else 0)
+        hd["cells"][0] = (ntx * nty * (ns + 1), w, h, 1 if spec.backface else 0)
         return hd
 
     def build(self, tris: Any, n_tris: int, cam: PinholeCamera, spec: CameraGridSpec) -> CameraGridStats:
@@ -224,28 +219,20 @@ class CameraGrid:
         t0 = time.perf_counter()
         self.camera = cam
         hd = self.header_for(cam, spec)
-        self._header0 = hd.copy()  # kept alive for the asynchronous write
-        clio.copy(q, self.header, self._header0, is_blocking=False)
+        self.header_host = hd  # kept alive for the asynchronous write
+        clio.copy(q, self.header, hd, is_blocking=False)
         ntx, nty, ns = (int(x) for x in hd["tiles"][0, 1:])
-        ncells = ntx * nty * ns
+        ncells = ntx * nty * (ns + 1)  # per tile: the slabs and the big list
         nt = max(n_tris, 1)
         counts, offsets, flags = self.buf("counts", 4 * nt), self.buf("offsets", 4 * nt), self.buf("flags", 4 * nt)
         place, place_slab = self.buf("place", 16 * nt), self.buf("place_slab", 8 * nt)
         zlo, zhi = self.buf("zlo", 4 * nt), self.buf("zhi", 4 * nt)
-        self._run("cg_tri_clip", n_tris, self.header, tris, u(n_tris), flags, place, zlo, zhi)
-        if n_tris:  # the visible depth range: two reductions, one wait
-            zr = np.zeros(2, np.float32)
-            p.reduce_dev(zlo, n_tris, "min", np.float32, self.buf("zmin", 4))
-            p.reduce_dev(zhi, n_tris, "max", np.float32, self.buf("zmax", 4))
-            clio.copy(q, zr[0:1], self._bufs["zmin"], is_blocking=False)
-            clio.copy(q, zr[1:2], self._bufs["zmax"])
-            z0, z1 = float(zr[0]), float(zr[1])
-        else:
-            z0, z1 = np.inf, -np.inf
-        hd["slab"][0] = slab_params(z0, z1, ns)
-        self.header_host = hd
-        clio.copy(q, self.header, hd, is_blocking=False)  # hd is kept (header_host) until it lands
-        self._run("cg_tri_count", n_tris, self.header, u(n_tris), flags, place, zlo, zhi, counts, place_slab)
+        rect = self.buf("rect", 16 * nt)
+        self._run("cg_tri_clip", n_tris, self.header, tris, u(n_tris), flags, place, rect, zlo, zhi)
+        bounds = self.buf("bounds", 8 * (ns + 1))  # placed on the device (no wait)
+        self._k["cg_slab_bounds"](q, (BOUNDS_WG,), (BOUNDS_WG,), u(n_tris), np.int32(ns), zlo, bounds)
+        self._run("cg_tri_count", n_tris, self.header, u(n_tris), flags, place, zlo, zhi, bounds, counts,
+                  place_slab)
         # the pair total and the culled counts (count-only compactions): one wait
         got = np.zeros(4, np.uint32)
         if n_tris:
@@ -269,6 +256,7 @@ class CameraGrid:
                                         self.buf("seg_len", 4 * pairs)), self.buf("seg_count", 4))
             self._run("cg_ranges", pairs, seg.key, seg.start, seg.length, self._bufs["seg_count"], cells)
         self.buf("refs", 4 * max(pairs, 1) if not overflow else 4)
+        self.buf("keys", 4 * max(pairs, 1) if not overflow else 4)
         self.stats = CameraGridStats((ntx, nty), ns, n_tris, 0 if overflow else int(pairs), int(frustum), int(back),
                                      int(near), 0, 0, (time.perf_counter() - t0) * 1e3, overflow=overflow)
         return self.stats
@@ -311,6 +299,27 @@ class CameraGrid:
     @property
     def cells(self) -> Any:
         return self._bufs["cells"]
+
+    @property
+    def keys(self) -> Any:
+        """uint32 (pairs,) the cell id of each ref (sorted)."""
+        return self._bufs["keys"]
+
+    @property
+    def rect(self) -> Any:
+        """float32 (triangles, 4) pixel rectangles (x0, x1, y0, y1) by triangle slot (the layout above)."""
+        return self._bufs["rect"]
+
+    @property
+    def bounds(self) -> Any:
+        """float64 (slabs + 1,) slab bounds on the device (the layout above)."""
+        return self._bufs["bounds"]
+
+    def bounds_numpy(self) -> np.ndarray:
+        """The slab bounds (tests and studies: a wait)."""
+        out = np.empty(int(self.header_host["tiles"][0, 3]) + 1, np.float64)
+        clio.copy(self.ctx.queue, out, self.bounds)
+        return out
 
     @property
     def refs(self) -> Any:

@@ -39,8 +39,24 @@ inline int cg_clip(const double3 *p, int n, double3 plane, double off, double3 *
     return m;
 }
 
-// Tile range (tx0, tx1, ty0, ty1) and depth range of triangle i; false when culled (*flag says why).
-inline bool cg_tri(const CGrid *g, __global const float4 *tris, uint i, int4 *range, double2 *depth, uint *flag) {
+// Grows (x0, x1, y0, y1) to hold the pixel points of the box q +- (dx, dy, dz) (q.z - dz > 0): the
+// extremes lie at its corners; along a polygon edge these bounds are linear-fractional, so the
+// vertices' boxes bound the edge's too. The double rounding is far inside the pixel margin.
+inline void cg_vertex_box(double3 q, double dx, double dy, double dz, double *x0, double *x1, double *y0,
+                          double *y1) {
+    double in = 1.0 / (q.z - dz), jf = 1.0 / (q.z + dz);
+    double xl = q.x - dx, xh = q.x + dx, yl = q.y - dy, yh = q.y + dy;
+    *x0 = fmin(*x0, fmin(xl * in, xl * jf));
+    *x1 = fmax(*x1, fmax(xh * in, xh * jf));
+    *y0 = fmin(*y0, fmin(yl * in, yl * jf));
+    *y1 = fmax(*y1, fmax(yh * in, yh * jf));
+}
+
+// Tile range (tx0, tx1, ty0, ty1), pixel rectangle (x0, x1, y0, y1, grown by the margin: no ray
+// from the eye outside it can meet the triangle, in float32 either) and depth range of triangle i;
+// false when culled (*flag says why).
+inline bool cg_tri(const CGrid *g, __global const float4 *tris, uint i, int4 *range, double4 *rect, double2 *depth,
+                   uint *flag) {
     double3 E = g->eye.xyz;
     double3 v0 = convert_double3(tris[3 * i].xyz) - E, v1 = convert_double3(tris[3 * i + 1].xyz) - E,
             v2 = convert_double3(tris[3 * i + 2].xyz) - E;
@@ -52,46 +68,69 @@ inline bool cg_tri(const CGrid *g, __global const float4 *tris, uint i, int4 *ra
     }
     double W = g->screen.x, H = g->screen.y, m = g->screen.z;
     // the float test's reach (CG_FLOAT_REACH) in world units, and what it moves q = M^-1 v by
+    // (g->norms: |rows of M^-1|, from the host)
     double big_v = fmax(fmax(fmax(fabs(v0.x), fabs(v0.y)), fmax(fabs(v0.z), fabs(v1.x))),
                         fmax(fmax(fabs(v1.y), fabs(v1.z)), fmax(fabs(v2.x), fmax(fabs(v2.y), fabs(v2.z)))));
     double reach = CG_FLOAT_REACH * big_v;
-    double3 r0 = g->minv[0].xyz, r1 = g->minv[1].xyz, r2 = g->minv[2].xyz;
-    double dx = reach * length(r0), dy = reach * length(r1), dz = reach * length(r2);
-    double3 a[7], b[7];
-    a[0] = cg_project(g, v0);
-    a[1] = cg_project(g, v1);
-    a[2] = cg_project(g, v2);
-    int n = 3;
-    // the frustum grown by the margin (pixels) and by the reach (world: plane offset reach * |M^-T p|)
-    n = cg_clip(a, n, (double3)(1.0, 0.0, m), reach * length(r0 + m * r2), b);
-    n = cg_clip(b, n, (double3)(-1.0, 0.0, W + m), reach * length((W + m) * r2 - r0), a);
-    n = cg_clip(a, n, (double3)(0.0, 1.0, m), reach * length(r1 + m * r2), b);
-    n = cg_clip(b, n, (double3)(0.0, -1.0, H + m), reach * length((H + m) * r2 - r1), a);
-    if (n == 0) { *flag = CG_CULL_FRUSTUM; return false; }
-    double zmin = INFINITY, zmax = -INFINITY, big = 0.0;
-    for (int k = 0; k < n; ++k) {
-        zmin = fmin(zmin, a[k].z);
-        zmax = fmax(zmax, a[k].z);
-        big = fmax(big, fmax(fabs(a[k].x), fmax(fabs(a[k].y), fabs(a[k].z))));
+    double dx = reach * g->norms.x, dy = reach * g->norms.y, dz = reach * g->norms.z;
+    double3 q0 = cg_project(g, v0), q1 = cg_project(g, v1), q2 = cg_project(g, v2);
+    // the frustum grown by the margin (pixels) and by the reach (world: the plane moved by reach *
+    // |M^-T p|, bounded by the triangle inequality over the rows)
+    double3 pl[4] = {(double3)(1.0, 0.0, m), (double3)(-1.0, 0.0, W + m), (double3)(0.0, 1.0, m),
+                     (double3)(0.0, -1.0, H + m)};
+    double off[4] = {dx + m * dz, dx + (W + m) * dz, dy + m * dz, dy + (H + m) * dz};
+    bool inside = true;
+    for (int k = 0; k < 4; ++k) {  // most triangles lie inside every plane (no clip) or outside one
+        double d0 = dot(pl[k], q0) + off[k], d1 = dot(pl[k], q1) + off[k], d2 = dot(pl[k], q2) + off[k];
+        if (d0 < 0.0 && d1 < 0.0 && d2 < 0.0) { *flag = CG_CULL_FRUSTUM; return false; }
+        inside = inside && d0 >= 0.0 && d1 >= 0.0 && d2 >= 0.0;
     }
-    zmin -= dz;
-    zmax += dz;
-    if (!(zmax > 0.0)) { *flag = CG_CULL_FRUSTUM; return false; }
+    double zmin, zmax, big;
     double x0 = 0.0, x1 = W, y0 = 0.0, y1 = H;
-    if (zmin > 1e-9 * big) {  // else the grown polygon reaches the eye: it may cover any pixel
-        // each vertex's box q +- (dx, dy, dz) (z > 0 throughout): pixel extremes at its corners;
-        // along an edge the pixel bounds are linear-fractional, so the vertices bound them
-        x0 = INFINITY; x1 = -INFINITY; y0 = INFINITY; y1 = -INFINITY;
-        for (int k = 0; k < n; ++k) {
-            double zn = a[k].z - dz, zf = a[k].z + dz;
-            double xl = a[k].x - dx, xh = a[k].x + dx, yl = a[k].y - dy, yh = a[k].y + dy;
-            x0 = fmin(x0, fmin(xl / zn, xl / zf)); x1 = fmax(x1, fmax(xh / zn, xh / zf));
-            y0 = fmin(y0, fmin(yl / zn, yl / zf)); y1 = fmax(y1, fmax(yh / zn, yh / zf));
+    if (inside) {  // the common case, without the polygon arrays
+        zmin = fmin(fmin(q0.z, q1.z), q2.z) - dz;
+        zmax = fmax(fmax(q0.z, q1.z), q2.z) + dz;
+        double3 aq0 = fabs(q0), aq1 = fabs(q1), aq2 = fabs(q2);
+        double3 mq = fmax(fmax(aq0, aq1), aq2);
+        big = fmax(fmax(mq.x, mq.y), mq.z);
+        if (!(zmax > 0.0)) { *flag = CG_CULL_FRUSTUM; return false; }
+        if (zmin > 1e-9 * big) {
+            x0 = INFINITY; x1 = -INFINITY; y0 = INFINITY; y1 = -INFINITY;
+            cg_vertex_box(q0, dx, dy, dz, &x0, &x1, &y0, &y1);
+            cg_vertex_box(q1, dx, dy, dz, &x0, &x1, &y0, &y1);
+            cg_vertex_box(q2, dx, dy, dz, &x0, &x1, &y0, &y1);
+        } else {
+            *flag = CG_NEAR_EYE;
         }
     } else {
-        *flag = CG_NEAR_EYE;
+        double3 a[7], b[7];
+        a[0] = q0;
+        a[1] = q1;
+        a[2] = q2;
+        int n = 3;
+        n = cg_clip(a, n, pl[0], off[0], b);
+        n = cg_clip(b, n, pl[1], off[1], a);
+        n = cg_clip(a, n, pl[2], off[2], b);
+        n = cg_clip(b, n, pl[3], off[3], a);
+        if (n == 0) { *flag = CG_CULL_FRUSTUM; return false; }
+        zmin = INFINITY; zmax = -INFINITY; big = 0.0;
+        for (int k = 0; k < n; ++k) {
+            zmin = fmin(zmin, a[k].z);
+            zmax = fmax(zmax, a[k].z);
+            big = fmax(big, fmax(fabs(a[k].x), fmax(fabs(a[k].y), fabs(a[k].z))));
+        }
+        zmin -= dz;
+        zmax += dz;
+        if (!(zmax > 0.0)) { *flag = CG_CULL_FRUSTUM; return false; }
+        if (zmin > 1e-9 * big) {  // else the grown polygon reaches the eye: it may cover any pixel
+            x0 = INFINITY; x1 = -INFINITY; y0 = INFINITY; y1 = -INFINITY;
+            for (int k = 0; k < n; ++k) cg_vertex_box(a[k], dx, dy, dz, &x0, &x1, &y0, &y1);
+        } else {
+            *flag = CG_NEAR_EYE;
+        }
     }
     double T = (double)g->tiles.x;
+    *rect = (double4)(x0 - m, x1 + m, y0 - m, y1 + m);
     *range = (int4)((int)clamp(floor((x0 - m) / T), 0.0, (double)(g->tiles.y - 1)),
                     (int)clamp(floor((x1 + m) / T), 0.0, (double)(g->tiles.y - 1)),
                     (int)clamp(floor((y0 - m) / T), 0.0, (double)(g->tiles.z - 1)),
@@ -100,16 +139,14 @@ inline bool cg_tri(const CGrid *g, __global const float4 *tris, uint i, int4 *ra
     return true;
 }
 
-// float32 bounds of a double interval, rounded outwards
-inline float cg_down(double x) { float f = (float)x; return (double)f > x ? nextafter(f, -INFINITY) : f; }
-inline float cg_up(double x) { float f = (float)x; return (double)f < x ? nextafter(f, INFINITY) : f; }
 #endif
 
-// Pass 1 per triangle: flags[i] (CG_* bits), place[i] = tile range, depth range zlo[i]..zhi[i]
-// (+inf / -inf when culled; min/max-reduced by the host to place the slabs).
+// Pass 1 per triangle: flags[i] (CG_* bits), place[i] = tile range, rect[i] = pixel rectangle
+// (float, rounded outwards; everything for a triangle reaching the eye), depth range
+// zlo[i]..zhi[i] (+inf / -inf when culled).
 __kernel __attribute__((reqd_work_group_size(WG, 1, 1)))
 void cg_tri_clip(__global const CGrid *grid, __global const float4 *tris, const uint n, __global uint *flags,
-                 __global int4 *place, __global float *zlo, __global float *zhi) {
+                 __global int4 *place, __global float4 *rect, __global float *zlo, __global float *zhi) {
     uint i = get_global_id(0);
     if (i >= n) return;
     CGrid g = *grid;
@@ -117,22 +154,80 @@ void cg_tri_clip(__global const CGrid *grid, __global const float4 *tris, const 
     uint flag = CG_CULL_FRUSTUM;
     bool ok = false;
     float z0 = INFINITY, z1 = -INFINITY;
+    float4 box = (float4)(INFINITY, -INFINITY, INFINITY, -INFINITY);
 #ifdef RT_HAVE_FP64
     double2 z = (double2)(0.0);
-    ok = cg_tri(&g, tris, i, &r, &z, &flag);
-    if (ok) { z0 = cg_down(z.x); z1 = cg_up(z.y); }
+    double4 b = (double4)(0.0);
+    ok = cg_tri(&g, tris, i, &r, &b, &z, &flag);
+    if (ok) {
+        z0 = cg_down(z.x);
+        z1 = cg_up(z.y);
+        box = flag == CG_NEAR_EYE ? (float4)(-INFINITY, INFINITY, -INFINITY, INFINITY)
+                                  : (float4)(cg_down(b.x), cg_up(b.y), cg_down(b.z), cg_up(b.w));
+    }
 #endif
     flags[i] = flag;
     place[i] = r;
+    rect[i] = box;
     zlo[i] = z0;
     zhi[i] = z1;
 }
 
-// Pass 2, once the slabs are placed: counts[i] = cells of triangle i (0 when culled), place_slab[i].
+// Slab placement, on the device (no wait), by one work-group: a strided sample of at most
+// DEPTH_SAMPLES triangles' nearest depths zlo (+inf when culled) is sorted in local memory (bitonic)
+// and the S - 1 inner bounds are put at its quantiles among the visible ones: slabs of about equal
+// triangle counts, however spread the depths are (a 1e-3 object before a 1e4 wall gets all the
+// slabs). Where the bounds lie is only a heuristic; binning and trace read the same bounds.
+#define DEPTH_SAMPLES 2048
+#define BOUNDS_WG 256
+__kernel __attribute__((reqd_work_group_size(BOUNDS_WG, 1, 1)))
+void cg_slab_bounds(const uint n, const int S, __global const float *zlo, __global cg_bound *bounds) {
+    __local float z[DEPTH_SAMPLES];
+    __local uint visible;
+    uint lid = get_local_id(0);
+    uint m = min(n, (uint)DEPTH_SAMPLES), stride = max(1u, n / (uint)DEPTH_SAMPLES);
+    for (uint k = lid; k < DEPTH_SAMPLES; k += BOUNDS_WG) {
+        float v = k < m ? zlo[k * stride] : INFINITY;
+        z[k] = v == v ? v : INFINITY;
+    }
+    if (lid == 0) visible = 0u;
+    barrier(CLK_LOCAL_MEM_FENCE);
+    for (uint size = 2; size <= DEPTH_SAMPLES; size <<= 1)
+        for (uint j = size >> 1; j > 0; j >>= 1) {
+            for (uint p = lid; p < DEPTH_SAMPLES / 2; p += BOUNDS_WG) {
+                uint i = 2u * j * (p / j) + (p % j), l = i + j;
+                bool up = (i & size) == 0u;
+                float x = z[i], y = z[l];
+                if ((x > y) == up) { z[i] = y; z[l] = x; }
+            }
+            barrier(CLK_LOCAL_MEM_FENCE);
+        }
+    uint mine = 0u;
+    for (uint k = lid; k < DEPTH_SAMPLES; k += BOUNDS_WG) mine += isfinite(z[k]) ? 1u : 0u;
+    atomic_add(&visible, mine);
+    barrier(CLK_LOCAL_MEM_FENCE);
+#ifdef RT_HAVE_FP64
+    uint vis = visible;
+    for (int s = (int)lid; s <= S; s += BOUNDS_WG) {
+        double b;
+        if (s == S) b = INFINITY;
+        else if (vis == 0u) b = 1.0 + (double)s / (double)S;  // nothing visible: any increasing bounds
+        else b = (double)z[(uint)(((ulong)s * vis) / (ulong)S)];
+        bounds[s] = b;
+    }
+#endif
+}
+
+// Pass 2, once the slabs are placed: counts[i] = cells of triangle i (0 when culled), place_slab[i]
+// (its slab range; (-1, -1): the big list). A triangle reaching more than CG_BIG_SPAN slabs (a floor
+// or wall seen along its length, a triangle near the eye) goes into its tiles' big lists instead,
+// which the trace tests once before the slabs: listed in every slab it would be tested once per
+// slab by a ray crossing them all (2 ground triangles x 16 slabs: most tests of the mixed scene).
+#define CG_BIG_SPAN 2
 __kernel __attribute__((reqd_work_group_size(WG, 1, 1)))
 void cg_tri_count(__global const CGrid *grid, const uint n, __global const uint *flags, __global const int4 *place,
-                  __global const float *zlo, __global const float *zhi, __global uint *counts,
-                  __global int2 *place_slab) {
+                  __global const float *zlo, __global const float *zhi, __global const cg_bound *bounds,
+                  __global uint *counts, __global int2 *place_slab) {
     uint i = get_global_id(0);
     if (i >= n) return;
     CGrid g = *grid;
@@ -141,7 +236,8 @@ void cg_tri_count(__global const CGrid *grid, const uint n, __global const uint 
 #ifdef RT_HAVE_FP64
     if (flags[i] == 0u || flags[i] == CG_NEAR_EYE) {
         int4 r = place[i];
-        s = (int2)(cg_slab(&g, (double)zlo[i], -1e-3), cg_slab(&g, (double)zhi[i], 1e-3));
+        s = (int2)(cg_slab(bounds, g.tiles.w, (double)zlo[i]), cg_slab(bounds, g.tiles.w, (double)zhi[i]));
+        if (s.y - s.x + 1 > CG_BIG_SPAN) s = (int2)(-1);  // the tile's big list, tested once
         c = (uint)(r.y - r.x + 1) * (uint)(r.w - r.z + 1) * (uint)(s.y - s.x + 1);
     }
 #endif
@@ -159,11 +255,11 @@ void cg_tri_write(__global const CGrid *grid, const uint n, __global const uint 
     int4 r = place[i];
     int2 s = place_slab[i];
     uint o = offsets[i];
-    int S = g.tiles.w;
+    int S1 = g.tiles.w + 1;  // cells per tile: the big list (0), then slab s at s + 1
     for (int ty = r.z; ty <= r.w; ++ty)
         for (int tx = r.x; tx <= r.y; ++tx)
             for (int sl = s.x; sl <= s.y; ++sl) {
-                keys[o] = (uint)((ty * g.tiles.y + tx) * S + sl);
+                keys[o] = (uint)((ty * g.tiles.y + tx) * S1 + sl + 1);
                 vals[o] = i;
                 ++o;
             }

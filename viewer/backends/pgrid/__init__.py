@@ -309,8 +309,8 @@ class PgridBackend(GeometryBackend):
                 gsize = (-(-w // CAMERA_N) * CAMERA_N, -(-h // CAMERA_N) * CAMERA_N)
                 dummy = tests if tests is not None else hs.t
                 self._camera_kernels[tests is not None](q, gsize, (CAMERA_N, CAMERA_N), cg.header, cg.cells, cg.refs,
-                                                        self._tris, rs.origin, rs.dir, cg.outside, hs.t, hs.tri,
-                                                        dummy)
+                                                        cg.keys, self._tris, rs.origin, rs.dir, cg.outside, hs.t,
+                                                        hs.tri, dummy, cg.bounds, cg.rect)
                 self.tracer.enqueue(rs.origin, rs.dir, hs.t, hs.tri, rs.n, False, tests, index=cg.outside_index,
                                     n_device=cg.outside_count)
                 # statistics only: the count is read without a wait and reported by the next frame

@@ -35,26 +35,14 @@ typedef struct {
 #define MAX_SLABS 256
 
 // A triangle's angular box (pointgrid.cl pg_tri: alpha min, max, theta min, max, grown by the
-// rays' margin) into lane k % 4 of SoA block k / 4 (four float4 rows: alpha min, alpha max, theta
-// min, theta max). A ray whose direction u lies outside a triangle's box cannot meet it: this is
-// the test that bins triangles into tiles, at full resolution instead of the tile's.
-inline void pg_stage_box(__local float4 *boxes, uint k, float4 b) {
-    __local float *f = (__local float *)(boxes + 4 * (k / 4));
-    uint lane = k % 4;
-    f[lane] = b.x; f[4 + lane] = b.y; f[8 + lane] = b.z; f[12 + lane] = b.w;
-}
-
+// rays' margin) is staged by stage_box (stage.cl); a ray tests only the triangles whose box holds
+// its angles (box_lanes).
 // Stages triangle `slot` (vertices, slot id, angular box) as entry k of the local arrays.
 inline void pg_stage(__local float4 *sv, __local int *sslot, __local float4 *sbox, uint k,
                      __global const float4 *tris, __global const float4 *tri_box, uint slot) {
     sslot[k] = (int)slot;
     stage_triangle(sv, k, tris, slot);
-    pg_stage_box(sbox, k, tri_box[slot]);
-}
-
-// Lanes (-1) of the staged block at `boxes` whose angular box holds the ray's angles (a, t).
-inline int4 pg_box_lanes(__local const float4 *boxes, float a, float t) {
-    return (a >= boxes[0]) & (a <= boxes[1]) & (t >= boxes[2]) & (t <= boxes[3]);
+    stage_box(sbox, k, tri_box[slot]);
 }
 
 // A lower bound of the distance from E of the triangle of a sorted pair key ((cell << up.w) |
@@ -175,7 +163,7 @@ void pg_trace(__global const PGrid *grid, __global const uint *chunk_key, __glob
                         atomic_dec(&remaining);
                         break;
                     }
-                    int4 lanes = stage_lanes(k, cnt) & pg_box_lanes(sbox + k, ra, rth);
+                    int4 lanes = stage_lanes(k, cnt) & box_lanes(sbox + k, ra, rth);
                     if (!any(lanes)) continue;  // u outside the four triangles' angular boxes
                     tests += (int)(-(lanes.x + lanes.y + lanes.z + lanes.w));
                     int lane = rt_intersect_triangle4_local(&r, sv + 9 * (k / 4), lanes, tmin, hit_t, &t);
@@ -215,7 +203,7 @@ void pg_trace(__global const PGrid *grid, __global const uint *chunk_key, __glob
             if (!done && slab_lo <= far) {  // this ray's segment may reach this slab
                 for (uint k = 0; k < cnt; k += 4) {
                     float t;
-                    int4 lanes = stage_lanes(k, cnt) & pg_box_lanes(sbox + k, ra, rth);
+                    int4 lanes = stage_lanes(k, cnt) & box_lanes(sbox + k, ra, rth);
                     if (!any(lanes)) continue;  // u outside the four triangles' angular boxes
                     tests += (int)(-(lanes.x + lanes.y + lanes.z + lanes.w));
                     int lane = rt_intersect_triangle4_local(&r, sv + 9 * (k / 4), lanes, tmin, hit_t, &t);

@@ -3,14 +3,19 @@
 //
 // Header (CGRID_DTYPE, 224 bytes): eye (xyz), minv (rows of M^-1, where the un-normalised
 // direction of the ray through pixel point (x, y) is M (x, y, 1)), screen (width, height, margin in
-// pixels, 0), slab (log z_lo, slabs per unit of log z, z_lo, z_hi), tiles (pixels per tile side T,
-// tiles in x, tiles in y, slabs S), cells (tiles * slabs, image width, image height, flags: bit 0
-// back-face culling). Ray i is the ray of pixel (i % width, i / width), through pixel point
+// pixels, 0), norms (|rows of M^-1|: what a world offset moves q by; 0), tiles (pixels per tile side
+// T, tiles in x, tiles in y, slabs S), cells (tiles * (slabs + 1), image width, image height, flags:
+// bit 0 back-face culling). Ray i is the ray of pixel (i % width, i / width), through pixel point
 // (x + 0.5, y + 0.5). A point P maps to q = M^-1 (P - eye): pixel (q.x / q.z, q.y / q.z),
-// depth q.z (proportional to the distance along the viewing axis). Slab s holds depths in
-// [z_lo * r^s, z_lo * r^(s+1)) with r = (z_hi / z_lo)^(1 / S); slab 0 also holds everything
-// nearer, the last everything farther. Cell id = (ty * tiles_x + tx) * S + s; cells: uint2
-// (first ref, ref count); refs: uint triangle slots grouped by cell.
+// depth q.z (proportional to the distance along the viewing axis). Slab bounds: double (S + 1,),
+// slab s holds depths in [bounds[s], bounds[s + 1]); slab 0 also holds everything nearer, the last
+// everything farther; placed per frame at quantiles of the visible triangles' nearest depths
+// (camgrid_build.cl: cg_slab_bounds), so every slab holds about as many triangles
+// wherever they are (a 1e-3 object before a 1e4 wall gets all the slabs, not one).
+// Cell id = (ty * tiles_x + tx) * (S + 1) + c: c = 0 the tile's big list (triangles reaching
+// more than two slabs, tested once before the slabs), c = s + 1 slab s (a tile's cells, so its
+// refs, are contiguous and in that order); cells: uint2 (first ref, ref count); refs:
+// uint triangle slots grouped by cell.
 // Without cl_khr_fp64 nothing is binned and every ray is "outside" (traced another way).
 #include "geometry.cl"
 
@@ -19,7 +24,7 @@ typedef struct {
     double4 eye;
     double4 minv[3];
     double4 screen;
-    double4 slab;
+    double4 norms;
 #else
     float4 pad[12];
 #endif
@@ -27,20 +32,39 @@ typedef struct {
     int4 cells;
 } CGrid;
 
+// slab bounds' element type (double; without fp64 nothing is binned and the bounds are unused)
+#ifdef RT_HAVE_FP64
+typedef double cg_bound;
+#else
+typedef float cg_bound;
+#endif
+
 #ifdef RT_HAVE_FP64
 inline double3 cg_project(const CGrid *g, double3 v) {
     return (double3)(dot(g->minv[0].xyz, v), dot(g->minv[1].xyz, v), dot(g->minv[2].xyz, v));
 }
 
-// Continuous slab coordinate of depth z (may lie outside [0, S)).
-inline double cg_slab_f(const CGrid *g, double z) {
-    return z > 0.0 ? (log(z) - g->slab.x) * g->slab.y : -1.0e30;
+// float32 bounds of a double, rounded down / up (one ulp step by the bits, not libm's nextafter:
+// a call a CPU device cannot run in SIMD; +-inf and NaN pass through)
+inline float cg_step(float f, bool up) {
+    int b = as_int(f);
+    int s = (f > 0.0f) == up ? 1 : -1;
+    float g = f == 0.0f ? (up ? 1.401298464e-45f : -1.401298464e-45f) : as_float(b + s);
+    return isfinite(f) ? g : f;
 }
+inline float cg_down(double x) { float f = (float)x; return (double)f > x ? cg_step(f, false) : f; }
+inline float cg_up(double x) { float f = (float)x; return (double)f < x ? cg_step(f, true) : f; }
 
-// Slab index of depth z, pushed by `bias` slab units (+: round up, -: round down) before the floor,
-// so that the float error of log() never moves a triangle out of a slab it reaches.
-inline int cg_slab(const CGrid *g, double z, double bias) {
-    double f = cg_slab_f(g, z) + bias;
-    return (int)clamp(floor(f), 0.0, (double)(g->tiles.w - 1));
+// Slab of depth z: the largest s in [0, S) with bounds[s] <= z (slab 0 also holds everything
+// nearer, the last everything farther). Exact comparisons of doubles, so a triangle whose depth
+// range [zlo, zhi] (rounded outwards) is binned into cg_slab(zlo)..cg_slab(zhi) is in every slab it
+// reaches, and a ray whose hit depth is below bounds[s + 1] has met every nearer triangle by slab s.
+inline int cg_slab(__global const cg_bound *bounds, int S, double z) {
+    int lo = 0, hi = S - 1;
+    while (lo < hi) {
+        int mid = (lo + hi + 1) >> 1;
+        if (bounds[mid] <= z) lo = mid; else hi = mid - 1;
+    }
+    return lo;
 }
 #endif
