@@ -32,7 +32,7 @@ def trace_image(tris, cam: Camera, params: str = "", size=SIZE):
 
     def keep(be):
         grid["cells"], grid["refs"] = be.camgrid.to_numpy()
-        grid["header"] = be.camgrid.header_host.copy()
+        grid["header"] = be.camgrid.header_numpy()
         grid["bounds"] = be.camgrid.bounds_numpy()
         grid["order"] = be.bc.bvh.tri_order
 
@@ -170,14 +170,15 @@ def test_back_face_culling_only_where_exact():
     solids.append(trimesh.creation.box([1.0, 2.0, 0.5]).apply_translation([-2.0, 0.0, 0.5]))
     tris = np.concatenate([s.triangles for s in solids]).astype(F32)
     cam = Camera.look_at([0.5, 1.5, 7.0], [0.3, 0.0, 0.0], fov_y=55)
-    out, stats, _ = trace_image(tris, cam)
-    assert stats["backface"] == 1 and stats["culled_backface"] > 0.3 * len(tris), stats
+    out, stats, grid = trace_image(tris, cam)
+    backface = int(grid["header"][0]["cells"][3]) & 1  # decided on the device (the eye outside the box)
+    assert backface == 1 and stats["culled_backface"] > 0.3 * len(tris), stats
     assert_matches(out)
     out_off, stats_off, _ = trace_image(tris, cam, "backface=off")
     assert stats_off["culled_backface"] == 0 and stats_off["pairs"] > stats["pairs"]
     assert_matches(out_off)
-    out_open, stats_open, _ = trace_image(tris[1:], cam)  # a hole: back faces show through it
-    assert stats_open["backface"] == 0 and stats_open["culled_backface"] == 0
+    out_open, stats_open, grid_open = trace_image(tris[1:], cam)  # a hole: back faces show through it
+    assert int(grid_open["header"][0]["cells"][3]) & 1 == 0 and stats_open["culled_backface"] == 0
     assert_matches(out_open)
 
 
@@ -220,8 +221,9 @@ def test_fit_camera_recovers_the_projection():
 
 @needs_cl
 def test_primary_pass_that_is_not_an_image_is_still_exact():
-    """'Primary' rays from one eye in random directions: not a pinhole image, so the camera grid
-    declines them (they take the angular eye grid) and every answer is still exact."""
+    """'Primary' rays from one eye in random directions: not a pinhole image, so no camera fits
+    them on the device, the camera grid stays empty and the uniform grid takes every ray: every
+    answer is still exact."""
     from viewer.effects import RayType
 
     rng = np.random.default_rng(35)
@@ -231,6 +233,7 @@ def test_primary_pass_that_is_not_an_image_is_still_exact():
     d = rng.normal(size=(n, 3)).astype(F32)
     tmin, tmax = np.zeros(n, F32), np.full(n, np.inf, F32)
     t, tri, stats = trace_centred(tris, o, d, tmin, tmax, RayType.PRIMARY, size=SIZE)
+    assert stats["pairs"] == 0, stats  # no camera: nothing binned
     assert_matches(_judge(tris, o, d, tmin, tmax, t, tri, False))
 
 
@@ -247,3 +250,65 @@ def test_pair_overflow_falls_back_exactly(monkeypatch):
     out, stats, _ = trace_image(tris, cam)
     assert stats["pairs"] == 0 and out.rhit.sum() > 0.3 * len(out.o)
     assert_matches(out)
+
+
+def _trace_images_one_backend(tris, cams, size=SIZE):
+    """Trace the pixel rays of each camera in turn with ONE pgrid backend (its pair buffers are
+    sized from the previous pass): [(outcome judged against the float64 reference, stats)]."""
+    from viewer.accel.bvh import build_bvh
+    from viewer.backends import create_backend
+    from viewer.backends.base import BackendContext
+    from viewer.effects import RayType
+    from viewer.gl.context import shared_context
+    from viewer.gl.programs import ProgramCache
+    from viewer.gl.scene import GpuScene
+    from viewer.profiler import GpuProfiler
+    from viewer.rays import HitBuffer, PassInfo, RayBatch
+    from viewer.scene import Material, Scene
+
+    ctx = shared_context()
+    tris = np.ascontiguousarray(tris, F32)
+    bvh = build_bvh(tris)
+    scene = Scene("pg", tris, np.zeros(len(tris), np.int32), [Material("grey", np.full(3, 0.7, F32))]
+                  ).reordered(bvh.tri_order)
+    gpu = GpuScene.upload(ctx, scene, bvh)
+    rays, hits = RayBatch(ctx, size), HitBuffer(ctx, size)
+    bc = BackendContext(ctx, ProgramCache(ctx), GpuProfiler(ctx, enabled=False), gpu, scene, bvh)
+    be = create_backend("pgrid", bc, None)
+    out = []
+    try:
+        for cam in cams:
+            o, d, tmin, tmax = image_rays(cam, size)
+            org = np.concatenate([o, tmin[:, None]], 1)
+            dirs = np.concatenate([d, np.full((len(d), 1), 3.4e38, F32)], 1)
+            rays.origin.write(org.tobytes())
+            rays.direction.write(dirs.tobytes())
+            be.begin_frame(0)
+            stats = be.trace(rays, PassInfo(RayType.PRIMARY), hits).stats
+            t, slot = hits.read()
+            tri = np.where(slot >= 0, bvh.tri_order[np.maximum(slot, 0)], -1).astype(np.int32)
+            out.append((_judge(tris, o, d, tmin, tmax, np.asarray(t), tri, False), stats))
+    finally:
+        be.release()
+        rays.release()
+        hits.release()
+        gpu.release()
+    return out
+
+
+@needs_cl
+def test_pair_buffers_sized_from_the_last_pass_overflow_exactly():
+    """The pair buffers are sized from the previous pass (no wait): a view that needs several
+    times the pairs of the one before overflows them, its rays all take the uniform grid (still
+    exact), and the pass after it has room again (the grid takes the rays)."""
+    rng = np.random.default_rng(37)
+    tris = _soup(rng, 3000, extent=10.0, size=0.6)
+    narrow = Camera.look_at([5.0, 5.0, 30.0], [5.0, 5.0, 0.0], fov_y=4)  # a few triangles in view
+    wide = Camera.look_at([5.0, 5.0, 16.0], [5.0, 5.0, 0.0], fov_y=70)  # the whole soup
+    runs = _trace_images_one_backend(tris, [narrow, wide, wide, wide])
+    for out, _ in runs:
+        assert out.rhit.sum() > 0.2 * len(out.o)
+        assert_matches(out)
+    pairs = [st["pairs"] for _, st in runs]
+    # counters come a pass late: pass 3 reports pass 2's overflow (0 pairs), pass 4 pass 3's grid
+    assert pairs[0] > 0 and pairs[2] == 0 and pairs[3] > 1.25 * pairs[0] + 1024, pairs  # it did overflow

@@ -62,7 +62,8 @@ CGRID_DTYPE = np.dtype([("eye", "<f8", 4), ("minv", "<f8", (3, 4)), ("screen", "
                         ("tiles", "<i4", 4), ("cells", "<i4", 4)])
 assert CGRID_DTYPE.itemsize == 224
 
-FLAG_BACK, FLAG_FRUSTUM, FLAG_NEAR_EYE = 1, 2, 4
+FLAG_BACK, FLAG_FRUSTUM, FLAG_NEAR_EYE = 1, 2, 4  # per-triangle flags (camgrid_build.cl CG_*)
+FLAG_VALID = 2  # header cells.w: a camera fits the rays (CG_VALID)
 
 
 @dataclass
@@ -181,13 +182,16 @@ class CameraGrid:
         self.ctx = ctx or cl_context()
         self.prims = prims or primitives(self.ctx)
         prog = build(KERNEL, {"WG": WG}, self.ctx)
-        self._k = clio.kernels(prog, ("cg_tri_clip", "cg_slab_bounds", "cg_tri_count",
+        self._k = clio.kernels(prog, ("cg_fit", "cg_tri_clip", "cg_slab_bounds", "cg_tri_count", "cg_pairs_clamp",
                                           "cg_tri_write", "cg_ranges", "cg_classify"))
         self._bufs = BufferPool(self.ctx, "camera grid")
         self.header_host = np.zeros(1, CGRID_DTYPE)
         self.header = self.buf("header", CGRID_DTYPE.itemsize)
         self.stats: CameraGridStats | None = None
         self.camera: PinholeCamera | None = None
+        self._late: np.ndarray | None = None  # the last pass's (pairs, culled x3), copied without a wait
+        self._capacity = 0  # room for pairs (the pair buffers' size)
+        self._prev_capacity = 0
 
     def buf(self, name: str, nbytes: int) -> Any:
         return self._bufs.get(name, nbytes)
@@ -196,33 +200,77 @@ class CameraGrid:
         if n:
             self._k[name](self.ctx.queue, (-(-n // WG) * WG,), (WG,), *args)
 
-    def header_for(self, cam: PinholeCamera, spec: CameraGridSpec) -> np.ndarray:
-        w, h = cam.size
+    def header_for(self, cam: PinholeCamera | None, spec: CameraGridSpec, size: tuple[int, int]) -> np.ndarray:
+        """The header (CGRID_DTYPE) for a w x h image; the camera fields from `cam` (valid), or
+        zero for cg_fit to fill on the device (cam None)."""
+        w, h = size
         t = N * max(1, int(spec.k))
         ntx, nty, ns = -(-w // t), -(-h // t), max(1, int(spec.slabs))
         hd = np.zeros(1, CGRID_DTYPE)
-        hd["eye"][0, :3] = cam.eye
-        hd["minv"][0, :, :3] = np.linalg.inv(cam.m)
-        hd["norms"][0, :3] = np.linalg.norm(hd["minv"][0, :, :3], axis=1) * (1 + 1e-12)  # rounded up
+        flags = 0
+        if cam is not None:
+            hd["eye"][0, :3] = cam.eye
+            hd["minv"][0, :, :3] = np.linalg.inv(cam.m)
+            hd["norms"][0, :3] = np.linalg.norm(hd["minv"][0, :, :3], axis=1) * (1 + 1e-12)  # rounded up
+            flags = FLAG_VALID | (1 if spec.backface else 0)
         hd["screen"][0] = (w, h, spec.margin, 0.0)
         hd["tiles"][0] = (t, ntx, nty, ns)
-        hd["cells"][0] = (ntx * nty * (ns + 1), w, h, 1 if spec.backface else 0)
+        hd["cells"][0] = (ntx * nty * (ns + 1), w, h, flags)
         return hd
 
     def build(self, tris: Any, n_tris: int, cam: PinholeCamera, spec: CameraGridSpec) -> CameraGridStats:
-        """Steps 1-3 of the module docstring. On more than MAX_PAIRS pairs the grid is left empty
-        and stats.overflow is set (the caller traces every ray another way)."""
+        """Steps 1-3 of the module docstring for a camera known on the host (studies, tests): one
+        wait, so the pair buffers fit and the counters are this build's."""
+        self.camera = cam
+        hd = self.header_for(cam, spec, cam.size)
+        self.header_host = hd  # kept alive for the asynchronous write
+        clio.copy(self.ctx.queue, self.header, hd, is_blocking=False)
+        return self._build(tris, n_tris, hd, wait=True)
+
+    def build_for_rays(self, tris: Any, n_tris: int, ray_o: Any, ray_d: Any, size: tuple[int, int],
+                       spec: CameraGridSpec, closed: bool, box: tuple[np.ndarray, np.ndarray]) -> CameraGridStats:
+        """Steps 1-3 for the image of rays in (ray_o, ray_d), its camera fitted on the device from
+        the four corner rays (cg_fit: no wait). When no pinhole camera fits them the grid is empty
+        and classify_device sends every ray the other way. Back faces are culled when `closed`
+        (the scene closes volumes it faces out of) and the eye lies outside `box` (decided on the
+        device; spec.backface is ignored)."""
+        self.camera = None
+        hd = self.header_for(None, spec, size)
+        self.header_host = hd
+        q = self.ctx.queue
+        clio.copy(q, self.header, hd, is_blocking=False)
+        lo, hi = (np.append(np.asarray(v, np.float32), np.float32(0)) for v in box)
+        self._k["cg_fit"](q, (1,), None, self.header, ray_o, ray_d, np.int32(size[0]), np.int32(size[1]),
+                          np.int32(bool(closed)), lo, hi)
+        return self._build(tris, n_tris, hd)
+
+    def _capacity_for(self, ncells: int) -> int | None:
+        """Room for pairs this pass: from the last pass's total (read without a wait, +25%), or
+        None when there is no last pass (the first build waits for its exact total)."""
+        prev = self._late
+        if prev is None:
+            return None
+        pairs = int(prev[0])
+        want = max(self._capacity, -(-pairs * 5 // 4) + 1024)
+        return min(want, self.hard_cap())
+
+    def hard_cap(self) -> int:
+        """The most pairs one build may hold: MAX_PAIRS and the device's memory."""
+        return min(MAX_PAIRS, pair_cap(self.ctx, PAIR_BYTES))
+
+    def _build(self, tris: Any, n_tris: int, hd: np.ndarray, wait: bool = False) -> CameraGridStats:
+        """Steps 1-3 on the header already written to the device. The pair buffers are sized from
+        the last pass (no wait; an overflow leaves no grid and classify_device sends every ray the
+        other way, and the next pass gets room); the first build waits for its exact total. The
+        counters come from the previous pass when no wait was made (`late`). wait=True: the exact
+        total, this build's counters (one wait)."""
         from viewer.cl.primitives import Chunks
 
         cl, q, u = self.ctx.cl, self.ctx.queue, np.uint32
         p = self.prims
         t0 = time.perf_counter()
-        self.camera = cam
-        hd = self.header_for(cam, spec)
-        self.header_host = hd  # kept alive for the asynchronous write
-        clio.copy(q, self.header, hd, is_blocking=False)
         ntx, nty, ns = (int(x) for x in hd["tiles"][0, 1:])
-        ncells = ntx * nty * (ns + 1)  # per tile: the slabs and the big list
+        ncells = ntx * nty * (ns + 1)  # per tile: the big list and the slabs
         nt = max(n_tris, 1)
         counts, offsets, flags = self.buf("counts", 4 * nt), self.buf("offsets", 4 * nt), self.buf("flags", 4 * nt)
         place, place_slab = self.buf("place", 16 * nt), self.buf("place_slab", 8 * nt)
@@ -233,32 +281,42 @@ class CameraGrid:
         self._k["cg_slab_bounds"](q, (BOUNDS_WG,), (BOUNDS_WG,), u(n_tris), np.int32(ns), zlo, bounds)
         self._run("cg_tri_count", n_tris, self.header, u(n_tris), flags, place, zlo, zhi, bounds, counts,
                   place_slab)
-        # the pair total and the culled counts (count-only compactions): one wait
-        got = np.zeros(4, np.uint32)
+        # the pair total and the culled counts (count-only compactions), copied without a wait
+        pairs_buf = self.buf("pairs", 4)
+        cl.enqueue_fill_buffer(q, pairs_buf, np.uint32(0), 0, 4)
+        late = np.zeros(4, np.uint32)
         if n_tris:
-            pairs_buf = self.buf("pairs", 4)
             p.exclusive_scan_dev(counts, offsets, self._n_buf(n_tris), n_tris, pairs_buf)
             for k, f in enumerate((FLAG_FRUSTUM, FLAG_BACK, FLAG_NEAR_EYE)):
                 cb = self.buf(f"culled{k}", 4)
                 p.compact_dev(self._bufs["n"], n_tris, cb, src=flags, predicate=f"x == {f}u")
-                clio.copy(q, got[k + 1:k + 2], cb, is_blocking=False)
-            clio.copy(q, got[0:1], pairs_buf)
-        pairs, frustum, back, near = (int(x) for x in got)
+                clio.copy(q, late[k + 1:k + 2], cb, is_blocking=False)
+        clio.copy(q, late[0:1], pairs_buf, is_blocking=False)
+        cap = None if wait else self._capacity_for(ncells)
+        exact = cap is None
+        if exact:  # no last pass to size from: one wait for the exact total
+            clio.finish(q)
+            cap = min(max(int(late[0]), 1), self.hard_cap())
+        prev, self._late = self._late, late
+        self._capacity = cap
         cells = self.buf("cells", 8 * ncells)
         cl.enqueue_fill_buffer(q, cells, np.uint32(0), 0, 8 * ncells)
-        overflow = pairs > min(MAX_PAIRS, pair_cap(self.ctx, PAIR_BYTES))  # device limits too
-        if pairs and not overflow:
-            keys, refs = self.buf("keys", 4 * pairs), self.buf("refs", 4 * pairs)
-            self._run("cg_tri_write", n_tris, self.header, u(n_tris), offsets, counts, place, place_slab, keys, refs)
-            p.sort_pairs(keys, refs, pairs, key_bits=max(1, (ncells - 1).bit_length()))
-            seg = p.segments_dev(keys, self._bufs["pairs"], pairs, None,
-                                 Chunks(0, self.buf("seg_key", 4 * pairs), self.buf("seg_start", 4 * pairs),
-                                        self.buf("seg_len", 4 * pairs)), self.buf("seg_count", 4))
-            self._run("cg_ranges", pairs, seg.key, seg.start, seg.length, self._bufs["seg_count"], cells)
-        self.buf("refs", 4 * max(pairs, 1) if not overflow else 4)
-        self.buf("keys", 4 * max(pairs, 1) if not overflow else 4)
-        self.stats = CameraGridStats((ntx, nty), ns, n_tris, 0 if overflow else int(pairs), int(frustum), int(back),
-                                     int(near), 0, 0, (time.perf_counter() - t0) * 1e3, overflow=overflow)
+        keys, refs = self.buf("keys", 4 * cap), self.buf("refs", 4 * cap)
+        n_eff = self.buf("n_eff", 4)
+        self._k["cg_pairs_clamp"](q, (1,), None, pairs_buf, u(cap), n_eff)
+        self._run("cg_tri_write", n_tris, self.header, u(n_tris), pairs_buf, u(cap), offsets, counts, place,
+                  place_slab, keys, refs)
+        p.sort_pairs_dev(keys, refs, n_eff, cap, max(1, (ncells - 1).bit_length()))
+        seg = p.segments_dev(keys, n_eff, cap, None,
+                             Chunks(0, self.buf("seg_key", 4 * cap), self.buf("seg_start", 4 * cap),
+                                    self.buf("seg_len", 4 * cap)), self.buf("seg_count", 4))
+        self._run("cg_ranges", cap, seg.key, seg.start, seg.length, self._bufs["seg_count"], cells)
+        shown = late if exact else prev  # counters: this pass's when waited for, else the last one's
+        pairs, frustum, back, near = (int(x) for x in shown)
+        overflow = pairs > (cap if exact else self._prev_capacity)
+        self._prev_capacity = cap
+        self.stats = CameraGridStats((ntx, nty), ns, n_tris, 0 if overflow else pairs, frustum, back, near, 0, 0,
+                                     (time.perf_counter() - t0) * 1e3, overflow=overflow)
         return self.stats
 
     def _n_buf(self, n: int) -> Any:
@@ -287,7 +345,8 @@ class CameraGrid:
         outside, idx = self.buf("outside", 4 * max(n, 1)), self.buf("outside_idx", 4 * max(n, 1))
         count = self.buf("outside_count", 4)
         self.ctx.cl.enqueue_fill_buffer(self.ctx.queue, count, np.uint32(0), 0, 4)
-        self._run("cg_classify", n, self.header, ray_o, ray_d, np.uint32(n), outside)
+        self._run("cg_classify", n, self.header, ray_o, ray_d, np.uint32(n), self._bufs["pairs"],
+                  np.uint32(self._capacity), outside)
         if n:
             self.prims.compact_dev(self._n_buf(n), n, count, flags=outside, dst_index=idx)
         self.stats.rays = n
@@ -334,15 +393,24 @@ class CameraGrid:
         return self._bufs["outside_idx"]
 
     def to_numpy(self) -> tuple[np.ndarray, np.ndarray]:
-        """(cells (ncells, 2), refs (pairs,)) for tests and studies."""
+        """(cells (ncells, 2), refs (pairs,)) for tests and studies (waits; the device's pair count)."""
         assert self.stats is not None
         ncells = int(self.header_host["cells"][0, 0])
         cells = np.empty((ncells, 2), np.uint32)
-        refs = np.empty(max(self.stats.pairs, 1), np.uint32)
+        got = np.zeros(1, np.uint32)
+        clio.copy(self.ctx.queue, got, self._bufs["n_eff"])
+        pairs = int(got[0])
+        refs = np.empty(max(pairs, 1), np.uint32)
         clio.copy(self.ctx.queue, cells, self.cells)
-        if self.stats.pairs:
+        if pairs:
             clio.copy(self.ctx.queue, refs, self.refs)
-        return cells, refs[: self.stats.pairs]
+        return cells, refs[:pairs]
+
+    def header_numpy(self) -> np.ndarray:
+        """The header as the device holds it (the camera fitted there; tests and studies: a wait)."""
+        out = np.zeros(1, CGRID_DTYPE)
+        clio.copy(self.ctx.queue, out, self.header)
+        return out
 
     def release(self) -> None:
         self._bufs.release()

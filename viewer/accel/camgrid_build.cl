@@ -61,6 +61,7 @@ inline bool cg_tri(const CGrid *g, __global const float4 *tris, uint i, int4 *ra
     double3 v0 = convert_double3(tris[3 * i].xyz) - E, v1 = convert_double3(tris[3 * i + 1].xyz) - E,
             v2 = convert_double3(tris[3 * i + 2].xyz) - E;
     *flag = 0u;
+    if (!(g->cells.w & CG_VALID)) { *flag = CG_CULL_FRUSTUM; return false; }  // no camera: no grid
     if (!(all(isfinite(v0)) && all(isfinite(v1)) && all(isfinite(v2)))) { *flag = CG_CULL_FRUSTUM; return false; }
     // two equal vertices: never hit (geometry.cl's det is exactly 0; pointgrid.cl culls them too),
     // and common far from the origin (91% of the dragon at 1e6 snaps onto float32's lattice)
@@ -250,11 +251,13 @@ void cg_tri_count(__global const CGrid *grid, const uint n, __global const uint 
 }
 
 __kernel __attribute__((reqd_work_group_size(WG, 1, 1)))
-void cg_tri_write(__global const CGrid *grid, const uint n, __global const uint *offsets, __global const uint *counts,
+void cg_tri_write(__global const CGrid *grid, const uint n, __global const uint *pairs, const uint capacity,
+                  __global const uint *offsets,
+                  __global const uint *counts,
                   __global const int4 *place, __global const int2 *place_slab, __global uint *keys,
                   __global uint *vals) {
     uint i = get_global_id(0);
-    if (i >= n || counts[i] == 0u) return;
+    if (i >= n || counts[i] == 0u || *pairs > capacity) return;  // overflow: no grid (n_eff is 0)
     CGrid g = *grid;
     int4 r = place[i];
     int2 s = place_slab[i];
@@ -280,10 +283,11 @@ void cg_ranges(__global const uint *seg_key, __global const uint *seg_start, __g
 
 // Per ray: outside[i] = 1 when ray i cannot be traced through the grid: it does not start at the
 // eye, or its direction does not pass within margin / 2 pixels of its own tile (a ray that is not
-// the pixel ray of its index). Inactive rays stay inside (the trace writes a miss for them).
+// the pixel ray of its index), or there is no grid this pass (no camera fits the batch, or the
+// pairs outgrew the buffer sized from the last frame: the caller grows it for the next one). Inactive rays stay inside (the trace writes a miss for them).
 __kernel __attribute__((reqd_work_group_size(WG, 1, 1)))
 void cg_classify(__global const CGrid *grid, __global const float4 *ray_o, __global const float4 *ray_d,
-                 const uint n, __global uint *outside) {
+                 const uint n, __global const uint *pairs, const uint capacity, __global uint *outside) {
     uint i = get_global_id(0);
     if (i >= n) return;
     CGrid g = *grid;
@@ -291,6 +295,8 @@ void cg_classify(__global const CGrid *grid, __global const float4 *ray_o, __glo
     uint out = 1u;
     if (!(dt.w > ot.w)) {
         out = 0u;
+    } else if (!(g.cells.w & CG_VALID) || *pairs > capacity) {
+        out = 1u;  // no camera fits the rays, or the pairs overflowed their buffer: no grid this pass
     } else {
 #ifdef RT_HAVE_FP64
         float3 e = convert_float3(g.eye.xyz);
@@ -308,4 +314,59 @@ void cg_classify(__global const CGrid *grid, __global const float4 *ray_o, __glo
 #endif
     }
     outside[i] = out;
+}
+
+#ifdef RT_HAVE_FP64
+inline double cg_det3(double3 a, double3 b, double3 c) { return dot(a, cross(b, c)); }
+#endif
+
+// One work-item: the pinhole camera of a w x h image of rays from its four corner rays, on the
+// device (fit_camera in camgrid.py is the same algebra on the host): the un-normalised corner
+// directions s_k d_k form a parallelogram (s_00 = 1), which fixes M = (dx, dy, c) with
+// direction(x, y) ~ M (x, y, 1). Writes eye, M^-1, its row norms and the flags (CG_VALID when the
+// corners share one finite origin and span a pinhole image; back-face culling when the scene is
+// closed and faces outwards and the eye is outside the scene box [lo, hi]). The host never waits
+// for the camera.
+__kernel void cg_fit(__global CGrid *g, __global const float4 *ray_o, __global const float4 *ray_d, const int w,
+                     const int h, const int closed, const float4 lo, const float4 hi) {
+    if (get_global_id(0) != 0) return;
+#ifdef RT_HAVE_FP64
+    int idx[4] = {0, w - 1, (h - 1) * w, h * w - 1};
+    float4 o0 = ray_o[idx[0]];
+    bool ok = w >= 2 && h >= 2;
+    double3 d[4];
+    for (int k = 0; k < 4; ++k) {
+        float4 o = ray_o[idx[k]], dk = ray_d[idx[k]];
+        ok = ok && all(isfinite(o)) && all(isfinite(dk.xyz)) && dk.w > o.w && o.x == o0.x && o.y == o0.y &&
+             o.z == o0.z;
+        d[k] = convert_double3(dk.xyz);
+    }
+    double3 ca = d[3], cb = -d[1], cc = -d[2], rhs = -d[0];
+    double det = cg_det3(ca, cb, cc);
+    ok = ok && fabs(det) >= 1e-12 * length(ca) * length(cb) * length(cc);
+    double s11 = cg_det3(rhs, cb, cc) / det, s10 = cg_det3(ca, rhs, cc) / det, s01 = cg_det3(ca, cb, rhs) / det;
+    ok = ok && s11 > 0.0 && s10 > 0.0 && s01 > 0.0;
+    double3 p00 = d[0], p10 = s10 * d[1], p01 = s01 * d[2];
+    double3 dx = (p10 - p00) / (double)(w - 1), dy = (p01 - p00) / (double)(h - 1);
+    double3 c = p00 - 0.5 * dx - 0.5 * dy;
+    double dm = cg_det3(dx, dy, c);  // M's columns dx, dy, c: M^-1's rows are the cross products / det
+    ok = ok && isfinite(dm) && fabs(dm) > 1e-300;
+    double3 r0 = cross(dy, c) / dm, r1 = cross(c, dx) / dm, r2 = cross(dx, dy) / dm;
+    ok = ok && all(isfinite(r0)) && all(isfinite(r1)) && all(isfinite(r2));
+    g->eye = (double4)(convert_double3(o0.xyz), 0.0);
+    g->minv[0] = (double4)(r0, 0.0);
+    g->minv[1] = (double4)(r1, 0.0);
+    g->minv[2] = (double4)(r2, 0.0);
+    g->norms = (double4)(length(r0), length(r1), length(r2), 0.0) * (1.0 + 1e-12);  // rounded up
+    bool outside_box = any(o0.xyz < lo.xyz) || any(o0.xyz > hi.xyz);
+    g->cells.w = (ok ? CG_VALID : 0) | (ok && closed && outside_box ? 1 : 0);
+#else
+    g->cells.w = 0;
+#endif
+}
+
+// n_eff: the count the sort and the segments read, 0 when the pairs overflowed the buffer (no
+// pair is written then, and the pass's rays all go the other way).
+__kernel void cg_pairs_clamp(__global const uint *pairs, const uint capacity, __global uint *n_eff) {
+    if (get_global_id(0) == 0) *n_eff = *pairs > capacity ? 0u : *pairs;
 }

@@ -42,7 +42,7 @@ from pathlib import Path
 
 import numpy as np
 
-from viewer.accel.camgrid import CameraGrid, CameraGridSpec, closed_outward, corner_rays, fit_camera
+from viewer.accel.camgrid import CameraGrid, CameraGridSpec, closed_outward
 from viewer.accel.camgrid import N as CAMERA_N
 from viewer.accel.grid import GridSpec, scene_box
 from viewer.accel.pointgrid import PointGrid, PointGridSpec
@@ -209,10 +209,10 @@ class PgridBackend(GeometryBackend):
         label = pinfo.ray_type.label
         rays_size = size
         stats: dict[str, float] = {"rays": float(rs.n)}
-        cam = self._camera(pinfo, rs, rays_size) if rs.n else None
-        point = self._centre(pinfo, rs) if rs.n and cam is None else None
-        if cam is not None:
-            self._trace_camera(cam, rs, hs, tests if count else None, rays_size, stats, label)
+        cam = self._camera(pinfo, rs, rays_size) if rs.n else False
+        point = self._centre(pinfo, rs) if rs.n and not cam else None
+        if cam:
+            self._trace_camera(rs, hs, tests if count else None, rays_size, stats, label)
         elif point is None:
             self._ensure_grid()
             with prof.cl_phase(f"trace:{label}", q):
@@ -258,7 +258,7 @@ class PgridBackend(GeometryBackend):
             with mapped(self.ctx, tests, (rs.n,), np.int32) as a:
                 stats["tests_per_ray"] = float(a.sum()) / max(rs.active_count(), 1)  # per active ray
                 overlays["triangle_tests"] = self.textures.write("triangle_tests", rays_size, a)
-            if point is not None and cam is None:
+            if point is not None and not cam:
                 chunk_of, tile_rays = self._chunk_maps(rs.n)
                 overlays["light_chunks"] = self.textures.write("light_chunks", rays_size, chunk_of)
                 overlays["tile_rays"] = self.textures.write("tile_rays", rays_size, tile_rays)
@@ -273,52 +273,56 @@ class PgridBackend(GeometryBackend):
         lo, hi = self._box
         return bool(np.any(centre < lo) or np.any(centre > hi))
 
-    def _camera(self, pinfo: PassInfo, rs, size: tuple[int, int]):
-        """The pinhole camera of a primary pass when its rays form one (else None)."""
-        if pinfo.ray_type != RayType.PRIMARY or self.params.primary != "image" or rs.n != size[0] * size[1]:
-            return None
-        return fit_camera(*corner_rays(rs.origin, rs.dir, size, self.ctx), size)
+    def _camera(self, pinfo: PassInfo, rs, size: tuple[int, int]) -> bool:
+        """Whether a primary pass goes through the camera grid: its rays fill an image (the camera
+        itself is fitted on the device from the corner rays; when none fits, every ray takes the
+        uniform grid)."""
+        return pinfo.ray_type == RayType.PRIMARY and self.params.primary == "image" and rs.n == size[0] * size[1]
 
     def _backface(self, eye: np.ndarray) -> bool:
-        """Back-face culling for primary rays: exact only when every surface closes a volume it
+        """Back-face culling for rays from `eye`: exact only when every surface closes a volume it
         faces out of and the eye is outside them (checked: outside the scene box)."""
         mode = self.params.backface
         if mode != "auto":
             return mode == "on"
+        lo, hi = self._box
+        return self._is_closed() and bool(np.any(eye < lo) or np.any(eye > hi))
+
+    def _is_closed(self) -> bool:
+        """The scene closes volumes it faces out of (trimesh; cached per geometry)."""
         key = self._geometry_key()
         if self._closed is None or self._closed[0] != key:
             self._closed = (key, closed_outward(np.asarray(self.bc.scene.triangles, np.float32).reshape(-1, 3, 3)))
-        lo, hi = self._box
-        return self._closed[1] and bool(np.any(eye < lo) or np.any(eye > hi))
+        return self._closed[1]
 
-    def _trace_camera(self, cam, rs, hs, tests, size: tuple[int, int], stats: dict[str, float], label: str) -> None:
-        """Primary rays through the camera perspective grid; rays it cannot take through the uniform grid."""
+    def _trace_camera(self, rs, hs, tests, size: tuple[int, int], stats: dict[str, float], label: str) -> None:
+        """Primary rays through the camera perspective grid (camera fitted on the device, pair
+        buffers sized from the last pass: no wait after the first); rays it cannot take through the
+        uniform grid."""
         prof, q, cg = self.bc.profiler, self.ctx.queue, self.camgrid
-        spec = CameraGridSpec(k=self.params.k, slabs=self.params.slabs, backface=self._backface(cam.eye))
+        mode = self.params.backface
+        closed = mode == "on" or (mode == "auto" and self._is_closed())
+        box = self._box if mode == "auto" else (np.full(3, np.inf), np.full(3, -np.inf))  # on: always outside
+        spec = CameraGridSpec(k=self.params.k, slabs=self.params.slabs)
         with prof.cl_phase(f"pgrid:build:{label}", q):
-            st = cg.build(self._tris, self._n_tris, cam, spec)
+            st = cg.build_for_rays(self._tris, self._n_tris, rs.origin, rs.dir, size, spec, closed, box)
         with prof.cl_phase(f"pgrid:rearrange:{label}", q):
-            if not st.overflow:  # the outside rays' list and count stay on the device (no wait)
-                cg.classify_device(rs.origin, rs.dir, rs.n)
+            cg.classify_device(rs.origin, rs.dir, rs.n)  # the outside rays' list and count stay on the device
         self._ensure_grid()  # once per geometry: the outside rays (a count only the device knows)
         with prof.cl_phase(f"trace:{label}", q):
-            if st.overflow:  # too many pairs for one sort: the uniform grid takes every ray
-                self.tracer.enqueue(rs.origin, rs.dir, hs.t, hs.tri, rs.n, False, tests)
-            else:
-                w, h = size
-                gsize = (-(-w // CAMERA_N) * CAMERA_N, -(-h // CAMERA_N) * CAMERA_N)
-                dummy = tests if tests is not None else hs.t
-                self._camera_kernels[tests is not None](q, gsize, (CAMERA_N, CAMERA_N), cg.header, cg.cells, cg.refs,
-                                                        cg.keys, self._tris, rs.origin, rs.dir, cg.outside, hs.t,
-                                                        hs.tri, dummy, cg.bounds, cg.rect)
-                self.tracer.enqueue(rs.origin, rs.dir, hs.t, hs.tri, rs.n, False, tests, index=cg.outside_index,
-                                    n_device=cg.outside_count)
-                # statistics only: the count is read without a wait and reported by the next frame
-                prev, self._cam_outside = self._cam_outside, np.zeros(1, np.uint32)
-                clio.copy(q, self._cam_outside, cg.outside_count, is_blocking=False)
-                st.outside = int(prev[0]) if prev is not None else 0
+            w, h = size
+            gsize = (-(-w // CAMERA_N) * CAMERA_N, -(-h // CAMERA_N) * CAMERA_N)
+            dummy = tests if tests is not None else hs.t
+            self._camera_kernels[tests is not None](q, gsize, (CAMERA_N, CAMERA_N), cg.header, cg.cells, cg.refs,
+                                                    cg.keys, self._tris, rs.origin, rs.dir, cg.outside, hs.t,
+                                                    hs.tri, dummy, cg.bounds, cg.rect)
+            self.tracer.enqueue(rs.origin, rs.dir, hs.t, hs.tri, rs.n, False, tests, index=cg.outside_index,
+                                n_device=cg.outside_count)
+            # statistics only: the count is read without a wait and reported by the next frame
+            prev, self._cam_outside = self._cam_outside, np.zeros(1, np.uint32)
+            clio.copy(q, self._cam_outside, cg.outside_count, is_blocking=False)
+            st.outside = int(prev[0]) if prev is not None else 0
         d = st.as_dict()
-        d["backface"] = float(spec.backface)
         stats.update(d)
         stats.update({f"{k}_{label}": v for k, v in d.items()})
 

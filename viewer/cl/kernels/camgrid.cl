@@ -5,8 +5,8 @@
 // direction of the ray through pixel point (x, y) is M (x, y, 1)), screen (width, height, margin in
 // pixels, 0), norms (|rows of M^-1|: what a world offset moves q by; 0), tiles (pixels per tile side
 // T, tiles in x, tiles in y, slabs S), cells (tiles * (slabs + 1), image width, image height, flags:
-// bit 0 back-face culling). Ray i is the ray of pixel (i % width, i / width), through pixel point
-// (x + 0.5, y + 0.5). A point P maps to q = M^-1 (P - eye): pixel (q.x / q.z, q.y / q.z),
+// bit 0 back-face culling, bit 1 CG_VALID: a camera fits the rays, else no grid this pass). Ray i
+// is the ray of pixel (i % width, i / width), through pixel point (x + 0.5, y + 0.5). A point P maps to q = M^-1 (P - eye): pixel (q.x / q.z, q.y / q.z),
 // depth q.z (proportional to the distance along the viewing axis). Slab bounds: double (S + 1,),
 // slab s holds depths in [bounds[s], bounds[s + 1]); slab 0 also holds everything nearer, the last
 // everything farther; placed per frame at quantiles of the visible triangles' nearest depths
@@ -31,6 +31,8 @@ typedef struct {
     int4 tiles;
     int4 cells;
 } CGrid;
+
+#define CG_VALID 2
 
 // slab bounds' element type (double; without fp64 nothing is binned and the bounds are unused)
 #ifdef RT_HAVE_FP64
