@@ -8,11 +8,15 @@
 // the depth test's comparison itself against bestBits (the same key: depth(entry) <= depth(best t))
 // and counts into its query's slot of chcPassed. bestBits may be stale by the writes of draws still
 // in flight; it only ever decreases within a pass, so a stale value can only make a query pass more
-// (conservative: more work, never a missed hit).
+// (conservative: more work, never a missed hit). A passing fragment also widens its query's
+// bounds (min x, min y, max x, max y of the passing pixels, from slot boundsBase + 4 * query): a
+// descendant pair queries boxes inside this query's boxes, so only pixels that passed here can pass
+// there (chcrt.py draws the children's queries over these bounds only).
 #include "chc_common.glsl"
 uniform int countOverdraw;
 #ifdef CHC_BATCHED
 layout(std430, binding = BIND_CHC_QUERY_COUNTS) buffer ChcQueryCounts { uint chcPassed[]; };
+uniform int boundsBase;
 #endif
 void main() {
     ivec2 px = ivec2(gl_FragCoord.xy);
@@ -35,7 +39,14 @@ void main() {
     workFlush(4);
     if (!any) discard;
 #ifdef CHC_BATCHED
-    if (chcDepth(entry) <= chcDepth(intBitsToFloat(best))) atomicAdd(chcPassed[vQuery], 1u);
+    if (chcDepth(entry) <= chcDepth(intBitsToFloat(best))) {
+        atomicAdd(chcPassed[vQuery], 1u);
+        int b = boundsBase + 4 * vQuery;
+        atomicMin(chcPassed[b], uint(px.x));
+        atomicMin(chcPassed[b + 1], uint(px.y));
+        atomicMax(chcPassed[b + 2], uint(px.x));
+        atomicMax(chcPassed[b + 3], uint(px.y));
+    }
 #else
     gl_FragDepth = chcDepth(entry);
 #endif
