@@ -22,7 +22,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from tests.conftest import backend_params
+from tests.conftest import backend_params, reference_float64
 from viewer.reference import f32_ulp, point_triangle_distance, ray_edge_distance, trace_float64
 
 F32 = np.float32
@@ -186,7 +186,7 @@ def test_needle_and_sliver_distances(backend, angle):
     d = f32(d * rng.uniform(0.5, 2.0, (n, 1)))
     zeros, inf = np.zeros(n, F32), np.full(n, np.inf, F32)
     t, tri = trace(backend, tris, o, d, zeros, inf)
-    rt, rtri = trace_float64(tris, o, d, zeros, inf)
+    rt, rtri = reference_float64(tris, o, d, zeros, inf)
     if angle == "steep":
         assert (rtri == np.arange(n)).all()  # the reference agrees with the construction
     same = assert_agrees(tris, o, d, t, tri, rt, rtri)
@@ -210,7 +210,7 @@ def test_rays_leaving_a_needle_do_not_hit_it(backend, any_hit):
     o, d = f32(start), f32(d)
     zeros, inf = np.zeros(n, F32), np.full(n, np.inf, F32)
     t, tri = trace(backend, tris, o, d, zeros, inf, any_hit)
-    rt, rtri = trace_float64(tris, o, d, zeros, inf)
+    rt, rtri = reference_float64(tris, o, d, zeros, inf)
     assert (rtri != own).all()
     assert (tri != own).all(), f"{int((tri == own).sum())} of {n} rays leaving a needle hit it"
     if not any_hit:
@@ -221,7 +221,7 @@ def test_rays_leaving_a_needle_do_not_hit_it(backend, any_hit):
     # reversed: towards the triangle; those the reference sees hitting it (the others pass beside the
     # needle) must hit it, at the reference's t
     t, tri = trace(backend, tris, o, -d, zeros, inf, any_hit)
-    rt, rtri = trace_float64(tris, o, -d, zeros, inf)
+    rt, rtri = reference_float64(tris, o, -d, zeros, inf)
     must = rtri == own
     assert must.sum() > n // 20
     assert (tri[must] >= 0).all()
