@@ -62,8 +62,8 @@ def test_long_traversal_no_lost_hit(backend):
     """512 rays aimed at the centre of a closed disk of 62,832 needles: every one must hit the disk,
     at the plane distance, on a triangle that contains the hit point. Before the fix glsl lost 258 and
     chcrt 269 of 4,096 such rays (the traversal loop was cut short by llvmpipe and returned a miss):
-    about 32 of these 512 would be lost (the loss is per ray: every
-    ray's traversal visits all 62,832 triangles, so more rays only cost time)."""
+    about 32 of these 512 would be lost (the loss is per ray: every ray's traversal visits all 62,832
+    triangles, so more rays only cost time)."""
     rng = np.random.default_rng(14)
     tris = closed_disk(62_832)
     n = 512
