@@ -30,6 +30,33 @@ def prepared_scene(spec: str, size: int | None = None):
     return _prepared[key]
 
 
+_references: dict = {}
+
+
+def reference_float64(triangles, origins, directions, tmin, tmax, any_hit: bool = False):
+    """viewer.reference.trace_float64, memoised on its inputs (bytes, dtypes, shapes): the float64
+    reference of one ray set is the same for every backend a parametrized test traces it with, so it
+    is computed once (the needle tests of test_exactness spent ~0.7 s per backend on it)."""
+    import hashlib
+
+    import numpy as np
+
+    from viewer.reference import trace_float64
+
+    h = hashlib.sha1(str(any_hit).encode())
+    for a in (triangles, origins, directions, tmin, tmax):
+        a = np.asarray(a)
+        h.update(f"{a.dtype.str}{a.shape}".encode())
+        h.update(np.ascontiguousarray(a).tobytes())
+    key = h.hexdigest()
+    if key not in _references:
+        if len(_references) >= 64:
+            _references.clear()
+        _references[key] = trace_float64(triangles, origins, directions, tmin, tmax, any_hit=any_hit)
+    t, tri = _references[key]
+    return t.copy(), tri.copy()
+
+
 def shared_scene(rel: str) -> str:
     path = SHARED_SCENES / rel
     if not path.exists():

@@ -475,10 +475,10 @@ def trace_centred(tris, o, d, tmin, tmax, ray_type, light=None, params: str | No
 
 
 def _judge(tris, o, d, tmin, tmax, t, tri, any_hit):
+    from tests.conftest import reference_float64
     from tests.test_hard_cases import Outcome, check_contract
-    from viewer.reference import trace_float64
 
-    rt, rtri = trace_float64(tris, o, d, tmin, tmax)
+    rt, rtri = reference_float64(tris, o, d, tmin, tmax)  # the same rays for each set of pgrid parameters
     out = Outcome(tris, o, d, tmin, tmax, t, tri, rt, rtri, any_hit)
     check_contract(out)
     return out

@@ -31,7 +31,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from tests.conftest import backend_params, checked_backend
+from tests.conftest import backend_params, checked_backend, reference_float64
 from viewer.reference import (
     compare_hits,
     f32_ulp,
@@ -109,7 +109,7 @@ def run_case(backend, tris, o, d, tmin=0.0, tmax=INF, any_hit=False) -> Outcome:
     t, tri = trace_rays(tris, o, d, tmin, tmax, any_hit=any_hit, backend=backend)
     t = np.asarray(t)
     tri = np.asarray(tri)
-    rt, rtri = trace_float64(tris, o, d, tmin, tmax)
+    rt, rtri = reference_float64(tris, o, d, tmin, tmax)
     out = Outcome(tris, o, d, tmin, tmax, t, tri, rt, rtri, any_hit)
     check_contract(out)
     return out

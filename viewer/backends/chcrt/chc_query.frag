@@ -8,11 +8,16 @@
 // the depth test's comparison itself against bestBits (the same key: depth(entry) <= depth(best t))
 // and counts into its query's slot of chcPassed. bestBits may be stale by the writes of draws still
 // in flight; it only ever decreases within a pass, so a stale value can only make a query pass more
-// (conservative: more work, never a missed hit).
+// (conservative: more work, never a missed hit). A passing fragment also widens its query's
+// bounds per box (min x, min y, max x, max y of the pixels whose ray enters the box before its
+// nearest hit; 8 slots per query from boundsBase: the first box, then all others): a descendant
+// pair queries boxes inside one of this query's boxes, so only pixels that passed that box here can
+// pass there (chcrt.py draws the children's queries over these bounds only).
 #include "chc_common.glsl"
 uniform int countOverdraw;
 #ifdef CHC_BATCHED
 layout(std430, binding = BIND_CHC_QUERY_COUNTS) buffer ChcQueryCounts { uint chcPassed[]; };
+uniform int boundsBase;
 #endif
 void main() {
     ivec2 px = ivec2(gl_FragCoord.xy);
@@ -24,18 +29,37 @@ void main() {
     RayPre r = prepareRay(ot.xyz, dt.xyz);
     float entry = uintBitsToFloat(0x7f800000u);
     bool any = false;
+#ifdef CHC_BATCHED
+    float bestDepth = chcDepth(intBitsToFloat(best));
+    uint passedBoxes = 0u;  // bit 0: the first box, bit 1: any other
+#endif
     for (int i = 0; i < ITEM_COUNT; ++i) {
         ChcItem it = items[ITEM_BASE + i];
         float te;
         if (intersectBox(r, it.bmin, it.bmax, ot.w, dt.w, te)) {
             entry = min(entry, te);
             any = true;
+#ifdef CHC_BATCHED
+            if (chcDepth(te) <= bestDepth) passedBoxes |= (i == 0) ? 1u : 2u;
+#endif
         }
     }
     workFlush(4);
     if (!any) discard;
 #ifdef CHC_BATCHED
-    if (chcDepth(entry) <= chcDepth(intBitsToFloat(best))) atomicAdd(chcPassed[vQuery], 1u);
+    // the depth test's pass condition (depth of the nearest entry <= depth of the best hit) holds
+    // exactly when some box passes (chcDepth is monotone)
+    if (passedBoxes != 0u) {
+        atomicAdd(chcPassed[vQuery], 1u);
+        for (int k = 0; k < 2; ++k) {
+            if ((passedBoxes & (1u << k)) == 0u) continue;
+            int b = boundsBase + 8 * vQuery + 4 * k;
+            atomicMin(chcPassed[b], uint(px.x));
+            atomicMin(chcPassed[b + 1], uint(px.y));
+            atomicMax(chcPassed[b + 2], uint(px.x));
+            atomicMax(chcPassed[b + 3], uint(px.y));
+        }
+    }
 #else
     gl_FragDepth = chcDepth(entry);
 #endif
