@@ -56,7 +56,15 @@ from viewer.backends.base import BackendContext, TraceResult
 from viewer.backends.cl_geometry import GeometryBackend
 from viewer.backends.interface import BackendInfo, OverlaySpec, param
 from viewer.backends.ugrid import top_density
-from viewer.backends.voxelwalk.engine import EC_INLINE_MAX, EC_SORTS, SKIPS, PassStats, VoxelWalker, tile_divergence
+from viewer.backends.voxelwalk.engine import (
+    EC_INLINE_MAX,
+    EC_SORTS,
+    EC_TAIL,
+    SKIPS,
+    PassStats,
+    VoxelWalker,
+    tile_divergence,
+)
 from viewer.effects import RayType
 from viewer.errors import RtwalkError
 from viewer.rays import HitBuffer, PassInfo, RayBatch
@@ -89,6 +97,8 @@ class VoxelwalkParams:
     inline: int = param(EC_INLINE_MAX, "EC (sort=tile): units (cells, sub-cells, big lists) of at most this many "
                         "triangles are tested in the walk instead of sorted (a one-block unit costs more to sort "
                         "than to test); 0: every unit sorted")
+    tail: int = param(EC_TAIL, "EC (sort=tile): a partition down to fewer than this many active rays finishes "
+                      "them walking alone (sorting a handful of rays gathers nothing); 0: never")
     skip: str = param("none", "walks that skip empty 8^3 blocks of top cells whole: none, ivw, ec or all (the same "
                       "cells either way; measured slower on the mixed-scale and dragon benches)")
 
@@ -117,6 +127,8 @@ class VoxelwalkParams:
             raise RtwalkError(f"{source}: skip must be none, ivw, ec or all (got '{self.skip}')")
         if not 0 <= self.inline <= 4096:
             raise RtwalkError(f"{source}: inline must be in 0..4096 (got {self.inline})")
+        if not 0 <= self.tail <= 1 << 20:
+            raise RtwalkError(f"{source}: tail must be in 0..1048576 (got {self.tail})")
         if self.levels not in (1, 2):
             raise RtwalkError(f"{source}: levels must be 1 or 2 (got {self.levels})")
 
@@ -148,7 +160,7 @@ class VoxelwalkBackend(GeometryBackend):
             self.grid.release()
             self.grid = TwoLevelGrid(self.ctx)
         self.walker = VoxelWalker(self.ctx, self.grid, self.params.chunk, self.params.cells, self.params.sort,
-                                  self.params.skip, self.params.inline)
+                                  self.params.skip, self.params.inline, self.params.tail)
         self.stages = PassStages(self.ctx)
         self.last_stats: PassStats | None = None
         self._frame_stats: dict[str, float] = {}  # reported by the frame's first pass (the renderer sums passes)

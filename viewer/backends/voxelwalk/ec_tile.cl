@@ -38,6 +38,9 @@
 #ifndef STAGE_MIN
 #define STAGE_MIN 8  // a cell with fewer rays in the partition is not staged: its rays test from global memory
 #endif
+#ifndef TAIL
+#define TAIL 0  // a partition with fewer active rays finishes them walking alone (0: never)
+#endif
 #ifndef INLINE_MAX
 #define INLINE_MAX 0  // units of at most this many triangles are tested in the walk, not sorted (0: none)
 #endif
@@ -143,19 +146,17 @@ inline void ect_sub_at(const SubGrid *s, const RayPre *r, uint sid, float tmax, 
 // (t >= hit_t or t > t_exit): the same tests.
 inline uint ect_sub_next(const SubGrid *s, SubWalk *w, bool here, const RayPre *r, float tmin, float *hit_t,
                          uint *hit_slot, __global const uint2 *scells, __global const float4 *sblocks,
-                         __global const uint *scb, uint ncells, uint *nu) {
+                         __global const uint *scb, uint ncells, uint lim, uint *nu) {
     if (!here && !g2_walk_step(s, w, *hit_t)) return VW_NONE;
     while (true) {
         int sid = g2_cell_id(s, w->cell);
         uint cnt = scells[sid].y;
-        if (cnt > (uint)INLINE_MAX) return ncells + (uint)sid;
-#if INLINE_MAX > 0
+        if (cnt > lim) return ncells + (uint)sid;
         if (cnt > 0u) {
             ect_test(r, sblocks + 10u * scb[sid], cnt, tmin, hit_t, hit_slot);
             ++*nu;
             if (*hit_slot != VW_NONE && (g2real)*hit_t <= g2_cell_exit(w)) return VW_NONE;
         }
-#endif
         if (!g2_walk_step(s, w, *hit_t)) return VW_NONE;
     }
 }
@@ -171,7 +172,8 @@ inline uint ect_sub_next(const SubGrid *s, SubWalk *w, bool here, const RayPre *
 __attribute__((always_inline)) inline uint ect_find_ai(const Grid *g, __global const uint2 *cells, __global const float4 *blocks,
                      __global const uint *cell_blocks, __global const uchar *occ_fine,
                      __global const uchar *occ_coarse ECT_G2, const RayPre *r, GridWalk *w, float tmin,
-                     float *hit_t, uint *hit_slot, uint ncells, uint *topc, uint *nv, uint *first, uint *nu) {
+                     float *hit_t, uint *hit_slot, uint ncells, uint *topc, uint *nv, uint *first, uint lim,
+                     uint *nu) {
     uint2 cr;
     while (VW_NEXT(g, cells, occ_fine, occ_coarse, r, w, *hit_t, &cr)) {
         int c = grid_cell_id(g, w->cell);
@@ -182,19 +184,19 @@ __attribute__((always_inline)) inline uint ect_find_ai(const Grid *g, __global c
         if (si >= 0) {
             SubGrid sg = subs[si];
             if (sg.big.y > 0u) {
-                if (sg.big.y > (uint)INLINE_MAX) return ncells + nsubc + (uint)si;
+                if (sg.big.y > lim) return ncells + nsubc + (uint)si;
                 ect_test(r, bblocks + 10u * sg.big.x, sg.big.y, tmin, hit_t, hit_slot);
                 ++*nu;
             }
             SubWalk sw;
             if (g2_walk_begin(&sg, r, tmin, *hit_t, &sw)) {
-                uint u = ect_sub_next(&sg, &sw, true, r, tmin, hit_t, hit_slot, scells, sblocks, scb, ncells, nu);
+                uint u = ect_sub_next(&sg, &sw, true, r, tmin, hit_t, hit_slot, scells, sblocks, scb, ncells, lim, nu);
                 if (u != VW_NONE) return u;
             }
         } else
 #endif
         {
-            if (cr.y > (uint)INLINE_MAX) return (uint)c;
+            if (cr.y > lim) return (uint)c;
             ect_test(r, blocks + 10u * cell_blocks[c], cr.y, tmin, hit_t, hit_slot);
             ++*nu;
         }
@@ -210,9 +212,9 @@ __attribute__((noinline)) uint ect_find(const Grid *g, __global const uint2 *cel
                                         __global const uint *cell_blocks, __global const uchar *occ_fine,
                                         __global const uchar *occ_coarse ECT_G2, const RayPre *r, GridWalk *w,
                                         float tmin, float *hit_t, uint *hit_slot, uint ncells, uint *topc, uint *nv,
-                                        uint *first, uint *nu) {
+                                        uint *first, uint lim, uint *nu) {
     return ect_find_ai(g, cells, blocks, cell_blocks, occ_fine, occ_coarse ECT_G2_ARGS, r, w, tmin, hit_t, hit_slot,
-                       ncells, topc, nv, first, nu);
+                       ncells, topc, nv, first, lim, nu);
 }
 
 // The ray's next unit to sort after the tests of unit u in top cell c (VW_NONE: it is done), as
@@ -223,7 +225,7 @@ __attribute__((noinline)) uint ect_find(const Grid *g, __global const uint2 *cel
 inline uint ect_next(const Grid *g, __global const uint2 *cells, __global const float4 *blocks,
                      __global const uint *cell_blocks, __global const uchar *occ_fine,
                      __global const uchar *occ_coarse ECT_G2, const RayPre *r, uint u, uint *c, float tmin,
-                     float *hit_t, uint *hit_slot, uint ncells, uint *nv, uint *nu) {
+                     float *hit_t, uint *hit_slot, uint ncells, uint *nv, uint lim, uint *nu) {
 #ifdef TWO_LEVEL
     if (u >= ncells) {
         SubGrid sg = subs[sub_of[*c]];
@@ -231,11 +233,11 @@ inline uint ect_next(const Grid *g, __global const uint2 *cells, __global const 
         uint v = VW_NONE;
         if (u - ncells >= nsubc) {  // the big list: the sub-walk begins
             if (g2_walk_begin(&sg, r, tmin, *hit_t, &sw))
-                v = ect_sub_next(&sg, &sw, true, r, tmin, hit_t, hit_slot, scells, sblocks, scb, ncells, nu);
+                v = ect_sub_next(&sg, &sw, true, r, tmin, hit_t, hit_slot, scells, sblocks, scb, ncells, lim, nu);
         } else {
             ect_sub_at(&sg, r, u - ncells, *hit_t, &sw);
             if (!(*hit_slot != VW_NONE && (g2real)*hit_t <= g2_cell_exit(&sw)))
-                v = ect_sub_next(&sg, &sw, false, r, tmin, hit_t, hit_slot, scells, sblocks, scb, ncells, nu);
+                v = ect_sub_next(&sg, &sw, false, r, tmin, hit_t, hit_slot, scells, sblocks, scb, ncells, lim, nu);
         }
         if (v != VW_NONE) return v;
     }
@@ -246,7 +248,7 @@ inline uint ect_next(const Grid *g, __global const uint2 *cells, __global const 
     if (!grid_walk_step(g, r, &w, *hit_t)) return VW_NONE;
     uint first;
     return ect_find(g, cells, blocks, cell_blocks, occ_fine, occ_coarse ECT_G2_ARGS, r, &w, tmin, hit_t, hit_slot,
-                    ncells, c, nv, &first, nu);
+                    ncells, c, nv, &first, lim, nu);
 }
 
 // Resolve of ray j (list position k) after the tests of its unit: done when its walk ends (the hit
@@ -260,10 +262,10 @@ inline void ect_resolve(const Grid *g, __global const uint2 *cells, __global con
                         __local uint *top, __local uint *nit, __local float *hit, __local uint *slot,
                         __local uint *bucket, __local uint *rank, __local volatile uint *hkey,
                         __local volatile uint *hcnt, __global float *out_t, __global int *out_id,
-                        __global int *iters_out, uint *nu) {
+                        __global int *iters_out, uint lim, uint *nu) {
     uint c = top[j], nv = nit[j];
     uint u = ect_next(g, cells, blocks, cell_blocks, occ_fine, occ_coarse ECT_G2_ARGS, r, cur[j], &c, tmin, &hit_t,
-                      &hit_slot, ncells, &nv, nu);
+                      &hit_slot, ncells, &nv, lim, nu);
     bool got = hit_slot != VW_NONE;
     if (u == VW_NONE) {
         out_t[i] = got ? hit_t : INFINITY;
@@ -404,6 +406,10 @@ void ec_tile(__global const Grid *grid, __global const uint2 *cells, __global co
         // global memory (consecutive work-items share a cell; staging would cost more than the
         // tests it feeds)
         const uint hsize = ect_size(m);
+        // a partition down to fewer than TAIL active rays finishes them walking alone (every unit
+        // tested in the walk): a handful of rays sorted by unit gathers no coherence to pay for
+        // an iteration
+        const uint lim = m < (uint)TAIL ? 0xffffffffu : (uint)INLINE_MAX;
         for (uint k = mb + lid; k < m; k += WG) {
             uint j = srt[k], i = ray[j];
             float4 ot = ray_o[i], dt = ray_d[i];
@@ -414,7 +420,7 @@ void ec_tile(__global const Grid *grid, __global const uint2 *cells, __global co
             ect_test(&r, blk, nt, ot.w, &hit_t, &hit_slot);
             ect_resolve(&g, cells, blocks, cell_blocks, occ_fine, occ_coarse ECT_G2_ARGS, &r, ot.w, ncells, i, j, k,
                         hit_t, hit_slot, hsize, cur, top, nit, hit, slot, bucket, rank, hkey, hcnt, out_t, out_id,
-                        iters_out, &t_inl);
+                        iters_out, lim, &t_inl);
         }
         // process, cells with many rays: one chunk (at most WG rays of one cell) at a time, the
         // cell's blocks staged in local memory (the thesis's chunk)
@@ -463,7 +469,7 @@ void ec_tile(__global const Grid *grid, __global const uint2 *cells, __global co
             RayPre r = rt_prepare_ray(ot.xyz, dt.xyz);
             ect_resolve(&g, cells, blocks, cell_blocks, occ_fine, occ_coarse ECT_G2_ARGS, &r, ot.w, ncells, i, j, k,
                         hit[j], slot[j], hsize, cur, top, nit, hit, slot, bucket, rank, hkey, hcnt, out_t, out_id,
-                        iters_out, &t_inl);
+                        iters_out, lim, &t_inl);
         }
         if (lid == 0) sh[2] = m;
         __local uint *tmp = lst;
@@ -507,7 +513,7 @@ inline void ect_first(__global const Grid *grid, __global const uint2 *cells, __
         float t_enter;
         if (grid_walk_begin(&g, &r, ot.w, dt.w, &w, &t_enter)) {
             c = ect_find_ai(&g, cells, blocks, cell_blocks, occ_fine, occ_coarse ECT_G2_ARGS, &r, &w, ot.w, &ht, &hs,
-                            ncells, &tc, &nv, &first, &nu);
+                            ncells, &tc, &nv, &first, INLINE_MAX, &nu);
             atomic_inc(&acc[0]);
             if (nu) atomic_add(&acc[1], nu);
         }
@@ -521,26 +527,26 @@ inline void ect_first(__global const Grid *grid, __global const uint2 *cells, __
     first_out[i] = first;
 }
 
-// Each ray's walk up to its first unit to sort (one work-item per ray, in the screen-tile order
-// perm), testing the small units on the way (ect_find): flags[j] = 1 for ray perm[j] when it
-// reaches one (its state for ec_tile: unit_out, top_out, the nearest hit so far in out_t/out_id,
+// Each ray's walk up to its first unit to sort (one work-item per ray i, in the rays' own order, as
+// IVW walks them), testing the small units on the way (ect_find): flags[pos[i]] = 1 (its position
+// in the screen-tile order, for the compaction) when it reaches one (its state for ec_tile: unit_out, top_out, the nearest hit so far in out_t/out_id,
 // the top cells entered in iters_out); the others (no grid box, an empty walk, or one that ended
 // on units tested on the way) write their result now and take no part in the sort.
 __kernel void ec_tile_first(__global const Grid *grid, __global const uint2 *cells, __global const float4 *blocks,
                             __global const uint *cell_blocks ECT_G2, __global const float4 *ray_o,
-                            __global const float4 *ray_d, __global const uint *perm, const uint n,
+                            __global const float4 *ray_d, __global const uint *pos, const uint n,
                             __global uint *flags, __global uint *unit_out, __global uint *top_out,
                             __global float *out_t, __global int *out_id, __global int *iters_out,
                             __global uint *first_out, __global volatile uint *first_acc,
                             __global const uchar *occ_fine, __global const uchar *occ_coarse) {
     __local volatile uint acc[2];  // the work-group's rays walked and units tested
-    const uint j = get_global_id(0), lid = get_local_id(0);
+    const uint i = get_global_id(0), lid = get_local_id(0);
     if (lid == 0) {
         acc[0] = 0u;
         acc[1] = 0u;
     }
     barrier(CLK_LOCAL_MEM_FENCE);
-    if (j < n) ect_first(grid, cells, blocks, cell_blocks ECT_G2_ARGS, ray_o, ray_d, perm[j], j, flags, unit_out,
+    if (i < n) ect_first(grid, cells, blocks, cell_blocks ECT_G2_ARGS, ray_o, ray_d, i, pos[i], flags, unit_out,
                          top_out, out_t, out_id, iters_out, first_out, occ_fine, occ_coarse, acc);
     barrier(CLK_LOCAL_MEM_FENCE);
     if (lid == 0 && (acc[0] | acc[1])) {

@@ -38,6 +38,7 @@ EC_GROUPS_PER_CU = 64  # persistent ec_process work-groups per compute unit (eac
 EC_SORTS = ("tile", "global")
 SKIPS = ("none", "ivw", "ec", "all")
 EC_STAGE_MIN = 8  # ec_tile: cells with at least this many of a partition's rays get their triangles staged
+EC_TAIL = 0  # ec_tile: a partition down to fewer active rays finishes them walking alone (0: never; see the docs)
 EC_INLINE_MAX = 4  # ec_tile: units of at most this many triangles (one SoA block) are tested in the walk, not sorted
 TILE_TOTALS = 6  # ec_tile.cl ECT_TOTALS: per work-group iterations, units, chunks, rays, units and rays sorted
 TILE_BYTES_PER_RAY = 76  # ec_tile.cl's local arrays per partition ray (24 ray state + 16 lists + 24 table + 12 chunks)
@@ -114,7 +115,7 @@ class VoxelWalker:
     """IVW and EC kernels over a UniformGrid and its triangles (device buffers)."""
 
     def __init__(self, ctx: Any, grid: UniformGrid, chunk: int = 64, window: int = 1, ec_sort: str = "tile",
-                 skip: str = "none", inline: int = EC_INLINE_MAX):
+                 skip: str = "none", inline: int = EC_INLINE_MAX, tail: int = EC_TAIL):
         """`skip`: which walks skip empty 8^3 blocks of top cells whole (walk.cl VW_SKIP): none, ivw,
         ec or all (the same cells are visited either way). `inline`: the one-launch EC tests units
         of at most this many triangles in the walk instead of sorting them (0: every unit sorted)."""
@@ -139,9 +140,10 @@ class VoxelWalker:
         ivw = build(HERE / "ivw.cl", {"WG": WG_IVW, **shifts, **ivw_skip, **two}, ctx)
         ec = build(HERE / "ec.cl", {"WG": self.chunk}, ctx)
         self.partition = tile_partition(int(ctx.device.local_mem_size), self.chunk)
-        self.inline = int(inline)
+        self.inline, self.tail = int(inline), int(tail)
         ect = build(HERE / "ec_tile.cl", {"WG": self.chunk, "P": self.partition, "STAGE_MIN": EC_STAGE_MIN,
-                                          "INLINE_MAX": self.inline, **shifts, **ec_skip, **two}, ctx)
+                                          "INLINE_MAX": self.inline, "TAIL": self.tail, **shifts, **ec_skip, **two},
+                    ctx)
         self.k = {"ivw": clio.kernel(ivw, "ivw_trace"), "macro": clio.kernel(ivw, "vw_macro_build")}
         self._macro_of: Any = None  # the GridStats whose macro cells are built
         for name in ("ec_init", "ec_count", "ec_write", "ec_process", "ec_resolve", "ec_finish"):
@@ -237,15 +239,20 @@ class VoxelWalker:
             return self._trace_ec_tile(ray_o, ray_d, out_t, out_id, n, stats, size)
         return self._trace_ec_global(tris, ray_o, ray_d, out_t, out_id, n, stats, size)
 
-    def _perm(self, size: tuple[int, int] | None, n: int) -> Any:
-        """The rays' screen-tile order on the device (uploaded once per size)."""
+    def _perm(self, size: tuple[int, int] | None, n: int) -> tuple[Any, Any]:
+        """The rays' screen-tile order on the device and its inverse (each ray's position in it),
+        uploaded once per size: ec_tile_first walks the rays in their own order (IVW's: a
+        work-group's rays are neighbours in memory; in tile order the dragon's walks measured
+        1.24x slower) and puts each flag at the ray's tile-order position for the compaction."""
         key = (tuple(size) if size is not None else None, n, self.partition)
         if self._perm_key != key:
             order = tile_order(size, n, self.partition) if size is not None else np.arange(n, dtype=np.uint32)
-            buf = self._buf("perm", 4 * n)
-            clio.copy(self.ctx.queue, buf, order, is_blocking=False)
-            self._perm_host, self._perm_key = order, key  # kept alive for the asynchronous write
-        return self._bufs["perm"]
+            inv = np.empty(n, np.uint32)
+            inv[order] = np.arange(n, dtype=np.uint32)
+            clio.copy(self.ctx.queue, self._buf("perm", 4 * n), order, is_blocking=False)
+            clio.copy(self.ctx.queue, self._buf("perm_inv", 4 * n), inv, is_blocking=False)
+            self._perm_host, self._perm_key = (order, inv), key  # kept alive for the asynchronous writes
+        return self._bufs["perm"], self._bufs["perm_inv"]
 
     def _first_acc(self) -> Any:
         """ec_tile_first's totals (rays walked, units tested), zero between passes: ec_tile's first
@@ -283,14 +290,14 @@ class VoxelWalker:
         iters, first = self._buf("iters", 4 * n), self._buf("first", 4 * n)
         flags, act = self._buf("flags", 4 * n), self._buf("act", 4 * n)
         cb = self._count_bufs()
-        perm = self._perm(size, n)
+        perm, perm_inv = self._perm(size, n)
         macro = self._macro()
         self._host_n[0] = n
         clio.copy(q, cb["n"], self._host_n, is_blocking=False)
         unit, top = self._buf("unit", 4 * n), self._buf("top", 4 * n)
         acc = self._first_acc()
         sub = (g.sub_of, g.subs, g.scells, g.sblocks, g.scb, g.bblocks, u(g.stats.subcells)) if self.two_level else ()
-        self._run("ec_tile_first", n, g.header, g.cells, g.blocks, g.cell_blocks, *sub, ray_o, ray_d, perm, u(n),
+        self._run("ec_tile_first", n, g.header, g.cells, g.blocks, g.cell_blocks, *sub, ray_o, ray_d, perm_inv, u(n),
                   flags, unit, top, out_t, out_id, iters, first, acc, *macro)
         self.prims.compact_dev(cb["n"], n, cb["m0"], flags=flags, src=perm, dst=act)
         groups = -(-n // self.partition)
