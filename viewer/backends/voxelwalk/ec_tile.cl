@@ -1,6 +1,12 @@
 // voxelwalk EC in one launch (Enforced Coherence, Guntury 2011 ch. 5, the iterations run on the
-// device): one work-group per partition of at most P active rays (screen-tile order, compacted)
-// runs every EC iteration of its rays, with only work-group barriers:
+// device). Units (what one iteration of a ray tests, below) of at most INLINE_MAX triangles are
+// not sorted: the walk tests them on its way, in walk order with the nearest hit as the bound, as
+// IVW does (sorting a one-block unit costs more than its test; on bench-grids' mixed scene 96% of
+// the reflection rays' units were ground cells of 2-3 triangles). ec_tile_first walks each ray,
+// one work-item per ray in the rays' own order, to its first unit to sort; rays that finish on
+// the way write their hit there. The others (compacted in screen-tile order) are sorted: one
+// work-group per partition of at most P of them runs every EC iteration of its rays, with only
+// work-group barriers:
 //   walk     each active ray moves to its next non-empty cell (3D-DDA resumed from a cell id,
 //            walk.cl; with TWO_LEVEL its next unit: a top cell, a sub-grid's big list or one of
 //            its non-empty sub-cells, below) and inserts it into a local hash table (atomic
@@ -20,8 +26,9 @@
 // The loop ends on the partition's own active count (local), so the host never looks between
 // iterations and the launch count does not depend on the iteration count. Each ray tests its
 // cells in walk order with its nearest hit as the bound, exactly as IVW does (ivw.cl), so EC and
-// IVW return bit-identical hits. Per-group totals (iterations, ray-cell pairs, chunks, rays) go to
-// `totals` (4 uints per group): the host reads them once per pass.
+// IVW return bit-identical hits. Per-group totals (ECT_TOTALS uints: iterations, units tested,
+// chunks, rays walked, units and rays sorted; group 0 adds ec_tile_first's) go to `totals`: the
+// host reads them once per pass.
 #include "walk.cl"
 // with TWO_LEVEL: grid2.cl's sub-walk and G2_PARAMS / G2_ARGS
 #include "grid2_walk.cl"
