@@ -90,7 +90,7 @@ def test_ec_is_deterministic_across_chunk_sizes(monkeypatch):
     assert (out[0][1][hit] % len(base) == i0[hit] % len(base)).mean() > 0.999
 
 
-def _two_level_walker(tris: np.ndarray, big: float, chunk: int, skip: str):
+def _two_level_walker(tris: np.ndarray, big: float, chunk: int, skip: str, **kw):
     """A two-level grid with sub-grids forced (a 3-cell top grid, every occupied cell a sub-grid;
     with big=0.25 the longer triangles in the cells' big lists) and a walker over it."""
     from viewer.accel.grid import GridSpec, scene_box, triangles_f4
@@ -104,18 +104,22 @@ def _two_level_walker(tris: np.ndarray, big: float, chunk: int, skip: str):
     tb = clio.upload(ctx, triangles_f4(tris), what="test triangles")
     st = grid.build(tb, len(tris), *scene_box(tris), GridSpec(resolution=3))
     assert st.subgrids > 0 and (st.big > 0) == (big < 1.0)
-    return ctx, grid, tb, VoxelWalker(ctx, grid, chunk=chunk, window=1, skip=skip)
+    return ctx, grid, tb, VoxelWalker(ctx, grid, chunk=chunk, window=1, skip=skip, **kw)
 
 
-@pytest.mark.parametrize("big,chunk,skip", [(1e9, 64, "none"), (0.25, 16, "none"), (0.25, 64, "all")])
-def test_ec_walks_the_sub_grids_bit_for_bit_as_ivw(reference, big, chunk, skip):
+@pytest.mark.parametrize("big,chunk,skip,kw", [(1e9, 64, "none", {}), (0.25, 16, "none", {}), (0.25, 64, "all", {}),
+                                               (1e9, 64, "none", {"inline": 0}), (0.25, 64, "none", {"inline": 0}),
+                                               (0.25, 32, "none", {"inline": 16, "tail": 100}),
+                                               (0.25, 64, "none", {"inline": 4096})])
+def test_ec_walks_the_sub_grids_bit_for_bit_as_ivw(reference, big, chunk, skip, kw):
     """The one-launch EC on a two-level grid sorts rays by sub-cell (and big list) and returns IVW's
     hits bit for bit, with IVW's per-ray iterations (non-empty top cells) and first cells; both
-    match Embree."""
+    match Embree. So it does with units of up to `inline` triangles tested in the walk (0: every
+    unit sorted; 4096: none), and with partitions finishing their last rays alone (`tail`)."""
     from viewer.cl import HitStage, RayStage
 
     tris, (o, d, _, _), (t0, i0), _ = reference
-    ctx, grid, tb, walker = _two_level_walker(tris, big, chunk, skip)
+    ctx, grid, tb, walker = _two_level_walker(tris, big, chunk, skip, **kw)
     n = len(o)
     size = (100, n // 100)
     rs, hs = RayStage(size, ctx), HitStage(size, ctx)
@@ -128,6 +132,11 @@ def test_ec_walks_the_sub_grids_bit_for_bit_as_ivw(reference, big, chunk, skip):
     assert np.array_equal(t_ec.view(np.uint32), t_ivw.view(np.uint32)) and np.array_equal(id_ec, id_ivw)
     assert np.array_equal(ec.iters, ivw.iters) and np.array_equal(ec.first_cell, ivw.first_cell)
     assert ec.pairs >= int(ec.iters.sum())  # sub-cells and big lists: more units than top cells
+    assert ec.pairs >= ec.sorted_pairs >= ec.sorted_rays and ec.rays >= ec.sorted_rays
+    if kw.get("inline") == 0:  # every unit sorted, by every ray that walks
+        assert ec.sorted_pairs == ec.pairs and 0 < ec.sorted_rays <= int((ec.iters > 0).sum())
+    if kw.get("inline") == 4096:  # none sorted
+        assert ec.sorted_pairs == 0 == ec.iterations
     hit = i0 >= 0
     assert ((id_ec >= 0) == hit).all()
     np.testing.assert_allclose(t_ec[hit], t0[hit], rtol=1e-5)
@@ -137,7 +146,7 @@ def test_ec_walks_the_sub_grids_bit_for_bit_as_ivw(reference, big, chunk, skip):
 
 @pytest.mark.parametrize("text", ["mode=fast", "chunk=48", "resolution=big", "resolution=0", "cells=-1",
                                   "density=-1", "colour=red", "sort=random", "primary=maybe",
-                                  "skip=some", "levels=3"])
+                                  "skip=some", "levels=3", "inline=-1", "tail=-1"])
 def test_bad_parameters_raise(text):
     from viewer.backends import check_params
 

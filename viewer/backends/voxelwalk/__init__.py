@@ -20,8 +20,10 @@ when the scene's triangles change (or every frame with rebuild=true, as an anima
     `chunk` rays of one cell with the cell's triangles staged in local memory, resolve). On the
     two-level grid the unit of an iteration is a top cell without sub-grid, a sub-grid's big list
     or one of its non-empty sub-cells (in IVW's order), so rays reaching a dense object are sorted
-    by its sub-cells. A fixed 5 launches and one wait per pass whatever the iteration count; hits
-    equal IVW's bit for bit.
+    by its sub-cells. Units of at most `inline` triangles (default 4, one block) are tested in the
+    walk, not sorted (sorting them cost more than their tests: 96% of the mixed scene's reflection
+    units), and each ray first walks alone to its first unit to sort (ec_tile_first). A fixed 5
+    launches and one wait per pass whatever the iteration count; hits equal IVW's bit for bit.
   - sort=global (the thesis's, ec.cl; also whenever cells != 1): each active ray emits its
     (ray, cell) pairs for its next `cells` non-empty cells (count, scan, write), the pairs are
     radix-sorted by cell over all rays, cut into chunks of at most `chunk` rays, compacted, and
@@ -56,7 +58,15 @@ from viewer.backends.base import BackendContext, TraceResult
 from viewer.backends.cl_geometry import GeometryBackend
 from viewer.backends.interface import BackendInfo, OverlaySpec, param
 from viewer.backends.ugrid import top_density
-from viewer.backends.voxelwalk.engine import EC_SORTS, SKIPS, PassStats, VoxelWalker, tile_divergence
+from viewer.backends.voxelwalk.engine import (
+    EC_INLINE_MAX,
+    EC_SORTS,
+    EC_TAIL,
+    SKIPS,
+    PassStats,
+    VoxelWalker,
+    tile_divergence,
+)
 from viewer.effects import RayType
 from viewer.errors import RtwalkError
 from viewer.rays import HitBuffer, PassInfo, RayBatch
@@ -86,6 +96,11 @@ class VoxelwalkParams:
     levels: int = param(2, "2: dense cells' sub-grids too (the two-level grid of viewer.accel.grid2, as ugrid's), "
                         "walked by IVW and the one-launch EC (sort=tile; sort=global walks the top level); "
                         "1: the uniform grid alone")
+    inline: int = param(EC_INLINE_MAX, "EC (sort=tile): units (cells, sub-cells, big lists) of at most this many "
+                        "triangles are tested in the walk instead of sorted (a one-block unit costs more to sort "
+                        "than to test); 0: every unit sorted")
+    tail: int = param(EC_TAIL, "EC (sort=tile): a partition down to fewer than this many active rays finishes "
+                      "them walking alone (sorting a handful of rays gathers nothing); 0: never")
     skip: str = param("none", "walks that skip empty 8^3 blocks of top cells whole: none, ivw, ec or all (the same "
                       "cells either way; measured slower on the mixed-scale and dragon benches)")
 
@@ -112,6 +127,10 @@ class VoxelwalkParams:
             raise RtwalkError(f"{source}: density must be >= 0 (0: automatic; got {self.density})")
         if self.skip not in SKIPS:
             raise RtwalkError(f"{source}: skip must be none, ivw, ec or all (got '{self.skip}')")
+        if not 0 <= self.inline <= 4096:
+            raise RtwalkError(f"{source}: inline must be in 0..4096 (got {self.inline})")
+        if not 0 <= self.tail <= 1 << 20:
+            raise RtwalkError(f"{source}: tail must be in 0..1048576 (got {self.tail})")
         if self.levels not in (1, 2):
             raise RtwalkError(f"{source}: levels must be 1 or 2 (got {self.levels})")
 
@@ -127,7 +146,8 @@ class VoxelwalkBackend(GeometryBackend):
         overlays=(OverlaySpec("tile_divergence", "heat", "tile_divergence",
                               "distinct cells per 8x8 pixel tile (first iteration)"),
                   OverlaySpec("iterations", "heat", "iterations", "iterations (non-empty cells visited) per ray")),
-        counters=("rays", "res_x", "res_y", "res_z", "grid_build_ms", "pairs", "workgroups", "iterations",
+        counters=("rays", "res_x", "res_y", "res_z", "grid_build_ms", "pairs", "sorted_pairs", "workgroups",
+                  "iterations",
                   "iterations_mean_reflections", "rays_per_cell_reflections", "rays_per_cell_max_reflections",
                   "resolved_first_pct_reflections", "tile_divergence_reflections"),
         device="cl")
@@ -142,7 +162,7 @@ class VoxelwalkBackend(GeometryBackend):
             self.grid.release()
             self.grid = TwoLevelGrid(self.ctx)
         self.walker = VoxelWalker(self.ctx, self.grid, self.params.chunk, self.params.cells, self.params.sort,
-                                  self.params.skip)
+                                  self.params.skip, self.params.inline, self.params.tail)
         self.stages = PassStages(self.ctx)
         self.last_stats: PassStats | None = None
         self._frame_stats: dict[str, float] = {}  # reported by the frame's first pass (the renderer sums passes)
@@ -199,7 +219,8 @@ class VoxelwalkBackend(GeometryBackend):
         self._frame_stats = {}
         label = pinfo.ray_type.label
         if ec:
-            stats.update({"pairs": float(ps.pairs), "workgroups": float(ps.workgroups),
+            stats.update({"pairs": float(ps.pairs), "sorted_pairs": float(ps.sorted_pairs),
+                          "sorted_rays": float(ps.sorted_rays), "workgroups": float(ps.workgroups),
                           "iterations": float(ps.iterations), "ec_reorder_ms": ps.reorder_ms,
                           "ec_trace_ms": ps.trace_ms})
         overlays = {}

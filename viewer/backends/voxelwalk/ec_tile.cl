@@ -1,6 +1,12 @@
 // voxelwalk EC in one launch (Enforced Coherence, Guntury 2011 ch. 5, the iterations run on the
-// device): one work-group per partition of at most P active rays (screen-tile order, compacted)
-// runs every EC iteration of its rays, with only work-group barriers:
+// device). Units (what one iteration of a ray tests, below) of at most INLINE_MAX triangles are
+// not sorted: the walk tests them on its way, in walk order with the nearest hit as the bound, as
+// IVW does (sorting a one-block unit costs more than its test; on bench-grids' mixed scene 96% of
+// the reflection rays' units were ground cells of 2-3 triangles). ec_tile_first walks each ray,
+// one work-item per ray in the rays' own order, to its first unit to sort; rays that finish on
+// the way write their hit there. The others (compacted in screen-tile order) are sorted: one
+// work-group per partition of at most P of them runs every EC iteration of its rays, with only
+// work-group barriers:
 //   walk     each active ray moves to its next non-empty cell (3D-DDA resumed from a cell id,
 //            walk.cl; with TWO_LEVEL its next unit: a top cell, a sub-grid's big list or one of
 //            its non-empty sub-cells, below) and inserts it into a local hash table (atomic
@@ -20,8 +26,9 @@
 // The loop ends on the partition's own active count (local), so the host never looks between
 // iterations and the launch count does not depend on the iteration count. Each ray tests its
 // cells in walk order with its nearest hit as the bound, exactly as IVW does (ivw.cl), so EC and
-// IVW return bit-identical hits. Per-group totals (iterations, ray-cell pairs, chunks, rays) go to
-// `totals` (4 uints per group): the host reads them once per pass.
+// IVW return bit-identical hits. Per-group totals (ECT_TOTALS uints: iterations, units tested,
+// chunks, rays walked, units and rays sorted; group 0 adds ec_tile_first's) go to `totals`: the
+// host reads them once per pass.
 #include "walk.cl"
 // with TWO_LEVEL: grid2.cl's sub-walk and G2_PARAMS / G2_ARGS
 #include "grid2_walk.cl"
@@ -34,8 +41,15 @@
 #endif
 #define H (2 * P)  // hash table entries (power of two, load <= 1/2)
 #define SB WG  // triangle blocks staged per round
+#define ECT_TOTALS 6  // per work-group: iterations, units (pairs), chunks, rays walked, units sorted, rays sorted
 #ifndef STAGE_MIN
 #define STAGE_MIN 8  // a cell with fewer rays in the partition is not staged: its rays test from global memory
+#endif
+#ifndef TAIL
+#define TAIL 0  // a partition with fewer active rays finishes them walking alone (0: never)
+#endif
+#ifndef INLINE_MAX
+#define INLINE_MAX 0  // units of at most this many triangles are tested in the walk, not sorted (0: none)
 #endif
 
 // Table entries in use for m rays: a power of two >= 2m (at least WG), so the table's scan shrinks
@@ -93,6 +107,21 @@ inline __global const float4 *ect_unit(uint u, uint ncells, __global const uint2
     return blocks + 10u * cell_blocks[u];
 }
 
+// Tests nt triangles from the SoA blocks at blk (global memory) against r, keeping the nearest
+// hit: the small units' tests in the walk, in IVW's order with IVW's bound.
+__attribute__((always_inline)) inline void ect_test(const RayPre *r, __global const float4 *blk, uint nt, float tmin, float *hit_t,
+                     uint *hit_slot) {
+    for (uint q = 0; q < nt; q += 4, blk += 10) {
+        int4 slots = as_int4(blk[9]);
+        float t;
+        int lane = rt_intersect_triangle4(r, blk, slots >= (int4)(0), tmin, *hit_t, &t);
+        if (lane >= 0) {
+            *hit_t = t;
+            *hit_slot = (uint)(lane == 0 ? slots.x : (lane == 1 ? slots.y : (lane == 2 ? slots.z : slots.w)));
+        }
+    }
+}
+
 #ifdef TWO_LEVEL
 // Sub-walk state of ray r in sub-cell `sid` (global id) of sub-grid s, as g2_walk_begin and its
 // steps left it there: every plane distance is a function of the sub-cell index (g2_next_plane),
@@ -117,92 +146,134 @@ inline void ect_sub_at(const SubGrid *s, const RayPre *r, uint sid, float tmax, 
                          g2_next_plane(w->o.z, w->d.z, cell.z, w->cell.z, w->step.z));
 }
 
-// The next non-empty sub-cell from w's (the current one included when `here`), as a unit;
-// VW_NONE when the sub-walk ends first. IVW's sub-walk also stops at an empty sub-cell holding
-// the hit, but there its next step fails too (t >= hit_t or t > t_exit): the same tests.
-inline uint ect_sub_next(const SubGrid *s, SubWalk *w, bool here, float hit_t, __global const uint2 *scells,
-                         uint ncells) {
-    if (!here && !g2_walk_step(s, w, hit_t)) return VW_NONE;
+// The next sub-cell to sort from w's (the current one included when `here`), as a unit; VW_NONE
+// when the sub-walk ends first. Sub-cells of at most INLINE_MAX triangles are tested on the way
+// (ect_test), and the walk stops after one that holds the hit, as IVW's sub-walk does; IVW's
+// sub-walk also stops at an empty sub-cell holding the hit, but there its next step fails too
+// (t >= hit_t or t > t_exit): the same tests.
+inline uint ect_sub_next(const SubGrid *s, SubWalk *w, bool here, const RayPre *r, float tmin, float *hit_t,
+                         uint *hit_slot, __global const uint2 *scells, __global const float4 *sblocks,
+                         __global const uint *scb, uint ncells, uint lim, uint *nu) {
+    if (!here && !g2_walk_step(s, w, *hit_t)) return VW_NONE;
     while (true) {
         int sid = g2_cell_id(s, w->cell);
-        if (scells[sid].y > 0u) return ncells + (uint)sid;
-        if (!g2_walk_step(s, w, hit_t)) return VW_NONE;
+        uint cnt = scells[sid].y;
+        if (cnt > lim) return ncells + (uint)sid;
+        if (cnt > 0u) {
+            ect_test(r, sblocks + 10u * scb[sid], cnt, tmin, hit_t, hit_slot);
+            ++*nu;
+            if (*hit_slot != VW_NONE && (g2real)*hit_t <= g2_cell_exit(w)) return VW_NONE;
+        }
+        if (!g2_walk_step(s, w, *hit_t)) return VW_NONE;
     }
 }
 #endif
 
-// The first unit of the walk w from its current top cell on (w is moved to that unit's top cell,
-// *topc); VW_NONE when the walk ends first: it leaves the grid or passes the hit, or a top cell
-// whose sub-walk tested nothing holds the hit (IVW's hit-inside-cell rule, checked there too).
-// *nv counts the non-empty top cells entered (IVW's iterations; *first: the first of them).
-inline uint ect_find(const Grid *g, __global const uint2 *cells, __global const uchar *occ_fine,
+// The first unit to sort of the walk w from its current top cell on (w is moved to that unit's top
+// cell, *topc); VW_NONE when the walk ends first: it leaves the grid or passes the hit, or a top
+// cell whose remaining units were all tested on the way holds the hit (IVW's hit-inside-cell rule,
+// checked there too). Units of at most INLINE_MAX triangles (a top cell's list, a big list, a
+// sub-cell) are tested on the way, in walk order with the nearest hit as the bound (*hit_t,
+// *hit_slot), as IVW tests them: sorting a unit of one block of triangles costs more than testing
+// it. *nv counts the non-empty top cells entered (IVW's iterations; *first: the first of them).
+__attribute__((always_inline)) inline uint ect_find_ai(const Grid *g, __global const uint2 *cells, __global const float4 *blocks,
+                     __global const uint *cell_blocks, __global const uchar *occ_fine,
                      __global const uchar *occ_coarse ECT_G2, const RayPre *r, GridWalk *w, float tmin,
-                     float hit_t, bool got, uint ncells, uint *topc, uint *nv, uint *first) {
+                     float *hit_t, uint *hit_slot, uint ncells, uint *topc, uint *nv, uint *first, uint lim,
+                     uint *nu) {
     uint2 cr;
-    while (VW_NEXT(g, cells, occ_fine, occ_coarse, r, w, hit_t, &cr)) {
+    while (VW_NEXT(g, cells, occ_fine, occ_coarse, r, w, *hit_t, &cr)) {
         int c = grid_cell_id(g, w->cell);
         *topc = (uint)c;
         if ((*nv)++ == 0u) *first = (uint)c;
 #ifdef TWO_LEVEL
         int si = sub_of[c];
-        if (si < 0) return (uint)c;
-        SubGrid sg = subs[si];
-        if (sg.big.y > 0u) return ncells + nsubc + (uint)si;
-        SubWalk sw;
-        if (g2_walk_begin(&sg, r, tmin, hit_t, &sw)) {
-            uint u = ect_sub_next(&sg, &sw, true, hit_t, scells, ncells);
-            if (u != VW_NONE) return u;
-        }
-        if (got && hit_t <= grid_cell_exit(w)) return VW_NONE;
-        if (!grid_walk_step(g, r, w, hit_t)) return VW_NONE;
-#else
-        return (uint)c;
+        if (si >= 0) {
+            SubGrid sg = subs[si];
+            if (sg.big.y > 0u) {
+                if (sg.big.y > lim) return ncells + nsubc + (uint)si;
+                ect_test(r, bblocks + 10u * sg.big.x, sg.big.y, tmin, hit_t, hit_slot);
+                ++*nu;
+            }
+            SubWalk sw;
+            if (g2_walk_begin(&sg, r, tmin, *hit_t, &sw)) {
+                uint u = ect_sub_next(&sg, &sw, true, r, tmin, hit_t, hit_slot, scells, sblocks, scb, ncells, lim, nu);
+                if (u != VW_NONE) return u;
+            }
+        } else
 #endif
+        {
+            if (cr.y > lim) return (uint)c;
+            ect_test(r, blocks + 10u * cell_blocks[c], cr.y, tmin, hit_t, hit_slot);
+            ++*nu;
+        }
+        if (*hit_slot != VW_NONE && *hit_t <= grid_cell_exit(w)) return VW_NONE;
+        if (!grid_walk_step(g, r, w, *hit_t)) return VW_NONE;
     }
     return VW_NONE;
 }
 
-// The ray's next unit after the tests of unit u in top cell c (VW_NONE: it is done), as IVW's
-// walk goes on: within c's sub-walk (after the big list: its first non-empty sub-cell; after a
-// sub-cell: stop there when it holds the hit, else the next non-empty one), then past c (done
-// when c holds the hit), then the next top cell's first unit.
-inline uint ect_next(const Grid *g, __global const uint2 *cells, __global const uchar *occ_fine,
+// ect_find_ai out of line, for the sort loop's resolve (ec_tile): inlined there at each call it
+// measured slower (the loop's code grows); ec_tile_first inlines it.
+__attribute__((noinline)) uint ect_find(const Grid *g, __global const uint2 *cells, __global const float4 *blocks,
+                                        __global const uint *cell_blocks, __global const uchar *occ_fine,
+                                        __global const uchar *occ_coarse ECT_G2, const RayPre *r, GridWalk *w,
+                                        float tmin, float *hit_t, uint *hit_slot, uint ncells, uint *topc, uint *nv,
+                                        uint *first, uint lim, uint *nu) {
+    return ect_find_ai(g, cells, blocks, cell_blocks, occ_fine, occ_coarse ECT_G2_ARGS, r, w, tmin, hit_t, hit_slot,
+                       ncells, topc, nv, first, lim, nu);
+}
+
+// The ray's next unit to sort after the tests of unit u in top cell c (VW_NONE: it is done), as
+// IVW's walk goes on: within c's sub-walk (after the big list: its first non-empty sub-cell; after
+// a sub-cell: stop there when it holds the hit, else the next non-empty one), then past c (done
+// when c holds the hit), then the next top cell's first unit; units of at most INLINE_MAX
+// triangles on the way are tested there (ect_find).
+inline uint ect_next(const Grid *g, __global const uint2 *cells, __global const float4 *blocks,
+                     __global const uint *cell_blocks, __global const uchar *occ_fine,
                      __global const uchar *occ_coarse ECT_G2, const RayPre *r, uint u, uint *c, float tmin,
-                     float hit_t, bool got, uint ncells, uint *nv) {
+                     float *hit_t, uint *hit_slot, uint ncells, uint *nv, uint lim, uint *nu) {
 #ifdef TWO_LEVEL
     if (u >= ncells) {
         SubGrid sg = subs[sub_of[*c]];
         SubWalk sw;
         uint v = VW_NONE;
         if (u - ncells >= nsubc) {  // the big list: the sub-walk begins
-            if (g2_walk_begin(&sg, r, tmin, hit_t, &sw)) v = ect_sub_next(&sg, &sw, true, hit_t, scells, ncells);
+            if (g2_walk_begin(&sg, r, tmin, *hit_t, &sw))
+                v = ect_sub_next(&sg, &sw, true, r, tmin, hit_t, hit_slot, scells, sblocks, scb, ncells, lim, nu);
         } else {
-            ect_sub_at(&sg, r, u - ncells, hit_t, &sw);
-            if (!(got && (g2real)hit_t <= g2_cell_exit(&sw))) v = ect_sub_next(&sg, &sw, false, hit_t, scells, ncells);
+            ect_sub_at(&sg, r, u - ncells, *hit_t, &sw);
+            if (!(*hit_slot != VW_NONE && (g2real)*hit_t <= g2_cell_exit(&sw)))
+                v = ect_sub_next(&sg, &sw, false, r, tmin, hit_t, hit_slot, scells, sblocks, scb, ncells, lim, nu);
         }
         if (v != VW_NONE) return v;
     }
 #endif
     GridWalk w;
-    vw_walk_at(g, r, *c, hit_t, &w);
-    if (got && hit_t <= grid_cell_exit(&w)) return VW_NONE;
-    if (!grid_walk_step(g, r, &w, hit_t)) return VW_NONE;
+    vw_walk_at(g, r, *c, *hit_t, &w);
+    if (*hit_slot != VW_NONE && *hit_t <= grid_cell_exit(&w)) return VW_NONE;
+    if (!grid_walk_step(g, r, &w, *hit_t)) return VW_NONE;
     uint first;
-    return ect_find(g, cells, occ_fine, occ_coarse ECT_G2_ARGS, r, &w, tmin, hit_t, got, ncells, c, nv, &first);
+    return ect_find(g, cells, blocks, cell_blocks, occ_fine, occ_coarse ECT_G2_ARGS, r, &w, tmin, hit_t, hit_slot,
+                    ncells, c, nv, &first, lim, nu);
 }
 
 // Resolve of ray j (list position k) after the tests of its unit: done when its walk ends (the hit
 // lies inside its cell, or it leaves the grid), then it writes its result; else it moves to its
-// next unit and inserts it into the table (size entries) for the next iteration.
-inline void ect_resolve(const Grid *g, __global const uint2 *cells, __global const uchar *occ_fine,
+// next unit to sort (testing the small units on the way) and inserts it into the table (size
+// entries) for the next iteration.
+inline void ect_resolve(const Grid *g, __global const uint2 *cells, __global const float4 *blocks,
+                        __global const uint *cell_blocks, __global const uchar *occ_fine,
                         __global const uchar *occ_coarse ECT_G2, const RayPre *r, float tmin, uint ncells, uint i,
                         uint j, uint k, float hit_t, uint hit_slot, uint size, __local uint *cur,
-                        __local uint *top, __local uint *nit, __local uint *bucket, __local uint *rank,
-                        __local volatile uint *hkey, __local volatile uint *hcnt, __global float *out_t,
-                        __global int *out_id, __global int *iters_out) {
-    bool got = hit_slot != VW_NONE;
+                        __local uint *top, __local uint *nit, __local float *hit, __local uint *slot,
+                        __local uint *bucket, __local uint *rank, __local volatile uint *hkey,
+                        __local volatile uint *hcnt, __global float *out_t, __global int *out_id,
+                        __global int *iters_out, uint lim, uint *nu) {
     uint c = top[j], nv = nit[j];
-    uint u = ect_next(g, cells, occ_fine, occ_coarse ECT_G2_ARGS, r, cur[j], &c, tmin, hit_t, got, ncells, &nv);
+    uint u = ect_next(g, cells, blocks, cell_blocks, occ_fine, occ_coarse ECT_G2_ARGS, r, cur[j], &c, tmin, &hit_t,
+                      &hit_slot, ncells, &nv, lim, nu);
+    bool got = hit_slot != VW_NONE;
     if (u == VW_NONE) {
         out_t[i] = got ? hit_t : INFINITY;
         out_id[i] = got ? (int)hit_slot : -1;
@@ -212,6 +283,8 @@ inline void ect_resolve(const Grid *g, __global const uint2 *cells, __global con
         cur[j] = u;
         top[j] = c;
         nit[j] = nv;
+        hit[j] = hit_t;
+        slot[j] = hit_slot;
         uint rk;
         bucket[k] = ect_insert(hkey, hcnt, u, size, &rk);
         rank[k] = rk;
@@ -221,9 +294,10 @@ inline void ect_resolve(const Grid *g, __global const uint2 *cells, __global con
 __kernel __attribute__((reqd_work_group_size(WG, 1, 1)))
 void ec_tile(__global const Grid *grid, __global const uint2 *cells, __global const float4 *blocks,
              __global const uint *cell_blocks ECT_G2, __global const float4 *ray_o, __global const float4 *ray_d,
-             __global const uint *act, __global const uint *m_ptr, __global float *out_t, __global int *out_id,
-             __global int *iters_out, __global uint *first_out, __global uint *totals,
-             __global const uchar *occ_fine, __global const uchar *occ_coarse) {
+             __global const uint *act, __global const uint *m_ptr, __global const uint *unit_in,
+             __global const uint *top_in, __global float *out_t, __global int *out_id, __global int *iters_out,
+             __global uint *totals, __global volatile uint *first_acc, __global const uchar *occ_fine,
+             __global const uchar *occ_coarse) {
     __local uint ray[P], cur[P], top[P], slot[P], nit[P];
     __local float hit[P];
     __local uint lst_a[P], lst_b[P], bucket[P], rank[P];
@@ -233,6 +307,7 @@ void ec_tile(__global const Grid *grid, __global const uint2 *cells, __global co
     __local uint part_n[WG], part_c[WG], part_b[WG];
     __local uint sh[4];  // active rays, chunks, previous list length, rays in staged cells
     __local volatile uint small_cells;  // cells processed from global memory, over the iterations
+    __local volatile uint inl_units;  // units tested in the walk (resolve), over the iterations
     __local float4 sv[10 * SB];
 
     const uint lid = get_local_id(0), grp = get_group_id(0);
@@ -241,38 +316,28 @@ void ec_tile(__global const Grid *grid, __global const uint2 *cells, __global co
     const uint m0 = base < m_all ? min((uint)P, m_all - base) : 0u;
     Grid g = *grid;
     const uint ncells = (uint)(g.res.x * g.res.y * g.res.z);
-    uint t_iters = 0, t_pairs = 0, t_chunks = 0;
+    uint t_iters = 0, t_pairs = 0, t_chunks = 0, t_inl = 0;
 
     for (uint h = lid; h < H; h += WG) { hkey[h] = VW_NONE; hcnt[h] = 0u; }
-    if (lid == 0) small_cells = 0u;
+    if (lid == 0) {
+        small_cells = 0u;
+        inl_units = 0u;
+    }
     barrier(CLK_LOCAL_MEM_FENCE);
-    // first cells: every ray of the partition enters the grid (ec_tile_flags kept only those)
+    // every ray of the partition has a unit to sort (ec_tile_first walked it there): its state in
     for (uint j = lid; j < m0; j += WG) {
         uint i = act[base + j];
-        float4 ot = ray_o[i], dt = ray_d[i];
-        RayPre r = rt_prepare_ray(ot.xyz, dt.xyz);
-        GridWalk w;
-        float t_enter;
-        uint c = VW_NONE, tc = VW_NONE, nv = 0u, first = VW_NONE;
-        if (grid_walk_begin(&g, &r, ot.w, dt.w, &w, &t_enter))
-            c = ect_find(&g, cells, occ_fine, occ_coarse ECT_G2_ARGS, &r, &w, ot.w, dt.w, false, ncells, &tc, &nv,
-                         &first);
+        uint c = unit_in[i];
         ray[j] = i;
-        hit[j] = dt.w;
-        slot[j] = VW_NONE;
+        hit[j] = out_t[i];
+        slot[j] = (uint)out_id[i];  // -1: VW_NONE
         cur[j] = c;
-        top[j] = tc;
-        nit[j] = nv;
-        first_out[i] = first;
+        top[j] = top_in[i];
+        nit[j] = (uint)iters_out[i];
         lst_a[j] = j;
-        uint rk = 0u;
-        bucket[j] = c == VW_NONE ? VW_NONE : ect_insert(hkey, hcnt, c, ect_size(m0), &rk);
+        uint rk;
+        bucket[j] = ect_insert(hkey, hcnt, c, ect_size(m0), &rk);
         rank[j] = rk;
-        if (c == VW_NONE) {
-            out_t[i] = INFINITY;
-            out_id[i] = -1;
-            iters_out[i] = (int)nv;
-        }
     }
     if (lid == 0) sh[2] = m0;
     __local uint *lst = lst_a, *srt = lst_b;
@@ -348,6 +413,10 @@ void ec_tile(__global const Grid *grid, __global const uint2 *cells, __global co
         // global memory (consecutive work-items share a cell; staging would cost more than the
         // tests it feeds)
         const uint hsize = ect_size(m);
+        // a partition down to fewer than TAIL active rays finishes them walking alone (every unit
+        // tested in the walk): a handful of rays sorted by unit gathers no coherence to pay for
+        // an iteration
+        const uint lim = m < (uint)TAIL ? 0xffffffffu : (uint)INLINE_MAX;
         for (uint k = mb + lid; k < m; k += WG) {
             uint j = srt[k], i = ray[j];
             float4 ot = ray_o[i], dt = ray_d[i];
@@ -355,19 +424,10 @@ void ec_tile(__global const Grid *grid, __global const uint2 *cells, __global co
             float hit_t = hit[j];
             uint hit_slot = slot[j], nt;
             __global const float4 *blk = ect_unit(cur[j], ncells, cells, blocks, cell_blocks ECT_G2_ARGS, &nt);
-            for (uint q = 0; q < nt; q += 4, blk += 10) {
-                int4 slots = as_int4(blk[9]);
-                float t;
-                int lane = rt_intersect_triangle4(&r, blk, slots >= (int4)(0), ot.w, hit_t, &t);
-                if (lane >= 0) {
-                    hit_t = t;
-                    hit_slot = (uint)(lane == 0 ? slots.x : (lane == 1 ? slots.y : (lane == 2 ? slots.z : slots.w)));
-                }
-            }
-            hit[j] = hit_t;
-            slot[j] = hit_slot;
-            ect_resolve(&g, cells, occ_fine, occ_coarse ECT_G2_ARGS, &r, ot.w, ncells, i, j, k, hit_t, hit_slot,
-                        hsize, cur, top, nit, bucket, rank, hkey, hcnt, out_t, out_id, iters_out);
+            ect_test(&r, blk, nt, ot.w, &hit_t, &hit_slot);
+            ect_resolve(&g, cells, blocks, cell_blocks, occ_fine, occ_coarse ECT_G2_ARGS, &r, ot.w, ncells, i, j, k,
+                        hit_t, hit_slot, hsize, cur, top, nit, hit, slot, bucket, rank, hkey, hcnt, out_t, out_id,
+                        iters_out, lim, &t_inl);
         }
         // process, cells with many rays: one chunk (at most WG rays of one cell) at a time, the
         // cell's blocks staged in local memory (the thesis's chunk)
@@ -414,41 +474,90 @@ void ec_tile(__global const Grid *grid, __global const uint2 *cells, __global co
             uint j = srt[k], i = ray[j];
             float4 ot = ray_o[i], dt = ray_d[i];
             RayPre r = rt_prepare_ray(ot.xyz, dt.xyz);
-            ect_resolve(&g, cells, occ_fine, occ_coarse ECT_G2_ARGS, &r, ot.w, ncells, i, j, k, hit[j], slot[j],
-                        hsize, cur, top, nit, bucket, rank, hkey, hcnt, out_t, out_id, iters_out);
+            ect_resolve(&g, cells, blocks, cell_blocks, occ_fine, occ_coarse ECT_G2_ARGS, &r, ot.w, ncells, i, j, k,
+                        hit[j], slot[j], hsize, cur, top, nit, hit, slot, bucket, rank, hkey, hcnt, out_t, out_id,
+                        iters_out, lim, &t_inl);
         }
         if (lid == 0) sh[2] = m;
         __local uint *tmp = lst;
         lst = srt;
         srt = tmp;
     }
+    if (t_inl) atomic_add(&inl_units, t_inl);
+    barrier(CLK_LOCAL_MEM_FENCE);
     if (lid == 0) {
-        totals[4 * grp] = t_iters;
-        totals[4 * grp + 1] = t_pairs;
-        totals[4 * grp + 2] = t_chunks + small_cells;
-        totals[4 * grp + 3] = m0;
+        uint walked = 0u, first_units = 0u;
+        if (grp == 0u) {  // ec_tile_first's totals (it ran before this launch), cleared for the next pass
+            walked = first_acc[0];
+            first_units = first_acc[1];
+            first_acc[0] = 0u;
+            first_acc[1] = 0u;
+        }
+        totals[ECT_TOTALS * grp] = t_iters;
+        totals[ECT_TOTALS * grp + 1] = t_pairs + inl_units + first_units;
+        totals[ECT_TOTALS * grp + 2] = t_chunks + small_cells;
+        totals[ECT_TOTALS * grp + 3] = walked;
+        totals[ECT_TOTALS * grp + 4] = t_pairs;
+        totals[ECT_TOTALS * grp + 5] = m0;
     }
 }
 
-// Active rays in screen-tile order: flags[j] for ray perm[j] (enters the grid box); every ray's
-// outputs start as a miss (inactive rays keep it).
-__kernel void ec_tile_flags(__global const Grid *grid, __global const float4 *ray_o, __global const float4 *ray_d,
-                            __global const uint *perm, const uint n, __global uint *flags, __global float *out_t,
-                            __global int *out_id, __global int *iters_out, __global uint *first_out) {
-    uint j = get_global_id(0);
-    if (j >= n) return;
+// ec_tile_first's ray i (position j of the screen-tile order).
+inline void ect_first(__global const Grid *grid, __global const uint2 *cells, __global const float4 *blocks,
+                      __global const uint *cell_blocks ECT_G2, __global const float4 *ray_o,
+                      __global const float4 *ray_d, uint i, uint j, __global uint *flags, __global uint *unit_out,
+                      __global uint *top_out, __global float *out_t, __global int *out_id, __global int *iters_out,
+                      __global uint *first_out, __global const uchar *occ_fine, __global const uchar *occ_coarse,
+                      __local volatile uint *acc) {
     Grid g = *grid;
-    uint i = perm[j];
+    const uint ncells = (uint)(g.res.x * g.res.y * g.res.z);
     float4 ot = ray_o[i], dt = ray_d[i];
-    uint keep = 0u;
+    uint c = VW_NONE, tc = VW_NONE, nv = 0u, first = VW_NONE, hs = VW_NONE, nu = 0u;
+    float ht = dt.w;
     if (dt.w > ot.w) {
         RayPre r = rt_prepare_ray(ot.xyz, dt.xyz);
-        float enter;
-        keep = rt_intersect_box(&r, g.lo.xyz, g.hi.xyz, ot.w, dt.w, &enter) ? 1u : 0u;
+        GridWalk w;
+        float t_enter;
+        if (grid_walk_begin(&g, &r, ot.w, dt.w, &w, &t_enter)) {
+            c = ect_find_ai(&g, cells, blocks, cell_blocks, occ_fine, occ_coarse ECT_G2_ARGS, &r, &w, ot.w, &ht, &hs,
+                            ncells, &tc, &nv, &first, INLINE_MAX, &nu);
+            atomic_inc(&acc[0]);
+            if (nu) atomic_add(&acc[1], nu);
+        }
     }
-    flags[j] = keep;
-    out_t[i] = INFINITY;
-    out_id[i] = -1;
-    iters_out[i] = 0;
-    first_out[i] = VW_NONE;
+    flags[j] = c != VW_NONE ? 1u : 0u;
+    unit_out[i] = c;
+    top_out[i] = tc;
+    out_t[i] = c != VW_NONE || hs != VW_NONE ? ht : INFINITY;
+    out_id[i] = (int)hs;  // VW_NONE: -1
+    iters_out[i] = (int)nv;
+    first_out[i] = first;
+}
+
+// Each ray's walk up to its first unit to sort (one work-item per ray i, in the rays' own order, as
+// IVW walks them), testing the small units on the way (ect_find): flags[pos[i]] = 1 (its position
+// in the screen-tile order, for the compaction) when it reaches one (its state for ec_tile: unit_out, top_out, the nearest hit so far in out_t/out_id,
+// the top cells entered in iters_out); the others (no grid box, an empty walk, or one that ended
+// on units tested on the way) write their result now and take no part in the sort.
+__kernel void ec_tile_first(__global const Grid *grid, __global const uint2 *cells, __global const float4 *blocks,
+                            __global const uint *cell_blocks ECT_G2, __global const float4 *ray_o,
+                            __global const float4 *ray_d, __global const uint *pos, const uint n,
+                            __global uint *flags, __global uint *unit_out, __global uint *top_out,
+                            __global float *out_t, __global int *out_id, __global int *iters_out,
+                            __global uint *first_out, __global volatile uint *first_acc,
+                            __global const uchar *occ_fine, __global const uchar *occ_coarse) {
+    __local volatile uint acc[2];  // the work-group's rays walked and units tested
+    const uint i = get_global_id(0), lid = get_local_id(0);
+    if (lid == 0) {
+        acc[0] = 0u;
+        acc[1] = 0u;
+    }
+    barrier(CLK_LOCAL_MEM_FENCE);
+    if (i < n) ect_first(grid, cells, blocks, cell_blocks ECT_G2_ARGS, ray_o, ray_d, i, pos[i], flags, unit_out,
+                         top_out, out_t, out_id, iters_out, first_out, occ_fine, occ_coarse, acc);
+    barrier(CLK_LOCAL_MEM_FENCE);
+    if (lid == 0 && (acc[0] | acc[1])) {
+        atomic_add(&first_acc[0], acc[0]);
+        atomic_add(&first_acc[1], acc[1]);
+    }
 }

@@ -38,6 +38,9 @@ EC_GROUPS_PER_CU = 64  # persistent ec_process work-groups per compute unit (eac
 EC_SORTS = ("tile", "global")
 SKIPS = ("none", "ivw", "ec", "all")
 EC_STAGE_MIN = 8  # ec_tile: cells with at least this many of a partition's rays get their triangles staged
+EC_TAIL = 0  # ec_tile: a partition down to fewer active rays finishes them walking alone (0: never; see the docs)
+EC_INLINE_MAX = 4  # ec_tile: units of at most this many triangles (one SoA block) are tested in the walk, not sorted
+TILE_TOTALS = 6  # ec_tile.cl ECT_TOTALS: per work-group iterations, units, chunks, rays, units and rays sorted
 TILE_BYTES_PER_RAY = 76  # ec_tile.cl's local arrays per partition ray (24 ray state + 16 lists + 24 table + 12 chunks)
 
 
@@ -70,7 +73,9 @@ class PassStats:
 
     mode: str
     rays: int = 0  # active rays
-    pairs: int = 0  # ray-cell pairs over all iterations (EC)
+    pairs: int = 0  # ray-unit pairs (units tested) over all iterations (EC), sorted or tested in the walk
+    sorted_pairs: int = 0  # EC (sort=tile): the pairs that went through the sort (the others: units of <= inline)
+    sorted_rays: int = 0  # EC (sort=tile): the rays that reached a unit to sort
     workgroups: int = 0  # chunks after compaction over all iterations (EC)
     iterations: int = 0  # EC iterations (IVW: the largest per-ray iteration count)
     reorder_ms: float = 0.0  # EC: pair enumeration, sort, chunks, resolve (host-timed, queue finished)
@@ -110,9 +115,10 @@ class VoxelWalker:
     """IVW and EC kernels over a UniformGrid and its triangles (device buffers)."""
 
     def __init__(self, ctx: Any, grid: UniformGrid, chunk: int = 64, window: int = 1, ec_sort: str = "tile",
-                 skip: str = "none"):
+                 skip: str = "none", inline: int = EC_INLINE_MAX, tail: int = EC_TAIL):
         """`skip`: which walks skip empty 8^3 blocks of top cells whole (walk.cl VW_SKIP): none, ivw,
-        ec or all (the same cells are visited either way)."""
+        ec or all (the same cells are visited either way). `inline`: the one-launch EC tests units
+        of at most this many triangles in the walk instead of sorting them (0: every unit sorted)."""
         from viewer.cl import build
 
         if ec_sort not in EC_SORTS:
@@ -134,17 +140,20 @@ class VoxelWalker:
         ivw = build(HERE / "ivw.cl", {"WG": WG_IVW, **shifts, **ivw_skip, **two}, ctx)
         ec = build(HERE / "ec.cl", {"WG": self.chunk}, ctx)
         self.partition = tile_partition(int(ctx.device.local_mem_size), self.chunk)
+        self.inline, self.tail = int(inline), int(tail)
         ect = build(HERE / "ec_tile.cl", {"WG": self.chunk, "P": self.partition, "STAGE_MIN": EC_STAGE_MIN,
-                                          **shifts, **ec_skip, **two}, ctx)
+                                          "INLINE_MAX": self.inline, "TAIL": self.tail, **shifts, **ec_skip, **two},
+                    ctx)
         self.k = {"ivw": clio.kernel(ivw, "ivw_trace"), "macro": clio.kernel(ivw, "vw_macro_build")}
         self._macro_of: Any = None  # the GridStats whose macro cells are built
         for name in ("ec_init", "ec_count", "ec_write", "ec_process", "ec_resolve", "ec_finish"):
             self.k[name] = clio.kernel(ec, name)
-        for name in ("ec_tile", "ec_tile_flags"):
+        for name in ("ec_tile", "ec_tile_first"):
             self.k[name] = clio.kernel(ect, name)
         self._perm_key: tuple | None = None
         self._pending: list[tuple[np.ndarray, Any, Any]] = []  # one-launch EC totals on their way back
-        self._last_totals: tuple[int, int, int, int, float] = (0, 0, 0, 0, 0.0)
+        self._last_totals: tuple[int, ...] = (0, 0, 0, 0, 0, 0)
+        self._last_ms = 0.0
         self._bufs: dict[str, Any] = {}
         self._host_n = np.zeros(1, np.uint32)  # kept alive for its asynchronous write
         self._last_iterations = 0  # the last EC pass's iterations: the next pass's first batch
@@ -230,28 +239,41 @@ class VoxelWalker:
             return self._trace_ec_tile(ray_o, ray_d, out_t, out_id, n, stats, size)
         return self._trace_ec_global(tris, ray_o, ray_d, out_t, out_id, n, stats, size)
 
-    def _perm(self, size: tuple[int, int] | None, n: int) -> Any:
-        """The rays' screen-tile order on the device (uploaded once per size)."""
+    def _perm(self, size: tuple[int, int] | None, n: int) -> tuple[Any, Any]:
+        """The rays' screen-tile order on the device and its inverse (each ray's position in it),
+        uploaded once per size: ec_tile_first walks the rays in their own order (IVW's: a
+        work-group's rays are neighbours in memory; in tile order the dragon's walks measured
+        1.24x slower) and puts each flag at the ray's tile-order position for the compaction."""
         key = (tuple(size) if size is not None else None, n, self.partition)
         if self._perm_key != key:
             order = tile_order(size, n, self.partition) if size is not None else np.arange(n, dtype=np.uint32)
-            buf = self._buf("perm", 4 * n)
-            clio.copy(self.ctx.queue, buf, order, is_blocking=False)
-            self._perm_host, self._perm_key = order, key  # kept alive for the asynchronous write
-        return self._bufs["perm"]
+            inv = np.empty(n, np.uint32)
+            inv[order] = np.arange(n, dtype=np.uint32)
+            clio.copy(self.ctx.queue, self._buf("perm", 4 * n), order, is_blocking=False)
+            clio.copy(self.ctx.queue, self._buf("perm_inv", 4 * n), inv, is_blocking=False)
+            self._perm_host, self._perm_key = (order, inv), key  # kept alive for the asynchronous writes
+        return self._bufs["perm"], self._bufs["perm_inv"]
+
+    def _first_acc(self) -> Any:
+        """ec_tile_first's totals (rays walked, units tested), zero between passes: ec_tile's first
+        work-group moves them into its own totals and clears them."""
+        if "first_acc" not in self._bufs:
+            self._acc_zero = np.zeros(2, np.uint32)  # kept alive for the asynchronous write
+            clio.copy(self.ctx.queue, self._buf("first_acc", 8), self._acc_zero, is_blocking=False)
+        return self._bufs["first_acc"]
 
     def _harvest(self, force: bool = False) -> None:
         """Takes the per-group totals of the one-launch EC passes that have come back (all of them,
-        waiting, with `force`): iterations (the largest), pairs, chunks, rays, kernel ms."""
+        waiting, with `force`): iterations (the largest), pairs, chunks, rays, sorted pairs and
+        rays; the loop kernel's ms."""
         cl = self.ctx.cl
         while self._pending:
             host, copy_ev, kernel_ev = self._pending[0]
             if not force and copy_ev.command_execution_status != cl.command_execution_status.COMPLETE:
                 break
             self._pending.pop(0)
-            ms = max(0, kernel_ev.profile.end - kernel_ev.profile.start) / 1e6
-            self._last_totals = (int(host[:, 0].max()), int(host[:, 1].sum()), int(host[:, 2].sum()),
-                                 int(host[:, 3].sum()), ms)
+            self._last_ms = max(0, kernel_ev.profile.end - kernel_ev.profile.start) / 1e6
+            self._last_totals = (int(host[:, 0].max()), *(int(x) for x in host[:, 1:].sum(0)))
 
     def _trace_ec_tile(self, ray_o: Any, ray_d: Any, out_t: Any, out_id: Any, n: int, stats: bool,
                        size: tuple[int, int] | None) -> PassStats:
@@ -268,24 +290,28 @@ class VoxelWalker:
         iters, first = self._buf("iters", 4 * n), self._buf("first", 4 * n)
         flags, act = self._buf("flags", 4 * n), self._buf("act", 4 * n)
         cb = self._count_bufs()
-        perm = self._perm(size, n)
+        perm, perm_inv = self._perm(size, n)
         macro = self._macro()
         self._host_n[0] = n
         clio.copy(q, cb["n"], self._host_n, is_blocking=False)
-        self._run("ec_tile_flags", n, g.header, ray_o, ray_d, perm, u(n), flags, out_t, out_id, iters, first)
+        unit, top = self._buf("unit", 4 * n), self._buf("top", 4 * n)
+        acc = self._first_acc()
+        sub = (g.sub_of, g.subs, g.scells, g.sblocks, g.scb, g.bblocks, u(g.stats.subcells)) if self.two_level else ()
+        self._run("ec_tile_first", n, g.header, g.cells, g.blocks, g.cell_blocks, *sub, ray_o, ray_d, perm_inv, u(n),
+                  flags, unit, top, out_t, out_id, iters, first, acc, *macro)
         self.prims.compact_dev(cb["n"], n, cb["m0"], flags=flags, src=perm, dst=act)
         groups = -(-n // self.partition)
-        totals = self._buf("tile_totals", 16 * groups)
-        sub = (g.sub_of, g.subs, g.scells, g.sblocks, g.scb, g.bblocks, u(g.stats.subcells)) if self.two_level else ()
+        totals = self._buf("tile_totals", 4 * TILE_TOTALS * groups)
         ev = self.k["ec_tile"](q, (groups * self.chunk,), (self.chunk,), g.header, g.cells, g.blocks, g.cell_blocks,
-                               *sub, ray_o, ray_d, act, cb["m0"], out_t, out_id, iters, first, totals, *macro)
-        host = np.empty((groups, 4), np.uint32)
+                               *sub, ray_o, ray_d, act, cb["m0"], unit, top, out_t, out_id, iters, totals, acc, *macro)
+        host = np.empty((groups, TILE_TOTALS), np.uint32)
         self._pending.append((host, clio.copy(q, host, totals, is_blocking=stats), ev))
         if stats:  # the study's run: this pass's own figures (one wait)
             self._harvest(force=True)
         else:  # no wait: the last pass whose totals are back (usually the previous pass of the frame)
             self._harvest()
-        ps.iterations, ps.pairs, ps.workgroups, ps.rays, ps.trace_ms = self._last_totals
+        ps.iterations, ps.pairs, ps.workgroups, ps.rays, ps.sorted_pairs, ps.sorted_rays = self._last_totals
+        ps.trace_ms = self._last_ms
         ps.reorder_ms = 0.0  # the sort runs inside the one kernel (trace_ms)
         if stats:
             ps.iters = self._read(iters, n, np.int32)
@@ -296,7 +322,7 @@ class VoxelWalker:
             walked = ps.iters[ps.iters > 0]
             # derived per iteration: one cell per active ray (on the two-level grid an iteration's
             # unit may be a sub-cell or a big list, while iters counts top cells: an approximation)
-            for k in range(1, ps.iterations + 1):
+            for k in range(1, int(walked.max()) + 1 if len(walked) else 1):
                 active = float(np.count_nonzero(walked >= k))
                 ps.per_iter.append({"active": active, "pairs": active,
                                     "resolved": float(np.count_nonzero(walked == k))})
