@@ -86,7 +86,7 @@ def test_voxelwalk_frame_launches_do_not_grow_with_ec_iterations(monkeypatch, gl
     sub-grids the coarse grid's dense cells are walked by sub-cell, so it takes as many)."""
     reps = {}
     for res in (12, 160):
-        monkeypatch.setenv("RTWALK_VOXELWALK", f"resolution={res},levels=1")
+        monkeypatch.setenv("RTWALK_VOXELWALK", f"mode=ec,resolution={res},levels=1")
         reps[res] = _steady_report("voxelwalk", "primary,diffuse:2")
     its = {res: rep.backend_stats["iterations"] for res, rep in reps.items()}
     assert its[160] >= 2 * its[12] > 0, its

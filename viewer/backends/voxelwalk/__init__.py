@@ -6,14 +6,17 @@ ugrid's second level (viewer.accel.grid2: dense top cells get a sub-grid and a s
 big triangles; levels=1: the uniform grid alone), built on the OpenCL device at creation and again
 when the scene's triangles change (or every frame with rebuild=true, as an animated scene needs).
 
-* IVW (mode=ivw): one work-item per ray walks the grid by 3D-DDA and stops at the first cell that
+* IVW (mode=ivw, the default): one work-item per ray walks the grid by 3D-DDA and stops at the first cell that
   holds a hit inside the cell (ivw.cl), testing each cell's triangles four at a time. Any-hit rays
   (shadow, soft, AO) always go this way, stopping at their first hit, and so do primary rays
   unless primary=ec: they share the eye, so neighbouring pixels already walk the same cells in the
   same order and sorting them by cell adds nothing (the IVW fast path). A top cell with a
   sub-grid is walked through it (big list, then sub-cells; grid2_walk.cl, shared with ugrid).
-* EC (mode=ec, other closest-hit rays), in iterations of one non-empty cell per ray, rays of the
-  same cell processed together, resolved rays dropping out:
+* EC (mode=ec: then for the other closest-hit rays; not the default since it loses to IVW on every
+  scene measured on this CPU device (mixed-scale reflections 4.0-4.4x clbvh against IVW's 2.7-3.0x,
+  the dragon's 5.2-5.3x against 1.6-1.7x, conference IVW/EC 0.62), as on the thesis's cached
+  GTX 480 (IVW/EC 0.37-0.54); it won only on the cacheless GTX 280), in iterations of one
+  non-empty cell per ray, rays of the same cell processed together, resolved rays dropping out:
   - sort=tile (default, ec_tile.cl): every iteration on the device in one launch: one
     work-group per screen-tile partition of the active rays loops over its iterations (walk to the
     next non-empty cell, counting sort by cell through a local hash table, chunks of at most
@@ -79,7 +82,8 @@ CHUNKS = (16, 32, 64, 128, 256)
 
 @dataclass
 class VoxelwalkParams:
-    mode: str = param("ec", "closest-hit rays: ivw (independent walk) or ec (enforced coherence)")
+    mode: str = param("ivw", "closest-hit rays: ivw (independent walk; default: faster on every scene measured, as "
+                      "on the thesis's cached GPU) or ec (enforced coherence)")
     chunk: int = param(64, "EC: rays per chunk = work-group size")
     resolution: str = param("auto", "auto (grid.py's rule from the scene) or N cells on the longest axis")
     cells: int = param(1, "EC: non-empty cells per ray per iteration (0: every cell the ray crosses at once)")
