@@ -407,12 +407,13 @@ def test_headless_resize_rebuilds_chcrt_targets(gl_ctx):
         rc.release()
 
 
-@pytest.mark.parametrize("name,cache", [("city", 1), ("city", 2), ("city", 4), ("sponza", 2), ("sponza", 3)])
+@pytest.mark.parametrize("name,cache", [("city", 1), ("city", 2), ("city", 4), ("sponza", 3)])
 def test_leaf_cache_is_exact(name, cache, gl_ctx):
     """The leaf cache (paper 5.2) only delays ray-triangle tests: the same hits as glsl for every
     cache size, including sizes that do not divide the leaf counts a ray meets, in both query modes.
     hw mode (one draw per query: 2.5x the time) runs on city, where it takes a third of sponza's time;
-    the leaf cache is the same intersection shader in both modes."""
+    the leaf cache is the same intersection shader in both modes. Sponza runs once, with the size
+    that divides no leaf count (3; its size 2 repeated city's cases at 8 s)."""
     mode = "hw" if (name, cache) == ("city", 2) else "batched"
     frames, scene, _ = _render_both(gl_ctx, name, params=f"leaf_cache={cache},query_mode={mode}")
     seen = set()
