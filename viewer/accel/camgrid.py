@@ -1,11 +1,12 @@
 """Camera perspective grid: image tiles x depth slabs, rebuilt per frame for primary rays
 (Patidar & Narayanan, ICVGIP 2008; Guntury & Narayanan, EGPGV 2010 / thesis 2011, Ch. 3).
 
-The camera is taken from the rays themselves (`fit_camera`): the four corner pixel rays of a
-pinhole image fix the linear map M with direction(x, y) ~ M (x, y, 1), so the grid needs no camera
-object and any ray batch that is not such an image is recognised (the caller then traces it
-another way). Per frame on the OpenCL device (kernels: camgrid_build.cl beside this file, layout
-and helpers: viewer/cl/kernels/camgrid.cl):
+The camera is taken from the rays themselves (`fit_camera` on the host, the kernel cg_fit on the
+device for frames: no wait): the four corner pixel rays of a pinhole image fix the linear map M
+with direction(x, y) ~ M (x, y, 1), so the grid needs no camera object and any ray batch that is
+not such an image is recognised (its grid stays empty and every ray is "outside"). Per frame on
+the OpenCL device (kernels: camgrid_build.cl beside this file, layout and helpers:
+viewer/cl/kernels/camgrid.cl):
 
  1. triangles (one work-item each, in double): back-face culling where enabled; the triangle
     clipped to the frustum grown by `margin` pixels (frustum culling, including large triangles

@@ -5,10 +5,10 @@
   where it is exact (`backface=auto`: the scene is closed and faces outward, and the eye is
   outside the scene box; `on` forces it), one pair per cell a triangle overlaps, radix sort by
   cell; traced with 8 x 8 work-groups (camera.cl beside this file), k x k of them per tile
-  (`k`: the indirect mapping), triangles staged slab by slab with the slab check. The camera is
-  read off the rays (their four corner rays); a batch of "primary" rays that is not a pinhole
-  image falls back to the eye-centred angular grid below (`primary=angular` forces that,
-  `primary=grid` sends primary rays through the uniform grid).
+  (`k`: the indirect mapping), triangles staged in batches across slabs with the slab check. The
+  camera is fitted to the rays on the device (their four corner rays; no wait); a batch of
+  "primary" rays that is not a pinhole image leaves the grid empty and the uniform grid takes
+  them (`primary=angular`: the eye-centred angular grid below, `primary=grid`: the uniform grid).
 * Shadow rays (point light `PassInfo.light` of scene.point_lights): a spherical grid around the
   light (viewer.accel.pointgrid), rebuilt every pass: rays sorted into (tile) chunks of at most
   `chunk` rays, one work-group per chunk with the tile's triangles staged in local memory slab by
@@ -198,7 +198,7 @@ class PgridBackend(GeometryBackend):
 
     def trace_device(self, rays, pinfo: PassInfo, hits) -> TraceResult:
         """Trace CL ray buffers (viewer.cl.RayStage layout) into CL hit buffers (HitStage): only the
-        few rays the point and camera grids are placed from cross (strided sample, corner rays)."""
+        few rays the point grids are placed from cross (a strided sample)."""
         return self._trace(rays, hits, None, pinfo, rays.size, None)
 
     def _trace(self, rs, hs, tests, pinfo: PassInfo, size: tuple[int, int], hits: HitBuffer | None) -> TraceResult:
