@@ -245,7 +245,7 @@ class CameraGrid:
                           np.int32(bool(closed)), lo, hi)
         return self._build(tris, n_tris, hd)
 
-    def _capacity_for(self, ncells: int) -> int | None:
+    def _capacity_for(self) -> int | None:
         """Room for pairs this pass: from the last pass's total (read without a wait, +25%), or
         None when there is no last pass (the first build waits for its exact total)."""
         prev = self._late
@@ -293,7 +293,7 @@ class CameraGrid:
                 p.compact_dev(self._bufs["n"], n_tris, cb, src=flags, predicate=f"x == {f}u")
                 clio.copy(q, late[k + 1:k + 2], cb, is_blocking=False)
         clio.copy(q, late[0:1], pairs_buf, is_blocking=False)
-        cap = None if wait else self._capacity_for(ncells)
+        cap = None if wait else self._capacity_for()
         exact = cap is None
         if exact:  # no last pass to size from: one wait for the exact total
             clio.finish(q)

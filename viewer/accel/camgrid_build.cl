@@ -63,10 +63,10 @@ inline bool cg_tri(const CGrid *g, __global const float4 *tris, uint i, int4 *ra
     *flag = 0u;
     if (!(g->cells.w & CG_VALID)) { *flag = CG_CULL_FRUSTUM; return false; }  // no camera: no grid
     if (!(all(isfinite(v0)) && all(isfinite(v1)) && all(isfinite(v2)))) { *flag = CG_CULL_FRUSTUM; return false; }
-    // two equal vertices: never hit (geometry.cl's det is exactly 0; pointgrid.cl culls them too),
-    // and common far from the origin (91% of the dragon at 1e6 snaps onto float32's lattice)
-    float3 w0 = tris[3 * i].xyz, w1 = tris[3 * i + 1].xyz, w2 = tris[3 * i + 2].xyz;
-    if (all(w0 == w1) || all(w1 == w2) || all(w2 == w0)) { *flag = CG_CULL_FRUSTUM; return false; }
+    if (rt_two_equal_vertices(tris[3 * i].xyz, tris[3 * i + 1].xyz, tris[3 * i + 2].xyz)) {  // never hit
+        *flag = CG_CULL_FRUSTUM;
+        return false;
+    }
     if (g->cells.w & 1) {  // back-face culling: the eye is behind the triangle's plane (clearly)
         double3 nrm = cross(v1 - v0, v2 - v0);
         if (dot(nrm, v0) > 1e-9 * length(nrm) * length(v0)) { *flag = CG_CULL_BACK; return false; }

@@ -26,9 +26,7 @@ inline bool tri_cell_range(const Grid *g, __global const float4 *tris, uint i, f
     float3 a = tris[3 * i].xyz, b = tris[3 * i + 1].xyz, c = tris[3 * i + 2].xyz;
     // fmin/fmax drop NaN operands: test the vertices themselves
     if (!(all(isfinite(a)) && all(isfinite(b)) && all(isfinite(c)))) return false;
-    // two equal vertices: never hit (geometry.cl's det is exactly 0), so not binned; common far
-    // from the origin (91% of the dragon at 1e6 snaps onto float32's lattice)
-    if (all(a == b) || all(b == c) || all(c == a)) return false;
+    if (rt_two_equal_vertices(a, b, c)) return false;  // never hit (geometry.cl)
     q[0] = (a - g->lo.xyz) * g->inv.xyz;
     q[1] = (b - g->lo.xyz) * g->inv.xyz;
     q[2] = (c - g->lo.xyz) * g->inv.xyz;

@@ -229,11 +229,7 @@ inline bool pg_tri(const PGrid *g, __global const float4 *tris, uint i, int4 *ra
     *full = false;
     *back = false;
     if (!(all(isfinite(v0)) && all(isfinite(v1)) && all(isfinite(v2)))) return false;
-    // a triangle with two equal vertices (a point or a segment: common far from the origin, where
-    // float32 snaps a small mesh onto a coarse lattice; 91% of the dragon at 1e6) is never hit:
-    // with A == B the watertight test's W is exactly 0 and U == -V, so (in float and in its
-    // double fallback) det = U + V + W = 0 and geometry.cl rejects it; culling it is exact
-    if (all(w0.xyz == w1.xyz) || all(w1.xyz == w2.xyz) || all(w2.xyz == w0.xyz)) return false;
+    if (rt_two_equal_vertices(w0.xyz, w1.xyz, w2.xyz)) return false;  // never hit (geometry.cl): culling is exact
 #ifdef RT_HAVE_FP64
     if (g->fwd.w > 0.0f) {  // back-face culling (closed outward geometry seen from outside): E clearly
         // behind the triangle's plane, in double as the camera grid decides it (camgrid_build.cl)

@@ -75,6 +75,14 @@ inline float rt_dot(float3 a, float3 b) {
     return a.x * b.x + a.y * b.y + a.z * b.z;
 }
 
+// A triangle with two equal vertices (a point or a segment; common far from the origin, where
+// float32 snaps a small mesh onto a coarse lattice: 91% of the dragon at 1e6) is never hit: with
+// A == B the watertight test's W is exactly 0 and U == -V, so (in float and in the double fallback)
+// det = U + V + W = 0 and the test below rejects it. Acceleration structures skip binning it.
+inline bool rt_two_equal_vertices(float3 a, float3 b, float3 c) {
+    return all(a == b) || all(b == c) || all(c == a);
+}
+
 // True and *t (tmin < *t < tmax) on a hit; *bary (when not null): the barycentric weights (V, W) / det
 // of v1 and v2, as intersect.glsl's intersectTriangle returns them.
 inline bool rt_intersect_triangle_bary(const RayPre *r, float3 v0, float3 v1, float3 v2, float tmin, float tmax,
