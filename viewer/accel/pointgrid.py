@@ -247,12 +247,8 @@ class _Late:
         ev = clio.copy(q, raw[14:16], header, src_offset=PGRID_DTYPE.fields["res"][1], is_blocking=False)
         return cls(raw, ev, n, cap, chunk, slabs)
 
-    @property
-    def ready(self) -> bool:
-        """The copies have landed (an in-order queue: the last one's status; no wait)."""
-        from viewer.cl import cl_context
-
-        cl = cl_context().cl
+    def ready(self, cl: Any) -> bool:
+        """The copies have landed (an in-order queue: the last one's status; no wait). `cl`: pyopencl."""
         return self.event.get_info(cl.event_info.COMMAND_EXECUTION_STATUS) == cl.command_execution_status.COMPLETE
 
     @property
@@ -351,7 +347,7 @@ class PointGrid:
         p = self.prims
         t0 = time.perf_counter()
         late = self._late.get(key)
-        if late is not None and not late.ready:  # not landed yet (no wait since): size as a first pass
+        if late is not None and not late.ready(cl):  # not landed yet (no wait since): size as a first pass
             late = None
         exact = late is None or bool(exact)  # exact=False cannot size a pass no earlier one measured
         centre = np.asarray(centre, np.float64)
@@ -472,7 +468,6 @@ class PointGrid:
             print(f"rtwalk: note: a light grid of {shown.stats(0, 0).tiles} tiles needs {shown.pairs:,} triangle-cell "
                   f"pairs, more than this OpenCL device holds ({self.hard_cap():,}): its rays take the uniform grid "
                   "(use fewer tiles: tile_rays, tiles or tile_deg)", file=sys.stderr, flush=True)
-        self.outside_count, self.inactive_count = shown.outside, shown.inactive
         return self.stats
 
     @property
