@@ -64,14 +64,7 @@ def _steady_report(backend: str, effects: str, lights: int = 1):
         r.release()
 
 
-PGRID_OPEN = ("pgrid still waits per grid pass: the light grid's placement (frame from a ray sample, tile "
-              "counts from the rays' reductions), the pair totals sizing its buffers and the chunk count sizing "
-              "the trace launch come back to the host (issue 21: a device-side header kernel, buffers sized "
-              "from the last frame with an overflow flag, a persistent trace kernel)")
-
-
-@pytest.mark.parametrize("backend", [pytest.param(b, marks=pytest.mark.xfail(strict=True, reason=PGRID_OPEN))
-                                     if b == "pgrid" else b for b in BACKENDS])
+@pytest.mark.parametrize("backend", BACKENDS)
 def test_steady_frame_host_syncs_bounded_and_independent_of_passes_and_lights(backend, gl_ctx):
     io4 = _steady_io(backend, "primary,shadows,ao:4")
     assert io4.host_syncs <= MAX_SYNCS, io4
@@ -94,15 +87,16 @@ def test_voxelwalk_frame_launches_do_not_grow_with_ec_iterations(monkeypatch, gl
     assert reps[160].io.host_syncs == reps[12].io.host_syncs <= MAX_SYNCS, (reps[12].io, reps[160].io)
 
 
-def test_pgrid_waits_do_not_grow_with_passes_and_stay_few_per_light(gl_ctx):
-    """pgrid today: passes through the uniform grid (ao) add no wait; each point light's grid
-    pass adds at most 4 (ray sample, placement scalars, pair total, chunk count; 11 before)."""
-    io4 = _steady_io("pgrid", "primary,shadows,ao:4")
-    io8 = _steady_io("pgrid", "primary,shadows,ao:8")
-    io8_2 = _steady_io("pgrid", "primary,shadows,ao:8", lights=2)
-    assert io8.host_syncs == io4.host_syncs, (io4, io8)
-    assert 0 <= io8_2.host_syncs - io8.host_syncs <= 4, (io8, io8_2)
-    assert io4.host_syncs <= 16, io4
+def test_pgrid_adds_no_wait_of_its_own(gl_ctx):
+    """pgrid's per-pass grids (the camera grid, one light grid per point light) wait on the
+    device no more often than the uniform grid's frame, which builds nothing per pass: their
+    placement, buffer sizes and launch sizes stay on the device (13 waits with one light and 17
+    with two before)."""
+    base = _steady_io("ugrid", "primary,shadows,ao:4")
+    for effects, lights in (("primary,shadows,ao:4", 1), ("primary,shadows,ao:8", 2)):
+        io = _steady_io("pgrid", effects, lights)
+        assert io.host_syncs == base.host_syncs, (base, io)
+        assert io.bytes_to_host <= base.bytes_to_host + 1024, (base, io)  # only counters, copied a pass late
 
 
 def _reflection_like_rays(n_side: int = 48):

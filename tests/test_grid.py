@@ -429,6 +429,14 @@ def trace_centred(tris, o, d, tmin, tmax, ray_type, light=None, params: str | No
     """Trace with pgrid as a pass of `ray_type` in a scene with one point light at `light`;
     returns (t, tri in input order, backend stats). `size`: the image the rays fill (row-major,
     row 0 first; default up to 1024 wide); `keep(backend)` is called after the trace."""
+    return trace_centred_passes(tris, [(o, d, tmin, tmax)], ray_type, light, params, size, keep)[0]
+
+
+def trace_centred_passes(tris, ray_sets, ray_type, light=None, params: str | None = None,
+                         size: tuple[int, int] | None = None, keep=None):
+    """trace_centred for several ray sets (o, d, tmin, tmax), one pass each, by ONE pgrid backend
+    (a pass's buffers are sized from the one before, its counters are that one's):
+    [(t, tri, stats)] per pass. Every set fills the same `size` (default: the largest set's)."""
     from viewer.accel.bvh import build_bvh
     from viewer.backends import create_backend
     from viewer.backends.base import BackendContext
@@ -445,36 +453,40 @@ def trace_centred(tris, o, d, tmin, tmax, ray_type, light=None, params: str | No
     lights = [PointLight(np.asarray(light, F32), np.ones(3, F32))] if light is not None else []
     scene = Scene("pg", tris, np.zeros(len(tris), np.int32), [Material("grey", np.full(3, 0.7, F32))],
                   point_lights=lights).reordered(bvh.tri_order)
-    n = len(o)
     if size is None:
-        width = min(n, 1024)
-        size = (width, -(-n // width))
+        n_max = max(len(rs[0]) for rs in ray_sets)
+        width = min(n_max, 1024)
+        size = (width, -(-n_max // width))
     pad = size[0] * size[1]
-    org = np.zeros((pad, 4), F32)
-    dirs = np.zeros((pad, 4), F32)
-    dirs[:, 2], dirs[:, 3] = 1.0, -1.0
-    org[:n, :3], org[:n, 3] = o, tmin
-    dirs[:n, :3], dirs[:n, 3] = d, np.minimum(tmax, F32(3.4e38))
     gpu = GpuScene.upload(ctx, scene, bvh)
     rays, hits = RayBatch(ctx, size), HitBuffer(ctx, size)
+    out = []
     try:
-        rays.origin.write(org.tobytes())
-        rays.direction.write(dirs.tobytes())
         bc = BackendContext(ctx, ProgramCache(ctx), GpuProfiler(ctx, enabled=False), gpu, scene, bvh)
         be = create_backend("pgrid", bc, params)
-        be.begin_frame(0)
-        res = be.trace(rays, PassInfo(ray_type, light=0), hits)
-        if keep is not None:
-            keep(be)
+        for o, d, tmin, tmax in ray_sets:
+            n = len(o)
+            org = np.zeros((pad, 4), F32)
+            dirs = np.zeros((pad, 4), F32)
+            dirs[:, 2], dirs[:, 3] = 1.0, -1.0
+            org[:n, :3], org[:n, 3] = o, tmin
+            dirs[:n, :3], dirs[:n, 3] = d, np.minimum(tmax, F32(3.4e38))
+            rays.origin.write(org.tobytes())
+            rays.direction.write(dirs.tobytes())
+            be.begin_frame(0)
+            res = be.trace(rays, PassInfo(ray_type, light=0), hits)
+            if keep is not None:
+                keep(be)
+            t, slot = hits.read()
+            t, slot = t[:n], slot[:n]
+            tri = np.where(slot >= 0, bvh.tri_order[np.maximum(slot, 0)], -1).astype(np.int32)
+            out.append((t, tri, res.stats))
         be.release()
-        t, slot = hits.read()
     finally:
         rays.release()
         hits.release()
         gpu.release()
-    t, slot = t[:n], slot[:n]
-    tri = np.where(slot >= 0, bvh.tri_order[np.maximum(slot, 0)], -1).astype(np.int32)
-    return t, tri, res.stats
+    return out
 
 
 def _judge(tris, o, d, tmin, tmax, t, tri, any_hit):
@@ -692,3 +704,95 @@ def test_fast_atan2_error_bound(tmp_path):
     err = np.abs(out.astype(np.float64) - ref)
     err = np.minimum(err, 2 * np.pi - err)  # +pi and -pi are the same direction
     assert err.max() <= 2e-6, err.max()
+
+
+def _shadow_rays(rng, tris, light, n, pick=None):
+    """n shadow segments from points on the triangles (those `pick` selects) to `light`."""
+    idx = rng.choice(np.flatnonzero(pick) if pick is not None else np.arange(len(tris)), n)
+    w = rng.dirichlet([1, 1, 1], n)
+    p = (w[:, :, None] * tris[idx].astype(np.float64)).sum(1)
+    l_vec = np.asarray(light, np.float64) - p
+    dist = np.linalg.norm(l_vec, axis=1)
+    return p.astype(F32), (l_vec / dist[:, None]).astype(F32), np.full(n, 1e-4, F32), (dist * (1 - 1e-4)).astype(F32)
+
+
+@needs_cl
+def test_light_grid_buffers_sized_from_the_last_pass_overflow_exactly():
+    """The light grid's pair buffers are sized from the same light's last pass (no wait after the
+    first): rays towards a corner of the scene (a narrow grid, few pairs), then rays from all of
+    it, overflow them; that pass's rays all take the uniform grid (still exact), and the pass
+    after has room again. The counters come a pass late."""
+    from viewer.effects import RayType
+
+    rng = np.random.default_rng(41)
+    tris = _soup(rng, 3000, extent=10.0, size=0.4)
+    light = [5.0, 5.0, 5.0]
+    corner = (tris.mean(1) > 8.0).all(1)
+    narrow = _shadow_rays(rng, tris, light, 300, corner)
+    wide = _shadow_rays(rng, tris, light, 4000)
+    runs = trace_centred_passes(tris, [narrow, wide, wide, wide], RayType.SHADOW, light, size=(1000, 4))
+    for (o, d, tmin, tmax), (t, tri, _) in zip([narrow, wide, wide, wide], runs, strict=True):
+        out = _judge(tris, o, d, tmin, tmax, t, tri, True)
+        assert out.rhit.sum() > 0.1 * len(o)
+        assert_matches(out)
+    pairs = [st["pairs"] for _, _, st in runs]
+    outside = [st["outside_rays"] for _, _, st in runs]
+    # pass 3 reports pass 2's overflow (no pairs, every active ray outside), pass 4 pass 3's grid
+    assert pairs[0] > 0 and pairs[2] == 0 and pairs[3] > 1.25 * pairs[0] + 1024, pairs
+    assert outside[2] >= 0.99 * len(wide[0]) and outside[3] < 0.1 * len(wide[0]), outside
+
+
+@needs_cl
+@pytest.mark.parametrize("tiling", ["auto", "tiles=40", "tile_deg=2"])
+def test_light_grid_placed_on_the_device_as_the_float64_reference(tiling):
+    """pg_frame and pg_place place the light grid on the device (no read-back): its frame, margin,
+    angular rectangle and tiles agree with the float64 host reference (choose_frame on the same
+    strided sample, placement_reference on the same statistics), and its distance level bits are
+    at least level_bits(cell bits)."""
+    from viewer.accel.grid import scene_box, triangles_f4
+    from viewer.accel.pointgrid import (
+        FRAME_SAMPLE,
+        ST_INIT,
+        PointGrid,
+        PointGridSpec,
+        choose_frame,
+        level_bits,
+        placement_reference,
+    )
+    from viewer.cl import cl_context
+    from viewer.cl import io as clio
+
+    rng = np.random.default_rng(43)
+    tris = _soup(rng, 2000, extent=10.0, size=0.4)
+    light = np.array([5.0, 14.0, 5.0])
+    o, d, tmin, tmax = _shadow_rays(rng, tris, light, 9001)
+    org = np.concatenate([o, tmin[:, None]], 1).astype(F32)
+    dirs = np.concatenate([d, tmax[:, None]], 1).astype(F32)
+    dirs[::5, 3] = -1.0  # some inactive rays
+    kw = {} if tiling == "auto" else {"tiles": 40} if tiling == "tiles=40" else {"tile_angle": float(np.radians(2))}
+    spec = PointGridSpec(**kw)
+    ctx = cl_context()
+    bufs = [clio.upload(ctx, a) for a in (triangles_f4(tris), org, dirs)]
+    pg = PointGrid(ctx)
+    try:
+        n = len(org)
+        pg.build(bufs[0], len(tris), *scene_box(tris), bufs[1], bufs[2], n, light, spec, exact=True)
+        h = pg.header_numpy()[0]
+        st = np.empty_like(ST_INIT)
+        clio.copy(ctx.queue, st, pg.outside_counter)
+    finally:
+        pg.release()
+        for b in bufs:
+            b.release()
+    step = max(1, n // FRAME_SAMPLE)
+    for got, want in zip((h["fwd"], h["up"], h["right"]), choose_frame(light, org[::step], dirs[::step]),
+                         strict=True):
+        assert np.allclose(got[:3], want, atol=2e-6), (got, want)
+    assert int(st[1]) == n // 5 + 1 and int(st[0]) < 0.01 * n  # inactive rays; nearly all in the grid
+    m, (a0, e0, a1, e1), na, nt = placement_reference(st, n, spec)
+    assert abs(h["centre"][3] - m) <= 1e-6 * m
+    assert np.allclose(h["rect"][:2], [a0, e0], atol=1e-6)
+    assert abs(int(h["res"][0]) - na) <= 1 and abs(int(h["res"][1]) - nt) <= 1, (h["res"], na, nt)
+    assert np.allclose(h["rect"][2:], [h["res"][0] / (a1 - a0), h["res"][1] / (e1 - e0)], rtol=1e-5)
+    cells = int(h["res"][0] * h["res"][1] * h["res"][2])
+    assert h["res"][3] == cells and h["up"][3] >= level_bits(max(1, (cells - 1).bit_length()))

@@ -174,15 +174,22 @@ void pg_classify(__global const PGrid *grid, __global const float4 *ray_o, __glo
     }
 }
 
+// The rays' sort keys: their tile, ntiles for rays outside the grid, ntiles + 1 for inactive
+// ones. When the triangle pairs overflowed their buffers (*pairs > cap: the grid holds nothing),
+// every ray of the grid is sent the other way too (appended to the outside list, st[PG_ST_OUTSIDE]
+// counting it), so the pass stays exact and the next one gets room.
 __kernel __attribute__((reqd_work_group_size(WG, 1, 1)))
 void pg_ray_keys(__global const PGrid *grid, __global const float *alpha, __global const float *theta,
-                 __global const uint *outside, const uint n, __global uint *keys, __global uint *vals) {
+                 __global const uint *outside, const uint n, __global uint *keys, __global uint *vals,
+                 __global const uint *pairs, const uint cap, __global uint *st, __global uint *out_idx) {
     uint i = get_global_id(0);
     if (i >= n) return;
     PGrid g = *grid;
     uint ntiles = (uint)(g.res.x * g.res.y);
     uint key = ntiles + outside[i] - 1u;  // after every tile: outside rays, then inactive ones
-    if (!outside[i]) {
+    if (!outside[i] && *pairs > cap) {
+        out_idx[atomic_inc(&st[PG_ST_OUTSIDE])] = i;
+    } else if (!outside[i]) {
         int ia = clamp((int)floor((alpha[i] - g.rect.x) * g.rect.z), 0, g.res.x - 1);
         int it = clamp((int)floor((theta[i] - g.rect.y) * g.rect.w), 0, g.res.y - 1);
         key = (uint)(ia + g.res.x * it);
@@ -399,12 +406,12 @@ __kernel __attribute__((reqd_work_group_size(WG, 1, 1)))
 void pg_tri_write(__global const PGrid *grid, const uint n, __global const uint *offsets,
                   __global const int4 *place, __global const int *place_slab, __global const uint *flags,
                   __global const float *tri_dmin, __global const uint *st, __global float4 *levels,
-                  __global uint *keys, __global uint *vals) {
+                  __global uint *keys, __global uint *vals, __global const uint *pairs, const uint cap) {
     uint i = get_global_id(0);
     PGrid g = *grid;
     float2 lv = pg_levels(&g, st);
     if (i == 0) levels[0] = (float4)(lv.x, lv.y, 0.0f, 0.0f);
-    if (i >= n) return;
+    if (i >= n || *pairs > cap) return;  // overflow: nothing is written (pg_ray_keys sends the rays elsewhere)
     if (flags[i] & 1u) return;
     int4 r = place[i];
     int slab = place_slab[i];
@@ -424,9 +431,107 @@ void pg_tri_write(__global const PGrid *grid, const uint n, __global const uint 
 // counts per cell from the segments of the sorted pair keys (zero-filled before; a cell's
 // segments are its distance levels)
 __kernel __attribute__((reqd_work_group_size(WG, 1, 1)))
-void pg_cell_counts(__global const uint *seg_key, __global const uint *seg_len, __global const uint *m_ptr,
-                    const uint qb, __global uint *counts) {
+void pg_cell_counts(__global const PGrid *grid, __global const uint *seg_key, __global const uint *seg_len,
+                    __global const uint *m_ptr, __global uint *counts) {
     uint i = get_global_id(0);
     if (i >= *m_ptr) return;  // the segment count, on the device (launched for a bound)
-    atomic_add(&counts[seg_key[i] >> qb], seg_len[i]);
+    atomic_add(&counts[seg_key[i] >> (uint)grid->up.w], seg_len[i]);  // up.w: the distance level bits
+}
+
+// The pairs the sort and the cell ranges take: the total, or 0 when it overflowed the buffers.
+__kernel void pg_pairs_clamp(__global const uint *pairs, const uint cap, __global uint *n_eff) {
+    n_eff[0] = *pairs <= cap ? *pairs : 0u;
+}
+
+// The grid's frame from a strided sample of the rays (one work-group of WG): fwd = the mean
+// direction from E of the sampled active rays (the direction of their segments, turned away from
+// E), so the rays lie far from the poles +-up of the spherical mapping; up = the world axis least
+// aligned with fwd, made orthogonal to it; right = up x fwd. Any orthonormal frame is exact (the
+// boxes are conservative in every frame); this one keeps tiles and boxes tight. The host's
+// choose_frame (pointgrid.py) is the same in float64.
+__kernel __attribute__((reqd_work_group_size(WG, 1, 1)))
+void pg_frame(__global PGrid *grid, __global const float4 *ray_o, __global const float4 *ray_d, const uint step,
+              const uint count) {
+#ifdef RT_HAVE_FP64
+    typedef double real;
+    typedef double3 real3;
+#define TO_REAL3 convert_double3
+#else
+    typedef float real;
+    typedef float3 real3;
+#define TO_REAL3(v) (v)
+#endif
+    __local real sx[WG], sy[WG], sz[WG];
+    __local uint sn[WG];
+    uint lid = get_local_id(0);
+    real3 E = TO_REAL3(grid->centre.xyz);
+    real3 acc = (real3)(0);
+    uint act = 0u;
+    for (uint k = lid; k < count; k += WG) {
+        float4 ot = ray_o[(size_t)k * step], dt = ray_d[(size_t)k * step];
+        if (!(dt.w > ot.w) || !all(isfinite(ot)) || !all(isfinite(dt.xyz))) continue;
+        real3 d = TO_REAL3(dt.xyz);
+        real len = sqrt(d.x * d.x + d.y * d.y + d.z * d.z);
+        if (!(len > 0)) continue;
+        real3 dn = d / len;
+        real3 p = TO_REAL3(ot.xyz) + (real)ot.w * d - E;
+        real lam = p.x * dn.x + p.y * dn.y + p.z * dn.z;
+        acc += lam >= 0 ? dn : -dn;
+        ++act;
+    }
+    sx[lid] = acc.x; sy[lid] = acc.y; sz[lid] = acc.z; sn[lid] = act;
+    barrier(CLK_LOCAL_MEM_FENCE);
+    if (lid != 0) return;
+    real3 m = (real3)(0);
+    uint total = 0u;
+    for (uint k = 0; k < WG; ++k) { m += (real3)(sx[k], sy[k], sz[k]); total += sn[k]; }
+    real ml = sqrt(m.x * m.x + m.y * m.y + m.z * m.z);
+    real3 f = (total && ml > (real)1e-9 * (real)total) ? m / ml : (real3)(0, 0, -1);
+    real3 af = fabs(f);
+    real3 axis = (af.x <= af.y && af.x <= af.z) ? (real3)(1, 0, 0) : (af.y <= af.z ? (real3)(0, 1, 0) : (real3)(0, 0, 1));
+    real3 up = axis - f * (axis.x * f.x + axis.y * f.y + axis.z * f.z);
+    up /= sqrt(up.x * up.x + up.y * up.y + up.z * up.z);
+    real3 right = (real3)(up.y * f.z - up.z * f.y, up.z * f.x - up.x * f.z, up.x * f.y - up.y * f.x);
+    grid->fwd.xyz = convert_float3(f);
+    grid->up.xyz = convert_float3(up);
+    grid->right.xyz = convert_float3(right);
+#undef TO_REAL3
+}
+
+// The grid's placement from the rays' statistics (pg_classify's st), in one work-item, so no
+// count comes back to the host: the margin (the largest deviation of a ray in the grid, at most
+// spec.x, plus the angles' error err), the rays' angular rectangle grown by twice the margin, the
+// tiles over it (pointgrid.py tile_counts: ~spec.y rays per tile, or spec.z tiles on the longer
+// side, or tiles of spec.w radians; at most 1024 per axis and tiles_cap in all: the bound the
+// host sized its buffers by), cells = tiles * slabs, and the distance level bits (key_bits less
+// the cell bits). n_cells[0] = cells + 1 (the cell_start scan's length).
+__kernel void pg_place(__global PGrid *grid, __global const uint *st, const uint n, const float4 spec,
+                       const float err, const uint tiles_cap, const uint key_bits, __global uint *n_cells) {
+    PGrid g = *grid;
+    uint in_grid = n - st[PG_ST_OUTSIDE] - st[PG_ST_INACTIVE];
+    float m = in_grid ? pg_unord(st[PG_ST_DEV]) * (1.0f + 1e-4f) + 1e-6f : spec.x;
+    m = fmin(m, spec.x) + err;
+    float a0 = 0.0f, a1 = 0.0f, e0 = 0.0f, e1 = 0.0f;
+    if (in_grid) {
+        a0 = pg_unord(st[PG_ST_A0]); a1 = pg_unord(st[PG_ST_A1]);
+        e0 = pg_unord(st[PG_ST_T0]); e1 = pg_unord(st[PG_ST_T1]);
+    }
+    a0 = fmax(a0 - 2.0f * m, -M_PI_F); a1 = fmin(a1 + 2.0f * m, M_PI_F);
+    e0 = fmax(e0 - 2.0f * m, -M_PI_2_F); e1 = fmin(e1 + 2.0f * m, M_PI_2_F);
+    float span_a = fmax((a1 - a0) * (e0 * e1 > 0.0f ? cos(fmin(fabs(e0), fabs(e1))) : 1.0f), 1e-9f);
+    float span_t = fmax(e1 - e0, 1e-9f);
+    float k;
+    if (spec.w > 0.0f) k = 1.0f / spec.w;
+    else if (spec.z > 0.0f) k = spec.z / fmax(span_a, span_t);
+    else k = sqrt((float)max(in_grid, 1u) / fmax(spec.y, 1.0f) / (span_a * span_t));
+    int na = (int)clamp(round(span_a * k), 1.0f, 1024.0f), nt = (int)clamp(round(span_t * k), 1.0f, 1024.0f);
+    if ((uint)(na * nt) > tiles_cap) nt = max(1, (int)(tiles_cap / (uint)na));  // never, by the host's bound
+    int ns = g.res.z;
+    uint ncells = (uint)(na * nt * ns);
+    uint cell_bits = max(1u, 32u - clz(ncells - 1u));
+    grid->centre.w = m;
+    grid->rect = (float4)(a0, e0, (float)na / (a1 - a0), (float)nt / (e1 - e0));
+    grid->res = (int4)(na, nt, ns, (int)ncells);
+    grid->up.w = (float)(key_bits > cell_bits ? key_bits - cell_bits : 0u);
+    n_cells[0] = ncells + 1u;
 }

@@ -1,11 +1,14 @@
 """Point-centred grid: angular tiles x distance slabs around a point every ray of a pass goes
 through (a point light for shadow rays, the eye for primary rays), with the rays sorted into
 chunks per tile. After Guntury & Narayanan (EGPGV 2010, per-light spherical grids) and Patidar &
-Narayanan (ICVGIP 2008, perspective grids); built per pass on the OpenCL device.
+Narayanan (ICVGIP 2008, perspective grids); built per pass on the OpenCL device with no host
+round trip: the frame, the placement, the buffer sizes and the trace's launch size never come
+back to the host.
 
 Build (kernels in pointgrid.cl beside this file, primitives from viewer.cl.primitives):
  1. frame: forward axis = mean direction from the centre of a strided sample of the rays (so the
-    rays lie away from the poles of the spherical mapping), up/right orthogonal to it (host).
+    rays lie away from the poles of the spherical mapping), up/right orthogonal to it (pg_frame,
+    one work-group; choose_frame is its float64 reference).
  2. rays: per ray, its direction u from the centre and an upper bound of how far (in angle) its
     segment strays from u where it could meet geometry: h / max(nearest along-ray distance,
     sqrt(d0^2 - h^2)), h = distance of the ray's line from the centre, d0 = distance from the
@@ -15,10 +18,11 @@ Build (kernels in pointgrid.cl beside this file, primitives from viewer.cl.primi
     it keeps, so rays that meet exactly in the centre (the eye) or lights outside the scene box
     cost no margin. The angles come from a polynomial atan2 (RAY_ANGLE_ERR is added to the
     margin). Counts and reductions are done in the same kernel (work-group reduction, one
-    atomic per group and value, into a small statistics buffer read back with one wait).
+    atomic per group and value, into a small statistics buffer `st` that stays on the device).
  3. angular rectangle of the rays, grown by the margin; tiles over it (~tile_rays rays per tile,
     `tiles` on the longer side, or tiles of `tile_angle` radians); slabs by distance from the
-    centre.
+    centre: pg_place, one work-item reading `st` (placement_reference is its float64
+    reference). The cell buffers are sized by tiles_bound, the most tiles it can choose.
  4. (tile, ray) pairs radix-sorted; segments cut into chunks of at most `chunk` rays.
  5. triangles: culled when two vertices are equal (never hit: far from the origin float32 snaps
     small meshes onto a coarse lattice, 91% of the dragon at 1e6) or, with `backface`, facing away
@@ -37,6 +41,15 @@ Build (kernels in pointgrid.cl beside this file, primitives from viewer.cl.primi
     segments, then an exclusive scan gives cell_start (ncells + 1 entries), so a tile's triangles
     are contiguous, in slab order and nearest first within a cell (the trace's in-cell stop).
 
+Sizes without waits: every count the later kernels need stays on the device (the primitives'
+device-count variants). The pair buffers are sized from the last pass of the same key (a light,
+a ray type; +25%): when a pass needs more, nothing is written, pg_ray_keys sends every ray of the
+grid to the outside list (so the pass stays exact: the caller traces that list another way) and
+the next pass gets room. The trace is launched with `launch_groups` persistent work-groups (the
+key's last chunk count + 1/8) that loop over the chunk count on the device. The counters
+(`stats`) are copied without a wait and reported by the key's next pass. A key's first pass (or
+exact=True: tests, studies) waits twice instead, so its buffers fit and its counters are its own.
+
 Asynchronous host writes (`_async`) do not wait: viewer.cl.io keeps their events until the
 queue next waits (a dropped pyopencl event of a non-blocking host copy would wait for the copy,
 a hidden host sync that stalled each build three times).
@@ -54,7 +67,9 @@ caller writes misses first), ray_vals uint32 (n,) ray indices in that order.
 
 from __future__ import annotations
 
+import sys
 import time
+from collections.abc import Hashable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -64,7 +79,6 @@ import numpy as np
 from viewer.cl import io as clio
 from viewer.cl.limits import pair_cap
 from viewer.cl.pool import BufferPool
-from viewer.errors import RtwalkError
 
 KERNEL = Path(__file__).resolve().parent / "pointgrid.cl"
 WG = 64
@@ -104,6 +118,7 @@ class PointGridStats:
     build_ms: float
     rearrange_ms: float = 0.0
     culled_backface: int = 0  # among `culled`
+    overflow: bool = False  # the pairs overflowed their buffers: every ray went the other way
 
     def as_dict(self, chunk: int) -> dict[str, float]:
         return {"pairs": float(self.pairs), "chunks": float(self.chunks),
@@ -122,6 +137,9 @@ LEVEL_BITS = 8  # at least this many distance level bits (pointgrid.cl pg_levels
 # room, rounded up to fill the radix sort's last 8-bit digit (no extra pass): the closest-hit trace stops a
 # ray at the first staged block whose level bound lies beyond its hit, so finer levels are free up to there
 # (the mixed scene: 15 cell bits + 9 level bits; 12 bits, a fourth sort pass, traced no faster)
+
+
+# -- float64 references of the device's placement (pg_frame, pg_place; tests compare them) --------
 
 
 def level_bits(cell_bits: int) -> int:
@@ -174,6 +192,105 @@ def tile_counts(span_a: float, span_t: float, rays: int, spec: PointGridSpec) ->
     return na, nt
 
 
+def placement_reference(st: np.ndarray, n: int, spec: PointGridSpec) -> tuple[float, tuple[float, ...], int, int]:
+    """pg_place in float64 from pg_classify's statistics `st` (uint32, ST_INIT's layout) for n rays:
+    (margin, (alpha0, theta0, alpha1, theta1), tiles in alpha, tiles in theta)."""
+    in_grid = n - int(st[0]) - int(st[1])
+    red = decode_ord(st[2:7]).astype(np.float64)
+    m = float(red[0]) * (1 + 1e-4) + 1e-6 if in_grid else spec.margin
+    m = min(m, spec.margin) + RAY_ANGLE_ERR
+    a0, a1, e0, e1 = (float(x) for x in red[1:]) if in_grid else (0.0, 0.0, 0.0, 0.0)
+    a0, a1 = max(a0 - 2 * m, -np.pi), min(a1 + 2 * m, np.pi)
+    e0, e1 = max(e0 - 2 * m, -np.pi / 2), min(e1 + 2 * m, np.pi / 2)
+    na, nt = tile_counts((a1 - a0) * (np.cos(min(abs(e0), abs(e1))) if e0 * e1 > 0 else 1.0), e1 - e0, in_grid,
+                         spec)
+    return m, (a0, e0, a1, e1), na, nt
+
+
+FRAME_SAMPLE = 4096  # rays (strided) pg_frame takes the mean direction of
+
+
+def tiles_bound(n: int, spec: PointGridSpec) -> int:
+    """The most tiles pg_place (pointgrid.cl, the device's tile_counts) can choose for n rays: with
+    x, y the unrounded tiles per axis (at most 1024 after clipping), round(x) round(y) <= x y +
+    (x + y) / 2 + 1/4 <= rays / tile_rays + 1025; `tiles` gives at most tiles^2, `tile_angle`
+    (2 pi / a + 1)(pi / a + 1). The host sizes the cell buffers by it, so they never overflow."""
+    cap = MAX_TILES_AXIS * MAX_TILES_AXIS
+    if spec.tile_angle > 0:
+        cap = min(cap, int((2 * np.pi / spec.tile_angle + 2) * (np.pi / spec.tile_angle + 2)))
+    elif spec.tiles > 0:
+        cap = min(cap, int(spec.tiles) ** 2)
+    else:
+        cap = min(cap, -(-max(n, 1) // max(int(spec.tile_rays), 1)) + 1025)
+    return max(cap, 1)
+
+
+@dataclass
+class _Late:
+    """A pass's counters, copied to the host without a wait: valid once `ready` (the next pass of
+    the same key is a frame later, after the frame's own waits)."""
+
+    raw: np.ndarray  # uint32 (16,): pg_classify / pg_tri_count statistics (12), pairs, chunks, tiles alpha, theta
+    event: Any
+    n: int
+    cap: int
+    chunk: int  # rays per chunk (0: one chunk per tile)
+    slabs: int
+
+    @classmethod
+    def read(cls, q: Any, st: Any, pairs: Any, chunks: Any, header: Any, n: int, cap: int, chunk: int,
+             slabs: int) -> _Late:
+        raw = np.zeros(16, np.uint32)
+        clio.copy(q, raw[0:12], st, is_blocking=False)
+        clio.copy(q, raw[12:13], pairs, is_blocking=False)
+        clio.copy(q, raw[13:14], chunks, is_blocking=False)
+        ev = clio.copy(q, raw[14:16], header, src_offset=PGRID_DTYPE.fields["res"][1], is_blocking=False)
+        return cls(raw, ev, n, cap, chunk, slabs)
+
+    def ready(self, cl: Any) -> bool:
+        """The copies have landed (an in-order queue: the last one's status; no wait). `cl`: pyopencl."""
+        return self.event.get_info(cl.event_info.COMMAND_EXECUTION_STATUS) == cl.command_execution_status.COMPLETE
+
+    @property
+    def pairs(self) -> int:
+        return int(self.raw[12])
+
+    @property
+    def chunks(self) -> int:
+        return int(self.raw[13])
+
+    @property
+    def outside(self) -> int:
+        return int(self.raw[0])
+
+    @property
+    def inactive(self) -> int:
+        return int(self.raw[1])
+
+    def stats(self, build_ms: float, rearrange_ms: float) -> PointGridStats:
+        """PointGridStats of that pass (an overflow shows no pairs: every ray went the other way)."""
+        st, c = self.raw, self.chunk
+        overflow = self.pairs > self.cap
+        sentinel = sum((-(-k // c) if c else 1) if k else 0 for k in (self.outside, self.inactive))
+        return PointGridStats((int(st[14]), int(st[15])), self.slabs, self.n, self.n - self.outside - self.inactive,
+                              self.outside, self.inactive, self.chunks - sentinel, 0 if overflow else self.pairs,
+                              int(st[ST_CULLED]), int(st[ST_CULLED + 1]), build_ms, rearrange_ms,
+                              culled_backface=int(st[ST_CULLED + 2]), overflow=overflow)
+
+
+@dataclass
+class _Pass:
+    """What place() leaves for rearrange()."""
+
+    key: Hashable
+    exact: bool
+    n: int
+    cap: int
+    tiles_cap: int
+    late: _Late | None
+    build_ms: float
+
+
 class PointGrid:
     """Per-pass point-centred grid on the device (buffers reused across builds)."""
 
@@ -184,15 +301,18 @@ class PointGrid:
         self.ctx = ctx or cl_context()
         self.prims = prims or primitives(self.ctx)
         prog = build(KERNEL, {"WG": WG}, self.ctx)
-        self._k = {name: clio.kernel(prog, name) for name in
-                   ("pg_classify", "pg_ray_keys", "pg_tri_count", "pg_tri_write", "pg_cell_counts")}
+        self._k = clio.kernels(prog, ("pg_frame", "pg_classify", "pg_place", "pg_ray_keys", "pg_tri_count",
+                                      "pg_tri_write", "pg_pairs_clamp", "pg_cell_counts"))
         self._bufs = BufferPool(self.ctx, "light grid")
         self.header_host = np.zeros(1, PGRID_DTYPE)
         self.header = self.buf("header", PGRID_DTYPE.itemsize)
         self.stats: PointGridStats | None = None
         self.chunks = None
-        self.outside_count = 0
-        self.inactive_count = 0
+        self.launch_groups = 0  # work-groups of the trace launch (persistent: they loop over the chunks)
+        self._late: dict[Hashable, _Late] = {}  # pass key -> its last pass's counters (copied without a wait)
+        self._pass: _Pass | None = None
+        self._capacity = 0  # room for pairs (the pair buffers' size)
+        self._told_limit = False
         self._n_hosts: dict[str, tuple[int, int]] = {}  # name -> (n, buffer id) last written
 
     def buf(self, name: str, nbytes: int) -> Any:
@@ -203,106 +323,98 @@ class PointGrid:
             self._k[name](self.ctx.queue, (-(-n // WG) * WG,), (WG,), *args)
 
     def build(self, tris: Any, n_tris: int, scene_lo: np.ndarray, scene_hi: np.ndarray, ray_o: Any, ray_d: Any,
-              n: int, centre: np.ndarray, sample: tuple[np.ndarray, np.ndarray], spec: PointGridSpec) -> PointGridStats:
+              n: int, centre: np.ndarray, spec: PointGridSpec, key: Hashable = None,
+              exact: bool | None = None) -> PointGridStats:
         """Both halves: `place` (frame, ray directions, tiles; triangle pairs) then `rearrange` (rays)."""
-        self.place(tris, n_tris, scene_lo, scene_hi, ray_o, ray_d, n, centre, sample, spec)
+        self.place(tris, n_tris, scene_lo, scene_hi, ray_o, ray_d, n, centre, spec, key, exact)
         return self.rearrange(n, spec)
 
+    def hard_cap(self) -> int:
+        """The most pairs one build may hold: MAX_PAIRS and the device's memory."""
+        return min(MAX_PAIRS, pair_cap(self.ctx, PAIR_BYTES))
+
     def place(self, tris: Any, n_tris: int, scene_lo: np.ndarray, scene_hi: np.ndarray, ray_o: Any, ray_d: Any,
-              n: int, centre: np.ndarray, sample: tuple[np.ndarray, np.ndarray], spec: PointGridSpec) -> None:
+              n: int, centre: np.ndarray, spec: PointGridSpec, key: Hashable = None, exact: bool | None = None) -> None:
         """The grid around `centre` for the n rays in (ray_o, ray_d) (viewer.cl.transfer layout): steps
-        1-3 and 5 of the module docstring (the data-structure build)."""
+        1-3 and 5 of the module docstring (the data-structure build), all on the device.
+
+        `key` names the pass (a light, a ray type): its pair buffers are sized from its last pass
+        (+25%, copied without a wait; an overflow sends every ray the other way and the next pass
+        gets room), and its counters (`stats`) are that last pass's. The first pass of a key, or
+        exact=True, waits twice (the pair total, the chunk count) so its buffers fit and its counters
+        are its own."""
         cl, q, u = self.ctx.cl, self.ctx.queue, np.uint32
         p = self.prims
         t0 = time.perf_counter()
+        late = self._late.get(key)
+        if late is not None and not late.ready(cl):  # not landed yet (no wait since): size as a first pass
+            late = None
+        exact = late is None or bool(exact)  # exact=False cannot size a pass no earlier one measured
         centre = np.asarray(centre, np.float64)
-        fwd, up, right = choose_frame(centre, *sample)
         d0 = float(np.linalg.norm(centre - np.clip(centre, scene_lo, scene_hi))) * (1 - 1e-6)
-        h = np.zeros(1, PGRID_DTYPE)
-        h["centre"][0, :3], h["centre"][0, 3] = centre, spec.margin
-        h["fwd"][0, :3], h["up"][0, :3], h["right"][0, :3] = fwd, up, right
-        h["fwd"][0, 3] = 1.0 if spec.backface else 0.0  # the kernels' back-face switch
-        h["slab"][0, 2:] = (np.tan(spec.margin), d0)
-        h["res"][0] = (1, 1, 1, 1)
-        self._async(self.header, h.copy())  # a copy: h changes below
-        alpha, theta = self.buf("alpha", 4 * n), self.buf("theta", 4 * n)
-        outside, out_idx = self.buf("outside", 4 * n), self.buf("outside_idx", 4 * n)
-        # the rays' counts (outside, inactive), largest deviation and angular rectangle, and the
-        # triangles' culled / widened counts: one small buffer, reset by this (asynchronous) write,
-        # filled by pg_classify and pg_tri_count with atomics, read back in two batches (one wait each)
-        st_buf = self.buf("st", ST_INIT.nbytes)
-        self._async(st_buf, ST_INIT.copy())
-        self._run("pg_classify", n, self.header, ray_o, ray_d, u(n), alpha, theta, outside, st_buf, out_idx)
-        st = np.zeros(7, np.uint32)
-        if n:
-            clio.copy(q, st, st_buf)
-        cnt, red = st[:2], decode_ord(st[2:7])
-        self.outside_count, self.inactive_count = int(cnt[0]), int(cnt[1])
-        in_grid = n - self.outside_count - self.inactive_count
-        # margin: the largest deviation of a ray in the grid (at most spec.margin), plus float slack
-        m = float(red[0]) * (1 + 1e-4) + 1e-6 if in_grid else spec.margin
-        m = min(m, spec.margin) + RAY_ANGLE_ERR  # the rays' angles come from a polynomial atan2
-        h["centre"][0, 3] = m
-        self.margin = m
-        # the rays' angular rectangle, grown by the margin
-        if in_grid:
-            a0, a1, e0, e1 = (float(x) for x in red[1:])
-        else:
-            a0 = a1 = e0 = e1 = 0.0
-        a0, a1 = max(a0 - 2 * m, -np.pi), min(a1 + 2 * m, np.pi)
-        e0, e1 = max(e0 - 2 * m, -np.pi / 2), min(e1 + 2 * m, np.pi / 2)
-        na, nt = tile_counts((a1 - a0) * np.cos(min(abs(e0), abs(e1)) if e0 * e1 > 0 else 0.0), e1 - e0,
-                             in_grid, spec)
-        ns = max(1, int(spec.slabs))
         corners = np.array([[x, y, z] for x in (scene_lo[0], scene_hi[0]) for y in (scene_lo[1], scene_hi[1])
                             for z in (scene_lo[2], scene_hi[2])], np.float64)
         dmax = float(np.linalg.norm(corners - centre, axis=1).max()) * 1.0001 + 1e-30
+        ns = max(1, int(spec.slabs))
         width = max(dmax - d0, 1e-30) / ns
-        h["rect"][0] = (a0, e0, na / (a1 - a0), nt / (e1 - e0))
-        h["slab"][0, :2] = (width, 1.0 / width)
-        ncells = na * nt * ns
-        h["res"][0] = (na, nt, ns, ncells)
-        cell_bits = max(1, (ncells - 1).bit_length())
-        qbits = level_bits(cell_bits)
-        h["up"][0, 3] = qbits
-        self.header_host = h
+        h = np.zeros(1, PGRID_DTYPE)
+        h["centre"][0, :3], h["centre"][0, 3] = centre, spec.margin
+        h["fwd"][0, 3] = 1.0 if spec.backface else 0.0  # the kernels' back-face switch
+        h["slab"][0] = (width, 1.0 / width, np.tan(spec.margin), d0)
+        h["res"][0] = (1, 1, ns, ns)
+        self.header_host = h  # the device completes it (pg_frame, pg_place); header_numpy() reads it back
         self._async(self.header, h)
+        alpha, theta = self.buf("alpha", 4 * n), self.buf("theta", 4 * n)
+        outside, out_idx = self.buf("outside", 4 * n), self.buf("outside_idx", 4 * n)
+        st_buf = self.buf("st", ST_INIT.nbytes)
+        self._async(st_buf, ST_INIT)
+        if n:  # the frame from a strided sample of the rays (one work-group)
+            step = max(1, n // FRAME_SAMPLE)
+            self._k["pg_frame"](q, (WG,), (WG,), self.header, ray_o, ray_d, u(step), u(-(-n // step)))
+        # the rays' directions and deviations; their counts, rectangle and largest deviation into st
+        self._run("pg_classify", n, self.header, ray_o, ray_d, u(n), alpha, theta, outside, st_buf, out_idx)
+        tiles_cap = tiles_bound(n, spec)
+        cells_cap = tiles_cap * ns
+        key_bits = min(32, -(-(max(1, (cells_cap - 1).bit_length()) + LEVEL_BITS) // 8) * 8)
+        spec4 = np.array([spec.margin, spec.tile_rays, spec.tiles, spec.tile_angle], np.float32)
+        n_cells = self.buf("n_cells", 4)
+        self._k["pg_place"](q, (1,), None, self.header, st_buf, u(n), spec4, np.float32(RAY_ANGLE_ERR), u(tiles_cap),
+                            u(key_bits), n_cells)
         # triangles: (cell, triangle) pairs
         from viewer.cl.primitives import Chunks
 
-        counts, flags = self.buf("tri_counts", 4 * max(n_tris, 1)), self.buf("tri_flags", 4 * max(n_tris, 1))
-        place, place_slab = self.buf("tri_place", 16 * max(n_tris, 1)), self.buf("tri_slab", 4 * max(n_tris, 1))
-        dmin, box = self.buf("tri_dmin", 4 * max(n_tris, 1)), self.buf("tri_box", 16 * max(n_tris, 1))
+        nt1 = max(n_tris, 1)
+        counts, flags = self.buf("tri_counts", 4 * nt1), self.buf("tri_flags", 4 * nt1)
+        place, place_slab = self.buf("tri_place", 16 * nt1), self.buf("tri_slab", 4 * nt1)
+        dmin, box = self.buf("tri_dmin", 4 * nt1), self.buf("tri_box", 16 * nt1)
         self._run("pg_tri_count", n_tris, self.header, tris, u(n_tris), counts, flags, place, place_slab, dmin,
                   st_buf, box)
-        # the pair total and the culled / widened counts (count-only compactions): one wait
-        got = np.zeros(4, np.uint32)
+        pairs_buf = self.buf("pairs", 4)
         if n_tris:
-            nt_buf = self._n_buf(n_tris, "n_tris")
-            p.exclusive_scan_dev(counts, counts, nt_buf, n_tris, self.buf("pairs", 4))
-            ev = clio.copy(q, got[1:4], st_buf, src_offset=4 * ST_CULLED, is_blocking=False)
-            clio.copy(q, got[0:1], self._bufs["pairs"])  # the one wait (ev is done with it)
-            del ev
-        pairs, culled, widened, back = (int(x) for x in got)
-        cap = min(MAX_PAIRS, pair_cap(self.ctx, PAIR_BYTES))  # the device's memory bounds it too
-        if pairs > cap:
-            raise RtwalkError(f"point grid {na}x{nt}x{ns} needs {pairs:,} triangle-cell pairs (at most {cap:,} "
-                              "on this OpenCL device): use fewer tiles")
-        keys, refs = self.buf("keys", 4 * pairs), self.buf("refs", 4 * pairs)
-        self._run("pg_tri_write", max(n_tris, 1), self.header, u(n_tris), counts, place, place_slab, flags, dmin,
-                  st_buf, self.buf("levels", 16), keys, refs)
-        cell_start = self.buf("cell_start", 4 * (ncells + 1))
-        cl.enqueue_fill_buffer(q, cell_start, np.uint32(0), 0, 4 * (ncells + 1))
-        if pairs:
-            p.sort_pairs(keys, refs, pairs, key_bits=cell_bits + qbits)
-            seg = p.segments_dev(keys, self._bufs["pairs"], pairs, None,
-                                 Chunks(0, self.buf("seg_key", 4 * pairs), self.buf("seg_start", 4 * pairs),
-                                        self.buf("seg_len", 4 * pairs)), self.buf("seg_count", 4))
-            self._run("pg_cell_counts", pairs, seg.key, seg.length, self._bufs["seg_count"], u(qbits), cell_start)
-        p.exclusive_scan_dev(cell_start, cell_start, self._n_buf(ncells + 1, "n_cells"), ncells + 1,
-                             self.buf("cells_total", 4))
-        self.stats = PointGridStats((na, nt), ns, n, in_grid, self.outside_count, self.inactive_count, 0, int(pairs),
-                                    int(culled), int(widened), (time.perf_counter() - t0) * 1e3, culled_backface=back)
+            p.exclusive_scan_dev(counts, counts, self._n_buf(n_tris, "n_tris"), n_tris, pairs_buf)
+        else:
+            cl.enqueue_fill_buffer(q, pairs_buf, u(0), 0, 4)
+        if exact:  # one wait: the pair total sizes the buffers
+            got = np.zeros(1, np.uint32)
+            clio.copy(q, got, pairs_buf)
+            cap = min(max(int(got[0]), 1), self.hard_cap())
+        else:
+            cap = min(max(self._capacity, -(-late.pairs * 5 // 4) + 1024), self.hard_cap())
+        self._capacity = max(self._capacity, cap)
+        keys, refs = self.buf("keys", 4 * cap), self.buf("refs", 4 * cap)
+        self._run("pg_tri_write", nt1, self.header, u(n_tris), counts, place, place_slab, flags, dmin, st_buf,
+                  self.buf("levels", 16), keys, refs, pairs_buf, u(cap))
+        n_eff = self.buf("n_eff", 4)
+        self._k["pg_pairs_clamp"](q, (1,), None, pairs_buf, u(cap), n_eff)
+        cell_start = self.buf("cell_start", 4 * (cells_cap + 1))
+        cl.enqueue_fill_buffer(q, cell_start, u(0), 0, 4 * (cells_cap + 1))
+        p.sort_pairs_dev(keys, refs, n_eff, cap, key_bits)
+        seg = p.segments_dev(keys, n_eff, cap, None,
+                             Chunks(0, self.buf("seg_key", 4 * cap), self.buf("seg_start", 4 * cap),
+                                    self.buf("seg_len", 4 * cap)), self.buf("seg_count", 4))
+        self._run("pg_cell_counts", cap, self.header, seg.key, seg.length, self._bufs["seg_count"], cell_start)
+        p.exclusive_scan_dev(cell_start, cell_start, n_cells, cells_cap + 1, self.buf("cells_total", 4))
+        self._pass = _Pass(key, exact, n, cap, tiles_cap, late, (time.perf_counter() - t0) * 1e3)
 
     def _async(self, buf: Any, host: np.ndarray) -> None:
         """An asynchronous write of `host` to `buf` (viewer.cl.io keeps its event, and so `host`,
@@ -320,24 +432,59 @@ class PointGrid:
 
     def rearrange(self, n: int, spec: PointGridSpec, balance: bool = True) -> PointGridStats:
         """Step 4: (tile, ray) pairs sorted, chunks of at most spec.chunk rays (balance=False: one
-        chunk per tile, whatever its size). One wait: the chunk count sizes the trace launch."""
+        chunk per tile, whatever its size); the chunk count stays on the device (`chunk_count`),
+        and the trace launch gets `launch_groups` persistent work-groups: the last pass's chunk
+        count (+1/8), or, on an exact pass, this one's (its second wait)."""
         from viewer.cl.primitives import Chunks
 
-        assert self.stats is not None, "place first"
+        ps = self._pass
+        assert ps is not None and ps.n == n, "place first"
+        q, u = self.ctx.queue, np.uint32
         t0 = time.perf_counter()
-        na, nt = self.stats.tiles
-        ntiles = na * nt
+        st_buf = self._bufs["st"]
         rk, rv = self.buf("ray_keys", 4 * n), self.buf("ray_vals", 4 * n)
         self._run("pg_ray_keys", n, self.header, self._bufs["alpha"], self._bufs["theta"], self._bufs["outside"],
-                  np.uint32(n), rk, rv)
-        self.prims.sort_pairs(rk, rv, n, key_bits=max(1, (ntiles + 1).bit_length()))
+                  u(n), rk, rv, self._bufs["pairs"], u(ps.cap), st_buf, self._bufs["outside_idx"])
+        self.prims.sort_pairs(rk, rv, n, key_bits=max(1, (ps.tiles_cap + 1).bit_length()))
         out = Chunks(0, self.buf("ch_key", 4 * n), self.buf("ch_start", 4 * n), self.buf("ch_len", 4 * n))
-        self.chunks = self.prims.segments(rk, n, spec.chunk if balance else None, out=out)
-        sentinel = sum((-(-k // spec.chunk) if balance else 1) if k else 0
-                       for k in (self.outside_count, self.inactive_count))
-        self.stats.chunks = self.chunks.count - sentinel  # chunks of outside / inactive rays are not traced here
-        self.stats.rearrange_ms = (time.perf_counter() - t0) * 1e3
+        self.chunks = self.prims.segments_dev(rk, self._n_buf(n, "n_rays"), n, spec.chunk if balance else None, out,
+                                              self.buf("chunk_count", 4))
+        bound = min(n, (-(-n // spec.chunk) if balance else 0) + min(ps.tiles_cap, n) + 2)
+        # this pass's counters, copied without a wait (the next pass of the key reports them)
+        now = _Late.read(q, st_buf, self._bufs["pairs"], self._bufs["chunk_count"], self.header, n, ps.cap,
+                         spec.chunk if balance else 0, max(1, int(spec.slabs)))
+        self._late[ps.key] = now
+        if ps.exact:
+            clio.finish(q)
+            shown = now
+            self.chunks.count = now.chunks
+            self.launch_groups = max(now.chunks, 1)
+        else:
+            shown = ps.late
+            self.launch_groups = max(1, min(bound, ps.late.chunks + ps.late.chunks // 8 + 64))
+        self.stats = shown.stats(ps.build_ms, (time.perf_counter() - t0) * 1e3)
+        if shown.pairs > self.hard_cap() and not self._told_limit:  # said once: the passes stay exact, slower
+            self._told_limit = True
+            print(f"rtwalk: note: a light grid of {shown.stats(0, 0).tiles} tiles needs {shown.pairs:,} triangle-cell "
+                  f"pairs, more than this OpenCL device holds ({self.hard_cap():,}): its rays take the uniform grid "
+                  "(use fewer tiles: tile_rays, tiles or tile_deg)", file=sys.stderr, flush=True)
         return self.stats
+
+    @property
+    def chunk_count(self) -> Any:
+        """uint32 device buffer: the chunks of the last rearrange (the trace reads it)."""
+        return self._bufs["chunk_count"]
+
+    @property
+    def outside_counter(self) -> Any:
+        """uint32 device buffer whose first value counts the rays listed in outside_index."""
+        return self._bufs["st"]
+
+    def header_numpy(self) -> np.ndarray:
+        """The header as the device completed it (tests and studies: a wait)."""
+        out = np.zeros(1, PGRID_DTYPE)
+        clio.copy(self.ctx.queue, out, self.header)
+        return out
 
     @property
     def cell_start(self) -> Any:

@@ -169,26 +169,24 @@ class PgridBackend(GeometryBackend):
         self._grid_fresh = True
 
     # -- tracing --------------------------------------------------------------------------
-    def _centre(self, pinfo: PassInfo, rs) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
-        """(centre, sampled origins, sampled directions) for a point-grid pass, else None."""
+    def _centre(self, pinfo: PassInfo, rs) -> np.ndarray | None:
+        """The centre of a point-grid pass (float64 (3,)), else None. A shadow pass's is its light
+        (no read); an angular primary pass's is the eye, the origin of its first active ray in a
+        strided sample (one wait: `primary=angular` only)."""
         rt = pinfo.ray_type
         lights = getattr(self.bc.scene, "point_lights", [])
         if rt == RayType.SHADOW and 0 <= pinfo.light < len(lights):
-            centre = np.asarray(lights[pinfo.light].position, np.float64)
-        elif rt == RayType.PRIMARY and self.params.primary != "grid":
-            centre = None
-        else:
+            return np.asarray(lights[pinfo.light].position, np.float64)
+        if rt != RayType.PRIMARY or self.params.primary == "grid":
             return None
         step = max(1, rs.n // SAMPLE)
         count = -(-rs.n // step)  # rows 0, step, ... (as o[::step]); only these cross
         so = clio.read_strided(self.ctx.queue, rs.origin, step, count, (4,), np.float32, is_blocking=False)
         sd = clio.read_strided(self.ctx.queue, rs.dir, step, count, (4,), np.float32)  # one wait for both
-        if centre is None:
-            act = np.flatnonzero(sd[:, 3] > so[:, 3])
-            if len(act) == 0:
-                return None
-            centre = so[act[0], :3].astype(np.float64)  # the eye: every primary ray starts there
-        return centre, so, sd
+        act = np.flatnonzero(sd[:, 3] > so[:, 3])
+        if len(act) == 0:
+            return None
+        return so[act[0], :3].astype(np.float64)  # the eye: every primary ray starts there
 
     def trace(self, rays: RayBatch, pinfo: PassInfo, hits: HitBuffer) -> TraceResult:
         rs, hs, tests = self.stages.get(rays.size)
@@ -198,7 +196,7 @@ class PgridBackend(GeometryBackend):
 
     def trace_device(self, rays, pinfo: PassInfo, hits) -> TraceResult:
         """Trace CL ray buffers (viewer.cl.RayStage layout) into CL hit buffers (HitStage): only the
-        few rays the point grids are placed from cross (a strided sample)."""
+        rays of an angular primary pass cross (a strided sample to find the eye)."""
         return self._trace(rays, hits, None, pinfo, rays.size, None)
 
     def _trace(self, rs, hs, tests, pinfo: PassInfo, size: tuple[int, int], hits: HitBuffer | None) -> TraceResult:
@@ -219,32 +217,30 @@ class PgridBackend(GeometryBackend):
                 self.tracer.enqueue(rs.origin, rs.dir, hs.t, hs.tri, rs.n, pinfo.any_hit,
                                     tests if count else None)
         else:
-            centre, so, sd = point
+            centre = point
             pg = self.pgrid
             spec = self.params.point_spec()
             # primary rays meet in the eye: back faces are culled where that is exact (as the camera grid)
             spec.backface = pinfo.ray_type == RayType.PRIMARY and self._backface(centre)
+            key = (label, int(pinfo.light))  # buffers sized from this light's (ray type's) last pass
             with prof.cl_phase(f"pgrid:build:{label}", q):
-                pg.place(self._tris, self._n_tris, *self._box, rs.origin, rs.dir, rs.n, centre, (so, sd), spec)
+                pg.place(self._tris, self._n_tris, *self._box, rs.origin, rs.dir, rs.n, centre, spec, key)
             with prof.cl_phase(f"pgrid:rearrange:{label}", q):
                 st = pg.rearrange(rs.n, spec, balance=self.params.balance)
-            if st.outside:
-                self._ensure_grid()
+            self._ensure_grid()  # once per geometry: the rays outside the grid (a count only the device knows)
             with prof.cl_phase(f"trace:{label}", q):
-                if st.inactive:  # inactive rays are in no chunk: their answer is a miss (and no test)
-                    self.ctx.cl.enqueue_fill_buffer(q, hs.t, np.float32(np.inf), 0, 4 * rs.n)
-                    self.ctx.cl.enqueue_fill_buffer(q, hs.tri, np.int32(-1), 0, 4 * rs.n)
-                    if count:
-                        self.ctx.cl.enqueue_fill_buffer(q, tests, np.int32(0), 0, 4 * rs.n)
-                if pg.chunks.count:
-                    ch = pg.chunks
-                    self._kernels[count](q, (pg.chunks.count * self.params.chunk,), (self.params.chunk,), pg.header,
-                                         ch.key, ch.start, ch.length, pg.ray_vals, pg.cell_start, pg.refs, self._tris,
-                                         rs.origin, rs.dir, hs.t, hs.tri, np.int32(pinfo.any_hit), tests,
-                                         np.int32(self._from_far(centre)), pg.keys, pg.levels, *pg.ray_angles,
-                                         pg.tri_box)
-                self.tracer.enqueue(rs.origin, rs.dir, hs.t, hs.tri, st.outside, pinfo.any_hit,
-                                    tests if count else None, index=pg.outside_index)
+                # inactive rays are in no chunk and outside no grid: their answer is a miss (and no test)
+                self.ctx.cl.enqueue_fill_buffer(q, hs.t, np.float32(np.inf), 0, 4 * rs.n)
+                self.ctx.cl.enqueue_fill_buffer(q, hs.tri, np.int32(-1), 0, 4 * rs.n)
+                if count:
+                    self.ctx.cl.enqueue_fill_buffer(q, tests, np.int32(0), 0, 4 * rs.n)
+                ch, wg = pg.chunks, self.params.chunk
+                self._kernels[count](q, (pg.launch_groups * wg,), (wg,), pg.header, ch.key, ch.start, ch.length,
+                                     pg.ray_vals, pg.cell_start, pg.refs, self._tris, rs.origin, rs.dir, hs.t,
+                                     hs.tri, np.int32(pinfo.any_hit), tests, np.int32(self._from_far(centre)),
+                                     pg.keys, pg.levels, *pg.ray_angles, pg.tri_box, pg.chunk_count)
+                self.tracer.enqueue(rs.origin, rs.dir, hs.t, hs.tri, rs.n, pinfo.any_hit,
+                                    tests if count else None, index=pg.outside_index, n_device=pg.outside_counter)
             stats.update(st.as_dict(self.params.chunk))
             # the same per ray type (the renderer sums a frame's passes)
             stats.update({f"{k}_{label}": v for k, v in st.as_dict(self.params.chunk).items()})
@@ -328,11 +324,16 @@ class PgridBackend(GeometryBackend):
 
     def _chunk_maps(self, n: int) -> tuple[np.ndarray, np.ndarray]:
         """Per ray: its chunk (-1 outside the grid) and the rays of its tile (0 outside)."""
+        import dataclasses
+
         pg = self.pgrid
-        key, start, length = pg.chunks.to_numpy(self.ctx)
+        got = np.zeros(1, np.uint32)
+        clio.copy(self.ctx.queue, got, pg.chunk_count)  # this pass's (the stats may be the last pass's)
+        key, start, length = dataclasses.replace(pg.chunks, count=int(got[0])).to_numpy(self.ctx)
         vals = np.empty(n, np.uint32)
         clio.copy(self.ctx.queue, vals, pg.ray_vals)
-        ntiles = pg.stats.tiles[0] * pg.stats.tiles[1]
+        res = pg.header_numpy()["res"][0]
+        ntiles = int(res[0]) * int(res[1])
         inside = key < ntiles
         chunk_of = np.full(n, -1, np.int32)
         tile_rays = np.zeros(n, np.int32)

@@ -12,7 +12,9 @@
 //  * both: a ray tests a staged triangle only when its own angles lie in the triangle's angular
 //    box (tri_box: the box it was binned by), the binning test at full resolution.
 // A tile without triangles (background) writes misses at once; empty slabs are skipped.
-// Chunks whose key is the "outside" tile (ntiles) return at once: those rays go another way.
+// Chunks whose key is the "outside" tile (ntiles) are not traced: those rays go another way. The
+// work-groups are persistent: each takes chunks group, group + groups, ... up to the chunk count
+// on the device, so the launch is sized without reading that count back.
 // A chunk of more than WG rays (load balancing off: whole tiles) is traced WG rays at a time.
 // With COUNT_TESTS, each ray's triangle tests are written to `tests`.
 #include "geometry.cl"
@@ -67,7 +69,7 @@ void pg_trace(__global const PGrid *grid, __global const uint *chunk_key, __glob
               __global const float4 *ray_d, __global float *out_t, __global int *out_id, const int any_hit,
               __global int *tests_out, const int from_far, __global const uint *keys,
               __global const float4 *levels, __global const float *ray_alpha, __global const float *ray_theta,
-              __global const float4 *tri_box) {
+              __global const float4 *tri_box, __global const uint *chunk_count) {
     __local float4 sv[9 * (WG / 4)];  // staged triangles, four per block in SoA form
     __local int sslot[WG];
     __local float slo[WG];  // closest hit: lower bounds of the staged triangles' distances from E
@@ -75,11 +77,14 @@ void pg_trace(__global const PGrid *grid, __global const uint *chunk_key, __glob
     __local int remaining;
     __local uint far_bits;
     PGrid g = *grid;
-    uint c = get_group_id(0);
     uint lid = get_local_id(0);
-    uint key = chunk_key[c];
     uint ntiles = (uint)(g.res.x * g.res.y);
-    if (key >= ntiles) return;  // uniform for the whole work-group
+    // persistent: the work-groups take chunks c, c + groups, ... up to the chunk count the build
+    // left on the device (the launch is sized without reading it back)
+    uint nchunks = *chunk_count;
+    for (uint c = get_group_id(0); c < nchunks; c += get_num_groups(0)) {
+    uint key = chunk_key[c];
+    if (key >= ntiles) break;  // uniform for the work-group; keys are sorted, so every later chunk too
     uint len = chunk_len[c];
     uint cell0 = key * (uint)g.res.z;
     if (cell_start[cell0] == cell_start[cell0 + (uint)g.res.z]) {
@@ -93,7 +98,7 @@ void pg_trace(__global const PGrid *grid, __global const uint *chunk_key, __glob
             tests_out[ri] = 0;
 #endif
         }
-        return;
+        continue;
     }
     // a chunk longer than WG (no load balancing: one work-group per tile) is done WG rays at a time
     for (uint rb = 0; rb < len; rb += WG) {
@@ -229,4 +234,5 @@ void pg_trace(__global const PGrid *grid, __global const uint *chunk_key, __glob
 #endif
     }
     }
+}  // chunks
 }
