@@ -11,7 +11,7 @@ are clipped in double first, no longer drawn as screen rectangles), and the frag
 the exact distance as depth. Each corner carries the triangle's depth lower bound and the shader
 declares it writes no less (depth_greater), so fragments behind what is already drawn may be
 dropped before the exact test (`rtwalk bench-gbuffer`, city-near: the exact raster went from
-3.8-4.6x the preview's time to 1.9-2.5x on llvmpipe). Moving frames in the window
+3.8-4.6x the preview's time to 2.3-2.8x at 640x360 on llvmpipe). Moving frames in the window
 need no such exactness, only speed, so two cheaper sources serve them (the renderer's
 `gbuffer_source`):
 - "preview": `render(camera, preview=True)`, a plain raster of the same culled triangles without
