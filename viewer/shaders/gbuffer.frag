@@ -17,6 +17,10 @@ layout(location = 3) out int outId;
 #ifdef PREVIEW
 layout(early_fragment_tests) in;
 flat in int vTri;
+#else
+// the rasterized depth is the triangle's lower bound (gbuffer.geom depthLowerBound) and the depth
+// written is never less, so the GL may test the bound before this shader runs
+layout(depth_greater) out float gl_FragDepth;
 #endif
 void main() {
 #ifdef PREVIEW
