@@ -1,9 +1,10 @@
 // Device BVH build: Morton order + PLOC clustering + SAH leaf collapse (viewer/accel/bvh_device.py).
 // Defines: WG (work-items per group of the per-element kernels), RADIUS (PLOC search radius),
-// MAX_LEAF, MIN_LEAF (leaf sizes as in viewer/accel/bvh.py).
+// MAX_LEAF, MIN_LEAF (leaf sizes as in viewer/accel/bvh.py), MARK0 (first iteration mark in `marks`).
 //
-// Nodes 0..n-1 are the triangles in Morton order (node i = triangle perm[i]); merged nodes get ids
-// n, n+1, ... from an atomic counter, so a child's id is always below its parent's. Clusters are
+// Nodes 0..n-1 are the triangles in Morton order (node i = triangle perm[i]); merged (inner) nodes
+// get ids n, n+1, ... from an atomic counter, so a child's id is always below its parent's, and are
+// stored at id - n (no per-triangle node records: a triangle's box is recomputed). Clusters are
 // (node id, box) triples in Morton order; an iteration is nearest -> merge -> count -> scan ->
 // scatter, all reading the cluster count from the device (cnt[p]) so the host need not read it.
 
@@ -28,17 +29,21 @@ inline void block_range(uint b, uint nb, uint n, uint* s, uint* e) {
     *e = (uint)(((ulong)(b + 1) * n) / nb);
 }
 
-// Triangle boxes (exact float32 min/max of the vertices) and box centres per axis.
-__kernel void tri_boxes(__global const float* tri, uint n, __global float4* bmin, __global float4* bmax,
-                        __global float* cx, __global float* cy, __global float* cz) {
+inline void tri_box(__global const float* tri, uint t, float4* lo, float4* hi) {
+    __global const float* v = tri + 9 * (size_t)t;
+    float4 a = (float4)(v[0], v[1], v[2], 0.0f), b = (float4)(v[3], v[4], v[5], 0.0f),
+           c = (float4)(v[6], v[7], v[8], 0.0f);
+    *lo = fmin(fmin(a, b), c);
+    *hi = fmax(fmax(a, b), c);
+}
+
+// Box centres per axis (the boxes themselves are recomputed where needed: cheaper than storing them).
+__kernel void tri_boxes(__global const float* tri, uint n, __global float* cx, __global float* cy,
+                        __global float* cz) {
     uint i = get_global_id(0);
     if (i >= n) return;
-    __global const float* t = tri + 9 * (size_t)i;
-    float4 a = (float4)(t[0], t[1], t[2], 0.0f), b = (float4)(t[3], t[4], t[5], 0.0f),
-           c = (float4)(t[6], t[7], t[8], 0.0f);
-    float4 lo = fmin(fmin(a, b), c), hi = fmax(fmax(a, b), c);
-    bmin[i] = lo;
-    bmax[i] = hi;
+    float4 lo, hi;
+    tri_box(tri, i, &lo, &hi);
     float4 m = (lo + hi) * 0.5f;
     cx[i] = m.x;
     cy[i] = m.y;
@@ -56,28 +61,13 @@ __kernel void morton(__global const float* cx, __global const float* cy, __globa
     vals[i] = i;
 }
 
-// Leaf nodes (one per triangle, Morton order) and the first clusters.
-__kernel void init_leaves(__global const uint* perm, __global const float4* bmin, __global const float4* bmax,
-                          uint n, __global float4* nmin, __global float4* nmax, __global int* left,
-                          __global int* right, __global int* parent, __global int* count, __global int* kept_nodes,
-                          __global int* height, __global uint* uheight, __global float* cost,
-                          __global uchar* leaf_ok, __global uint* cnode, __global float4* cmin,
-                          __global float4* cmax) {
+// The first clusters: one per triangle in Morton order (node i = triangle perm[i]), with its exact box.
+__kernel void init_leaves(__global const float* tri, __global const uint* perm, uint n, __global uint* cnode,
+                          __global float4* cmin, __global float4* cmax) {
     uint i = get_global_id(0);
     if (i >= n) return;
-    uint t = perm[i];
-    float4 lo = bmin[t], hi = bmax[t];
-    nmin[i] = lo;
-    nmax[i] = hi;
-    left[i] = -1;
-    right[i] = -1;
-    parent[i] = -1;
-    count[i] = 1;
-    kept_nodes[i] = 1;
-    height[i] = 0;
-    uheight[i] = 0;
-    cost[i] = half_area(lo, hi);
-    leaf_ok[i] = 1;
+    float4 lo, hi;
+    tri_box(tri, perm[i], &lo, &hi);
     cnode[i] = i;
     cmin[i] = lo;
     cmax[i] = hi;
@@ -162,40 +152,54 @@ __kernel void nearest_block(__global const uint* cnt, uint p, __global const flo
     }
 }
 
-// Mutual nearest pairs (i < j) merge into a new node that takes cluster slot i; slot j is dropped
-// by the compaction. The node's SAH cost is the cheaper of a leaf and the split (traversal 1,
-// intersection 1 per triangle, in area units), as a bottom-up dynamic programme.
+// Mutual nearest pairs (i < j) merge into a new inner node that takes cluster slot i; slot j is
+// dropped by the compaction. Inner node v (>= n) is stored at v - n; a child below n is a triangle
+// (count 1, kept 1, height 0, cost its box's area, the box being its cluster's). The node's SAH
+// cost is the cheaper of a leaf and the split (traversal 1, intersection 1 per triangle, in area
+// units), as a bottom-up dynamic programme.
 __kernel void merge(__global const uint* cnt, uint p, __global const uint* nn, __global uint* cnode,
-                    __global float4* cmin, __global float4* cmax, volatile __global uint* next_node,
+                    __global float4* cmin, __global float4* cmax, uint n_tri, volatile __global uint* next_node,
                     __global float4* nmin, __global float4* nmax, __global int* left, __global int* right,
-                    __global int* parent, __global int* count, __global int* kept_nodes, __global int* height,
-                    __global uint* uheight, __global float* cost, __global uchar* leaf_ok) {
+                    __global int* count, __global int* kept_nodes, __global int* height, __global float* cost,
+                    __global uchar* leaf_ok) {
     uint n = cnt[p];
     uint i = get_global_id(0);
     if (i >= n || n <= 1) return;
     uint j = nn[i];
     if (j <= i || nn[j] != i) return;
     uint a = cnode[i], b = cnode[j];
-    float4 lo = fmin(cmin[i], cmin[j]), hi = fmax(cmax[i], cmax[j]);
+    float4 alo = cmin[i], ahi = cmax[i], blo = cmin[j], bhi = cmax[j];
+    float4 lo = fmin(alo, blo), hi = fmax(ahi, bhi);
+    int ca = 1, cb = 1, ka = 1, kb = 1, ha = 0, hb = 0;
+    float sa, sb;
+    if (a >= n_tri) {
+        uint u = a - n_tri;
+        ca = count[u]; ka = kept_nodes[u]; ha = height[u]; sa = cost[u];
+    } else {
+        sa = half_area(alo, ahi);
+    }
+    if (b >= n_tri) {
+        uint u = b - n_tri;
+        cb = count[u]; kb = kept_nodes[u]; hb = height[u]; sb = cost[u];
+    } else {
+        sb = half_area(blo, bhi);
+    }
     uint v = atomic_inc(next_node);
-    nmin[v] = lo;
-    nmax[v] = hi;
-    left[v] = (int)a;
-    right[v] = (int)b;
-    parent[v] = -1;
-    parent[a] = (int)v;
-    parent[b] = (int)v;
-    int c = count[a] + count[b];
-    count[v] = c;
+    uint w = v - n_tri;
+    nmin[w] = lo;
+    nmax[w] = hi;
+    left[w] = (int)a;
+    right[w] = (int)b;
+    int c = ca + cb;
+    count[w] = c;
     float area = half_area(lo, hi);
-    float split = area + cost[a] + cost[b];
+    float split = area + sa + sb;
     float leaf = (float)c * area;
     uchar ok = c <= MIN_LEAF || (c <= MAX_LEAF && leaf <= split);
-    leaf_ok[v] = ok;
-    cost[v] = ok ? leaf : split;
-    kept_nodes[v] = ok ? 1 : 1 + kept_nodes[a] + kept_nodes[b];
-    height[v] = ok ? 0 : 1 + max(height[a], height[b]);
-    uheight[v] = 1 + max(uheight[a], uheight[b]);
+    leaf_ok[w] = ok;
+    cost[w] = ok ? leaf : split;
+    kept_nodes[w] = ok ? 1 : 1 + ka + kb;
+    height[w] = ok ? 0 : 1 + max(ha, hb);
     cnode[i] = v;
     cmin[i] = lo;
     cmax[i] = hi;
@@ -216,8 +220,11 @@ __kernel void count_kept(__global const uint* cnt, uint p, __global const uint* 
     bsum[b] = k;
 }
 
-// One work-item: exclusive scan of the block counts; the new cluster count goes to cnt[1 - p].
-__kernel void scan_blocks(__global uint* bsum, uint nb, __global uint* cnt, uint p) {
+// One work-item: exclusive scan of the block counts; the new cluster count goes to cnt[1 - p], and
+// the node counter after this iteration's merges to marks[MARK0 + it + 1] (the layout's top-down pass
+// walks the iterations backwards: a node's parent was made in a later iteration).
+__kernel void scan_blocks(__global uint* bsum, uint nb, __global uint* cnt, uint p,
+                          __global const uint* next_node, __global uint* marks, uint it) {
     if (get_global_id(0) != 0) return;
     uint acc = 0;
     for (uint b = 0; b < nb; ++b) {
@@ -226,6 +233,7 @@ __kernel void scan_blocks(__global uint* bsum, uint nb, __global uint* cnt, uint
         acc += k;
     }
     cnt[1 - p] = acc;
+    marks[MARK0 + it + 1] = *next_node;
 }
 
 __kernel void scatter(__global const uint* cnt, uint p, __global const uint* nn, uint nb,
@@ -245,55 +253,59 @@ __kernel void scatter(__global const uint* cnt, uint p, __global const uint* nn,
     }
 }
 
-// Pointer-jumping state per node: (slot offset, preorder offset, depth, ancestor). A node's own
-// term: as a right child it is preceded by its left sibling's triangles and kept nodes; every
-// non-root node is one below its parent. Summed over the path to the root they give the node's
-// first triangle slot, its preorder index among the kept nodes and its depth.
-// Nodes inside a leaf (an ancestor was chosen as a leaf) get ancestor -2: they take no part (no
-// kept node points at them) and `emit` skips them.
-__kernel void jump_init(uint m, __global const int* left, __global const int* right, __global const int* parent,
-                        __global const int* count, __global const int* kept_nodes, __global const uchar* leaf_ok,
-                        __global int4* st) {
-    uint v = get_global_id(0);
-    if (v >= m) return;
-    int u = parent[v];
-    for (int w = u; w >= 0 && count[w] <= MAX_LEAF; w = parent[w]) {
-        if (leaf_ok[w]) {
-            st[v] = (int4)(0, 0, 0, -2);
-            return;
-        }
-    }
-    int4 s = (int4)(0, 0, 0, -1);
-    if (u >= 0) {
-        bool r = right[u] == (int)v;
-        int l = left[u];
-        s = (int4)(r ? count[l] : 0, 1 + (r ? kept_nodes[l] : 0), 1, u);
-    }
-    st[v] = s;
+// ---- layout -----------------------------------------------------------------------------------
+// Kept nodes (no ancestor chosen as a leaf) get a preorder index p; per p: pnode (node id), pfirst
+// (first triangle slot), pdepth (depth, later the sort key that turns preorder into breadth-first
+// order) and order (p itself, the sort's value). Inner node v also keeps ipre[v - n] = p, or -1
+// inside a leaf. The root is placed first; then `place` runs once per PLOC iteration, newest first,
+// over the nodes that iteration made, each placing its two children (its own entry was written by
+// its parent, made in a later iteration, so placed by an earlier launch).
+
+// marks[0] = root node id, marks[1] = kept nodes (read by the host with the iteration marks).
+__kernel void place_root(__global const uint* cnode, uint n_tri, __global const int* kept_nodes,
+                         __global uint* marks, __global uint* pnode, __global int* pfirst, __global uint* pdepth,
+                         __global uint* order, __global int* ipre) {
+    if (get_global_id(0) != 0) return;
+    uint root = cnode[0];
+    marks[0] = root;
+    marks[1] = root >= n_tri ? (uint)kept_nodes[root - n_tri] : 1u;
+    pnode[0] = root;
+    pfirst[0] = 0;
+    pdepth[0] = 0;
+    order[0] = 0;
+    if (root >= n_tri) ipre[root - n_tri] = 0;
 }
 
-__kernel void jump(uint m, __global const int4* src, __global int4* dst) {
-    uint v = get_global_id(0);
-    if (v >= m) return;
-    int4 s = src[v];
-    if (s.w >= 0) {
-        int4 a = src[s.w];
-        s = (int4)(s.x + a.x, s.y + a.y, s.z + a.z, a.w);
-    }
-    dst[v] = s;
+inline void put(uint q, uint v, int first, uint depth, uint n_tri, __global uint* pnode, __global int* pfirst,
+                __global uint* pdepth, __global uint* order, __global int* ipre) {
+    pnode[q] = v;
+    pfirst[q] = first;
+    pdepth[q] = depth;
+    order[q] = q;
+    if (v >= n_tri) ipre[v - n_tri] = (int)q;
 }
 
-// Kept nodes (no ancestor chosen as a leaf) by preorder index: pnode[pre] = node; the depth is the
-// sort key that turns preorder into breadth-first order (`order`: BFS position -> preorder index).
-__kernel void preorder(uint m, __global const int4* st, __global uint* pnode, __global uint* keys,
-                       __global uint* order) {
-    uint v = get_global_id(0);
-    if (v >= m) return;
-    int4 s = st[v];
-    if (s.w == -2) return;  // inside a leaf
-    pnode[s.y] = v;
-    keys[s.y] = (uint)s.z;
-    order[s.y] = (uint)s.y;
+// Nodes lo .. hi - 1 (ids, all >= n_tri) place their children.
+__kernel void place(uint lo, uint hi, uint n_tri, __global const int* left, __global const int* right,
+                    __global const int* count, __global const int* kept_nodes, __global const uchar* leaf_ok,
+                    __global uint* pnode, __global int* pfirst, __global uint* pdepth, __global uint* order,
+                    __global int* ipre) {
+    uint v = lo + get_global_id(0);
+    if (v >= hi) return;
+    uint u = v - n_tri;
+    int q = ipre[u];
+    uint l = (uint)left[u], r = (uint)right[u];
+    if (q < 0 || leaf_ok[u]) {  // inside a leaf, or a leaf: the inner nodes below are not kept
+        if (l >= n_tri) ipre[l - n_tri] = -1;
+        if (r >= n_tri) ipre[r - n_tri] = -1;
+        return;
+    }
+    int f = pfirst[q];
+    uint d = pdepth[q] + 1;
+    int cl = l >= n_tri ? count[l - n_tri] : 1;
+    uint kl = l >= n_tri ? (uint)kept_nodes[l - n_tri] : 1u;
+    put((uint)q + 1, l, f, d, n_tri, pnode, pfirst, pdepth, order, ipre);
+    put((uint)q + 1 + kl, r, f + cl, d, n_tri, pnode, pfirst, pdepth, order, ipre);
 }
 
 __kernel void invert(uint m, __global const uint* order, __global int* rank) {
@@ -302,44 +314,76 @@ __kernel void invert(uint m, __global const uint* order, __global int* rank) {
     rank[order[k]] = (int)k;
 }
 
-// The canonical tree in breadth-first order (rank: preorder index -> BFS position); a leaf also
-// writes its triangles (left subtree first) to tri_order at its first slot.
-__kernel void emit(uint m, __global const uint* order, __global const int* rank, __global const uint* pnode,
-                   __global const int4* st, __global const float4* nmin, __global const float4* nmax,
-                   __global const int* left, __global const int* right, __global const int* parent,
-                   __global const int* count, __global const int* height, __global const uchar* leaf_ok,
-                   __global const uint* perm, __global float4* omin, __global float4* omax, __global int* oleft,
-                   __global int* oright, __global int* ofirst, __global int* ocount, __global int* oparent,
-                   __global int* odepth, __global int* oheight, __global int* tri_order) {
+// The canonical tree in breadth-first order k (order: k -> preorder index, depth: the sorted keys,
+// rank: preorder index -> k) into one int buffer `out` (float boxes as bits): min and max (3 floats
+// per node), then left, right, first, count, parent, depth, height (m each), then tri_order (n).
+// A leaf writes its triangles (left subtree first) to tri_order from its first slot; an inner node
+// writes its children's parent entries.
+__kernel void emit(uint m, uint n_tri, __global const uint* order, __global const uint* depth,
+                   __global const int* rank, __global const uint* pnode, __global const int* pfirst,
+                   __global const float* tri, __global const uint* perm, __global const float4* nmin,
+                   __global const float4* nmax, __global const int* left, __global const int* right,
+                   __global const int* count, __global const int* kept_nodes, __global const int* height,
+                   __global const uchar* leaf_ok, __global int* out) {
     uint k = get_global_id(0);
     if (k >= m) return;
-    int v = (int)pnode[order[k]];
-    int4 s = st[v];
-    omin[k] = nmin[v];
-    omax[k] = nmax[v];
-    ofirst[k] = s.x;
-    ocount[k] = count[v];
-    odepth[k] = s.z;
-    oheight[k] = height[v];
-    int u = parent[v];
-    oparent[k] = u >= 0 ? rank[st[u].y] : -1;
-    if (!leaf_ok[v]) {
-        oleft[k] = rank[st[left[v]].y];
-        oright[k] = rank[st[right[v]].y];
+    __global float* omin = (__global float*)out;
+    __global float* omax = omin + 3 * (size_t)m;
+    __global int* oleft = out + 6 * (size_t)m;
+    __global int* oright = oleft + m;
+    __global int* ofirst = oright + m;
+    __global int* ocount = ofirst + m;
+    __global int* oparent = ocount + m;
+    __global int* odepth = oparent + m;
+    __global int* oheight = odepth + m;
+    __global int* tri_order = oheight + m;
+    uint q = order[k];
+    uint v = pnode[q];
+    int first = pfirst[q];
+    ofirst[k] = first;
+    odepth[k] = (int)depth[k];
+    if (k == 0) oparent[0] = -1;
+    if (v < n_tri) {  // a single-triangle leaf
+        float4 lo, hi;
+        uint t = perm[v];
+        tri_box(tri, t, &lo, &hi);
+        vstore3(lo.xyz, k, omin);
+        vstore3(hi.xyz, k, omax);
+        ocount[k] = 1;
+        oheight[k] = 0;
+        oleft[k] = -1;
+        oright[k] = -1;
+        tri_order[first] = (int)t;
+        return;
+    }
+    uint u = v - n_tri;
+    vstore3(nmin[u].xyz, k, omin);
+    vstore3(nmax[u].xyz, k, omax);
+    ocount[k] = count[u];
+    oheight[k] = height[u];
+    if (!leaf_ok[u]) {
+        uint l = (uint)left[u];
+        uint kl = l >= n_tri ? (uint)kept_nodes[l - n_tri] : 1u;
+        int rl = rank[q + 1], rr = rank[q + 1 + kl];
+        oleft[k] = rl;
+        oright[k] = rr;
+        oparent[rl] = (int)k;
+        oparent[rr] = (int)k;
         return;
     }
     oleft[k] = -1;
     oright[k] = -1;
-    int stack[MAX_LEAF + 1];
-    int sp = 0, w = v, slot = s.x;
+    uint stack[MAX_LEAF + 1];
+    int sp = 0, slot = first;
+    uint w = v;
     for (;;) {
-        if (left[w] < 0) {
+        if (w < n_tri) {
             tri_order[slot++] = (int)perm[w];
             if (sp == 0) break;
             w = stack[--sp];
         } else {
-            stack[sp++] = right[w];
-            w = left[w];
+            stack[sp++] = (uint)right[w - n_tri];
+            w = (uint)left[w - n_tri];
         }
     }
 }

@@ -54,12 +54,16 @@ KERNEL = Path(__file__).resolve().parent / "bvh_device.cl"
 WG = 64
 RADIUS = 8
 CHECK_EVERY = 4
-#: device bytes per triangle of the buffers build() allocates (all kept for the next build): input,
-#: boxes, centres, keys + sort scratch, 2 nodes x (boxes, 8 int fields, flag), 2 x clusters, nn,
-#: 2 nodes x 2 pointer-jumping states, outputs, preorder / BFS sort buffers, tri_order
-BYTES_PER_TRIANGLE = 36 + 32 + 12 + 16 + 2 * (32 + 8 * 4 + 1) + 2 * 36 + 4 + 2 * 2 * 16 + 60 + 16 + 4
+#: device bytes per triangle of the buffers build() allocates: input, centres, keys + sort scratch,
+#: inner nodes (boxes, 6 int fields, flag), 2 x clusters, nn, iteration marks, layout (preorder
+#: arrays, rank: up to 2n - 1 kept nodes, about 0.9 n in practice), and the finished tree (13 words
+#: a kept node, tri_order), the one buffer not kept for the next build (the BVH's arrays are views
+#: of it). Only the pages a build writes are ever touched.
+OUT_BYTES_PER_TRIANGLE = 2 * 13 * 4 + 4
+BYTES_PER_TRIANGLE = 36 + 12 + 16 + (32 + 6 * 4 + 1) + 2 * 36 + 4 + 4 + 2 * 6 * 4 + OUT_BYTES_PER_TRIANGLE
+MARK0 = 2  # marks[0]: root id, marks[1]: kept nodes, marks[MARK0 + i]: node counter before iteration i
 _KERNELS = ("tri_boxes", "morton", "init_leaves", "nearest", "nearest_block", "merge", "count_kept", "scan_blocks",
-            "scatter", "jump_init", "jump", "preorder", "invert", "emit")
+            "scatter", "place_root", "place", "invert", "emit")
 
 
 class DeviceBvhBuilder:
@@ -80,7 +84,7 @@ class DeviceBvhBuilder:
         self.check_every = max(int(check_every), 1)
         self.block_nearest = True  # nearest_block (each pair once) rather than nearest (per cluster)
         prog = build(KERNEL, {"WG": WG, "RADIUS": int(radius), "MAX_LEAF": self.max_leaf,
-                              "MIN_LEAF": self.min_leaf}, self.ctx)
+                              "MIN_LEAF": self.min_leaf, "MARK0": MARK0}, self.ctx)
         self._k = clio.kernels(prog, _KERNELS)
         self._bufs = BufferPool(self.ctx)
         self.phases: dict[str, float] = {}
@@ -122,7 +126,7 @@ class DeviceBvhBuilder:
         from viewer.errors import RtwalkError
 
         dev = self.ctx.device
-        largest = 16 * 2 * n  # node boxes and pointer-jumping state: 16 bytes per node
+        largest = OUT_BYTES_PER_TRIANGLE * n  # the finished tree
         total = BYTES_PER_TRIANGLE * n
         if largest > dev.max_mem_alloc_size or total > dev.global_mem_size:
             raise RtwalkError(f"device BVH build of {n:,} triangles needs {total / 2**30:.1f} GiB of device memory "
@@ -141,14 +145,12 @@ class DeviceBvhBuilder:
             raise ValueError("at most 2**30 triangles")
         q = self.ctx.queue
         u = np.uint32
-        m_all = 2 * n - 1
         self.check_memory(n)
         b = self._buf
         tri_buf = b("tri", tri.nbytes)
         clio.copy(q, tri_buf, tri, is_blocking=False)
-        bmin, bmax = b("bmin", 16 * n), b("bmax", 16 * n)
         cx, cy, cz = b("cx", 4 * n), b("cy", 4 * n), b("cz", 4 * n)
-        self._run("tri_boxes", n, tri_buf, u(n), bmin, bmax, cx, cy, cz)
+        self._run("tri_boxes", n, tri_buf, u(n), cx, cy, cz)
         t = self._phase("upload+boxes", t_start)
 
         # -- Morton codes, sorted ---------------------------------------------------------------
@@ -165,21 +167,25 @@ class DeviceBvhBuilder:
         t = self._phase("morton+sort", t)
 
         # -- PLOC ---------------------------------------------------------------------------------
-        nmin, nmax = b("nmin", 16 * m_all), b("nmax", 16 * m_all)
-        names = ("left", "right", "parent", "count", "kept_nodes", "height", "uheight", "cost")
-        left, right, parent, count, kept_nodes, height, uheight, cost = (b(k, 4 * m_all) for k in names)
-        leaf_ok = b("leaf_ok", m_all)
+        ni = max(n - 1, 1)  # inner nodes (ids n .. 2n - 2, stored at id - n)
+        nmin, nmax = b("nmin", 16 * ni), b("nmax", 16 * ni)
+        names = ("left", "right", "count", "kept_nodes", "height", "cost")
+        left, right, count, kept_nodes, height, cost = (b(k, 4 * ni) for k in names)
+        leaf_ok = b("leaf_ok", ni)
         cnode = [b("cnode0", 4 * n), b("cnode1", 4 * n)]
         cmin = [b("cmin0", 16 * n), b("cmin1", 16 * n)]
         cmax = [b("cmax0", 16 * n), b("cmax1", 16 * n)]
         nn = b("nn", 4 * n)
         cnt = b("cnt", 8)
         next_node = b("next_node", 4)
-        clio.copy(q, cnt, np.array([n, n], np.uint32))
-        clio.copy(q, next_node, np.array([n], np.uint32))
-        self._run("init_leaves", n, perm, bmin, bmax, u(n), nmin, nmax, left, right, parent, count, kept_nodes,
-                  height, uheight, cost, leaf_ok, cnode[0], cmin[0], cmax[0])
-        node_args = (next_node, nmin, nmax, left, right, parent, count, kept_nodes, height, uheight, cost, leaf_ok)
+        # marks: root id, kept nodes, then the node counter before each iteration (at most n - 1
+        # iterations, run check_every at a time; pages never written are never touched)
+        marks = b("marks", 4 * (n + MARK0 + self.check_every))
+        clio.copy(q, cnt, np.array([n, n], np.uint32), is_blocking=False)
+        clio.copy(q, next_node, np.array([n], np.uint32), is_blocking=False)
+        clio.copy(q, marks, np.array([0, 1, n], np.uint32), is_blocking=False)
+        self._run("init_leaves", n, tri_buf, perm, u(n), cnode[0], cmin[0], cmax[0])
+        node_args = (u(n), next_node, nmin, nmax, left, right, count, kept_nodes, height, cost, leaf_ok)
         p = 0  # cnt[p] is the current cluster count; cluster arrays [p] are current
         n_host = n
         iters = 0
@@ -195,46 +201,49 @@ class DeviceBvhBuilder:
                     self._run("nearest", n_host, cnt, u(p), cmin[s], cmax[s], nn)
                 self._run("merge", n_host, cnt, u(p), nn, cnode[s], cmin[s], cmax[s], *node_args)
                 self._task("count_kept", nb, cnt, u(p), nn, u(nb), bsum)
-                self._task("scan_blocks", 1, bsum, u(nb), cnt, u(p))
+                self._task("scan_blocks", 1, bsum, u(nb), cnt, u(p), next_node, marks, u(iters))
                 self._task("scatter", nb, cnt, u(p), nn, u(nb), bsum, cnode[s], cmin[s], cmax[s],
                            cnode[1 - s], cmin[1 - s], cmax[1 - s])
                 p = 1 - p
                 iters += 1
             n_host = int(self._read(cnt, 2, np.uint32)[p])
         self.iterations = iters
-        root = int(self._read(cnode[p], 1, np.uint32)[0])
         t = self._phase("ploc", t)
 
-        # -- layout: pointer jumping, then the canonical arrays -------------------------------
-        hdr = self._read(kept_nodes, 1, np.int32, 4 * root)
-        m = int(hdr[0])
-        tree_height = int(self._read(uheight, 1, np.uint32, 4 * root)[0])
-        st = [b("st0", 16 * m_all), b("st1", 16 * m_all)]
-        self._run("jump_init", m_all, u(m_all), left, right, parent, count, kept_nodes, leaf_ok, st[0])
-        passes = max(1, int(np.ceil(np.log2(tree_height + 1))) + 1)
-        for i in range(passes):
-            self._run("jump", m_all, u(m_all), st[i % 2], st[1 - i % 2])
-        st_final = st[passes % 2]
-        # breadth-first order: stable sort of the preorder by depth (depth <= tree_height)
-        pnode, dkeys, order, rank = b("pnode", 4 * m), b("dkeys", 4 * m), b("order", 4 * m), b("rank", 4 * m)
-        self._run("preorder", m_all, u(m_all), st_final, pnode, dkeys, order)
-        self.prims.sort_pairs(dkeys, order, m, key_bits=max(tree_height.bit_length(), 1))
+        # -- layout: top down, one launch per PLOC iteration, then breadth-first order ----------
+        lnames = ("pnode", "pfirst", "pdepth", "order", "ipre")
+        pnode, pfirst, pdepth, order, ipre = (b(k, 4 * (2 * n - 1)) for k in lnames)
+        self._task("place_root", 1, cnode[p], u(n), kept_nodes, marks, pnode, pfirst, pdepth, order, ipre)
+        mk = self._read(marks, iters + MARK0 + 1, np.uint32)  # root, kept nodes, iteration marks
+        m = int(mk[1])
+        place_args = (u(n), left, right, count, kept_nodes, leaf_ok, pnode, pfirst, pdepth, order, ipre)
+        for it in range(iters - 1, -1, -1):  # newest nodes first: parents before children
+            lo_id, hi_id = int(mk[MARK0 + it]), int(mk[MARK0 + it + 1])
+            self._run("place", hi_id - lo_id, u(lo_id), u(hi_id), *place_args)
+        # breadth-first order: stable sort of the preorder by depth (depth <= iterations)
+        self.prims.sort_pairs(pdepth, order, m, key_bits=max(iters.bit_length(), 1))
+        rank = b("rank", 4 * (2 * n - 1))
         self._run("invert", m, u(m), order, rank)
-        onames = ("left", "right", "first", "count", "parent", "depth", "height")
-        outs = {k: b("o" + k, 16 * m) for k in ("min", "max")}
-        outs.update({k: b("o" + k, 4 * m) for k in onames})
-        tri_order = b("tri_order", 4 * n)
-        self._run("emit", m, u(m), order, rank, pnode, st_final, nmin, nmax, left, right, parent, count, height,
-                  leaf_ok, perm, outs["min"], outs["max"], *(outs[k] for k in onames), tri_order)
+        # the finished tree goes to a buffer of its own, mapped (not copied) for the host: the BVH's
+        # arrays are views of it (zero-copy on a CPU device)
+        from viewer.cl.limits import new_buffer
+
+        words = 13 * m + n
+        out = new_buffer(self.ctx, self.ctx.cl.mem_flags.READ_WRITE, 4 * words, "device BVH tree")
+        self._run("emit", m, u(m), u(n), order, pdepth, rank, pnode, pfirst, tri_buf, perm, nmin, nmax, left,
+                  right, count, kept_nodes, height, leaf_ok, out)
         t = self._phase("layout", t)
 
-        host = {k: self._read(outs[k], 4 * m, np.float32).reshape(m, 4)[:, :3].copy() for k in ("min", "max")}
-        host.update({k: self._read(outs[k], m, np.int32) for k in onames})
-        order = self._read(tri_order, n, np.int32)
-        stats = tree_stats(host["min"], host["max"], host["left"], host["count"], host["depth"], n)
-        bvh = BVH(node_min=host["min"], node_max=host["max"], node_left=host["left"], node_right=host["right"],
-                  node_first=host["first"], node_count=host["count"], node_parent=host["parent"],
-                  node_height=host["height"], node_depth=host["depth"], tri_order=order, stats=stats)
+        cl = self.ctx.cl
+        flat, _ = clio.map_buffer(q, out, cl.map_flags.READ | cl.map_flags.WRITE, 0, (words,), np.int32)
+        fl = flat.view(np.float32)
+        ints = [flat[(6 + i) * m:(7 + i) * m] for i in range(7)]
+        node_left, node_right, node_first, node_count, node_parent, node_depth, node_height = ints
+        node_min, node_max = fl[:3 * m].reshape(m, 3), fl[3 * m:6 * m].reshape(m, 3)
+        stats = tree_stats(node_min, node_max, node_left, node_count, node_depth, n)
+        bvh = BVH(node_min=node_min, node_max=node_max, node_left=node_left, node_right=node_right,
+                  node_first=node_first, node_count=node_count, node_parent=node_parent,
+                  node_height=node_height, node_depth=node_depth, tri_order=flat[13 * m:], stats=stats)
         self._phase("read-back", t)
         stats.build_time_s = time.perf_counter() - t_start
         return bvh
