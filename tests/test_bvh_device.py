@@ -97,6 +97,16 @@ def test_leaf_parameters():
     check_tree(bvh, tris, max_leaf=8, min_leaf=1)
 
 
+def test_one_triangle_leaves():
+    """Leaves of one triangle: 2n - 1 kept nodes, more than the buffers the layout borrows from PLOC
+    and more than the cluster-box buffer the tree is written to when it fits (both fall back)."""
+    tris = box_grid_tris(2000, seed=5)
+    bvh = device_bvh(tris, max_leaf=1, min_leaf=1)
+    check_tree(bvh, tris, max_leaf=1, min_leaf=1)
+    walk_reaches_each_node_once(bvh)
+    assert bvh.stats.nodes == 2 * len(tris) - 1
+
+
 def _trace_clbvh(tris, bvh, o, d, lo, hi, any_hit):
     """clbvh on the given tree; ids mapped back to the input triangles."""
     from viewer.backends.clbvh import ClbvhScene
@@ -163,21 +173,26 @@ def test_glsl_on_device_tree_matches_float64(monkeypatch):
 
 
 def test_block_nearest_equals_per_cluster_nearest():
-    """The pair-once block kernel finds the same neighbours as the plain per-cluster search (so the
-    same tree), across block boundaries and with more blocks than clusters at the end."""
+    """The pair-once block kernels (scalar and eight pairs at a time) find the same neighbours as the
+    plain per-cluster search (so the same tree), across block boundaries and with more blocks than
+    clusters at the end."""
     from viewer.accel.bvh_device import device_builder
 
     tris = box_grid_tris(5000, seed=8)
     b = device_builder()
+    assert b.vector_nearest  # radius 8: eight pairs at a time
     try:
         b.block_nearest = False
         plain = b.build(tris)
-        b.block_nearest = True
+        b.block_nearest, b.vector_nearest = True, False
         block = b.build(tris)
+        b.vector_nearest = True
+        vec = b.build(tris)
     finally:
-        b.block_nearest = True
+        b.block_nearest = b.vector_nearest = True
     for f in ("node_min", "node_max", "node_left", "node_right", "node_first", "node_count", "tri_order"):
         assert np.array_equal(getattr(plain, f), getattr(block, f)), f
+        assert np.array_equal(getattr(plain, f), getattr(vec, f)), f
 
 
 def test_refuses_builds_the_device_cannot_hold(monkeypatch):

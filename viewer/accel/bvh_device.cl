@@ -152,6 +152,76 @@ __kernel void nearest_block(__global const uint* cnt, uint p, __global const flo
     }
 }
 
+#if RADIUS <= 8
+// The same nearest neighbours as nearest_block, eight pairs at a time (RADIUS <= 8): a window of
+// float8 boxes holds clusters i+1 .. i+8 (one new cluster shifted in per step), the merged areas of
+// cluster i with all of them are one float8 expression (the same float operations as half_area, so
+// the same values), and `lb`/`li` hold, for clusters i .. i+7, the best area and index offered by
+// clusters before i (strict < keeps the earlier, lower index on ties). A block starts RADIUS
+// clusters early so the pairs reaching into it are seen.
+#define EMPTY8 ((float8)(INFINITY))
+__kernel void nearest_vec(__global const uint* cnt, uint p, __global const float4* cmin,
+                          __global const float4* cmax, uint nb, __global uint* nn) {
+    uint b = get_global_id(0);
+    uint n = cnt[p];
+    if (b >= nb || n <= 1) return;
+    uint s, e;
+    block_range(b, nb, n, &s, &e);
+    if (s >= e) return;
+    uint i0 = s > RADIUS ? s - RADIUS : 0;
+    const uint8 lane = (uint8)(1, 2, 3, 4, 5, 6, 7, 8);
+    float8 wlx, wly, wlz, whx, why, whz;  // boxes of clusters i+1 .. i+8
+    float lx[8], ly[8], lz[8], hx[8], hy[8], hz[8];
+    for (uint k = 0; k < 8; ++k) {
+        uint j = min(i0 + 1 + k, n - 1);
+        float4 lo = cmin[j], hi = cmax[j];
+        lx[k] = lo.x; ly[k] = lo.y; lz[k] = lo.z; hx[k] = hi.x; hy[k] = hi.y; hz[k] = hi.z;
+    }
+    wlx = vload8(0, lx); wly = vload8(0, ly); wlz = vload8(0, lz);
+    whx = vload8(0, hx); why = vload8(0, hy); whz = vload8(0, hz);
+    float8 lb = EMPTY8;  // best area offered to clusters i .. i+7 by clusters before i
+    uint8 li = (uint8)(0xffffffffu);
+    for (uint i = i0; i < e; ++i) {
+        float4 lo = cmin[i], hi = cmax[i];
+        float8 ex = fmax((float8)(hi.x), whx) - fmin((float8)(lo.x), wlx);
+        float8 ey = fmax((float8)(hi.y), why) - fmin((float8)(lo.y), wly);
+        float8 ez = fmax((float8)(hi.z), whz) - fmin((float8)(lo.z), wlz);
+        float8 a = ex * ey + ey * ez + ez * ex;
+        uint8 j = (uint8)(i) + lane;
+        int8 bad = (j > (uint8)(n - 1)) | (lane > (uint8)(RADIUS));
+        a = select(a, EMPTY8, isnan(a) | bad);
+        uint8 jid = select(j, (uint8)(0xffffffffu), bad);
+        if (i >= s) {  // cluster i: best to the right (first lowest), then against the left offer
+            float4 m4 = fmin(a.lo, a.hi);
+            float2 m2 = fmin(m4.lo, m4.hi);
+            float rm = fmin(m2.x, m2.y);
+            uint8 cand = select((uint8)(0xffffffffu), jid, a == (float8)(rm));
+            uint4 c4 = min(cand.lo, cand.hi);
+            uint2 c2 = min(c4.lo, c4.hi);
+            uint rj = min(c2.x, c2.y);
+            float l0 = lb.s0;
+            uint lj = li.s0;
+            nn[i] = (l0 < rm || (l0 == rm && lj < rj)) ? lj : rj;
+        }
+        // shift the offers to clusters i+1 .. i+8, then offer i to them
+        lb = (float8)(lb.s1234, lb.s567, INFINITY);
+        li = (uint8)(li.s1234, li.s567, 0xffffffffu);
+        int8 better = (a < lb) | ((a == lb) & (li == (uint8)(0xffffffffu)) & ~bad);  // INF ties too
+        lb = select(lb, a, better);
+        li = select(li, (uint8)(i), better);
+        // shift in cluster i+9
+        uint jn = min(i + 9, n - 1);
+        float4 nlo = cmin[jn], nhi = cmax[jn];
+        wlx = (float8)(wlx.s1234, wlx.s567, nlo.x);
+        wly = (float8)(wly.s1234, wly.s567, nlo.y);
+        wlz = (float8)(wlz.s1234, wlz.s567, nlo.z);
+        whx = (float8)(whx.s1234, whx.s567, nhi.x);
+        why = (float8)(why.s1234, why.s567, nhi.y);
+        whz = (float8)(whz.s1234, whz.s567, nhi.z);
+    }
+}
+#endif
+
 // Mutual nearest pairs (i < j) merge into a new inner node that takes cluster slot i; slot j is
 // dropped by the compaction. Inner node v (>= n) is stored at v - n; a child below n is a triangle
 // (count 1, kept 1, height 0, cost its box's area, the box being its cluster's). The node's SAH
@@ -262,13 +332,19 @@ __kernel void scatter(__global const uint* cnt, uint p, __global const uint* nn,
 // its parent, made in a later iteration, so placed by an earlier launch).
 
 // marks[0] = root node id, marks[1] = kept nodes (read by the host with the iteration marks).
-__kernel void place_root(__global const uint* cnode, uint n_tri, __global const int* kept_nodes,
-                         __global uint* marks, __global uint* pnode, __global int* pfirst, __global uint* pdepth,
-                         __global uint* order, __global int* ipre) {
+__kernel void root_count(__global const uint* cnode, uint n_tri, __global const int* kept_nodes,
+                         __global uint* marks) {
     if (get_global_id(0) != 0) return;
     uint root = cnode[0];
     marks[0] = root;
     marks[1] = root >= n_tri ? (uint)kept_nodes[root - n_tri] : 1u;
+}
+
+__kernel void place_root(__global const uint* cnode, uint n_tri, __global const int* kept_nodes,
+                         __global const uint* marks, __global uint* pnode, __global int* pfirst,
+                         __global uint* pdepth, __global uint* order, __global int* ipre) {
+    if (get_global_id(0) != 0) return;
+    uint root = marks[0];
     pnode[0] = root;
     pfirst[0] = 0;
     pdepth[0] = 0;

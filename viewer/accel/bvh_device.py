@@ -47,6 +47,7 @@ import numpy as np
 
 from viewer.accel.bvh import BVH, _validate, tree_stats
 from viewer.cl import io as clio
+from viewer.cl.limits import new_buffer
 from viewer.cl.pool import BufferPool
 from viewer.cl.primitives import WG as PWG
 
@@ -54,16 +55,17 @@ KERNEL = Path(__file__).resolve().parent / "bvh_device.cl"
 WG = 64
 RADIUS = 8
 CHECK_EVERY = 4
-#: device bytes per triangle of the buffers build() allocates: input, centres, keys + sort scratch,
-#: inner nodes (boxes, 6 int fields, flag), 2 x clusters, nn, iteration marks, layout (preorder
-#: arrays, rank: up to 2n - 1 kept nodes, about 0.9 n in practice), and the finished tree (13 words
-#: a kept node, tri_order), the one buffer not kept for the next build (the BVH's arrays are views
-#: of it). Only the pages a build writes are ever touched.
+#: device bytes per triangle of the buffers build() allocates (bounds: only the pages a build writes
+#: are ever touched): input (the host array itself on a CPU device), centres, keys + sort scratch,
+#: inner nodes (boxes, 6 int fields, flag), cluster ids x 2 and boxes x 2, nn, iteration marks, the
+#: layout's arrays (when the kept nodes m exceed n: m <= 2n - 1, about 0.9 n in practice; else
+#: they reuse PLOC's buffers) and the finished tree (13 words a kept node and tri_order: in the
+#: cluster-box buffer when it fits, which the BVH then keeps; else a buffer of its own)
 OUT_BYTES_PER_TRIANGLE = 2 * 13 * 4 + 4
-BYTES_PER_TRIANGLE = 36 + 12 + 16 + (32 + 6 * 4 + 1) + 2 * 36 + 4 + 4 + 2 * 6 * 4 + OUT_BYTES_PER_TRIANGLE
+BYTES_PER_TRIANGLE = 36 + 12 + 16 + (32 + 6 * 4 + 1) + 2 * 36 + 4 + 4 + 2 * 5 * 4 + OUT_BYTES_PER_TRIANGLE
 MARK0 = 2  # marks[0]: root id, marks[1]: kept nodes, marks[MARK0 + i]: node counter before iteration i
-_KERNELS = ("tri_boxes", "morton", "init_leaves", "nearest", "nearest_block", "merge", "count_kept", "scan_blocks",
-            "scatter", "place_root", "place", "invert", "emit")
+_KERNELS = ("tri_boxes", "morton", "init_leaves", "nearest", "nearest_block", "nearest_vec", "merge", "count_kept",
+            "scan_blocks", "scatter", "root_count", "place_root", "place", "invert", "emit")
 
 
 class DeviceBvhBuilder:
@@ -82,10 +84,11 @@ class DeviceBvhBuilder:
         self.prims = primitives(self.ctx)
         self.max_leaf, self.min_leaf = int(max_leaf), max(int(min_leaf), 1)
         self.check_every = max(int(check_every), 1)
-        self.block_nearest = True  # nearest_block (each pair once) rather than nearest (per cluster)
+        self.block_nearest = True  # per block of clusters (each pair once) rather than nearest (per cluster)
+        self.vector_nearest = radius <= 8  # the block search eight pairs at a time (nearest_vec)
         prog = build(KERNEL, {"WG": WG, "RADIUS": int(radius), "MAX_LEAF": self.max_leaf,
                               "MIN_LEAF": self.min_leaf, "MARK0": MARK0}, self.ctx)
-        self._k = clio.kernels(prog, _KERNELS)
+        self._k = clio.kernels(prog, [k for k in _KERNELS if k != "nearest_vec" or radius <= 8])
         self._bufs = BufferPool(self.ctx)
         self.phases: dict[str, float] = {}
         self.iterations = 0
@@ -147,8 +150,9 @@ class DeviceBvhBuilder:
         u = np.uint32
         self.check_memory(n)
         b = self._buf
-        tri_buf = b("tri", tri.nbytes)
-        clio.copy(q, tri_buf, tri, is_blocking=False)
+        # the triangles in place (USE_HOST_PTR: no copy and no fresh pages on a CPU device)
+        tri_buf = new_buffer(self.ctx, self.ctx.cl.mem_flags.READ_ONLY, tri.nbytes, "device BVH triangles",
+                             hostbuf=tri, use_host=True)
         cx, cy, cz = b("cx", 4 * n), b("cy", 4 * n), b("cz", 4 * n)
         self._run("tri_boxes", n, tri_buf, u(n), cx, cy, cz)
         t = self._phase("upload+boxes", t_start)
@@ -173,8 +177,11 @@ class DeviceBvhBuilder:
         left, right, count, kept_nodes, height, cost = (b(k, 4 * ni) for k in names)
         leaf_ok = b("leaf_ok", ni)
         cnode = [b("cnode0", 4 * n), b("cnode1", 4 * n)]
-        cmin = [b("cmin0", 16 * n), b("cmin1", 16 * n)]
-        cmax = [b("cmax0", 16 * n), b("cmax1", 16 * n)]
+        # the cluster boxes (min, max) x 2 in one buffer: the finished tree is written there later
+        region = -(-16 * n // 128) * 128  # sub-buffer origins aligned for any device
+        cbox = b("cbox", 4 * region)
+        cmin = [cbox.get_sub_region(0, region), cbox.get_sub_region(2 * region, region)]
+        cmax = [cbox.get_sub_region(region, region), cbox.get_sub_region(3 * region, region)]
         nn = b("nn", 4 * n)
         cnt = b("cnt", 8)
         next_node = b("next_node", 4)
@@ -196,7 +203,8 @@ class DeviceBvhBuilder:
             for _ in range(self.check_every):
                 s = p
                 if self.block_nearest:
-                    self._task("nearest_block", nbn, cnt, u(p), cmin[s], cmax[s], u(nbn), nn)
+                    kname = "nearest_vec" if self.vector_nearest else "nearest_block"
+                    self._task(kname, nbn, cnt, u(p), cmin[s], cmax[s], u(nbn), nn)
                 else:
                     self._run("nearest", n_host, cnt, u(p), cmin[s], cmax[s], nn)
                 self._run("merge", n_host, cnt, u(p), nn, cnode[s], cmin[s], cmax[s], *node_args)
@@ -211,25 +219,34 @@ class DeviceBvhBuilder:
         t = self._phase("ploc", t)
 
         # -- layout: top down, one launch per PLOC iteration, then breadth-first order ----------
-        lnames = ("pnode", "pfirst", "pdepth", "order", "ipre")
-        pnode, pfirst, pdepth, order, ipre = (b(k, 4 * (2 * n - 1)) for k in lnames)
-        self._task("place_root", 1, cnode[p], u(n), kept_nodes, marks, pnode, pfirst, pdepth, order, ipre)
+        # kept nodes m <= 2n - 1, about 0.9 n: the layout arrays reuse buffers PLOC no longer needs
+        # (pages already touched) when m <= n, else get their own
+        ipre = nn  # per inner node (n - 1)
+        root_args = (cnode[p], u(n), kept_nodes, marks)
+        self._task("root_count", 1, *root_args)
         mk = self._read(marks, iters + MARK0 + 1, np.uint32)  # root, kept nodes, iteration marks
         m = int(mk[1])
+        if m <= n:
+            pnode, pfirst, pdepth, order, rank = cx, cy, cz, keys, cnode[1 - p]
+        else:
+            pnode, pfirst, pdepth, order, rank = (b(k, 4 * m) for k in ("pnode", "pfirst", "pdepth", "order", "rank"))
+        self._task("place_root", 1, *root_args, pnode, pfirst, pdepth, order, ipre)
         place_args = (u(n), left, right, count, kept_nodes, leaf_ok, pnode, pfirst, pdepth, order, ipre)
         for it in range(iters - 1, -1, -1):  # newest nodes first: parents before children
             lo_id, hi_id = int(mk[MARK0 + it]), int(mk[MARK0 + it + 1])
             self._run("place", hi_id - lo_id, u(lo_id), u(hi_id), *place_args)
         # breadth-first order: stable sort of the preorder by depth (depth <= iterations)
         self.prims.sort_pairs(pdepth, order, m, key_bits=max(iters.bit_length(), 1))
-        rank = b("rank", 4 * (2 * n - 1))
         self._run("invert", m, u(m), order, rank)
-        # the finished tree goes to a buffer of its own, mapped (not copied) for the host: the BVH's
-        # arrays are views of it (zero-copy on a CPU device)
-        from viewer.cl.limits import new_buffer
-
+        # the finished tree goes to a buffer the BVH keeps, mapped (not copied) for the host: its
+        # arrays are views of it (zero-copy on a CPU device). That is the cluster-box buffer when
+        # the tree fits (pages already touched; the pool makes a new one for the next build).
         words = 13 * m + n
-        out = new_buffer(self.ctx, self.ctx.cl.mem_flags.READ_WRITE, 4 * words, "device BVH tree")
+        del cmin, cmax
+        if 4 * words <= cbox.size:
+            out = self._bufs.take("cbox")
+        else:
+            out = new_buffer(self.ctx, self.ctx.cl.mem_flags.READ_WRITE, 4 * words, "device BVH tree")
         self._run("emit", m, u(m), u(n), order, pdepth, rank, pnode, pfirst, tri_buf, perm, nmin, nmax, left,
                   right, count, kept_nodes, height, leaf_ok, out)
         t = self._phase("layout", t)
@@ -245,6 +262,7 @@ class DeviceBvhBuilder:
                   node_first=node_first, node_count=node_count, node_parent=node_parent,
                   node_height=node_height, node_depth=node_depth, tri_order=flat[13 * m:], stats=stats)
         self._phase("read-back", t)
+        tri_buf.release()
         stats.build_time_s = time.perf_counter() - t_start
         return bvh
 
