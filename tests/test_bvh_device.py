@@ -260,7 +260,7 @@ def test_bench_bvh_rows_per_builder(tmp_path, capsys):
         assert r["build_time_s"] > 0 and r["sah_cost"] > 1
         assert r["throughput_mtris_per_s"] == pytest.approx(r["triangles"] / r["build_time_s"] / 1e6)
     sah, dev = rows[0], rows[1]
-    assert dev["io"]["cl_launches"] >= 5 * dev["iterations"]
+    assert dev["io"]["cl_launches"] >= 4 * dev["iterations"]  # 4 launches per PLOC iteration
     assert dev["io"]["host_syncs"] <= 30 + -(-dev["iterations"] // 4)
     assert sah["io"]["cl_launches"] == 0
     assert dev["sah_ratio"] == pytest.approx(dev["sah_cost"] / sah["sah_cost"])

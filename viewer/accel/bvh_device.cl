@@ -5,8 +5,8 @@
 // Nodes 0..n-1 are the triangles in Morton order (node i = triangle perm[i]); merged (inner) nodes
 // get ids n, n+1, ... from an atomic counter, so a child's id is always below its parent's, and are
 // stored at id - n (no per-triangle node records: a triangle's box is recomputed). Clusters are
-// (node id, box) triples in Morton order; an iteration is nearest -> merge -> count -> scan ->
-// scatter, all reading the cluster count from the device (cnt[p]) so the host need not read it.
+// (node id, box) triples in Morton order; an iteration is nearest -> count -> scan -> merge+scatter,
+// all reading the cluster count from the device (cnt[p]) so the host need not read it.
 
 #define RING (RADIUS < 8 ? 8 : RADIUS < 16 ? 16 : RADIUS < 32 ? 32 : 64)
 
@@ -222,104 +222,119 @@ __kernel void nearest_vec(__global const uint* cnt, uint p, __global const float
 }
 #endif
 
-// Mutual nearest pairs (i < j) merge into a new inner node that takes cluster slot i; slot j is
-// dropped by the compaction. Inner node v (>= n) is stored at v - n; a child below n is a triangle
-// (count 1, kept 1, height 0, cost its box's area, the box being its cluster's). The node's SAH
-// cost is the cheaper of a leaf and the split (traversal 1, intersection 1 per triangle, in area
-// units), as a bottom-up dynamic programme.
-__kernel void merge(__global const uint* cnt, uint p, __global const uint* nn, __global uint* cnode,
-                    __global float4* cmin, __global float4* cmax, uint n_tri, volatile __global uint* next_node,
-                    __global float4* nmin, __global float4* nmax, __global int* left, __global int* right,
-                    __global int* count, __global int* kept_nodes, __global int* height, __global float* cost,
-                    __global uchar* leaf_ok) {
-    uint n = cnt[p];
-    uint i = get_global_id(0);
-    if (i >= n || n <= 1) return;
-    uint j = nn[i];
-    if (j <= i || nn[j] != i) return;
-    uint a = cnode[i], b = cnode[j];
-    float4 alo = cmin[i], ahi = cmax[i], blo = cmin[j], bhi = cmax[j];
-    float4 lo = fmin(alo, blo), hi = fmax(ahi, bhi);
-    int ca = 1, cb = 1, ka = 1, kb = 1, ha = 0, hb = 0;
-    float sa, sb;
-    if (a >= n_tri) {
-        uint u = a - n_tri;
-        ca = count[u]; ka = kept_nodes[u]; ha = height[u]; sa = cost[u];
-    } else {
-        sa = half_area(alo, ahi);
-    }
-    if (b >= n_tri) {
-        uint u = b - n_tri;
-        cb = count[u]; kb = kept_nodes[u]; hb = height[u]; sb = cost[u];
-    } else {
-        sb = half_area(blo, bhi);
-    }
-    uint v = atomic_inc(next_node);
-    uint w = v - n_tri;
-    nmin[w] = lo;
-    nmax[w] = hi;
-    left[w] = (int)a;
-    right[w] = (int)b;
-    int c = ca + cb;
-    count[w] = c;
-    float area = half_area(lo, hi);
-    float split = area + sa + sb;
-    float leaf = (float)c * area;
-    uchar ok = c <= MIN_LEAF || (c <= MAX_LEAF && leaf <= split);
-    leaf_ok[w] = ok;
-    cost[w] = ok ? leaf : split;
-    kept_nodes[w] = ok ? 1 : 1 + ka + kb;
-    height[w] = ok ? 0 : 1 + max(ha, hb);
-    cnode[i] = v;
-    cmin[i] = lo;
-    cmax[i] = hi;
-}
-
 inline bool dropped(uint i, uint n, __global const uint* nn) {
     if (n <= 1) return false;
     uint j = nn[i];
     return j < i && nn[j] == i;
 }
 
-__kernel void count_kept(__global const uint* cnt, uint p, __global const uint* nn, uint nb, __global uint* bsum) {
-    uint b = get_global_id(0);
-    if (b >= nb) return;
-    uint n = cnt[p], s, e, k = 0;
-    block_range(b, nb, n, &s, &e);
-    for (uint i = s; i < e; ++i) k += !dropped(i, n, nn);
-    bsum[b] = k;
+inline bool merges(uint i, uint n, __global const uint* nn) {
+    if (n <= 1) return false;
+    uint j = nn[i];
+    return j > i && nn[j] == i;
 }
 
-// One work-item: exclusive scan of the block counts; the new cluster count goes to cnt[1 - p], and
-// the node counter after this iteration's merges to marks[MARK0 + it + 1] (the layout's top-down pass
-// walks the iterations backwards: a node's parent was made in a later iteration).
-__kernel void scan_blocks(__global uint* bsum, uint nb, __global uint* cnt, uint p,
-                          __global const uint* next_node, __global uint* marks, uint it) {
-    if (get_global_id(0) != 0) return;
-    uint acc = 0;
-    for (uint b = 0; b < nb; ++b) {
-        uint k = bsum[b];
-        bsum[b] = acc;
-        acc += k;
-    }
-    cnt[1 - p] = acc;
-    marks[MARK0 + it + 1] = *next_node;
-}
-
-__kernel void scatter(__global const uint* cnt, uint p, __global const uint* nn, uint nb,
-                      __global const uint* bsum, __global const uint* cnode, __global const float4* cmin,
-                      __global const float4* cmax, __global uint* dnode, __global float4* dmin,
-                      __global float4* dmax) {
+// Per block of clusters: the clusters kept (bsum[b]) and the pairs merged (bsum[nb + b]).
+__kernel void count_blocks(__global const uint* cnt, uint p, __global const uint* nn, uint nb,
+                           __global uint* bsum) {
     uint b = get_global_id(0);
     if (b >= nb) return;
-    uint n = cnt[p], s, e, o = bsum[b];
+    uint n = cnt[p], s, e, k = 0, g = 0;
     block_range(b, nb, n, &s, &e);
     for (uint i = s; i < e; ++i) {
+        k += !dropped(i, n, nn);
+        g += merges(i, n, nn);
+    }
+    bsum[b] = k;
+    bsum[nb + b] = g;
+}
+
+// One work-item: exclusive scans of the block counts (kept clusters from 0, merged nodes from the
+// node counter); the new cluster count goes to cnt[1 - p], the node counter after this iteration to
+// next_node and marks[MARK0 + it + 1] (the layout's top-down pass walks the iterations backwards:
+// a node's parent was made in a later iteration).
+__kernel void scan_blocks(__global uint* bsum, uint nb, __global uint* cnt, uint p, __global uint* next_node,
+                          __global uint* marks, uint it) {
+    if (get_global_id(0) != 0) return;
+    uint acc = 0, v = *next_node;
+    for (uint b = 0; b < nb; ++b) {
+        uint k = bsum[b], g = bsum[nb + b];
+        bsum[b] = acc;
+        bsum[nb + b] = v;
+        acc += k;
+        v += g;
+    }
+    cnt[1 - p] = acc;
+    *next_node = v;
+    marks[MARK0 + it + 1] = v;
+}
+
+// Mutual nearest pairs (i < j) merge into a new inner node (ids in cluster order from the block's
+// offset) that takes cluster slot i; slot j is dropped; the kept clusters are compacted into the
+// other cluster arrays, order kept. Inner node v (>= n) is stored at v - n; a child below n is a
+// triangle (count 1, kept 1, height 0, cost its box's area, the box being its cluster's). The node's
+// SAH cost is the cheaper of a leaf and the split (traversal 1, intersection 1 per triangle, in area
+// units), as a bottom-up dynamic programme.
+__kernel void merge_scatter(__global const uint* cnt, uint p, __global const uint* nn, uint nb,
+                            __global const uint* bsum, __global const uint* cnode, __global const float4* cmin,
+                            __global const float4* cmax, __global uint* dnode, __global float4* dmin,
+                            __global float4* dmax, uint n_tri, __global float4* nmin, __global float4* nmax,
+                            __global int* left, __global int* right, __global int* count,
+                            __global int* kept_nodes, __global int* height, __global float* cost,
+                            __global uchar* leaf_ok) {
+    uint bk = get_global_id(0);
+    if (bk >= nb) return;
+    uint n = cnt[p], s, e, o = bsum[bk], v = bsum[nb + bk];
+    block_range(bk, nb, n, &s, &e);
+    for (uint i = s; i < e; ++i) {
         if (dropped(i, n, nn)) continue;
-        dnode[o] = cnode[i];
-        dmin[o] = cmin[i];
-        dmax[o] = cmax[i];
+        uint a = cnode[i];
+        float4 alo = cmin[i], ahi = cmax[i];
+        if (!merges(i, n, nn)) {
+            dnode[o] = a;
+            dmin[o] = alo;
+            dmax[o] = ahi;
+            ++o;
+            continue;
+        }
+        uint j = nn[i];
+        uint b = cnode[j];
+        float4 blo = cmin[j], bhi = cmax[j];
+        float4 lo = fmin(alo, blo), hi = fmax(ahi, bhi);
+        int ca = 1, cb = 1, ka = 1, kb = 1, ha = 0, hb = 0;
+        float sa, sb;
+        if (a >= n_tri) {
+            uint u = a - n_tri;
+            ca = count[u]; ka = kept_nodes[u]; ha = height[u]; sa = cost[u];
+        } else {
+            sa = half_area(alo, ahi);
+        }
+        if (b >= n_tri) {
+            uint u = b - n_tri;
+            cb = count[u]; kb = kept_nodes[u]; hb = height[u]; sb = cost[u];
+        } else {
+            sb = half_area(blo, bhi);
+        }
+        uint w = v - n_tri;
+        nmin[w] = lo;
+        nmax[w] = hi;
+        left[w] = (int)a;
+        right[w] = (int)b;
+        int c = ca + cb;
+        count[w] = c;
+        float area = half_area(lo, hi);
+        float split = area + sa + sb;
+        float leaf = (float)c * area;
+        uchar ok = c <= MIN_LEAF || (c <= MAX_LEAF && leaf <= split);
+        leaf_ok[w] = ok;
+        cost[w] = ok ? leaf : split;
+        kept_nodes[w] = ok ? 1 : 1 + ka + kb;
+        height[w] = ok ? 0 : 1 + max(ha, hb);
+        dnode[o] = v;
+        dmin[o] = lo;
+        dmax[o] = hi;
         ++o;
+        ++v;
     }
 }
 

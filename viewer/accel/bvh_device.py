@@ -64,8 +64,8 @@ CHECK_EVERY = 4
 OUT_BYTES_PER_TRIANGLE = 2 * 13 * 4 + 4
 BYTES_PER_TRIANGLE = 36 + 12 + 16 + (32 + 6 * 4 + 1) + 2 * 36 + 4 + 4 + 2 * 5 * 4 + OUT_BYTES_PER_TRIANGLE
 MARK0 = 2  # marks[0]: root id, marks[1]: kept nodes, marks[MARK0 + i]: node counter before iteration i
-_KERNELS = ("tri_boxes", "morton", "init_leaves", "nearest", "nearest_block", "nearest_vec", "merge", "count_kept",
-            "scan_blocks", "scatter", "root_count", "place_root", "place", "invert", "emit")
+_KERNELS = ("tri_boxes", "morton", "init_leaves", "nearest", "nearest_block", "nearest_vec", "count_blocks",
+            "scan_blocks", "merge_scatter", "root_count", "place_root", "place", "invert", "emit")
 
 
 class DeviceBvhBuilder:
@@ -192,14 +192,14 @@ class DeviceBvhBuilder:
         clio.copy(q, next_node, np.array([n], np.uint32), is_blocking=False)
         clio.copy(q, marks, np.array([0, 1, n], np.uint32), is_blocking=False)
         self._run("init_leaves", n, tri_buf, perm, u(n), cnode[0], cmin[0], cmax[0])
-        node_args = (u(n), next_node, nmin, nmax, left, right, count, kept_nodes, height, cost, leaf_ok)
+        node_args = (u(n), nmin, nmax, left, right, count, kept_nodes, height, cost, leaf_ok)
         p = 0  # cnt[p] is the current cluster count; cluster arrays [p] are current
         n_host = n
         iters = 0
         while n_host > 1:
             nb = self.prims.nblocks(n_host)
             nbn = max(PWG, min(-(-n_host // 256), 8 * self.prims.max_blocks) // PWG * PWG)
-            bsum = b("bsum", 4 * nb)
+            bsum = b("bsum", 8 * nb)
             for _ in range(self.check_every):
                 s = p
                 if self.block_nearest:
@@ -207,11 +207,10 @@ class DeviceBvhBuilder:
                     self._task(kname, nbn, cnt, u(p), cmin[s], cmax[s], u(nbn), nn)
                 else:
                     self._run("nearest", n_host, cnt, u(p), cmin[s], cmax[s], nn)
-                self._run("merge", n_host, cnt, u(p), nn, cnode[s], cmin[s], cmax[s], *node_args)
-                self._task("count_kept", nb, cnt, u(p), nn, u(nb), bsum)
+                self._task("count_blocks", nb, cnt, u(p), nn, u(nb), bsum)
                 self._task("scan_blocks", 1, bsum, u(nb), cnt, u(p), next_node, marks, u(iters))
-                self._task("scatter", nb, cnt, u(p), nn, u(nb), bsum, cnode[s], cmin[s], cmax[s],
-                           cnode[1 - s], cmin[1 - s], cmax[1 - s])
+                self._task("merge_scatter", nb, cnt, u(p), nn, u(nb), bsum, cnode[s], cmin[s], cmax[s],
+                           cnode[1 - s], cmin[1 - s], cmax[1 - s], *node_args)
                 p = 1 - p
                 iters += 1
             n_host = int(self._read(cnt, 2, np.uint32)[p])
