@@ -162,6 +162,29 @@ def test_leaf_blocks_hold_every_triangle_once():
     assert np.isnan(v[~used]).all()
 
 
+@needs_cl
+@pytest.mark.parametrize("max_leaf", [4, 7])
+def test_device_packed_blocks_equal_host_packed(max_leaf):
+    """pack.cl writes the same leaf blocks as the host packing (one block per leaf, and leaves
+    spanning blocks), NaN padding included."""
+    from viewer.backends.clbvh import LEAF_BLOCK_DTYPE, pack_leaves, pack_leaves_device
+    from viewer.cl import cl_context
+    from viewer.cl import io as clio
+
+    ctx = cl_context()
+    tris = random_tris(700, seed=5)
+    bvh = build_bvh(tris, max_leaf=max_leaf, min_leaf=1)
+    lo_tris = bvh.triangles_in_leaf_order(tris)
+    b4 = build_bvh4(bvh)
+    hnodes, hblocks = pack_leaves(b4.nodes, lo_tris)
+    dnodes, dbuf = pack_leaves_device(ctx, b4.nodes, lo_tris)
+    dblocks = np.empty(len(hblocks), LEAF_BLOCK_DTYPE)
+    clio.copy(ctx.queue, dblocks, dbuf)
+    dbuf.release()
+    assert np.array_equal(hnodes, dnodes)
+    assert hblocks.tobytes() == dblocks.tobytes()  # bit for bit, NaN lanes too
+
+
 # ------------------------------------------------------------------------------------------------
 # tracing
 

@@ -151,8 +151,7 @@ class DeviceBvhBuilder:
         self.check_memory(n)
         b = self._buf
         # the triangles in place (USE_HOST_PTR: no copy and no fresh pages on a CPU device)
-        tri_buf = new_buffer(self.ctx, self.ctx.cl.mem_flags.READ_ONLY, tri.nbytes, "device BVH triangles",
-                             hostbuf=tri, use_host=True)
+        tri_buf = clio.upload(self.ctx, tri, what="device BVH triangles", use_host=True)
         cx, cy, cz = b("cx", 4 * n), b("cy", 4 * n), b("cz", 4 * n)
         self._run("tri_boxes", n, tri_buf, u(n), cx, cy, cz)
         t = self._phase("upload+boxes", t_start)

@@ -34,6 +34,7 @@ from viewer.cl import io as clio
 from viewer.rays import HitBuffer, PassInfo, RayBatch
 
 KERNEL = Path(__file__).resolve().parent / "trace.cl"
+PACK_KERNEL = Path(__file__).resolve().parent / "pack.cl"
 WG = 64
 MAX_STACK = 256  # private stack entries the kernel may hold (3 per BVH4 level)
 
@@ -44,13 +45,12 @@ LEAF_BLOCK_DTYPE = np.dtype([("v", "<f4", (9, 4)), ("first", "<i4"), ("count", "
 assert LEAF_BLOCK_DTYPE.itemsize == 160
 
 
-def pack_leaves(nodes: np.ndarray, triangles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Kernel copies of a BVH4: (nodes with leaf refs ~first_block, LEAF_BLOCK_DTYPE blocks).
+def leaf_block_index(nodes: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(kernel nodes with leaf refs ~first_block, first slot and triangle count of each block).
 
     A leaf of c triangles (slots first .. first+c-1, leaf order) becomes ceil(c / 4) consecutive
-    blocks; v[3 * vertex + axis, lane] holds the coordinate of slot first + 4 * block + lane.
-    Vectorised over leaves and lanes."""
-    tris = np.asarray(triangles, np.float32).reshape(-1, 3, 3)
+    blocks. Vectorised over leaves (integers only: the triangles are packed by pack_leaves or,
+    in ClbvhScene, on the device)."""
     child, count = nodes["child"], nodes["count"]
     is_leaf = (child < 0) & (count > 0)
     first = (~child[is_leaf]).astype(np.int64)
@@ -61,12 +61,24 @@ def pack_leaves(nodes: np.ndarray, triangles: np.ndarray) -> tuple[np.ndarray, n
     kchild = out_nodes["child"]
     kchild[is_leaf] = ~blk_start
     n_blocks = int(nblk.sum())
+    if np.all(nblk == 1):  # the usual case (leaves of at most 4 triangles): one block per leaf
+        return out_nodes, first.astype(np.int32), cnt.astype(np.int32)
+    leaf_of = np.repeat(np.arange(len(first)), nblk)
+    k = np.arange(n_blocks) - blk_start[leaf_of]  # block number inside its leaf
+    b_first = first[leaf_of] + 4 * k
+    b_count = np.minimum(cnt[leaf_of] - 4 * k, 4)
+    return out_nodes, b_first.astype(np.int32), b_count.astype(np.int32)
+
+
+def pack_leaves(nodes: np.ndarray, triangles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Kernel copies of a BVH4 on the host: (nodes with leaf refs ~first_block, LEAF_BLOCK_DTYPE
+    blocks); v[3 * vertex + axis, lane] holds the coordinate of slot first + lane, NaN padding.
+    The reference for pack.cl (ClbvhScene packs on the device)."""
+    tris = np.asarray(triangles, np.float32).reshape(-1, 3, 3)
+    out_nodes, b_first, b_count = leaf_block_index(nodes)
+    n_blocks = len(b_first)
     blocks = np.zeros(max(n_blocks, 1), LEAF_BLOCK_DTYPE)
     if n_blocks:
-        leaf_of = np.repeat(np.arange(len(first)), nblk)
-        k = np.arange(n_blocks) - blk_start[leaf_of]  # block number inside its leaf
-        b_first = first[leaf_of] + 4 * k
-        b_count = np.minimum(cnt[leaf_of] - 4 * k, 4)
         lane = np.arange(4)
         valid = lane[None, :] < b_count[:, None]  # (B, 4)
         slot = np.where(valid, b_first[:, None] + lane[None, :], 0)
@@ -75,6 +87,30 @@ def pack_leaves(nodes: np.ndarray, triangles: np.ndarray) -> tuple[np.ndarray, n
         blocks["v"] = v.transpose(0, 2, 1)
         blocks["first"] = b_first
         blocks["count"] = b_count
+    return out_nodes, blocks
+
+
+def pack_leaves_device(ctx, nodes: np.ndarray, triangles: np.ndarray) -> tuple[np.ndarray, object]:
+    """pack_leaves with the blocks written by pack.cl straight into a device buffer: the
+    triangles are read in place (USE_HOST_PTR) and no host copy of the blocks is made (at 10 M
+    triangles the host packing and its upload were 5 s of the first frame). One host sync."""
+    from viewer.cl import build
+    from viewer.cl.limits import new_buffer
+
+    tris = np.ascontiguousarray(triangles, np.float32).reshape(-1, 9)
+    out_nodes, b_first, b_count = leaf_block_index(nodes)
+    n_blocks = len(b_first)
+    mf = ctx.cl.mem_flags
+    blocks = new_buffer(ctx, mf.READ_WRITE, max(n_blocks, 1) * LEAF_BLOCK_DTYPE.itemsize, "clbvh leaf blocks")
+    if n_blocks:
+        k = clio.kernel(build(PACK_KERNEL, {}, ctx), "pack_blocks")
+        src = clio.upload(ctx, tris, what="clbvh triangles", use_host=True)
+        bf = clio.upload(ctx, b_first, what="clbvh block slots")
+        bn = clio.upload(ctx, b_count, what="clbvh block counts")
+        k(ctx.queue, (-(-n_blocks // WG) * WG,), (WG,), src, np.uint32(n_blocks), bf, bn, blocks)
+        clio.finish(ctx.queue)  # the triangles are read in place: done before the caller may free them
+        for buf in (src, bf, bn):
+            buf.release()
     return out_nodes, blocks
 
 
@@ -90,12 +126,11 @@ class ClbvhScene:
         assert self.stack_size <= MAX_STACK, f"BVH4 depth {self.bvh4.depth} needs {self.stack_size} stack entries"
         cl = self.ctx.cl
         mf = cl.mem_flags
-        knodes, blocks = pack_leaves(self.bvh4.nodes, triangles)
+        knodes, self.blocks = pack_leaves_device(self.ctx, self.bvh4.nodes, triangles)
         self.nodes = clio.upload(self.ctx, knodes, what="clbvh nodes")
-        self.blocks = clio.upload(self.ctx, blocks, what="clbvh leaf blocks")
         prog = build(KERNEL, {"STACK_SIZE": self.stack_size, "WG": WG}, self.ctx)
         self.kernels = {False: clio.kernel(prog, "trace_closest"), True: clio.kernel(prog, "trace_any")}
-        self.memory_bytes = knodes.nbytes + blocks.nbytes
+        self.memory_bytes = knodes.nbytes + self.blocks.size
         self.active = cl.Buffer(self.ctx.context, mf.READ_WRITE, 4)  # active rays of the last enqueue
 
     def enqueue(self, ray_o, ray_d, out_t, out_id, n: int, any_hit: bool, reset: bool = True):
