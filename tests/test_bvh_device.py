@@ -107,6 +107,21 @@ def test_one_triangle_leaves():
     assert bvh.stats.nodes == 2 * len(tris) - 1
 
 
+@pytest.mark.parametrize("make,n,leaf", [(random_tris, 1, 4), (random_tris, 2, 4), (box_grid_tris, 3000, 4),
+                                         (clustered_tris, 20000, 4), (box_grid_tris, 2000, 8)])
+def test_device_stats_equal_tree_stats(make, n, leaf):
+    """The build's stats (sums made on the device) are tree_stats of the tree it returns."""
+    from viewer.accel.bvh import tree_stats
+
+    tris = make(n, seed=7)
+    bvh = device_bvh(tris, max_leaf=leaf, min_leaf=min(2, leaf))
+    ref = tree_stats(bvh.node_min, bvh.node_max, bvh.node_left, bvh.node_count, bvh.node_depth, n)
+    got = bvh.stats
+    for f in ("triangles", "nodes", "inner_nodes", "leaves", "depth", "leaf_size_histogram", "memory_bytes"):
+        assert getattr(got, f) == getattr(ref, f), f
+    assert got.sah_cost == pytest.approx(ref.sah_cost, rel=1e-12)
+
+
 def _trace_clbvh(tris, bvh, o, d, lo, hi, any_hit):
     """clbvh on the given tree; ids mapped back to the input triangles."""
     from viewer.backends.clbvh import ClbvhScene

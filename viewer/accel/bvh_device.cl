@@ -478,3 +478,47 @@ __kernel void emit(uint m, uint n_tri, __global const uint* order, __global cons
         }
     }
 }
+
+#ifdef cl_khr_fp64
+#pragma OPENCL EXTENSION cl_khr_fp64 : enable
+// BuildStats of the finished tree (the sums of viewer.accel.bvh.tree_stats, in float64 as there),
+// per block of nodes; the host adds the blocks (one read): part[STATS_W * b + ...] = inner nodes'
+// area sum, leaves' area x triangles sum, inner node count, deepest leaf, leaves of 0 .. MAX_LEAF
+// triangles.
+#define STATS_W (MAX_LEAF + 5)
+__kernel void stats_blocks(uint m, uint nb, __global const int* out, __global double* part) {
+    uint b = get_global_id(0);
+    if (b >= nb) return;
+    uint s, e;
+    block_range(b, nb, m, &s, &e);
+    __global const float* omin = (__global const float*)out;
+    __global const float* omax = omin + 3 * (size_t)m;
+    __global const int* oleft = out + 6 * (size_t)m;
+    __global const int* ocount = oleft + 3 * (size_t)m;
+    __global const int* odepth = oleft + 5 * (size_t)m;
+    double inner = 0.0, leaf = 0.0, n_inner = 0.0, deepest = 0.0;
+    double hist[MAX_LEAF + 1];
+    for (int c = 0; c <= MAX_LEAF; ++c) hist[c] = 0.0;
+    for (uint k = s; k < e; ++k) {
+        double ex = (double)omax[3 * k] - (double)omin[3 * k];
+        double ey = (double)omax[3 * k + 1] - (double)omin[3 * k + 1];
+        double ez = (double)omax[3 * k + 2] - (double)omin[3 * k + 2];
+        double area = ex * ey + ey * ez + ez * ex;
+        if (oleft[k] >= 0) {
+            inner += area;
+            n_inner += 1.0;
+        } else {
+            int c = ocount[k];
+            leaf += area * (double)c;
+            hist[min(c, MAX_LEAF)] += 1.0;
+            deepest = fmax(deepest, (double)odepth[k]);
+        }
+    }
+    __global double* p = part + STATS_W * (size_t)b;
+    p[0] = inner;
+    p[1] = leaf;
+    p[2] = n_inner;
+    p[3] = deepest;
+    for (int c = 0; c <= MAX_LEAF; ++c) p[4 + c] = hist[c];
+}
+#endif
