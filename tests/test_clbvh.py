@@ -163,6 +163,29 @@ def test_leaf_blocks_hold_every_triangle_once():
 
 
 @needs_cl
+@pytest.mark.parametrize("case", ["one", "two", "grid", "clustered", "one_triangle_leaves", "leaves_of_7"])
+def test_device_bvh4_collapse_equals_host(case):
+    """viewer.accel.bvh4_device makes the host collapse's nodes bit for bit (order, numbering,
+    boxes, leaf refs, empty slots), its depth, sources and leaf count."""
+    from tests.test_bvh import box_grid_tris, clustered_tris
+    from viewer.accel.bvh4_device import build_bvh4_device, device_supported
+    from viewer.cl import cl_context
+
+    if not device_supported(cl_context()):
+        pytest.skip("no float64 on the OpenCL device")
+    bvh = {"one": lambda: build_bvh(random_tris(1, seed=1)), "two": lambda: build_bvh(random_tris(5, seed=1)),
+           "grid": lambda: build_bvh(box_grid_tris(3000, seed=2)),
+           "clustered": lambda: build_bvh(clustered_tris(8000, seed=3)),
+           "one_triangle_leaves": lambda: build_bvh(box_grid_tris(2000, seed=5), max_leaf=1, min_leaf=1),
+           "leaves_of_7": lambda: build_bvh(random_tris(3000, seed=6), max_leaf=7, min_leaf=1)}[case]()
+    host = build_bvh4(bvh)
+    dev, buf = build_bvh4_device(bvh)
+    assert dev.nodes.dtype == NODE4_DTYPE and host.nodes.tobytes() == dev.nodes.tobytes()
+    assert (dev.depth, dev.leaves) == (host.depth, host.leaves)
+    assert np.array_equal(dev.source, host.source)
+
+
+@needs_cl
 @pytest.mark.parametrize("max_leaf", [4, 7])
 def test_device_packed_blocks_equal_host_packed(max_leaf):
     """pack.cl writes the same leaf blocks as the host packing (one block per leaf, and leaves
