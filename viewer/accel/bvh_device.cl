@@ -10,6 +10,11 @@
 
 #define RING (RADIUS < 8 ? 8 : RADIUS < 16 ? 16 : RADIUS < 32 ? 32 : 64)
 
+// Inner node records (node id v >= n at v - n), NODE_F4 float4 each: (box min, SAH cost of the
+// best subtree), (box max, bits of height << 1 | leaf flag), bits of (left, right, triangles,
+// kept nodes of the subtree). One record per node: the layout kernels read a node's fields together.
+#define NODE_F4 3
+
 inline float half_area(float4 lo, float4 hi) {
     float4 e = hi - lo;
     return e.x * e.y + e.y * e.z + e.z * e.x;
@@ -278,10 +283,7 @@ __kernel void scan_blocks(__global uint* bsum, uint nb, __global uint* cnt, uint
 __kernel void merge_scatter(__global const uint* cnt, uint p, __global const uint* nn, uint nb,
                             __global const uint* bsum, __global const uint* cnode, __global const float4* cmin,
                             __global const float4* cmax, __global uint* dnode, __global float4* dmin,
-                            __global float4* dmax, uint n_tri, __global float4* nmin, __global float4* nmax,
-                            __global int* left, __global int* right, __global int* count,
-                            __global int* kept_nodes, __global int* height, __global float* cost,
-                            __global uchar* leaf_ok) {
+                            __global float4* dmax, uint n_tri, __global float4* node) {
     uint bk = get_global_id(0);
     if (bk >= nb) return;
     uint n = cnt[p], s, e, o = bsum[bk], v = bsum[nb + bk];
@@ -304,32 +306,29 @@ __kernel void merge_scatter(__global const uint* cnt, uint p, __global const uin
         int ca = 1, cb = 1, ka = 1, kb = 1, ha = 0, hb = 0;
         float sa, sb;
         if (a >= n_tri) {
-            uint u = a - n_tri;
-            ca = count[u]; ka = kept_nodes[u]; ha = height[u]; sa = cost[u];
+            __global const float4* r = node + NODE_F4 * (size_t)(a - n_tri);
+            int4 links = as_int4(r[2]);
+            ca = links.z; ka = links.w; ha = as_int(r[1].w) >> 1; sa = r[0].w;
         } else {
             sa = half_area(alo, ahi);
         }
         if (b >= n_tri) {
-            uint u = b - n_tri;
-            cb = count[u]; kb = kept_nodes[u]; hb = height[u]; sb = cost[u];
+            __global const float4* r = node + NODE_F4 * (size_t)(b - n_tri);
+            int4 links = as_int4(r[2]);
+            cb = links.z; kb = links.w; hb = as_int(r[1].w) >> 1; sb = r[0].w;
         } else {
             sb = half_area(blo, bhi);
         }
-        uint w = v - n_tri;
-        nmin[w] = lo;
-        nmax[w] = hi;
-        left[w] = (int)a;
-        right[w] = (int)b;
         int c = ca + cb;
-        count[w] = c;
         float area = half_area(lo, hi);
         float split = area + sa + sb;
         float leaf = (float)c * area;
-        uchar ok = c <= MIN_LEAF || (c <= MAX_LEAF && leaf <= split);
-        leaf_ok[w] = ok;
-        cost[w] = ok ? leaf : split;
-        kept_nodes[w] = ok ? 1 : 1 + ka + kb;
-        height[w] = ok ? 0 : 1 + max(ha, hb);
+        int ok = c <= MIN_LEAF || (c <= MAX_LEAF && leaf <= split);
+        int h = ok ? 0 : 1 + max(ha, hb);
+        __global float4* r = node + NODE_F4 * (size_t)(v - n_tri);
+        r[0] = (float4)(lo.xyz, ok ? leaf : split);
+        r[1] = (float4)(hi.xyz, as_float((h << 1) | ok));
+        r[2] = as_float4((int4)((int)a, (int)b, c, ok ? 1 : 1 + ka + kb));
         dnode[o] = v;
         dmin[o] = lo;
         dmax[o] = hi;
@@ -347,15 +346,15 @@ __kernel void merge_scatter(__global const uint* cnt, uint p, __global const uin
 // its parent, made in a later iteration, so placed by an earlier launch).
 
 // marks[0] = root node id, marks[1] = kept nodes (read by the host with the iteration marks).
-__kernel void root_count(__global const uint* cnode, uint n_tri, __global const int* kept_nodes,
+__kernel void root_count(__global const uint* cnode, uint n_tri, __global const float4* node,
                          __global uint* marks) {
     if (get_global_id(0) != 0) return;
     uint root = cnode[0];
     marks[0] = root;
-    marks[1] = root >= n_tri ? (uint)kept_nodes[root - n_tri] : 1u;
+    marks[1] = root >= n_tri ? (uint)as_int4(node[NODE_F4 * (size_t)(root - n_tri) + 2]).w : 1u;
 }
 
-__kernel void place_root(__global const uint* cnode, uint n_tri, __global const int* kept_nodes,
+__kernel void place_root(__global const uint* cnode, uint n_tri, __global const float4* node,
                          __global const uint* marks, __global uint* pnode, __global int* pfirst,
                          __global uint* pdepth, __global uint* order, __global int* ipre) {
     if (get_global_id(0) != 0) return;
@@ -377,26 +376,31 @@ inline void put(uint q, uint v, int first, uint depth, uint n_tri, __global uint
 }
 
 // Nodes lo .. hi - 1 (ids, all >= n_tri) place their children.
-__kernel void place(uint lo, uint hi, uint n_tri, __global const int* left, __global const int* right,
-                    __global const int* count, __global const int* kept_nodes, __global const uchar* leaf_ok,
-                    __global uint* pnode, __global int* pfirst, __global uint* pdepth, __global uint* order,
-                    __global int* ipre) {
+__kernel void place(uint lo, uint hi, uint n_tri, __global const float4* node, __global uint* pnode,
+                    __global int* pfirst, __global uint* pdepth, __global uint* order, __global int* ipre) {
     uint v = lo + get_global_id(0);
     if (v >= hi) return;
     uint u = v - n_tri;
     int q = ipre[u];
-    uint l = (uint)left[u], r = (uint)right[u];
-    if (q < 0 || leaf_ok[u]) {  // inside a leaf, or a leaf: the inner nodes below are not kept
+    __global const float4* r = node + NODE_F4 * (size_t)u;
+    int4 links = as_int4(r[2]);
+    uint l = (uint)links.x, rr = (uint)links.y;
+    if (q < 0 || (as_int(r[1].w) & 1)) {  // inside a leaf, or a leaf: the inner nodes below are not kept
         if (l >= n_tri) ipre[l - n_tri] = -1;
-        if (r >= n_tri) ipre[r - n_tri] = -1;
+        if (rr >= n_tri) ipre[rr - n_tri] = -1;
         return;
     }
     int f = pfirst[q];
     uint d = pdepth[q] + 1;
-    int cl = l >= n_tri ? count[l - n_tri] : 1;
-    uint kl = l >= n_tri ? (uint)kept_nodes[l - n_tri] : 1u;
+    int cl = 1;
+    uint kl = 1;
+    if (l >= n_tri) {
+        int4 ll = as_int4(node[NODE_F4 * (size_t)(l - n_tri) + 2]);
+        cl = ll.z;
+        kl = (uint)ll.w;
+    }
     put((uint)q + 1, l, f, d, n_tri, pnode, pfirst, pdepth, order, ipre);
-    put((uint)q + 1 + kl, r, f + cl, d, n_tri, pnode, pfirst, pdepth, order, ipre);
+    put((uint)q + 1 + kl, rr, f + cl, d, n_tri, pnode, pfirst, pdepth, order, ipre);
 }
 
 __kernel void invert(uint m, __global const uint* order, __global int* rank) {
@@ -412,10 +416,8 @@ __kernel void invert(uint m, __global const uint* order, __global int* rank) {
 // writes its children's parent entries.
 __kernel void emit(uint m, uint n_tri, __global const uint* order, __global const uint* depth,
                    __global const int* rank, __global const uint* pnode, __global const int* pfirst,
-                   __global const float* tri, __global const uint* perm, __global const float4* nmin,
-                   __global const float4* nmax, __global const int* left, __global const int* right,
-                   __global const int* count, __global const int* kept_nodes, __global const int* height,
-                   __global const uchar* leaf_ok, __global int* out) {
+                   __global const float* tri, __global const uint* perm, __global const float4* node,
+                   __global int* out) {
     uint k = get_global_id(0);
     if (k >= m) return;
     __global float* omin = (__global float*)out;
@@ -448,13 +450,17 @@ __kernel void emit(uint m, uint n_tri, __global const uint* order, __global cons
         return;
     }
     uint u = v - n_tri;
-    vstore3(nmin[u].xyz, k, omin);
-    vstore3(nmax[u].xyz, k, omax);
-    ocount[k] = count[u];
-    oheight[k] = height[u];
-    if (!leaf_ok[u]) {
-        uint l = (uint)left[u];
-        uint kl = l >= n_tri ? (uint)kept_nodes[l - n_tri] : 1u;
+    __global const float4* r = node + NODE_F4 * (size_t)u;
+    float4 r0 = r[0], r1 = r[1];
+    int4 links = as_int4(r[2]);
+    int hk = as_int(r1.w);
+    vstore3(r0.xyz, k, omin);
+    vstore3(r1.xyz, k, omax);
+    ocount[k] = links.z;
+    oheight[k] = hk >> 1;
+    if (!(hk & 1)) {
+        uint l = (uint)links.x;
+        uint kl = l >= n_tri ? (uint)as_int4(node[NODE_F4 * (size_t)(l - n_tri) + 2]).w : 1u;
         int rl = rank[q + 1], rr = rank[q + 1 + kl];
         oleft[k] = rl;
         oright[k] = rr;
@@ -473,8 +479,9 @@ __kernel void emit(uint m, uint n_tri, __global const uint* order, __global cons
             if (sp == 0) break;
             w = stack[--sp];
         } else {
-            stack[sp++] = (uint)right[w - n_tri];
-            w = (uint)left[w - n_tri];
+            int4 wl = as_int4(node[NODE_F4 * (size_t)(w - n_tri) + 2]);
+            stack[sp++] = (uint)wl.y;
+            w = (uint)wl.x;
         }
     }
 }

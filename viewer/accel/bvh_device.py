@@ -57,12 +57,12 @@ RADIUS = 8
 CHECK_EVERY = 4
 #: device bytes per triangle of the buffers build() allocates (bounds: only the pages a build writes
 #: are ever touched): input (the host array itself on a CPU device), centres, keys + sort scratch,
-#: inner nodes (boxes, 6 int fields, flag), cluster ids x 2 and boxes x 2, nn, iteration marks, the
+#: inner node records (48 bytes), cluster ids x 2 and boxes x 2, nn, iteration marks, the
 #: layout's arrays (when the kept nodes m exceed n: m <= 2n - 1, about 0.9 n in practice; else
 #: they reuse PLOC's buffers) and the finished tree (13 words a kept node and tri_order: in the
 #: cluster-box buffer when it fits, which the BVH then keeps; else a buffer of its own)
 OUT_BYTES_PER_TRIANGLE = 2 * 13 * 4 + 4
-BYTES_PER_TRIANGLE = 36 + 12 + 16 + (32 + 6 * 4 + 1) + 2 * 36 + 4 + 4 + 2 * 5 * 4 + OUT_BYTES_PER_TRIANGLE
+BYTES_PER_TRIANGLE = 36 + 12 + 16 + 48 + 2 * 36 + 4 + 4 + 2 * 5 * 4 + OUT_BYTES_PER_TRIANGLE
 MARK0 = 2  # marks[0]: root id, marks[1]: kept nodes, marks[MARK0 + i]: node counter before iteration i
 _KERNELS = ("tri_boxes", "morton", "init_leaves", "nearest", "nearest_block", "nearest_vec", "count_blocks",
             "scan_blocks", "merge_scatter", "root_count", "place_root", "place", "invert", "emit", "stats_blocks")
@@ -195,10 +195,7 @@ class DeviceBvhBuilder:
 
         # -- PLOC ---------------------------------------------------------------------------------
         ni = max(n - 1, 1)  # inner nodes (ids n .. 2n - 2, stored at id - n)
-        nmin, nmax = b("nmin", 16 * ni), b("nmax", 16 * ni)
-        names = ("left", "right", "count", "kept_nodes", "height", "cost")
-        left, right, count, kept_nodes, height, cost = (b(k, 4 * ni) for k in names)
-        leaf_ok = b("leaf_ok", ni)
+        node = b("node", 48 * ni)  # inner node records (NODE_F4 float4 each, bvh_device.cl)
         cnode = [b("cnode0", 4 * n), b("cnode1", 4 * n)]
         # the cluster boxes (min, max) x 2 in one buffer: the finished tree is written there later
         region = -(-16 * n // 128) * 128  # sub-buffer origins aligned for any device
@@ -215,7 +212,7 @@ class DeviceBvhBuilder:
         clio.copy(q, next_node, np.array([n], np.uint32), is_blocking=False)
         clio.copy(q, marks, np.array([0, 1, n], np.uint32), is_blocking=False)
         self._run("init_leaves", n, tri_buf, perm, u(n), cnode[0], cmin[0], cmax[0])
-        node_args = (u(n), nmin, nmax, left, right, count, kept_nodes, height, cost, leaf_ok)
+        node_args = (u(n), node)
         p = 0  # cnt[p] is the current cluster count; cluster arrays [p] are current
         n_host = n
         iters = 0
@@ -244,7 +241,7 @@ class DeviceBvhBuilder:
         # kept nodes m <= 2n - 1, about 0.9 n: the layout arrays reuse buffers PLOC no longer needs
         # (pages already touched) when m <= n, else get their own
         ipre = nn  # per inner node (n - 1)
-        root_args = (cnode[p], u(n), kept_nodes, marks)
+        root_args = (cnode[p], u(n), node, marks)
         self._task("root_count", 1, *root_args)
         mk = self._read(marks, iters + MARK0 + 1, np.uint32)  # root, kept nodes, iteration marks
         m = int(mk[1])
@@ -253,7 +250,7 @@ class DeviceBvhBuilder:
         else:
             pnode, pfirst, pdepth, order, rank = (b(k, 4 * m) for k in ("pnode", "pfirst", "pdepth", "order", "rank"))
         self._task("place_root", 1, *root_args, pnode, pfirst, pdepth, order, ipre)
-        place_args = (u(n), left, right, count, kept_nodes, leaf_ok, pnode, pfirst, pdepth, order, ipre)
+        place_args = (u(n), node, pnode, pfirst, pdepth, order, ipre)
         for it in range(iters - 1, -1, -1):  # newest nodes first: parents before children
             lo_id, hi_id = int(mk[MARK0 + it]), int(mk[MARK0 + it + 1])
             self._run("place", hi_id - lo_id, u(lo_id), u(hi_id), *place_args)
@@ -269,8 +266,7 @@ class DeviceBvhBuilder:
             out = self._bufs.take("cbox")
         else:
             out = new_buffer(self.ctx, self.ctx.cl.mem_flags.READ_WRITE, 4 * words, "device BVH tree")
-        self._run("emit", m, u(m), u(n), order, pdepth, rank, pnode, pfirst, tri_buf, perm, nmin, nmax, left,
-                  right, count, kept_nodes, height, leaf_ok, out)
+        self._run("emit", m, u(m), u(n), order, pdepth, rank, pnode, pfirst, tri_buf, perm, node, out)
         t = self._phase("layout", t)
 
         cl = self.ctx.cl
