@@ -8,30 +8,37 @@ the SAH build stays the quality reference. Measured figures: docs/bvh-device.md.
 
 Algorithm (kernels in bvh_device.cl)
 ------------------------------------
-1. Triangle boxes (exact float32 min/max of the vertices) and box centres; the centres' bounds
-   (6 device reductions) span a cubic 1024^3 grid; 30-bit Morton codes of the centres are sorted with
-   the project's radix sort (viewer.cl.primitives, 4 digit passes).
-2. PLOC (Meister & Bittner 2018): the clusters (one per triangle at first) stay in Morton order;
-   each finds the cluster within `radius` positions whose merged box has the least surface area
-   (ties to the lower index: the closest pair overall is always mutual, so every iteration
-   merges); mutual pairs merge into a new node in the lower slot, the other slot is compacted
-   away. An iteration is 5 launches (nearest per block of clusters, each pair measured once;
-   merge; per-block count; block scan; scatter); the
+1. The triangles are read in place (USE_HOST_PTR). Box centres; their bounds (6 device
+   reductions) span a cubic 1024^3 grid; 30-bit Morton codes of the centres are sorted with the
+   project's radix sort (viewer.cl.primitives, 4 digit passes).
+2. PLOC (Meister & Bittner 2018): the clusters (one per triangle at first, boxes recomputed from
+   the triangles) stay in Morton order; each finds the cluster within `radius` positions whose
+   merged box has the least surface area (ties to the lower index: the closest pair overall is
+   always mutual, so every iteration merges). For radius <= 8 `nearest_vec` does it eight pairs
+   at a time (a float8 window of the next clusters' boxes, the same float operations, so the same
+   neighbours). Mutual pairs merge into a new inner node in the lower slot. An iteration is 4
+   launches: nearest; per-block counts of kept clusters and merges; one scan of both (node ids
+   are numbered in cluster order from the node counter: no atomics); merge + compaction. The
    cluster count lives on the device, every kernel reads it there, and the host reads it back
    only every `check_every` iterations (to shrink the launch sizes and to stop).
 3. While merging, each node gets the SAH cost of its best subtree (dynamic programme: the cheaper
    of a leaf and the split, traversal 1, intersection 1 per triangle, as BuildStats reports):
    a node of at most `max_leaf` triangles becomes a leaf when that is not dearer (always when
    it holds at most `min_leaf`). Leaves are the topmost such nodes; nodes below them are dropped.
-4. Layout without a per-level loop: pointer jumping (ceil(log2(height + 1)) + 1 launches) sums,
-   along each node's path to the root, the triangles and kept nodes of left siblings and the
-   depth, so each kept node gets its first slot, its preorder index and its depth; a stable radix
-   sort of the preorder by depth (one digit pass) gives breadth-first order (root 0, children
-   after parents), and one launch gathers the tree in that order and writes the leaf order
-   (`tri_order`).
-Host round trips: the 6 reductions, one count read every `check_every` PLOC iterations, the root
-height and kept-node count, one finish per timed phase (5), and the final read-back of the tree
-(the `BVH` is host-side; backends upload its gpu_nodes()). The BVH4 collapse stays on the host.
+   Inner node records are 48 bytes (box + cost, box + height and leaf flag, links + counts).
+4. Layout, top down with no pointer jumping: a node made in PLOC iteration t has its parent made
+   in a later iteration, so one `place` launch per iteration, newest first, over the nodes that
+   iteration made gives each kept node its preorder index, first triangle slot and depth from its
+   parent (work proportional to the nodes, not nodes x log height). A stable radix sort of the
+   preorder by depth (one digit pass) gives breadth-first order, and one launch writes the tree
+   (and `tri_order`) in that order into one buffer: the cluster-box buffer when it fits (its
+   pages are already touched), which the BVH keeps and maps (zero-copy on a CPU device). The
+   layout's arrays reuse PLOC's dead buffers when the kept nodes fit. BuildStats are summed on
+   the device (float64 per block of nodes; tree_stats on a device without float64).
+Host round trips: the 6 reductions, one count read every `check_every` PLOC iterations, one read
+of the root, kept-node count and iteration marks, one finish per timed phase (5), the stats' block
+sums, and the map of the finished tree. Page faults dominate a cold build on a CPU device (about
+1 s per fresh GiB on the 2-core machine), hence the buffer reuse above.
 
 Numerics: every box is an exact float32 min/max of the triangles' float32 vertices or of child
 boxes (never rounded, so never shrunk); the Morton grid only orders the triangles.
