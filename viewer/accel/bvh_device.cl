@@ -3,8 +3,9 @@
 // MAX_LEAF, MIN_LEAF (leaf sizes as in viewer/accel/bvh.py), MARK0 (first iteration mark in `marks`).
 //
 // Nodes 0..n-1 are the triangles in Morton order (node i = triangle perm[i]); merged (inner) nodes
-// get ids n, n+1, ... from an atomic counter, so a child's id is always below its parent's, and are
-// stored at id - n (no per-triangle node records: a triangle's box is recomputed). Clusters are
+// get ids n, n+1, ... from a node counter (per iteration, in cluster order), so a child's id is
+// always below its parent's, and are stored at id - n (no per-triangle node records: a triangle's
+// box is recomputed). Clusters are
 // (node id, box) triples in Morton order; an iteration is nearest -> count -> scan -> merge+scatter,
 // all reading the cluster count from the device (cnt[p]) so the host need not read it.
 
