@@ -186,6 +186,53 @@ def test_device_bvh4_collapse_equals_host(case):
 
 
 @needs_cl
+def test_packing_from_the_device_bvh4_equals_host_packing():
+    """pack_device_bvh4 (kernel nodes and leaf blocks from the BVH4 on the device) writes what the
+    host packing writes, bit for bit."""
+    from tests.test_bvh import clustered_tris
+    from viewer.accel.bvh4_device import build_bvh4_device, device_supported
+    from viewer.backends.clbvh import LEAF_BLOCK_DTYPE, pack_device_bvh4, pack_leaves
+    from viewer.cl import cl_context
+    from viewer.cl import io as clio
+
+    ctx = cl_context()
+    if not device_supported(ctx):
+        pytest.skip("no float64 on the OpenCL device")
+    tris = clustered_tris(6000, seed=8)
+    bvh = build_bvh(tris)
+    lo_tris = bvh.triangles_in_leaf_order(tris)
+    b4, nodes_buf = build_bvh4_device(bvh, ctx)
+    hnodes, hblocks = pack_leaves(b4.nodes, lo_tris)
+    kbuf, bbuf = pack_device_bvh4(ctx, nodes_buf, len(b4.nodes), lo_tris)
+    dnodes = np.empty(len(hnodes), NODE4_DTYPE)
+    dblocks = np.empty(len(hblocks), LEAF_BLOCK_DTYPE)
+    clio.copy(ctx.queue, dnodes, kbuf)
+    clio.copy(ctx.queue, dblocks, bbuf)
+    assert hnodes.tobytes() == dnodes.tobytes()
+    assert hblocks.tobytes() == dblocks.tobytes()
+
+
+@needs_cl
+@pytest.mark.parametrize("any_hit", [False, True])
+def test_device_collapse_and_packing_trace_like_host(monkeypatch, any_hit):
+    """ClbvhScene on the device path (BVH4 collapse and packing on the device, used from
+    DEVICE_BVH4_MIN_NODES) traces the same hits, bit for bit, as on the host path."""
+    from tests.test_bvh_device import _trace_clbvh
+    from viewer.backends import clbvh
+
+    tris = random_tris(3000, seed=11, extent=20.0, size=2.0)
+    o, d = random_rays(4000, seed=11, lo=-2.0, hi=22.0)
+    lo = np.zeros(len(o), np.float32)
+    hi = np.full(len(o), np.inf, np.float32)
+    bvh = build_bvh(tris)
+    host = _trace_clbvh(tris, bvh, o, d, lo, hi, any_hit)
+    monkeypatch.setattr(clbvh, "DEVICE_BVH4_MIN_NODES", 0)
+    dev = _trace_clbvh(tris, bvh, o, d, lo, hi, any_hit)
+    assert np.array_equal(host[0], dev[0]) and np.array_equal(host[1], dev[1])
+    assert (host[1] >= 0).sum() > 100
+
+
+@needs_cl
 @pytest.mark.parametrize("max_leaf", [4, 7])
 def test_device_packed_blocks_equal_host_packed(max_leaf):
     """pack.cl writes the same leaf blocks as the host packing (one block per leaf, and leaves

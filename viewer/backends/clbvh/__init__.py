@@ -28,7 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
-from viewer.accel.bvh4 import BVH4, build_bvh4
+from viewer.accel.bvh4 import BVH4, NODE4_DTYPE, build_bvh4
 from viewer.accel.bvh4_device import build_bvh4_device, device_supported
 from viewer.backends.base import BackendContext, StatelessBackend, TraceResult
 from viewer.backends.interface import BackendInfo
@@ -117,6 +117,37 @@ def pack_leaves_device(ctx, nodes: np.ndarray, triangles: np.ndarray) -> tuple[n
     return out_nodes, blocks
 
 
+def pack_device_bvh4(ctx, nodes_buf, n4: int, triangles: np.ndarray) -> tuple[object, object]:
+    """(kernel nodes, leaf blocks) as device buffers from a BVH4 already on the device
+    (viewer.accel.bvh4_device) whose leaves hold at most 4 triangles: leaf slots counted per node,
+    the project's scan numbers the blocks row-major (as leaf_block_index), `kernel_nodes` writes
+    the nodes with block refs, pack_blocks the blocks. Nothing crosses but the scan's total; at
+    10 M triangles the host index and the node upload were 1.5-2 s of the first frame."""
+    from viewer.cl import build
+    from viewer.cl.limits import new_buffer
+    from viewer.cl.primitives import primitives
+
+    prog = build(PACK_KERNEL, {}, ctx)
+    k = clio.kernels(prog, ("leaf_slots", "kernel_nodes", "pack_blocks"))
+    mf = ctx.cl.mem_flags
+    q, u = ctx.queue, np.uint32
+    g = (-(-n4 // WG) * WG,)
+    slots, offset = (new_buffer(ctx, mf.READ_WRITE, 4 * n4, "clbvh leaf slots") for _ in range(2))
+    k["leaf_slots"](q, g, (WG,), u(n4), nodes_buf, slots)
+    n_blocks = primitives(ctx).exclusive_scan(slots, offset, n4)
+    knodes = new_buffer(ctx, mf.READ_ONLY, n4 * NODE4_DTYPE.itemsize, "clbvh nodes")
+    first, count = (new_buffer(ctx, mf.READ_WRITE, 4 * max(n_blocks, 1), "clbvh blocks") for _ in range(2))
+    k["kernel_nodes"](q, g, (WG,), u(n4), nodes_buf, offset, knodes, first, count)
+    blocks = new_buffer(ctx, mf.READ_WRITE, max(n_blocks, 1) * LEAF_BLOCK_DTYPE.itemsize, "clbvh leaf blocks")
+    tris = np.ascontiguousarray(triangles, np.float32).reshape(-1, 9)
+    src = clio.upload(ctx, tris, what="clbvh triangles", use_host=True)
+    k["pack_blocks"](q, (-(-max(n_blocks, 1) // WG) * WG,), (WG,), src, u(n_blocks), first, count, blocks)
+    clio.finish(q)  # the triangles are read in place: done before the caller may free them
+    for buf in (slots, offset, first, count, src):
+        buf.release()
+    return knodes, blocks
+
+
 class ClbvhScene:
     """The BVH4 and the leaf-ordered triangles in CL buffers, plus the built kernels."""
 
@@ -136,11 +167,15 @@ class ClbvhScene:
         assert self.stack_size <= MAX_STACK, f"BVH4 depth {self.bvh4.depth} needs {self.stack_size} stack entries"
         cl = self.ctx.cl
         mf = cl.mem_flags
-        knodes, self.blocks = pack_leaves_device(self.ctx, self.bvh4.nodes, triangles)
-        self.nodes = clio.upload(self.ctx, knodes, what="clbvh nodes")
+        n4 = len(self.bvh4.nodes)
+        if self._bvh4_buf is not None and int(self.bvh4.nodes["count"].max()) <= 4:  # one block a leaf
+            self.nodes, self.blocks = pack_device_bvh4(self.ctx, self._bvh4_buf, n4, triangles)
+        else:
+            knodes, self.blocks = pack_leaves_device(self.ctx, self.bvh4.nodes, triangles)
+            self.nodes = clio.upload(self.ctx, knodes, what="clbvh nodes")
         prog = build(KERNEL, {"STACK_SIZE": self.stack_size, "WG": WG}, self.ctx)
         self.kernels = {False: clio.kernel(prog, "trace_closest"), True: clio.kernel(prog, "trace_any")}
-        self.memory_bytes = knodes.nbytes + self.blocks.size
+        self.memory_bytes = self.nodes.size + self.blocks.size
         self.active = cl.Buffer(self.ctx.context, mf.READ_WRITE, 4)  # active rays of the last enqueue
 
     def enqueue(self, ray_o, ray_d, out_t, out_id, n: int, any_hit: bool, reset: bool = True):
