@@ -162,6 +162,99 @@ def test_leaf_blocks_hold_every_triangle_once():
     assert np.isnan(v[~used]).all()
 
 
+@needs_cl
+@pytest.mark.parametrize("case", ["one", "two", "grid", "clustered", "one_triangle_leaves", "leaves_of_7"])
+def test_device_bvh4_collapse_equals_host(case):
+    """viewer.accel.bvh4_device makes the host collapse's nodes bit for bit (order, numbering,
+    boxes, leaf refs, empty slots), its depth, sources and leaf count."""
+    from tests.test_bvh import box_grid_tris, clustered_tris
+    from viewer.accel.bvh4_device import build_bvh4_device, device_supported
+    from viewer.cl import cl_context
+
+    if not device_supported(cl_context()):
+        pytest.skip("no float64 on the OpenCL device")
+    bvh = {"one": lambda: build_bvh(random_tris(1, seed=1)), "two": lambda: build_bvh(random_tris(5, seed=1)),
+           "grid": lambda: build_bvh(box_grid_tris(3000, seed=2)),
+           "clustered": lambda: build_bvh(clustered_tris(8000, seed=3)),
+           "one_triangle_leaves": lambda: build_bvh(box_grid_tris(2000, seed=5), max_leaf=1, min_leaf=1),
+           "leaves_of_7": lambda: build_bvh(random_tris(3000, seed=6), max_leaf=7, min_leaf=1)}[case]()
+    host = build_bvh4(bvh)
+    dev, buf = build_bvh4_device(bvh)
+    assert dev.nodes.dtype == NODE4_DTYPE and host.nodes.tobytes() == dev.nodes.tobytes()
+    assert (dev.depth, dev.leaves) == (host.depth, host.leaves)
+    assert np.array_equal(dev.source, host.source)
+
+
+@needs_cl
+def test_packing_from_the_device_bvh4_equals_host_packing():
+    """pack_device_bvh4 (kernel nodes and leaf blocks from the BVH4 on the device) writes what the
+    host packing writes, bit for bit."""
+    from tests.test_bvh import clustered_tris
+    from viewer.accel.bvh4_device import build_bvh4_device, device_supported
+    from viewer.backends.clbvh import LEAF_BLOCK_DTYPE, pack_device_bvh4, pack_leaves
+    from viewer.cl import cl_context
+    from viewer.cl import io as clio
+
+    ctx = cl_context()
+    if not device_supported(ctx):
+        pytest.skip("no float64 on the OpenCL device")
+    tris = clustered_tris(6000, seed=8)
+    bvh = build_bvh(tris)
+    lo_tris = bvh.triangles_in_leaf_order(tris)
+    b4, nodes_buf = build_bvh4_device(bvh, ctx)
+    hnodes, hblocks = pack_leaves(b4.nodes, lo_tris)
+    kbuf, bbuf = pack_device_bvh4(ctx, nodes_buf, len(b4.nodes), lo_tris)
+    dnodes = np.empty(len(hnodes), NODE4_DTYPE)
+    dblocks = np.empty(len(hblocks), LEAF_BLOCK_DTYPE)
+    clio.copy(ctx.queue, dnodes, kbuf)
+    clio.copy(ctx.queue, dblocks, bbuf)
+    assert hnodes.tobytes() == dnodes.tobytes()
+    assert hblocks.tobytes() == dblocks.tobytes()
+
+
+@needs_cl
+@pytest.mark.parametrize("any_hit", [False, True])
+def test_device_collapse_and_packing_trace_like_host(monkeypatch, any_hit):
+    """ClbvhScene on the device path (BVH4 collapse and packing on the device, used from
+    DEVICE_BVH4_MIN_NODES) traces the same hits, bit for bit, as on the host path."""
+    from tests.test_bvh_device import _trace_clbvh
+    from viewer.backends import clbvh
+
+    tris = random_tris(3000, seed=11, extent=20.0, size=2.0)
+    o, d = random_rays(4000, seed=11, lo=-2.0, hi=22.0)
+    lo = np.zeros(len(o), np.float32)
+    hi = np.full(len(o), np.inf, np.float32)
+    bvh = build_bvh(tris)
+    host = _trace_clbvh(tris, bvh, o, d, lo, hi, any_hit)
+    monkeypatch.setattr(clbvh, "DEVICE_BVH4_MIN_NODES", 0)
+    dev = _trace_clbvh(tris, bvh, o, d, lo, hi, any_hit)
+    assert np.array_equal(host[0], dev[0]) and np.array_equal(host[1], dev[1])
+    assert (host[1] >= 0).sum() > 100
+
+
+@needs_cl
+@pytest.mark.parametrize("max_leaf", [4, 7])
+def test_device_packed_blocks_equal_host_packed(max_leaf):
+    """pack.cl writes the same leaf blocks as the host packing (one block per leaf, and leaves
+    spanning blocks), NaN padding included."""
+    from viewer.backends.clbvh import LEAF_BLOCK_DTYPE, pack_leaves, pack_leaves_device
+    from viewer.cl import cl_context
+    from viewer.cl import io as clio
+
+    ctx = cl_context()
+    tris = random_tris(700, seed=5)
+    bvh = build_bvh(tris, max_leaf=max_leaf, min_leaf=1)
+    lo_tris = bvh.triangles_in_leaf_order(tris)
+    b4 = build_bvh4(bvh)
+    hnodes, hblocks = pack_leaves(b4.nodes, lo_tris)
+    dnodes, dbuf = pack_leaves_device(ctx, b4.nodes, lo_tris)
+    dblocks = np.empty(len(hblocks), LEAF_BLOCK_DTYPE)
+    clio.copy(ctx.queue, dblocks, dbuf)
+    dbuf.release()
+    assert np.array_equal(hnodes, dnodes)
+    assert hblocks.tobytes() == dblocks.tobytes()  # bit for bit, NaN lanes too
+
+
 # ------------------------------------------------------------------------------------------------
 # tracing
 

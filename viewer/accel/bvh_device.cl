@@ -1,13 +1,20 @@
 // Device BVH build: Morton order + PLOC clustering + SAH leaf collapse (viewer/accel/bvh_device.py).
 // Defines: WG (work-items per group of the per-element kernels), RADIUS (PLOC search radius),
-// MAX_LEAF, MIN_LEAF (leaf sizes as in viewer/accel/bvh.py).
+// MAX_LEAF, MIN_LEAF (leaf sizes as in viewer/accel/bvh.py), MARK0 (first iteration mark in `marks`).
 //
-// Nodes 0..n-1 are the triangles in Morton order (node i = triangle perm[i]); merged nodes get ids
-// n, n+1, ... from an atomic counter, so a child's id is always below its parent's. Clusters are
-// (node id, box) triples in Morton order; an iteration is nearest -> merge -> count -> scan ->
-// scatter, all reading the cluster count from the device (cnt[p]) so the host need not read it.
+// Nodes 0..n-1 are the triangles in Morton order (node i = triangle perm[i]); merged (inner) nodes
+// get ids n, n+1, ... from a node counter (per iteration, in cluster order), so a child's id is
+// always below its parent's, and are stored at id - n (no per-triangle node records: a triangle's
+// box is recomputed). Clusters are
+// (node id, box) triples in Morton order; an iteration is nearest -> count -> scan -> merge+scatter,
+// all reading the cluster count from the device (cnt[p]) so the host need not read it.
 
 #define RING (RADIUS < 8 ? 8 : RADIUS < 16 ? 16 : RADIUS < 32 ? 32 : 64)
+
+// Inner node records (node id v >= n at v - n), NODE_F4 float4 each: (box min, SAH cost of the
+// best subtree), (box max, bits of height << 1 | leaf flag), bits of (left, right, triangles,
+// kept nodes of the subtree). One record per node: the layout kernels read a node's fields together.
+#define NODE_F4 3
 
 inline float half_area(float4 lo, float4 hi) {
     float4 e = hi - lo;
@@ -28,17 +35,21 @@ inline void block_range(uint b, uint nb, uint n, uint* s, uint* e) {
     *e = (uint)(((ulong)(b + 1) * n) / nb);
 }
 
-// Triangle boxes (exact float32 min/max of the vertices) and box centres per axis.
-__kernel void tri_boxes(__global const float* tri, uint n, __global float4* bmin, __global float4* bmax,
-                        __global float* cx, __global float* cy, __global float* cz) {
+inline void tri_box(__global const float* tri, uint t, float4* lo, float4* hi) {
+    __global const float* v = tri + 9 * (size_t)t;
+    float4 a = (float4)(v[0], v[1], v[2], 0.0f), b = (float4)(v[3], v[4], v[5], 0.0f),
+           c = (float4)(v[6], v[7], v[8], 0.0f);
+    *lo = fmin(fmin(a, b), c);
+    *hi = fmax(fmax(a, b), c);
+}
+
+// Box centres per axis (the boxes themselves are recomputed where needed: cheaper than storing them).
+__kernel void tri_boxes(__global const float* tri, uint n, __global float* cx, __global float* cy,
+                        __global float* cz) {
     uint i = get_global_id(0);
     if (i >= n) return;
-    __global const float* t = tri + 9 * (size_t)i;
-    float4 a = (float4)(t[0], t[1], t[2], 0.0f), b = (float4)(t[3], t[4], t[5], 0.0f),
-           c = (float4)(t[6], t[7], t[8], 0.0f);
-    float4 lo = fmin(fmin(a, b), c), hi = fmax(fmax(a, b), c);
-    bmin[i] = lo;
-    bmax[i] = hi;
+    float4 lo, hi;
+    tri_box(tri, i, &lo, &hi);
     float4 m = (lo + hi) * 0.5f;
     cx[i] = m.x;
     cy[i] = m.y;
@@ -56,28 +67,13 @@ __kernel void morton(__global const float* cx, __global const float* cy, __globa
     vals[i] = i;
 }
 
-// Leaf nodes (one per triangle, Morton order) and the first clusters.
-__kernel void init_leaves(__global const uint* perm, __global const float4* bmin, __global const float4* bmax,
-                          uint n, __global float4* nmin, __global float4* nmax, __global int* left,
-                          __global int* right, __global int* parent, __global int* count, __global int* kept_nodes,
-                          __global int* height, __global uint* uheight, __global float* cost,
-                          __global uchar* leaf_ok, __global uint* cnode, __global float4* cmin,
-                          __global float4* cmax) {
+// The first clusters: one per triangle in Morton order (node i = triangle perm[i]), with its exact box.
+__kernel void init_leaves(__global const float* tri, __global const uint* perm, uint n, __global uint* cnode,
+                          __global float4* cmin, __global float4* cmax) {
     uint i = get_global_id(0);
     if (i >= n) return;
-    uint t = perm[i];
-    float4 lo = bmin[t], hi = bmax[t];
-    nmin[i] = lo;
-    nmax[i] = hi;
-    left[i] = -1;
-    right[i] = -1;
-    parent[i] = -1;
-    count[i] = 1;
-    kept_nodes[i] = 1;
-    height[i] = 0;
-    uheight[i] = 0;
-    cost[i] = half_area(lo, hi);
-    leaf_ok[i] = 1;
+    float4 lo, hi;
+    tri_box(tri, perm[i], &lo, &hi);
     cnode[i] = i;
     cmin[i] = lo;
     cmax[i] = hi;
@@ -162,44 +158,75 @@ __kernel void nearest_block(__global const uint* cnt, uint p, __global const flo
     }
 }
 
-// Mutual nearest pairs (i < j) merge into a new node that takes cluster slot i; slot j is dropped
-// by the compaction. The node's SAH cost is the cheaper of a leaf and the split (traversal 1,
-// intersection 1 per triangle, in area units), as a bottom-up dynamic programme.
-__kernel void merge(__global const uint* cnt, uint p, __global const uint* nn, __global uint* cnode,
-                    __global float4* cmin, __global float4* cmax, volatile __global uint* next_node,
-                    __global float4* nmin, __global float4* nmax, __global int* left, __global int* right,
-                    __global int* parent, __global int* count, __global int* kept_nodes, __global int* height,
-                    __global uint* uheight, __global float* cost, __global uchar* leaf_ok) {
+#if RADIUS <= 8
+// The same nearest neighbours as nearest_block, eight pairs at a time (RADIUS <= 8): a window of
+// float8 boxes holds clusters i+1 .. i+8 (one new cluster shifted in per step), the merged areas of
+// cluster i with all of them are one float8 expression (the same float operations as half_area, so
+// the same values), and `lb`/`li` hold, for clusters i .. i+7, the best area and index offered by
+// clusters before i (strict < keeps the earlier, lower index on ties). A block starts RADIUS
+// clusters early so the pairs reaching into it are seen.
+#define EMPTY8 ((float8)(INFINITY))
+__kernel void nearest_vec(__global const uint* cnt, uint p, __global const float4* cmin,
+                          __global const float4* cmax, uint nb, __global uint* nn) {
+    uint b = get_global_id(0);
     uint n = cnt[p];
-    uint i = get_global_id(0);
-    if (i >= n || n <= 1) return;
-    uint j = nn[i];
-    if (j <= i || nn[j] != i) return;
-    uint a = cnode[i], b = cnode[j];
-    float4 lo = fmin(cmin[i], cmin[j]), hi = fmax(cmax[i], cmax[j]);
-    uint v = atomic_inc(next_node);
-    nmin[v] = lo;
-    nmax[v] = hi;
-    left[v] = (int)a;
-    right[v] = (int)b;
-    parent[v] = -1;
-    parent[a] = (int)v;
-    parent[b] = (int)v;
-    int c = count[a] + count[b];
-    count[v] = c;
-    float area = half_area(lo, hi);
-    float split = area + cost[a] + cost[b];
-    float leaf = (float)c * area;
-    uchar ok = c <= MIN_LEAF || (c <= MAX_LEAF && leaf <= split);
-    leaf_ok[v] = ok;
-    cost[v] = ok ? leaf : split;
-    kept_nodes[v] = ok ? 1 : 1 + kept_nodes[a] + kept_nodes[b];
-    height[v] = ok ? 0 : 1 + max(height[a], height[b]);
-    uheight[v] = 1 + max(uheight[a], uheight[b]);
-    cnode[i] = v;
-    cmin[i] = lo;
-    cmax[i] = hi;
+    if (b >= nb || n <= 1) return;
+    uint s, e;
+    block_range(b, nb, n, &s, &e);
+    if (s >= e) return;
+    uint i0 = s > RADIUS ? s - RADIUS : 0;
+    const uint8 lane = (uint8)(1, 2, 3, 4, 5, 6, 7, 8);
+    float8 wlx, wly, wlz, whx, why, whz;  // boxes of clusters i+1 .. i+8
+    float lx[8], ly[8], lz[8], hx[8], hy[8], hz[8];
+    for (uint k = 0; k < 8; ++k) {
+        uint j = min(i0 + 1 + k, n - 1);
+        float4 lo = cmin[j], hi = cmax[j];
+        lx[k] = lo.x; ly[k] = lo.y; lz[k] = lo.z; hx[k] = hi.x; hy[k] = hi.y; hz[k] = hi.z;
+    }
+    wlx = vload8(0, lx); wly = vload8(0, ly); wlz = vload8(0, lz);
+    whx = vload8(0, hx); why = vload8(0, hy); whz = vload8(0, hz);
+    float8 lb = EMPTY8;  // best area offered to clusters i .. i+7 by clusters before i
+    uint8 li = (uint8)(0xffffffffu);
+    for (uint i = i0; i < e; ++i) {
+        float4 lo = cmin[i], hi = cmax[i];
+        float8 ex = fmax((float8)(hi.x), whx) - fmin((float8)(lo.x), wlx);
+        float8 ey = fmax((float8)(hi.y), why) - fmin((float8)(lo.y), wly);
+        float8 ez = fmax((float8)(hi.z), whz) - fmin((float8)(lo.z), wlz);
+        float8 a = ex * ey + ey * ez + ez * ex;
+        uint8 j = (uint8)(i) + lane;
+        int8 bad = (j > (uint8)(n - 1)) | (lane > (uint8)(RADIUS));
+        a = select(a, EMPTY8, isnan(a) | bad);
+        uint8 jid = select(j, (uint8)(0xffffffffu), bad);
+        if (i >= s) {  // cluster i: best to the right (first lowest), then against the left offer
+            float4 m4 = fmin(a.lo, a.hi);
+            float2 m2 = fmin(m4.lo, m4.hi);
+            float rm = fmin(m2.x, m2.y);
+            uint8 cand = select((uint8)(0xffffffffu), jid, a == (float8)(rm));
+            uint4 c4 = min(cand.lo, cand.hi);
+            uint2 c2 = min(c4.lo, c4.hi);
+            uint rj = min(c2.x, c2.y);
+            float l0 = lb.s0;
+            uint lj = li.s0;
+            nn[i] = (l0 < rm || (l0 == rm && lj < rj)) ? lj : rj;
+        }
+        // shift the offers to clusters i+1 .. i+8, then offer i to them
+        lb = (float8)(lb.s1234, lb.s567, INFINITY);
+        li = (uint8)(li.s1234, li.s567, 0xffffffffu);
+        int8 better = (a < lb) | ((a == lb) & (li == (uint8)(0xffffffffu)) & ~bad);  // INF ties too
+        lb = select(lb, a, better);
+        li = select(li, (uint8)(i), better);
+        // shift in cluster i+9
+        uint jn = min(i + 9, n - 1);
+        float4 nlo = cmin[jn], nhi = cmax[jn];
+        wlx = (float8)(wlx.s1234, wlx.s567, nlo.x);
+        wly = (float8)(wly.s1234, wly.s567, nlo.y);
+        wlz = (float8)(wlz.s1234, wlz.s567, nlo.z);
+        whx = (float8)(whx.s1234, whx.s567, nhi.x);
+        why = (float8)(why.s1234, why.s567, nhi.y);
+        whz = (float8)(whz.s1234, whz.s567, nhi.z);
+    }
 }
+#endif
 
 inline bool dropped(uint i, uint n, __global const uint* nn) {
     if (n <= 1) return false;
@@ -207,93 +234,174 @@ inline bool dropped(uint i, uint n, __global const uint* nn) {
     return j < i && nn[j] == i;
 }
 
-__kernel void count_kept(__global const uint* cnt, uint p, __global const uint* nn, uint nb, __global uint* bsum) {
-    uint b = get_global_id(0);
-    if (b >= nb) return;
-    uint n = cnt[p], s, e, k = 0;
-    block_range(b, nb, n, &s, &e);
-    for (uint i = s; i < e; ++i) k += !dropped(i, n, nn);
-    bsum[b] = k;
+inline bool merges(uint i, uint n, __global const uint* nn) {
+    if (n <= 1) return false;
+    uint j = nn[i];
+    return j > i && nn[j] == i;
 }
 
-// One work-item: exclusive scan of the block counts; the new cluster count goes to cnt[1 - p].
-__kernel void scan_blocks(__global uint* bsum, uint nb, __global uint* cnt, uint p) {
-    if (get_global_id(0) != 0) return;
-    uint acc = 0;
-    for (uint b = 0; b < nb; ++b) {
-        uint k = bsum[b];
-        bsum[b] = acc;
-        acc += k;
-    }
-    cnt[1 - p] = acc;
-}
-
-__kernel void scatter(__global const uint* cnt, uint p, __global const uint* nn, uint nb,
-                      __global const uint* bsum, __global const uint* cnode, __global const float4* cmin,
-                      __global const float4* cmax, __global uint* dnode, __global float4* dmin,
-                      __global float4* dmax) {
+// Per block of clusters: the clusters kept (bsum[b]) and the pairs merged (bsum[nb + b]).
+__kernel void count_blocks(__global const uint* cnt, uint p, __global const uint* nn, uint nb,
+                           __global uint* bsum) {
     uint b = get_global_id(0);
     if (b >= nb) return;
-    uint n = cnt[p], s, e, o = bsum[b];
+    uint n = cnt[p], s, e, k = 0, g = 0;
     block_range(b, nb, n, &s, &e);
     for (uint i = s; i < e; ++i) {
+        k += !dropped(i, n, nn);
+        g += merges(i, n, nn);
+    }
+    bsum[b] = k;
+    bsum[nb + b] = g;
+}
+
+// One work-item: exclusive scans of the block counts (kept clusters from 0, merged nodes from the
+// node counter); the new cluster count goes to cnt[1 - p], the node counter after this iteration to
+// next_node and marks[MARK0 + it + 1] (the layout's top-down pass walks the iterations backwards:
+// a node's parent was made in a later iteration).
+__kernel void scan_blocks(__global uint* bsum, uint nb, __global uint* cnt, uint p, __global uint* next_node,
+                          __global uint* marks, uint it) {
+    if (get_global_id(0) != 0) return;
+    uint acc = 0, v = *next_node;
+    for (uint b = 0; b < nb; ++b) {
+        uint k = bsum[b], g = bsum[nb + b];
+        bsum[b] = acc;
+        bsum[nb + b] = v;
+        acc += k;
+        v += g;
+    }
+    cnt[1 - p] = acc;
+    *next_node = v;
+    marks[MARK0 + it + 1] = v;
+}
+
+// Mutual nearest pairs (i < j) merge into a new inner node (ids in cluster order from the block's
+// offset) that takes cluster slot i; slot j is dropped; the kept clusters are compacted into the
+// other cluster arrays, order kept. Inner node v (>= n) is stored at v - n; a child below n is a
+// triangle (count 1, kept 1, height 0, cost its box's area, the box being its cluster's). The node's
+// SAH cost is the cheaper of a leaf and the split (traversal 1, intersection 1 per triangle, in area
+// units), as a bottom-up dynamic programme.
+__kernel void merge_scatter(__global const uint* cnt, uint p, __global const uint* nn, uint nb,
+                            __global const uint* bsum, __global const uint* cnode, __global const float4* cmin,
+                            __global const float4* cmax, __global uint* dnode, __global float4* dmin,
+                            __global float4* dmax, uint n_tri, __global float4* node) {
+    uint bk = get_global_id(0);
+    if (bk >= nb) return;
+    uint n = cnt[p], s, e, o = bsum[bk], v = bsum[nb + bk];
+    block_range(bk, nb, n, &s, &e);
+    for (uint i = s; i < e; ++i) {
         if (dropped(i, n, nn)) continue;
-        dnode[o] = cnode[i];
-        dmin[o] = cmin[i];
-        dmax[o] = cmax[i];
-        ++o;
-    }
-}
-
-// Pointer-jumping state per node: (slot offset, preorder offset, depth, ancestor). A node's own
-// term: as a right child it is preceded by its left sibling's triangles and kept nodes; every
-// non-root node is one below its parent. Summed over the path to the root they give the node's
-// first triangle slot, its preorder index among the kept nodes and its depth.
-// Nodes inside a leaf (an ancestor was chosen as a leaf) get ancestor -2: they take no part (no
-// kept node points at them) and `emit` skips them.
-__kernel void jump_init(uint m, __global const int* left, __global const int* right, __global const int* parent,
-                        __global const int* count, __global const int* kept_nodes, __global const uchar* leaf_ok,
-                        __global int4* st) {
-    uint v = get_global_id(0);
-    if (v >= m) return;
-    int u = parent[v];
-    for (int w = u; w >= 0 && count[w] <= MAX_LEAF; w = parent[w]) {
-        if (leaf_ok[w]) {
-            st[v] = (int4)(0, 0, 0, -2);
-            return;
+        uint a = cnode[i];
+        float4 alo = cmin[i], ahi = cmax[i];
+        if (!merges(i, n, nn)) {
+            dnode[o] = a;
+            dmin[o] = alo;
+            dmax[o] = ahi;
+            ++o;
+            continue;
         }
+        uint j = nn[i];
+        uint b = cnode[j];
+        float4 blo = cmin[j], bhi = cmax[j];
+        float4 lo = fmin(alo, blo), hi = fmax(ahi, bhi);
+        int ca = 1, cb = 1, ka = 1, kb = 1, ha = 0, hb = 0;
+        float sa, sb;
+        if (a >= n_tri) {
+            __global const float4* r = node + NODE_F4 * (size_t)(a - n_tri);
+            int4 links = as_int4(r[2]);
+            ca = links.z; ka = links.w; ha = as_int(r[1].w) >> 1; sa = r[0].w;
+        } else {
+            sa = half_area(alo, ahi);
+        }
+        if (b >= n_tri) {
+            __global const float4* r = node + NODE_F4 * (size_t)(b - n_tri);
+            int4 links = as_int4(r[2]);
+            cb = links.z; kb = links.w; hb = as_int(r[1].w) >> 1; sb = r[0].w;
+        } else {
+            sb = half_area(blo, bhi);
+        }
+        int c = ca + cb;
+        float area = half_area(lo, hi);
+        float split = area + sa + sb;
+        float leaf = (float)c * area;
+        int ok = c <= MIN_LEAF || (c <= MAX_LEAF && leaf <= split);
+        int h = ok ? 0 : 1 + max(ha, hb);
+        __global float4* r = node + NODE_F4 * (size_t)(v - n_tri);
+        r[0] = (float4)(lo.xyz, ok ? leaf : split);
+        r[1] = (float4)(hi.xyz, as_float((h << 1) | ok));
+        r[2] = as_float4((int4)((int)a, (int)b, c, ok ? 1 : 1 + ka + kb));
+        dnode[o] = v;
+        dmin[o] = lo;
+        dmax[o] = hi;
+        ++o;
+        ++v;
     }
-    int4 s = (int4)(0, 0, 0, -1);
-    if (u >= 0) {
-        bool r = right[u] == (int)v;
-        int l = left[u];
-        s = (int4)(r ? count[l] : 0, 1 + (r ? kept_nodes[l] : 0), 1, u);
-    }
-    st[v] = s;
 }
 
-__kernel void jump(uint m, __global const int4* src, __global int4* dst) {
-    uint v = get_global_id(0);
-    if (v >= m) return;
-    int4 s = src[v];
-    if (s.w >= 0) {
-        int4 a = src[s.w];
-        s = (int4)(s.x + a.x, s.y + a.y, s.z + a.z, a.w);
-    }
-    dst[v] = s;
+// ---- layout -----------------------------------------------------------------------------------
+// Kept nodes (no ancestor chosen as a leaf) get a preorder index p; per p: pnode (node id), pfirst
+// (first triangle slot), pdepth (depth, later the sort key that turns preorder into breadth-first
+// order) and order (p itself, the sort's value). Inner node v also keeps ipre[v - n] = p, or -1
+// inside a leaf. The root is placed first; then `place` runs once per PLOC iteration, newest first,
+// over the nodes that iteration made, each placing its two children (its own entry was written by
+// its parent, made in a later iteration, so placed by an earlier launch).
+
+// marks[0] = root node id, marks[1] = kept nodes (read by the host with the iteration marks).
+__kernel void root_count(__global const uint* cnode, uint n_tri, __global const float4* node,
+                         __global uint* marks) {
+    if (get_global_id(0) != 0) return;
+    uint root = cnode[0];
+    marks[0] = root;
+    marks[1] = root >= n_tri ? (uint)as_int4(node[NODE_F4 * (size_t)(root - n_tri) + 2]).w : 1u;
 }
 
-// Kept nodes (no ancestor chosen as a leaf) by preorder index: pnode[pre] = node; the depth is the
-// sort key that turns preorder into breadth-first order (`order`: BFS position -> preorder index).
-__kernel void preorder(uint m, __global const int4* st, __global uint* pnode, __global uint* keys,
-                       __global uint* order) {
-    uint v = get_global_id(0);
-    if (v >= m) return;
-    int4 s = st[v];
-    if (s.w == -2) return;  // inside a leaf
-    pnode[s.y] = v;
-    keys[s.y] = (uint)s.z;
-    order[s.y] = (uint)s.y;
+__kernel void place_root(__global const uint* cnode, uint n_tri, __global const float4* node,
+                         __global const uint* marks, __global uint* pnode, __global int* pfirst,
+                         __global uint* pdepth, __global uint* order, __global int* ipre) {
+    if (get_global_id(0) != 0) return;
+    uint root = marks[0];
+    pnode[0] = root;
+    pfirst[0] = 0;
+    pdepth[0] = 0;
+    order[0] = 0;
+    if (root >= n_tri) ipre[root - n_tri] = 0;
+}
+
+inline void put(uint q, uint v, int first, uint depth, uint n_tri, __global uint* pnode, __global int* pfirst,
+                __global uint* pdepth, __global uint* order, __global int* ipre) {
+    pnode[q] = v;
+    pfirst[q] = first;
+    pdepth[q] = depth;
+    order[q] = q;
+    if (v >= n_tri) ipre[v - n_tri] = (int)q;
+}
+
+// Nodes lo .. hi - 1 (ids, all >= n_tri) place their children.
+__kernel void place(uint lo, uint hi, uint n_tri, __global const float4* node, __global uint* pnode,
+                    __global int* pfirst, __global uint* pdepth, __global uint* order, __global int* ipre) {
+    uint v = lo + get_global_id(0);
+    if (v >= hi) return;
+    uint u = v - n_tri;
+    int q = ipre[u];
+    __global const float4* r = node + NODE_F4 * (size_t)u;
+    int4 links = as_int4(r[2]);
+    uint l = (uint)links.x, rr = (uint)links.y;
+    if (q < 0 || (as_int(r[1].w) & 1)) {  // inside a leaf, or a leaf: the inner nodes below are not kept
+        if (l >= n_tri) ipre[l - n_tri] = -1;
+        if (rr >= n_tri) ipre[rr - n_tri] = -1;
+        return;
+    }
+    int f = pfirst[q];
+    uint d = pdepth[q] + 1;
+    int cl = 1;
+    uint kl = 1;
+    if (l >= n_tri) {
+        int4 ll = as_int4(node[NODE_F4 * (size_t)(l - n_tri) + 2]);
+        cl = ll.z;
+        kl = (uint)ll.w;
+    }
+    put((uint)q + 1, l, f, d, n_tri, pnode, pfirst, pdepth, order, ipre);
+    put((uint)q + 1 + kl, rr, f + cl, d, n_tri, pnode, pfirst, pdepth, order, ipre);
 }
 
 __kernel void invert(uint m, __global const uint* order, __global int* rank) {
@@ -302,44 +410,123 @@ __kernel void invert(uint m, __global const uint* order, __global int* rank) {
     rank[order[k]] = (int)k;
 }
 
-// The canonical tree in breadth-first order (rank: preorder index -> BFS position); a leaf also
-// writes its triangles (left subtree first) to tri_order at its first slot.
-__kernel void emit(uint m, __global const uint* order, __global const int* rank, __global const uint* pnode,
-                   __global const int4* st, __global const float4* nmin, __global const float4* nmax,
-                   __global const int* left, __global const int* right, __global const int* parent,
-                   __global const int* count, __global const int* height, __global const uchar* leaf_ok,
-                   __global const uint* perm, __global float4* omin, __global float4* omax, __global int* oleft,
-                   __global int* oright, __global int* ofirst, __global int* ocount, __global int* oparent,
-                   __global int* odepth, __global int* oheight, __global int* tri_order) {
+// The canonical tree in breadth-first order k (order: k -> preorder index, depth: the sorted keys,
+// rank: preorder index -> k) into one int buffer `out` (float boxes as bits): min and max (3 floats
+// per node), then left, right, first, count, parent, depth, height (m each), then tri_order (n).
+// A leaf writes its triangles (left subtree first) to tri_order from its first slot; an inner node
+// writes its children's parent entries.
+__kernel void emit(uint m, uint n_tri, __global const uint* order, __global const uint* depth,
+                   __global const int* rank, __global const uint* pnode, __global const int* pfirst,
+                   __global const float* tri, __global const uint* perm, __global const float4* node,
+                   __global int* out) {
     uint k = get_global_id(0);
     if (k >= m) return;
-    int v = (int)pnode[order[k]];
-    int4 s = st[v];
-    omin[k] = nmin[v];
-    omax[k] = nmax[v];
-    ofirst[k] = s.x;
-    ocount[k] = count[v];
-    odepth[k] = s.z;
-    oheight[k] = height[v];
-    int u = parent[v];
-    oparent[k] = u >= 0 ? rank[st[u].y] : -1;
-    if (!leaf_ok[v]) {
-        oleft[k] = rank[st[left[v]].y];
-        oright[k] = rank[st[right[v]].y];
+    __global float* omin = (__global float*)out;
+    __global float* omax = omin + 3 * (size_t)m;
+    __global int* oleft = out + 6 * (size_t)m;
+    __global int* oright = oleft + m;
+    __global int* ofirst = oright + m;
+    __global int* ocount = ofirst + m;
+    __global int* oparent = ocount + m;
+    __global int* odepth = oparent + m;
+    __global int* oheight = odepth + m;
+    __global int* tri_order = oheight + m;
+    uint q = order[k];
+    uint v = pnode[q];
+    int first = pfirst[q];
+    ofirst[k] = first;
+    odepth[k] = (int)depth[k];
+    if (k == 0) oparent[0] = -1;
+    if (v < n_tri) {  // a single-triangle leaf
+        float4 lo, hi;
+        uint t = perm[v];
+        tri_box(tri, t, &lo, &hi);
+        vstore3(lo.xyz, k, omin);
+        vstore3(hi.xyz, k, omax);
+        ocount[k] = 1;
+        oheight[k] = 0;
+        oleft[k] = -1;
+        oright[k] = -1;
+        tri_order[first] = (int)t;
+        return;
+    }
+    uint u = v - n_tri;
+    __global const float4* r = node + NODE_F4 * (size_t)u;
+    float4 r0 = r[0], r1 = r[1];
+    int4 links = as_int4(r[2]);
+    int hk = as_int(r1.w);
+    vstore3(r0.xyz, k, omin);
+    vstore3(r1.xyz, k, omax);
+    ocount[k] = links.z;
+    oheight[k] = hk >> 1;
+    if (!(hk & 1)) {
+        uint l = (uint)links.x;
+        uint kl = l >= n_tri ? (uint)as_int4(node[NODE_F4 * (size_t)(l - n_tri) + 2]).w : 1u;
+        int rl = rank[q + 1], rr = rank[q + 1 + kl];
+        oleft[k] = rl;
+        oright[k] = rr;
+        oparent[rl] = (int)k;
+        oparent[rr] = (int)k;
         return;
     }
     oleft[k] = -1;
     oright[k] = -1;
-    int stack[MAX_LEAF + 1];
-    int sp = 0, w = v, slot = s.x;
+    uint stack[MAX_LEAF + 1];
+    int sp = 0, slot = first;
+    uint w = v;
     for (;;) {
-        if (left[w] < 0) {
+        if (w < n_tri) {
             tri_order[slot++] = (int)perm[w];
             if (sp == 0) break;
             w = stack[--sp];
         } else {
-            stack[sp++] = right[w];
-            w = left[w];
+            int4 wl = as_int4(node[NODE_F4 * (size_t)(w - n_tri) + 2]);
+            stack[sp++] = (uint)wl.y;
+            w = (uint)wl.x;
         }
     }
 }
+
+#ifdef cl_khr_fp64
+#pragma OPENCL EXTENSION cl_khr_fp64 : enable
+// BuildStats of the finished tree (the sums of viewer.accel.bvh.tree_stats, in float64 as there),
+// per block of nodes; the host adds the blocks (one read): part[STATS_W * b + ...] = inner nodes'
+// area sum, leaves' area x triangles sum, inner node count, deepest leaf, leaves of 0 .. MAX_LEAF
+// triangles.
+#define STATS_W (MAX_LEAF + 5)
+__kernel void stats_blocks(uint m, uint nb, __global const int* out, __global double* part) {
+    uint b = get_global_id(0);
+    if (b >= nb) return;
+    uint s, e;
+    block_range(b, nb, m, &s, &e);
+    __global const float* omin = (__global const float*)out;
+    __global const float* omax = omin + 3 * (size_t)m;
+    __global const int* oleft = out + 6 * (size_t)m;
+    __global const int* ocount = oleft + 3 * (size_t)m;
+    __global const int* odepth = oleft + 5 * (size_t)m;
+    double inner = 0.0, leaf = 0.0, n_inner = 0.0, deepest = 0.0;
+    double hist[MAX_LEAF + 1];
+    for (int c = 0; c <= MAX_LEAF; ++c) hist[c] = 0.0;
+    for (uint k = s; k < e; ++k) {
+        double ex = (double)omax[3 * k] - (double)omin[3 * k];
+        double ey = (double)omax[3 * k + 1] - (double)omin[3 * k + 1];
+        double ez = (double)omax[3 * k + 2] - (double)omin[3 * k + 2];
+        double area = ex * ey + ey * ez + ez * ex;
+        if (oleft[k] >= 0) {
+            inner += area;
+            n_inner += 1.0;
+        } else {
+            int c = ocount[k];
+            leaf += area * (double)c;
+            hist[min(c, MAX_LEAF)] += 1.0;
+            deepest = fmax(deepest, (double)odepth[k]);
+        }
+    }
+    __global double* p = part + STATS_W * (size_t)b;
+    p[0] = inner;
+    p[1] = leaf;
+    p[2] = n_inner;
+    p[3] = deepest;
+    for (int c = 0; c <= MAX_LEAF; ++c) p[4 + c] = hist[c];
+}
+#endif

@@ -8,30 +8,37 @@ the SAH build stays the quality reference. Measured figures: docs/bvh-device.md.
 
 Algorithm (kernels in bvh_device.cl)
 ------------------------------------
-1. Triangle boxes (exact float32 min/max of the vertices) and box centres; the centres' bounds
-   (6 device reductions) span a cubic 1024^3 grid; 30-bit Morton codes of the centres are sorted with
-   the project's radix sort (viewer.cl.primitives, 4 digit passes).
-2. PLOC (Meister & Bittner 2018): the clusters (one per triangle at first) stay in Morton order;
-   each finds the cluster within `radius` positions whose merged box has the least surface area
-   (ties to the lower index: the closest pair overall is always mutual, so every iteration
-   merges); mutual pairs merge into a new node in the lower slot, the other slot is compacted
-   away. An iteration is 5 launches (nearest per block of clusters, each pair measured once;
-   merge; per-block count; block scan; scatter); the
+1. The triangles are read in place (USE_HOST_PTR). Box centres; their bounds (6 device
+   reductions) span a cubic 1024^3 grid; 30-bit Morton codes of the centres are sorted with the
+   project's radix sort (viewer.cl.primitives, 4 digit passes).
+2. PLOC (Meister & Bittner 2018): the clusters (one per triangle at first, boxes recomputed from
+   the triangles) stay in Morton order; each finds the cluster within `radius` positions whose
+   merged box has the least surface area (ties to the lower index: the closest pair overall is
+   always mutual, so every iteration merges). For radius <= 8 `nearest_vec` does it eight pairs
+   at a time (a float8 window of the next clusters' boxes, the same float operations, so the same
+   neighbours). Mutual pairs merge into a new inner node in the lower slot. An iteration is 4
+   launches: nearest; per-block counts of kept clusters and merges; one scan of both (node ids
+   are numbered in cluster order from the node counter: no atomics); merge + compaction. The
    cluster count lives on the device, every kernel reads it there, and the host reads it back
    only every `check_every` iterations (to shrink the launch sizes and to stop).
 3. While merging, each node gets the SAH cost of its best subtree (dynamic programme: the cheaper
    of a leaf and the split, traversal 1, intersection 1 per triangle, as BuildStats reports):
    a node of at most `max_leaf` triangles becomes a leaf when that is not dearer (always when
    it holds at most `min_leaf`). Leaves are the topmost such nodes; nodes below them are dropped.
-4. Layout without a per-level loop: pointer jumping (ceil(log2(height + 1)) + 1 launches) sums,
-   along each node's path to the root, the triangles and kept nodes of left siblings and the
-   depth, so each kept node gets its first slot, its preorder index and its depth; a stable radix
-   sort of the preorder by depth (one digit pass) gives breadth-first order (root 0, children
-   after parents), and one launch gathers the tree in that order and writes the leaf order
-   (`tri_order`).
-Host round trips: the 6 reductions, one count read every `check_every` PLOC iterations, the root
-height and kept-node count, one finish per timed phase (5), and the final read-back of the tree
-(the `BVH` is host-side; backends upload its gpu_nodes()). The BVH4 collapse stays on the host.
+   Inner node records are 48 bytes (box + cost, box + height and leaf flag, links + counts).
+4. Layout, top down with no pointer jumping: a node made in PLOC iteration t has its parent made
+   in a later iteration, so one `place` launch per iteration, newest first, over the nodes that
+   iteration made gives each kept node its preorder index, first triangle slot and depth from its
+   parent (work proportional to the nodes, not nodes x log height). A stable radix sort of the
+   preorder by depth (one digit pass) gives breadth-first order, and one launch writes the tree
+   (and `tri_order`) in that order into one buffer: the cluster-box buffer when it fits (its
+   pages are already touched), which the BVH keeps and maps (zero-copy on a CPU device). The
+   layout's arrays reuse PLOC's dead buffers when the kept nodes fit. BuildStats are summed on
+   the device (float64 per block of nodes; tree_stats on a device without float64).
+Host round trips: the 6 reductions, one count read every `check_every` PLOC iterations, one read
+of the root, kept-node count and iteration marks, one finish per timed phase (5), the stats' block
+sums, and the map of the finished tree. Page faults dominate a cold build on a CPU device (about
+1 s per fresh GiB on the 2-core machine), hence the buffer reuse above.
 
 Numerics: every box is an exact float32 min/max of the triangles' float32 vertices or of child
 boxes (never rounded, so never shrunk); the Morton grid only orders the triangles.
@@ -45,8 +52,9 @@ from typing import Any
 
 import numpy as np
 
-from viewer.accel.bvh import BVH, _validate, tree_stats
+from viewer.accel.bvh import BVH, GPU_NODE_DTYPE, GPU_TRI_DTYPE, BuildStats, _validate, tree_stats
 from viewer.cl import io as clio
+from viewer.cl.limits import new_buffer
 from viewer.cl.pool import BufferPool
 from viewer.cl.primitives import WG as PWG
 
@@ -54,12 +62,17 @@ KERNEL = Path(__file__).resolve().parent / "bvh_device.cl"
 WG = 64
 RADIUS = 8
 CHECK_EVERY = 4
-#: device bytes per triangle of the buffers build() allocates (all kept for the next build): input,
-#: boxes, centres, keys + sort scratch, 2 nodes x (boxes, 8 int fields, flag), 2 x clusters, nn,
-#: 2 nodes x 2 pointer-jumping states, outputs, preorder / BFS sort buffers, tri_order
-BYTES_PER_TRIANGLE = 36 + 32 + 12 + 16 + 2 * (32 + 8 * 4 + 1) + 2 * 36 + 4 + 2 * 2 * 16 + 60 + 16 + 4
-_KERNELS = ("tri_boxes", "morton", "init_leaves", "nearest", "nearest_block", "merge", "count_kept", "scan_blocks",
-            "scatter", "jump_init", "jump", "preorder", "invert", "emit")
+#: device bytes per triangle of the buffers build() allocates (bounds: only the pages a build writes
+#: are ever touched): input (the host array itself on a CPU device), centres, keys + sort scratch,
+#: inner node records (48 bytes), cluster ids x 2 and boxes x 2, nn, iteration marks, the
+#: layout's arrays (when the kept nodes m exceed n: m <= 2n - 1, about 0.9 n in practice; else
+#: they reuse PLOC's buffers) and the finished tree (13 words a kept node and tri_order: in the
+#: cluster-box buffer when it fits, which the BVH then keeps; else a buffer of its own)
+OUT_BYTES_PER_TRIANGLE = 2 * 13 * 4 + 4
+BYTES_PER_TRIANGLE = 36 + 12 + 16 + 48 + 2 * 36 + 4 + 4 + 2 * 5 * 4 + OUT_BYTES_PER_TRIANGLE
+MARK0 = 2  # marks[0]: root id, marks[1]: kept nodes, marks[MARK0 + i]: node counter before iteration i
+_KERNELS = ("tri_boxes", "morton", "init_leaves", "nearest", "nearest_block", "nearest_vec", "count_blocks",
+            "scan_blocks", "merge_scatter", "root_count", "place_root", "place", "invert", "emit", "stats_blocks")
 
 
 class DeviceBvhBuilder:
@@ -78,10 +91,13 @@ class DeviceBvhBuilder:
         self.prims = primitives(self.ctx)
         self.max_leaf, self.min_leaf = int(max_leaf), max(int(min_leaf), 1)
         self.check_every = max(int(check_every), 1)
-        self.block_nearest = True  # nearest_block (each pair once) rather than nearest (per cluster)
+        self.block_nearest = True  # per block of clusters (each pair once) rather than nearest (per cluster)
+        self.vector_nearest = radius <= 8  # the block search eight pairs at a time (nearest_vec)
         prog = build(KERNEL, {"WG": WG, "RADIUS": int(radius), "MAX_LEAF": self.max_leaf,
-                              "MIN_LEAF": self.min_leaf}, self.ctx)
-        self._k = clio.kernels(prog, _KERNELS)
+                              "MIN_LEAF": self.min_leaf, "MARK0": MARK0}, self.ctx)
+        fp64 = "cl_khr_fp64" in self.ctx.device.extensions
+        self._k = clio.kernels(prog, [k for k in _KERNELS if (k != "nearest_vec" or radius <= 8)
+                                      and (k != "stats_blocks" or fp64)])
         self._bufs = BufferPool(self.ctx)
         self.phases: dict[str, float] = {}
         self.iterations = 0
@@ -106,6 +122,28 @@ class DeviceBvhBuilder:
             clio.copy(self.ctx.queue, out, buf, src_offset=offset)
         return out
 
+    def _stats(self, out: Any, m: int, n: int, *tree: np.ndarray) -> BuildStats:
+        """BuildStats of the finished tree: tree_stats' sums made on the device in float64 per block
+        of nodes (one read of the block sums; the host pass over every node took 0.5 s at 10 M
+        triangles), or tree_stats itself on a device without float64."""
+        if "stats_blocks" not in self._k:
+            return tree_stats(*tree, n)
+        nb = min(PWG * 8, -(-m // 4096) * PWG) if m > 4096 else PWG
+        w = self.max_leaf + 5
+        part = self._buf("stats", 8 * w * nb)
+        self._task("stats_blocks", nb, np.uint32(m), np.uint32(nb), out, part)
+        sums = self._read(part, w * nb, np.float64).reshape(nb, w)
+        inner, leaf, n_inner = sums[:, 0].sum(), sums[:, 1].sum(), int(sums[:, 2].sum())
+        hist = sums[:, 4:].sum(axis=0).astype(np.int64)
+        node_min, node_max = tree[0], tree[1]
+        e = node_max[0].astype(np.float64) - node_min[0]
+        root_area = e[0] * e[1] + e[1] * e[2] + e[2] * e[0]
+        sah = (inner + leaf) / (root_area if root_area > 0 else 1.0)
+        return BuildStats(build_time_s=0.0, triangles=n, nodes=m, inner_nodes=n_inner, leaves=m - n_inner,
+                          depth=int(sums[:, 3].max()), sah_cost=float(sah),
+                          leaf_size_histogram={int(c): int(f) for c, f in enumerate(hist) if f},
+                          memory_bytes=max(n_inner, 1) * GPU_NODE_DTYPE.itemsize + n * GPU_TRI_DTYPE.itemsize)
+
     def _phase(self, name: str, t0: float) -> float:
         """Wall time of a phase (`phases`, seconds): one finish per phase, 5 per build."""
         clio.finish(self.ctx.queue)
@@ -122,7 +160,7 @@ class DeviceBvhBuilder:
         from viewer.errors import RtwalkError
 
         dev = self.ctx.device
-        largest = 16 * 2 * n  # node boxes and pointer-jumping state: 16 bytes per node
+        largest = OUT_BYTES_PER_TRIANGLE * n  # the finished tree
         total = BYTES_PER_TRIANGLE * n
         if largest > dev.max_mem_alloc_size or total > dev.global_mem_size:
             raise RtwalkError(f"device BVH build of {n:,} triangles needs {total / 2**30:.1f} GiB of device memory "
@@ -141,14 +179,12 @@ class DeviceBvhBuilder:
             raise ValueError("at most 2**30 triangles")
         q = self.ctx.queue
         u = np.uint32
-        m_all = 2 * n - 1
         self.check_memory(n)
         b = self._buf
-        tri_buf = b("tri", tri.nbytes)
-        clio.copy(q, tri_buf, tri, is_blocking=False)
-        bmin, bmax = b("bmin", 16 * n), b("bmax", 16 * n)
+        # the triangles in place (USE_HOST_PTR: no copy and no fresh pages on a CPU device)
+        tri_buf = clio.upload(self.ctx, tri, what="device BVH triangles", use_host=True)
         cx, cy, cz = b("cx", 4 * n), b("cy", 4 * n), b("cz", 4 * n)
-        self._run("tri_boxes", n, tri_buf, u(n), bmin, bmax, cx, cy, cz)
+        self._run("tri_boxes", n, tri_buf, u(n), cx, cy, cz)
         t = self._phase("upload+boxes", t_start)
 
         # -- Morton codes, sorted ---------------------------------------------------------------
@@ -165,77 +201,93 @@ class DeviceBvhBuilder:
         t = self._phase("morton+sort", t)
 
         # -- PLOC ---------------------------------------------------------------------------------
-        nmin, nmax = b("nmin", 16 * m_all), b("nmax", 16 * m_all)
-        names = ("left", "right", "parent", "count", "kept_nodes", "height", "uheight", "cost")
-        left, right, parent, count, kept_nodes, height, uheight, cost = (b(k, 4 * m_all) for k in names)
-        leaf_ok = b("leaf_ok", m_all)
+        ni = max(n - 1, 1)  # inner nodes (ids n .. 2n - 2, stored at id - n)
+        node = b("node", 48 * ni)  # inner node records (NODE_F4 float4 each, bvh_device.cl)
         cnode = [b("cnode0", 4 * n), b("cnode1", 4 * n)]
-        cmin = [b("cmin0", 16 * n), b("cmin1", 16 * n)]
-        cmax = [b("cmax0", 16 * n), b("cmax1", 16 * n)]
+        # the cluster boxes (min, max) x 2 in one buffer: the finished tree is written there later
+        region = -(-16 * n // 128) * 128  # sub-buffer origins aligned for any device
+        cbox = b("cbox", 4 * region)
+        cmin = [cbox.get_sub_region(0, region), cbox.get_sub_region(2 * region, region)]
+        cmax = [cbox.get_sub_region(region, region), cbox.get_sub_region(3 * region, region)]
         nn = b("nn", 4 * n)
         cnt = b("cnt", 8)
         next_node = b("next_node", 4)
-        clio.copy(q, cnt, np.array([n, n], np.uint32))
-        clio.copy(q, next_node, np.array([n], np.uint32))
-        self._run("init_leaves", n, perm, bmin, bmax, u(n), nmin, nmax, left, right, parent, count, kept_nodes,
-                  height, uheight, cost, leaf_ok, cnode[0], cmin[0], cmax[0])
-        node_args = (next_node, nmin, nmax, left, right, parent, count, kept_nodes, height, uheight, cost, leaf_ok)
+        # marks: root id, kept nodes, then the node counter before each iteration (at most n - 1
+        # iterations, run check_every at a time; pages never written are never touched)
+        marks = b("marks", 4 * (n + MARK0 + self.check_every))
+        clio.copy(q, cnt, np.array([n, n], np.uint32), is_blocking=False)
+        clio.copy(q, next_node, np.array([n], np.uint32), is_blocking=False)
+        clio.copy(q, marks, np.array([0, 1, n], np.uint32), is_blocking=False)
+        self._run("init_leaves", n, tri_buf, perm, u(n), cnode[0], cmin[0], cmax[0])
+        node_args = (u(n), node)
         p = 0  # cnt[p] is the current cluster count; cluster arrays [p] are current
         n_host = n
         iters = 0
         while n_host > 1:
             nb = self.prims.nblocks(n_host)
             nbn = max(PWG, min(-(-n_host // 256), 8 * self.prims.max_blocks) // PWG * PWG)
-            bsum = b("bsum", 4 * nb)
+            bsum = b("bsum", 8 * nb)
             for _ in range(self.check_every):
                 s = p
                 if self.block_nearest:
-                    self._task("nearest_block", nbn, cnt, u(p), cmin[s], cmax[s], u(nbn), nn)
+                    kname = "nearest_vec" if self.vector_nearest else "nearest_block"
+                    self._task(kname, nbn, cnt, u(p), cmin[s], cmax[s], u(nbn), nn)
                 else:
                     self._run("nearest", n_host, cnt, u(p), cmin[s], cmax[s], nn)
-                self._run("merge", n_host, cnt, u(p), nn, cnode[s], cmin[s], cmax[s], *node_args)
-                self._task("count_kept", nb, cnt, u(p), nn, u(nb), bsum)
-                self._task("scan_blocks", 1, bsum, u(nb), cnt, u(p))
-                self._task("scatter", nb, cnt, u(p), nn, u(nb), bsum, cnode[s], cmin[s], cmax[s],
-                           cnode[1 - s], cmin[1 - s], cmax[1 - s])
+                self._task("count_blocks", nb, cnt, u(p), nn, u(nb), bsum)
+                self._task("scan_blocks", 1, bsum, u(nb), cnt, u(p), next_node, marks, u(iters))
+                self._task("merge_scatter", nb, cnt, u(p), nn, u(nb), bsum, cnode[s], cmin[s], cmax[s],
+                           cnode[1 - s], cmin[1 - s], cmax[1 - s], *node_args)
                 p = 1 - p
                 iters += 1
             n_host = int(self._read(cnt, 2, np.uint32)[p])
         self.iterations = iters
-        root = int(self._read(cnode[p], 1, np.uint32)[0])
         t = self._phase("ploc", t)
 
-        # -- layout: pointer jumping, then the canonical arrays -------------------------------
-        hdr = self._read(kept_nodes, 1, np.int32, 4 * root)
-        m = int(hdr[0])
-        tree_height = int(self._read(uheight, 1, np.uint32, 4 * root)[0])
-        st = [b("st0", 16 * m_all), b("st1", 16 * m_all)]
-        self._run("jump_init", m_all, u(m_all), left, right, parent, count, kept_nodes, leaf_ok, st[0])
-        passes = max(1, int(np.ceil(np.log2(tree_height + 1))) + 1)
-        for i in range(passes):
-            self._run("jump", m_all, u(m_all), st[i % 2], st[1 - i % 2])
-        st_final = st[passes % 2]
-        # breadth-first order: stable sort of the preorder by depth (depth <= tree_height)
-        pnode, dkeys, order, rank = b("pnode", 4 * m), b("dkeys", 4 * m), b("order", 4 * m), b("rank", 4 * m)
-        self._run("preorder", m_all, u(m_all), st_final, pnode, dkeys, order)
-        self.prims.sort_pairs(dkeys, order, m, key_bits=max(tree_height.bit_length(), 1))
+        # -- layout: top down, one launch per PLOC iteration, then breadth-first order ----------
+        # kept nodes m <= 2n - 1, about 0.9 n: the layout arrays reuse buffers PLOC no longer needs
+        # (pages already touched) when m <= n, else get their own
+        ipre = nn  # per inner node (n - 1)
+        root_args = (cnode[p], u(n), node, marks)
+        self._task("root_count", 1, *root_args)
+        mk = self._read(marks, iters + MARK0 + 1, np.uint32)  # root, kept nodes, iteration marks
+        m = int(mk[1])
+        if m <= n:
+            pnode, pfirst, pdepth, order, rank = cx, cy, cz, keys, cnode[1 - p]
+        else:
+            pnode, pfirst, pdepth, order, rank = (b(k, 4 * m) for k in ("pnode", "pfirst", "pdepth", "order", "rank"))
+        self._task("place_root", 1, *root_args, pnode, pfirst, pdepth, order, ipre)
+        place_args = (u(n), node, pnode, pfirst, pdepth, order, ipre)
+        for it in range(iters - 1, -1, -1):  # newest nodes first: parents before children
+            lo_id, hi_id = int(mk[MARK0 + it]), int(mk[MARK0 + it + 1])
+            self._run("place", hi_id - lo_id, u(lo_id), u(hi_id), *place_args)
+        # breadth-first order: stable sort of the preorder by depth (depth <= iterations)
+        self.prims.sort_pairs(pdepth, order, m, key_bits=max(iters.bit_length(), 1))
         self._run("invert", m, u(m), order, rank)
-        onames = ("left", "right", "first", "count", "parent", "depth", "height")
-        outs = {k: b("o" + k, 16 * m) for k in ("min", "max")}
-        outs.update({k: b("o" + k, 4 * m) for k in onames})
-        tri_order = b("tri_order", 4 * n)
-        self._run("emit", m, u(m), order, rank, pnode, st_final, nmin, nmax, left, right, parent, count, height,
-                  leaf_ok, perm, outs["min"], outs["max"], *(outs[k] for k in onames), tri_order)
+        # the finished tree goes to a buffer the BVH keeps, mapped (not copied) for the host: its
+        # arrays are views of it (zero-copy on a CPU device). That is the cluster-box buffer when
+        # the tree fits (pages already touched; the pool makes a new one for the next build).
+        words = 13 * m + n
+        del cmin, cmax
+        if 4 * words <= cbox.size:
+            out = self._bufs.take("cbox")
+        else:
+            out = new_buffer(self.ctx, self.ctx.cl.mem_flags.READ_WRITE, 4 * words, "device BVH tree")
+        self._run("emit", m, u(m), u(n), order, pdepth, rank, pnode, pfirst, tri_buf, perm, node, out)
         t = self._phase("layout", t)
 
-        host = {k: self._read(outs[k], 4 * m, np.float32).reshape(m, 4)[:, :3].copy() for k in ("min", "max")}
-        host.update({k: self._read(outs[k], m, np.int32) for k in onames})
-        order = self._read(tri_order, n, np.int32)
-        stats = tree_stats(host["min"], host["max"], host["left"], host["count"], host["depth"], n)
-        bvh = BVH(node_min=host["min"], node_max=host["max"], node_left=host["left"], node_right=host["right"],
-                  node_first=host["first"], node_count=host["count"], node_parent=host["parent"],
-                  node_height=host["height"], node_depth=host["depth"], tri_order=order, stats=stats)
+        cl = self.ctx.cl
+        flat, _ = clio.map_buffer(q, out, cl.map_flags.READ | cl.map_flags.WRITE, 0, (words,), np.int32)
+        fl = flat.view(np.float32)
+        ints = [flat[(6 + i) * m:(7 + i) * m] for i in range(7)]
+        node_left, node_right, node_first, node_count, node_parent, node_depth, node_height = ints
+        node_min, node_max = fl[:3 * m].reshape(m, 3), fl[3 * m:6 * m].reshape(m, 3)
+        stats = self._stats(out, m, n, node_min, node_max, node_left, node_count, node_depth)
+        bvh = BVH(node_min=node_min, node_max=node_max, node_left=node_left, node_right=node_right,
+                  node_first=node_first, node_count=node_count, node_parent=node_parent,
+                  node_height=node_height, node_depth=node_depth, tri_order=flat[13 * m:], stats=stats)
         self._phase("read-back", t)
+        tri_buf.release()
         stats.build_time_s = time.perf_counter() - t_start
         return bvh
 

@@ -2,7 +2,8 @@
 
 One row per (size, builder) in bvh-build.json: BuildStats.to_dict() plus `builder`, `target`
 (the asked size), `build_time_s`, `throughput_mtris_per_s`, `sah_cost`, `sah_ratio` (to the
-SAH build of the same size when it ran), `bvh4_time_s` (host collapse to BVH4, build_bvh4) and, for
+SAH build of the same size when it ran), `bvh4_time_s` (host collapse to BVH4, build_bvh4),
+`bvh4_device_time_s` (the same on the OpenCL device, viewer.accel.bvh4_device, when it has fp64) and, for
 the device builder, `phases_s` and `iterations` (PLOC); `io`: the build's launches, host syncs and
 bytes (viewer.iostats). The device builder is warmed up on a small city first (kernel compilation
 is not build time); each size's first device build still pays for first-touching its buffers.
@@ -41,6 +42,23 @@ def _build(builder: str, tris):
     return build_bvh(tris)
 
 
+def _device_bvh4() -> bool:
+    """Whether the device BVH4 collapse is timed too (OpenCL with float64); its kernels compiled."""
+    from viewer.cl import cl_available
+
+    if cl_available() is not None:
+        return False
+    from viewer.accel.bvh import build_bvh
+    from viewer.accel.bvh4_device import build_bvh4_device, device_supported
+    from viewer.cl import cl_context
+    from viewer.procedural import make_city
+
+    if not device_supported(cl_context()):
+        return False
+    build_bvh4_device(build_bvh(make_city(2000, 1).triangles))
+    return True
+
+
 def run(args) -> int:
     from viewer import iostats
     from viewer.accel.bvh4 import build_bvh4
@@ -59,6 +77,7 @@ def run(args) -> int:
         if reason is not None:
             raise RtwalkError(f"--builders device needs an OpenCL device: {reason}")
         _build("device", make_city(2000, args.seed).triangles)  # compile and warm the kernels
+    device4 = _device_bvh4()
     rows = []
     for n in sizes:
         scene = make_city(n, args.seed)
@@ -71,6 +90,12 @@ def run(args) -> int:
             build_bvh4(bvh)
             r = bvh.stats.to_dict()
             r["bvh4_time_s"] = time.perf_counter() - t0
+            if device4:
+                from viewer.accel.bvh4_device import build_bvh4_device
+
+                t0 = time.perf_counter()
+                build_bvh4_device(bvh)
+                r["bvh4_device_time_s"] = time.perf_counter() - t0
             r["builder"] = builder
             r["io"] = io.as_dict()  # launches, host syncs and bytes of the build (device builder)
             r["target"] = n
@@ -89,7 +114,8 @@ def run(args) -> int:
             ratio = f", {r['sah_ratio']:.3f}x sah" if r["sah_ratio"] is not None and builder != "sah" else ""
             print(f"city {scene.triangle_count:>10,} tris {builder:>6}: build {r['build_time_s']:.2f} s "
                   f"({r['throughput_mtris_per_s']:.2f} Mtri/s), {r['nodes']:,} nodes, depth {r['depth']}, "
-                  f"SAH {r['sah_cost']:.1f}{ratio}; BVH4 collapse (host) {r['bvh4_time_s']:.2f} s", flush=True)
+                  f"SAH {r['sah_cost']:.1f}{ratio}; BVH4 collapse (host) {r['bvh4_time_s']:.2f} s"
+                  + (f", (device) {r['bvh4_device_time_s']:.2f} s" if device4 else ""), flush=True)
             del bvh
     write_json(out / "bvh-build.json", rows)
     print(f"report: {out / 'bvh-build.json'}")

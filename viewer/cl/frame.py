@@ -32,7 +32,6 @@ from typing import Any
 import numpy as np
 
 import viewer.cl.io as clio
-from viewer.accel.bvh import gpu_triangles
 from viewer.cl.context import ClContext, cl_context
 from viewer.cl.programs import build
 from viewer.cl.transfer import HitStage, RayStage, mapped
@@ -109,7 +108,7 @@ class DeviceFrame:
         if key == self.scene_key:
             return
         self.release_scene()
-        self.tris = clio.upload(self.ctx, gpu_triangles(scene.triangles, scene.material_ids))
+        self.tris = clio.upload(self.ctx, scene.gpu_triangles())  # the packing the GL scene made too
         self.mats = clio.upload(self.ctx, scene.albedo_table())
         self.scene_key = key
 

@@ -11,7 +11,8 @@ so every launch, byte and host wait lands in viewer.iostats.
                                   Buffer nothing; a blocking host copy (the default) also a sync
   map_buffer(queue, buf, flags, offset, shape, dtype, is_blocking=True)   enqueue_map_buffer:
                                   a READ map counts to_host, a write map to_device, blocking a sync
-  upload(ctx, array, flags) -> Buffer     a new buffer initialised from `array` (COPY_HOST_PTR):
+  upload(ctx, array, flags, what, use_host) -> Buffer   a new buffer initialised from `array`
+                                  (COPY_HOST_PTR, or USE_HOST_PTR: the array's own memory):
                                   counts to_device
   finish(queue)                   queue.finish() as one timed host sync
 
@@ -130,13 +131,16 @@ def map_buffer(queue: Any, buf: Any, flags: Any, offset: int, shape: Any, dtype:
     return cl.enqueue_map_buffer(queue, buf, flags, offset, shape, dtype, is_blocking=False)
 
 
-def upload(ctx: Any, array: np.ndarray, flags: Any = None, what: str = "buffer") -> Any:
+def upload(ctx: Any, array: np.ndarray, flags: Any = None, what: str = "buffer", use_host: bool = False) -> Any:
     """A new CL buffer holding `array` (COPY_HOST_PTR; default READ_ONLY), counted to_device, after
-    the device's allocation limits are checked (viewer.cl.limits: one line, never a raw error)."""
+    the device's allocation limits are checked (viewer.cl.limits: one line, never a raw error).
+    use_host: the buffer uses the array's memory (USE_HOST_PTR, no copy on a CPU device); the
+    caller keeps the array alive and unchanged until the device is done with the buffer."""
     from viewer.cl.limits import new_buffer
 
     a = np.ascontiguousarray(array)
-    return new_buffer(ctx, ctx.cl.mem_flags.READ_ONLY if flags is None else flags, a.nbytes, what, hostbuf=a)
+    return new_buffer(ctx, ctx.cl.mem_flags.READ_ONLY if flags is None else flags, a.nbytes, what, hostbuf=a,
+                      use_host=use_host)
 
 
 def read_rows(queue: Any, buf: Any, rows, row_shape: tuple[int, ...], dtype: Any) -> np.ndarray:

@@ -11,8 +11,9 @@ on the next. Builders therefore ask here first:
   budget(ctx)                     bytes one acceleration structure build may use in all (a share
                                   of global memory: other backends and the ray stages live beside
                                   it); builders coarsen or stop to stay within it
-  new_buffer(ctx, flags, nbytes, what, hostbuf)  cl.Buffer after check_alloc (a hostbuf's bytes
-                                  count as host -> device traffic, viewer.iostats)
+  new_buffer(ctx, flags, nbytes, what, hostbuf, use_host)  cl.Buffer after check_alloc (a
+                                  hostbuf's bytes count as host -> device traffic, viewer.iostats;
+                                  use_host: USE_HOST_PTR, the host array's memory itself)
 
 RTWALK_CL_MAX_ALLOC_MIB and RTWALK_CL_GLOBAL_MIB lower the device's figures (never raise them):
 tests simulate a small device with them instead of allocating gigabytes.
@@ -110,16 +111,19 @@ def check_total(nbytes: int, what: str, ctx: Any = None, limits: DeviceLimits | 
                           f"{mib(lim.global_mem)} MiB)")
 
 
-def new_buffer(ctx: Any, flags: Any, nbytes: int, what: str, hostbuf: Any = None) -> Any:
+def new_buffer(ctx: Any, flags: Any, nbytes: int, what: str, hostbuf: Any = None, use_host: bool = False) -> Any:
     """A pyopencl Buffer of nbytes (or holding hostbuf) after check_alloc; an allocation the
-    device still refuses becomes one RtwalkError line too."""
+    device still refuses becomes one RtwalkError line too. use_host: the buffer uses hostbuf's
+    memory (USE_HOST_PTR: no copy on a CPU device; hostbuf must outlive the buffer and not change
+    while the device reads it)."""
     nbytes = int(hostbuf.nbytes if hostbuf is not None else nbytes)
     check_alloc(nbytes, what, ctx)
     cl = ctx.cl
     try:
         if hostbuf is not None:
             iostats.to_device(nbytes)  # the host array crosses once, at creation
-            return cl.Buffer(ctx.context, flags | cl.mem_flags.COPY_HOST_PTR, hostbuf=hostbuf)
+            how = cl.mem_flags.USE_HOST_PTR if use_host else cl.mem_flags.COPY_HOST_PTR
+            return cl.Buffer(ctx.context, flags | how, hostbuf=hostbuf)
         return cl.Buffer(ctx.context, flags, max(16, nbytes))
     except cl.Error as e:
         raise RtwalkError(f"{what}: the OpenCL device cannot allocate {mib(nbytes)} MiB "

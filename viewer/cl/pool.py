@@ -30,6 +30,10 @@ class BufferPool:
             self.bufs[name] = buf
         return buf
 
+    def take(self, name: str) -> Any:
+        """Hand the buffer over to the caller (who now owns it); the next get() makes a new one."""
+        return self.bufs.pop(name)
+
     @property
     def nbytes(self) -> int:
         """Bytes held by the pool's buffers."""
