@@ -114,15 +114,17 @@ def check_total(nbytes: int, what: str, ctx: Any = None, limits: DeviceLimits | 
 def new_buffer(ctx: Any, flags: Any, nbytes: int, what: str, hostbuf: Any = None, use_host: bool = False) -> Any:
     """A pyopencl Buffer of nbytes (or holding hostbuf) after check_alloc; an allocation the
     device still refuses becomes one RtwalkError line too. use_host: the buffer uses hostbuf's
-    memory (USE_HOST_PTR: no copy on a CPU device; hostbuf must outlive the buffer and not change
-    while the device reads it)."""
+    memory (USE_HOST_PTR: no copy on a device that shares the host's memory, such as PoCL; hostbuf
+    must outlive the buffer and not change while the device reads it). A device with its own
+    memory (a discrete GPU) gets a copy instead: its kernels would otherwise read across the bus."""
     nbytes = int(hostbuf.nbytes if hostbuf is not None else nbytes)
     check_alloc(nbytes, what, ctx)
     cl = ctx.cl
     try:
         if hostbuf is not None:
             iostats.to_device(nbytes)  # the host array crosses once, at creation
-            how = cl.mem_flags.USE_HOST_PTR if use_host else cl.mem_flags.COPY_HOST_PTR
+            shared = use_host and bool(ctx.device.host_unified_memory)
+            how = cl.mem_flags.USE_HOST_PTR if shared else cl.mem_flags.COPY_HOST_PTR
             return cl.Buffer(ctx.context, flags | how, hostbuf=hostbuf)
         return cl.Buffer(ctx.context, flags, max(16, nbytes))
     except cl.Error as e:
