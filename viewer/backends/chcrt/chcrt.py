@@ -147,6 +147,12 @@ class ChcrtParams:
     lca_subtrees: int = param(24, "a tile with more visible subtrees than this traverses their lowest common "
                               "ancestor instead (0 = never)")
     merge_tiles: bool = param(True, "GPU-driven: a pixel's visible subtrees of all tile levels in one record")
+    lca_invisible: bool = param(True, "GPU-driven (needs merge_tiles): a finest tile over a limit (lca_subtrees "
+                                "visible pairs, or lca_pairs pairs in all) traverses the lowest common ancestor "
+                                "of ALL its pairs once, and its invisible pairs are not queried; False: the LCA "
+                                "replaces only the visible pairs and the invisible ones are still queried")
+    lca_pairs: int = param(64, "GPU-driven with lca_invisible: a finest tile with more visible + invisible pairs "
+                           "than this traverses their lowest common ancestor (0 = no limit)")
     coarse_cull: bool = param(True, "GPU-driven: a compute pass culls the queries whose boxes lie beyond the "
                               "farthest distance any ray of their tile may still reach")
 
@@ -161,7 +167,7 @@ class ChcrtParams:
             raise RtwalkError(f"{source}: query_mode must be one of {', '.join(QUERY_MODES)}")
         if not (self.t_q > 0 and 0 < self.min_tile_fraction <= 1 and self.max_subtree_height >= 1
                 and self.max_subtree_tris >= 1 and self.requery_interval >= 1 and self.schedule_batch >= 1
-                and self.visible_threshold >= 0 and self.lca_subtrees >= 0):
+                and self.visible_threshold >= 0 and self.lca_subtrees >= 0 and self.lca_pairs >= 0):
             raise RtwalkError(f"{source}: t_q and min_tile_fraction must be > 0, thresholds >= 0, counts >= 1")
 
 
@@ -485,6 +491,7 @@ class _Pass:
         self.culled = False  # this pass's queries went through the coarse cull (stats read late)
         self.n_survivor_groups = 0
         self.lca_pairs: np.ndarray | None = None  # GPU-driven: slots of visible pairs drawn through an LCA
+        self.untested: np.ndarray | None = None  # GPU-driven: invisible pairs only covered by LCA traversals
         self.bounds = np.zeros((0, 2, 4), np.int64)  # the last _run_queries' passing bounds per query and box
 
     # -- GL helpers -------------------------------------------------------------------------------
@@ -722,7 +729,6 @@ class _Pass:
         nd, lvl, tx, ty, tile, sl = nd[order], lvl[order], tx[order], ty[order], tile[order], sl[order]
         starts = np.flatnonzero(np.r_[True, tile[1:] != tile[:-1]])
         ends = np.r_[starts[1:], len(nd)]
-        mb = self.p.max_batch
         rects = tile_rects(lvl[starts], tx[starts], ty[starts], self.size)
         lca_max = self.p.lca_subtrees
         if lca_max > 0 and self.be.cache is None and ((ends - starts) > lca_max).any():
@@ -742,6 +748,13 @@ class _Pass:
             starts = np.cumsum(counts) - counts
             ends = starts + counts
             self.stats["lca_tiles"] += int(many.sum())
+        self._draw_batches(nd, sl, rects, starts, ends)
+
+    def _draw_batches(self, nd: np.ndarray, sl: np.ndarray, rects: np.ndarray, starts: np.ndarray,
+                      ends: np.ndarray) -> None:
+        """Draw the items nd[starts[i]:ends[i]] over tile rectangle rects[i] (nearest first where
+        sorted), in batches of at most max_batch items per record."""
+        mb = self.p.max_batch
         _upload(self.be.items, self._subtree_items(nd, sl))
         # batches: per tile, consecutive runs of at most max_batch subtrees (nearest first)
         nbatch = -(-(ends - starts) // mb)
@@ -958,11 +971,16 @@ class _Pass:
             be.gpu_counts.write(bytes(4 * (nslots + 3)), offset=COUNT_BYTES)
             iostats.to_device(4 * (nslots + 3))
             be.gpu_counts.bind_to_storage_buffer(BIND_CHC_QUERY_COUNTS, COUNT_BYTES, 4 * (nslots + 3))
-            self._draw_subtrees(visible, np.arange(len(visible)))
+            inv_copies = None
+            if self.p.lca_invisible and self.p.merge_tiles:
+                vis_items, inv_copies = self._tile_plan(visible, invisible)
+                self._draw_finest(*vis_items)
+            else:
+                self._draw_subtrees(visible, np.arange(len(visible)))
             self.stats["phase1_subtrees"] = len(visible)
             self._sync()
         with prof.phase("chc:2-queries"):
-            self._cull_invisible(invisible, len(visible), nslots)
+            self._cull_invisible(invisible, len(visible), nslots, inv_copies)
             self._sync()
         with prof.phase("chc:3-traversal"):
             self._intersect_survivors()
@@ -977,23 +995,28 @@ class _Pass:
             self.rays_read = True
             self._refine(visible, invisible, cnt[:nslots])
 
-    def _cull_invisible(self, invisible: np.ndarray, slot0: int, nslots: int) -> None:
+    def _cull_invisible(self, invisible: np.ndarray, slot0: int, nslots: int,
+                        copies: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None) -> None:
         """Upload the invisible pairs copied onto the finest tiles they cover (intersection items
         with their count slots, sorted by tile), then on the GPU: per finest tile the rays' origin box
         and farthest reach (chc_tilebounds.comp), and per finest tile the pairs some ray may still
-        enter (chc_querycull.comp), as records of the indirect intersection draw."""
-        self.n_survivor_groups = len(invisible)
-        if not len(invisible):
-            return
+        enter (chc_querycull.comp), as records of the indirect intersection draw. `copies` (node,
+        finest tile, slot): the copies left by _tile_plan (those of LCA tiles dropped)."""
         be, ctx, f = self.be, self.ctx, self.front
         level = f.max_level
         n = 1 << level
         ntiles = n * n
-        nd, _, tx, ty, sl = _to_finest_tiles(
-            f.node[invisible].astype(np.int64), f.level[invisible].astype(np.int64),
-            f.tx[invisible].astype(np.int64), f.ty[invisible].astype(np.int64),
-            slot0 + np.arange(len(invisible), dtype=np.int64), level)
-        tile = ty * n + tx
+        if copies is None:
+            nd, _, tx, ty, sl = _to_finest_tiles(
+                f.node[invisible].astype(np.int64), f.level[invisible].astype(np.int64),
+                f.tx[invisible].astype(np.int64), f.ty[invisible].astype(np.int64),
+                slot0 + np.arange(len(invisible), dtype=np.int64), level)
+            tile = ty * n + tx
+        else:
+            nd, tile, sl = copies
+        self.n_survivor_groups = len(nd)
+        if not len(nd):
+            return
         order = np.argsort(tile, kind="stable")
         _upload(be.items, self._subtree_items(nd[order], sl[order]))
         counts = np.bincount(tile, minlength=ntiles)
@@ -1036,6 +1059,67 @@ class _Pass:
         self.stats["draws"] += 2
         iostats.gl_draw(2)
 
+    def _tile_plan(self, visible: np.ndarray, invisible: np.ndarray
+                   ) -> tuple[tuple[np.ndarray, np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray, np.ndarray]]:
+        """GPU-driven, per finest tile: the visible and invisible pairs over it (copied onto the
+        finest tiles), as (node, tile, count slot). A tile with more than `lca_pairs` pairs in all (or
+        `lca_subtrees` visible ones) would test every pair's box per ray (incoherent rays: more box tests
+        than one
+        full traversal); it traverses the lowest common ancestor of all its pairs once instead (the
+        front is a cut of the BVH, so that subtree holds all of them: exact), and its invisible
+        pairs are neither queried nor counted (they keep their state, see _refine)."""
+        f, nt = self.front, self.nt
+        level = f.max_level
+        n = 1 << level
+        nv = len(visible)
+
+        def copies(pairs: np.ndarray, slot0: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+            nd, _, tx, ty, sl = _to_finest_tiles(
+                f.node[pairs].astype(np.int64), f.level[pairs].astype(np.int64), f.tx[pairs].astype(np.int64),
+                f.ty[pairs].astype(np.int64), slot0 + np.arange(len(pairs), dtype=np.int64), level)
+            return nd, ty * n + tx, sl
+
+        vn, vt, vs = copies(visible, 0)
+        inn, it, isl = copies(invisible, nv)
+        cv, ci = np.bincount(vt, minlength=n * n), np.bincount(it, minlength=n * n)
+        heavy = np.zeros(n * n, bool)
+        if self.p.lca_subtrees > 0:
+            heavy |= cv > self.p.lca_subtrees
+        if self.p.lca_pairs > 0:
+            heavy |= cv + ci > self.p.lca_pairs
+        hv, hi = heavy[vt], heavy[it]
+        tiles = np.concatenate([vt[hv], it[hi]])
+        nodes = np.concatenate([vn[hv], inn[hi]])
+        o = np.argsort(tiles, kind="stable")
+        tiles, nodes = tiles[o], nodes[o]
+        starts = np.flatnonzero(np.r_[True, tiles[1:] != tiles[:-1]]) if len(tiles) else np.zeros(0, np.int64)
+        lca = nt.group_lca(nodes, starts)
+        self.lca_pairs = vs[hv]
+        self.stats["lca_tiles"] += len(starts)
+        dropped = np.ones(len(invisible), bool)
+        dropped[isl[~hi] - nv] = False
+        self.untested = invisible[dropped]
+        vis = (np.concatenate([vn[~hv], lca]), np.concatenate([vt[~hv], tiles[starts]]),
+               np.concatenate([vs[~hv], np.full(len(starts), -1, np.int64)]))
+        return vis, (inn[~hi], it[~hi], isl[~hi])
+
+    def _draw_finest(self, nd: np.ndarray, tile: np.ndarray, sl: np.ndarray) -> None:
+        """GPU-driven: intersect items (node, finest tile, count slot) in one instanced draw: one
+        record per finest tile (more where a tile has more than max_batch items)."""
+        if len(nd) == 0:
+            return
+        f = self.front
+        level = f.max_level
+        n = 1 << level
+        self.stats["subtrees_scheduled"] += len(nd)
+        o = np.argsort(tile, kind="stable")
+        nd, tile, sl = nd[o], tile[o], sl[o]
+        starts = np.flatnonzero(np.r_[True, tile[1:] != tile[:-1]])
+        ends = np.r_[starts[1:], len(nd)]
+        t = tile[starts]
+        rects = tile_rects(np.full(len(t), level), t % n, t // n, self.size)
+        self._draw_batches(nd, sl, rects, starts, ends)
+
     def _intersect_survivors(self) -> None:
         """The invisible pairs that survived the cull, in one indirect instanced draw (items: the
         kept pairs, records: the survivors), counting into the pairs' slots."""
@@ -1069,7 +1153,10 @@ class _Pass:
         seen = ci > thr
         wave = invisible[seen]
         f.pixels[wave] = ci[seen]
-        f.age[invisible[~seen]] += 1
+        unseen = invisible[~seen]
+        if self.untested is not None and len(self.untested):
+            unseen = unseen[~np.isin(unseen, self.untested)]  # not queried (LCA tiles): not aged
+        f.age[unseen] += 1
         self.stats["newly_visible_queries"] += int(seen.sum())
         if nv:
             due = f.requery_due(visible, self.frame_number())
