@@ -151,6 +151,9 @@ class ChcrtParams:
                                 "visible pairs, or lca_pairs pairs in all) traverses the lowest common ancestor "
                                 "of ALL its pairs once, and its invisible pairs are not queried; False: the LCA "
                                 "replaces only the visible pairs and the invisible ones are still queried")
+    cull_sublevels: int = param(2, "GPU-driven: the coarse cull and the invisible pairs' draw work on tiles this many "
+                                "quadtree levels below the finest pair tiles (a tighter origin box and reach per "
+                                "tile, fewer fragments; each tile keeps >= 4 pixels a side), 0 = the finest tiles")
     lca_pairs: int = param(64, "GPU-driven with lca_invisible: a finest tile with more visible + invisible pairs "
                            "than this traverses their lowest common ancestor (0 = no limit)")
     coarse_cull: bool = param(True, "GPU-driven: a compute pass culls the queries whose boxes lie beyond the "
@@ -167,8 +170,10 @@ class ChcrtParams:
             raise RtwalkError(f"{source}: query_mode must be one of {', '.join(QUERY_MODES)}")
         if not (self.t_q > 0 and 0 < self.min_tile_fraction <= 1 and self.max_subtree_height >= 1
                 and self.max_subtree_tris >= 1 and self.requery_interval >= 1 and self.schedule_batch >= 1
-                and self.visible_threshold >= 0 and self.lca_subtrees >= 0 and self.lca_pairs >= 0):
-            raise RtwalkError(f"{source}: t_q and min_tile_fraction must be > 0, thresholds >= 0, counts >= 1")
+                and self.visible_threshold >= 0 and self.lca_subtrees >= 0 and self.lca_pairs >= 0
+                and 0 <= self.cull_sublevels <= 4):
+            raise RtwalkError(f"{source}: t_q and min_tile_fraction must be > 0, thresholds >= 0, counts >= 1, "
+                              "cull_sublevels in 0..4")
 
 
 def _to_finest_tiles(nd: np.ndarray, lvl: np.ndarray, tx: np.ndarray, ty: np.ndarray, sl: np.ndarray,
@@ -1001,7 +1006,9 @@ class _Pass:
         with their count slots, sorted by tile), then on the GPU: per finest tile the rays' origin box
         and farthest reach (chc_tilebounds.comp), and per finest tile the pairs some ray may still
         enter (chc_querycull.comp), as records of the indirect intersection draw. `copies` (node,
-        finest tile, slot): the copies left by _tile_plan (those of LCA tiles dropped)."""
+        finest tile, slot): the copies left by _tile_plan (those of LCA tiles dropped). With
+        cull_sublevels the bounds, the cull and the records are per sub-tile (each reads its finest
+        tile's pairs): rays near a short hit no longer share a tile with far-reaching ones."""
         be, ctx, f = self.be, self.ctx, self.front
         level = f.max_level
         n = 1 << level
@@ -1020,21 +1027,29 @@ class _Pass:
         order = np.argsort(tile, kind="stable")
         _upload(be.items, self._subtree_items(nd[order], sl[order]))
         counts = np.bincount(tile, minlength=ntiles)
-        ranges = np.zeros(ntiles, DRAW_DTYPE)
-        all_t = np.arange(ntiles)
-        ranges["rect"] = tile_rects(np.full(ntiles, level), all_t % n, all_t // n, self.size)
-        ranges["info"][:, 0] = np.cumsum(counts) - counts
-        ranges["info"][:, 1] = counts
+        sub = int(self.p.cull_sublevels)
+        while sub > 0 and min(self.size) >> (level + sub) < 4:
+            sub -= 1
+        cl = level + sub  # the cull's tile level
+        m = 1 << cl
+        nsub = m * m
+        all_t = np.arange(nsub)
+        sx, sy = all_t % m, all_t // m
+        parent = (sy >> sub) * n + (sx >> sub)
+        ranges = np.zeros(nsub, DRAW_DTYPE)
+        ranges["rect"] = tile_rects(np.full(nsub, cl), sx, sy, self.size)
+        ranges["info"][:, 0] = (np.cumsum(counts) - counts)[parent]
+        ranges["info"][:, 1] = counts[parent]
         self.stats["queries"] += len(invisible)
         mb = self.p.max_batch
-        if be.tile_bounds.size < 32 * ntiles:
+        if be.tile_bounds.size < 32 * nsub:
             be.tile_bounds.release()
-            be.tile_bounds = ctx.buffer(reserve=32 * ntiles)
-        need = max(int((-(-counts // mb)).sum()), 1) * DRAW_DTYPE.itemsize
+            be.tile_bounds = ctx.buffer(reserve=32 * nsub)
+        need = max(int((-(-counts // mb)).sum()) << (2 * sub), 1) * DRAW_DTYPE.itemsize
         if be.survivors.size < need:
             be.survivors.release()
             be.survivors = ctx.buffer(reserve=1 << (need - 1).bit_length())
-        need = max(len(nd), 1) * ITEM_DTYPE.itemsize
+        need = max(len(nd) << (2 * sub), 1) * ITEM_DTYPE.itemsize
         if be.kept_boxes.size < need:
             be.kept_boxes.release()
             be.kept_boxes = ctx.buffer(reserve=1 << (need - 1).bit_length())
@@ -1047,14 +1062,14 @@ class _Pass:
         be.query_indirect.bind_to_storage_buffer(BIND_CHC_INDIRECT)
         ctx.memory_barrier(moderngl.SHADER_IMAGE_ACCESS_BARRIER_BIT)  # bestBits of the visible pairs
         be.tilebounds["raySize"] = tuple(self.size)
-        be.tilebounds["level"] = level
-        be.tilebounds.run(ntiles)
+        be.tilebounds["level"] = cl
+        be.tilebounds.run(nsub)
         ctx.memory_barrier(moderngl.SHADER_STORAGE_BARRIER_BIT)
-        be.querycull["nQueries"] = ntiles
+        be.querycull["nQueries"] = nsub
         be.querycull["maxItems"] = mb
         be.querycull["pixelSlot"] = nslots
         be.querycull["cull"] = int(self.p.coarse_cull)
-        be.querycull.run(-(-ntiles // 64))
+        be.querycull.run(-(-nsub // 64))
         ctx.memory_barrier(moderngl.COMMAND_BARRIER_BIT | moderngl.SHADER_STORAGE_BARRIER_BIT)
         self.stats["draws"] += 2
         iostats.gl_draw(2)
