@@ -154,6 +154,10 @@ class ChcrtParams:
     cull_sublevels: int = param(2, "GPU-driven: the coarse cull and the invisible pairs' draw work on tiles this many "
                                 "quadtree levels below the finest pair tiles (a tighter origin box and reach per "
                                 "tile, fewer fragments; each tile keeps >= 4 pixels a side), 0 = the finest tiles")
+    full_bvh_fraction: float = param(0.8, "GPU-driven with lca_invisible: when at least this fraction of the finest "
+                                     "tiles would traverse an LCA (incoherent rays), the pass traces every ray "
+                                     "through the whole BVH with the glsl traversal instead, and the front is left "
+                                     "as it is (0 = never)")
     lca_pairs: int = param(64, "GPU-driven with lca_invisible: a finest tile with more visible + invisible pairs "
                            "than this traverses their lowest common ancestor (0 = no limit)")
     coarse_cull: bool = param(True, "GPU-driven: a compute pass culls the queries whose boxes lie beyond the "
@@ -171,9 +175,9 @@ class ChcrtParams:
         if not (self.t_q > 0 and 0 < self.min_tile_fraction <= 1 and self.max_subtree_height >= 1
                 and self.max_subtree_tris >= 1 and self.requery_interval >= 1 and self.schedule_batch >= 1
                 and self.visible_threshold >= 0 and self.lca_subtrees >= 0 and self.lca_pairs >= 0
-                and 0 <= self.cull_sublevels <= 4):
+                and 0 <= self.cull_sublevels <= 4 and 0 <= self.full_bvh_fraction <= 1):
             raise RtwalkError(f"{source}: t_q and min_tile_fraction must be > 0, thresholds >= 0, counts >= 1, "
-                              "cull_sublevels in 0..4")
+                              "cull_sublevels in 0..4, full_bvh_fraction in 0..1")
 
 
 def _to_finest_tiles(nd: np.ndarray, lvl: np.ndarray, tx: np.ndarray, ty: np.ndarray, sl: np.ndarray,
@@ -445,7 +449,7 @@ class ChcrtBackend:
         if front is None:
             front = PairFront(size, max_level, self.rng, self.p.requery_interval)
             self.fronts[key] = front
-        tr = _Pass(self, front, rays, ray_type, hits)
+        tr = _Pass(self, front, rays, ray_type, hits, pinfo)
         self.work.begin()
         self.finisher.bind_flags(size)
         stats = tr.run()
@@ -469,8 +473,10 @@ class _Pass:
     """One trace() call: Algorithm 1 on one front."""
 
     def __init__(self, be: ChcrtBackend, front: PairFront, rays: RayBatch, ray_type: RayType,
-                 hits: HitBuffer):
+                 hits: HitBuffer, pinfo: PassInfo | None = None):
         self.be = be
+        self.hits = hits
+        self.pinfo = pinfo or PassInfo(ray_type, 0, 0, 1.0)
         self.ctx = be.ctx
         self.p = be.p
         self.nt = be.nt
@@ -486,7 +492,8 @@ class _Pass:
                                      "intersect_draws", "batch_tiles", "tile_batches_1", "tile_batches_2",
                                      "tile_batches_3plus", "query_waves", "pull_ups", "phase1_subtrees",
                                      "query_pixels", "requeries", "batches", "upload_bvh_mb", "upload_geom_mb",
-                                     "lca_tiles", "gpu_driven", "newly_visible_queries", "query_records_drawn")}
+                                     "lca_tiles", "gpu_driven", "newly_visible_queries", "query_records_drawn",
+                                     "full_bvh_passes")}
         self.rep: tuple[np.ndarray, np.ndarray] | None = None  # representative rays per finest tile
         self.rays_read = False
         self.threshold = int(self.p.visible_threshold)
@@ -977,18 +984,30 @@ class _Pass:
             iostats.to_device(4 * (nslots + 3))
             be.gpu_counts.bind_to_storage_buffer(BIND_CHC_QUERY_COUNTS, COUNT_BYTES, 4 * (nslots + 3))
             inv_copies = None
+            full = False
             if self.p.lca_invisible and self.p.merge_tiles:
                 vis_items, inv_copies = self._tile_plan(visible, invisible)
-                self._draw_finest(*vis_items)
+                n = 1 << f.max_level
+                full = 0 < self.p.full_bvh_fraction <= self.stats["lca_tiles"] / (n * n)
+                if not full:
+                    self._draw_finest(*vis_items)
             else:
                 self._draw_subtrees(visible, np.arange(len(visible)))
             self.stats["phase1_subtrees"] = len(visible)
             self._sync()
         with prof.phase("chc:2-queries"):
-            self._cull_invisible(invisible, len(visible), nslots, inv_copies)
+            if not full:
+                self._cull_invisible(invisible, len(visible), nslots, inv_copies)
             self._sync()
         with prof.phase("chc:3-traversal"):
-            self._intersect_survivors()
+            if full:
+                # incoherent rays: nearly every tile would traverse from (about) the root; the glsl
+                # traversal does exactly that, without the per-tile records
+                self.be.finisher.run(self.rays, self.pinfo, self.hits)
+                self.stats["full_bvh_passes"] = 1
+                self.stats["draws"] += 1
+            else:
+                self._intersect_survivors()
             self._sync()
         with prof.phase("chc:4-final-intersect"):
             raw = np.frombuffer(_host_read(lambda: be.gpu_counts.read(size=COUNT_BYTES + 4 * (nslots + 3))),
@@ -998,7 +1017,8 @@ class _Pass:
             self.stats["query_pixels"] = int(cnt[nslots])
             self.stats["query_records_drawn"] = int(cnt[nslots + 1])
             self.rays_read = True
-            self._refine(visible, invisible, cnt[:nslots])
+            if not full:  # a full-BVH pass counted nothing: the front stays as it is
+                self._refine(visible, invisible, cnt[:nslots])
 
     def _cull_invisible(self, invisible: np.ndarray, slot0: int, nslots: int,
                         copies: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None) -> None:
