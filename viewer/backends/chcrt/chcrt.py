@@ -51,7 +51,10 @@ the algorithm above. Every later pass is a fixed number of launches: the visible
 all subtrees over a finest tile in one record), per finest tile the rays' origin box and reach (one
 dispatch), the invisible pairs some ray may still enter (one dispatch) and their intersection (one
 indirect draw). The intersection is the query: box entries before the nearest hit so far are
-counted per pair, read once after the pass, and the front is refined for the next frame.
+counted per pair, read once after the pass, and the front is refined for the next frame. A finest
+tile with many pairs traverses the lowest common ancestor of all of them instead (its invisible
+pairs are then not queried), and a pass where most tiles do that runs the glsl full traversal
+(`lca_pairs`, `lca_subtrees`, `full_bvh_fraction`): incoherent rays cost about what glsl costs.
 
 Parameters come from ChcrtParams: `--backend-params "visible_threshold=20,t_q=0.4"` (alias
 `--chcrt`) on the command line, or the RTWALK_CHCRT environment variable (the registry merges them).
