@@ -154,7 +154,7 @@ class ChcrtParams:
                                 "visible pairs, or lca_pairs pairs in all) traverses the lowest common ancestor "
                                 "of ALL its pairs once, and its invisible pairs are not queried; False: the LCA "
                                 "replaces only the visible pairs and the invisible ones are still queried")
-    cull_sublevels: int = param(2, "GPU-driven: the coarse cull and the invisible pairs' draw work on tiles this many "
+    cull_sublevels: int = param(0, "GPU-driven: the coarse cull and the invisible pairs' draw work on tiles this many "
                                 "quadtree levels below the finest pair tiles (a tighter origin box and reach per "
                                 "tile, fewer fragments; each tile keeps >= 4 pixels a side), 0 = the finest tiles")
     full_bvh_fraction: float = param(0.8, "GPU-driven with lca_invisible: when at least this fraction of the finest "
