@@ -25,6 +25,9 @@ uniform int countOverlays;
 layout(location = 0) out float outT;
 layout(location = 1) out int outId;
 layout(location = 2) out int outSub;
+#if CHC_MAX_ITEMS > 32
+#error "chc_intersect.frag: at most 32 items per record (enteredMask)"
+#endif
 #ifndef CHC_MAX_VISITS
 #define CHC_MAX_VISITS 2048
 #endif
@@ -56,14 +59,13 @@ void main() {
     int sp = 0;
     bool done = false;
     uint entered = 0u;
+    uint enteredMask = 0u;  // items whose box the ray entered (counted after the traversal)
     for (int i = ITEM_COUNT - 1; i >= 0; --i) {  // farthest at the bottom
         ChcItem it = items[ITEM_BASE + i];
         float te;
         if (intersectBox(r, it.bmin, it.bmax, tmin, hit.t, te)) {
             ++entered;
-#ifdef CHC_COUNT_ITEMS
-            if (it.p2 >= 0) atomicAdd(chcPassed[it.p2], 1u);
-#endif
+            enteredMask |= 1u << uint(i);
             if (it.count > 0) {  // a scheduled BVH leaf: intersect it now
                 if (visitLeaf(r, it.ref, it.count, tmin, hit) && any) done = true;
             } else {
@@ -82,12 +84,12 @@ void main() {
         if (stackT[sp] <= hit.t) ni = stackNode[sp];
     }
     int visits = 0;
+    bool handOver = false;
     while (ni >= 0) {
-        if (visits == CHC_MAX_VISITS) {  // the loop limit is near: finish this ray elsewhere
-            if (imageAtomicExchange(resumeSlot, px, -2) != -2) atomicAdd(unfinished, 1);
-            done = true;  // traced again from the root: the leaf cache needs no flush
-            break;
-        }
+        // the loop limit is near: finish this ray elsewhere (the atomics after the loop: llvmpipe
+        // runs a branch's code under a lane mask even when no lane takes it, so nothing heavy is
+        // written inside this loop)
+        if (visits == CHC_MAX_VISITS) { handOver = true; break; }
         ++visits;
         Node nd = nodes[ni];
         WORK(workNode);
@@ -122,6 +124,19 @@ void main() {
             }
             if (!found) break;
         }
+    }
+#ifdef CHC_COUNT_ITEMS
+    // the query counts of the entered items' pairs, out of the loops above (see handOver)
+    while (enteredMask != 0u) {
+        int i = findLSB(enteredMask);
+        enteredMask &= enteredMask - 1u;
+        int slot = items[ITEM_BASE + i].p2;
+        if (slot >= 0) atomicAdd(chcPassed[slot], 1u);
+    }
+#endif
+    if (handOver) {
+        if (imageAtomicExchange(resumeSlot, px, -2) != -2) atomicAdd(unfinished, 1);
+        done = true;  // traced again from the root: the leaf cache needs no flush
     }
     if (!done && flushLeaves(r, tmin, hit) && any) done = true;  // the leaf cache's last leaves
     workFlush(0);

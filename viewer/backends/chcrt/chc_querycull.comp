@@ -1,5 +1,6 @@
-// CHC+RT, GPU-driven pass, step 2: one invocation per finest tile. Of the invisible pairs whose
-// tile covers it (the host copies each pair onto the finest tiles of its tile), only those whose box
+// CHC+RT, GPU-driven pass, step 2: one invocation per cull tile (a finest pair tile, or one of its
+// sub-tiles: ChcrtParams.cull_sublevels). Of the invisible pairs whose tile covers it (the host copies
+// each pair onto the finest tiles of its tile; a sub-tile reads its finest tile's range), only those whose box
 // some ray of the tile may still enter are kept: a box farther from every ray origin of the tile
 // than the farthest distance a ray of the tile may still reach (chc_tilebounds.comp) cannot be
 // entered. The kept pairs of a tile become records of at most maxItems pairs of ONE indirect
@@ -33,9 +34,9 @@ bool reachable(ChcItem it, TileBound t) {
 }
 
 void main() {
-    int i = int(gl_GlobalInvocationID.x);  // finest tile i = ty * 2^level + tx (chc_tilebounds.comp)
+    int i = int(gl_GlobalInvocationID.x);  // cull tile i = ty * 2^level + tx (chc_tilebounds.comp)
     if (i >= nQueries) return;
-    ChcDraw q = queries[i];  // the tile's rectangle; info.x, info.y = its invisible pairs' item range
+    ChcDraw q = queries[i];  // the cull tile's rectangle; info.x, info.y = its finest tile's pair items
     TileBound t = tiles[i];
     if (q.info.y == 0 || t.omax.w <= 0.0 || t.omin.w < 0.0) return;  // no ray here may still hit
     int nb = 0;

@@ -51,7 +51,10 @@ the algorithm above. Every later pass is a fixed number of launches: the visible
 all subtrees over a finest tile in one record), per finest tile the rays' origin box and reach (one
 dispatch), the invisible pairs some ray may still enter (one dispatch) and their intersection (one
 indirect draw). The intersection is the query: box entries before the nearest hit so far are
-counted per pair, read once after the pass, and the front is refined for the next frame.
+counted per pair, read once after the pass, and the front is refined for the next frame. A finest
+tile with many pairs traverses the lowest common ancestor of all of them instead (its invisible
+pairs are then not queried), and a pass where most tiles do that runs the glsl full traversal
+(`lca_pairs`, `lca_subtrees`, `full_bvh_fraction`): incoherent rays cost about what glsl costs.
 
 Parameters come from ChcrtParams: `--backend-params "visible_threshold=20,t_q=0.4"` (alias
 `--chcrt`) on the command line, or the RTWALK_CHCRT environment variable (the registry merges them).
@@ -147,6 +150,19 @@ class ChcrtParams:
     lca_subtrees: int = param(24, "a tile with more visible subtrees than this traverses their lowest common "
                               "ancestor instead (0 = never)")
     merge_tiles: bool = param(True, "GPU-driven: a pixel's visible subtrees of all tile levels in one record")
+    lca_invisible: bool = param(True, "GPU-driven (needs merge_tiles): a finest tile over a limit (lca_subtrees "
+                                "visible pairs, or lca_pairs pairs in all) traverses the lowest common ancestor "
+                                "of ALL its pairs once, and its invisible pairs are not queried; False: the LCA "
+                                "replaces only the visible pairs and the invisible ones are still queried")
+    cull_sublevels: int = param(0, "GPU-driven: the coarse cull and the invisible pairs' draw work on tiles this many "
+                                "quadtree levels below the finest pair tiles (a tighter origin box and reach per "
+                                "tile, fewer fragments; each tile keeps >= 4 pixels a side), 0 = the finest tiles")
+    full_bvh_fraction: float = param(0.8, "GPU-driven with lca_invisible: when at least this fraction of the finest "
+                                     "tiles would traverse an LCA (incoherent rays), the pass traces every ray "
+                                     "through the whole BVH with the glsl traversal instead, and the front is left "
+                                     "as it is (0 = never)")
+    lca_pairs: int = param(64, "GPU-driven with lca_invisible: a finest tile with more visible + invisible pairs "
+                           "than this traverses their lowest common ancestor (0 = no limit)")
     coarse_cull: bool = param(True, "GPU-driven: a compute pass culls the queries whose boxes lie beyond the "
                               "farthest distance any ray of their tile may still reach")
 
@@ -161,8 +177,10 @@ class ChcrtParams:
             raise RtwalkError(f"{source}: query_mode must be one of {', '.join(QUERY_MODES)}")
         if not (self.t_q > 0 and 0 < self.min_tile_fraction <= 1 and self.max_subtree_height >= 1
                 and self.max_subtree_tris >= 1 and self.requery_interval >= 1 and self.schedule_batch >= 1
-                and self.visible_threshold >= 0 and self.lca_subtrees >= 0):
-            raise RtwalkError(f"{source}: t_q and min_tile_fraction must be > 0, thresholds >= 0, counts >= 1")
+                and self.visible_threshold >= 0 and self.lca_subtrees >= 0 and self.lca_pairs >= 0
+                and 0 <= self.cull_sublevels <= 4 and 0 <= self.full_bvh_fraction <= 1):
+            raise RtwalkError(f"{source}: t_q and min_tile_fraction must be > 0, thresholds >= 0, counts >= 1, "
+                              "cull_sublevels in 0..4, full_bvh_fraction in 0..1")
 
 
 def _to_finest_tiles(nd: np.ndarray, lvl: np.ndarray, tx: np.ndarray, ty: np.ndarray, sl: np.ndarray,
@@ -434,7 +452,7 @@ class ChcrtBackend:
         if front is None:
             front = PairFront(size, max_level, self.rng, self.p.requery_interval)
             self.fronts[key] = front
-        tr = _Pass(self, front, rays, ray_type, hits)
+        tr = _Pass(self, front, rays, ray_type, hits, pinfo)
         self.work.begin()
         self.finisher.bind_flags(size)
         stats = tr.run()
@@ -458,8 +476,10 @@ class _Pass:
     """One trace() call: Algorithm 1 on one front."""
 
     def __init__(self, be: ChcrtBackend, front: PairFront, rays: RayBatch, ray_type: RayType,
-                 hits: HitBuffer):
+                 hits: HitBuffer, pinfo: PassInfo | None = None):
         self.be = be
+        self.hits = hits
+        self.pinfo = pinfo or PassInfo(ray_type, 0, 0, 1.0)
         self.ctx = be.ctx
         self.p = be.p
         self.nt = be.nt
@@ -475,7 +495,8 @@ class _Pass:
                                      "intersect_draws", "batch_tiles", "tile_batches_1", "tile_batches_2",
                                      "tile_batches_3plus", "query_waves", "pull_ups", "phase1_subtrees",
                                      "query_pixels", "requeries", "batches", "upload_bvh_mb", "upload_geom_mb",
-                                     "lca_tiles", "gpu_driven", "newly_visible_queries", "query_records_drawn")}
+                                     "lca_tiles", "gpu_driven", "newly_visible_queries", "query_records_drawn",
+                                     "full_bvh_passes")}
         self.rep: tuple[np.ndarray, np.ndarray] | None = None  # representative rays per finest tile
         self.rays_read = False
         self.threshold = int(self.p.visible_threshold)
@@ -485,6 +506,7 @@ class _Pass:
         self.culled = False  # this pass's queries went through the coarse cull (stats read late)
         self.n_survivor_groups = 0
         self.lca_pairs: np.ndarray | None = None  # GPU-driven: slots of visible pairs drawn through an LCA
+        self.untested: np.ndarray | None = None  # GPU-driven: invisible pairs only covered by LCA traversals
         self.bounds = np.zeros((0, 2, 4), np.int64)  # the last _run_queries' passing bounds per query and box
 
     # -- GL helpers -------------------------------------------------------------------------------
@@ -722,7 +744,6 @@ class _Pass:
         nd, lvl, tx, ty, tile, sl = nd[order], lvl[order], tx[order], ty[order], tile[order], sl[order]
         starts = np.flatnonzero(np.r_[True, tile[1:] != tile[:-1]])
         ends = np.r_[starts[1:], len(nd)]
-        mb = self.p.max_batch
         rects = tile_rects(lvl[starts], tx[starts], ty[starts], self.size)
         lca_max = self.p.lca_subtrees
         if lca_max > 0 and self.be.cache is None and ((ends - starts) > lca_max).any():
@@ -742,6 +763,13 @@ class _Pass:
             starts = np.cumsum(counts) - counts
             ends = starts + counts
             self.stats["lca_tiles"] += int(many.sum())
+        self._draw_batches(nd, sl, rects, starts, ends)
+
+    def _draw_batches(self, nd: np.ndarray, sl: np.ndarray, rects: np.ndarray, starts: np.ndarray,
+                      ends: np.ndarray) -> None:
+        """Draw the items nd[starts[i]:ends[i]] over tile rectangle rects[i] (nearest first where
+        sorted), in batches of at most max_batch items per record."""
+        mb = self.p.max_batch
         _upload(self.be.items, self._subtree_items(nd, sl))
         # batches: per tile, consecutive runs of at most max_batch subtrees (nearest first)
         nbatch = -(-(ends - starts) // mb)
@@ -958,14 +986,31 @@ class _Pass:
             be.gpu_counts.write(bytes(4 * (nslots + 3)), offset=COUNT_BYTES)
             iostats.to_device(4 * (nslots + 3))
             be.gpu_counts.bind_to_storage_buffer(BIND_CHC_QUERY_COUNTS, COUNT_BYTES, 4 * (nslots + 3))
-            self._draw_subtrees(visible, np.arange(len(visible)))
+            inv_copies = None
+            full = False
+            if self.p.lca_invisible and self.p.merge_tiles:
+                vis_items, inv_copies = self._tile_plan(visible, invisible)
+                n = 1 << f.max_level
+                full = 0 < self.p.full_bvh_fraction <= self.stats["lca_tiles"] / (n * n)
+                if not full:
+                    self._draw_finest(*vis_items)
+            else:
+                self._draw_subtrees(visible, np.arange(len(visible)))
             self.stats["phase1_subtrees"] = len(visible)
             self._sync()
         with prof.phase("chc:2-queries"):
-            self._cull_invisible(invisible, len(visible), nslots)
+            if not full:
+                self._cull_invisible(invisible, len(visible), nslots, inv_copies)
             self._sync()
         with prof.phase("chc:3-traversal"):
-            self._intersect_survivors()
+            if full:
+                # incoherent rays: nearly every tile would traverse from (about) the root; the glsl
+                # traversal does exactly that, without the per-tile records
+                self.be.finisher.run(self.rays, self.pinfo, self.hits)
+                self.stats["full_bvh_passes"] = 1
+                self.stats["draws"] += 1
+            else:
+                self._intersect_survivors()
             self._sync()
         with prof.phase("chc:4-final-intersect"):
             raw = np.frombuffer(_host_read(lambda: be.gpu_counts.read(size=COUNT_BYTES + 4 * (nslots + 3))),
@@ -975,43 +1020,59 @@ class _Pass:
             self.stats["query_pixels"] = int(cnt[nslots])
             self.stats["query_records_drawn"] = int(cnt[nslots + 1])
             self.rays_read = True
-            self._refine(visible, invisible, cnt[:nslots])
+            if not full:  # a full-BVH pass counted nothing: the front stays as it is
+                self._refine(visible, invisible, cnt[:nslots])
 
-    def _cull_invisible(self, invisible: np.ndarray, slot0: int, nslots: int) -> None:
+    def _cull_invisible(self, invisible: np.ndarray, slot0: int, nslots: int,
+                        copies: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None) -> None:
         """Upload the invisible pairs copied onto the finest tiles they cover (intersection items
         with their count slots, sorted by tile), then on the GPU: per finest tile the rays' origin box
         and farthest reach (chc_tilebounds.comp), and per finest tile the pairs some ray may still
-        enter (chc_querycull.comp), as records of the indirect intersection draw."""
-        self.n_survivor_groups = len(invisible)
-        if not len(invisible):
-            return
+        enter (chc_querycull.comp), as records of the indirect intersection draw. `copies` (node,
+        finest tile, slot): the copies left by _tile_plan (those of LCA tiles dropped). With
+        cull_sublevels the bounds, the cull and the records are per sub-tile (each reads its finest
+        tile's pairs): rays near a short hit no longer share a tile with far-reaching ones."""
         be, ctx, f = self.be, self.ctx, self.front
         level = f.max_level
         n = 1 << level
         ntiles = n * n
-        nd, _, tx, ty, sl = _to_finest_tiles(
-            f.node[invisible].astype(np.int64), f.level[invisible].astype(np.int64),
-            f.tx[invisible].astype(np.int64), f.ty[invisible].astype(np.int64),
-            slot0 + np.arange(len(invisible), dtype=np.int64), level)
-        tile = ty * n + tx
+        if copies is None:
+            nd, _, tx, ty, sl = _to_finest_tiles(
+                f.node[invisible].astype(np.int64), f.level[invisible].astype(np.int64),
+                f.tx[invisible].astype(np.int64), f.ty[invisible].astype(np.int64),
+                slot0 + np.arange(len(invisible), dtype=np.int64), level)
+            tile = ty * n + tx
+        else:
+            nd, tile, sl = copies
+        self.n_survivor_groups = len(nd)
+        if not len(nd):
+            return
         order = np.argsort(tile, kind="stable")
         _upload(be.items, self._subtree_items(nd[order], sl[order]))
         counts = np.bincount(tile, minlength=ntiles)
-        ranges = np.zeros(ntiles, DRAW_DTYPE)
-        all_t = np.arange(ntiles)
-        ranges["rect"] = tile_rects(np.full(ntiles, level), all_t % n, all_t // n, self.size)
-        ranges["info"][:, 0] = np.cumsum(counts) - counts
-        ranges["info"][:, 1] = counts
+        sub = int(self.p.cull_sublevels)
+        while sub > 0 and min(self.size) >> (level + sub) < 4:
+            sub -= 1
+        cl = level + sub  # the cull's tile level
+        m = 1 << cl
+        nsub = m * m
+        all_t = np.arange(nsub)
+        sx, sy = all_t % m, all_t // m
+        parent = (sy >> sub) * n + (sx >> sub)
+        ranges = np.zeros(nsub, DRAW_DTYPE)
+        ranges["rect"] = tile_rects(np.full(nsub, cl), sx, sy, self.size)
+        ranges["info"][:, 0] = (np.cumsum(counts) - counts)[parent]
+        ranges["info"][:, 1] = counts[parent]
         self.stats["queries"] += len(invisible)
         mb = self.p.max_batch
-        if be.tile_bounds.size < 32 * ntiles:
+        if be.tile_bounds.size < 32 * nsub:
             be.tile_bounds.release()
-            be.tile_bounds = ctx.buffer(reserve=32 * ntiles)
-        need = max(int((-(-counts // mb)).sum()), 1) * DRAW_DTYPE.itemsize
+            be.tile_bounds = ctx.buffer(reserve=32 * nsub)
+        need = max(int((-(-counts // mb)).sum()) << (2 * sub), 1) * DRAW_DTYPE.itemsize
         if be.survivors.size < need:
             be.survivors.release()
             be.survivors = ctx.buffer(reserve=1 << (need - 1).bit_length())
-        need = max(len(nd), 1) * ITEM_DTYPE.itemsize
+        need = max(len(nd) << (2 * sub), 1) * ITEM_DTYPE.itemsize
         if be.kept_boxes.size < need:
             be.kept_boxes.release()
             be.kept_boxes = ctx.buffer(reserve=1 << (need - 1).bit_length())
@@ -1024,17 +1085,78 @@ class _Pass:
         be.query_indirect.bind_to_storage_buffer(BIND_CHC_INDIRECT)
         ctx.memory_barrier(moderngl.SHADER_IMAGE_ACCESS_BARRIER_BIT)  # bestBits of the visible pairs
         be.tilebounds["raySize"] = tuple(self.size)
-        be.tilebounds["level"] = level
-        be.tilebounds.run(ntiles)
+        be.tilebounds["level"] = cl
+        be.tilebounds.run(nsub)
         ctx.memory_barrier(moderngl.SHADER_STORAGE_BARRIER_BIT)
-        be.querycull["nQueries"] = ntiles
+        be.querycull["nQueries"] = nsub
         be.querycull["maxItems"] = mb
         be.querycull["pixelSlot"] = nslots
         be.querycull["cull"] = int(self.p.coarse_cull)
-        be.querycull.run(-(-ntiles // 64))
+        be.querycull.run(-(-nsub // 64))
         ctx.memory_barrier(moderngl.COMMAND_BARRIER_BIT | moderngl.SHADER_STORAGE_BARRIER_BIT)
         self.stats["draws"] += 2
         iostats.gl_draw(2)
+
+    def _tile_plan(self, visible: np.ndarray, invisible: np.ndarray
+                   ) -> tuple[tuple[np.ndarray, np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray, np.ndarray]]:
+        """GPU-driven, per finest tile: the visible and invisible pairs over it (copied onto the
+        finest tiles), as (node, tile, count slot). A tile with more than `lca_pairs` pairs in all (or
+        `lca_subtrees` visible ones) would test every pair's box per ray (incoherent rays: more box tests
+        than one
+        full traversal); it traverses the lowest common ancestor of all its pairs once instead (the
+        front is a cut of the BVH, so that subtree holds all of them: exact), and its invisible
+        pairs are neither queried nor counted (they keep their state, see _refine)."""
+        f, nt = self.front, self.nt
+        level = f.max_level
+        n = 1 << level
+        nv = len(visible)
+
+        def copies(pairs: np.ndarray, slot0: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+            nd, _, tx, ty, sl = _to_finest_tiles(
+                f.node[pairs].astype(np.int64), f.level[pairs].astype(np.int64), f.tx[pairs].astype(np.int64),
+                f.ty[pairs].astype(np.int64), slot0 + np.arange(len(pairs), dtype=np.int64), level)
+            return nd, ty * n + tx, sl
+
+        vn, vt, vs = copies(visible, 0)
+        inn, it, isl = copies(invisible, nv)
+        cv, ci = np.bincount(vt, minlength=n * n), np.bincount(it, minlength=n * n)
+        heavy = np.zeros(n * n, bool)
+        if self.p.lca_subtrees > 0:
+            heavy |= cv > self.p.lca_subtrees
+        if self.p.lca_pairs > 0:
+            heavy |= cv + ci > self.p.lca_pairs
+        hv, hi = heavy[vt], heavy[it]
+        tiles = np.concatenate([vt[hv], it[hi]])
+        nodes = np.concatenate([vn[hv], inn[hi]])
+        o = np.argsort(tiles, kind="stable")
+        tiles, nodes = tiles[o], nodes[o]
+        starts = np.flatnonzero(np.r_[True, tiles[1:] != tiles[:-1]]) if len(tiles) else np.zeros(0, np.int64)
+        lca = nt.group_lca(nodes, starts)
+        self.lca_pairs = vs[hv]
+        self.stats["lca_tiles"] += len(starts)
+        dropped = np.ones(len(invisible), bool)
+        dropped[isl[~hi] - nv] = False
+        self.untested = invisible[dropped]
+        vis = (np.concatenate([vn[~hv], lca]), np.concatenate([vt[~hv], tiles[starts]]),
+               np.concatenate([vs[~hv], np.full(len(starts), -1, np.int64)]))
+        return vis, (inn[~hi], it[~hi], isl[~hi])
+
+    def _draw_finest(self, nd: np.ndarray, tile: np.ndarray, sl: np.ndarray) -> None:
+        """GPU-driven: intersect items (node, finest tile, count slot) in one instanced draw: one
+        record per finest tile (more where a tile has more than max_batch items)."""
+        if len(nd) == 0:
+            return
+        f = self.front
+        level = f.max_level
+        n = 1 << level
+        self.stats["subtrees_scheduled"] += len(nd)
+        o = np.argsort(tile, kind="stable")
+        nd, tile, sl = nd[o], tile[o], sl[o]
+        starts = np.flatnonzero(np.r_[True, tile[1:] != tile[:-1]])
+        ends = np.r_[starts[1:], len(nd)]
+        t = tile[starts]
+        rects = tile_rects(np.full(len(t), level), t % n, t // n, self.size)
+        self._draw_batches(nd, sl, rects, starts, ends)
 
     def _intersect_survivors(self) -> None:
         """The invisible pairs that survived the cull, in one indirect instanced draw (items: the
@@ -1069,7 +1191,10 @@ class _Pass:
         seen = ci > thr
         wave = invisible[seen]
         f.pixels[wave] = ci[seen]
-        f.age[invisible[~seen]] += 1
+        unseen = invisible[~seen]
+        if self.untested is not None and len(self.untested):
+            unseen = unseen[~np.isin(unseen, self.untested)]  # not queried (LCA tiles): not aged
+        f.age[unseen] += 1
         self.stats["newly_visible_queries"] += int(seen.sum())
         if nv:
             due = f.requery_due(visible, self.frame_number())
