@@ -275,6 +275,20 @@ __kernel void scan_blocks(__global uint* bsum, uint nb, __global uint* cnt, uint
     marks[MARK0 + it + 1] = v;
 }
 
+// A merging child's triangle count, kept-node count and height, and its SAH cost as the result:
+// from its inner node record, or for a triangle (id below n_tri) 1, 1, 0 and its box's area.
+inline float child_info(__global const float4* node, uint id, uint n_tri, float4 lo, float4 hi, int* count,
+                        int* kept, int* height) {
+    if (id < n_tri) {
+        *count = 1; *kept = 1; *height = 0;
+        return half_area(lo, hi);
+    }
+    __global const float4* r = node + NODE_F4 * (size_t)(id - n_tri);
+    int4 links = as_int4(r[2]);
+    *count = links.z; *kept = links.w; *height = as_int(r[1].w) >> 1;
+    return r[0].w;
+}
+
 // Mutual nearest pairs (i < j) merge into a new inner node (ids in cluster order from the block's
 // offset) that takes cluster slot i; slot j is dropped; the kept clusters are compacted into the
 // other cluster arrays, order kept. Inner node v (>= n) is stored at v - n; a child below n is a
@@ -304,22 +318,9 @@ __kernel void merge_scatter(__global const uint* cnt, uint p, __global const uin
         uint b = cnode[j];
         float4 blo = cmin[j], bhi = cmax[j];
         float4 lo = fmin(alo, blo), hi = fmax(ahi, bhi);
-        int ca = 1, cb = 1, ka = 1, kb = 1, ha = 0, hb = 0;
-        float sa, sb;
-        if (a >= n_tri) {
-            __global const float4* r = node + NODE_F4 * (size_t)(a - n_tri);
-            int4 links = as_int4(r[2]);
-            ca = links.z; ka = links.w; ha = as_int(r[1].w) >> 1; sa = r[0].w;
-        } else {
-            sa = half_area(alo, ahi);
-        }
-        if (b >= n_tri) {
-            __global const float4* r = node + NODE_F4 * (size_t)(b - n_tri);
-            int4 links = as_int4(r[2]);
-            cb = links.z; kb = links.w; hb = as_int(r[1].w) >> 1; sb = r[0].w;
-        } else {
-            sb = half_area(blo, bhi);
-        }
+        int ca, cb, ka, kb, ha, hb;
+        float sa = child_info(node, a, n_tri, alo, ahi, &ca, &ka, &ha);
+        float sb = child_info(node, b, n_tri, blo, bhi, &cb, &kb, &hb);
         int c = ca + cb;
         float area = half_area(lo, hi);
         float split = area + sa + sb;
