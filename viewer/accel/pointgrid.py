@@ -286,6 +286,7 @@ class _Pass:
     exact: bool
     n: int
     cap: int
+    hard_cap: int  # the most pairs the device holds (hard_cap())
     tiles_cap: int
     late: _Late | None
     build_ms: float
@@ -394,12 +395,13 @@ class PointGrid:
             p.exclusive_scan_dev(counts, counts, self._n_buf(n_tris, "n_tris"), n_tris, pairs_buf)
         else:
             cl.enqueue_fill_buffer(q, pairs_buf, u(0), 0, 4)
+        hard = self.hard_cap()
         if exact:  # one wait: the pair total sizes the buffers
             got = np.zeros(1, np.uint32)
             clio.copy(q, got, pairs_buf)
-            cap = min(max(int(got[0]), 1), self.hard_cap())
+            cap = min(max(int(got[0]), 1), hard)
         else:
-            cap = min(max(self._capacity, -(-late.pairs * 5 // 4) + 1024), self.hard_cap())
+            cap = min(max(self._capacity, -(-late.pairs * 5 // 4) + 1024), hard)
         self._capacity = max(self._capacity, cap)
         keys, refs = self.buf("keys", 4 * cap), self.buf("refs", 4 * cap)
         self._run("pg_tri_write", nt1, self.header, u(n_tris), counts, place, place_slab, flags, dmin, st_buf,
@@ -414,7 +416,7 @@ class PointGrid:
                                     self.buf("seg_len", 4 * cap)), self.buf("seg_count", 4))
         self._run("pg_cell_counts", cap, self.header, seg.key, seg.length, self._bufs["seg_count"], cell_start)
         p.exclusive_scan_dev(cell_start, cell_start, n_cells, cells_cap + 1, self.buf("cells_total", 4))
-        self._pass = _Pass(key, exact, n, cap, tiles_cap, late, (time.perf_counter() - t0) * 1e3)
+        self._pass = _Pass(key, exact, n, cap, hard, tiles_cap, late, (time.perf_counter() - t0) * 1e3)
 
     def _async(self, buf: Any, host: np.ndarray) -> None:
         """An asynchronous write of `host` to `buf` (viewer.cl.io keeps its event, and so `host`,
@@ -463,10 +465,10 @@ class PointGrid:
             shown = ps.late
             self.launch_groups = max(1, min(bound, ps.late.chunks + ps.late.chunks // 8 + 64))
         self.stats = shown.stats(ps.build_ms, (time.perf_counter() - t0) * 1e3)
-        if shown.pairs > self.hard_cap() and not self._told_limit:  # said once: the passes stay exact, slower
+        if shown.pairs > ps.hard_cap and not self._told_limit:  # said once: the passes stay exact, slower
             self._told_limit = True
-            print(f"rtwalk: note: a light grid of {shown.stats(0, 0).tiles} tiles needs {shown.pairs:,} triangle-cell "
-                  f"pairs, more than this OpenCL device holds ({self.hard_cap():,}): its rays take the uniform grid "
+            print(f"rtwalk: note: a light grid of {self.stats.tiles} tiles needs {shown.pairs:,} triangle-cell "
+                  f"pairs, more than this OpenCL device holds ({ps.hard_cap:,}): its rays take the uniform grid "
                   "(use fewer tiles: tile_rays, tiles or tile_deg)", file=sys.stderr, flush=True)
         return self.stats
 
