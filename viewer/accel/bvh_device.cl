@@ -1,6 +1,6 @@
 // Device BVH build: Morton order + PLOC clustering + SAH leaf collapse (viewer/accel/bvh_device.py).
 // Defines: WG (work-items per group of the per-element kernels), RADIUS (PLOC search radius),
-// MAX_LEAF, MIN_LEAF (leaf sizes as in viewer/accel/bvh.py), MARK0 (first iteration mark in `marks`).
+// MAX_LEAF, MIN_LEAF (leaf sizes as in viewer/accel/bvh.py).
 //
 // Nodes 0..n-1 are the triangles in Morton order (node i = triangle perm[i]); merged (inner) nodes
 // get ids n, n+1, ... from a node counter (per iteration, in cluster order), so a child's id is
@@ -257,10 +257,8 @@ __kernel void count_blocks(__global const uint* cnt, uint p, __global const uint
 
 // One work-item: exclusive scans of the block counts (kept clusters from 0, merged nodes from the
 // node counter); the new cluster count goes to cnt[1 - p], the node counter after this iteration to
-// next_node and marks[MARK0 + it + 1] (the layout's top-down pass walks the iterations backwards:
-// a node's parent was made in a later iteration).
-__kernel void scan_blocks(__global uint* bsum, uint nb, __global uint* cnt, uint p, __global uint* next_node,
-                          __global uint* marks, uint it) {
+// next_node.
+__kernel void scan_blocks(__global uint* bsum, uint nb, __global uint* cnt, uint p, __global uint* next_node) {
     if (get_global_id(0) != 0) return;
     uint acc = 0, v = *next_node;
     for (uint b = 0; b < nb; ++b) {
@@ -272,7 +270,6 @@ __kernel void scan_blocks(__global uint* bsum, uint nb, __global uint* cnt, uint
     }
     cnt[1 - p] = acc;
     *next_node = v;
-    marks[MARK0 + it + 1] = v;
 }
 
 // A merging child's triangle count, kept-node count and height, and its SAH cost as the result:
@@ -340,151 +337,144 @@ __kernel void merge_scatter(__global const uint* cnt, uint p, __global const uin
 }
 
 // ---- layout -----------------------------------------------------------------------------------
-// Kept nodes (no ancestor chosen as a leaf) get a preorder index p; per p: pnode (node id), pfirst
-// (first triangle slot), pdepth (depth, later the sort key that turns preorder into breadth-first
-// order) and order (p itself, the sort's value). Inner node v also keeps ipre[v - n] = p, or -1
-// inside a leaf. The root is placed first; then `place` runs once per PLOC iteration, newest first,
-// over the nodes that iteration made, each placing its two children (its own entry was written by
-// its parent, made in a later iteration, so placed by an earlier launch).
+// The finished tree is written breadth first, one level at a time, straight into `out` (min and
+// max: 3 floats per node, then left, right, first, count, parent, depth, height: m ints each, then
+// tri_order: n ints). lev[d] is the first index of level d (lev[0] = 0, lev[1] = 1; level_scan
+// writes lev[d + 2]). The children of level d's inner nodes are level d + 1, in their parents'
+// order, left then right: the same order as a stable sort of the preorder by depth. Until node k's
+// level is done, its fields hold scratch: left = its node id (written by its parent), right and
+// depth = its children's ids (level_a), and first is written by its parent for a left child and by
+// its left sibling (first + triangles) for a right one.
 
-// marks[0] = root node id, marks[1] = kept nodes (read by the host with the iteration marks).
+// marks[0] = root node id, marks[1] = kept nodes, marks[2] = the root's height (levels - 1).
 __kernel void root_count(__global const uint* cnode, uint n_tri, __global const float4* node,
                          __global uint* marks) {
     if (get_global_id(0) != 0) return;
     uint root = cnode[0];
     marks[0] = root;
-    marks[1] = root >= n_tri ? (uint)as_int4(node[NODE_F4 * (size_t)(root - n_tri) + 2]).w : 1u;
+    marks[1] = 1u;
+    marks[2] = 0u;
+    if (root >= n_tri) {
+        __global const float4* r = node + NODE_F4 * (size_t)(root - n_tri);
+        marks[1] = (uint)as_int4(r[2]).w;
+        marks[2] = (uint)(as_int(r[1].w) >> 1);
+    }
 }
 
-__kernel void place_root(__global const uint* cnode, uint n_tri, __global const float4* node,
-                         __global const uint* marks, __global uint* pnode, __global int* pfirst,
-                         __global uint* pdepth, __global uint* order, __global int* ipre) {
+#define OUT_FIELDS(out, m)                                            \
+    __global float* omin = (__global float*)(out);                    \
+    __global float* omax = omin + 3 * (size_t)(m);                    \
+    __global int* oleft = (out) + 6 * (size_t)(m);                    \
+    __global int* oright = oleft + (m);                               \
+    __global int* ofirst = oright + (m);                              \
+    __global int* ocount = ofirst + (m);                              \
+    __global int* oparent = ocount + (m);                             \
+    __global int* odepth = oparent + (m);                             \
+    __global int* oheight = odepth + (m);                             \
+    __global int* tri_order = oheight + (m)
+
+__kernel void layout_root(__global const uint* marks, uint m, __global uint* lev, __global int* out) {
     if (get_global_id(0) != 0) return;
-    uint root = marks[0];
-    pnode[0] = root;
-    pfirst[0] = 0;
-    pdepth[0] = 0;
-    order[0] = 0;
-    if (root >= n_tri) ipre[root - n_tri] = 0;
+    OUT_FIELDS(out, m);
+    oleft[0] = (int)marks[0];
+    ofirst[0] = 0;
+    oparent[0] = -1;
+    lev[0] = 0;
+    lev[1] = 1;
 }
 
-inline void put(uint q, uint v, int first, uint depth, uint n_tri, __global uint* pnode, __global int* pfirst,
-                __global uint* pdepth, __global uint* order, __global int* ipre) {
-    pnode[q] = v;
-    pfirst[q] = first;
-    pdepth[q] = depth;
-    order[q] = q;
-    if (v >= n_tri) ipre[v - n_tri] = (int)q;
-}
-
-// Nodes lo .. hi - 1 (ids, all >= n_tri) place their children.
-__kernel void place(uint lo, uint hi, uint n_tri, __global const float4* node, __global uint* pnode,
-                    __global int* pfirst, __global uint* pdepth, __global uint* order, __global int* ipre) {
-    uint v = lo + get_global_id(0);
-    if (v >= hi) return;
-    uint u = v - n_tri;
-    int q = ipre[u];
-    __global const float4* r = node + NODE_F4 * (size_t)u;
-    int4 links = as_int4(r[2]);
-    uint l = (uint)links.x, rr = (uint)links.y;
-    if (q < 0 || (as_int(r[1].w) & 1)) {  // inside a leaf, or a leaf: the inner nodes below are not kept
-        if (l >= n_tri) ipre[l - n_tri] = -1;
-        if (rr >= n_tri) ipre[rr - n_tri] = -1;
-        return;
-    }
-    int f = pfirst[q];
-    uint d = pdepth[q] + 1;
-    int cl = 1;
-    uint kl = 1;
-    if (l >= n_tri) {
-        int4 ll = as_int4(node[NODE_F4 * (size_t)(l - n_tri) + 2]);
-        cl = ll.z;
-        kl = (uint)ll.w;
-    }
-    put((uint)q + 1, l, f, d, n_tri, pnode, pfirst, pdepth, order, ipre);
-    put((uint)q + 1 + kl, rr, f + cl, d, n_tri, pnode, pfirst, pdepth, order, ipre);
-}
-
-__kernel void invert(uint m, __global const uint* order, __global int* rank) {
-    uint k = get_global_id(0);
-    if (k >= m) return;
-    rank[order[k]] = (int)k;
-}
-
-// The canonical tree in breadth-first order k (order: k -> preorder index, depth: the sorted keys,
-// rank: preorder index -> k) into one int buffer `out` (float boxes as bits): min and max (3 floats
-// per node), then left, right, first, count, parent, depth, height (m each), then tri_order (n).
-// A leaf writes its triangles (left subtree first) to tri_order from its first slot; an inner node
-// writes its children's parent entries.
-__kernel void emit(uint m, uint n_tri, __global const uint* order, __global const uint* depth,
-                   __global const int* rank, __global const uint* pnode, __global const int* pfirst,
-                   __global const float* tri, __global const uint* perm, __global const float4* node,
-                   __global int* out) {
-    uint k = get_global_id(0);
-    if (k >= m) return;
-    __global float* omin = (__global float*)out;
-    __global float* omax = omin + 3 * (size_t)m;
-    __global int* oleft = out + 6 * (size_t)m;
-    __global int* oright = oleft + m;
-    __global int* ofirst = oright + m;
-    __global int* ocount = ofirst + m;
-    __global int* oparent = ocount + m;
-    __global int* odepth = oparent + m;
-    __global int* oheight = odepth + m;
-    __global int* tri_order = oheight + m;
-    uint q = order[k];
-    uint v = pnode[q];
-    int first = pfirst[q];
-    ofirst[k] = first;
-    odepth[k] = (int)depth[k];
-    if (k == 0) oparent[0] = -1;
-    if (v < n_tri) {  // a single-triangle leaf
+// Level d, per block of its nodes: each node's box, triangle count and height from its record (a
+// triangle's box from its vertices), its children's ids into right/depth, a left child's sibling's
+// first slot; bsum[b] = the block's inner nodes (those with children in the tree).
+__kernel void level_a(uint d, __global const uint* lev, uint nb, uint m, uint n_tri, __global const float4* node,
+                      __global const float* tri, __global const uint* perm, __global int* out,
+                      __global uint* bsum) {
+    uint b = get_global_id(0);
+    if (b >= nb) return;
+    OUT_FIELDS(out, m);
+    uint l0 = lev[d], s, e, g = 0;
+    block_range(b, nb, lev[d + 1] - l0, &s, &e);
+    for (uint k = l0 + s; k < l0 + e; ++k) {
+        uint v = (uint)oleft[k];
         float4 lo, hi;
-        uint t = perm[v];
-        tri_box(tri, t, &lo, &hi);
+        int c = 1, h = 0;
+        if (v < n_tri) {
+            tri_box(tri, perm[v], &lo, &hi);
+        } else {
+            __global const float4* r = node + NODE_F4 * (size_t)(v - n_tri);
+            lo = r[0];
+            hi = r[1];
+            int4 links = as_int4(r[2]);
+            c = links.z;
+            h = as_int(hi.w) >> 1;
+            oright[k] = links.x;
+            odepth[k] = links.y;
+        }
         vstore3(lo.xyz, k, omin);
         vstore3(hi.xyz, k, omax);
-        ocount[k] = 1;
-        oheight[k] = 0;
-        oleft[k] = -1;
-        oright[k] = -1;
-        tri_order[first] = (int)t;
-        return;
+        ocount[k] = c;
+        oheight[k] = h;
+        if (d > 0 && !((k - l0) & 1u)) ofirst[k + 1] = ofirst[k] + c;  // a left child: its sibling's first
+        g += h > 0;
     }
-    uint u = v - n_tri;
-    __global const float4* r = node + NODE_F4 * (size_t)u;
-    float4 r0 = r[0], r1 = r[1];
-    int4 links = as_int4(r[2]);
-    int hk = as_int(r1.w);
-    vstore3(r0.xyz, k, omin);
-    vstore3(r1.xyz, k, omax);
-    ocount[k] = links.z;
-    oheight[k] = hk >> 1;
-    if (!(hk & 1)) {
-        uint l = (uint)links.x;
-        uint kl = l >= n_tri ? (uint)as_int4(node[NODE_F4 * (size_t)(l - n_tri) + 2]).w : 1u;
-        int rl = rank[q + 1], rr = rank[q + 1 + kl];
-        oleft[k] = rl;
-        oright[k] = rr;
-        oparent[rl] = (int)k;
-        oparent[rr] = (int)k;
-        return;
+    bsum[b] = g;
+}
+
+// One work-item: exclusive scan of level d's per-block inner-node counts; lev[d + 2] = the end of
+// level d + 1 (two children per inner node).
+__kernel void level_scan(uint d, uint nb, __global uint* bsum, __global uint* lev) {
+    if (get_global_id(0) != 0) return;
+    uint acc = 0;
+    for (uint b = 0; b < nb; ++b) {
+        uint g = bsum[b];
+        bsum[b] = acc;
+        acc += g;
     }
-    oleft[k] = -1;
-    oright[k] = -1;
-    uint stack[MAX_LEAF + 1];
-    int sp = 0, slot = first;
-    uint w = v;
-    for (;;) {
-        if (w < n_tri) {
-            tri_order[slot++] = (int)perm[w];
-            if (sp == 0) break;
-            w = stack[--sp];
+    lev[d + 2] = lev[d + 1] + 2 * acc;
+}
+
+// Level d, per block: an inner node places its children (ids, parent, the left one's first slot) at
+// the next level's end in order and links them; a leaf writes its triangles (left subtree first) to
+// tri_order from its first slot. Then the node's depth.
+__kernel void level_b(uint d, __global const uint* lev, uint nb, uint m, uint n_tri, __global const float4* node,
+                      __global const uint* perm, __global const uint* bsum, __global int* out) {
+    uint b = get_global_id(0);
+    if (b >= nb) return;
+    OUT_FIELDS(out, m);
+    uint l0 = lev[d], s, e;
+    block_range(b, nb, lev[d + 1] - l0, &s, &e);
+    uint c = lev[d + 1] + 2 * bsum[b];
+    for (uint k = l0 + s; k < l0 + e; ++k) {
+        uint v = (uint)oleft[k];
+        int first = ofirst[k];
+        if (oheight[k] > 0) {
+            oleft[c] = oright[k];
+            oleft[c + 1] = odepth[k];
+            ofirst[c] = first;
+            oparent[c] = (int)k;
+            oparent[c + 1] = (int)k;
+            oleft[k] = (int)c;
+            oright[k] = (int)c + 1;
+            c += 2;
         } else {
-            int4 wl = as_int4(node[NODE_F4 * (size_t)(w - n_tri) + 2]);
-            stack[sp++] = (uint)wl.y;
-            w = (uint)wl.x;
+            oleft[k] = -1;
+            oright[k] = -1;
+            uint stack[MAX_LEAF + 1];
+            int sp = 0, slot = first;
+            uint w = v;
+            for (;;) {
+                if (w < n_tri) {
+                    tri_order[slot++] = (int)perm[w];
+                    if (sp == 0) break;
+                    w = stack[--sp];
+                } else {
+                    int4 wl = as_int4(node[NODE_F4 * (size_t)(w - n_tri) + 2]);
+                    stack[sp++] = (uint)wl.y;
+                    w = (uint)wl.x;
+                }
+            }
         }
+        odepth[k] = (int)d;
     }
 }
 

@@ -26,18 +26,18 @@ Algorithm (kernels in bvh_device.cl)
    a node of at most `max_leaf` triangles becomes a leaf when that is not dearer (always when
    it holds at most `min_leaf`). Leaves are the topmost such nodes; nodes below them are dropped.
    Inner node records are 48 bytes (box + cost, box + height and leaf flag, links + counts).
-4. Layout, top down with no pointer jumping: a node made in PLOC iteration t has its parent made
-   in a later iteration, so one `place` launch per iteration, newest first, over the nodes that
-   iteration made gives each kept node its preorder index, first triangle slot and depth from its
-   parent (work proportional to the nodes, not nodes x log height). A stable radix sort of the
-   preorder by depth (one digit pass) gives breadth-first order, and one launch writes the tree
-   (and `tri_order`) in that order into one buffer: the cluster-box buffer when it fits (its
-   pages are already touched), which the BVH keeps and maps (zero-copy on a CPU device). The
-   layout's arrays reuse PLOC's dead buffers when the kept nodes fit. BuildStats are summed on
-   the device (float64 per block of nodes; tree_stats on a device without float64).
+4. Layout, breadth first, one level at a time (3 launches a level, the levels being the root's
+   height + 1), straight into the finished tree's buffer: level d's nodes (their PLOC ids left
+   there by their parents) write their own fields from their records, count their inner nodes per
+   block; one scan places the children at the next level in order (the order of a stable sort of
+   the preorder by depth, so the same trees as the earlier place + depth sort + emit layout, which
+   made about 4 random reads a node: 2.4 s of a 10 M build under load); leaves write their
+   triangles to `tri_order`. That buffer is the cluster-box buffer when the tree fits (its pages
+   are already touched), which the BVH keeps and maps (zero-copy on a CPU device). BuildStats are
+   summed on the device (float64 per block of nodes; tree_stats on a device without float64).
 Host round trips: the 6 reductions, one count read every `check_every` PLOC iterations, one read
-of the root, kept-node count and iteration marks, one finish per timed phase (5), the stats' block
-sums, and the map of the finished tree. Page faults dominate a cold build on a CPU device (about
+of the root, kept-node count and height, one finish per timed phase (5), the stats' block sums,
+and the map of the finished tree. Page faults dominate a cold build on a CPU device (about
 1 s per fresh GiB on the 2-core machine), hence the buffer reuse above.
 
 Numerics: every box is an exact float32 min/max of the triangles' float32 vertices or of child
@@ -64,15 +64,14 @@ RADIUS = 8
 CHECK_EVERY = 4
 #: device bytes per triangle of the buffers build() allocates (bounds: only the pages a build writes
 #: are ever touched): input (the host array itself on a CPU device), centres, keys + sort scratch,
-#: inner node records (48 bytes), cluster ids x 2 and boxes x 2, nn, iteration marks, the
-#: layout's arrays (when the kept nodes m exceed n: m <= 2n - 1, about 0.9 n in practice; else
-#: they reuse PLOC's buffers) and the finished tree (13 words a kept node and tri_order: in the
-#: cluster-box buffer when it fits, which the BVH then keeps; else a buffer of its own)
+#: inner node records (48 bytes), cluster ids x 2 and boxes x 2, nn, and the finished tree (13 words
+#: a kept node, m <= 2n - 1 (about 0.9 n in practice), and tri_order: in the cluster-box buffer when
+#: it fits, which the BVH then keeps; else a buffer of its own)
 OUT_BYTES_PER_TRIANGLE = 2 * 13 * 4 + 4
-BYTES_PER_TRIANGLE = 36 + 12 + 16 + 48 + 2 * 36 + 4 + 4 + 2 * 5 * 4 + OUT_BYTES_PER_TRIANGLE
-MARK0 = 2  # marks[0]: root id, marks[1]: kept nodes, marks[MARK0 + i]: node counter before iteration i
+BYTES_PER_TRIANGLE = 36 + 12 + 16 + 48 + 2 * 36 + 4 + OUT_BYTES_PER_TRIANGLE
 _KERNELS = ("tri_boxes", "morton", "init_leaves", "nearest", "nearest_block", "nearest_vec", "count_blocks",
-            "scan_blocks", "merge_scatter", "root_count", "place_root", "place", "invert", "emit", "stats_blocks")
+            "scan_blocks", "merge_scatter", "root_count", "layout_root", "level_a", "level_scan", "level_b",
+            "stats_blocks")
 
 
 class DeviceBvhBuilder:
@@ -94,7 +93,7 @@ class DeviceBvhBuilder:
         self.block_nearest = True  # per block of clusters (each pair once) rather than nearest (per cluster)
         self.vector_nearest = radius <= 8  # the block search eight pairs at a time (nearest_vec)
         prog = build(KERNEL, {"WG": WG, "RADIUS": int(radius), "MAX_LEAF": self.max_leaf,
-                              "MIN_LEAF": self.min_leaf, "MARK0": MARK0}, self.ctx)
+                              "MIN_LEAF": self.min_leaf}, self.ctx)
         fp64 = "cl_khr_fp64" in self.ctx.device.extensions
         self._k = clio.kernels(prog, [k for k in _KERNELS if (k != "nearest_vec" or radius <= 8)
                                       and (k != "stats_blocks" or fp64)])
@@ -212,12 +211,9 @@ class DeviceBvhBuilder:
         nn = b("nn", 4 * n)
         cnt = b("cnt", 8)
         next_node = b("next_node", 4)
-        # marks: root id, kept nodes, then the node counter before each iteration (at most n - 1
-        # iterations, run check_every at a time; pages never written are never touched)
-        marks = b("marks", 4 * (n + MARK0 + self.check_every))
+        marks = b("marks", 16)  # root id, kept nodes, root height (root_count)
         clio.copy(q, cnt, np.array([n, n], np.uint32), is_blocking=False)
         clio.copy(q, next_node, np.array([n], np.uint32), is_blocking=False)
-        clio.copy(q, marks, np.array([0, 1, n], np.uint32), is_blocking=False)
         self._run("init_leaves", n, tri_buf, perm, u(n), cnode[0], cmin[0], cmax[0])
         node_args = (u(n), node)
         p = 0  # cnt[p] is the current cluster count; cluster arrays [p] are current
@@ -235,7 +231,7 @@ class DeviceBvhBuilder:
                 else:
                     self._run("nearest", n_host, cnt, u(p), cmin[s], cmax[s], nn)
                 self._task("count_blocks", nb, cnt, u(p), nn, u(nb), bsum)
-                self._task("scan_blocks", 1, bsum, u(nb), cnt, u(p), next_node, marks, u(iters))
+                self._task("scan_blocks", 1, bsum, u(nb), cnt, u(p), next_node)
                 self._task("merge_scatter", nb, cnt, u(p), nn, u(nb), bsum, cnode[s], cmin[s], cmax[s],
                            cnode[1 - s], cmin[1 - s], cmax[1 - s], *node_args)
                 p = 1 - p
@@ -244,26 +240,9 @@ class DeviceBvhBuilder:
         self.iterations = iters
         t = self._phase("ploc", t)
 
-        # -- layout: top down, one launch per PLOC iteration, then breadth-first order ----------
-        # kept nodes m <= 2n - 1, about 0.9 n: the layout arrays reuse buffers PLOC no longer needs
-        # (pages already touched) when m <= n, else get their own
-        ipre = nn  # per inner node (n - 1)
-        root_args = (cnode[p], u(n), node, marks)
-        self._task("root_count", 1, *root_args)
-        mk = self._read(marks, iters + MARK0 + 1, np.uint32)  # root, kept nodes, iteration marks
-        m = int(mk[1])
-        if m <= n:
-            pnode, pfirst, pdepth, order, rank = cx, cy, cz, keys, cnode[1 - p]
-        else:
-            pnode, pfirst, pdepth, order, rank = (b(k, 4 * m) for k in ("pnode", "pfirst", "pdepth", "order", "rank"))
-        self._task("place_root", 1, *root_args, pnode, pfirst, pdepth, order, ipre)
-        place_args = (u(n), node, pnode, pfirst, pdepth, order, ipre)
-        for it in range(iters - 1, -1, -1):  # newest nodes first: parents before children
-            lo_id, hi_id = int(mk[MARK0 + it]), int(mk[MARK0 + it + 1])
-            self._run("place", hi_id - lo_id, u(lo_id), u(hi_id), *place_args)
-        # breadth-first order: stable sort of the preorder by depth (depth <= iterations)
-        self.prims.sort_pairs(pdepth, order, m, key_bits=max(iters.bit_length(), 1))
-        self._run("invert", m, u(m), order, rank)
+        # -- layout: breadth first, one level at a time, straight into the finished tree -------
+        self._task("root_count", 1, cnode[p], u(n), node, marks)
+        _, m, height = (int(x) for x in self._read(marks, 3, np.uint32))
         # the finished tree goes to a buffer the BVH keeps, mapped (not copied) for the host: its
         # arrays are views of it (zero-copy on a CPU device). That is the cluster-box buffer when
         # the tree fits (pages already touched; the pool makes a new one for the next build).
@@ -273,7 +252,14 @@ class DeviceBvhBuilder:
             out = self._bufs.take("cbox")
         else:
             out = new_buffer(self.ctx, self.ctx.cl.mem_flags.READ_WRITE, 4 * words, "device BVH tree")
-        self._run("emit", m, u(m), u(n), order, pdepth, rank, pnode, pfirst, tri_buf, perm, node, out)
+        lev = b("lev", 4 * (height + 3))
+        self._task("layout_root", 1, marks, u(m), lev, out)
+        for d in range(height + 1):  # level d has at most min(2^d, m) nodes
+            nbl = self.prims.nblocks(min(1 << min(d, 31), m))
+            bsum = b("bsum", 8 * nbl)
+            self._task("level_a", nbl, u(d), lev, u(nbl), u(m), u(n), node, tri_buf, perm, out, bsum)
+            self._task("level_scan", 1, u(d), u(nbl), bsum, lev)
+            self._task("level_b", nbl, u(d), lev, u(nbl), u(m), u(n), node, perm, bsum, out)
         t = self._phase("layout", t)
 
         cl = self.ctx.cl
