@@ -43,25 +43,33 @@ inline void tri_box(__global const float* tri, uint t, float4* lo, float4* hi) {
     *hi = fmax(fmax(a, b), c);
 }
 
-// Box centres per axis (the boxes themselves are recomputed where needed: cheaper than storing them).
-__kernel void tri_boxes(__global const float* tri, uint n, __global float* cx, __global float* cy,
-                        __global float* cz) {
-    uint i = get_global_id(0);
-    if (i >= n) return;
-    float4 lo, hi;
-    tri_box(tri, i, &lo, &hi);
-    float4 m = (lo + hi) * 0.5f;
-    cx[i] = m.x;
-    cy[i] = m.y;
-    cz[i] = m.z;
+// Per block of triangles: the bounds of their box centres (part[2 b] min, part[2 b + 1] max; the
+// host takes the blocks' min / max, exact). No centre arrays: `morton` recomputes the centres.
+__kernel void centre_bounds(__global const float* tri, uint n, uint nb, __global float4* part) {
+    uint b = get_global_id(0);
+    if (b >= nb) return;
+    uint s, e;
+    block_range(b, nb, n, &s, &e);
+    float4 clo = (float4)(INFINITY), chi = (float4)(-INFINITY);
+    for (uint i = s; i < e; ++i) {
+        float4 lo, hi;
+        tri_box(tri, i, &lo, &hi);
+        float4 m = (lo + hi) * 0.5f;
+        clo = fmin(clo, m);
+        chi = fmax(chi, m);
+    }
+    part[2 * b] = clo;
+    part[2 * b + 1] = chi;
 }
 
 // 30-bit Morton code of the box centre in the centroid box [lo, lo + 1024 / scale).
-__kernel void morton(__global const float* cx, __global const float* cy, __global const float* cz, uint n,
-                     float4 lo, float4 scale, __global uint* keys, __global uint* vals) {
+__kernel void morton(__global const float* tri, uint n, float4 lo, float4 scale, __global uint* keys,
+                     __global uint* vals) {
     uint i = get_global_id(0);
     if (i >= n) return;
-    float4 q = ((float4)(cx[i], cy[i], cz[i], 0.0f) - lo) * scale;
+    float4 blo, bhi;
+    tri_box(tri, i, &blo, &bhi);
+    float4 q = ((blo + bhi) * 0.5f - lo) * scale;
     q = clamp(q, 0.0f, 1023.0f);
     keys[i] = (expand10((uint)q.x) << 2) | (expand10((uint)q.y) << 1) | expand10((uint)q.z);
     vals[i] = i;

@@ -8,9 +8,10 @@ the SAH build stays the quality reference. Measured figures: docs/bvh-device.md.
 
 Algorithm (kernels in bvh_device.cl)
 ------------------------------------
-1. The triangles are read in place (USE_HOST_PTR). Box centres; their bounds (6 device
-   reductions) span a cubic 1024^3 grid; 30-bit Morton codes of the centres are sorted with the
-   project's radix sort (viewer.cl.primitives, 4 digit passes).
+1. The triangles are read in place (USE_HOST_PTR). The bounds of the box centres (per block on
+   the device, one read; no centre arrays: 120 MB of fresh pages at 10 M) span a cubic 1024^3
+   grid; 30-bit Morton codes of the centres are sorted with the project's radix sort
+   (viewer.cl.primitives, 4 digit passes); the dead keys then hold the nearest neighbours.
 2. PLOC (Meister & Bittner 2018): the clusters (one per triangle at first, boxes recomputed from
    the triangles) stay in Morton order; each finds the cluster within `radius` positions whose
    merged box has the least surface area (ties to the lower index: the closest pair overall is
@@ -35,7 +36,7 @@ Algorithm (kernels in bvh_device.cl)
    triangles to `tri_order`. That buffer is the cluster-box buffer when the tree fits (its pages
    are already touched), which the BVH keeps and maps (zero-copy on a CPU device). BuildStats are
    summed on the device (float64 per block of nodes; tree_stats on a device without float64).
-Host round trips: the 6 reductions, one count read every `check_every` PLOC iterations, one read
+Host round trips: the centre bounds, one count read every `check_every` PLOC iterations, one read
 of the root, kept-node count and height, one finish per timed phase (5), the stats' block sums,
 and the map of the finished tree. Page faults dominate a cold build on a CPU device (about
 1 s per fresh GiB on the 2-core machine), hence the buffer reuse above.
@@ -63,13 +64,13 @@ WG = 64
 RADIUS = 8
 CHECK_EVERY = 4
 #: device bytes per triangle of the buffers build() allocates (bounds: only the pages a build writes
-#: are ever touched): input (the host array itself on a CPU device), centres, keys + sort scratch,
-#: inner node records (48 bytes), cluster ids x 2 and boxes x 2, nn, and the finished tree (13 words
-#: a kept node, m <= 2n - 1 (about 0.9 n in practice), and tri_order: in the cluster-box buffer when
-#: it fits, which the BVH then keeps; else a buffer of its own)
+#: are ever touched): input (the host array itself on a CPU device), keys (later the nearest
+#: neighbours) + sort scratch, inner node records (48 bytes), cluster ids x 2 and boxes x 2, and the
+#: finished tree (13 words a kept node, m <= 2n - 1 (about 0.9 n in practice), and tri_order: in the
+#: cluster-box buffer when it fits, which the BVH then keeps; else a buffer of its own)
 OUT_BYTES_PER_TRIANGLE = 2 * 13 * 4 + 4
-BYTES_PER_TRIANGLE = 36 + 12 + 16 + 48 + 2 * 36 + 4 + OUT_BYTES_PER_TRIANGLE
-_KERNELS = ("tri_boxes", "morton", "init_leaves", "nearest", "nearest_block", "nearest_vec", "count_blocks",
+BYTES_PER_TRIANGLE = 36 + 16 + 48 + 2 * 36 + OUT_BYTES_PER_TRIANGLE
+_KERNELS = ("centre_bounds", "morton", "init_leaves", "nearest", "nearest_block", "nearest_vec", "count_blocks",
             "scan_blocks", "merge_scatter", "root_count", "layout_root", "level_a", "level_scan", "level_b",
             "stats_blocks")
 
@@ -182,19 +183,20 @@ class DeviceBvhBuilder:
         b = self._buf
         # the triangles in place (USE_HOST_PTR: no copy and no fresh pages on a CPU device)
         tri_buf = clio.upload(self.ctx, tri, what="device BVH triangles", use_host=True)
-        cx, cy, cz = b("cx", 4 * n), b("cy", 4 * n), b("cz", 4 * n)
-        self._run("tri_boxes", n, tri_buf, u(n), cx, cy, cz)
+        nbc = self.prims.nblocks(n)
+        part = b("bounds", 32 * nbc)
+        self._task("centre_bounds", nbc, tri_buf, u(n), u(nbc), part)
+        part = self._read(part, 8 * nbc, np.float32).reshape(nbc, 2, 4)
         t = self._phase("upload+boxes", t_start)
 
         # -- Morton codes, sorted ---------------------------------------------------------------
-        lo = np.array([self.prims.reduce(c, n, "min", np.float32) for c in (cx, cy, cz)], np.float32)
-        hi = np.array([self.prims.reduce(c, n, "max", np.float32) for c in (cx, cy, cz)], np.float32)
+        lo, hi = part[:, 0, :3].min(axis=0), part[:, 1, :3].max(axis=0)
         # one scale for all axes (a cube around the centres): per-axis scales would stretch a flat
         # scene's thin axis over the whole code and order it worse
         ext = float((hi.astype(np.float64) - lo).max())
         scale = np.full(3, 1024.0 / ext if ext > 0 else 0.0)
         keys, perm = b("keys", 4 * n), b("perm", 4 * n)
-        self._run("morton", n, cx, cy, cz, u(n), np.append(lo, 0).astype(np.float32),
+        self._run("morton", n, tri_buf, u(n), np.append(lo, 0).astype(np.float32),
                   np.append(scale, 0).astype(np.float32), keys, perm)
         self.prims.sort_pairs(keys, perm, n, key_bits=30)
         t = self._phase("morton+sort", t)
@@ -208,7 +210,7 @@ class DeviceBvhBuilder:
         cbox = b("cbox", 4 * region)
         cmin = [cbox.get_sub_region(0, region), cbox.get_sub_region(2 * region, region)]
         cmax = [cbox.get_sub_region(region, region), cbox.get_sub_region(3 * region, region)]
-        nn = b("nn", 4 * n)
+        nn = keys  # the sort keys are dead: their pages serve the nearest neighbours
         cnt = b("cnt", 8)
         next_node = b("next_node", 4)
         marks = b("marks", 16)  # root id, kept nodes, root height (root_count)
