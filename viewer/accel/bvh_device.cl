@@ -349,10 +349,10 @@ __kernel void merge_scatter(__global const uint* cnt, uint p, __global const uin
 // max: 3 floats per node, then left, right, first, count, parent, depth, height: m ints each, then
 // tri_order: n ints). lev[d] is the first index of level d (lev[0] = 0, lev[1] = 1; level_scan
 // writes lev[d + 2]). The children of level d's inner nodes are level d + 1, in their parents'
-// order, left then right: the same order as a stable sort of the preorder by depth. Until node k's
-// level is done, its fields hold scratch: left = its node id (written by its parent), right and
-// depth = its children's ids (level_a), and first is written by its parent for a left child and by
-// its left sibling (first + triangles) for a right one.
+// order, left then right: the same order as a stable sort of the preorder by depth. A node's
+// parent writes all of it from its record (one record read a node) but left and depth, and keeps
+// in right and depth, until the node's level is placed, its own links (a triangle: its Morton
+// index in right).
 
 // marks[0] = root node id, marks[1] = kept nodes, marks[2] = the root's height (levels - 1).
 __kernel void root_count(__global const uint* cnode, uint n_tri, __global const float4* node,
@@ -378,53 +378,55 @@ __kernel void root_count(__global const uint* cnode, uint n_tri, __global const 
     __global int* ocount = ofirst + (m);                              \
     __global int* oparent = ocount + (m);                             \
     __global int* odepth = oparent + (m);                             \
-    __global int* oheight = odepth + (m);                             \
-    __global int* tri_order = oheight + (m)
+    __global int* oheight = odepth + (m)
 
-__kernel void layout_root(__global const uint* marks, uint m, __global uint* lev, __global int* out) {
-    if (get_global_id(0) != 0) return;
+// Node v (PLOC id) at index k, child of `parent`, first slot `first`: its box, triangle count and
+// height, its links kept in right/depth; returns its triangle count.
+inline int put_node(uint v, uint k, int parent, int first, uint n_tri, __global const float4* node,
+                    __global const float* tri, __global const uint* perm, __global int* out, uint m) {
     OUT_FIELDS(out, m);
-    oleft[0] = (int)marks[0];
-    ofirst[0] = 0;
-    oparent[0] = -1;
+    float4 lo, hi;
+    int c = 1, h = 0;
+    if (v < n_tri) {
+        tri_box(tri, perm[v], &lo, &hi);
+        oright[k] = (int)v;
+    } else {
+        __global const float4* r = node + NODE_F4 * (size_t)(v - n_tri);
+        lo = r[0];
+        hi = r[1];
+        int4 links = as_int4(r[2]);
+        c = links.z;
+        h = as_int(hi.w) >> 1;
+        oright[k] = links.x;
+        odepth[k] = links.y;
+    }
+    vstore3(lo.xyz, k, omin);
+    vstore3(hi.xyz, k, omax);
+    ocount[k] = c;
+    oheight[k] = h;
+    oparent[k] = parent;
+    ofirst[k] = first;
+    return c;
+}
+
+__kernel void layout_root(__global const uint* marks, uint m, uint n_tri, __global const float4* node,
+                          __global const float* tri, __global const uint* perm, __global uint* lev,
+                          __global int* out) {
+    if (get_global_id(0) != 0) return;
+    put_node(marks[0], 0, -1, 0, n_tri, node, tri, perm, out, m);
     lev[0] = 0;
     lev[1] = 1;
 }
 
-// Level d, per block of its nodes: each node's box, triangle count and height from its record (a
-// triangle's box from its vertices), its children's ids into right/depth, a left child's sibling's
-// first slot; bsum[b] = the block's inner nodes (those with children in the tree).
-__kernel void level_a(uint d, __global const uint* lev, uint nb, uint m, uint n_tri, __global const float4* node,
-                      __global const float* tri, __global const uint* perm, __global int* out,
-                      __global uint* bsum) {
+// Level d, per block: its inner nodes (height > 0: they have children in the tree) in bsum[b].
+__kernel void level_count(uint d, __global const uint* lev, uint nb, uint m, __global const int* out,
+                          __global uint* bsum) {
     uint b = get_global_id(0);
     if (b >= nb) return;
-    OUT_FIELDS(out, m);
+    __global const int* oheight = out + 12 * (size_t)m;
     uint l0 = lev[d], s, e, g = 0;
     block_range(b, nb, lev[d + 1] - l0, &s, &e);
-    for (uint k = l0 + s; k < l0 + e; ++k) {
-        uint v = (uint)oleft[k];
-        float4 lo, hi;
-        int c = 1, h = 0;
-        if (v < n_tri) {
-            tri_box(tri, perm[v], &lo, &hi);
-        } else {
-            __global const float4* r = node + NODE_F4 * (size_t)(v - n_tri);
-            lo = r[0];
-            hi = r[1];
-            int4 links = as_int4(r[2]);
-            c = links.z;
-            h = as_int(hi.w) >> 1;
-            oright[k] = links.x;
-            odepth[k] = links.y;
-        }
-        vstore3(lo.xyz, k, omin);
-        vstore3(hi.xyz, k, omax);
-        ocount[k] = c;
-        oheight[k] = h;
-        if (d > 0 && !((k - l0) & 1u)) ofirst[k + 1] = ofirst[k] + c;  // a left child: its sibling's first
-        g += h > 0;
-    }
+    for (uint k = l0 + s; k < l0 + e; ++k) g += oheight[k] > 0;
     bsum[b] = g;
 }
 
@@ -441,46 +443,51 @@ __kernel void level_scan(uint d, uint nb, __global uint* bsum, __global uint* le
     lev[d + 2] = lev[d + 1] + 2 * acc;
 }
 
-// Level d, per block: an inner node places its children (ids, parent, the left one's first slot) at
-// the next level's end in order and links them; a leaf writes its triangles (left subtree first) to
-// tri_order from its first slot. Then the node's depth.
-__kernel void level_b(uint d, __global const uint* lev, uint nb, uint m, uint n_tri, __global const float4* node,
-                      __global const uint* perm, __global const uint* bsum, __global int* out) {
+// Level d, per block: an inner node writes its two children at the next level's end, in order,
+// and links them; a leaf writes its triangles (left subtree first) to tri_order from its first
+// slot. Then the node's depth.
+__kernel void level_place(uint d, __global const uint* lev, uint nb, uint m, uint n_tri,
+                          __global const float4* node, __global const float* tri, __global const uint* perm,
+                          __global const uint* bsum, __global int* out) {
     uint b = get_global_id(0);
     if (b >= nb) return;
     OUT_FIELDS(out, m);
+    __global int* tri_order = oheight + m;
     uint l0 = lev[d], s, e;
     block_range(b, nb, lev[d + 1] - l0, &s, &e);
     uint c = lev[d + 1] + 2 * bsum[b];
     for (uint k = l0 + s; k < l0 + e; ++k) {
-        uint v = (uint)oleft[k];
+        uint l = (uint)oright[k], r = (uint)odepth[k];
         int first = ofirst[k];
         if (oheight[k] > 0) {
-            oleft[c] = oright[k];
-            oleft[c + 1] = odepth[k];
-            ofirst[c] = first;
-            oparent[c] = (int)k;
-            oparent[c + 1] = (int)k;
+            int cl = put_node(l, c, (int)k, first, n_tri, node, tri, perm, out, m);
+            put_node(r, c + 1, (int)k, first + cl, n_tri, node, tri, perm, out, m);
             oleft[k] = (int)c;
             oright[k] = (int)c + 1;
             c += 2;
         } else {
-            oleft[k] = -1;
-            oright[k] = -1;
-            uint stack[MAX_LEAF + 1];
-            int sp = 0, slot = first;
-            uint w = v;
-            for (;;) {
-                if (w < n_tri) {
-                    tri_order[slot++] = (int)perm[w];
-                    if (sp == 0) break;
-                    w = stack[--sp];
-                } else {
-                    int4 wl = as_int4(node[NODE_F4 * (size_t)(w - n_tri) + 2]);
-                    stack[sp++] = (uint)wl.y;
-                    w = (uint)wl.x;
+            int slot = first;
+            if (ocount[k] == 1) {  // a triangle (inner nodes hold at least two)
+                tri_order[slot] = (int)perm[l];
+            } else {
+                uint stack[MAX_LEAF + 1];
+                int sp = 1;
+                stack[0] = r;
+                uint w = l;
+                for (;;) {
+                    if (w < n_tri) {
+                        tri_order[slot++] = (int)perm[w];
+                        if (sp == 0) break;
+                        w = stack[--sp];
+                    } else {
+                        int4 wl = as_int4(node[NODE_F4 * (size_t)(w - n_tri) + 2]);
+                        stack[sp++] = (uint)wl.y;
+                        w = (uint)wl.x;
+                    }
                 }
             }
+            oleft[k] = -1;
+            oright[k] = -1;
         }
         odepth[k] = (int)d;
     }

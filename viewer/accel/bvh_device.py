@@ -28,14 +28,15 @@ Algorithm (kernels in bvh_device.cl)
    it holds at most `min_leaf`). Leaves are the topmost such nodes; nodes below them are dropped.
    Inner node records are 48 bytes (box + cost, box + height and leaf flag, links + counts).
 4. Layout, breadth first, one level at a time (3 launches a level, the levels being the root's
-   height + 1), straight into the finished tree's buffer: level d's nodes (their PLOC ids left
-   there by their parents) write their own fields from their records, count their inner nodes per
-   block; one scan places the children at the next level in order (the order of a stable sort of
-   the preorder by depth, so the same trees as the earlier place + depth sort + emit layout, which
-   made about 4 random reads a node: 2.4 s of a 10 M build under load); leaves write their
-   triangles to `tri_order`. That buffer is the cluster-box buffer when the tree fits (its pages
-   are already touched), which the BVH keeps and maps (zero-copy on a CPU device). BuildStats are
-   summed on the device (float64 per block of nodes; tree_stats on a device without float64).
+   height + 1), straight into the finished tree's buffer: a node's parent writes it from its record
+   (one random record read a node; its own links kept in its right/depth fields until its level
+   is placed); per level the inner nodes are counted per block, one scan places their children at
+   the next level in order (the order of a stable sort of the preorder by depth, so the same trees
+   as the earlier place + depth sort + emit layout, which made about 4 random reads a node), and
+   leaves write their triangles to `tri_order`. That buffer is the cluster-box buffer when the
+   tree fits (its pages are already touched), which the BVH keeps and maps (zero-copy on a CPU
+   device). BuildStats are summed on the device (float64 per block of nodes; tree_stats on a
+   device without float64).
 Host round trips: the centre bounds, one count read every `check_every` PLOC iterations, one read
 of the root, kept-node count and height, one finish per timed phase (5), the stats' block sums,
 and the map of the finished tree. Page faults dominate a cold build on a CPU device (about
@@ -71,7 +72,7 @@ CHECK_EVERY = 4
 OUT_BYTES_PER_TRIANGLE = 2 * 13 * 4 + 4
 BYTES_PER_TRIANGLE = 36 + 16 + 48 + 2 * 36 + OUT_BYTES_PER_TRIANGLE
 _KERNELS = ("centre_bounds", "morton", "init_leaves", "nearest", "nearest_block", "nearest_vec", "count_blocks",
-            "scan_blocks", "merge_scatter", "root_count", "layout_root", "level_a", "level_scan", "level_b",
+            "scan_blocks", "merge_scatter", "root_count", "layout_root", "level_count", "level_scan", "level_place",
             "stats_blocks")
 
 
@@ -255,13 +256,13 @@ class DeviceBvhBuilder:
         else:
             out = new_buffer(self.ctx, self.ctx.cl.mem_flags.READ_WRITE, 4 * words, "device BVH tree")
         lev = b("lev", 4 * (height + 3))
-        self._task("layout_root", 1, marks, u(m), lev, out)
+        self._task("layout_root", 1, marks, u(m), u(n), node, tri_buf, perm, lev, out)
         for d in range(height + 1):  # level d has at most min(2^d, m) nodes
             nbl = self.prims.nblocks(min(1 << min(d, 31), m))
             bsum = b("bsum", 8 * nbl)
-            self._task("level_a", nbl, u(d), lev, u(nbl), u(m), u(n), node, tri_buf, perm, out, bsum)
+            self._task("level_count", nbl, u(d), lev, u(nbl), u(m), out, bsum)
             self._task("level_scan", 1, u(d), u(nbl), bsum, lev)
-            self._task("level_b", nbl, u(d), lev, u(nbl), u(m), u(n), node, perm, bsum, out)
+            self._task("level_place", nbl, u(d), lev, u(nbl), u(m), u(n), node, tri_buf, perm, bsum, out)
         t = self._phase("layout", t)
 
         cl = self.ctx.cl
