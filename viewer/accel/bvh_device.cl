@@ -171,18 +171,28 @@ __kernel void nearest_block(__global const uint* cnt, uint p, __global const flo
 // float8 boxes holds clusters i+1 .. i+8 (one new cluster shifted in per step), the merged areas of
 // cluster i with all of them are one float8 expression (the same float operations as half_area, so
 // the same values), and `lb`/`li` hold, for clusters i .. i+7, the best area and index offered by
-// clusters before i (strict < keeps the earlier, lower index on ties). A block starts RADIUS
-// clusters early so the pairs reaching into it are seen.
+// clusters before i (strict < keeps the earlier, lower index on ties).
+// It also does count_blocks' work (no pass of its own): a block runs from 2 RADIUS clusters before
+// its range to RADIUS after it, so it knows the neighbours of every cluster within RADIUS of its
+// range (the values the neighbouring blocks write: the same offers reach them), keeps the last 32
+// in a ring, and checks each of its clusters for a mutual pair RADIUS steps later: bsum[b] = the
+// clusters kept, bsum[nb + b] = the pairs merged.
 #define EMPTY8 ((float8)(INFINITY))
+#define NN_RING 32
 __kernel void nearest_vec(__global const uint* cnt, uint p, __global const float4* cmin,
-                          __global const float4* cmax, uint nb, __global uint* nn) {
+                          __global const float4* cmax, uint nb, __global uint* nn, __global uint* bsum) {
     uint b = get_global_id(0);
     uint n = cnt[p];
-    if (b >= nb || n <= 1) return;
+    if (b >= nb) return;
     uint s, e;
     block_range(b, nb, n, &s, &e);
-    if (s >= e) return;
-    uint i0 = s > RADIUS ? s - RADIUS : 0;
+    if (s >= e || n <= 1) {  // nothing to pair: every cluster kept
+        bsum[b] = e - s;
+        bsum[nb + b] = 0;
+        return;
+    }
+    uint i0 = s > 2 * RADIUS ? s - 2 * RADIUS : 0;
+    uint i1 = min(e + RADIUS, n);
     const uint8 lane = (uint8)(1, 2, 3, 4, 5, 6, 7, 8);
     float8 wlx, wly, wlz, whx, why, whz;  // boxes of clusters i+1 .. i+8
     float lx[8], ly[8], lz[8], hx[8], hy[8], hz[8];
@@ -195,7 +205,9 @@ __kernel void nearest_vec(__global const uint* cnt, uint p, __global const float
     whx = vload8(0, hx); why = vload8(0, hy); whz = vload8(0, hz);
     float8 lb = EMPTY8;  // best area offered to clusters i .. i+7 by clusters before i
     uint8 li = (uint8)(0xffffffffu);
-    for (uint i = i0; i < e; ++i) {
+    uint ring[NN_RING];  // neighbours of the last NN_RING clusters (valid from s - RADIUS on)
+    uint q = s, kept = 0, merged = 0;  // q: the next cluster of the block to check for a mutual pair
+    for (uint i = i0; i < i1; ++i) {
         float4 lo = cmin[i], hi = cmax[i];
         float8 ex = fmax((float8)(hi.x), whx) - fmin((float8)(lo.x), wlx);
         float8 ey = fmax((float8)(hi.y), why) - fmin((float8)(lo.y), wly);
@@ -205,17 +217,25 @@ __kernel void nearest_vec(__global const uint* cnt, uint p, __global const float
         int8 bad = (j > (uint8)(n - 1)) | (lane > (uint8)(RADIUS));
         a = select(a, EMPTY8, isnan(a) | bad);
         uint8 jid = select(j, (uint8)(0xffffffffu), bad);
-        if (i >= s) {  // cluster i: best to the right (first lowest), then against the left offer
-            float4 m4 = fmin(a.lo, a.hi);
-            float2 m2 = fmin(m4.lo, m4.hi);
-            float rm = fmin(m2.x, m2.y);
-            uint8 cand = select((uint8)(0xffffffffu), jid, a == (float8)(rm));
-            uint4 c4 = min(cand.lo, cand.hi);
-            uint2 c2 = min(c4.lo, c4.hi);
-            uint rj = min(c2.x, c2.y);
-            float l0 = lb.s0;
-            uint lj = li.s0;
-            nn[i] = (l0 < rm || (l0 == rm && lj < rj)) ? lj : rj;
+        // cluster i: best to the right (first lowest), then against the left offer
+        float4 m4 = fmin(a.lo, a.hi);
+        float2 m2 = fmin(m4.lo, m4.hi);
+        float rm = fmin(m2.x, m2.y);
+        uint8 cand = select((uint8)(0xffffffffu), jid, a == (float8)(rm));
+        uint4 c4 = min(cand.lo, cand.hi);
+        uint2 c2 = min(c4.lo, c4.hi);
+        uint rj = min(c2.x, c2.y);
+        float l0 = lb.s0;
+        uint lj = li.s0;
+        uint best = (l0 < rm || (l0 == rm && lj < rj)) ? lj : rj;
+        ring[i & (NN_RING - 1)] = best;
+        if (i >= s && i < e) nn[i] = best;
+        // a cluster's mutual check needs the neighbours up to RADIUS after it
+        for (; q < e && q + RADIUS <= i; ++q) {
+            uint jq = ring[q & (NN_RING - 1)];
+            bool mutual = ring[jq & (NN_RING - 1)] == q;
+            kept += !(jq < q && mutual);
+            merged += jq > q && mutual;
         }
         // shift the offers to clusters i+1 .. i+8, then offer i to them
         lb = (float8)(lb.s1234, lb.s567, INFINITY);
@@ -233,6 +253,14 @@ __kernel void nearest_vec(__global const uint* cnt, uint p, __global const float
         why = (float8)(why.s1234, why.s567, nhi.y);
         whz = (float8)(whz.s1234, whz.s567, nhi.z);
     }
+    for (; q < e; ++q) {  // the last clusters (i1 = n): every neighbour is known
+        uint jq = ring[q & (NN_RING - 1)];
+        bool mutual = ring[jq & (NN_RING - 1)] == q;
+        kept += !(jq < q && mutual);
+        merged += jq > q && mutual;
+    }
+    bsum[b] = kept;
+    bsum[nb + b] = merged;
 }
 #endif
 

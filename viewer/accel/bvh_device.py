@@ -17,8 +17,10 @@ Algorithm (kernels in bvh_device.cl)
    merged box has the least surface area (ties to the lower index: the closest pair overall is
    always mutual, so every iteration merges). For radius <= 8 `nearest_vec` does it eight pairs
    at a time (a float8 window of the next clusters' boxes, the same float operations, so the same
-   neighbours). Mutual pairs merge into a new inner node in the lower slot. An iteration is 4
-   launches: nearest; per-block counts of kept clusters and merges; one scan of both (node ids
+   neighbours). Mutual pairs merge into a new inner node in the lower slot. An iteration is 3
+   launches: nearest with per-block counts of kept clusters and merges (`nearest_vec` runs
+   RADIUS clusters past its block's ends, so it knows every neighbour its clusters' mutual checks
+   read; the other searches have a `count_blocks` launch of their own); one scan of both (node ids
    are numbered in cluster order from the node counter: no atomics); merge + compaction. The
    cluster count lives on the device, every kernel reads it there, and the host reads it back
    only every `check_every` iterations (to shrink the launch sizes and to stop).
@@ -225,17 +227,21 @@ class DeviceBvhBuilder:
         while n_host > 1:
             nb = self.prims.nblocks(n_host)
             nbn = max(PWG, min(-(-n_host // 256), 8 * self.prims.max_blocks) // PWG * PWG)
-            bsum = b("bsum", 8 * nb)
+            vec = self.block_nearest and self.vector_nearest  # nearest_vec counts the blocks too
+            nbm = nbn if vec else nb  # blocks of the count, scan and merge
+            bsum = b("bsum", 8 * nbm)
             for _ in range(self.check_every):
                 s = p
-                if self.block_nearest:
-                    kname = "nearest_vec" if self.vector_nearest else "nearest_block"
-                    self._task(kname, nbn, cnt, u(p), cmin[s], cmax[s], u(nbn), nn)
+                if vec:
+                    self._task("nearest_vec", nbn, cnt, u(p), cmin[s], cmax[s], u(nbn), nn, bsum)
                 else:
-                    self._run("nearest", n_host, cnt, u(p), cmin[s], cmax[s], nn)
-                self._task("count_blocks", nb, cnt, u(p), nn, u(nb), bsum)
-                self._task("scan_blocks", 1, bsum, u(nb), cnt, u(p), next_node)
-                self._task("merge_scatter", nb, cnt, u(p), nn, u(nb), bsum, cnode[s], cmin[s], cmax[s],
+                    if self.block_nearest:
+                        self._task("nearest_block", nbn, cnt, u(p), cmin[s], cmax[s], u(nbn), nn)
+                    else:
+                        self._run("nearest", n_host, cnt, u(p), cmin[s], cmax[s], nn)
+                    self._task("count_blocks", nb, cnt, u(p), nn, u(nb), bsum)
+                self._task("scan_blocks", 1, bsum, u(nbm), cnt, u(p), next_node)
+                self._task("merge_scatter", nbm, cnt, u(p), nn, u(nbm), bsum, cnode[s], cmin[s], cmax[s],
                            cnode[1 - s], cmin[1 - s], cmax[1 - s], *node_args)
                 p = 1 - p
                 iters += 1
