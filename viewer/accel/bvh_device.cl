@@ -11,9 +11,10 @@
 
 #define RING (RADIUS < 8 ? 8 : RADIUS < 16 ? 16 : RADIUS < 32 ? 32 : 64)
 
-// Inner node records (node id v >= n at v - n), NODE_F4 float4 each: (box min, SAH cost of the
-// best subtree), (box max, bits of height << 1 | leaf flag), bits of (left, right, triangles,
-// kept nodes of the subtree). One record per node: the layout kernels read a node's fields together.
+// Inner node records (node id v >= n at v - n), NODE_F4 float4 each: bits of (triangles, kept
+// nodes of the subtree, height << 1 | leaf flag, SAH cost of the best subtree) -- what a merge reads
+// of a child, in one 16-byte piece (one cache line) --, (box min, bits of left), (box max, bits of
+// right). One record per node: the layout kernels read a node's fields together.
 #define NODE_F4 3
 
 inline float half_area(float4 lo, float4 hi) {
@@ -317,9 +318,9 @@ inline float child_info(__global const float4* node, uint id, uint n_tri, float4
         return half_area(lo, hi);
     }
     __global const float4* r = node + NODE_F4 * (size_t)(id - n_tri);
-    int4 links = as_int4(r[2]);
-    *count = links.z; *kept = links.w; *height = as_int(r[1].w) >> 1;
-    return r[0].w;
+    int4 info = as_int4(r[0]);
+    *count = info.x; *kept = info.y; *height = info.z >> 1;
+    return as_float(info.w);
 }
 
 // Mutual nearest pairs (i < j) merge into a new inner node (ids in cluster order from the block's
@@ -361,9 +362,9 @@ __kernel void merge_scatter(__global const uint* cnt, uint p, __global const uin
         int ok = c <= MIN_LEAF || (c <= MAX_LEAF && leaf <= split);
         int h = ok ? 0 : 1 + max(ha, hb);
         __global float4* r = node + NODE_F4 * (size_t)(v - n_tri);
-        r[0] = (float4)(lo.xyz, ok ? leaf : split);
-        r[1] = (float4)(hi.xyz, as_float((h << 1) | ok));
-        r[2] = as_float4((int4)((int)a, (int)b, c, ok ? 1 : 1 + ka + kb));
+        r[0] = as_float4((int4)(c, ok ? 1 : 1 + ka + kb, (h << 1) | ok, as_int(ok ? leaf : split)));
+        r[1] = (float4)(lo.xyz, as_float(a));
+        r[2] = (float4)(hi.xyz, as_float(b));
         dnode[o] = v;
         dmin[o] = lo;
         dmax[o] = hi;
@@ -392,8 +393,9 @@ __kernel void root_count(__global const uint* cnode, uint n_tri, __global const 
     marks[2] = 0u;
     if (root >= n_tri) {
         __global const float4* r = node + NODE_F4 * (size_t)(root - n_tri);
-        marks[1] = (uint)as_int4(r[2]).w;
-        marks[2] = (uint)(as_int(r[1].w) >> 1);
+        int4 info = as_int4(r[0]);
+        marks[1] = (uint)info.y;
+        marks[2] = (uint)(info.z >> 1);
     }
 }
 
@@ -420,13 +422,13 @@ inline int put_node(uint v, uint k, int parent, int first, uint n_tri, __global 
         oright[k] = (int)v;
     } else {
         __global const float4* r = node + NODE_F4 * (size_t)(v - n_tri);
-        lo = r[0];
-        hi = r[1];
-        int4 links = as_int4(r[2]);
-        c = links.z;
-        h = as_int(hi.w) >> 1;
-        oright[k] = links.x;
-        odepth[k] = links.y;
+        int4 info = as_int4(r[0]);
+        lo = r[1];
+        hi = r[2];
+        c = info.x;
+        h = info.z >> 1;
+        oright[k] = as_int(lo.w);
+        odepth[k] = as_int(hi.w);
     }
     vstore3(lo.xyz, k, omin);
     vstore3(hi.xyz, k, omax);
@@ -508,9 +510,9 @@ __kernel void level_place(uint d, __global const uint* lev, uint nb, uint m, uin
                         if (sp == 0) break;
                         w = stack[--sp];
                     } else {
-                        int4 wl = as_int4(node[NODE_F4 * (size_t)(w - n_tri) + 2]);
-                        stack[sp++] = (uint)wl.y;
-                        w = (uint)wl.x;
+                        __global const float4* wr = node + NODE_F4 * (size_t)(w - n_tri);
+                        stack[sp++] = as_uint(wr[2].w);
+                        w = as_uint(wr[1].w);
                     }
                 }
             }

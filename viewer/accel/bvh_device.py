@@ -28,7 +28,8 @@ Algorithm (kernels in bvh_device.cl)
    of a leaf and the split, traversal 1, intersection 1 per triangle, as BuildStats reports):
    a node of at most `max_leaf` triangles becomes a leaf when that is not dearer (always when
    it holds at most `min_leaf`). Leaves are the topmost such nodes; nodes below them are dropped.
-   Inner node records are 48 bytes (box + cost, box + height and leaf flag, links + counts).
+   Inner node records are 48 bytes (counts, height and leaf flag, cost in one 16-byte piece: what a
+   merge reads of a child; box min + left; box max + right).
 4. Layout, breadth first, one level at a time (3 launches a level, the levels being the root's
    height + 1), straight into the finished tree's buffer: a node's parent writes it from its record
    (one random record read a node; its own links kept in its right/depth fields until its level
