@@ -18,9 +18,10 @@ Algorithm (kernels in bvh_device.cl)
    always mutual, so every iteration merges). For radius <= 8 `nearest_vec` does it eight pairs
    at a time (a float8 window of the next clusters' boxes, the same float operations, so the same
    neighbours). Mutual pairs merge into a new inner node in the lower slot. An iteration is 3
-   launches: nearest with per-block counts of kept clusters and merges (`nearest_vec` runs
-   RADIUS clusters past its block's ends, so it knows every neighbour its clusters' mutual checks
-   read; the other searches have a `count_blocks` launch of their own); one scan of both (node ids
+   launches: nearest with per-block counts of kept clusters and merges (`nearest_vec` runs from
+   2 RADIUS clusters before its block to RADIUS after it, so it knows every neighbour its
+   clusters' mutual checks read; the other searches have a `count_blocks` launch of their own);
+   one scan of both (node ids
    are numbered in cluster order from the node counter: no atomics); merge + compaction. The
    cluster count lives on the device, every kernel reads it there, and the host reads it back
    only every `check_every` iterations (to shrink the launch sizes and to stop).
