@@ -5,9 +5,9 @@
 // Nodes 0..n-1 are the triangles in Morton order (node i = triangle perm[i]); merged (inner) nodes
 // get ids n, n+1, ... from a node counter (per iteration, in cluster order), so a child's id is
 // always below its parent's, and are stored at id - n (no per-triangle node records: a triangle's
-// box is recomputed). Clusters are
-// (node id, box) triples in Morton order; an iteration is nearest -> count -> scan -> merge+scatter,
-// all reading the cluster count from the device (cnt[p]) so the host need not read it.
+// box is recomputed). Clusters are boxes carrying their node id (in the min's spare lane), in
+// Morton order; an iteration is nearest (+ counts) -> scan -> merge+scatter, all reading the
+// cluster count from the device (cnt[p]) so the host need not read it.
 
 #define RING (RADIUS < 8 ? 8 : RADIUS < 16 ? 16 : RADIUS < 32 ? 32 : 64)
 
@@ -77,14 +77,14 @@ __kernel void morton(__global const float* tri, uint n, float4 lo, float4 scale,
 }
 
 // The first clusters: one per triangle in Morton order (node i = triangle perm[i]), with its exact box.
-__kernel void init_leaves(__global const float* tri, __global const uint* perm, uint n, __global uint* cnode,
-                          __global float4* cmin, __global float4* cmax) {
+// A cluster is (min, bits of its node id), (max, unused): the id rides in the box's spare lane.
+__kernel void init_leaves(__global const float* tri, __global const uint* perm, uint n, __global float4* cmin,
+                          __global float4* cmax) {
     uint i = get_global_id(0);
     if (i >= n) return;
     float4 lo, hi;
     tri_box(tri, perm[i], &lo, &hi);
-    cnode[i] = i;
-    cmin[i] = lo;
+    cmin[i] = (float4)(lo.xyz, as_float(i));
     cmax[i] = hi;
 }
 
@@ -330,27 +330,25 @@ inline float child_info(__global const float4* node, uint id, uint n_tri, float4
 // SAH cost is the cheaper of a leaf and the split (traversal 1, intersection 1 per triangle, in area
 // units), as a bottom-up dynamic programme.
 __kernel void merge_scatter(__global const uint* cnt, uint p, __global const uint* nn, uint nb,
-                            __global const uint* bsum, __global const uint* cnode, __global const float4* cmin,
-                            __global const float4* cmax, __global uint* dnode, __global float4* dmin,
-                            __global float4* dmax, uint n_tri, __global float4* node) {
+                            __global const uint* bsum, __global const float4* cmin, __global const float4* cmax,
+                            __global float4* dmin, __global float4* dmax, uint n_tri, __global float4* node) {
     uint bk = get_global_id(0);
     if (bk >= nb) return;
     uint n = cnt[p], s, e, o = bsum[bk], v = bsum[nb + bk];
     block_range(bk, nb, n, &s, &e);
     for (uint i = s; i < e; ++i) {
         if (dropped(i, n, nn)) continue;
-        uint a = cnode[i];
         float4 alo = cmin[i], ahi = cmax[i];
+        uint a = as_uint(alo.w);
         if (!merges(i, n, nn)) {
-            dnode[o] = a;
             dmin[o] = alo;
             dmax[o] = ahi;
             ++o;
             continue;
         }
         uint j = nn[i];
-        uint b = cnode[j];
         float4 blo = cmin[j], bhi = cmax[j];
+        uint b = as_uint(blo.w);
         float4 lo = fmin(alo, blo), hi = fmax(ahi, bhi);
         int ca, cb, ka, kb, ha, hb;
         float sa = child_info(node, a, n_tri, alo, ahi, &ca, &ka, &ha);
@@ -365,8 +363,7 @@ __kernel void merge_scatter(__global const uint* cnt, uint p, __global const uin
         r[0] = as_float4((int4)(c, ok ? 1 : 1 + ka + kb, (h << 1) | ok, as_int(ok ? leaf : split)));
         r[1] = (float4)(lo.xyz, as_float(a));
         r[2] = (float4)(hi.xyz, as_float(b));
-        dnode[o] = v;
-        dmin[o] = lo;
+        dmin[o] = (float4)(lo.xyz, as_float(v));
         dmax[o] = hi;
         ++o;
         ++v;
@@ -384,10 +381,10 @@ __kernel void merge_scatter(__global const uint* cnt, uint p, __global const uin
 // index in right).
 
 // marks[0] = root node id, marks[1] = kept nodes, marks[2] = the root's height (levels - 1).
-__kernel void root_count(__global const uint* cnode, uint n_tri, __global const float4* node,
+__kernel void root_count(__global const float4* cmin, uint n_tri, __global const float4* node,
                          __global uint* marks) {
     if (get_global_id(0) != 0) return;
-    uint root = cnode[0];
+    uint root = as_uint(cmin[0].w);
     marks[0] = root;
     marks[1] = 1u;
     marks[2] = 0u;

@@ -21,9 +21,9 @@ Algorithm (kernels in bvh_device.cl)
    launches: nearest with per-block counts of kept clusters and merges (`nearest_vec` runs from
    2 RADIUS clusters before its block to RADIUS after it, so it knows every neighbour its
    clusters' mutual checks read; the other searches have a `count_blocks` launch of their own);
-   one scan of both (node ids
-   are numbered in cluster order from the node counter: no atomics); merge + compaction. The
-   cluster count lives on the device, every kernel reads it there, and the host reads it back
+   one scan of both (node ids are numbered in cluster order from the node counter: no atomics);
+   merge + compaction (a cluster is its box, the node id in the min's spare lane). The cluster
+   count lives on the device, every kernel reads it there, and the host reads it back
    only every `check_every` iterations (to shrink the launch sizes and to stop).
 3. While merging, each node gets the SAH cost of its best subtree (dynamic programme: the cheaper
    of a leaf and the split, traversal 1, intersection 1 per triangle, as BuildStats reports):
@@ -70,11 +70,11 @@ RADIUS = 8
 CHECK_EVERY = 4
 #: device bytes per triangle of the buffers build() allocates (bounds: only the pages a build writes
 #: are ever touched): input (the host array itself on a CPU device), keys (later the nearest
-#: neighbours) + sort scratch, inner node records (48 bytes), cluster ids x 2 and boxes x 2, and the
+#: neighbours) + sort scratch, inner node records (48 bytes), cluster boxes x 2 (with the node ids), and the
 #: finished tree (13 words a kept node, m <= 2n - 1 (about 0.9 n in practice), and tri_order: in the
 #: cluster-box buffer when it fits, which the BVH then keeps; else a buffer of its own)
 OUT_BYTES_PER_TRIANGLE = 2 * 13 * 4 + 4
-BYTES_PER_TRIANGLE = 36 + 16 + 48 + 2 * 36 + OUT_BYTES_PER_TRIANGLE
+BYTES_PER_TRIANGLE = 36 + 16 + 48 + 2 * 32 + OUT_BYTES_PER_TRIANGLE
 _KERNELS = ("centre_bounds", "morton", "init_leaves", "nearest", "nearest_block", "nearest_vec", "count_blocks",
             "scan_blocks", "merge_scatter", "root_count", "layout_root", "level_count", "level_scan", "level_place",
             "stats_blocks")
@@ -209,7 +209,6 @@ class DeviceBvhBuilder:
         # -- PLOC ---------------------------------------------------------------------------------
         ni = max(n - 1, 1)  # inner nodes (ids n .. 2n - 2, stored at id - n)
         node = b("node", 48 * ni)  # inner node records (NODE_F4 float4 each, bvh_device.cl)
-        cnode = [b("cnode0", 4 * n), b("cnode1", 4 * n)]
         # the cluster boxes (min, max) x 2 in one buffer: the finished tree is written there later
         region = -(-16 * n // 128) * 128  # sub-buffer origins aligned for any device
         cbox = b("cbox", 4 * region)
@@ -221,7 +220,7 @@ class DeviceBvhBuilder:
         marks = b("marks", 16)  # root id, kept nodes, root height (root_count)
         clio.copy(q, cnt, np.array([n, n], np.uint32), is_blocking=False)
         clio.copy(q, next_node, np.array([n], np.uint32), is_blocking=False)
-        self._run("init_leaves", n, tri_buf, perm, u(n), cnode[0], cmin[0], cmax[0])
+        self._run("init_leaves", n, tri_buf, perm, u(n), cmin[0], cmax[0])  # node ids in cmin's w
         node_args = (u(n), node)
         p = 0  # cnt[p] is the current cluster count; cluster arrays [p] are current
         n_host = n
@@ -243,8 +242,8 @@ class DeviceBvhBuilder:
                         self._run("nearest", n_host, cnt, u(p), cmin[s], cmax[s], nn)
                     self._task("count_blocks", nb, cnt, u(p), nn, u(nb), bsum)
                 self._task("scan_blocks", 1, bsum, u(nbm), cnt, u(p), next_node)
-                self._task("merge_scatter", nbm, cnt, u(p), nn, u(nbm), bsum, cnode[s], cmin[s], cmax[s],
-                           cnode[1 - s], cmin[1 - s], cmax[1 - s], *node_args)
+                self._task("merge_scatter", nbm, cnt, u(p), nn, u(nbm), bsum, cmin[s], cmax[s],
+                           cmin[1 - s], cmax[1 - s], *node_args)
                 p = 1 - p
                 iters += 1
             n_host = int(self._read(cnt, 2, np.uint32)[p])
@@ -252,7 +251,7 @@ class DeviceBvhBuilder:
         t = self._phase("ploc", t)
 
         # -- layout: breadth first, one level at a time, straight into the finished tree -------
-        self._task("root_count", 1, cnode[p], u(n), node, marks)
+        self._task("root_count", 1, cmin[p], u(n), node, marks)
         _, m, height = (int(x) for x in self._read(marks, 3, np.uint32))
         # the finished tree goes to a buffer the BVH keeps, mapped (not copied) for the host: its
         # arrays are views of it (zero-copy on a CPU device). That is the cluster-box buffer when
