@@ -99,11 +99,20 @@ float depthLowerBound() {
     return float(max(z, 0.0lf)) * 2.0 - 1.0;  // NDC (window depth = z / 2 + 1 / 2)
 }
 
-// Triangle (a, b, c) (clip-space x, y, w) with every edge pushed out by EXPAND_PX pixels, emitted;
-// false (nothing emitted) when a vertex is not in front of the camera, the projection is edge-on,
+// Triangle (a, b, c) (clip-space x, y, w) with every edge pushed out by EXPAND_PX pixels, emitted
+// (or nothing, when no pixel centre can be covered); false (nothing emitted) when a vertex is not in front of the camera, the projection is edge-on,
 // or a pushed-out corner would not be in front.
 bool emitExpanded(vec3 a, vec3 b, vec3 c) {
     if (!(a.z > 0.0 && b.z > 0.0 && c.z > 0.0)) return false;
+    // No pixel centre near its screen box: no pixel's ray can hit it (every centre the exact test
+    // accepts lies within EXPAND_PX pixels of the projected triangle, the expansion's own premise;
+    // twice that here also covers this projection's rounding), so nothing is emitted. Most of a
+    // far city's triangles are such sub-pixel slivers between pixel centres; dropping them here
+    // saves their setup and binning (llvmpipe: 1.5x faster at 160x90 on city-near).
+    vec2 pa = (a.xy / a.z * 0.5 + 0.5) * viewport, pb = (b.xy / b.z * 0.5 + 0.5) * viewport;
+    vec2 pc = (c.xy / c.z * 0.5 + 0.5) * viewport;
+    vec2 lo = min(min(pa, pb), pc) - 2.0 * EXPAND_PX, hi = max(max(pa, pb), pc) + 2.0 * EXPAND_PX;
+    if (any(greaterThan(ceil(lo - 0.5), floor(hi - 0.5)))) return true;  // done: nothing to draw
     float det = dot(a, cross(b, c));
     if (det == 0.0) return false;
     float s = det > 0.0 ? 1.0 : -1.0;
