@@ -100,8 +100,8 @@ float depthLowerBound() {
 }
 
 // Triangle (a, b, c) (clip-space x, y, w) with every edge pushed out by EXPAND_PX pixels, emitted
-// (or nothing, when no pixel centre can be covered); false (nothing emitted) when a vertex is not in front of the camera, the projection is edge-on,
-// or a pushed-out corner would not be in front.
+// (or nothing, when no pixel centre can be covered); false (nothing emitted) when a vertex is not
+// in front of the camera, the projection is edge-on, or a pushed-out corner would not be in front.
 bool emitExpanded(vec3 a, vec3 b, vec3 c) {
     if (!(a.z > 0.0 && b.z > 0.0 && c.z > 0.0)) return false;
     // No pixel centre near its screen box: no pixel's ray can hit it (every centre the exact test
