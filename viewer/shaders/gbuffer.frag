@@ -22,6 +22,7 @@ layout(early_fragment_tests) in;
 flat in int vTri;
 #else
 layout(location = 0) out int outId;
+flat in vec3 gV0, gV1, gV2;  // the triangle's vertices (gbuffer.geom: no SSBO load per fragment)
 // the rasterized depth is the triangle's lower bound (gbuffer.geom depthLowerBound) and the depth
 // written is never less, so the GL may test the bound before this shader runs
 layout(depth_greater) out float gl_FragDepth;
@@ -32,9 +33,9 @@ void main() {
 #else
     int id = gl_PrimitiveID;
 #endif
-    Tri tri = tris[id];
     vec3 d = primaryDir(gl_FragCoord.xy);
 #ifdef PREVIEW
+    Tri tri = tris[id];
     vec3 n = normalize(cross(tri.v1 - tri.v0, tri.v2 - tri.v0));
     float dn = dot(d, n);
     float t = dn != 0.0 ? max(dot(tri.v0 - camPos, n) / dn, 0.0) : 0.0;
@@ -45,7 +46,7 @@ void main() {
     outId = id;
 #else
     float t; vec2 b;
-    if (!intersectTriangle(prepareRay(camPos, d), tri.v0, tri.v1, tri.v2, 0.0, 1e30, t, b)) discard;
+    if (!intersectTriangle(prepareRay(camPos, d), gV0, gV1, gV2, 0.0, 1e30, t, b)) discard;
     outId = id;
     gl_FragDepth = t / (t + depthScale);
 #endif
