@@ -7,16 +7,26 @@ from the host's list), `cull = False` draws every triangle; tests compare the th
 
 The exact raster pays for its coverage: a geometry shader expands every triangle so the fragment
 shader can keep exactly the pixels whose primary ray hits it (triangles crossing the camera plane
-are clipped in double first, no longer drawn as screen rectangles), and the fragment shader writes
-the exact distance as depth. Each corner carries the triangle's depth lower bound and the shader
-declares it writes no less (depth_greater), so fragments behind what is already drawn may be
-dropped before the exact test (`rtwalk bench-gbuffer`, city-near: the exact raster went from
-3.8-4.6x the preview's time to 2.3-2.8x at 640x360 on llvmpipe). Moving frames in the window
-need no such exactness, only speed, so two cheaper sources serve them (the renderer's
-`gbuffer_source`):
+are clipped in double first, no longer drawn as screen rectangles; triangles with no pixel centre
+near their screen box emit nothing), and the fragment shader writes the exact distance as depth.
+Each corner carries the triangle's depth lower bound and the shader declares it writes no less
+(depth_greater), so a GPU may drop fragments behind what is already drawn before the exact test.
+llvmpipe does not: a shader that writes depth runs for every rasterized fragment, ~10 per covered
+pixel on city-near even after the occlusion culling (2.4 M for 217 k pixels at 640x360, 60 % of
+them behind the stored depth). So the per-fragment work is what counts: the geometry shader hands
+the triangle's vertices to the fragment shader as flat inputs (no SSBO gather per fragment, the
+largest single cost), and the exact raster writes a visibility buffer (Burns and Hunt 2013): the
+triangle id and the depth, 4 colour bytes per fragment instead of 52. One full-screen resolve
+(gbuffer_fill.frag with RESOLVE) then writes position, normal and albedo once per pixel from the id,
+with the same watertight test on the same pixel ray: the targets are bit for bit those the
+4-target raster wrote. The occlusion pyramid reads an upper bound of the distance from that depth
+(hiz.comp), as no position exists before the resolve. Exact / preview time on llvmpipe at 640x360
+(docs/window-and-reports.md): city-near 2.3-2.4x -> 1.0-1.1x, the 1 M-triangle city 2.6-2.9x ->
+0.9-1.6x. Moving frames in the window need no such exactness, only speed, so two other sources
+serve them (the renderer's `gbuffer_source`):
 - "preview": `render(camera, preview=True)`, a plain raster of the same culled triangles without
-  the geometry shader (edge pixels may differ from the traced primary rays by the rasterizer's
-  sub-pixel rules);
+  the geometry shader, writing all four targets itself with early depth tests (edge pixels may
+  differ from the traced primary rays by the rasterizer's sub-pixel rules);
 - "trace": `fill_from_hits` writes the same targets from the backend's traced primary rays (cost
   follows the pixels, not the triangles).
 """
