@@ -145,6 +145,29 @@ def test_occlusion_culled_gbuffer_equals_the_unculled_one(gl_ctx, city, preview)
         r.release()
 
 
+def test_occlusion_pyramid_bounds_the_exact_distances(gl_ctx, city):
+    """The exact raster writes no position before its resolve, so its occlusion pyramid takes the
+    distance from the depth t / (t + scale) (hiz.comp distanceAbove): at level 0 never nearer than
+    the resolved distance (position.w), and within 1e-5 of it (a bound that culls); misses far."""
+    from viewer.renderer import Renderer
+
+    r = Renderer(gl_ctx, city.scene, city.bvh, SIZE, "glsl")
+    g = r.gbuffer
+    try:
+        for cam in _walk(city.scene)[:4]:
+            g.render(cam)
+            ids = read_texture(g.tri_id).reshape(SIZE[1], SIZE[0])
+            t = read_texture(g.position).reshape(SIZE[1], SIZE[0], 4)[..., 3].astype(np.float64)
+            bound = read_texture(g._occluder._hiz).reshape(SIZE[1], SIZE[0]).astype(np.float64)
+            hit = ids >= 0
+            assert hit.mean() > 0.3
+            assert (bound[hit] >= t[hit]).all()
+            assert (bound[hit] <= t[hit] * (1 + 1e-5) + 1e-30).all()
+            assert (bound[~hit] >= 1e38).all()
+    finally:
+        r.release()
+
+
 def _render_targets(r, cam, source: str, textures) -> tuple[list[np.ndarray], object]:
     """The G-buffer `textures` (H, W, C) after rendering `cam` from G-buffer `source`, and the report."""
     r.gbuffer_source = source

@@ -36,6 +36,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="image size (default 112x63: an 896x504 window's moving frames at render scale 1/8)")
     p.add_argument("--frames", type=int, default=60, help="consecutive frames measured (default 60)")
     p.add_argument("--first-frame", type=int, default=0, help="first frame of the recording (default 0)")
+    p.add_argument("--scene-size", type=int, default=None,
+                   help="triangles of the recording's procedural scene (city), e.g. 1000000 (default: the recording's)")
     p.add_argument("--out", default="out/bench", help="folder for gbuffer.json/.md/.png (default out/bench)")
     p.add_argument("--quiet", action="store_true", help="no progress output")
 
@@ -107,12 +109,14 @@ def run(args) -> int:
     size = parse_size(args.size)
     check_at_least(args.frames, 1, "--frames")
     check_at_least(args.first_frame, 0, "--first-frame")
+    if args.scene_size is not None:
+        check_at_least(args.scene_size, 1, "--scene-size")
     out = check_output_dir(args.out, "--out")
     check_report_free([Path(out) / "gbuffer.json"], args.force)
     rec = load_recording(resolve_recording(args.recording))
     cameras = [rec.camera_for_frame(args.first_frame + k) for k in range(args.frames)]  # in range
     ctx = create_headless_context()
-    prepared = prepare_scene_for_recording(rec, quiet=args.quiet)
+    prepared = prepare_scene_for_recording(rec, scene_size=args.scene_size, quiet=args.quiet)
     every = max(1, args.frames // 10)
     configs = measure(prepared, cameras, size, ctx,
                       lambda k, n: log(args, f"frame {k}/{n}", "bench-gbuffer") if k % every == 0 or k == n else None)

@@ -7,16 +7,26 @@ from the host's list), `cull = False` draws every triangle; tests compare the th
 
 The exact raster pays for its coverage: a geometry shader expands every triangle so the fragment
 shader can keep exactly the pixels whose primary ray hits it (triangles crossing the camera plane
-are clipped in double first, no longer drawn as screen rectangles), and the fragment shader writes
-the exact distance as depth. Each corner carries the triangle's depth lower bound and the shader
-declares it writes no less (depth_greater), so fragments behind what is already drawn may be
-dropped before the exact test (`rtwalk bench-gbuffer`, city-near: the exact raster went from
-3.8-4.6x the preview's time to 2.3-2.8x at 640x360 on llvmpipe). Moving frames in the window
-need no such exactness, only speed, so two cheaper sources serve them (the renderer's
-`gbuffer_source`):
+are clipped in double first, no longer drawn as screen rectangles; triangles with no pixel centre
+near their screen box emit nothing), and the fragment shader writes the exact distance as depth.
+Each corner carries the triangle's depth lower bound and the shader declares it writes no less
+(depth_greater), so a GPU may drop fragments behind what is already drawn before the exact test.
+llvmpipe does not: a shader that writes depth runs for every rasterized fragment, ~10 per covered
+pixel on city-near even after the occlusion culling (2.4 M for 217 k pixels at 640x360, 60 % of
+them behind the stored depth). So the per-fragment work is what counts: the geometry shader hands
+the triangle's vertices to the fragment shader as flat inputs (no SSBO gather per fragment, the
+largest single cost), and the exact raster writes a visibility buffer (Burns and Hunt 2013): the
+triangle id and the depth, 4 colour bytes per fragment instead of 52. One full-screen resolve
+(gbuffer_fill.frag with RESOLVE) then writes position, normal and albedo once per pixel from the id,
+with the same watertight test on the same pixel ray: the targets are bit for bit those the
+4-target raster wrote. The occlusion pyramid reads an upper bound of the distance from that depth
+(hiz.comp), as no position exists before the resolve. Exact / preview time on llvmpipe at 640x360
+(docs/window-and-reports.md): city-near 2.3-2.4x -> 1.0-1.1x, the 1 M-triangle city 2.6-2.9x ->
+0.9-1.6x. Moving frames in the window need no such exactness, only speed, so two other sources
+serve them (the renderer's `gbuffer_source`):
 - "preview": `render(camera, preview=True)`, a plain raster of the same culled triangles without
-  the geometry shader (edge pixels may differ from the traced primary rays by the rasterizer's
-  sub-pixel rules);
+  the geometry shader, writing all four targets itself with early depth tests (edge pixels may
+  differ from the traced primary rays by the rasterizer's sub-pixel rules);
 - "trace": `fill_from_hits` writes the same targets from the backend's traced primary rays (cost
   follows the pixels, not the triangles).
 """
@@ -29,7 +39,7 @@ import numpy as np
 from viewer import iostats
 from viewer.accel.bvh import BVH
 from viewer.camera import Camera
-from viewer.gl.programs import ProgramCache
+from viewer.gl.programs import FullscreenQuad, ProgramCache
 from viewer.gl.scene import GpuScene
 from viewer.gl.textures import float_depth_texture, float_texture, int_texture
 from viewer.passes.cull import Cut, bvh_cut, indirect_commands, visible_ranges
@@ -47,6 +57,8 @@ class GBufferPass(SizedTargets):
         self.diagonal = scene_diagonal
         self.program = programs.get("gbuffer.vert", "gbuffer.frag", geometry="gbuffer.geom")
         self.fill = programs.get("fullscreen.vert", "gbuffer_fill.frag")
+        self.resolve = programs.get("fullscreen.vert", "gbuffer_fill.frag", {"RESOLVE": 1})
+        self._quad = FullscreenQuad(ctx)  # the resolve's draw (counted by viewer.gl.io)
         self.vao = ctx.vertex_array(self.program, [(gpu_scene.vertices, "3f", "in_pos")])
         self._programs = programs
         self._preview: tuple[moderngl.Program, moderngl.VertexArray] | None = None  # made on first use
@@ -91,8 +103,12 @@ class GBufferPass(SizedTargets):
         self.tri_id = int_texture(self.ctx, size)
         # float depth: t / (t + scale) of surfaces a hair apart right in front of the camera must order
         self.depth = float_depth_texture(self.ctx, size)
+        self.depth.compare_func = ""  # read as a value by the occlusion pyramid (hiz.comp), not compared
         self.fbo = self.ctx.framebuffer(color_attachments=[self.position, self.normal, self.albedo, self.tri_id],
                                         depth_attachment=self.depth)
+        # the exact raster's visibility buffer (id + depth), then its resolve into the other three
+        self.vis_fbo = self.ctx.framebuffer(color_attachments=[self.tri_id], depth_attachment=self.depth)
+        self.resolve_fbo = self.ctx.framebuffer(color_attachments=[self.position, self.normal, self.albedo])
 
     def _preview_program(self) -> tuple[moderngl.Program, moderngl.VertexArray]:
         if self._preview is None:
@@ -101,10 +117,15 @@ class GBufferPass(SizedTargets):
         return self._preview
 
     def render(self, camera: Camera, preview: bool = False) -> None:
-        """The exact conservative raster, or with `preview` the plain one (moving frames only)."""
+        """The exact conservative raster (a visibility buffer, then its resolve), or with `preview`
+        the plain one (moving frames only)."""
         program, vao = self._preview_program() if preview else (self.program, self.vao)
         ctx = self.ctx
-        self.clear()
+        if preview:
+            self.clear()
+        else:
+            self.vis_fbo.use()
+            self.vis_fbo.clear(-1.0, 0.0, 0.0, 0.0, depth=1.0)  # id < 0: no triangle (see clear)
         ctx.enable(ctx.DEPTH_TEST)
         ctx.disable(ctx.CULL_FACE | ctx.BLEND)
         ctx.depth_func = "<"
@@ -122,8 +143,20 @@ class GBufferPass(SizedTargets):
             program["depthScale"].value = float(self.depth_scale)
         apply(program, camera_uniforms(camera, self.size))
         self.gpu_scene.bind()
-        self._draw(vao, camera, (w, h))
+        self._draw(vao, camera, (w, h), preview)
         ctx.disable(ctx.DEPTH_TEST)
+        if not preview:
+            self._resolve(camera)
+
+    def _resolve(self, camera: Camera) -> None:
+        """Position, facing normal and albedo from the visibility buffer, once per pixel (every
+        pixel written: misses get the clear values)."""
+        self.resolve_fbo.use()
+        p = self.resolve
+        apply(p, camera_uniforms(camera, self.size))
+        self.tri_id.use(0)
+        p["visId"] = 0
+        self._quad.render(p)
 
     def clear(self) -> None:
         self.fbo.use()
@@ -151,12 +184,14 @@ class GBufferPass(SizedTargets):
         ctx.depth_func = "<"
         ctx.disable(ctx.DEPTH_TEST)
 
-    def _draw(self, vao: moderngl.VertexArray, camera: Camera, size: tuple[int, int]) -> None:
+    def _draw(self, vao: moderngl.VertexArray, camera: Camera, size: tuple[int, int], preview: bool) -> None:
         """Every triangle; the visible subtrees' ranges as one multi-draw-indirect; or, with
-        occlusion culling, the device's two multi-draws."""
+        occlusion culling, the device's two multi-draws (its pyramid reads the preview's distances,
+        or the exact raster's depth: no position is written before the resolve)."""
         if self.cull and self.occlusion and self._occluder is not None:
             self._drawn_host = -1  # counted on the device
-            self._occluder.draw(vao, camera, size, self.position, self.tri_id)
+            self._occluder.draw(vao, camera, size, self.position, self.tri_id,
+                                None if preview else (self.depth, self.depth_scale))
             return
         iostats.gl_draw(1)
         if not self.cull or self._cut is None or self.bvh is None:
@@ -173,12 +208,14 @@ class GBufferPass(SizedTargets):
         vao.render_indirect(self._indirect, moderngl.TRIANGLES, count=len(cmd))
 
     def release_targets(self) -> None:
-        for obj in (self.fbo, self.position, self.normal, self.albedo, self.tri_id, self.depth):
+        for obj in (self.fbo, self.vis_fbo, self.resolve_fbo, self.position, self.normal, self.albedo,
+                    self.tri_id, self.depth):
             obj.release()
 
     def release(self) -> None:
         self.release_targets()
         self.vao.release()
+        self._quad.release()
         if self._preview is not None:
             self._preview[1].release()  # the program belongs to the cache
         if self._indirect is not None:

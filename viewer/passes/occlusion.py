@@ -85,16 +85,22 @@ class OcclusionCuller:
             self._hiz.filter = (moderngl.NEAREST_MIPMAP_NEAREST, moderngl.NEAREST)
         return self._hiz
 
-    def _build_pyramid(self, position: moderngl.Texture, tri_id: moderngl.Texture) -> int:
-        """Levels 0..L of the distance pyramid from the G-buffer as drawn so far; returns L + 1."""
+    def _build_pyramid(self, position: moderngl.Texture, tri_id: moderngl.Texture,
+                       depth: tuple[moderngl.Texture, float] | None = None) -> int:
+        """Levels 0..L of the distance pyramid from the G-buffer as drawn so far; returns L + 1.
+        Distances from position.w, or with `depth` = (texture, depth scale) an upper bound from the
+        exact raster's depth t / (t + scale) (hiz.comp distanceAbove)."""
         ctx, red = self.ctx, self.reduce
         hiz = self._pyramid(position.size)
         w, h = position.size
         levels = pyramid_levels((w, h))
-        position.use(HIZ_TEXTURE_UNIT)
+        (position if depth is None else depth[0]).use(HIZ_TEXTURE_UNIT)
         tri_id.use(HIZ_TEXTURE_UNIT + 1)
         hiz.use(HIZ_TEXTURE_UNIT + 2)
-        red["gPosition"] = HIZ_TEXTURE_UNIT
+        red["gPosition" if depth is None else "gDepth"] = HIZ_TEXTURE_UNIT
+        red["fromDepth"] = int(depth is not None)
+        if depth is not None:
+            red["depthScale"] = float(depth[1])
         red["gTriId"] = HIZ_TEXTURE_UNIT + 1
         red["src"] = HIZ_TEXTURE_UNIT + 2
         ctx.memory_barrier(moderngl.TEXTURE_FETCH_BARRIER_BIT | moderngl.FRAMEBUFFER_BARRIER_BIT)
@@ -115,8 +121,10 @@ class OcclusionCuller:
         iostats.gl_draw()
 
     def draw(self, vao: moderngl.VertexArray, camera: Camera, size: tuple[int, int],
-             position: moderngl.Texture, tri_id: moderngl.Texture) -> None:
-        """The raster's draw, culled: 3 selection dispatches, 2 multi-draws, 2 pyramids."""
+             position: moderngl.Texture, tri_id: moderngl.Texture,
+             depth: tuple[moderngl.Texture, float] | None = None) -> None:
+        """The raster's draw, culled: 3 selection dispatches, 2 multi-draws, 2 pyramids (from
+        `position`, or from `depth`: see _build_pyramid)."""
         if self.count == 0:
             return
         sel = self.select
@@ -134,12 +142,12 @@ class OcclusionCuller:
         self._pyramid(size).use(HIZ_TEXTURE_UNIT + 2)
         for phase, cmds in ((1, self.cmds[0]), (2, self.cmds[1])):
             if phase == 2:
-                levels = self._build_pyramid(position, tri_id)
+                levels = self._build_pyramid(position, tri_id, depth)
             cmds.bind_to_storage_buffer(BIND_CULL_CMDS)
             self._run(phase, levels)
             iostats.gl_draw()
             vao.render_indirect(cmds, moderngl.TRIANGLES, count=self.count)
-        self._build_pyramid(position, tri_id)
+        self._build_pyramid(position, tri_id, depth)
         self._run(3, levels)
 
     def drawn(self) -> tuple[int, int]:

@@ -106,10 +106,12 @@ inline float3 offset_ray_origin(float3 p, float3 n) {
 
 inline float fract1(float x) { return x - floor(x); }
 
-/* The pixel's primary hit on triangle `id` (the G-buffer's): the facing normal, and the hit point
- * as raygen.frag makes it (`bary`: barycentric point of the exact hit, else the plane point) or
- * as gbuffer.frag stores it (cam + dPrim * t). */
-inline float3 primary_hit(__global const float4 *tris, int id, float3 cam, float3 dPrim, bool bary, float3 *n_out) {
+/* The pixel's primary hit on triangle `id` (the G-buffer's), from one watertight test: the facing
+ * normal, the hit point as raygen.frag makes it (returned: the barycentric point of the exact hit)
+ * and as gbuffer.frag stores it (*gp_out: cam + dPrim * t); both are the plane point where the
+ * test misses (a pixel centre covered by rasterization but on the far side of an edge). */
+inline float3 primary_hit(__global const float4 *tris, int id, float3 cam, float3 dPrim, float3 *gp_out,
+                          float3 *n_out) {
     float3 v0 = tri_v(tris, id, 0), v1 = tri_v(tris, id, 1), v2 = tri_v(tris, id, 2);
     float3 n = fr_normalize(rt_cross(v1 - v0, v2 - v0));
     RayPre r = rt_prepare_ray(cam, dPrim);
@@ -117,9 +119,11 @@ inline float3 primary_hit(__global const float4 *tris, int id, float3 cam, float
     float2 b;
     float3 p;
     if (rt_intersect_triangle_bary(&r, v0, v1, v2, 0.0f, 1e30f, &t, &b)) {
-        p = bary ? v0 * (1.0f - b.x - b.y) + v1 * b.x + v2 * b.y : cam + dPrim * t;
-    } else {  /* pixel centre covered by rasterization but on the far side of an edge */
+        p = v0 * (1.0f - b.x - b.y) + v1 * b.x + v2 * b.y;
+        *gp_out = cam + dPrim * t;
+    } else {
         p = cam + dPrim * (rt_dot(v0 - cam, n) / rt_dot(dPrim, n));
+        *gp_out = p;
     }
     if (rt_dot(n, dPrim) > 0.0f) n = -n;  /* face the viewer */
     *n_out = n;
@@ -142,9 +146,8 @@ __kernel void surface(__global const int *gid, __global const float4 *tris, __co
     int2 px = (int2)(i % w, i / w);
     float3 cam = v3(P, P_CAM_POS);
     float3 dPrim = primary_dir(P, (float2)((float)px.x + 0.5f, (float)px.y + 0.5f));
-    float3 n;
-    float3 p = primary_hit(tris, id, cam, dPrim, true, &n);
-    float3 gp = primary_hit(tris, id, cam, dPrim, false, &n);
+    float3 n, gp;
+    float3 p = primary_hit(tris, id, cam, dPrim, &gp, &n);
     out_n[i] = (float4)(n, 1.0f);
     out_po[i] = (float4)(offset_ray_origin(p, n), 0.0f);
     out_gp[i] = (float4)(gp, 0.0f);
@@ -155,7 +158,11 @@ __kernel void raygen(__global const int *gid, __global const float4 *tris, __glo
                      float perturbAngle, float rayLength, uint stream, __global float4 *out_o,
                      __global float4 *out_d, __global uint *counters) {
     __local uint group_active;
-    if (get_local_id(0) == 0) group_active = 0u;
+    __local float4 group_loc;  /* the pass's hemisphere sample (sampleUV is uniform): once per work-group */
+    if (get_local_id(0) == 0) {
+        group_active = 0u;
+        if (rayType == RAY_AO || rayType == RAY_DIFFUSE) group_loc = (float4)(cosine_hemisphere(sampleUV), 0.0f);
+    }
     barrier(CLK_LOCAL_MEM_FENCE);
     int i = (int)get_global_id(0);
     bool active = false;
@@ -192,7 +199,7 @@ __kernel void raygen(__global const int *gid, __global const float4 *tris, __glo
                 } else if (rayType == RAY_AO || rayType == RAY_DIFFUSE) {
                     float3 t, bb;
                     make_basis(n, &t, &bb);
-                    float3 loc = cosine_hemisphere(sampleUV);
+                    float3 loc = group_loc.xyz;
                     float3 dir = perturb_in_cone(fr_normalize(t * loc.x + bb * loc.y + n * loc.z), perturbAngle, rnd);
                     float c = rt_dot(dir, n);
                     if (c <= 0.0f) dir = fr_normalize(dir - 2.0f * c * n);
