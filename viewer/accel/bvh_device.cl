@@ -1,19 +1,20 @@
 // Device BVH build: Morton order + PLOC clustering + SAH leaf collapse (viewer/accel/bvh_device.py).
 // Defines: WG (work-items per group of the per-element kernels), RADIUS (PLOC search radius),
-// MAX_LEAF, MIN_LEAF (leaf sizes as in viewer/accel/bvh.py), MARK0 (first iteration mark in `marks`).
+// MAX_LEAF, MIN_LEAF (leaf sizes as in viewer/accel/bvh.py).
 //
 // Nodes 0..n-1 are the triangles in Morton order (node i = triangle perm[i]); merged (inner) nodes
 // get ids n, n+1, ... from a node counter (per iteration, in cluster order), so a child's id is
 // always below its parent's, and are stored at id - n (no per-triangle node records: a triangle's
-// box is recomputed). Clusters are
-// (node id, box) triples in Morton order; an iteration is nearest -> count -> scan -> merge+scatter,
-// all reading the cluster count from the device (cnt[p]) so the host need not read it.
+// box is recomputed). Clusters are boxes carrying their node id (in the min's spare lane), in
+// Morton order; an iteration is nearest (+ counts) -> scan -> merge+scatter, all reading the
+// cluster count from the device (cnt[p]) so the host need not read it.
 
 #define RING (RADIUS < 8 ? 8 : RADIUS < 16 ? 16 : RADIUS < 32 ? 32 : 64)
 
-// Inner node records (node id v >= n at v - n), NODE_F4 float4 each: (box min, SAH cost of the
-// best subtree), (box max, bits of height << 1 | leaf flag), bits of (left, right, triangles,
-// kept nodes of the subtree). One record per node: the layout kernels read a node's fields together.
+// Inner node records (node id v >= n at v - n), NODE_F4 float4 each: bits of (triangles, kept
+// nodes of the subtree, height << 1 | leaf flag, SAH cost of the best subtree) -- what a merge reads
+// of a child, in one 16-byte piece (one cache line) --, (box min, bits of left), (box max, bits of
+// right). One record per node: the layout kernels read a node's fields together.
 #define NODE_F4 3
 
 inline float half_area(float4 lo, float4 hi) {
@@ -43,39 +44,47 @@ inline void tri_box(__global const float* tri, uint t, float4* lo, float4* hi) {
     *hi = fmax(fmax(a, b), c);
 }
 
-// Box centres per axis (the boxes themselves are recomputed where needed: cheaper than storing them).
-__kernel void tri_boxes(__global const float* tri, uint n, __global float* cx, __global float* cy,
-                        __global float* cz) {
-    uint i = get_global_id(0);
-    if (i >= n) return;
-    float4 lo, hi;
-    tri_box(tri, i, &lo, &hi);
-    float4 m = (lo + hi) * 0.5f;
-    cx[i] = m.x;
-    cy[i] = m.y;
-    cz[i] = m.z;
+// Per block of triangles: the bounds of their box centres (part[2 b] min, part[2 b + 1] max; the
+// host takes the blocks' min / max, exact). No centre arrays: `morton` recomputes the centres.
+__kernel void centre_bounds(__global const float* tri, uint n, uint nb, __global float4* part) {
+    uint b = get_global_id(0);
+    if (b >= nb) return;
+    uint s, e;
+    block_range(b, nb, n, &s, &e);
+    float4 clo = (float4)(INFINITY), chi = (float4)(-INFINITY);
+    for (uint i = s; i < e; ++i) {
+        float4 lo, hi;
+        tri_box(tri, i, &lo, &hi);
+        float4 m = (lo + hi) * 0.5f;
+        clo = fmin(clo, m);
+        chi = fmax(chi, m);
+    }
+    part[2 * b] = clo;
+    part[2 * b + 1] = chi;
 }
 
 // 30-bit Morton code of the box centre in the centroid box [lo, lo + 1024 / scale).
-__kernel void morton(__global const float* cx, __global const float* cy, __global const float* cz, uint n,
-                     float4 lo, float4 scale, __global uint* keys, __global uint* vals) {
+__kernel void morton(__global const float* tri, uint n, float4 lo, float4 scale, __global uint* keys,
+                     __global uint* vals) {
     uint i = get_global_id(0);
     if (i >= n) return;
-    float4 q = ((float4)(cx[i], cy[i], cz[i], 0.0f) - lo) * scale;
+    float4 blo, bhi;
+    tri_box(tri, i, &blo, &bhi);
+    float4 q = ((blo + bhi) * 0.5f - lo) * scale;
     q = clamp(q, 0.0f, 1023.0f);
     keys[i] = (expand10((uint)q.x) << 2) | (expand10((uint)q.y) << 1) | expand10((uint)q.z);
     vals[i] = i;
 }
 
 // The first clusters: one per triangle in Morton order (node i = triangle perm[i]), with its exact box.
-__kernel void init_leaves(__global const float* tri, __global const uint* perm, uint n, __global uint* cnode,
-                          __global float4* cmin, __global float4* cmax) {
+// A cluster is (min, bits of its node id), (max, unused): the id rides in the box's spare lane.
+__kernel void init_leaves(__global const float* tri, __global const uint* perm, uint n, __global float4* cmin,
+                          __global float4* cmax) {
     uint i = get_global_id(0);
     if (i >= n) return;
     float4 lo, hi;
     tri_box(tri, perm[i], &lo, &hi);
-    cnode[i] = i;
-    cmin[i] = lo;
+    cmin[i] = (float4)(lo.xyz, as_float(i));
     cmax[i] = hi;
 }
 
@@ -163,18 +172,28 @@ __kernel void nearest_block(__global const uint* cnt, uint p, __global const flo
 // float8 boxes holds clusters i+1 .. i+8 (one new cluster shifted in per step), the merged areas of
 // cluster i with all of them are one float8 expression (the same float operations as half_area, so
 // the same values), and `lb`/`li` hold, for clusters i .. i+7, the best area and index offered by
-// clusters before i (strict < keeps the earlier, lower index on ties). A block starts RADIUS
-// clusters early so the pairs reaching into it are seen.
+// clusters before i (strict < keeps the earlier, lower index on ties).
+// It also does count_blocks' work (no pass of its own): a block runs from 2 RADIUS clusters before
+// its range to RADIUS after it, so it knows the neighbours of every cluster within RADIUS of its
+// range (the values the neighbouring blocks write: the same offers reach them), keeps the last 32
+// in a ring, and checks each of its clusters for a mutual pair RADIUS steps later: bsum[b] = the
+// clusters kept, bsum[nb + b] = the pairs merged.
 #define EMPTY8 ((float8)(INFINITY))
+#define NN_RING 32
 __kernel void nearest_vec(__global const uint* cnt, uint p, __global const float4* cmin,
-                          __global const float4* cmax, uint nb, __global uint* nn) {
+                          __global const float4* cmax, uint nb, __global uint* nn, __global uint* bsum) {
     uint b = get_global_id(0);
     uint n = cnt[p];
-    if (b >= nb || n <= 1) return;
+    if (b >= nb) return;
     uint s, e;
     block_range(b, nb, n, &s, &e);
-    if (s >= e) return;
-    uint i0 = s > RADIUS ? s - RADIUS : 0;
+    if (s >= e || n <= 1) {  // nothing to pair: every cluster kept
+        bsum[b] = e - s;
+        bsum[nb + b] = 0;
+        return;
+    }
+    uint i0 = s > 2 * RADIUS ? s - 2 * RADIUS : 0;
+    uint i1 = min(e + RADIUS, n);
     const uint8 lane = (uint8)(1, 2, 3, 4, 5, 6, 7, 8);
     float8 wlx, wly, wlz, whx, why, whz;  // boxes of clusters i+1 .. i+8
     float lx[8], ly[8], lz[8], hx[8], hy[8], hz[8];
@@ -187,7 +206,9 @@ __kernel void nearest_vec(__global const uint* cnt, uint p, __global const float
     whx = vload8(0, hx); why = vload8(0, hy); whz = vload8(0, hz);
     float8 lb = EMPTY8;  // best area offered to clusters i .. i+7 by clusters before i
     uint8 li = (uint8)(0xffffffffu);
-    for (uint i = i0; i < e; ++i) {
+    uint ring[NN_RING];  // neighbours of the last NN_RING clusters (valid from s - RADIUS on)
+    uint q = s, kept = 0, merged = 0;  // q: the next cluster of the block to check for a mutual pair
+    for (uint i = i0; i < i1; ++i) {
         float4 lo = cmin[i], hi = cmax[i];
         float8 ex = fmax((float8)(hi.x), whx) - fmin((float8)(lo.x), wlx);
         float8 ey = fmax((float8)(hi.y), why) - fmin((float8)(lo.y), wly);
@@ -197,17 +218,25 @@ __kernel void nearest_vec(__global const uint* cnt, uint p, __global const float
         int8 bad = (j > (uint8)(n - 1)) | (lane > (uint8)(RADIUS));
         a = select(a, EMPTY8, isnan(a) | bad);
         uint8 jid = select(j, (uint8)(0xffffffffu), bad);
-        if (i >= s) {  // cluster i: best to the right (first lowest), then against the left offer
-            float4 m4 = fmin(a.lo, a.hi);
-            float2 m2 = fmin(m4.lo, m4.hi);
-            float rm = fmin(m2.x, m2.y);
-            uint8 cand = select((uint8)(0xffffffffu), jid, a == (float8)(rm));
-            uint4 c4 = min(cand.lo, cand.hi);
-            uint2 c2 = min(c4.lo, c4.hi);
-            uint rj = min(c2.x, c2.y);
-            float l0 = lb.s0;
-            uint lj = li.s0;
-            nn[i] = (l0 < rm || (l0 == rm && lj < rj)) ? lj : rj;
+        // cluster i: best to the right (first lowest), then against the left offer
+        float4 m4 = fmin(a.lo, a.hi);
+        float2 m2 = fmin(m4.lo, m4.hi);
+        float rm = fmin(m2.x, m2.y);
+        uint8 cand = select((uint8)(0xffffffffu), jid, a == (float8)(rm));
+        uint4 c4 = min(cand.lo, cand.hi);
+        uint2 c2 = min(c4.lo, c4.hi);
+        uint rj = min(c2.x, c2.y);
+        float l0 = lb.s0;
+        uint lj = li.s0;
+        uint best = (l0 < rm || (l0 == rm && lj < rj)) ? lj : rj;
+        ring[i & (NN_RING - 1)] = best;
+        if (i >= s && i < e) nn[i] = best;
+        // a cluster's mutual check needs the neighbours up to RADIUS after it
+        for (; q < e && q + RADIUS <= i; ++q) {
+            uint jq = ring[q & (NN_RING - 1)];
+            bool mutual = ring[jq & (NN_RING - 1)] == q;
+            kept += !(jq < q && mutual);
+            merged += jq > q && mutual;
         }
         // shift the offers to clusters i+1 .. i+8, then offer i to them
         lb = (float8)(lb.s1234, lb.s567, INFINITY);
@@ -225,6 +254,14 @@ __kernel void nearest_vec(__global const uint* cnt, uint p, __global const float
         why = (float8)(why.s1234, why.s567, nhi.y);
         whz = (float8)(whz.s1234, whz.s567, nhi.z);
     }
+    for (; q < e; ++q) {  // the last clusters (i1 = n): every neighbour is known
+        uint jq = ring[q & (NN_RING - 1)];
+        bool mutual = ring[jq & (NN_RING - 1)] == q;
+        kept += !(jq < q && mutual);
+        merged += jq > q && mutual;
+    }
+    bsum[b] = kept;
+    bsum[nb + b] = merged;
 }
 #endif
 
@@ -257,10 +294,8 @@ __kernel void count_blocks(__global const uint* cnt, uint p, __global const uint
 
 // One work-item: exclusive scans of the block counts (kept clusters from 0, merged nodes from the
 // node counter); the new cluster count goes to cnt[1 - p], the node counter after this iteration to
-// next_node and marks[MARK0 + it + 1] (the layout's top-down pass walks the iterations backwards:
-// a node's parent was made in a later iteration).
-__kernel void scan_blocks(__global uint* bsum, uint nb, __global uint* cnt, uint p, __global uint* next_node,
-                          __global uint* marks, uint it) {
+// next_node.
+__kernel void scan_blocks(__global uint* bsum, uint nb, __global uint* cnt, uint p, __global uint* next_node) {
     if (get_global_id(0) != 0) return;
     uint acc = 0, v = *next_node;
     for (uint b = 0; b < nb; ++b) {
@@ -272,7 +307,6 @@ __kernel void scan_blocks(__global uint* bsum, uint nb, __global uint* cnt, uint
     }
     cnt[1 - p] = acc;
     *next_node = v;
-    marks[MARK0 + it + 1] = v;
 }
 
 // A merging child's triangle count, kept-node count and height, and its SAH cost as the result:
@@ -284,9 +318,9 @@ inline float child_info(__global const float4* node, uint id, uint n_tri, float4
         return half_area(lo, hi);
     }
     __global const float4* r = node + NODE_F4 * (size_t)(id - n_tri);
-    int4 links = as_int4(r[2]);
-    *count = links.z; *kept = links.w; *height = as_int(r[1].w) >> 1;
-    return r[0].w;
+    int4 info = as_int4(r[0]);
+    *count = info.x; *kept = info.y; *height = info.z >> 1;
+    return as_float(info.w);
 }
 
 // Mutual nearest pairs (i < j) merge into a new inner node (ids in cluster order from the block's
@@ -296,27 +330,25 @@ inline float child_info(__global const float4* node, uint id, uint n_tri, float4
 // SAH cost is the cheaper of a leaf and the split (traversal 1, intersection 1 per triangle, in area
 // units), as a bottom-up dynamic programme.
 __kernel void merge_scatter(__global const uint* cnt, uint p, __global const uint* nn, uint nb,
-                            __global const uint* bsum, __global const uint* cnode, __global const float4* cmin,
-                            __global const float4* cmax, __global uint* dnode, __global float4* dmin,
-                            __global float4* dmax, uint n_tri, __global float4* node) {
+                            __global const uint* bsum, __global const float4* cmin, __global const float4* cmax,
+                            __global float4* dmin, __global float4* dmax, uint n_tri, __global float4* node) {
     uint bk = get_global_id(0);
     if (bk >= nb) return;
     uint n = cnt[p], s, e, o = bsum[bk], v = bsum[nb + bk];
     block_range(bk, nb, n, &s, &e);
     for (uint i = s; i < e; ++i) {
         if (dropped(i, n, nn)) continue;
-        uint a = cnode[i];
         float4 alo = cmin[i], ahi = cmax[i];
+        uint a = as_uint(alo.w);
         if (!merges(i, n, nn)) {
-            dnode[o] = a;
             dmin[o] = alo;
             dmax[o] = ahi;
             ++o;
             continue;
         }
         uint j = nn[i];
-        uint b = cnode[j];
         float4 blo = cmin[j], bhi = cmax[j];
+        uint b = as_uint(blo.w);
         float4 lo = fmin(alo, blo), hi = fmax(ahi, bhi);
         int ca, cb, ka, kb, ha, hb;
         float sa = child_info(node, a, n_tri, alo, ahi, &ca, &ka, &ha);
@@ -328,11 +360,10 @@ __kernel void merge_scatter(__global const uint* cnt, uint p, __global const uin
         int ok = c <= MIN_LEAF || (c <= MAX_LEAF && leaf <= split);
         int h = ok ? 0 : 1 + max(ha, hb);
         __global float4* r = node + NODE_F4 * (size_t)(v - n_tri);
-        r[0] = (float4)(lo.xyz, ok ? leaf : split);
-        r[1] = (float4)(hi.xyz, as_float((h << 1) | ok));
-        r[2] = as_float4((int4)((int)a, (int)b, c, ok ? 1 : 1 + ka + kb));
-        dnode[o] = v;
-        dmin[o] = lo;
+        r[0] = as_float4((int4)(c, ok ? 1 : 1 + ka + kb, (h << 1) | ok, as_int(ok ? leaf : split)));
+        r[1] = (float4)(lo.xyz, as_float(a));
+        r[2] = (float4)(hi.xyz, as_float(b));
+        dmin[o] = (float4)(lo.xyz, as_float(v));
         dmax[o] = hi;
         ++o;
         ++v;
@@ -340,151 +371,152 @@ __kernel void merge_scatter(__global const uint* cnt, uint p, __global const uin
 }
 
 // ---- layout -----------------------------------------------------------------------------------
-// Kept nodes (no ancestor chosen as a leaf) get a preorder index p; per p: pnode (node id), pfirst
-// (first triangle slot), pdepth (depth, later the sort key that turns preorder into breadth-first
-// order) and order (p itself, the sort's value). Inner node v also keeps ipre[v - n] = p, or -1
-// inside a leaf. The root is placed first; then `place` runs once per PLOC iteration, newest first,
-// over the nodes that iteration made, each placing its two children (its own entry was written by
-// its parent, made in a later iteration, so placed by an earlier launch).
+// The finished tree is written breadth first, one level at a time, straight into `out` (min and
+// max: 3 floats per node, then left, right, first, count, parent, depth, height: m ints each, then
+// tri_order: n ints). lev[d] is the first index of level d (lev[0] = 0, lev[1] = 1; level_scan
+// writes lev[d + 2]). The children of level d's inner nodes are level d + 1, in their parents'
+// order, left then right: the same order as a stable sort of the preorder by depth. A node's
+// parent writes all of it from its record (one record read a node) but left and depth, and keeps
+// in right and depth, until the node's level is placed, its own links (a triangle: its Morton
+// index in right).
 
-// marks[0] = root node id, marks[1] = kept nodes (read by the host with the iteration marks).
-__kernel void root_count(__global const uint* cnode, uint n_tri, __global const float4* node,
+// marks[0] = root node id, marks[1] = kept nodes, marks[2] = the root's height (levels - 1).
+__kernel void root_count(__global const float4* cmin, uint n_tri, __global const float4* node,
                          __global uint* marks) {
     if (get_global_id(0) != 0) return;
-    uint root = cnode[0];
+    uint root = as_uint(cmin[0].w);
     marks[0] = root;
-    marks[1] = root >= n_tri ? (uint)as_int4(node[NODE_F4 * (size_t)(root - n_tri) + 2]).w : 1u;
-}
-
-__kernel void place_root(__global const uint* cnode, uint n_tri, __global const float4* node,
-                         __global const uint* marks, __global uint* pnode, __global int* pfirst,
-                         __global uint* pdepth, __global uint* order, __global int* ipre) {
-    if (get_global_id(0) != 0) return;
-    uint root = marks[0];
-    pnode[0] = root;
-    pfirst[0] = 0;
-    pdepth[0] = 0;
-    order[0] = 0;
-    if (root >= n_tri) ipre[root - n_tri] = 0;
-}
-
-inline void put(uint q, uint v, int first, uint depth, uint n_tri, __global uint* pnode, __global int* pfirst,
-                __global uint* pdepth, __global uint* order, __global int* ipre) {
-    pnode[q] = v;
-    pfirst[q] = first;
-    pdepth[q] = depth;
-    order[q] = q;
-    if (v >= n_tri) ipre[v - n_tri] = (int)q;
-}
-
-// Nodes lo .. hi - 1 (ids, all >= n_tri) place their children.
-__kernel void place(uint lo, uint hi, uint n_tri, __global const float4* node, __global uint* pnode,
-                    __global int* pfirst, __global uint* pdepth, __global uint* order, __global int* ipre) {
-    uint v = lo + get_global_id(0);
-    if (v >= hi) return;
-    uint u = v - n_tri;
-    int q = ipre[u];
-    __global const float4* r = node + NODE_F4 * (size_t)u;
-    int4 links = as_int4(r[2]);
-    uint l = (uint)links.x, rr = (uint)links.y;
-    if (q < 0 || (as_int(r[1].w) & 1)) {  // inside a leaf, or a leaf: the inner nodes below are not kept
-        if (l >= n_tri) ipre[l - n_tri] = -1;
-        if (rr >= n_tri) ipre[rr - n_tri] = -1;
-        return;
+    marks[1] = 1u;
+    marks[2] = 0u;
+    if (root >= n_tri) {
+        __global const float4* r = node + NODE_F4 * (size_t)(root - n_tri);
+        int4 info = as_int4(r[0]);
+        marks[1] = (uint)info.y;
+        marks[2] = (uint)(info.z >> 1);
     }
-    int f = pfirst[q];
-    uint d = pdepth[q] + 1;
-    int cl = 1;
-    uint kl = 1;
-    if (l >= n_tri) {
-        int4 ll = as_int4(node[NODE_F4 * (size_t)(l - n_tri) + 2]);
-        cl = ll.z;
-        kl = (uint)ll.w;
+}
+
+#define OUT_FIELDS(out, m)                                            \
+    __global float* omin = (__global float*)(out);                    \
+    __global float* omax = omin + 3 * (size_t)(m);                    \
+    __global int* oleft = (out) + 6 * (size_t)(m);                    \
+    __global int* oright = oleft + (m);                               \
+    __global int* ofirst = oright + (m);                              \
+    __global int* ocount = ofirst + (m);                              \
+    __global int* oparent = ocount + (m);                             \
+    __global int* odepth = oparent + (m);                             \
+    __global int* oheight = odepth + (m)
+
+// Node v (PLOC id) at index k, child of `parent`, first slot `first`: its box, triangle count and
+// height, its links kept in right/depth; returns its triangle count.
+inline int put_node(uint v, uint k, int parent, int first, uint n_tri, __global const float4* node,
+                    __global const float* tri, __global const uint* perm, __global int* out, uint m) {
+    OUT_FIELDS(out, m);
+    float4 lo, hi;
+    int c = 1, h = 0;
+    if (v < n_tri) {
+        tri_box(tri, perm[v], &lo, &hi);
+        oright[k] = (int)v;
+    } else {
+        __global const float4* r = node + NODE_F4 * (size_t)(v - n_tri);
+        int4 info = as_int4(r[0]);
+        lo = r[1];
+        hi = r[2];
+        c = info.x;
+        h = info.z >> 1;
+        oright[k] = as_int(lo.w);
+        odepth[k] = as_int(hi.w);
     }
-    put((uint)q + 1, l, f, d, n_tri, pnode, pfirst, pdepth, order, ipre);
-    put((uint)q + 1 + kl, rr, f + cl, d, n_tri, pnode, pfirst, pdepth, order, ipre);
-}
-
-__kernel void invert(uint m, __global const uint* order, __global int* rank) {
-    uint k = get_global_id(0);
-    if (k >= m) return;
-    rank[order[k]] = (int)k;
-}
-
-// The canonical tree in breadth-first order k (order: k -> preorder index, depth: the sorted keys,
-// rank: preorder index -> k) into one int buffer `out` (float boxes as bits): min and max (3 floats
-// per node), then left, right, first, count, parent, depth, height (m each), then tri_order (n).
-// A leaf writes its triangles (left subtree first) to tri_order from its first slot; an inner node
-// writes its children's parent entries.
-__kernel void emit(uint m, uint n_tri, __global const uint* order, __global const uint* depth,
-                   __global const int* rank, __global const uint* pnode, __global const int* pfirst,
-                   __global const float* tri, __global const uint* perm, __global const float4* node,
-                   __global int* out) {
-    uint k = get_global_id(0);
-    if (k >= m) return;
-    __global float* omin = (__global float*)out;
-    __global float* omax = omin + 3 * (size_t)m;
-    __global int* oleft = out + 6 * (size_t)m;
-    __global int* oright = oleft + m;
-    __global int* ofirst = oright + m;
-    __global int* ocount = ofirst + m;
-    __global int* oparent = ocount + m;
-    __global int* odepth = oparent + m;
-    __global int* oheight = odepth + m;
-    __global int* tri_order = oheight + m;
-    uint q = order[k];
-    uint v = pnode[q];
-    int first = pfirst[q];
+    vstore3(lo.xyz, k, omin);
+    vstore3(hi.xyz, k, omax);
+    ocount[k] = c;
+    oheight[k] = h;
+    oparent[k] = parent;
     ofirst[k] = first;
-    odepth[k] = (int)depth[k];
-    if (k == 0) oparent[0] = -1;
-    if (v < n_tri) {  // a single-triangle leaf
-        float4 lo, hi;
-        uint t = perm[v];
-        tri_box(tri, t, &lo, &hi);
-        vstore3(lo.xyz, k, omin);
-        vstore3(hi.xyz, k, omax);
-        ocount[k] = 1;
-        oheight[k] = 0;
-        oleft[k] = -1;
-        oright[k] = -1;
-        tri_order[first] = (int)t;
-        return;
+    return c;
+}
+
+__kernel void layout_root(__global const uint* marks, uint m, uint n_tri, __global const float4* node,
+                          __global const float* tri, __global const uint* perm, __global uint* lev,
+                          __global int* out) {
+    if (get_global_id(0) != 0) return;
+    put_node(marks[0], 0, -1, 0, n_tri, node, tri, perm, out, m);
+    lev[0] = 0;
+    lev[1] = 1;
+}
+
+// Level d, per block: its inner nodes (height > 0: they have children in the tree) in bsum[b].
+__kernel void level_count(uint d, __global const uint* lev, uint nb, uint m, __global const int* out,
+                          __global uint* bsum) {
+    uint b = get_global_id(0);
+    if (b >= nb) return;
+    __global const int* oheight = out + 12 * (size_t)m;
+    uint l0 = lev[d], s, e, g = 0;
+    block_range(b, nb, lev[d + 1] - l0, &s, &e);
+    for (uint k = l0 + s; k < l0 + e; ++k) g += oheight[k] > 0;
+    bsum[b] = g;
+}
+
+// One work-item: exclusive scan of level d's per-block inner-node counts; lev[d + 2] = the end of
+// level d + 1 (two children per inner node).
+__kernel void level_scan(uint d, uint nb, __global uint* bsum, __global uint* lev) {
+    if (get_global_id(0) != 0) return;
+    uint acc = 0;
+    for (uint b = 0; b < nb; ++b) {
+        uint g = bsum[b];
+        bsum[b] = acc;
+        acc += g;
     }
-    uint u = v - n_tri;
-    __global const float4* r = node + NODE_F4 * (size_t)u;
-    float4 r0 = r[0], r1 = r[1];
-    int4 links = as_int4(r[2]);
-    int hk = as_int(r1.w);
-    vstore3(r0.xyz, k, omin);
-    vstore3(r1.xyz, k, omax);
-    ocount[k] = links.z;
-    oheight[k] = hk >> 1;
-    if (!(hk & 1)) {
-        uint l = (uint)links.x;
-        uint kl = l >= n_tri ? (uint)as_int4(node[NODE_F4 * (size_t)(l - n_tri) + 2]).w : 1u;
-        int rl = rank[q + 1], rr = rank[q + 1 + kl];
-        oleft[k] = rl;
-        oright[k] = rr;
-        oparent[rl] = (int)k;
-        oparent[rr] = (int)k;
-        return;
-    }
-    oleft[k] = -1;
-    oright[k] = -1;
-    uint stack[MAX_LEAF + 1];
-    int sp = 0, slot = first;
-    uint w = v;
-    for (;;) {
-        if (w < n_tri) {
-            tri_order[slot++] = (int)perm[w];
-            if (sp == 0) break;
-            w = stack[--sp];
+    lev[d + 2] = lev[d + 1] + 2 * acc;
+}
+
+// Level d, per block: an inner node writes its two children at the next level's end, in order,
+// and links them; a leaf writes its triangles (left subtree first) to tri_order from its first
+// slot. Then the node's depth.
+__kernel void level_place(uint d, __global const uint* lev, uint nb, uint m, uint n_tri,
+                          __global const float4* node, __global const float* tri, __global const uint* perm,
+                          __global const uint* bsum, __global int* out) {
+    uint b = get_global_id(0);
+    if (b >= nb) return;
+    OUT_FIELDS(out, m);
+    __global int* tri_order = oheight + m;
+    uint l0 = lev[d], s, e;
+    block_range(b, nb, lev[d + 1] - l0, &s, &e);
+    uint c = lev[d + 1] + 2 * bsum[b];
+    for (uint k = l0 + s; k < l0 + e; ++k) {
+        uint l = (uint)oright[k], r = (uint)odepth[k];
+        int first = ofirst[k];
+        if (oheight[k] > 0) {
+            int cl = put_node(l, c, (int)k, first, n_tri, node, tri, perm, out, m);
+            put_node(r, c + 1, (int)k, first + cl, n_tri, node, tri, perm, out, m);
+            oleft[k] = (int)c;
+            oright[k] = (int)c + 1;
+            c += 2;
         } else {
-            int4 wl = as_int4(node[NODE_F4 * (size_t)(w - n_tri) + 2]);
-            stack[sp++] = (uint)wl.y;
-            w = (uint)wl.x;
+            int slot = first;
+            if (ocount[k] == 1) {  // a triangle (inner nodes hold at least two)
+                tri_order[slot] = (int)perm[l];
+            } else {
+                uint stack[MAX_LEAF + 1];
+                int sp = 1;
+                stack[0] = r;
+                uint w = l;
+                for (;;) {
+                    if (w < n_tri) {
+                        tri_order[slot++] = (int)perm[w];
+                        if (sp == 0) break;
+                        w = stack[--sp];
+                    } else {
+                        __global const float4* wr = node + NODE_F4 * (size_t)(w - n_tri);
+                        stack[sp++] = as_uint(wr[2].w);
+                        w = as_uint(wr[1].w);
+                    }
+                }
+            }
+            oleft[k] = -1;
+            oright[k] = -1;
         }
+        odepth[k] = (int)d;
     }
 }
 

@@ -8,36 +8,42 @@ the SAH build stays the quality reference. Measured figures: docs/bvh-device.md.
 
 Algorithm (kernels in bvh_device.cl)
 ------------------------------------
-1. The triangles are read in place (USE_HOST_PTR). Box centres; their bounds (6 device
-   reductions) span a cubic 1024^3 grid; 30-bit Morton codes of the centres are sorted with the
-   project's radix sort (viewer.cl.primitives, 4 digit passes).
+1. The triangles are read in place (USE_HOST_PTR). The bounds of the box centres (per block on
+   the device, one read; no centre arrays: 120 MB of fresh pages at 10 M) span a cubic 1024^3
+   grid; 30-bit Morton codes of the centres are sorted with the project's radix sort
+   (viewer.cl.primitives, 4 digit passes); the dead keys then hold the nearest neighbours.
 2. PLOC (Meister & Bittner 2018): the clusters (one per triangle at first, boxes recomputed from
    the triangles) stay in Morton order; each finds the cluster within `radius` positions whose
    merged box has the least surface area (ties to the lower index: the closest pair overall is
    always mutual, so every iteration merges). For radius <= 8 `nearest_vec` does it eight pairs
    at a time (a float8 window of the next clusters' boxes, the same float operations, so the same
-   neighbours). Mutual pairs merge into a new inner node in the lower slot. An iteration is 4
-   launches: nearest; per-block counts of kept clusters and merges; one scan of both (node ids
-   are numbered in cluster order from the node counter: no atomics); merge + compaction. The
-   cluster count lives on the device, every kernel reads it there, and the host reads it back
+   neighbours). Mutual pairs merge into a new inner node in the lower slot. An iteration is 3
+   launches: nearest with per-block counts of kept clusters and merges (`nearest_vec` runs from
+   2 RADIUS clusters before its block to RADIUS after it, so it knows every neighbour its
+   clusters' mutual checks read; the other searches have a `count_blocks` launch of their own);
+   one scan of both (node ids are numbered in cluster order from the node counter: no atomics);
+   merge + compaction (a cluster is its box, the node id in the min's spare lane). The cluster
+   count lives on the device, every kernel reads it there, and the host reads it back
    only every `check_every` iterations (to shrink the launch sizes and to stop).
 3. While merging, each node gets the SAH cost of its best subtree (dynamic programme: the cheaper
    of a leaf and the split, traversal 1, intersection 1 per triangle, as BuildStats reports):
    a node of at most `max_leaf` triangles becomes a leaf when that is not dearer (always when
    it holds at most `min_leaf`). Leaves are the topmost such nodes; nodes below them are dropped.
-   Inner node records are 48 bytes (box + cost, box + height and leaf flag, links + counts).
-4. Layout, top down with no pointer jumping: a node made in PLOC iteration t has its parent made
-   in a later iteration, so one `place` launch per iteration, newest first, over the nodes that
-   iteration made gives each kept node its preorder index, first triangle slot and depth from its
-   parent (work proportional to the nodes, not nodes x log height). A stable radix sort of the
-   preorder by depth (one digit pass) gives breadth-first order, and one launch writes the tree
-   (and `tri_order`) in that order into one buffer: the cluster-box buffer when it fits (its
-   pages are already touched), which the BVH keeps and maps (zero-copy on a CPU device). The
-   layout's arrays reuse PLOC's dead buffers when the kept nodes fit. BuildStats are summed on
-   the device (float64 per block of nodes; tree_stats on a device without float64).
-Host round trips: the 6 reductions, one count read every `check_every` PLOC iterations, one read
-of the root, kept-node count and iteration marks, one finish per timed phase (5), the stats' block
-sums, and the map of the finished tree. Page faults dominate a cold build on a CPU device (about
+   Inner node records are 48 bytes (counts, height and leaf flag, cost in one 16-byte piece: what a
+   merge reads of a child; box min + left; box max + right).
+4. Layout, breadth first, one level at a time (3 launches a level, the levels being the root's
+   height + 1), straight into the finished tree's buffer: a node's parent writes it from its record
+   (one random record read a node; its own links kept in its right/depth fields until its level
+   is placed); per level the inner nodes are counted per block, one scan places their children at
+   the next level in order (the order of a stable sort of the preorder by depth, so the same trees
+   as the earlier place + depth sort + emit layout, which made about 4 random reads a node), and
+   leaves write their triangles to `tri_order`. That buffer is the cluster-box buffer when the
+   tree fits (its pages are already touched), which the BVH keeps and maps (zero-copy on a CPU
+   device). BuildStats are summed on the device (float64 per block of nodes; tree_stats on a
+   device without float64).
+Host round trips: the centre bounds, one count read every `check_every` PLOC iterations, one read
+of the root, kept-node count and height, one finish per timed phase (5), the stats' block sums,
+and the map of the finished tree. Page faults dominate a cold build on a CPU device (about
 1 s per fresh GiB on the 2-core machine), hence the buffer reuse above.
 
 Numerics: every box is an exact float32 min/max of the triangles' float32 vertices or of child
@@ -63,16 +69,15 @@ WG = 64
 RADIUS = 8
 CHECK_EVERY = 4
 #: device bytes per triangle of the buffers build() allocates (bounds: only the pages a build writes
-#: are ever touched): input (the host array itself on a CPU device), centres, keys + sort scratch,
-#: inner node records (48 bytes), cluster ids x 2 and boxes x 2, nn, iteration marks, the
-#: layout's arrays (when the kept nodes m exceed n: m <= 2n - 1, about 0.9 n in practice; else
-#: they reuse PLOC's buffers) and the finished tree (13 words a kept node and tri_order: in the
+#: are ever touched): input (the host array itself on a CPU device), keys (later the nearest
+#: neighbours) + sort scratch, inner node records (48 bytes), cluster boxes x 2 (with the node ids), and the
+#: finished tree (13 words a kept node, m <= 2n - 1 (about 0.9 n in practice), and tri_order: in the
 #: cluster-box buffer when it fits, which the BVH then keeps; else a buffer of its own)
 OUT_BYTES_PER_TRIANGLE = 2 * 13 * 4 + 4
-BYTES_PER_TRIANGLE = 36 + 12 + 16 + 48 + 2 * 36 + 4 + 4 + 2 * 5 * 4 + OUT_BYTES_PER_TRIANGLE
-MARK0 = 2  # marks[0]: root id, marks[1]: kept nodes, marks[MARK0 + i]: node counter before iteration i
-_KERNELS = ("tri_boxes", "morton", "init_leaves", "nearest", "nearest_block", "nearest_vec", "count_blocks",
-            "scan_blocks", "merge_scatter", "root_count", "place_root", "place", "invert", "emit", "stats_blocks")
+BYTES_PER_TRIANGLE = 36 + 16 + 48 + 2 * 32 + OUT_BYTES_PER_TRIANGLE
+_KERNELS = ("centre_bounds", "morton", "init_leaves", "nearest", "nearest_block", "nearest_vec", "count_blocks",
+            "scan_blocks", "merge_scatter", "root_count", "layout_root", "level_count", "level_scan", "level_place",
+            "stats_blocks")
 
 
 class DeviceBvhBuilder:
@@ -94,7 +99,7 @@ class DeviceBvhBuilder:
         self.block_nearest = True  # per block of clusters (each pair once) rather than nearest (per cluster)
         self.vector_nearest = radius <= 8  # the block search eight pairs at a time (nearest_vec)
         prog = build(KERNEL, {"WG": WG, "RADIUS": int(radius), "MAX_LEAF": self.max_leaf,
-                              "MIN_LEAF": self.min_leaf, "MARK0": MARK0}, self.ctx)
+                              "MIN_LEAF": self.min_leaf}, self.ctx)
         fp64 = "cl_khr_fp64" in self.ctx.device.extensions
         self._k = clio.kernels(prog, [k for k in _KERNELS if (k != "nearest_vec" or radius <= 8)
                                       and (k != "stats_blocks" or fp64)])
@@ -183,19 +188,20 @@ class DeviceBvhBuilder:
         b = self._buf
         # the triangles in place (USE_HOST_PTR: no copy and no fresh pages on a CPU device)
         tri_buf = clio.upload(self.ctx, tri, what="device BVH triangles", use_host=True)
-        cx, cy, cz = b("cx", 4 * n), b("cy", 4 * n), b("cz", 4 * n)
-        self._run("tri_boxes", n, tri_buf, u(n), cx, cy, cz)
+        nbc = self.prims.nblocks(n)
+        part = b("bounds", 32 * nbc)
+        self._task("centre_bounds", nbc, tri_buf, u(n), u(nbc), part)
+        part = self._read(part, 8 * nbc, np.float32).reshape(nbc, 2, 4)
         t = self._phase("upload+boxes", t_start)
 
         # -- Morton codes, sorted ---------------------------------------------------------------
-        lo = np.array([self.prims.reduce(c, n, "min", np.float32) for c in (cx, cy, cz)], np.float32)
-        hi = np.array([self.prims.reduce(c, n, "max", np.float32) for c in (cx, cy, cz)], np.float32)
+        lo, hi = part[:, 0, :3].min(axis=0), part[:, 1, :3].max(axis=0)
         # one scale for all axes (a cube around the centres): per-axis scales would stretch a flat
         # scene's thin axis over the whole code and order it worse
         ext = float((hi.astype(np.float64) - lo).max())
         scale = np.full(3, 1024.0 / ext if ext > 0 else 0.0)
         keys, perm = b("keys", 4 * n), b("perm", 4 * n)
-        self._run("morton", n, cx, cy, cz, u(n), np.append(lo, 0).astype(np.float32),
+        self._run("morton", n, tri_buf, u(n), np.append(lo, 0).astype(np.float32),
                   np.append(scale, 0).astype(np.float32), keys, perm)
         self.prims.sort_pairs(keys, perm, n, key_bits=30)
         t = self._phase("morton+sort", t)
@@ -203,22 +209,18 @@ class DeviceBvhBuilder:
         # -- PLOC ---------------------------------------------------------------------------------
         ni = max(n - 1, 1)  # inner nodes (ids n .. 2n - 2, stored at id - n)
         node = b("node", 48 * ni)  # inner node records (NODE_F4 float4 each, bvh_device.cl)
-        cnode = [b("cnode0", 4 * n), b("cnode1", 4 * n)]
         # the cluster boxes (min, max) x 2 in one buffer: the finished tree is written there later
         region = -(-16 * n // 128) * 128  # sub-buffer origins aligned for any device
         cbox = b("cbox", 4 * region)
         cmin = [cbox.get_sub_region(0, region), cbox.get_sub_region(2 * region, region)]
         cmax = [cbox.get_sub_region(region, region), cbox.get_sub_region(3 * region, region)]
-        nn = b("nn", 4 * n)
+        nn = keys  # the sort keys are dead: their pages serve the nearest neighbours
         cnt = b("cnt", 8)
         next_node = b("next_node", 4)
-        # marks: root id, kept nodes, then the node counter before each iteration (at most n - 1
-        # iterations, run check_every at a time; pages never written are never touched)
-        marks = b("marks", 4 * (n + MARK0 + self.check_every))
+        marks = b("marks", 16)  # root id, kept nodes, root height (root_count)
         clio.copy(q, cnt, np.array([n, n], np.uint32), is_blocking=False)
         clio.copy(q, next_node, np.array([n], np.uint32), is_blocking=False)
-        clio.copy(q, marks, np.array([0, 1, n], np.uint32), is_blocking=False)
-        self._run("init_leaves", n, tri_buf, perm, u(n), cnode[0], cmin[0], cmax[0])
+        self._run("init_leaves", n, tri_buf, perm, u(n), cmin[0], cmax[0])  # node ids in cmin's w
         node_args = (u(n), node)
         p = 0  # cnt[p] is the current cluster count; cluster arrays [p] are current
         n_host = n
@@ -226,44 +228,31 @@ class DeviceBvhBuilder:
         while n_host > 1:
             nb = self.prims.nblocks(n_host)
             nbn = max(PWG, min(-(-n_host // 256), 8 * self.prims.max_blocks) // PWG * PWG)
-            bsum = b("bsum", 8 * nb)
+            vec = self.block_nearest and self.vector_nearest  # nearest_vec counts the blocks too
+            nbm = nbn if vec else nb  # blocks of the count, scan and merge
+            bsum = b("bsum", 8 * nbm)
             for _ in range(self.check_every):
                 s = p
-                if self.block_nearest:
-                    kname = "nearest_vec" if self.vector_nearest else "nearest_block"
-                    self._task(kname, nbn, cnt, u(p), cmin[s], cmax[s], u(nbn), nn)
+                if vec:
+                    self._task("nearest_vec", nbn, cnt, u(p), cmin[s], cmax[s], u(nbn), nn, bsum)
                 else:
-                    self._run("nearest", n_host, cnt, u(p), cmin[s], cmax[s], nn)
-                self._task("count_blocks", nb, cnt, u(p), nn, u(nb), bsum)
-                self._task("scan_blocks", 1, bsum, u(nb), cnt, u(p), next_node, marks, u(iters))
-                self._task("merge_scatter", nb, cnt, u(p), nn, u(nb), bsum, cnode[s], cmin[s], cmax[s],
-                           cnode[1 - s], cmin[1 - s], cmax[1 - s], *node_args)
+                    if self.block_nearest:
+                        self._task("nearest_block", nbn, cnt, u(p), cmin[s], cmax[s], u(nbn), nn)
+                    else:
+                        self._run("nearest", n_host, cnt, u(p), cmin[s], cmax[s], nn)
+                    self._task("count_blocks", nb, cnt, u(p), nn, u(nb), bsum)
+                self._task("scan_blocks", 1, bsum, u(nbm), cnt, u(p), next_node)
+                self._task("merge_scatter", nbm, cnt, u(p), nn, u(nbm), bsum, cmin[s], cmax[s],
+                           cmin[1 - s], cmax[1 - s], *node_args)
                 p = 1 - p
                 iters += 1
             n_host = int(self._read(cnt, 2, np.uint32)[p])
         self.iterations = iters
         t = self._phase("ploc", t)
 
-        # -- layout: top down, one launch per PLOC iteration, then breadth-first order ----------
-        # kept nodes m <= 2n - 1, about 0.9 n: the layout arrays reuse buffers PLOC no longer needs
-        # (pages already touched) when m <= n, else get their own
-        ipre = nn  # per inner node (n - 1)
-        root_args = (cnode[p], u(n), node, marks)
-        self._task("root_count", 1, *root_args)
-        mk = self._read(marks, iters + MARK0 + 1, np.uint32)  # root, kept nodes, iteration marks
-        m = int(mk[1])
-        if m <= n:
-            pnode, pfirst, pdepth, order, rank = cx, cy, cz, keys, cnode[1 - p]
-        else:
-            pnode, pfirst, pdepth, order, rank = (b(k, 4 * m) for k in ("pnode", "pfirst", "pdepth", "order", "rank"))
-        self._task("place_root", 1, *root_args, pnode, pfirst, pdepth, order, ipre)
-        place_args = (u(n), node, pnode, pfirst, pdepth, order, ipre)
-        for it in range(iters - 1, -1, -1):  # newest nodes first: parents before children
-            lo_id, hi_id = int(mk[MARK0 + it]), int(mk[MARK0 + it + 1])
-            self._run("place", hi_id - lo_id, u(lo_id), u(hi_id), *place_args)
-        # breadth-first order: stable sort of the preorder by depth (depth <= iterations)
-        self.prims.sort_pairs(pdepth, order, m, key_bits=max(iters.bit_length(), 1))
-        self._run("invert", m, u(m), order, rank)
+        # -- layout: breadth first, one level at a time, straight into the finished tree -------
+        self._task("root_count", 1, cmin[p], u(n), node, marks)
+        _, m, height = (int(x) for x in self._read(marks, 3, np.uint32))
         # the finished tree goes to a buffer the BVH keeps, mapped (not copied) for the host: its
         # arrays are views of it (zero-copy on a CPU device). That is the cluster-box buffer when
         # the tree fits (pages already touched; the pool makes a new one for the next build).
@@ -273,7 +262,14 @@ class DeviceBvhBuilder:
             out = self._bufs.take("cbox")
         else:
             out = new_buffer(self.ctx, self.ctx.cl.mem_flags.READ_WRITE, 4 * words, "device BVH tree")
-        self._run("emit", m, u(m), u(n), order, pdepth, rank, pnode, pfirst, tri_buf, perm, node, out)
+        lev = b("lev", 4 * (height + 3))
+        self._task("layout_root", 1, marks, u(m), u(n), node, tri_buf, perm, lev, out)
+        for d in range(height + 1):  # level d has at most min(2^d, m) nodes
+            nbl = self.prims.nblocks(min(1 << min(d, 31), m))
+            bsum = b("bsum", 8 * nbl)
+            self._task("level_count", nbl, u(d), lev, u(nbl), u(m), out, bsum)
+            self._task("level_scan", 1, u(d), u(nbl), bsum, lev)
+            self._task("level_place", nbl, u(d), lev, u(nbl), u(m), u(n), node, tri_buf, perm, bsum, out)
         t = self._phase("layout", t)
 
         cl = self.ctx.cl
