@@ -55,6 +55,7 @@ class ResumableTraversal:
         hist = getattr(bc.bvh.stats, "leaf_size_histogram", None) or {1: 1}
         self.max_leaf = max(int(k) for k in hist)
         self.stack_size = int(bc.gpu_scene.stack_size)
+        bc.gpu_scene.require_nodes()  # the tree this traversal reads (made on first use)
         self.max_visits = max_visits(self.max_leaf, self.stack_size)
         self.program = bc.programs.with_path(SHADER_DIR).get("fullscreen.vert", "trace_glsl.frag",
                                        {"STACK_SIZE": self.stack_size, "MAX_VISITS": self.max_visits,

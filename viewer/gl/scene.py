@@ -19,46 +19,74 @@ class GpuScene:
 
     Triangle ids everywhere are leaf-order slots (the scene passed in must already be
     reordered with `Scene.reordered(bvh.tri_order)`).
+
+    The BVH node buffer is made on first use (`require_nodes`, or a `bind()` that asks for it):
+    only backends that traverse the tree in GLSL read it, and on a 10 M-triangle scene traced by
+    an OpenCL backend its packing and upload were 1.3 s of the first frame for nothing.
     """
 
-    nodes: moderngl.Buffer
     tris: moderngl.Buffer
     materials: moderngl.Buffer
     vertices: moderngl.Buffer  # float32 (3N, 3) positions, for rasterization
     triangle_count: int
     stack_size: int
     memory_bytes: int
+    bvh: BVH  # the tree `nodes` is packed from (refits replace it through update())
+    ctx: moderngl.Context
+    _nodes: moderngl.Buffer | None = None
 
     @staticmethod
     def upload(ctx: moderngl.Context, scene: Scene, bvh: BVH) -> GpuScene:
-        nodes = bvh.gpu_nodes()
         tris = scene.gpu_triangles()
         mats = scene.albedo_table()
         verts = np.ascontiguousarray(scene.triangles.reshape(-1, 3), dtype=np.float32)
         # the arrays themselves (buffer protocol), not tobytes() copies: at 10 M triangles those
         # were 1.9 s of the first frame
-        bufs = [ctx.buffer(np.ascontiguousarray(a)) for a in (nodes, tris, mats, verts)]
+        bufs = [ctx.buffer(np.ascontiguousarray(a)) for a in (tris, mats, verts)]
         return GpuScene(*bufs, triangle_count=scene.triangle_count,
                         stack_size=int(max(16, bvh.stats.depth + 4)),
-                        memory_bytes=sum(b.size for b in bufs))
+                        memory_bytes=sum(b.size for b in bufs), bvh=bvh, ctx=ctx)
+
+    @property
+    def has_nodes(self) -> bool:
+        return self._nodes is not None
+
+    def require_nodes(self) -> moderngl.Buffer:
+        """The BVH node buffer (bvh.gpu_nodes()), uploaded now if it was not yet."""
+        if self._nodes is None:
+            self._nodes = self.ctx.buffer(np.ascontiguousarray(self.bvh.gpu_nodes()))
+            self.memory_bytes += self._nodes.size
+        return self._nodes
+
+    @property
+    def nodes(self) -> moderngl.Buffer:
+        return self.require_nodes()
 
     def update(self, scene: Scene, bvh: BVH) -> None:
         """Moved triangles (animated scenes): rewrite nodes, triangles and raster vertices in place.
         The buffers keep their identity, so every holder (G-buffer VAO, backends) sees the new
         geometry; sizes must match (same triangle count, same tree topology: a refit)."""
-        nodes = bvh.gpu_nodes().tobytes()
+        self.bvh = bvh
         tris = gpu_triangles(scene.triangles, scene.material_ids).tobytes()
         verts = np.ascontiguousarray(scene.triangles.reshape(-1, 3), dtype=np.float32).tobytes()
-        for buf, data in ((self.nodes, nodes), (self.tris, tris), (self.vertices, verts)):
+        parts = [(self.tris, tris), (self.vertices, verts)]
+        if self._nodes is not None:  # not made yet: made from the new tree when first needed
+            parts.append((self._nodes, bvh.gpu_nodes().tobytes()))
+        for buf, data in parts:
             if buf.size != len(data):
                 raise ValueError(f"GpuScene.update: {len(data)} bytes for a {buf.size}-byte buffer")
             glio.write(buf, data)
 
-    def bind(self) -> None:
-        self.nodes.bind_to_storage_buffer(BIND_NODES)
+    def bind(self, nodes: bool = True) -> None:
+        """The scene's storage buffers at their bindings; `nodes=False` for passes that read only
+        triangles and materials (the raster): the node buffer is then neither made nor bound."""
+        if nodes:
+            self.require_nodes().bind_to_storage_buffer(BIND_NODES)
         self.tris.bind_to_storage_buffer(BIND_TRIS)
         self.materials.bind_to_storage_buffer(BIND_MATERIALS)
 
     def release(self) -> None:
-        for b in (self.nodes, self.tris, self.materials, self.vertices):
-            b.release()
+        for b in (self._nodes, self.tris, self.materials, self.vertices):
+            if b is not None:
+                b.release()
+        self._nodes = None

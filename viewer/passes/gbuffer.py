@@ -142,7 +142,7 @@ class GBufferPass(SizedTargets):
         if "depthScale" in program:  # the preview uses the rasterizer's depth
             program["depthScale"].value = float(self.depth_scale)
         apply(program, camera_uniforms(camera, self.size))
-        self.gpu_scene.bind()
+        self.gpu_scene.bind(nodes=False)
         self._draw(vao, camera, (w, h), preview)
         ctx.disable(ctx.DEPTH_TEST)
         if not preview:
@@ -175,7 +175,7 @@ class GBufferPass(SizedTargets):
         p = self.fill
         p["depthScale"].value = float(self.depth_scale)
         apply(p, camera_uniforms(camera, self.size))
-        self.gpu_scene.bind()
+        self.gpu_scene.bind(nodes=False)
         hits.t.use(0)
         hits.id.use(1)
         p["hitT"] = 0
