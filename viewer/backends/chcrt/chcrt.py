@@ -81,7 +81,7 @@ from viewer.errors import RtwalkError
 from viewer.gl.bindings import BIND_NODES, BIND_TRIS, backend_bindings
 from viewer.gl.buffers import StreamBuffer
 from viewer.gl.programs import FullscreenQuad, load_shader_source
-from viewer.gl.textures import float_depth_texture, float_texture, int_texture
+from viewer.gl.textures import copy_texture, float_depth_texture, float_texture, int_texture
 from viewer.rays import HitBuffer, PassInfo, RayBatch
 from viewer.screen_tiles import max_tile_level, tile_rects
 
@@ -113,6 +113,7 @@ COUNT_SLOTS = 64
 COUNT_BYTES = 4 * COUNT_SLOTS  # GPU-driven counts buffer: ray counts, then query counts from this offset
 MAX_BOXES = 48  # boxes per query draw (max_multi pairs x 2 child boxes)
 MAX_LEAF_CACHE = 16
+HINT_UNIT = 2  # texture unit of the hit hints (rays: units 0 and 1)
 
 
 @dataclass
@@ -165,6 +166,10 @@ class ChcrtParams:
                            "than this traverses their lowest common ancestor (0 = no limit)")
     coarse_cull: bool = param(True, "GPU-driven: a compute pass culls the queries whose boxes lie beyond the "
                               "farthest distance any ray of their tile may still reach")
+    hit_hint: bool = param(True, "temporal: each ray first tests the triangle its pixel hit in this front's previous "
+                           "pass (a shadow cache for every ray type): an any-hit ray that hits it is done, a "
+                           "closest-hit ray traverses with its distance as tmax (exact); full-BVH passes then "
+                           "traverse from the root in chcrt's own shader (not with a GPU budget)")
 
     def validate(self, source: str = "chcrt") -> None:
         if not (1 <= self.max_batch <= 24 and 1 <= self.max_multi <= 24):
@@ -340,6 +345,8 @@ class ChcrtBackend:
                      self.prog_isect_b, self.prog_isect_g):
             prog["rayOrigin"] = 0
             prog["rayDir"] = 1
+            if prog.get("hintId", None) is not None:
+                prog["hintId"] = HINT_UNIT
             if prog.get("depthScale", None) is not None:
                 prog["depthScale"] = self.depth_scale
         self.quad = FullscreenQuad(self.ctx)
@@ -363,6 +370,9 @@ class ChcrtBackend:
         self.queries: list[moderngl.Query] = []
         self.targets: _Targets | None = None
         self.fronts: dict[tuple, PairFront] = {}
+        # hit_hint: per front, the triangle each pixel's ray hit in the front's last pass (R32I)
+        self.hints: dict[tuple, moderngl.Texture] = {}
+        self.use_hints = self.p.hit_hint and self.cache is None  # out-of-core: cache slots, not triangle ids
         self.rng = np.random.default_rng(self.p.seed)
         self.frame = 0
         self.last_stats: dict[str, float] = {}
@@ -383,11 +393,27 @@ class ChcrtBackend:
         return SubtreeCache(self.ctx, bvh, scene.triangles, scene.material_ids, budget, p.max_subtree_tris,
                             p.max_subtree_height)
 
+    def _clear_fronts(self) -> None:
+        """Forget every front and its hit hints."""
+        self.fronts.clear()
+        for tex in self.hints.values():
+            tex.release()
+        self.hints.clear()
+
+    def _keep_hint(self, key: tuple, hits: HitBuffer) -> None:
+        """hit_hint: copy this pass's hit triangles (hits.id) to the front's hint texture (one copy
+        on the device, read by the front's next pass)."""
+        tex = self.hints.get(key)
+        if tex is None:
+            tex = self.hints[key] = int_texture(self.ctx, tuple(hits.size))
+        copy_texture(tex, hits.id)
+        iostats.gl_draw()
+
     # -- Backend protocol ----------------------------------------------------------------------
     def begin_frame(self, frame_index: int) -> None:
         self.frame = int(frame_index)
         if not self.p.temporal:
-            self.fronts.clear()
+            self._clear_fronts()
 
     def release(self) -> None:
         if self.targets is not None:
@@ -406,7 +432,7 @@ class ChcrtBackend:
         self.finisher.release()
         self.work.release()
         self.queries.clear()  # moderngl 5 queries have no release(); dropped with the context
-        self.fronts.clear()
+        self._clear_fronts()
 
     def scene_changed(self, bc: BackendContext) -> None:
         """Moved triangles, refitted BVH: new node tables (query boxes) and, with a GPU budget, a
@@ -427,13 +453,13 @@ class ChcrtBackend:
             self.cache.release()
             self.cache = self._make_cache(bc)
         if not same:
-            self.fronts.clear()
+            self._clear_fronts()
         ms = (time.perf_counter() - t0) * 1e3
         bc.profiler.record("build:chcrt", ms, ms)
 
     def reset(self) -> None:
         """Forget the temporal state (every front restarts from (screen, root))."""
-        self.fronts.clear()
+        self._clear_fronts()
 
     def tile_level(self, size: tuple[int, int]) -> int:
         return max_tile_level(size, self.p.min_tile_fraction)
@@ -446,7 +472,7 @@ class ChcrtBackend:
             if self.targets is not None:
                 self.targets.release()
             self.targets = _Targets(self.ctx, size, max_level)
-            self.fronts.clear()
+            self._clear_fronts()
         key = pinfo.key
         front = self.fronts.get(key)
         if front is None:
@@ -460,6 +486,8 @@ class ChcrtBackend:
         stats["resumed_rays"] = fin["resumed_rays"]
         stats["continuation_draws"] = fin["draws"]
         stats.update(self.work.end())
+        if self.use_hints:
+            self._keep_hint(key, hits)
         front.frames += 1
         self.last_stats = stats
         return TraceResult(stats=stats, overlays={"query_overdraw": self.targets.overdraw,
@@ -508,6 +536,8 @@ class _Pass:
         self.lca_pairs: np.ndarray | None = None  # GPU-driven: slots of visible pairs drawn through an LCA
         self.untested: np.ndarray | None = None  # GPU-driven: invisible pairs only covered by LCA traversals
         self.bounds = np.zeros((0, 2, 4), np.int64)  # the last _run_queries' passing bounds per query and box
+        # hit_hint: the front's last hit triangle per pixel (None: first pass, or hints off)
+        self.hint = be.hints.get(self.pinfo.key) if be.use_hints else None
 
     # -- GL helpers -------------------------------------------------------------------------------
     def _bind(self) -> None:
@@ -518,6 +548,8 @@ class _Pass:
             be.cache.begin_pass()
         self.rays.origin.use(0)
         self.rays.direction.use(1)
+        if self.hint is not None:
+            self.hint.use(HINT_UNIT)
         tg.best.bind_to_image(BIND_IMG_CHC_BEST, read=True, write=True)
         tg.overdraw.bind_to_image(BIND_IMG_CHC_OVERDRAW, read=True, write=True)
         tg.batch.bind_to_image(BIND_IMG_CHC_BATCH, read=True, write=True)
@@ -837,6 +869,7 @@ class _Pass:
     def _isect_uniforms(self, prog: moderngl.Program) -> None:
         prog["anyHit"] = int(self.any_hit)
         prog["countOverlays"] = int(self.overlays)
+        prog["useHint"] = int(self.hint is not None)
 
     # -- Algorithm 1 --------------------------------------------------------------------------------
     def run(self) -> dict[str, float]:
@@ -1005,10 +1038,16 @@ class _Pass:
         with prof.phase("chc:3-traversal"):
             if full:
                 # incoherent rays: nearly every tile would traverse from (about) the root; the glsl
-                # traversal does exactly that, without the per-tile records
-                self.be.finisher.run(self.rays, self.pinfo, self.hits)
+                # traversal does exactly that, without the per-tile records. With hit hints, chcrt's
+                # own shader does it from the root (one record per finest tile), starting each ray
+                # with its hint
                 self.stats["full_bvh_passes"] = 1
-                self.stats["draws"] += 1
+                if self.hint is not None:
+                    n = 1 << f.max_level
+                    self._draw_finest(np.zeros(n * n, np.int64), np.arange(n * n), np.full(n * n, -1, np.int64))
+                else:
+                    self.be.finisher.run(self.rays, self.pinfo, self.hits)
+                    self.stats["draws"] += 1
             else:
                 self._intersect_survivors()
             self._sync()
