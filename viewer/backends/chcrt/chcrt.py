@@ -166,6 +166,14 @@ class ChcrtParams:
                            "than this traverses their lowest common ancestor (0 = no limit)")
     coarse_cull: bool = param(True, "GPU-driven: a compute pass culls the queries whose boxes lie beyond the "
                               "farthest distance any ray of their tile may still reach")
+    cold_full_bvh: bool = param(True, "a front's first (synchronous) pass stops refining once so many finest tiles "
+                                "are over the LCA limits that the GPU-driven pass would trace the whole BVH "
+                                "(full_bvh_fraction), or once its query fragments exceed cold_query_budget per "
+                                "ray, and traces every ray with the full traversal instead; the front's later "
+                                "passes do the same (incoherent rays) until the fronts are reset")
+    cold_query_budget: float = param(48.0, "cold_full_bvh: query fragments per active ray after which a front's "
+                                     "first pass stops refining (a full traversal tests about 50-60 boxes per ray; "
+                                     "0 = no budget)")
     hit_hint: bool = param(True, "temporal: each ray first tests the triangle its pixel hit in this front's previous "
                            "pass (a shadow cache for every ray type): an any-hit ray that hits it is done, a "
                            "closest-hit ray traverses with its distance as tmax (exact); full-BVH passes then "
@@ -183,6 +191,7 @@ class ChcrtParams:
         if not (self.t_q > 0 and 0 < self.min_tile_fraction <= 1 and self.max_subtree_height >= 1
                 and self.max_subtree_tris >= 1 and self.requery_interval >= 1 and self.schedule_batch >= 1
                 and self.visible_threshold >= 0 and self.lca_subtrees >= 0 and self.lca_pairs >= 0
+                and self.cold_query_budget >= 0
                 and 0 <= self.cull_sublevels <= 4 and 0 <= self.full_bvh_fraction <= 1):
             raise RtwalkError(f"{source}: t_q and min_tile_fraction must be > 0, thresholds >= 0, counts >= 1, "
                               "cull_sublevels in 0..4, full_bvh_fraction in 0..1")
@@ -956,6 +965,7 @@ class _Pass:
         with prof.phase("chc:3-traversal"):
             scheduled: list[np.ndarray] = []
             n_sched = 0
+            full = False  # cold_full_bvh: the refinement stopped, every ray takes the full traversal
             while True:
                 if len(wave):
                     term, obj, _ = f.classify(wave, self.nt, p.t_q, p.max_subtree_height,
@@ -975,6 +985,9 @@ class _Pass:
                     scheduled, n_sched = [], 0
                 if len(pending) == 0:
                     break
+                if self._incoherent():
+                    full = f.full_bvh = True
+                    break
                 self.stats["query_waves"] += 1
                 res = self._run_queries([np.array([i]) for i in pending], pclip)
                 vis = res > thr
@@ -987,10 +1000,52 @@ class _Pass:
             self._sync()
 
         with prof.phase("chc:4-final-intersect"):
-            if scheduled:
+            if full:
+                # the hits found so far are replaced by the full traversal's (exact); the front keeps
+                # what was refined, its untested pairs invisible: the next pass goes full-BVH too
+                self.be.finisher.run(self.rays, self.pinfo, self.hits)
+                self.stats["full_bvh_passes"] = 1
+                self.stats["draws"] += 1
+            elif scheduled:
                 self._intersect(np.concatenate(scheduled))
             self._read_ray_count()
             self._sync()
+
+    def _incoherent(self) -> bool:
+        """cold_full_bvh: have the queries cost more than a full traversal (cold_query_budget), or
+        would the GPU-driven pass trace the whole BVH with the front as it stands (at least
+        full_bvh_fraction of the finest tiles over lca_pairs pairs or lca_subtrees visible ones, as
+        in _tile_plan)? Only for a front's first pass (the GPU-driven pass follows it)."""
+        p, f = self.p, self.front
+        if not (p.cold_full_bvh and self.be.gpu_driven and f.frames == 0 and p.lca_invisible and p.merge_tiles
+                and p.full_bvh_fraction > 0 and (p.lca_pairs > 0 or p.lca_subtrees > 0)):
+            return False
+        self._read_ray_count()
+        if p.cold_query_budget > 0 and self.stats["query_pixels"] > p.cold_query_budget * max(self.stats["rays"], 1):
+            return True
+        vis, inv = f.leaves(VISIBLE), f.leaves(INVISIBLE)
+        cv, ci = self._per_finest_tile(vis), self._per_finest_tile(inv)
+        heavy = np.zeros(cv.shape, bool)
+        if p.lca_subtrees > 0:
+            heavy |= cv > p.lca_subtrees
+        if p.lca_pairs > 0:
+            heavy |= cv + ci > p.lca_pairs
+        return bool(heavy.mean() >= p.full_bvh_fraction)
+
+    def _per_finest_tile(self, pairs: np.ndarray) -> np.ndarray:
+        """How many of `pairs` cover each finest tile (2^L x 2^L counts; a pair of a coarser tile
+        covers all finest tiles inside it)."""
+        f = self.front
+        top = f.max_level
+        out = np.zeros((1 << top, 1 << top), np.int64)
+        lvl = f.level[pairs].astype(np.int64)
+        for L in np.unique(lvl).tolist():
+            sel = pairs[lvl == L]
+            m = 1 << L
+            c = np.bincount(f.ty[sel].astype(np.int64) * m + f.tx[sel].astype(np.int64), minlength=m * m)
+            s = 1 << (top - L)
+            out += np.repeat(np.repeat(c.reshape(m, m), s, axis=0), s, axis=1)
+        return out
 
     # -- GPU-driven steady state ------------------------------------------------------------------
     def _run_gpu(self) -> None:
@@ -1020,8 +1075,10 @@ class _Pass:
             iostats.to_device(4 * (nslots + 3))
             be.gpu_counts.bind_to_storage_buffer(BIND_CHC_QUERY_COUNTS, COUNT_BYTES, 4 * (nslots + 3))
             inv_copies = None
-            full = False
-            if self.p.lca_invisible and self.p.merge_tiles:
+            full = f.full_bvh  # the front's first pass found its rays incoherent (cold_full_bvh)
+            if full:
+                pass
+            elif self.p.lca_invisible and self.p.merge_tiles:
                 vis_items, inv_copies = self._tile_plan(visible, invisible)
                 n = 1 << f.max_level
                 full = 0 < self.p.full_bvh_fraction <= self.stats["lca_tiles"] / (n * n)
