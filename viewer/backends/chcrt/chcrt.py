@@ -53,8 +53,15 @@ dispatch), the invisible pairs some ray may still enter (one dispatch) and their
 indirect draw). The intersection is the query: box entries before the nearest hit so far are
 counted per pair, read once after the pass, and the front is refined for the next frame. A finest
 tile with many pairs traverses the lowest common ancestor of all of them instead (its invisible
-pairs are then not queried), and a pass where most tiles do that runs the glsl full traversal
-(`lca_pairs`, `lca_subtrees`, `full_bvh_fraction`): incoherent rays cost about what glsl costs.
+pairs are then not queried), and a pass where most tiles do that runs a full traversal
+(`lca_pairs`, `lca_subtrees`, `full_bvh_fraction`): incoherent rays cost about what glsl costs. A
+front's first pass stops refining when its queries cost more than a traversal (`cold_full_bvh`);
+that front then stays on full traversals.
+
+Hit hints (`hit_hint`): every ray first tests the triangle its pixel hit in the front's previous
+pass (copied on the device after each pass): any-hit rays that hit it are done, closest-hit rays
+start with its distance as tmax. Exact: a hint hit is a real hit, and the traversal still finds
+anything nearer.
 
 Parameters come from ChcrtParams: `--backend-params "visible_threshold=20,t_q=0.4"` (alias
 `--chcrt`) on the command line, or the RTWALK_CHCRT environment variable (the registry merges them).
