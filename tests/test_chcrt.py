@@ -213,7 +213,7 @@ def test_lca_fallback_and_cull_tiles_are_exact(params, gl_ctx):
     (lca_pairs=1: every tile, so no pair is queried on a steady frame, and with full_bvh_fraction
     the pass runs the glsl traversal; 8: some tiles, the cull per sub-tile, with every front refined
     past its first pass), and the older rule (only the visible pairs replaced, the invisible ones
-    queried); without the hit hints (the full-BVH passes then run the glsl traversal)."""
+    queried); without the hit hints."""
     frames, scene, _ = _render_both(gl_ctx, "city", "primary,shadows,ao:2,diffuse:2", params)
     for k, (a, b) in enumerate(frames):
         for pa, pb in zip(a.captured, b.captured, strict=True):
