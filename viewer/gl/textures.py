@@ -40,7 +40,8 @@ _gl_funcs: dict | None = None
 
 def _gl() -> dict:
     """A few core GL entry points through GLVND's libOpenGL (dispatches to the current context,
-    EGL or GLX alike): moderngl has no way to ask for a DEPTH_COMPONENT32F texture."""
+    EGL or GLX alike): moderngl has no way to ask for a DEPTH_COMPONENT32F texture, nor to copy an
+    integer texture (its copy_framebuffer leaves an R32I target unwritten)."""
     global _gl_funcs
     if _gl_funcs is None:
         import ctypes
@@ -57,7 +58,8 @@ def _gl() -> dict:
         u, i, vp = ctypes.c_uint, ctypes.c_int, ctypes.c_void_p
         pi = ctypes.POINTER(ctypes.c_int)
         spec = {"glBindTexture": [u, u], "glTexImage2D": [u, i, i, i, i, i, u, u, vp],
-                "glGetIntegerv": [u, pi], "glGetTexLevelParameteriv": [u, i, u, pi]}
+                "glGetIntegerv": [u, pi], "glGetTexLevelParameteriv": [u, i, u, pi],
+                "glCopyImageSubData": [u, u, i, i, i, i, u, u, i, i, i, i, i, i, i]}
         funcs: dict = {}
         for name, args in spec.items():
             f = getattr(lib, name)
@@ -92,6 +94,15 @@ def float_depth_texture(ctx: moderngl.Context, size: tuple[int, int]) -> moderng
         tex.release()
         raise RtwalkError(f"could not create a 32-bit float depth buffer ({bits.value} bits, {err})")
     return tex
+
+
+def copy_texture(dst: moderngl.Texture, src: moderngl.Texture) -> None:
+    """Copy level 0 of a 2D texture into one of the same size and format on the device
+    (glCopyImageSubData: works for integer formats, no framebuffer, nothing read back)."""
+    if dst.size != src.size or dst.dtype != src.dtype or dst.components != src.components:
+        raise RtwalkError("copy_texture: textures differ in size or format")
+    w, h = src.size
+    _gl()["glCopyImageSubData"](src.glo, _GL_TEXTURE_2D, 0, 0, 0, 0, dst.glo, _GL_TEXTURE_2D, 0, 0, 0, 0, w, h, 1)
 
 
 class IntTextures:

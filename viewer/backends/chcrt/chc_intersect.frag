@@ -22,6 +22,8 @@
 #include "chc_leafcache.glsl"
 uniform int anyHit;
 uniform int countOverlays;
+uniform int useHint;  // 1: hintId holds last pass's hit triangle per pixel (leaf-order slot, -1 = none)
+uniform isampler2D hintId;
 layout(location = 0) out float outT;
 layout(location = 1) out int outId;
 layout(location = 2) out int outSub;
@@ -54,13 +56,29 @@ void main() {
     float tmin = ot.w;
     bool any = anyHit != 0;
     Hit hit = Hit(min(intBitsToFloat(best), dt.w), -1);
+    // hit hint (ChcrtParams.hit_hint; Haines & Greenberg's shadow cache, for every ray type): the
+    // triangle this pixel's ray hit in the front's previous pass is tested first, while the pixel has
+    // no hit yet. A hit there is a real hit: an any-hit ray is done, a closest-hit ray traverses with
+    // that distance as tmax (exact: the traversal still finds anything nearer)
+    bool done = false;
+    if (useHint != 0 && best == floatBitsToInt(dt.w)) {
+        int h = texelFetch(hintId, px, 0).r;
+        if (h >= 0) {
+            Tri tri = tris[h];
+            WORK(workTri);
+            float th; vec2 bh;
+            if (intersectTriangle(r, tri.v0, tri.v1, tri.v2, tmin, hit.t, th, bh)) {
+                hit = Hit(th, h);
+                done = any;
+            }
+        }
+    }
     int stackNode[STACK_SIZE];
     float stackT[STACK_SIZE];
     int sp = 0;
-    bool done = false;
     uint entered = 0u;
     uint enteredMask = 0u;  // items whose box the ray entered (counted after the traversal)
-    for (int i = ITEM_COUNT - 1; i >= 0; --i) {  // farthest at the bottom
+    for (int i = done ? -1 : ITEM_COUNT - 1; i >= 0; --i) {  // farthest at the bottom
         ChcItem it = items[ITEM_BASE + i];
         float te;
         if (intersectBox(r, it.bmin, it.bmax, tmin, hit.t, te)) {

@@ -139,6 +139,9 @@ class PairFront:
         self.n = 0
         self.dead = 0
         self.frames = 0  # passes traced with this front
+        # incoherent rays: the first pass stopped refining (chcrt cold_full_bvh); every pass traces the
+        # whole BVH, the front is not refined further
+        self.full_bvh = False
         self._append(np.zeros(1, np.int8), np.zeros(1, np.int32), np.zeros(1, np.int32),
                      np.zeros(1, np.int32), np.full(1, -1, np.int32))
 
