@@ -183,7 +183,8 @@ class ChcrtParams:
                                      "0 = no budget)")
     hit_hint: bool = param(True, "temporal: each ray first tests the triangle its pixel hit in this front's previous "
                            "pass (a shadow cache for every ray type): an any-hit ray that hits it is done, a "
-                           "closest-hit ray traverses with its distance as tmax (exact); not with a GPU budget")
+                           "closest-hit ray traverses with its distance as tmax (exact); not with a GPU budget, nor in "
+                           "a pass captured for the overlays")
 
     def validate(self, source: str = "chcrt") -> None:
         if not (1 <= self.max_batch <= 24 and 1 <= self.max_multi <= 24):
@@ -884,7 +885,9 @@ class _Pass:
     def _isect_uniforms(self, prog: moderngl.Program) -> None:
         prog["anyHit"] = int(self.any_hit)
         prog["countOverlays"] = int(self.overlays)
-        prog["useHint"] = int(self.hint is not None)
+        # not in a pass captured for the overlays: there every hit names the scheduled subtree that
+        # holds it (subtree_batches), and a hint's triangle need not lie in this tile's subtrees
+        prog["useHint"] = int(self.hint is not None and not self.overlays)
 
     # -- Algorithm 1 --------------------------------------------------------------------------------
     def run(self) -> dict[str, float]:
