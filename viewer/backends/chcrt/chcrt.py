@@ -1033,13 +1033,19 @@ class _Pass:
         if p.cold_query_budget > 0 and self.stats["query_pixels"] > p.cold_query_budget * max(self.stats["rays"], 1):
             return True
         vis, inv = f.leaves(VISIBLE), f.leaves(INVISIBLE)
-        cv, ci = self._per_finest_tile(vis), self._per_finest_tile(inv)
-        heavy = np.zeros(cv.shape, bool)
-        if p.lca_subtrees > 0:
-            heavy |= cv > p.lca_subtrees
-        if p.lca_pairs > 0:
-            heavy |= cv + ci > p.lca_pairs
+        heavy = self._heavy_tiles(self._per_finest_tile(vis), self._per_finest_tile(inv))
         return bool(heavy.mean() >= p.full_bvh_fraction)
+
+    def _heavy_tiles(self, cv: np.ndarray, ci: np.ndarray) -> np.ndarray:
+        """Per finest tile (visible pair counts `cv`, invisible `ci`): does it traverse the lowest
+        common ancestor of its pairs instead of testing them (over `lca_subtrees` visible pairs or
+        `lca_pairs` pairs in all)?"""
+        heavy = np.zeros(cv.shape, bool)
+        if self.p.lca_subtrees > 0:
+            heavy |= cv > self.p.lca_subtrees
+        if self.p.lca_pairs > 0:
+            heavy |= cv + ci > self.p.lca_pairs
+        return heavy
 
     def _per_finest_tile(self, pairs: np.ndarray) -> np.ndarray:
         """How many of `pairs` cover each finest tile (2^L x 2^L counts; a pair of a coarser tile
@@ -1220,12 +1226,7 @@ class _Pass:
 
         vn, vt, vs = copies(visible, 0)
         inn, it, isl = copies(invisible, nv)
-        cv, ci = np.bincount(vt, minlength=n * n), np.bincount(it, minlength=n * n)
-        heavy = np.zeros(n * n, bool)
-        if self.p.lca_subtrees > 0:
-            heavy |= cv > self.p.lca_subtrees
-        if self.p.lca_pairs > 0:
-            heavy |= cv + ci > self.p.lca_pairs
+        heavy = self._heavy_tiles(np.bincount(vt, minlength=n * n), np.bincount(it, minlength=n * n))
         hv, hi = heavy[vt], heavy[it]
         tiles = np.concatenate([vt[hv], it[hi]])
         nodes = np.concatenate([vn[hv], inn[hi]])
