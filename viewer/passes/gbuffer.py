@@ -59,7 +59,7 @@ class GBufferPass(SizedTargets):
         self.fill = programs.get("fullscreen.vert", "gbuffer_fill.frag")
         self.resolve = programs.get("fullscreen.vert", "gbuffer_fill.frag", {"RESOLVE": 1})
         self._quad = FullscreenQuad(ctx)  # the resolve's draw (counted by viewer.gl.io)
-        self.vao = ctx.vertex_array(self.program, [(gpu_scene.vertices, "3f", "in_pos")])
+        self.vao = ctx.vertex_array(self.program, [])
         self._programs = programs
         self._preview: tuple[moderngl.Program, moderngl.VertexArray] | None = None  # made on first use
         self.cull = True  # frustum culling by BVH subtrees (False: draw every triangle)
@@ -113,7 +113,7 @@ class GBufferPass(SizedTargets):
     def _preview_program(self) -> tuple[moderngl.Program, moderngl.VertexArray]:
         if self._preview is None:
             prog = self._programs.get("gbuffer.vert", "gbuffer.frag", {"PREVIEW": 1})
-            self._preview = prog, self.ctx.vertex_array(prog, [(self.gpu_scene.vertices, "3f", "in_pos")])
+            self._preview = prog, self.ctx.vertex_array(prog, [])
         return self._preview
 
     def render(self, camera: Camera, preview: bool = False) -> None:
