@@ -42,7 +42,7 @@ from viewer.camera import Camera
 from viewer.gl.programs import FullscreenQuad, ProgramCache
 from viewer.gl.scene import GpuScene
 from viewer.gl.textures import float_depth_texture, float_texture, int_texture
-from viewer.passes.cull import Cut, bvh_cut, indirect_commands, visible_ranges
+from viewer.passes.cull import Cut, bvh_cut, cut_target, indirect_commands, visible_ranges
 from viewer.passes.occlusion import OcclusionCuller
 from viewer.passes.targets import SizedTargets
 from viewer.passes.uniforms import apply, camera_uniforms
@@ -77,7 +77,7 @@ class GBufferPass(SizedTargets):
         same_topology = (self.bvh is not None and np.array_equal(bvh.node_first, self.bvh.node_first)
                          and np.array_equal(bvh.node_count, self.bvh.node_count))
         if self._cut is None or not same_topology:
-            self._cut = bvh_cut(bvh)
+            self._cut = bvh_cut(bvh, cut_target(len(bvh.tri_order)))
             if self._indirect is not None:
                 self._indirect.release()
             self._indirect = self.ctx.buffer(reserve=max(len(self._cut.nodes), 1) * 20)
