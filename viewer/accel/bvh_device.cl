@@ -265,6 +265,54 @@ __kernel void nearest_vec(__global const uint* cnt, uint p, __global const float
 }
 #endif
 
+// Merged area of clusters k and k + 1 (NaN as infinity, as in the searches above).
+inline float pair_area(__global const float4* cmin, __global const float4* cmax, uint k) {
+    float a = half_area(fmin(cmin[k], cmin[k + 1]), fmax(cmax[k], cmax[k + 1]));
+    return isnan(a) ? INFINITY : a;
+}
+
+// The nearest neighbours for radius 1 (the first PLOC iteration: on a Morton-ordered triangle soup
+// nearly every triangle pairs with an adjacent one, e.g. 99.996% of the city's radius-8 choices):
+// the cheaper of the pairs (i - 1, i) and (i, i + 1), ties to the lower index, one area a cluster
+// (A(k) = pair_area(k) slides along). Like nearest_vec it counts per block the clusters kept
+// (bsum[b]) and the pairs merged (bsum[nb + b]): a block computes the neighbours from one cluster
+// before its range to one after it, which its clusters' mutual checks read.
+__kernel void nearest_r1(__global const uint* cnt, uint p, __global const float4* cmin,
+                         __global const float4* cmax, uint nb, __global uint* nn, __global uint* bsum) {
+    uint b = get_global_id(0);
+    uint n = cnt[p];
+    if (b >= nb) return;
+    uint s, e;
+    block_range(b, nb, n, &s, &e);
+    if (s >= e || n <= 1) {
+        bsum[b] = e - s;
+        bsum[nb + b] = 0;
+        return;
+    }
+    uint i0 = s > 0 ? s - 1 : 0, i1 = min(e, n - 1);
+    float aprev = i0 > 0 ? pair_area(cmin, cmax, i0 - 1) : INFINITY;  // A(i - 1)
+    uint n2 = 0xffffffffu, n1 = 0xffffffffu;  // the neighbours of clusters i - 2 and i - 1
+    uint kept = 0, merged = 0;
+    for (uint i = i0; i <= i1; ++i) {
+        float acur = i + 1 < n ? pair_area(cmin, cmax, i) : INFINITY;  // A(i)
+        uint ni = (i > 0 && (i + 1 >= n || aprev <= acur)) ? i - 1 : i + 1;
+        if (i >= s && i < e) nn[i] = ni;
+        uint c = i - 1;  // cluster i - 1: its neighbours' neighbours are known now
+        if (i >= 1 && c >= s && c < e) {
+            kept += !(n1 == c - 1 && n2 == c);
+            merged += n1 == c + 1 && ni == c;
+        }
+        n2 = n1;
+        n1 = ni;
+        aprev = acur;
+    }
+    if (e == n) {  // the last cluster (its neighbour is n - 2)
+        kept += !(n2 == n - 1);
+    }
+    bsum[b] = kept;
+    bsum[nb + b] = merged;
+}
+
 inline bool dropped(uint i, uint n, __global const uint* nn) {
     if (n <= 1) return false;
     uint j = nn[i];

@@ -68,6 +68,9 @@ KERNEL = Path(__file__).resolve().parent / "bvh_device.cl"
 WG = 64
 RADIUS = 8
 CHECK_EVERY = 4
+#: PLOC iterations at the start that search radius 1 (nearest_r1; with nearest_vec only): one area a
+#: cluster instead of eight, where the Morton-ordered triangles nearly all pair with an adjacent one
+RADIUS1_ITERATIONS = 1
 #: device bytes per triangle of the buffers build() allocates (bounds: only the pages a build writes
 #: are ever touched): input (the host array itself on a CPU device), keys (later the nearest
 #: neighbours) + sort scratch, inner node records (48 bytes), cluster boxes x 2 (with the node ids), and the
@@ -75,7 +78,8 @@ CHECK_EVERY = 4
 #: cluster-box buffer when it fits, which the BVH then keeps; else a buffer of its own)
 OUT_BYTES_PER_TRIANGLE = 2 * 13 * 4 + 4
 BYTES_PER_TRIANGLE = 36 + 16 + 48 + 2 * 32 + OUT_BYTES_PER_TRIANGLE
-_KERNELS = ("centre_bounds", "morton", "init_leaves", "nearest", "nearest_block", "nearest_vec", "count_blocks",
+_KERNELS = ("centre_bounds", "morton", "init_leaves", "nearest", "nearest_block", "nearest_vec", "nearest_r1",
+            "count_blocks",
             "scan_blocks", "merge_scatter", "root_count", "layout_root", "level_count", "level_scan", "level_place",
             "stats_blocks")
 
@@ -98,6 +102,7 @@ class DeviceBvhBuilder:
         self.check_every = max(int(check_every), 1)
         self.block_nearest = True  # per block of clusters (each pair once) rather than nearest (per cluster)
         self.vector_nearest = radius <= 8  # the block search eight pairs at a time (nearest_vec)
+        self.radius1_iterations = RADIUS1_ITERATIONS  # the first iterations search radius 1 (nearest_r1)
         prog = build(KERNEL, {"WG": WG, "RADIUS": int(radius), "MAX_LEAF": self.max_leaf,
                               "MIN_LEAF": self.min_leaf}, self.ctx)
         fp64 = "cl_khr_fp64" in self.ctx.device.extensions
@@ -234,7 +239,8 @@ class DeviceBvhBuilder:
             for _ in range(self.check_every):
                 s = p
                 if vec:
-                    self._task("nearest_vec", nbn, cnt, u(p), cmin[s], cmax[s], u(nbn), nn, bsum)
+                    near = "nearest_r1" if iters < self.radius1_iterations else "nearest_vec"
+                    self._task(near, nbn, cnt, u(p), cmin[s], cmax[s], u(nbn), nn, bsum)
                 else:
                     if self.block_nearest:
                         self._task("nearest_block", nbn, cnt, u(p), cmin[s], cmax[s], u(nbn), nn)
