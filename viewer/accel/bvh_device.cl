@@ -1,6 +1,8 @@
 // Device BVH build: Morton order + PLOC clustering + SAH leaf collapse (viewer/accel/bvh_device.py).
 // Defines: WG (work-items per group of the per-element kernels), RADIUS (PLOC search radius),
-// MAX_LEAF, MIN_LEAF (leaf sizes as in viewer/accel/bvh.py).
+// MAX_LEAF, MIN_LEAF (leaf sizes as in viewer/accel/bvh.py), PREFETCH (CPU devices only: how far
+// ahead merge_scatter and level_place ask for the random records they will read, with clang's
+// __builtin_prefetch; out-of-order cores then overlap those cache misses).
 //
 // Nodes 0..n-1 are the triangles in Morton order (node i = triangle perm[i]); merged (inner) nodes
 // get ids n, n+1, ... from a node counter (per iteration, in cluster order), so a child's id is
@@ -385,6 +387,13 @@ __kernel void merge_scatter(__global const uint* cnt, uint p, __global const uin
     uint n = cnt[p], s, e, o = bsum[bk], v = bsum[nb + bk];
     block_range(bk, nb, n, &s, &e);
     for (uint i = s; i < e; ++i) {
+#ifdef PREFETCH
+        if (i + PREFETCH < e && merges(i + PREFETCH, n, nn)) {  // the child records read PREFETCH on
+            uint pa = as_uint(cmin[i + PREFETCH].w), pb = as_uint(cmin[nn[i + PREFETCH]].w);
+            if (pa >= n_tri) __builtin_prefetch(node + NODE_F4 * (size_t)(pa - n_tri));
+            if (pb >= n_tri) __builtin_prefetch(node + NODE_F4 * (size_t)(pb - n_tri));
+        }
+#endif
         if (dropped(i, n, nn)) continue;
         float4 alo = cmin[i], ahi = cmax[i];
         uint a = as_uint(alo.w);
@@ -532,6 +541,15 @@ __kernel void level_place(uint d, __global const uint* lev, uint nb, uint m, uin
     block_range(b, nb, lev[d + 1] - l0, &s, &e);
     uint c = lev[d + 1] + 2 * bsum[b];
     for (uint k = l0 + s; k < l0 + e; ++k) {
+#ifdef PREFETCH
+        if (k + PREFETCH < l0 + e && oheight[k + PREFETCH] > 0) {  // the records read PREFETCH nodes on
+            uint pl = (uint)oright[k + PREFETCH], pr = (uint)odepth[k + PREFETCH];
+            __builtin_prefetch(pl < n_tri ? (__global const void*)(tri + 9 * (size_t)perm[pl])
+                                          : (__global const void*)(node + NODE_F4 * (size_t)(pl - n_tri)));
+            __builtin_prefetch(pr < n_tri ? (__global const void*)(tri + 9 * (size_t)perm[pr])
+                                          : (__global const void*)(node + NODE_F4 * (size_t)(pr - n_tri)));
+        }
+#endif
         uint l = (uint)oright[k], r = (uint)odepth[k];
         int first = ofirst[k];
         if (oheight[k] > 0) {
