@@ -76,11 +76,11 @@ RADIUS1_ITERATIONS = 1
 PREFETCH = 8
 #: device bytes per triangle of the buffers build() allocates (bounds: only the pages a build writes
 #: are ever touched): input (the host array itself on a CPU device), keys (later the nearest
-#: neighbours) + sort scratch, inner node records (48 bytes), cluster boxes x 2 (with the node ids), and the
+#: neighbours) + perm (the sort's other halves are in the cluster boxes), inner node records (48 bytes), cluster boxes x 2 (with the node ids), and the
 #: finished tree (13 words a kept node, m <= 2n - 1 (about 0.9 n in practice), and tri_order: in the
 #: cluster-box buffer when it fits, which the BVH then keeps; else a buffer of its own)
 OUT_BYTES_PER_TRIANGLE = 2 * 13 * 4 + 4
-BYTES_PER_TRIANGLE = 36 + 16 + 48 + 2 * 32 + OUT_BYTES_PER_TRIANGLE
+BYTES_PER_TRIANGLE = 36 + 8 + 48 + 2 * 32 + OUT_BYTES_PER_TRIANGLE
 _KERNELS = ("centre_bounds", "morton", "init_leaves", "nearest", "nearest_block", "nearest_vec", "nearest_r1",
             "count_blocks",
             "scan_blocks", "merge_scatter", "root_count", "layout_root", "level_count", "level_scan", "level_place",
@@ -211,19 +211,21 @@ class DeviceBvhBuilder:
         ext = float((hi.astype(np.float64) - lo).max())
         scale = np.full(3, 1024.0 / ext if ext > 0 else 0.0)
         keys, perm = b("keys", 4 * n), b("perm", 4 * n)
-        self._run("morton", n, tri_buf, u(n), np.append(lo, 0).astype(np.float32),
-                  np.append(scale, 0).astype(np.float32), keys, perm)
-        self.prims.sort_pairs(keys, perm, n, key_bits=30)
-        t = self._phase("morton+sort", t)
-
-        # -- PLOC ---------------------------------------------------------------------------------
-        ni = max(n - 1, 1)  # inner nodes (ids n .. 2n - 2, stored at id - n)
-        node = b("node", 48 * ni)  # inner node records (NODE_F4 float4 each, bvh_device.cl)
         # the cluster boxes (min, max) x 2 in one buffer: the finished tree is written there later
         region = -(-16 * n // 128) * 128  # sub-buffer origins aligned for any device
         cbox = b("cbox", 4 * region)
         cmin = [cbox.get_sub_region(0, region), cbox.get_sub_region(2 * region, region)]
         cmax = [cbox.get_sub_region(region, region), cbox.get_sub_region(3 * region, region)]
+        self._run("morton", n, tri_buf, u(n), np.append(lo, 0).astype(np.float32),
+                  np.append(scale, 0).astype(np.float32), keys, perm)
+        # the sort's other halves in the first 4n bytes of cmin[1] / cmax[1]: pages the first PLOC
+        # iteration writes anyway (about n / 2 clusters there), so no fresh 8n bytes for the sort
+        self.prims.sort_pairs(keys, perm, n, key_bits=30, temp=(cmin[1], cmax[1]))
+        t = self._phase("morton+sort", t)
+
+        # -- PLOC ---------------------------------------------------------------------------------
+        ni = max(n - 1, 1)  # inner nodes (ids n .. 2n - 2, stored at id - n)
+        node = b("node", 48 * ni)  # inner node records (NODE_F4 float4 each, bvh_device.cl)
         nn = keys  # the sort keys are dead: their pages serve the nearest neighbours
         cnt = b("cnt", 8)
         next_node = b("next_node", 4)
