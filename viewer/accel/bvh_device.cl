@@ -386,24 +386,31 @@ __kernel void merge_scatter(__global const uint* cnt, uint p, __global const uin
     if (bk >= nb) return;
     uint n = cnt[p], s, e, o = bsum[bk], v = bsum[nb + bk];
     block_range(bk, nb, n, &s, &e);
+    bool pairs = n > 1;
     for (uint i = s; i < e; ++i) {
 #ifdef PREFETCH
-        if (i + PREFETCH < e && merges(i + PREFETCH, n, nn)) {  // the child records read PREFETCH on
-            uint pa = as_uint(cmin[i + PREFETCH].w), pb = as_uint(cmin[nn[i + PREFETCH]].w);
-            if (pa >= n_tri) __builtin_prefetch(node + NODE_F4 * (size_t)(pa - n_tri));
-            if (pb >= n_tri) __builtin_prefetch(node + NODE_F4 * (size_t)(pb - n_tri));
+        uint ip = i + PREFETCH;
+        if (pairs && ip < e) {  // the child records a merge reads PREFETCH clusters on
+            uint jp = nn[ip];
+            if (jp > ip) {
+                uint pa = as_uint(cmin[ip].w), pb = as_uint(cmin[jp].w);
+                if (pa >= n_tri) __builtin_prefetch(node + NODE_F4 * (size_t)(pa - n_tri));
+                if (pb >= n_tri) __builtin_prefetch(node + NODE_F4 * (size_t)(pb - n_tri));
+            }
         }
 #endif
-        if (dropped(i, n, nn)) continue;
+        // dropped / merges, reading the neighbours once
+        uint j = pairs ? nn[i] : i;
+        bool mutual = j != i && nn[j] == i;
+        if (mutual && j < i) continue;  // dropped: merged into cluster j
         float4 alo = cmin[i], ahi = cmax[i];
         uint a = as_uint(alo.w);
-        if (!merges(i, n, nn)) {
+        if (!mutual) {
             dmin[o] = alo;
             dmax[o] = ahi;
             ++o;
             continue;
         }
-        uint j = nn[i];
         float4 blo = cmin[j], bhi = cmax[j];
         uint b = as_uint(blo.w);
         float4 lo = fmin(alo, blo), hi = fmax(ahi, bhi);
