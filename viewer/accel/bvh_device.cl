@@ -182,6 +182,55 @@ __kernel void nearest_block(__global const uint* cnt, uint p, __global const flo
 // clusters kept, bsum[nb + b] = the pairs merged.
 #define EMPTY8 ((float8)(INFINITY))
 #define NN_RING 32
+// One step of nearest_vec for cluster i; TAIL 0: i + 9 < n (no neighbour past the end: the masks
+// are constants and fold away), 1: near the end.
+#define NEAREST_VEC_STEP(TAIL)                                                                           \
+        float4 lo = cmin[i], hi = cmax[i];                                                               \
+        float8 ex = fmax((float8)(hi.x), whx) - fmin((float8)(lo.x), wlx);                               \
+        float8 ey = fmax((float8)(hi.y), why) - fmin((float8)(lo.y), wly);                               \
+        float8 ez = fmax((float8)(hi.z), whz) - fmin((float8)(lo.z), wlz);                               \
+        float8 a = ex * ey + ey * ez + ez * ex;                                                          \
+        uint8 j = (uint8)(i) + lane;                                                                     \
+        int8 bad = (TAIL) ? (j > (uint8)(n - 1)) | (lane > (uint8)(RADIUS)) : (lane > (uint8)(RADIUS));  \
+        a = select(a, EMPTY8, isnan(a) | bad);                                                           \
+        uint8 jid = select(j, (uint8)(0xffffffffu), bad);                                                \
+        /* cluster i: best to the right (first lowest), then against the left offer */                   \
+        float4 m4 = fmin(a.lo, a.hi);                                                                    \
+        float2 m2 = fmin(m4.lo, m4.hi);                                                                  \
+        float rm = fmin(m2.x, m2.y);                                                                     \
+        uint8 cand = select((uint8)(0xffffffffu), jid, a == (float8)(rm));                               \
+        uint4 c4 = min(cand.lo, cand.hi);                                                                \
+        uint2 c2 = min(c4.lo, c4.hi);                                                                    \
+        uint rj = min(c2.x, c2.y);                                                                       \
+        float l0 = lb.s0;                                                                                \
+        uint lj = li.s0;                                                                                 \
+        uint best = (l0 < rm || (l0 == rm && lj < rj)) ? lj : rj;                                        \
+        ring[i & (NN_RING - 1)] = best;                                                                  \
+        if (i >= s && i < e) nn[i] = best;                                                               \
+        /* a cluster's mutual check needs the neighbours up to RADIUS after it */                        \
+        for (; q < e && q + RADIUS <= i; ++q) {                                                          \
+            uint jq = ring[q & (NN_RING - 1)];                                                           \
+            bool mutual = ring[jq & (NN_RING - 1)] == q;                                                 \
+            kept += !(jq < q && mutual);                                                                 \
+            merged += jq > q && mutual;                                                                  \
+        }                                                                                                \
+        /* shift the offers to clusters i+1 .. i+8, then offer i to them */                              \
+        lb = (float8)(lb.s1234, lb.s567, INFINITY);                                                      \
+        li = (uint8)(li.s1234, li.s567, 0xffffffffu);                                                    \
+        int8 better = (a < lb) | ((a == lb) & (li == (uint8)(0xffffffffu)) & ~bad);  /* INF ties too */  \
+        lb = select(lb, a, better);                                                                      \
+        li = select(li, (uint8)(i), better);                                                             \
+        /* shift in cluster i+9 */                                                                       \
+        uint jn = (TAIL) ? min(i + 9, n - 1) : i + 9;                                                    \
+        float4 nlo = cmin[jn], nhi = cmax[jn];                                                           \
+        wlx = (float8)(wlx.s1234, wlx.s567, nlo.x);                                                      \
+        wly = (float8)(wly.s1234, wly.s567, nlo.y);                                                      \
+        wlz = (float8)(wlz.s1234, wlz.s567, nlo.z);                                                      \
+        whx = (float8)(whx.s1234, whx.s567, nhi.x);                                                      \
+        why = (float8)(why.s1234, why.s567, nhi.y);                                                      \
+        whz = (float8)(whz.s1234, whz.s567, nhi.z);                                                      \
+    do {} while (0)
+
 __kernel void nearest_vec(__global const uint* cnt, uint p, __global const float4* cmin,
                           __global const float4* cmax, uint nb, __global uint* nn, __global uint* bsum) {
     uint b = get_global_id(0);
@@ -210,51 +259,12 @@ __kernel void nearest_vec(__global const uint* cnt, uint p, __global const float
     uint8 li = (uint8)(0xffffffffu);
     uint ring[NN_RING];  // neighbours of the last NN_RING clusters (valid from s - RADIUS on)
     uint q = s, kept = 0, merged = 0;  // q: the next cluster of the block to check for a mutual pair
-    for (uint i = i0; i < i1; ++i) {
-        float4 lo = cmin[i], hi = cmax[i];
-        float8 ex = fmax((float8)(hi.x), whx) - fmin((float8)(lo.x), wlx);
-        float8 ey = fmax((float8)(hi.y), why) - fmin((float8)(lo.y), wly);
-        float8 ez = fmax((float8)(hi.z), whz) - fmin((float8)(lo.z), wlz);
-        float8 a = ex * ey + ey * ez + ez * ex;
-        uint8 j = (uint8)(i) + lane;
-        int8 bad = (j > (uint8)(n - 1)) | (lane > (uint8)(RADIUS));
-        a = select(a, EMPTY8, isnan(a) | bad);
-        uint8 jid = select(j, (uint8)(0xffffffffu), bad);
-        // cluster i: best to the right (first lowest), then against the left offer
-        float4 m4 = fmin(a.lo, a.hi);
-        float2 m2 = fmin(m4.lo, m4.hi);
-        float rm = fmin(m2.x, m2.y);
-        uint8 cand = select((uint8)(0xffffffffu), jid, a == (float8)(rm));
-        uint4 c4 = min(cand.lo, cand.hi);
-        uint2 c2 = min(c4.lo, c4.hi);
-        uint rj = min(c2.x, c2.y);
-        float l0 = lb.s0;
-        uint lj = li.s0;
-        uint best = (l0 < rm || (l0 == rm && lj < rj)) ? lj : rj;
-        ring[i & (NN_RING - 1)] = best;
-        if (i >= s && i < e) nn[i] = best;
-        // a cluster's mutual check needs the neighbours up to RADIUS after it
-        for (; q < e && q + RADIUS <= i; ++q) {
-            uint jq = ring[q & (NN_RING - 1)];
-            bool mutual = ring[jq & (NN_RING - 1)] == q;
-            kept += !(jq < q && mutual);
-            merged += jq > q && mutual;
-        }
-        // shift the offers to clusters i+1 .. i+8, then offer i to them
-        lb = (float8)(lb.s1234, lb.s567, INFINITY);
-        li = (uint8)(li.s1234, li.s567, 0xffffffffu);
-        int8 better = (a < lb) | ((a == lb) & (li == (uint8)(0xffffffffu)) & ~bad);  // INF ties too
-        lb = select(lb, a, better);
-        li = select(li, (uint8)(i), better);
-        // shift in cluster i+9
-        uint jn = min(i + 9, n - 1);
-        float4 nlo = cmin[jn], nhi = cmax[jn];
-        wlx = (float8)(wlx.s1234, wlx.s567, nlo.x);
-        wly = (float8)(wly.s1234, wly.s567, nlo.y);
-        wlz = (float8)(wlz.s1234, wlz.s567, nlo.z);
-        whx = (float8)(whx.s1234, whx.s567, nhi.x);
-        why = (float8)(why.s1234, why.s567, nhi.y);
-        whz = (float8)(whz.s1234, whz.s567, nhi.z);
+    uint im = max(i0, min(i1, n > 9 ? n - 9 : 0));  // clusters from im on have a neighbour past the end
+    for (uint i = i0; i < im; ++i) {
+        NEAREST_VEC_STEP(0);
+    }
+    for (uint i = im; i < i1; ++i) {
+        NEAREST_VEC_STEP(1);
     }
     for (; q < e; ++q) {  // the last clusters (i1 = n): every neighbour is known
         uint jq = ring[q & (NN_RING - 1)];
