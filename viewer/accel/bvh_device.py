@@ -11,13 +11,18 @@ Algorithm (kernels in bvh_device.cl)
 1. The triangles are read in place (USE_HOST_PTR). The bounds of the box centres (per block on
    the device, one read; no centre arrays: 120 MB of fresh pages at 10 M) span a cubic 1024^3
    grid; 30-bit Morton codes of the centres are sorted with the project's radix sort
-   (viewer.cl.primitives, 4 digit passes); the dead keys then hold the nearest neighbours.
+   (viewer.cl.primitives, 4 digit passes, its other halves in cluster-box pages the first PLOC
+   iteration writes anyway); the dead keys then hold the nearest neighbours.
 2. PLOC (Meister & Bittner 2018): the clusters (one per triangle at first, boxes recomputed from
    the triangles) stay in Morton order; each finds the cluster within `radius` positions whose
    merged box has the least surface area (ties to the lower index: the closest pair overall is
    always mutual, so every iteration merges). For radius <= 8 `nearest_vec` does it eight pairs
    at a time (a float8 window of the next clusters' boxes, the same float operations, so the same
-   neighbours). Mutual pairs merge into a new inner node in the lower slot. An iteration is 3
+   neighbours). The first `radius1_iterations` (1) search radius 1 (`nearest_r1`: one area a
+   cluster instead of eight; on the Morton-ordered triangles nearly every radius-8 choice of the
+   first iteration is an adjacent triangle: 99.996% on the city, whose SAH cost moves by 0.01%;
+   scanned meshes lose about 1.5%, docs/bvh-device.md). Mutual pairs merge into a new inner node
+   in the lower slot. An iteration is 3
    launches: nearest with per-block counts of kept clusters and merges (`nearest_vec` runs from
    2 RADIUS clusters before its block to RADIUS after it, so it knows every neighbour its
    clusters' mutual checks read; the other searches have a `count_blocks` launch of their own);
@@ -41,6 +46,8 @@ Algorithm (kernels in bvh_device.cl)
    tree fits (its pages are already touched), which the BVH keeps and maps (zero-copy on a CPU
    device). BuildStats are summed on the device (float64 per block of nodes; tree_stats on a
    device without float64).
+On a CPU device `merge_scatter` and `level_place` prefetch the random node records they will read
+PREFETCH clusters / nodes ahead (the out-of-order core then overlaps those misses).
 Host round trips: the centre bounds, one count read every `check_every` PLOC iterations, one read
 of the root, kept-node count and height, one finish per timed phase (5), the stats' block sums,
 and the map of the finished tree. Page faults dominate a cold build on a CPU device (about
@@ -76,9 +83,10 @@ RADIUS1_ITERATIONS = 1
 PREFETCH = 8
 #: device bytes per triangle of the buffers build() allocates (bounds: only the pages a build writes
 #: are ever touched): input (the host array itself on a CPU device), keys (later the nearest
-#: neighbours) + perm (the sort's other halves are in the cluster boxes), inner node records (48 bytes), cluster boxes x 2 (with the node ids), and the
-#: finished tree (13 words a kept node, m <= 2n - 1 (about 0.9 n in practice), and tri_order: in the
-#: cluster-box buffer when it fits, which the BVH then keeps; else a buffer of its own)
+#: neighbours) + perm (the sort's other halves are in the cluster boxes), inner node records (48
+#: bytes), cluster boxes x 2 (with the node ids), and the finished tree (13 words a kept node,
+#: m <= 2n - 1 (about 0.9 n in practice), and tri_order: in the cluster-box buffer when it fits,
+#: which the BVH then keeps; else a buffer of its own)
 OUT_BYTES_PER_TRIANGLE = 2 * 13 * 4 + 4
 BYTES_PER_TRIANGLE = 36 + 8 + 48 + 2 * 32 + OUT_BYTES_PER_TRIANGLE
 _KERNELS = ("centre_bounds", "morton", "init_leaves", "nearest", "nearest_block", "nearest_vec", "nearest_r1",

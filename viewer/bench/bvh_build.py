@@ -127,7 +127,8 @@ def run(args) -> int:
             rows.append(r)
             ratio = f", {r['sah_ratio']:.3f}x sah" if r["sah_ratio"] is not None and builder != "sah" else ""
             print(f"city {scene.triangle_count:>10,} tris {builder:>6}: build {r['build_time_s']:.2f} s "
-                  f"({r['throughput_mtris_per_s']:.2f} Mtri/s; CPU {cpu:.2f} s, load {load:.1f}), {r['nodes']:,} nodes, depth {r['depth']}, "
+                  f"({r['throughput_mtris_per_s']:.2f} Mtri/s; CPU {cpu:.2f} s, load {load:.1f}), "
+                  f"{r['nodes']:,} nodes, depth {r['depth']}, "
                   f"SAH {r['sah_cost']:.1f}{ratio}; BVH4 collapse (host) {r['bvh4_time_s']:.2f} s"
                   + (f", (device) {r['bvh4_device_time_s']:.2f} s" if device4 else ""), flush=True)
             del bvh
