@@ -46,6 +46,23 @@ def test_small_sizes(n):
         assert bvh.stats.nodes == 1
 
 
+@pytest.mark.parametrize("value", [np.nan, np.inf, -np.inf])
+@pytest.mark.parametrize("where", [0, 777, 4999])
+def test_non_finite_input_refused(value, where):
+    """The device build checks the coordinates on the device (centre_bounds) with the SAH build's
+    error; huge finite coordinates are accepted."""
+    from viewer.accel.bvh import NON_FINITE
+
+    tris = random_tris(5000, seed=2)
+    tris[where, where % 3, (where // 3) % 3] = value
+    with pytest.raises(ValueError, match=NON_FINITE):
+        device_bvh(tris)
+    with pytest.raises(ValueError, match=NON_FINITE):
+        build_bvh(tris)
+    tris[where] = 3e38  # finite: no error
+    check_tree(device_bvh(tris), tris)
+
+
 @pytest.mark.parametrize("make", [random_tris, clustered_tris, box_grid_tris])
 def test_scenes_structure_and_bvh4(make):
     tris = make(6000, seed=3)

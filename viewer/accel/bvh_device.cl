@@ -47,20 +47,27 @@ inline void tri_box(__global const float* tri, uint t, float4* lo, float4* hi) {
 }
 
 // Per block of triangles: the bounds of their box centres (part[2 b] min, part[2 b + 1] max; the
-// host takes the blocks' min / max, exact). No centre arrays: `morton` recomputes the centres.
+// host takes the blocks' min / max, exact) and whether a vertex coordinate is not finite (part[2 b].w
+// 1, else 0: the build's input check, here in parallel instead of a pass over the array on the
+// host). No centre arrays: `morton` recomputes the centres.
 __kernel void centre_bounds(__global const float* tri, uint n, uint nb, __global float4* part) {
     uint b = get_global_id(0);
     if (b >= nb) return;
     uint s, e;
     block_range(b, nb, n, &s, &e);
     float4 clo = (float4)(INFINITY), chi = (float4)(-INFINITY);
+    int4 finite = (int4)(-1);
     for (uint i = s; i < e; ++i) {
-        float4 lo, hi;
-        tri_box(tri, i, &lo, &hi);
+        __global const float* v = tri + 9 * (size_t)i;
+        float4 a = (float4)(v[0], v[1], v[2], 0.0f), c = (float4)(v[3], v[4], v[5], 0.0f),
+               d = (float4)(v[6], v[7], v[8], 0.0f);
+        finite &= isfinite(a) & isfinite(c) & isfinite(d);
+        float4 lo = fmin(fmin(a, c), d), hi = fmax(fmax(a, c), d);
         float4 m = (lo + hi) * 0.5f;
         clo = fmin(clo, m);
         chi = fmax(chi, m);
     }
+    clo.w = all(finite) ? 0.0f : 1.0f;
     part[2 * b] = clo;
     part[2 * b + 1] = chi;
 }

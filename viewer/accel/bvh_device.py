@@ -65,7 +65,7 @@ from typing import Any
 
 import numpy as np
 
-from viewer.accel.bvh import BVH, GPU_NODE_DTYPE, GPU_TRI_DTYPE, BuildStats, _validate, tree_stats
+from viewer.accel.bvh import BVH, GPU_NODE_DTYPE, GPU_TRI_DTYPE, NON_FINITE, BuildStats, _validate, tree_stats
 from viewer.cl import io as clio
 from viewer.cl.limits import new_buffer
 from viewer.cl.pool import BufferPool
@@ -196,7 +196,7 @@ class DeviceBvhBuilder:
         """The BVH of float32 triangles (N, 3, 3); same contract as viewer.accel.bvh.build_bvh."""
         t_start = time.perf_counter()
         self.phases = {}
-        tri = _validate(triangles)
+        tri = _validate(triangles, check_finite=False)  # centre_bounds checks on the device
         n = len(tri)
         if n >= 2**30:
             raise ValueError("at most 2**30 triangles")
@@ -210,6 +210,9 @@ class DeviceBvhBuilder:
         part = b("bounds", 32 * nbc)
         self._task("centre_bounds", nbc, tri_buf, u(n), u(nbc), part)
         part = self._read(part, 8 * nbc, np.float32).reshape(nbc, 2, 4)
+        if part[:, 0, 3].any():
+            tri_buf.release()
+            raise ValueError(NON_FINITE)
         t = self._phase("upload+boxes", t_start)
 
         # -- Morton codes, sorted ---------------------------------------------------------------
