@@ -145,6 +145,47 @@ def test_occlusion_culled_gbuffer_equals_the_unculled_one(gl_ctx, city, preview)
         r.release()
 
 
+def test_first_frame_and_jumps_guess_the_occluders(gl_ctx, city, monkeypatch):
+    """Without a last frame (a new culler) or after a camera jump, phase 1 draws a guess (the nodes
+    nearest the camera, up to a triangle budget per pixel), so the first frame of a street view
+    already culls much of the pyramid; a small move keeps last frame's set. The picture is the
+    unculled one. (A budget of 0.1 triangle a pixel: this 20 k city at 96x54 holds about a triangle
+    a pixel in view, so the default budget would guess everything in view.)"""
+    import viewer.passes.occlusion as occlusion
+    from viewer.renderer import Renderer
+
+    monkeypatch.setattr(occlusion, "SEED_TRIANGLES_PER_PIXEL", 0.1)
+    street = _cameras(city.scene)[1]
+    r = Renderer(gl_ctx, city.scene, city.bvh, SIZE, "glsl")
+    g = r.gbuffer
+    try:
+        g.occlusion = False
+        g.render(street)
+        full = [read_texture(t).copy() for t in (g.tri_id, g.position)]
+        frustum_drawn = g.drawn_triangles
+        g.occlusion = True
+        occ = g._occluder
+        assert occ._last_view is None  # never drawn with occlusion yet
+        g.render(street)
+        budget = 0.1 * SIZE[0] * SIZE[1]
+        assert 0 < occ.seeded < occ.count
+        # the guess holds the budget, overshooting by less than one node
+        assert budget <= occ.seeded_triangles <= budget + int(occ._cut.count.max()), occ.seeded_triangles
+        assert g.drawn_triangles < 0.6 * frustum_drawn, (g.drawn_triangles, frustum_drawn)
+        ids, pos = (read_texture(t) for t in (g.tri_id, g.position))
+        same = (ids == full[0])[..., 0]
+        assert same.mean() >= 0.995
+        np.testing.assert_array_equal(pos[same], full[1][same])
+        eye, fwd = np.asarray(street.position), np.asarray(street.forward)
+        g.render(Camera.look_at(eye + 1e-3 * fwd, eye + fwd))  # a small step: last frame's set
+        assert occ.seeded == 0
+        g.render(Camera.look_at(eye, eye - fwd))  # turned around: a jump, guessed again
+        assert occ.seeded > 0
+    finally:
+        g.occlusion = True
+        r.release()
+
+
 def test_occlusion_pyramid_bounds_the_exact_distances(gl_ctx, city):
     """The exact raster writes no position before its resolve, so its occlusion pyramid takes the
     distance from the depth t / (t + scale) (hiz.comp distanceAbove): at level 0 never nearer than

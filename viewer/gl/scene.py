@@ -1,4 +1,5 @@
-"""The scene on the GPU: BVH nodes, leaf-ordered triangles, materials and raster vertices."""
+"""The scene on the GPU: BVH nodes, leaf-ordered triangles and materials (the raster pulls its
+vertices from the triangles: viewer/shaders/gbuffer.vert)."""
 
 from __future__ import annotations
 
@@ -15,7 +16,7 @@ from viewer.scene import Scene
 
 @dataclass
 class GpuScene:
-    """The scene on the GPU: BVH nodes, leaf-ordered triangles, materials, raster vertices.
+    """The scene on the GPU: BVH nodes, leaf-ordered triangles, materials.
 
     Triangle ids everywhere are leaf-order slots (the scene passed in must already be
     reordered with `Scene.reordered(bvh.tri_order)`).
@@ -27,7 +28,6 @@ class GpuScene:
 
     tris: moderngl.Buffer
     materials: moderngl.Buffer
-    vertices: moderngl.Buffer  # float32 (3N, 3) positions, for rasterization
     triangle_count: int
     stack_size: int
     memory_bytes: int
@@ -39,10 +39,10 @@ class GpuScene:
     def upload(ctx: moderngl.Context, scene: Scene, bvh: BVH) -> GpuScene:
         tris = scene.gpu_triangles()
         mats = scene.albedo_table()
-        verts = np.ascontiguousarray(scene.triangles.reshape(-1, 3), dtype=np.float32)
         # the arrays themselves (buffer protocol), not tobytes() copies: at 10 M triangles those
-        # were 1.9 s of the first frame
-        bufs = [ctx.buffer(np.ascontiguousarray(a)) for a in (tris, mats, verts)]
+        # were 1.9 s of the first frame. No vertex buffer: the raster reads the triangles (vertex
+        # pulling), 36 bytes a triangle less to pack, upload and keep.
+        bufs = [ctx.buffer(np.ascontiguousarray(a)) for a in (tris, mats)]
         return GpuScene(*bufs, triangle_count=scene.triangle_count,
                         stack_size=int(max(16, bvh.stats.depth + 4)),
                         memory_bytes=sum(b.size for b in bufs), bvh=bvh, ctx=ctx)
@@ -63,13 +63,12 @@ class GpuScene:
         return self.require_nodes()
 
     def update(self, scene: Scene, bvh: BVH) -> None:
-        """Moved triangles (animated scenes): rewrite nodes, triangles and raster vertices in place.
+        """Moved triangles (animated scenes): rewrite nodes and triangles in place.
         The buffers keep their identity, so every holder (G-buffer VAO, backends) sees the new
         geometry; sizes must match (same triangle count, same tree topology: a refit)."""
         self.bvh = bvh
         tris = gpu_triangles(scene.triangles, scene.material_ids).tobytes()
-        verts = np.ascontiguousarray(scene.triangles.reshape(-1, 3), dtype=np.float32).tobytes()
-        parts = [(self.tris, tris), (self.vertices, verts)]
+        parts = [(self.tris, tris)]
         if self._nodes is not None:  # not made yet: made from the new tree when first needed
             parts.append((self._nodes, bvh.gpu_nodes().tobytes()))
         for buf, data in parts:
@@ -86,7 +85,7 @@ class GpuScene:
         self.materials.bind_to_storage_buffer(BIND_MATERIALS)
 
     def release(self) -> None:
-        for b in (self._nodes, self.tris, self.materials, self.vertices):
+        for b in (self._nodes, self.tris, self.materials):
             if b is not None:
                 b.release()
         self._nodes = None

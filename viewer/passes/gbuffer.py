@@ -42,7 +42,7 @@ from viewer.camera import Camera
 from viewer.gl.programs import FullscreenQuad, ProgramCache
 from viewer.gl.scene import GpuScene
 from viewer.gl.textures import float_depth_texture, float_texture, int_texture
-from viewer.passes.cull import Cut, bvh_cut, indirect_commands, visible_ranges
+from viewer.passes.cull import Cut, bvh_cut, cut_target, indirect_commands, visible_ranges
 from viewer.passes.occlusion import OcclusionCuller
 from viewer.passes.targets import SizedTargets
 from viewer.passes.uniforms import apply, camera_uniforms
@@ -59,7 +59,7 @@ class GBufferPass(SizedTargets):
         self.fill = programs.get("fullscreen.vert", "gbuffer_fill.frag")
         self.resolve = programs.get("fullscreen.vert", "gbuffer_fill.frag", {"RESOLVE": 1})
         self._quad = FullscreenQuad(ctx)  # the resolve's draw (counted by viewer.gl.io)
-        self.vao = ctx.vertex_array(self.program, [(gpu_scene.vertices, "3f", "in_pos")])
+        self.vao = ctx.vertex_array(self.program, [])
         self._programs = programs
         self._preview: tuple[moderngl.Program, moderngl.VertexArray] | None = None  # made on first use
         self.cull = True  # frustum culling by BVH subtrees (False: draw every triangle)
@@ -77,7 +77,7 @@ class GBufferPass(SizedTargets):
         same_topology = (self.bvh is not None and np.array_equal(bvh.node_first, self.bvh.node_first)
                          and np.array_equal(bvh.node_count, self.bvh.node_count))
         if self._cut is None or not same_topology:
-            self._cut = bvh_cut(bvh)
+            self._cut = bvh_cut(bvh, cut_target(len(bvh.tri_order)))
             if self._indirect is not None:
                 self._indirect.release()
             self._indirect = self.ctx.buffer(reserve=max(len(self._cut.nodes), 1) * 20)
@@ -113,7 +113,7 @@ class GBufferPass(SizedTargets):
     def _preview_program(self) -> tuple[moderngl.Program, moderngl.VertexArray]:
         if self._preview is None:
             prog = self._programs.get("gbuffer.vert", "gbuffer.frag", {"PREVIEW": 1})
-            self._preview = prog, self.ctx.vertex_array(prog, [(self.gpu_scene.vertices, "3f", "in_pos")])
+            self._preview = prog, self.ctx.vertex_array(prog, [])
         return self._preview
 
     def render(self, camera: Camera, preview: bool = False) -> None:

@@ -14,10 +14,17 @@ uniforms and reads nothing. Per frame, over the BVH cut of viewer.passes.cull:
    one multi-draw-indirect.
 4. the pyramid again, and phase 3: the nodes not hidden by the final image are next frame's set.
 
+With no last frame (the first draw) or a camera jump (`jumped`: moved or turned too far for last
+frame's set to hide much), phase 1's set is a guess made on the host instead (`seed`): the nodes in
+the view pyramid nearest the camera, up to SEED_TRIANGLES_PER_PIXEL triangles a pixel. What is
+near hides what is far, so phase 2 then culls nearly as well as with a real last frame (city 10 M
+at 320x180: first frame 7.9 M triangles drawn, 3.9 s on llvmpipe -> 1.17 M, 0.74 s). A guess only
+decides the draw order: the picture is the same.
+
 Exact: a node is dropped only when every fragment it could produce would fail the depth test, so
 the G-buffer is the unculled one (tests/test_gbuffer_cull.py; ties between equal distances on shared
-edges may resolve in the other order, as the draw order changes). A camera jump costs one frame
-more raster work (phase 2 draws what became visible), never a wrong pixel.
+edges may resolve in the other order, as the draw order changes). A camera move costs raster work
+(phase 2 draws what became visible), never a wrong pixel.
 
 Buffers (std430): nodes (K, 8) of {vec3 lo; int first; vec3 hi; int count} = 32 bytes per node,
 visible uint32 (K,), two command buffers uint32 (K, 5) (DrawArraysIndirectCommand + a padding word,
@@ -41,6 +48,9 @@ from viewer.passes.cull import Cut, frustum_planes
 from viewer.passes.uniforms import apply, camera_uniforms
 
 HIZ_TEXTURE_UNIT = 7  # texture units used while culling (the G-buffer pass binds none of its own)
+SEED_TRIANGLES_PER_PIXEL = 1.0  # phase 1's guessed set without a last frame: the nearest nodes, up to this
+JUMP_DISTANCE = 0.1  # a camera jump: moved this fraction of the cut's extent, or turned by over
+JUMP_COS = 0.7  # ~45 degrees (cosine between the old and new view directions below this)
 
 
 def pyramid_levels(size: tuple[int, int]) -> int:
@@ -58,11 +68,14 @@ class OcclusionCuller:
         self.count = len(cut.nodes)
         k = max(self.count, 1)
         self.nodes = ctx.buffer(reserve=k * 32)
-        self.visible = ctx.buffer(np.ones(k, np.uint32).tobytes())  # first frame: everything in view
+        self.visible = ctx.buffer(np.ones(k, np.uint32).tobytes())  # replaced by `seed` on the first draw
         self.cmds = (ctx.buffer(reserve=k * 20), ctx.buffer(reserve=k * 20))
         self.stats = ctx.buffer(reserve=16)
         self._hiz: moderngl.Texture | None = None
         self._cut = cut
+        self._last_view: tuple[np.ndarray, np.ndarray] | None = None  # (eye, forward) of the last draw
+        self.seeded = 0  # nodes the last `seed` put in phase 1's set (0: last frame's set was used)
+        self.seeded_triangles = 0  # and the triangles they hold
         self.set_boxes(bvh)
 
     def set_boxes(self, bvh: BVH) -> None:
@@ -75,6 +88,42 @@ class OcclusionCuller:
         ints[:n, 3] = self._cut.first
         ints[:n, 7] = self._cut.count
         glio.write(self.nodes, rec)
+        self._lo = bvh.node_min[self._cut.nodes].astype(np.float64)  # for `seed`
+        self._hi = bvh.node_max[self._cut.nodes].astype(np.float64)
+        extent = (self._hi.max(axis=0) - self._lo.min(axis=0)) if n else np.zeros(3)
+        self._extent = float(np.linalg.norm(extent))
+
+    def jumped(self, camera: Camera) -> bool:
+        """No last frame, or the camera moved or turned so far that last frame's set says little."""
+        if self._last_view is None:
+            return True
+        eye, fwd = self._last_view
+        new_eye = np.asarray(camera.position, np.float64)
+        new_fwd = np.asarray(camera.forward, np.float64)
+        return bool(np.linalg.norm(new_eye - eye) > JUMP_DISTANCE * self._extent
+                    or float(new_fwd @ fwd) < JUMP_COS)
+
+    def seed(self, camera: Camera, size: tuple[int, int]) -> None:
+        """Phase 1's set guessed on the host (see the module docstring): the nodes in the view
+        pyramid by distance from the camera to their box, nearest first, until they hold
+        SEED_TRIANGLES_PER_PIXEL triangles a pixel (at least one node). One vectorised pass over
+        the cut and one small upload (4 bytes a node), only on a first draw or a jump."""
+        if self.count == 0:
+            return
+        eye = np.asarray(camera.position, np.float64)
+        lo, hi = self._lo - eye, self._hi - eye
+        near = np.linalg.norm(np.maximum(np.maximum(lo, -hi), 0.0), axis=1)  # 0 when the eye is inside
+        planes = frustum_planes(camera, size[0] / size[1])
+        far = np.where(planes[None, :, :] >= 0, hi[:, None, :], lo[:, None, :])
+        inside = (np.einsum("kpj,pj->kp", far, planes) >= 0).all(axis=1)  # a guess: no tolerance needed
+        order = np.argsort(np.where(inside, near, np.inf), kind="stable")[: int(inside.sum())]
+        held = np.cumsum(self._cut.count[order])
+        take = int(np.searchsorted(held, SEED_TRIANGLES_PER_PIXEL * size[0] * size[1])) + 1
+        visible = np.zeros(self.count, np.uint32)
+        visible[order[:take]] = 1
+        glio.write(self.visible, visible)
+        self.seeded = min(take, len(order))
+        self.seeded_triangles = int(held[self.seeded - 1]) if self.seeded else 0
 
     def _pyramid(self, size: tuple[int, int]) -> moderngl.Texture:
         if self._hiz is None or self._hiz.size != tuple(size):
@@ -127,8 +176,12 @@ class OcclusionCuller:
         `position`, or from `depth`: see _build_pyramid)."""
         if self.count == 0:
             return
+        self.seeded = self.seeded_triangles = 0
+        if self.jumped(camera):
+            self.seed(camera, size)
         sel = self.select
         eye = np.asarray(camera.position, np.float64)
+        self._last_view = (eye, np.asarray(camera.forward, np.float64))
         apply(sel, camera_uniforms(camera, size))
         sel["nNodes"] = self.count
         sel["planes"].write(frustum_planes(camera, size[0] / size[1]).astype(np.float32).tobytes())
