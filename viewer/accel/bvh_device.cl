@@ -284,22 +284,36 @@ __kernel void nearest_vec(__global const uint* cnt, uint p, __global const float
 }
 #endif
 
-// Merged area of clusters k and k + 1 (NaN as infinity, as in the searches above).
-inline float pair_area(__global const float4* cmin, __global const float4* cmax, uint k) {
-    float a = half_area(fmin(cmin[k], cmin[k + 1]), fmax(cmax[k], cmax[k + 1]));
+// Cluster k's box: from the cluster arrays, or (from_tri, the first iteration fused with
+// init_leaves) triangle perm[k]'s box with its node id k in the min's spare lane, as init_leaves
+// writes it. from_tri is a constant in each kernel, so the branch folds away.
+inline void load_cluster(int from_tri, __global const float* tri, __global const uint* perm,
+                         __global const float4* cmin, __global const float4* cmax, uint k, float4* lo, float4* hi) {
+    if (from_tri) {
+        tri_box(tri, perm[k], lo, hi);
+        (*lo).w = as_float(k);
+    } else {
+        *lo = cmin[k];
+        *hi = cmax[k];
+    }
+}
+
+// Merged area of two clusters (NaN as infinity, as in the searches above).
+inline float merged_area(float4 alo, float4 ahi, float4 blo, float4 bhi) {
+    float a = half_area(fmin(alo, blo), fmax(ahi, bhi));
     return isnan(a) ? INFINITY : a;
 }
 
 // The nearest neighbours for radius 1 (the first PLOC iteration: on a Morton-ordered triangle soup
 // nearly every triangle pairs with an adjacent one, e.g. 99.996% of the city's radius-8 choices):
 // the cheaper of the pairs (i - 1, i) and (i, i + 1), ties to the lower index, one area a cluster
-// (A(k) = pair_area(k) slides along). Like nearest_vec it counts per block the clusters kept
-// (bsum[b]) and the pairs merged (bsum[nb + b]): a block computes the neighbours from one cluster
-// before its range to one after it, which its clusters' mutual checks read.
-__kernel void nearest_r1(__global const uint* cnt, uint p, __global const float4* cmin,
-                         __global const float4* cmax, uint nb, __global uint* nn, __global uint* bsum) {
+// (A(k), the area of clusters k and k + 1, slides along). Like nearest_vec it counts per block the
+// clusters kept (bsum[b]) and the pairs merged (bsum[nb + b]): a block computes the neighbours from
+// one cluster before its range to one after it, which its clusters' mutual checks read.
+inline void nearest_r1_body(int from_tri, __global const float* tri, __global const uint* perm, uint n,
+                            __global const float4* cmin, __global const float4* cmax, uint nb,
+                            __global uint* nn, __global uint* bsum) {
     uint b = get_global_id(0);
-    uint n = cnt[p];
     if (b >= nb) return;
     uint s, e;
     block_range(b, nb, n, &s, &e);
@@ -309,11 +323,32 @@ __kernel void nearest_r1(__global const uint* cnt, uint p, __global const float4
         return;
     }
     uint i0 = s > 0 ? s - 1 : 0, i1 = min(e, n - 1);
-    float aprev = i0 > 0 ? pair_area(cmin, cmax, i0 - 1) : INFINITY;  // A(i - 1)
+    float4 lo, hi, nlo, nhi;  // clusters i and i + 1
+    float aprev = INFINITY;  // A(i - 1)
+    if (i0 > 0) {
+        load_cluster(from_tri, tri, perm, cmin, cmax, i0 - 1, &lo, &hi);
+        load_cluster(from_tri, tri, perm, cmin, cmax, i0, &nlo, &nhi);
+        aprev = merged_area(lo, hi, nlo, nhi);
+    } else {
+        load_cluster(from_tri, tri, perm, cmin, cmax, i0, &nlo, &nhi);
+    }
     uint n2 = 0xffffffffu, n1 = 0xffffffffu;  // the neighbours of clusters i - 2 and i - 1
     uint kept = 0, merged = 0;
     for (uint i = i0; i <= i1; ++i) {
-        float acur = i + 1 < n ? pair_area(cmin, cmax, i) : INFINITY;  // A(i)
+        lo = nlo;
+        hi = nhi;
+        float acur = INFINITY;  // A(i)
+#ifdef PREFETCH
+        if (from_tri && i + 1 + 2 * PREFETCH < n) {  // the triangle gathered 2 PREFETCH clusters on
+            __global const float* t = tri + 9 * (size_t)perm[i + 1 + 2 * PREFETCH];
+            __builtin_prefetch(t);
+            __builtin_prefetch(t + 8);
+        }
+#endif
+        if (i + 1 < n) {
+            load_cluster(from_tri, tri, perm, cmin, cmax, i + 1, &nlo, &nhi);
+            acur = merged_area(lo, hi, nlo, nhi);
+        }
         uint ni = (i > 0 && (i + 1 >= n || aprev <= acur)) ? i - 1 : i + 1;
         if (i >= s && i < e) nn[i] = ni;
         uint c = i - 1;  // cluster i - 1: its neighbours' neighbours are known now
@@ -330,6 +365,18 @@ __kernel void nearest_r1(__global const uint* cnt, uint p, __global const float4
     }
     bsum[b] = kept;
     bsum[nb + b] = merged;
+}
+
+__kernel void nearest_r1(__global const uint* cnt, uint p, __global const float4* cmin,
+                         __global const float4* cmax, uint nb, __global uint* nn, __global uint* bsum) {
+    nearest_r1_body(0, 0, 0, cnt[p], cmin, cmax, nb, nn, bsum);
+}
+
+// nearest_r1 over the triangles in Morton order, before any cluster array exists (the first
+// iteration fused with init_leaves: merge_leaves then writes only the merged clusters).
+__kernel void nearest_r1_leaves(__global const float* tri, __global const uint* perm, uint n, uint nb,
+                                __global uint* nn, __global uint* bsum) {
+    nearest_r1_body(1, tri, perm, n, 0, 0, nb, nn, bsum);
 }
 
 inline bool dropped(uint i, uint n, __global const uint* nn) {
@@ -396,18 +443,24 @@ inline float child_info(__global const float4* node, uint id, uint n_tri, float4
 // triangle (count 1, kept 1, height 0, cost its box's area, the box being its cluster's). The node's
 // SAH cost is the cheaper of a leaf and the split (traversal 1, intersection 1 per triangle, in area
 // units), as a bottom-up dynamic programme.
-__kernel void merge_scatter(__global const uint* cnt, uint p, __global const uint* nn, uint nb,
-                            __global const uint* bsum, __global const float4* cmin, __global const float4* cmax,
-                            __global float4* dmin, __global float4* dmax, uint n_tri, __global float4* node) {
+inline void merge_body(int from_tri, __global const float* tri, __global const uint* perm, uint n,
+                       __global const uint* nn, uint nb, __global const uint* bsum, __global const float4* cmin,
+                       __global const float4* cmax, __global float4* dmin, __global float4* dmax, uint n_tri,
+                       __global float4* node) {
     uint bk = get_global_id(0);
     if (bk >= nb) return;
-    uint n = cnt[p], s, e, o = bsum[bk], v = bsum[nb + bk];
+    uint s, e, o = bsum[bk], v = bsum[nb + bk];
     block_range(bk, nb, n, &s, &e);
     bool pairs = n > 1;
     for (uint i = s; i < e; ++i) {
 #ifdef PREFETCH
         uint ip = i + PREFETCH;
-        if (pairs && ip < e) {  // the child records a merge reads PREFETCH clusters on
+        if (from_tri && i + 2 * PREFETCH < e) {  // the triangles gathered 2 PREFETCH clusters on
+            __global const float* t = tri + 9 * (size_t)perm[i + 2 * PREFETCH];
+            __builtin_prefetch(t);
+            __builtin_prefetch(t + 8);
+        }
+        if (!from_tri && pairs && ip < e) {  // the child records a merge reads PREFETCH clusters on
             uint jp = nn[ip];
             if (jp > ip) {
                 uint pa = as_uint(cmin[ip].w), pb = as_uint(cmin[jp].w);
@@ -420,7 +473,8 @@ __kernel void merge_scatter(__global const uint* cnt, uint p, __global const uin
         uint j = pairs ? nn[i] : i;
         bool mutual = j != i && nn[j] == i;
         if (mutual && j < i) continue;  // dropped: merged into cluster j
-        float4 alo = cmin[i], ahi = cmax[i];
+        float4 alo, ahi;
+        load_cluster(from_tri, tri, perm, cmin, cmax, i, &alo, &ahi);
         uint a = as_uint(alo.w);
         if (!mutual) {
             dmin[o] = alo;
@@ -428,7 +482,8 @@ __kernel void merge_scatter(__global const uint* cnt, uint p, __global const uin
             ++o;
             continue;
         }
-        float4 blo = cmin[j], bhi = cmax[j];
+        float4 blo, bhi;
+        load_cluster(from_tri, tri, perm, cmin, cmax, j, &blo, &bhi);
         uint b = as_uint(blo.w);
         float4 lo = fmin(alo, blo), hi = fmax(ahi, bhi);
         int ca, cb, ka, kb, ha, hb;
@@ -449,6 +504,20 @@ __kernel void merge_scatter(__global const uint* cnt, uint p, __global const uin
         ++o;
         ++v;
     }
+}
+
+__kernel void merge_scatter(__global const uint* cnt, uint p, __global const uint* nn, uint nb,
+                            __global const uint* bsum, __global const float4* cmin, __global const float4* cmax,
+                            __global float4* dmin, __global float4* dmax, uint n_tri, __global float4* node) {
+    merge_body(0, 0, 0, cnt[p], nn, nb, bsum, cmin, cmax, dmin, dmax, n_tri, node);
+}
+
+// merge_scatter of the first iteration fused with init_leaves: the clusters are the triangles in
+// Morton order (boxes gathered again, never written for all n), only the merged ones are written.
+__kernel void merge_leaves(__global const float* tri, __global const uint* perm, uint n, __global const uint* nn,
+                           uint nb, __global const uint* bsum, __global float4* dmin, __global float4* dmax,
+                           __global float4* node) {
+    merge_body(1, tri, perm, n, nn, nb, bsum, 0, 0, dmin, dmax, n, node);
 }
 
 // ---- layout -----------------------------------------------------------------------------------

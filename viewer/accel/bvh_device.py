@@ -90,7 +90,7 @@ PREFETCH = 8
 OUT_BYTES_PER_TRIANGLE = 2 * 13 * 4 + 4
 BYTES_PER_TRIANGLE = 36 + 8 + 48 + 2 * 32 + OUT_BYTES_PER_TRIANGLE
 _KERNELS = ("centre_bounds", "morton", "init_leaves", "nearest", "nearest_block", "nearest_vec", "nearest_r1",
-            "count_blocks",
+            "nearest_r1_leaves", "merge_leaves", "count_blocks",
             "scan_blocks", "merge_scatter", "root_count", "layout_root", "level_count", "level_scan", "level_place",
             "stats_blocks")
 
@@ -243,7 +243,11 @@ class DeviceBvhBuilder:
         marks = b("marks", 16)  # root id, kept nodes, root height (root_count)
         clio.copy(q, cnt, np.array([n, n], np.uint32), is_blocking=False)
         clio.copy(q, next_node, np.array([n], np.uint32), is_blocking=False)
-        self._run("init_leaves", n, tri_buf, perm, u(n), cmin[0], cmax[0])  # node ids in cmin's w
+        # the first iteration at radius 1 straight from the triangles (nearest_r1_leaves, merge_leaves):
+        # no cluster array of all n triangles is written and read twice, only the merged clusters
+        fused = self.block_nearest and self.vector_nearest and self.radius1_iterations > 0 and n > 1
+        if not fused:
+            self._run("init_leaves", n, tri_buf, perm, u(n), cmin[0], cmax[0])  # node ids in cmin's w
         node_args = (u(n), node)
         p = 0  # cnt[p] is the current cluster count; cluster arrays [p] are current
         n_host = n
@@ -256,6 +260,14 @@ class DeviceBvhBuilder:
             bsum = b("bsum", 8 * nbm)
             for _ in range(self.check_every):
                 s = p
+                if fused and iters == 0:
+                    self._task("nearest_r1_leaves", nbn, tri_buf, perm, u(n), u(nbn), nn, bsum)
+                    self._task("scan_blocks", 1, bsum, u(nbm), cnt, u(p), next_node)
+                    self._task("merge_leaves", nbm, tri_buf, perm, u(n), nn, u(nbm), bsum, cmin[1 - s], cmax[1 - s],
+                               node)
+                    p = 1 - p
+                    iters += 1
+                    continue
                 if vec:
                     near = "nearest_r1" if iters < self.radius1_iterations else "nearest_vec"
                     self._task(near, nbn, cnt, u(p), cmin[s], cmax[s], u(nbn), nn, bsum)
