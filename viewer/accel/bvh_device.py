@@ -21,7 +21,9 @@ Algorithm (kernels in bvh_device.cl)
    neighbours). The first `radius1_iterations` (1) search radius 1 (`nearest_r1`: one area a
    cluster instead of eight; on the Morton-ordered triangles nearly every radius-8 choice of the
    first iteration is an adjacent triangle: 99.996% on the city, whose SAH cost moves by 0.01%;
-   scanned meshes lose about 1.5%, docs/bvh-device.md). Mutual pairs merge into a new inner node
+   scanned meshes lose up to 1.7%, docs/bvh-device.md); the first of them runs straight from the
+   triangles (`nearest_r1_leaves`, `merge_leaves`: no array of all n leaf clusters is written and
+   read twice, only the merged clusters are written). Mutual pairs merge into a new inner node
    in the lower slot. An iteration is 3
    launches: nearest with per-block counts of kept clusters and merges (`nearest_vec` runs from
    2 RADIUS clusters before its block to RADIUS after it, so it knows every neighbour its
