@@ -46,6 +46,23 @@ def test_small_sizes(n):
         assert bvh.stats.nodes == 1
 
 
+@pytest.mark.parametrize("value", [np.nan, np.inf, -np.inf])
+@pytest.mark.parametrize("where", [0, 777, 4999])
+def test_non_finite_input_refused(value, where):
+    """The device build checks the coordinates on the device (centre_bounds) with the SAH build's
+    error; huge finite coordinates are accepted."""
+    from viewer.accel.bvh import NON_FINITE
+
+    tris = random_tris(5000, seed=2)
+    tris[where, where % 3, (where // 3) % 3] = value
+    with pytest.raises(ValueError, match=NON_FINITE):
+        device_bvh(tris)
+    with pytest.raises(ValueError, match=NON_FINITE):
+        build_bvh(tris)
+    tris[where] = 3e38  # finite: no error
+    check_tree(device_bvh(tris), tris)
+
+
 @pytest.mark.parametrize("make", [random_tris, clustered_tris, box_grid_tris])
 def test_scenes_structure_and_bvh4(make):
     tris = make(6000, seed=3)
@@ -191,12 +208,13 @@ def test_block_nearest_equals_per_cluster_nearest():
     """The pair-once block kernels (scalar and eight pairs at a time) find the same neighbours as the
     plain per-cluster search (so the same tree), across block boundaries and with more blocks than
     clusters at the end."""
-    from viewer.accel.bvh_device import device_builder
+    from viewer.accel.bvh_device import RADIUS1_ITERATIONS, device_builder
 
     tris = box_grid_tris(5000, seed=8)
     b = device_builder()
     assert b.vector_nearest  # radius 8: eight pairs at a time
     try:
+        b.radius1_iterations = 0  # the radius-1 start is the vector path's only (tested below)
         b.block_nearest = False
         plain = b.build(tris)
         b.block_nearest, b.vector_nearest = True, False
@@ -205,9 +223,29 @@ def test_block_nearest_equals_per_cluster_nearest():
         vec = b.build(tris)
     finally:
         b.block_nearest = b.vector_nearest = True
+        b.radius1_iterations = RADIUS1_ITERATIONS
     for f in ("node_min", "node_max", "node_left", "node_right", "node_first", "node_count", "tri_order"):
         assert np.array_equal(getattr(plain, f), getattr(block, f)), f
         assert np.array_equal(getattr(plain, f), getattr(vec, f)), f
+
+
+@pytest.mark.parametrize("make,n", [(box_grid_tris, 5000), (random_tris, 3001), (clustered_tris, 20000),
+                                    (random_tris, 2)])
+def test_radius1_search_equals_vector_search_at_radius_1(make, n):
+    """nearest_r1 (the first iteration's search) finds the neighbours and per-block counts that
+    nearest_vec finds at radius 1, across block boundaries: every iteration at radius 1 gives the
+    same tree either way."""
+    from viewer.accel.bvh_device import DeviceBvhBuilder
+
+    tris = make(n, seed=5)
+    b = DeviceBvhBuilder(radius=1)
+    b.radius1_iterations = 0
+    vec = b.build(tris)
+    b.radius1_iterations = 10**9
+    r1 = b.build(tris)
+    for f in ("node_min", "node_max", "node_left", "node_right", "node_first", "node_count", "tri_order"):
+        assert np.array_equal(getattr(vec, f), getattr(r1, f)), f
+    b.release()
 
 
 def test_refuses_builds_the_device_cannot_hold(monkeypatch):

@@ -367,14 +367,19 @@ def _sweep_split(pool, cols, cent, sentinel, off, cnt, narea, size, ct, ci):
     return best_cost, go_left
 
 
-def _validate(triangles: np.ndarray) -> np.ndarray:
+NON_FINITE = "triangles contain non-finite coordinates"
+
+
+def _validate(triangles: np.ndarray, check_finite: bool = True) -> np.ndarray:
+    """The triangles as contiguous float32 (N, 3, 3), N > 0, finite (check_finite=False: the
+    caller checks that itself, e.g. the device build while it reads them anyway)."""
     tri = np.ascontiguousarray(triangles, dtype=np.float32)
     if tri.ndim != 3 or tri.shape[1:] != (3, 3):
         raise ValueError(f"triangles must have shape (N, 3, 3), got {tri.shape}")
     if len(tri) == 0:
         raise ValueError("cannot build a BVH over 0 triangles")
-    if not np.isfinite(tri).all():
-        raise ValueError("triangles contain non-finite coordinates")
+    if check_finite and not np.isfinite(tri).all():
+        raise ValueError(NON_FINITE)
     return tri
 
 

@@ -1,6 +1,8 @@
 // Device BVH build: Morton order + PLOC clustering + SAH leaf collapse (viewer/accel/bvh_device.py).
 // Defines: WG (work-items per group of the per-element kernels), RADIUS (PLOC search radius),
-// MAX_LEAF, MIN_LEAF (leaf sizes as in viewer/accel/bvh.py).
+// MAX_LEAF, MIN_LEAF (leaf sizes as in viewer/accel/bvh.py), PREFETCH (CPU devices only: how far
+// ahead merge_scatter and level_place ask for the random records they will read, with clang's
+// __builtin_prefetch; out-of-order cores then overlap those cache misses).
 //
 // Nodes 0..n-1 are the triangles in Morton order (node i = triangle perm[i]); merged (inner) nodes
 // get ids n, n+1, ... from a node counter (per iteration, in cluster order), so a child's id is
@@ -45,20 +47,27 @@ inline void tri_box(__global const float* tri, uint t, float4* lo, float4* hi) {
 }
 
 // Per block of triangles: the bounds of their box centres (part[2 b] min, part[2 b + 1] max; the
-// host takes the blocks' min / max, exact). No centre arrays: `morton` recomputes the centres.
+// host takes the blocks' min / max, exact) and whether a vertex coordinate is not finite (part[2 b].w
+// 1, else 0: the build's input check, here in parallel instead of a pass over the array on the
+// host). No centre arrays: `morton` recomputes the centres.
 __kernel void centre_bounds(__global const float* tri, uint n, uint nb, __global float4* part) {
     uint b = get_global_id(0);
     if (b >= nb) return;
     uint s, e;
     block_range(b, nb, n, &s, &e);
     float4 clo = (float4)(INFINITY), chi = (float4)(-INFINITY);
+    int4 finite = (int4)(-1);
     for (uint i = s; i < e; ++i) {
-        float4 lo, hi;
-        tri_box(tri, i, &lo, &hi);
+        __global const float* v = tri + 9 * (size_t)i;
+        float4 a = (float4)(v[0], v[1], v[2], 0.0f), c = (float4)(v[3], v[4], v[5], 0.0f),
+               d = (float4)(v[6], v[7], v[8], 0.0f);
+        finite &= isfinite(a) & isfinite(c) & isfinite(d);
+        float4 lo = fmin(fmin(a, c), d), hi = fmax(fmax(a, c), d);
         float4 m = (lo + hi) * 0.5f;
         clo = fmin(clo, m);
         chi = fmax(chi, m);
     }
+    clo.w = all(finite) ? 0.0f : 1.0f;
     part[2 * b] = clo;
     part[2 * b + 1] = chi;
 }
@@ -180,6 +189,55 @@ __kernel void nearest_block(__global const uint* cnt, uint p, __global const flo
 // clusters kept, bsum[nb + b] = the pairs merged.
 #define EMPTY8 ((float8)(INFINITY))
 #define NN_RING 32
+// One step of nearest_vec for cluster i; TAIL 0: i + 9 < n (no neighbour past the end: the masks
+// are constants and fold away), 1: near the end.
+#define NEAREST_VEC_STEP(TAIL)                                                                           \
+        float4 lo = cmin[i], hi = cmax[i];                                                               \
+        float8 ex = fmax((float8)(hi.x), whx) - fmin((float8)(lo.x), wlx);                               \
+        float8 ey = fmax((float8)(hi.y), why) - fmin((float8)(lo.y), wly);                               \
+        float8 ez = fmax((float8)(hi.z), whz) - fmin((float8)(lo.z), wlz);                               \
+        float8 a = ex * ey + ey * ez + ez * ex;                                                          \
+        uint8 j = (uint8)(i) + lane;                                                                     \
+        int8 bad = (TAIL) ? (j > (uint8)(n - 1)) | (lane > (uint8)(RADIUS)) : (lane > (uint8)(RADIUS));  \
+        a = select(a, EMPTY8, isnan(a) | bad);                                                           \
+        uint8 jid = select(j, (uint8)(0xffffffffu), bad);                                                \
+        /* cluster i: best to the right (first lowest), then against the left offer */                   \
+        float4 m4 = fmin(a.lo, a.hi);                                                                    \
+        float2 m2 = fmin(m4.lo, m4.hi);                                                                  \
+        float rm = fmin(m2.x, m2.y);                                                                     \
+        uint8 cand = select((uint8)(0xffffffffu), jid, a == (float8)(rm));                               \
+        uint4 c4 = min(cand.lo, cand.hi);                                                                \
+        uint2 c2 = min(c4.lo, c4.hi);                                                                    \
+        uint rj = min(c2.x, c2.y);                                                                       \
+        float l0 = lb.s0;                                                                                \
+        uint lj = li.s0;                                                                                 \
+        uint best = (l0 < rm || (l0 == rm && lj < rj)) ? lj : rj;                                        \
+        ring[i & (NN_RING - 1)] = best;                                                                  \
+        if (i >= s && i < e) nn[i] = best;                                                               \
+        /* a cluster's mutual check needs the neighbours up to RADIUS after it */                        \
+        for (; q < e && q + RADIUS <= i; ++q) {                                                          \
+            uint jq = ring[q & (NN_RING - 1)];                                                           \
+            bool mutual = ring[jq & (NN_RING - 1)] == q;                                                 \
+            kept += !(jq < q && mutual);                                                                 \
+            merged += jq > q && mutual;                                                                  \
+        }                                                                                                \
+        /* shift the offers to clusters i+1 .. i+8, then offer i to them */                              \
+        lb = (float8)(lb.s1234, lb.s567, INFINITY);                                                      \
+        li = (uint8)(li.s1234, li.s567, 0xffffffffu);                                                    \
+        int8 better = (a < lb) | ((a == lb) & (li == (uint8)(0xffffffffu)) & ~bad);  /* INF ties too */  \
+        lb = select(lb, a, better);                                                                      \
+        li = select(li, (uint8)(i), better);                                                             \
+        /* shift in cluster i+9 */                                                                       \
+        uint jn = (TAIL) ? min(i + 9, n - 1) : i + 9;                                                    \
+        float4 nlo = cmin[jn], nhi = cmax[jn];                                                           \
+        wlx = (float8)(wlx.s1234, wlx.s567, nlo.x);                                                      \
+        wly = (float8)(wly.s1234, wly.s567, nlo.y);                                                      \
+        wlz = (float8)(wlz.s1234, wlz.s567, nlo.z);                                                      \
+        whx = (float8)(whx.s1234, whx.s567, nhi.x);                                                      \
+        why = (float8)(why.s1234, why.s567, nhi.y);                                                      \
+        whz = (float8)(whz.s1234, whz.s567, nhi.z);                                                      \
+    do {} while (0)
+
 __kernel void nearest_vec(__global const uint* cnt, uint p, __global const float4* cmin,
                           __global const float4* cmax, uint nb, __global uint* nn, __global uint* bsum) {
     uint b = get_global_id(0);
@@ -208,51 +266,12 @@ __kernel void nearest_vec(__global const uint* cnt, uint p, __global const float
     uint8 li = (uint8)(0xffffffffu);
     uint ring[NN_RING];  // neighbours of the last NN_RING clusters (valid from s - RADIUS on)
     uint q = s, kept = 0, merged = 0;  // q: the next cluster of the block to check for a mutual pair
-    for (uint i = i0; i < i1; ++i) {
-        float4 lo = cmin[i], hi = cmax[i];
-        float8 ex = fmax((float8)(hi.x), whx) - fmin((float8)(lo.x), wlx);
-        float8 ey = fmax((float8)(hi.y), why) - fmin((float8)(lo.y), wly);
-        float8 ez = fmax((float8)(hi.z), whz) - fmin((float8)(lo.z), wlz);
-        float8 a = ex * ey + ey * ez + ez * ex;
-        uint8 j = (uint8)(i) + lane;
-        int8 bad = (j > (uint8)(n - 1)) | (lane > (uint8)(RADIUS));
-        a = select(a, EMPTY8, isnan(a) | bad);
-        uint8 jid = select(j, (uint8)(0xffffffffu), bad);
-        // cluster i: best to the right (first lowest), then against the left offer
-        float4 m4 = fmin(a.lo, a.hi);
-        float2 m2 = fmin(m4.lo, m4.hi);
-        float rm = fmin(m2.x, m2.y);
-        uint8 cand = select((uint8)(0xffffffffu), jid, a == (float8)(rm));
-        uint4 c4 = min(cand.lo, cand.hi);
-        uint2 c2 = min(c4.lo, c4.hi);
-        uint rj = min(c2.x, c2.y);
-        float l0 = lb.s0;
-        uint lj = li.s0;
-        uint best = (l0 < rm || (l0 == rm && lj < rj)) ? lj : rj;
-        ring[i & (NN_RING - 1)] = best;
-        if (i >= s && i < e) nn[i] = best;
-        // a cluster's mutual check needs the neighbours up to RADIUS after it
-        for (; q < e && q + RADIUS <= i; ++q) {
-            uint jq = ring[q & (NN_RING - 1)];
-            bool mutual = ring[jq & (NN_RING - 1)] == q;
-            kept += !(jq < q && mutual);
-            merged += jq > q && mutual;
-        }
-        // shift the offers to clusters i+1 .. i+8, then offer i to them
-        lb = (float8)(lb.s1234, lb.s567, INFINITY);
-        li = (uint8)(li.s1234, li.s567, 0xffffffffu);
-        int8 better = (a < lb) | ((a == lb) & (li == (uint8)(0xffffffffu)) & ~bad);  // INF ties too
-        lb = select(lb, a, better);
-        li = select(li, (uint8)(i), better);
-        // shift in cluster i+9
-        uint jn = min(i + 9, n - 1);
-        float4 nlo = cmin[jn], nhi = cmax[jn];
-        wlx = (float8)(wlx.s1234, wlx.s567, nlo.x);
-        wly = (float8)(wly.s1234, wly.s567, nlo.y);
-        wlz = (float8)(wlz.s1234, wlz.s567, nlo.z);
-        whx = (float8)(whx.s1234, whx.s567, nhi.x);
-        why = (float8)(why.s1234, why.s567, nhi.y);
-        whz = (float8)(whz.s1234, whz.s567, nhi.z);
+    uint im = max(i0, min(i1, n > 9 ? n - 9 : 0));  // clusters from im on have a neighbour past the end
+    for (uint i = i0; i < im; ++i) {
+        NEAREST_VEC_STEP(0);
+    }
+    for (uint i = im; i < i1; ++i) {
+        NEAREST_VEC_STEP(1);
     }
     for (; q < e; ++q) {  // the last clusters (i1 = n): every neighbour is known
         uint jq = ring[q & (NN_RING - 1)];
@@ -264,6 +283,101 @@ __kernel void nearest_vec(__global const uint* cnt, uint p, __global const float
     bsum[nb + b] = merged;
 }
 #endif
+
+// Cluster k's box: from the cluster arrays, or (from_tri, the first iteration fused with
+// init_leaves) triangle perm[k]'s box with its node id k in the min's spare lane, as init_leaves
+// writes it. from_tri is a constant in each kernel, so the branch folds away.
+inline void load_cluster(int from_tri, __global const float* tri, __global const uint* perm,
+                         __global const float4* cmin, __global const float4* cmax, uint k, float4* lo, float4* hi) {
+    if (from_tri) {
+        tri_box(tri, perm[k], lo, hi);
+        (*lo).w = as_float(k);
+    } else {
+        *lo = cmin[k];
+        *hi = cmax[k];
+    }
+}
+
+// Merged area of two clusters (NaN as infinity, as in the searches above).
+inline float merged_area(float4 alo, float4 ahi, float4 blo, float4 bhi) {
+    float a = half_area(fmin(alo, blo), fmax(ahi, bhi));
+    return isnan(a) ? INFINITY : a;
+}
+
+// The nearest neighbours for radius 1 (the first PLOC iteration: on a Morton-ordered triangle soup
+// nearly every triangle pairs with an adjacent one, e.g. 99.996% of the city's radius-8 choices):
+// the cheaper of the pairs (i - 1, i) and (i, i + 1), ties to the lower index, one area a cluster
+// (A(k), the area of clusters k and k + 1, slides along). Like nearest_vec it counts per block the
+// clusters kept (bsum[b]) and the pairs merged (bsum[nb + b]): a block computes the neighbours from
+// one cluster before its range to one after it, which its clusters' mutual checks read.
+inline void nearest_r1_body(int from_tri, __global const float* tri, __global const uint* perm, uint n,
+                            __global const float4* cmin, __global const float4* cmax, uint nb,
+                            __global uint* nn, __global uint* bsum) {
+    uint b = get_global_id(0);
+    if (b >= nb) return;
+    uint s, e;
+    block_range(b, nb, n, &s, &e);
+    if (s >= e || n <= 1) {
+        bsum[b] = e - s;
+        bsum[nb + b] = 0;
+        return;
+    }
+    uint i0 = s > 0 ? s - 1 : 0, i1 = min(e, n - 1);
+    float4 lo, hi, nlo, nhi;  // clusters i and i + 1
+    float aprev = INFINITY;  // A(i - 1)
+    if (i0 > 0) {
+        load_cluster(from_tri, tri, perm, cmin, cmax, i0 - 1, &lo, &hi);
+        load_cluster(from_tri, tri, perm, cmin, cmax, i0, &nlo, &nhi);
+        aprev = merged_area(lo, hi, nlo, nhi);
+    } else {
+        load_cluster(from_tri, tri, perm, cmin, cmax, i0, &nlo, &nhi);
+    }
+    uint n2 = 0xffffffffu, n1 = 0xffffffffu;  // the neighbours of clusters i - 2 and i - 1
+    uint kept = 0, merged = 0;
+    for (uint i = i0; i <= i1; ++i) {
+        lo = nlo;
+        hi = nhi;
+        float acur = INFINITY;  // A(i)
+#ifdef PREFETCH
+        if (from_tri && i + 1 + 2 * PREFETCH < n) {  // the triangle gathered 2 PREFETCH clusters on
+            __global const float* t = tri + 9 * (size_t)perm[i + 1 + 2 * PREFETCH];
+            __builtin_prefetch(t);
+            __builtin_prefetch(t + 8);
+        }
+#endif
+        if (i + 1 < n) {
+            load_cluster(from_tri, tri, perm, cmin, cmax, i + 1, &nlo, &nhi);
+            acur = merged_area(lo, hi, nlo, nhi);
+        }
+        uint ni = (i > 0 && (i + 1 >= n || aprev <= acur)) ? i - 1 : i + 1;
+        if (i >= s && i < e) nn[i] = ni;
+        uint c = i - 1;  // cluster i - 1: its neighbours' neighbours are known now
+        if (i >= 1 && c >= s && c < e) {
+            kept += !(n1 == c - 1 && n2 == c);
+            merged += n1 == c + 1 && ni == c;
+        }
+        n2 = n1;
+        n1 = ni;
+        aprev = acur;
+    }
+    if (e == n) {  // the last cluster (its neighbour is n - 2)
+        kept += !(n2 == n - 1);
+    }
+    bsum[b] = kept;
+    bsum[nb + b] = merged;
+}
+
+__kernel void nearest_r1(__global const uint* cnt, uint p, __global const float4* cmin,
+                         __global const float4* cmax, uint nb, __global uint* nn, __global uint* bsum) {
+    nearest_r1_body(0, 0, 0, cnt[p], cmin, cmax, nb, nn, bsum);
+}
+
+// nearest_r1 over the triangles in Morton order, before any cluster array exists (the first
+// iteration fused with init_leaves: merge_leaves then writes only the merged clusters).
+__kernel void nearest_r1_leaves(__global const float* tri, __global const uint* perm, uint n, uint nb,
+                                __global uint* nn, __global uint* bsum) {
+    nearest_r1_body(1, tri, perm, n, 0, 0, nb, nn, bsum);
+}
 
 inline bool dropped(uint i, uint n, __global const uint* nn) {
     if (n <= 1) return false;
@@ -329,25 +443,47 @@ inline float child_info(__global const float4* node, uint id, uint n_tri, float4
 // triangle (count 1, kept 1, height 0, cost its box's area, the box being its cluster's). The node's
 // SAH cost is the cheaper of a leaf and the split (traversal 1, intersection 1 per triangle, in area
 // units), as a bottom-up dynamic programme.
-__kernel void merge_scatter(__global const uint* cnt, uint p, __global const uint* nn, uint nb,
-                            __global const uint* bsum, __global const float4* cmin, __global const float4* cmax,
-                            __global float4* dmin, __global float4* dmax, uint n_tri, __global float4* node) {
+inline void merge_body(int from_tri, __global const float* tri, __global const uint* perm, uint n,
+                       __global const uint* nn, uint nb, __global const uint* bsum, __global const float4* cmin,
+                       __global const float4* cmax, __global float4* dmin, __global float4* dmax, uint n_tri,
+                       __global float4* node) {
     uint bk = get_global_id(0);
     if (bk >= nb) return;
-    uint n = cnt[p], s, e, o = bsum[bk], v = bsum[nb + bk];
+    uint s, e, o = bsum[bk], v = bsum[nb + bk];
     block_range(bk, nb, n, &s, &e);
+    bool pairs = n > 1;
     for (uint i = s; i < e; ++i) {
-        if (dropped(i, n, nn)) continue;
-        float4 alo = cmin[i], ahi = cmax[i];
+#ifdef PREFETCH
+        uint ip = i + PREFETCH;
+        if (from_tri && i + 2 * PREFETCH < e) {  // the triangles gathered 2 PREFETCH clusters on
+            __global const float* t = tri + 9 * (size_t)perm[i + 2 * PREFETCH];
+            __builtin_prefetch(t);
+            __builtin_prefetch(t + 8);
+        }
+        if (!from_tri && pairs && ip < e) {  // the child records a merge reads PREFETCH clusters on
+            uint jp = nn[ip];
+            if (jp > ip) {
+                uint pa = as_uint(cmin[ip].w), pb = as_uint(cmin[jp].w);
+                if (pa >= n_tri) __builtin_prefetch(node + NODE_F4 * (size_t)(pa - n_tri));
+                if (pb >= n_tri) __builtin_prefetch(node + NODE_F4 * (size_t)(pb - n_tri));
+            }
+        }
+#endif
+        // dropped / merges, reading the neighbours once
+        uint j = pairs ? nn[i] : i;
+        bool mutual = j != i && nn[j] == i;
+        if (mutual && j < i) continue;  // dropped: merged into cluster j
+        float4 alo, ahi;
+        load_cluster(from_tri, tri, perm, cmin, cmax, i, &alo, &ahi);
         uint a = as_uint(alo.w);
-        if (!merges(i, n, nn)) {
+        if (!mutual) {
             dmin[o] = alo;
             dmax[o] = ahi;
             ++o;
             continue;
         }
-        uint j = nn[i];
-        float4 blo = cmin[j], bhi = cmax[j];
+        float4 blo, bhi;
+        load_cluster(from_tri, tri, perm, cmin, cmax, j, &blo, &bhi);
         uint b = as_uint(blo.w);
         float4 lo = fmin(alo, blo), hi = fmax(ahi, bhi);
         int ca, cb, ka, kb, ha, hb;
@@ -368,6 +504,20 @@ __kernel void merge_scatter(__global const uint* cnt, uint p, __global const uin
         ++o;
         ++v;
     }
+}
+
+__kernel void merge_scatter(__global const uint* cnt, uint p, __global const uint* nn, uint nb,
+                            __global const uint* bsum, __global const float4* cmin, __global const float4* cmax,
+                            __global float4* dmin, __global float4* dmax, uint n_tri, __global float4* node) {
+    merge_body(0, 0, 0, cnt[p], nn, nb, bsum, cmin, cmax, dmin, dmax, n_tri, node);
+}
+
+// merge_scatter of the first iteration fused with init_leaves: the clusters are the triangles in
+// Morton order (boxes gathered again, never written for all n), only the merged ones are written.
+__kernel void merge_leaves(__global const float* tri, __global const uint* perm, uint n, __global const uint* nn,
+                           uint nb, __global const uint* bsum, __global float4* dmin, __global float4* dmax,
+                           __global float4* node) {
+    merge_body(1, tri, perm, n, nn, nb, bsum, 0, 0, dmin, dmax, n, node);
 }
 
 // ---- layout -----------------------------------------------------------------------------------
@@ -484,6 +634,15 @@ __kernel void level_place(uint d, __global const uint* lev, uint nb, uint m, uin
     block_range(b, nb, lev[d + 1] - l0, &s, &e);
     uint c = lev[d + 1] + 2 * bsum[b];
     for (uint k = l0 + s; k < l0 + e; ++k) {
+#ifdef PREFETCH
+        if (k + PREFETCH < l0 + e && oheight[k + PREFETCH] > 0) {  // the records read PREFETCH nodes on
+            uint pl = (uint)oright[k + PREFETCH], pr = (uint)odepth[k + PREFETCH];
+            __builtin_prefetch(pl < n_tri ? (__global const void*)(tri + 9 * (size_t)perm[pl])
+                                          : (__global const void*)(node + NODE_F4 * (size_t)(pl - n_tri)));
+            __builtin_prefetch(pr < n_tri ? (__global const void*)(tri + 9 * (size_t)perm[pr])
+                                          : (__global const void*)(node + NODE_F4 * (size_t)(pr - n_tri)));
+        }
+#endif
         uint l = (uint)oright[k], r = (uint)odepth[k];
         int first = ofirst[k];
         if (oheight[k] > 0) {

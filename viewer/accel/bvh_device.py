@@ -11,13 +11,20 @@ Algorithm (kernels in bvh_device.cl)
 1. The triangles are read in place (USE_HOST_PTR). The bounds of the box centres (per block on
    the device, one read; no centre arrays: 120 MB of fresh pages at 10 M) span a cubic 1024^3
    grid; 30-bit Morton codes of the centres are sorted with the project's radix sort
-   (viewer.cl.primitives, 4 digit passes); the dead keys then hold the nearest neighbours.
+   (viewer.cl.primitives, 4 digit passes, its other halves in cluster-box pages the first PLOC
+   iteration writes anyway); the dead keys then hold the nearest neighbours.
 2. PLOC (Meister & Bittner 2018): the clusters (one per triangle at first, boxes recomputed from
    the triangles) stay in Morton order; each finds the cluster within `radius` positions whose
    merged box has the least surface area (ties to the lower index: the closest pair overall is
    always mutual, so every iteration merges). For radius <= 8 `nearest_vec` does it eight pairs
    at a time (a float8 window of the next clusters' boxes, the same float operations, so the same
-   neighbours). Mutual pairs merge into a new inner node in the lower slot. An iteration is 3
+   neighbours). The first `radius1_iterations` (1) search radius 1 (`nearest_r1`: one area a
+   cluster instead of eight; on the Morton-ordered triangles nearly every radius-8 choice of the
+   first iteration is an adjacent triangle: 99.996% on the city, whose SAH cost moves by 0.01%;
+   scanned meshes lose up to 1.7%, docs/bvh-device.md); the first of them runs straight from the
+   triangles (`nearest_r1_leaves`, `merge_leaves`: no array of all n leaf clusters is written and
+   read twice, only the merged clusters are written). Mutual pairs merge into a new inner node
+   in the lower slot. An iteration is 3
    launches: nearest with per-block counts of kept clusters and merges (`nearest_vec` runs from
    2 RADIUS clusters before its block to RADIUS after it, so it knows every neighbour its
    clusters' mutual checks read; the other searches have a `count_blocks` launch of their own);
@@ -41,6 +48,8 @@ Algorithm (kernels in bvh_device.cl)
    tree fits (its pages are already touched), which the BVH keeps and maps (zero-copy on a CPU
    device). BuildStats are summed on the device (float64 per block of nodes; tree_stats on a
    device without float64).
+On a CPU device `merge_scatter` and `level_place` prefetch the random node records they will read
+PREFETCH clusters / nodes ahead (the out-of-order core then overlaps those misses).
 Host round trips: the centre bounds, one count read every `check_every` PLOC iterations, one read
 of the root, kept-node count and height, one finish per timed phase (5), the stats' block sums,
 and the map of the finished tree. Page faults dominate a cold build on a CPU device (about
@@ -58,7 +67,7 @@ from typing import Any
 
 import numpy as np
 
-from viewer.accel.bvh import BVH, GPU_NODE_DTYPE, GPU_TRI_DTYPE, BuildStats, _validate, tree_stats
+from viewer.accel.bvh import BVH, GPU_NODE_DTYPE, GPU_TRI_DTYPE, NON_FINITE, BuildStats, _validate, tree_stats
 from viewer.cl import io as clio
 from viewer.cl.limits import new_buffer
 from viewer.cl.pool import BufferPool
@@ -68,14 +77,22 @@ KERNEL = Path(__file__).resolve().parent / "bvh_device.cl"
 WG = 64
 RADIUS = 8
 CHECK_EVERY = 4
+#: PLOC iterations at the start that search radius 1 (nearest_r1; with nearest_vec only): one area a
+#: cluster instead of eight, where the Morton-ordered triangles nearly all pair with an adjacent one
+RADIUS1_ITERATIONS = 1
+#: on a CPU device, merge_scatter and level_place prefetch the random records they will read this
+#: many clusters / nodes ahead (level_place 0.80-0.83x, merge_scatter about 0.9x its time at 10 M)
+PREFETCH = 8
 #: device bytes per triangle of the buffers build() allocates (bounds: only the pages a build writes
 #: are ever touched): input (the host array itself on a CPU device), keys (later the nearest
-#: neighbours) + sort scratch, inner node records (48 bytes), cluster boxes x 2 (with the node ids), and the
-#: finished tree (13 words a kept node, m <= 2n - 1 (about 0.9 n in practice), and tri_order: in the
-#: cluster-box buffer when it fits, which the BVH then keeps; else a buffer of its own)
+#: neighbours) + perm (the sort's other halves are in the cluster boxes), inner node records (48
+#: bytes), cluster boxes x 2 (with the node ids), and the finished tree (13 words a kept node,
+#: m <= 2n - 1 (about 0.9 n in practice), and tri_order: in the cluster-box buffer when it fits,
+#: which the BVH then keeps; else a buffer of its own)
 OUT_BYTES_PER_TRIANGLE = 2 * 13 * 4 + 4
-BYTES_PER_TRIANGLE = 36 + 16 + 48 + 2 * 32 + OUT_BYTES_PER_TRIANGLE
-_KERNELS = ("centre_bounds", "morton", "init_leaves", "nearest", "nearest_block", "nearest_vec", "count_blocks",
+BYTES_PER_TRIANGLE = 36 + 8 + 48 + 2 * 32 + OUT_BYTES_PER_TRIANGLE
+_KERNELS = ("centre_bounds", "morton", "init_leaves", "nearest", "nearest_block", "nearest_vec", "nearest_r1",
+            "nearest_r1_leaves", "merge_leaves", "count_blocks",
             "scan_blocks", "merge_scatter", "root_count", "layout_root", "level_count", "level_scan", "level_place",
             "stats_blocks")
 
@@ -98,8 +115,11 @@ class DeviceBvhBuilder:
         self.check_every = max(int(check_every), 1)
         self.block_nearest = True  # per block of clusters (each pair once) rather than nearest (per cluster)
         self.vector_nearest = radius <= 8  # the block search eight pairs at a time (nearest_vec)
-        prog = build(KERNEL, {"WG": WG, "RADIUS": int(radius), "MAX_LEAF": self.max_leaf,
-                              "MIN_LEAF": self.min_leaf}, self.ctx)
+        self.radius1_iterations = RADIUS1_ITERATIONS  # the first iterations search radius 1 (nearest_r1)
+        defs = {"WG": WG, "RADIUS": int(radius), "MAX_LEAF": self.max_leaf, "MIN_LEAF": self.min_leaf}
+        if self.ctx.is_cpu:  # clang's __builtin_prefetch (PoCL); a GPU has no cache lines to ask for
+            defs["PREFETCH"] = PREFETCH
+        prog = build(KERNEL, defs, self.ctx)
         fp64 = "cl_khr_fp64" in self.ctx.device.extensions
         self._k = clio.kernels(prog, [k for k in _KERNELS if (k != "nearest_vec" or radius <= 8)
                                       and (k != "stats_blocks" or fp64)])
@@ -178,7 +198,7 @@ class DeviceBvhBuilder:
         """The BVH of float32 triangles (N, 3, 3); same contract as viewer.accel.bvh.build_bvh."""
         t_start = time.perf_counter()
         self.phases = {}
-        tri = _validate(triangles)
+        tri = _validate(triangles, check_finite=False)  # centre_bounds checks on the device
         n = len(tri)
         if n >= 2**30:
             raise ValueError("at most 2**30 triangles")
@@ -192,6 +212,9 @@ class DeviceBvhBuilder:
         part = b("bounds", 32 * nbc)
         self._task("centre_bounds", nbc, tri_buf, u(n), u(nbc), part)
         part = self._read(part, 8 * nbc, np.float32).reshape(nbc, 2, 4)
+        if part[:, 0, 3].any():
+            tri_buf.release()
+            raise ValueError(NON_FINITE)
         t = self._phase("upload+boxes", t_start)
 
         # -- Morton codes, sorted ---------------------------------------------------------------
@@ -201,26 +224,32 @@ class DeviceBvhBuilder:
         ext = float((hi.astype(np.float64) - lo).max())
         scale = np.full(3, 1024.0 / ext if ext > 0 else 0.0)
         keys, perm = b("keys", 4 * n), b("perm", 4 * n)
-        self._run("morton", n, tri_buf, u(n), np.append(lo, 0).astype(np.float32),
-                  np.append(scale, 0).astype(np.float32), keys, perm)
-        self.prims.sort_pairs(keys, perm, n, key_bits=30)
-        t = self._phase("morton+sort", t)
-
-        # -- PLOC ---------------------------------------------------------------------------------
-        ni = max(n - 1, 1)  # inner nodes (ids n .. 2n - 2, stored at id - n)
-        node = b("node", 48 * ni)  # inner node records (NODE_F4 float4 each, bvh_device.cl)
         # the cluster boxes (min, max) x 2 in one buffer: the finished tree is written there later
         region = -(-16 * n // 128) * 128  # sub-buffer origins aligned for any device
         cbox = b("cbox", 4 * region)
         cmin = [cbox.get_sub_region(0, region), cbox.get_sub_region(2 * region, region)]
         cmax = [cbox.get_sub_region(region, region), cbox.get_sub_region(3 * region, region)]
+        self._run("morton", n, tri_buf, u(n), np.append(lo, 0).astype(np.float32),
+                  np.append(scale, 0).astype(np.float32), keys, perm)
+        # the sort's other halves in the first 4n bytes of cmin[1] / cmax[1]: pages the first PLOC
+        # iteration writes anyway (about n / 2 clusters there), so no fresh 8n bytes for the sort
+        self.prims.sort_pairs(keys, perm, n, key_bits=30, temp=(cmin[1], cmax[1]))
+        t = self._phase("morton+sort", t)
+
+        # -- PLOC ---------------------------------------------------------------------------------
+        ni = max(n - 1, 1)  # inner nodes (ids n .. 2n - 2, stored at id - n)
+        node = b("node", 48 * ni)  # inner node records (NODE_F4 float4 each, bvh_device.cl)
         nn = keys  # the sort keys are dead: their pages serve the nearest neighbours
         cnt = b("cnt", 8)
         next_node = b("next_node", 4)
         marks = b("marks", 16)  # root id, kept nodes, root height (root_count)
         clio.copy(q, cnt, np.array([n, n], np.uint32), is_blocking=False)
         clio.copy(q, next_node, np.array([n], np.uint32), is_blocking=False)
-        self._run("init_leaves", n, tri_buf, perm, u(n), cmin[0], cmax[0])  # node ids in cmin's w
+        # the first iteration at radius 1 straight from the triangles (nearest_r1_leaves, merge_leaves):
+        # no cluster array of all n triangles is written and read twice, only the merged clusters
+        fused = self.block_nearest and self.vector_nearest and self.radius1_iterations > 0 and n > 1
+        if not fused:
+            self._run("init_leaves", n, tri_buf, perm, u(n), cmin[0], cmax[0])  # node ids in cmin's w
         node_args = (u(n), node)
         p = 0  # cnt[p] is the current cluster count; cluster arrays [p] are current
         n_host = n
@@ -233,8 +262,17 @@ class DeviceBvhBuilder:
             bsum = b("bsum", 8 * nbm)
             for _ in range(self.check_every):
                 s = p
+                if fused and iters == 0:
+                    self._task("nearest_r1_leaves", nbn, tri_buf, perm, u(n), u(nbn), nn, bsum)
+                    self._task("scan_blocks", 1, bsum, u(nbm), cnt, u(p), next_node)
+                    self._task("merge_leaves", nbm, tri_buf, perm, u(n), nn, u(nbm), bsum, cmin[1 - s], cmax[1 - s],
+                               node)
+                    p = 1 - p
+                    iters += 1
+                    continue
                 if vec:
-                    self._task("nearest_vec", nbn, cnt, u(p), cmin[s], cmax[s], u(nbn), nn, bsum)
+                    near = "nearest_r1" if iters < self.radius1_iterations else "nearest_vec"
+                    self._task(near, nbn, cnt, u(p), cmin[s], cmax[s], u(nbn), nn, bsum)
                 else:
                     if self.block_nearest:
                         self._task("nearest_block", nbn, cnt, u(p), cmin[s], cmax[s], u(nbn), nn)

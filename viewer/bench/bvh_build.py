@@ -5,13 +5,22 @@ One row per (size, builder) in bvh-build.json: BuildStats.to_dict() plus `builde
 SAH build of the same size when it ran), `bvh4_time_s` (host collapse to BVH4, build_bvh4),
 `bvh4_device_time_s` (the same on the OpenCL device, viewer.accel.bvh4_device, when it has fp64) and, for
 the device builder, `phases_s` and `iterations` (PLOC); `io`: the build's launches, host syncs and
-bytes (viewer.iostats). The device builder is warmed up on a small city first (kernel compilation
-is not build time); each size's first device build still pays for first-touching its buffers.
+bytes (viewer.iostats); `cpu_time_s` (the process's user + system time during the build, PoCL's
+threads included) and `load_average` (1-minute, at the start of the build). The device builder is
+warmed up on a small city first (kernel compilation is not build time, nor is it in the build time
+a render reports); each size's first device build still pays for first-touching its buffers, as a
+render's build does. So a row times what a user's build costs: the same call, the same phases.
+
+Why the CPU time: on the shared 2-core machine the wall time of the same build swings 2x with the
+other users' load (a 10 M build: 1.4 s with both cores free, 2.6-3.4 s with one taken, at the same
+CPU time), which made a bench run look slower than the build inside a render measured at a quieter
+moment; the CPU time and the load say which case a row is.
 """
 
 from __future__ import annotations
 
 import argparse
+import os
 import time
 
 from viewer.bench.common import add_count_option
@@ -83,8 +92,11 @@ def run(args) -> int:
         scene = make_city(n, args.seed)
         sah_cost = None
         for builder in builders:
+            load = os.getloadavg()[0]
             iostats.begin_frame()
+            c0 = time.process_time()
             bvh = _build(builder, scene.triangles)
+            cpu = time.process_time() - c0
             io = iostats.end_frame()
             t0 = time.perf_counter()
             build_bvh4(bvh)
@@ -97,6 +109,8 @@ def run(args) -> int:
                 build_bvh4_device(bvh)
                 r["bvh4_device_time_s"] = time.perf_counter() - t0
             r["builder"] = builder
+            r["cpu_time_s"] = cpu
+            r["load_average"] = load
             r["io"] = io.as_dict()  # launches, host syncs and bytes of the build (device builder)
             r["target"] = n
             mtris = bvh.stats.triangles / max(bvh.stats.build_time_s, 1e-9) / 1e6
@@ -113,7 +127,8 @@ def run(args) -> int:
             rows.append(r)
             ratio = f", {r['sah_ratio']:.3f}x sah" if r["sah_ratio"] is not None and builder != "sah" else ""
             print(f"city {scene.triangle_count:>10,} tris {builder:>6}: build {r['build_time_s']:.2f} s "
-                  f"({r['throughput_mtris_per_s']:.2f} Mtri/s), {r['nodes']:,} nodes, depth {r['depth']}, "
+                  f"({r['throughput_mtris_per_s']:.2f} Mtri/s; CPU {cpu:.2f} s, load {load:.1f}), "
+                  f"{r['nodes']:,} nodes, depth {r['depth']}, "
                   f"SAH {r['sah_cost']:.1f}{ratio}; BVH4 collapse (host) {r['bvh4_time_s']:.2f} s"
                   + (f", (device) {r['bvh4_device_time_s']:.2f} s" if device4 else ""), flush=True)
             del bvh

@@ -7,7 +7,7 @@ does fast); the few per-block totals are combined by one work-item. Work-group s
 Kernels: viewer/cl/kernels/primitives.cl. n < 2**32 - 2**16 elements.
 
 On Buffers (results stay on the device; counts/totals come back as Python ints):
-  sort_pairs(keys, vals, n, key_bits=None)   stable LSD radix sort of uint32 keys with uint32
+  sort_pairs(keys, vals, n, key_bits=None, temp=None)   stable LSD radix sort of uint32 keys with uint32
       values in place, 8-bit digits, ceil(key_bits / 8) passes (key_bits=None: from a max-reduce).
   exclusive_scan(src, dst, n) -> total        uint32 (wraps modulo 2**32); dst may be src.
   compact(n, flags=..., src=..., dst=..., dst_index=..., predicate=..., itemsize=4) -> count
@@ -165,11 +165,15 @@ class Primitives:
         ks["reduce_final"](self.ctx.queue, (WG,), (WG,), part, np.uint32(nb), ident, out)
 
     # -- radix sort -------------------------------------------------------------------------
-    def sort_pairs(self, keys: Any, vals: Any, n: int, key_bits: int | None = None) -> None:
+    def sort_pairs(self, keys: Any, vals: Any, n: int, key_bits: int | None = None,
+                   temp: tuple[Any, Any] | None = None) -> None:
         """Stable sort of n uint32 (key, value) pairs by key, in place in `keys`/`vals`.
 
         Only ceil(key_bits / 8) digit passes run (key_bits=None: the bit length of the largest
-        key, from a max-reduce); keys must be < 2**key_bits. An odd pass count ends with a copy."""
+        key, from a max-reduce); keys must be < 2**key_bits. An odd pass count ends with a copy.
+        temp: two buffers of at least 4 n bytes for the other half of each pass (default: this
+        object's scratch); a caller passes memory it writes later anyway, so a cold sort touches
+        no fresh pages of its own (on a CPU device a fresh page costs about as much as its use)."""
         if key_bits is not None and not 0 <= key_bits <= 32:
             raise ValueError(f"key_bits must be in 0..32, not {key_bits}")
         if n > MAX_N:
@@ -184,7 +188,7 @@ class Primitives:
         nb = self.nblocks(n)
         u = np.uint32
         hist, total = self.scratch("radix_hist", 4 * 256 * nb), self.scratch("radix_total", 4)
-        tk, tv = self.scratch("radix_keys", 4 * n), self.scratch("radix_vals", 4 * n)
+        tk, tv = temp or (self.scratch("radix_keys", 4 * n), self.scratch("radix_vals", 4 * n))
         src, dst = (keys, vals), (tk, tv)
         for p in range(passes):
             shift = u(8 * p)
