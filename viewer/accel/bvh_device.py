@@ -18,12 +18,13 @@ Algorithm (kernels in bvh_device.cl)
    merged box has the least surface area (ties to the lower index: the closest pair overall is
    always mutual, so every iteration merges). For radius <= 8 `nearest_vec` does it eight pairs
    at a time (a float8 window of the next clusters' boxes, the same float operations, so the same
-   neighbours). The first `radius1_iterations` (1) search radius 1 (`nearest_r1`: one area a
-   cluster instead of eight; on the Morton-ordered triangles nearly every radius-8 choice of the
-   first iteration is an adjacent triangle: 99.996% on the city, whose SAH cost moves by 0.01%;
-   scanned meshes lose up to 1.7%, docs/bvh-device.md); the first of them runs straight from the
-   triangles (`nearest_r1_leaves`, `merge_leaves`: no array of all n leaf clusters is written and
-   read twice, only the merged clusters are written). Mutual pairs merge into a new inner node
+   neighbours). In builds of 2 M triangles or more (`radius1_min_triangles`) the first
+   `radius1_iterations` (1) search radius 1 (`nearest_r1`: one area a cluster instead of eight; on
+   the Morton-ordered triangles nearly every radius-8 choice of the first iteration is an adjacent
+   triangle: 99.996% on the city, whose SAH cost moves by 0.01%; scanned meshes lose up to 1.7%,
+   docs/bvh-device.md, hence the size floor); the first of them runs straight from the triangles
+   (`nearest_r1_leaves`, `merge_leaves`: no array of all n leaf clusters is written and read twice,
+   only the merged clusters are written). Mutual pairs merge into a new inner node
    in the lower slot. An iteration is 3
    launches: nearest with per-block counts of kept clusters and merges (`nearest_vec` runs from
    2 RADIUS clusters before its block to RADIUS after it, so it knows every neighbour its
@@ -80,6 +81,10 @@ CHECK_EVERY = 4
 #: PLOC iterations at the start that search radius 1 (nearest_r1; with nearest_vec only): one area a
 #: cluster instead of eight, where the Morton-ordered triangles nearly all pair with an adjacent one
 RADIUS1_ITERATIONS = 1
+#: ... and only in builds of at least this many triangles, where the build's time is what counts:
+#: scanned meshes pay up to 1.7% SAH cost for it (bunny 1.087 -> 1.104 of the binned SAH build,
+#: beyond the 10% bound), so every shared study scene (up to 1.1 M triangles) keeps radius 8
+RADIUS1_MIN_TRIANGLES = 2_000_000
 #: on a CPU device, merge_scatter and level_place prefetch the random records they will read this
 #: many clusters / nodes ahead (level_place 0.80-0.83x, merge_scatter about 0.9x its time at 10 M)
 PREFETCH = 8
@@ -116,6 +121,7 @@ class DeviceBvhBuilder:
         self.block_nearest = True  # per block of clusters (each pair once) rather than nearest (per cluster)
         self.vector_nearest = radius <= 8  # the block search eight pairs at a time (nearest_vec)
         self.radius1_iterations = RADIUS1_ITERATIONS  # the first iterations search radius 1 (nearest_r1)
+        self.radius1_min_triangles = RADIUS1_MIN_TRIANGLES  # ... in builds of at least this many
         defs = {"WG": WG, "RADIUS": int(radius), "MAX_LEAF": self.max_leaf, "MIN_LEAF": self.min_leaf}
         if self.ctx.is_cpu:  # clang's __builtin_prefetch (PoCL); a GPU has no cache lines to ask for
             defs["PREFETCH"] = PREFETCH
@@ -247,7 +253,8 @@ class DeviceBvhBuilder:
         clio.copy(q, next_node, np.array([n], np.uint32), is_blocking=False)
         # the first iteration at radius 1 straight from the triangles (nearest_r1_leaves, merge_leaves):
         # no cluster array of all n triangles is written and read twice, only the merged clusters
-        fused = self.block_nearest and self.vector_nearest and self.radius1_iterations > 0 and n > 1
+        r1_iters = self.radius1_iterations if n >= self.radius1_min_triangles else 0
+        fused = self.block_nearest and self.vector_nearest and r1_iters > 0 and n > 1
         if not fused:
             self._run("init_leaves", n, tri_buf, perm, u(n), cmin[0], cmax[0])  # node ids in cmin's w
         node_args = (u(n), node)
@@ -271,7 +278,7 @@ class DeviceBvhBuilder:
                     iters += 1
                     continue
                 if vec:
-                    near = "nearest_r1" if iters < self.radius1_iterations else "nearest_vec"
+                    near = "nearest_r1" if iters < r1_iters else "nearest_vec"
                     self._task(near, nbn, cnt, u(p), cmin[s], cmax[s], u(nbn), nn, bsum)
                 else:
                     if self.block_nearest:
