@@ -206,14 +206,15 @@ def test_conservative_equals_glsl_every_ray_type(name, mode, gl_ctx):
 
 @pytest.mark.parametrize("params", ["lca_pairs=1,full_bvh_fraction=0", "lca_pairs=1",
                                     "lca_pairs=8,cull_sublevels=2,cold_full_bvh=false", "lca_invisible=false",
-                                    "hit_hint=false"])
+                                    "hit_hint=false", "gap_order=false,count_due_only=false"])
 def test_lca_fallback_and_cull_tiles_are_exact(params, gl_ctx):
     """The GPU-driven pass's per-tile choices keep glsl's hits: a tile over `lca_pairs` pairs
     traverses the lowest common ancestor of all of them and its invisible pairs are not queried
     (lca_pairs=1: every tile, so no pair is queried on a steady frame, and with full_bvh_fraction
     the pass runs the glsl traversal; 8: some tiles, the cull per sub-tile, with every front refined
     past its first pass), and the older rule (only the visible pairs replaced, the invisible ones
-    queried); without the hit hints."""
+    queried); without the hit hints; without the gap order of the records' items (and with every
+    visible pair counted)."""
     frames, scene, _ = _render_both(gl_ctx, "city", "primary,shadows,ao:2,diffuse:2", params)
     for k, (a, b) in enumerate(frames):
         for pa, pb in zip(a.captured, b.captured, strict=True):

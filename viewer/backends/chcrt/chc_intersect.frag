@@ -22,6 +22,9 @@
 #include "chc_leafcache.glsl"
 uniform int anyHit;
 uniform int countOverlays;
+#ifdef CHC_COUNT_ITEMS
+uniform int gapOrder;  // ChcrtParams.gap_order: every record's items sorted by gap
+#endif
 uniform int useHint;  // 1: hintId holds last pass's hit triangle per pixel (leaf-order slot, -1 = none)
 uniform isampler2D hintId;
 layout(location = 0) out float outT;
@@ -52,6 +55,13 @@ void main() {
     if (best < 0) discard;
     vec4 ot = texelFetch(rayOrigin, px, 0);
     vec4 dt = texelFetch(rayDir, px, 0);
+#ifdef CHC_COUNT_ITEMS
+    // gap_order: the record's nearest item lies beyond the ray's nearest hit: nothing here can be
+    // entered before it (nor hit: a hint triangle lies in some subtree of the tile's cut), so the
+    // ray set-up is skipped too (most invisible pairs' fragments of primary rays)
+    float dlen = length(dt.xyz) * (1.0 + 1e-4);
+    if (gapOrder != 0 && (ITEM_COUNT == 0 || items[ITEM_BASE].gap > min(intBitsToFloat(best), dt.w) * dlen)) discard;
+#endif
     RayPre r = prepareRay(ot.xyz, dt.xyz);
     float tmin = ot.w;
     bool any = anyHit != 0;
@@ -77,13 +87,26 @@ void main() {
     float stackT[STACK_SIZE];
     int sp = 0;
     uint entered = 0u;
-    uint enteredMask = 0u;  // items whose box the ray entered (counted after the traversal)
-    for (int i = done ? -1 : ITEM_COUNT - 1; i >= 0; --i) {  // farthest at the bottom
+    uint enteredMask = 0u;  // counted items whose box the ray entered (counted after the traversal)
+#ifdef CHC_COUNT_ITEMS
+    // gap_order: a record holds its items sorted by gap, a lower bound of the distance from every ray
+    // origin of the tile to the box (invisible pairs: chc_querycull.comp; visible: chc_visorder.comp):
+    // the first item whose gap lies beyond the ray's nearest hit so far (t * |d|, with the gap's
+    // relative margin) ends the box tests, as neither it nor any later item can be entered before
+    // that hit
+    bool byGap = gapOrder != 0;
+#else
+    const bool byGap = false;
+    const float dlen = 0.0;
+#endif
+    for (int k = done ? ITEM_COUNT : 0; k < ITEM_COUNT; ++k) {
+        int i = byGap ? k : ITEM_COUNT - 1 - k;  // else the farthest at the stack's bottom
         ChcItem it = items[ITEM_BASE + i];
+        if (byGap && it.gap > hit.t * dlen) break;
         float te;
         if (intersectBox(r, it.bmin, it.bmax, tmin, hit.t, te)) {
             ++entered;
-            enteredMask |= 1u << uint(i);
+            if (it.p2 >= 0) enteredMask |= 1u << uint(i);  // a counted pair (chcrt.py _due_slots)
             if (it.count > 0) {  // a scheduled BVH leaf: intersect it now
                 if (visitLeaf(r, it.ref, it.count, tmin, hit) && any) done = true;
             } else {

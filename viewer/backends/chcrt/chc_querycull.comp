@@ -9,14 +9,15 @@
 // of every ray's entry distance; a relative margin covers the rounding.
 layout(local_size_x = 64) in;
 struct ChcDraw { ivec4 rect; ivec4 info; };
-struct ChcItem { vec3 bmin; int ref; vec3 bmax; int count; int id; int p0; int p1; int p2; };
+struct ChcItem { vec3 bmin; int ref; vec3 bmax; int count; int id; int p0; int p1; int p2;
+                 float gap; int q0; int q1; int q2; };
 struct TileBound { vec4 omin; vec4 omax; };
 layout(std430, binding = BIND_CHC_ITEMS) readonly buffer ChcItems { ChcItem items[]; };
 layout(std430, binding = BIND_CHC_QUERIES) readonly buffer ChcQueries { ChcDraw queries[]; };
 layout(std430, binding = BIND_CHC_TILES) readonly buffer ChcTiles { TileBound tiles[]; };
 layout(std430, binding = BIND_CHC_DRAWS) writeonly buffer ChcSurvivors { ChcDraw survivors[]; };
 // the kept boxes (the candidates' binding point: candidates are uploaded after the query draw)
-layout(std430, binding = BIND_CHC_CANDIDATES) writeonly buffer ChcKeptBoxes { ChcItem kept[]; };
+layout(std430, binding = BIND_CHC_CANDIDATES) buffer ChcKeptBoxes { ChcItem kept[]; };
 layout(std430, binding = BIND_CHC_INDIRECT) buffer ChcIndirect { uint cmdCount; uint cmdInstances; uint cmdFirst;
                                                                  uint cmdBase; };
 // slots pixelSlot .. pixelSlot + 2 of the query counts: pair tests x pixels and records drawn (stats),
@@ -26,11 +27,17 @@ uniform int pixelSlot;
 uniform int nQueries;
 uniform int maxItems;  // items per intersection record (CHC_MAX_ITEMS of the intersection program)
 uniform int cull;  // 0: keep every box (ChcrtParams.coarse_cull off)
+uniform int sortByGap;  // 0: no gaps (-1: no ray stops early), kept in input order (ChcrtParams.gap_order off)
+
+// a lower bound of the distance from every ray origin of the tile to the box (the relative margin
+// covers the rounding of the gap and of the rays' own box tests)
+float gapOf(ChcItem it, TileBound t) {
+    vec3 gap = max(max(it.bmin - t.omax.xyz, t.omin.xyz - it.bmax), vec3(0.0));
+    return length(gap) * (1.0 - 1e-4);
+}
 
 bool reachable(ChcItem it, TileBound t) {
-    if (cull == 0) return true;
-    vec3 gap = max(max(it.bmin - t.omax.xyz, t.omin.xyz - it.bmax), vec3(0.0));
-    return length(gap) * (1.0 - 1e-4) <= t.omin.w * (1.0 + 1e-4);
+    return cull == 0 || gapOf(it, t) <= t.omin.w * (1.0 + 1e-4);
 }
 
 void main() {
@@ -43,10 +50,17 @@ void main() {
     for (int k = 0; k < q.info.y; ++k) nb += reachable(items[q.info.x + k], t) ? 1 : 0;
     if (nb == 0) return;
     int base = int(atomicAdd(chcPassed[pixelSlot + 2], uint(nb)));
+    // the kept pairs sorted by gap, nearest first (insertion sort; a tile keeps at most lca_pairs or so),
+    // so that a ray stops testing a record's boxes at the first one beyond its nearest hit
+    // (chc_intersect.frag)
     int j = base;
     for (int k = 0; k < q.info.y; ++k) {
         ChcItem it = items[q.info.x + k];
-        if (reachable(it, t)) kept[j++] = it;
+        if (!reachable(it, t)) continue;
+        it.gap = sortByGap != 0 ? gapOf(it, t) : -1.0;
+        int m = j++;
+        while (m > base && kept[m - 1].gap > it.gap) { kept[m] = kept[m - 1]; --m; }
+        kept[m] = it;
     }
     for (int b = 0; b < nb; b += maxItems) {  // records of at most maxItems pairs (the shader's bound)
         int m = min(maxItems, nb - b);

@@ -58,6 +58,10 @@ pairs are then not queried), and a pass where most tiles do that runs a full tra
 front's first pass stops refining when its queries cost more than a traversal (`cold_full_bvh`);
 that front then stays on full traversals.
 
+Gap order (`gap_order`, `gap_order_visible`): in the GPU-driven pass each record's items are sorted on
+the device by a lower bound of their distance from the tile's ray origins, and a ray stops testing
+them at the first one beyond its nearest hit (exact: such a box cannot be entered before the hit).
+
 Hit hints (`hit_hint`): every ray first tests the triangle its pixel hit in the front's previous
 pass (copied on the device after each pass): any-hit rays that hit it are done, closest-hit rays
 start with its distance as tmax. Exact: a hint hit is a real hit, and the traversal still finds
@@ -111,9 +115,11 @@ BINDINGS = backend_bindings(SSBO, IMAGE)
  BIND_CHC_QUERIES, BIND_CHC_TILES) = SSBO.values()
 BIND_IMG_CHC_BEST, BIND_IMG_CHC_OVERDRAW, BIND_IMG_CHC_BATCH = IMAGE.values()
 
+# gap: written by chc_querycull.comp for the invisible pairs' items (a lower bound of the distance from
+# every ray origin of the tile to the box, world units); 0 in host-made items
 ITEM_DTYPE = np.dtype([("bmin", "<f4", 3), ("ref", "<i4"), ("bmax", "<f4", 3), ("count", "<i4"),
-                       ("id", "<i4"), ("pad", "<i4", 3)])
-assert ITEM_DTYPE.itemsize == 48
+                       ("id", "<i4"), ("pad", "<i4", 3), ("gap", "<f4"), ("pad2", "<i4", 3)])
+assert ITEM_DTYPE.itemsize == 64
 DRAW_DTYPE = np.dtype([("rect", "<i4", 4), ("info", "<i4", 4)])  # x, y, w, h; item base, count, query slot
 QUERY_MODES = ("batched", "hw")
 COUNT_SLOTS = 64
@@ -181,6 +187,15 @@ class ChcrtParams:
     cold_query_budget: float = param(48.0, "cold_full_bvh: query fragments per active ray after which a front's "
                                      "first pass stops refining (a full traversal tests about 50-60 boxes per ray; "
                                      "0 = no budget)")
+    gap_order: bool = param(True, "GPU-driven: the cull writes each tile's invisible pairs nearest first (by a lower "
+                            "bound of their distance from the tile's ray origins), and a ray stops testing them at "
+                            "the first one beyond its nearest hit (exact)")
+    gap_order_visible: bool = param(True, "gap_order for the visible pairs' records too, in closest-hit passes: two "
+                                    "dispatches before their draw (the tiles' ray origin boxes, the records' items "
+                                    "sorted by gap); any-hit passes keep the visible items unsorted")
+    count_due_only: bool = param(True, "GPU-driven: only the visible pairs whose re-query is due this frame count "
+                                 "the rays that enter them (the others' counts are never read; each count is a "
+                                 "shader atomic per entered pair and ray); False: every visible pair counts")
     hit_hint: bool = param(True, "temporal: each ray first tests the triangle its pixel hit in this front's previous "
                            "pass (a shadow cache for every ray type): an any-hit ray that hits it is done, a "
                            "closest-hit ray traverses with its distance as tmax (exact); not with a GPU budget, nor in "
@@ -375,6 +390,7 @@ class ChcrtBackend:
         self.gpu_driven = self.p.gpu_driven and self.batched and self.cache is None
         self.tilebounds = self.ctx.compute_shader(load_shader_source("chc_tilebounds.comp", BINDINGS, (HERE,)))
         self.querycull = self.ctx.compute_shader(load_shader_source("chc_querycull.comp", BINDINGS, (HERE,)))
+        self.visorder = self.ctx.compute_shader(load_shader_source("chc_visorder.comp", BINDINGS, (HERE,)))
         self.tilebounds["rayOrigin"] = 0
         self.tilebounds["rayDir"] = 1
         self.all_queries = StreamBuffer(self.ctx, DRAW_DTYPE.itemsize, BIND_CHC_QUERIES)
@@ -814,9 +830,11 @@ class _Pass:
         self._draw_batches(nd, sl, rects, starts, ends)
 
     def _draw_batches(self, nd: np.ndarray, sl: np.ndarray, rects: np.ndarray, starts: np.ndarray,
-                      ends: np.ndarray) -> None:
+                      ends: np.ndarray, finest: np.ndarray | None = None) -> None:
         """Draw the items nd[starts[i]:ends[i]] over tile rectangle rects[i] (nearest first where
-        sorted), in batches of at most max_batch items per record."""
+        sorted), in batches of at most max_batch items per record. `finest` (GPU-driven, gap_order):
+        the finest tile index of each rectangle; the records' items are then sorted by their gap
+        from the tile's ray origins on the GPU before the draw (_order_by_gap)."""
         mb = self.p.max_batch
         _upload(self.be.items, self._subtree_items(nd, sl))
         # batches: per tile, consecutive runs of at most max_batch subtrees (nearest first)
@@ -842,8 +860,13 @@ class _Pass:
             recs["rect"] = rects[tile_of[live]]
             recs["info"][:, 0] = bstart[live]
             recs["info"][:, 1] = bcount[live]
+            if finest is not None:
+                recs["info"][:, 3] = finest[tile_of[live]]
             _upload(self.be.draws, recs)
             draws = 0
+            if len(recs) and finest is not None:
+                self._order_by_gap(len(recs))
+                fbo.use()
             if len(recs):
                 fbo.scissor = None
                 self._isect_uniforms(prog)
@@ -867,6 +890,28 @@ class _Pass:
         self.stats["intersect_draws"] += draws
         self.stats["draws"] += draws
 
+    def _order_by_gap(self, nrec: int) -> None:
+        """gap_order, before the visible pairs' draw: the ray origin box of every finest tile
+        (chc_tilebounds.comp), then per record its items' gaps from it and the items sorted by gap
+        (chc_visorder.comp), in place in the items buffer. Two dispatches whatever the tiles."""
+        be, ctx = self.be, self.ctx
+        level = self.front.max_level
+        nt = 1 << (2 * level)
+        if be.tile_bounds.size < 32 * nt:
+            be.tile_bounds.release()
+            be.tile_bounds = ctx.buffer(reserve=32 * nt)
+        be.tile_bounds.bind_to_storage_buffer(BIND_CHC_TILES)
+        ctx.memory_barrier(moderngl.SHADER_IMAGE_ACCESS_BARRIER_BIT)  # bestBits of the init draw
+        be.tilebounds["raySize"] = tuple(self.size)
+        be.tilebounds["level"] = level
+        be.tilebounds.run(nt)
+        ctx.memory_barrier(moderngl.SHADER_STORAGE_BARRIER_BIT)
+        be.visorder["nRecords"] = nrec
+        be.visorder.run(-(-nrec // 64))
+        ctx.memory_barrier(moderngl.SHADER_STORAGE_BARRIER_BIT)
+        self.stats["draws"] += 2
+        iostats.gl_draw(2)
+
     def _subtree_items(self, nd: np.ndarray, slots: np.ndarray | None = None) -> np.ndarray:
         """Intersection items of scheduled subtrees (canonical BVH nodes `nd`); pad[2] = the count
         slot of the pair (GPU-driven), -1 for none."""
@@ -888,6 +933,8 @@ class _Pass:
         # not in a pass captured for the overlays: there every hit names the scheduled subtree that
         # holds it (subtree_batches), and a hint's triangle need not lie in this tile's subtrees
         prog["useHint"] = int(self.hint is not None and not self.overlays)
+        if prog.get("gapOrder", None) is not None:
+            prog["gapOrder"] = int(self.p.gap_order)
 
     # -- Algorithm 1 --------------------------------------------------------------------------------
     def run(self) -> dict[str, float]:
@@ -1098,9 +1145,10 @@ class _Pass:
                 n = 1 << f.max_level
                 full = 0 < self.p.full_bvh_fraction <= self.stats["lca_tiles"] / (n * n)
                 if not full:
-                    self._draw_finest(*vis_items)
+                    nd, tile, sl = vis_items
+                    self._draw_finest(nd, tile, self._due_slots(visible, sl))
             else:
-                self._draw_subtrees(visible, np.arange(len(visible)))
+                self._draw_subtrees(visible, self._due_slots(visible, np.arange(len(visible))))
             self.stats["phase1_subtrees"] = len(visible)
             self._sync()
         with prof.phase("chc:2-queries"):
@@ -1129,6 +1177,17 @@ class _Pass:
             self.rays_read = True
             if not full:  # a full-BVH pass counted nothing: the front stays as it is
                 self._refine(visible, invisible, cnt[:nslots])
+
+    def _due_slots(self, visible: np.ndarray, sl: np.ndarray) -> np.ndarray:
+        """Count slots of visible-pair items (index into `visible`, -1 = not counted): with
+        count_due_only, only pairs whose re-query is due this frame keep theirs (_refine reads no
+        other visible pair's count), so the other items cost no atomic per entering ray."""
+        if not self.p.count_due_only or len(visible) == 0:
+            return sl
+        due = self.front.requery_due(visible, self.frame_number())
+        ok = sl >= 0
+        ok[ok] = due[sl[ok]]
+        return np.where(ok, sl, -1)
 
     def _cull_invisible(self, invisible: np.ndarray, slot0: int, nslots: int,
                         copies: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None) -> None:
@@ -1199,6 +1258,7 @@ class _Pass:
         be.querycull["maxItems"] = mb
         be.querycull["pixelSlot"] = nslots
         be.querycull["cull"] = int(self.p.coarse_cull)
+        be.querycull["sortByGap"] = int(self.p.gap_order)
         be.querycull.run(-(-nsub // 64))
         ctx.memory_barrier(moderngl.COMMAND_BARRIER_BIT | moderngl.SHADER_STORAGE_BARRIER_BIT)
         self.stats["draws"] += 2
@@ -1258,7 +1318,8 @@ class _Pass:
         ends = np.r_[starts[1:], len(nd)]
         t = tile[starts]
         rects = tile_rects(np.full(len(t), level), t % n, t // n, self.size)
-        self._draw_batches(nd, sl, rects, starts, ends)
+        order = self.p.gap_order and self.p.gap_order_visible and not self.any_hit
+        self._draw_batches(nd, sl, rects, starts, ends, t if order else None)
 
     def _intersect_survivors(self) -> None:
         """The invisible pairs that survived the cull, in one indirect instanced draw (items: the

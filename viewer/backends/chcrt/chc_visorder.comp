@@ -1,0 +1,32 @@
+// CHC+RT, GPU-driven pass, before the visible pairs' draw (ChcrtParams.gap_order): per record of that
+// draw (one finest tile's visible subtrees, info.w = the tile), each item gets its gap, a lower bound
+// of the distance from every ray origin of the tile (chc_tilebounds.comp, run just before) to its
+// box, and the record's items are sorted by it, nearest first. A ray then stops testing the record's
+// boxes at the first one beyond its nearest hit so far (chc_intersect.frag): with the hit hint that
+// is its hit already. Only the order changes: the ray still traverses what it enters nearest first.
+layout(local_size_x = 64) in;
+struct ChcDraw { ivec4 rect; ivec4 info; };
+struct ChcItem { vec3 bmin; int ref; vec3 bmax; int count; int id; int p0; int p1; int p2;
+                 float gap; int q0; int q1; int q2; };
+struct TileBound { vec4 omin; vec4 omax; };
+layout(std430, binding = BIND_CHC_ITEMS) buffer ChcItems { ChcItem items[]; };
+layout(std430, binding = BIND_CHC_DRAWS) readonly buffer ChcDraws { ChcDraw draws[]; };
+layout(std430, binding = BIND_CHC_TILES) readonly buffer ChcTiles { TileBound tiles[]; };
+uniform int nRecords;
+
+void main() {
+    int i = int(gl_GlobalInvocationID.x);
+    if (i >= nRecords) return;
+    ChcDraw d = draws[i];
+    TileBound t = tiles[d.info.w];
+    bool live = t.omax.w > 0.0;  // the tile has active rays (else its origin box is empty)
+    int base = d.info.x;
+    for (int k = 0; k < d.info.y; ++k) {
+        ChcItem it = items[base + k];
+        vec3 gap = max(max(it.bmin - t.omax.xyz, t.omin.xyz - it.bmax), vec3(0.0));
+        it.gap = live ? length(gap) * (1.0 - 1e-4) : 0.0;  // the margin as in chc_querycull.comp
+        int m = base + k;
+        while (m > base && items[m - 1].gap > it.gap) { items[m] = items[m - 1]; --m; }
+        items[m] = it;
+    }
+}
