@@ -50,19 +50,23 @@ class Cut:
 
 def bvh_cut(bvh: BVH, target: int = CUT_NODES) -> Cut:
     """The nodes holding at most T = ceil(N / target) triangles whose parent holds more (the root
-    when N <= T), plus the leaves larger than T: disjoint, covering every slot once."""
-    count = bvh.node_count.astype(np.int64)
+    when N <= T), plus the leaves larger than T: disjoint, covering every slot once. Found from
+    the nodes holding more than T (their small children, their leaves), so only one comparison
+    touches every node: at 10 M triangles a whole-tree parent gather took 0.5 s of the first frame."""
+    count = bvh.node_count
     n = int(count[0]) if count.size else 0
     limit = max(1, -(-n // max(int(target), 1)))
-    parent = bvh.node_parent.astype(np.int64)
-    parent_count = np.where(parent >= 0, count[np.maximum(parent, 0)], np.iinfo(np.int64).max)
-    leaf = bvh.node_left < 0
-    pick = ((count <= limit) & (parent_count > limit)) | (leaf & (count > limit))
-    pick &= count > 0
-    nodes = np.flatnonzero(pick)
-    first = bvh.node_first.astype(np.int64)[nodes]
+    big = np.flatnonzero(count > limit)  # a parent's count is at least its children's: a subtree
+    if big.size == 0:
+        nodes = np.zeros(1 if n > 0 else 0, np.int64)  # the root alone
+    else:
+        inner = bvh.node_left[big] >= 0
+        kids = np.concatenate([bvh.node_left[big[inner]], bvh.node_right[big[inner]]]).astype(np.int64)
+        nodes = np.concatenate([kids[count[kids] <= limit], big[~inner]])
+        nodes = nodes[count[nodes] > 0]
+    first = bvh.node_first[nodes].astype(np.int64)
     order = np.argsort(first, kind="stable")
-    return Cut(nodes[order], first[order], count[nodes][order])
+    return Cut(nodes[order], first[order], count[nodes][order].astype(np.int64))
 
 
 def frustum_planes(camera: Camera, aspect: float, widen: float = WIDEN) -> np.ndarray:
