@@ -162,6 +162,8 @@ class Scene:
     def reordered(self, order: np.ndarray) -> Scene:
         """The same scene with triangles permuted: new triangle i is old triangle order[i]."""
         composed = order if self.order is None else self.order[order]
-        return replace(self, triangles=np.ascontiguousarray(self.triangles[order]),
-                       material_ids=np.ascontiguousarray(self.material_ids[order]),
+        # np.take, not fancy indexing: faster on (N, 3, 3) rows (city 10 M in its BVH's order: 1.05
+        # -> 0.95 s cold, 0.40 -> 0.24 s warm; a random order 2.3-3.4 -> 0.6-1.1 s); contiguous results
+        return replace(self, triangles=np.take(np.ascontiguousarray(self.triangles), order, axis=0),
+                       material_ids=np.take(np.ascontiguousarray(self.material_ids), order),
                        order=np.asarray(composed) if self.animation is not None else None)
