@@ -890,22 +890,28 @@ class _Pass:
         self.stats["intersect_draws"] += draws
         self.stats["draws"] += draws
 
+    def _tile_bounds(self, level: int, tiles: int) -> None:
+        """The ray-origin box and farthest reach of each of the `tiles` tiles of `level`
+        (chc_tilebounds.comp, one dispatch) into be.tile_bounds (grown when too small), after the
+        image writes of the draw before it (bestBits)."""
+        be, ctx = self.be, self.ctx
+        if be.tile_bounds.size < 32 * tiles:
+            be.tile_bounds.release()
+            be.tile_bounds = ctx.buffer(reserve=32 * tiles)
+        be.tile_bounds.bind_to_storage_buffer(BIND_CHC_TILES)
+        ctx.memory_barrier(moderngl.SHADER_IMAGE_ACCESS_BARRIER_BIT)
+        be.tilebounds["raySize"] = tuple(self.size)
+        be.tilebounds["level"] = level
+        be.tilebounds.run(tiles)
+        ctx.memory_barrier(moderngl.SHADER_STORAGE_BARRIER_BIT)
+
     def _order_by_gap(self, nrec: int) -> None:
         """gap_order, before the visible pairs' draw: the ray origin box of every finest tile
         (chc_tilebounds.comp), then per record its items' gaps from it and the items sorted by gap
         (chc_visorder.comp), in place in the items buffer. Two dispatches whatever the tiles."""
         be, ctx = self.be, self.ctx
         level = self.front.max_level
-        nt = 1 << (2 * level)
-        if be.tile_bounds.size < 32 * nt:
-            be.tile_bounds.release()
-            be.tile_bounds = ctx.buffer(reserve=32 * nt)
-        be.tile_bounds.bind_to_storage_buffer(BIND_CHC_TILES)
-        ctx.memory_barrier(moderngl.SHADER_IMAGE_ACCESS_BARRIER_BIT)  # bestBits of the init draw
-        be.tilebounds["raySize"] = tuple(self.size)
-        be.tilebounds["level"] = level
-        be.tilebounds.run(nt)
-        ctx.memory_barrier(moderngl.SHADER_STORAGE_BARRIER_BIT)
+        self._tile_bounds(level, 1 << (2 * level))  # after the init draw's bestBits
         be.visorder["nRecords"] = nrec
         be.visorder.run(-(-nrec // 64))
         ctx.memory_barrier(moderngl.SHADER_STORAGE_BARRIER_BIT)
@@ -1231,9 +1237,6 @@ class _Pass:
         ranges["info"][:, 1] = counts[parent]
         self.stats["queries"] += len(invisible)
         mb = self.p.max_batch
-        if be.tile_bounds.size < 32 * nsub:
-            be.tile_bounds.release()
-            be.tile_bounds = ctx.buffer(reserve=32 * nsub)
         need = max(int((-(-counts // mb)).sum()) << (2 * sub), 1) * DRAW_DTYPE.itemsize
         if be.survivors.size < need:
             be.survivors.release()
@@ -1246,14 +1249,9 @@ class _Pass:
         be.query_indirect.write(np.array([6, 0, 0, 0], np.uint32).tobytes())
         iostats.to_device(16)
         be.kept_boxes.bind_to_storage_buffer(BIND_CHC_CANDIDATES)
-        be.tile_bounds.bind_to_storage_buffer(BIND_CHC_TILES)
         be.survivors.bind_to_storage_buffer(BIND_CHC_DRAWS)
         be.query_indirect.bind_to_storage_buffer(BIND_CHC_INDIRECT)
-        ctx.memory_barrier(moderngl.SHADER_IMAGE_ACCESS_BARRIER_BIT)  # bestBits of the visible pairs
-        be.tilebounds["raySize"] = tuple(self.size)
-        be.tilebounds["level"] = cl
-        be.tilebounds.run(nsub)
-        ctx.memory_barrier(moderngl.SHADER_STORAGE_BARRIER_BIT)
+        self._tile_bounds(cl, nsub)  # after the visible pairs' bestBits
         be.querycull["nQueries"] = nsub
         be.querycull["maxItems"] = mb
         be.querycull["pixelSlot"] = nslots
