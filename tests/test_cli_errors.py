@@ -132,6 +132,7 @@ def test_missing_recording(tmp_path):
     (["render", "room", "--backend", "magic"], "magic"),
     (["render", "nosuchbuiltin"], "nosuchbuiltin"),
     (["render", "room", "--camera", "1,2,3"], "--camera"),
+    (["render", "room", "--camera", "0,1,5,0,1,0,500"], "fov_deg"),
     (["render", "room", "--view", "xray"], "xray"),
 ])
 def test_bad_arguments(tmp_path, args, needle):

@@ -62,6 +62,7 @@ def parse_image_sizes(text: str, option: str = "--sizes") -> list[tuple[int, int
 
 def parse_camera(text: str):
     from viewer.camera import Camera
+    from viewer.recording import MAX_FOV, MIN_FOV
 
     try:
         vals = [float(v) for v in text.split(",")]
@@ -71,6 +72,8 @@ def parse_camera(text: str):
         raise RtwalkError(f"bad --camera '{text}': expected eye_x,eye_y,eye_z,target_x,target_y,target_z[,fov_deg]")
     if np.allclose(vals[:3], vals[3:6]):
         raise RtwalkError(f"bad --camera '{text}': eye and target coincide")
+    if len(vals) == 7 and not MIN_FOV < vals[6] < MAX_FOV:
+        raise RtwalkError(f"bad --camera '{text}': fov_deg must be between {MIN_FOV:g} and {MAX_FOV:g}")
     return Camera.look_at(vals[:3], vals[3:6], fov_y=vals[6] if len(vals) == 7 else 60.0)
 
 
