@@ -142,3 +142,30 @@ def test_moving_frames_pick_the_cheaper_gbuffer_source(gl_ctx, room):
         assert prog._pick_source(100) == "trace"  # 40 ms < 50 ms
     finally:
         r.release()
+
+
+@pytest.mark.parametrize("backend", ["glsl", "clbvh"])
+def test_stepped_still_frame_is_the_one_call_frame(gl_ctx, room, backend, monkeypatch):
+    """`rtwalk render` renders a large still frame in steps of sample passes (for its progress bar):
+    the same passes, weights and sums in the same order, so the same image bit for bit, and the same
+    rays; small frames stay one call."""
+    import viewer.progressive as progressive
+
+    _, cam = _cams()
+    effects = parse_effects("primary,shadows,soft:3,ao:5,diffuse:4,reflections")
+    r = Renderer(gl_ctx, room.scene, room.bvh, SIZE, backend, effects)
+    try:
+        one = r.render(cam)
+        whole = r.read_image().copy()
+        calls: list[tuple[int, int]] = []
+        progressive.render_stepped(r, cam, lambda done, steps: calls.append((done, steps)))
+        assert calls == [(1, 1)]  # under STEPPED_MIN_RAYS: one call
+        monkeypatch.setattr(progressive, "STEPPED_MIN_RAYS", 1)
+        monkeypatch.setattr(progressive, "MIN_SAMPLES_PER_STEP", 2)
+        calls.clear()
+        _, rays = progressive.render_stepped(r, cam, lambda done, steps: calls.append((done, steps)))
+        assert calls == [(1, 3), (2, 3), (3, 3)]  # sample 0, then samples 1-4 in two steps
+        assert rays == one.rays
+        assert np.array_equal(r.read_image(), whole)
+    finally:
+        r.release()

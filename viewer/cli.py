@@ -33,10 +33,12 @@ VIEW_SIZE = "896x504"  # the window's image; the panel is beside it (viewer.ui.p
 
 def cmd_render(args) -> int:
     from PIL import Image
+    from tqdm import tqdm
 
     from viewer.backends import backend_info, registered_infos
     from viewer.gl.context import create_headless_context
     from viewer.passes.overlay import check_view
+    from viewer.progressive import render_stepped
     from viewer.recording import load_recording
     from viewer.renderer import Renderer
 
@@ -60,15 +62,22 @@ def cmd_render(args) -> int:
     renderer.view = args.view
     if rec is not None:  # an animated scene is shown at the recording's scene time of that frame
         renderer.set_scene_time(rec.scene_time_for_frame(args.frame))
-    report = renderer.render(camera)
+    bar = tqdm(total=1, desc="render", unit="step", delay=1.0, disable=args.quiet, file=sys.stderr, leave=False)
+
+    def step_done(done: int, steps: int) -> None:
+        bar.total = steps
+        bar.update(done - bar.n)
+
+    gpu_ms, rays = render_stepped(renderer, camera, step_done)  # steps of sample passes: a progress bar
+    bar.close()
     out.parent.mkdir(parents=True, exist_ok=True)
     denoise = getattr(args, "denoise", "off") == "on"
     Image.fromarray(renderer.read_denoised("library", camera) if denoise else renderer.read_image()).save(out)
     if not args.quiet:
         from viewer.denoise import filter_line
 
-        rays = ", ".join(f"{k} {v:,}" for k, v in report.rays.items()) or "none"
-        print(f"wrote {out} ({size[0]}x{size[1]}, GPU {sum(report.gpu_ms.values()):.1f} ms; rays: {rays}"
+        ray_list = ", ".join(f"{k} {v:,}" for k, v in rays.items()) or "none"
+        print(f"wrote {out} ({size[0]}x{size[1]}, GPU {sum(gpu_ms.values()):.1f} ms; rays: {ray_list}"
               f"{filter_line(denoise, renderer)})", file=sys.stderr)
     return 0
 

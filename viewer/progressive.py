@@ -164,3 +164,41 @@ class Progressive:
             self._next += 1
             return Step(report, False, 1.0, self._next, requested, self._next >= requested)
         return Step(None, False, 1.0, requested, requested, True)
+
+
+STEPPED_MIN_RAYS = 32_000_000  # a still frame with this many rays (~10 s on 2 cores) is rendered in steps
+MIN_SAMPLES_PER_STEP = 4  # a step's own cost (shading, the G-buffer's crossing) is ~1 pass: keep it a few %
+MAX_STEPS = 16  # enough for a useful bar
+
+
+def render_stepped(r: Renderer, camera: Camera, on_step: Callable[[int, int], None] | None = None
+                   ) -> tuple[dict[str, float], dict[str, int]]:
+    """The full-quality frame in steps of whole sample passes, so a long still render (`rtwalk
+    render`) can show progress: sample 0 of every effect, then the later sample passes added in
+    order, at least MIN_SAMPLES_PER_STEP a step (Renderer.render(samples=..., keep=True), the same
+    sums in the same order: the same image as one call). One call where the frame is small (under
+    STEPPED_MIN_RAYS rays), has too few sample passes, or shows a backend overlay (captured from one
+    pass of one call).
+    `on_step(done, steps)` after each step. Returns the GPU ms per phase and the rays per ray
+    type, summed over the steps."""
+    passes = r.passes()
+    samples = sorted({p[1] for p in passes})
+    pixels = r.size[0] * r.size[1]
+    later = len(samples) - 1
+    if later < MIN_SAMPLES_PER_STEP or pixels * len(passes) < STEPPED_MIN_RAYS or r.is_overlay_view:
+        steps = [tuple(samples)]
+    else:
+        parts = min(MAX_STEPS - 1, later // MIN_SAMPLES_PER_STEP)
+        steps = [(samples[0],)] + [tuple(int(k) for k in part) for part in np.array_split(samples[1:], parts)]
+    gpu_ms: dict[str, float] = {}
+    rays: dict[str, int] = {}
+    for i, step in enumerate(steps):
+        last = i == len(steps) - 1
+        report = r.render(camera, samples=None if len(steps) == 1 else step, keep=i > 0, shade=last)
+        for k, v in report.gpu_ms.items():
+            gpu_ms[k] = gpu_ms.get(k, 0.0) + v
+        for k, v in report.rays.items():
+            rays[k] = rays.get(k, 0) + v
+        if on_step is not None:
+            on_step(i + 1, len(steps))
+    return gpu_ms, rays

@@ -372,11 +372,12 @@ class Renderer:
                      for rt in ACCUMULATED)
 
     def render(self, camera: Camera, capture: bool = False, samples: tuple[int, ...] | None = None,
-               keep: bool = False) -> FrameReport:
+               keep: bool = False, shade: bool = True) -> FrameReport:
         """One frame. `samples`: trace only the sample passes with these indices (None: all: the
         full-quality frame); `keep`: add them to the accumulators of the previous call (same
         camera and size: the G-buffer is not redrawn), as progressive refinement does
-        (viewer.progressive)."""
+        (viewer.progressive); `shade=False`: fill the accumulators only, no image (the steps of a
+        stepped still frame before its last, which nothing shows)."""
         s = self.settings
         t0 = time.perf_counter()
         prof = self.profiler
@@ -424,19 +425,20 @@ class Renderer:
         captured: list[CapturedPass] = []
         stats: dict[str, float] = {}
         if self.frame_path == "device":
-            counts = self._device_passes(passes, lengths, cam_u, light_u, keep, capture, captured, stats)
+            counts = self._device_passes(passes, lengths, cam_u, light_u, keep, capture, captured, stats, shade)
             overlay_done = False
         else:
             counts, overlay_done = self._batch_passes(passes, lengths, source, capture, captured, stats)
-        with prof.phase("shade"):
-            if view_overlay and overlay_done and self.view in self.overlay.captured:
-                self.overlay.render_view(self.shade.fbo, self.view, self.overlay_tile_level(),
-                                         int(self.overlay_scale), self.overlay_log)
-            else:  # an overlay view without overlays (window): the final image under the message
-                self.shade.render(self.gbuffer, self.accumulate, s, "final" if view_overlay else self.view,
-                                  min(len(self.scene.point_lights), 8), self.depth_scale, self.acc_scale())
+        if shade:
+            with prof.phase("shade"):
+                if view_overlay and overlay_done and self.view in self.overlay.captured:
+                    self.overlay.render_view(self.shade.fbo, self.view, self.overlay_tile_level(),
+                                             int(self.overlay_scale), self.overlay_log)
+                else:  # an overlay view without overlays (window): the final image under the message
+                    self.shade.render(self.gbuffer, self.accumulate, s, "final" if view_overlay else self.view,
+                                      min(len(self.scene.point_lights), 8), self.depth_scale, self.acc_scale())
         self.denoised = False
-        if self.denoise and self.view == "final" and self.noisy:  # the picture shown; shade.color stays raw
+        if shade and self.denoise and self.view == "final" and self.noisy:  # the picture shown; shade.color raw
             with prof.phase("denoise"):
                 self.device_denoiser.render(self.shade.color, self.gbuffer)
             self.denoised = True
@@ -479,11 +481,13 @@ class Renderer:
                 self.samples_done.setdefault(ray_type, set()).add(sample)
         return self.raygen.read_counts(), overlay_done
 
-    def _device_passes(self, passes, lengths, cam_u, light_u, keep, capture, captured, stats) -> np.ndarray:
+    def _device_passes(self, passes, lengths, cam_u, light_u, keep, capture, captured, stats,
+                       shade: bool = True) -> np.ndarray:
         """Every pass on the CL device (viewer.cl.frame): the G-buffer ids in once, rays made,
         traced and accumulated there, the used accumulators out once, the ray counts read with
-        them. Phases are timed by queue markers (no host wait per phase or pass); the backend's `end_frame`
-        (optional) reports counters kept on the device over the frame."""
+        them (without `shade` the accumulators stay on the device: a later call with `keep` takes
+        them out). Phases are timed by queue markers (no host wait per phase or pass); the backend's
+        `end_frame` (optional) reports counters kept on the device over the frame."""
         from viewer.cl.frame import DeviceFrame
 
         s, prof = self.settings, self.profiler
@@ -517,8 +521,9 @@ class Renderer:
                 for k, v in end().items():
                     stats[k] = stats.get(k, 0) + v
             dev.request_counts()  # arrives with the accumulators' reads (no wait of its own)
-            with prof.cl_phase("device:accumulators", q):
-                dev.write_accumulators(self.accumulate.textures, sorted(self.samples_done, key=int))
+            if shade:
+                with prof.cl_phase("device:accumulators", q):
+                    dev.write_accumulators(self.accumulate.textures, sorted(self.samples_done, key=int))
         finally:
             prof.cl_deferred = False
         return dev.read_counts()

@@ -94,6 +94,7 @@ class DeviceFrame:
         self.size: tuple[int, int] | None = None
         self.ids = self.rays = self.hits = None
         self.surf: tuple = ()
+        self._surfaces_made = False  # `surf` holds the surfaces of the ids now in `ids` (begin's keep)
         self.acc: dict[RayType, Any] = {}
         self.tris = self.mats = None
         self.scene_key: tuple | None = None
@@ -141,19 +142,25 @@ class DeviceFrame:
 
     # -- per frame --------------------------------------------------------------------------
     def begin(self, size: tuple[int, int], id_texture: Any, cam_u: dict, light_u: dict, keep: bool) -> None:
-        """Read the G-buffer ids into CL (one staged copy), write the frame's parameters, and
-        (unless `keep`: progressive refinement adds to the previous call) clear the accumulators."""
+        """Read the G-buffer ids into CL (one staged copy) and make the per-pixel surfaces, write the
+        frame's parameters, and clear the accumulators. With `keep` (more sample passes added to the
+        previous call's: same camera, size and G-buffer) the ids and surfaces already here are reused
+        and the accumulators kept."""
+        reuse = keep and self.size == (int(size[0]), int(size[1])) and self._surfaces_made
         self.resize(size)
         n = self.size[0] * self.size[1]
         q = self.ctx.queue
-        with mapped(self.ctx, self.ids, (n,), np.int32, write=True) as a:
-            id_texture.read_into(a)  # a staged GL -> CL hop: counted once, by the map
+        if not reuse:
+            with mapped(self.ctx, self.ids, (n,), np.int32, write=True) as a:
+                id_texture.read_into(a)  # a staged GL -> CL hop: counted once, by the map
         self._params_host[...] = frame_params(cam_u, light_u)
         clio.copy(q, self.params, self._params_host, is_blocking=False)
         self.ctx.cl.enqueue_fill_buffer(q, self.counts, np.uint32(0), 0, 4 * MAX_COUNTERS)
         w, h = self.size
-        self.k_surface(q, self._gsize(), (WG,), self.ids, self.tris, self.params, np.int32(w), np.int32(h),
-                       *self.surf)
+        if not reuse:
+            self.k_surface(q, self._gsize(), (WG,), self.ids, self.tris, self.params, np.int32(w), np.int32(h),
+                           *self.surf)
+            self._surfaces_made = True
         if not keep:
             for buf in self.acc.values():
                 self.ctx.cl.enqueue_fill_buffer(q, buf, np.float32(0), 0, 16 * n)
@@ -217,6 +224,7 @@ class DeviceFrame:
                 b.release()
         self.tris = self.mats = None
         self.scene_key = None
+        self._surfaces_made = False  # made from the old triangles
 
     def release_targets(self) -> None:
         for part in (self.rays, self.hits):
@@ -231,6 +239,7 @@ class DeviceFrame:
         self.acc = {}
         self.ids = self.rays = self.hits = None
         self.surf = ()
+        self._surfaces_made = False
         self.size = None
 
     def release(self) -> None:
