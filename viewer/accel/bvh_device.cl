@@ -621,8 +621,10 @@ __kernel void level_scan(uint d, uint nb, __global uint* bsum, __global uint* le
 }
 
 // Level d, per block: an inner node writes its two children at the next level's end, in order,
-// and links them; a leaf writes its triangles (left subtree first) to tri_order from its first
-// slot. Then the node's depth.
+// and links them; a leaf writes its triangles' Morton indices (left subtree first) to tri_order from
+// its first slot (tri_ids makes them triangle ids: perm read in slot order, not leaf by leaf in
+// level order, where those reads missed the cache: a third of level_place's time). Then the node's
+// depth.
 __kernel void level_place(uint d, __global const uint* lev, uint nb, uint m, uint n_tri,
                           __global const float4* node, __global const float* tri, __global const uint* perm,
                           __global const uint* bsum, __global int* out) {
@@ -654,7 +656,7 @@ __kernel void level_place(uint d, __global const uint* lev, uint nb, uint m, uin
         } else {
             int slot = first;
             if (ocount[k] == 1) {  // a triangle (inner nodes hold at least two)
-                tri_order[slot] = (int)perm[l];
+                tri_order[slot] = (int)l;
             } else {
                 uint stack[MAX_LEAF + 1];
                 int sp = 1;
@@ -662,7 +664,7 @@ __kernel void level_place(uint d, __global const uint* lev, uint nb, uint m, uin
                 uint w = l;
                 for (;;) {
                     if (w < n_tri) {
-                        tri_order[slot++] = (int)perm[w];
+                        tri_order[slot++] = (int)w;
                         if (sp == 0) break;
                         w = stack[--sp];
                     } else {
@@ -677,6 +679,17 @@ __kernel void level_place(uint d, __global const uint* lev, uint nb, uint m, uin
         }
         odepth[k] = (int)d;
     }
+}
+
+// Per block of leaf-order slots: tri_order[s] = perm[tri_order[s]] (Morton index -> triangle id).
+// The leaves' slots follow the Morton order closely, so perm is read nearly in order.
+__kernel void tri_ids(uint m, uint n, uint nb, __global const uint* perm, __global int* out) {
+    uint b = get_global_id(0);
+    if (b >= nb) return;
+    __global int* tri_order = out + 13 * (size_t)m;
+    uint s, e;
+    block_range(b, nb, n, &s, &e);
+    for (uint i = s; i < e; ++i) tri_order[i] = (int)perm[tri_order[i]];
 }
 
 #ifdef cl_khr_fp64

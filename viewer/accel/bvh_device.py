@@ -99,7 +99,7 @@ BYTES_PER_TRIANGLE = 36 + 8 + 48 + 2 * 32 + OUT_BYTES_PER_TRIANGLE
 _KERNELS = ("centre_bounds", "morton", "init_leaves", "nearest", "nearest_block", "nearest_vec", "nearest_r1",
             "nearest_r1_leaves", "merge_leaves", "count_blocks",
             "scan_blocks", "merge_scatter", "root_count", "layout_root", "level_count", "level_scan", "level_place",
-            "stats_blocks")
+            "tri_ids", "stats_blocks")
 
 
 class DeviceBvhBuilder:
@@ -315,6 +315,8 @@ class DeviceBvhBuilder:
             self._task("level_count", nbl, u(d), lev, u(nbl), u(m), out, bsum)
             self._task("level_scan", 1, u(d), u(nbl), bsum, lev)
             self._task("level_place", nbl, u(d), lev, u(nbl), u(m), u(n), node, tri_buf, perm, bsum, out)
+        nbt = self.prims.nblocks(n)
+        self._task("tri_ids", nbt, u(m), u(n), u(nbt), perm, out)  # the leaves' Morton indices -> triangle ids
         t = self._phase("layout", t)
 
         cl = self.ctx.cl
