@@ -620,6 +620,18 @@ __kernel void level_scan(uint d, uint nb, __global uint* bsum, __global uint* le
     lev[d + 2] = lev[d + 1] + 2 * acc;
 }
 
+#ifdef PREFETCH
+// Ask for what put_node will read of node v: a record's first and last byte (48 bytes: half of them
+// span two cache lines), or the triangle's 36 bytes (likewise).
+inline void prefetch_node(uint v, uint n_tri, __global const float4* node, __global const float* tri,
+                          __global const uint* perm) {
+    __global const char* p = v < n_tri ? (__global const char*)(tri + 9 * (size_t)perm[v])
+                                       : (__global const char*)(node + NODE_F4 * (size_t)(v - n_tri));
+    __builtin_prefetch(p);
+    __builtin_prefetch(p + (v < n_tri ? 35 : 47));
+}
+#endif
+
 // Level d, per block: an inner node writes its two children at the next level's end, in order,
 // and links them; a leaf writes its triangles' Morton indices (left subtree first) to tri_order from
 // its first slot (tri_ids makes them triangle ids: perm read in slot order, not leaf by leaf in
@@ -639,10 +651,8 @@ __kernel void level_place(uint d, __global const uint* lev, uint nb, uint m, uin
 #ifdef PREFETCH
         if (k + PREFETCH < l0 + e && oheight[k + PREFETCH] > 0) {  // the records read PREFETCH nodes on
             uint pl = (uint)oright[k + PREFETCH], pr = (uint)odepth[k + PREFETCH];
-            __builtin_prefetch(pl < n_tri ? (__global const void*)(tri + 9 * (size_t)perm[pl])
-                                          : (__global const void*)(node + NODE_F4 * (size_t)(pl - n_tri)));
-            __builtin_prefetch(pr < n_tri ? (__global const void*)(tri + 9 * (size_t)perm[pr])
-                                          : (__global const void*)(node + NODE_F4 * (size_t)(pr - n_tri)));
+            prefetch_node(pl, n_tri, node, tri, perm);
+            prefetch_node(pr, n_tri, node, tri, perm);
         }
 #endif
         uint l = (uint)oright[k], r = (uint)odepth[k];
