@@ -153,7 +153,7 @@ class DeviceBvhBuilder:
             clio.copy(self.ctx.queue, out, buf, src_offset=offset)
         return out
 
-    def _stats(self, out: Any, m: int, n: int, *tree: np.ndarray) -> BuildStats:
+    def _stats(self, out: Any, offs: Any, m: int, n: int, *tree: np.ndarray) -> BuildStats:
         """BuildStats of the finished tree: tree_stats' sums made on the device in float64 per block
         of nodes (one read of the block sums; the host pass over every node took 0.5 s at 10 M
         triangles), or tree_stats itself on a device without float64."""
@@ -162,7 +162,7 @@ class DeviceBvhBuilder:
         nb = min(PWG * 8, -(-m // 4096) * PWG) if m > 4096 else PWG
         w = self.max_leaf + 5
         part = self._buf("stats", 8 * w * nb)
-        self._task("stats_blocks", nb, np.uint32(m), np.uint32(nb), out, part)
+        self._task("stats_blocks", nb, np.uint32(m), np.uint32(nb), out, offs, part)
         sums = self._read(part, w * nb, np.float64).reshape(nb, w)
         inner, leaf, n_inner = sums[:, 0].sum(), sums[:, 1].sum(), int(sums[:, 2].sum())
         hist = sums[:, 4:].sum(axis=0).astype(np.int64)
@@ -248,8 +248,9 @@ class DeviceBvhBuilder:
         nn = keys  # the sort keys are dead: their pages serve the nearest neighbours
         cnt = b("cnt", 8)
         next_node = b("next_node", 4)
-        marks = b("marks", 16)  # root id, kept nodes, root height (root_count)
+        marks = b("marks", 20)  # root id, kept nodes, root height (root_count); clusters after iterations 0, 1
         clio.copy(q, cnt, np.array([n, n], np.uint32), is_blocking=False)
+        clio.copy(q, marks, np.zeros(5, np.uint32), is_blocking=False)
         clio.copy(q, next_node, np.array([n], np.uint32), is_blocking=False)
         # the first iteration at radius 1 straight from the triangles (nearest_r1_leaves, merge_leaves):
         # no cluster array of all n triangles is written and read twice, only the merged clusters
@@ -271,7 +272,7 @@ class DeviceBvhBuilder:
                 s = p
                 if fused and iters == 0:
                     self._task("nearest_r1_leaves", nbn, tri_buf, perm, u(n), u(nbn), nn, bsum)
-                    self._task("scan_blocks", 1, bsum, u(nbm), cnt, u(p), next_node)
+                    self._task("scan_blocks", 1, bsum, u(nbm), cnt, u(p), next_node, u(iters), marks)
                     self._task("merge_leaves", nbm, tri_buf, perm, u(n), nn, u(nbm), bsum, cmin[1 - s], cmax[1 - s],
                                node)
                     p = 1 - p
@@ -286,7 +287,7 @@ class DeviceBvhBuilder:
                     else:
                         self._run("nearest", n_host, cnt, u(p), cmin[s], cmax[s], nn)
                     self._task("count_blocks", nb, cnt, u(p), nn, u(nb), bsum)
-                self._task("scan_blocks", 1, bsum, u(nbm), cnt, u(p), next_node)
+                self._task("scan_blocks", 1, bsum, u(nbm), cnt, u(p), next_node, u(iters), marks)
                 self._task("merge_scatter", nbm, cnt, u(p), nn, u(nbm), bsum, cmin[s], cmax[s],
                            cmin[1 - s], cmax[1 - s], *node_args)
                 p = 1 - p
@@ -297,42 +298,91 @@ class DeviceBvhBuilder:
 
         # -- layout: breadth first, one level at a time, straight into the finished tree -------
         self._task("root_count", 1, cmin[p], u(n), node, marks)
-        _, m, height = (int(x) for x in self._read(marks, 3, np.uint32))
+        _, m, height, c1, c2 = (int(x) for x in self._read(marks, 5, np.uint32))
         # the finished tree goes to a buffer the BVH keeps, mapped (not copied) for the host: its
         # arrays are views of it (zero-copy on a CPU device). That is the cluster-box buffer when
-        # the tree fits (pages already touched; the pool makes a new one for the next build).
-        words = 13 * m + n
+        # the tree fits, its arrays where the clusters already touched the pages (the pool makes a
+        # new one for the next build).
         del cmin, cmax
-        if 4 * words <= cbox.size:
+        # bytes of each cluster region written: the first iteration's (or init_leaves') clusters
+        # and the sort's other halves (4n bytes at the start of cmin[1] / cmax[1])
+        e0 = 16 * (c2 if fused else n)
+        e1 = max(16 * c1, 4 * n)
+        offs = _out_offsets(m, n, region // 4, [e0 // 4, e0 // 4, e1 // 4, e1 // 4])
+        if offs is not None:
             out = self._bufs.take("cbox")
         else:
-            out = new_buffer(self.ctx, self.ctx.cl.mem_flags.READ_WRITE, 4 * words, "device BVH tree")
+            offs = _contiguous_offsets(m, n)
+            out = new_buffer(self.ctx, self.ctx.cl.mem_flags.READ_WRITE, 4 * (13 * m + n), "device BVH tree")
+        offs_buf = b("offs", 4 * len(offs))
+        clio.copy(q, offs_buf, np.array(offs, np.uint32), is_blocking=False)
         lev = b("lev", 4 * (height + 3))
-        self._task("layout_root", 1, marks, u(m), u(n), node, tri_buf, perm, lev, out)
+        self._task("layout_root", 1, marks, u(m), u(n), node, tri_buf, perm, lev, out, offs_buf)
         for d in range(height + 1):  # level d has at most min(2^d, m) nodes
             nbl = self.prims.nblocks(min(1 << min(d, 31), m))
             bsum = b("bsum", 8 * nbl)
-            self._task("level_count", nbl, u(d), lev, u(nbl), u(m), out, bsum)
+            self._task("level_count", nbl, u(d), lev, u(nbl), out, offs_buf, bsum)
             self._task("level_scan", 1, u(d), u(nbl), bsum, lev)
-            self._task("level_place", nbl, u(d), lev, u(nbl), u(m), u(n), node, tri_buf, perm, bsum, out)
+            self._task("level_place", nbl, u(d), lev, u(nbl), u(n), node, tri_buf, perm, bsum, out, offs_buf)
         nbt = self.prims.nblocks(n)
-        self._task("tri_ids", nbt, u(m), u(n), u(nbt), perm, out)  # the leaves' Morton indices -> triangle ids
+        self._task("tri_ids", nbt, u(n), u(nbt), perm, out, offs_buf)  # the leaves' Morton indices -> triangle ids
         t = self._phase("layout", t)
 
         cl = self.ctx.cl
+        sizes = _out_sizes(m, n)
+        words = max(o + z for o, z in zip(offs, sizes, strict=True))
         flat, _ = clio.map_buffer(q, out, cl.map_flags.READ | cl.map_flags.WRITE, 0, (words,), np.int32)
         fl = flat.view(np.float32)
-        ints = [flat[(6 + i) * m:(7 + i) * m] for i in range(7)]
+        ints = [flat[offs[i]:offs[i] + m] for i in range(2, 9)]
         node_left, node_right, node_first, node_count, node_parent, node_depth, node_height = ints
-        node_min, node_max = fl[:3 * m].reshape(m, 3), fl[3 * m:6 * m].reshape(m, 3)
-        stats = self._stats(out, m, n, node_min, node_max, node_left, node_count, node_depth)
+        node_min = fl[offs[0]:offs[0] + 3 * m].reshape(m, 3)
+        node_max = fl[offs[1]:offs[1] + 3 * m].reshape(m, 3)
+        stats = self._stats(out, offs_buf, m, n, node_min, node_max, node_left, node_count, node_depth)
         bvh = BVH(node_min=node_min, node_max=node_max, node_left=node_left, node_right=node_right,
                   node_first=node_first, node_count=node_count, node_parent=node_parent,
-                  node_height=node_height, node_depth=node_depth, tri_order=flat[13 * m:], stats=stats)
+                  node_height=node_height, node_depth=node_depth, tri_order=flat[offs[9]:offs[9] + n], stats=stats)
         self._phase("read-back", t)
         tri_buf.release()
         stats.build_time_s = time.perf_counter() - t_start
         return bvh
+
+
+def _out_sizes(m: int, n: int) -> list[int]:
+    """Words of the finished tree's arrays: min, max, left, right, first, count, parent, depth,
+    height (m nodes), tri_order (n triangles)."""
+    return [3 * m, 3 * m] + [m] * 7 + [n]
+
+
+def _contiguous_offsets(m: int, n: int) -> list[int]:
+    """The arrays one after the other (a buffer of their own)."""
+    return [int(x) for x in np.concatenate([[0], np.cumsum(_out_sizes(m, n))[:-1]])]
+
+
+def _out_offsets(m: int, n: int, region: int, touched: list[int]) -> list[int] | None:
+    """Word offsets of the finished tree's arrays in the cluster-box buffer (4 regions of `region`
+    words, the first `touched[r]` words of region r already written by PLOC), or None when they do
+    not fit. Why: a fresh page costs about 1 us on the 2-core VM and the tree is 52 bytes a node;
+    one after the other the arrays cover the written prefixes of only some regions. Largest first,
+    each array goes (from the region's fill point) where it covers the most written words not yet
+    covered, ties to the lower region: at 10 M about 66 MB fewer fresh pages."""
+    sizes = _out_sizes(m, n)
+    fill = [0, 0, 0, 0]
+    offs = [0] * len(sizes)
+    for i in sorted(range(len(sizes)), key=lambda i: -sizes[i]):
+        z = sizes[i]
+        best = None
+        for r in range(4):
+            if fill[r] + z > region:
+                continue
+            gain = min(fill[r] + z, touched[r]) - min(fill[r], touched[r])
+            if best is None or gain > best[0]:
+                best = (gain, r)
+        if best is None:
+            return None
+        r = best[1]
+        offs[i] = r * region + fill[r]
+        fill[r] += z
+    return offs
 
 
 _builders: dict[tuple, DeviceBvhBuilder] = {}
