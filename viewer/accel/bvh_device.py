@@ -19,10 +19,11 @@ Algorithm (kernels in bvh_device.cl)
    always mutual, so every iteration merges). For radius <= 8 `nearest_vec` does it eight pairs
    at a time (a float8 window of the next clusters' boxes, the same float operations, so the same
    neighbours). In builds of 2 M triangles or more (`radius1_min_triangles`) the first
-   `radius1_iterations` (1) search radius 1 (`nearest_r1`: one area a cluster instead of eight; on
+   `radius1_iterations` (2) search radius 1 (`nearest_r1`: one area a cluster instead of eight; on
    the Morton-ordered triangles nearly every radius-8 choice of the first iteration is an adjacent
-   triangle: 99.996% on the city, whose SAH cost moves by 0.01%; scanned meshes lose up to 1.7%,
-   docs/bvh-device.md, hence the size floor); the first of them runs straight from the triangles
+   triangle: 99.996% on the city, whose SAH cost moves by 0.01% for the first, 0.1% for both;
+   scanned meshes lose up to 1.7%, docs/bvh-device.md, hence the size floor); the first of them
+   runs straight from the triangles
    (`nearest_r1_leaves`, `merge_leaves`: no array of all n leaf clusters is written and read twice,
    only the merged clusters are written). Mutual pairs merge into a new inner node
    in the lower slot. An iteration is 3
@@ -79,8 +80,10 @@ WG = 64
 RADIUS = 8
 CHECK_EVERY = 4
 #: PLOC iterations at the start that search radius 1 (nearest_r1; with nearest_vec only): one area a
-#: cluster instead of eight, where the Morton-ordered triangles nearly all pair with an adjacent one
-RADIUS1_ITERATIONS = 1
+#: cluster instead of eight, where the Morton-ordered triangles nearly all pair with an adjacent one.
+#: Two (bvhfast4): city 10 M SAH 104.121 -> 104.240 (+0.11%), 72 -> 68 iterations, the build about
+#: 0.85x its CPU time, clbvh trace time 0.90x (noise); three cost +0.9% SAH for no further gain
+RADIUS1_ITERATIONS = 2
 #: ... and only in builds of at least this many triangles, where the build's time is what counts:
 #: scanned meshes pay up to 1.7% SAH cost for it (bunny 1.087 -> 1.104 of the binned SAH build,
 #: beyond the 10% bound), so every shared study scene (up to 1.1 M triangles) keeps radius 8
