@@ -46,16 +46,21 @@ Algorithm (kernels in bvh_device.cl)
    is placed); per level the inner nodes are counted per block, one scan places their children at
    the next level in order (the order of a stable sort of the preorder by depth, so the same trees
    as the earlier place + depth sort + emit layout, which made about 4 random reads a node), and
-   leaves write their triangles to `tri_order`. That buffer is the cluster-box buffer when the
-   tree fits (its pages are already touched), which the BVH keeps and maps (zero-copy on a CPU
-   device). BuildStats are summed on the device (float64 per block of nodes; tree_stats on a
+   leaves write their triangles' Morton indices to `tri_order`; one `tri_ids` pass then maps them
+   through the sort's permutation in slot order (nearly Morton order: perm read almost in order,
+   where reading it leaf by leaf in level order missed the cache). That buffer is the cluster-box
+   buffer when the tree fits, which the BVH keeps and maps (zero-copy on a CPU device); its ten
+   arrays are placed (`_out_offsets`) over the pages PLOC's clusters already touched (the first two
+   iterations' cluster counts come back with the root's read), fewer fresh pages than one after
+   the other. BuildStats are summed on the device (float64 per block of nodes; tree_stats on a
    device without float64).
 On a CPU device `merge_scatter` and `level_place` prefetch the random node records they will read
-PREFETCH clusters / nodes ahead (the out-of-order core then overlaps those misses).
+PREFETCH clusters / nodes ahead (the out-of-order core then overlaps those misses; level_place asks
+for both cache lines a 48-byte record can span).
 Host round trips: the centre bounds, one count read every `check_every` PLOC iterations, one read
-of the root, kept-node count and height, one finish per timed phase (5), the stats' block sums,
-and the map of the finished tree. Page faults dominate a cold build on a CPU device (about
-1 s per fresh GiB on the 2-core machine), hence the buffer reuse above.
+of the root, kept-node count, height and the first two cluster counts, one finish per timed phase
+(5), the stats' block sums, and the map of the finished tree. Page faults dominate a cold build on
+a CPU device (about 1 s per fresh GiB on the 2-core machine), hence the buffer reuse above.
 
 Numerics: every box is an exact float32 min/max of the triangles' float32 vertices or of child
 boxes (never rounded, so never shrunk); the Morton grid only orders the triangles.
@@ -82,7 +87,8 @@ CHECK_EVERY = 4
 #: PLOC iterations at the start that search radius 1 (nearest_r1; with nearest_vec only): one area a
 #: cluster instead of eight, where the Morton-ordered triangles nearly all pair with an adjacent one.
 #: Two (bvhfast4): city 10 M SAH 104.121 -> 104.240 (+0.11%), 72 -> 68 iterations, the build about
-#: 0.85x its CPU time, clbvh trace time 0.90x (noise); three cost +0.9% SAH for no further gain
+#: 0.8-0.85x its CPU time, clbvh trace time 0.90x / 1.005x of the old tree's (traced second / first: the
+#: same within the noise); three cost +0.9% SAH for no further gain
 RADIUS1_ITERATIONS = 2
 #: ... and only in builds of at least this many triangles, where the build's time is what counts:
 #: scanned meshes pay up to 1.7% SAH cost for it (bunny 1.087 -> 1.104 of the binned SAH build,
