@@ -18,14 +18,14 @@ Algorithm (kernels in bvh_device.cl)
    merged box has the least surface area (ties to the lower index: the closest pair overall is
    always mutual, so every iteration merges). For radius <= 8 `nearest_vec` does it eight pairs
    at a time (a float8 window of the next clusters' boxes, the same float operations, so the same
-   neighbours). In builds of 2 M triangles or more (`radius1_min_triangles`) the first
-   `radius1_iterations` (2) search radius 1 (`nearest_r1`: one area a cluster instead of eight; on
-   the Morton-ordered triangles nearly every radius-8 choice of the first iteration is an adjacent
-   triangle: 99.996% on the city, whose SAH cost moves by 0.01% for the first, 0.1% for both;
-   scanned meshes lose up to 1.7%, docs/bvh-device.md, hence the size floor); the first of them
-   runs straight from the triangles
-   (`nearest_r1_leaves`, `merge_leaves`: no array of all n leaf clusters is written and read twice,
-   only the merged clusters are written). Mutual pairs merge into a new inner node
+   neighbours). In builds of 2 M triangles or more (`radius1_floors`) the first iteration, from
+   8 M the first two (`radius1_iterations`), search radius 1 (`nearest_r1`: one area a cluster
+   instead of eight; on the Morton-ordered triangles nearly every radius-8 choice of the first
+   iteration is an adjacent triangle: 99.996% on the city, whose SAH cost moves by 0.01% for the
+   first, 0.1% at 10 M for both; scanned meshes lose up to 1.7%, docs/bvh-device.md, hence the size
+   floors); the first of them runs straight from the triangles (`nearest_r1_leaves`,
+   `merge_leaves`: no array of all n leaf clusters is written and read twice, only the merged
+   clusters are written). Mutual pairs merge into a new inner node
    in the lower slot. An iteration is 3
    launches: nearest with per-block counts of kept clusters and merges (`nearest_vec` runs from
    2 RADIUS clusters before its block to RADIUS after it, so it knows every neighbour its
@@ -90,10 +90,12 @@ CHECK_EVERY = 4
 #: 0.8-0.85x its CPU time, clbvh trace time 0.90x / 1.005x of the old tree's (traced second / first: the
 #: same within the noise); three cost +0.9% SAH for no further gain
 RADIUS1_ITERATIONS = 2
-#: ... and only in builds of at least this many triangles, where the build's time is what counts:
-#: scanned meshes pay up to 1.7% SAH cost for it (bunny 1.087 -> 1.104 of the binned SAH build,
-#: beyond the 10% bound), so every shared study scene (up to 1.1 M triangles) keeps radius 8
-RADIUS1_MIN_TRIANGLES = 2_000_000
+#: ... iteration k of them only in builds of at least RADIUS1_FLOORS[k] triangles (the last floor for
+#: the later ones), where the build's time is what counts: scanned meshes pay up to 1.7% SAH cost for
+#: the first (bunny 1.087 -> 1.104 of the binned SAH build, beyond the 10% bound), so every shared
+#: study scene (up to 1.1 M triangles) keeps radius 8; the second costs the city +1.33% SAH at 2.5 M
+#: (clbvh trace 1.02-1.08x), +0.93% at 4 M, +0.43% at 6 M, +0.11% at 10 M (trace the same)
+RADIUS1_FLOORS = (2_000_000, 8_000_000)
 #: on a CPU device, merge_scatter and level_place prefetch the random records they will read this
 #: many clusters / nodes ahead (level_place 0.80-0.83x, merge_scatter about 0.9x its time at 10 M)
 PREFETCH = 8
@@ -130,7 +132,7 @@ class DeviceBvhBuilder:
         self.block_nearest = True  # per block of clusters (each pair once) rather than nearest (per cluster)
         self.vector_nearest = radius <= 8  # the block search eight pairs at a time (nearest_vec)
         self.radius1_iterations = RADIUS1_ITERATIONS  # the first iterations search radius 1 (nearest_r1)
-        self.radius1_min_triangles = RADIUS1_MIN_TRIANGLES  # ... in builds of at least this many
+        self.radius1_floors = RADIUS1_FLOORS  # ... each in builds of at least this many triangles
         defs = {"WG": WG, "RADIUS": int(radius), "MAX_LEAF": self.max_leaf, "MIN_LEAF": self.min_leaf}
         if self.ctx.is_cpu:  # clang's __builtin_prefetch (PoCL); a GPU has no cache lines to ask for
             defs["PREFETCH"] = PREFETCH
@@ -183,6 +185,13 @@ class DeviceBvhBuilder:
                           depth=int(sums[:, 3].max()), sah_cost=float(sah),
                           leaf_size_histogram={int(c): int(f) for c, f in enumerate(hist) if f},
                           memory_bytes=max(n_inner, 1) * GPU_NODE_DTYPE.itemsize + n * GPU_TRI_DTYPE.itemsize)
+
+    def _radius1_iterations(self, n: int) -> int:
+        """PLOC iterations at the start of a build of n triangles that search radius 1 (RADIUS1_FLOORS)."""
+        floors = self.radius1_floors
+        if n >= floors[-1]:
+            return self.radius1_iterations
+        return min(self.radius1_iterations, sum(1 for f in floors if n >= f))
 
     def _phase(self, name: str, t0: float) -> float:
         """Wall time of a phase (`phases`, seconds): one finish per phase, 5 per build."""
@@ -263,7 +272,7 @@ class DeviceBvhBuilder:
         clio.copy(q, next_node, np.array([n], np.uint32), is_blocking=False)
         # the first iteration at radius 1 straight from the triangles (nearest_r1_leaves, merge_leaves):
         # no cluster array of all n triangles is written and read twice, only the merged clusters
-        r1_iters = self.radius1_iterations if n >= self.radius1_min_triangles else 0
+        r1_iters = self._radius1_iterations(n)
         fused = self.block_nearest and self.vector_nearest and r1_iters > 0 and n > 1
         if not fused:
             self._run("init_leaves", n, tri_buf, perm, u(n), cmin[0], cmax[0])  # node ids in cmin's w
