@@ -382,7 +382,7 @@ def _out_offsets(m: int, n: int, region: int, touched: list[int]) -> list[int] |
     not fit. Why: a fresh page costs about 1 us on the 2-core VM and the tree is 52 bytes a node;
     one after the other the arrays cover the written prefixes of only some regions. Largest first,
     each array goes (from the region's fill point) where it covers the most written words not yet
-    covered, ties to the lower region: at 10 M about 66 MB fewer fresh pages."""
+    covered, ties to the lower region: at 10 M 283 -> 241 MB of fresh pages in the layout."""
     sizes = _out_sizes(m, n)
     fill = [0, 0, 0, 0]
     offs = [0] * len(sizes)
