@@ -239,7 +239,7 @@ def test_radius1_search_equals_vector_search_at_radius_1(make, n):
 
     tris = make(n, seed=5)
     b = DeviceBvhBuilder(radius=1)
-    b.radius1_min_triangles = 0  # small inputs too
+    b.radius1_floors = (0,)  # small inputs too
     b.radius1_iterations = 0
     vec = b.build(tris)
     b.radius1_iterations = 10**9

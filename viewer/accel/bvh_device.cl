@@ -408,8 +408,9 @@ __kernel void count_blocks(__global const uint* cnt, uint p, __global const uint
 
 // One work-item: exclusive scans of the block counts (kept clusters from 0, merged nodes from the
 // node counter); the new cluster count goes to cnt[1 - p], the node counter after this iteration to
-// next_node.
-__kernel void scan_blocks(__global uint* bsum, uint nb, __global uint* cnt, uint p, __global uint* next_node) {
+// next_node, and after iterations 0 and 1 (`it`) to marks[3 + it].
+__kernel void scan_blocks(__global uint* bsum, uint nb, __global uint* cnt, uint p, __global uint* next_node,
+                          uint it, __global uint* marks) {
     if (get_global_id(0) != 0) return;
     uint acc = 0, v = *next_node;
     for (uint b = 0; b < nb; ++b) {
@@ -421,6 +422,7 @@ __kernel void scan_blocks(__global uint* bsum, uint nb, __global uint* cnt, uint
     }
     cnt[1 - p] = acc;
     *next_node = v;
+    if (it < 2) marks[3 + it] = acc;  // clusters written by iterations 0 and 1 (bvh_device.py, _out_offsets)
 }
 
 // A merging child's triangle count, kept-node count and height, and its SAH cost as the result:
@@ -546,22 +548,27 @@ __kernel void root_count(__global const float4* cmin, uint n_tri, __global const
     }
 }
 
-#define OUT_FIELDS(out, m)                                            \
-    __global float* omin = (__global float*)(out);                    \
-    __global float* omax = omin + 3 * (size_t)(m);                    \
-    __global int* oleft = (out) + 6 * (size_t)(m);                    \
-    __global int* oright = oleft + (m);                               \
-    __global int* ofirst = oright + (m);                              \
-    __global int* ocount = ofirst + (m);                              \
-    __global int* oparent = ocount + (m);                             \
-    __global int* odepth = oparent + (m);                             \
-    __global int* oheight = odepth + (m)
+// The finished tree's arrays lie at word offsets offs[0..9] of `out` (min, max, left, right, first,
+// count, parent, depth, height, tri_order): the host puts them where the cluster boxes already
+// touched the pages, so fewer of them are fresh (bvh_device.py, _out_offsets).
+#define OUT_FIELDS(out, offs)                                         \
+    __global float* omin = (__global float*)((out) + (offs)[0]);      \
+    __global float* omax = (__global float*)((out) + (offs)[1]);      \
+    __global int* oleft = (out) + (offs)[2];                          \
+    __global int* oright = (out) + (offs)[3];                         \
+    __global int* ofirst = (out) + (offs)[4];                         \
+    __global int* ocount = (out) + (offs)[5];                         \
+    __global int* oparent = (out) + (offs)[6];                        \
+    __global int* odepth = (out) + (offs)[7];                         \
+    __global int* oheight = (out) + (offs)[8];                        \
+    __global int* tri_order = (out) + (offs)[9]
 
 // Node v (PLOC id) at index k, child of `parent`, first slot `first`: its box, triangle count and
 // height, its links kept in right/depth; returns its triangle count.
 inline int put_node(uint v, uint k, int parent, int first, uint n_tri, __global const float4* node,
-                    __global const float* tri, __global const uint* perm, __global int* out, uint m) {
-    OUT_FIELDS(out, m);
+                    __global const float* tri, __global const uint* perm, __global int* out,
+                    __global const uint* offs) {
+    OUT_FIELDS(out, offs);
     float4 lo, hi;
     int c = 1, h = 0;
     if (v < n_tri) {
@@ -588,19 +595,19 @@ inline int put_node(uint v, uint k, int parent, int first, uint n_tri, __global 
 
 __kernel void layout_root(__global const uint* marks, uint m, uint n_tri, __global const float4* node,
                           __global const float* tri, __global const uint* perm, __global uint* lev,
-                          __global int* out) {
+                          __global int* out, __global const uint* offs) {
     if (get_global_id(0) != 0) return;
-    put_node(marks[0], 0, -1, 0, n_tri, node, tri, perm, out, m);
+    put_node(marks[0], 0, -1, 0, n_tri, node, tri, perm, out, offs);
     lev[0] = 0;
     lev[1] = 1;
 }
 
 // Level d, per block: its inner nodes (height > 0: they have children in the tree) in bsum[b].
-__kernel void level_count(uint d, __global const uint* lev, uint nb, uint m, __global const int* out,
+__kernel void level_count(uint d, __global const uint* lev, uint nb, __global const int* out, __global const uint* offs,
                           __global uint* bsum) {
     uint b = get_global_id(0);
     if (b >= nb) return;
-    __global const int* oheight = out + 12 * (size_t)m;
+    __global const int* oheight = out + offs[8];
     uint l0 = lev[d], s, e, g = 0;
     block_range(b, nb, lev[d + 1] - l0, &s, &e);
     for (uint k = l0 + s; k < l0 + e; ++k) g += oheight[k] > 0;
@@ -620,16 +627,29 @@ __kernel void level_scan(uint d, uint nb, __global uint* bsum, __global uint* le
     lev[d + 2] = lev[d + 1] + 2 * acc;
 }
 
+#ifdef PREFETCH
+// Ask for what put_node will read of node v: a record's first and last byte (48 bytes: half of them
+// span two cache lines), or the triangle's 36 bytes (likewise).
+inline void prefetch_node(uint v, uint n_tri, __global const float4* node, __global const float* tri,
+                          __global const uint* perm) {
+    __global const char* p = v < n_tri ? (__global const char*)(tri + 9 * (size_t)perm[v])
+                                       : (__global const char*)(node + NODE_F4 * (size_t)(v - n_tri));
+    __builtin_prefetch(p);
+    __builtin_prefetch(p + (v < n_tri ? 35 : 47));
+}
+#endif
+
 // Level d, per block: an inner node writes its two children at the next level's end, in order,
-// and links them; a leaf writes its triangles (left subtree first) to tri_order from its first
-// slot. Then the node's depth.
-__kernel void level_place(uint d, __global const uint* lev, uint nb, uint m, uint n_tri,
+// and links them; a leaf writes its triangles' Morton indices (left subtree first) to tri_order from
+// its first slot (tri_ids makes them triangle ids: perm read in slot order, not leaf by leaf in
+// level order, where those reads missed the cache: a third of level_place's time). Then the node's
+// depth.
+__kernel void level_place(uint d, __global const uint* lev, uint nb, uint n_tri,
                           __global const float4* node, __global const float* tri, __global const uint* perm,
-                          __global const uint* bsum, __global int* out) {
+                          __global const uint* bsum, __global int* out, __global const uint* offs) {
     uint b = get_global_id(0);
     if (b >= nb) return;
-    OUT_FIELDS(out, m);
-    __global int* tri_order = oheight + m;
+    OUT_FIELDS(out, offs);
     uint l0 = lev[d], s, e;
     block_range(b, nb, lev[d + 1] - l0, &s, &e);
     uint c = lev[d + 1] + 2 * bsum[b];
@@ -637,24 +657,22 @@ __kernel void level_place(uint d, __global const uint* lev, uint nb, uint m, uin
 #ifdef PREFETCH
         if (k + PREFETCH < l0 + e && oheight[k + PREFETCH] > 0) {  // the records read PREFETCH nodes on
             uint pl = (uint)oright[k + PREFETCH], pr = (uint)odepth[k + PREFETCH];
-            __builtin_prefetch(pl < n_tri ? (__global const void*)(tri + 9 * (size_t)perm[pl])
-                                          : (__global const void*)(node + NODE_F4 * (size_t)(pl - n_tri)));
-            __builtin_prefetch(pr < n_tri ? (__global const void*)(tri + 9 * (size_t)perm[pr])
-                                          : (__global const void*)(node + NODE_F4 * (size_t)(pr - n_tri)));
+            prefetch_node(pl, n_tri, node, tri, perm);
+            prefetch_node(pr, n_tri, node, tri, perm);
         }
 #endif
         uint l = (uint)oright[k], r = (uint)odepth[k];
         int first = ofirst[k];
         if (oheight[k] > 0) {
-            int cl = put_node(l, c, (int)k, first, n_tri, node, tri, perm, out, m);
-            put_node(r, c + 1, (int)k, first + cl, n_tri, node, tri, perm, out, m);
+            int cl = put_node(l, c, (int)k, first, n_tri, node, tri, perm, out, offs);
+            put_node(r, c + 1, (int)k, first + cl, n_tri, node, tri, perm, out, offs);
             oleft[k] = (int)c;
             oright[k] = (int)c + 1;
             c += 2;
         } else {
             int slot = first;
             if (ocount[k] == 1) {  // a triangle (inner nodes hold at least two)
-                tri_order[slot] = (int)perm[l];
+                tri_order[slot] = (int)l;
             } else {
                 uint stack[MAX_LEAF + 1];
                 int sp = 1;
@@ -662,7 +680,7 @@ __kernel void level_place(uint d, __global const uint* lev, uint nb, uint m, uin
                 uint w = l;
                 for (;;) {
                     if (w < n_tri) {
-                        tri_order[slot++] = (int)perm[w];
+                        tri_order[slot++] = (int)w;
                         if (sp == 0) break;
                         w = stack[--sp];
                     } else {
@@ -679,6 +697,17 @@ __kernel void level_place(uint d, __global const uint* lev, uint nb, uint m, uin
     }
 }
 
+// Per block of leaf-order slots: tri_order[s] = perm[tri_order[s]] (Morton index -> triangle id).
+// The leaves' slots follow the Morton order closely, so perm is read nearly in order.
+__kernel void tri_ids(uint n, uint nb, __global const uint* perm, __global int* out, __global const uint* offs) {
+    uint b = get_global_id(0);
+    if (b >= nb) return;
+    __global int* tri_order = out + offs[9];
+    uint s, e;
+    block_range(b, nb, n, &s, &e);
+    for (uint i = s; i < e; ++i) tri_order[i] = (int)perm[tri_order[i]];
+}
+
 #ifdef cl_khr_fp64
 #pragma OPENCL EXTENSION cl_khr_fp64 : enable
 // BuildStats of the finished tree (the sums of viewer.accel.bvh.tree_stats, in float64 as there),
@@ -686,16 +715,17 @@ __kernel void level_place(uint d, __global const uint* lev, uint nb, uint m, uin
 // area sum, leaves' area x triangles sum, inner node count, deepest leaf, leaves of 0 .. MAX_LEAF
 // triangles.
 #define STATS_W (MAX_LEAF + 5)
-__kernel void stats_blocks(uint m, uint nb, __global const int* out, __global double* part) {
+__kernel void stats_blocks(uint m, uint nb, __global const int* out, __global const uint* offs,
+                           __global double* part) {
     uint b = get_global_id(0);
     if (b >= nb) return;
     uint s, e;
     block_range(b, nb, m, &s, &e);
-    __global const float* omin = (__global const float*)out;
-    __global const float* omax = omin + 3 * (size_t)m;
-    __global const int* oleft = out + 6 * (size_t)m;
-    __global const int* ocount = oleft + 3 * (size_t)m;
-    __global const int* odepth = oleft + 5 * (size_t)m;
+    __global const float* omin = (__global const float*)(out + offs[0]);
+    __global const float* omax = (__global const float*)(out + offs[1]);
+    __global const int* oleft = out + offs[2];
+    __global const int* ocount = out + offs[5];
+    __global const int* odepth = out + offs[7];
     double inner = 0.0, leaf = 0.0, n_inner = 0.0, deepest = 0.0;
     double hist[MAX_LEAF + 1];
     for (int c = 0; c <= MAX_LEAF; ++c) hist[c] = 0.0;

@@ -18,13 +18,14 @@ Algorithm (kernels in bvh_device.cl)
    merged box has the least surface area (ties to the lower index: the closest pair overall is
    always mutual, so every iteration merges). For radius <= 8 `nearest_vec` does it eight pairs
    at a time (a float8 window of the next clusters' boxes, the same float operations, so the same
-   neighbours). In builds of 2 M triangles or more (`radius1_min_triangles`) the first
-   `radius1_iterations` (1) search radius 1 (`nearest_r1`: one area a cluster instead of eight; on
-   the Morton-ordered triangles nearly every radius-8 choice of the first iteration is an adjacent
-   triangle: 99.996% on the city, whose SAH cost moves by 0.01%; scanned meshes lose up to 1.7%,
-   docs/bvh-device.md, hence the size floor); the first of them runs straight from the triangles
-   (`nearest_r1_leaves`, `merge_leaves`: no array of all n leaf clusters is written and read twice,
-   only the merged clusters are written). Mutual pairs merge into a new inner node
+   neighbours). In builds of 2 M triangles or more (`radius1_floors`) the first iteration, from
+   8 M the first two (`radius1_iterations`), search radius 1 (`nearest_r1`: one area a cluster
+   instead of eight; on the Morton-ordered triangles nearly every radius-8 choice of the first
+   iteration is an adjacent triangle: 99.996% on the city, whose SAH cost moves by 0.01% for the
+   first, 0.1% at 10 M for both; scanned meshes lose up to 1.7%, docs/bvh-device.md, hence the size
+   floors); the first of them runs straight from the triangles (`nearest_r1_leaves`,
+   `merge_leaves`: no array of all n leaf clusters is written and read twice, only the merged
+   clusters are written). Mutual pairs merge into a new inner node
    in the lower slot. An iteration is 3
    launches: nearest with per-block counts of kept clusters and merges (`nearest_vec` runs from
    2 RADIUS clusters before its block to RADIUS after it, so it knows every neighbour its
@@ -45,16 +46,21 @@ Algorithm (kernels in bvh_device.cl)
    is placed); per level the inner nodes are counted per block, one scan places their children at
    the next level in order (the order of a stable sort of the preorder by depth, so the same trees
    as the earlier place + depth sort + emit layout, which made about 4 random reads a node), and
-   leaves write their triangles to `tri_order`. That buffer is the cluster-box buffer when the
-   tree fits (its pages are already touched), which the BVH keeps and maps (zero-copy on a CPU
-   device). BuildStats are summed on the device (float64 per block of nodes; tree_stats on a
+   leaves write their triangles' Morton indices to `tri_order`; one `tri_ids` pass then maps them
+   through the sort's permutation in slot order (nearly Morton order: perm read almost in order,
+   where reading it leaf by leaf in level order missed the cache). That buffer is the cluster-box
+   buffer when the tree fits, which the BVH keeps and maps (zero-copy on a CPU device); its ten
+   arrays are placed (`_out_offsets`) over the pages PLOC's clusters already touched (the first two
+   iterations' cluster counts come back with the root's read), fewer fresh pages than one after
+   the other. BuildStats are summed on the device (float64 per block of nodes; tree_stats on a
    device without float64).
 On a CPU device `merge_scatter` and `level_place` prefetch the random node records they will read
-PREFETCH clusters / nodes ahead (the out-of-order core then overlaps those misses).
+PREFETCH clusters / nodes ahead (the out-of-order core then overlaps those misses; level_place asks
+for both cache lines a 48-byte record can span).
 Host round trips: the centre bounds, one count read every `check_every` PLOC iterations, one read
-of the root, kept-node count and height, one finish per timed phase (5), the stats' block sums,
-and the map of the finished tree. Page faults dominate a cold build on a CPU device (about
-1 s per fresh GiB on the 2-core machine), hence the buffer reuse above.
+of the root, kept-node count, height and the first two cluster counts, one finish per timed phase
+(5), the stats' block sums, and the map of the finished tree. Page faults dominate a cold build on
+a CPU device (about 1 s per fresh GiB on the 2-core machine), hence the buffer reuse above.
 
 Numerics: every box is an exact float32 min/max of the triangles' float32 vertices or of child
 boxes (never rounded, so never shrunk); the Morton grid only orders the triangles.
@@ -79,12 +85,17 @@ WG = 64
 RADIUS = 8
 CHECK_EVERY = 4
 #: PLOC iterations at the start that search radius 1 (nearest_r1; with nearest_vec only): one area a
-#: cluster instead of eight, where the Morton-ordered triangles nearly all pair with an adjacent one
-RADIUS1_ITERATIONS = 1
-#: ... and only in builds of at least this many triangles, where the build's time is what counts:
-#: scanned meshes pay up to 1.7% SAH cost for it (bunny 1.087 -> 1.104 of the binned SAH build,
-#: beyond the 10% bound), so every shared study scene (up to 1.1 M triangles) keeps radius 8
-RADIUS1_MIN_TRIANGLES = 2_000_000
+#: cluster instead of eight, where the Morton-ordered triangles nearly all pair with an adjacent one.
+#: Two (bvhfast4): city 10 M SAH 104.121 -> 104.240 (+0.11%), 72 -> 68 iterations, the build about
+#: 0.8-0.85x its CPU time, clbvh trace time 0.90x / 1.005x of the old tree's (traced second / first: the
+#: same within the noise); three cost +0.9% SAH for no further gain
+RADIUS1_ITERATIONS = 2
+#: ... iteration k of them only in builds of at least RADIUS1_FLOORS[k] triangles (the last floor for
+#: the later ones), where the build's time is what counts: scanned meshes pay up to 1.7% SAH cost for
+#: the first (bunny 1.087 -> 1.104 of the binned SAH build, beyond the 10% bound), so every shared
+#: study scene (up to 1.1 M triangles) keeps radius 8; the second costs the city +1.33% SAH at 2.5 M
+#: (clbvh trace 1.02-1.08x), +0.93% at 4 M, +0.43% at 6 M, +0.11% at 10 M (trace the same)
+RADIUS1_FLOORS = (2_000_000, 8_000_000)
 #: on a CPU device, merge_scatter and level_place prefetch the random records they will read this
 #: many clusters / nodes ahead (level_place 0.80-0.83x, merge_scatter about 0.9x its time at 10 M)
 PREFETCH = 8
@@ -99,7 +110,7 @@ BYTES_PER_TRIANGLE = 36 + 8 + 48 + 2 * 32 + OUT_BYTES_PER_TRIANGLE
 _KERNELS = ("centre_bounds", "morton", "init_leaves", "nearest", "nearest_block", "nearest_vec", "nearest_r1",
             "nearest_r1_leaves", "merge_leaves", "count_blocks",
             "scan_blocks", "merge_scatter", "root_count", "layout_root", "level_count", "level_scan", "level_place",
-            "stats_blocks")
+            "tri_ids", "stats_blocks")
 
 
 class DeviceBvhBuilder:
@@ -121,7 +132,7 @@ class DeviceBvhBuilder:
         self.block_nearest = True  # per block of clusters (each pair once) rather than nearest (per cluster)
         self.vector_nearest = radius <= 8  # the block search eight pairs at a time (nearest_vec)
         self.radius1_iterations = RADIUS1_ITERATIONS  # the first iterations search radius 1 (nearest_r1)
-        self.radius1_min_triangles = RADIUS1_MIN_TRIANGLES  # ... in builds of at least this many
+        self.radius1_floors = RADIUS1_FLOORS  # ... each in builds of at least this many triangles
         defs = {"WG": WG, "RADIUS": int(radius), "MAX_LEAF": self.max_leaf, "MIN_LEAF": self.min_leaf}
         if self.ctx.is_cpu:  # clang's __builtin_prefetch (PoCL); a GPU has no cache lines to ask for
             defs["PREFETCH"] = PREFETCH
@@ -153,7 +164,7 @@ class DeviceBvhBuilder:
             clio.copy(self.ctx.queue, out, buf, src_offset=offset)
         return out
 
-    def _stats(self, out: Any, m: int, n: int, *tree: np.ndarray) -> BuildStats:
+    def _stats(self, out: Any, offs: Any, m: int, n: int, *tree: np.ndarray) -> BuildStats:
         """BuildStats of the finished tree: tree_stats' sums made on the device in float64 per block
         of nodes (one read of the block sums; the host pass over every node took 0.5 s at 10 M
         triangles), or tree_stats itself on a device without float64."""
@@ -162,7 +173,7 @@ class DeviceBvhBuilder:
         nb = min(PWG * 8, -(-m // 4096) * PWG) if m > 4096 else PWG
         w = self.max_leaf + 5
         part = self._buf("stats", 8 * w * nb)
-        self._task("stats_blocks", nb, np.uint32(m), np.uint32(nb), out, part)
+        self._task("stats_blocks", nb, np.uint32(m), np.uint32(nb), out, offs, part)
         sums = self._read(part, w * nb, np.float64).reshape(nb, w)
         inner, leaf, n_inner = sums[:, 0].sum(), sums[:, 1].sum(), int(sums[:, 2].sum())
         hist = sums[:, 4:].sum(axis=0).astype(np.int64)
@@ -174,6 +185,13 @@ class DeviceBvhBuilder:
                           depth=int(sums[:, 3].max()), sah_cost=float(sah),
                           leaf_size_histogram={int(c): int(f) for c, f in enumerate(hist) if f},
                           memory_bytes=max(n_inner, 1) * GPU_NODE_DTYPE.itemsize + n * GPU_TRI_DTYPE.itemsize)
+
+    def _radius1_iterations(self, n: int) -> int:
+        """PLOC iterations at the start of a build of n triangles that search radius 1 (RADIUS1_FLOORS)."""
+        floors = self.radius1_floors
+        if n >= floors[-1]:
+            return self.radius1_iterations
+        return min(self.radius1_iterations, sum(1 for f in floors if n >= f))
 
     def _phase(self, name: str, t0: float) -> float:
         """Wall time of a phase (`phases`, seconds): one finish per phase, 5 per build."""
@@ -248,12 +266,13 @@ class DeviceBvhBuilder:
         nn = keys  # the sort keys are dead: their pages serve the nearest neighbours
         cnt = b("cnt", 8)
         next_node = b("next_node", 4)
-        marks = b("marks", 16)  # root id, kept nodes, root height (root_count)
+        marks = b("marks", 20)  # root id, kept nodes, root height (root_count); clusters after iterations 0, 1
         clio.copy(q, cnt, np.array([n, n], np.uint32), is_blocking=False)
+        clio.copy(q, marks, np.zeros(5, np.uint32), is_blocking=False)
         clio.copy(q, next_node, np.array([n], np.uint32), is_blocking=False)
         # the first iteration at radius 1 straight from the triangles (nearest_r1_leaves, merge_leaves):
         # no cluster array of all n triangles is written and read twice, only the merged clusters
-        r1_iters = self.radius1_iterations if n >= self.radius1_min_triangles else 0
+        r1_iters = self._radius1_iterations(n)
         fused = self.block_nearest and self.vector_nearest and r1_iters > 0 and n > 1
         if not fused:
             self._run("init_leaves", n, tri_buf, perm, u(n), cmin[0], cmax[0])  # node ids in cmin's w
@@ -271,7 +290,7 @@ class DeviceBvhBuilder:
                 s = p
                 if fused and iters == 0:
                     self._task("nearest_r1_leaves", nbn, tri_buf, perm, u(n), u(nbn), nn, bsum)
-                    self._task("scan_blocks", 1, bsum, u(nbm), cnt, u(p), next_node)
+                    self._task("scan_blocks", 1, bsum, u(nbm), cnt, u(p), next_node, u(iters), marks)
                     self._task("merge_leaves", nbm, tri_buf, perm, u(n), nn, u(nbm), bsum, cmin[1 - s], cmax[1 - s],
                                node)
                     p = 1 - p
@@ -286,7 +305,7 @@ class DeviceBvhBuilder:
                     else:
                         self._run("nearest", n_host, cnt, u(p), cmin[s], cmax[s], nn)
                     self._task("count_blocks", nb, cnt, u(p), nn, u(nb), bsum)
-                self._task("scan_blocks", 1, bsum, u(nbm), cnt, u(p), next_node)
+                self._task("scan_blocks", 1, bsum, u(nbm), cnt, u(p), next_node, u(iters), marks)
                 self._task("merge_scatter", nbm, cnt, u(p), nn, u(nbm), bsum, cmin[s], cmax[s],
                            cmin[1 - s], cmax[1 - s], *node_args)
                 p = 1 - p
@@ -297,40 +316,91 @@ class DeviceBvhBuilder:
 
         # -- layout: breadth first, one level at a time, straight into the finished tree -------
         self._task("root_count", 1, cmin[p], u(n), node, marks)
-        _, m, height = (int(x) for x in self._read(marks, 3, np.uint32))
+        _, m, height, c1, c2 = (int(x) for x in self._read(marks, 5, np.uint32))
         # the finished tree goes to a buffer the BVH keeps, mapped (not copied) for the host: its
         # arrays are views of it (zero-copy on a CPU device). That is the cluster-box buffer when
-        # the tree fits (pages already touched; the pool makes a new one for the next build).
-        words = 13 * m + n
+        # the tree fits, its arrays where the clusters already touched the pages (the pool makes a
+        # new one for the next build).
         del cmin, cmax
-        if 4 * words <= cbox.size:
+        # bytes of each cluster region written: the first iteration's (or init_leaves') clusters
+        # and the sort's other halves (4n bytes at the start of cmin[1] / cmax[1])
+        e0 = 16 * (c2 if fused else n)
+        e1 = max(16 * c1, 4 * n)
+        offs = _out_offsets(m, n, region // 4, [e0 // 4, e0 // 4, e1 // 4, e1 // 4])
+        if offs is not None:
             out = self._bufs.take("cbox")
         else:
-            out = new_buffer(self.ctx, self.ctx.cl.mem_flags.READ_WRITE, 4 * words, "device BVH tree")
+            offs = _contiguous_offsets(m, n)
+            out = new_buffer(self.ctx, self.ctx.cl.mem_flags.READ_WRITE, 4 * (13 * m + n), "device BVH tree")
+        offs_buf = b("offs", 4 * len(offs))
+        clio.copy(q, offs_buf, np.array(offs, np.uint32), is_blocking=False)
         lev = b("lev", 4 * (height + 3))
-        self._task("layout_root", 1, marks, u(m), u(n), node, tri_buf, perm, lev, out)
+        self._task("layout_root", 1, marks, u(m), u(n), node, tri_buf, perm, lev, out, offs_buf)
         for d in range(height + 1):  # level d has at most min(2^d, m) nodes
             nbl = self.prims.nblocks(min(1 << min(d, 31), m))
             bsum = b("bsum", 8 * nbl)
-            self._task("level_count", nbl, u(d), lev, u(nbl), u(m), out, bsum)
+            self._task("level_count", nbl, u(d), lev, u(nbl), out, offs_buf, bsum)
             self._task("level_scan", 1, u(d), u(nbl), bsum, lev)
-            self._task("level_place", nbl, u(d), lev, u(nbl), u(m), u(n), node, tri_buf, perm, bsum, out)
+            self._task("level_place", nbl, u(d), lev, u(nbl), u(n), node, tri_buf, perm, bsum, out, offs_buf)
+        nbt = self.prims.nblocks(n)
+        self._task("tri_ids", nbt, u(n), u(nbt), perm, out, offs_buf)  # the leaves' Morton indices -> triangle ids
         t = self._phase("layout", t)
 
         cl = self.ctx.cl
+        sizes = _out_sizes(m, n)
+        words = max(o + z for o, z in zip(offs, sizes, strict=True))
         flat, _ = clio.map_buffer(q, out, cl.map_flags.READ | cl.map_flags.WRITE, 0, (words,), np.int32)
         fl = flat.view(np.float32)
-        ints = [flat[(6 + i) * m:(7 + i) * m] for i in range(7)]
+        ints = [flat[offs[i]:offs[i] + m] for i in range(2, 9)]
         node_left, node_right, node_first, node_count, node_parent, node_depth, node_height = ints
-        node_min, node_max = fl[:3 * m].reshape(m, 3), fl[3 * m:6 * m].reshape(m, 3)
-        stats = self._stats(out, m, n, node_min, node_max, node_left, node_count, node_depth)
+        node_min = fl[offs[0]:offs[0] + 3 * m].reshape(m, 3)
+        node_max = fl[offs[1]:offs[1] + 3 * m].reshape(m, 3)
+        stats = self._stats(out, offs_buf, m, n, node_min, node_max, node_left, node_count, node_depth)
         bvh = BVH(node_min=node_min, node_max=node_max, node_left=node_left, node_right=node_right,
                   node_first=node_first, node_count=node_count, node_parent=node_parent,
-                  node_height=node_height, node_depth=node_depth, tri_order=flat[13 * m:], stats=stats)
+                  node_height=node_height, node_depth=node_depth, tri_order=flat[offs[9]:offs[9] + n], stats=stats)
         self._phase("read-back", t)
         tri_buf.release()
         stats.build_time_s = time.perf_counter() - t_start
         return bvh
+
+
+def _out_sizes(m: int, n: int) -> list[int]:
+    """Words of the finished tree's arrays: min, max, left, right, first, count, parent, depth,
+    height (m nodes), tri_order (n triangles)."""
+    return [3 * m, 3 * m] + [m] * 7 + [n]
+
+
+def _contiguous_offsets(m: int, n: int) -> list[int]:
+    """The arrays one after the other (a buffer of their own)."""
+    return [int(x) for x in np.concatenate([[0], np.cumsum(_out_sizes(m, n))[:-1]])]
+
+
+def _out_offsets(m: int, n: int, region: int, touched: list[int]) -> list[int] | None:
+    """Word offsets of the finished tree's arrays in the cluster-box buffer (4 regions of `region`
+    words, the first `touched[r]` words of region r already written by PLOC), or None when they do
+    not fit. Why: a fresh page costs about 1 us on the 2-core VM and the tree is 52 bytes a node;
+    one after the other the arrays cover the written prefixes of only some regions. Largest first,
+    each array goes (from the region's fill point) where it covers the most written words not yet
+    covered, ties to the lower region: at 10 M 283 -> 241 MB of fresh pages in the layout."""
+    sizes = _out_sizes(m, n)
+    fill = [0, 0, 0, 0]
+    offs = [0] * len(sizes)
+    for i in sorted(range(len(sizes)), key=lambda i: -sizes[i]):
+        z = sizes[i]
+        best = None
+        for r in range(4):
+            if fill[r] + z > region:
+                continue
+            gain = min(fill[r] + z, touched[r]) - min(fill[r], touched[r])
+            if best is None or gain > best[0]:
+                best = (gain, r)
+        if best is None:
+            return None
+        r = best[1]
+        offs[i] = r * region + fill[r]
+        fill[r] += z
+    return offs
 
 
 _builders: dict[tuple, DeviceBvhBuilder] = {}
