@@ -206,7 +206,7 @@ def test_conservative_equals_glsl_every_ray_type(name, mode, gl_ctx):
 
 @pytest.mark.parametrize("params", ["lca_pairs=1,full_bvh_fraction=0", "lca_pairs=1",
                                     "lca_pairs=8,cull_sublevels=2,cold_full_bvh=false", "lca_invisible=false",
-                                    "hit_hint=false", "gap_order=false,count_due_only=false"])
+                                    "hit_hint=false", "gap_order=false,count_due_only=false", "cone_cull=false"])
 def test_lca_fallback_and_cull_tiles_are_exact(params, gl_ctx):
     """The GPU-driven pass's per-tile choices keep glsl's hits: a tile over `lca_pairs` pairs
     traverses the lowest common ancestor of all of them and its invisible pairs are not queried
@@ -230,6 +230,16 @@ def test_lca_fallback_and_cull_tiles_are_exact(params, gl_ctx):
         assert all(s["full_bvh_passes"] > 0 and s["query_records_drawn"] == 0 for s in steady)
     elif params.startswith("lca_pairs=8"):
         assert sum(s["lca_tiles"] for s in steady) > 0
+
+
+def test_cone_cull_drops_pairs_beside_the_tiles(gl_ctx):
+    """cone_cull (exact: the default in every test here) tests fewer invisible pairs per pixel than
+    the reach alone: pairs whose boxes lie beside a tile's rays are dropped by the cull."""
+    on, _, _ = _render_both(gl_ctx, "city", "primary", "")
+    off, _, _ = _render_both(gl_ctx, "city", "primary", "cone_cull=false")
+    qon = sum(b.backend_stats["query_pixels"] for _, b in on[1:])
+    qoff = sum(b.backend_stats["query_pixels"] for _, b in off[1:])
+    assert qoff > 0 and qon < qoff, (qon, qoff)
 
 
 def test_aggressive_mode_only_loses_hits(gl_ctx):

@@ -1,19 +1,23 @@
 // CHC+RT, GPU-driven queries, step 1: per finest tile, what its rays can still reach after the
 // visible pairs were intersected: the box around the active rays' origins and the largest
 // distance to their nearest hit so far (bestBits, or tmax without a hit), in world units
-// (t * |d|). One work group per tile; a tile without an active ray gets maxDist = -1.
+// (t * |d|), and a cone around the active rays' directions (axis: the tile's centre pixel's direction,
+// half angle: the largest angle of an active ray's direction from it; any axis gives a valid cone),
+// which lets the cull and the gap order drop boxes that no ray of the tile points at. One work group
+// per tile; a tile without an active ray gets maxDist = -1.
 layout(local_size_x = 64) in;
 layout(r32i, binding = BIND_IMG_CHC_BEST) uniform coherent iimage2D bestBits;
 uniform sampler2D rayOrigin;
 uniform sampler2D rayDir;
 uniform ivec2 raySize;
 uniform int level;  // the finest tile level: 2^level x 2^level tiles
-struct TileBound { vec4 omin; vec4 omax; };  // origin box; omin.w = max distance, omax.w = active rays
+#include "chc_tilecone.glsl"
 layout(std430, binding = BIND_CHC_TILES) writeonly buffer ChcTiles { TileBound tiles[]; };
 shared vec3 sMin[64];
 shared vec3 sMax[64];
 shared float sDist[64];
 shared float sCount[64];
+shared float sAngle[64];
 void main() {
     int n = 1 << level;
     int tx = int(gl_WorkGroupID.x) % n, ty = int(gl_WorkGroupID.x) / n;
@@ -23,6 +27,11 @@ void main() {
     uint li = gl_LocalInvocationIndex;
     vec3 omin = vec3(3.0e38), omax = vec3(-3.0e38);
     float dmax = -1.0, nActive = 0.0;
+    vec3 ac = texelFetch(rayDir, (lo + hi) >> 1, 0).xyz;
+    float al = length(ac);
+    bool coneOk = al > 0.0 && !isinf(al) && !isnan(al);
+    vec3 axis = coneOk ? ac / al : vec3(0.0, 0.0, 1.0);
+    float s2max = coneOk ? 0.0 : 2.0;
     for (int k = int(li); k < count; k += 64) {
         ivec2 px = lo + ivec2(k % w, k / w);
         int best = imageLoad(bestBits, px).r;
@@ -33,8 +42,13 @@ void main() {
         omax = max(omax, o.xyz);
         dmax = max(dmax, intBitsToFloat(best) * length(d.xyz));
         nActive += 1.0;
+        // the largest sin^2 of the angle from the axis (a direction at or beyond 90 degrees: no cone);
+        // the sine from the cross product stays accurate at small angles (1 - cos does not)
+        vec3 cr = cross(d.xyz, axis);
+        float s2 = dot(cr, cr) / dot(d.xyz, d.xyz);
+        s2max = (dot(d.xyz, axis) > 0.0 && !isnan(s2)) ? max(s2max, s2) : 2.0;
     }
-    sMin[li] = omin; sMax[li] = omax; sDist[li] = dmax; sCount[li] = nActive;
+    sMin[li] = omin; sMax[li] = omax; sDist[li] = dmax; sCount[li] = nActive; sAngle[li] = s2max;
     barrier();
     for (uint s = 32u; s > 0u; s >>= 1) {
         if (li < s) {
@@ -42,8 +56,13 @@ void main() {
             sMax[li] = max(sMax[li], sMax[li + s]);
             sDist[li] = max(sDist[li], sDist[li + s]);
             sCount[li] += sCount[li + s];
+            sAngle[li] = max(sAngle[li], sAngle[li + s]);
         }
         barrier();
     }
-    if (li == 0u) tiles[gl_WorkGroupID.x] = TileBound(vec4(sMin[0], sDist[0]), vec4(sMax[0], sCount[0]));
+    if (li == 0u) {
+        float s2 = sAngle[0];
+        float a = s2 < 1.0 ? asin(sqrt(s2)) : 4.0;  // the half angle (radians), 4 = no cone
+        tiles[gl_WorkGroupID.x] = TileBound(vec4(sMin[0], sDist[0]), vec4(sMax[0], sCount[0]), vec4(axis, a));
+    }
 }

@@ -127,6 +127,7 @@ COUNT_BYTES = 4 * COUNT_SLOTS  # GPU-driven counts buffer: ray counts, then quer
 MAX_BOXES = 48  # boxes per query draw (max_multi pairs x 2 child boxes)
 MAX_LEAF_CACHE = 16
 HINT_UNIT = 2  # texture unit of the hit hints (rays: units 0 and 1)
+TILE_BOUND_BYTES = 48  # chc_tilecone.glsl TileBound: origin box + reach, direction cone
 
 
 @dataclass
@@ -193,6 +194,9 @@ class ChcrtParams:
     gap_order_visible: bool = param(True, "gap_order for the visible pairs' records too, in closest-hit passes: two "
                                     "dispatches before their draw (the tiles' ray origin boxes, the records' items "
                                     "sorted by gap); any-hit passes keep the visible items unsorted")
+    cone_cull: bool = param(True, "GPU-driven: per finest tile a cone around its rays' directions; the cull drops "
+                            "invisible pairs and, with gap_order_visible, the visible pairs' records drop items whose "
+                            "box lies outside it (no ray of the tile points at them; exact)")
     count_due_only: bool = param(True, "GPU-driven: only the visible pairs whose re-query is due this frame count "
                                  "the rays that enter them (the others' counts are never read; each count is a "
                                  "shader atomic per entered pair and ray); False: every visible pair counts")
@@ -397,7 +401,7 @@ class ChcrtBackend:
         self.survivors = self.ctx.buffer(reserve=DRAW_DTYPE.itemsize * 4096)
         self.kept_boxes = self.ctx.buffer(reserve=ITEM_DTYPE.itemsize * 4096)
         self.query_indirect = self.ctx.buffer(reserve=16)
-        self.tile_bounds = self.ctx.buffer(reserve=32 * 64)
+        self.tile_bounds = self.ctx.buffer(reserve=TILE_BOUND_BYTES * 64)
         self.gpu_counts = self.ctx.buffer(reserve=COUNT_BYTES + 4 * 4096)
         self.queries: list[moderngl.Query] = []
         self.targets: _Targets | None = None
@@ -895,9 +899,9 @@ class _Pass:
         (chc_tilebounds.comp, one dispatch) into be.tile_bounds (grown when too small), after the
         image writes of the draw before it (bestBits)."""
         be, ctx = self.be, self.ctx
-        if be.tile_bounds.size < 32 * tiles:
+        if be.tile_bounds.size < TILE_BOUND_BYTES * tiles:
             be.tile_bounds.release()
-            be.tile_bounds = ctx.buffer(reserve=32 * tiles)
+            be.tile_bounds = ctx.buffer(reserve=TILE_BOUND_BYTES * tiles)
         be.tile_bounds.bind_to_storage_buffer(BIND_CHC_TILES)
         ctx.memory_barrier(moderngl.SHADER_IMAGE_ACCESS_BARRIER_BIT)
         be.tilebounds["raySize"] = tuple(self.size)
@@ -913,6 +917,7 @@ class _Pass:
         level = self.front.max_level
         self._tile_bounds(level, 1 << (2 * level))  # after the init draw's bestBits
         be.visorder["nRecords"] = nrec
+        be.visorder["coneCull"] = int(self.p.cone_cull)
         be.visorder.run(-(-nrec // 64))
         ctx.memory_barrier(moderngl.SHADER_STORAGE_BARRIER_BIT)
         self.stats["draws"] += 2
@@ -1257,6 +1262,7 @@ class _Pass:
         be.querycull["pixelSlot"] = nslots
         be.querycull["cull"] = int(self.p.coarse_cull)
         be.querycull["sortByGap"] = int(self.p.gap_order)
+        be.querycull["coneCull"] = int(self.p.cone_cull)
         be.querycull.run(-(-nsub // 64))
         ctx.memory_barrier(moderngl.COMMAND_BARRIER_BIT | moderngl.SHADER_STORAGE_BARRIER_BIT)
         self.stats["draws"] += 2
