@@ -34,7 +34,7 @@ uniform int coneCull;  // 1: also drop boxes outside the tile's direction cone (
 float gapOf(ChcItem it, TileBound t) { return tileGap(it.bmin, it.bmax, t); }
 
 bool reachable(ChcItem it, TileBound t) {
-    return cull == 0 || (gapOf(it, t) <= t.omin.w * (1.0 + 1e-4) && (coneCull == 0 || tileCone(it.bmin, it.bmax, t)));
+    return cull == 0 || (gapOf(it, t) <= t.omin.w * (1.0 + 1e-4) && (coneCull == 0 || (tileCone(it.bmin, it.bmax, t) && tileSides(it.bmin, it.bmax, t))));
 }
 
 void main() {

@@ -28,7 +28,7 @@ void main() {
     int kept = 0;
     for (int k = 0; k < d.info.y; ++k) {
         ChcItem it = items[base + k];
-        if (live && coneCull != 0 && !tileCone(it.bmin, it.bmax, t)) continue;
+        if (live && coneCull != 0 && !(tileCone(it.bmin, it.bmax, t) && tileSides(it.bmin, it.bmax, t))) continue;
         it.gap = live ? tileGap(it.bmin, it.bmax, t) : 0.0;
         int m = base + kept++;
         while (m > base && items[m - 1].gap > it.gap) { items[m] = items[m - 1]; --m; }

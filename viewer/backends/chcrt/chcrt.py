@@ -127,7 +127,7 @@ COUNT_BYTES = 4 * COUNT_SLOTS  # GPU-driven counts buffer: ray counts, then quer
 MAX_BOXES = 48  # boxes per query draw (max_multi pairs x 2 child boxes)
 MAX_LEAF_CACHE = 16
 HINT_UNIT = 2  # texture unit of the hit hints (rays: units 0 and 1)
-TILE_BOUND_BYTES = 48  # chc_tilecone.glsl TileBound: origin box + reach, direction cone
+TILE_BOUND_BYTES = 112  # chc_tilecone.glsl TileBound: origin box + reach, direction cone, side planes
 
 
 @dataclass
@@ -194,9 +194,10 @@ class ChcrtParams:
     gap_order_visible: bool = param(True, "gap_order for the visible pairs' records too, in closest-hit passes: two "
                                     "dispatches before their draw (the tiles' ray origin boxes, the records' items "
                                     "sorted by gap); any-hit passes keep the visible items unsorted")
-    cone_cull: bool = param(True, "GPU-driven: per finest tile a cone around its rays' directions; the cull drops "
-                            "invisible pairs and, with gap_order_visible, the visible pairs' records drop items whose "
-                            "box lies outside it (no ray of the tile points at them; exact)")
+    cone_cull: bool = param(True, "GPU-driven: per tile a cone around its rays' directions and four side planes "
+                            "(camera rays: the tile's frustum); the cull drops invisible pairs and, with "
+                            "gap_order_visible, the visible pairs' records drop items whose box lies outside them "
+                            "(no ray of the tile can enter it; exact)")
     count_due_only: bool = param(True, "GPU-driven: only the visible pairs whose re-query is due this frame count "
                                  "the rays that enter them (the others' counts are never read; each count is a "
                                  "shader atomic per entered pair and ray); False: every visible pair counts")
