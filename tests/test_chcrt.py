@@ -204,15 +204,16 @@ def test_conservative_equals_glsl_every_ray_type(name, mode, gl_ctx):
     print(f"{name}: {ties} tied closest hits over {len(frames)} frames")
 
 
-@pytest.mark.parametrize("params", ["lca_pairs=1,full_bvh_fraction=0", "lca_pairs=1",
+@pytest.mark.parametrize("params", ["lca_pairs=1,full_bvh_fraction=0,lca_primary=true", "lca_pairs=1,lca_primary=true",
                                     "lca_pairs=8,cull_sublevels=2,cold_full_bvh=false", "lca_invisible=false",
                                     "hit_hint=false", "gap_order=false,count_due_only=false", "cone_cull=false"])
 def test_lca_fallback_and_cull_tiles_are_exact(params, gl_ctx):
     """The GPU-driven pass's per-tile choices keep glsl's hits: a tile over `lca_pairs` pairs
     traverses the lowest common ancestor of all of them and its invisible pairs are not queried
-    (lca_pairs=1: every tile, so no pair is queried on a steady frame, and with full_bvh_fraction
-    the pass runs the glsl traversal; 8: some tiles, the cull per sub-tile, with every front refined
-    past its first pass), and the older rule (only the visible pairs replaced, the invisible ones
+    (lca_pairs=1 and lca_primary: every tile, so no pair is queried on a steady frame, and with
+    full_bvh_fraction the pass runs the glsl traversal; 8: some tiles of the passes other than
+    primary (whose tiles test their pairs), the cull per sub-tile, with every front refined past its
+    first pass), and the older rule (only the visible pairs replaced, the invisible ones
     queried); without the hit hints; without the gap order of the records' items (and with every
     visible pair counted)."""
     frames, scene, _ = _render_both(gl_ctx, "city", "primary,shadows,ao:2,diffuse:2", params)
@@ -222,9 +223,9 @@ def test_lca_fallback_and_cull_tiles_are_exact(params, gl_ctx):
                          scene.triangles)
     steady = [b.backend_stats for _, b in frames[1:]]
     assert all(s["gpu_driven"] > 0 for s in steady)
-    if params == "lca_pairs=1,full_bvh_fraction=0":
+    if params.startswith("lca_pairs=1,full_bvh_fraction=0"):
         assert all(s["lca_tiles"] > 0 and s["query_records_drawn"] == 0 for s in steady)
-    elif params == "lca_pairs=1":  # every tile over the limit: every pass through the full traversal
+    elif params.startswith("lca_pairs=1,"):  # every tile over the limit: every pass through the full traversal
         # (cold_full_bvh: the first pass stops refining at once, and its front stays full-BVH)
         assert all(b.backend_stats["full_bvh_passes"] > 0 for _, b in frames)
         assert all(s["full_bvh_passes"] > 0 and s["query_records_drawn"] == 0 for s in steady)

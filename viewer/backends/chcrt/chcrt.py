@@ -178,6 +178,10 @@ class ChcrtParams:
                                      "as it is (0 = never)")
     lca_pairs: int = param(64, "GPU-driven with lca_invisible: a finest tile with more visible + invisible pairs "
                            "than this traverses their lowest common ancestor (0 = no limit)")
+    lca_primary: bool = param(False, "GPU-driven: primary-ray passes take the LCA fallback too (lca_pairs, "
+                              "lca_subtrees); False: a primary ray's tile always tests its pairs (more than max_batch "
+                              "in several records): camera rays are coherent, and from about the root a tile's rays "
+                              "visit glsl's ~27 nodes against ~14 below their pairs")
     coarse_cull: bool = param(True, "GPU-driven: a compute pass culls the queries whose boxes lie beyond the "
                               "farthest distance any ray of their tile may still reach")
     cold_full_bvh: bool = param(True, "a front's first (synchronous) pass stops refining once so many finest tiles "
@@ -1098,8 +1102,10 @@ class _Pass:
     def _heavy_tiles(self, cv: np.ndarray, ci: np.ndarray) -> np.ndarray:
         """Per finest tile (visible pair counts `cv`, invisible `ci`): does it traverse the lowest
         common ancestor of its pairs instead of testing them (over `lca_subtrees` visible pairs or
-        `lca_pairs` pairs in all)?"""
+        `lca_pairs` pairs in all; never for primary rays unless `lca_primary`)?"""
         heavy = np.zeros(cv.shape, bool)
+        if self.ray_type == RayType.PRIMARY and not self.p.lca_primary:
+            return heavy
         if self.p.lca_subtrees > 0:
             heavy |= cv > self.p.lca_subtrees
         if self.p.lca_pairs > 0:
