@@ -133,6 +133,9 @@ TILE_BOUND_BYTES = 112  # chc_tilecone.glsl TileBound: origin box + reach, direc
 @dataclass
 class ChcrtParams:
     t_q: float = param(0.5, "split in object space if A_node/A_root > t_q * A_tile/A_screen")
+    t_q_primary: float = param(0.7, "primary-ray fronts split with t_q times this (1 = t_q): a deeper front, fewer "
+                               "nodes per camera ray below its pairs at more pair tests (their boxes beside a tile "
+                               "are culled: cone_cull); other fronts keep t_q (AO: a deeper front goes full-BVH)")
     min_tile_fraction: float = param(0.015, "smallest tile, fraction of the screen (paper: 200x200 at 1080p)")
     max_subtree_height: int = param(24, "scheduled subtrees: traversal stack bound (paper: 24)")
     max_subtree_tris: int = param(4096, "scheduled subtrees: triangle bound")
@@ -219,13 +222,14 @@ class ChcrtParams:
             raise RtwalkError(f"{source}: leaf_cache must be in 0..{MAX_LEAF_CACHE}")
         if self.query_mode not in QUERY_MODES:
             raise RtwalkError(f"{source}: query_mode must be one of {', '.join(QUERY_MODES)}")
-        if not (self.t_q > 0 and 0 < self.min_tile_fraction <= 1 and self.max_subtree_height >= 1
+        if not (self.t_q > 0 and self.t_q_primary > 0 and 0 < self.min_tile_fraction <= 1
+                and self.max_subtree_height >= 1
                 and self.max_subtree_tris >= 1 and self.requery_interval >= 1 and self.schedule_batch >= 1
                 and self.visible_threshold >= 0 and self.lca_subtrees >= 0 and self.lca_pairs >= 0
                 and self.cold_query_budget >= 0
                 and 0 <= self.cull_sublevels <= 4 and 0 <= self.full_bvh_fraction <= 1):
-            raise RtwalkError(f"{source}: t_q and min_tile_fraction must be > 0, thresholds >= 0, counts >= 1, "
-                              "cull_sublevels in 0..4, full_bvh_fraction in 0..1")
+            raise RtwalkError(f"{source}: t_q, t_q_primary and min_tile_fraction must be > 0, thresholds >= 0, "
+                              "counts >= 1, cull_sublevels in 0..4, full_bvh_fraction in 0..1")
 
 
 def _to_finest_tiles(nd: np.ndarray, lvl: np.ndarray, tx: np.ndarray, ty: np.ndarray, sl: np.ndarray,
@@ -569,6 +573,8 @@ class _Pass:
         self.rep: tuple[np.ndarray, np.ndarray] | None = None  # representative rays per finest tile
         self.rays_read = False
         self.threshold = int(self.p.visible_threshold)
+        # the split rule's t_q of this front (times t_q_primary for camera rays)
+        self.t_q = self.p.t_q * (self.p.t_q_primary if ray_type == RayType.PRIMARY else 1.0)
         self.overlays = bool(self.p.overdraw_overlay and be.overlays_enabled)
         # GPU-driven steady state: a front's first pass runs the synchronous algorithm (builds the front)
         self.gpu = be.gpu_driven and front.frames > 0
@@ -1040,7 +1046,7 @@ class _Pass:
             full = False  # cold_full_bvh: the refinement stopped, every ray takes the full traversal
             while True:
                 if len(wave):
-                    term, obj, _ = f.classify(wave, self.nt, p.t_q, p.max_subtree_height,
+                    term, obj, _ = f.classify(wave, self.nt, self.t_q, p.max_subtree_height,
                                               p.max_subtree_tris)
                     done = wave[term]
                     f.state[done] = VISIBLE
@@ -1378,7 +1384,7 @@ class _Pass:
             f.age[visible[due]] = 0
             f.pixels[visible[due]] = cv[due]
         if len(wave):
-            term, obj, _ = f.classify(wave, self.nt, p.t_q, p.max_subtree_height, p.max_subtree_tris)
+            term, obj, _ = f.classify(wave, self.nt, self.t_q, p.max_subtree_height, p.max_subtree_tris)
             f.state[wave[term]] = VISIBLE
             split = wave[~term]
             if len(split):
