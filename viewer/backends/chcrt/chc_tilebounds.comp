@@ -1,10 +1,12 @@
 // CHC+RT, GPU-driven queries, step 1: per finest tile, what its rays can still reach after the
 // visible pairs were intersected: the box around the active rays' origins and the largest
 // distance to their nearest hit so far (bestBits, or tmax without a hit), in world units
-// (t * |d|), and a cone around the active rays' directions (axis: the tile's centre pixel's direction,
-// half angle: the largest angle of an active ray's direction from it; any axis gives a valid cone),
-// which lets the cull and the gap order drop boxes that no ray of the tile points at. One work group
-// per tile; a tile without an active ray gets maxDist = -1.
+// (t * |d|), a cone around the active rays' directions (axis: the tile's centre pixel's direction,
+// half angle: the largest angle of an active ray's direction from it; any axis gives a valid cone)
+// and four side planes (spanned by the tile's corner rays, each with the least n . d/|d| of the
+// tile's rays, so any rays give valid planes), which let the cull and the gap order drop boxes that
+// no ray of the tile can enter (chc_tilecone.glsl). One work group per tile; a tile without an
+// active ray gets maxDist = -1.
 layout(local_size_x = 64) in;
 layout(r32i, binding = BIND_IMG_CHC_BEST) uniform coherent iimage2D bestBits;
 uniform sampler2D rayOrigin;
@@ -34,7 +36,8 @@ void main() {
     float s2max = coneOk ? 0.0 : 2.0;
     // the side planes: spanned by the tile's corner rays, normals towards the axis (chc_tilecone.glsl)
     vec3 e00 = texelFetch(rayDir, lo, 0).xyz, e11 = texelFetch(rayDir, hi - 1, 0).xyz;
-    vec3 e10 = texelFetch(rayDir, ivec2(hi.x - 1, lo.y), 0).xyz, e01 = texelFetch(rayDir, ivec2(lo.x, hi.y - 1), 0).xyz;
+    vec3 e10 = texelFetch(rayDir, ivec2(hi.x - 1, lo.y), 0).xyz;
+    vec3 e01 = texelFetch(rayDir, ivec2(lo.x, hi.y - 1), 0).xyz;
     vec3 sn[4] = vec3[4](cross(e00, e01), cross(e11, e10), cross(e10, e00), cross(e01, e11));
     for (int i = 0; i < 4; ++i) {
         float l = length(sn[i]);

@@ -4,8 +4,8 @@
 // box, and the record's items are sorted by it, nearest first. A ray then stops testing the record's
 // boxes at the first one beyond its nearest hit so far (chc_intersect.frag): with the hit hint that
 // is its hit already. Only the order changes: the ray still traverses what it enters nearest first.
-// With coneCull, items outside the tile's direction cone (no ray of the tile points at them) are
-// dropped and the record's count lowered (a record left empty draws nothing): a pair visible over a
+// With coneCull, items beside the tile's rays (outside its direction cone or behind a side plane,
+// chc_tilecone.glsl: no ray of the tile can enter them) are dropped and the record's count lowered (a record left empty draws nothing): a pair visible over a
 // coarser tile is copied onto every finest tile under it, also those whose rays pass beside it.
 layout(local_size_x = 64) in;
 #include "chc_tilecone.glsl"
@@ -28,7 +28,8 @@ void main() {
     int kept = 0;
     for (int k = 0; k < d.info.y; ++k) {
         ChcItem it = items[base + k];
-        if (live && coneCull != 0 && !(tileCone(it.bmin, it.bmax, t) && tileSides(it.bmin, it.bmax, t))) continue;
+        bool beside = live && coneCull != 0 && !(tileCone(it.bmin, it.bmax, t) && tileSides(it.bmin, it.bmax, t));
+        if (beside) continue;
         it.gap = live ? tileGap(it.bmin, it.bmax, t) : 0.0;
         int m = base + kept++;
         while (m > base && items[m - 1].gap > it.gap) { items[m] = items[m - 1]; --m; }

@@ -61,6 +61,9 @@ that front then stays on full traversals.
 Gap order (`gap_order`, `gap_order_visible`): in the GPU-driven pass each record's items are sorted on
 the device by a lower bound of their distance from the tile's ray origins, and a ray stops testing
 them at the first one beyond its nearest hit (exact: such a box cannot be entered before the hit).
+Cone cull (`cone_cull`): the same dispatch bounds each tile's ray directions (a cone and four side
+planes, chc_tilecone.glsl), and boxes beside every ray of the tile are dropped from the records.
+Primary-ray fronts are deeper (`t_q_primary`) and never take the LCA fallback (`lca_primary`).
 
 Hit hints (`hit_hint`): every ray first tests the triangle its pixel hit in the front's previous
 pass (copied on the device after each pass): any-hit rays that hit it are done, closest-hit rays
