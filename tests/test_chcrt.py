@@ -204,15 +204,16 @@ def test_conservative_equals_glsl_every_ray_type(name, mode, gl_ctx):
     print(f"{name}: {ties} tied closest hits over {len(frames)} frames")
 
 
-@pytest.mark.parametrize("params", ["lca_pairs=1,full_bvh_fraction=0", "lca_pairs=1",
+@pytest.mark.parametrize("params", ["lca_pairs=1,full_bvh_fraction=0,lca_primary=true", "lca_pairs=1,lca_primary=true",
                                     "lca_pairs=8,cull_sublevels=2,cold_full_bvh=false", "lca_invisible=false",
-                                    "hit_hint=false", "gap_order=false,count_due_only=false"])
+                                    "hit_hint=false", "gap_order=false,count_due_only=false", "cone_cull=false"])
 def test_lca_fallback_and_cull_tiles_are_exact(params, gl_ctx):
     """The GPU-driven pass's per-tile choices keep glsl's hits: a tile over `lca_pairs` pairs
     traverses the lowest common ancestor of all of them and its invisible pairs are not queried
-    (lca_pairs=1: every tile, so no pair is queried on a steady frame, and with full_bvh_fraction
-    the pass runs the glsl traversal; 8: some tiles, the cull per sub-tile, with every front refined
-    past its first pass), and the older rule (only the visible pairs replaced, the invisible ones
+    (lca_pairs=1 and lca_primary: every tile, so no pair is queried on a steady frame, and with
+    full_bvh_fraction the pass runs the glsl traversal; 8: some tiles of the passes other than
+    primary (whose tiles test their pairs), the cull per sub-tile, with every front refined past its
+    first pass), and the older rule (only the visible pairs replaced, the invisible ones
     queried); without the hit hints; without the gap order of the records' items (and with every
     visible pair counted)."""
     frames, scene, _ = _render_both(gl_ctx, "city", "primary,shadows,ao:2,diffuse:2", params)
@@ -222,14 +223,24 @@ def test_lca_fallback_and_cull_tiles_are_exact(params, gl_ctx):
                          scene.triangles)
     steady = [b.backend_stats for _, b in frames[1:]]
     assert all(s["gpu_driven"] > 0 for s in steady)
-    if params == "lca_pairs=1,full_bvh_fraction=0":
+    if params.startswith("lca_pairs=1,full_bvh_fraction=0"):
         assert all(s["lca_tiles"] > 0 and s["query_records_drawn"] == 0 for s in steady)
-    elif params == "lca_pairs=1":  # every tile over the limit: every pass through the full traversal
+    elif params.startswith("lca_pairs=1,"):  # every tile over the limit: every pass through the full traversal
         # (cold_full_bvh: the first pass stops refining at once, and its front stays full-BVH)
         assert all(b.backend_stats["full_bvh_passes"] > 0 for _, b in frames)
         assert all(s["full_bvh_passes"] > 0 and s["query_records_drawn"] == 0 for s in steady)
     elif params.startswith("lca_pairs=8"):
         assert sum(s["lca_tiles"] for s in steady) > 0
+
+
+def test_cone_cull_drops_pairs_beside_the_tiles(gl_ctx):
+    """cone_cull (exact: the default in every test here) tests fewer invisible pairs per pixel than
+    the reach alone: pairs whose boxes lie beside a tile's rays are dropped by the cull."""
+    on, _, _ = _render_both(gl_ctx, "city", "primary", "")
+    off, _, _ = _render_both(gl_ctx, "city", "primary", "cone_cull=false")
+    qon = sum(b.backend_stats["query_pixels"] for _, b in on[1:])
+    qoff = sum(b.backend_stats["query_pixels"] for _, b in off[1:])
+    assert qoff > 0 and qon < qoff, (qon, qoff)
 
 
 def test_aggressive_mode_only_loses_hits(gl_ctx):

@@ -6,12 +6,14 @@
 // entered. The kept pairs of a tile become records of at most maxItems pairs of ONE indirect
 // instanced intersection draw (chc_intersect.frag with CHC_COUNT_ITEMS), each item keeping its
 // pair's count slot. Conservative: the gap between the origin box and a pair's box is a lower bound
-// of every ray's entry distance; a relative margin covers the rounding.
+// of every ray's entry distance; a relative margin covers the rounding. With coneCull, a box that
+// lies beside every ray of the tile (outside its direction cone, or behind a side plane:
+// chc_tilecone.glsl) is dropped too.
 layout(local_size_x = 64) in;
+#include "chc_tilecone.glsl"
 struct ChcDraw { ivec4 rect; ivec4 info; };
 struct ChcItem { vec3 bmin; int ref; vec3 bmax; int count; int id; int p0; int p1; int p2;
                  float gap; int q0; int q1; int q2; };
-struct TileBound { vec4 omin; vec4 omax; };
 layout(std430, binding = BIND_CHC_ITEMS) readonly buffer ChcItems { ChcItem items[]; };
 layout(std430, binding = BIND_CHC_QUERIES) readonly buffer ChcQueries { ChcDraw queries[]; };
 layout(std430, binding = BIND_CHC_TILES) readonly buffer ChcTiles { TileBound tiles[]; };
@@ -29,15 +31,14 @@ uniform int maxItems;  // items per intersection record (CHC_MAX_ITEMS of the in
 uniform int cull;  // 0: keep every box (ChcrtParams.coarse_cull off)
 uniform int sortByGap;  // 0: no gaps (-1: no ray stops early), kept in input order (ChcrtParams.gap_order off)
 
-// a lower bound of the distance from every ray origin of the tile to the box (the relative margin
-// covers the rounding of the gap and of the rays' own box tests)
-float gapOf(ChcItem it, TileBound t) {
-    vec3 gap = max(max(it.bmin - t.omax.xyz, t.omin.xyz - it.bmax), vec3(0.0));
-    return length(gap) * (1.0 - 1e-4);
-}
+uniform int coneCull;  // 1: also drop boxes beside the tile's rays: cone and side planes (ChcrtParams.cone_cull)
+
+float gapOf(ChcItem it, TileBound t) { return tileGap(it.bmin, it.bmax, t); }
 
 bool reachable(ChcItem it, TileBound t) {
-    return cull == 0 || gapOf(it, t) <= t.omin.w * (1.0 + 1e-4);
+    if (cull == 0) return true;
+    if (gapOf(it, t) > t.omin.w * (1.0 + 1e-4)) return false;  // beyond every ray's reach
+    return coneCull == 0 || (tileCone(it.bmin, it.bmax, t) && tileSides(it.bmin, it.bmax, t));
 }
 
 void main() {

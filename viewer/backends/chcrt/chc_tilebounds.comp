@@ -1,30 +1,55 @@
 // CHC+RT, GPU-driven queries, step 1: per finest tile, what its rays can still reach after the
 // visible pairs were intersected: the box around the active rays' origins and the largest
 // distance to their nearest hit so far (bestBits, or tmax without a hit), in world units
-// (t * |d|). One work group per tile; a tile without an active ray gets maxDist = -1.
+// (t * |d|), a cone around the active rays' directions (axis: the tile's centre pixel's direction,
+// half angle: the largest angle of an active ray's direction from it; any axis gives a valid cone)
+// and four side planes (spanned by the tile's corner rays, each with the least n . d/|d| of the
+// tile's rays, so any rays give valid planes), which let the cull and the gap order drop boxes that
+// no ray of the tile can enter (chc_tilecone.glsl). One work group per tile; a tile without an
+// active ray gets maxDist = -1.
 layout(local_size_x = 64) in;
 layout(r32i, binding = BIND_IMG_CHC_BEST) uniform coherent iimage2D bestBits;
 uniform sampler2D rayOrigin;
 uniform sampler2D rayDir;
 uniform ivec2 raySize;
 uniform int level;  // the finest tile level: 2^level x 2^level tiles
-struct TileBound { vec4 omin; vec4 omax; };  // origin box; omin.w = max distance, omax.w = active rays
+#include "chc_tilecone.glsl"
 layout(std430, binding = BIND_CHC_TILES) writeonly buffer ChcTiles { TileBound tiles[]; };
 shared vec3 sMin[64];
 shared vec3 sMax[64];
 shared float sDist[64];
 shared float sCount[64];
+shared float sAngle[64];
+shared vec4 sSide[64];
 void main() {
     int n = 1 << level;
     int tx = int(gl_WorkGroupID.x) % n, ty = int(gl_WorkGroupID.x) / n;
     ivec2 lo = (ivec2(tx, ty) * raySize) >> level;
     ivec2 hi = (ivec2(tx + 1, ty + 1) * raySize) >> level;
-    int w = hi.x - lo.x, count = w * (hi.y - lo.y);
     uint li = gl_LocalInvocationIndex;
     vec3 omin = vec3(3.0e38), omax = vec3(-3.0e38);
     float dmax = -1.0, nActive = 0.0;
-    for (int k = int(li); k < count; k += 64) {
-        ivec2 px = lo + ivec2(k % w, k / w);
+    vec3 ac = texelFetch(rayDir, (lo + hi) >> 1, 0).xyz;
+    float al = length(ac);
+    bool coneOk = al > 0.0 && !isinf(al) && !isnan(al);
+    vec3 axis = coneOk ? ac / al : vec3(0.0, 0.0, 1.0);
+    float s2max = coneOk ? 0.0 : 2.0;
+    // the side planes: spanned by the tile's corner rays, normals towards the axis (chc_tilecone.glsl)
+    vec3 e00 = texelFetch(rayDir, lo, 0).xyz, e11 = texelFetch(rayDir, hi - 1, 0).xyz;
+    vec3 e10 = texelFetch(rayDir, ivec2(hi.x - 1, lo.y), 0).xyz;
+    vec3 e01 = texelFetch(rayDir, ivec2(lo.x, hi.y - 1), 0).xyz;
+    vec3 sn[4] = vec3[4](cross(e00, e01), cross(e11, e10), cross(e10, e00), cross(e01, e11));
+    for (int i = 0; i < 4; ++i) {
+        float l = length(sn[i]);
+        sn[i] = (coneOk && l > 0.0 && !isinf(l) && !isnan(l)) ? sn[i] / l : vec3(0.0);
+        if (dot(sn[i], axis) < 0.0) sn[i] = -sn[i];
+    }
+    vec4 smin = vec4(0.0);
+    // invocation li walks the pixels lo + (li % 8, li / 8) + 8 (i, j): no integer division per pixel
+    // (llvmpipe does vector integer division lane by lane)
+    ivec2 first = lo + ivec2(int(li) & 7, int(li) >> 3);
+    for (int y = first.y; y < hi.y; y += 8) for (int x = first.x; x < hi.x; x += 8) {
+        ivec2 px = ivec2(x, y);
         int best = imageLoad(bestBits, px).r;
         if (best < 0) continue;  // no ray, or an any-hit ray that is done
         vec4 o = texelFetch(rayOrigin, px, 0);
@@ -33,8 +58,16 @@ void main() {
         omax = max(omax, o.xyz);
         dmax = max(dmax, intBitsToFloat(best) * length(d.xyz));
         nActive += 1.0;
+        // the largest sin^2 of the angle from the axis (a direction at or beyond 90 degrees: no cone);
+        // the sine from the cross product stays accurate at small angles (1 - cos does not)
+        vec3 cr = cross(d.xyz, axis);
+        float s2 = dot(cr, cr) / dot(d.xyz, d.xyz);
+        s2max = (dot(d.xyz, axis) > 0.0 && !isnan(s2)) ? max(s2max, s2) : 2.0;
+        vec4 sd = vec4(dot(sn[0], d.xyz), dot(sn[1], d.xyz), dot(sn[2], d.xyz), dot(sn[3], d.xyz)) / length(d.xyz);
+        smin = min(smin, sd);
     }
-    sMin[li] = omin; sMax[li] = omax; sDist[li] = dmax; sCount[li] = nActive;
+    sMin[li] = omin; sMax[li] = omax; sDist[li] = dmax; sCount[li] = nActive; sAngle[li] = s2max;
+    sSide[li] = smin;
     barrier();
     for (uint s = 32u; s > 0u; s >>= 1) {
         if (li < s) {
@@ -42,8 +75,19 @@ void main() {
             sMax[li] = max(sMax[li], sMax[li + s]);
             sDist[li] = max(sDist[li], sDist[li + s]);
             sCount[li] += sCount[li + s];
+            sAngle[li] = max(sAngle[li], sAngle[li + s]);
+            sSide[li] = min(sSide[li], sSide[li + s]);
         }
         barrier();
     }
-    if (li == 0u) tiles[gl_WorkGroupID.x] = TileBound(vec4(sMin[0], sDist[0]), vec4(sMax[0], sCount[0]));
+    if (li == 0u) {
+        float s2 = sAngle[0];
+        float a = s2 < 1.0 ? asin(sqrt(s2)) : 4.0;  // the half angle (radians), 4 = no cone
+        vec4 sm = sSide[0];
+        // a NaN bound (a zero direction): no plane
+        for (int i = 0; i < 4; ++i) if (isnan(sm[i])) { sn[i] = vec3(0.0); sm[i] = 0.0; }
+        tiles[gl_WorkGroupID.x] = TileBound(vec4(sMin[0], sDist[0]), vec4(sMax[0], sCount[0]), vec4(axis, a),
+                                            vec4[4](vec4(sn[0], sm.x), vec4(sn[1], sm.y), vec4(sn[2], sm.z),
+                                                    vec4(sn[3], sm.w)));
+    }
 }

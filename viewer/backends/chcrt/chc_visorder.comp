@@ -4,15 +4,19 @@
 // box, and the record's items are sorted by it, nearest first. A ray then stops testing the record's
 // boxes at the first one beyond its nearest hit so far (chc_intersect.frag): with the hit hint that
 // is its hit already. Only the order changes: the ray still traverses what it enters nearest first.
+// With coneCull, items beside the tile's rays (outside its direction cone or behind a side plane,
+// chc_tilecone.glsl: no ray of the tile can enter them) are dropped and the record's count lowered (a record left empty draws nothing): a pair visible over a
+// coarser tile is copied onto every finest tile under it, also those whose rays pass beside it.
 layout(local_size_x = 64) in;
+#include "chc_tilecone.glsl"
 struct ChcDraw { ivec4 rect; ivec4 info; };
 struct ChcItem { vec3 bmin; int ref; vec3 bmax; int count; int id; int p0; int p1; int p2;
                  float gap; int q0; int q1; int q2; };
-struct TileBound { vec4 omin; vec4 omax; };
 layout(std430, binding = BIND_CHC_ITEMS) buffer ChcItems { ChcItem items[]; };
-layout(std430, binding = BIND_CHC_DRAWS) readonly buffer ChcDraws { ChcDraw draws[]; };
+layout(std430, binding = BIND_CHC_DRAWS) buffer ChcDraws { ChcDraw draws[]; };
 layout(std430, binding = BIND_CHC_TILES) readonly buffer ChcTiles { TileBound tiles[]; };
 uniform int nRecords;
+uniform int coneCull;
 
 void main() {
     int i = int(gl_GlobalInvocationID.x);
@@ -21,12 +25,18 @@ void main() {
     TileBound t = tiles[d.info.w];
     bool live = t.omax.w > 0.0;  // the tile has active rays (else its origin box is empty)
     int base = d.info.x;
+    int kept = 0;
     for (int k = 0; k < d.info.y; ++k) {
         ChcItem it = items[base + k];
-        vec3 gap = max(max(it.bmin - t.omax.xyz, t.omin.xyz - it.bmax), vec3(0.0));
-        it.gap = live ? length(gap) * (1.0 - 1e-4) : 0.0;  // the margin as in chc_querycull.comp
-        int m = base + k;
+        bool beside = live && coneCull != 0 && !(tileCone(it.bmin, it.bmax, t) && tileSides(it.bmin, it.bmax, t));
+        if (beside) continue;
+        it.gap = live ? tileGap(it.bmin, it.bmax, t) : 0.0;
+        int m = base + kept++;
         while (m > base && items[m - 1].gap > it.gap) { items[m] = items[m - 1]; --m; }
         items[m] = it;
+    }
+    if (kept < d.info.y) {
+        draws[i].info.y = kept;
+        if (kept == 0) draws[i].rect.zw = ivec2(0);
     }
 }

@@ -61,6 +61,9 @@ that front then stays on full traversals.
 Gap order (`gap_order`, `gap_order_visible`): in the GPU-driven pass each record's items are sorted on
 the device by a lower bound of their distance from the tile's ray origins, and a ray stops testing
 them at the first one beyond its nearest hit (exact: such a box cannot be entered before the hit).
+Cone cull (`cone_cull`): the same dispatch bounds each tile's ray directions (a cone and four side
+planes, chc_tilecone.glsl), and boxes beside every ray of the tile are dropped from the records.
+Primary-ray fronts are deeper (`t_q_primary`) and never take the LCA fallback (`lca_primary`).
 
 Hit hints (`hit_hint`): every ray first tests the triangle its pixel hit in the front's previous
 pass (copied on the device after each pass): any-hit rays that hit it are done, closest-hit rays
@@ -127,11 +130,15 @@ COUNT_BYTES = 4 * COUNT_SLOTS  # GPU-driven counts buffer: ray counts, then quer
 MAX_BOXES = 48  # boxes per query draw (max_multi pairs x 2 child boxes)
 MAX_LEAF_CACHE = 16
 HINT_UNIT = 2  # texture unit of the hit hints (rays: units 0 and 1)
+TILE_BOUND_BYTES = 112  # chc_tilecone.glsl TileBound: origin box + reach, direction cone, side planes
 
 
 @dataclass
 class ChcrtParams:
     t_q: float = param(0.5, "split in object space if A_node/A_root > t_q * A_tile/A_screen")
+    t_q_primary: float = param(0.7, "primary-ray fronts split with t_q times this (1 = t_q): a deeper front, fewer "
+                               "nodes per camera ray below its pairs at more pair tests (their boxes beside a tile "
+                               "are culled: cone_cull); other fronts keep t_q (AO: a deeper front goes full-BVH)")
     min_tile_fraction: float = param(0.015, "smallest tile, fraction of the screen (paper: 200x200 at 1080p)")
     max_subtree_height: int = param(24, "scheduled subtrees: traversal stack bound (paper: 24)")
     max_subtree_tris: int = param(4096, "scheduled subtrees: triangle bound")
@@ -177,6 +184,10 @@ class ChcrtParams:
                                      "as it is (0 = never)")
     lca_pairs: int = param(64, "GPU-driven with lca_invisible: a finest tile with more visible + invisible pairs "
                            "than this traverses their lowest common ancestor (0 = no limit)")
+    lca_primary: bool = param(False, "GPU-driven: primary-ray passes take the LCA fallback too (lca_pairs, "
+                              "lca_subtrees); False: a primary ray's tile always tests its pairs (more than max_batch "
+                              "in several records): camera rays are coherent, and from about the root a tile's rays "
+                              "visit glsl's ~27 nodes against ~14 below their pairs")
     coarse_cull: bool = param(True, "GPU-driven: a compute pass culls the queries whose boxes lie beyond the "
                               "farthest distance any ray of their tile may still reach")
     cold_full_bvh: bool = param(True, "a front's first (synchronous) pass stops refining once so many finest tiles "
@@ -193,6 +204,10 @@ class ChcrtParams:
     gap_order_visible: bool = param(True, "gap_order for the visible pairs' records too, in closest-hit passes: two "
                                     "dispatches before their draw (the tiles' ray origin boxes, the records' items "
                                     "sorted by gap); any-hit passes keep the visible items unsorted")
+    cone_cull: bool = param(True, "GPU-driven: per tile a cone around its rays' directions and four side planes "
+                            "(camera rays: the tile's frustum); the cull drops invisible pairs and, with "
+                            "gap_order_visible, the visible pairs' records drop items whose box lies outside them "
+                            "(no ray of the tile can enter it; exact)")
     count_due_only: bool = param(True, "GPU-driven: only the visible pairs whose re-query is due this frame count "
                                  "the rays that enter them (the others' counts are never read; each count is a "
                                  "shader atomic per entered pair and ray); False: every visible pair counts")
@@ -210,13 +225,14 @@ class ChcrtParams:
             raise RtwalkError(f"{source}: leaf_cache must be in 0..{MAX_LEAF_CACHE}")
         if self.query_mode not in QUERY_MODES:
             raise RtwalkError(f"{source}: query_mode must be one of {', '.join(QUERY_MODES)}")
-        if not (self.t_q > 0 and 0 < self.min_tile_fraction <= 1 and self.max_subtree_height >= 1
+        if not (self.t_q > 0 and self.t_q_primary > 0 and 0 < self.min_tile_fraction <= 1
+                and self.max_subtree_height >= 1
                 and self.max_subtree_tris >= 1 and self.requery_interval >= 1 and self.schedule_batch >= 1
                 and self.visible_threshold >= 0 and self.lca_subtrees >= 0 and self.lca_pairs >= 0
                 and self.cold_query_budget >= 0
                 and 0 <= self.cull_sublevels <= 4 and 0 <= self.full_bvh_fraction <= 1):
-            raise RtwalkError(f"{source}: t_q and min_tile_fraction must be > 0, thresholds >= 0, counts >= 1, "
-                              "cull_sublevels in 0..4, full_bvh_fraction in 0..1")
+            raise RtwalkError(f"{source}: t_q, t_q_primary and min_tile_fraction must be > 0, thresholds >= 0, "
+                              "counts >= 1, cull_sublevels in 0..4, full_bvh_fraction in 0..1")
 
 
 def _to_finest_tiles(nd: np.ndarray, lvl: np.ndarray, tx: np.ndarray, ty: np.ndarray, sl: np.ndarray,
@@ -397,7 +413,7 @@ class ChcrtBackend:
         self.survivors = self.ctx.buffer(reserve=DRAW_DTYPE.itemsize * 4096)
         self.kept_boxes = self.ctx.buffer(reserve=ITEM_DTYPE.itemsize * 4096)
         self.query_indirect = self.ctx.buffer(reserve=16)
-        self.tile_bounds = self.ctx.buffer(reserve=32 * 64)
+        self.tile_bounds = self.ctx.buffer(reserve=TILE_BOUND_BYTES * 64)
         self.gpu_counts = self.ctx.buffer(reserve=COUNT_BYTES + 4 * 4096)
         self.queries: list[moderngl.Query] = []
         self.targets: _Targets | None = None
@@ -560,6 +576,8 @@ class _Pass:
         self.rep: tuple[np.ndarray, np.ndarray] | None = None  # representative rays per finest tile
         self.rays_read = False
         self.threshold = int(self.p.visible_threshold)
+        # the split rule's t_q of this front (times t_q_primary for camera rays)
+        self.t_q = self.p.t_q * (self.p.t_q_primary if ray_type == RayType.PRIMARY else 1.0)
         self.overlays = bool(self.p.overdraw_overlay and be.overlays_enabled)
         # GPU-driven steady state: a front's first pass runs the synchronous algorithm (builds the front)
         self.gpu = be.gpu_driven and front.frames > 0
@@ -895,9 +913,9 @@ class _Pass:
         (chc_tilebounds.comp, one dispatch) into be.tile_bounds (grown when too small), after the
         image writes of the draw before it (bestBits)."""
         be, ctx = self.be, self.ctx
-        if be.tile_bounds.size < 32 * tiles:
+        if be.tile_bounds.size < TILE_BOUND_BYTES * tiles:
             be.tile_bounds.release()
-            be.tile_bounds = ctx.buffer(reserve=32 * tiles)
+            be.tile_bounds = ctx.buffer(reserve=TILE_BOUND_BYTES * tiles)
         be.tile_bounds.bind_to_storage_buffer(BIND_CHC_TILES)
         ctx.memory_barrier(moderngl.SHADER_IMAGE_ACCESS_BARRIER_BIT)
         be.tilebounds["raySize"] = tuple(self.size)
@@ -913,6 +931,7 @@ class _Pass:
         level = self.front.max_level
         self._tile_bounds(level, 1 << (2 * level))  # after the init draw's bestBits
         be.visorder["nRecords"] = nrec
+        be.visorder["coneCull"] = int(self.p.cone_cull)
         be.visorder.run(-(-nrec // 64))
         ctx.memory_barrier(moderngl.SHADER_STORAGE_BARRIER_BIT)
         self.stats["draws"] += 2
@@ -1030,7 +1049,7 @@ class _Pass:
             full = False  # cold_full_bvh: the refinement stopped, every ray takes the full traversal
             while True:
                 if len(wave):
-                    term, obj, _ = f.classify(wave, self.nt, p.t_q, p.max_subtree_height,
+                    term, obj, _ = f.classify(wave, self.nt, self.t_q, p.max_subtree_height,
                                               p.max_subtree_tris)
                     done = wave[term]
                     f.state[done] = VISIBLE
@@ -1092,8 +1111,10 @@ class _Pass:
     def _heavy_tiles(self, cv: np.ndarray, ci: np.ndarray) -> np.ndarray:
         """Per finest tile (visible pair counts `cv`, invisible `ci`): does it traverse the lowest
         common ancestor of its pairs instead of testing them (over `lca_subtrees` visible pairs or
-        `lca_pairs` pairs in all)?"""
+        `lca_pairs` pairs in all; never for primary rays unless `lca_primary`)?"""
         heavy = np.zeros(cv.shape, bool)
+        if self.ray_type == RayType.PRIMARY and not self.p.lca_primary:
+            return heavy
         if self.p.lca_subtrees > 0:
             heavy |= cv > self.p.lca_subtrees
         if self.p.lca_pairs > 0:
@@ -1257,6 +1278,7 @@ class _Pass:
         be.querycull["pixelSlot"] = nslots
         be.querycull["cull"] = int(self.p.coarse_cull)
         be.querycull["sortByGap"] = int(self.p.gap_order)
+        be.querycull["coneCull"] = int(self.p.cone_cull)
         be.querycull.run(-(-nsub // 64))
         ctx.memory_barrier(moderngl.COMMAND_BARRIER_BIT | moderngl.SHADER_STORAGE_BARRIER_BIT)
         self.stats["draws"] += 2
@@ -1365,7 +1387,7 @@ class _Pass:
             f.age[visible[due]] = 0
             f.pixels[visible[due]] = cv[due]
         if len(wave):
-            term, obj, _ = f.classify(wave, self.nt, p.t_q, p.max_subtree_height, p.max_subtree_tris)
+            term, obj, _ = f.classify(wave, self.nt, self.t_q, p.max_subtree_height, p.max_subtree_tris)
             f.state[wave[term]] = VISIBLE
             split = wave[~term]
             if len(split):
