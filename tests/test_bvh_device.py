@@ -363,3 +363,38 @@ def test_renderer_on_device_tree_agrees_with_embree(backend, gl_ctx):
         if not cp.ray_type.any_hit:
             assert st["id_agree"] >= 0.999, (cp.ray_type.label, st)
     assert passes >= 3
+
+
+def test_output_placement_is_disjoint_and_inside_the_regions():
+    """_out_offsets (pure): the finished tree's ten arrays never overlap, each lies inside one of the
+    four cluster-box regions, and None (a buffer of their own) when they cannot fit; sizes past
+    2^32 words stay exact (the kernels take 64-bit offsets)."""
+    from viewer.accel.bvh_device import _contiguous_offsets, _out_offsets, _out_sizes
+
+    rng = np.random.default_rng(7)
+    cases = [(1, 1), (3, 2), (5, 3), (2 * 1000 - 1, 1000), (900, 1000), (9_199_451, 10_000_004),
+             (600_000_000, 700_000_000)]
+    for m, n in cases:
+        sizes = _out_sizes(m, n)
+        for region in (4 * n, 4 * n + 31, 3 * m - 1, 3 * m):
+            touched = [int(t) for t in rng.integers(0, region + 1, 4)]
+            offs = _out_offsets(m, n, region, touched)
+            if offs is None:
+                assert sum(sizes) > 4 * region or 3 * m > region or max(sizes) > region
+                continue
+            spans = sorted((o, o + z) for o, z in zip(offs, sizes, strict=True))
+            assert all(a_end <= b_start for (_, a_end), (b_start, _) in zip(spans, spans[1:], strict=False))
+            assert all(o // region == (o + z - 1) // region < 4 for o, z in zip(offs, sizes, strict=True))
+        contiguous = _contiguous_offsets(m, n)
+        assert contiguous[-1] + n == sum(sizes) and contiguous[0] == 0
+    assert max(_out_offsets(600_000_000, 700_000_000, 4 * 700_000_000, [0] * 4)) >= 2**32
+
+
+def test_radius1_floors_pick_the_iterations():
+    """Radius 1 in the first PLOC iteration from RADIUS1_FLOORS[0] triangles, in the first two from
+    RADIUS1_FLOORS[1]; below, radius 8 throughout (every shared study scene)."""
+    from viewer.accel.bvh_device import RADIUS1_FLOORS, device_builder
+
+    b = device_builder()
+    first, second = RADIUS1_FLOORS
+    assert [b._radius1_iterations(n) for n in (first - 1, first, second - 1, second)] == [0, 1, 1, 2]

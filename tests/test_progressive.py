@@ -144,19 +144,30 @@ def test_moving_frames_pick_the_cheaper_gbuffer_source(gl_ctx, room):
         r.release()
 
 
+def _accumulators(r: Renderer) -> dict:
+    return {k: np.frombuffer(t.read(), np.float32).copy() for k, t in r.accumulate.textures.items()}
+
+
 @pytest.mark.parametrize("backend", ["glsl", "clbvh"])
 def test_stepped_still_frame_is_the_one_call_frame(gl_ctx, room, backend, monkeypatch):
     """`rtwalk render` renders a large still frame in steps of sample passes (for its progress bar):
-    the same passes, weights and sums in the same order, so the same image bit for bit, and the same
-    rays; small frames stay one call."""
+    the same passes, weights and sums in the same order, so the same accumulators bit for bit (two
+    area lights share the soft accumulator: their passes are sample-major), the same image and rays;
+    small frames stay one call."""
+    from dataclasses import replace
+
     import viewer.progressive as progressive
 
     _, cam = _cams()
-    effects = parse_effects("primary,shadows,soft:3,ao:5,diffuse:4,reflections")
-    r = Renderer(gl_ctx, room.scene, room.bvh, SIZE, backend, effects)
+    light = room.scene.rect_lights[0]
+    second = replace(light, corner=light.corner + np.float32(0.5) * light.edge_u,
+                     radiance=light.radiance * np.float32(0.7))
+    scene = replace(room.scene, rect_lights=[light, second])
+    effects = parse_effects("primary,shadows,soft:5,ao:5,diffuse:4,reflections")
+    r = Renderer(gl_ctx, scene, room.bvh, SIZE, backend, effects)
     try:
         one = r.render(cam)
-        whole = r.read_image().copy()
+        whole, sums = r.read_image().copy(), _accumulators(r)
         calls: list[tuple[int, int]] = []
         progressive.render_stepped(r, cam, lambda done, steps: calls.append((done, steps)))
         assert calls == [(1, 1)]  # under STEPPED_MIN_RAYS: one call
@@ -166,6 +177,9 @@ def test_stepped_still_frame_is_the_one_call_frame(gl_ctx, room, backend, monkey
         _, rays = progressive.render_stepped(r, cam, lambda done, steps: calls.append((done, steps)))
         assert calls == [(1, 3), (2, 3), (3, 3)]  # sample 0, then samples 1-4 in two steps
         assert rays == one.rays
+        stepped = _accumulators(r)
+        assert sums.keys() == stepped.keys()
+        assert all(np.array_equal(sums[k], stepped[k]) for k in sums)
         assert np.array_equal(r.read_image(), whole)
     finally:
         r.release()

@@ -62,14 +62,15 @@ def cmd_render(args) -> int:
     renderer.view = args.view
     if rec is not None:  # an animated scene is shown at the recording's scene time of that frame
         renderer.set_scene_time(rec.scene_time_for_frame(args.frame))
-    bar = tqdm(total=1, desc="render", unit="step", delay=1.0, disable=args.quiet, file=sys.stderr, leave=False)
+    # steps of sample passes, for a progress bar (shown after 1 s, on a terminal, without --quiet)
+    with tqdm(total=1, desc="render", unit="step", delay=1.0, disable=True if args.quiet else None,
+              file=sys.stderr, leave=False) as bar:
 
-    def step_done(done: int, steps: int) -> None:
-        bar.total = steps
-        bar.update(done - bar.n)
+        def step_done(done: int, steps: int) -> None:
+            bar.total = steps
+            bar.update(done - bar.n)
 
-    gpu_ms, rays = render_stepped(renderer, camera, step_done)  # steps of sample passes: a progress bar
-    bar.close()
+        gpu_ms, rays = render_stepped(renderer, camera, step_done)
     out.parent.mkdir(parents=True, exist_ok=True)
     denoise = getattr(args, "denoise", "off") == "on"
     Image.fromarray(renderer.read_denoised("library", camera) if denoise else renderer.read_image()).save(out)

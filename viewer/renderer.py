@@ -141,6 +141,7 @@ class Renderer:
         self.scene_time = float(scene.scene_time)  # wanted scene time; applied at the next render()
         self._stale: set[str] = set()  # created backends not yet told about the latest geometry
         self._device = None  # viewer.cl.frame.DeviceFrame, made on the first CL-resident frame
+        self.gbuffer_drawn = 0  # G-buffer draws so far: a keep call reuses device copies of the same draw
         self.frame_path = "batch"  # the last frame's: "device" (CL-resident) or "batch" (RayBatch)
         # where the G-buffer comes from: "raster" (exact conservative raster, cost ~ triangles in
         # view), "preview" (plain raster, not exact at edges; moving frames only) or "trace" (the
@@ -242,9 +243,10 @@ class Renderer:
             out.append((RayType.PRIMARY, 0, 0, 0.0))
         if s.shadows:
             out += [(RayType.SHADOW, 0, i, 1.0) for i in range(min(len(self.scene.point_lights), 8))]
-        if s.soft:
-            for li in range(min(len(self.scene.rect_lights), 4)):
-                out += [(RayType.SOFT, k, li, 1.0 / s.soft_samples) for k in range(s.soft_samples)]
+        if s.soft:  # sample-major: every light's sample k before sample k + 1, so a frame added up in
+            # steps of samples (viewer.progressive) sums the shared accumulator in this same order
+            lights = range(min(len(self.scene.rect_lights), 4))
+            out += [(RayType.SOFT, k, li, 1.0 / s.soft_samples) for k in range(s.soft_samples) for li in lights]
         if s.ao:
             out += [(RayType.AO, k, 0, 1.0 / s.ao_samples) for k in range(s.ao_samples)]
         if s.diffuse:
@@ -419,6 +421,7 @@ class Renderer:
             else:
                 with prof.phase("gbuffer:preview" if self.gbuffer_source == "preview" else "gbuffer"):
                     self.gbuffer.render(camera, preview=self.gbuffer_source == "preview")
+            self.gbuffer_drawn += 1
             self.accumulate.clear()
             self.samples_done = {}
         lengths = {RayType.AO: s.ao_length * self.diagonal, RayType.DIFFUSE: self.diagonal}
@@ -499,7 +502,7 @@ class Renderer:
         prof.cl_deferred = True  # every CL phase of the frame timed by markers: no wait per phase
         try:
             with prof.cl_phase("device:ids", q):
-                dev.begin(self.size, self.gbuffer.tri_id, cam_u, light_u, keep)
+                dev.begin(self.size, self.gbuffer.tri_id, cam_u, light_u, keep, self.gbuffer_drawn)
             for ray_type, sample, light, weight in passes:
                 with prof.cl_phase("raygen", q):
                     dev.generate(ray_type, sample, light, lengths.get(ray_type, 0.0), np.radians(s.perturb_deg))

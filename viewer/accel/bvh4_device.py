@@ -40,7 +40,8 @@ def build_bvh4_device(bvh: BVH, ctx: Any = None) -> tuple[BVH4, Any]:
     m = len(bvh.node_left)
     n_inner = int(m - (bvh.node_left < 0).sum())
     cap = max(n_inner, 1)  # each BVH4 node comes from a distinct binary inner node (or the leaf root)
-    nodes = new_buffer(ctx, cl.mem_flags.READ_WRITE, cap * NODE4_DTYPE.itemsize + 4 * cap, "BVH4 nodes")
+    source_off = ctx.align_up(cap * NODE4_DTYPE.itemsize)  # the source ids' sub-buffer after the nodes
+    nodes = new_buffer(ctx, cl.mem_flags.READ_WRITE, source_off + 4 * cap, "BVH4 nodes")
     if n_inner == 0:  # a single leaf: one node, the leaf in slot 0 (as the host collapse)
         from viewer.accel.bvh4 import build_bvh4
 
@@ -56,7 +57,6 @@ def build_bvh4_device(bvh: BVH, ctx: Any = None) -> tuple[BVH4, Any]:
     front = [new_buffer(ctx, mf, 4 * cap, "BVH4 frontier"), new_buffer(ctx, mf, 4 * cap, "BVH4 frontier")]
     ch4 = new_buffer(ctx, mf, 16 * cap, "BVH4 children")
     ninner, offset = new_buffer(ctx, mf, 4 * cap, "BVH4 counts"), new_buffer(ctx, mf, 4 * cap, "BVH4 offsets")
-    source_off = cap * NODE4_DTYPE.itemsize
     source = nodes.get_sub_region(source_off, 4 * cap)
     clio.copy(q, front[0], np.zeros(1, np.int32), is_blocking=False)  # the root
     base, level, size = 0, 0, 1

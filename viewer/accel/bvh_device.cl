@@ -550,7 +550,8 @@ __kernel void root_count(__global const float4* cmin, uint n_tri, __global const
 
 // The finished tree's arrays lie at word offsets offs[0..9] of `out` (min, max, left, right, first,
 // count, parent, depth, height, tri_order): the host puts them where the cluster boxes already
-// touched the pages, so fewer of them are fresh (bvh_device.py, _out_offsets).
+// touched the pages, so fewer of them are fresh (bvh_device.py, _out_offsets). 64-bit offsets: the
+// regions span 16n words, past 2^32 from about 268 M triangles.
 #define OUT_FIELDS(out, offs)                                         \
     __global float* omin = (__global float*)((out) + (offs)[0]);      \
     __global float* omax = (__global float*)((out) + (offs)[1]);      \
@@ -567,7 +568,7 @@ __kernel void root_count(__global const float4* cmin, uint n_tri, __global const
 // height, its links kept in right/depth; returns its triangle count.
 inline int put_node(uint v, uint k, int parent, int first, uint n_tri, __global const float4* node,
                     __global const float* tri, __global const uint* perm, __global int* out,
-                    __global const uint* offs) {
+                    __global const ulong* offs) {
     OUT_FIELDS(out, offs);
     float4 lo, hi;
     int c = 1, h = 0;
@@ -595,7 +596,7 @@ inline int put_node(uint v, uint k, int parent, int first, uint n_tri, __global 
 
 __kernel void layout_root(__global const uint* marks, uint m, uint n_tri, __global const float4* node,
                           __global const float* tri, __global const uint* perm, __global uint* lev,
-                          __global int* out, __global const uint* offs) {
+                          __global int* out, __global const ulong* offs) {
     if (get_global_id(0) != 0) return;
     put_node(marks[0], 0, -1, 0, n_tri, node, tri, perm, out, offs);
     lev[0] = 0;
@@ -603,7 +604,7 @@ __kernel void layout_root(__global const uint* marks, uint m, uint n_tri, __glob
 }
 
 // Level d, per block: its inner nodes (height > 0: they have children in the tree) in bsum[b].
-__kernel void level_count(uint d, __global const uint* lev, uint nb, __global const int* out, __global const uint* offs,
+__kernel void level_count(uint d, __global const uint* lev, uint nb, __global const int* out, __global const ulong* offs,
                           __global uint* bsum) {
     uint b = get_global_id(0);
     if (b >= nb) return;
@@ -646,7 +647,7 @@ inline void prefetch_node(uint v, uint n_tri, __global const float4* node, __glo
 // depth.
 __kernel void level_place(uint d, __global const uint* lev, uint nb, uint n_tri,
                           __global const float4* node, __global const float* tri, __global const uint* perm,
-                          __global const uint* bsum, __global int* out, __global const uint* offs) {
+                          __global const uint* bsum, __global int* out, __global const ulong* offs) {
     uint b = get_global_id(0);
     if (b >= nb) return;
     OUT_FIELDS(out, offs);
@@ -699,7 +700,7 @@ __kernel void level_place(uint d, __global const uint* lev, uint nb, uint n_tri,
 
 // Per block of leaf-order slots: tri_order[s] = perm[tri_order[s]] (Morton index -> triangle id).
 // The leaves' slots follow the Morton order closely, so perm is read nearly in order.
-__kernel void tri_ids(uint n, uint nb, __global const uint* perm, __global int* out, __global const uint* offs) {
+__kernel void tri_ids(uint n, uint nb, __global const uint* perm, __global int* out, __global const ulong* offs) {
     uint b = get_global_id(0);
     if (b >= nb) return;
     __global int* tri_order = out + offs[9];
@@ -715,7 +716,7 @@ __kernel void tri_ids(uint n, uint nb, __global const uint* perm, __global int* 
 // area sum, leaves' area x triangles sum, inner node count, deepest leaf, leaves of 0 .. MAX_LEAF
 // triangles.
 #define STATS_W (MAX_LEAF + 5)
-__kernel void stats_blocks(uint m, uint nb, __global const int* out, __global const uint* offs,
+__kernel void stats_blocks(uint m, uint nb, __global const int* out, __global const ulong* offs,
                            __global double* part) {
     uint b = get_global_id(0);
     if (b >= nb) return;

@@ -249,7 +249,7 @@ class DeviceBvhBuilder:
         scale = np.full(3, 1024.0 / ext if ext > 0 else 0.0)
         keys, perm = b("keys", 4 * n), b("perm", 4 * n)
         # the cluster boxes (min, max) x 2 in one buffer: the finished tree is written there later
-        region = -(-16 * n // 128) * 128  # sub-buffer origins aligned for any device
+        region = self.ctx.align_up(16 * n)  # sub-buffer origins aligned for this device
         cbox = b("cbox", 4 * region)
         cmin = [cbox.get_sub_region(0, region), cbox.get_sub_region(2 * region, region)]
         cmax = [cbox.get_sub_region(region, region), cbox.get_sub_region(3 * region, region)]
@@ -332,8 +332,8 @@ class DeviceBvhBuilder:
         else:
             offs = _contiguous_offsets(m, n)
             out = new_buffer(self.ctx, self.ctx.cl.mem_flags.READ_WRITE, 4 * (13 * m + n), "device BVH tree")
-        offs_buf = b("offs", 4 * len(offs))
-        clio.copy(q, offs_buf, np.array(offs, np.uint32), is_blocking=False)
+        offs_buf = b("offs", 8 * len(offs))  # 64-bit: 13m + n words pass 2^32 from ~330 M triangles
+        clio.copy(q, offs_buf, np.array(offs, np.uint64), is_blocking=False)
         lev = b("lev", 4 * (height + 3))
         self._task("layout_root", 1, marks, u(m), u(n), node, tri_buf, perm, lev, out, offs_buf)
         for d in range(height + 1):  # level d has at most min(2^d, m) nodes

@@ -69,6 +69,18 @@ class ClContext:
     def is_cpu(self) -> bool:
         return bool(self.device.type & self.cl.device_type.CPU)
 
+    @property
+    def sub_buffer_align(self) -> int:
+        """Bytes a sub-buffer's origin must be a multiple of (CL_DEVICE_MEM_BASE_ADDR_ALIGN is in
+        bits: PoCL here 1024, NVIDIA 4096), at least 128; a misaligned origin is
+        CL_MISALIGNED_SUB_BUFFER_OFFSET."""
+        return max(128, int(self.device.mem_base_addr_align) // 8)
+
+    def align_up(self, nbytes: int) -> int:
+        """`nbytes` rounded up to a valid sub-buffer origin."""
+        a = self.sub_buffer_align
+        return -(-int(nbytes) // a) * a
+
     def finish(self) -> None:
         self.queue.finish()
 

@@ -94,7 +94,7 @@ class DeviceFrame:
         self.size: tuple[int, int] | None = None
         self.ids = self.rays = self.hits = None
         self.surf: tuple = ()
-        self._surfaces_made = False  # `surf` holds the surfaces of the ids now in `ids` (begin's keep)
+        self._surfaces_of = -1  # the G-buffer draw whose ids and surfaces `ids` and `surf` hold (-1: none)
         self.acc: dict[RayType, Any] = {}
         self.tris = self.mats = None
         self.scene_key: tuple | None = None
@@ -141,12 +141,15 @@ class DeviceFrame:
         return buf
 
     # -- per frame --------------------------------------------------------------------------
-    def begin(self, size: tuple[int, int], id_texture: Any, cam_u: dict, light_u: dict, keep: bool) -> None:
+    def begin(self, size: tuple[int, int], id_texture: Any, cam_u: dict, light_u: dict, keep: bool,
+              gbuffer_drawn: int = -1) -> None:
         """Read the G-buffer ids into CL (one staged copy) and make the per-pixel surfaces, write the
         frame's parameters, and clear the accumulators. With `keep` (more sample passes added to the
-        previous call's: same camera, size and G-buffer) the ids and surfaces already here are reused
-        and the accumulators kept."""
-        reuse = keep and self.size == (int(size[0]), int(size[1])) and self._surfaces_made
+        previous call's, same camera) the accumulators are kept, and the ids and surfaces already
+        here are reused where they come from the same G-buffer draw (`gbuffer_drawn`, the renderer's
+        count of draws; -1: unknown, read again) at the same size."""
+        reuse = (keep and self.size == (int(size[0]), int(size[1])) and gbuffer_drawn >= 0
+                 and self._surfaces_of == gbuffer_drawn)
         self.resize(size)
         n = self.size[0] * self.size[1]
         q = self.ctx.queue
@@ -160,7 +163,7 @@ class DeviceFrame:
         if not reuse:
             self.k_surface(q, self._gsize(), (WG,), self.ids, self.tris, self.params, np.int32(w), np.int32(h),
                            *self.surf)
-            self._surfaces_made = True
+            self._surfaces_of = gbuffer_drawn
         if not keep:
             for buf in self.acc.values():
                 self.ctx.cl.enqueue_fill_buffer(q, buf, np.float32(0), 0, 16 * n)
@@ -224,7 +227,7 @@ class DeviceFrame:
                 b.release()
         self.tris = self.mats = None
         self.scene_key = None
-        self._surfaces_made = False  # made from the old triangles
+        self._surfaces_of = -1  # made from the old triangles
 
     def release_targets(self) -> None:
         for part in (self.rays, self.hits):
@@ -239,7 +242,7 @@ class DeviceFrame:
         self.acc = {}
         self.ids = self.rays = self.hits = None
         self.surf = ()
-        self._surfaces_made = False
+        self._surfaces_of = -1
         self.size = None
 
     def release(self) -> None:
