@@ -166,7 +166,7 @@ class Progressive:
         return Step(None, False, 1.0, requested, requested, True)
 
 
-STEPPED_MIN_RAYS = 32_000_000  # a still frame with this many rays (~10 s on 2 cores) is rendered in steps
+STEPPED_MIN_RAYS = 32_000_000  # a still frame with this many rays (17-20 s on 2 cores) is rendered in steps
 MIN_SAMPLES_PER_STEP = 4  # a step's own cost (a finish, the ray counts' read) stays small beside its passes
 MAX_STEPS = 16  # enough for a useful bar
 

@@ -36,13 +36,7 @@ layout(r32i, binding = BIND_IMG_CHC_BEST) uniform coherent iimage2D bestBits;
 layout(r32i, binding = BIND_IMG_CHC_OVERDRAW) uniform coherent iimage2D overdraw;
 layout(r32i, binding = BIND_IMG_CHC_BATCH) uniform coherent iimage2D batchSubtrees;  // overlay: subtrees in the pixel's batches
 
-// A box with a payload: query boxes (ref/count unused) or scheduled subtrees (GPU inner-node index,
-// or first triangle + count for a BVH leaf; id = canonical node index and p0/p1 = the subtree's
-// triangle range, for the overlay; p2 = the pair's count slot, -1 = not counted; gap = a lower bound
-// of the distance from every ray origin of the record's tile to the box, world units: the invisible
-// pairs' records, written sorted by it by chc_querycull.comp, 0 elsewhere).
-struct ChcItem { vec3 bmin; int ref; vec3 bmax; int count; int id; int p0; int p1; int p2;
-                 float gap; int q0; int q1; int q2; };
+#include "chc_records.glsl"
 layout(std430, binding = BIND_CHC_ITEMS) readonly buffer ChcItems { ChcItem items[]; };
 
 float chcDepth(float t) { return min(t * depthScale, 0.5); }

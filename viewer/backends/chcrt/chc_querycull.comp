@@ -11,9 +11,7 @@
 // chc_tilecone.glsl) is dropped too.
 layout(local_size_x = 64) in;
 #include "chc_tilecone.glsl"
-struct ChcDraw { ivec4 rect; ivec4 info; };
-struct ChcItem { vec3 bmin; int ref; vec3 bmax; int count; int id; int p0; int p1; int p2;
-                 float gap; int q0; int q1; int q2; };
+#include "chc_records.glsl"
 layout(std430, binding = BIND_CHC_ITEMS) readonly buffer ChcItems { ChcItem items[]; };
 layout(std430, binding = BIND_CHC_QUERIES) readonly buffer ChcQueries { ChcDraw queries[]; };
 layout(std430, binding = BIND_CHC_TILES) readonly buffer ChcTiles { TileBound tiles[]; };

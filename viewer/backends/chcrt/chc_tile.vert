@@ -2,7 +2,7 @@
 // the pixel rectangle of record i as two triangles (edges on pixel boundaries, so every pixel
 // centre of the tile is covered exactly once) and hands its item range and query slot to the
 // fragment shader. Replaces one scissored draw (and one occlusion query object) per record.
-struct ChcDraw { ivec4 rect; ivec4 info; };  // rect = x, y, w, h; info = item base, count, query slot
+#include "chc_records.glsl"
 layout(std430, binding = BIND_CHC_DRAWS) readonly buffer ChcDraws { ChcDraw draws[]; };
 uniform ivec2 raySize;
 flat out int vItemBase;

@@ -9,9 +9,7 @@
 // coarser tile is copied onto every finest tile under it, also those whose rays pass beside it.
 layout(local_size_x = 64) in;
 #include "chc_tilecone.glsl"
-struct ChcDraw { ivec4 rect; ivec4 info; };
-struct ChcItem { vec3 bmin; int ref; vec3 bmax; int count; int id; int p0; int p1; int p2;
-                 float gap; int q0; int q1; int q2; };
+#include "chc_records.glsl"
 layout(std430, binding = BIND_CHC_ITEMS) buffer ChcItems { ChcItem items[]; };
 layout(std430, binding = BIND_CHC_DRAWS) buffer ChcDraws { ChcDraw draws[]; };
 layout(std430, binding = BIND_CHC_TILES) readonly buffer ChcTiles { TileBound tiles[]; };
