@@ -1,7 +1,8 @@
 """Counted GL reads, writes, draws and finishes (viewer.iostats): generic code moves data between
 the host and GL objects through these so every frame's bytes, waits and draws are counted.
 
-  read(obj, **kw) -> bytes      texture / buffer / framebuffer read: to_host + one sync
+  read(obj, **kw) -> bytes      texture / buffer / framebuffer read: to_host + one sync, after
+                                host_barrier (shader writes -> this read)
   write(obj, data, **kw)        texture / buffer write from host memory: to_device
   draw(vao, *args, **kw)        vao.render(...): one gl_draw
   finish(ctx)                   ctx.finish() as one timed host sync
@@ -13,12 +14,27 @@ from __future__ import annotations
 
 from typing import Any
 
+import moderngl
 import numpy as np
 
 from viewer import iostats
 
+# glMemoryBarrier bits that make shader writes (SSBO / image stores and atomics) visible to the
+# host's reads and writes of buffers, textures and framebuffers (glGetBufferSubData, glGetTexImage,
+# glReadPixels, glBufferSubData). llvmpipe runs commands in order and forgives their absence;
+# NVIDIA does not (a counter read right after the draw that increments it may see the old value).
+HOST_ACCESS_BARRIERS = (moderngl.BUFFER_UPDATE_BARRIER_BIT | moderngl.TEXTURE_UPDATE_BARRIER_BIT
+                        | moderngl.FRAMEBUFFER_BARRIER_BIT | moderngl.PIXEL_BUFFER_BARRIER_BIT)
+
+
+def host_barrier(ctx: Any) -> None:
+    """Make earlier shader writes visible to the next host read or write of a GL object (the read
+    blocks anyway, so the barrier adds no wait of its own)."""
+    ctx.memory_barrier(HOST_ACCESS_BARRIERS)
+
 
 def read(obj: Any, **kw: Any) -> bytes:
+    host_barrier(obj.ctx)
     with iostats.timed_sync():
         data = obj.read(**kw)
     iostats.to_host(len(data))
