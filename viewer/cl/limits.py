@@ -16,7 +16,9 @@ on the next. Builders therefore ask here first:
                                   use_host: USE_HOST_PTR, the host array's memory itself)
 
 RTWALK_CL_MAX_ALLOC_MIB and RTWALK_CL_GLOBAL_MIB lower the device's figures (never raise them):
-tests simulate a small device with them instead of allocating gigabytes.
+tests simulate a small device with them instead of allocating gigabytes. RTWALK_CL_LOCAL_KIB
+lowers the local memory per work-group (`local_mem`): RTWALK_CL_LOCAL_KIB=48 runs the kernels
+sized for NVIDIA's 48 KiB here (PoCL offers megabytes).
 """
 
 from __future__ import annotations
@@ -30,6 +32,7 @@ from viewer.errors import RtwalkError
 
 MAX_ALLOC_ENV = "RTWALK_CL_MAX_ALLOC_MIB"
 GLOBAL_ENV = "RTWALK_CL_GLOBAL_MIB"
+LOCAL_ENV = "RTWALK_CL_LOCAL_KIB"
 BUDGET_SHARE = 0.25  # of global memory, for one structure build (several backends may coexist)
 MIB = 2**20
 
@@ -74,6 +77,14 @@ def device_limits(ctx: Any = None) -> DeviceLimits:
     if env_global is not None:
         global_mem = min(global_mem, env_global)
     return DeviceLimits(min(max_alloc, global_mem), global_mem)
+
+
+def local_mem(ctx: Any) -> int:
+    """Bytes of local memory a work-group may use (CL_DEVICE_LOCAL_MEM_SIZE: NVIDIA 48 KiB),
+    lowered by RTWALK_CL_LOCAL_KIB."""
+    size = int(ctx.device.local_mem_size)
+    env = _env_mib(LOCAL_ENV)
+    return size if env is None else min(size, env // 1024)
 
 
 def budget(ctx: Any = None) -> int:
