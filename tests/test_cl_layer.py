@@ -23,14 +23,18 @@ def _need_cl():
     return clctx.cl_context()
 
 
-def _fake(platform: str, name: str):
-    return SimpleNamespace(name=name, platform=SimpleNamespace(name=platform))
+def _fake(platform: str, name: str, dtype: int = 2):
+    return SimpleNamespace(name=name, platform=SimpleNamespace(name=platform), type=dtype)
 
 
 def test_choose_device_by_index_and_substring():
-    devs = [_fake("Portable Computing Language", "pthread-cpu"), _fake("NVIDIA CUDA", "RTX 4090")]
-    assert clctx.choose_device(devs, None) is devs[0]
-    assert clctx.choose_device(devs, "") is devs[0]
+    """Unset: the first GPU (CL_DEVICE_TYPE_GPU = 4), whatever order the ICD loader lists the
+    platforms in; else the first device."""
+    devs = [_fake("Portable Computing Language", "pthread-cpu"), _fake("NVIDIA CUDA", "RTX 4090", 4)]
+    assert clctx.choose_device(devs, None) is devs[1]
+    assert clctx.choose_device(devs, "") is devs[1]
+    assert clctx.choose_device(devs[:1], None) is devs[0]
+    assert clctx.choose_device(devs, "0") is devs[0]
     assert clctx.choose_device(devs, "1") is devs[1]
     assert clctx.choose_device(devs, "rtx") is devs[1]
     assert clctx.choose_device(devs, "portable") is devs[0]

@@ -72,3 +72,45 @@ def test_backend_folder_shaders_include_shared_ones(gl_ctx, tmp_path):
     finally:
         for obj in (vao, fbo, tex, buf):
             obj.release()
+
+
+class _FakeGL:
+    def __init__(self, renderer: str):
+        self.info = {"GL_RENDERER": renderer}
+        self.released = self.entered = False
+
+    def release(self) -> None:
+        self.released = True
+
+    def __enter__(self):
+        self.entered = True
+        return self
+
+
+@pytest.mark.parametrize("devices,expect", [(["llvmpipe (LLVM 15)", "NVIDIA H100/PCIe/SSE2"], 1),
+                                            (["NVIDIA H100/PCIe/SSE2", "llvmpipe (LLVM 15)"], 0),
+                                            (["llvmpipe (LLVM 15)"], 0),
+                                            (["llvmpipe (LLVM 15)", "llvmpipe (LLVM 15)"], 0)])
+def test_headless_context_prefers_a_hardware_egl_device(monkeypatch, devices, expect):
+    """EGL device 0 may be Mesa's software rasterizer on a machine with NVIDIA's driver too: the
+    first hardware device is taken (GLCONTEXT_DEVICE_INDEX, when set, decides alone)."""
+    import moderngl
+
+    from viewer.gl import context as glc
+
+    made: list[_FakeGL] = []
+
+    def create_context(standalone=True, backend="egl", require=450, device_index=0):
+        if device_index >= len(devices):
+            raise Exception(f"requested device index {device_index}, but found {len(devices)} devices")
+        made.append(_FakeGL(devices[device_index]))
+        return made[-1]
+
+    monkeypatch.setattr(moderngl, "create_context", create_context)
+    monkeypatch.delenv(glc.DEVICE_INDEX_ENV, raising=False)
+    ctx = glc.create_headless_context()
+    assert ctx.info["GL_RENDERER"] == devices[expect] and not ctx.released
+    assert all(c.released for c in made if c is not ctx)
+    monkeypatch.setenv(glc.DEVICE_INDEX_ENV, "0")
+    made.clear()
+    assert glc.create_headless_context().info["GL_RENDERER"] == devices[0] and len(made) == 1
