@@ -116,3 +116,36 @@ def test_grow_until_measurable_reaches_the_floor_or_fails():
     assert ms >= FLOOR_MS and n * 1e-4 == ms and sizes == sorted(sizes) and len(sizes) < 8
     with pytest.raises(AssertionError, match="only"):
         grow_until_measurable(fast, 400, 10_000)
+
+
+class _RecordingQuery:
+    """A timer query that records whether it was begun while another one was active."""
+
+    active = 0
+    nested = 0
+    elapsed = 2_000_000  # 2 ms
+
+    def __enter__(self):
+        _RecordingQuery.nested += _RecordingQuery.active
+        _RecordingQuery.active += 1
+        return self
+
+    def __exit__(self, *exc):
+        _RecordingQuery.active -= 1
+        return False
+
+
+def test_nested_phases_never_nest_timer_queries(gl_ctx):
+    """GL allows one active GL_TIME_ELAPSED query (NVIDIA: a nested begin is GL_INVALID_OPERATION):
+    an inner phase is charged its CPU time, the outer one its query's GPU time."""
+    prof = GpuProfiler(gl_ctx, method="timer")
+    prof._pool.extend([_RecordingQuery(), _RecordingQuery()])
+    prof.begin_frame()
+    with prof.phase("outer"):
+        with prof.phase("inner"):
+            time.sleep(0.01)
+    with prof.phase("after"):
+        pass
+    ms = prof.end_frame()
+    assert _RecordingQuery.nested == 0
+    assert ms["outer"] == ms["after"] == 2.0 and ms["inner"] >= 8.0

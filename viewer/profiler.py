@@ -67,6 +67,7 @@ class GpuProfiler:
         self.by_label: dict[str, float] = {}
         self.saturated = 0
         self._queries = 0  # timer queries used this frame
+        self._timer_open = False  # a GL_TIME_ELAPSED query is active (phases nest; queries cannot)
         # per phase this frame: CL launches and host syncs issued inside it (viewer.iostats deltas;
         # the studies report them beside the phase's milliseconds)
         self.io_by_phase: dict[str, dict[str, int]] = {}
@@ -117,6 +118,13 @@ class GpuProfiler:
             yield
             glio.finish(self.ctx)
             self._used.append((name, (time.perf_counter() - t0) * 1e3, self.label, 0.0))
+        elif self._timer_open:
+            # GL allows one active GL_TIME_ELAPSED query (a nested glBeginQuery is
+            # GL_INVALID_OPERATION, and reading that query then fails on NVIDIA): an inner phase is
+            # charged its CPU time and stays inside the outer phase's GPU time
+            t0 = time.perf_counter()
+            yield
+            self._used.append((name, (time.perf_counter() - t0) * 1e3, self.label, 0.0))
         else:
             t0 = time.perf_counter()
             idx = self._queries  # CL and recorded phases take no query
@@ -125,8 +133,12 @@ class GpuProfiler:
                 self._pool.append(self.ctx.query(time=True))
             q = self._pool[idx]
             iostats.gl_query()
-            with q:
-                yield
+            self._timer_open = True
+            try:
+                with q:
+                    yield
+            finally:
+                self._timer_open = False
             self._used.append((name, q, self.label, (time.perf_counter() - t0) * 1e3))
         self._cpu[name] = self._cpu.get(name, 0.0) + (time.perf_counter() - t0) * 1e3
 

@@ -44,11 +44,24 @@ class Kernel:
         self.name = name
 
     def __call__(self, queue: Any, gsize: Any, lsize: Any, *args: Any, **kw: Any) -> Any:
+        check_ndrange(self.name, gsize, lsize)
         iostats.cl_launch()
         return self.kernel(queue, gsize, lsize, *args, **kw)
 
     def __getattr__(self, attr: str) -> Any:
         return getattr(self.kernel, attr)
+
+
+def check_ndrange(name: str, gsize: Any, lsize: Any) -> None:
+    """A global size that is a multiple of the local size in every dimension: OpenCL C 1.2 kernels
+    (what NVIDIA's driver compiles) have uniform work-groups only, CL_INVALID_WORK_GROUP_SIZE
+    otherwise, while PoCL (non-uniform work-groups) runs the remainder. A programming error: raised
+    on every device, so the CPU tests catch it."""
+    if lsize is None:
+        return
+    g, loc = tuple(int(x) for x in gsize), tuple(int(x) for x in lsize)
+    if len(g) != len(loc) or any(b <= 0 or a % b for a, b in zip(g, loc, strict=False)):
+        raise ValueError(f"OpenCL kernel {name}: global size {g} is not a multiple of the local size {loc}")
 
 
 def _cl():
@@ -68,6 +81,7 @@ def kernels(prog: Any, names) -> dict[str, Kernel]:
 def launch(k: Any, queue: Any, gsize: Any, lsize: Any, *args: Any, **kw: Any) -> Any:
     if isinstance(k, Kernel):
         return k(queue, gsize, lsize, *args, **kw)
+    check_ndrange(getattr(k, "function_name", "?"), gsize, lsize)
     iostats.cl_launch()
     return k(queue, gsize, lsize, *args, **kw)
 
