@@ -114,3 +114,31 @@ def test_headless_context_prefers_a_hardware_egl_device(monkeypatch, devices, ex
     monkeypatch.setenv(glc.DEVICE_INDEX_ENV, "0")
     made.clear()
     assert glc.create_headless_context().info["GL_RENDERER"] == devices[0] and len(made) == 1
+
+
+def test_declared_but_inactive_uniforms_take_writes(gl_ctx, tmp_path):
+    """A uniform the compiler removed (here: its use switched off by a define; on NVIDIA also what
+    its optimiser proves dead) takes writes as a no-op, through `prog[name] = v` and `.value`; a name
+    the source never declares still raises KeyError; compute shaders likewise."""
+    from viewer.gl.inactive import declared_uniforms
+    from viewer.gl.programs import compute_shader
+
+    assert declared_uniforms("uniform float a, b[2];\nlayout(r32i, binding = 0) uniform coherent iimage2D img;\n"
+                             "layout(std140) uniform Block { float inside; };\nuniform sampler2D s;") \
+        == {"a", "b", "img", "s"}
+    (tmp_path / "gated.frag").write_text("uniform float gain;\nuniform float used;\nout vec4 color;\n"
+                                         "void main() {\n#ifdef GAIN\n color = vec4(gain);\n#else\n"
+                                         " color = vec4(used);\n#endif\n}\n")
+    prog = ProgramCache(gl_ctx).with_path(tmp_path).get("fullscreen.vert", "gated.frag")
+    assert "gain" not in list(prog)
+    prog["gain"] = 2.0
+    prog["gain"].value = 3.0
+    prog["used"] = 1.0
+    assert prog["used"].value == 1.0
+    with pytest.raises(KeyError):
+        prog["typo"] = 1.0
+    (tmp_path / "c.comp").write_text("layout(local_size_x = 1) in;\nuniform int unused;\nvoid main() {}\n")
+    cs = compute_shader(gl_ctx, "c.comp", search=(tmp_path,))
+    cs["unused"] = 1
+    with pytest.raises(KeyError):
+        cs["typo"] = 1

@@ -95,7 +95,7 @@ from viewer.errors import RtwalkError
 from viewer.gl import io as glio
 from viewer.gl.bindings import BIND_NODES, BIND_TRIS, backend_bindings
 from viewer.gl.buffers import StreamBuffer
-from viewer.gl.programs import FullscreenQuad, load_shader_source
+from viewer.gl.programs import FullscreenQuad, compute_shader
 from viewer.gl.textures import copy_texture, float_depth_texture, float_texture, int_texture
 from viewer.rays import HitBuffer, PassInfo, RayBatch
 from viewer.screen_tiles import max_tile_level, tile_rects
@@ -407,9 +407,9 @@ class ChcrtBackend:
         self._zero_counts = bytes(4 * COUNT_SLOTS)
         # GPU-driven steady state (ChcrtParams.gpu_driven)
         self.gpu_driven = self.p.gpu_driven and self.batched and self.cache is None
-        self.tilebounds = self.ctx.compute_shader(load_shader_source("chc_tilebounds.comp", BINDINGS, (HERE,)))
-        self.querycull = self.ctx.compute_shader(load_shader_source("chc_querycull.comp", BINDINGS, (HERE,)))
-        self.visorder = self.ctx.compute_shader(load_shader_source("chc_visorder.comp", BINDINGS, (HERE,)))
+        self.tilebounds = compute_shader(self.ctx, "chc_tilebounds.comp", BINDINGS, (HERE,))
+        self.querycull = compute_shader(self.ctx, "chc_querycull.comp", BINDINGS, (HERE,))
+        self.visorder = compute_shader(self.ctx, "chc_visorder.comp", BINDINGS, (HERE,))
         self.tilebounds["rayOrigin"] = 0
         self.tilebounds["rayDir"] = 1
         self.all_queries = StreamBuffer(self.ctx, DRAW_DTYPE.itemsize, BIND_CHC_QUERIES)
