@@ -197,9 +197,17 @@ def test_cl_programs_compile_for_nvidia_as_opencl_c_1_2(cl_programs, tmp_path):
 
 
 @needs_cl
-def test_voxelwalk_refuses_a_chunk_over_the_local_memory():
+def test_voxelwalk_refuses_a_chunk_over_the_local_memory(monkeypatch, tmp_path):
     """chunk=256 needs 62 KiB of local memory per work-group (ec_tile.cl): on a 48 KiB device one
     line naming the chunk that fits, not a build failure."""
+    monkeypatch.setenv("RTWALK_CL_LOCAL_KIB", "48")
+    r = run_cli("render", "room", "--backend", "voxelwalk", "--backend-params", "chunk=256", "--size", "32x24",
+                "--quiet", "-o", str(tmp_path / "x.png"))
+    assert r.returncode == 2 and r.stderr.strip().count("\n") == 0, r.stderr
+    assert r.stderr.startswith("rtwalk: error: voxelwalk chunk=256:") and "choose chunk <= 128" in r.stderr
+    monkeypatch.setenv("RTWALK_CL_LOCAL_KIB", "lots")
+    r = run_cli("render", "room", "--backend", "voxelwalk", "--size", "32x24", "--quiet", "-o", str(tmp_path / "x.png"))
+    assert r.returncode == 2 and "RTWALK_CL_LOCAL_KIB='lots': not a number of KiB" in r.stderr
     from viewer.backends.voxelwalk.engine import check_tile_local
     from viewer.errors import RtwalkError
 

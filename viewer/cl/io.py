@@ -37,16 +37,33 @@ from viewer import iostats
 class Kernel:
     """A pyopencl.Kernel that counts its launches."""
 
-    __slots__ = ("kernel", "name")
+    __slots__ = ("kernel", "name", "_max_group")
 
     def __init__(self, kernel: Any, name: str):
         self.kernel = kernel
         self.name = name
+        self._max_group: int | None = None
 
     def __call__(self, queue: Any, gsize: Any, lsize: Any, *args: Any, **kw: Any) -> Any:
         check_ndrange(self.name, gsize, lsize)
+        if lsize is not None:
+            self._check_group(queue, int(np.prod([int(x) for x in lsize])))
         iostats.cl_launch()
         return self.kernel(queue, gsize, lsize, *args, **kw)
+
+    def _check_group(self, queue: Any, items: int) -> None:
+        """RtwalkError (one line) when the device cannot run this kernel with `items` work-items
+        per group (CL_KERNEL_WORK_GROUP_SIZE: a GPU lowers it for kernels that use many registers;
+        PoCL allows 4096), instead of pyopencl's INVALID_WORK_GROUP_SIZE at the launch."""
+        if self._max_group is None:
+            cl = _cl()
+            self._max_group = int(self.kernel.get_work_group_info(cl.kernel_work_group_info.WORK_GROUP_SIZE,
+                                                                  queue.device))
+        if items > self._max_group:
+            from viewer.errors import RtwalkError
+
+            raise RtwalkError(f"OpenCL kernel {self.name}: {items} work-items per group, the device allows "
+                              f"{self._max_group} for it (CL_KERNEL_WORK_GROUP_SIZE); choose a smaller chunk")
 
     def __getattr__(self, attr: str) -> Any:
         return getattr(self.kernel, attr)

@@ -50,17 +50,21 @@ class DeviceLimits:
         return int(self.global_mem * BUDGET_SHARE)
 
 
-def _env_mib(name: str) -> int | None:
+def _env_bytes(name: str, unit: int = MIB, unit_name: str = "MiB") -> int | None:
     text = os.environ.get(name, "").strip()
     if not text:
         return None
     try:
         v = float(text)
     except ValueError:
-        raise RtwalkError(f"{name}={text!r}: not a number of MiB") from None
+        raise RtwalkError(f"{name}={text!r}: not a number of {unit_name}") from None
     if not v > 0:
-        raise RtwalkError(f"{name}={text!r}: must be > 0 MiB")
-    return int(v * MIB)
+        raise RtwalkError(f"{name}={text!r}: must be > 0 {unit_name}")
+    return int(v * unit)
+
+
+def _env_mib(name: str) -> int | None:
+    return _env_bytes(name)
 
 
 def device_limits(ctx: Any = None) -> DeviceLimits:
@@ -83,8 +87,8 @@ def local_mem(ctx: Any) -> int:
     """Bytes of local memory a work-group may use (CL_DEVICE_LOCAL_MEM_SIZE: NVIDIA 48 KiB),
     lowered by RTWALK_CL_LOCAL_KIB."""
     size = int(ctx.device.local_mem_size)
-    env = _env_mib(LOCAL_ENV)
-    return size if env is None else min(size, env // 1024)
+    env = _env_bytes(LOCAL_ENV, 1024, "KiB")
+    return size if env is None else min(size, env)
 
 
 def budget(ctx: Any = None) -> int:
