@@ -142,3 +142,19 @@ def test_declared_but_inactive_uniforms_take_writes(gl_ctx, tmp_path):
     cs["unused"] = 1
     with pytest.raises(KeyError):
         cs["typo"] = 1
+
+
+def test_integer_targets_are_cleared_as_integers(gl_ctx):
+    """clear_int_texture writes the integer itself (glClearTexImage); a framebuffer clear with the
+    float clear colour leaves an R32I target undefined by the spec (Mesa: the float's bits)."""
+    from viewer.gl.textures import clear_int_texture, int_texture, read_texture
+
+    tex = int_texture(gl_ctx, (5, 3))
+    try:
+        tex.write(np.arange(15, dtype=np.int32).tobytes())
+        clear_int_texture(tex, -1)
+        assert (read_texture(tex) == -1).all()
+        clear_int_texture(tex, 7)
+        assert (read_texture(tex) == 7).all()
+    finally:
+        tex.release()
