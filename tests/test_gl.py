@@ -158,3 +158,21 @@ def test_integer_targets_are_cleared_as_integers(gl_ctx):
         assert (read_texture(tex) == 7).all()
     finally:
         tex.release()
+
+
+def test_gl_errors_are_one_line_with_the_check_on(gl_ctx, monkeypatch):
+    """RTWALK_GL_CHECK=1: an error GL recorded (here GL_INVALID_ENUM) stops with one line naming
+    it; off (the default) nothing is looked at."""
+    from viewer.errors import RtwalkError
+    from viewer.gl import io as glio
+    from viewer.gl.textures import _gl
+
+    while gl_ctx.error != "GL_NO_ERROR":
+        pass
+    monkeypatch.delenv(glio.GL_CHECK_ENV, raising=False)
+    _gl()["glBindTexture"](0xDEAD, 0)
+    glio.check_errors(gl_ctx, "a test")
+    monkeypatch.setenv(glio.GL_CHECK_ENV, "1")
+    with pytest.raises(RtwalkError, match=r"OpenGL error during a test: GL_INVALID_ENUM \(RTWALK_GL_CHECK=1\)"):
+        glio.check_errors(gl_ctx, "a test")
+    glio.check_errors(gl_ctx, "a test")  # read once: the flag is clear again
