@@ -47,13 +47,16 @@ def _declared(obj: Any, key: str) -> bool:
     return isinstance(extra, dict) and key in extra.get("declared_uniforms", ())
 
 
+_ORIGINAL: dict[type, Any] = {}  # each class's own __getitem__, called first (no moderngl internals)
+
+
 def _getitem(self: Any, key: str) -> Any:
-    member = self._members.get(key)
-    if member is None:
+    try:
+        return _ORIGINAL[type(self)](self, key)
+    except KeyError:
         if _declared(self, key):
             return InactiveUniform()
-        raise KeyError(key)
-    return member
+        raise
 
 
 def _setitem(self: Any, key: str, value: Any) -> None:
@@ -64,8 +67,10 @@ def install() -> None:
     """Route moderngl's Program and ComputeShader item access through the checks above (once;
     objects without declared names behave exactly as before)."""
     for cls in (moderngl.Program, moderngl.ComputeShader):
-        cls.__getitem__ = _getitem
-        cls.__setitem__ = _setitem
+        if cls not in _ORIGINAL:
+            _ORIGINAL[cls] = cls.__getitem__
+            cls.__getitem__ = _getitem
+            cls.__setitem__ = _setitem
 
 
 def mark(obj: Any, *sources: str | None) -> Any:
