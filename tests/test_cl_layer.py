@@ -23,14 +23,18 @@ def _need_cl():
     return clctx.cl_context()
 
 
-def _fake(platform: str, name: str):
-    return SimpleNamespace(name=name, platform=SimpleNamespace(name=platform))
+def _fake(platform: str, name: str, dtype: int = 2):
+    return SimpleNamespace(name=name, platform=SimpleNamespace(name=platform), type=dtype)
 
 
 def test_choose_device_by_index_and_substring():
-    devs = [_fake("Portable Computing Language", "pthread-cpu"), _fake("NVIDIA CUDA", "RTX 4090")]
-    assert clctx.choose_device(devs, None) is devs[0]
-    assert clctx.choose_device(devs, "") is devs[0]
+    """Unset: the first GPU (CL_DEVICE_TYPE_GPU = 4), whatever order the ICD loader lists the
+    platforms in; else the first device."""
+    devs = [_fake("Portable Computing Language", "pthread-cpu"), _fake("NVIDIA CUDA", "RTX 4090", 4)]
+    assert clctx.choose_device(devs, None) is devs[1]
+    assert clctx.choose_device(devs, "") is devs[1]
+    assert clctx.choose_device(devs[:1], None) is devs[0]
+    assert clctx.choose_device(devs, "0") is devs[0]
     assert clctx.choose_device(devs, "1") is devs[1]
     assert clctx.choose_device(devs, "rtx") is devs[1]
     assert clctx.choose_device(devs, "portable") is devs[0]
@@ -208,3 +212,28 @@ def test_importing_the_layer_does_not_load_opencl():
     code = ("import sys, viewer.cl, viewer.cl.primitives, viewer.bench.cl_primitives, viewer.profiler; "
             "assert 'pyopencl' not in sys.modules; import os; assert os.environ.get('POCL_CACHE_DIR')")
     subprocess.run([sys.executable, "-c", code], check=True, cwd=Path(__file__).resolve().parents[1])
+
+
+def test_launch_sizes_are_checked_for_gpus(tmp_path):
+    """A global size that is not a multiple of the local size is refused on every device (OpenCL C
+    1.2 on NVIDIA has uniform work-groups only; PoCL would run it), and a local size above the
+    kernel's CL_KERNEL_WORK_GROUP_SIZE is one RtwalkError line, not INVALID_WORK_GROUP_SIZE."""
+    from viewer.cl import io as clio
+
+    clio.check_ndrange("k", (128, 4), (64, 2))
+    clio.check_ndrange("k", (100,), None)
+    for g, loc in (((100,), (64,)), ((128,), (64, 1)), ((128,), (0,))):
+        with pytest.raises(ValueError, match="not a multiple"):
+            clio.check_ndrange("k", g, loc)
+    ctx = _need_cl()
+    f = tmp_path / "one.cl"
+    f.write_text("__kernel void k(__global int *a) { a[get_global_id(0)] = 1; }\n")
+    prog = programs.build(f, None, ctx)
+    k = clio.kernel(prog, "k")
+    buf = ctx.cl.Buffer(ctx.context, ctx.cl.mem_flags.READ_WRITE, 4 * 64)
+    k(ctx.queue, (64,), (64,), buf)
+    k._max_group = 32  # as a GPU reports for a kernel heavy on registers
+    with pytest.raises(RtwalkError, match=r"k: 64 work-items per group, the device allows 32"):
+        k(ctx.queue, (64,), (64,), buf)
+    ctx.finish()
+    buf.release()

@@ -72,3 +72,107 @@ def test_backend_folder_shaders_include_shared_ones(gl_ctx, tmp_path):
     finally:
         for obj in (vao, fbo, tex, buf):
             obj.release()
+
+
+class _FakeGL:
+    def __init__(self, renderer: str):
+        self.info = {"GL_RENDERER": renderer}
+        self.released = self.entered = False
+
+    def release(self) -> None:
+        self.released = True
+
+    def __enter__(self):
+        self.entered = True
+        return self
+
+
+@pytest.mark.parametrize("devices,expect", [(["llvmpipe (LLVM 15)", "NVIDIA H100/PCIe/SSE2"], 1),
+                                            (["NVIDIA H100/PCIe/SSE2", "llvmpipe (LLVM 15)"], 0),
+                                            (["llvmpipe (LLVM 15)"], 0),
+                                            (["llvmpipe (LLVM 15)", "llvmpipe (LLVM 15)"], 0)])
+def test_headless_context_prefers_a_hardware_egl_device(monkeypatch, devices, expect):
+    """EGL device 0 may be Mesa's software rasterizer on a machine with NVIDIA's driver too: the
+    first hardware device is taken (GLCONTEXT_DEVICE_INDEX, when set, decides alone)."""
+    import moderngl
+
+    from viewer.gl import context as glc
+
+    made: list[_FakeGL] = []
+
+    def create_context(standalone=True, backend="egl", require=450, device_index=0):
+        if device_index >= len(devices):
+            raise Exception(f"requested device index {device_index}, but found {len(devices)} devices")
+        made.append(_FakeGL(devices[device_index]))
+        return made[-1]
+
+    monkeypatch.setattr(moderngl, "create_context", create_context)
+    monkeypatch.delenv(glc.DEVICE_INDEX_ENV, raising=False)
+    ctx = glc.create_headless_context()
+    assert ctx.info["GL_RENDERER"] == devices[expect] and not ctx.released
+    assert all(c.released for c in made if c is not ctx)
+    monkeypatch.setenv(glc.DEVICE_INDEX_ENV, "0")
+    made.clear()
+    assert glc.create_headless_context().info["GL_RENDERER"] == devices[0] and len(made) == 1
+
+
+def test_declared_but_inactive_uniforms_take_writes(gl_ctx, tmp_path):
+    """A uniform the compiler removed (here: its use switched off by a define; on NVIDIA also what
+    its optimiser proves dead) takes writes as a no-op, through `prog[name] = v` and `.value`; a name
+    the source never declares still raises KeyError; compute shaders likewise."""
+    from viewer.gl.inactive import declared_uniforms
+    from viewer.gl.programs import compute_shader
+
+    assert declared_uniforms("uniform float a, b[2];\nlayout(r32i, binding = 0) uniform coherent iimage2D img;\n"
+                             "layout(std140) uniform Block { float inside; };\nuniform sampler2D s;") \
+        == {"a", "b", "img", "s"}
+    (tmp_path / "gated.frag").write_text("uniform float gain;\nuniform float used;\nout vec4 color;\n"
+                                         "void main() {\n#ifdef GAIN\n color = vec4(gain);\n#else\n"
+                                         " color = vec4(used);\n#endif\n}\n")
+    prog = ProgramCache(gl_ctx).with_path(tmp_path).get("fullscreen.vert", "gated.frag")
+    assert "gain" not in list(prog)
+    prog["gain"] = 2.0
+    prog["gain"].value = 3.0
+    prog["used"] = 1.0
+    assert prog["used"].value == 1.0
+    with pytest.raises(KeyError):
+        prog["typo"] = 1.0
+    (tmp_path / "c.comp").write_text("layout(local_size_x = 1) in;\nuniform int unused;\nvoid main() {}\n")
+    cs = compute_shader(gl_ctx, "c.comp", search=(tmp_path,))
+    cs["unused"] = 1
+    with pytest.raises(KeyError):
+        cs["typo"] = 1
+
+
+def test_integer_targets_are_cleared_as_integers(gl_ctx):
+    """clear_int_texture writes the integer itself (glClearTexImage); a framebuffer clear with the
+    float clear colour leaves an R32I target undefined by the spec (Mesa: the float's bits)."""
+    from viewer.gl.textures import clear_int_texture, int_texture, read_texture
+
+    tex = int_texture(gl_ctx, (5, 3))
+    try:
+        tex.write(np.arange(15, dtype=np.int32).tobytes())
+        clear_int_texture(tex, -1)
+        assert (read_texture(tex) == -1).all()
+        clear_int_texture(tex, 7)
+        assert (read_texture(tex) == 7).all()
+    finally:
+        tex.release()
+
+
+def test_gl_errors_are_one_line_with_the_check_on(gl_ctx, monkeypatch):
+    """RTWALK_GL_CHECK=1: an error GL recorded (here GL_INVALID_ENUM) stops with one line naming
+    it; off (the default) nothing is looked at."""
+    from viewer.errors import RtwalkError
+    from viewer.gl import io as glio
+    from viewer.gl.textures import _gl
+
+    while gl_ctx.error != "GL_NO_ERROR":
+        pass
+    monkeypatch.delenv(glio.GL_CHECK_ENV, raising=False)
+    _gl()["glBindTexture"](0xDEAD, 0)
+    glio.check_errors(gl_ctx, "a test")
+    monkeypatch.setenv(glio.GL_CHECK_ENV, "1")
+    with pytest.raises(RtwalkError, match=r"OpenGL error during a test: GL_INVALID_ENUM \(RTWALK_GL_CHECK=1\)"):
+        glio.check_errors(gl_ctx, "a test")
+    glio.check_errors(gl_ctx, "a test")  # read once: the flag is clear again

@@ -116,3 +116,63 @@ def test_grow_until_measurable_reaches_the_floor_or_fails():
     assert ms >= FLOOR_MS and n * 1e-4 == ms and sizes == sorted(sizes) and len(sizes) < 8
     with pytest.raises(AssertionError, match="only"):
         grow_until_measurable(fast, 400, 10_000)
+
+
+class _RecordingQuery:
+    """A timer query that records whether it was begun while another one was active."""
+
+    active = 0
+    nested = 0
+    elapsed = 2_000_000  # 2 ms
+
+    def __enter__(self):
+        _RecordingQuery.nested += _RecordingQuery.active
+        _RecordingQuery.active += 1
+        return self
+
+    def __exit__(self, *exc):
+        _RecordingQuery.active -= 1
+        return False
+
+
+def test_nested_phases_never_nest_timer_queries(gl_ctx):
+    """GL allows one active GL_TIME_ELAPSED query (NVIDIA: a nested begin is GL_INVALID_OPERATION):
+    an inner phase is charged its CPU time, the outer one its query's GPU time."""
+    prof = GpuProfiler(gl_ctx, method="timer")
+    prof._pool.extend([_RecordingQuery(), _RecordingQuery()])
+    prof.begin_frame()
+    with prof.phase("outer"):
+        with prof.phase("inner"):
+            time.sleep(0.01)
+    with prof.phase("after"):
+        pass
+    ms = prof.end_frame()
+    assert _RecordingQuery.nested == 0
+    assert ms["outer"] == ms["after"] == 2.0 and ms["inner"] >= 8.0
+
+
+class _Marker:
+    def __init__(self, end: int | None):
+        self._end = end
+
+    @property
+    def profile(self):
+        if self._end is None:
+            raise RuntimeError("clGetEventProfilingInfo failed: PROFILING_INFO_NOT_AVAILABLE")
+        return type("P", (), {"end": self._end})()
+
+
+class _Queue:
+    def finish(self) -> None:
+        pass
+
+
+@pytest.mark.parametrize("ends,expect", [((1_000_000, 4_000_000), 3.0), ((None, None), 7.0), ((0, 0), 7.0)])
+def test_cl_marker_phase_without_timestamps_is_charged_cpu_time(gl_ctx, ends, expect):
+    """A driver that keeps no timestamps for markers (an error, or zeros) costs the phase its CPU
+    time, counted as unreadable, instead of an exception at the end of every device frame."""
+    prof = GpuProfiler(gl_ctx, method="timer")
+    prof.begin_frame()
+    prof._used.append(("cl:trace", (_Marker(ends[0]), _Marker(ends[1]), _Queue()), None, 7.0))
+    assert prof.end_frame()["cl:trace"] == pytest.approx(expect)
+    assert prof.saturated == (0 if expect == 3.0 else 1)

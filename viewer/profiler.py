@@ -67,6 +67,7 @@ class GpuProfiler:
         self.by_label: dict[str, float] = {}
         self.saturated = 0
         self._queries = 0  # timer queries used this frame
+        self._timer_open = False  # a GL_TIME_ELAPSED query is active (phases nest; queries cannot)
         # per phase this frame: CL launches and host syncs issued inside it (viewer.iostats deltas;
         # the studies report them beside the phase's milliseconds)
         self.io_by_phase: dict[str, dict[str, int]] = {}
@@ -117,6 +118,13 @@ class GpuProfiler:
             yield
             glio.finish(self.ctx)
             self._used.append((name, (time.perf_counter() - t0) * 1e3, self.label, 0.0))
+        elif self._timer_open:
+            # GL allows one active GL_TIME_ELAPSED query (a nested glBeginQuery is
+            # GL_INVALID_OPERATION, and reading that query then fails on NVIDIA): an inner phase is
+            # charged its CPU time and stays inside the outer phase's GPU time
+            t0 = time.perf_counter()
+            yield
+            self._used.append((name, (time.perf_counter() - t0) * 1e3, self.label, 0.0))
         else:
             t0 = time.perf_counter()
             idx = self._queries  # CL and recorded phases take no query
@@ -125,8 +133,12 @@ class GpuProfiler:
                 self._pool.append(self.ctx.query(time=True))
             q = self._pool[idx]
             iostats.gl_query()
-            with q:
-                yield
+            self._timer_open = True
+            try:
+                with q:
+                    yield
+            finally:
+                self._timer_open = False
             self._used.append((name, q, self.label, (time.perf_counter() - t0) * 1e3))
         self._cpu[name] = self._cpu.get(name, 0.0) + (time.perf_counter() - t0) * 1e3
 
@@ -143,8 +155,9 @@ class GpuProfiler:
             t0 = time.perf_counter()
             m0 = clio.marker(queue)
             yield
-            self._used.append((name, (m0, clio.marker(queue), queue), self.label, 0.0))
-            self._cpu[name] = self._cpu.get(name, 0.0) + (time.perf_counter() - t0) * 1e3
+            cpu = (time.perf_counter() - t0) * 1e3
+            self._used.append((name, (m0, clio.marker(queue), queue), self.label, cpu))
+            self._cpu[name] = self._cpu.get(name, 0.0) + cpu
             return
         if self.enabled:
             if self.method == "sync":
@@ -179,7 +192,7 @@ class GpuProfiler:
             if isinstance(q, float):
                 ms = q
             elif isinstance(q, tuple):
-                ms = max(0.0, (q[1].profile.end - q[0].profile.end) / 1e6)
+                ms = self._marker_ms(q[0], q[1], cpu_ms)
             else:
                 ns = q.elapsed
                 if ns >= _SATURATED_NS:
@@ -191,6 +204,19 @@ class GpuProfiler:
             if label is not None:
                 self.by_label[label] = self.by_label.get(label, 0.0) + ms
         return out
+
+    def _marker_ms(self, first, last, cpu_ms: float) -> float:
+        """Milliseconds between two CL markers' ends. A driver may keep no timestamps for markers
+        (CL_PROFILING_INFO_NOT_AVAILABLE before OpenCL 3.0, or zeros): then the phase is charged its
+        CPU time and counted in `saturated`, as an unreadable timer query is."""
+        try:
+            t0, t1 = int(first.profile.end), int(last.profile.end)
+        except Exception:  # pyopencl.RuntimeError: profiling info not available
+            t0 = t1 = 0
+        if t0 <= 0 or t1 <= 0:
+            self.saturated += 1
+            return cpu_ms
+        return max(0.0, (t1 - t0) / 1e6)
 
     def cpu_ms(self) -> dict[str, float]:
         """CPU-side milliseconds per phase (Python + driver submission)."""

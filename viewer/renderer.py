@@ -450,6 +450,7 @@ class Renderer:
         if prof.saturated:  # timer results charged their CPU time instead (see profiler.py)
             stats["timer_saturated"] = float(prof.saturated)
         glio.finish(self.ctx)
+        glio.check_errors(self.ctx, f"frame {self.frame_index}")
         wall = (time.perf_counter() - t0) * 1e3
         self.frame_index += 1
         rays = {RayType(i).label: int(counts[i]) for i in range(6) if counts[i] > 0}

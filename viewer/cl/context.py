@@ -1,7 +1,9 @@
 """The OpenCL context and in-order queue every CL backend and primitive shares.
 
 The device comes from RTWALK_CL_DEVICE (an index into all devices of all platforms, in platform
-order, or a case-insensitive substring of "platform-name device-name"), else the first device.
+order, or a case-insensitive substring of "platform-name device-name"), else the first GPU, else
+the first device (a machine with NVIDIA's driver and PoCL lists both, in an order the ICD loader
+picks: the GPU must not lose to the CPU by the order of files in /etc/OpenCL/vendors).
 pyopencl is imported only here and only on first use, so GL backends work without it; a machine
 without an OpenCL platform gets one RtwalkError line naming the package to install.
 PoCL compiles kernels per work-group size at first enqueue and keeps the result in
@@ -110,13 +112,18 @@ def list_devices() -> list[Any]:
     return devices
 
 
+CL_DEVICE_TYPE_GPU = 1 << 2
+
+
 def choose_device(devices: list[Any], spec: str | None) -> Any:
-    """The device RTWALK_CL_DEVICE names (index or name substring), else the first."""
+    """The device RTWALK_CL_DEVICE names (index or name substring), else the first GPU, else the
+    first."""
     if not devices:
         raise RtwalkError(NO_DEVICE)
     spec = (spec or "").strip()
     if not spec:
-        return devices[0]
+        gpus = [d for d in devices if int(getattr(d, "type", 0)) & CL_DEVICE_TYPE_GPU]
+        return (gpus or devices)[0]
     names = [f"{d.platform.name.strip()} {d.name.strip()}" for d in devices]
     if spec.isdigit():
         i = int(spec)

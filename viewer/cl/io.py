@@ -37,18 +37,48 @@ from viewer import iostats
 class Kernel:
     """A pyopencl.Kernel that counts its launches."""
 
-    __slots__ = ("kernel", "name")
+    __slots__ = ("kernel", "name", "_max_group")
 
     def __init__(self, kernel: Any, name: str):
         self.kernel = kernel
         self.name = name
+        self._max_group: int | None = None
 
     def __call__(self, queue: Any, gsize: Any, lsize: Any, *args: Any, **kw: Any) -> Any:
+        check_ndrange(self.name, gsize, lsize)
+        if lsize is not None:
+            self._check_group(queue, int(np.prod([int(x) for x in lsize])))
         iostats.cl_launch()
         return self.kernel(queue, gsize, lsize, *args, **kw)
 
+    def _check_group(self, queue: Any, items: int) -> None:
+        """RtwalkError (one line) when the device cannot run this kernel with `items` work-items
+        per group (CL_KERNEL_WORK_GROUP_SIZE: a GPU lowers it for kernels that use many registers;
+        PoCL allows 4096), instead of pyopencl's INVALID_WORK_GROUP_SIZE at the launch."""
+        if self._max_group is None:
+            cl = _cl()
+            self._max_group = int(self.kernel.get_work_group_info(cl.kernel_work_group_info.WORK_GROUP_SIZE,
+                                                                  queue.device))
+        if items > self._max_group:
+            from viewer.errors import RtwalkError
+
+            raise RtwalkError(f"OpenCL kernel {self.name}: {items} work-items per group, the device allows "
+                              f"{self._max_group} for it (CL_KERNEL_WORK_GROUP_SIZE); choose a smaller chunk")
+
     def __getattr__(self, attr: str) -> Any:
         return getattr(self.kernel, attr)
+
+
+def check_ndrange(name: str, gsize: Any, lsize: Any) -> None:
+    """A global size that is a multiple of the local size in every dimension: OpenCL C 1.2 kernels
+    (what NVIDIA's driver compiles) have uniform work-groups only, CL_INVALID_WORK_GROUP_SIZE
+    otherwise, while PoCL (non-uniform work-groups) runs the remainder. A programming error: raised
+    on every device, so the CPU tests catch it."""
+    if lsize is None:
+        return
+    g, loc = tuple(int(x) for x in gsize), tuple(int(x) for x in lsize)
+    if len(g) != len(loc) or any(b <= 0 or a % b for a, b in zip(g, loc, strict=False)):
+        raise ValueError(f"OpenCL kernel {name}: global size {g} is not a multiple of the local size {loc}")
 
 
 def _cl():
@@ -68,6 +98,7 @@ def kernels(prog: Any, names) -> dict[str, Kernel]:
 def launch(k: Any, queue: Any, gsize: Any, lsize: Any, *args: Any, **kw: Any) -> Any:
     if isinstance(k, Kernel):
         return k(queue, gsize, lsize, *args, **kw)
+    check_ndrange(getattr(k, "function_name", "?"), gsize, lsize)
     iostats.cl_launch()
     return k(queue, gsize, lsize, *args, **kw)
 

@@ -16,7 +16,9 @@ on the next. Builders therefore ask here first:
                                   use_host: USE_HOST_PTR, the host array's memory itself)
 
 RTWALK_CL_MAX_ALLOC_MIB and RTWALK_CL_GLOBAL_MIB lower the device's figures (never raise them):
-tests simulate a small device with them instead of allocating gigabytes.
+tests simulate a small device with them instead of allocating gigabytes. RTWALK_CL_LOCAL_KIB
+lowers the local memory per work-group (`local_mem`): RTWALK_CL_LOCAL_KIB=48 runs the kernels
+sized for NVIDIA's 48 KiB here (PoCL offers megabytes).
 """
 
 from __future__ import annotations
@@ -30,6 +32,7 @@ from viewer.errors import RtwalkError
 
 MAX_ALLOC_ENV = "RTWALK_CL_MAX_ALLOC_MIB"
 GLOBAL_ENV = "RTWALK_CL_GLOBAL_MIB"
+LOCAL_ENV = "RTWALK_CL_LOCAL_KIB"
 BUDGET_SHARE = 0.25  # of global memory, for one structure build (several backends may coexist)
 MIB = 2**20
 
@@ -47,17 +50,21 @@ class DeviceLimits:
         return int(self.global_mem * BUDGET_SHARE)
 
 
-def _env_mib(name: str) -> int | None:
+def _env_bytes(name: str, unit: int = MIB, unit_name: str = "MiB") -> int | None:
     text = os.environ.get(name, "").strip()
     if not text:
         return None
     try:
         v = float(text)
     except ValueError:
-        raise RtwalkError(f"{name}={text!r}: not a number of MiB") from None
+        raise RtwalkError(f"{name}={text!r}: not a number of {unit_name}") from None
     if not v > 0:
-        raise RtwalkError(f"{name}={text!r}: must be > 0 MiB")
-    return int(v * MIB)
+        raise RtwalkError(f"{name}={text!r}: must be > 0 {unit_name}")
+    return int(v * unit)
+
+
+def _env_mib(name: str) -> int | None:
+    return _env_bytes(name)
 
 
 def device_limits(ctx: Any = None) -> DeviceLimits:
@@ -74,6 +81,14 @@ def device_limits(ctx: Any = None) -> DeviceLimits:
     if env_global is not None:
         global_mem = min(global_mem, env_global)
     return DeviceLimits(min(max_alloc, global_mem), global_mem)
+
+
+def local_mem(ctx: Any) -> int:
+    """Bytes of local memory a work-group may use (CL_DEVICE_LOCAL_MEM_SIZE: NVIDIA 48 KiB),
+    lowered by RTWALK_CL_LOCAL_KIB."""
+    size = int(ctx.device.local_mem_size)
+    env = _env_bytes(LOCAL_ENV, 1024, "KiB")
+    return size if env is None else min(size, env)
 
 
 def budget(ctx: Any = None) -> int:

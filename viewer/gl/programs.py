@@ -19,8 +19,11 @@ from pathlib import Path
 
 import moderngl
 
+from viewer.gl import inactive
 from viewer.gl import io as glio
 from viewer.gl.bindings import shader_header
+
+inactive.install()  # a uniform NVIDIA's compiler removed and Mesa's kept is no KeyError
 
 SHADER_DIR = Path(__file__).resolve().parents[1] / "shaders"
 
@@ -87,12 +90,13 @@ class ProgramCache:
         prog = self._programs.get(key)
         if prog is None:
             s = self.search
+            srcs = (load_shader_source(vertex, defines, s), load_shader_source(fragment, defines, s),
+                    load_shader_source(geometry, defines, s) if geometry else None)
             try:
-                prog = self.ctx.program(vertex_shader=load_shader_source(vertex, defines, s),
-                                        fragment_shader=load_shader_source(fragment, defines, s),
-                                        geometry_shader=load_shader_source(geometry, defines, s) if geometry else None)
+                prog = self.ctx.program(vertex_shader=srcs[0], fragment_shader=srcs[1], geometry_shader=srcs[2])
             except moderngl.Error as exc:
                 raise RuntimeError(f"shader {vertex}/{fragment} failed to compile:\n{exc}") from exc
+            inactive.mark(prog, *srcs)
             self._programs[key] = prog
         return prog
 
@@ -101,6 +105,13 @@ class ProgramCache:
         for prog in self._programs.values():
             prog.release()
         self._programs.clear()
+
+
+def compute_shader(ctx: moderngl.Context, name: str, defines: dict[str, object] | None = None,
+                   search: Sequence[Path | str] = ()) -> moderngl.ComputeShader:
+    """A compute shader from a file (load_shader_source), with its declared uniform names."""
+    src = load_shader_source(name, defines, search)
+    return inactive.mark(ctx.compute_shader(src), src)
 
 
 class FullscreenQuad:

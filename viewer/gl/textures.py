@@ -35,6 +35,8 @@ _GL_DEPTH_COMPONENT32F = 0x8CAC
 _GL_FLOAT = 0x1406
 _GL_TEXTURE_DEPTH_SIZE = 0x884A
 _GL_TEXTURE_DEPTH_TYPE = 0x8C16
+_GL_RED_INTEGER = 0x8D94
+_GL_INT = 0x1404
 _gl_funcs: dict | None = None
 
 
@@ -59,7 +61,8 @@ def _gl() -> dict:
         pi = ctypes.POINTER(ctypes.c_int)
         spec = {"glBindTexture": [u, u], "glTexImage2D": [u, i, i, i, i, i, u, u, vp],
                 "glGetIntegerv": [u, pi], "glGetTexLevelParameteriv": [u, i, u, pi],
-                "glCopyImageSubData": [u, u, i, i, i, i, u, u, i, i, i, i, i, i, i]}
+                "glCopyImageSubData": [u, u, i, i, i, i, u, u, i, i, i, i, i, i, i],
+                "glClearTexImage": [u, i, u, u, vp]}
         funcs: dict = {}
         for name, args in spec.items():
             f = getattr(lib, name)
@@ -103,6 +106,18 @@ def copy_texture(dst: moderngl.Texture, src: moderngl.Texture) -> None:
         raise RtwalkError("copy_texture: textures differ in size or format")
     w, h = src.size
     _gl()["glCopyImageSubData"](src.glo, _GL_TEXTURE_2D, 0, 0, 0, 0, dst.glo, _GL_TEXTURE_2D, 0, 0, 0, 0, w, h, 1)
+
+
+def clear_int_texture(tex: moderngl.Texture, value: int = -1) -> None:
+    """Every texel of level 0 of an R32I texture set to `value` (glClearTexImage). A framebuffer
+    clear (glClear with the float clear colour) leaves an integer attachment undefined by the GL
+    spec: Mesa stores the float's bits (-1.0 -> 0xBF800000, negative), another driver may convert or
+    not write it at all."""
+    if tex.dtype != "i4" or tex.components != 1:
+        raise RtwalkError("clear_int_texture: not an R32I texture")
+    gl = _gl()
+    v = gl["ctypes"].c_int32(int(value))
+    gl["glClearTexImage"](tex.glo, 0, _GL_RED_INTEGER, _GL_INT, gl["ctypes"].byref(v))
 
 
 class IntTextures:

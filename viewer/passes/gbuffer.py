@@ -41,7 +41,7 @@ from viewer.accel.bvh import BVH
 from viewer.camera import Camera
 from viewer.gl.programs import FullscreenQuad, ProgramCache
 from viewer.gl.scene import GpuScene
-from viewer.gl.textures import float_depth_texture, float_texture, int_texture
+from viewer.gl.textures import clear_int_texture, float_depth_texture, float_texture, int_texture
 from viewer.passes.cull import Cut, bvh_cut, cut_target, indirect_commands, visible_ranges
 from viewer.passes.occlusion import OcclusionCuller
 from viewer.passes.targets import SizedTargets
@@ -125,7 +125,8 @@ class GBufferPass(SizedTargets):
             self.clear()
         else:
             self.vis_fbo.use()
-            self.vis_fbo.clear(-1.0, 0.0, 0.0, 0.0, depth=1.0)  # id < 0: no triangle (see clear)
+            self.vis_fbo.clear(-1.0, 0.0, 0.0, 0.0, depth=1.0)
+            clear_int_texture(self.tri_id, -1)  # id < 0: no triangle (see clear)
         ctx.enable(ctx.DEPTH_TEST)
         ctx.disable(ctx.CULL_FACE | ctx.BLEND)
         ctx.depth_func = "<"
@@ -160,9 +161,10 @@ class GBufferPass(SizedTargets):
 
     def clear(self) -> None:
         self.fbo.use()
-        # The float clear colour reaches the R32I id attachment as raw bits: -1.0 -> 0xBF800000,
-        # a negative id, which every shader reads as "no triangle" (id < 0).
         self.fbo.clear(-1.0, 0.0, 0.0, 0.0, depth=1.0)
+        # the R32I id attachment explicitly: a float clear colour leaves an integer target undefined
+        # (Mesa stores -1.0's bits, 0xBF800000); -1 is "no triangle" to every reader (id < 0)
+        clear_int_texture(self.tri_id, -1)
 
     def fill_from_hits(self, camera: Camera, hits, quad) -> None:
         """The targets from traced primary rays (`hits`: a viewer.rays.HitBuffer of rays through the

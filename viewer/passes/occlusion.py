@@ -43,7 +43,7 @@ from viewer.accel.bvh import BVH
 from viewer.camera import Camera
 from viewer.gl import io as glio
 from viewer.gl.bindings import BIND_CULL_CMDS, BIND_CULL_NODES, BIND_CULL_STATS, BIND_CULL_VISIBLE, BIND_IMG_HIZ
-from viewer.gl.programs import load_shader_source
+from viewer.gl.programs import compute_shader
 from viewer.passes.cull import Cut, frustum_planes
 from viewer.passes.uniforms import apply, camera_uniforms
 
@@ -63,8 +63,8 @@ class OcclusionCuller:
 
     def __init__(self, ctx: moderngl.Context, cut: Cut, bvh: BVH):
         self.ctx = ctx
-        self.select = ctx.compute_shader(load_shader_source("occlusion_select.comp"))
-        self.reduce = ctx.compute_shader(load_shader_source("hiz.comp"))
+        self.select = compute_shader(ctx, "occlusion_select.comp")
+        self.reduce = compute_shader(ctx, "hiz.comp")
         self.count = len(cut.nodes)
         k = max(self.count, 1)
         self.nodes = ctx.buffer(reserve=k * 32)

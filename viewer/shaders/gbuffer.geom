@@ -24,7 +24,10 @@
 #endif
 uniform float depthScale;
 layout(triangles) in;
-layout(triangle_strip, max_vertices = 6) out;
+// at most 7 vertices: a clipped quad's first triangle (3) and then, when its second cannot be
+// expanded, the screen rectangle (4) (emitClipped). A vertex past max_vertices is undefined
+// behaviour (Mesa drops it, which lost half of that rectangle; other drivers may do worse)
+layout(triangle_strip, max_vertices = 7) out;
 flat in int vTri[];  // the triangle id (leaf slot), from gl_VertexID: valid in every draw of a multi-draw
 // The triangle's vertices, passed flat to every fragment: gbuffer.frag reads them here instead of
 // from the triangle SSBO. On llvmpipe that load is a per-lane gather in every fragment

@@ -92,9 +92,10 @@ from viewer.backends.gl_traversal import ResumableTraversal, max_visits
 from viewer.backends.interface import BackendInfo, OverlaySpec, param
 from viewer.effects import RayType
 from viewer.errors import RtwalkError
+from viewer.gl import io as glio
 from viewer.gl.bindings import BIND_NODES, BIND_TRIS, backend_bindings
 from viewer.gl.buffers import StreamBuffer
-from viewer.gl.programs import FullscreenQuad, load_shader_source
+from viewer.gl.programs import FullscreenQuad, compute_shader
 from viewer.gl.textures import copy_texture, float_depth_texture, float_texture, int_texture
 from viewer.rays import HitBuffer, PassInfo, RayBatch
 from viewer.screen_tiles import max_tile_level, tile_rects
@@ -283,8 +284,10 @@ def _bounds_of_parents(split: np.ndarray, bounds: np.ndarray, children: np.ndarr
     return out
 
 
-def _host_read(read) -> bytes:
-    """A blocking device -> host read, counted (viewer.iostats: bytes, one host sync)."""
+def _host_read(ctx: moderngl.Context, read) -> bytes:
+    """A blocking device -> host read, counted (viewer.iostats: bytes, one host sync), after the
+    barrier that makes the shaders' atomic counts visible to it (viewer.gl.io.host_barrier)."""
+    glio.host_barrier(ctx)
     with iostats.timed_sync():
         data = read()
     iostats.to_host(len(data))
@@ -404,9 +407,9 @@ class ChcrtBackend:
         self._zero_counts = bytes(4 * COUNT_SLOTS)
         # GPU-driven steady state (ChcrtParams.gpu_driven)
         self.gpu_driven = self.p.gpu_driven and self.batched and self.cache is None
-        self.tilebounds = self.ctx.compute_shader(load_shader_source("chc_tilebounds.comp", BINDINGS, (HERE,)))
-        self.querycull = self.ctx.compute_shader(load_shader_source("chc_querycull.comp", BINDINGS, (HERE,)))
-        self.visorder = self.ctx.compute_shader(load_shader_source("chc_visorder.comp", BINDINGS, (HERE,)))
+        self.tilebounds = compute_shader(self.ctx, "chc_tilebounds.comp", BINDINGS, (HERE,))
+        self.querycull = compute_shader(self.ctx, "chc_querycull.comp", BINDINGS, (HERE,))
+        self.visorder = compute_shader(self.ctx, "chc_visorder.comp", BINDINGS, (HERE,))
         self.tilebounds["rayOrigin"] = 0
         self.tilebounds["rayDir"] = 1
         self.all_queries = StreamBuffer(self.ctx, DRAW_DTYPE.itemsize, BIND_CHC_QUERIES)
@@ -619,6 +622,9 @@ class _Pass:
         ctx.enable(moderngl.DEPTH_TEST)
         ctx.depth_func = "1"
         self.be.quad.render(self.be.prog_init)  # draws through FullscreenQuad are counted there
+        # the next draws prune with bestBits and count into the images and SSBOs this one reset:
+        # without the barrier a GPU may run them on last pass's values (llvmpipe runs in order)
+        ctx.memory_barrier(moderngl.SHADER_IMAGE_ACCESS_BARRIER_BIT | moderngl.SHADER_STORAGE_BARRIER_BIT)
         self.stats["draws"] += 1
 
     def _gather(self) -> None:
@@ -633,7 +639,8 @@ class _Pass:
         self.be.quad.render(prog)
         self.stats["draws"] += 1
         g = tg.gather_size[0]
-        o, d = (np.frombuffer(_host_read(lambda a=a: tg.gather_fbo.read(components=4, dtype="f4", attachment=a)),
+        o, d = (np.frombuffer(_host_read(self.ctx, lambda a=a: tg.gather_fbo.read(components=4, dtype="f4",
+                                                                                  attachment=a)),
                               np.float32).reshape(g, g, 4) for a in (0, 1))
         self.rep = (o, d)
         self.ctx.enable(moderngl.DEPTH_TEST)
@@ -644,7 +651,7 @@ class _Pass:
 
     def _read_ray_count(self) -> None:
         if not self.rays_read:
-            self.stats["rays"] = int(np.frombuffer(_host_read(self.be.count_buf.read), np.uint32).sum())
+            self.stats["rays"] = int(np.frombuffer(_host_read(self.ctx, self.be.count_buf.read), np.uint32).sum())
             self.rays_read = True
 
     # -- queries ------------------------------------------------------------------------------------
@@ -716,8 +723,7 @@ class _Pass:
             self.be.vao_query_b.render(moderngl.TRIANGLES, vertices=6, instances=len(recs))
             self.stats["draws"] += 1
             iostats.gl_draw()
-        self.ctx.memory_barrier(moderngl.BUFFER_UPDATE_BARRIER_BIT)
-        raw = np.frombuffer(_host_read(lambda: self.be.query_counts.buf.read(size=36 * nq)),
+        raw = np.frombuffer(_host_read(self.ctx, lambda: self.be.query_counts.buf.read(size=36 * nq)),
                             np.uint32).astype(np.int64)
         out = raw[:nq]
         b = raw[nq:].reshape(nq, 2, 4).copy()
@@ -1195,7 +1201,7 @@ class _Pass:
                 self._intersect_survivors()
             self._sync()
         with prof.phase("chc:4-final-intersect"):
-            raw = np.frombuffer(_host_read(lambda: be.gpu_counts.read(size=COUNT_BYTES + 4 * (nslots + 3))),
+            raw = np.frombuffer(_host_read(self.ctx, lambda: be.gpu_counts.read(size=COUNT_BYTES + 4 * (nslots + 3))),
                                 np.uint32).astype(np.int64)
             self.stats["rays"] = int(raw[:COUNT_SLOTS].sum())
             cnt = raw[COUNT_SLOTS:]

@@ -25,7 +25,7 @@ import numpy as np
 
 from viewer.accel.grid import UniformGrid
 from viewer.cl import io as clio
-from viewer.cl.limits import device_limits, new_buffer
+from viewer.cl.limits import device_limits, local_mem, new_buffer
 from viewer.errors import RtwalkError
 
 HERE = Path(__file__).resolve().parent
@@ -52,6 +52,26 @@ def tile_partition(local_mem: int, wg: int) -> int:
     while p > wg and TILE_BYTES_PER_RAY * p + 172 * wg > local_mem // 2:
         p //= 2
     return max(p, wg)
+
+
+def check_tile_local(local_bytes: int, wg: int) -> None:
+    """RtwalkError (one line) when even the smallest ec_tile partition (one ray per work-item) does
+    not fit the device's local memory: chunk=256 needs 62 KiB, NVIDIA's OpenCL offers 48 KiB (the
+    build would fail with "too much shared data"; PoCL has megabytes)."""
+    need = TILE_BYTES_PER_RAY * wg + 172 * wg
+    if need > local_bytes:
+        fits = [c for c in (16, 32, 64, 128, 256) if (TILE_BYTES_PER_RAY + 172) * c <= local_bytes]
+        hint = f"choose chunk <= {fits[-1]}" if fits else "this device cannot run it"
+        raise RtwalkError(f"voxelwalk chunk={wg}: the EC tile kernel needs {need / 1024:.1f} KiB of local memory "
+                          f"per work-group, the OpenCL device has {local_bytes / 1024:.1f} KiB; {hint}")
+
+
+def check_int64_atomics(extensions: str) -> None:
+    """RtwalkError (one line) without cl_khr_int64_extended_atomics: EC keeps each ray's nearest hit
+    as a 64-bit atom_min key (walk.cl vw_pack). PoCL and NVIDIA have it."""
+    if "cl_khr_int64_extended_atomics" not in str(extensions).split():
+        raise RtwalkError("voxelwalk needs the OpenCL extension cl_khr_int64_extended_atomics (64-bit atom_min), "
+                          "which this device lacks")
 
 
 def tile_order(size: tuple[int, int], n: int, p: int) -> np.ndarray:
@@ -137,9 +157,11 @@ class VoxelWalker:
         two = {"TWO_LEVEL": None} if self.two_level else {}
         ivw_skip = {"VW_SKIP": None} if skip in ("ivw", "all") else {}
         ec_skip = {"VW_SKIP": None} if skip in ("ec", "all") else {}
+        check_int64_atomics(ctx.device.extensions)
+        check_tile_local(local_mem(ctx), self.chunk)
         ivw = build(HERE / "ivw.cl", {"WG": WG_IVW, **shifts, **ivw_skip, **two}, ctx)
         ec = build(HERE / "ec.cl", {"WG": self.chunk}, ctx)
-        self.partition = tile_partition(int(ctx.device.local_mem_size), self.chunk)
+        self.partition = tile_partition(local_mem(ctx), self.chunk)
         self.inline, self.tail = int(inline), int(tail)
         ect = build(HERE / "ec_tile.cl", {"WG": self.chunk, "P": self.partition, "STAGE_MIN": EC_STAGE_MIN,
                                           "INLINE_MAX": self.inline, "TAIL": self.tail, **shifts, **ec_skip, **two},
