@@ -27,6 +27,7 @@ crosses once and is counted once, by the map (viewer/cl/transfer.py).
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
 import numpy as np
@@ -47,7 +48,7 @@ class Kernel:
     def __call__(self, queue: Any, gsize: Any, lsize: Any, *args: Any, **kw: Any) -> Any:
         check_ndrange(self.name, gsize, lsize)
         if lsize is not None:
-            self._check_group(queue, int(np.prod([int(x) for x in lsize])))
+            self._check_group(queue, math.prod(int(x) for x in lsize))
         iostats.cl_launch()
         return self.kernel(queue, gsize, lsize, *args, **kw)
 
