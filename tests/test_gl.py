@@ -224,3 +224,34 @@ def test_gl_errors_are_one_line_with_the_check_on(gl_ctx, monkeypatch):
     with pytest.raises(RtwalkError, match=r"OpenGL error during a test: GL_INVALID_ENUM \(RTWALK_GL_CHECK=1\)"):
         glio.check_errors(gl_ctx, "a test")
     glio.check_errors(gl_ctx, "a test")  # read once: the flag is clear again
+
+
+def test_counted_reads_see_the_shader_writes_before_them(gl_ctx):
+    """viewer.gl.io.read issues the host-access barrier first: a buffer read right after a draw
+    whose fragments count into it with SSBO atomics returns the count. Without the barrier even
+    llvmpipe returns the buffer as it was before the draw (measured: 0, every time), so chcrt's
+    counts, raygen's ray counts and the occlusion stats would be stale whenever no glFinish comes
+    between (phase timing by timer queries)."""
+    import moderngl
+
+    from viewer.gl import io as glio
+
+    prog = gl_ctx.program(
+        vertex_shader="#version 450\nvoid main() { gl_Position = vec4(vec2(gl_VertexID & 1, gl_VertexID >> 1) * 4.0"
+                      " - 1.0, 0.0, 1.0); }\n",
+        fragment_shader="#version 450\nlayout(std430, binding = 3) buffer C { uint count; };\nout vec4 color;\n"
+                        "void main() { atomicAdd(count, 1u); color = vec4(1.0); }\n")
+    vao = gl_ctx.vertex_array(prog, [])
+    tex = gl_ctx.texture((64, 32), 4)
+    fbo = gl_ctx.framebuffer([tex])
+    buf = gl_ctx.buffer(reserve=4)
+    try:
+        buf.bind_to_storage_buffer(3)
+        fbo.use()
+        for _ in range(3):
+            glio.write(buf, np.zeros(1, np.uint32))
+            vao.render(moderngl.TRIANGLES, vertices=3)
+            assert np.frombuffer(glio.read(buf), np.uint32)[0] == 64 * 32
+    finally:
+        for obj in (vao, fbo, tex, buf, prog):
+            obj.release()
