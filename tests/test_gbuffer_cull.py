@@ -289,3 +289,53 @@ def test_bench_gbuffer_reports_culling_and_refuses_to_overwrite(tmp_path):
         assert occ["max_differing_pixels"] <= 0.01
     again = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
     assert again.returncode == 2 and again.stderr.count("\n") == 1 and "--force" in again.stderr
+
+
+class _Recorder:
+    """Forwards to a GL object, recording the calls named in `watch` into `events`."""
+
+    def __init__(self, obj, events: list, watch: tuple[str, ...]):
+        self._obj, self._events, self._watch = obj, events, watch
+
+    def __getattr__(self, name):
+        attr = getattr(self._obj, name)
+        if name not in self._watch:
+            return attr
+
+        def call(*args, **kw):
+            self._events.append((name, args))
+            return attr(*args, **kw)
+        return call
+
+
+def test_occlusion_host_updates_wait_for_the_selection_writes(gl_ctx, city, monkeypatch):
+    """The selection shader writes `visible` and `stats`; a draw's seed upload and stats clear after
+    it (glBufferSubData / glClearBufferData) come after a BUFFER_UPDATE barrier (glMemoryBarrier),
+    whatever else the frame reads: a GPU may still hold last draw's writes (llvmpipe runs in order)."""
+    import moderngl
+
+    import viewer.passes.occlusion as occlusion
+    from viewer.renderer import Renderer
+
+    street = _cameras(city.scene)[1]
+    r = Renderer(gl_ctx, city.scene, city.bvh, SIZE, "glsl")
+    g = r.gbuffer
+    try:
+        g.occlusion = True
+        g.render(street)
+        occ = g._occluder
+        events: list = []
+        occ.ctx = _Recorder(occ.ctx, events, ("memory_barrier",))
+        occ.stats = _Recorder(occ.stats, events, ("clear",))
+        write = occlusion.glio.write
+        monkeypatch.setattr(occlusion.glio, "write", lambda obj, *a, **kw: (events.append(("write", obj)),
+                                                                              write(obj, *a, **kw)))
+        eye, fwd = np.asarray(street.position), np.asarray(street.forward)
+        g.render(Camera.look_at(eye, eye - fwd))  # a jump: the seed uploads `visible`
+        assert occ.seeded > 0
+        names = [e[0] for e in events]
+        first_update = min(names.index("clear"), names.index("write"))
+        assert any(n == "memory_barrier" and e[1][0] & moderngl.BUFFER_UPDATE_BARRIER_BIT
+                   for n, e in zip(names[:first_update], events[:first_update], strict=True)), events[:first_update]
+    finally:
+        r.release()

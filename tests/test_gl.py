@@ -116,6 +116,54 @@ def test_headless_context_prefers_a_hardware_egl_device(monkeypatch, devices, ex
     assert glc.create_headless_context().info["GL_RENDERER"] == devices[0] and len(made) == 1
 
 
+@pytest.mark.parametrize("devices", [["llvmpipe (LLVM 15)", "GL 4.1 GPU"],
+                                     ["llvmpipe (LLVM 15)", "GL 4.1 GPU", "llvmpipe"]])
+def test_headless_context_is_current_after_a_failed_probe(monkeypatch, devices):
+    """A probe of another EGL device that fails after glcontext made its context current (moderngl's
+    GL 4.5 check raises after creation) leaves device 0 current again, not the dead probe."""
+    import moderngl
+
+    from viewer.gl import context as glc
+
+    current: list[_FakeGL] = []
+
+    class Current(_FakeGL):
+        def __enter__(self):
+            current.append(self)
+            return self
+
+    def create_context(standalone=True, backend="egl", require=450, device_index=0):
+        if device_index >= len(devices):
+            raise Exception(f"requested device index {device_index}, but found {len(devices)} devices")
+        ctx = Current(devices[device_index])
+        current.append(ctx)  # glcontext makes a new context current
+        if devices[device_index].startswith("GL 4.1"):
+            raise ValueError("Requested OpenGL version 450, got version 410")
+        return ctx
+
+    monkeypatch.setattr(moderngl, "create_context", create_context)
+    monkeypatch.delenv(glc.DEVICE_INDEX_ENV, raising=False)
+    ctx = glc.create_headless_context()
+    assert ctx.info["GL_RENDERER"] == devices[0] and current[-1] is ctx
+
+
+def test_a_chosen_egl_device_that_fails_names_the_variable(monkeypatch):
+    """GLCONTEXT_DEVICE_INDEX past the devices: one line naming the variable (not advice to install
+    Mesa, which is there)."""
+    import moderngl
+
+    from viewer.errors import RtwalkError
+    from viewer.gl import context as glc
+
+    def create_context(standalone=True, backend="egl", require=450, device_index=0):
+        raise Exception("requested device index 3, but found 1 devices")
+
+    monkeypatch.setattr(moderngl, "create_context", create_context)
+    monkeypatch.setenv(glc.DEVICE_INDEX_ENV, "3")
+    with pytest.raises(RtwalkError, match=r"found 1 devices\); GLCONTEXT_DEVICE_INDEX=3 chose the EGL device"):
+        glc.create_headless_context()
+
+
 def test_declared_but_inactive_uniforms_take_writes(gl_ctx, tmp_path):
     """A uniform the compiler removed (here: its use switched off by a define; on NVIDIA also what
     its optimiser proves dead) takes writes as a no-op, through `prog[name] = v` and `.value`; a name
@@ -176,3 +224,34 @@ def test_gl_errors_are_one_line_with_the_check_on(gl_ctx, monkeypatch):
     with pytest.raises(RtwalkError, match=r"OpenGL error during a test: GL_INVALID_ENUM \(RTWALK_GL_CHECK=1\)"):
         glio.check_errors(gl_ctx, "a test")
     glio.check_errors(gl_ctx, "a test")  # read once: the flag is clear again
+
+
+def test_counted_reads_see_the_shader_writes_before_them(gl_ctx):
+    """viewer.gl.io.read issues the host-access barrier first: a buffer read right after a draw
+    whose fragments count into it with SSBO atomics returns the count. Without the barrier even
+    llvmpipe returns the buffer as it was before the draw (measured: 0, every time), so chcrt's
+    counts, raygen's ray counts and the occlusion stats would be stale whenever no glFinish comes
+    between (phase timing by timer queries)."""
+    import moderngl
+
+    from viewer.gl import io as glio
+
+    prog = gl_ctx.program(
+        vertex_shader="#version 450\nvoid main() { gl_Position = vec4(vec2(gl_VertexID & 1, gl_VertexID >> 1) * 4.0"
+                      " - 1.0, 0.0, 1.0); }\n",
+        fragment_shader="#version 450\nlayout(std430, binding = 3) buffer C { uint count; };\nout vec4 color;\n"
+                        "void main() { atomicAdd(count, 1u); color = vec4(1.0); }\n")
+    vao = gl_ctx.vertex_array(prog, [])
+    tex = gl_ctx.texture((64, 32), 4)
+    fbo = gl_ctx.framebuffer([tex])
+    buf = gl_ctx.buffer(reserve=4)
+    try:
+        buf.bind_to_storage_buffer(3)
+        fbo.use()
+        for _ in range(3):
+            glio.write(buf, np.zeros(1, np.uint32))
+            vao.render(moderngl.TRIANGLES, vertices=3)
+            assert np.frombuffer(glio.read(buf), np.uint32)[0] == 64 * 32
+    finally:
+        for obj in (vao, fbo, tex, buf, prog):
+            obj.release()

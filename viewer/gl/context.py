@@ -30,7 +30,6 @@ def _hardware_device(first: moderngl.Context) -> moderngl.Context:
     """`first` (device 0) unless it is a software rasterizer and another EGL device is hardware."""
     if os.environ.get(DEVICE_INDEX_ENV) or not _is_software(first):
         return first
-    probed = False
     for index in range(1, MAX_EGL_DEVICES):
         try:
             ctx = moderngl.create_context(standalone=True, backend="egl", require=450, device_index=index)
@@ -38,13 +37,13 @@ def _hardware_device(first: moderngl.Context) -> moderngl.Context:
             if "but found" in str(exc):
                 break
             continue
-        probed = True
         if not _is_software(ctx):
             first.release()
             return ctx
         ctx.release()
-    if probed:
-        first.__enter__()  # each probe became current at creation: the first is again
+    # a probe that got as far as a context made it current, a failed one too (moderngl's GL 4.5
+    # check raises after glcontext made the context current): the first is made current again
+    first.__enter__()
     return first
 
 
@@ -54,8 +53,10 @@ def create_headless_context() -> moderngl.Context:
         ctx = moderngl.create_context(standalone=True, backend="egl", require=450)
     except Exception as exc:  # moderngl raises plain Exception subclasses for EGL failures
         msg = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
-        raise RtwalkError(f"cannot create a headless OpenGL 4.5 context through EGL ({msg}); "
-                          "install Mesa EGL (apt-get install libegl1 libegl-mesa0 libgl1-mesa-dri)") from exc
+        index = os.environ.get(DEVICE_INDEX_ENV, "").strip()
+        hint = (f"{DEVICE_INDEX_ENV}={index} chose the EGL device; unset it to take the first" if index
+                else "install Mesa EGL (apt-get install libegl1 libegl-mesa0 libgl1-mesa-dri)")
+        raise RtwalkError(f"cannot create a headless OpenGL 4.5 context through EGL ({msg}); {hint}") from exc
     return _hardware_device(ctx)
 
 

@@ -23,8 +23,10 @@ from viewer import iostats
 
 # glMemoryBarrier bits that make shader writes (SSBO / image stores and atomics) visible to the
 # host's reads and writes of buffers, textures and framebuffers (glGetBufferSubData, glGetTexImage,
-# glReadPixels, glBufferSubData). llvmpipe runs commands in order and forgives their absence;
-# NVIDIA does not (a counter read right after the draw that increments it may see the old value).
+# glReadPixels, glBufferSubData). Without them a counter read right after the draw that increments
+# it returns the old value, on llvmpipe too (it does not flush the draw for a buffer the draw wrote
+# only through an SSBO: tests/test_gl.py measures 0); a glFinish in between (sync phase timing)
+# hides that, timer-query timing did not (chcrt's pair counts were stale there before this).
 HOST_ACCESS_BARRIERS = (moderngl.BUFFER_UPDATE_BARRIER_BIT | moderngl.TEXTURE_UPDATE_BARRIER_BIT
                         | moderngl.FRAMEBUFFER_BARRIER_BIT | moderngl.PIXEL_BUFFER_BARRIER_BIT)
 

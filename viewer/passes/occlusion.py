@@ -176,6 +176,10 @@ class OcclusionCuller:
         `position`, or from `depth`: see _build_pyramid)."""
         if self.count == 0:
             return
+        # last draw's selection wrote `visible` and `stats` from the shader; the seed's upload and
+        # the stats clear below (glBufferSubData / glClearBufferData) must wait for those writes.
+        # The renderer's counter reads (viewer.gl.io.read) issue it too, a bare G-buffer loop not
+        self.ctx.memory_barrier(moderngl.BUFFER_UPDATE_BARRIER_BIT)
         self.seeded = self.seeded_triangles = 0
         if self.jumped(camera):
             self.seed(camera, size)

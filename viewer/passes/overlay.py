@@ -268,7 +268,7 @@ class OverlayPass:
         pass's ray/hit flags); a spec whose texture the backend did not return is skipped."""
         p = self.copy_prog
         # a backend's overlay textures are written with image stores / atomics (chcrt's overdraw):
-        # sampling them here needs the barrier (llvmpipe runs in order and forgives its absence)
+        # sampling them here needs the barrier (by the spec; llvmpipe has not needed it so far)
         self.ctx.memory_barrier(moderngl.TEXTURE_FETCH_BARRIER_BIT)
         rays.origin.use(2)
         rays.direction.use(3)
