@@ -262,6 +262,17 @@ def test_bench_output_folder_is_a_file(tmp_path, flag):
     assert "never-loaded" not in proc.stderr and afile.read_text() == "x"
 
 
+@pytest.mark.parametrize("command", ["bench-chcrt", "bench-pgrid", "bench-voxelwalk", "bench-voxels"])
+def test_study_bench_output_folder_is_a_file(tmp_path, command):
+    """`--out` naming a file: one line before anything runs (these four used to measure, then die
+    in mkdir with a FileExistsError traceback)."""
+    afile = tmp_path / "afile"
+    afile.write_text("x")
+    proc = run_cli(command, "--out", str(afile), timeout=60)
+    assert_one_line_error(proc, "not a folder")
+    assert afile.read_text() == "x"
+
+
 def test_missing_opencl_device_before_the_scene(tmp_path, monkeypatch):
     from viewer.backends import backend_info, backend_names
 

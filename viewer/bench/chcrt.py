@@ -929,8 +929,9 @@ def run(args: argparse.Namespace) -> int:
             print(f"note: {n}")
         print(format_estimate(est))
         return 0
-    from viewer.cli_args import check_report_free
+    from viewer.cli_args import check_output_dir, check_report_free
 
+    check_output_dir(str(o.out), "--out")
     check_report_free([o.out / f"{s}.json" for s in o.studies], getattr(args, "force", False))
     run_studies(o)
     return 0

@@ -41,7 +41,7 @@ from viewer.bench.common import log, study_scene
 from viewer.bench.pgrid_studies import study_anim, study_pairs, study_rearrange
 from viewer.bench.plots import figure, finish
 from viewer.bench.report import fmt, md_table, size_text, write_study
-from viewer.cli_args import check_report_free, parse_choices, parse_image_sizes
+from viewer.cli_args import check_output_dir, check_report_free, parse_choices, parse_image_sizes
 from viewer.errors import RtwalkError
 from viewer.paths import SHARED_SCENES
 
@@ -413,6 +413,7 @@ def run(args) -> int:
     if ("model" in studies or "rearrange" in studies) and "table41" not in studies:
         raise RtwalkError("--study: model and rearrange need table41 in the same run")
     args.anim_size = parse_image_sizes(args.anim_size, "--anim-size")[0]
+    check_output_dir(args.out, "--out")
     check_report_free([Path(args.out) / f"{s}.json" for s in studies], getattr(args, "force", False))
     cl_context()
     ctx = shared_context()

@@ -668,8 +668,9 @@ def run(args) -> int:
     if args.rounds < 1 or args.seq_len < 1 or not args.bias >= 0 or args.record_passes < 0:
         raise RtwalkError("--rounds and --seq-len must be >= 1, --bias and --record-passes >= 0")
     specs = [_scene_spec(s.strip()) for s in args.scenes.split(",") if s.strip()]
-    from viewer.cli_args import check_report_free
+    from viewer.cli_args import check_output_dir, check_report_free
 
+    check_output_dir(args.out, "--out")
     check_report_free([Path(args.out) / ("voxelize.json" if args.voxelize_only else "bench_voxels.json")],
                       getattr(args, "force", False))
     if args.voxelize_only:
