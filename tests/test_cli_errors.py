@@ -273,6 +273,27 @@ def test_study_bench_output_folder_is_a_file(tmp_path, command):
     assert afile.read_text() == "x"
 
 
+@pytest.mark.parametrize("args,needle", [
+    (["--offset", "nan"], "--offset"),  # was a ValueError traceback from the BVH build
+    (["--offset", "1e300"], "--offset"),
+    (["--rounds", "0"], "--rounds"),  # was run as one round, silently
+    (["--rounds", "-1"], "--rounds"),
+], ids=lambda v: " ".join(v) if isinstance(v, list) else v)
+def test_bench_grids_bad_numbers(args, needle):
+    assert_one_line_error(run_cli("bench-grids", "--scene", "mixed", *args, timeout=60), needle)
+
+
+def test_bench_grids_json_is_checked_first(tmp_path):
+    """--json: an existing file is kept (it was overwritten without --force), a folder or a path under
+    a file is refused before the scene is built (it used to fail after the whole run)."""
+    taken = tmp_path / "grids.json"
+    taken.write_text("keep")
+    assert_one_line_error(run_cli("bench-grids", "--scene", "mixed", "--json", str(taken)), "--force")
+    assert taken.read_text() == "keep"
+    assert_one_line_error(run_cli("bench-grids", "--scene", "mixed", "--json", str(tmp_path)), "folder")
+    assert_one_line_error(run_cli("bench-grids", "--scene", "mixed", "--json", str(taken / "x.json")), "not a folder")
+
+
 def test_missing_opencl_device_before_the_scene(tmp_path, monkeypatch):
     from viewer.backends import backend_info, backend_names
 
