@@ -294,6 +294,20 @@ def test_bench_grids_json_is_checked_first(tmp_path):
     assert_one_line_error(run_cli("bench-grids", "--scene", "mixed", "--json", str(taken / "x.json")), "not a folder")
 
 
+@pytest.mark.parametrize("args,needle", [
+    (["--city-size", "0"], "--city-size"),  # was accepted; the city study failed (or ran) minutes later
+    (["--distances", "abc"], "--distances"),  # was a ValueError after table41
+    (["--distances", "1,-2"], "--distances"),
+    (["--light-scene", "nosuch"], "--light-scene"),
+    (["--pgrid-params", "nosuch=1"], "nosuch"),
+], ids=lambda v: " ".join(v) if isinstance(v, list) else v)
+def test_bench_pgrid_checks_before_the_studies(tmp_path, args, needle):
+    proc = run_cli("bench-pgrid", "--scene-dir", str(tmp_path / "never-read"), "--out", str(tmp_path / "out"), *args,
+                   timeout=60)
+    assert_one_line_error(proc, needle)
+    assert not (tmp_path / "out").exists()
+
+
 def test_missing_opencl_device_before_the_scene(tmp_path, monkeypatch):
     from viewer.backends import backend_info, backend_names
 
