@@ -308,6 +308,14 @@ def test_bench_pgrid_checks_before_the_studies(tmp_path, args, needle):
     assert not (tmp_path / "out").exists()
 
 
+@pytest.mark.parametrize("size", ["0x1", "1x0", "99999x10", "10x"])
+def test_bench_voxels_size_before_the_scene(tmp_path, size):
+    """--size as every other command reads it (0x1 passed, loaded conference, then failed in the GL)."""
+    proc = run_cli("bench-voxels", "--size", size, "--scenes", _never_loaded(tmp_path), "--out", str(tmp_path / "o"))
+    assert_one_line_error(proc, "--size")
+    assert "never-loaded" not in proc.stderr
+
+
 def test_missing_opencl_device_before_the_scene(tmp_path, monkeypatch):
     from viewer.backends import backend_info, backend_names
 

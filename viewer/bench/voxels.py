@@ -662,9 +662,9 @@ def run(args) -> int:
         raise RtwalkError(f"--structures: choose from {', '.join(STRUCTURES)}")
     if args.reference not in backend_names() or not backend_info(args.reference).exact:
         raise RtwalkError(f"--reference: an exact registered backend (got '{args.reference}')")
-    w, sep, h = args.size.lower().partition("x")
-    if not sep or not w.isdigit() or not h.isdigit():
-        raise RtwalkError(f"--size: expected WxH (got '{args.size}')")
+    from viewer.cli_args import parse_size
+
+    w, h = parse_size(args.size)  # 0x1 used to pass and fail in the GL after the scene was loaded
     if args.rounds < 1 or args.seq_len < 1 or not args.bias >= 0 or args.record_passes < 0:
         raise RtwalkError("--rounds and --seq-len must be >= 1, --bias and --record-passes >= 0")
     specs = [_scene_spec(s.strip()) for s in args.scenes.split(",") if s.strip()]
@@ -688,7 +688,7 @@ def run(args) -> int:
         _write(out, {**report, "complete": False, "scenes": report["scenes"] + [partial]})
 
     for name, spec, rec in specs:
-        report["scenes"].append(study_scene(args, ctx_gl, name, spec, rec, (int(w), int(h)), resolutions,
+        report["scenes"].append(study_scene(args, ctx_gl, name, spec, rec, (w, h), resolutions,
                                             structures, stacks, checkpoint))
     report["complete"] = True
     _write(out, report)
