@@ -243,6 +243,16 @@ def test_checks_before_the_scene(tmp_path, monkeypatch, args, needle):
     assert "never-loaded" not in proc.stderr
 
 
+def test_bare_rtwalk_takes_a_scene(tmp_path, monkeypatch):
+    """README: `rtwalk [demo] [SCENE] ...`: a scene as the first word runs the main job (it was
+    refused as an unknown subcommand); the demo's checks then run before that scene is loaded."""
+    for var in ("DISPLAY", "WAYLAND_DISPLAY"):
+        monkeypatch.delenv(var, raising=False)
+    proc = run_cli(_never_loaded(tmp_path), "--frames", "0", "--quiet")
+    assert_one_line_error(proc, "--frames")
+    assert "never-loaded" not in proc.stderr and "invalid choice" not in proc.stderr
+
+
 def test_output_is_an_existing_folder(tmp_path):
     folder = tmp_path / "adir"
     folder.mkdir()

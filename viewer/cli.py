@@ -177,8 +177,9 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     ap = build_parser()
     argv = list(sys.argv[1:] if argv is None else argv)
-    if not argv or (argv[0].startswith("-") and argv[0] not in ("-h", "--help")):
-        argv = ["demo"] + argv  # bare `rtwalk [options]` runs the main job
+    subcommands = next(a.choices for a in ap._actions if isinstance(a, argparse._SubParsersAction))
+    if not argv or (argv[0] not in subcommands and argv[0] not in ("-h", "--help")):
+        argv = ["demo"] + argv  # bare `rtwalk [SCENE] [options]` runs the main job
     args = ap.parse_args(argv)
     args.command_line = shlex.join(["rtwalk", *argv])  # what the reports quote to reproduce a run
     handlers = {"view": cmd_view, "render": cmd_render, "info": cmd_info, "demo": cmd_demo}
