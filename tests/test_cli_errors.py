@@ -253,6 +253,21 @@ def test_bare_rtwalk_takes_a_scene(tmp_path, monkeypatch):
     assert "never-loaded" not in proc.stderr and "invalid choice" not in proc.stderr
 
 
+def test_headless_demo_replays_the_scenes_own_recording(tmp_path, monkeypatch):
+    """The headless demo of another scene replays a recording made for it (it replayed city-near's
+    street cameras, an empty grey frame in the room), or says there is none, in one line."""
+    for var in ("DISPLAY", "WAYLAND_DISPLAY"):
+        monkeypatch.delenv(var, raising=False)
+    monkeypatch.chdir(tmp_path)
+    assert_one_line_error(run_cli("room", "--frames", "1", "--quiet"), "room")
+    assert not (tmp_path / "out").exists()
+    proc = run_cli("room-anim", "--frames", "1", "--size", "32x18", "--effects", "primary", "--quiet")
+    assert proc.returncode == 0, proc.stderr
+    assert "room-anim-walk" in proc.stderr
+    report = json.loads((tmp_path / "out/demo/room-anim-walk.json").read_text())
+    assert report["frames"] and report["complete"] is True
+
+
 def test_output_is_an_existing_folder(tmp_path):
     folder = tmp_path / "adir"
     folder.mkdir()

@@ -6,6 +6,7 @@ import argparse
 import os
 import shlex
 import sys
+from pathlib import Path
 
 from viewer.bench import BENCHMARKS, bench_module
 
@@ -113,14 +114,39 @@ def cmd_demo(args) -> int:
     """The main job: a window where there is a display, else a headless replay with a report."""
     if os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY"):
         return cmd_view(args)
-    print("rtwalk: no display: replaying recordings/city-near.json headless "
+    request_from(args, device=False)  # what needs no scene is refused before the recording is chosen
+    check_at_least(args.frames, 1, "--frames")
+    rec = demo_recording(args.scene)
+    print(f"rtwalk: no display: replaying recordings/{rec.name} headless "
           "(frames and report in out/demo/)", file=sys.stderr)
-    args.recording = str(DEFAULT_RECORDING)
+    args.recording = str(rec)
     args.save_frames = "out/demo/frames"
     args.out = "out/demo"
-    args.name = "city-near"
+    args.name = rec.stem
     args.force = True  # the demo's own folder: each headless demo replaces the last one's report
     return bench_module("bench").run(args)
+
+
+def demo_recording(scene: str | None) -> Path:
+    """The shipped recording the headless demo replays: city-near for the city, else the one made
+    for SCENE (its cameras look at that scene; city-near's showed an empty grey frame in the room).
+    One line when no shipped recording shows SCENE."""
+    from viewer.paths import RECORDINGS
+    from viewer.procedural import BUILTIN_SCENES
+    from viewer.recording import load_recording, resolve_scene_spec
+    from viewer.scene_io import resolve_scene_path
+
+    base = (scene or "city").partition(":")[0]
+    if base == "city" or (base not in BUILTIN_SCENES and "/" not in base and "." not in base):
+        return DEFAULT_RECORDING  # the city, or an unknown name the scene loader reports
+    wanted = base if base in BUILTIN_SCENES else str(resolve_scene_path(scene).resolve())
+    shipped = sorted(RECORDINGS.glob("*.json"))
+    for path in shipped:
+        spec = resolve_scene_spec(load_recording(path)).spec
+        if spec == wanted or (spec not in BUILTIN_SCENES and str(Path(spec).resolve()) == wanted):
+            return path
+    raise RtwalkError(f"no shipped recording shows scene '{scene}' (the headless demo replays one; shipped: "
+                      f"{', '.join(p.stem for p in shipped)}); use `rtwalk bench {scene} --recording FILE`")
 
 
 def build_parser() -> argparse.ArgumentParser:
