@@ -84,6 +84,7 @@ def test_bench_trace_same_rays_against_embree(tmp_path, capsys):
     assert main(["bench-trace", "--recordings", str(path), "--sizes", "48x27", "--effects", "primary,shadows",
                  "--backends", "glsl", "--embree-threads", "1,2", "--rounds", "2", "--out", str(out), "--quiet"]) == 0
     report = json.loads((out / "bench_trace.json").read_text())
+    assert report["complete"] is True
     (group,) = report["groups"]
     rows = {r["ray_type"]: r for r in group["rows"]}
     assert set(rows) == {"primary", "shadows"}
@@ -96,6 +97,33 @@ def test_bench_trace_same_rays_against_embree(tmp_path, capsys):
     assert "| primary | 1,296 |" in md and "--sizes 48x27 --effects primary,shadows" in md
     assert (out / "bench_trace.png").stat().st_size > 1000
     assert "Mrays/s" in capsys.readouterr().out
+
+
+def test_bench_trace_ctrl_c_keeps_the_groups_done(tmp_path, monkeypatch):
+    """Ctrl-C during bench-trace's second group: the first group's rows are written, marked
+    "complete": false, with one line and exit 130 (everything measured was lost before)."""
+    import viewer.bench.trace_vs_embree as tve
+    from tests.cli_runner import run_cli
+
+    real, calls = tve.study_frame, []
+
+    def study_then_ctrl_c(*a, **k):
+        calls.append(1)
+        if len(calls) == 2:
+            raise KeyboardInterrupt
+        return real(*a, **k)
+
+    monkeypatch.setattr(tve, "study_frame", study_then_ctrl_c)
+    out = tmp_path / "trace"
+    proc = run_cli("bench-trace", "--recordings", str(_room_path(tmp_path)), "--sizes", "32x18,48x27",
+                   "--effects", "primary", "--backends", "glsl", "--embree-threads", "1", "--rounds", "1",
+                   "--out", str(out), "--quiet")
+    assert proc.returncode == 130, proc.stderr
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("rtwalk: interrupted after 1 groups"), lines
+    assert "partial report" in lines[0]
+    report = json.loads((out / "bench_trace.json").read_text())
+    assert report["complete"] is False and len(report["groups"]) == 1 and report["groups"][0]["size"] == [32, 18]
 
 
 def test_bench_trace_unknown_recording_is_one_error_line(tmp_path, capsys):

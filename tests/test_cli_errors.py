@@ -569,6 +569,8 @@ def test_sigint_keeps_the_frames_done(tmp_path):
     text = "".join(err)
     assert code == 130, "\n".join(ln for ln in text.replace("\r", "\n").splitlines() if "frame/s" not in ln)[-3000:]
     assert "Traceback" not in text and "partial report" in text, text[-2000:]
+    said = [ln for ln in text.replace("\r", "\n").splitlines() if ln.startswith("rtwalk:")]
+    assert len(said) == 1 and said[0].startswith("rtwalk: interrupted after"), said  # was two lines
     report = json.loads((out / "cut.json").read_text())
     assert report["complete"] is False and 1 <= len(report["frames"]) < 600
     assert report["summary"]["frames"] == len(report["frames"])

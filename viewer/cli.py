@@ -223,8 +223,8 @@ def main(argv: list[str] | None = None) -> int:
     except RtwalkError as exc:
         print(f"rtwalk: error: {exc}", file=sys.stderr)
         return 2
-    except KeyboardInterrupt:
-        print("rtwalk: interrupted", file=sys.stderr)
+    except KeyboardInterrupt as exc:  # a command that kept partial work says so in the exception: one line
+        print(f"rtwalk: {exc.args[0]}" if exc.args else "rtwalk: interrupted", file=sys.stderr)
         return 130
 
 

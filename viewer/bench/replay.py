@@ -373,8 +373,8 @@ def run(args: argparse.Namespace) -> int:
     if not report["complete"]:  # interrupted (Ctrl-C): the frames done are kept, marked incomplete
         if report["frames"]:
             json_path, _ = write_report(report, out_dir, stem)
-            print(f"rtwalk: interrupted after {len(report['frames'])} frames: partial report {json_path} "
-                  "(\"complete\": false)", file=sys.stderr)
+            raise KeyboardInterrupt(f"interrupted after {len(report['frames'])} frames: partial report {json_path} "
+                                    "(\"complete\": false)")  # cli.main prints it: one line
         raise KeyboardInterrupt
     print_summary(report)
     json_path, png_path = write_report(report, out_dir, stem)

@@ -243,13 +243,10 @@ def _plot(report: dict, path: Path) -> None:
 
 
 def run(args) -> int:
-    from viewer.backends import DEFAULT_BACKEND, backend_info, backend_names
+    from viewer.backends import backend_info, backend_names
     from viewer.effects import parse_effects
     from viewer.gl.context import shared_context
-    from viewer.recording import load_recording, resolve_scene_spec
     from viewer.reference import REFERENCE_BACKEND, EmbreeTracer
-    from viewer.renderer import Renderer
-    from viewer.session import prepare_scene
 
     sizes = parse_image_sizes(args.sizes)
     backends = [b.strip() for b in args.backends.split(",") if b.strip()] or [
@@ -279,7 +276,32 @@ def run(args) -> int:
         device_cl = cl_context().name
     report = {"command": getattr(args, "command_line", ""),
               "backends": backends, "embree_threads": threads, "rounds": args.rounds, "effects": args.effects,
-              "device_cl": device_cl or "no OpenCL backend", "groups": []}
+              "device_cl": device_cl or "no OpenCL backend", "complete": False, "groups": []}
+    try:
+        _measure(args, ctx, recs, sizes, backends, threads, settings, report)
+    except KeyboardInterrupt:  # Ctrl-C: the groups measured so far are kept, marked incomplete
+        if not report["groups"]:
+            raise
+        files = write_study(out, "bench_trace", report, _markdown(report))
+        _plot(report, files["png"])
+        raise KeyboardInterrupt(f"interrupted after {len(report['groups'])} groups (recording, frame, size): "
+                                f"partial report {files['json']} (\"complete\": false)") from None
+    report["complete"] = True
+    files = write_study(out, "bench_trace", report, _markdown(report))
+    if report["groups"]:
+        _plot(report, files["png"])
+    print(files["markdown"])
+    return 0
+
+
+def _measure(args, ctx, recs, sizes, backends, threads, settings, report: dict) -> None:
+    """Every (recording, frame, size) group, appended to report["groups"] as it is finished."""
+    from viewer.backends import DEFAULT_BACKEND
+    from viewer.recording import load_recording, resolve_scene_spec
+    from viewer.reference import EmbreeTracer
+    from viewer.renderer import Renderer
+    from viewer.session import prepare_scene
+
     for rec_path in recs:
         rec = load_recording(rec_path)
         rs = resolve_scene_spec(rec, rec_path)
@@ -313,11 +335,6 @@ def run(args) -> int:
             finally:
                 renderer.release()
         del tracer
-    files = write_study(out, "bench_trace", report, _markdown(report))
-    if report["groups"]:
-        _plot(report, files["png"])
-    print(files["markdown"])
-    return 0
 
 
 def _reference(tracer, p: Pass) -> tuple[np.ndarray, np.ndarray]:
