@@ -102,6 +102,20 @@ def test_corrupt_scene_file(tmp_path):
     assert_one_line_error(run_cli("render", str(bad), "-o", str(tmp_path / "x.png")), "garbage.ply")
 
 
+def test_truncated_stl_is_not_a_missing_module(tmp_path):
+    """A binary STL cut short: trimesh falls back to its ASCII reader, which imports an optional
+    module; the line said only "No module named 'charset_normalizer'", as if rtwalk were broken."""
+    import struct
+
+    tri = struct.pack("<12fH", *([0.0] * 3), 0, 0, 0, 1, 0, 0, 0, 1, 0, 0)
+    stl = tmp_path / "cut.stl"
+    stl.write_bytes(b"\0" * 80 + struct.pack("<I", 1000) + tri * 10 + tri[:20])
+    proc = run_cli("info", str(stl))
+    assert_one_line_error(proc, "cut.stl")
+    line = proc.stderr.strip().splitlines()[-1]
+    assert not line.endswith("(No module named 'charset_normalizer')"), line
+
+
 def test_empty_mesh(tmp_path):
     empty = tmp_path / "empty.obj"
     empty.write_text("# nothing here\nv 0 0 0\n")

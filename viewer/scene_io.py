@@ -178,6 +178,9 @@ def _load_file(path: Path, given: str, mirror_patterns: list[str], progress: boo
     try:
         with _elapsed_ticker(f"reading {path.name}", progress):
             loaded = trimesh.load(str(path), force="scene", process=False)  # we clean, and say what we drop
+    except ImportError as exc:  # a corrupt file sent trimesh to an optional reader (truncated STL: ASCII)
+        raise RtwalkError(f"{path}: cannot read scene file (corrupt or truncated {path.suffix.lstrip('.').upper()} "
+                          f"file; trimesh's fallback reader needs module '{exc.name}', not installed)") from None
     except Exception as exc:  # trimesh raises many types for corrupt files
         msg = str(exc).splitlines()[0][:120] if str(exc) else type(exc).__name__
         raise RtwalkError(f"{path}: cannot read scene file ({msg})") from None
