@@ -232,6 +232,8 @@ def _never_loaded(tmp_path) -> str:
     (["bench", "--fps", "nan"], "--fps"),
     (["bench", "--reference-every", "0"], "--reference-every"),
     (["bench", "--frame-every", "0"], "--frame-every"),
+    (["view", "--frame-target-ms", "0"], "--frame-target-ms"),  # the window took 0 and nan
+    (["view", "--frame-target-ms", "nan"], "--frame-target-ms"),
     (["render", "--exposure", "nan"], "--exposure"),
     (["render", "--exposure", "-1"], "--exposure"),
     (["render", "--exposure", "inf"], "--exposure"),
