@@ -357,6 +357,25 @@ def test_bench_voxels_size_before_the_scene(tmp_path, size):
     assert "never-loaded" not in proc.stderr
 
 
+def test_bench_denoise_checks_first_and_saves_into_a_new_folder(tmp_path):
+    """bench-denoise: --backend is checked before the scene (it was after the city's BVH build), the
+    images of an earlier run are kept without --force, and --save's folder is created (a missing
+    one was a FileNotFoundError traceback after the measurement)."""
+    proc = run_cli("bench-denoise", "--backend", "nosuch", "--size", "32x18")
+    assert_one_line_error(proc, "nosuch")
+    assert "BVH" not in proc.stderr
+    taken = tmp_path / "taken"
+    taken.mkdir()
+    (taken / "raw.png").write_bytes(b"keep")
+    assert_one_line_error(run_cli("bench-denoise", "--save", str(taken)), "--force")
+    assert (taken / "raw.png").read_bytes() == b"keep"
+    save = tmp_path / "new" / "images"
+    proc = run_cli("bench-denoise", "--recording", "room-anim-walk", "--frame", "10", "--size", "32x18",
+                   "--effects", "ao:1", "--reference-samples", "2", "--repeats", "1", "--save", str(save), "--quiet")
+    assert proc.returncode == 0, proc.stderr
+    assert {"raw.png", "reference.png", "device.png"} <= {f.name for f in save.iterdir()}
+
+
 def test_missing_opencl_device_before_the_scene(tmp_path, monkeypatch):
     from viewer.backends import backend_info, backend_names
 

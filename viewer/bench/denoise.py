@@ -92,21 +92,26 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--quiet", action="store_true", help="no progress output")
 
 
+SAVED_IMAGES = ("raw", "reference", "device", "library")  # --save: <name>.png
+
+
 def run(args) -> int:
     from PIL import Image
 
-    from viewer.cli_args import check_at_least, check_output_dir, parse_size, settings_from
+    from viewer.cli_args import check_at_least, check_output_dir, check_report_free, request_from
     from viewer.gl.context import create_headless_context
     from viewer.paths import resolve_recording
     from viewer.recording import load_recording
     from viewer.session import prepare_scene_for_recording
 
-    size = parse_size(args.size)
-    settings = settings_from(args)
+    req = request_from(args)  # backend (was checked only after the scene loaded), size, effects
+    size, settings = req.size, req.settings
     check_at_least(args.reference_samples, 1, "--reference-samples")
     check_at_least(args.repeats, 1, "--repeats")
     check_at_least(args.frame, 0, "--frame")
     save = check_output_dir(args.save, "--save")
+    if save is not None:  # the images of an earlier run are kept unless --force
+        check_report_free([save / f"{n}.png" for n in SAVED_IMAGES], getattr(args, "force", False), "--save")
     rec = load_recording(resolve_recording(args.recording))
     rec.camera_for_frame(args.frame)  # in range
     ctx = create_headless_context()
@@ -122,6 +127,7 @@ def run(args) -> int:
         print(f"  library (OIDN)  not run: {r['library_missing']}")
     print(f"  device a-trous  MAE {r['device_mae']:7.3f}   cost {r['device_ms']:8.1f} ms ({r['device_draws']} draws)")
     if save is not None:
+        save.mkdir(parents=True, exist_ok=True)  # a missing folder was a traceback after the measurement
         for name, img in r["images"].items():
             Image.fromarray(img).save(save / f"{name}.png")
         print(f"images: {save}")
