@@ -469,6 +469,26 @@ def test_every_option_has_help():
     assert set(helps) == set(sub.choices) and all(helps.values()), helps
 
 
+def test_help_shows_the_defaults():
+    """--help names each option's default (--size, --effects, --backend did not; view's size is not
+    render's), once: a help text that already says its default is left alone."""
+    import re
+
+    def option_help(command: str, option: str) -> str:
+        text = run_cli(command, "--help").stdout
+        block = re.search(rf"^  {re.escape(option)}\b.*?(?=^  -|\Z)", text, re.S | re.M).group(0)
+        return " ".join(block.split())
+
+    assert "(default: 640x360)" in option_help("render", "--size")
+    assert "(default: 896x504)" in option_help("view", "--size")
+    assert "(default: shadows,reflections)" in option_help("view", "--effects")
+    assert "(default: glsl)" in option_help("bench", "--backend")
+    assert "(default: 24)" in option_help("demo", "--frames")
+    assert "(default: 0)" in option_help("bench-voxels", "--record-passes")
+    assert "default: " not in option_help("render", "--quiet")  # a flag
+    assert option_help("bench", "--frames").count("default") == 1  # its text says "default 48"
+
+
 def test_readme_lists_every_command():
     from pathlib import Path
 

@@ -149,6 +149,19 @@ def demo_recording(scene: str | None) -> Path:
                       f"{', '.join(p.stem for p in shipped)}); use `rtwalk bench {scene} --recording FILE`")
 
 
+class DefaultsFormatter(argparse.HelpFormatter):
+    """Help that shows each option's default (--size, --effects, --backend, ... did not say theirs,
+    and view's 896x504 differs from render's 640x360), unless its text already names it."""
+
+    def _get_help_string(self, action: argparse.Action) -> str:
+        text = action.help or ""
+        d = action.default
+        shown = action.option_strings and not (d is None or isinstance(d, bool) or d in ([], "", argparse.SUPPRESS))
+        if shown and "default" not in text:
+            text += " (default: %(default)s)"
+        return text
+
+
 def build_parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(prog="rtwalk", description=__doc__.splitlines()[0])
     sub = ap.add_subparsers(dest="command")
@@ -197,6 +210,8 @@ def build_parser() -> argparse.ArgumentParser:
     add_effect_args(d, "shadows,ao:4,reflections")
     d.add_argument("--frames", type=int, default=24, help="without a display: frames replayed (>= 1)")
     add_denoise_arg(d)
+    for parser in sub.choices.values():
+        parser.formatter_class = DefaultsFormatter
     return ap
 
 

@@ -80,7 +80,9 @@ def parse_camera(text: str):
 def add_scene_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("scene", nargs="?", default=None,
                    help="scene file (OBJ/PLY/GLB/STL/OFF) or built-in name (city, room, room-anim); default: city")
-    p.add_argument("--scene-size", type=int, default=None, help="triangles for procedural scenes (city)")
+    p.add_argument("--scene-size", type=int, default=None,
+                   help="size of a built-in scene: city: triangles (1000..40000000, default 150000); "
+                        "room, room-anim: detail level (1..6, default 1)")
     p.add_argument("--seed", type=int, default=1, help="seed for procedural scenes")
     p.add_argument("--mirror", action="append", default=[], metavar="PATTERN",
                    help="material name pattern made a mirror (repeatable, fnmatch, case-insensitive)")
