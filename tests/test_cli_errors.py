@@ -292,6 +292,15 @@ def test_output_is_an_existing_folder(tmp_path):
     assert "never-loaded" not in proc.stderr
 
 
+@pytest.mark.parametrize("name", ["../escaped", "sub/x", ".."])
+def test_bench_name_is_a_stem(tmp_path, name):
+    """--name is the report's file stem: `../escaped` wrote the report beside --out, not in it."""
+    proc = run_cli("bench", _never_loaded(tmp_path), "--recording", "recordings/city-near.json",
+                   "--out", str(tmp_path / "out"), "--name", name)
+    assert_one_line_error(proc, "--name")
+    assert "never-loaded" not in proc.stderr
+
+
 @pytest.mark.parametrize("flag", ["--out", "--save-frames"])
 def test_bench_output_folder_is_a_file(tmp_path, flag):
     """Checked before the benchmark runs (it used to crash at the end and lose the report)."""
