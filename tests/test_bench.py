@@ -132,3 +132,10 @@ def test_bench_trace_unknown_recording_is_one_error_line(tmp_path, capsys):
     assert main(["bench-trace", "--recordings", "nope-walk", "--out", str(tmp_path)]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith("rtwalk: error: ") and "nope-walk" in err[0]
+
+
+def test_estimate_is_readable_for_short_runs():
+    """The bench's "estimated ... more" line: seconds for a short replay ("0.0 min" before)."""
+    from viewer.bench.replay import duration_text
+
+    assert duration_text(2.4) == "2 s" and duration_text(89) == "89 s" and duration_text(150) == "2.5 min"

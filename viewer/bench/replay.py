@@ -107,6 +107,11 @@ def save_overlay_views(renderer: Renderer, camera, folder: Path, frame: int) -> 
     return saved
 
 
+def duration_text(seconds: float) -> str:
+    """"45 s" under a minute and a half, else "2.5 min" (a short replay said "0.0 min more")."""
+    return f"{seconds:.0f} s" if seconds < 90 else f"{seconds / 60:.1f} min"
+
+
 def run_bench(prepared: PreparedScene, rec, settings: EffectSettings, opts: BenchOptions,
               ctx, quiet: bool = False) -> dict:
     renderer = Renderer(ctx, prepared.scene, prepared.bvh, opts.size, opts.backend, settings, opts.backend_options)
@@ -144,7 +149,8 @@ def run_bench(prepared: PreparedScene, rec, settings: EffectSettings, opts: Benc
                     # a checked frame costs `first`, an unchecked one its render part
                     est = (first * (checked - 1) + t_render0 * (len(frames) - checked) if checked
                            else first * (len(frames) - 1))
-                    tqdm.write(f"bench: estimated {est / 60:.1f} min more (first frame {first:.1f} s)", file=sys.stderr)
+                    tqdm.write(f"bench: estimated {duration_text(est)} more (first frame {first:.1f} s)",
+                               file=sys.stderr)
                 t_frame = time.perf_counter()
                 cam = rec.camera_for_frame(n, opts.fps)
                 renderer.set_scene_time(rec.scene_time_for_frame(n, opts.fps))
