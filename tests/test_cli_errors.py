@@ -652,6 +652,11 @@ def test_huge_size_is_one_line(tmp_path):
                    timeout=180, subprocess=True, preexec_fn=limit)
     assert_one_line_error(proc, "16384x16384")
     assert not (tmp_path / "x.png").exists()
+    assert "BVH" not in proc.stderr + proc.stdout  # refused before the scene was loaded (it was after)
+    proc = run_cli("bench", _never_loaded(tmp_path), "--recording", "recordings/city-near.json", "--size",
+                   "16384x16384", "--out", str(tmp_path / "b"), timeout=180, subprocess=True, preexec_fn=limit)
+    assert_one_line_error(proc, "16384x16384")
+    assert "never-loaded" not in proc.stderr
 
 
 def test_target_limits_and_allocation_errors(gl_ctx, monkeypatch):

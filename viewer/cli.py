@@ -38,6 +38,7 @@ def cmd_render(args) -> int:
 
     from viewer.backends import backend_info, registered_infos
     from viewer.gl.context import create_headless_context
+    from viewer.gl.limits import check_target_size
     from viewer.passes.overlay import check_view
     from viewer.progressive import render_stepped
     from viewer.recording import load_recording
@@ -55,6 +56,7 @@ def cmd_render(args) -> int:
         camera = rec.camera_for_frame(args.frame)
     check_device(args.backend)
     ctx = create_headless_context()  # no EGL: fail before loading
+    check_target_size(ctx, size)  # a size the device cannot hold, before the scene (the Renderer checks again)
     prepared = scene_from_args(args, rec)
     warn_no_mirrors(settings, prepared.scene)
     if camera is None:

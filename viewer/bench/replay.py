@@ -336,6 +336,7 @@ def run(args: argparse.Namespace) -> int:
         warn_no_mirrors,
     )
     from viewer.gl.context import create_headless_context
+    from viewer.gl.limits import check_target_size
     from viewer.recording import load_recording
 
     rec_path = args.recording or (DEFAULT_RECORDING if args.scene in (None, "city") else None)
@@ -363,6 +364,7 @@ def run(args: argparse.Namespace) -> int:
     frame_numbers(rec, opts.fps, opts.max_frames, opts.first_frame)  # --first-frame within the path
     check_device(args.backend)
     ctx = create_headless_context()  # no EGL: fail before loading
+    check_target_size(ctx, size)  # before the scene, as every check that needs none
     prepared = scene_from_args(args, rec)
     warn_no_mirrors(settings, prepared.scene)
     stem = args.name or f"{prepared.scene.name}-{Path(rec_path).stem}-{args.backend}-{opts.size[0]}x{opts.size[1]}"
