@@ -234,6 +234,8 @@ def _never_loaded(tmp_path) -> str:
     (["bench", "--frame-every", "0"], "--frame-every"),
     (["view", "--frame-target-ms", "0"], "--frame-target-ms"),  # the window took 0 and nan
     (["view", "--frame-target-ms", "nan"], "--frame-target-ms"),
+    (["render", "--seed", "-1"], "--seed"),  # was a ValueError traceback from NumPy's seeding
+    (["render", "--seed", str(2**32)], "--seed"),
     (["render", "--exposure", "nan"], "--exposure"),
     (["render", "--exposure", "-1"], "--exposure"),
     (["render", "--exposure", "inf"], "--exposure"),
@@ -406,6 +408,13 @@ def test_missing_egl_before_the_scene(tmp_path, monkeypatch):
     proc = run_cli("render", _never_loaded(tmp_path), "-o", str(tmp_path / "x.png"), timeout=60, subprocess=True)
     assert_one_line_error(proc, "EGL")
     assert "never-loaded" not in proc.stderr
+
+
+def test_seed_of_a_builtin_scene(tmp_path):
+    """`rtwalk render room --seed -1` and bench-bvh's city: one line (a NumPy traceback before)."""
+    assert_one_line_error(run_cli("info", "room", "--seed", "-1"), "--seed")
+    assert_one_line_error(run_cli("bench-bvh", "--seed", "-1", "--triangles", "1000", "--out", str(tmp_path)),
+                          "--seed")
 
 
 @pytest.mark.parametrize("sizes,needle", [("abc", "--triangles"), ("0", "out of range"), ("-5", "--triangles"),

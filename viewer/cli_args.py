@@ -191,9 +191,11 @@ def warn_no_mirrors(settings, scene) -> str | None:
 
 def scene_from_args(args, recording=None):
     """Scene named on the command line, else the recording's scene, else the default city."""
+    from viewer.scene_io import check_seed
     from viewer.session import prepare_scene
 
     spec, size, seed = args.scene, args.scene_size, args.seed
+    check_seed(seed)
     if spec is None and recording is not None:
         from viewer.recording import resolve_scene_spec
 
