@@ -410,6 +410,17 @@ def test_missing_egl_before_the_scene(tmp_path, monkeypatch):
     assert "never-loaded" not in proc.stderr
 
 
+def test_scene_size_takes_suffixes():
+    """--scene-size 2M as `city:2M` and --triangles 2M (it was "invalid int value")."""
+    from viewer.cli_args import scene_size_arg
+
+    assert [scene_size_arg(t) for t in ("150000", "400k", "2M", "1_000_000", "1e6", "1.5k")] == [
+        150000, 400000, 2000000, 1000000, 1000000, 1500]
+    proc = run_cli("render", "city", "--scene-size", "2.5", "-o", "x.png")
+    assert proc.returncode == 2 and "--scene-size" in proc.stderr and "Traceback" not in proc.stderr
+    assert_one_line_error(run_cli("info", "city", "--scene-size", "99M"), "out of range")
+
+
 def test_seed_of_a_builtin_scene(tmp_path):
     """`rtwalk render room --seed -1` and bench-bvh's city: one line (a NumPy traceback before)."""
     assert_one_line_error(run_cli("info", "room", "--seed", "-1"), "--seed")

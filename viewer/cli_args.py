@@ -77,10 +77,24 @@ def parse_camera(text: str):
     return Camera.look_at(vals[:3], vals[3:6], fov_y=vals[6] if len(vals) == 7 else 60.0)
 
 
+def scene_size_arg(text: str) -> int:
+    """--scene-size: a whole number, with k/M suffixes as `city:2M` and bench-bvh's --triangles take
+    them (`--scene-size 2M` was an invalid int)."""
+    t = text.strip().replace("_", "")
+    mult = {"k": 1_000, "m": 1_000_000}.get(t[-1:].lower(), 1)
+    try:
+        v = float(t[:-1] if mult > 1 else t) * mult
+    except ValueError:
+        v = math.nan
+    if not (math.isfinite(v) and v == int(v)):
+        raise argparse.ArgumentTypeError(f"expected a whole number like 150000, 400k or 2M, got '{text}'")
+    return int(v)
+
+
 def add_scene_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("scene", nargs="?", default=None,
                    help="scene file (OBJ/PLY/GLB/STL/OFF) or built-in name (city, room, room-anim); default: city")
-    p.add_argument("--scene-size", type=int, default=None,
+    p.add_argument("--scene-size", type=scene_size_arg, default=None,
                    help="size of a built-in scene: city: triangles (1000..40000000, default 150000); "
                         "room, room-anim: detail level (1..6, default 1)")
     p.add_argument("--seed", type=int, default=1, help="seed for procedural scenes")
