@@ -421,6 +421,15 @@ def test_scene_size_takes_suffixes():
     assert_one_line_error(run_cli("info", "city", "--scene-size", "99M"), "out of range")
 
 
+def test_closed_stdout_is_no_traceback():
+    """`rtwalk info room | head -1`: the reader closes the pipe; a BrokenPipeError traceback before."""
+    proc = subprocess.Popen([sys.executable, "-m", "viewer.cli", "info", "room", "--quiet"], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+    proc.stdout.close()
+    err = proc.stderr.read()
+    assert proc.wait(timeout=120) == 1 and "Traceback" not in err and "BrokenPipe" not in err, err
+
+
 def test_seed_of_a_builtin_scene(tmp_path):
     """`rtwalk render room --seed -1` and bench-bvh's city: one line (a NumPy traceback before)."""
     assert_one_line_error(run_cli("info", "room", "--seed", "-1"), "--seed")

@@ -240,6 +240,12 @@ def main(argv: list[str] | None = None) -> int:
     except RtwalkError as exc:
         print(f"rtwalk: error: {exc}", file=sys.stderr)
         return 2
+    except BrokenPipeError:  # `rtwalk info SCENE | head -1`: the reader left; no traceback
+        try:  # the interpreter flushes stdout at exit: point it at /dev/null so that flush cannot fail
+            os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        except (OSError, ValueError, AttributeError):  # stdout is not a file (tests capture it)
+            pass
+        return 1
     except KeyboardInterrupt as exc:  # a command that kept partial work says so in the exception: one line
         print(f"rtwalk: {exc.args[0]}" if exc.args else "rtwalk: interrupted", file=sys.stderr)
         return 130
