@@ -430,6 +430,29 @@ def test_closed_stdout_is_no_traceback():
     assert proc.wait(timeout=120) == 1 and "Traceback" not in err and "BrokenPipe" not in err, err
 
 
+def test_bench_voxels_ctrl_c_names_the_partial_report(gl_ctx, tmp_path, monkeypatch):
+    """Ctrl-C after a finished resolution: one line naming the report on disk ("complete": false);
+    it said only "rtwalk: interrupted"."""
+    import viewer.bench.voxels as vb
+
+    real = vb.study_scene
+
+    def ctrl_c_after_the_first_checkpoint(*a):
+        def checkpoint(partial):
+            a[-1](partial)
+            raise KeyboardInterrupt
+        return real(*a[:-1], checkpoint)
+
+    monkeypatch.setattr(vb, "study_scene", ctrl_c_after_the_first_checkpoint)
+    out = tmp_path / "vox"
+    proc = run_cli("bench-voxels", "--scenes", "room", "--resolutions", "32", "--structures", "bvh", "--stacks", "4",
+                   "--size", "32x18", "--rounds", "1", "--no-image", "--out", str(out), "--quiet")
+    assert proc.returncode == 130, proc.stderr
+    said = [ln for ln in proc.stderr.splitlines() if ln.startswith("rtwalk:")]
+    assert len(said) == 1 and str(out / "bench_voxels.json") in said[0], proc.stderr
+    assert json.loads((out / "bench_voxels.json").read_text())["complete"] is False
+
+
 def test_seed_of_a_builtin_scene(tmp_path):
     """`rtwalk render room --seed -1` and bench-bvh's city: one line (a NumPy traceback before)."""
     assert_one_line_error(run_cli("info", "room", "--seed", "-1"), "--seed")

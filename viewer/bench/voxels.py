@@ -684,12 +684,21 @@ def run(args) -> int:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
 
+    saved: list[bool] = []
+
     def checkpoint(partial: dict) -> None:  # finished resolutions reach the disk at once
         _write(out, {**report, "complete": False, "scenes": report["scenes"] + [partial]})
+        saved.append(True)
 
-    for name, spec, rec in specs:
-        report["scenes"].append(study_scene(args, ctx_gl, name, spec, rec, (w, h), resolutions,
-                                            structures, stacks, checkpoint))
+    try:
+        for name, spec, rec in specs:
+            report["scenes"].append(study_scene(args, ctx_gl, name, spec, rec, (w, h), resolutions,
+                                                structures, stacks, checkpoint))
+    except KeyboardInterrupt:  # Ctrl-C: say where the finished resolutions are (it said only "interrupted")
+        if not saved:
+            raise
+        raise KeyboardInterrupt(f"interrupted: the resolutions finished so far are in {out / 'bench_voxels.json'} "
+                                "(\"complete\": false)") from None
     report["complete"] = True
     _write(out, report)
     print(f"report: {out / 'bench_voxels.md'}")
