@@ -550,6 +550,18 @@ def test_help_shows_the_defaults():
     assert option_help("bench", "--frames").count("default") == 1  # its text says "default 48"
 
 
+def test_force_only_where_reports_are_written():
+    """--force "overwrites reports already in the output folder": offered only by the commands that
+    write some (bench-light and bench-bvh-trace print a table and had a --force that did nothing)."""
+    from viewer.cli import build_parser
+
+    sub = next(a for a in build_parser()._actions if isinstance(a, argparse._SubParsersAction))
+    with_force = {name for name, p in sub.choices.items() if any("--force" in a.option_strings for a in p._actions)}
+    assert {"bench", "bench-bvh", "bench-cl", "bench-trace", "bench-chcrt", "bench-pgrid", "bench-voxelwalk",
+            "bench-voxels", "bench-gbuffer", "bench-grids", "bench-denoise"} <= with_force
+    assert not with_force & {"bench-light", "bench-bvh-trace"}
+
+
 def test_readme_lists_every_command():
     from pathlib import Path
 

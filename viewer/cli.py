@@ -200,7 +200,7 @@ def build_parser() -> argparse.ArgumentParser:
         module.add_arguments(sub.add_parser(command, help=module.HELP))
 
     for name, parser in sub.choices.items():  # nothing lost: every report writer refuses to overwrite
-        if name.startswith("bench"):
+        if name.startswith("bench") and getattr(bench_module(name), "WRITES_REPORTS", True):
             add_force_arg(parser)
 
     i = sub.add_parser("info", help="scene statistics, or a backend's description and parameters (--backend NAME)")
