@@ -303,6 +303,18 @@ def test_bench_name_is_a_stem(tmp_path, name):
     assert "never-loaded" not in proc.stderr
 
 
+def test_bench_keeps_saved_frames(tmp_path):
+    """--save-frames into a folder holding an earlier run's frames: refused without --force (the
+    reports were protected, the frames silently replaced)."""
+    frames = tmp_path / "frames"
+    frames.mkdir()
+    (frames / "frame_00000.png").write_bytes(b"earlier")
+    proc = run_cli("bench", _never_loaded(tmp_path), "--recording", "recordings/city-near.json", "--save-frames",
+                   str(frames), "--out", str(tmp_path / "out"))
+    assert_one_line_error(proc, "--force")
+    assert "never-loaded" not in proc.stderr and (frames / "frame_00000.png").read_bytes() == b"earlier"
+
+
 @pytest.mark.parametrize("flag", ["--out", "--save-frames"])
 def test_bench_output_folder_is_a_file(tmp_path, flag):
     """Checked before the benchmark runs (it used to crash at the end and lose the report)."""

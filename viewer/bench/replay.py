@@ -361,7 +361,10 @@ def run(args: argparse.Namespace) -> int:
                         frames_dir=frames_dir, frame_every=args.frame_every, backend_options=backend_options,
                         first_frame=getattr(args, "first_frame", None),
                         denoise=getattr(args, "denoise", "off") == "on")
-    frame_numbers(rec, opts.fps, opts.max_frames, opts.first_frame)  # --first-frame within the path
+    replayed = frame_numbers(rec, opts.fps, opts.max_frames, opts.first_frame)  # --first-frame within the path
+    if frames_dir is not None and not getattr(args, "progressive", False):  # an earlier run's frames are kept
+        check_report_free([frames_dir / f"frame_{n:05d}.png" for n in replayed[::args.frame_every]],
+                          getattr(args, "force", False), "--save-frames")
     check_device(args.backend)
     ctx = create_headless_context()  # no EGL: fail before loading
     check_target_size(ctx, size)  # before the scene, as every check that needs none
