@@ -286,6 +286,17 @@ def test_headless_demo_replays_the_scenes_own_recording(tmp_path, monkeypatch):
     assert report["frames"] and report["complete"] is True
 
 
+def test_render_keeps_an_existing_image(tmp_path):
+    """-o naming an existing file: refused before the scene without --force (it was replaced silently)."""
+    old = tmp_path / "x.png"
+    old.write_bytes(b"earlier")
+    proc = run_cli("render", _never_loaded(tmp_path), "-o", str(old))
+    assert_one_line_error(proc, "--force")
+    assert "never-loaded" not in proc.stderr and old.read_bytes() == b"earlier"
+    proc = run_cli("render", "room", "--size", "16x9", "--effects", "primary", "-o", str(old), "--force", "--quiet")
+    assert proc.returncode == 0 and old.read_bytes()[:4] == b"\x89PNG", proc.stderr
+
+
 def test_output_is_an_existing_folder(tmp_path):
     folder = tmp_path / "adir"
     folder.mkdir()

@@ -22,6 +22,7 @@ from viewer.cli_args import (
     check_at_least,
     check_device,
     check_image_output,
+    check_report_free,
     parse_camera,
     request_from,
     scene_from_args,
@@ -51,6 +52,7 @@ def cmd_render(args) -> int:
     check_at_least(args.frame, 0, "--frame")
     camera = parse_camera(args.camera) if args.camera else None
     out = check_image_output(args.output)
+    check_report_free([out], args.force, "-o/--output")  # an earlier picture is kept unless --force
     rec = load_recording(args.recording) if args.recording else None
     if camera is None and rec is not None:
         camera = rec.camera_for_frame(args.frame)
@@ -193,6 +195,8 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--view", default="final", help="final or one pass alone (albedo, normal, depth, shadows, ...)")
     r.add_argument("-o", "--output", default="out/render.png",
                    help="image file (.png, .jpg, .bmp, .tif, .ppm, .webp, .tga); its folder is created")
+    r.add_argument("--force", action="store_true", help="replace the image if -o names an existing file "
+                                                          "(default: refuse)")
     add_denoise_arg(r)
 
     for command in BENCHMARKS:  # every benchmark registers itself (viewer/bench/__init__.py)
