@@ -166,8 +166,18 @@ class DefaultsFormatter(argparse.HelpFormatter):
         return text
 
 
+class RtwalkParser(argparse.ArgumentParser):
+    """Bad arguments are one line, exit 2, as every other bad input (README); argparse printed its
+    usage block (~10 lines) and "rtwalk render: error: ...". Subcommand parsers are of this class too."""
+
+    def error(self, message: str):
+        if message.endswith("expected one argument"):  # `--size -5x5`: the value was taken for a flag
+            message += " (a value that starts with '-' is written --flag=VALUE)"
+        self.exit(2, f"rtwalk: error: {message} (see `{self.prog} --help`)\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
-    ap = argparse.ArgumentParser(prog="rtwalk", description=__doc__.splitlines()[0])
+    ap = RtwalkParser(prog="rtwalk", description=__doc__.splitlines()[0])
     sub = ap.add_subparsers(dest="command")
 
     v = sub.add_parser("view", help="interactive window")
