@@ -424,6 +424,25 @@ def test_bench_denoise_checks_first_and_saves_into_a_new_folder(tmp_path):
     assert {"raw.png", "reference.png", "device.png"} <= {f.name for f in save.iterdir()}
 
 
+def test_bench_denoise_uses_the_backend_params(gl_ctx, monkeypatch):
+    """--backend-params reach the renderer (they were checked, then dropped)."""
+    import viewer.renderer
+
+    seen = []
+    real = viewer.renderer.Renderer.__init__
+
+    def spy(self, *a, **k):
+        seen.append(a[6] if len(a) > 6 else k.get("backend_options"))
+        real(self, *a, **k)
+
+    monkeypatch.setattr(viewer.renderer.Renderer, "__init__", spy)
+    proc = run_cli("bench-denoise", "--recording", "room-anim-walk", "--frame", "10", "--size", "16x9",
+                   "--effects", "ao:1", "--reference-samples", "1", "--repeats", "1", "--backend", "chcrt",
+                   "--backend-params", "t_q=0.5", "--quiet")
+    assert proc.returncode == 0, proc.stderr
+    assert seen and all(o == {"chcrt": "t_q=0.5"} for o in seen), seen
+
+
 def test_missing_opencl_device_before_the_scene(tmp_path, monkeypatch):
     from viewer.backends import backend_info, backend_names
 

@@ -30,7 +30,7 @@ def reference_settings(settings, samples: int):
 
 
 def measure(prepared, rec, frame: int, settings, size: tuple[int, int], ctx, reference_samples: int,
-            backend: str | None = None, repeats: int = 3) -> dict:
+            backend: str | None = None, repeats: int = 3, backend_options: dict[str, str] | None = None) -> dict:
     """{raw_mae, library_mae, device_mae, library_ms, device_ms, ...} for one frame (medians of
     `repeats` timings; library entries None without pyoidn)."""
     import numpy as np
@@ -38,8 +38,8 @@ def measure(prepared, rec, frame: int, settings, size: tuple[int, int], ctx, ref
     from viewer.renderer import Renderer
 
     cam = rec.camera_for_frame(frame)
-    renderer = Renderer(ctx, prepared.scene, prepared.bvh, size, backend, reference_settings(settings,
-                                                                                            reference_samples))
+    renderer = Renderer(ctx, prepared.scene, prepared.bvh, size, backend,
+                        reference_settings(settings, reference_samples), backend_options)
     try:
         renderer.set_scene_time(rec.scene_time_for_frame(frame))
         renderer.render(cam)
@@ -117,7 +117,7 @@ def run(args) -> int:
     ctx = create_headless_context()
     prepared = prepare_scene_for_recording(rec, quiet=args.quiet)
     r = measure(prepared, rec, args.frame, settings, size, ctx, args.reference_samples, args.backend,
-                args.repeats)
+                args.repeats, req.backend_options)  # --backend-params were parsed, then dropped
     print(f"{rec.scene_name} frame {args.frame}, {size[0]}x{size[1]}, effects {args.effects}, "
           f"reference: {args.reference_samples} samples; MAE in 1/255 against the reference")
     print(f"  raw             MAE {r['raw_mae']:7.3f}")
