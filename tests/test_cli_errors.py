@@ -328,6 +328,14 @@ def test_bench_name_is_a_stem(tmp_path, name):
     assert "never-loaded" not in proc.stderr
 
 
+def test_bench_progressive_saves_no_frames(tmp_path):
+    """--progressive with --save-frames: refused (the frames were silently not saved)."""
+    proc = run_cli("bench", _never_loaded(tmp_path), "--recording", "recordings/city-near.json", "--progressive",
+                   "--save-frames", str(tmp_path / "frames"), "--out", str(tmp_path / "out"))
+    assert_one_line_error(proc, "--save-frames")
+    assert "never-loaded" not in proc.stderr
+
+
 def test_bench_keeps_saved_frames(tmp_path):
     """--save-frames into a folder holding an earlier run's frames: refused without --force (the
     reports were protected, the frames silently replaced)."""

@@ -353,6 +353,8 @@ def run(args: argparse.Namespace) -> int:
     check_at_least(getattr(args, "first_frame", None), 0, "--first-frame")
     out_dir = check_output_dir(args.out, "--out")
     frames_dir = check_output_dir(args.save_frames, "--save-frames")
+    if frames_dir is not None and getattr(args, "progressive", False):  # it was ignored without a word
+        raise RtwalkError("--save-frames does not apply to --progressive (its replay saves no frames)")
     if args.name and (Path(args.name).name != args.name or args.name in (".", "..")):  # ../x wrote beside --out
         raise RtwalkError(f"--name '{args.name}': a file stem, without folders (the folder is --out)")
     rec = load_recording(rec_path)
