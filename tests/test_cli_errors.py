@@ -451,6 +451,17 @@ def test_bench_denoise_uses_the_backend_params(gl_ctx, monkeypatch):
     assert seen and all(o == {"chcrt": "t_q=0.5"} for o in seen), seen
 
 
+@pytest.mark.parametrize("args,needle", [
+    (["--study", "ooc", "--ooc-scene-size", "0"], "--ooc-scene-size"),  # 0 ran the 10 M default city
+    (["--study", "ooc", "--ooc-scene-size", "999999999"], "--ooc-scene-size"),
+    (["--study", "tuning", "--tuning-grid", "foo=1"], "--tuning-grid"),  # was reported as --chcrt
+], ids=lambda v: " ".join(v) if isinstance(v, list) else v)
+def test_bench_chcrt_study_options(tmp_path, args, needle):
+    proc = run_cli("bench-chcrt", *args, "--out", str(tmp_path / "out"))
+    assert_one_line_error(proc, needle)
+    assert not (tmp_path / "out").exists()
+
+
 def test_missing_opencl_device_before_the_scene(tmp_path, monkeypatch):
     from viewer.backends import backend_info, backend_names
 
