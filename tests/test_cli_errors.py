@@ -236,6 +236,8 @@ def _never_loaded(tmp_path) -> str:
     (["view", "--frame-target-ms", "nan"], "--frame-target-ms"),
     (["render", "--seed", "-1"], "--seed"),  # was a ValueError traceback from NumPy's seeding
     (["render", "--seed", str(2**32)], "--seed"),
+    (["render", "--effects", "primary", "--view", "shadows"], "--view shadows"),  # an all-black image
+    (["render", "--effects", "shadows", "--view", "ao"], "--view ao"),
     (["render", "--exposure", "nan"], "--exposure"),
     (["render", "--exposure", "-1"], "--exposure"),
     (["render", "--exposure", "inf"], "--exposure"),

@@ -40,7 +40,7 @@ def cmd_render(args) -> int:
     from viewer.backends import backend_info, registered_infos
     from viewer.gl.context import create_headless_context
     from viewer.gl.limits import check_target_size
-    from viewer.passes.overlay import check_view
+    from viewer.passes.overlay import check_view, check_view_effect
     from viewer.progressive import render_stepped
     from viewer.recording import load_recording
     from viewer.renderer import Renderer
@@ -49,6 +49,7 @@ def cmd_render(args) -> int:
     req = request_from(args, device=False)
     backend_options, size, settings = req.backend_options, req.size, req.settings
     check_view(args.view, backend_info(args.backend), registered_infos())
+    check_view_effect(args.view, settings, args.effects)
     check_at_least(args.frame, 0, "--frame")
     camera = parse_camera(args.camera) if args.camera else None
     out = check_image_output(args.output)
