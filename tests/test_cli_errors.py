@@ -530,6 +530,14 @@ def test_bench_voxels_ctrl_c_names_the_partial_report(gl_ctx, tmp_path, monkeypa
     assert json.loads((out / "bench_voxels.json").read_text())["complete"] is False
 
 
+def test_scene_size_of_a_file_is_refused(tmp_path):
+    """--scene-size with a scene file (or a recording of one): one line (it was ignored)."""
+    mesh = tmp_path / "tri.obj"
+    mesh.write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n")
+    assert_one_line_error(run_cli("info", str(mesh), "--scene-size", "5"), "--scene-size")
+    assert run_cli("info", "room", "--scene-size", "2").returncode == 0
+
+
 def test_seed_of_a_builtin_scene(tmp_path):
     """`rtwalk render room --seed -1` and bench-bvh's city: one line (a NumPy traceback before)."""
     assert_one_line_error(run_cli("info", "room", "--seed", "-1"), "--seed")

@@ -217,6 +217,12 @@ def scene_from_args(args, recording=None):
         spec = rs.spec
         size = size if size is not None else rs.size
         seed = rs.seed if rs.seed is not None else seed
+    if args.scene_size is not None:  # a scene file has no size: it was ignored without a word
+        from viewer.procedural import BUILTIN_SCENES
+
+        if (spec or "city").partition(":")[0] not in BUILTIN_SCENES:
+            raise RtwalkError(f"--scene-size applies to the built-in scenes ({', '.join(BUILTIN_SCENES)}), "
+                              f"not to the scene file {spec}")
     cameras = None
     if recording is not None:  # default lights for what the recording looks at, not only its first view
         from viewer.session import recording_cameras
