@@ -382,6 +382,20 @@ def test_bench_grids_bad_numbers(args, needle):
     assert_one_line_error(run_cli("bench-grids", "--scene", "mixed", *args, timeout=60), needle)
 
 
+def test_bench_grids_huge_size_is_one_line(gl_ctx, monkeypatch):
+    """--size the GL device cannot hold: one line before the scene (a moderngl.Error traceback from
+    the ray targets). The available memory is pinned low so the test allocates nothing."""
+    import viewer.bench.grids_far as gf
+    import viewer.sysmem
+
+    def never(*a):
+        raise AssertionError("the scene was built before the size was checked")
+
+    monkeypatch.setattr(viewer.sysmem, "available_bytes", lambda: 1 << 30)
+    monkeypatch.setattr(gf, "scene_mixed", never)
+    assert_one_line_error(run_cli("bench-grids", "--scene", "mixed", "--size", "16384x16384"), "16384x16384")
+
+
 def test_bench_grids_json_is_checked_first(tmp_path):
     """--json: an existing file is kept (it was overwritten without --force), a folder or a path under
     a file is refused before the scene is built (it used to fail after the whole run)."""

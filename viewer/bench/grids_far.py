@@ -276,6 +276,11 @@ def run(args) -> int:
 
     size = parse_image_sizes(args.size)[0]
     check_args(args)
+    if not args.build_only:  # the rays live in GL targets: a size the device cannot hold was a moderngl traceback
+        from viewer.gl.context import shared_context
+        from viewer.gl.limits import check_target_size
+
+        check_target_size(shared_context(), size)
     SCENE_DIR[0] = args.scene_dir
     tris, eye, target = scene_dragon(args.offset) if args.scene == "dragon" else scene_mixed()
     if args.build_only:
