@@ -396,6 +396,25 @@ def test_bench_grids_huge_size_is_one_line(gl_ctx, monkeypatch):
     assert_one_line_error(run_cli("bench-grids", "--scene", "mixed", "--size", "16384x16384"), "16384x16384")
 
 
+@pytest.mark.parametrize("args", [["bench-gbuffer", "--size"], ["bench-denoise", "--size"], ["bench-trace", "--sizes"]],
+                         ids=lambda v: v[0])
+def test_huge_bench_size_before_the_scene(gl_ctx, monkeypatch, tmp_path, args):
+    """A size the device cannot hold is refused before the scene is loaded (after it, before)."""
+    import viewer.session
+    import viewer.sysmem
+
+    def never(*a, **k):
+        raise AssertionError("the scene was loaded before the size was checked")
+
+    monkeypatch.setattr(viewer.sysmem, "available_bytes", lambda: 1 << 30)
+    for name in ("prepare_scene", "prepare_scene_for_recording"):
+        monkeypatch.setattr(viewer.session, name, never)
+    extra = ["--out", str(tmp_path / "o")] if args[0] != "bench-denoise" else []
+    proc = run_cli(*args, "4096x4096", "--recording" + ("s" if args[0] == "bench-trace" else ""), "room-anim-walk",
+                   *extra, "--quiet")
+    assert_one_line_error(proc, "4096x4096")
+
+
 def test_bench_grids_json_is_checked_first(tmp_path):
     """--json: an existing file is kept (it was overwritten without --force), a folder or a path under
     a file is refused before the scene is built (it used to fail after the whole run)."""

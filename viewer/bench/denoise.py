@@ -100,6 +100,7 @@ def run(args) -> int:
 
     from viewer.cli_args import check_at_least, check_output_dir, check_report_free, request_from
     from viewer.gl.context import create_headless_context
+    from viewer.gl.limits import check_target_size
     from viewer.paths import resolve_recording
     from viewer.recording import load_recording
     from viewer.session import prepare_scene_for_recording
@@ -115,6 +116,7 @@ def run(args) -> int:
     rec = load_recording(resolve_recording(args.recording))
     rec.camera_for_frame(args.frame)  # in range
     ctx = create_headless_context()
+    check_target_size(ctx, size)  # before the scene (it was refused only after the load and BVH build)
     prepared = prepare_scene_for_recording(rec, quiet=args.quiet)
     r = measure(prepared, rec, args.frame, settings, size, ctx, args.reference_samples, args.backend,
                 args.repeats, req.backend_options)  # --backend-params were parsed, then dropped

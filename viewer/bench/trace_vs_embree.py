@@ -246,6 +246,7 @@ def run(args) -> int:
     from viewer.backends import backend_info, backend_names
     from viewer.effects import parse_effects
     from viewer.gl.context import shared_context
+    from viewer.gl.limits import check_target_size
     from viewer.reference import REFERENCE_BACKEND, EmbreeTracer
 
     sizes = parse_image_sizes(args.sizes)
@@ -269,6 +270,8 @@ def run(args) -> int:
     out = check_output_dir(args.out, "--out")
     check_report_free([out / "bench_trace.json"], getattr(args, "force", False))
     ctx = shared_context()
+    for size in sizes:  # before any scene (each was refused only after its recording's scene loaded)
+        check_target_size(ctx, size)
     device_cl = ""
     if any(backend_info(b).device == "cl" for b in backends):
         from viewer.cl import cl_context
