@@ -680,6 +680,19 @@ def test_force_only_where_reports_are_written():
     assert not with_force & {"bench-light", "bench-bvh-trace"}
 
 
+def test_default_report_folders_are_ignored_by_git():
+    """Every --out default lies under out/ (.gitignore'd): bench-trace and bench-voxels wrote
+    bench-trace/ and bench-voxels/ into the checkout, untracked."""
+    from pathlib import Path
+
+    from viewer.cli import build_parser
+
+    sub = next(a for a in build_parser()._actions if isinstance(a, argparse._SubParsersAction))
+    outs = {name: a.default for name, p in sub.choices.items() for a in p._actions if a.dest == "out" and a.default}
+    assert outs and all(Path(v).parts[0] == "out" for v in outs.values()), outs
+    assert "/out/" in (Path(__file__).parents[1] / ".gitignore").read_text().split()
+
+
 def test_readme_lists_every_command():
     from pathlib import Path
 

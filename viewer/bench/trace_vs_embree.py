@@ -51,7 +51,7 @@ def add_arguments(p) -> None:
     p.add_argument("--embree-threads", default="1,2", help="Embree raw thread counts (default 1,2; empty: none)")
     p.add_argument("--rounds", type=int, default=3, help="interleaved timing rounds (default 3)")
     p.add_argument("--no-check", action="store_true", help="skip the hit/miss agreement with the Embree reference")
-    p.add_argument("--out", default="bench-trace", help="output folder (default bench-trace)")
+    p.add_argument("--out", default="out/bench-trace", help="output folder (default out/bench-trace)")
     p.add_argument("--quiet", action="store_true", help="no progress output")
 
 

@@ -75,7 +75,7 @@ def add_arguments(p) -> None:
     p.add_argument("--no-image", action="store_true", help="skip the full-render image error")
     p.add_argument("--voxelize-only", action="store_true",
                    help="only voxelize and build the structures per resolution (count, time, memory, depth)")
-    p.add_argument("--out", default="bench-voxels", help="folder for bench_voxels.json/.md/.png")
+    p.add_argument("--out", default="out/bench-voxels", help="folder for bench_voxels.json/.md/.png")
     p.add_argument("--quiet", action="store_true", help="no progress output")
 
 
