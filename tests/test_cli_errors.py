@@ -879,6 +879,20 @@ def test_target_limits_and_allocation_errors(gl_ctx, monkeypatch):
     assert "9000x9000" in str(exc.value) and "\n" not in str(exc.value)
 
 
+def test_recording_of_another_scene_warns(capsys):
+    """`render room --recording city-near.json` replays the street cameras in the room (a grey frame)
+    without a word before; its own scene, or none named, gives no warning."""
+    from viewer.cli_args import warn_other_scene
+    from viewer.recording import load_recording
+
+    rec = load_recording("recordings/city-near.json")
+    assert "made for scene 'city'" in warn_other_scene(rec, "room")
+    assert warn_other_scene(rec, "city") is None and warn_other_scene(rec, "city:2M") is None
+    sponza = load_recording("recordings/sponza-walk.json")
+    assert warn_other_scene(sponza, "room") is not None
+    assert "warning" in capsys.readouterr().err
+
+
 def test_reflections_without_mirrors_warn(tmp_path):
     """--effects reflections on a scene without mirror materials: one warning line that says how to
     add mirrors; the frame is still rendered (exit 0)."""

@@ -203,6 +203,31 @@ def warn_no_mirrors(settings, scene) -> str | None:
     return msg
 
 
+def warn_other_scene(recording, scene: str) -> str | None:
+    """A recording replayed in another scene than its own (`render room --recording city-near.json`)
+    shows what its cameras happen to see there, often an empty frame: one warning line on stderr."""
+    from viewer.procedural import BUILTIN_SCENES
+    from viewer.recording import resolve_scene_spec
+    from viewer.scene_io import resolve_scene_path
+
+    def key(spec: str) -> str:
+        base = spec.partition(":")[0]
+        if base in BUILTIN_SCENES:
+            return base
+        try:
+            return str(resolve_scene_path(spec).resolve())
+        except RtwalkError:
+            return spec  # a missing file: the loader reports it
+
+    own = resolve_scene_spec(recording).spec
+    if key(own) == key(scene):
+        return None
+    msg = (f"rtwalk: warning: the recording was made for scene '{Path(own).name}', not '{Path(scene).name}'; its "
+           "cameras may not frame this scene (leave SCENE out to replay the recording's own)")
+    print(msg, file=sys.stderr, flush=True)
+    return msg
+
+
 def scene_from_args(args, recording=None):
     """Scene named on the command line, else the recording's scene, else the default city."""
     from viewer.scene_io import check_seed
@@ -223,6 +248,8 @@ def scene_from_args(args, recording=None):
         if (spec or "city").partition(":")[0] not in BUILTIN_SCENES:
             raise RtwalkError(f"--scene-size applies to the built-in scenes ({', '.join(BUILTIN_SCENES)}), "
                               f"not to the scene file {spec}")
+    if recording is not None and args.scene is not None:
+        warn_other_scene(recording, args.scene)
     cameras = None
     if recording is not None:  # default lights for what the recording looks at, not only its first view
         from viewer.session import recording_cameras
