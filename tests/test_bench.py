@@ -84,6 +84,7 @@ def test_bench_trace_same_rays_against_embree(tmp_path, capsys):
     assert main(["bench-trace", "--recordings", str(path), "--sizes", "48x27", "--effects", "primary,shadows",
                  "--backends", "glsl", "--embree-threads", "1,2", "--rounds", "2", "--out", str(out), "--quiet"]) == 0
     report = json.loads((out / "bench_trace.json").read_text())
+    assert report["complete"] is True
     (group,) = report["groups"]
     rows = {r["ray_type"]: r for r in group["rows"]}
     assert set(rows) == {"primary", "shadows"}
@@ -98,9 +99,43 @@ def test_bench_trace_same_rays_against_embree(tmp_path, capsys):
     assert "Mrays/s" in capsys.readouterr().out
 
 
+def test_bench_trace_ctrl_c_keeps_the_groups_done(tmp_path, monkeypatch):
+    """Ctrl-C during bench-trace's second group: the first group's rows are written, marked
+    "complete": false, with one line and exit 130 (everything measured was lost before)."""
+    import viewer.bench.trace_vs_embree as tve
+    from tests.cli_runner import run_cli
+
+    real, calls = tve.study_frame, []
+
+    def study_then_ctrl_c(*a, **k):
+        calls.append(1)
+        if len(calls) == 2:
+            raise KeyboardInterrupt
+        return real(*a, **k)
+
+    monkeypatch.setattr(tve, "study_frame", study_then_ctrl_c)
+    out = tmp_path / "trace"
+    proc = run_cli("bench-trace", "--recordings", str(_room_path(tmp_path)), "--sizes", "32x18,48x27",
+                   "--effects", "primary", "--backends", "glsl", "--embree-threads", "1", "--rounds", "1",
+                   "--out", str(out), "--quiet")
+    assert proc.returncode == 130, proc.stderr
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("rtwalk: interrupted after 1 groups"), lines
+    assert "partial report" in lines[0]
+    report = json.loads((out / "bench_trace.json").read_text())
+    assert report["complete"] is False and len(report["groups"]) == 1 and report["groups"][0]["size"] == [32, 18]
+
+
 def test_bench_trace_unknown_recording_is_one_error_line(tmp_path, capsys):
     from viewer.cli import main
 
     assert main(["bench-trace", "--recordings", "nope-walk", "--out", str(tmp_path)]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith("rtwalk: error: ") and "nope-walk" in err[0]
+
+
+def test_estimate_is_readable_for_short_runs():
+    """The bench's "estimated ... more" line: seconds for a short replay ("0.0 min" before)."""
+    from viewer.bench.replay import duration_text
+
+    assert duration_text(2.4) == "2 s" and duration_text(89) == "89 s" and duration_text(150) == "2.5 min"

@@ -38,23 +38,23 @@ def _entry_point(kind: str) -> list[str]:
 def test_entry_points_exit_2_with_one_line(tmp_path, kind):
     """What the shell sees from a real process: `python -m viewer.cli` and the installed `rtwalk`
     script exit 2 with one line, no traceback, for a bad scene (RtwalkError) and a bad flag value
-    (argparse's usage line)."""
+    (argparse's message, in one line)."""
     cmd = _entry_point(kind)
     proc = subprocess.run([*cmd, "render", str(tmp_path / "nope.obj"), "-o", str(tmp_path / "x.png")],
                           capture_output=True, text=True, timeout=60)
     assert_one_line_error(proc, "nope.obj")
     proc = subprocess.run([*cmd, "render", "room", "--frame", "x"], capture_output=True, text=True, timeout=60)
-    assert proc.returncode == 2 and "usage: rtwalk render" in proc.stderr, proc.stderr
-    assert "Traceback" not in proc.stderr and "invalid int value" in proc.stderr, proc.stderr
+    assert_one_line_error(proc, "invalid int value")  # argparse's usage block before
+    assert "rtwalk render --help" in proc.stderr and proc.stderr.count("\n") == 1, proc.stderr
 
 
 def test_in_process_runs_match_the_interpreter(monkeypatch):
-    """run_cli in this process: argparse's exit is its status (2 with usage, 0 for --help), an
+    """run_cli in this process: argparse's exit is its status (2 with its line, 0 for --help), an
     escaping exception is exit 1 with its traceback on stderr, and process state comes back."""
     import os
 
     proc = run_cli("render", "room", "--frame", "x")
-    assert proc.returncode == 2 and "usage: rtwalk render" in proc.stderr and "invalid int value" in proc.stderr
+    assert proc.returncode == 2 and "rtwalk render --help" in proc.stderr and "invalid int value" in proc.stderr
     assert run_cli("info", "--help").returncode == 0
 
     import viewer.cli
@@ -100,6 +100,20 @@ def test_corrupt_scene_file(tmp_path):
     bad = tmp_path / "garbage.ply"
     bad.write_bytes(b"ply\nformat binary_little_endian 1.0\nelement vertex 99\n\x00\x01garbage")
     assert_one_line_error(run_cli("render", str(bad), "-o", str(tmp_path / "x.png")), "garbage.ply")
+
+
+def test_truncated_stl_is_not_a_missing_module(tmp_path):
+    """A binary STL cut short: trimesh falls back to its ASCII reader, which imports an optional
+    module; the line said only "No module named 'charset_normalizer'", as if rtwalk were broken."""
+    import struct
+
+    tri = struct.pack("<12fH", *([0.0] * 3), 0, 0, 0, 1, 0, 0, 0, 1, 0, 0)
+    stl = tmp_path / "cut.stl"
+    stl.write_bytes(b"\0" * 80 + struct.pack("<I", 1000) + tri * 10 + tri[:20])
+    proc = run_cli("info", str(stl))
+    assert_one_line_error(proc, "cut.stl")
+    line = proc.stderr.strip().splitlines()[-1]
+    assert not line.endswith("(No module named 'charset_normalizer')"), line
 
 
 def test_empty_mesh(tmp_path):
@@ -218,6 +232,12 @@ def _never_loaded(tmp_path) -> str:
     (["bench", "--fps", "nan"], "--fps"),
     (["bench", "--reference-every", "0"], "--reference-every"),
     (["bench", "--frame-every", "0"], "--frame-every"),
+    (["view", "--frame-target-ms", "0"], "--frame-target-ms"),  # the window took 0 and nan
+    (["view", "--frame-target-ms", "nan"], "--frame-target-ms"),
+    (["render", "--seed", "-1"], "--seed"),  # was a ValueError traceback from NumPy's seeding
+    (["render", "--seed", str(2**32)], "--seed"),
+    (["render", "--effects", "primary", "--view", "shadows"], "--view shadows"),  # an all-black image
+    (["render", "--effects", "shadows", "--view", "ao"], "--view ao"),
     (["render", "--exposure", "nan"], "--exposure"),
     (["render", "--exposure", "-1"], "--exposure"),
     (["render", "--exposure", "inf"], "--exposure"),
@@ -243,12 +263,91 @@ def test_checks_before_the_scene(tmp_path, monkeypatch, args, needle):
     assert "never-loaded" not in proc.stderr
 
 
+@pytest.mark.parametrize("args,needle", [
+    (["render", "room", "--size", "-5x5"], "--size"),
+    (["render", "room", "--bvh-builder", "nosuch"], "nosuch"),
+    (["render", "room", "--nosuch-flag"], "--nosuch-flag"),
+    (["bench-grids", "--scene", "nosuch"], "nosuch"),
+], ids=lambda v: " ".join(v) if isinstance(v, list) else v)
+def test_argparse_errors_are_one_line(args, needle):
+    """Bad flags and values argparse rejects: one `rtwalk: error:` line, exit 2 (a usage block of
+    ~10 lines and "rtwalk render: error: ..." before)."""
+    proc = run_cli(*args)
+    assert_one_line_error(proc, needle)
+    assert proc.stderr.count("\n") == 1 and "--help" in proc.stderr, proc.stderr
+
+
+def test_bare_rtwalk_takes_a_scene(tmp_path, monkeypatch):
+    """README: `rtwalk [demo] [SCENE] ...`: a scene as the first word runs the main job (it was
+    refused as an unknown subcommand); the demo's checks then run before that scene is loaded."""
+    for var in ("DISPLAY", "WAYLAND_DISPLAY"):
+        monkeypatch.delenv(var, raising=False)
+    proc = run_cli(_never_loaded(tmp_path), "--frames", "0", "--quiet")
+    assert_one_line_error(proc, "--frames")
+    assert "never-loaded" not in proc.stderr and "invalid choice" not in proc.stderr
+
+
+def test_headless_demo_replays_the_scenes_own_recording(tmp_path, monkeypatch):
+    """The headless demo of another scene replays a recording made for it (it replayed city-near's
+    street cameras, an empty grey frame in the room), or says there is none, in one line."""
+    for var in ("DISPLAY", "WAYLAND_DISPLAY"):
+        monkeypatch.delenv(var, raising=False)
+    monkeypatch.chdir(tmp_path)
+    assert_one_line_error(run_cli("room", "--frames", "1", "--quiet"), "room")
+    assert not (tmp_path / "out").exists()
+    proc = run_cli("room-anim", "--frames", "1", "--size", "32x18", "--effects", "primary", "--quiet")
+    assert proc.returncode == 0, proc.stderr
+    assert "room-anim-walk" in proc.stderr
+    report = json.loads((tmp_path / "out/demo/room-anim-walk.json").read_text())
+    assert report["frames"] and report["complete"] is True
+
+
+def test_render_keeps_an_existing_image(tmp_path):
+    """-o naming an existing file: refused before the scene without --force (it was replaced silently)."""
+    old = tmp_path / "x.png"
+    old.write_bytes(b"earlier")
+    proc = run_cli("render", _never_loaded(tmp_path), "-o", str(old))
+    assert_one_line_error(proc, "--force")
+    assert "never-loaded" not in proc.stderr and old.read_bytes() == b"earlier"
+    proc = run_cli("render", "room", "--size", "16x9", "--effects", "primary", "-o", str(old), "--force", "--quiet")
+    assert proc.returncode == 0 and old.read_bytes()[:4] == b"\x89PNG", proc.stderr
+
+
 def test_output_is_an_existing_folder(tmp_path):
     folder = tmp_path / "adir"
     folder.mkdir()
     proc = run_cli("render", _never_loaded(tmp_path), "-o", str(folder), timeout=60)
     assert_one_line_error(proc, "folder")
     assert "never-loaded" not in proc.stderr
+
+
+@pytest.mark.parametrize("name", ["../escaped", "sub/x", ".."])
+def test_bench_name_is_a_stem(tmp_path, name):
+    """--name is the report's file stem: `../escaped` wrote the report beside --out, not in it."""
+    proc = run_cli("bench", _never_loaded(tmp_path), "--recording", "recordings/city-near.json",
+                   "--out", str(tmp_path / "out"), "--name", name)
+    assert_one_line_error(proc, "--name")
+    assert "never-loaded" not in proc.stderr
+
+
+def test_bench_progressive_saves_no_frames(tmp_path):
+    """--progressive with --save-frames: refused (the frames were silently not saved)."""
+    proc = run_cli("bench", _never_loaded(tmp_path), "--recording", "recordings/city-near.json", "--progressive",
+                   "--save-frames", str(tmp_path / "frames"), "--out", str(tmp_path / "out"))
+    assert_one_line_error(proc, "--save-frames")
+    assert "never-loaded" not in proc.stderr
+
+
+def test_bench_keeps_saved_frames(tmp_path):
+    """--save-frames into a folder holding an earlier run's frames: refused without --force (the
+    reports were protected, the frames silently replaced)."""
+    frames = tmp_path / "frames"
+    frames.mkdir()
+    (frames / "frame_00000.png").write_bytes(b"earlier")
+    proc = run_cli("bench", _never_loaded(tmp_path), "--recording", "recordings/city-near.json", "--save-frames",
+                   str(frames), "--out", str(tmp_path / "out"))
+    assert_one_line_error(proc, "--force")
+    assert "never-loaded" not in proc.stderr and (frames / "frame_00000.png").read_bytes() == b"earlier"
 
 
 @pytest.mark.parametrize("flag", ["--out", "--save-frames"])
@@ -260,6 +359,142 @@ def test_bench_output_folder_is_a_file(tmp_path, flag):
                    timeout=60)
     assert_one_line_error(proc, "not a folder")
     assert "never-loaded" not in proc.stderr and afile.read_text() == "x"
+
+
+@pytest.mark.parametrize("command", ["bench-chcrt", "bench-pgrid", "bench-voxelwalk", "bench-voxels"])
+def test_study_bench_output_folder_is_a_file(tmp_path, command):
+    """`--out` naming a file: one line before anything runs (these four used to measure, then die
+    in mkdir with a FileExistsError traceback)."""
+    afile = tmp_path / "afile"
+    afile.write_text("x")
+    proc = run_cli(command, "--out", str(afile), timeout=60)
+    assert_one_line_error(proc, "not a folder")
+    assert afile.read_text() == "x"
+
+
+@pytest.mark.parametrize("args,needle", [
+    (["--offset", "nan"], "--offset"),  # was a ValueError traceback from the BVH build
+    (["--offset", "1e300"], "--offset"),
+    (["--rounds", "0"], "--rounds"),  # was run as one round, silently
+    (["--rounds", "-1"], "--rounds"),
+], ids=lambda v: " ".join(v) if isinstance(v, list) else v)
+def test_bench_grids_bad_numbers(args, needle):
+    assert_one_line_error(run_cli("bench-grids", "--scene", "mixed", *args, timeout=60), needle)
+
+
+def test_bench_grids_huge_size_is_one_line(gl_ctx, monkeypatch):
+    """--size the GL device cannot hold: one line before the scene (a moderngl.Error traceback from
+    the ray targets). The available memory is pinned low so the test allocates nothing."""
+    import viewer.bench.grids_far as gf
+    import viewer.sysmem
+
+    def never(*a):
+        raise AssertionError("the scene was built before the size was checked")
+
+    monkeypatch.setattr(viewer.sysmem, "available_bytes", lambda: 1 << 30)
+    monkeypatch.setattr(gf, "scene_mixed", never)
+    assert_one_line_error(run_cli("bench-grids", "--scene", "mixed", "--size", "16384x16384"), "16384x16384")
+
+
+@pytest.mark.parametrize("args", [["bench-gbuffer", "--size"], ["bench-denoise", "--size"], ["bench-trace", "--sizes"]],
+                         ids=lambda v: v[0])
+def test_huge_bench_size_before_the_scene(gl_ctx, monkeypatch, tmp_path, args):
+    """A size the device cannot hold is refused before the scene is loaded (after it, before)."""
+    import viewer.session
+    import viewer.sysmem
+
+    def never(*a, **k):
+        raise AssertionError("the scene was loaded before the size was checked")
+
+    monkeypatch.setattr(viewer.sysmem, "available_bytes", lambda: 1 << 30)
+    for name in ("prepare_scene", "prepare_scene_for_recording"):
+        monkeypatch.setattr(viewer.session, name, never)
+    extra = ["--out", str(tmp_path / "o")] if args[0] != "bench-denoise" else []
+    proc = run_cli(*args, "4096x4096", "--recording" + ("s" if args[0] == "bench-trace" else ""), "room-anim-walk",
+                   *extra, "--quiet")
+    assert_one_line_error(proc, "4096x4096")
+
+
+def test_bench_grids_json_is_checked_first(tmp_path):
+    """--json: an existing file is kept (it was overwritten without --force), a folder or a path under
+    a file is refused before the scene is built (it used to fail after the whole run)."""
+    taken = tmp_path / "grids.json"
+    taken.write_text("keep")
+    assert_one_line_error(run_cli("bench-grids", "--scene", "mixed", "--json", str(taken)), "--force")
+    assert taken.read_text() == "keep"
+    assert_one_line_error(run_cli("bench-grids", "--scene", "mixed", "--json", str(tmp_path)), "folder")
+    assert_one_line_error(run_cli("bench-grids", "--scene", "mixed", "--json", str(taken / "x.json")), "not a folder")
+
+
+@pytest.mark.parametrize("args,needle", [
+    (["--city-size", "0"], "--city-size"),  # was accepted; the city study failed (or ran) minutes later
+    (["--distances", "abc"], "--distances"),  # was a ValueError after table41
+    (["--distances", "1,-2"], "--distances"),
+    (["--light-scene", "nosuch"], "--light-scene"),
+    (["--pgrid-params", "nosuch=1"], "nosuch"),
+], ids=lambda v: " ".join(v) if isinstance(v, list) else v)
+def test_bench_pgrid_checks_before_the_studies(tmp_path, args, needle):
+    proc = run_cli("bench-pgrid", "--scene-dir", str(tmp_path / "never-read"), "--out", str(tmp_path / "out"), *args,
+                   timeout=60)
+    assert_one_line_error(proc, needle)
+    assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize("size", ["0x1", "1x0", "99999x10", "10x"])
+def test_bench_voxels_size_before_the_scene(tmp_path, size):
+    """--size as every other command reads it (0x1 passed, loaded conference, then failed in the GL)."""
+    proc = run_cli("bench-voxels", "--size", size, "--scenes", _never_loaded(tmp_path), "--out", str(tmp_path / "o"))
+    assert_one_line_error(proc, "--size")
+    assert "never-loaded" not in proc.stderr
+
+
+def test_bench_denoise_checks_first_and_saves_into_a_new_folder(tmp_path):
+    """bench-denoise: --backend is checked before the scene (it was after the city's BVH build), the
+    images of an earlier run are kept without --force, and --save's folder is created (a missing
+    one was a FileNotFoundError traceback after the measurement)."""
+    proc = run_cli("bench-denoise", "--backend", "nosuch", "--size", "32x18")
+    assert_one_line_error(proc, "nosuch")
+    assert "BVH" not in proc.stderr
+    taken = tmp_path / "taken"
+    taken.mkdir()
+    (taken / "raw.png").write_bytes(b"keep")
+    assert_one_line_error(run_cli("bench-denoise", "--save", str(taken)), "--force")
+    assert (taken / "raw.png").read_bytes() == b"keep"
+    save = tmp_path / "new" / "images"
+    proc = run_cli("bench-denoise", "--recording", "room-anim-walk", "--frame", "10", "--size", "32x18",
+                   "--effects", "ao:1", "--reference-samples", "2", "--repeats", "1", "--save", str(save), "--quiet")
+    assert proc.returncode == 0, proc.stderr
+    assert {"raw.png", "reference.png", "device.png"} <= {f.name for f in save.iterdir()}
+
+
+def test_bench_denoise_uses_the_backend_params(gl_ctx, monkeypatch):
+    """--backend-params reach the renderer (they were checked, then dropped)."""
+    import viewer.renderer
+
+    seen = []
+    real = viewer.renderer.Renderer.__init__
+
+    def spy(self, *a, **k):
+        seen.append(a[6] if len(a) > 6 else k.get("backend_options"))
+        real(self, *a, **k)
+
+    monkeypatch.setattr(viewer.renderer.Renderer, "__init__", spy)
+    proc = run_cli("bench-denoise", "--recording", "room-anim-walk", "--frame", "10", "--size", "16x9",
+                   "--effects", "ao:1", "--reference-samples", "1", "--repeats", "1", "--backend", "chcrt",
+                   "--backend-params", "t_q=0.5", "--quiet")
+    assert proc.returncode == 0, proc.stderr
+    assert seen and all(o == {"chcrt": "t_q=0.5"} for o in seen), seen
+
+
+@pytest.mark.parametrize("args,needle", [
+    (["--study", "ooc", "--ooc-scene-size", "0"], "--ooc-scene-size"),  # 0 ran the 10 M default city
+    (["--study", "ooc", "--ooc-scene-size", "999999999"], "--ooc-scene-size"),
+    (["--study", "tuning", "--tuning-grid", "foo=1"], "--tuning-grid"),  # was reported as --chcrt
+], ids=lambda v: " ".join(v) if isinstance(v, list) else v)
+def test_bench_chcrt_study_options(tmp_path, args, needle):
+    proc = run_cli("bench-chcrt", *args, "--out", str(tmp_path / "out"))
+    assert_one_line_error(proc, needle)
+    assert not (tmp_path / "out").exists()
 
 
 def test_missing_opencl_device_before_the_scene(tmp_path, monkeypatch):
@@ -283,6 +518,64 @@ def test_missing_egl_before_the_scene(tmp_path, monkeypatch):
     proc = run_cli("render", _never_loaded(tmp_path), "-o", str(tmp_path / "x.png"), timeout=60, subprocess=True)
     assert_one_line_error(proc, "EGL")
     assert "never-loaded" not in proc.stderr
+
+
+def test_scene_size_takes_suffixes():
+    """--scene-size 2M as `city:2M` and --triangles 2M (it was "invalid int value")."""
+    from viewer.cli_args import scene_size_arg
+
+    assert [scene_size_arg(t) for t in ("150000", "400k", "2M", "1_000_000", "1e6", "1.5k")] == [
+        150000, 400000, 2000000, 1000000, 1000000, 1500]
+    proc = run_cli("render", "city", "--scene-size", "2.5", "-o", "x.png")
+    assert proc.returncode == 2 and "--scene-size" in proc.stderr and "Traceback" not in proc.stderr
+    assert_one_line_error(run_cli("info", "city", "--scene-size", "99M"), "out of range")
+
+
+def test_closed_stdout_is_no_traceback():
+    """`rtwalk info room | head -1`: the reader closes the pipe; a BrokenPipeError traceback before."""
+    proc = subprocess.Popen([sys.executable, "-m", "viewer.cli", "info", "room", "--quiet"], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+    proc.stdout.close()
+    err = proc.stderr.read()
+    assert proc.wait(timeout=120) == 1 and "Traceback" not in err and "BrokenPipe" not in err, err
+
+
+def test_bench_voxels_ctrl_c_names_the_partial_report(gl_ctx, tmp_path, monkeypatch):
+    """Ctrl-C after a finished resolution: one line naming the report on disk ("complete": false);
+    it said only "rtwalk: interrupted"."""
+    import viewer.bench.voxels as vb
+
+    real = vb.study_scene
+
+    def ctrl_c_after_the_first_checkpoint(*a):
+        def checkpoint(partial):
+            a[-1](partial)
+            raise KeyboardInterrupt
+        return real(*a[:-1], checkpoint)
+
+    monkeypatch.setattr(vb, "study_scene", ctrl_c_after_the_first_checkpoint)
+    out = tmp_path / "vox"
+    proc = run_cli("bench-voxels", "--scenes", "room", "--resolutions", "32", "--structures", "bvh", "--stacks", "4",
+                   "--size", "32x18", "--rounds", "1", "--no-image", "--out", str(out), "--quiet")
+    assert proc.returncode == 130, proc.stderr
+    said = [ln for ln in proc.stderr.splitlines() if ln.startswith("rtwalk:")]
+    assert len(said) == 1 and str(out / "bench_voxels.json") in said[0], proc.stderr
+    assert json.loads((out / "bench_voxels.json").read_text())["complete"] is False
+
+
+def test_scene_size_of_a_file_is_refused(tmp_path):
+    """--scene-size with a scene file (or a recording of one): one line (it was ignored)."""
+    mesh = tmp_path / "tri.obj"
+    mesh.write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n")
+    assert_one_line_error(run_cli("info", str(mesh), "--scene-size", "5"), "--scene-size")
+    assert run_cli("info", "room", "--scene-size", "2").returncode == 0
+
+
+def test_seed_of_a_builtin_scene(tmp_path):
+    """`rtwalk render room --seed -1` and bench-bvh's city: one line (a NumPy traceback before)."""
+    assert_one_line_error(run_cli("info", "room", "--seed", "-1"), "--seed")
+    assert_one_line_error(run_cli("bench-bvh", "--seed", "-1", "--triangles", "1000", "--out", str(tmp_path)),
+                          "--seed")
 
 
 @pytest.mark.parametrize("sizes,needle", [("abc", "--triangles"), ("0", "out of range"), ("-5", "--triangles"),
@@ -353,6 +646,51 @@ def test_every_option_has_help():
     assert not missing, missing
     helps = {a.dest: a.help for a in sub._choices_actions}
     assert set(helps) == set(sub.choices) and all(helps.values()), helps
+
+
+def test_help_shows_the_defaults():
+    """--help names each option's default (--size, --effects, --backend did not; view's size is not
+    render's), once: a help text that already says its default is left alone."""
+    import re
+
+    def option_help(command: str, option: str) -> str:
+        text = run_cli(command, "--help").stdout
+        block = re.search(rf"^  {re.escape(option)}\b.*?(?=^  -|\Z)", text, re.S | re.M).group(0)
+        return " ".join(block.split())
+
+    assert "(default: 640x360)" in option_help("render", "--size")
+    assert "(default: 896x504)" in option_help("view", "--size")
+    assert "(default: shadows,reflections)" in option_help("view", "--effects")
+    assert "(default: glsl)" in option_help("bench", "--backend")
+    assert "(default: 24)" in option_help("demo", "--frames")
+    assert "(default: 0)" in option_help("bench-voxels", "--record-passes")
+    assert "default: " not in option_help("render", "--quiet")  # a flag
+    assert option_help("bench", "--frames").count("default") == 1  # its text says "default 48"
+
+
+def test_force_only_where_reports_are_written():
+    """--force "overwrites reports already in the output folder": offered only by the commands that
+    write some (bench-light and bench-bvh-trace print a table and had a --force that did nothing)."""
+    from viewer.cli import build_parser
+
+    sub = next(a for a in build_parser()._actions if isinstance(a, argparse._SubParsersAction))
+    with_force = {name for name, p in sub.choices.items() if any("--force" in a.option_strings for a in p._actions)}
+    assert {"bench", "bench-bvh", "bench-cl", "bench-trace", "bench-chcrt", "bench-pgrid", "bench-voxelwalk",
+            "bench-voxels", "bench-gbuffer", "bench-grids", "bench-denoise"} <= with_force
+    assert not with_force & {"bench-light", "bench-bvh-trace"}
+
+
+def test_default_report_folders_are_ignored_by_git():
+    """Every --out default lies under out/ (.gitignore'd): bench-trace and bench-voxels wrote
+    bench-trace/ and bench-voxels/ into the checkout, untracked."""
+    from pathlib import Path
+
+    from viewer.cli import build_parser
+
+    sub = next(a for a in build_parser()._actions if isinstance(a, argparse._SubParsersAction))
+    outs = {name: a.default for name, p in sub.choices.items() for a in p._actions if a.dest == "out" and a.default}
+    assert outs and all(Path(v).parts[0] == "out" for v in outs.values()), outs
+    assert "/out/" in (Path(__file__).parents[1] / ".gitignore").read_text().split()
 
 
 def test_readme_lists_every_command():
@@ -490,6 +828,8 @@ def test_sigint_keeps_the_frames_done(tmp_path):
     text = "".join(err)
     assert code == 130, "\n".join(ln for ln in text.replace("\r", "\n").splitlines() if "frame/s" not in ln)[-3000:]
     assert "Traceback" not in text and "partial report" in text, text[-2000:]
+    said = [ln for ln in text.replace("\r", "\n").splitlines() if ln.startswith("rtwalk:")]
+    assert len(said) == 1 and said[0].startswith("rtwalk: interrupted after"), said  # was two lines
     report = json.loads((out / "cut.json").read_text())
     assert report["complete"] is False and 1 <= len(report["frames"]) < 600
     assert report["summary"]["frames"] == len(report["frames"])
@@ -507,6 +847,11 @@ def test_huge_size_is_one_line(tmp_path):
                    timeout=180, subprocess=True, preexec_fn=limit)
     assert_one_line_error(proc, "16384x16384")
     assert not (tmp_path / "x.png").exists()
+    assert "BVH" not in proc.stderr + proc.stdout  # refused before the scene was loaded (it was after)
+    proc = run_cli("bench", _never_loaded(tmp_path), "--recording", "recordings/city-near.json", "--size",
+                   "16384x16384", "--out", str(tmp_path / "b"), timeout=180, subprocess=True, preexec_fn=limit)
+    assert_one_line_error(proc, "16384x16384")
+    assert "never-loaded" not in proc.stderr
 
 
 def test_target_limits_and_allocation_errors(gl_ctx, monkeypatch):
@@ -532,6 +877,20 @@ def test_target_limits_and_allocation_errors(gl_ctx, monkeypatch):
         with limits.allocation_guard((9000, 9000)):
             raise moderngl.Error("the framebuffer is not complete")
     assert "9000x9000" in str(exc.value) and "\n" not in str(exc.value)
+
+
+def test_recording_of_another_scene_warns(capsys):
+    """`render room --recording city-near.json` replays the street cameras in the room (a grey frame)
+    without a word before; its own scene, or none named, gives no warning."""
+    from viewer.cli_args import warn_other_scene
+    from viewer.recording import load_recording
+
+    rec = load_recording("recordings/city-near.json")
+    assert "made for scene 'city'" in warn_other_scene(rec, "room")
+    assert warn_other_scene(rec, "city") is None and warn_other_scene(rec, "city:2M") is None
+    sponza = load_recording("recordings/sponza-walk.json")
+    assert warn_other_scene(sponza, "room") is not None
+    assert "warning" in capsys.readouterr().err
 
 
 def test_reflections_without_mirrors_warn(tmp_path):

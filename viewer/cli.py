@@ -6,6 +6,7 @@ import argparse
 import os
 import shlex
 import sys
+from pathlib import Path
 
 from viewer.bench import BENCHMARKS, bench_module
 
@@ -21,6 +22,7 @@ from viewer.cli_args import (
     check_at_least,
     check_device,
     check_image_output,
+    check_report_free,
     parse_camera,
     request_from,
     scene_from_args,
@@ -37,7 +39,8 @@ def cmd_render(args) -> int:
 
     from viewer.backends import backend_info, registered_infos
     from viewer.gl.context import create_headless_context
-    from viewer.passes.overlay import check_view
+    from viewer.gl.limits import check_target_size
+    from viewer.passes.overlay import check_view, check_view_effect
     from viewer.progressive import render_stepped
     from viewer.recording import load_recording
     from viewer.renderer import Renderer
@@ -46,14 +49,17 @@ def cmd_render(args) -> int:
     req = request_from(args, device=False)
     backend_options, size, settings = req.backend_options, req.size, req.settings
     check_view(args.view, backend_info(args.backend), registered_infos())
+    check_view_effect(args.view, settings, args.effects)
     check_at_least(args.frame, 0, "--frame")
     camera = parse_camera(args.camera) if args.camera else None
     out = check_image_output(args.output)
+    check_report_free([out], args.force, "-o/--output")  # an earlier picture is kept unless --force
     rec = load_recording(args.recording) if args.recording else None
     if camera is None and rec is not None:
         camera = rec.camera_for_frame(args.frame)
     check_device(args.backend)
     ctx = create_headless_context()  # no EGL: fail before loading
+    check_target_size(ctx, size)  # a size the device cannot hold, before the scene (the Renderer checks again)
     prepared = scene_from_args(args, rec)
     warn_no_mirrors(settings, prepared.scene)
     if camera is None:
@@ -113,18 +119,66 @@ def cmd_demo(args) -> int:
     """The main job: a window where there is a display, else a headless replay with a report."""
     if os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY"):
         return cmd_view(args)
-    print("rtwalk: no display: replaying recordings/city-near.json headless "
+    request_from(args, device=False)  # what needs no scene is refused before the recording is chosen
+    check_at_least(args.frames, 1, "--frames")
+    rec = demo_recording(args.scene)
+    print(f"rtwalk: no display: replaying recordings/{rec.name} headless "
           "(frames and report in out/demo/)", file=sys.stderr)
-    args.recording = str(DEFAULT_RECORDING)
+    args.recording = str(rec)
     args.save_frames = "out/demo/frames"
     args.out = "out/demo"
-    args.name = "city-near"
+    args.name = rec.stem
     args.force = True  # the demo's own folder: each headless demo replaces the last one's report
     return bench_module("bench").run(args)
 
 
+def demo_recording(scene: str | None) -> Path:
+    """The shipped recording the headless demo replays: city-near for the city, else the one made
+    for SCENE (its cameras look at that scene; city-near's showed an empty grey frame in the room).
+    One line when no shipped recording shows SCENE."""
+    from viewer.paths import RECORDINGS
+    from viewer.procedural import BUILTIN_SCENES
+    from viewer.recording import load_recording, resolve_scene_spec
+    from viewer.scene_io import resolve_scene_path
+
+    base = (scene or "city").partition(":")[0]
+    if base == "city" or (base not in BUILTIN_SCENES and "/" not in base and "." not in base):
+        return DEFAULT_RECORDING  # the city, or an unknown name the scene loader reports
+    wanted = base if base in BUILTIN_SCENES else str(resolve_scene_path(scene).resolve())
+    shipped = sorted(RECORDINGS.glob("*.json"))
+    for path in shipped:
+        spec = resolve_scene_spec(load_recording(path)).spec
+        if spec == wanted or (spec not in BUILTIN_SCENES and str(Path(spec).resolve()) == wanted):
+            return path
+    raise RtwalkError(f"no shipped recording shows scene '{scene}' (the headless demo replays one; shipped: "
+                      f"{', '.join(p.stem for p in shipped)}); use `rtwalk bench {scene} --recording FILE`")
+
+
+class DefaultsFormatter(argparse.HelpFormatter):
+    """Help that shows each option's default (--size, --effects, --backend, ... did not say theirs,
+    and view's 896x504 differs from render's 640x360), unless its text already names it."""
+
+    def _get_help_string(self, action: argparse.Action) -> str:
+        text = action.help or ""
+        d = action.default
+        shown = action.option_strings and not (d is None or isinstance(d, bool) or d in ([], "", argparse.SUPPRESS))
+        if shown and "default" not in text:
+            text += " (default: %(default)s)"
+        return text
+
+
+class RtwalkParser(argparse.ArgumentParser):
+    """Bad arguments are one line, exit 2, as every other bad input (README); argparse printed its
+    usage block (~10 lines) and "rtwalk render: error: ...". Subcommand parsers are of this class too."""
+
+    def error(self, message: str):
+        if message.endswith("expected one argument"):  # `--size -5x5`: the value was taken for a flag
+            message += " (a value that starts with '-' is written --flag=VALUE)"
+        self.exit(2, f"rtwalk: error: {message} (see `{self.prog} --help`)\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
-    ap = argparse.ArgumentParser(prog="rtwalk", description=__doc__.splitlines()[0])
+    ap = RtwalkParser(prog="rtwalk", description=__doc__.splitlines()[0])
     sub = ap.add_subparsers(dest="command")
 
     v = sub.add_parser("view", help="interactive window")
@@ -152,6 +206,8 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--view", default="final", help="final or one pass alone (albedo, normal, depth, shadows, ...)")
     r.add_argument("-o", "--output", default="out/render.png",
                    help="image file (.png, .jpg, .bmp, .tif, .ppm, .webp, .tga); its folder is created")
+    r.add_argument("--force", action="store_true", help="replace the image if -o names an existing file "
+                                                          "(default: refuse)")
     add_denoise_arg(r)
 
     for command in BENCHMARKS:  # every benchmark registers itself (viewer/bench/__init__.py)
@@ -159,7 +215,7 @@ def build_parser() -> argparse.ArgumentParser:
         module.add_arguments(sub.add_parser(command, help=module.HELP))
 
     for name, parser in sub.choices.items():  # nothing lost: every report writer refuses to overwrite
-        if name.startswith("bench"):
+        if name.startswith("bench") and getattr(bench_module(name), "WRITES_REPORTS", True):
             add_force_arg(parser)
 
     i = sub.add_parser("info", help="scene statistics, or a backend's description and parameters (--backend NAME)")
@@ -171,14 +227,17 @@ def build_parser() -> argparse.ArgumentParser:
     add_effect_args(d, "shadows,ao:4,reflections")
     d.add_argument("--frames", type=int, default=24, help="without a display: frames replayed (>= 1)")
     add_denoise_arg(d)
+    for parser in sub.choices.values():
+        parser.formatter_class = DefaultsFormatter
     return ap
 
 
 def main(argv: list[str] | None = None) -> int:
     ap = build_parser()
     argv = list(sys.argv[1:] if argv is None else argv)
-    if not argv or (argv[0].startswith("-") and argv[0] not in ("-h", "--help")):
-        argv = ["demo"] + argv  # bare `rtwalk [options]` runs the main job
+    subcommands = next(a.choices for a in ap._actions if isinstance(a, argparse._SubParsersAction))
+    if not argv or (argv[0] not in subcommands and argv[0] not in ("-h", "--help")):
+        argv = ["demo"] + argv  # bare `rtwalk [SCENE] [options]` runs the main job
     args = ap.parse_args(argv)
     args.command_line = shlex.join(["rtwalk", *argv])  # what the reports quote to reproduce a run
     handlers = {"view": cmd_view, "render": cmd_render, "info": cmd_info, "demo": cmd_demo}
@@ -196,8 +255,14 @@ def main(argv: list[str] | None = None) -> int:
     except RtwalkError as exc:
         print(f"rtwalk: error: {exc}", file=sys.stderr)
         return 2
-    except KeyboardInterrupt:
-        print("rtwalk: interrupted", file=sys.stderr)
+    except BrokenPipeError:  # `rtwalk info SCENE | head -1`: the reader left; no traceback
+        try:  # the interpreter flushes stdout at exit: point it at /dev/null so that flush cannot fail
+            os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        except (OSError, ValueError, AttributeError):  # stdout is not a file (tests capture it)
+            pass
+        return 1
+    except KeyboardInterrupt as exc:  # a command that kept partial work says so in the exception: one line
+        print(f"rtwalk: {exc.args[0]}" if exc.args else "rtwalk: interrupted", file=sys.stderr)
         return 130
 
 

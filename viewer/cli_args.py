@@ -77,10 +77,26 @@ def parse_camera(text: str):
     return Camera.look_at(vals[:3], vals[3:6], fov_y=vals[6] if len(vals) == 7 else 60.0)
 
 
+def scene_size_arg(text: str) -> int:
+    """--scene-size: a whole number, with k/M suffixes as `city:2M` and bench-bvh's --triangles take
+    them (`--scene-size 2M` was an invalid int)."""
+    t = text.strip().replace("_", "")
+    mult = {"k": 1_000, "m": 1_000_000}.get(t[-1:].lower(), 1)
+    try:
+        v = float(t[:-1] if mult > 1 else t) * mult
+    except ValueError:
+        v = math.nan
+    if not (math.isfinite(v) and v == int(v)):
+        raise argparse.ArgumentTypeError(f"expected a whole number like 150000, 400k or 2M, got '{text}'")
+    return int(v)
+
+
 def add_scene_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("scene", nargs="?", default=None,
                    help="scene file (OBJ/PLY/GLB/STL/OFF) or built-in name (city, room, room-anim); default: city")
-    p.add_argument("--scene-size", type=int, default=None, help="triangles for procedural scenes (city)")
+    p.add_argument("--scene-size", type=scene_size_arg, default=None,
+                   help="size of a built-in scene: city: triangles (1000..40000000, default 150000); "
+                        "room, room-anim: detail level (1..6, default 1)")
     p.add_argument("--seed", type=int, default=1, help="seed for procedural scenes")
     p.add_argument("--mirror", action="append", default=[], metavar="PATTERN",
                    help="material name pattern made a mirror (repeatable, fnmatch, case-insensitive)")
@@ -187,11 +203,38 @@ def warn_no_mirrors(settings, scene) -> str | None:
     return msg
 
 
+def warn_other_scene(recording, scene: str) -> str | None:
+    """A recording replayed in another scene than its own (`render room --recording city-near.json`)
+    shows what its cameras happen to see there, often an empty frame: one warning line on stderr."""
+    from viewer.procedural import BUILTIN_SCENES
+    from viewer.recording import resolve_scene_spec
+    from viewer.scene_io import resolve_scene_path
+
+    def key(spec: str) -> str:
+        base = spec.partition(":")[0]
+        if base in BUILTIN_SCENES:
+            return base
+        try:
+            return str(resolve_scene_path(spec).resolve())
+        except RtwalkError:
+            return spec  # a missing file: the loader reports it
+
+    own = resolve_scene_spec(recording).spec
+    if key(own) == key(scene):
+        return None
+    msg = (f"rtwalk: warning: the recording was made for scene '{Path(own).name}', not '{Path(scene).name}'; its "
+           "cameras may not frame this scene (leave SCENE out to replay the recording's own)")
+    print(msg, file=sys.stderr, flush=True)
+    return msg
+
+
 def scene_from_args(args, recording=None):
     """Scene named on the command line, else the recording's scene, else the default city."""
+    from viewer.scene_io import check_seed
     from viewer.session import prepare_scene
 
     spec, size, seed = args.scene, args.scene_size, args.seed
+    check_seed(seed)
     if spec is None and recording is not None:
         from viewer.recording import resolve_scene_spec
 
@@ -199,6 +242,14 @@ def scene_from_args(args, recording=None):
         spec = rs.spec
         size = size if size is not None else rs.size
         seed = rs.seed if rs.seed is not None else seed
+    if args.scene_size is not None:  # a scene file has no size: it was ignored without a word
+        from viewer.procedural import BUILTIN_SCENES
+
+        if (spec or "city").partition(":")[0] not in BUILTIN_SCENES:
+            raise RtwalkError(f"--scene-size applies to the built-in scenes ({', '.join(BUILTIN_SCENES)}), "
+                              f"not to the scene file {spec}")
+    if recording is not None and args.scene is not None:
+        warn_other_scene(recording, args.scene)
     cameras = None
     if recording is not None:  # default lights for what the recording looks at, not only its first view
         from viewer.session import recording_cameras

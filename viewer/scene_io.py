@@ -45,6 +45,7 @@ def load_scene(spec: str | None, scene_size: int | None = None, seed: int = 1,
     if name in BUILTIN_SCENES:
         b = BUILTIN_SCENES[name]
         size = check_builtin_size(name, b.default_size if scene_size is None else int(scene_size))
+        check_seed(seed, "seed")  # a recording's scene seed too
         scene = b.make(size, seed)
         if mirror_patterns:
             _apply_mirrors(scene.materials, mirror_patterns)
@@ -53,6 +54,15 @@ def load_scene(spec: str | None, scene_size: int | None = None, seed: int = 1,
         raise RtwalkError(f"unknown built-in scene '{name}' (built-ins: {', '.join(BUILTIN_SCENES)})")
     path = resolve_scene_path(name)
     return _load_file(path, name, mirror_patterns or [], progress)
+
+
+MAX_SEED = 2**32 - 1  # NumPy's seed range; -1 was a ValueError traceback from inside NumPy
+
+
+def check_seed(seed: int | None, flag: str = "--seed") -> None:
+    """A procedural scene's seed within NumPy's range, else one line (None: not given)."""
+    if seed is not None and not 0 <= seed <= MAX_SEED:
+        raise RtwalkError(f"{flag} must be in 0..{MAX_SEED} (got {seed})")
 
 
 def check_builtin_size(name: str, size: int, flag: str = "--scene-size") -> int:
@@ -178,6 +188,9 @@ def _load_file(path: Path, given: str, mirror_patterns: list[str], progress: boo
     try:
         with _elapsed_ticker(f"reading {path.name}", progress):
             loaded = trimesh.load(str(path), force="scene", process=False)  # we clean, and say what we drop
+    except ImportError as exc:  # a corrupt file sent trimesh to an optional reader (truncated STL: ASCII)
+        raise RtwalkError(f"{path}: cannot read scene file (corrupt or truncated {path.suffix.lstrip('.').upper()} "
+                          f"file; trimesh's fallback reader needs module '{exc.name}', not installed)") from None
     except Exception as exc:  # trimesh raises many types for corrupt files
         msg = str(exc).splitlines()[0][:120] if str(exc) else type(exc).__name__
         raise RtwalkError(f"{path}: cannot read scene file ({msg})") from None

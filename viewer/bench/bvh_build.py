@@ -73,8 +73,10 @@ def run(args) -> int:
     from viewer.accel.bvh4 import build_bvh4
     from viewer.bench.report import write_json
     from viewer.procedural import make_city
+    from viewer.scene_io import check_seed
 
     sizes = parse_sizes(args.triangles, flag="--triangles")
+    check_seed(args.seed)
     builders = parse_choices(args.builders, BUILDERS, "--builders")
     out = check_output_dir(args.out, "--out")
     check_report_free([out / "bvh-build.json"], getattr(args, "force", False))

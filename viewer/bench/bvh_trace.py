@@ -29,6 +29,7 @@ def make_rays(tris: np.ndarray, n: int, seed: int = 1) -> tuple[np.ndarray, np.n
     return o, d
 
 
+WRITES_REPORTS = False  # a table on stdout: no --force (it had one that did nothing)
 HELP = "clbvh trace speed and SAH cost on the SAH-built and the device-built BVH, same rays"
 
 

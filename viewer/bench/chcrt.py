@@ -187,7 +187,10 @@ def options_from_args(args: argparse.Namespace) -> StudyOptions:
         o.tuning_effects = ["ao:1"]
     o.tuning_grid = args.tuning_grid or ("t_q=0.5|2" if quick else o.tuning_grid)
     for params in tuning_configs(o.tuning_grid):
-        effective_params(params)  # bad grid text fails here
+        try:
+            effective_params(params)  # bad grid text fails here
+        except RtwalkError as exc:  # it was reported as --chcrt's
+            raise RtwalkError(f"--tuning-grid '{o.tuning_grid}': {str(exc).removeprefix('--chcrt: ')}") from None
     if args.ooc_recordings:
         o.ooc_recordings = [resolve_recording(r) for r in _split(args.ooc_recordings)]
     from viewer.recording import load_recording as _load_rec
@@ -195,9 +198,12 @@ def options_from_args(args: argparse.Namespace) -> StudyOptions:
     for path in o.ooc_recordings:
         if "builtin" not in _load_rec(path).scene:
             raise RtwalkError(f"--ooc-recordings: {path.name} does not use a builtin scene (its size is scaled)")
-    o.ooc_scene_size = args.ooc_scene_size or (40_000 if quick else o.ooc_scene_size)
-    if o.ooc_scene_size < 1000:
-        raise RtwalkError("--ooc-scene-size must be >= 1000 triangles")
+    if args.ooc_scene_size is not None:  # `or` took 0 for "not given": a 10 M city instead of an error
+        from viewer.scene_io import check_builtin_size
+
+        o.ooc_scene_size = check_builtin_size("city", args.ooc_scene_size, "--ooc-scene-size")
+    elif quick:
+        o.ooc_scene_size = 40_000
     try:
         o.ooc_fractions = [float(f) for f in _split(args.ooc_fractions)] if args.ooc_fractions else o.ooc_fractions
     except ValueError:
@@ -929,8 +935,9 @@ def run(args: argparse.Namespace) -> int:
             print(f"note: {n}")
         print(format_estimate(est))
         return 0
-    from viewer.cli_args import check_report_free
+    from viewer.cli_args import check_output_dir, check_report_free
 
+    check_output_dir(str(o.out), "--out")
     check_report_free([o.out / f"{s}.json" for s in o.studies], getattr(args, "force", False))
     run_studies(o)
     return 0

@@ -30,7 +30,7 @@ def reference_settings(settings, samples: int):
 
 
 def measure(prepared, rec, frame: int, settings, size: tuple[int, int], ctx, reference_samples: int,
-            backend: str | None = None, repeats: int = 3) -> dict:
+            backend: str | None = None, repeats: int = 3, backend_options: dict[str, str] | None = None) -> dict:
     """{raw_mae, library_mae, device_mae, library_ms, device_ms, ...} for one frame (medians of
     `repeats` timings; library entries None without pyoidn)."""
     import numpy as np
@@ -38,8 +38,8 @@ def measure(prepared, rec, frame: int, settings, size: tuple[int, int], ctx, ref
     from viewer.renderer import Renderer
 
     cam = rec.camera_for_frame(frame)
-    renderer = Renderer(ctx, prepared.scene, prepared.bvh, size, backend, reference_settings(settings,
-                                                                                            reference_samples))
+    renderer = Renderer(ctx, prepared.scene, prepared.bvh, size, backend,
+                        reference_settings(settings, reference_samples), backend_options)
     try:
         renderer.set_scene_time(rec.scene_time_for_frame(frame))
         renderer.render(cam)
@@ -92,27 +92,34 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--quiet", action="store_true", help="no progress output")
 
 
+SAVED_IMAGES = ("raw", "reference", "device", "library")  # --save: <name>.png
+
+
 def run(args) -> int:
     from PIL import Image
 
-    from viewer.cli_args import check_at_least, check_output_dir, parse_size, settings_from
+    from viewer.cli_args import check_at_least, check_output_dir, check_report_free, request_from
     from viewer.gl.context import create_headless_context
+    from viewer.gl.limits import check_target_size
     from viewer.paths import resolve_recording
     from viewer.recording import load_recording
     from viewer.session import prepare_scene_for_recording
 
-    size = parse_size(args.size)
-    settings = settings_from(args)
+    req = request_from(args)  # backend (was checked only after the scene loaded), size, effects
+    size, settings = req.size, req.settings
     check_at_least(args.reference_samples, 1, "--reference-samples")
     check_at_least(args.repeats, 1, "--repeats")
     check_at_least(args.frame, 0, "--frame")
     save = check_output_dir(args.save, "--save")
+    if save is not None:  # the images of an earlier run are kept unless --force
+        check_report_free([save / f"{n}.png" for n in SAVED_IMAGES], getattr(args, "force", False), "--save")
     rec = load_recording(resolve_recording(args.recording))
     rec.camera_for_frame(args.frame)  # in range
     ctx = create_headless_context()
+    check_target_size(ctx, size)  # before the scene (it was refused only after the load and BVH build)
     prepared = prepare_scene_for_recording(rec, quiet=args.quiet)
     r = measure(prepared, rec, args.frame, settings, size, ctx, args.reference_samples, args.backend,
-                args.repeats)
+                args.repeats, req.backend_options)  # --backend-params were parsed, then dropped
     print(f"{rec.scene_name} frame {args.frame}, {size[0]}x{size[1]}, effects {args.effects}, "
           f"reference: {args.reference_samples} samples; MAE in 1/255 against the reference")
     print(f"  raw             MAE {r['raw_mae']:7.3f}")
@@ -122,6 +129,7 @@ def run(args) -> int:
         print(f"  library (OIDN)  not run: {r['library_missing']}")
     print(f"  device a-trous  MAE {r['device_mae']:7.3f}   cost {r['device_ms']:8.1f} ms ({r['device_draws']} draws)")
     if save is not None:
+        save.mkdir(parents=True, exist_ok=True)  # a missing folder was a traceback after the measurement
         for name, img in r["images"].items():
             Image.fromarray(img).save(save / f"{name}.png")
         print(f"images: {save}")

@@ -102,6 +102,7 @@ def run(args) -> int:
     from viewer.bench.report import write_study
     from viewer.cli_args import check_at_least, check_output_dir, check_report_free, parse_size
     from viewer.gl.context import create_headless_context
+    from viewer.gl.limits import check_target_size
     from viewer.paths import resolve_recording
     from viewer.recording import load_recording
     from viewer.session import prepare_scene_for_recording
@@ -116,6 +117,7 @@ def run(args) -> int:
     rec = load_recording(resolve_recording(args.recording))
     cameras = [rec.camera_for_frame(args.first_frame + k) for k in range(args.frames)]  # in range
     ctx = create_headless_context()
+    check_target_size(ctx, size)  # before the scene (it was refused only after the load and BVH build)
     prepared = prepare_scene_for_recording(rec, scene_size=args.scene_size, quiet=args.quiet)
     every = max(1, args.frames // 10)
     configs = measure(prepared, cameras, size, ctx,

@@ -22,6 +22,8 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
+import os
 import resource
 import statistics
 import sys
@@ -50,7 +52,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "traced as reflection rays")
     p.add_argument("--rounds", type=int, default=3, help="interleaved timing rounds (default 3)")
     p.add_argument("--scene-dir", default="", help="folder of the shared scenes (default ../shared/scenes)")
-    p.add_argument("--json", default="", help="write the rows to this file")
+    p.add_argument("--json", default="", help="write the rows (with --build-only: the grid's figures) to this "
+                                               "file; an existing file is refused without --force")
     p.add_argument("--build-only", action="store_true",
                    help="only build the uniform grid (ugrid's GridSpec) and report its pairs and MiB")
 
@@ -231,17 +234,53 @@ def build_only(args, tris: np.ndarray) -> int:
     grid = UniformGrid(ctx)
     st = grid.build(buf, len(tris), *scene_box(tris), GridSpec())
     mib = sum(b.size for b in grid._bufs.bufs.values()) / 2**20
+    rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     print(f"scene {args.scene} offset {args.offset:g}: res {st.res} pairs {st.pairs:,} grid buffers {mib:.1f} MiB "
-          f"build {st.build_ms:.0f} ms peak RSS {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024:.0f} MiB")
+          f"build {st.build_ms:.0f} ms peak RSS {rss:.0f} MiB")
     grid.release()
     buf.release()
+    _write_json(args.json, {"scene": args.scene, "offset": args.offset, "build_only": {
+        "grid_res": [int(v) for v in st.res], "grid_pairs": int(st.pairs), "grid_mib": mib,
+        "build_ms": float(st.build_ms), "peak_rss_mib": rss}})
     return 0
+
+
+MAX_OFFSET = 1e30  # float32 coordinates stay finite (and their squares in float64) well past this
+
+
+def check_args(args) -> None:
+    """What needs no scene, before the scene is made: the offset, the rounds and the --json file
+    (refused when it exists unless --force, or when it cannot be written)."""
+    from viewer.cli_args import check_at_least, check_output_dir, check_report_free
+
+    if not (math.isfinite(args.offset) and abs(args.offset) <= MAX_OFFSET):
+        raise RtwalkError(f"--offset must be a finite number within +-{MAX_OFFSET:g} (got {args.offset})")
+    check_at_least(args.rounds, 1, "--rounds")
+    if args.json:
+        out = Path(args.json).expanduser()
+        if out.is_dir() or args.json.endswith(os.sep):
+            raise RtwalkError(f"--json {args.json}: is a folder, expected a file name (e.g. out/grids.json)")
+        check_output_dir(str(out.parent), "--json")
+        check_report_free([out], getattr(args, "force", False), "--json")
+
+
+def _write_json(path: str, report: dict) -> None:
+    if path:
+        out = Path(path).expanduser()
+        out.parent.mkdir(parents=True, exist_ok=True)
+        out.write_text(json.dumps(report, indent=1))
 
 
 def run(args) -> int:
     from viewer.cli_args import parse_image_sizes
 
     size = parse_image_sizes(args.size)[0]
+    check_args(args)
+    if not args.build_only:  # the rays live in GL targets: a size the device cannot hold was a moderngl traceback
+        from viewer.gl.context import shared_context
+        from viewer.gl.limits import check_target_size
+
+        check_target_size(shared_context(), size)
     SCENE_DIR[0] = args.scene_dir
     tris, eye, target = scene_dragon(args.offset) if args.scene == "dragon" else scene_mixed()
     if args.build_only:
@@ -261,7 +300,7 @@ def run(args) -> int:
                       "times": []}
     ids_of: dict[str, np.ndarray] = {}
     t_of: dict[str, np.ndarray] = {}
-    for _ in range(max(1, args.rounds)):
+    for _ in range(args.rounds):
         for name in names:
             ms, ids, t = runners[name].trace()
             rows[name]["times"].append(ms)
@@ -298,9 +337,7 @@ def run(args) -> int:
     print(f"peak RSS {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024:.0f} MiB")
     for r in runners.values():
         r.release()
-    if args.json:
-        with open(args.json, "w") as fh:
-            json.dump({"scene": args.scene, "offset": args.offset, "rows": list(rows.values())}, fh, indent=1)
+    _write_json(args.json, {"scene": args.scene, "offset": args.offset, "rows": list(rows.values())})
     return 0
 
 

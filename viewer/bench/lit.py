@@ -40,6 +40,7 @@ def lit_fractions(prepared, rec, ctx, size: tuple[int, int], every: int = 60,
     return out
 
 
+WRITES_REPORTS = False  # a table on stdout: no --force (it had one that did nothing)
 HELP = "share of directly lit pixels (--view shadows) along the shipped recordings, every 60th frame"
 
 

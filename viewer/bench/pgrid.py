@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import math
 import statistics
 import time
 from pathlib import Path
@@ -41,7 +42,7 @@ from viewer.bench.common import log, study_scene
 from viewer.bench.pgrid_studies import study_anim, study_pairs, study_rearrange
 from viewer.bench.plots import figure, finish
 from viewer.bench.report import fmt, md_table, size_text, write_study
-from viewer.cli_args import check_report_free, parse_choices, parse_image_sizes
+from viewer.cli_args import check_output_dir, check_report_free, parse_choices, parse_image_sizes
 from viewer.errors import RtwalkError
 from viewer.paths import SHARED_SCENES
 
@@ -293,7 +294,7 @@ def study_lightdist(args, ctx) -> dict:
     l0 = prep.scene.point_lights[0]
     axis = l0.position.astype(np.float64) - centre
     axis = axis / np.linalg.norm(axis) if np.linalg.norm(axis) > 0 else np.array([0.0, 1.0, 0.0])
-    dists = [float(x) for x in args.distances.split(",") if x.strip()]
+    dists = parse_distances(args.distances)
     size = parse_image_sizes(args.sizes, "--sizes")[0]
     extra = args.pgrid_params
     # a fixed angular resolution (as the thesis's grid): tiles fill up as the light recedes, which is
@@ -398,6 +399,31 @@ def study_model(args, table41: dict | None) -> dict:
 # ---------------------------------------------------------------------------------------------- run
 
 
+def parse_distances(text: str) -> list[float]:
+    """--distances: finite numbers > 0 (scene diagonals), at least one."""
+    try:
+        dists = [float(x) for x in text.split(",") if x.strip()]
+    except ValueError:
+        dists = []
+    if not dists or not all(math.isfinite(d) and d > 0 for d in dists):
+        raise RtwalkError(f"--distances: expected a comma list of numbers > 0 (got '{text}')")
+    return dists
+
+
+def check_scene_args(args) -> None:
+    """The city's size, the light study's scene and distances and --pgrid-params, before any study
+    runs (a bad one used to surface only when its study came, after the earlier ones' minutes)."""
+    from viewer.backends import check_params
+    from viewer.scene_io import check_builtin_size
+
+    check_builtin_size("city", args.city_size, "--city-size")
+    if args.light_scene not in SCENES:
+        raise RtwalkError(f"--light-scene: unknown {args.light_scene} (choose from {', '.join(SCENES)})")
+    parse_distances(args.distances)
+    if args.pgrid_params:
+        check_params("pgrid", args.pgrid_params, "--pgrid-params")
+
+
 def run(args) -> int:
     from viewer.cl import cl_context
     from viewer.gl.context import shared_context
@@ -413,6 +439,8 @@ def run(args) -> int:
     if ("model" in studies or "rearrange" in studies) and "table41" not in studies:
         raise RtwalkError("--study: model and rearrange need table41 in the same run")
     args.anim_size = parse_image_sizes(args.anim_size, "--anim-size")[0]
+    check_scene_args(args)
+    check_output_dir(args.out, "--out")
     check_report_free([Path(args.out) / f"{s}.json" for s in studies], getattr(args, "force", False))
     cl_context()
     ctx = shared_context()

@@ -107,6 +107,11 @@ def save_overlay_views(renderer: Renderer, camera, folder: Path, frame: int) -> 
     return saved
 
 
+def duration_text(seconds: float) -> str:
+    """"45 s" under a minute and a half, else "2.5 min" (a short replay said "0.0 min more")."""
+    return f"{seconds:.0f} s" if seconds < 90 else f"{seconds / 60:.1f} min"
+
+
 def run_bench(prepared: PreparedScene, rec, settings: EffectSettings, opts: BenchOptions,
               ctx, quiet: bool = False) -> dict:
     renderer = Renderer(ctx, prepared.scene, prepared.bvh, opts.size, opts.backend, settings, opts.backend_options)
@@ -144,7 +149,8 @@ def run_bench(prepared: PreparedScene, rec, settings: EffectSettings, opts: Benc
                     # a checked frame costs `first`, an unchecked one its render part
                     est = (first * (checked - 1) + t_render0 * (len(frames) - checked) if checked
                            else first * (len(frames) - 1))
-                    tqdm.write(f"bench: estimated {est / 60:.1f} min more (first frame {first:.1f} s)", file=sys.stderr)
+                    tqdm.write(f"bench: estimated {duration_text(est)} more (first frame {first:.1f} s)",
+                               file=sys.stderr)
                 t_frame = time.perf_counter()
                 cam = rec.camera_for_frame(n, opts.fps)
                 renderer.set_scene_time(rec.scene_time_for_frame(n, opts.fps))
@@ -330,6 +336,7 @@ def run(args: argparse.Namespace) -> int:
         warn_no_mirrors,
     )
     from viewer.gl.context import create_headless_context
+    from viewer.gl.limits import check_target_size
     from viewer.recording import load_recording
 
     rec_path = args.recording or (DEFAULT_RECORDING if args.scene in (None, "city") else None)
@@ -346,15 +353,23 @@ def run(args: argparse.Namespace) -> int:
     check_at_least(getattr(args, "first_frame", None), 0, "--first-frame")
     out_dir = check_output_dir(args.out, "--out")
     frames_dir = check_output_dir(args.save_frames, "--save-frames")
+    if frames_dir is not None and getattr(args, "progressive", False):  # it was ignored without a word
+        raise RtwalkError("--save-frames does not apply to --progressive (its replay saves no frames)")
+    if args.name and (Path(args.name).name != args.name or args.name in (".", "..")):  # ../x wrote beside --out
+        raise RtwalkError(f"--name '{args.name}': a file stem, without folders (the folder is --out)")
     rec = load_recording(rec_path)
     opts = BenchOptions(backend=args.backend, size=size, fps=args.fps,
                         max_frames=args.frames, reference=args.reference, reference_every=args.reference_every,
                         frames_dir=frames_dir, frame_every=args.frame_every, backend_options=backend_options,
                         first_frame=getattr(args, "first_frame", None),
                         denoise=getattr(args, "denoise", "off") == "on")
-    frame_numbers(rec, opts.fps, opts.max_frames, opts.first_frame)  # --first-frame within the path
+    replayed = frame_numbers(rec, opts.fps, opts.max_frames, opts.first_frame)  # --first-frame within the path
+    if frames_dir is not None and not getattr(args, "progressive", False):  # an earlier run's frames are kept
+        check_report_free([frames_dir / f"frame_{n:05d}.png" for n in replayed[::args.frame_every]],
+                          getattr(args, "force", False), "--save-frames")
     check_device(args.backend)
     ctx = create_headless_context()  # no EGL: fail before loading
+    check_target_size(ctx, size)  # before the scene, as every check that needs none
     prepared = scene_from_args(args, rec)
     warn_no_mirrors(settings, prepared.scene)
     stem = args.name or f"{prepared.scene.name}-{Path(rec_path).stem}-{args.backend}-{opts.size[0]}x{opts.size[1]}"
@@ -373,8 +388,8 @@ def run(args: argparse.Namespace) -> int:
     if not report["complete"]:  # interrupted (Ctrl-C): the frames done are kept, marked incomplete
         if report["frames"]:
             json_path, _ = write_report(report, out_dir, stem)
-            print(f"rtwalk: interrupted after {len(report['frames'])} frames: partial report {json_path} "
-                  "(\"complete\": false)", file=sys.stderr)
+            raise KeyboardInterrupt(f"interrupted after {len(report['frames'])} frames: partial report {json_path} "
+                                    "(\"complete\": false)")  # cli.main prints it: one line
         raise KeyboardInterrupt
     print_summary(report)
     json_path, png_path = write_report(report, out_dir, stem)

@@ -51,7 +51,7 @@ def add_arguments(p) -> None:
     p.add_argument("--embree-threads", default="1,2", help="Embree raw thread counts (default 1,2; empty: none)")
     p.add_argument("--rounds", type=int, default=3, help="interleaved timing rounds (default 3)")
     p.add_argument("--no-check", action="store_true", help="skip the hit/miss agreement with the Embree reference")
-    p.add_argument("--out", default="bench-trace", help="output folder (default bench-trace)")
+    p.add_argument("--out", default="out/bench-trace", help="output folder (default out/bench-trace)")
     p.add_argument("--quiet", action="store_true", help="no progress output")
 
 
@@ -243,13 +243,11 @@ def _plot(report: dict, path: Path) -> None:
 
 
 def run(args) -> int:
-    from viewer.backends import DEFAULT_BACKEND, backend_info, backend_names
+    from viewer.backends import backend_info, backend_names
     from viewer.effects import parse_effects
     from viewer.gl.context import shared_context
-    from viewer.recording import load_recording, resolve_scene_spec
+    from viewer.gl.limits import check_target_size
     from viewer.reference import REFERENCE_BACKEND, EmbreeTracer
-    from viewer.renderer import Renderer
-    from viewer.session import prepare_scene
 
     sizes = parse_image_sizes(args.sizes)
     backends = [b.strip() for b in args.backends.split(",") if b.strip()] or [
@@ -272,6 +270,8 @@ def run(args) -> int:
     out = check_output_dir(args.out, "--out")
     check_report_free([out / "bench_trace.json"], getattr(args, "force", False))
     ctx = shared_context()
+    for size in sizes:  # before any scene (each was refused only after its recording's scene loaded)
+        check_target_size(ctx, size)
     device_cl = ""
     if any(backend_info(b).device == "cl" for b in backends):
         from viewer.cl import cl_context
@@ -279,7 +279,32 @@ def run(args) -> int:
         device_cl = cl_context().name
     report = {"command": getattr(args, "command_line", ""),
               "backends": backends, "embree_threads": threads, "rounds": args.rounds, "effects": args.effects,
-              "device_cl": device_cl or "no OpenCL backend", "groups": []}
+              "device_cl": device_cl or "no OpenCL backend", "complete": False, "groups": []}
+    try:
+        _measure(args, ctx, recs, sizes, backends, threads, settings, report)
+    except KeyboardInterrupt:  # Ctrl-C: the groups measured so far are kept, marked incomplete
+        if not report["groups"]:
+            raise
+        files = write_study(out, "bench_trace", report, _markdown(report))
+        _plot(report, files["png"])
+        raise KeyboardInterrupt(f"interrupted after {len(report['groups'])} groups (recording, frame, size): "
+                                f"partial report {files['json']} (\"complete\": false)") from None
+    report["complete"] = True
+    files = write_study(out, "bench_trace", report, _markdown(report))
+    if report["groups"]:
+        _plot(report, files["png"])
+    print(files["markdown"])
+    return 0
+
+
+def _measure(args, ctx, recs, sizes, backends, threads, settings, report: dict) -> None:
+    """Every (recording, frame, size) group, appended to report["groups"] as it is finished."""
+    from viewer.backends import DEFAULT_BACKEND
+    from viewer.recording import load_recording, resolve_scene_spec
+    from viewer.reference import EmbreeTracer
+    from viewer.renderer import Renderer
+    from viewer.session import prepare_scene
+
     for rec_path in recs:
         rec = load_recording(rec_path)
         rs = resolve_scene_spec(rec, rec_path)
@@ -313,11 +338,6 @@ def run(args) -> int:
             finally:
                 renderer.release()
         del tracer
-    files = write_study(out, "bench_trace", report, _markdown(report))
-    if report["groups"]:
-        _plot(report, files["png"])
-    print(files["markdown"])
-    return 0
 
 
 def _reference(tracer, p: Pass) -> tuple[np.ndarray, np.ndarray]:

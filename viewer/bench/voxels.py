@@ -75,7 +75,7 @@ def add_arguments(p) -> None:
     p.add_argument("--no-image", action="store_true", help="skip the full-render image error")
     p.add_argument("--voxelize-only", action="store_true",
                    help="only voxelize and build the structures per resolution (count, time, memory, depth)")
-    p.add_argument("--out", default="bench-voxels", help="folder for bench_voxels.json/.md/.png")
+    p.add_argument("--out", default="out/bench-voxels", help="folder for bench_voxels.json/.md/.png")
     p.add_argument("--quiet", action="store_true", help="no progress output")
 
 
@@ -662,14 +662,15 @@ def run(args) -> int:
         raise RtwalkError(f"--structures: choose from {', '.join(STRUCTURES)}")
     if args.reference not in backend_names() or not backend_info(args.reference).exact:
         raise RtwalkError(f"--reference: an exact registered backend (got '{args.reference}')")
-    w, sep, h = args.size.lower().partition("x")
-    if not sep or not w.isdigit() or not h.isdigit():
-        raise RtwalkError(f"--size: expected WxH (got '{args.size}')")
+    from viewer.cli_args import parse_size
+
+    w, h = parse_size(args.size)  # 0x1 used to pass and fail in the GL after the scene was loaded
     if args.rounds < 1 or args.seq_len < 1 or not args.bias >= 0 or args.record_passes < 0:
         raise RtwalkError("--rounds and --seq-len must be >= 1, --bias and --record-passes >= 0")
     specs = [_scene_spec(s.strip()) for s in args.scenes.split(",") if s.strip()]
-    from viewer.cli_args import check_report_free
+    from viewer.cli_args import check_output_dir, check_report_free
 
+    check_output_dir(args.out, "--out")
     check_report_free([Path(args.out) / ("voxelize.json" if args.voxelize_only else "bench_voxels.json")],
                       getattr(args, "force", False))
     if args.voxelize_only:
@@ -683,12 +684,21 @@ def run(args) -> int:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
 
+    saved: list[bool] = []
+
     def checkpoint(partial: dict) -> None:  # finished resolutions reach the disk at once
         _write(out, {**report, "complete": False, "scenes": report["scenes"] + [partial]})
+        saved.append(True)
 
-    for name, spec, rec in specs:
-        report["scenes"].append(study_scene(args, ctx_gl, name, spec, rec, (int(w), int(h)), resolutions,
-                                            structures, stacks, checkpoint))
+    try:
+        for name, spec, rec in specs:
+            report["scenes"].append(study_scene(args, ctx_gl, name, spec, rec, (w, h), resolutions,
+                                                structures, stacks, checkpoint))
+    except KeyboardInterrupt:  # Ctrl-C: say where the finished resolutions are (it said only "interrupted")
+        if not saved:
+            raise
+        raise KeyboardInterrupt(f"interrupted: the resolutions finished so far are in {out / 'bench_voxels.json'} "
+                                "(\"complete\": false)") from None
     report["complete"] = True
     _write(out, report)
     print(f"report: {out / 'bench_voxels.md'}")

@@ -37,7 +37,7 @@ from viewer.bench.common import log, study_scene
 from viewer.bench.plots import figure, finish
 from viewer.bench.report import fmt, md_table, size_text, write_study
 from viewer.cl import io as clio
-from viewer.cli_args import check_report_free, parse_choices, parse_image_sizes
+from viewer.cli_args import check_output_dir, check_report_free, parse_choices, parse_image_sizes
 from viewer.errors import RtwalkError
 from viewer.paths import SHARED_SCENES
 
@@ -489,6 +489,7 @@ def run(args) -> int:
         raise RtwalkError("--repeats must be >= 1")
     if args.chunk not in (16, 32, 64, 128, 256):
         raise RtwalkError(f"--chunk must be one of 16, 32, 64, 128, 256 (got {args.chunk})")
+    check_output_dir(args.out, "--out")
     check_report_free([Path(args.out) / f"{s}.json" for s in studies], getattr(args, "force", False))
     cl_context()
     ctx = shared_context()

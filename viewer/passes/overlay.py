@@ -105,6 +105,16 @@ def check_view(view: str, info: BackendInfo, infos: Sequence[BackendInfo] = ()) 
         raise RtwalkError(msg)
 
 
+def check_view_effect(view: str, settings, effects_text: str) -> None:
+    """A pass view (shadows, soft, ao, diffuse, reflections) needs that effect computed: without it
+    `render --effects primary --view shadows` wrote an all-black image."""
+    from viewer.effects import EFFECT_NAMES
+
+    if view in EFFECT_NAMES and view != "primary" and not getattr(settings, view):
+        raise RtwalkError(f"--view {view} shows the {view} pass, which --effects '{effects_text}' does not "
+                          f"compute; add {view} to --effects")
+
+
 def ids_labels(spec: OverlaySpec) -> tuple[str, str]:
     """(what the colours are, what the per-tile numbers are) of an "ids" view, from its label
     "colour; numbers"; without a counts texture the numbers are the distinct ids in the tile."""

@@ -149,11 +149,12 @@ def _first_line(exc: BaseException) -> str:
 
 
 def run_viewer(args) -> int:
-    from viewer.cli_args import check_image_output, request_from, scene_from_args, warn_no_mirrors
+    from viewer.cli_args import check_image_output, check_positive, request_from, scene_from_args, warn_no_mirrors
     from viewer.recording import load_recording
     from viewer.ui.frame_log import check_frame_log
 
     max_frames = frame_limit(args)
+    check_positive(getattr(args, "frame_target_ms", None), "--frame-target-ms")  # 0 and nan were taken
     render_scale_from_env()  # bad values fail before the window opens
     view = initial_view(args)
     shot = os.environ.get("RTWALK_VIEW_SCREENSHOT", "").strip() or None

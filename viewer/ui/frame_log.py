@@ -78,7 +78,11 @@ class FrameLog:
             if s[state]["iterations"]:
                 parts.append(f"{state} {s[state]['fps']:.1f} fps (median {s[state]['median_ms']:.0f} ms over "
                              f"{s[state]['iterations']} frames)")
-        return "frame log: " + ("; ".join(parts) or "no frames") + f"; load {s['load_average'][0]:.1f}"
+        if s["idle"]["iterations"]:
+            parts.append(f"idle {s['idle']['iterations']} frames")
+        if not parts:  # "no frames" was printed for a log of 20 (18 idle, 2 left out as warm-up)
+            parts.append(f"{s['frames']} frames, all warm-up" if s["frames"] else "no frames")
+        return "frame log: " + "; ".join(parts) + f"; load {s['load_average'][0]:.1f}"
 
     def write(self) -> Path:
         try:
