@@ -804,8 +804,10 @@ def test_bench_chcrt_refuses_to_overwrite(tmp_path, capsys):
     assert "--force" in capsys.readouterr().err and (tmp_path / "table4.json").read_text() == "kept"
 
 
-def test_sigint_keeps_the_frames_done(tmp_path):
-    """Ctrl-C during a bench: the frames finished so far are written, marked "complete": false."""
+@pytest.mark.parametrize("signame", ["SIGINT", "SIGTERM"])
+def test_sigint_keeps_the_frames_done(tmp_path, signame):
+    """Ctrl-C (or SIGTERM: `timeout`, a scheduler) during a bench: the frames finished so far are
+    written, marked "complete": false (SIGTERM wrote nothing)."""
     import signal
     import threading
     import time
@@ -822,7 +824,7 @@ def test_sigint_keeps_the_frames_done(tmp_path):
     while "bench: estimated" not in "".join(err):  # printed once the first frame is done
         assert proc.poll() is None and time.monotonic() < deadline, "".join(err)[-2000:]
         time.sleep(0.05)
-    proc.send_signal(signal.SIGINT)
+    proc.send_signal(getattr(signal, signame))
     code = proc.wait(timeout=120)
     reader.join(timeout=10)
     text = "".join(err)

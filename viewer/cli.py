@@ -250,8 +250,17 @@ def main(argv: list[str] | None = None) -> int:
                          "frame_every": 4, "save_frames": None, "out": "out/demo", "name": None}.items():
             if not hasattr(args, key):
                 setattr(args, key, val)
+    return _run(handlers[args.command], args)
+
+
+def _run(handler, args: argparse.Namespace) -> int:
+    """The command, its errors as one line (exit 2), an interrupt (Ctrl-C, or SIGTERM, which keeps
+    partial work as Ctrl-C does: viewer.interrupt) as the line it carries (130)."""
+    from viewer.interrupt import terminate_as_interrupt
+
     try:
-        return handlers[args.command](args)
+        with terminate_as_interrupt():
+            return handler(args)
     except RtwalkError as exc:
         print(f"rtwalk: error: {exc}", file=sys.stderr)
         return 2
