@@ -185,9 +185,9 @@ def cl_programs(tmp_path_factory) -> list[tuple[str, tuple[tuple[str, str], ...]
     with pytest.MonkeyPatch.context() as mp:
         mp.setattr(programs, "_cache", {})
         mp.setenv("RTWALK_CL_LOCAL_KIB", "48")
-        for backend, params, builder in CL_RENDERS:
+        for k, (backend, params, builder) in enumerate(CL_RENDERS):
             args = ["render", "room", "--backend", backend, "--effects", "all", "--size", "48x32", "--quiet",
-                    "--bvh-builder", builder, "--denoise", "off", "-o", str(out / f"{backend}.png")]
+                    "--bvh-builder", builder, "--denoise", "off", "-o", str(out / f"{k}-{backend}.png")]
             r = run_cli(*args, *(["--backend-params", params] if params else []))
             assert r.returncode == 0, r.stderr
         return [(src, opts, prog) for (src, opts, _), prog in programs._cache.items()]
