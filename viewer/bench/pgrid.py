@@ -39,6 +39,7 @@ from pathlib import Path
 import numpy as np
 
 from viewer.bench.common import log, study_scene
+from viewer.bench.partial import keep_partial
 from viewer.bench.pgrid_studies import study_anim, study_pairs, study_rearrange
 from viewer.bench.plots import figure, finish
 from viewer.bench.report import fmt, md_table, size_text, write_study
@@ -446,22 +447,29 @@ def run(args) -> int:
     ctx = shared_context()
     Path(args.out).mkdir(parents=True, exist_ok=True)
     t41 = None
-    for s in studies:
-        if s == "table41":
-            t41 = study_table41(args, ctx)
-            print(t41["markdown"], flush=True)
-        elif s == "lightdist":
-            print(study_lightdist(args, ctx)["markdown"], flush=True)
-        elif s == "model":
-            print(study_model(args, t41)["markdown"], flush=True)
-        elif s == "pairs":
-            log(args, "bench-pgrid: pairs")
-            sizes = parse_image_sizes(args.sizes, "--sizes")
-            scenes = parse_choices(args.scenes, SCENES, "--scenes")
-            print(study_pairs(args, load_scene, sizes, scenes)["markdown"], flush=True)
-        elif s == "rearrange":
-            print(study_rearrange(args, t41)["markdown"], flush=True)
-        elif s == "anim":
-            log(args, "bench-pgrid: anim")
-            print(study_anim(args)["markdown"], flush=True)
+    with keep_partial("bench-pgrid") as part:  # Ctrl-C: the finished studies stay, marked incomplete
+        for s in studies:
+            part.started(s)
+            res = _one_study(args, ctx, s, t41)
+            t41 = res if s == "table41" else t41
+            part.finished(res["json"])
+            print(res["markdown"], flush=True)
     return 0
+
+
+def _one_study(args, ctx, s: str, t41: dict | None) -> dict:
+    """One study of `run` (model and rearrange read table41's result)."""
+    if s == "table41":
+        return study_table41(args, ctx)
+    if s == "lightdist":
+        return study_lightdist(args, ctx)
+    if s == "model":
+        return study_model(args, t41)
+    if s == "pairs":
+        log(args, "bench-pgrid: pairs")
+        return study_pairs(args, load_scene, parse_image_sizes(args.sizes, "--sizes"),
+                           parse_choices(args.scenes, SCENES, "--scenes"))
+    if s == "rearrange":
+        return study_rearrange(args, t41)
+    log(args, "bench-pgrid: anim")
+    return study_anim(args)
