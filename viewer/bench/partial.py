@@ -30,7 +30,7 @@ class PartialRun:
 
     what: str
     files: list[Path] = field(default_factory=list)
-    writer: Callable[[bool], Path | None] | None = None
+    writer: Callable[[bool], object] | None = None
     current: str | None = None
     flag: Interrupt = field(default_factory=Interrupt)
 
@@ -38,8 +38,9 @@ class PartialRun:
         self.files.append(Path(path))
         self.current = None
 
-    def keep(self, writer: Callable[[bool], Path | None]) -> None:
-        """`writer(complete)` writes the report so far and returns its JSON path (None: nothing yet)."""
+    def keep(self, writer: Callable[[bool], object]) -> None:
+        """`writer(complete)` writes the report so far and returns its JSON path or paths (None:
+        nothing yet)."""
         self.writer = writer
 
     def started(self, name: str) -> None:
@@ -51,21 +52,28 @@ class PartialRun:
             raise KeyboardInterrupt
 
     def save_partial(self) -> list[Path]:
-        """Write/re-mark every report of this run as `"complete": false`; the JSON paths."""
+        """Write the rows so far, then re-mark every report of this run `"complete": false` (a
+        writer may reuse the end-of-run study code, which says true); the JSON paths."""
+        if self.writer is not None:
+            try:
+                got = self.writer(False)
+            except KeyboardInterrupt:
+                raise
+            except Exception as exc:  # noqa: BLE001 - the studies finished before must still be marked
+                print(f"rtwalk: note: the rows in hand were not written ({type(exc).__name__}: {exc})",
+                      file=sys.stderr)
+                got = None
+            for p in [got] if isinstance(got, (str, Path)) else (got or []):
+                self.files.append(Path(p))
         paths = []
-        for p in self.files:
+        for p in dict.fromkeys(self.files):
             try:
                 data = json.loads(p.read_text())
-                if isinstance(data, dict):
-                    data["complete"] = False
-                    p.write_text(json.dumps(data, indent=1, allow_nan=True))
-                paths.append(p)
             except (OSError, ValueError):
                 continue
-        if self.writer is not None:
-            p = self.writer(False)
-            if p is not None:
-                paths.append(Path(p))
+            if isinstance(data, dict):
+                p.write_text(json.dumps(mark_complete(data, False), indent=1, allow_nan=True))
+            paths.append(p)
         return paths
 
     def line(self, paths: list[Path]) -> str:
