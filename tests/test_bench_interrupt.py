@@ -86,3 +86,22 @@ def test_bench_voxelwalk_keeps_the_rows_done(tmp_path):
                            lambda o, e: e.count("capturing reflection rays") >= 2)
     data = _check(code, err, out / "table51.json")
     assert 1 <= len(data["rows"]) < 100
+
+
+def test_bench_cl_keeps_the_rows_done(tmp_path):
+    if _cl_reason() is not None:
+        pytest.skip(f"no OpenCL device: {_cl_reason()}")
+    out = tmp_path / "cl"
+    code, err = _interrupt(["bench-cl", "--elements", ",".join(["3000"] * 300), "--reps", "2", "--out", str(out)],
+                           lambda o, e: " n=" in o)
+    data = _check(code, err, out / "bench_cl.json")
+    assert 1 <= len(data["rows"]) < 300 * 3 and (out / "bench_cl.md").exists()
+
+
+def test_bench_gbuffer_keeps_the_frames_done(tmp_path):
+    out = tmp_path / "gb"
+    code, err = _interrupt(["bench-gbuffer", "--frames", "300", "--size", "32x18", "--scene-size", "20000",
+                            "--out", str(out)], lambda o, e: "frame 30/300" in e)
+    data = _check(code, err, out / "gbuffer.json")
+    assert 30 <= data["frames"] < 300
+    assert all(len(c["ms"]) == data["frames"] for c in data["configs"].values())
