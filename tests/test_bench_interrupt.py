@@ -105,3 +105,14 @@ def test_bench_gbuffer_keeps_the_frames_done(tmp_path):
     data = _check(code, err, out / "gbuffer.json")
     assert 30 <= data["frames"] < 300
     assert all(len(c["ms"]) == data["frames"] for c in data["configs"].values())
+
+
+def test_bench_grids_keeps_the_rounds_done(tmp_path):
+    if _cl_reason() is not None:
+        pytest.skip(f"no OpenCL device: {_cl_reason()}")
+    out = tmp_path / "grids.json"
+    code, err = _interrupt(["bench-grids", "--scene", "mixed", "--size", "32x18", "--backends", "clbvh,ugrid",
+                            "--rounds", "5000", "--json", str(out)], lambda o, e: "round 1/5000 done" in e)
+    data = _check(code, err, out)
+    assert 1 <= data["rounds"] < 5000 and [r["backend"] for r in data["rows"]] == ["clbvh", "ugrid"]
+    assert all(len(r["times"]) == data["rounds"] and r["ms"] > 0 for r in data["rows"])
