@@ -74,6 +74,7 @@ def test_bench_pgrid_keeps_the_studies_done(tmp_path):
                            lambda o, e: (out / "table41.json").exists() and "4.1" in o)
     data = _check(code, err, out / "table41.json")
     assert len(data["rows"]) == 1
+    assert "study lightdist left out" in err and not (out / "lightdist.json").exists()
     assert not (out / "anim.json").exists()
 
 
@@ -116,3 +117,15 @@ def test_bench_grids_keeps_the_rounds_done(tmp_path):
     data = _check(code, err, out)
     assert 1 <= data["rounds"] < 5000 and [r["backend"] for r in data["rows"]] == ["clbvh", "ugrid"]
     assert all(len(r["times"]) == data["rounds"] and r["ms"] > 0 for r in data["rows"])
+
+
+def test_bench_chcrt_keeps_the_studies_done(tmp_path):
+    out = tmp_path / "chc"
+    code, err = _interrupt(["bench-chcrt", "--quick", "--study", "table2,tuning", "--sizes", "32x18",
+                            "--recordings", "city-near", "--out", str(out), "--quiet"],
+                           lambda o, e: "table2: " in o)
+    data = _check(code, err, out / "table2.json")
+    assert data["study"] == "table2" and len(data["rows"]) >= 1
+    # tuning (one interleaved comparison in --quick) was stopped before or after its comparison
+    assert "study tuning left out" in err if not (out / "tuning.json").exists() else \
+        json.loads((out / "tuning.json").read_text())["complete"] is False
