@@ -108,11 +108,18 @@ def bvh_build_ms(prep) -> dict[str, float]:
     return {"glsl": statistics.median(b), "clbvh": statistics.median(b) + statistics.median(c)}
 
 
+def interrupt_check(args):
+    """The running command's `check` (viewer.bench.partial), set by `run`; None outside it."""
+    part = getattr(args, "partial_run", None)
+    return part.check if part is not None else None
+
+
 def run_interleaved(ctx, prep, camera, size, effects: str, configs: dict[str, tuple[str, str]], frames: int,
-                    scene=None) -> dict[str, dict]:
+                    scene=None, check=None) -> dict[str, dict]:
     """configs: label -> (backend, params). Returns label -> {"phases": {phase: median ms},
     "stats": last frame's counters, "phase_io": last frame's launches and host syncs per phase,
-    "io": last frame's viewer.iostats counts}."""
+    "io": last frame's viewer.iostats counts}. `check` runs between frames (a deferred Ctrl-C
+    stops there: viewer.bench.partial)."""
     from viewer.effects import parse_effects
     from viewer.renderer import Renderer
 
@@ -127,6 +134,8 @@ def run_interleaved(ctx, prep, camera, size, effects: str, configs: dict[str, tu
         phase_io: dict[str, dict] = {}
         io: dict[str, dict] = {}
         for f in range(frames + 1):
+            if check is not None:
+                check()
             for label, r in renderers.items():
                 rep = r.render(camera)
                 if f > 0:
@@ -181,7 +190,8 @@ def study_table41(args, ctx) -> dict:
             extra = args.pgrid_params
             configs = {"pgrid": ("pgrid", ",".join(x for x in ("rebuild=false", extra) if x)),
                        "ugrid": ("ugrid", "rebuild=true"), "clbvh": ("clbvh", ""), "glsl": ("glsl", "")}
-            res = run_interleaved(ctx, prep, cam, size, "primary,shadows,soft:1,diffuse:1", configs, args.frames)
+            res = run_interleaved(ctx, prep, cam, size, "primary,shadows,soft:1,diffuse:1", configs, args.frames,
+                                  check=interrupt_check(args))
             rows.append({"scene": name, "triangles": prep.scene.triangle_count, "size": list(size),
                          "terms": _terms(res, builds), "phases": {k: v["phases"] for k, v in res.items()},
                          "stats": {k: v["stats"] for k, v in res.items()}, "bvh_build_ms": builds,
@@ -309,7 +319,8 @@ def study_lightdist(args, ctx) -> dict:
         pos = (centre + axis * k * diag).astype(np.float32)
         scene = dataclasses.replace(prep.scene, point_lights=[PointLight(pos, l0.intensity)])
         log(args, f"bench-pgrid: lightdist {name} distance {k} diagonals")
-        res = run_interleaved(ctx, prep, cam, size, "shadows", configs, args.frames, scene=scene)
+        res = run_interleaved(ctx, prep, cam, size, "shadows", configs, args.frames, scene=scene,
+                              check=interrupt_check(args))
         row = {"distance": k, "light": pos.tolist(), "configs": {}}
         for label, v in res.items():
             ph = v["phases"]
@@ -447,7 +458,8 @@ def run(args) -> int:
     ctx = shared_context()
     Path(args.out).mkdir(parents=True, exist_ok=True)
     t41 = None
-    with keep_partial("bench-pgrid") as part:  # Ctrl-C: the finished studies stay, marked incomplete
+    with keep_partial("bench-pgrid", defer=True) as part:  # Ctrl-C: stop between frames, keep the studies done
+        args.partial_run = part
         for s in studies:
             part.started(s)
             res = _one_study(args, ctx, s, t41)
