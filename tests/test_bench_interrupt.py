@@ -129,3 +129,26 @@ def test_bench_chcrt_keeps_the_studies_done(tmp_path):
     # tuning (one interleaved comparison in --quick) was stopped before or after its comparison
     assert "study tuning left out" in err if not (out / "tuning.json").exists() else \
         json.loads((out / "tuning.json").read_text())["complete"] is False
+
+
+def test_keep_partial_marks_and_names_what_it_kept(tmp_path, capsys):
+    """In-process: a finished study is re-marked incomplete, the rows in hand are written, the
+    study in progress is named; a failing plot costs a note, not the JSON."""
+    from viewer.bench.partial import keep_partial, write_plots
+    from viewer.bench.report import write_study
+
+    done = write_study(tmp_path, "first", {"rows": [1]}, "md")
+    assert json.loads(done["json"].read_text())["complete"] is True
+    with pytest.raises(KeyboardInterrupt) as exc:
+        with keep_partial("bench-x") as part:
+            part.finished(done["json"])
+            part.keep(lambda complete: write_study(tmp_path, "rows", {"complete": complete, "rows": [2]}, "md")["json"])
+            part.started("second")
+            raise KeyboardInterrupt
+    line = exc.value.args[0]
+    assert line.startswith("interrupted (study second left out): bench-x: partial report ")
+    assert str(done["json"]) in line and str(tmp_path / "rows.json") in line and line.endswith('("complete": false)')
+    for name in ("first", "rows"):
+        assert json.loads((tmp_path / f"{name}.json").read_text())["complete"] is False
+    write_plots(lambda: 1 / 0)
+    assert "plot not written" in capsys.readouterr().err
