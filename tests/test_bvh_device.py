@@ -307,7 +307,9 @@ def test_bench_bvh_rows_per_builder(tmp_path, capsys):
     from viewer.cli import main
 
     assert main(["bench-bvh", "--builders", "sah,device", "--sizes", "3000,5000", "--out", str(tmp_path)]) == 0
-    rows = json.loads((tmp_path / "bvh-build.json").read_text())
+    report = json.loads((tmp_path / "bvh-build.json").read_text())
+    assert report["complete"] is True
+    rows = report["rows"]
     assert [(r["builder"], r["target"]) for r in rows] == [("sah", 3000), ("device", 3000), ("sah", 5000),
                                                            ("device", 5000)]
     for r in rows:

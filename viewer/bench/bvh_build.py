@@ -1,6 +1,7 @@
 """`rtwalk bench-bvh`: build time, M triangles/s and SAH cost of each BVH builder on the city.
 
-One row per (size, builder) in bvh-build.json: BuildStats.to_dict() plus `builder`, `target`
+bvh-build.json is {"complete", "command", "rows"} (complete false: interrupted, the builds finished
+so far; viewer.bench.partial). One row per (size, builder): BuildStats.to_dict() plus `builder`, `target`
 (the asked size), `build_time_s`, `throughput_mtris_per_s`, `sah_cost`, `sah_ratio` (to the
 SAH build of the same size when it ran), `bvh4_time_s` (host collapse to BVH4, build_bvh4),
 `bvh4_device_time_s` (the same on the OpenCL device, viewer.accel.bvh4_device, when it has fp64) and, for
@@ -22,8 +23,10 @@ from __future__ import annotations
 import argparse
 import os
 import time
+from pathlib import Path
 
 from viewer.bench.common import add_count_option
+from viewer.bench.partial import keep_partial
 from viewer.cli_args import check_output_dir, check_report_free, parse_choices, parse_sizes
 
 BUILDERS = ("sah", "device")
@@ -69,8 +72,6 @@ def _device_bvh4() -> bool:
 
 
 def run(args) -> int:
-    from viewer import iostats
-    from viewer.accel.bvh4 import build_bvh4
     from viewer.bench.report import write_json
     from viewer.procedural import make_city
     from viewer.scene_io import check_seed
@@ -89,11 +90,34 @@ def run(args) -> int:
             raise RtwalkError(f"--builders device needs an OpenCL device: {reason}")
         _build("device", make_city(2000, args.seed).triangles)  # compile and warm the kernels
     device4 = _device_bvh4()
-    rows = []
+    rows: list[dict] = []
+    path = out / "bvh-build.json"
+
+    def write(complete: bool) -> Path | None:
+        if not rows and not complete:
+            return None
+        write_json(path, {"complete": complete, "command": getattr(args, "command_line", ""), "rows": rows})
+        return path
+
+    with keep_partial("bench-bvh", defer=True) as part:  # Ctrl-C: stop after the build in hand, keep the rows
+        part.keep(write)
+        _measure(sizes, builders, device4, args.seed, rows, part)
+    write(True)
+    print(f"report: {path}")
+    return 0
+
+
+def _measure(sizes: list[int], builders: list[str], device4: bool, seed: int, rows: list[dict], part) -> None:
+    """Append one row per (size, builder) to `rows`; `part.check()` between builds (Ctrl-C)."""
+    from viewer import iostats
+    from viewer.accel.bvh4 import build_bvh4
+    from viewer.procedural import make_city
+
     for n in sizes:
-        scene = make_city(n, args.seed)
+        scene = make_city(n, seed)
         sah_cost = None
         for builder in builders:
+            part.check()
             load = os.getloadavg()[0]
             iostats.begin_frame()
             c0 = time.process_time()
@@ -134,6 +158,3 @@ def run(args) -> int:
                   f"SAH {r['sah_cost']:.1f}{ratio}; BVH4 collapse (host) {r['bvh4_time_s']:.2f} s"
                   + (f", (device) {r['bvh4_device_time_s']:.2f} s" if device4 else ""), flush=True)
             del bvh
-    write_json(out / "bvh-build.json", rows)
-    print(f"report: {out / 'bvh-build.json'}")
-    return 0

@@ -50,6 +50,7 @@ from viewer.bench.chcrt_ooc import study_ooc
 from viewer.bench.estimate import CostModel, format_estimate, run_estimate, scenes_estimate
 from viewer.bench.gl_micro import MicroResult, micro_overheads
 from viewer.bench.harness import PROTOCOL, Harness, RunResult, RunSpec, effect_settings, is_trace_phase, load_average
+from viewer.bench.partial import keep_partial
 from viewer.bench.plots import barh, figure, finish, points, stacked
 from viewer.bench.report import fmt, md_table, notes_md, ratio, size_text
 from viewer.errors import RtwalkError
@@ -864,11 +865,16 @@ def run_studies(o: StudyOptions, out=None) -> list[dict]:
     b = Bench(o)
     done = []
     t0 = time.perf_counter()
-    for study in o.studies:
-        res = STUDY_FUNCS[study](b)
-        done.append(res)
-        print(res["markdown"] + "\n", file=out)
-        print(f"{study}: {res['json']}  {res['md']}  {res['png']}\n", file=out, flush=True)
+    with keep_partial("bench-chcrt", defer=True) as part:  # Ctrl-C: the finished studies stay, marked incomplete
+        b.interrupt = part
+        for study in o.studies:
+            part.started(study)
+            res = STUDY_FUNCS[study](b)
+            part.finished(res["json"])
+            done.append(res)
+            print(res["markdown"] + "\n", file=out)
+            print(f"{study}: {res['json']}  {res['md']}  {res['png']}\n", file=out, flush=True)
+            part.check()
     if not o.quiet:
         print(f"bench-chcrt: {len(done)} studies in {(time.perf_counter() - t0) / 60:.1f} min "
               f"(estimated {sum(est.values()) / 60:.1f})", file=sys.stderr)

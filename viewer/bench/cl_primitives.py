@@ -22,6 +22,7 @@ import numpy as np
 
 from viewer.bench.common import add_count_option, parse_counts
 from viewer.bench.harness import load_average
+from viewer.bench.partial import keep_partial, mark_complete, write_plots
 from viewer.bench.plots import bars, figure, finish
 from viewer.bench.report import md_table, write_study
 from viewer.cl import io as clio
@@ -134,7 +135,10 @@ class _Case:
         self._check()
 
 
-def measure(sizes: list[int], ops: list[str], reps: int, command: str = "", log=print) -> dict:
+def measure(sizes: list[int], ops: list[str], reps: int, command: str = "", log=print,
+            keep: Callable[[dict], None] | None = None, check: Callable[[], None] | None = None) -> dict:
+    """The report; `keep` gets it before the first row (an interrupted run writes the rows so far)
+    and `check` runs between (op, size) rows (a deferred Ctrl-C stops there: viewer.bench.partial)."""
     from viewer.cl.context import cl_context
     from viewer.cl.primitives import primitives
 
@@ -144,9 +148,16 @@ def measure(sizes: list[int], ops: list[str], reps: int, command: str = "", log=
     prims.warm_up()
     warm_ms = (time.perf_counter() - t0) * 1e3
     rng = np.random.default_rng(2024)
-    rows = []
+    rows: list[dict] = []
+    report = {"device": ctx.name, "compute_units": ctx.compute_units, "host": platform.node(),
+              "cpu_count": os.cpu_count(), "load_average_before": load_average(), "reps": reps,
+              "warm_up_ms": warm_ms, "command": command, "rows": rows}
+    if keep is not None:
+        keep(report)
     for n in sizes:
         for op in ops:
+            if check is not None:
+                check()
             case = _Case(op, n, prims, rng)
             case.check()
             case.numpy()
@@ -170,9 +181,7 @@ def measure(sizes: list[int], ops: list[str], reps: int, command: str = "", log=
             log(f"{op:8s} n={n:>11,d}  numpy {row['numpy_ms']:9.2f} ms  opencl {row['opencl_ms']:8.2f} ms  "
                 f"speedup {ratio:6.1f}x")
             del case
-    return {"device": ctx.name, "compute_units": ctx.compute_units, "host": platform.node(),
-            "cpu_count": os.cpu_count(), "load_average_before": load_average(), "reps": reps,
-            "warm_up_ms": warm_ms, "command": command, "rows": rows}
+    return report
 
 
 def markdown(report: dict) -> str:
@@ -205,9 +214,17 @@ def run(args: argparse.Namespace) -> int:
         raise RtwalkError("--reps must be >= 1")
     out = check_output_dir(args.out, "--out")
     check_report_free([out / "bench_cl.json"], getattr(args, "force", False))
-    report = measure(sizes, ops, args.reps, getattr(args, "command_line", ""))
-    files = write_study(out, "bench_cl", report, markdown(report))
-    plot(report, files["png"])
+    def write(report: dict, complete: bool) -> dict:
+        files = write_study(out, "bench_cl", mark_complete(report, complete), markdown(report))
+        write_plots(lambda: plot(report, files["png"]))  # after the JSON: a plot failure never loses it
+        return files
+
+    held: list[dict] = []
+    with keep_partial("bench-cl", defer=True) as part:  # Ctrl-C: stop after the row in hand, keep the rows
+        part.keep(lambda complete: write(held[0], complete)["json"] if held and held[0]["rows"] else None)
+        report = measure(sizes, ops, args.reps, getattr(args, "command_line", ""), keep=held.append,
+                         check=part.check)
+    files = write(report, True)
     print()
     print(files["markdown"])
     print(f"wrote {files['json']}, {files['md']}, {files['png']}")

@@ -42,17 +42,23 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--quiet", action="store_true", help="no progress output")
 
 
-def measure(prepared, cameras: list, size: tuple[int, int], ctx, progress=None) -> dict:
+def measure(prepared, cameras: list, size: tuple[int, int], ctx, progress=None, keep=None, check=None) -> dict:
     """Per configuration: ms per frame, triangles drawn per frame, and the share of pixels whose
-    triangle differs from the frustum-culled raster of the same kind."""
+    triangle differs from the frustum-culled raster of the same kind. `keep` gets the samples
+    before the first frame (an interrupted run summarizes the frames done), `check` runs between
+    frames (a deferred Ctrl-C stops there: viewer.bench.partial)."""
     from viewer.gl.textures import read_texture
     from viewer.renderer import Renderer
 
     r = Renderer(ctx, prepared.scene, prepared.bvh, size)
     g = r.gbuffer
     out = {config_name(*c): {"ms": [], "triangles": [], "differing_pixels": []} for c in CONFIGS}
+    if keep is not None:
+        keep(out)
     try:
         for i, cam in enumerate(cameras):
+            if check is not None:
+                check()
             ids = {}
             for kind, occlusion in CONFIGS:
                 g.occlusion = occlusion
@@ -73,11 +79,25 @@ def measure(prepared, cameras: list, size: tuple[int, int], ctx, progress=None) 
     finally:
         g.occlusion = True
         r.release()
-    for rec in out.values():
+    return summarize(out)
+
+
+def frames_done(samples: dict) -> int:
+    """Frames every configuration finished (all of them, unless interrupted mid-frame)."""
+    return min(len(rec["differing_pixels"]) for rec in samples.values())
+
+
+def summarize(samples: dict) -> dict:
+    """The per-configuration medians of the frames every configuration finished."""
+    n = frames_done(samples)
+    out = {}
+    for name, rec in samples.items():
+        rec = {k: v[:n] for k, v in rec.items()}
         rec["median_ms"] = float(np.median(rec["ms"]))
         rec["p95_ms"] = float(np.percentile(rec["ms"], 95))
         rec["median_triangles"] = float(np.median(rec["triangles"]))
         rec["max_differing_pixels"] = float(max(rec["differing_pixels"]))
+        out[name] = rec
     return out
 
 
@@ -97,8 +117,22 @@ def _markdown(report: dict) -> str:
                             "speedup vs frustum", "max differing px"], rows, "lrrrrrr")
 
 
-def run(args) -> int:
+def _plot(configs: dict, size: tuple[int, int], path: Path) -> None:
     from viewer.bench.plots import bars, figure, finish
+
+    fig, ax = figure(1, 2, size=(11, 4))
+    names = list(configs)
+    bars(ax[0], names, {"median ms": [configs[n]["median_ms"] for n in names]}, ylabel="ms per G-buffer",
+         texts=[f"{configs[n]['median_ms']:.1f}" for n in names])
+    bars(ax[1], names, {"triangles": [configs[n]["median_triangles"] for n in names]}, ylabel="triangles drawn",
+         texts=[f"{configs[n]['median_triangles']:,.0f}" for n in names])
+    for a in ax:
+        a.tick_params(axis="x", labelsize=7)
+    finish(fig, path, f"G-buffer raster, {size[0]}x{size[1]}")
+
+
+def run(args) -> int:
+    from viewer.bench.partial import keep_partial, write_plots
     from viewer.bench.report import write_study
     from viewer.cli_args import check_at_least, check_output_dir, check_report_free, parse_size
     from viewer.gl.context import create_headless_context
@@ -120,22 +154,29 @@ def run(args) -> int:
     check_target_size(ctx, size)  # before the scene (it was refused only after the load and BVH build)
     prepared = prepare_scene_for_recording(rec, scene_size=args.scene_size, quiet=args.quiet)
     every = max(1, args.frames // 10)
-    configs = measure(prepared, cameras, size, ctx,
-                      lambda k, n: log(args, f"frame {k}/{n}", "bench-gbuffer") if k % every == 0 or k == n else None)
-    report = {"recording": args.recording, "scene": rec.scene_name,
-              "size": list(size), "frames": args.frames, "first_frame": args.first_frame,
-              "triangles": prepared.scene.triangle_count, "configs": configs}
-    md = _markdown(report)
-    written = write_study(Path(out), "gbuffer", report, md)
-    fig, ax = figure(1, 2, size=(11, 4))
-    names = list(configs)
-    bars(ax[0], names, {"median ms": [configs[n]["median_ms"] for n in names]}, ylabel="ms per G-buffer",
-         texts=[f"{configs[n]['median_ms']:.1f}" for n in names])
-    bars(ax[1], names, {"triangles": [configs[n]["median_triangles"] for n in names]}, ylabel="triangles drawn",
-         texts=[f"{configs[n]['median_triangles']:,.0f}" for n in names])
-    for a in ax:
-        a.tick_params(axis="x", labelsize=7)
-    finish(fig, written["png"], f"G-buffer raster, {size[0]}x{size[1]}")
+    samples: list[dict] = []
+
+    def write(configs: dict, frames: int, complete: bool) -> dict:
+        report = {"complete": complete, "recording": args.recording, "scene": rec.scene_name,
+                  "size": list(size), "frames": frames, "first_frame": args.first_frame,
+                  "triangles": prepared.scene.triangle_count, "configs": configs}
+        md = _markdown(report)
+        written = write_study(Path(out), "gbuffer", report, md)
+        write_plots(lambda: _plot(configs, size, written["png"]))  # after the JSON: never loses it
+        return {**written, "markdown": md}
+
+    def partial(complete: bool) -> Path | None:
+        if not samples or frames_done(samples[0]) == 0:
+            return None
+        return write(summarize(samples[0]), frames_done(samples[0]), complete)["json"]
+
+    with keep_partial("bench-gbuffer", defer=True) as part:  # Ctrl-C: stop after the frame in hand
+        part.keep(partial)
+        configs = measure(prepared, cameras, size, ctx,
+                          lambda k, n: log(args, f"frame {k}/{n}", "bench-gbuffer") if k % every == 0 or k == n
+                          else None, keep=samples.append, check=part.check)
+    written = write(configs, args.frames, True)
+    md = written["markdown"]
     print(md)
     print(f"report: {written['json']}")
     return 0

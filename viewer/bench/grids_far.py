@@ -33,6 +33,7 @@ from typing import Any
 
 import numpy as np
 
+from viewer.bench.partial import keep_partial
 from viewer.errors import RtwalkError
 
 HELP = "grids against clbvh far from the origin (--offset) and on a mixed-scale scene: pairs, MiB, trace ms"
@@ -239,7 +240,7 @@ def build_only(args, tris: np.ndarray) -> int:
           f"build {st.build_ms:.0f} ms peak RSS {rss:.0f} MiB")
     grid.release()
     buf.release()
-    _write_json(args.json, {"scene": args.scene, "offset": args.offset, "build_only": {
+    _write_json(args.json, {"complete": True, "scene": args.scene, "offset": args.offset, "build_only": {
         "grid_res": [int(v) for v in st.res], "grid_pairs": int(st.pairs), "grid_mib": mib,
         "build_ms": float(st.build_ms), "peak_rss_mib": rss}})
     return 0
@@ -300,15 +301,43 @@ def run(args) -> int:
                       "times": []}
     ids_of: dict[str, np.ndarray] = {}
     t_of: dict[str, np.ndarray] = {}
-    for _ in range(args.rounds):
-        for name in names:
-            ms, ids, t = runners[name].trace()
-            rows[name]["times"].append(ms)
-            ids_of[name], t_of[name] = ids, t
+
+    def report(complete: bool) -> Path | None:  # the rounds every backend finished
+        done = min(len(r["times"]) for r in rows.values())
+        if done == 0 or not args.json:
+            return None
+        for r in rows.values():
+            del r["times"][done:]
+        _summarize(args, names, rows, runners, ids_of, t_of, len(tris), len(o), tmin)
+        _write_json(args.json, {"complete": complete, "scene": args.scene, "offset": args.offset, "rounds": done,
+                                "rows": list(rows.values())})
+        return Path(args.json).expanduser()
+
+    try:
+        with keep_partial("bench-grids", defer=True) as part:  # Ctrl-C: stop after the round in hand
+            part.keep(report)
+            for k in range(args.rounds):
+                part.check()
+                for name in names:
+                    ms, ids, t = runners[name].trace()
+                    rows[name]["times"].append(ms)
+                    ids_of[name], t_of[name] = ids, t
+                print(f"bench-grids: round {k + 1}/{args.rounds} done", file=sys.stderr, flush=True)
+        if not report(True):
+            _summarize(args, names, rows, runners, ids_of, t_of, len(tris), len(o), tmin)
+    finally:
+        for r in runners.values():
+            r.release()
+    return 0
+
+
+def _summarize(args, names: list[str], rows: dict, runners: dict, ids_of: dict, t_of: dict, n_tris: int,
+               n_rays: int, tmin) -> None:
+    """Medians, ratios to clbvh and disagreements into `rows`, and the table on stdout."""
     ref = ids_of.get("clbvh")
     base = statistics.median(rows["clbvh"]["times"]) if "clbvh" in rows else None
-    active = len(o) if tmin is None else int((~np.isnan(tmin)).sum())
-    print(f"scene {args.scene} offset {args.offset:g} triangles {len(tris)} rays {len(o)} ({args.rays}, "
+    active = n_rays if tmin is None else int((~np.isnan(tmin)).sum())
+    print(f"scene {args.scene} offset {args.offset:g} triangles {n_tris} rays {n_rays} ({args.rays}, "
           f"{active} active)")
     for name in names:
         r = rows[name]
@@ -335,10 +364,6 @@ def run(args) -> int:
               f"x{(r['vs_clbvh'] or 0):6.2f}  hits {r['hits']}  disagree {r['disagree']}{sub}"
               + "".join(f"  {k} {int(v)}" for k, v in r.get("pass_stats", {}).items() if k != "pairs"), flush=True)
     print(f"peak RSS {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024:.0f} MiB")
-    for r in runners.values():
-        r.release()
-    _write_json(args.json, {"scene": args.scene, "offset": args.offset, "rows": list(rows.values())})
-    return 0
 
 
 def main(argv: list[str] | None = None) -> int:

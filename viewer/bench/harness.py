@@ -180,6 +180,7 @@ class Harness:
         from viewer.profiler import choose_timing
 
         self.frames, self.first_frame, self.quiet = frames, first_frame, quiet
+        self.interrupt = None  # a viewer.bench.partial.PartialRun: run_many stops between comparisons
         self.ctx = ctx if ctx is not None else shared_context()
         self.device = {"renderer": self.ctx.info.get("GL_RENDERER"), "version": self.ctx.info.get("GL_VERSION"),
                        "phase_timing": choose_timing(self.ctx)}
@@ -228,8 +229,12 @@ class Harness:
                  frames: list[int] | None = None) -> list[RunResult]:
         """Configurations compared with each other, on the same consecutive frames, interleaved frame
         by frame (each keeps its own renderer and temporal state), so that other jobs on a shared
-        machine slow them alike. Per configuration: warm-up, reset, timed frames (module docstring)."""
+        machine slow them alike. Per configuration: warm-up, reset, timed frames (module docstring).
+        A deferred Ctrl-C (`self.interrupt`, viewer.bench.partial) stops here, between comparisons."""
         from viewer.renderer import Renderer
+
+        if self.interrupt is not None:
+            self.interrupt.check()
 
         rec = self.recording(path)
         prep = self.scene(path)

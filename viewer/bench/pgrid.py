@@ -39,6 +39,7 @@ from pathlib import Path
 import numpy as np
 
 from viewer.bench.common import log, study_scene
+from viewer.bench.partial import keep_partial
 from viewer.bench.pgrid_studies import study_anim, study_pairs, study_rearrange
 from viewer.bench.plots import figure, finish
 from viewer.bench.report import fmt, md_table, size_text, write_study
@@ -107,11 +108,18 @@ def bvh_build_ms(prep) -> dict[str, float]:
     return {"glsl": statistics.median(b), "clbvh": statistics.median(b) + statistics.median(c)}
 
 
+def interrupt_check(args):
+    """The running command's `check` (viewer.bench.partial), set by `run`; None outside it."""
+    part = getattr(args, "partial_run", None)
+    return part.check if part is not None else None
+
+
 def run_interleaved(ctx, prep, camera, size, effects: str, configs: dict[str, tuple[str, str]], frames: int,
-                    scene=None) -> dict[str, dict]:
+                    scene=None, check=None) -> dict[str, dict]:
     """configs: label -> (backend, params). Returns label -> {"phases": {phase: median ms},
     "stats": last frame's counters, "phase_io": last frame's launches and host syncs per phase,
-    "io": last frame's viewer.iostats counts}."""
+    "io": last frame's viewer.iostats counts}. `check` runs between frames (a deferred Ctrl-C
+    stops there: viewer.bench.partial)."""
     from viewer.effects import parse_effects
     from viewer.renderer import Renderer
 
@@ -126,6 +134,8 @@ def run_interleaved(ctx, prep, camera, size, effects: str, configs: dict[str, tu
         phase_io: dict[str, dict] = {}
         io: dict[str, dict] = {}
         for f in range(frames + 1):
+            if check is not None:
+                check()
             for label, r in renderers.items():
                 rep = r.render(camera)
                 if f > 0:
@@ -180,7 +190,8 @@ def study_table41(args, ctx) -> dict:
             extra = args.pgrid_params
             configs = {"pgrid": ("pgrid", ",".join(x for x in ("rebuild=false", extra) if x)),
                        "ugrid": ("ugrid", "rebuild=true"), "clbvh": ("clbvh", ""), "glsl": ("glsl", "")}
-            res = run_interleaved(ctx, prep, cam, size, "primary,shadows,soft:1,diffuse:1", configs, args.frames)
+            res = run_interleaved(ctx, prep, cam, size, "primary,shadows,soft:1,diffuse:1", configs, args.frames,
+                                  check=interrupt_check(args))
             rows.append({"scene": name, "triangles": prep.scene.triangle_count, "size": list(size),
                          "terms": _terms(res, builds), "phases": {k: v["phases"] for k, v in res.items()},
                          "stats": {k: v["stats"] for k, v in res.items()}, "bvh_build_ms": builds,
@@ -308,7 +319,8 @@ def study_lightdist(args, ctx) -> dict:
         pos = (centre + axis * k * diag).astype(np.float32)
         scene = dataclasses.replace(prep.scene, point_lights=[PointLight(pos, l0.intensity)])
         log(args, f"bench-pgrid: lightdist {name} distance {k} diagonals")
-        res = run_interleaved(ctx, prep, cam, size, "shadows", configs, args.frames, scene=scene)
+        res = run_interleaved(ctx, prep, cam, size, "shadows", configs, args.frames, scene=scene,
+                              check=interrupt_check(args))
         row = {"distance": k, "light": pos.tolist(), "configs": {}}
         for label, v in res.items():
             ph = v["phases"]
@@ -446,22 +458,30 @@ def run(args) -> int:
     ctx = shared_context()
     Path(args.out).mkdir(parents=True, exist_ok=True)
     t41 = None
-    for s in studies:
-        if s == "table41":
-            t41 = study_table41(args, ctx)
-            print(t41["markdown"], flush=True)
-        elif s == "lightdist":
-            print(study_lightdist(args, ctx)["markdown"], flush=True)
-        elif s == "model":
-            print(study_model(args, t41)["markdown"], flush=True)
-        elif s == "pairs":
-            log(args, "bench-pgrid: pairs")
-            sizes = parse_image_sizes(args.sizes, "--sizes")
-            scenes = parse_choices(args.scenes, SCENES, "--scenes")
-            print(study_pairs(args, load_scene, sizes, scenes)["markdown"], flush=True)
-        elif s == "rearrange":
-            print(study_rearrange(args, t41)["markdown"], flush=True)
-        elif s == "anim":
-            log(args, "bench-pgrid: anim")
-            print(study_anim(args)["markdown"], flush=True)
+    with keep_partial("bench-pgrid", defer=True) as part:  # Ctrl-C: stop between frames, keep the studies done
+        args.partial_run = part
+        for s in studies:
+            part.started(s)
+            res = _one_study(args, ctx, s, t41)
+            t41 = res if s == "table41" else t41
+            part.finished(res["json"])
+            print(res["markdown"], flush=True)
     return 0
+
+
+def _one_study(args, ctx, s: str, t41: dict | None) -> dict:
+    """One study of `run` (model and rearrange read table41's result)."""
+    if s == "table41":
+        return study_table41(args, ctx)
+    if s == "lightdist":
+        return study_lightdist(args, ctx)
+    if s == "model":
+        return study_model(args, t41)
+    if s == "pairs":
+        log(args, "bench-pgrid: pairs")
+        return study_pairs(args, load_scene, parse_image_sizes(args.sizes, "--sizes"),
+                           parse_choices(args.scenes, SCENES, "--scenes"))
+    if s == "rearrange":
+        return study_rearrange(args, t41)
+    log(args, "bench-pgrid: anim")
+    return study_anim(args)

@@ -61,6 +61,8 @@ def study_pairs(args, load_scene, sizes, scenes) -> dict:
             ug_pairs = ug.stats.pairs
             closed = closed_outward(tris)
             for size in sizes:
+                if getattr(args, "partial_run", None) is not None:
+                    args.partial_run.check()
                 o, d = cam.primary_rays(*size)
                 w, h = size
                 flat_o, flat_d = o.reshape(-1, 3), d.reshape(-1, 3)
@@ -151,6 +153,7 @@ def study_anim(args) -> dict:
     path = RECORDINGS / ANIM_RECORDING
     size = args.anim_size
     h = Harness(frames=args.anim_frames, first_frame=0, quiet=args.quiet)
+    h.interrupt = getattr(args, "partial_run", None)  # a deferred Ctrl-C stops before the comparison
     h.progress("anim", len(ANIM_BACKENDS) * args.anim_frames)
     try:
         res = h.run_many(path, size, [RunSpec(b, "primary,shadows", b) for b in ANIM_BACKENDS])

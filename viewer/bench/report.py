@@ -53,7 +53,10 @@ def write_json(path: Path, data: dict | list) -> None:
 
 
 def write_study(out: Path, study: str, report: dict, md: str) -> dict:
-    """`<study>.json` and `<study>.md` in `out` (the study draws `<study>.png` itself)."""
+    """`<study>.json` and `<study>.md` in `out` (the study draws `<study>.png` itself); the JSON says
+    `"complete": true` unless the report says otherwise (an interrupted run: viewer.bench.partial)."""
+    if isinstance(report, dict) and "complete" not in report:
+        report = {"complete": True, **report}
     write_json(out / f"{study}.json", report)
     (out / f"{study}.md").write_text(md + "\n")
     return {"study": study, "json": out / f"{study}.json", "md": out / f"{study}.md",

@@ -34,6 +34,7 @@ import numpy as np
 
 from viewer import iostats
 from viewer.bench.common import log, study_scene
+from viewer.bench.partial import keep_partial, write_plots
 from viewer.bench.plots import figure, finish
 from viewer.bench.report import fmt, md_table, size_text, write_study
 from viewer.cl import io as clio
@@ -252,11 +253,12 @@ def _walk_stats(dev: Device, rs: RaySet) -> dict[str, Any]:
 # ----------------------------------------------------------------------------------------- studies
 
 
-def collect(args, ctx_gl) -> list[dict]:
-    """Per scene and size: grid (auto), timings, statistics and agreement (table51 and iterations)."""
+def collect(args, ctx_gl, rows: list[dict] | None = None, part=None) -> list[dict]:
+    """Per scene and size: grid (auto), timings, statistics and agreement (table51 and iterations),
+    appended to `rows`; `part` (viewer.bench.partial) stops between sizes on Ctrl-C."""
     from viewer.bench.pgrid import bvh_build_ms
 
-    rows = []
+    rows = [] if rows is None else rows
     for name in parse_choices(args.scenes, SCENES, "--scenes"):
         prep, cam = load_scene(args, name)
         dev = Device(prep, args.chunk)
@@ -265,6 +267,8 @@ def collect(args, ctx_gl) -> list[dict]:
             build_io = dev.last_io
             bvh_ms = bvh_build_ms(prep)["clbvh"]
             for size in parse_image_sizes(args.sizes, "--sizes"):
+                if part is not None:
+                    part.check()
                 log(args, f"bench-voxelwalk: {name} {size_text(size)}: capturing reflection rays")
                 rs = _rays_on_device(ctx_gl, dev, prep, cam, name, size)
                 try:
@@ -338,8 +342,9 @@ def study_table51(args, rows: list[dict]) -> dict:
            "IVW/EC > 1: EC faster. 'frame' columns: an animated scene, where the grid (or clbvh's BVH: "
            "binary SAH build + BVH4 collapse on the CPU) is rebuilt every frame before the reflection pass. "
            "Agreement: rays whose IVW / EC hit equals clbvh's (same triangle, or the same distance: a tie)."]
-    _plot_table51(rows, Path(args.out) / "table51.png")
-    return write_study(Path(args.out), "table51", {"rows": rows, "command": args.command_line}, "\n".join(md))
+    res = write_study(Path(args.out), "table51", {"rows": rows, "command": args.command_line}, "\n".join(md))
+    write_plots(lambda: _plot_table51(rows, Path(args.out) / "table51.png"))  # after the JSON: never loses it
+    return res
 
 
 def _plot_table51(rows: list[dict], path: Path) -> None:
@@ -386,9 +391,10 @@ def study_iterations(args, rows: list[dict]) -> dict:
     md.append(md_table(head, body))
     md += ["", "Iteration k: the k-th non-empty cell along each ray (IVW and EC visit the same cells). Resolved: "
            "% of the active reflection rays whose walk ended by iteration k (cumulative)."]
-    _plot_iterations(rows, Path(args.out) / "iterations.png")
     summary = [{k: r[k] for k in ("scene", "size", "walk")} for r in rows]
-    return write_study(Path(args.out), "iterations", {"rows": summary, "command": args.command_line}, "\n".join(md))
+    res = write_study(Path(args.out), "iterations", {"rows": summary, "command": args.command_line}, "\n".join(md))
+    write_plots(lambda: _plot_iterations(rows, Path(args.out) / "iterations.png"))
+    return res
 
 
 def _plot_iterations(rows: list[dict], path: Path) -> None:
@@ -494,12 +500,23 @@ def run(args) -> int:
     cl_context()
     ctx = shared_context()
     Path(args.out).mkdir(parents=True, exist_ok=True)
-    rows = collect(args, ctx) if {"table51", "iterations"} & set(studies) else []
-    for s in studies:
-        if s == "table51":
-            print(study_table51(args, rows)["markdown"], flush=True)
-        elif s == "iterations":
-            print(study_iterations(args, rows)["markdown"], flush=True)
-        elif s == "resolution":
-            print(study_resolution(args, ctx)["markdown"], flush=True)
+    rows: list[dict] = []
+    row_studies = [s for s in studies if s in ("table51", "iterations")]
+
+    def rows_so_far(complete: bool) -> list[Path]:  # collect interrupted: its studies from the rows done
+        return [STUDY_OF_ROWS[s](args, rows)["json"] for s in row_studies] if rows else []
+
+    with keep_partial("bench-voxelwalk", defer=True) as part:  # Ctrl-C: stop after the size in hand
+        if row_studies:
+            part.keep(rows_so_far)
+            collect(args, ctx, rows, part)
+            part.keep(lambda complete: None)
+        for s in studies:
+            part.started(s)
+            res = STUDY_OF_ROWS[s](args, rows) if s in STUDY_OF_ROWS else study_resolution(args, ctx)
+            part.finished(res["json"])
+            print(res["markdown"], flush=True)
     return 0
+
+
+STUDY_OF_ROWS = {"table51": study_table51, "iterations": study_iterations}
