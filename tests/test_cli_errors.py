@@ -116,6 +116,40 @@ def test_truncated_stl_is_not_a_missing_module(tmp_path):
     assert not line.endswith("(No module named 'charset_normalizer')"), line
 
 
+@pytest.mark.parametrize("fmt", ["ascii.ply", "binary.ply", "off", "glb"])
+def test_truncated_file_says_truncated(tmp_path, fmt):
+    """A file cut at 60%: a PLY or OFF states its vertex and face counts, a GLB its chunk lengths.
+    An ASCII PLY loaded the faces it found (a cut bunny: "no triangles in file", or part of the
+    mesh without a word), an OFF gave NumPy's message cut mid-word. (A cut OBJ states no counts:
+    it is a smaller valid OBJ.)"""
+    import trimesh
+
+    mesh = trimesh.creation.icosphere(3)
+    name = f"cut.{fmt.rsplit('.', 1)[-1]}"
+    data = mesh.export(file_type=name.rsplit(".", 1)[1], **({"encoding": "ascii"} if fmt == "ascii.ply" else {}))
+    data = data.encode() if isinstance(data, str) else data
+    path = tmp_path / name
+    path.write_bytes(data[: len(data) * 6 // 10])
+    proc = run_cli("info", str(path))
+    assert_one_line_error(proc, name)
+    line = proc.stderr.strip().splitlines()[-1]
+    assert "truncated or corrupt" in line and "inhomogeneous" not in line, line
+    if fmt != "glb":
+        assert "declares 642 vertices and 1,280 faces" in line, line
+    whole = tmp_path / f"whole.{name.rsplit('.', 1)[1]}"
+    whole.write_bytes(data)
+    assert run_cli("info", str(whole)).returncode == 0
+
+
+def test_truncated_shared_bunny(tmp_path):
+    """The walkthrough's case: `head -c 1500000 bun_zipper.ply` (ASCII, cut inside the vertices)."""
+    from tests.conftest import shared_scene
+
+    cut = tmp_path / "t.ply"
+    cut.write_bytes(Path(shared_scene("bunny/bun_zipper.ply")).read_bytes()[:1_500_000])
+    assert_one_line_error(run_cli("info", str(cut)), "declares 35,947 vertices and 69,451 faces")
+
+
 def test_empty_mesh(tmp_path):
     empty = tmp_path / "empty.obj"
     empty.write_text("# nothing here\nv 0 0 0\n")
