@@ -705,3 +705,38 @@ def test_panel_fits_a_504_px_window(gl_ctx, backend, monkeypatch):
         r.release()
     bottom, scroll_max, height = seen[-1]
     assert height == 504 and scroll_max == 0 and bottom <= 504, seen
+
+
+def test_window_screenshot_and_frame_log_are_not_replaced(tmp_path, monkeypatch):
+    """RTWALK_VIEW_SCREENSHOT naming an existing file (a second run of the same command) replaced
+    it silently: refused in one line before the window opens, as render -o is, unless view --force;
+    --frame-log the same way. (An unreachable display stops the forced run right after the checks.)"""
+    from tests.cli_runner import run_cli
+
+    shot, flog = tmp_path / "s.png", tmp_path / "f.json"
+    shot.write_bytes(b"earlier")
+    monkeypatch.setenv("RTWALK_VIEW_SCREENSHOT", str(shot))
+    monkeypatch.setenv("DISPLAY", ":4093")
+    monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
+    res = run_cli("view", "room")
+    assert res.returncode == 2 and res.stderr.count("\n") == 1, res.stderr
+    assert "RTWALK_VIEW_SCREENSHOT" in res.stderr and "exists" in res.stderr and "--force" in res.stderr
+    forced = run_cli("view", "room", "--force")
+    assert forced.returncode == 2 and "no display" in forced.stderr, forced.stderr
+    monkeypatch.delenv("RTWALK_VIEW_SCREENSHOT")
+    flog.write_text("{}")
+    res = run_cli("view", "room", "--frame-log", str(flog))
+    assert res.returncode == 2 and "--frame-log" in res.stderr and "--force" in res.stderr, res.stderr
+    assert "no display" in run_cli("view", "room", "--frame-log", str(flog), "--force").stderr
+    assert shot.read_bytes() == b"earlier" and flog.read_text() == "{}"
+
+
+def test_f12_screenshot_names_are_new(tmp_path):
+    """F12 saves into screenshots/ under a name no file had: created exclusively (stem, stem-1, ...)."""
+    from viewer.ui.app import _new_file
+
+    (tmp_path / "a.png").write_bytes(b"x")
+    (tmp_path / "a-1.png").write_bytes(b"y")
+    assert _new_file(tmp_path, "a", ".png") == tmp_path / "a-2.png"
+    assert _new_file(tmp_path, "a", ".png") == tmp_path / "a-3.png"
+    assert (tmp_path / "a.png").read_bytes() == b"x" and (tmp_path / "a-1.png").read_bytes() == b"y"

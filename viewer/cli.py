@@ -193,6 +193,9 @@ def build_parser() -> argparse.ArgumentParser:
     add_progressive_args(v, "progressive refinement (default): one pass per effect at a reduced scale while the "
                             "camera moves, more passes when it stops; --no-progressive: full quality every frame",
                          default=True)
+    v.add_argument("--force", action="store_true",
+                   help="replace an existing RTWALK_VIEW_SCREENSHOT image or --frame-log file (default: refuse; "
+                        "F12 screenshots always get a new name in screenshots/)")
     add_denoise_arg(v)
     v.set_defaults(size=VIEW_SIZE)
 

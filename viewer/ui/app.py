@@ -13,7 +13,8 @@ panel on/off, Esc quits. An overlay view the active backend does not produce sho
 final image with a message on it, and F12 then saves nothing (the message says why).
 
 For tests and the README screenshot: `--max-frames N` or RTWALK_VIEW_FRAMES=N quits after N
-frames; RTWALK_VIEW_SCREENSHOT=path.png then saves the whole window, panel included.
+frames; RTWALK_VIEW_SCREENSHOT=path.png then saves the whole window, panel included (an existing
+file is refused, as render -o refuses one, unless --force; F12 never replaces a file).
 RTWALK_VIEW_SCALE=0.25..1 sets the initial render scale (default 1); RTWALK_VIEW_MODE=VIEW the
 initial view (a `--view` argument, where the parser has one, takes precedence).
 """
@@ -143,6 +144,19 @@ def open_window(size: tuple[int, int], title: str):
     return window
 
 
+def _new_file(folder: Path, stem: str, suffix: str) -> Path:
+    """A file created here under a name no other file had (stem, stem-1, ...): created exclusively,
+    so a screenshot never replaces one, even one another window saved in the same second."""
+    n = 0
+    while True:
+        path = folder / (f"{stem}-{n}{suffix}" if n else f"{stem}{suffix}")
+        try:
+            with open(path, "xb"):
+                return path
+        except FileExistsError:
+            n += 1
+
+
 def _first_line(exc: BaseException) -> str:
     text = str(exc).strip()
     return text.splitlines()[0] if text else type(exc).__name__
@@ -158,11 +172,15 @@ def run_viewer(args) -> int:
     render_scale_from_env()  # bad values fail before the window opens
     view = initial_view(args)
     shot = os.environ.get("RTWALK_VIEW_SCREENSHOT", "").strip() or None
+    force = bool(getattr(args, "force", False))  # view --force; demo has none: never replace
     if shot:
         check_image_output(shot, "RTWALK_VIEW_SCREENSHOT")
+        if Path(shot).expanduser().exists() and not force:  # as render -o: an earlier picture is kept
+            raise RtwalkError(f"RTWALK_VIEW_SCREENSHOT={shot}: exists; pass --force to replace it, "
+                              "or choose another file")
     frame_log = getattr(args, "frame_log", None)
     if frame_log:
-        check_frame_log(frame_log)
+        check_frame_log(frame_log, force)
     window_class()  # fail on a missing display before spending time on the scene
     req = request_from(args)
     settings, backend_options, size = req.settings, req.backend_options, req.size
@@ -376,15 +394,14 @@ class ViewerApp:
         img = (self.renderer.read_denoised("library", self.camera) if self.denoiser is not None
                else self.renderer.read_image())
         stamp = time.strftime("%Y%m%d-%H%M%S")
-        path = SCREENSHOT_DIR / f"rtwalk-{stamp}.png"
-        n = 1
-        while path.exists():
-            path = SCREENSHOT_DIR / f"rtwalk-{stamp}-{n}.png"
-            n += 1
+        path = SCREENSHOT_DIR
         try:
-            path.parent.mkdir(parents=True, exist_ok=True)
+            SCREENSHOT_DIR.mkdir(parents=True, exist_ok=True)
+            path = _new_file(SCREENSHOT_DIR, f"rtwalk-{stamp}", ".png")
             Image.fromarray(img).save(path)
         except OSError as exc:
+            if path != SCREENSHOT_DIR:  # the name was taken for this picture: no empty file left
+                path.unlink(missing_ok=True)
             self.say(f"screenshot failed: {path}: {exc.strerror or exc}")
             return
         self.say(f"screenshot: {path} ({img.shape[1]}x{img.shape[0]})")
