@@ -987,3 +987,17 @@ def test_deferred_interrupt_sets_a_flag_then_raises():
         assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
     finally:
         signal.signal(signal.SIGINT, outer if outer is not None else signal.default_int_handler)
+
+
+def test_info_scene_with_backend_shows_both():
+    """`rtwalk info SCENE --backend NAME` printed the backend alone and ignored SCENE without a
+    word: now the scene's statistics, then the backend; --backend alone loads no scene."""
+    from viewer.backends import backend_info
+    from viewer.backends.interface import describe
+
+    both = run_cli("info", "room", "--backend", "glsl", "--quiet")
+    assert both.returncode == 0, both.stderr
+    assert both.stdout.startswith("scene room: ") and both.stdout.rstrip().endswith(describe(backend_info("glsl")))
+    alone = run_cli("info", "--backend", "glsl", "--quiet")
+    assert alone.returncode == 0 and alone.stdout.strip() == describe(backend_info("glsl")), alone.stdout
+    assert_one_line_error(run_cli("info", "room", "--backend", "nope"), "unknown backend 'nope'")

@@ -90,12 +90,22 @@ def cmd_render(args) -> int:
 
 
 def cmd_info(args) -> int:
-    if args.backend:  # a backend's self-description; no scene needed
+    if args.backend:  # a backend's self-description; no scene needed unless one is named
         from viewer.backends import backend_info
         from viewer.backends.interface import describe
 
-        print(describe(backend_info(args.backend)))
+        description = describe(backend_info(args.backend))  # an unknown name before any scene is loaded
+        if args.scene is None:
+            print(description)
+            return 0
+        _print_scene_info(args)  # `info SCENE --backend NAME`: both (the scene was silently ignored)
+        print(description)
         return 0
+    _print_scene_info(args)
+    return 0
+
+
+def _print_scene_info(args) -> None:
     prepared = scene_from_args(args)
     s = prepared.scene
     lo, hi = s.bounds
@@ -106,7 +116,6 @@ def cmd_info(args) -> int:
         print(f"  material {m.name}: albedo [{albedo}]{' (mirror)' if m.mirror else ''}")
     for note in s.notes:
         print(f"  note: {note}")
-    return 0
 
 
 def cmd_view(args) -> int:
@@ -221,9 +230,11 @@ def build_parser() -> argparse.ArgumentParser:
         if name.startswith("bench") and getattr(bench_module(name), "WRITES_REPORTS", True):
             add_force_arg(parser)
 
-    i = sub.add_parser("info", help="scene statistics, or a backend's description and parameters (--backend NAME)")
+    i = sub.add_parser("info", help="scene statistics, and/or a backend's description and parameters (--backend NAME)")
     add_scene_args(i)
-    i.add_argument("--backend", default=None, help="describe this backend: device, exactness, every parameter")
+    i.add_argument("--backend", default=None,
+                   help="describe this backend: device, exactness, every parameter (alone: no scene is loaded; "
+                        "with SCENE: the scene's statistics, then the backend)")
 
     d = sub.add_parser("demo", help="main job: window if a display exists, else headless replay + report")
     add_scene_args(d)
