@@ -1001,3 +1001,21 @@ def test_info_scene_with_backend_shows_both():
     alone = run_cli("info", "--backend", "glsl", "--quiet")
     assert alone.returncode == 0 and alone.stdout.strip() == describe(backend_info("glsl")), alone.stdout
     assert_one_line_error(run_cli("info", "room", "--backend", "nope"), "unknown backend 'nope'")
+
+
+def test_demo_window_opens_at_the_view_size(monkeypatch):
+    """`rtwalk demo` with a display opened the window at demo's 640x360 (the headless replay's
+    size), not at view's 896x504; --size still wins, and the headless replay keeps 640x360."""
+    import viewer.cli
+
+    seen = []
+    monkeypatch.setattr(viewer.cli, "cmd_view", lambda args: seen.append(("view", args.size)) or 0)
+    monkeypatch.setattr(viewer.cli.bench_module("bench"), "run", lambda args: seen.append(("bench", args.size)) or 0)
+    monkeypatch.setattr(viewer.cli, "demo_recording", lambda scene: Path("recordings/city-near.json"))
+    monkeypatch.setenv("DISPLAY", ":4093")
+    assert run_cli("demo").returncode == 0
+    assert run_cli("demo", "--size", "320x180").returncode == 0
+    monkeypatch.delenv("DISPLAY")
+    monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
+    assert run_cli("demo").returncode == 0
+    assert seen == [("view", viewer.cli.VIEW_SIZE), ("view", "320x180"), ("bench", "640x360")]

@@ -14,6 +14,7 @@ from viewer.bench import BENCHMARKS, bench_module
 # importing this module)
 from viewer.cli_args import (
     DEFAULT_RECORDING,
+    RENDER_SIZE,
     add_denoise_arg,
     add_effect_args,
     add_force_arg,
@@ -126,7 +127,10 @@ def cmd_view(args) -> int:
 
 def cmd_demo(args) -> int:
     """The main job: a window where there is a display, else a headless replay with a report."""
-    if os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY"):
+    windowed = bool(os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY"))
+    if args.size is None:  # the window opened at the replay's 640x360, not at view's own default
+        args.size = VIEW_SIZE if windowed else RENDER_SIZE
+    if windowed:
         return cmd_view(args)
     request_from(args, device=False)  # what needs no scene is refused before the recording is chosen
     check_at_least(args.frames, 1, "--frames")
@@ -240,6 +244,9 @@ def build_parser() -> argparse.ArgumentParser:
     add_scene_args(d)
     add_effect_args(d, "shadows,ao:4,reflections")
     d.add_argument("--frames", type=int, default=24, help="without a display: frames replayed (>= 1)")
+    d.set_defaults(size=None)
+    next(a for a in d._actions if a.dest == "size").help = (
+        f"WIDTHxHEIGHT (default: {VIEW_SIZE} in the window, as view; {RENDER_SIZE} for the headless replay)")
     add_denoise_arg(d)
     for parser in sub.choices.values():
         parser.formatter_class = DefaultsFormatter
