@@ -740,3 +740,28 @@ def test_f12_screenshot_names_are_new(tmp_path):
     assert _new_file(tmp_path, "a", ".png") == tmp_path / "a-2.png"
     assert _new_file(tmp_path, "a", ".png") == tmp_path / "a-3.png"
     assert (tmp_path / "a.png").read_bytes() == b"x" and (tmp_path / "a-1.png").read_bytes() == b"y"
+
+
+def test_fit_to_screen_keeps_the_aspect_ratio():
+    from viewer.ui.app import fit_to_screen
+
+    assert fit_to_screen((896, 504), (1400, 900)) == (896, 504)  # fits: unchanged
+    assert fit_to_screen((896, 504), None) == (896, 504)  # no screen size known: the driver decides
+    assert fit_to_screen((10000, 10000), (1400, 900)) == (900, 900)
+    room = 1280 - PANEL_WIDTH
+    assert fit_to_screen((2000, 1000), (1280, 800), panel=PANEL_WIDTH) == (room, room // 2)
+
+
+@needs_xvfb
+def test_view_size_larger_than_the_display_is_fitted(tmp_path):
+    """`view --size 10000x10000` under a 1400x900 virtual display was accepted and took minutes per
+    frame: the window is fitted to the display (aspect kept) with one warning line."""
+    from PIL import Image
+
+    shot = tmp_path / "big.png"
+    cmd = [sys.executable, "-m", "viewer.cli", "view", "room", "--size", "2000x1000", "--quiet"]
+    res = _xvfb(cmd, tmp_path, _env(RTWALK_VIEW_FRAMES="1", RTWALK_VIEW_SCREENSHOT=str(shot)))
+    assert res.returncode == 0, res.stderr[-3000:]
+    warnings = [ln for ln in res.stderr.splitlines() if "warning" in ln]
+    assert len(warnings) == 1 and "1280x800 display" in warnings[0] and "940x470" in warnings[0], res.stderr
+    assert Image.open(shot).size == (1280, 470)

@@ -211,6 +211,9 @@ def build_parser() -> argparse.ArgumentParser:
                         "F12 screenshots always get a new name in screenshots/)")
     add_denoise_arg(v)
     v.set_defaults(size=VIEW_SIZE)
+    next(a for a in v._actions if a.dest == "size").help = (
+        "WIDTHxHEIGHT of the image; a window (image + panel) larger than the display is fitted to it, "
+        "aspect kept, with a warning (larger images: rtwalk render)")
 
     r = sub.add_parser("render", help="render one frame headless to PNG")
     add_scene_args(r)

@@ -128,6 +128,35 @@ def window_class():
                           f"{NO_DISPLAY_HINT}") from None
 
 
+def display_size() -> tuple[int, int] | None:
+    """The size of the display's default screen in pixels (pyglet), None where it cannot tell."""
+    try:
+        import pyglet
+
+        display = pyglet.display.get_display() if hasattr(pyglet, "display") else pyglet.canvas.get_display()
+        screen = display.get_default_screen()
+        w, h = int(screen.width), int(screen.height)
+    except Exception:  # no screen list on this platform: the driver's limits still apply (Renderer)
+        return None
+    return (w, h) if w > 0 and h > 0 else None
+
+
+def fit_to_screen(size: tuple[int, int], screen: tuple[int, int] | None,
+                  panel: int = PANEL_WIDTH) -> tuple[int, int]:
+    """The image size whose window (image + panel beside it) fits `screen`: `size` itself when it
+    fits, else scaled down keeping its aspect ratio (as image viewers fit a window to the screen).
+    A window larger than the screen cannot be seen whole, and under a virtual X server a 10000x10000
+    one was accepted and took minutes per frame."""
+    if screen is None:
+        return size
+    w, h = size
+    room_w, room_h = screen[0] - panel, screen[1]
+    if w <= room_w and h <= room_h:
+        return size
+    scale = min(room_w / w, room_h / h)
+    return max(1, int(w * scale)), max(1, int(h * scale))
+
+
 def open_window(size: tuple[int, int], title: str):
     """A pyglet window with an OpenGL 4.5 core context (RtwalkError when there is none)."""
     import moderngl_window as mglw
@@ -184,6 +213,15 @@ def run_viewer(args) -> int:
     window_class()  # fail on a missing display before spending time on the scene
     req = request_from(args)
     settings, backend_options, size = req.settings, req.backend_options, req.size
+    screen = display_size()
+    fitted = fit_to_screen(size, screen)
+    if screen is not None and fitted[0] < 64:  # the panel alone fills the screen
+        raise RtwalkError(f"the {screen[0]}x{screen[1]} display has no room for the image beside the "
+                          f"{PANEL_WIDTH}-pixel panel; use a larger screen or `rtwalk render`")
+    if fitted != size:
+        log(f"rtwalk view: warning: --size {size[0]}x{size[1]} with the {PANEL_WIDTH}-pixel panel does not fit the "
+            f"{screen[0]}x{screen[1]} display; the window shows {fitted[0]}x{fitted[1]} (larger images: rtwalk render)")
+        size = fitted
     rec_path = getattr(args, "recording", None)
     recording = load_recording(rec_path) if rec_path else None
     quiet = bool(getattr(args, "quiet", False))
