@@ -39,6 +39,7 @@ def cmd_render(args) -> int:
     from tqdm import tqdm
 
     from viewer.backends import backend_info, registered_infos
+    from viewer.effects import effects_for_view
     from viewer.gl.context import create_headless_context
     from viewer.gl.limits import check_target_size
     from viewer.passes.overlay import check_view, check_view_effect
@@ -51,6 +52,7 @@ def cmd_render(args) -> int:
     backend_options, size, settings = req.backend_options, req.size, req.settings
     check_view(args.view, backend_info(args.backend), registered_infos())
     check_view_effect(args.view, settings, args.effects)
+    settings = effects_for_view(settings, args.view)  # --view depth traces no shadow or reflection rays
     check_at_least(args.frame, 0, "--frame")
     camera = parse_camera(args.camera) if args.camera else None
     out = check_image_output(args.output)
@@ -222,7 +224,10 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--recording", default=None, help="take the camera from this recording (see --frame)")
     r.add_argument("--frame", type=int, default=0,
                    help="frame of --recording whose camera is rendered (0 = first; at the recording's fps)")
-    r.add_argument("--view", default="final", help="final or one pass alone (albedo, normal, depth, shadows, ...)")
+    r.add_argument("--view", default="final",
+                   help="final or one pass alone (albedo, normal, depth, triangle_id: the G-buffer, no rays traced; "
+                        "shadows, soft, ao, diffuse, reflections: only that effect of --effects traced) or a "
+                        "backend's overlay")
     r.add_argument("-o", "--output", default="out/render.png",
                    help="image file (.png, .jpg, .bmp, .tif, .ppm, .webp, .tga); its folder is created")
     r.add_argument("--force", action="store_true", help="replace the image if -o names an existing file "
