@@ -116,17 +116,20 @@ def test_truncated_stl_is_not_a_missing_module(tmp_path):
     assert not line.endswith("(No module named 'charset_normalizer')"), line
 
 
-@pytest.mark.parametrize("fmt", ["ascii.ply", "binary.ply", "off", "glb"])
+@pytest.mark.parametrize("fmt", ["ascii.ply", "binary.ply", "off", "glb", "ascii.stl"])
 def test_truncated_file_says_truncated(tmp_path, fmt):
-    """A file cut at 60%: a PLY or OFF states its vertex and face counts, a GLB its chunk lengths.
-    An ASCII PLY loaded the faces it found (a cut bunny: "no triangles in file", or part of the
-    mesh without a word), an OFF gave NumPy's message cut mid-word. (A cut OBJ states no counts:
-    it is a smaller valid OBJ.)"""
+    """A file cut at 60%: a PLY or OFF states its vertex and face counts, a GLB its chunk lengths,
+    an ASCII STL ends with 'endsolid'. An ASCII PLY loaded the faces it found (a cut bunny: "no
+    triangles in file", or part of the mesh without a word), an OFF gave NumPy's message cut
+    mid-word, an ASCII STL "no triangles in file". (A cut OBJ states no counts: it is a smaller
+    valid OBJ; the binary STL case is test_truncated_stl_is_not_a_missing_module.)"""
     import trimesh
 
     mesh = trimesh.creation.icosphere(3)
-    name = f"cut.{fmt.rsplit('.', 1)[-1]}"
-    data = mesh.export(file_type=name.rsplit(".", 1)[1], **({"encoding": "ascii"} if fmt == "ascii.ply" else {}))
+    ext = fmt.rsplit(".", 1)[-1]
+    name = f"cut.{ext}"
+    file_type = "stl_ascii" if fmt == "ascii.stl" else ext
+    data = mesh.export(file_type=file_type, **({"encoding": "ascii"} if fmt == "ascii.ply" else {}))
     data = data.encode() if isinstance(data, str) else data
     path = tmp_path / name
     path.write_bytes(data[: len(data) * 6 // 10])
@@ -134,7 +137,7 @@ def test_truncated_file_says_truncated(tmp_path, fmt):
     assert_one_line_error(proc, name)
     line = proc.stderr.strip().splitlines()[-1]
     assert "truncated or corrupt" in line and "inhomogeneous" not in line, line
-    if fmt != "glb":
+    if fmt.endswith(("ply", "off")):
         assert "declares 642 vertices and 1,280 faces" in line, line
     whole = tmp_path / f"whole.{name.rsplit('.', 1)[1]}"
     whole.write_bytes(data)

@@ -312,10 +312,34 @@ def declared_counts(path: Path) -> tuple[int, int] | None:
         return None
 
 
+def ascii_stl_cut(path: Path) -> bool:
+    """An ASCII STL (starts with 'solid', and its size is not that of the binary STL its first 84
+    bytes would describe) that does not end with 'endsolid': cut short. trimesh returned no
+    triangles for one, reported as 'no triangles in file'."""
+    if path.suffix.lower() != ".stl":
+        return False
+    try:
+        size = path.stat().st_size
+        with open(path, "rb") as f:
+            head = f.read(84)
+            f.seek(max(0, size - 1024))
+            tail = f.read()
+    except OSError:
+        return False
+    if not head.lstrip().startswith(b"solid"):
+        return False
+    if len(head) == 84 and 84 + 50 * int.from_bytes(head[80:84], "little") == size:
+        return False  # a binary STL whose 80-byte header happens to start with 'solid'
+    last = tail.rstrip().rsplit(b"\n", 1)[-1].strip()
+    return not last.startswith(b"endsolid")
+
+
 def _check_declared_counts(path: Path, loaded) -> None:
     """A PLY or OFF file whose body ends before the vertices and faces its header declares is
     truncated: trimesh reads an ASCII body line by line and returns what it found (a bunny cut in
     half loaded with no faces, reported as 'no triangles in file', or with part of them silently)."""
+    if ascii_stl_cut(path):
+        raise RtwalkError(f"{path}: truncated or corrupt STL file (an ASCII STL, and it does not end with 'endsolid')")
     declared = declared_counts(path)
     if declared is None:
         return
