@@ -116,6 +116,43 @@ def test_truncated_stl_is_not_a_missing_module(tmp_path):
     assert not line.endswith("(No module named 'charset_normalizer')"), line
 
 
+@pytest.mark.parametrize("fmt", ["ascii.ply", "binary.ply", "off", "glb", "ascii.stl"])
+def test_truncated_file_says_truncated(tmp_path, fmt):
+    """A file cut at 60%: a PLY or OFF states its vertex and face counts, a GLB its chunk lengths,
+    an ASCII STL ends with 'endsolid'. An ASCII PLY loaded the faces it found (a cut bunny: "no
+    triangles in file", or part of the mesh without a word), an OFF gave NumPy's message cut
+    mid-word, an ASCII STL "no triangles in file". (A cut OBJ states no counts: it is a smaller
+    valid OBJ; the binary STL case is test_truncated_stl_is_not_a_missing_module.)"""
+    import trimesh
+
+    mesh = trimesh.creation.icosphere(3)
+    ext = fmt.rsplit(".", 1)[-1]
+    name = f"cut.{ext}"
+    file_type = "stl_ascii" if fmt == "ascii.stl" else ext
+    data = mesh.export(file_type=file_type, **({"encoding": "ascii"} if fmt == "ascii.ply" else {}))
+    data = data.encode() if isinstance(data, str) else data
+    path = tmp_path / name
+    path.write_bytes(data[: len(data) * 6 // 10])
+    proc = run_cli("info", str(path))
+    assert_one_line_error(proc, name)
+    line = proc.stderr.strip().splitlines()[-1]
+    assert "truncated or corrupt" in line and "inhomogeneous" not in line, line
+    if fmt.endswith(("ply", "off")):
+        assert "declares 642 vertices and 1,280 faces" in line, line
+    whole = tmp_path / f"whole.{name.rsplit('.', 1)[1]}"
+    whole.write_bytes(data)
+    assert run_cli("info", str(whole)).returncode == 0
+
+
+def test_truncated_shared_bunny(tmp_path):
+    """The walkthrough's case: `head -c 1500000 bun_zipper.ply` (ASCII, cut inside the vertices)."""
+    from tests.conftest import shared_scene
+
+    cut = tmp_path / "t.ply"
+    cut.write_bytes(Path(shared_scene("bunny/bun_zipper.ply")).read_bytes()[:1_500_000])
+    assert_one_line_error(run_cli("info", str(cut)), "declares 35,947 vertices and 69,451 faces")
+
+
 def test_empty_mesh(tmp_path):
     empty = tmp_path / "empty.obj"
     empty.write_text("# nothing here\nv 0 0 0\n")
@@ -953,3 +990,35 @@ def test_deferred_interrupt_sets_a_flag_then_raises():
         assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
     finally:
         signal.signal(signal.SIGINT, outer if outer is not None else signal.default_int_handler)
+
+
+def test_info_scene_with_backend_shows_both():
+    """`rtwalk info SCENE --backend NAME` printed the backend alone and ignored SCENE without a
+    word: now the scene's statistics, then the backend; --backend alone loads no scene."""
+    from viewer.backends import backend_info
+    from viewer.backends.interface import describe
+
+    both = run_cli("info", "room", "--backend", "glsl", "--quiet")
+    assert both.returncode == 0, both.stderr
+    assert both.stdout.startswith("scene room: ") and both.stdout.rstrip().endswith(describe(backend_info("glsl")))
+    alone = run_cli("info", "--backend", "glsl", "--quiet")
+    assert alone.returncode == 0 and alone.stdout.strip() == describe(backend_info("glsl")), alone.stdout
+    assert_one_line_error(run_cli("info", "room", "--backend", "nope"), "unknown backend 'nope'")
+
+
+def test_demo_window_opens_at_the_view_size(monkeypatch):
+    """`rtwalk demo` with a display opened the window at demo's 640x360 (the headless replay's
+    size), not at view's 896x504; --size still wins, and the headless replay keeps 640x360."""
+    import viewer.cli
+
+    seen = []
+    monkeypatch.setattr(viewer.cli, "cmd_view", lambda args: seen.append(("view", args.size)) or 0)
+    monkeypatch.setattr(viewer.cli.bench_module("bench"), "run", lambda args: seen.append(("bench", args.size)) or 0)
+    monkeypatch.setattr(viewer.cli, "demo_recording", lambda scene: Path("recordings/city-near.json"))
+    monkeypatch.setenv("DISPLAY", ":4093")
+    assert run_cli("demo").returncode == 0
+    assert run_cli("demo", "--size", "320x180").returncode == 0
+    monkeypatch.delenv("DISPLAY")
+    monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
+    assert run_cli("demo").returncode == 0
+    assert seen == [("view", viewer.cli.VIEW_SIZE), ("view", "320x180"), ("bench", "640x360")]

@@ -288,3 +288,29 @@ def test_panel_and_annotations_draw_headless(chc, gl_ctx, city):
     names, table = hist.phase_table()
     assert names == ["chc:1-intersect-visible", "chc:2-queries", "chc:3-traversal", "chc:4-final-intersect"]
     assert table.shape == (4, 3) and (table >= 0).all()
+
+
+@pytest.mark.parametrize("view, traced", [("depth", "none"), ("triangle_id", "none"), ("shadows", "shadows"),
+                                          ("final", "shadows, soft, ao, diffuse, reflections")])
+def test_render_traces_only_what_the_view_shows(tmp_path, view, traced):
+    """`render --view depth` traced the shadow and reflection rays of the effects for a picture that
+    shows none of them: a G-buffer view traces nothing, a pass view that pass alone, 'final' all.
+    The picture is the one the view shows with only those effects on (byte for byte)."""
+    import re
+
+    from PIL import Image
+
+    def render(effects: str, name: str) -> tuple[str, np.ndarray]:
+        out = tmp_path / name
+        res = run_cli("render", "room", "--size", "64x36", "--effects", effects, "--view", view, "--denoise", "off",
+                      "-o", str(out))
+        assert res.returncode == 0, res.stderr
+        rays = re.search(r"rays: ([^;)]*)", res.stderr)
+        return rays.group(1), np.asarray(Image.open(out))
+
+    rays, img = render("all", "all.png")
+    keys = [part.split(" ")[0] for part in rays.split(", ")] if rays != "none" else ["none"]
+    assert ", ".join(keys) == traced, rays
+    if view != "final":
+        _, alone = render("none" if traced == "none" else traced, "alone.png")
+        assert np.array_equal(img, alone)

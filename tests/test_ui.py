@@ -705,3 +705,63 @@ def test_panel_fits_a_504_px_window(gl_ctx, backend, monkeypatch):
         r.release()
     bottom, scroll_max, height = seen[-1]
     assert height == 504 and scroll_max == 0 and bottom <= 504, seen
+
+
+def test_window_screenshot_and_frame_log_are_not_replaced(tmp_path, monkeypatch):
+    """RTWALK_VIEW_SCREENSHOT naming an existing file (a second run of the same command) replaced
+    it silently: refused in one line before the window opens, as render -o is, unless view --force;
+    --frame-log the same way. (An unreachable display stops the forced run right after the checks.)"""
+    from tests.cli_runner import run_cli
+
+    shot, flog = tmp_path / "s.png", tmp_path / "f.json"
+    shot.write_bytes(b"earlier")
+    monkeypatch.setenv("RTWALK_VIEW_SCREENSHOT", str(shot))
+    monkeypatch.setenv("DISPLAY", ":4093")
+    monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
+    res = run_cli("view", "room")
+    assert res.returncode == 2 and res.stderr.count("\n") == 1, res.stderr
+    assert "RTWALK_VIEW_SCREENSHOT" in res.stderr and "exists" in res.stderr and "--force" in res.stderr
+    forced = run_cli("view", "room", "--force")
+    assert forced.returncode == 2 and "no display" in forced.stderr, forced.stderr
+    monkeypatch.delenv("RTWALK_VIEW_SCREENSHOT")
+    flog.write_text("{}")
+    res = run_cli("view", "room", "--frame-log", str(flog))
+    assert res.returncode == 2 and "--frame-log" in res.stderr and "--force" in res.stderr, res.stderr
+    assert "no display" in run_cli("view", "room", "--frame-log", str(flog), "--force").stderr
+    assert shot.read_bytes() == b"earlier" and flog.read_text() == "{}"
+
+
+def test_f12_screenshot_names_are_new(tmp_path):
+    """F12 saves into screenshots/ under a name no file had: created exclusively (stem, stem-1, ...)."""
+    from viewer.ui.app import _new_file
+
+    (tmp_path / "a.png").write_bytes(b"x")
+    (tmp_path / "a-1.png").write_bytes(b"y")
+    assert _new_file(tmp_path, "a", ".png") == tmp_path / "a-2.png"
+    assert _new_file(tmp_path, "a", ".png") == tmp_path / "a-3.png"
+    assert (tmp_path / "a.png").read_bytes() == b"x" and (tmp_path / "a-1.png").read_bytes() == b"y"
+
+
+def test_fit_to_screen_keeps_the_aspect_ratio():
+    from viewer.ui.app import fit_to_screen
+
+    assert fit_to_screen((896, 504), (1400, 900)) == (896, 504)  # fits: unchanged
+    assert fit_to_screen((896, 504), None) == (896, 504)  # no screen size known: the driver decides
+    assert fit_to_screen((10000, 10000), (1400, 900)) == (900, 900)
+    room = 1280 - PANEL_WIDTH
+    assert fit_to_screen((2000, 1000), (1280, 800), panel=PANEL_WIDTH) == (room, room // 2)
+
+
+@needs_xvfb
+def test_view_size_larger_than_the_display_is_fitted(tmp_path):
+    """`view --size 10000x10000` under a 1400x900 virtual display was accepted and took minutes per
+    frame: the window is fitted to the display (aspect kept) with one warning line."""
+    from PIL import Image
+
+    shot = tmp_path / "big.png"
+    cmd = [sys.executable, "-m", "viewer.cli", "view", "room", "--size", "2000x1000", "--quiet"]
+    res = _xvfb(cmd, tmp_path, _env(RTWALK_VIEW_FRAMES="1", RTWALK_VIEW_SCREENSHOT=str(shot)))
+    assert res.returncode == 0, res.stderr[-3000:]
+    warnings = [ln for ln in res.stderr.splitlines() if "warning" in ln]
+    assert len(warnings) == 1 and "1280x800 display" in warnings[0] and "940x470" in warnings[0], res.stderr
+    assert Image.open(shot).size == (1280, 470)

@@ -14,6 +14,7 @@ from viewer.bench import BENCHMARKS, bench_module
 # importing this module)
 from viewer.cli_args import (
     DEFAULT_RECORDING,
+    RENDER_SIZE,
     add_denoise_arg,
     add_effect_args,
     add_force_arg,
@@ -38,6 +39,7 @@ def cmd_render(args) -> int:
     from tqdm import tqdm
 
     from viewer.backends import backend_info, registered_infos
+    from viewer.effects import effects_for_view
     from viewer.gl.context import create_headless_context
     from viewer.gl.limits import check_target_size
     from viewer.passes.overlay import check_view, check_view_effect
@@ -50,6 +52,7 @@ def cmd_render(args) -> int:
     backend_options, size, settings = req.backend_options, req.size, req.settings
     check_view(args.view, backend_info(args.backend), registered_infos())
     check_view_effect(args.view, settings, args.effects)
+    settings = effects_for_view(settings, args.view)  # --view depth traces no shadow or reflection rays
     check_at_least(args.frame, 0, "--frame")
     camera = parse_camera(args.camera) if args.camera else None
     out = check_image_output(args.output)
@@ -90,12 +93,22 @@ def cmd_render(args) -> int:
 
 
 def cmd_info(args) -> int:
-    if args.backend:  # a backend's self-description; no scene needed
+    if args.backend:  # a backend's self-description; no scene needed unless one is named
         from viewer.backends import backend_info
         from viewer.backends.interface import describe
 
-        print(describe(backend_info(args.backend)))
+        description = describe(backend_info(args.backend))  # an unknown name before any scene is loaded
+        if args.scene is None:
+            print(description)
+            return 0
+        _print_scene_info(args)  # `info SCENE --backend NAME`: both (the scene was silently ignored)
+        print(description)
         return 0
+    _print_scene_info(args)
+    return 0
+
+
+def _print_scene_info(args) -> None:
     prepared = scene_from_args(args)
     s = prepared.scene
     lo, hi = s.bounds
@@ -106,7 +119,6 @@ def cmd_info(args) -> int:
         print(f"  material {m.name}: albedo [{albedo}]{' (mirror)' if m.mirror else ''}")
     for note in s.notes:
         print(f"  note: {note}")
-    return 0
 
 
 def cmd_view(args) -> int:
@@ -117,7 +129,10 @@ def cmd_view(args) -> int:
 
 def cmd_demo(args) -> int:
     """The main job: a window where there is a display, else a headless replay with a report."""
-    if os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY"):
+    windowed = bool(os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY"))
+    if args.size is None:  # the window opened at the replay's 640x360, not at view's own default
+        args.size = VIEW_SIZE if windowed else RENDER_SIZE
+    if windowed:
         return cmd_view(args)
     request_from(args, device=False)  # what needs no scene is refused before the recording is chosen
     check_at_least(args.frames, 1, "--frames")
@@ -193,8 +208,14 @@ def build_parser() -> argparse.ArgumentParser:
     add_progressive_args(v, "progressive refinement (default): one pass per effect at a reduced scale while the "
                             "camera moves, more passes when it stops; --no-progressive: full quality every frame",
                          default=True)
+    v.add_argument("--force", action="store_true",
+                   help="replace an existing RTWALK_VIEW_SCREENSHOT image or --frame-log file (default: refuse; "
+                        "F12 screenshots always get a new name in screenshots/)")
     add_denoise_arg(v)
     v.set_defaults(size=VIEW_SIZE)
+    next(a for a in v._actions if a.dest == "size").help = (
+        "WIDTHxHEIGHT of the image; a window (image + panel) larger than the display is fitted to it, "
+        "aspect kept, with a warning (larger images: rtwalk render)")
 
     r = sub.add_parser("render", help="render one frame headless to PNG")
     add_scene_args(r)
@@ -203,7 +224,10 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--recording", default=None, help="take the camera from this recording (see --frame)")
     r.add_argument("--frame", type=int, default=0,
                    help="frame of --recording whose camera is rendered (0 = first; at the recording's fps)")
-    r.add_argument("--view", default="final", help="final or one pass alone (albedo, normal, depth, shadows, ...)")
+    r.add_argument("--view", default="final",
+                   help="final or one pass alone (albedo, normal, depth, triangle_id: the G-buffer, no rays traced; "
+                        "shadows, soft, ao, diffuse, reflections: only that effect of --effects traced) or a "
+                        "backend's overlay")
     r.add_argument("-o", "--output", default="out/render.png",
                    help="image file (.png, .jpg, .bmp, .tif, .ppm, .webp, .tga); its folder is created")
     r.add_argument("--force", action="store_true", help="replace the image if -o names an existing file "
@@ -218,14 +242,19 @@ def build_parser() -> argparse.ArgumentParser:
         if name.startswith("bench") and getattr(bench_module(name), "WRITES_REPORTS", True):
             add_force_arg(parser)
 
-    i = sub.add_parser("info", help="scene statistics, or a backend's description and parameters (--backend NAME)")
+    i = sub.add_parser("info", help="scene statistics, and/or a backend's description and parameters (--backend NAME)")
     add_scene_args(i)
-    i.add_argument("--backend", default=None, help="describe this backend: device, exactness, every parameter")
+    i.add_argument("--backend", default=None,
+                   help="describe this backend: device, exactness, every parameter (alone: no scene is loaded; "
+                        "with SCENE: the scene's statistics, then the backend)")
 
     d = sub.add_parser("demo", help="main job: window if a display exists, else headless replay + report")
     add_scene_args(d)
     add_effect_args(d, "shadows,ao:4,reflections")
     d.add_argument("--frames", type=int, default=24, help="without a display: frames replayed (>= 1)")
+    d.set_defaults(size=None)
+    next(a for a in d._actions if a.dest == "size").help = (
+        f"WIDTHxHEIGHT (default: {VIEW_SIZE} in the window, as view; {RENDER_SIZE} for the headless replay)")
     add_denoise_arg(d)
     for parser in sub.choices.values():
         parser.formatter_class = DefaultsFormatter

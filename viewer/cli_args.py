@@ -107,6 +107,9 @@ def add_scene_args(p: argparse.ArgumentParser) -> None:
                         "default: $RTWALK_BVH_BUILDER, else auto")
 
 
+RENDER_SIZE = "640x360"  # --size of render, bench and the headless demo (the window's: cli.VIEW_SIZE)
+
+
 def add_effect_args(p: argparse.ArgumentParser, default: str) -> None:
     from viewer.backends import DEFAULT_BACKEND, PARAM_OPTIONS, backend_names
 
@@ -117,7 +120,7 @@ def add_effect_args(p: argparse.ArgumentParser, default: str) -> None:
     p.add_argument("--backend-params", default=None, metavar="KEY=VALUE,...",
                    help="parameters of the chosen --backend (also RTWALK_<BACKEND> in the environment; "
                         "`rtwalk info --backend NAME` lists them), e.g. key=value,key=value")
-    p.add_argument("--size", default="640x360", help="WIDTHxHEIGHT")
+    p.add_argument("--size", default=RENDER_SIZE, help="WIDTHxHEIGHT")
     p.add_argument("--perturb", type=float, default=36.0, help="per-pixel sample rotation, degrees")
     p.add_argument("--ao-length", type=float, default=0.05, help="AO ray length, fraction of the scene diagonal")
     p.add_argument("--exposure", type=float, default=1.0,

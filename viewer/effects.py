@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, fields, replace
 from enum import IntEnum
 
 from viewer.errors import RtwalkError
@@ -61,6 +61,23 @@ class EffectSettings:
 
     def to_dict(self) -> dict:
         return {f.name: getattr(self, f.name) for f in fields(self)}
+
+
+GBUFFER_VIEWS = ("albedo", "normal", "depth", "triangle_id")  # shade views of the G-buffer alone
+
+
+def effects_for_view(settings: EffectSettings, view: str) -> EffectSettings:
+    """The effects a still of `view` needs traced: none for a G-buffer view, that pass alone for a
+    pass view (shadows, soft, ao, diffuse, reflections: the shade pass reads only its accumulator),
+    all of `settings` for 'final' and the backends' overlay views (they show the traced passes).
+    `render --view depth` traced the default shadow and reflection rays for a picture without them."""
+    if view in GBUFFER_VIEWS:
+        kept: set[str] = set()
+    elif view in EFFECT_NAMES and view != "primary":
+        kept = {view}
+    else:
+        return settings
+    return replace(settings, **{name: bool(getattr(settings, name)) and name in kept for name in EFFECT_NAMES})
 
 
 def parse_effects(text: str, base: EffectSettings | None = None) -> EffectSettings:

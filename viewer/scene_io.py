@@ -192,7 +192,13 @@ def _load_file(path: Path, given: str, mirror_patterns: list[str], progress: boo
         raise RtwalkError(f"{path}: cannot read scene file (corrupt or truncated {path.suffix.lstrip('.').upper()} "
                           f"file; trimesh's fallback reader needs module '{exc.name}', not installed)") from None
     except Exception as exc:  # trimesh raises many types for corrupt files
-        msg = str(exc).splitlines()[0][:120] if str(exc) else type(exc).__name__
+        msg = _short(str(exc).splitlines()[0] if str(exc) else type(exc).__name__)
+        if path.suffix.lower() in _SIZED_FORMATS:  # sizes in the file: a cut one fails to parse
+            declared = declared_counts(path)  # the parser's own words (NumPy's for OFF) say less
+            if declared is not None:
+                msg = f"its header declares {declared[0]:,} vertices and {declared[1]:,} faces"
+            raise RtwalkError(f"{path}: cannot read scene file (truncated or corrupt "
+                              f"{path.suffix.lstrip('.').upper()} file: {msg})") from None
         raise RtwalkError(f"{path}: cannot read scene file ({msg})") from None
     tris_list, mat_list, materials = [], [], []
     mat_index: dict[tuple, int] = {}
@@ -233,8 +239,9 @@ def _load_file(path: Path, given: str, mirror_patterns: list[str], progress: boo
             tris_list.append(tri)
             mat_list.append(ids)
     except Exception as exc:  # corrupt content that trimesh let through
-        msg = " ".join(str(exc).split())[:120] or type(exc).__name__
+        msg = _short(str(exc)) or type(exc).__name__
         raise RtwalkError(f"{path}: cannot read scene file ({msg})") from None
+    _check_declared_counts(path, items and loaded)
     if not tris_list:
         raise RtwalkError(f"{path}: no triangles in file")
     tris = np.concatenate(tris_list)
@@ -260,6 +267,91 @@ def _load_file(path: Path, given: str, mirror_patterns: list[str], progress: boo
     if scene.default_camera is None:
         scene.default_camera = default_camera(scene)
     return scene
+
+
+_SIZED_FORMATS = (".ply", ".off", ".glb", ".stl")  # formats whose files state their own sizes
+
+
+def _short(msg: str, limit: int = 120) -> str:
+    """One line of at most `limit` characters, cut at a word boundary (not mid-word)."""
+    msg = " ".join(msg.split())
+    if len(msg) <= limit:
+        return msg
+    return msg[:limit].rsplit(" ", 1)[0] + " ..."
+
+
+def declared_counts(path: Path) -> tuple[int, int] | None:
+    """(vertices, faces) a PLY header or an OFF counts line declares, None for other formats or
+    a header that cannot be read (the parser reports that). Reads only the head of the file."""
+    suffix = path.suffix.lower()
+    if suffix not in (".ply", ".off"):
+        return None
+    try:
+        with open(path, "rb") as f:
+            head = f.read(1 << 16)
+    except OSError:
+        return None
+    if suffix == ".ply":
+        end = head.find(b"end_header")
+        counts = dict(re.findall(rb"^element[ \t]+(vertex|face)[ \t]+([0-9]+)", head[:max(end, 0)], re.M))
+        if end < 0 or b"vertex" not in counts:
+            return None
+        return int(counts[b"vertex"]), int(counts.get(b"face", 0))
+    tokens = []
+    for line in head.decode("latin-1").splitlines():
+        line = line.split("#", 1)[0].strip()
+        if line:
+            tokens += line.split()
+        if len(tokens) >= 3:
+            break
+    if tokens and tokens[0].endswith("OFF"):
+        tokens = tokens[1:]
+    try:
+        return int(tokens[0]), int(tokens[1])
+    except (IndexError, ValueError):
+        return None
+
+
+def ascii_stl_cut(path: Path) -> bool:
+    """An ASCII STL (starts with 'solid', and its size is not that of the binary STL its first 84
+    bytes would describe) that does not end with 'endsolid': cut short. trimesh returned no
+    triangles for one, reported as 'no triangles in file'."""
+    if path.suffix.lower() != ".stl":
+        return False
+    try:
+        size = path.stat().st_size
+        with open(path, "rb") as f:
+            head = f.read(84)
+            f.seek(max(0, size - 1024))
+            tail = f.read()
+    except OSError:
+        return False
+    if not head.lstrip().startswith(b"solid"):
+        return False
+    if len(head) == 84 and 84 + 50 * int.from_bytes(head[80:84], "little") == size:
+        return False  # a binary STL whose 80-byte header happens to start with 'solid'
+    last = tail.rstrip().rsplit(b"\n", 1)[-1].strip()
+    return not last.startswith(b"endsolid")
+
+
+def _check_declared_counts(path: Path, loaded) -> None:
+    """A PLY or OFF file whose body ends before the vertices and faces its header declares is
+    truncated: trimesh reads an ASCII body line by line and returns what it found (a bunny cut in
+    half loaded with no faces, reported as 'no triangles in file', or with part of them silently)."""
+    if ascii_stl_cut(path):
+        raise RtwalkError(f"{path}: truncated or corrupt STL file (an ASCII STL, and it does not end with 'endsolid')")
+    declared = declared_counts(path)
+    if declared is None:
+        return
+    nv = nf = 0
+    if loaded:
+        for geom in loaded.geometry.values():
+            nv += len(getattr(geom, "vertices", ()))
+            nf += len(getattr(geom, "faces", ()))  # polygons triangulated: never fewer than declared
+    if nv < declared[0] or nf < declared[1]:
+        fmt = path.suffix.lstrip(".").upper()
+        raise RtwalkError(f"{path}: truncated or corrupt {fmt} file (its header declares {declared[0]:,} vertices "
+                          f"and {declared[1]:,} faces, the file holds {nv:,} and {nf:,})")
 
 
 def clean_triangles(tris: np.ndarray, mats: np.ndarray) -> tuple[np.ndarray, np.ndarray, list[str]]:

@@ -13,7 +13,8 @@ panel on/off, Esc quits. An overlay view the active backend does not produce sho
 final image with a message on it, and F12 then saves nothing (the message says why).
 
 For tests and the README screenshot: `--max-frames N` or RTWALK_VIEW_FRAMES=N quits after N
-frames; RTWALK_VIEW_SCREENSHOT=path.png then saves the whole window, panel included.
+frames; RTWALK_VIEW_SCREENSHOT=path.png then saves the whole window, panel included (an existing
+file is refused, as render -o refuses one, unless --force; F12 never replaces a file).
 RTWALK_VIEW_SCALE=0.25..1 sets the initial render scale (default 1); RTWALK_VIEW_MODE=VIEW the
 initial view (a `--view` argument, where the parser has one, takes precedence).
 """
@@ -127,6 +128,35 @@ def window_class():
                           f"{NO_DISPLAY_HINT}") from None
 
 
+def display_size() -> tuple[int, int] | None:
+    """The size of the display's default screen in pixels (pyglet), None where it cannot tell."""
+    try:
+        import pyglet
+
+        display = pyglet.display.get_display() if hasattr(pyglet, "display") else pyglet.canvas.get_display()
+        screen = display.get_default_screen()
+        w, h = int(screen.width), int(screen.height)
+    except Exception:  # no screen list on this platform: the driver's limits still apply (Renderer)
+        return None
+    return (w, h) if w > 0 and h > 0 else None
+
+
+def fit_to_screen(size: tuple[int, int], screen: tuple[int, int] | None,
+                  panel: int = PANEL_WIDTH) -> tuple[int, int]:
+    """The image size whose window (image + panel beside it) fits `screen`: `size` itself when it
+    fits, else scaled down keeping its aspect ratio (as image viewers fit a window to the screen).
+    A window larger than the screen cannot be seen whole, and under a virtual X server a 10000x10000
+    one was accepted and took minutes per frame."""
+    if screen is None:
+        return size
+    w, h = size
+    room_w, room_h = screen[0] - panel, screen[1]
+    if w <= room_w and h <= room_h:
+        return size
+    scale = min(room_w / w, room_h / h)
+    return max(1, int(w * scale)), max(1, int(h * scale))
+
+
 def open_window(size: tuple[int, int], title: str):
     """A pyglet window with an OpenGL 4.5 core context (RtwalkError when there is none)."""
     import moderngl_window as mglw
@@ -141,6 +171,19 @@ def open_window(size: tuple[int, int], title: str):
     mglw.activate_context(window=window)
     window.exit_key = None  # Esc is handled here so that it does not quit while typing in the panel
     return window
+
+
+def _new_file(folder: Path, stem: str, suffix: str) -> Path:
+    """A file created here under a name no other file had (stem, stem-1, ...): created exclusively,
+    so a screenshot never replaces one, even one another window saved in the same second."""
+    n = 0
+    while True:
+        path = folder / (f"{stem}-{n}{suffix}" if n else f"{stem}{suffix}")
+        try:
+            with open(path, "xb"):
+                return path
+        except FileExistsError:
+            n += 1
 
 
 def _first_line(exc: BaseException) -> str:
@@ -158,14 +201,27 @@ def run_viewer(args) -> int:
     render_scale_from_env()  # bad values fail before the window opens
     view = initial_view(args)
     shot = os.environ.get("RTWALK_VIEW_SCREENSHOT", "").strip() or None
+    force = bool(getattr(args, "force", False))  # view --force; demo has none: never replace
     if shot:
         check_image_output(shot, "RTWALK_VIEW_SCREENSHOT")
+        if Path(shot).expanduser().exists() and not force:  # as render -o: an earlier picture is kept
+            raise RtwalkError(f"RTWALK_VIEW_SCREENSHOT={shot}: exists; pass --force to replace it, "
+                              "or choose another file")
     frame_log = getattr(args, "frame_log", None)
     if frame_log:
-        check_frame_log(frame_log)
+        check_frame_log(frame_log, force)
     window_class()  # fail on a missing display before spending time on the scene
     req = request_from(args)
     settings, backend_options, size = req.settings, req.backend_options, req.size
+    screen = display_size()
+    fitted = fit_to_screen(size, screen)
+    if screen is not None and fitted[0] < 64:  # the panel alone fills the screen
+        raise RtwalkError(f"the {screen[0]}x{screen[1]} display has no room for the image beside the "
+                          f"{PANEL_WIDTH}-pixel panel; use a larger screen or `rtwalk render`")
+    if fitted != size:
+        log(f"rtwalk view: warning: --size {size[0]}x{size[1]} with the {PANEL_WIDTH}-pixel panel does not fit the "
+            f"{screen[0]}x{screen[1]} display; the window shows {fitted[0]}x{fitted[1]} (larger images: rtwalk render)")
+        size = fitted
     rec_path = getattr(args, "recording", None)
     recording = load_recording(rec_path) if rec_path else None
     quiet = bool(getattr(args, "quiet", False))
@@ -376,15 +432,14 @@ class ViewerApp:
         img = (self.renderer.read_denoised("library", self.camera) if self.denoiser is not None
                else self.renderer.read_image())
         stamp = time.strftime("%Y%m%d-%H%M%S")
-        path = SCREENSHOT_DIR / f"rtwalk-{stamp}.png"
-        n = 1
-        while path.exists():
-            path = SCREENSHOT_DIR / f"rtwalk-{stamp}-{n}.png"
-            n += 1
+        path = SCREENSHOT_DIR
         try:
-            path.parent.mkdir(parents=True, exist_ok=True)
+            SCREENSHOT_DIR.mkdir(parents=True, exist_ok=True)
+            path = _new_file(SCREENSHOT_DIR, f"rtwalk-{stamp}", ".png")
             Image.fromarray(img).save(path)
         except OSError as exc:
+            if path != SCREENSHOT_DIR:  # the name was taken for this picture: no empty file left
+                path.unlink(missing_ok=True)
             self.say(f"screenshot failed: {path}: {exc.strerror or exc}")
             return
         self.say(f"screenshot: {path} ({img.shape[1]}x{img.shape[0]})")

@@ -29,14 +29,14 @@ def gbuffer_source(gpu_ms: dict[str, float]) -> str:
     return "raster" if "gbuffer" in gpu_ms else ""
 
 
-def check_frame_log(path: str) -> None:
+def check_frame_log(path: str, force: bool = False) -> None:
     """Before the window opens: a new file in a folder that can be written (a log already there is
-    somebody's finished measurement: refused, not replaced)."""
+    somebody's finished measurement: refused, not replaced, unless view --force)."""
     from viewer.cli_args import check_output_dir
 
     p = Path(path).expanduser()
-    if p.exists():
-        raise RtwalkError(f"--frame-log {path}: exists; remove it or choose another file")
+    if p.exists() and not force:
+        raise RtwalkError(f"--frame-log {path}: exists; pass --force to replace it, or choose another file")
     check_output_dir(str(p.parent), "--frame-log")
 
 
