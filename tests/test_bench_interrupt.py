@@ -5,6 +5,7 @@ the signal sent once the first study/row is known to be done."""
 
 from __future__ import annotations
 
+import io
 import json
 import signal
 import subprocess
@@ -152,3 +153,36 @@ def test_keep_partial_marks_and_names_what_it_kept(tmp_path, capsys):
         assert json.loads((tmp_path / f"{name}.json").read_text())["complete"] is False
     write_plots(lambda: 1 / 0)
     assert "plot not written" in capsys.readouterr().err
+
+
+def test_chcrt_signal_in_the_last_study_keeps_the_run_complete(tmp_path, monkeypatch):
+    """In-process, fake studies: a deferred signal that arrives during the last study (after its
+    comparisons) leaves every report `"complete": true` (chcrt checked after each study and re-marked
+    a finished run incomplete); one during an earlier study stops before the next, which is named."""
+    from viewer.bench import chcrt
+    from viewer.bench.report import write_study
+
+    class FakeBench:
+        def __init__(self, o):
+            self.interrupt = None
+
+    def study(name: str, signal_here: bool):
+        def run(b) -> dict:
+            if signal_here:
+                b.interrupt.flag.requested = True  # what the deferred handler does
+            return {**write_study(tmp_path, name, {"rows": [name]}, "md"), "markdown": "md"}
+        return run
+
+    monkeypatch.setattr(chcrt, "Bench", FakeBench)
+    monkeypatch.setattr(chcrt, "estimate", lambda o: {})
+    o = chcrt.StudyOptions(studies=["a", "b"], sizes=[(8, 8)], recordings=[], out=tmp_path, quiet=True)
+    monkeypatch.setattr(chcrt, "STUDY_FUNCS", {"a": study("a", False), "b": study("b", True)})
+    assert len(chcrt.run_studies(o, out=io.StringIO())) == 2
+    assert all(json.loads((tmp_path / f"{n}.json").read_text())["complete"] is True for n in "ab")
+
+    monkeypatch.setattr(chcrt, "STUDY_FUNCS", {"a": study("a", True), "b": study("b", False)})
+    (tmp_path / "b.json").unlink()
+    with pytest.raises(KeyboardInterrupt) as exc:
+        chcrt.run_studies(o, out=io.StringIO())
+    assert "study b left out" in exc.value.args[0] and not (tmp_path / "b.json").exists()
+    assert json.loads((tmp_path / "a.json").read_text())["complete"] is False
