@@ -187,3 +187,22 @@ def test_chcrt_signal_in_the_last_study_keeps_the_run_complete(tmp_path, monkeyp
         chcrt.run_studies(o, out=io.StringIO())
     assert "study b left out" in exc.value.args[0] and not (tmp_path / "b.json").exists()
     assert json.loads((tmp_path / "a.json").read_text())["complete"] is False
+
+
+def test_bench_trace_partial_plot_failure_is_a_note(tmp_path, monkeypatch):
+    """bench-trace interrupted: a plot that fails on the partial groups is a note line; the JSON
+    and the one interrupt line stay (the plot's exception escaped as a traceback)."""
+    from tests.cli_runner import run_cli
+    from viewer.bench import trace_vs_embree
+
+    def measure(args, ctx, recs, sizes, backends, threads, settings, report) -> None:
+        report["groups"].append({"recording": "r", "frame": 0, "size": [8, 8]})
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(trace_vs_embree, "_measure", measure)
+    monkeypatch.setattr(trace_vs_embree, "_markdown", lambda report: "md")
+    monkeypatch.setattr(trace_vs_embree, "_plot", lambda report, path: 1 / 0)
+    proc = run_cli("bench-trace", "--backends", "glsl", "--embree-threads", "", "--out", str(tmp_path / "t"))
+    assert proc.returncode == 130 and "Traceback" not in proc.stderr, proc.stderr
+    assert "plot not written" in proc.stderr and "partial report" in proc.stderr
+    assert json.loads((tmp_path / "t/bench_trace.json").read_text())["complete"] is False
