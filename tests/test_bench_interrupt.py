@@ -206,3 +206,21 @@ def test_bench_trace_partial_plot_failure_is_a_note(tmp_path, monkeypatch):
     assert proc.returncode == 130 and "Traceback" not in proc.stderr, proc.stderr
     assert "plot not written" in proc.stderr and "partial report" in proc.stderr
     assert json.loads((tmp_path / "t/bench_trace.json").read_text())["complete"] is False
+
+
+def test_deferred_interrupt_keeps_an_ignored_signal_ignored():
+    """A signal the parent set to SIG_IGN (`rtwalk bench-... &` in a script ignores SIGINT) is not
+    turned into a stop request inside a deferred block (it stopped the run there); the handlers
+    are back after the block. Handlers are only inspected, no signal is sent."""
+    from viewer.interrupt import deferred_interrupt
+
+    before = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        with deferred_interrupt():
+            assert signal.getsignal(signal.SIGINT) == signal.SIG_IGN
+            assert callable(signal.getsignal(signal.SIGTERM))
+        assert signal.getsignal(signal.SIGINT) == signal.SIG_IGN
+        assert signal.getsignal(signal.SIGTERM) == before[signal.SIGTERM]
+    finally:
+        signal.signal(signal.SIGINT, before[signal.SIGINT] or signal.default_int_handler)
