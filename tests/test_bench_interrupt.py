@@ -224,3 +224,24 @@ def test_deferred_interrupt_keeps_an_ignored_signal_ignored():
         assert signal.getsignal(signal.SIGTERM) == before[signal.SIGTERM]
     finally:
         signal.signal(signal.SIGINT, before[signal.SIGINT] or signal.default_int_handler)
+
+
+def test_report_json_is_replaced_whole(tmp_path, monkeypatch):
+    """An interrupt while a report is written leaves the earlier JSON as it was, and no temporary
+    file (a plain write_text cut it: a finished report lost, a partial one unreadable)."""
+    import os
+
+    from viewer.bench import report
+
+    path = tmp_path / "r.json"
+    report.write_json(path, {"complete": True, "rows": [1]})
+
+    def cut(src, dst):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(os, "replace", cut)
+    with pytest.raises(KeyboardInterrupt):
+        report.write_json(path, {"complete": False, "rows": [1, 2]})
+    monkeypatch.undo()
+    assert json.loads(path.read_text()) == {"complete": True, "rows": [1]}
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["r.json"]
