@@ -107,7 +107,8 @@ def _restored_process_state() -> Iterator[None]:
     finally:
         glc.create_headless_context = create
         for ctx in created:
-            ctx.release()
+            if ctx is not glc._CTX:  # the shared context made inside the command (its first use) stays
+                ctx.release()
         moderngl._store.default_context = default_gl
         if created and glc._CTX is not None:
             glc._CTX.__enter__()  # a new context became current at creation: the shared one is again

@@ -5,6 +5,7 @@ the signal sent once the first study/row is known to be done."""
 
 from __future__ import annotations
 
+import io
 import json
 import signal
 import subprocess
@@ -120,15 +121,16 @@ def test_bench_grids_keeps_the_rounds_done(tmp_path):
 
 
 def test_bench_chcrt_keeps_the_studies_done(tmp_path):
+    """The signal once tuning (one comparison in --quick) is printed: table2, several comparisons,
+    stops at its next one and is named; tuning's report is kept, marked incomplete (a signal after
+    the last study's comparisons leaves the run complete: test_chcrt_signal_in_the_last_study...)."""
     out = tmp_path / "chc"
-    code, err = _interrupt(["bench-chcrt", "--quick", "--study", "table2,tuning", "--sizes", "32x18",
+    code, err = _interrupt(["bench-chcrt", "--quick", "--study", "tuning,table2", "--sizes", "32x18",
                             "--recordings", "city-near", "--out", str(out), "--quiet"],
-                           lambda o, e: "table2: " in o)
-    data = _check(code, err, out / "table2.json")
-    assert data["study"] == "table2" and len(data["rows"]) >= 1
-    # tuning (one interleaved comparison in --quick) was stopped before or after its comparison
-    assert "study tuning left out" in err if not (out / "tuning.json").exists() else \
-        json.loads((out / "tuning.json").read_text())["complete"] is False
+                           lambda o, e: "tuning: " in o)
+    data = _check(code, err, out / "tuning.json")
+    assert data["study"] == "tuning"
+    assert "study table2 left out" in err and not (out / "table2.json").exists()
 
 
 def test_keep_partial_marks_and_names_what_it_kept(tmp_path, capsys):
@@ -152,3 +154,94 @@ def test_keep_partial_marks_and_names_what_it_kept(tmp_path, capsys):
         assert json.loads((tmp_path / f"{name}.json").read_text())["complete"] is False
     write_plots(lambda: 1 / 0)
     assert "plot not written" in capsys.readouterr().err
+
+
+def test_chcrt_signal_in_the_last_study_keeps_the_run_complete(tmp_path, monkeypatch):
+    """In-process, fake studies: a deferred signal that arrives during the last study (after its
+    comparisons) leaves every report `"complete": true` (chcrt checked after each study and re-marked
+    a finished run incomplete); one during an earlier study stops before the next, which is named."""
+    from viewer.bench import chcrt
+    from viewer.bench.report import write_study
+
+    class FakeBench:
+        def __init__(self, o):
+            self.interrupt = None
+
+    def study(name: str, signal_here: bool):
+        def run(b) -> dict:
+            if signal_here:
+                b.interrupt.flag.requested = True  # what the deferred handler does
+            return {**write_study(tmp_path, name, {"rows": [name]}, "md"), "markdown": "md"}
+        return run
+
+    monkeypatch.setattr(chcrt, "Bench", FakeBench)
+    monkeypatch.setattr(chcrt, "estimate", lambda o: {})
+    o = chcrt.StudyOptions(studies=["a", "b"], sizes=[(8, 8)], recordings=[], out=tmp_path, quiet=True)
+    monkeypatch.setattr(chcrt, "STUDY_FUNCS", {"a": study("a", False), "b": study("b", True)})
+    assert len(chcrt.run_studies(o, out=io.StringIO())) == 2
+    assert all(json.loads((tmp_path / f"{n}.json").read_text())["complete"] is True for n in "ab")
+
+    monkeypatch.setattr(chcrt, "STUDY_FUNCS", {"a": study("a", True), "b": study("b", False)})
+    (tmp_path / "b.json").unlink()
+    with pytest.raises(KeyboardInterrupt) as exc:
+        chcrt.run_studies(o, out=io.StringIO())
+    assert "study b left out" in exc.value.args[0] and not (tmp_path / "b.json").exists()
+    assert json.loads((tmp_path / "a.json").read_text())["complete"] is False
+
+
+def test_bench_trace_partial_plot_failure_is_a_note(tmp_path, monkeypatch):
+    """bench-trace interrupted: a plot that fails on the partial groups is a note line; the JSON
+    and the one interrupt line stay (the plot's exception escaped as a traceback)."""
+    from tests.cli_runner import run_cli
+    from viewer.bench import trace_vs_embree
+
+    def measure(args, ctx, recs, sizes, backends, threads, settings, report) -> None:
+        report["groups"].append({"recording": "r", "frame": 0, "size": [8, 8]})
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(trace_vs_embree, "_measure", measure)
+    monkeypatch.setattr(trace_vs_embree, "_markdown", lambda report: "md")
+    monkeypatch.setattr(trace_vs_embree, "_plot", lambda report, path: 1 / 0)
+    proc = run_cli("bench-trace", "--backends", "glsl", "--embree-threads", "", "--out", str(tmp_path / "t"))
+    assert proc.returncode == 130 and "Traceback" not in proc.stderr, proc.stderr
+    assert "plot not written" in proc.stderr and "partial report" in proc.stderr
+    assert json.loads((tmp_path / "t/bench_trace.json").read_text())["complete"] is False
+
+
+def test_deferred_interrupt_keeps_an_ignored_signal_ignored():
+    """A signal the parent set to SIG_IGN (`rtwalk bench-... &` in a script ignores SIGINT) is not
+    turned into a stop request inside a deferred block (it stopped the run there); the handlers
+    are back after the block. Handlers are only inspected, no signal is sent."""
+    from viewer.interrupt import deferred_interrupt
+
+    before = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        with deferred_interrupt():
+            assert signal.getsignal(signal.SIGINT) == signal.SIG_IGN
+            assert callable(signal.getsignal(signal.SIGTERM))
+        assert signal.getsignal(signal.SIGINT) == signal.SIG_IGN
+        assert signal.getsignal(signal.SIGTERM) == before[signal.SIGTERM]
+    finally:
+        signal.signal(signal.SIGINT, before[signal.SIGINT] or signal.default_int_handler)
+
+
+def test_report_json_is_replaced_whole(tmp_path, monkeypatch):
+    """An interrupt while a report is written leaves the earlier JSON as it was, and no temporary
+    file (a plain write_text cut it: a finished report lost, a partial one unreadable)."""
+    import os
+
+    from viewer.bench import report
+
+    path = tmp_path / "r.json"
+    report.write_json(path, {"complete": True, "rows": [1]})
+
+    def cut(src, dst):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(os, "replace", cut)
+    with pytest.raises(KeyboardInterrupt):
+        report.write_json(path, {"complete": False, "rows": [1, 2]})
+    monkeypatch.undo()
+    assert json.loads(path.read_text()) == {"complete": True, "rows": [1]}
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["r.json"]

@@ -324,6 +324,16 @@ def test_bare_rtwalk_takes_a_scene(tmp_path, monkeypatch):
     assert "never-loaded" not in proc.stderr and "invalid choice" not in proc.stderr
 
 
+def test_mistyped_command_is_not_replayed_as_a_scene(monkeypatch):
+    """`rtwalk rendr`: one line that names the commands and built-in scenes (it printed "no display:
+    replaying recordings/city-near.json", a recording-scene warning, then "unknown built-in scene")."""
+    for var in ("DISPLAY", "WAYLAND_DISPLAY"):
+        monkeypatch.delenv(var, raising=False)
+    proc = run_cli("rendr", "--frames", "1")
+    assert_one_line_error(proc, "'rendr' is neither a command")
+    assert "render" in proc.stderr and "room" in proc.stderr and "replaying" not in proc.stderr
+
+
 def test_headless_demo_replays_the_scenes_own_recording(tmp_path, monkeypatch):
     """The headless demo of another scene replays a recording made for it (it replayed city-near's
     street cameras, an empty grey frame in the room), or says there is none, in one line."""

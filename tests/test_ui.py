@@ -729,6 +729,9 @@ def test_window_screenshot_and_frame_log_are_not_replaced(tmp_path, monkeypatch)
     assert res.returncode == 2 and "--frame-log" in res.stderr and "--force" in res.stderr, res.stderr
     assert "no display" in run_cli("view", "room", "--frame-log", str(flog), "--force").stderr
     assert shot.read_bytes() == b"earlier" and flog.read_text() == "{}"
+    monkeypatch.setenv("RTWALK_VIEW_SCREENSHOT", str(shot))  # the windowed main job has no --force of its own
+    res = run_cli("room")
+    assert res.returncode == 2 and res.stderr.count("\n") == 1 and "`rtwalk view --force`" in res.stderr, res.stderr
 
 
 def test_f12_screenshot_names_are_new(tmp_path):

@@ -266,6 +266,10 @@ def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     subcommands = next(a.choices for a in ap._actions if isinstance(a, argparse._SubParsersAction))
     if not argv or (argv[0] not in subcommands and argv[0] not in ("-h", "--help")):
+        unknown = _unknown_first_word(argv[0] if argv else "-", subcommands)
+        if unknown:  # `rtwalk rendr`: a mistyped command, not a scene (it said "no display: replaying ...")
+            print(f"rtwalk: error: {unknown}", file=sys.stderr)
+            return 2
         argv = ["demo"] + argv  # bare `rtwalk [SCENE] [options]` runs the main job
     args = ap.parse_args(argv)
     args.command_line = shlex.join(["rtwalk", *argv])  # what the reports quote to reproduce a run
@@ -280,6 +284,18 @@ def main(argv: list[str] | None = None) -> int:
             if not hasattr(args, key):
                 setattr(args, key, val)
     return _run(handlers[args.command], args)
+
+
+def _unknown_first_word(word: str, subcommands) -> str | None:
+    """Why `rtwalk WORD` cannot be the main job's SCENE, or None: a bare word that is neither a
+    command nor a built-in scene (files have a '/' or '.'; the scene loader reports those)."""
+    from viewer.procedural import BUILTIN_SCENES
+
+    base = word.partition(":")[0]
+    if word.startswith("-") or "/" in base or "." in base or base in BUILTIN_SCENES:
+        return None
+    return (f"'{word}' is neither a command ({', '.join(subcommands)}) nor a built-in scene "
+            f"({', '.join(BUILTIN_SCENES)}); see `rtwalk --help`")
 
 
 def _run(handler, args: argparse.Namespace) -> int:

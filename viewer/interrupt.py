@@ -51,7 +51,8 @@ def terminate_as_interrupt() -> Iterator[None]:
 @contextmanager
 def deferred_interrupt() -> Iterator[Interrupt]:
     """Within the block, the first SIGINT or SIGTERM sets `.requested` (the previous handlers come
-    back for the next one); outside the main thread, where signals cannot be handled, it never is."""
+    back for the next one; an ignored signal stays ignored); outside the main thread, where signals
+    cannot be handled, it never is."""
     state = Interrupt()
     if threading.current_thread() is not threading.main_thread():
         yield state
@@ -67,7 +68,8 @@ def deferred_interrupt() -> Iterator[Interrupt]:
         restore()  # a second signal: KeyboardInterrupt (or termination) as before the block
 
     for s in SIGNALS:
-        signal.signal(s, on_signal)
+        if previous[s] != signal.SIG_IGN:  # ignored by the parent (`cmd &` in a script: SIGINT): stays ignored
+            signal.signal(s, on_signal)
     try:
         yield state
     finally:

@@ -869,12 +869,12 @@ def run_studies(o: StudyOptions, out=None) -> list[dict]:
         b.interrupt = part
         for study in o.studies:
             part.started(study)
+            part.check()  # before a study, not after: a signal during the last one's printing leaves the run complete
             res = STUDY_FUNCS[study](b)
             part.finished(res["json"])
             done.append(res)
             print(res["markdown"] + "\n", file=out)
             print(f"{study}: {res['json']}  {res['md']}  {res['png']}\n", file=out, flush=True)
-            part.check()
     if not o.quiet:
         print(f"bench-chcrt: {len(done)} studies in {(time.perf_counter() - t0) / 60:.1f} min "
               f"(estimated {sum(est.values()) / 60:.1f})", file=sys.stderr)

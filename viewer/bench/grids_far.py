@@ -21,7 +21,6 @@ Peak RSS: one backend per process under /usr/bin/time -v. `--build-only`: the un
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import os
 import resource
@@ -267,9 +266,9 @@ def check_args(args) -> None:
 
 def _write_json(path: str, report: dict) -> None:
     if path:
-        out = Path(path).expanduser()
-        out.parent.mkdir(parents=True, exist_ok=True)
-        out.write_text(json.dumps(report, indent=1))
+        from viewer.bench.report import write_json
+
+        write_json(Path(path).expanduser(), report)  # whole or not at all (an interrupt during the write)
 
 
 def run(args) -> int:

@@ -21,6 +21,7 @@ from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from viewer.bench.report import write_json
 from viewer.interrupt import Interrupt, deferred_interrupt
 
 
@@ -72,7 +73,7 @@ class PartialRun:
             except (OSError, ValueError):
                 continue
             if isinstance(data, dict):
-                p.write_text(json.dumps(mark_complete(data, False), indent=1, allow_nan=True))
+                write_json(p, mark_complete(data, False))
             paths.append(p)
         return paths
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 from pathlib import Path
 
 import numpy as np
@@ -48,8 +49,17 @@ def _jsonable(obj):
 
 
 def write_json(path: Path, data: dict | list) -> None:
+    """Written whole or not at all: a temporary file beside it, then renamed over it. Ctrl-C and
+    SIGTERM raise KeyboardInterrupt wherever the run is (viewer.interrupt); one during a plain
+    write left a cut JSON, a finished report lost or a partial one unreadable."""
     path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(json.dumps(data, indent=1, default=_jsonable, allow_nan=True))
+    text = json.dumps(data, indent=1, default=_jsonable, allow_nan=True)
+    tmp = path.with_name(f".{path.name}.tmp")
+    try:
+        tmp.write_text(text)
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
 
 
 def write_study(out: Path, study: str, report: dict, md: str) -> dict:

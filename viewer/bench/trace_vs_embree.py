@@ -26,6 +26,7 @@ import numpy as np
 
 from viewer.bench.common import log
 from viewer.bench.harness import is_trace_phase
+from viewer.bench.partial import write_plots
 from viewer.bench.plots import bars, figure, finish
 from viewer.bench.report import md_table, write_study
 from viewer.cli_args import check_output_dir, check_report_free, parse_image_sizes
@@ -286,13 +287,13 @@ def run(args) -> int:
         if not report["groups"]:
             raise
         files = write_study(out, "bench_trace", report, _markdown(report))
-        _plot(report, files["png"])
+        write_plots(lambda: _plot(report, files["png"]))  # a plot failing on partial data: a note, never a traceback
         raise KeyboardInterrupt(f"interrupted after {len(report['groups'])} groups (recording, frame, size): "
                                 f"partial report {files['json']} (\"complete\": false)") from None
     report["complete"] = True
     files = write_study(out, "bench_trace", report, _markdown(report))
     if report["groups"]:
-        _plot(report, files["png"])
+        write_plots(lambda: _plot(report, files["png"]))  # a plot failing on partial data: a note, never a traceback
     print(files["markdown"])
     return 0
 

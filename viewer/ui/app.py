@@ -205,8 +205,8 @@ def run_viewer(args) -> int:
     if shot:
         check_image_output(shot, "RTWALK_VIEW_SCREENSHOT")
         if Path(shot).expanduser().exists() and not force:  # as render -o: an earlier picture is kept
-            raise RtwalkError(f"RTWALK_VIEW_SCREENSHOT={shot}: exists; pass --force to replace it, "
-                              "or choose another file")
+            how = "pass --force" if hasattr(args, "force") else "run `rtwalk view --force`"  # demo has no --force
+            raise RtwalkError(f"RTWALK_VIEW_SCREENSHOT={shot}: exists; {how} to replace it, or choose another file")
     frame_log = getattr(args, "frame_log", None)
     if frame_log:
         check_frame_log(frame_log, force)
