@@ -289,21 +289,25 @@ def test_overlays_and_counters(mode, gl_ctx):
         rays = r.rays
         res = r.backend.trace(rays, PassInfo(RayType.PRIMARY), r.hits)
         t, tri = r.hits.read()
+        stats = dict(res.stats)
+        for k, v in r.backend.end_frame().items():  # a device front's counts come after the pass
+            stats[k] = stats.get(k, 0) + v
         od = read_texture(res.overlays["query_overdraw"]).reshape(-1)
         sub = read_texture(res.overlays["subtree_id"]).reshape(-1)
     finally:
         r.release()
     assert res.overlays["query_overdraw"].size == SIZE and res.overlays["subtree_id"].size == SIZE
-    assert int(od.sum()) == res.stats["query_pixels"]
+    assert int(od.sum()) == stats["query_pixels"]
     hit = tri >= 0
     assert hit.any() and (sub[hit] >= 0).all() and (sub[~hit] == -1).all()
     first, count = bvh.node_first[sub[hit]], bvh.node_count[sub[hit]]
     assert ((tri[hit] >= first) & (tri[hit] < first + count)).all()  # the hit lies in that subtree
-    st = res.stats
+    st = stats
     if mode == "hw":  # one draw per query and per batch
         assert st["draws"] >= st["queries"] + st["intersect_draws"] and st["intersect_draws"] == st["batches"]
-    else:  # one instanced draw per query wave / intersection step
-        assert st["queries"] > st["query_waves"] + 2 and st["draws"] <= st["query_waves"] + 8
+    else:  # one instanced draw per query wave / intersection step; a device front's pass: a fixed chain
+        fixed = 18 if st["device_front_passes"] else 8
+        assert st["queries"] > st["query_waves"] + 2 and st["draws"] <= st["query_waves"] + fixed
         assert st["intersect_draws"] < st["batches"]
     assert st["subtrees_scheduled"] > 0
 
@@ -574,3 +578,92 @@ def test_submission_does_not_grow_with_the_image(gl_ctx):
     # the frame's waits (the profiler's per-phase finishes on llvmpipe, the G-buffer and shade passes,
     # chcrt's one count read per pass) are a fixed number: 16x the tiles adds none
     assert big_syncs == small_syncs <= 24, (small_syncs, big_syncs)
+
+
+# -- device-resident fronts (chcrt_devfront.py) ------------------------------------------------------
+FRONT_STATS = ("visible_pairs", "invisible_pairs", "inner_pairs", "queries", "subtrees_scheduled", "lca_tiles",
+               "newly_visible_queries", "requeries", "pull_ups", "rays", "query_pixels", "phase1_subtrees",
+               "batches", "full_bvh_passes")
+
+
+def _walk(ctx, params: str, effects: str, frames: int = 6):
+    """chcrt frames along a longer city walk (the fronts split, merge and re-query), captured."""
+    scene, bvh, path = _load("city")
+    cam0 = path[0]
+    cams = [Camera(cam0.position + np.array([0.9 * i, 0.25 * i, -2.5 * i]), cam0.orientation, cam0.fov_y)
+            for i in range(frames)]
+    r = Renderer(ctx, scene, bvh, SIZE, "chcrt", parse_effects(effects), {"chcrt": params})
+    try:
+        return [r.render(cam, capture=True) for cam in cams]
+    finally:
+        r.release()
+
+
+@pytest.mark.parametrize("extra", ["", "visible_threshold=3", "cull_sublevels=1,lca_pairs=24"])
+def test_device_front_is_the_host_front(extra, gl_ctx):
+    """The device front plans, refines and pulls up exactly as the host front does: with every
+    visible leaf re-queried each frame (the re-query phases are random and drawn differently), the
+    same pairs, queries, scheduled subtrees and LCA tiles every frame, and the same hits bit for bit
+    (both list a tile's pairs in the same order). Also in aggressive mode and with sub-tile culls."""
+    effects = "primary,ao:2,diffuse:1"
+    base = "requery_interval=1" + ("," + extra if extra else "")
+    host = _walk(gl_ctx, base + ",device_front=0", effects)
+    dev = _walk(gl_ctx, base, effects)
+    assert sum(b.backend_stats.get("device_front_passes", 0) for b in dev) > 0
+    assert sum(b.backend_stats.get("device_front_passes", 0) for b in host) == 0
+    moved = 0
+    for i, (h, d) in enumerate(zip(host, dev, strict=True)):
+        for k in FRONT_STATS:
+            assert h.backend_stats.get(k, 0) == d.backend_stats.get(k, 0), (i, k, h.backend_stats, d.backend_stats)
+        moved += d.backend_stats.get("newly_visible_queries", 0) + d.backend_stats.get("pull_ups", 0)
+        for a, b in zip(h.captured, d.captured, strict=True):
+            same = np.array_equal(a.tri, b.tri) and np.array_equal(a.t.view(np.int32), b.t.view(np.int32))
+            assert same, (i, a.ray_type)
+    assert moved > 0  # the fronts did change on the device
+
+
+def test_device_front_frame_crosses_nothing(gl_ctx, monkeypatch):
+    """A steady frame on device fronts sends the backend's nothing to the device and reads no pass's counts: it
+    waits exactly as often as glsl's frame (timer phase timing: no per-phase finishes), and what it
+    reads back beyond glsl's is one META read after the frame's finish."""
+    from viewer.backends.chcrt.chcrt_devfront import META_INTS
+
+    monkeypatch.setenv("RTWALK_PHASE_TIMING", "timer")
+    scene, bvh, path = _load("city")
+    ios = {}
+    for backend, params in (("glsl", {}), ("chcrt", {"chcrt": ""}), ("chcrt-host", {"chcrt": "device_front=0"})):
+        r = Renderer(gl_ctx, scene, bvh, SIZE, backend.split("-")[0], parse_effects("primary,shadows,ao:4"), params)
+        try:
+            for cam in path[:3]:
+                rep = r.render(cam)
+            ios[backend] = rep.io
+            if backend == "chcrt":
+                meta_bytes = r.backend.devfronts.meta_slots * META_INTS * 4
+        finally:
+            r.release()
+    g, c, h = ios["glsl"], ios["chcrt"], ios["chcrt-host"]
+    assert c.bytes_to_device == g.bytes_to_device, (g, c)  # the frame's own (no backend sends anything)
+    assert c.bytes_to_host - g.bytes_to_host == meta_bytes, (g, c)
+    assert c.host_syncs == g.host_syncs, (g, c)
+    assert h.host_syncs == g.host_syncs + 6 and h.bytes_to_device > 0  # the host plan: a count read per pass
+
+
+def test_device_front_overflow_stays_exact(gl_ctx, monkeypatch):
+    """Fronts and items over their device capacity: splits are refused (the pair's subtree is
+    intersected whole) and every tile traverses its lowest common ancestor, both exact; the overflow
+    is counted, and the host grows the buffers after the frame."""
+    from viewer.backends.chcrt import chcrt_devfront as D
+
+    monkeypatch.setattr(D, "MIN_CAPACITY", 16)
+    orig = D.DeviceFronts.ensure
+
+    def tiny(self, tiles=0, copies=0, pairs=0, cull_tiles=0):  # item capacity without the 2x margin
+        orig(self, tiles=tiles, copies=0, pairs=pairs, cull_tiles=cull_tiles)
+
+    monkeypatch.setattr(D.DeviceFronts, "ensure", tiny)
+    monkeypatch.setattr(D, "_pow2", lambda n: max(int(n), 1))
+    rows, scene, _ = _render_both(gl_ctx, "city", "primary,ao:2", "")
+    assert sum(b.backend_stats.get("front_overflows", 0) for _, b in rows) > 0
+    for a, b in rows:
+        for pa, pb in zip(a.captured, b.captured, strict=True):
+            _check_exact(pa, pb, "overflow", scene.triangles)

@@ -131,8 +131,6 @@ def test_gl_backend_bytes_do_not_grow_with_passes(backend, gl_ctx):
     a traversal's 8-byte counter read per extra draw (glsl decides on the host whether to draw again)."""
     io4, _ = _steady_io(backend, "primary,shadows,ao:4")
     io8, _ = _steady_io(backend, "primary,shadows,ao:8")
-    if backend == "chcrt" and io8.bytes_to_device != io4.bytes_to_device:
-        pytest.xfail("chcrt uploads its tile records per pass (StreamBuffer); its rewrite is to remove that")
     assert io8.bytes_to_device == io4.bytes_to_device, (io4, io8)
     assert 0 <= io8.bytes_to_host - io4.bytes_to_host <= 8 * (io8.gl_draws - io4.gl_draws), (io4, io8)
     assert io4.bytes_to_device + io4.bytes_to_host < SIZE[0] * SIZE[1]  # no per-pixel traffic at all

@@ -450,6 +450,11 @@ class Renderer:
         if prof.saturated:  # timer results charged their CPU time instead (see profiler.py)
             stats["timer_saturated"] = float(prof.saturated)
         glio.finish(self.ctx)
+        if self.frame_path != "device":  # counters a GL backend kept on the device: read after the finish, no wait
+            end = getattr(self.backend, "end_frame", None)
+            if callable(end):
+                for k, v in end().items():
+                    stats[k] = stats.get(k, 0) + v
         glio.check_errors(self.ctx, f"frame {self.frame_index}")
         wall = (time.perf_counter() - t0) * 1e3
         self.frame_index += 1

@@ -177,7 +177,9 @@ class Backend(Protocol):
     Optional, for `info.device == "cl"` (viewer/cl/frame.py picks the device-resident frame when
     present): `trace_device(rays, pinfo, hits) -> TraceResult` traces CL ray buffers
     (viewer.cl.RayStage layout) into CL hit buffers (HitStage) with nothing crossing the host, and
-    `end_frame() -> dict[str, float]` returns counters kept on the device over such a frame."""
+    `end_frame() -> dict[str, float]` returns counters kept on the device over such a frame. Any
+    backend may have `end_frame`: after a frame of GL passes the renderer calls it once, after the
+    frame's own finish, so a read there waits for nothing (chcrt's device fronts report that way)."""
 
     info: ClassVar[BackendInfo]
     params: Any  # an instance of info.params, or None

@@ -50,7 +50,8 @@ BIND_CULL_CMDS = SSBO["BIND_CULL_CMDS"]
 BIND_CULL_STATS = SSBO["BIND_CULL_STATS"]
 BIND_IMG_HIZ = IMAGE["BIND_IMG_HIZ"]
 
-BACKEND_SSBO = (*range(4, 9), *range(12, 15))  # SSBO binding points left to backends' own names
+# SSBO binding points left to backends' own names (GL 4.5 drivers offer 80 or more: llvmpipe 80, NVIDIA 96)
+BACKEND_SSBO = (*range(4, 9), *range(12, 15), *range(20, 36))
 BACKEND_IMAGE = range(0, 4)  # image units left to backends' own names
 
 

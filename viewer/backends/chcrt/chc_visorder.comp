@@ -13,12 +13,20 @@ layout(local_size_x = 64) in;
 layout(std430, binding = BIND_CHC_ITEMS) buffer ChcItems { ChcItem items[]; };
 layout(std430, binding = BIND_CHC_DRAWS) buffer ChcDraws { ChcDraw draws[]; };
 layout(std430, binding = BIND_CHC_TILES) readonly buffer ChcTiles { TileBound tiles[]; };
+#ifdef CHC_RECORDS_IN_BUFFER
+// device fronts (chcrt_devfront.py): the record count is the indirect draw's instance count
+layout(std430, binding = BIND_CHC_INDIRECT) readonly buffer VisCmd { uint vCount; uint vInstances; uint vFirst;
+                                                                     uint vBase; };
+#define N_RECORDS int(vInstances)
+#else
 uniform int nRecords;
+#define N_RECORDS nRecords
+#endif
 uniform int coneCull;
 
 void main() {
     int i = int(gl_GlobalInvocationID.x);
-    if (i >= nRecords) return;
+    if (i >= N_RECORDS) return;
     ChcDraw d = draws[i];
     TileBound t = tiles[d.info.w];
     bool live = t.omax.w > 0.0;  // the tile has active rays (else its origin box is empty)

@@ -87,6 +87,7 @@ import numpy as np
 from viewer import iostats
 from viewer.backends.base import BackendContext, TraceResult, WorkCounters
 from viewer.backends.chcrt.chcrt_cache import MB, CachePlan, SubtreeCache
+from viewer.backends.chcrt.chcrt_devfront import ARGS_VISORDER, FRONT_SSBO, DeviceFronts
 from viewer.backends.chcrt.chcrt_front import INNER, INVISIBLE, VISIBLE, NodeTables, PairFront
 from viewer.backends.gl_traversal import ResumableTraversal, max_visits
 from viewer.backends.interface import BackendInfo, OverlaySpec, param
@@ -114,7 +115,7 @@ SSBO = {"BIND_CHC_ITEMS": 5,  # (tile, node) items of a batch draw
 IMAGE = {"BIND_IMG_CHC_BEST": 0,  # packed closest hit per pixel
          "BIND_IMG_CHC_OVERDRAW": 1,  # query fragments per pixel (overlay)
          "BIND_IMG_CHC_BATCH": 2}  # subtrees in the pixel's batches (overlay)
-BINDINGS = backend_bindings(SSBO, IMAGE)
+BINDINGS = backend_bindings({**SSBO, **FRONT_SSBO}, IMAGE)  # with the device fronts' (chcrt_devfront.py)
 (BIND_CHC_ITEMS, BIND_CHC_COUNT, BIND_CHC_DRAWS, BIND_CHC_QUERY_COUNTS, BIND_CHC_CANDIDATES, BIND_CHC_INDIRECT,
  BIND_CHC_QUERIES, BIND_CHC_TILES) = SSBO.values()
 BIND_IMG_CHC_BEST, BIND_IMG_CHC_OVERDRAW, BIND_IMG_CHC_BATCH = IMAGE.values()
@@ -212,6 +213,11 @@ class ChcrtParams:
     count_due_only: bool = param(True, "GPU-driven: only the visible pairs whose re-query is due this frame count "
                                  "the rays that enter them (the others' counts are never read; each count is a "
                                  "shader atomic per entered pair and ray); False: every visible pair counts")
+    device_front: bool = param(True, "GPU-driven (with merge_tiles and lca_invisible): after its first pass a front "
+                               "lives on the device, and each pass plans its records, culls, draws and refines "
+                               "the front in a fixed chain of dispatches and indirect draws, with nothing read "
+                               "back in the pass (statistics arrive after the frame); False: the host plans the "
+                               "records and reads the counts back at the end of every pass")
     hit_hint: bool = param(True, "temporal: each ray first tests the triangle its pixel hit in this front's previous "
                            "pass (a shadow cache for every ray type): an any-hit ray that hits it is done, a "
                            "closest-hit ray traverses with its distance as tmax (exact); not with a GPU budget, nor in "
@@ -410,6 +416,10 @@ class ChcrtBackend:
         self.tilebounds = compute_shader(self.ctx, "chc_tilebounds.comp", BINDINGS, (HERE,))
         self.querycull = compute_shader(self.ctx, "chc_querycull.comp", BINDINGS, (HERE,))
         self.visorder = compute_shader(self.ctx, "chc_visorder.comp", BINDINGS, (HERE,))
+        # device fronts: made on the first steady pass (ChcrtParams.device_front)
+        self.device_front = self.gpu_driven and self.p.device_front and self.p.merge_tiles and self.p.lca_invisible
+        self.devfronts: DeviceFronts | None = None
+        self.visorder_dev: moderngl.ComputeShader | None = None
         self.tilebounds["rayOrigin"] = 0
         self.tilebounds["rayDir"] = 1
         self.all_queries = StreamBuffer(self.ctx, DRAW_DTYPE.itemsize, BIND_CHC_QUERIES)
@@ -445,7 +455,11 @@ class ChcrtBackend:
                             p.max_subtree_height)
 
     def _clear_fronts(self) -> None:
-        """Forget every front and its hit hints."""
+        """Forget every front (on the device too) and its hit hints."""
+        for f in self.fronts.values():
+            if f.device is not None and self.devfronts is not None:
+                self.devfronts.detach(f.device)
+            f.device = None
         self.fronts.clear()
         for tex in self.hints.values():
             tex.release()
@@ -461,10 +475,36 @@ class ChcrtBackend:
         iostats.gl_draw()
 
     # -- Backend protocol ----------------------------------------------------------------------
+    def device_fronts(self) -> DeviceFronts:
+        """The device fronts' shared buffers and programs (made on first use)."""
+        if self.devfronts is None:
+            self.devfronts = DeviceFronts(self.ctx, self.nt, BINDINGS)
+            self.visorder_dev = compute_shader(self.ctx, "chc_visorder.comp",
+                                               {**BINDINGS, "CHC_RECORDS_IN_BUFFER": 1}, (HERE,))
+        return self.devfronts
+
     def begin_frame(self, frame_index: int) -> None:
         self.frame = int(frame_index)
         if not self.p.temporal:
             self._clear_fronts()
+
+    def end_frame(self) -> dict[str, float]:
+        """After the frame's finish: the statistics of the device passes since the last call (one read
+        that waits for nothing; a caller of trace() outside the Renderer calls it to get them).
+        A device front whose last plan sent at least full_bvh_fraction of its tiles to their lowest
+        common ancestor traces the whole BVH from its next pass on, as the host plan decides within
+        its pass (the front does not change on such passes, so the choice stays)."""
+        if self.devfronts is None:
+            return {}
+        stats, rows = self.devfronts.end_frame()
+        frac = self.p.full_bvh_fraction
+        for slot, row in rows.items():
+            front = self.devfronts.fronts[slot][0]
+            if frac > 0 and row.tiles > 0 and row.heavy_tiles >= frac * row.tiles:
+                front.full_bvh = True
+                self.devfronts.detach(front.device)  # a full-BVH pass needs no front
+                front.device = None
+        return stats
 
     def release(self) -> None:
         if self.targets is not None:
@@ -475,6 +515,11 @@ class ChcrtBackend:
         for obj in (self.vao_isect_g, self.gpu_counts, self.tilebounds,
                     self.querycull, self.survivors, self.query_indirect, self.tile_bounds, self.kept_boxes):
             obj.release()
+        self._clear_fronts()
+        if self.devfronts is not None:
+            self.devfronts.release()
+            self.visorder_dev.release()
+            self.devfronts = self.visorder_dev = None
         for vao in (self.vao_query_b, self.vao_isect_b):
             vao.release()
         self.count_buf.release()
@@ -505,6 +550,8 @@ class ChcrtBackend:
             self.cache = self._make_cache(bc)
         if not same:
             self._clear_fronts()
+        if self.devfronts is not None:
+            self.devfronts.set_nodes(self.nt)  # the device fronts' boxes and ranges
         ms = (time.perf_counter() - t0) * 1e3
         bc.profiler.record("build:chcrt", ms, ms)
 
@@ -611,10 +658,13 @@ class _Pass:
         else:
             self.be.count_buf.bind_to_storage_buffer(BIND_CHC_COUNT)
 
-    def _init(self) -> None:
+    def _init(self, zeroed: bool = False) -> None:
+        """The init draw (hits, depth, images cleared; active rays counted); `zeroed`: the ray-count
+        slots were zeroed on the device already (device fronts), else they are written here."""
         ctx = self.ctx
-        (self.be.gpu_counts if self.gpu else self.be.count_buf).write(self.be._zero_counts)
-        iostats.to_device(COUNT_BYTES)
+        if not zeroed:
+            (self.be.gpu_counts if self.gpu else self.be.count_buf).write(self.be._zero_counts)
+            iostats.to_device(COUNT_BYTES)
         fbo = self.hit_fbo
         fbo.use()
         fbo.scissor = None
@@ -972,7 +1022,9 @@ class _Pass:
         be, f = self.be, self.front
         self._sync()  # diagnostics: do not charge the ray generation to phase 1
         try:
-            if self.gpu:
+            if self.gpu and be.device_front:
+                self._run_device()
+            elif self.gpu:
                 self._run_gpu()
             else:
                 self._run_sync()
@@ -987,11 +1039,18 @@ class _Pass:
             self.ctx.depth_func = "<"
             self.hit_fbo.scissor = None
             self.tg.query_fbo.scissor = None
-        self.stats["pull_ups"] = f.pull_up(1 if be.gpu_driven else 0)
-        self.stats["visible_pairs"] = int((f.state[: f.n] == VISIBLE).sum())
-        self.stats["invisible_pairs"] = int((f.state[: f.n] == INVISIBLE).sum())
-        self.stats["inner_pairs"] = int((f.state[: f.n] == INNER).sum())
+        # a device front counts these on the device (ChcrtBackend.end_frame); a GPU-driven pass that traced
+        # the whole BVH left its front as it is (not pulled up, not counted)
+        if f.device is None and not (self.gpu and self.stats["full_bvh_passes"]):
+            self.stats["pull_ups"] = f.pull_up(1 if be.gpu_driven else 0)
+            self.stats["visible_pairs"] = int((f.state[: f.n] == VISIBLE).sum())
+            self.stats["invisible_pairs"] = int((f.state[: f.n] == INVISIBLE).sum())
+            self.stats["inner_pairs"] = int((f.state[: f.n] == INNER).sum())
         self.stats["gpu_driven"] = int(self.gpu)
+        self.stats["device_front_passes"] = int(f.device is not None)
+        if be.device_front and f.device is None and not f.full_bvh:
+            # the front's first pass is done: it moves to the device now (one upload, in the cold frame)
+            f.device = be.device_fronts().attach(f, 1 << (2 * f.max_level))
         return {k: float(v) for k, v in self.stats.items()}
 
     def _run_sync(self) -> None:
@@ -1182,7 +1241,7 @@ class _Pass:
                     self._draw_finest(nd, tile, self._due_slots(visible, sl))
             else:
                 self._draw_subtrees(visible, self._due_slots(visible, np.arange(len(visible))))
-            self.stats["phase1_subtrees"] = len(visible)
+            self.stats["phase1_subtrees"] = 0 if full else len(visible)
             self._sync()
         with prof.phase("chc:2-queries"):
             if not full:
@@ -1210,6 +1269,128 @@ class _Pass:
             self.rays_read = True
             if not full:  # a full-BVH pass counted nothing: the front stays as it is
                 self._refine(visible, invisible, cnt[:nslots])
+
+    # -- device-resident front ----------------------------------------------------------------------
+    def _run_device(self) -> None:
+        """The GPU-driven pass on a device front (chcrt_devfront.py): plan (5 dispatches), the visible
+        records (with gap_order in closest-hit passes: 2 dispatches, then one indirect draw), the cull
+        (2 dispatches) and the survivors (one indirect draw), the pass's counts, the refinement (4
+        dispatches). Nothing is uploaded or read back; the same launches whatever the tiles, pairs and
+        subtrees. A front that traces the whole BVH (full_bvh) only clears and counts on the device."""
+        be, f, p = self.be, self.front, self.p
+        prof = be.bc.profiler
+        dv = be.device_fronts()
+        level = f.max_level
+        n_tiles = 1 << (2 * level)
+        full = f.full_bvh
+        dev = f.device  # attached at the end of its first pass, unless that pass traced the whole BVH
+        if dev is None and not full:
+            dev = f.device = dv.attach(f, n_tiles)
+        capacity = 0 if full else dev.capacity
+        need = COUNT_BYTES + 4 * (capacity + 3)
+        if be.gpu_counts.size < need:
+            be.gpu_counts.release()
+            be.gpu_counts = self.ctx.buffer(reserve=1 << (need - 1).bit_length())
+        sub = int(p.cull_sublevels)
+        while sub > 0 and min(self.size) >> (level + sub) < 4:
+            sub -= 1
+        common = dict(ray_slots=COUNT_SLOTS, frame=self.frame_number(), max_level=level, threshold=self.threshold,
+                      requery_interval=p.requery_interval, seed=p.seed)
+        with prof.phase("chc:1-intersect-visible"):
+            if full:
+                dv.clear(be.gpu_counts, be.query_indirect, ray_slots=COUNT_SLOTS, capacity=0)
+            else:
+                primary_only = self.ray_type == RayType.PRIMARY and not p.lca_primary
+                dv.plan(dev, be.gpu_counts, be.query_indirect, size=tuple(self.size), max_batch=p.max_batch,
+                        lca_pairs=p.lca_pairs, lca_subtrees=p.lca_subtrees, heavy_allowed=not primary_only,
+                        cull_sub=sub, count_due_only=p.count_due_only, **common)
+            self.stats["draws"] += 1 if full else 5
+            self._bind()
+            self._init(zeroed=True)
+            be.gpu_counts.bind_to_storage_buffer(BIND_CHC_QUERY_COUNTS, COUNT_BYTES, 4 * (capacity + 3))
+            if not full:
+                self._draw_device_visible(dv, level, n_tiles)
+            self._sync()
+        with prof.phase("chc:2-queries"):
+            if not full:
+                self._cull_device(dv, dev, level, sub)
+            self._sync()
+        with prof.phase("chc:3-traversal"):
+            if full:
+                self.be.finisher.run(self.rays, self.pinfo, self.hits)
+                self.stats["full_bvh_passes"] = 1
+                self.stats["draws"] += 1
+            else:
+                self.n_survivor_groups = 1
+                self._intersect_survivors()
+            self._sync()
+        with prof.phase("chc:4-final-intersect"):
+            dv.pass_end(be.gpu_counts, ray_slots=COUNT_SLOTS, capacity=capacity)
+            self.stats["draws"] += 1
+            if not full:
+                dv.refine(dev, be.gpu_counts, t_q=self.t_q, max_height=p.max_subtree_height,
+                          max_tris=p.max_subtree_tris, **common)
+                self.stats["draws"] += 4
+        self.rays_read = True  # counted on the device, reported by end_frame
+
+    def _draw_device_visible(self, dv: DeviceFronts, level: int, n_tiles: int) -> None:
+        """The visible records the device planned, in one indirect instanced draw (instances: the
+        records); closest-hit passes first sort each record's items by gap (gap_order_visible)."""
+        be, ctx, p = self.be, self.ctx, self.p
+        dv.vis_items.bind_to_storage_buffer(BIND_CHC_ITEMS)
+        dv.records.bind_to_storage_buffer(BIND_CHC_DRAWS)
+        if p.gap_order and p.gap_order_visible and not self.any_hit:
+            self._tile_bounds(level, n_tiles)  # after the init draw's bestBits
+            dv.args.bind_to_storage_buffer(BIND_CHC_INDIRECT, 0, 16)
+            be.visorder_dev["coneCull"] = int(p.cone_cull)
+            be.visorder_dev.run_indirect(dv.args, ARGS_VISORDER)
+            ctx.memory_barrier(moderngl.SHADER_STORAGE_BARRIER_BIT | moderngl.COMMAND_BARRIER_BIT)
+            self.stats["draws"] += 2
+            iostats.gl_draw(2)
+        ctx.enable(moderngl.DEPTH_TEST)
+        ctx.depth_func = "<"
+        fbo = self.hit_fbo
+        fbo.use()
+        fbo.scissor = None
+        prog = be.prog_isect_g
+        prog["raySize"] = tuple(self.size)
+        self._isect_uniforms(prog)
+        be.vao_isect_g.render_indirect(dv.args, moderngl.TRIANGLES, count=1)
+        self.stats["draws"] += 1
+        self.stats["intersect_draws"] += 1
+        iostats.gl_draw()
+
+    def _cull_device(self, dv: DeviceFronts, dev, level: int, sub: int) -> None:
+        """The invisible items the device planned, culled per cull tile (chc_tilebounds.comp, then
+        chc_querycull.comp over the ranges chc_front_plan.comp wrote) into the survivors' records and
+        their indirect draw command; buffers sized for the device's item capacity."""
+        be, ctx, p = self.be, self.ctx, self.p
+        cl = level + sub
+        n_cull = 1 << (2 * cl)
+        kept = (dv.inv_cap << (2 * sub)) * ITEM_DTYPE.itemsize
+        recs = ((dv.inv_cap + (1 << (2 * level))) << (2 * sub)) * DRAW_DTYPE.itemsize
+        if be.kept_boxes.size < kept:
+            be.kept_boxes.release()
+            be.kept_boxes = ctx.buffer(reserve=kept)
+        if be.survivors.size < recs:
+            be.survivors.release()
+            be.survivors = ctx.buffer(reserve=recs)
+        dv.inv_items.bind_to_storage_buffer(BIND_CHC_ITEMS)
+        dv.cull.bind_to_storage_buffer(BIND_CHC_QUERIES)
+        be.kept_boxes.bind_to_storage_buffer(BIND_CHC_CANDIDATES)
+        be.survivors.bind_to_storage_buffer(BIND_CHC_DRAWS)
+        be.query_indirect.bind_to_storage_buffer(BIND_CHC_INDIRECT)
+        self._tile_bounds(cl, n_cull)  # after the visible pairs' bestBits
+        be.querycull["nQueries"] = n_cull
+        be.querycull["maxItems"] = p.max_batch
+        be.querycull["pixelSlot"] = dev.capacity
+        be.querycull["cull"] = int(p.coarse_cull)
+        be.querycull["sortByGap"] = int(p.gap_order)
+        be.querycull["coneCull"] = int(p.cone_cull)
+        be.querycull.run(-(-n_cull // 64))
+        ctx.memory_barrier(moderngl.COMMAND_BARRIER_BIT | moderngl.SHADER_STORAGE_BARRIER_BIT)
+        self.stats["draws"] += 2
+        iostats.gl_draw(2)
 
     def _due_slots(self, visible: np.ndarray, sl: np.ndarray) -> np.ndarray:
         """Count slots of visible-pair items (index into `visible`, -1 = not counted): with

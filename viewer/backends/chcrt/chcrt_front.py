@@ -48,6 +48,7 @@ class NodeTables:
     gpu_count: np.ndarray  # int32: 0 for inner nodes, triangle count for leaves
     parent: np.ndarray  # int32, -1 for the root
     depth: np.ndarray  # int32, 0 for the root
+    first: np.ndarray  # int32: first triangle slot (leaf order) of the subtree; [first, first + count) nest
 
     @staticmethod
     def from_bvh(bvh) -> NodeTables:
@@ -76,7 +77,8 @@ class NodeTables:
         return NodeTables(left, right, is_leaf, bvh.node_height.astype(np.int32),
                           bvh.node_count.astype(np.int32), area / root,
                           np.ascontiguousarray(bvh.node_min, np.float32),
-                          np.ascontiguousarray(bvh.node_max, np.float32), gpu_ref, gpu_count, parent, depth)
+                          np.ascontiguousarray(bvh.node_max, np.float32), gpu_ref, gpu_count, parent, depth,
+                          np.asarray(bvh.node_first, np.int32))
 
     def group_lca(self, nodes: np.ndarray, starts: np.ndarray) -> np.ndarray:
         """Lowest common ancestor of each group of `nodes` (groups are the runs that begin at
@@ -142,6 +144,9 @@ class PairFront:
         # incoherent rays: the first pass stopped refining (chcrt cold_full_bvh); every pass traces the
         # whole BVH, the front is not refined further
         self.full_bvh = False
+        # the front's copy on the device once its first pass is done (chcrt_devfront.DeviceFront); the
+        # arrays here are then no longer updated
+        self.device: object | None = None
         self._append(np.zeros(1, np.int8), np.zeros(1, np.int32), np.zeros(1, np.int32),
                      np.zeros(1, np.int32), np.full(1, -1, np.int32))
 

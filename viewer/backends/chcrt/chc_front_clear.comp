@@ -1,0 +1,34 @@
+// CHC+RT device front, first dispatch of a steady pass (chcrt_devfront.py): zero the finest tiles'
+// plans (the triangle range starts empty), the ray-count slots the init draw counts into, and the
+// pass's extra count slots (query pixels, records drawn, kept pairs) after the pairs' slots, and the
+// survivors' indirect draw command. The
+// pairs' own count slots are zeroed by chc_front_count.comp; the front's overflow bits are reset.
+// Nothing crosses the host.
+layout(local_size_x = 64) in;
+#include "chc_front.glsl"
+layout(std430, binding = BIND_FR_TILES) writeonly buffer Tiles { ChcTilePlan tiles[]; };
+layout(std430, binding = BIND_FR_COUNTS) writeonly buffer Counts { uint counts[]; };
+layout(std430, binding = BIND_FR_META) buffer Meta { int meta[]; };
+// the survivors' indirect draw (chc_querycull.comp adds its instances)
+layout(std430, binding = BIND_FR_SURVIVOR_CMD) writeonly buffer SurvivorCmd { uint cmd[4]; };
+uniform int nTiles;
+uniform int frontSlot;  // 0: no front (a full-BVH pass)
+uniform int capacity;  // pair slots: the pass's extra slots follow them
+uniform int raySlots;  // ray-count slots at the start of the counts buffer (chcrt.COUNT_SLOTS)
+
+void main() {
+    int i = int(gl_GlobalInvocationID.x);
+    if (i < nTiles) {
+        ChcTilePlan t;
+        t.cv = 0; t.ci = 0; t.lo = 0x7fffffff; t.hi = 0; t.heavy = 0; t.lca = -1;
+        t.visBase = 0; t.visCount = 0; t.invBase = 0; t.invCount = 0; t.visFill = 0; t.invFill = 0;
+        t.recBase = 0; t.nrec = 0; t.pad0 = 0; t.pad1 = 0;
+        tiles[i] = t;
+    }
+    if (i < raySlots) counts[i] = 0u;
+    if (i < 3) counts[raySlots + capacity + i] = 0u;
+    if (i == 0) {
+        if (frontSlot > 0) meta[16 * frontSlot + META_OVERFLOW] = 0;  // this pass's overflows only
+        cmd[0] = 6u; cmd[1] = 0u; cmd[2] = 0u; cmd[3] = 0u;
+    }
+}
