@@ -667,3 +667,23 @@ def test_device_front_overflow_stays_exact(gl_ctx, monkeypatch):
     for a, b in rows:
         for pa, pb in zip(a.captured, b.captured, strict=True):
             _check_exact(pa, pb, "overflow", scene.triangles)
+
+
+def test_device_front_unreported_pass_counts_nothing(gl_ctx):
+    """A pass nobody reports (PassInfo.report=False: the traced G-buffer's rays) adds nothing to
+    the statistics the frame reads after its finish; a reported one does."""
+    scene, bvh, path = _load("city")
+    r = Renderer(gl_ctx, scene, bvh, SIZE, "chcrt", parse_effects("primary"))
+    try:
+        r.render(path[0])  # the cold pass: the front moves to the device
+        be = r.backend
+        be.trace(r.rays, PassInfo(RayType.PRIMARY, report=False), r.hits)
+        gl_ctx.finish()
+        quiet = be.end_frame()
+        be.trace(r.rays, PassInfo(RayType.PRIMARY), r.hits)
+        gl_ctx.finish()
+        loud = be.end_frame()
+    finally:
+        r.release()
+    assert quiet.get("rays", 0) == 0 and quiet.get("visible_pairs", 0) == 0, quiet
+    assert loud["rays"] > 0 and loud["visible_pairs"] > 0, loud

@@ -27,6 +27,7 @@ class PassInfo:
     sample: int = 0
     light: int = 0
     weight: float = 1.0
+    report: bool = True  # False: nobody reports this pass's statistics (the traced G-buffer's rays)
 
     @property
     def any_hit(self) -> bool:

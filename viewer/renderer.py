@@ -544,7 +544,7 @@ class Renderer:
         prof = self.profiler
         with prof.phase("gbuffer:rays"):
             self.raygen.generate(self.rays, self.gbuffer, RayType.PRIMARY, 0, 0, 0.0, 0.0)
-        self.backend.trace(self.rays, PassInfo(RayType.PRIMARY, 0, 0, 1.0), self.hits)
+        self.backend.trace(self.rays, PassInfo(RayType.PRIMARY, 0, 0, 1.0, report=False), self.hits)
         with prof.phase("gbuffer:fill"):
             self.gbuffer.fill_from_hits(camera, self.hits, self.quad)
 

@@ -181,6 +181,9 @@ class Runner:
         self.stats = self.be.trace(self.rays, self.pinfo, self.hits).stats
         t, slot = self.hits.read()
         ms = (time.perf_counter() - t0) * 1e3
+        end = getattr(self.be, "end_frame", None)  # counters kept on the device (after the read: no wait)
+        if callable(end):
+            self.stats = {**self.stats, **{k: self.stats.get(k, 0) + v for k, v in end().items()}}
         slot = np.asarray(slot[: self.n])
         ids = np.where(slot >= 0, self.bvh.tri_order[np.maximum(slot, 0)], -1)
         return ms, ids, np.asarray(t[: self.n])

@@ -114,6 +114,9 @@ def time_backend(renderer, name: str, passes: list[Pass]) -> tuple[list[float], 
         be.trace(renderer.rays, PassInfo(p.ray_type, p.sample, p.light), renderer.hits)
         renderer.ctx.finish()
         cpu_ms.append((time.process_time() - c0) * 1e3)
+        end = getattr(be, "end_frame", None)  # counters kept on the device (read after the finish: no wait)
+        if callable(end):
+            end()
         prof.label = None
         phases = prof.end_frame()
         trace_ms.append(sum(v for k, v in phases.items() if is_trace_phase(k, be.info.phases)))

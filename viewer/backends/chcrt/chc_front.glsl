@@ -1,5 +1,5 @@
 // CHC+RT device-resident fronts (chcrt_devfront.py): the records every chc_front_*.comp shares.
-// Layouts match chcrt_devfront.py's NODE_DTYPE, PAIR_DTYPE, TILE_DTYPE and META slots.
+// Layouts match chcrt_devfront.py's NODE_DTYPE, PAIR_DTYPE, TILE_BYTES and META slots.
 #include "chc_records.glsl"
 
 // Per canonical BVH node (NodeTables): its box, what an intersection item needs (ref: GPU inner-node
@@ -35,8 +35,8 @@ struct ChcTilePlan { int cv; int ci; int lo; int hi; int heavy; int lca; int vis
 #define CHC_F_LCA_COVERED 2  // a visible pair over a heavy tile: its own count is not its own
 #define CHC_F_MERGE 16       // an inner pair whose children are all invisible: pulled up this pass
 
-// META: 16 ints per slot; slot 0 = the frame's statistics (chcrt_devfront.STAT_NAMES), slot s >= 1 =
-// front s: n pairs, overflow bits, and what the last plan found (read by the host after the frame)
+// META: 16 ints per slot; slot 0 = the frame's statistics (chcrt_devfront.STAT_NAMES, added at
+// `statBase`: 0, or slot 1's for a pass whose statistics are not reported), slot s >= 2 = front s: n pairs, overflow bits, and what the last plan found (read by the host after the frame)
 #define META_N 0          // pairs in the front
 #define META_OVERFLOW 1   // 1: splits refused (pair capacity), 2: items over capacity (all tiles heavy)
 #define META_HEAVY 2      // finest tiles that chose the LCA in the last plan (before any overflow fallback)

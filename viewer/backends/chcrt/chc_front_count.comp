@@ -18,6 +18,7 @@ uniform int maxLevel;
 uniform int threshold;  // ChcrtParams.visible_threshold
 uniform int frame;
 uniform int requeryInterval;
+uniform int statBase;
 
 void main() {
     int i = int(gl_GlobalInvocationID.x);
@@ -29,7 +30,7 @@ void main() {
     int st = pairState(p);
     if (st != CHC_VISIBLE && st != CHC_INVISIBLE) return;
     if (st == CHC_INVISIBLE && threshold > 0 && !(p.age == 0 || requeryDue(p, frame, requeryInterval))) return;
-    atomicAdd(meta[st == CHC_VISIBLE ? STAT_PHASE1 : STAT_QUERIES], 1);
+    atomicAdd(meta[statBase + (st == CHC_VISIBLE ? STAT_PHASE1 : STAT_QUERIES)], 1);
     ChcNode nd = nodes[p.node];
     int s = maxLevel - pairLevel(p);
     int side = 1 << maxLevel;

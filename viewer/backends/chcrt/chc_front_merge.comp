@@ -10,6 +10,7 @@ layout(std430, binding = BIND_FR_FLAGS) buffer Flags { ivec4 flags[]; };
 layout(std430, binding = BIND_FR_META) buffer Meta { int meta[]; };
 uniform int capacity;
 uniform int frontSlot;
+uniform int statBase;
 
 void main() {
     int i = int(gl_GlobalInvocationID.x);
@@ -22,5 +23,5 @@ void main() {
         if (pairState(q) != CHC_INVISIBLE || q.age < 1) return;
     }
     flags[i].y |= CHC_F_MERGE;
-    atomicAdd(meta[STAT_PULL_UPS], 1);
+    atomicAdd(meta[statBase + STAT_PULL_UPS], 1);
 }

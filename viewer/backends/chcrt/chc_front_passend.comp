@@ -7,11 +7,13 @@ layout(std430, binding = BIND_FR_COUNTS) readonly buffer Counts { uint counts[];
 layout(std430, binding = BIND_FR_META) buffer Meta { int meta[]; };
 uniform int raySlots;
 uniform int capacity;
+uniform int statBase;
 
 void main() {
     uint rays = 0u;
     for (int k = 0; k < raySlots; ++k) rays += counts[k];
-    meta[STAT_RAYS] += int(rays);
-    meta[STAT_QUERY_PIXELS] += int(counts[raySlots + capacity]);
-    meta[STAT_RECORDS_DRAWN] += int(counts[raySlots + capacity + 1]);
+    // int adds wrap like uint ones: the host reads the statistics as uint32
+    meta[statBase + STAT_RAYS] += int(rays);
+    meta[statBase + STAT_QUERY_PIXELS] += int(counts[raySlots + capacity]);
+    meta[statBase + STAT_RECORDS_DRAWN] += int(counts[raySlots + capacity + 1]);
 }

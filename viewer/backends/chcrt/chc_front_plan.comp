@@ -9,7 +9,8 @@
 layout(local_size_x = 256) in;
 #include "chc_front.glsl"
 layout(std430, binding = BIND_FR_NODES) readonly buffer Nodes { ChcNode nodes[]; };
-layout(std430, binding = BIND_FR_TILES) buffer Tiles { ChcTilePlan tiles[]; };
+// coherent: the cull ranges below read other invocations' tile plans (memoryBarrierBuffer + barrier)
+layout(std430, binding = BIND_FR_TILES) coherent buffer Tiles { ChcTilePlan tiles[]; };
 layout(std430, binding = BIND_FR_VIS_ITEMS) writeonly buffer VisItems { ChcItem visItems[]; };
 layout(std430, binding = BIND_FR_RECORDS) writeonly buffer Records { ChcDraw records[]; };
 layout(std430, binding = BIND_FR_CULL) writeonly buffer Cull { ChcDraw cullTiles[]; };
@@ -28,6 +29,7 @@ uniform int invCap;
 uniform int recCap;
 uniform int cullSub;  // cull tiles are this many levels below the finest tiles
 uniform int frontSlot;
+uniform int statBase;  // META slot of the statistics: 0 = the frame's, else a slot nobody reads
 
 shared int sVis[256];
 shared int sInv[256];
@@ -63,7 +65,6 @@ void main() {
     int per = (nTiles + 255) / 256;
     int t0 = min(nTiles, li * per), t1 = min(nTiles, t0 + per);
     if (li == 0) sForce = 0;
-    int realHeavy = 0;
     for (int pass = 0; pass < 2; ++pass) {  // a second pass only when the items overflow
         barrier();
         bool force = sForce != 0;
@@ -95,16 +96,16 @@ void main() {
             if (!force && (av > visCap || ai > invCap || ar > recCap)) {
                 sForce = 1;
                 meta[16 * frontSlot + META_OVERFLOW] |= 2;
-                atomicAdd(meta[STAT_OVERFLOWS], 1);
+                atomicAdd(meta[statBase + STAT_OVERFLOWS], 1);
             } else {
                 sForce = force ? 2 : 3;  // done
                 args[0] = 6u; args[1] = uint(ar); args[2] = 0u; args[3] = 0u;  // visible records: indirect draw
                 args[128] = uint((ar + 63) / 64); args[129] = 1u; args[130] = 1u;  // chc_visorder.comp
                 args[192] = uint((av + ai + 63) / 64); args[193] = 1u; args[194] = 1u;  // chc_front_items.comp
                 args[256] = uint(av); args[257] = uint(ai);
-                meta[STAT_LCA_TILES] += ah;
-                meta[STAT_SCHEDULED] += av;
-                meta[STAT_BATCHES] += ar;
+                meta[statBase + STAT_LCA_TILES] += ah;
+                meta[statBase + STAT_SCHEDULED] += av;
+                meta[statBase + STAT_BATCHES] += ar;
             }
         }
         barrier();
@@ -132,6 +133,7 @@ void main() {
         tiles[t] = tp;
         vb += vc; ib += ic; rb += nr;
     }
+    memoryBarrierBuffer();  // the tile plans written above, visible to the whole group after the barrier
     barrier();
     // the cull tiles (cullSub levels below the finest): each reads its finest tile's invisible items
     int cl = maxLevel + cullSub;

@@ -24,6 +24,7 @@ uniform int requeryInterval;
 uniform float tQ;
 uniform int maxHeight;
 uniform int maxTris;
+uniform int statBase;
 
 void main() {
     int i = int(gl_GlobalInvocationID.x);
@@ -36,11 +37,11 @@ void main() {
         int c = int(counts[raySlots + i]);
         if (c > threshold) {
             p.pixels = c;
-            atomicAdd(meta[STAT_NEWLY_VISIBLE], 1);
+            atomicAdd(meta[statBase + STAT_NEWLY_VISIBLE], 1);
             ChcNode nd = nodes[p.node];
             int level = pairLevel(p);
             bool leaf = nd.left < 0;
-            bool preferObj = nd.area > tQ * exp2(-2.0 * float(level));
+            bool preferObj = nd.area > ldexp(tQ, -2 * level);  // exact: a power of two (host: the same in float32)
             bool canRay = level < maxLevel;
             bool small = nd.height <= maxHeight && nd.count <= maxTris;
             bool obj = !leaf && (preferObj || (!canRay && !small));
@@ -51,7 +52,7 @@ void main() {
             p.age = min(p.age + 1, 0x7fff);
         }
     } else if (st == CHC_VISIBLE && requeryDue(p, frame, requeryInterval)) {
-        atomicAdd(meta[STAT_REQUERIES], 1);
+        atomicAdd(meta[statBase + STAT_REQUERIES], 1);
         int c = int(counts[raySlots + i]);
         if (c <= threshold && (bits & CHC_F_LCA_COVERED) == 0) st = CHC_INVISIBLE;
         p.age = 0;

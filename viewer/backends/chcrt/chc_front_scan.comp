@@ -12,6 +12,7 @@ layout(std430, binding = BIND_FR_FLAGS) buffer Flags { ivec4 flags[]; };
 layout(std430, binding = BIND_FR_META) buffer Meta { int meta[]; };
 uniform int capacity;
 uniform int frontSlot;
+uniform int statBase;
 
 shared int sKept[256];
 shared int sObj[256];
@@ -57,7 +58,7 @@ void main() {
         meta[s + META_N] = over ? ak : ak + an;
         if (over) {
             meta[s + META_OVERFLOW] |= 1;
-            atomicAdd(meta[STAT_OVERFLOWS], 1);
+            atomicAdd(meta[statBase + STAT_OVERFLOWS], 1);
         }
         sTotal = ak;
     }

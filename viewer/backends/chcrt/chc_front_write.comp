@@ -16,9 +16,10 @@ uniform int frontSlot;
 uniform int frame;
 uniform int requeryInterval;
 uniform int seed;
+uniform int statBase;
 
 void countState(int st) {
-    atomicAdd(meta[st == CHC_VISIBLE ? STAT_VISIBLE : (st == CHC_INVISIBLE ? STAT_INVISIBLE : STAT_INNER)], 1);
+    atomicAdd(meta[statBase + (st == CHC_VISIBLE ? STAT_VISIBLE : (st == CHC_INVISIBLE ? STAT_INVISIBLE : STAT_INNER))], 1);
 }
 
 void main() {

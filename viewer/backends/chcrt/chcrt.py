@@ -417,7 +417,10 @@ class ChcrtBackend:
         self.querycull = compute_shader(self.ctx, "chc_querycull.comp", BINDINGS, (HERE,))
         self.visorder = compute_shader(self.ctx, "chc_visorder.comp", BINDINGS, (HERE,))
         # device fronts: made on the first steady pass (ChcrtParams.device_front)
-        self.device_front = self.gpu_driven and self.p.device_front and self.p.merge_tiles and self.p.lca_invisible
+        # (their SSBO binding points go up to 33: a driver with fewer keeps the host-planned fronts)
+        bindings = int(self.ctx.info.get("GL_MAX_SHADER_STORAGE_BUFFER_BINDINGS", 0) or 0)
+        self.device_front = (self.gpu_driven and self.p.device_front and self.p.merge_tiles and self.p.lca_invisible
+                             and bindings > max(FRONT_SSBO.values()))
         self.devfronts: DeviceFronts | None = None
         self.visorder_dev: moderngl.ComputeShader | None = None
         self.tilebounds["rayOrigin"] = 0
@@ -492,18 +495,16 @@ class ChcrtBackend:
         """After the frame's finish: the statistics of the device passes since the last call (one read
         that waits for nothing; a caller of trace() outside the Renderer calls it to get them).
         A device front whose last plan sent at least full_bvh_fraction of its tiles to their lowest
-        common ancestor traces the whole BVH from its next pass on, as the host plan decides within
-        its pass (the front does not change on such passes, so the choice stays)."""
+        common ancestor traces the whole BVH in its next pass, and plans again to decide the one
+        after (the host plan decides within the pass; the device's choice comes one pass later and
+        is exact either way)."""
         if self.devfronts is None:
             return {}
         stats, rows = self.devfronts.end_frame()
         frac = self.p.full_bvh_fraction
         for slot, row in rows.items():
-            front = self.devfronts.fronts[slot][0]
-            if frac > 0 and row.tiles > 0 and row.heavy_tiles >= frac * row.tiles:
-                front.full_bvh = True
-                self.devfronts.detach(front.device)  # a full-BVH pass needs no front
-                front.device = None
+            dev = self.devfronts.fronts[slot][1]
+            dev.full = frac > 0 and row.tiles > 0 and row.heavy_tiles >= frac * row.tiles
         return stats
 
     def release(self) -> None:
@@ -528,7 +529,6 @@ class ChcrtBackend:
         self.finisher.release()
         self.work.release()
         self.queries.clear()  # moderngl 5 queries have no release(); dropped with the context
-        self._clear_fronts()
 
     def scene_changed(self, bc: BackendContext) -> None:
         """Moved triangles, refitted BVH: new node tables (query boxes) and, with a GPU budget, a
@@ -1048,7 +1048,7 @@ class _Pass:
             self.stats["inner_pairs"] = int((f.state[: f.n] == INNER).sum())
         self.stats["gpu_driven"] = int(self.gpu)
         self.stats["device_front_passes"] = int(f.device is not None)
-        if be.device_front and f.device is None and not f.full_bvh:
+        if be.device_front and self.p.temporal and f.device is None and not f.full_bvh:
             # the front's first pass is done: it moves to the device now (one upload, in the cold frame)
             f.device = be.device_fronts().attach(f, 1 << (2 * f.max_level))
         return {k: float(v) for k, v in self.stats.items()}
@@ -1276,17 +1276,18 @@ class _Pass:
         records (with gap_order in closest-hit passes: 2 dispatches, then one indirect draw), the cull
         (2 dispatches) and the survivors (one indirect draw), the pass's counts, the refinement (4
         dispatches). Nothing is uploaded or read back; the same launches whatever the tiles, pairs and
-        subtrees. A front that traces the whole BVH (full_bvh) only clears and counts on the device."""
+        subtrees. A pass that traces the whole BVH (its first pass said so: full_bvh, or its last
+        plan: the device front's `full`) only plans, to refresh what the host decides from."""
         be, f, p = self.be, self.front, self.p
         prof = be.bc.profiler
         dv = be.device_fronts()
         level = f.max_level
         n_tiles = 1 << (2 * level)
-        full = f.full_bvh
         dev = f.device  # attached at the end of its first pass, unless that pass traced the whole BVH
-        if dev is None and not full:
+        if dev is None and not f.full_bvh:
             dev = f.device = dv.attach(f, n_tiles)
-        capacity = 0 if full else dev.capacity
+        full = f.full_bvh or dev.full
+        capacity = 0 if dev is None else dev.capacity
         need = COUNT_BYTES + 4 * (capacity + 3)
         if be.gpu_counts.size < need:
             be.gpu_counts.release()
@@ -1294,17 +1295,19 @@ class _Pass:
         sub = int(p.cull_sublevels)
         while sub > 0 and min(self.size) >> (level + sub) < 4:
             sub -= 1
+        report = self.pinfo.report
         common = dict(ray_slots=COUNT_SLOTS, frame=self.frame_number(), max_level=level, threshold=self.threshold,
-                      requery_interval=p.requery_interval, seed=p.seed)
+                      requery_interval=p.requery_interval, seed=p.seed, report=report)
         with prof.phase("chc:1-intersect-visible"):
-            if full:
+            if dev is None:
                 dv.clear(be.gpu_counts, be.query_indirect, ray_slots=COUNT_SLOTS, capacity=0)
+                self.stats["draws"] += 1
             else:
                 primary_only = self.ray_type == RayType.PRIMARY and not p.lca_primary
                 dv.plan(dev, be.gpu_counts, be.query_indirect, size=tuple(self.size), max_batch=p.max_batch,
                         lca_pairs=p.lca_pairs, lca_subtrees=p.lca_subtrees, heavy_allowed=not primary_only,
-                        cull_sub=sub, count_due_only=p.count_due_only, **common)
-            self.stats["draws"] += 1 if full else 5
+                        cull_sub=sub, count_due_only=p.count_due_only, full=full, **common)
+                self.stats["draws"] += 3 if full else 5
             self._bind()
             self._init(zeroed=True)
             be.gpu_counts.bind_to_storage_buffer(BIND_CHC_QUERY_COUNTS, COUNT_BYTES, 4 * (capacity + 3))
@@ -1325,7 +1328,7 @@ class _Pass:
                 self._intersect_survivors()
             self._sync()
         with prof.phase("chc:4-final-intersect"):
-            dv.pass_end(be.gpu_counts, ray_slots=COUNT_SLOTS, capacity=capacity)
+            dv.pass_end(be.gpu_counts, ray_slots=COUNT_SLOTS, capacity=capacity, report=report)
             self.stats["draws"] += 1
             if not full:
                 dv.refine(dev, be.gpu_counts, t_q=self.t_q, max_height=p.max_subtree_height,
@@ -1425,6 +1428,7 @@ class _Pass:
         else:
             nd, tile, sl = copies
         self.n_survivor_groups = len(nd)
+        self.stats["queries"] += len(invisible)
         if not len(nd):
             return
         order = np.argsort(tile, kind="stable")
@@ -1443,7 +1447,6 @@ class _Pass:
         ranges["rect"] = tile_rects(np.full(nsub, cl), sx, sy, self.size)
         ranges["info"][:, 0] = (np.cumsum(counts) - counts)[parent]
         ranges["info"][:, 1] = counts[parent]
-        self.stats["queries"] += len(invisible)
         mb = self.p.max_batch
         need = max(int((-(-counts // mb)).sum()) << (2 * sub), 1) * DRAW_DTYPE.itemsize
         if be.survivors.size < need:

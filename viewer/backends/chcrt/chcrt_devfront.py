@@ -20,9 +20,9 @@ chain of compute dispatches and indirect draws, whatever the tiles, pairs and su
 Nothing is read back within a frame. The frame's statistics (slot 0 of the META buffer) and each
 front's size and overflow flags are read once, after the frame's own finish (`end_frame`), so they
 cost no wait; the host sizes the buffers from them for the next frame (a front's leaf copies at
-most double per pass, so twice the last copies always fit). A pass that would still overflow stays
-exact: items over capacity make every tile traverse its lowest common ancestor, pairs over capacity
-are not split (their subtree is intersected whole).
+most double per pass, so twice the last copies always fit; its pairs at most quintuple). A pass
+that would still overflow stays exact: items over capacity make every tile traverse its lowest
+common ancestor, pairs over capacity are not split (their subtree is intersected whole).
 
 Layouts (std430, little-endian, documented in chc_front.glsl): NODE_DTYPE per canonical BVH node,
 PAIR_DTYPE per pair, TILE_BYTES per finest tile, META_INTS per meta slot.
@@ -59,6 +59,7 @@ assert NODE_DTYPE.itemsize == 64 and PAIR_DTYPE.itemsize == 32
 TILE_BYTES = 64
 META_INTS = 16
 META_N, META_OVERFLOW, META_HEAVY, META_COPIES, META_WANTED, META_TILES = range(6)
+DISCARD_SLOT = 1  # the statistics of a pass nobody reports (PassInfo.report) go here; fronts from slot 2
 # slot 0 of META, summed over the frame's device passes (chc_front.glsl STAT_*)
 STAT_NAMES = ("rays", "query_pixels", "query_records_drawn", "visible_pairs", "invisible_pairs", "inner_pairs",
               "lca_tiles", "requeries", "newly_visible_queries", "pull_ups", "subtrees_scheduled", "queries",
@@ -69,6 +70,9 @@ STAT_NAMES = ("rays", "query_pixels", "query_records_drawn", "visible_pairs", "i
 ARGS_BYTES = 4 * 264
 ARGS_VISORDER, ARGS_ITEMS = 512, 768
 MIN_CAPACITY = 4096
+# a refinement can make a front up to 5x larger (each ray-space split adds four children): a front's
+# capacity is kept at 8x what it holds or wanted, and grows when 5x no longer fits
+PAIR_GROWTH, PAIR_HEADROOM = 8, 5
 
 
 def _pow2(n: int) -> int:
@@ -87,7 +91,7 @@ def node_table(nt: NodeTables) -> np.ndarray:
     out["first"] = nt.first
     out["count"] = nt.count
     out["height"] = nt.height
-    out["area"] = nt.area_ratio.astype(np.float32)
+    out["area"] = nt.area32
     return out
 
 
@@ -137,6 +141,9 @@ class DeviceFront:
     def __init__(self, ctx: moderngl.Context, slot: int, capacity: int, records: np.ndarray):
         self.slot = slot
         self.capacity = capacity
+        # its last plan sent full_bvh_fraction of the tiles to their ancestor: the passes trace the whole
+        # BVH and only plan (chcrt.py sets it after each frame from META_HEAVY / META_TILES)
+        self.full = False
         self.bufs = [ctx.buffer(reserve=capacity * PAIR_DTYPE.itemsize) for _ in range(2)]
         self.cur = 0
         if len(records):
@@ -178,7 +185,7 @@ class DeviceFronts:
         self.meta = ctx.buffer(reserve=self.meta_slots * META_INTS * 4)
         self.meta_zero = ctx.buffer(bytes(META_INTS * 4))
         ctx.copy_buffer(self.meta, self.meta_zero)  # the frame's statistics start at zero
-        self.free_slots = list(range(self.meta_slots - 1, 0, -1))
+        self.free_slots = list(range(self.meta_slots - 1, DISCARD_SLOT, -1))
         self.fronts: dict[int, tuple[PairFront, DeviceFront]] = {}
         self.args = ctx.buffer(reserve=ARGS_BYTES)
         self.tiles_cap = self.vis_cap = self.inv_cap = self.rec_cap = self.flags_cap = self.cull_cap = 0
@@ -229,7 +236,7 @@ class DeviceFronts:
             self._grow_meta()
         slot = self.free_slots.pop()
         rec = pack_front(f)
-        dev = DeviceFront(self.ctx, slot, _pow2(max(MIN_CAPACITY, 4 * len(rec))), rec)
+        dev = DeviceFront(self.ctx, slot, _pow2(max(MIN_CAPACITY, PAIR_GROWTH * len(rec))), rec)
         row = np.zeros(META_INTS, np.int32)
         row[META_N] = len(rec)
         self.meta.write(row.tobytes(), offset=slot * META_INTS * 4)
@@ -283,6 +290,11 @@ class DeviceFronts:
                           ("BIND_FR_CULL", self.cull), ("BIND_FR_ARGS", self.args)):
             buf.bind_to_storage_buffer(B[name])
 
+    @staticmethod
+    def stat_base(report: bool) -> int:
+        """Where a pass's statistics go (the uniform statBase): the frame's, or the discarded slot."""
+        return 0 if report else DISCARD_SLOT * META_INTS
+
     def clear(self, counts: moderngl.Buffer, survivor_cmd: moderngl.Buffer, *, ray_slots: int, capacity: int,
               slot: int = 0, n_tiles: int = 0) -> None:
         """Zero the pass's count slots (`capacity` pair slots after `ray_slots` ray slots, then the
@@ -299,40 +311,46 @@ class DeviceFronts:
     def plan(self, dev: DeviceFront, counts: moderngl.Buffer, survivor_cmd: moderngl.Buffer, *, ray_slots: int,
              frame: int, max_level: int, size: tuple[int, int], threshold: int, requery_interval: int,
              max_batch: int, lca_pairs: int, lca_subtrees: int, heavy_allowed: bool, cull_sub: int,
-             count_due_only: bool, seed: int) -> None:
+             count_due_only: bool, seed: int, report: bool = True, full: bool = False) -> None:
         """Plan: the pass's visible items and records, invisible items and cull ranges, and the
-        indirect arguments (ARGS_*), from the front as it stands. Five dispatches."""
+        indirect arguments (ARGS_*), from the front as it stands. Five dispatches. `full`: a pass that
+        traces the whole BVH only refreshes the front's META (three dispatches, no statistics), so
+        the host can decide again after the frame (the front does not change on such passes, but
+        the aggressive mode's choice of pairs to test does)."""
         n_tiles = 1 << (2 * max_level)
         n_cull = 1 << (2 * (max_level + cull_sub))
         self.ensure(tiles=n_tiles, pairs=dev.capacity, cull_tiles=n_cull)
         common = dict(capacity=dev.capacity, raySlots=ray_slots, frontSlot=dev.slot, maxLevel=max_level,
                       threshold=int(threshold), frame=int(frame), requeryInterval=int(requery_interval),
-                      visCap=self.vis_cap, seed=int(seed))
+                      visCap=self.vis_cap, seed=int(seed), statBase=self.stat_base(report and not full))
         self._bind(dev, counts)
         self.clear(counts, survivor_cmd, ray_slots=ray_slots, capacity=dev.capacity, slot=dev.slot, n_tiles=n_tiles)
         self._run("count", -(-dev.capacity // 64), **common)
         self._run("plan", 1, nTiles=n_tiles, raySize=tuple(size), maxBatch=int(max_batch), lcaPairs=int(lca_pairs),
                   lcaSubtrees=int(lca_subtrees), heavyAllowed=int(heavy_allowed), invCap=self.inv_cap,
                   recCap=self.rec_cap, cullSub=int(cull_sub), **common)
+        if full:
+            return
         self._run("scatter", -(-dev.capacity // 64), **common)
         self._run_indirect("items", ARGS_ITEMS, countDueOnly=int(count_due_only), **common)
 
-    def pass_end(self, counts: moderngl.Buffer, *, ray_slots: int, capacity: int) -> None:
+    def pass_end(self, counts: moderngl.Buffer, *, ray_slots: int, capacity: int, report: bool = True) -> None:
         """The pass's active rays, query pixels and records drawn into the frame's statistics (after
         the pass's draws: their atomic counts made visible to it and to the refinement)."""
         self.ctx.memory_barrier(moderngl.SHADER_STORAGE_BARRIER_BIT)
         counts.bind_to_storage_buffer(B["BIND_FR_COUNTS"])
         self.meta.bind_to_storage_buffer(B["BIND_FR_META"])
-        self._run("passend", 1, raySlots=ray_slots, capacity=capacity)
+        self._run("passend", 1, raySlots=ray_slots, capacity=capacity, statBase=self.stat_base(report))
 
     def refine(self, dev: DeviceFront, counts: moderngl.Buffer, *, ray_slots: int, frame: int, max_level: int,
-               threshold: int, requery_interval: int, t_q: float, max_height: int, max_tris: int, seed: int) -> None:
+               threshold: int, requery_interval: int, t_q: float, max_height: int, max_tris: int, seed: int,
+               report: bool = True) -> None:
         """Refinement: the pass's counts applied, invisibility pulled up, the next front written to
         the other buffer, which becomes current. Four dispatches."""
         self._bind(dev, counts)
         common = dict(capacity=dev.capacity, raySlots=ray_slots, frontSlot=dev.slot, maxLevel=max_level,
                       threshold=int(threshold), frame=int(frame), requeryInterval=int(requery_interval),
-                      seed=int(seed))
+                      seed=int(seed), statBase=self.stat_base(report))
         groups = -(-dev.capacity // 64)
         self._run("refine", groups, tQ=float(t_q), maxHeight=int(max_height), maxTris=int(max_tris), **common)
         self._run("merge", groups, **common)
@@ -352,7 +370,8 @@ class DeviceFronts:
         glio.host_barrier(self.ctx)  # the shaders' writes, before the read (no wait: the frame is finished)
         raw = np.frombuffer(self.meta.read(), np.int32).reshape(self.meta_slots, META_INTS)
         iostats.to_host(raw.nbytes)
-        stats = {name: float(raw[0, i]) for i, name in enumerate(STAT_NAMES) if name}
+        totals = raw[0].view(np.uint32)  # the shaders' int adds wrap as uint32 adds would
+        stats = {name: float(totals[i]) for i, name in enumerate(STAT_NAMES) if name}
         self.ctx.copy_buffer(self.meta, self.meta_zero, size=META_INTS * 4)  # the next frame's start at zero
         rows: dict[int, FrontMeta] = {}
         for slot, (_, dev) in self.fronts.items():
@@ -360,8 +379,8 @@ class DeviceFronts:
             rows[slot] = FrontMeta(int(r[META_N]), int(r[META_OVERFLOW]), int(r[META_HEAVY]), int(r[META_COPIES]),
                                    int(r[META_WANTED]), int(r[META_TILES]))
             m = rows[slot]
-            if m.overflow & 1 or 2 * m.wanted > dev.capacity:
-                dev.grow(self.ctx, _pow2(4 * max(m.wanted, m.n)))
+            if m.overflow & 1 or PAIR_HEADROOM * max(m.wanted, m.n) > dev.capacity:
+                dev.grow(self.ctx, _pow2(PAIR_GROWTH * max(m.wanted, m.n)))
             self.ensure(copies=m.copies * (2 if m.overflow & 2 else 1), pairs=dev.capacity)
         return stats, rows
 

@@ -49,6 +49,7 @@ class NodeTables:
     parent: np.ndarray  # int32, -1 for the root
     depth: np.ndarray  # int32, 0 for the root
     first: np.ndarray  # int32: first triangle slot (leaf order) of the subtree; [first, first + count) nest
+    area32: np.ndarray  # float32 area_ratio: what the split rule compares, on the host and the device alike
 
     @staticmethod
     def from_bvh(bvh) -> NodeTables:
@@ -78,7 +79,7 @@ class NodeTables:
                           bvh.node_count.astype(np.int32), area / root,
                           np.ascontiguousarray(bvh.node_min, np.float32),
                           np.ascontiguousarray(bvh.node_max, np.float32), gpu_ref, gpu_count, parent, depth,
-                          np.asarray(bvh.node_first, np.int32))
+                          np.asarray(bvh.node_first, np.int32), (area / root).astype(np.float32))
 
     def group_lca(self, nodes: np.ndarray, starts: np.ndarray) -> np.ndarray:
         """Lowest common ancestor of each group of `nodes` (groups are the runs that begin at
@@ -243,7 +244,8 @@ class PairFront:
         nd = self.node[idx]
         lvl = self.level[idx].astype(np.int64)
         leaf = nt.is_leaf[nd]
-        prefer_obj = nt.area_ratio[nd] > t_q * np.ldexp(1.0, -2 * lvl)
+        # in float32, as chc_front_refine.comp (t_q * 4^-level is exact: a power of two)
+        prefer_obj = nt.area32[nd] > np.ldexp(np.float32(t_q), -2 * lvl)
         can_ray = lvl < self.max_level
         small = (nt.height[nd] <= max_height) & (nt.count[nd] <= max_tris)
         obj = ~leaf & (prefer_obj | (~can_ray & ~small))
