@@ -6,10 +6,16 @@ unfinished ray saves its traversal state and further draws continue the unfinish
 atomic counter says none is left (stats: resumed_rays, continuation_draws). The glsl backend traces
 every ray with it; chcrt finishes the rays its own shader gave up on. A module of its own so that no
 backend imports another. Its shader, trace_glsl.frag, lives in the glsl backend's folder.
+
+Only Mesa's CPU rasterizers have that limit (`loop_limit`). Elsewhere (an NVIDIA GPU) a ray may
+visit every node in one draw (`max_visits` = the tree's nodes), so no ray is ever unfinished and the
+counter is never read: a pass then costs no host wait. RTWALK_LOOP_LIMIT=N|none overrides the choice
+(tests run the unlimited path on llvmpipe with short traversals).
 """
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import moderngl
@@ -28,7 +34,25 @@ LOOP_LIMIT = 65_535  # llvmpipe: loop back-edges per shader invocation, shared b
 SIMD_WIDTH = 16  # fragments per llvmpipe shader invocation, assumed wide (8 with 256-bit vectors)
 
 
-def max_visits(max_leaf: int, stack_size: int, other_loops: int = 0) -> int:
+LOOP_LIMIT_ENV = "RTWALK_LOOP_LIMIT"
+
+
+def loop_limit(ctx: moderngl.Context) -> int | None:
+    """Loop back-edges a shader invocation runs before the driver silently ends its loops: LOOP_LIMIT
+    on Mesa's CPU rasterizers (llvmpipe, softpipe), None (no limit) on other drivers; the environment
+    variable RTWALK_LOOP_LIMIT (a number, or `none`) overrides it."""
+    text = os.environ.get(LOOP_LIMIT_ENV, "").strip().lower()
+    if text:
+        if text in ("none", "off", "0"):
+            return None
+        if not text.isdigit() or int(text) < 20_000:
+            raise RtwalkError(f"{LOOP_LIMIT_ENV}={text!r}: give a loop limit of at least 20000, or 'none'")
+        return int(text)
+    renderer = str(ctx.info.get("GL_RENDERER", "")).lower()
+    return LOOP_LIMIT if ("llvmpipe" in renderer or "softpipe" in renderer) else None
+
+
+def max_visits(max_leaf: int, stack_size: int, other_loops: int = 0, limit: int = LOOP_LIMIT) -> int:
     """Node visits per ray and draw that keep every SIMD vector below LOOP_LIMIT back-edges.
 
     Per visit the vector runs one main-loop iteration and at most 2 * max_leaf triangle-loop
@@ -36,7 +60,7 @@ def max_visits(max_leaf: int, stack_size: int, other_loops: int = 0) -> int:
     vector, are at most SIMD_WIDTH * (visits + stack_size) (a lane pops no more than it pushed plus
     what it resumed with); loading and saving the stack add 2 * stack_size; `other_loops` is what
     the caller's other loops may run. A margin of 5,000 covers everything else."""
-    budget = LOOP_LIMIT - 5_000 - other_loops - (SIMD_WIDTH + 2) * stack_size
+    budget = limit - 5_000 - other_loops - (SIMD_WIDTH + 2) * stack_size
     per_visit = 1 + 2 * max_leaf + SIMD_WIDTH
     return max(64, min(4096, budget // per_visit))
 
@@ -56,7 +80,10 @@ class ResumableTraversal:
         self.max_leaf = max(int(k) for k in hist)
         self.stack_size = int(bc.gpu_scene.stack_size)
         bc.gpu_scene.require_nodes()  # the tree this traversal reads (made on first use)
-        self.max_visits = max_visits(self.max_leaf, self.stack_size)
+        self.limit = loop_limit(bc.ctx)
+        # without a loop limit every ray finishes in its first draw: a ray visits each node at most once
+        self.max_visits = (max_visits(self.max_leaf, self.stack_size, limit=self.limit) if self.limit is not None
+                           else len(bc.bvh.node_left) + 1)
         self.program = bc.programs.with_path(SHADER_DIR).get("fullscreen.vert", "trace_glsl.frag",
                                        {"STACK_SIZE": self.stack_size, "MAX_VISITS": self.max_visits,
                                         **self.work.defines})
@@ -107,6 +134,8 @@ class ResumableTraversal:
         ctx = self.bc.ctx
         barriers = moderngl.SHADER_STORAGE_BARRIER_BIT | moderngl.SHADER_IMAGE_ACCESS_BARRIER_BIT
         draws, resumed = 0, 0
+        if self.limit is None and resume_only:  # no shader gave a ray up: nothing to read or draw
+            return {"draws": 0, "resumed_rays": 0, "continuation_draws": 0}
         if resume_only:
             resumed, _ = self._read_counters()
             if resumed == 0:
@@ -128,6 +157,8 @@ class ResumableTraversal:
             self.program["capacity"] = self.capacity
             self.quad.render(self.program)
             draws += 1
+            if self.limit is None:  # every ray finished in this draw (max_visits covers the tree): no read
+                break
             unfinished, allocated = self._read_counters()
             if draws == 1 and not resume_only:
                 resumed = unfinished

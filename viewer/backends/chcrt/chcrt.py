@@ -379,7 +379,9 @@ class ChcrtBackend:
         # rays that would reach llvmpipe's loop limit are finished by the glsl resumable traversal
         self.finisher = ResumableTraversal(bc)
         items_loops = self.p.max_batch * (self.finisher.max_leaf + self.p.max_batch + 2)  # scheduled items, sort
-        visits = max_visits(self.finisher.max_leaf, stack, items_loops)
+        # no loop limit (not llvmpipe): no ray is handed over, the finisher never reads its counter
+        visits = (max_visits(self.finisher.max_leaf, stack, items_loops, limit=self.finisher.limit)
+                  if self.finisher.limit is not None else len(self.nt.left) + 1)
         self.prog_isect = progs.get("fullscreen.vert", "chc_intersect.frag",
                                     {"CHC_MAX_ITEMS": self.p.max_batch, "STACK_SIZE": stack, "CHC_MAX_VISITS": visits,
                                      **iwd})
