@@ -73,6 +73,16 @@ def test_steady_frame_host_syncs_bounded_and_independent_of_passes_and_lights(ba
     assert io8.host_syncs == io4.host_syncs, (io4, io8)
 
 
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_steady_frame_host_syncs_independent_of_effects(backend, gl_ctx):
+    """The accumulators of every sampled effect come out after one wait (their copies enqueued
+    first): five accumulated effects wait as often as one."""
+    one = _steady_io(backend, "primary,shadows")
+    five = _steady_io(backend, "primary,shadows,soft:1,ao:2,diffuse:1,reflections")
+    assert five.bytes_to_host > one.bytes_to_host  # the other accumulators did come out
+    assert five.host_syncs == one.host_syncs <= MAX_SYNCS, (one, five)
+
+
 def test_voxelwalk_frame_launches_do_not_grow_with_ec_iterations(monkeypatch, gl_ctx):
     """A steady frame with EC passes (diffuse: closest hits) makes the same launches and waits on
     a coarse grid and on a fine one, whose walks take several times the iterations (levels=1: with

@@ -193,15 +193,26 @@ class DeviceFrame:
                           self.rays.origin, self.rays.dir, self.hits.t, self.hits.tri, self._acc(ray_type))
 
     def write_accumulators(self, textures: dict, effects) -> None:
-        """The accumulators of `effects` into their GL textures (one staged CL -> GL copy each)."""
+        """The accumulators of `effects` into their GL textures (a staged CL -> GL hop each): every
+        accumulator mapped for reading without a wait (host-allocated buffers: no copy on a CPU
+        device), then one wait for all of them (and for the ray counts' read before them), so the
+        frame waits once whatever the number of effects; each hop is counted once, by its map."""
         n = self.size[0] * self.size[1]
+        q = self.ctx.queue
+        maps = []
         for rt in effects:
             buf = self.acc.get(rt)
             if buf is None:
                 continue
-            with mapped(self.ctx, buf, (n, 4), np.float32) as a:
-                textures[rt].write(a)  # a staged CL -> GL hop: counted once, by the map
-            self._counts_waited = True  # a blocking map: earlier commands (the counts' read) are done
+            array, _ = clio.map_buffer(q, buf, self.ctx.cl.map_flags.READ, 0, (n, 4), np.float32, is_blocking=False)
+            maps.append((rt, array))
+        if not maps:
+            return
+        clio.finish(q)
+        self._counts_waited = True  # earlier commands (the counts' read) are done too
+        for rt, array in maps:
+            textures[rt].write(array)
+            array.base.release(q)
 
     def request_counts(self) -> None:
         """Enqueue the ray counts' read without waiting: a later blocking read or map on the
