@@ -1245,22 +1245,7 @@ class _Pass:
                 self._draw_subtrees(visible, self._due_slots(visible, np.arange(len(visible))))
             self.stats["phase1_subtrees"] = 0 if full else len(visible)
             self._sync()
-        with prof.phase("chc:2-queries"):
-            if not full:
-                self._cull_invisible(invisible, len(visible), nslots, inv_copies)
-            self._sync()
-        with prof.phase("chc:3-traversal"):
-            if full:
-                # incoherent rays: nearly every tile would traverse from (about) the root; the glsl
-                # traversal does exactly that, without the per-tile records. (chcrt's own shader from
-                # the root with the hit hint: the same nodes per diffuse ray, 31.0 against 31.5, and
-                # no faster: the hint bounds a closest-hit ray that front-to-back order finds early)
-                self.be.finisher.run(self.rays, self.pinfo, self.hits)
-                self.stats["full_bvh_passes"] = 1
-                self.stats["draws"] += 1
-            else:
-                self._intersect_survivors()
-            self._sync()
+        self._queries_and_traversal(full, lambda: self._cull_invisible(invisible, len(visible), nslots, inv_copies))
         with prof.phase("chc:4-final-intersect"):
             raw = np.frombuffer(_host_read(self.ctx, lambda: be.gpu_counts.read(size=COUNT_BYTES + 4 * (nslots + 3))),
                                 np.uint32).astype(np.int64)
@@ -1271,6 +1256,27 @@ class _Pass:
             self.rays_read = True
             if not full:  # a full-BVH pass counted nothing: the front stays as it is
                 self._refine(visible, invisible, cnt[:nslots])
+
+    def _queries_and_traversal(self, full: bool, cull) -> None:
+        """Phases 2 and 3 of a GPU-driven pass: `cull` (the invisible pairs some ray may still enter,
+        into the survivors' records) and their intersection; or, for incoherent rays (`full`), the
+        whole BVH for every ray. Incoherent rays: nearly every tile would traverse from (about) the
+        root; the glsl traversal does exactly that, without the per-tile records. (chcrt's own shader
+        from the root with the hit hint: the same nodes per diffuse ray, 31.0 against 31.5, and no
+        faster: the hint bounds a closest-hit ray that front-to-back order finds early.)"""
+        prof = self.be.bc.profiler
+        with prof.phase("chc:2-queries"):
+            if not full:
+                cull()
+            self._sync()
+        with prof.phase("chc:3-traversal"):
+            if full:
+                self.be.finisher.run(self.rays, self.pinfo, self.hits)
+                self.stats["full_bvh_passes"] = 1
+                self.stats["draws"] += 1
+            else:
+                self._intersect_survivors()
+            self._sync()
 
     # -- device-resident front ----------------------------------------------------------------------
     def _run_device(self) -> None:
@@ -1316,19 +1322,8 @@ class _Pass:
             if not full:
                 self._draw_device_visible(dv, level, n_tiles)
             self._sync()
-        with prof.phase("chc:2-queries"):
-            if not full:
-                self._cull_device(dv, dev, level, sub)
-            self._sync()
-        with prof.phase("chc:3-traversal"):
-            if full:
-                self.be.finisher.run(self.rays, self.pinfo, self.hits)
-                self.stats["full_bvh_passes"] = 1
-                self.stats["draws"] += 1
-            else:
-                self.n_survivor_groups = 1
-                self._intersect_survivors()
-            self._sync()
+        self.n_survivor_groups = 1  # the survivors' count is the device's: their draw is indirect
+        self._queries_and_traversal(full, lambda: self._cull_device(dv, dev, level, sub))
         with prof.phase("chc:4-final-intersect"):
             dv.pass_end(be.gpu_counts, ray_slots=COUNT_SLOTS, capacity=capacity, report=report)
             self.stats["draws"] += 1
@@ -1352,18 +1347,7 @@ class _Pass:
             ctx.memory_barrier(moderngl.SHADER_STORAGE_BARRIER_BIT | moderngl.COMMAND_BARRIER_BIT)
             self.stats["draws"] += 2
             iostats.gl_draw(2)
-        ctx.enable(moderngl.DEPTH_TEST)
-        ctx.depth_func = "<"
-        fbo = self.hit_fbo
-        fbo.use()
-        fbo.scissor = None
-        prog = be.prog_isect_g
-        prog["raySize"] = tuple(self.size)
-        self._isect_uniforms(prog)
-        be.vao_isect_g.render_indirect(dv.args, moderngl.TRIANGLES, count=1)
-        self.stats["draws"] += 1
-        self.stats["intersect_draws"] += 1
-        iostats.gl_draw()
+        self._draw_records_indirect(dv.args)
 
     def _cull_device(self, dv: DeviceFronts, dev, level: int, sub: int) -> None:
         """The invisible items the device planned, culled per cull tile (chc_tilebounds.comp, then
@@ -1541,15 +1525,21 @@ class _Pass:
         be = self.be
         be.kept_boxes.bind_to_storage_buffer(BIND_CHC_ITEMS)
         be.survivors.bind_to_storage_buffer(BIND_CHC_DRAWS)
-        self.ctx.enable(moderngl.DEPTH_TEST)
-        self.ctx.depth_func = "<"
+        self._draw_records_indirect(be.query_indirect)
+
+    def _draw_records_indirect(self, command: moderngl.Buffer) -> None:
+        """The records bound at BIND_CHC_DRAWS (items at BIND_CHC_ITEMS) in one indirect instanced
+        draw of the counting intersection program, its draw command at the start of `command`."""
+        ctx, be = self.ctx, self.be
+        ctx.enable(moderngl.DEPTH_TEST)
+        ctx.depth_func = "<"
         fbo = self.hit_fbo
         fbo.use()
         fbo.scissor = None
         prog = be.prog_isect_g
         prog["raySize"] = tuple(self.size)
         self._isect_uniforms(prog)
-        be.vao_isect_g.render_indirect(be.query_indirect, moderngl.TRIANGLES, count=1)
+        be.vao_isect_g.render_indirect(command, moderngl.TRIANGLES, count=1)
         self.stats["draws"] += 1
         self.stats["intersect_draws"] += 1
         iostats.gl_draw()
