@@ -1032,3 +1032,12 @@ def test_demo_window_opens_at_the_view_size(monkeypatch):
     monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
     assert run_cli("demo").returncode == 0
     assert seen == [("view", viewer.cli.VIEW_SIZE), ("view", "320x180"), ("bench", "640x360")]
+
+
+def test_bad_loop_limit_before_the_scene(tmp_path, monkeypatch):
+    """RTWALK_LOOP_LIMIT that is neither a limit of at least 20,000 nor `none`: one line, exit 2,
+    before the scene is loaded."""
+    monkeypatch.setenv("RTWALK_LOOP_LIMIT", "lots")
+    proc = run_cli("render", _never_loaded(tmp_path), "-o", str(tmp_path / "x.png"))
+    assert_one_line_error(proc, "RTWALK_LOOP_LIMIT")
+    assert "never-loaded" not in proc.stderr

@@ -301,9 +301,11 @@ def _unknown_first_word(word: str, subcommands) -> str | None:
 def _run(handler, args: argparse.Namespace) -> int:
     """The command, its errors as one line (exit 2), an interrupt (Ctrl-C, or SIGTERM, which keeps
     partial work as Ctrl-C does: viewer.interrupt) as the line it carries (130)."""
+    from viewer.backends.gl_traversal import loop_limit_env
     from viewer.interrupt import terminate_as_interrupt
 
     try:
+        loop_limit_env()  # a bad RTWALK_LOOP_LIMIT is one line before anything loads
         with terminate_as_interrupt():
             return handler(args)
     except RtwalkError as exc:

@@ -37,17 +37,26 @@ SIMD_WIDTH = 16  # fragments per llvmpipe shader invocation, assumed wide (8 wit
 LOOP_LIMIT_ENV = "RTWALK_LOOP_LIMIT"
 
 
+def loop_limit_env() -> tuple[bool, int | None]:
+    """RTWALK_LOOP_LIMIT: (set, its limit: a number of at least 20,000, or None for `none`); a bad
+    value is one line (RtwalkError), checked by the CLI before anything is loaded."""
+    text = os.environ.get(LOOP_LIMIT_ENV, "").strip().lower()
+    if not text:
+        return False, None
+    if text in ("none", "off", "0"):
+        return True, None
+    if not text.isdigit() or int(text) < 20_000:
+        raise RtwalkError(f"{LOOP_LIMIT_ENV}={text!r}: give a loop limit of at least 20000, or 'none'")
+    return True, int(text)
+
+
 def loop_limit(ctx: moderngl.Context) -> int | None:
     """Loop back-edges a shader invocation runs before the driver silently ends its loops: LOOP_LIMIT
     on Mesa's CPU rasterizers (llvmpipe, softpipe), None (no limit) on other drivers; the environment
     variable RTWALK_LOOP_LIMIT (a number, or `none`) overrides it."""
-    text = os.environ.get(LOOP_LIMIT_ENV, "").strip().lower()
-    if text:
-        if text in ("none", "off", "0"):
-            return None
-        if not text.isdigit() or int(text) < 20_000:
-            raise RtwalkError(f"{LOOP_LIMIT_ENV}={text!r}: give a loop limit of at least 20000, or 'none'")
-        return int(text)
+    given, limit = loop_limit_env()
+    if given:
+        return limit
     renderer = str(ctx.info.get("GL_RENDERER", "")).lower()
     return LOOP_LIMIT if ("llvmpipe" in renderer or "softpipe" in renderer) else None
 
