@@ -505,7 +505,7 @@ class ChcrtBackend:
         stats, rows = self.devfronts.end_frame()
         frac = self.p.full_bvh_fraction
         for slot, row in rows.items():
-            dev = self.devfronts.fronts[slot][1]
+            dev = self.devfronts.fronts[slot]
             dev.full = frac > 0 and row.tiles > 0 and row.heavy_tiles >= frac * row.tiles
         return stats
 

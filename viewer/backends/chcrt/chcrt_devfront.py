@@ -37,7 +37,7 @@ import moderngl
 import numpy as np
 
 from viewer import iostats
-from viewer.backends.chcrt.chcrt_front import DEAD, NodeTables, PairFront
+from viewer.backends.chcrt.chcrt_front import DEAD, INVISIBLE, VISIBLE, NodeTables, PairFront
 from viewer.gl import io as glio
 from viewer.gl.programs import compute_shader
 
@@ -118,7 +118,7 @@ def pack_front(f: PairFront) -> np.ndarray:
 def leaf_copies(f: PairFront) -> int:
     """Leaf pairs copied onto finest tiles (a pair of level L covers 4^(max_level - L) of them)."""
     st = f.state[: f.n]
-    leaf = (st == 0) | (st == 1)
+    leaf = (st == INVISIBLE) | (st == VISIBLE)
     return int((1 << (2 * (f.max_level - f.level[: f.n][leaf].astype(np.int64)))).sum())
 
 
@@ -186,7 +186,7 @@ class DeviceFronts:
         self.meta_zero = ctx.buffer(bytes(META_INTS * 4))
         ctx.copy_buffer(self.meta, self.meta_zero)  # the frame's statistics start at zero
         self.free_slots = list(range(self.meta_slots - 1, DISCARD_SLOT, -1))
-        self.fronts: dict[int, tuple[PairFront, DeviceFront]] = {}
+        self.fronts: dict[int, DeviceFront] = {}  # by META slot
         self.args = ctx.buffer(reserve=ARGS_BYTES)
         self.tiles_cap = self.vis_cap = self.inv_cap = self.rec_cap = self.flags_cap = self.cull_cap = 0
         self.tiles = self.vis_items = self.inv_items = self.tmp = self.records = self.flags = self.cull = None
@@ -242,7 +242,7 @@ class DeviceFronts:
         self.meta.write(row.tobytes(), offset=slot * META_INTS * 4)
         iostats.to_device(row.nbytes)
         self.ensure(tiles=tiles, copies=leaf_copies(f), pairs=dev.capacity)
-        self.fronts[slot] = (f, dev)
+        self.fronts[slot] = dev
         return dev
 
     def detach(self, dev: DeviceFront) -> None:
@@ -261,20 +261,20 @@ class DeviceFronts:
         self.meta_slots = n
 
     # -- one pass -----------------------------------------------------------------------------------
-    def _run(self, name: str, groups: int, **uniforms: object) -> None:
+    def _program(self, name: str, uniforms: dict[str, object]) -> moderngl.ComputeShader:
+        """Program `name` with the uniforms it declares set (the others are ignored)."""
         prog = self.prog[name]
         for k, v in uniforms.items():
             if prog.get(k, None) is not None:
                 prog[k] = v
-        prog.run(max(int(groups), 1))
+        return prog
+
+    def _run(self, name: str, groups: int, **uniforms: object) -> None:
+        self._program(name, uniforms).run(max(int(groups), 1))
         self._barrier()
 
     def _run_indirect(self, name: str, offset: int, **uniforms: object) -> None:
-        prog = self.prog[name]
-        for k, v in uniforms.items():
-            if prog.get(k, None) is not None:
-                prog[k] = v
-        prog.run_indirect(self.args, offset)
+        self._program(name, uniforms).run_indirect(self.args, offset)
         self._barrier()
 
     def _barrier(self) -> None:
@@ -374,7 +374,7 @@ class DeviceFronts:
         stats = {name: float(totals[i]) for i, name in enumerate(STAT_NAMES) if name}
         self.ctx.copy_buffer(self.meta, self.meta_zero, size=META_INTS * 4)  # the next frame's start at zero
         rows: dict[int, FrontMeta] = {}
-        for slot, (_, dev) in self.fronts.items():
+        for slot, dev in self.fronts.items():
             r = raw[slot]
             rows[slot] = FrontMeta(int(r[META_N]), int(r[META_OVERFLOW]), int(r[META_HEAVY]), int(r[META_COPIES]),
                                    int(r[META_WANTED]), int(r[META_TILES]))
@@ -385,7 +385,7 @@ class DeviceFronts:
         return stats, rows
 
     def release(self) -> None:
-        for _, dev in list(self.fronts.values()):
+        for dev in self.fronts.values():
             dev.release()
         self.fronts.clear()
         for obj in (self.nodes, self.meta, self.meta_zero, self.args, self.tiles, self.vis_items, self.inv_items,
