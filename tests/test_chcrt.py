@@ -604,9 +604,10 @@ def test_device_front_is_the_host_front(extra, gl_ctx):
     """The device front plans, refines and pulls up exactly as the host front does: with every
     visible leaf re-queried each frame (the re-query phases are random and drawn differently), the
     same pairs, queries, scheduled subtrees and LCA tiles every frame, and the same hits bit for bit
-    (both list a tile's pairs in the same order). Also in aggressive mode and with sub-tile culls."""
+    (both list a tile's pairs in the same order). Also in aggressive mode and with sub-tile culls.
+    (merge_kept off: the host front has no merged kept pairs, whose counts take the ray's final hit.)"""
     effects = "primary,ao:2,diffuse:1"
-    base = "requery_interval=1" + ("," + extra if extra else "")
+    base = "requery_interval=1,merge_kept=0" + ("," + extra if extra else "")
     host = _walk(gl_ctx, base + ",device_front=0", effects)
     dev = _walk(gl_ctx, base, effects)
     assert sum(b.backend_stats.get("device_front_passes", 0) for b in dev) > 0
@@ -620,6 +621,30 @@ def test_device_front_is_the_host_front(extra, gl_ctx):
             same = np.array_equal(a.tri, b.tri) and np.array_equal(a.t.view(np.int32), b.t.view(np.int32))
             assert same, (i, a.ray_type)
     assert moved > 0  # the fronts did change on the device
+
+
+def test_merged_kept_pairs_keep_the_hits(gl_ctx):
+    """merge_kept: single-record tiles test their kept invisible pairs in the visible record's
+    fragments instead of a survivors' draw. The same closest hits bit for bit, and the same any-hit
+    answers, as the survivors' draw on every frame of the walk (the fronts may differ: a merged
+    kept pair counts a ray entering it before the ray's final hit), and almost no survivors' records
+    are left to draw."""
+    effects = "primary,ao:2,diffuse:1"
+    off = _walk(gl_ctx, "merge_kept=0", effects)
+    on = _walk(gl_ctx, "", effects)
+    records = {"off": 0.0, "on": 0.0}
+    for i, (a_rep, b_rep) in enumerate(zip(off, on, strict=True)):
+        if i > 0:  # steady frames (the first builds the fronts synchronously)
+            records["off"] += a_rep.backend_stats.get("query_records_drawn", 0)
+            records["on"] += b_rep.backend_stats.get("query_records_drawn", 0)
+        for a, b in zip(a_rep.captured, b_rep.captured, strict=True):
+            assert a.ray_type == b.ray_type
+            if a.ray_type == RayType.AO:  # any hit: which triangle depends on the order
+                assert np.array_equal(a.tri >= 0, b.tri >= 0), (i, a.ray_type)
+            else:
+                assert np.array_equal(a.t.view(np.int32), b.t.view(np.int32)), (i, a.ray_type)
+                assert np.mean(a.tri == b.tri) > 0.999, (i, a.ray_type)  # ties at equal t may differ
+    assert 0 < 4 * records["on"] < records["off"], records
 
 
 def test_device_front_frame_crosses_nothing(gl_ctx, monkeypatch):

@@ -20,9 +20,12 @@ struct ChcPair { int node; int tile; int parent; int child; int kids; int offset
 // (visible, invisible candidates), the triangle range their subtrees span (lo = min first, hi = max
 // end), whether it traverses their lowest common ancestor (heavy) and which (lca), its items in the
 // visible and invisible item lists (base, count; a heavy tile: one visible item, no invisible one),
-// the scatter cursors and its visible records (base, count).
+// the scatter cursors, its visible records (base, count) and the invisible items the cull kept for it
+// and merged into its one visible record (chc_querycull.comp mergeKept: keptBase indexes the item
+// buffer of the visible draw; keptCount 0 = none merged).
 struct ChcTilePlan { int cv; int ci; int lo; int hi; int heavy; int lca; int visBase; int visCount;
-                     int invBase; int invCount; int visFill; int invFill; int recBase; int nrec; int pad0; int pad1; };
+                     int invBase; int invCount; int visFill; int invFill; int recBase; int nrec; int keptBase;
+                     int keptCount; };
 
 #define CHC_INVISIBLE 0
 #define CHC_VISIBLE 1

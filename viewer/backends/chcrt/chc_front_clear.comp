@@ -22,7 +22,7 @@ void main() {
         ChcTilePlan t;
         t.cv = 0; t.ci = 0; t.lo = 0x7fffffff; t.hi = 0; t.heavy = 0; t.lca = -1;
         t.visBase = 0; t.visCount = 0; t.invBase = 0; t.invCount = 0; t.visFill = 0; t.invFill = 0;
-        t.recBase = 0; t.nrec = 0; t.pad0 = 0; t.pad1 = 0;
+        t.recBase = 0; t.nrec = 0; t.keptBase = 0; t.keptCount = 0;
         tiles[i] = t;
     }
     if (i < raySlots) counts[i] = 0u;

@@ -18,6 +18,13 @@
 // ray to the glsl backend's resumable full traversal: the pixel is marked -2 in resumeSlot and
 // counted once; after the CHC+RT pass those rays are traced again from the root, in as many draws
 // as they need, and their hits replace what this pass found.
+//
+// Merged kept pairs (GPU-driven pass on a device front, chc_querycull.comp mergeKept): a visible
+// record may also carry the invisible pairs the cull kept for its tile (vKeptBase, vKeptCount: items
+// in the same buffer, sorted by gap). The item loop tests them after the record's own items, and
+// the entered ones join the same stack and traversal: what the survivors' draw would do, without a
+// second fragment per ray. Their counts (the query) take the ray's final nearest hit: a kept pair
+// counts a ray that enters its box before that hit.
 #include "chc_common.glsl"
 #include "chc_leafcache.glsl"
 uniform int anyHit;
@@ -39,6 +46,15 @@ layout(location = 2) out int outSub;
 layout(r32i, binding = BIND_IMG_RESUME) uniform coherent iimage2D resumeSlot;  // gl_traversal.py ResumableTraversal
 layout(std430, binding = BIND_RESUME_COUNTERS) buffer ResumeCounters { int unfinished; int allocated; };
 #ifdef CHC_COUNT_ITEMS
+flat in int vKeptBase;
+flat in int vKeptCount;
+#define KEPT_BASE vKeptBase
+#define KEPT_COUNT vKeptCount
+#else
+#define KEPT_BASE 0
+#define KEPT_COUNT 0
+#endif
+#ifdef CHC_COUNT_ITEMS
 // GPU-driven pass: the intersection is the query. A ray that enters an item's box before its
 // nearest hit so far (the query's pass condition) counts into the item's pair slot (p2 >= 0).
 layout(std430, binding = BIND_CHC_QUERY_COUNTS) buffer ChcQueryCounts { uint chcPassed[]; };
@@ -46,10 +62,11 @@ layout(std430, binding = BIND_CHC_QUERY_COUNTS) buffer ChcQueryCounts { uint chc
 
 void main() {
     ivec2 px = ivec2(gl_FragCoord.xy);
-    if (countOverlays != 0) imageAtomicAdd(batchSubtrees, px, ITEM_COUNT);
+    if (countOverlays != 0) imageAtomicAdd(batchSubtrees, px, ITEM_COUNT + KEPT_COUNT);
 #ifdef CHC_COUNT_ITEMS
-    // a query record (invisible pairs tested by intersecting them): one query test per pair
-    if (countOverlays != 0 && vQuery != 0) imageAtomicAdd(overdraw, px, ITEM_COUNT);
+    // a query record (invisible pairs tested by intersecting them), or merged kept pairs: one query
+    // test per pair
+    if (countOverlays != 0 && (vQuery != 0 || KEPT_COUNT > 0)) imageAtomicAdd(overdraw, px, vQuery != 0 ? ITEM_COUNT : KEPT_COUNT);
 #endif
     int best = imageLoad(bestBits, px).r;
     if (best < 0) discard;
@@ -59,8 +76,11 @@ void main() {
     // gap_order: the record's nearest item lies beyond the ray's nearest hit: nothing here can be
     // entered before it (nor hit: a hint triangle lies in some subtree of the tile's cut), so the
     // ray set-up is skipped too (most invisible pairs' fragments of primary rays)
+    // (with merged kept pairs: the nearer of the two lists' first items)
     float dlen = length(dt.xyz) * (1.0 + 1e-4);
-    if (gapOrder != 0 && (ITEM_COUNT == 0 || items[ITEM_BASE].gap > min(intBitsToFloat(best), dt.w) * dlen)) discard;
+    const float inf = uintBitsToFloat(0x7f800000u);
+    float firstGap = min(ITEM_COUNT > 0 ? items[ITEM_BASE].gap : inf, KEPT_COUNT > 0 ? items[KEPT_BASE].gap : inf);
+    if (gapOrder != 0 && (ITEM_COUNT + KEPT_COUNT == 0 || firstGap > min(intBitsToFloat(best), dt.w) * dlen)) discard;
 #endif
     RayPre r = prepareRay(ot.xyz, dt.xyz);
     float tmin = ot.w;
@@ -88,25 +108,37 @@ void main() {
     int sp = 0;
     uint entered = 0u;
     uint enteredMask = 0u;  // counted items whose box the ray entered (counted after the traversal)
+    uint keptMask = 0u;  // the same for the merged kept pairs
 #ifdef CHC_COUNT_ITEMS
     // gap_order: a record holds its items sorted by gap, a lower bound of the distance from every ray
     // origin of the tile to the box (invisible pairs: chc_querycull.comp; visible: chc_visorder.comp):
     // the first item whose gap lies beyond the ray's nearest hit so far (t * |d|, with the gap's
-    // relative margin) ends the box tests, as neither it nor any later item can be entered before
-    // that hit
+    // relative margin) ends the box tests of its list, as neither it nor any later item can be
+    // entered before that hit
     bool byGap = gapOrder != 0;
 #else
     const bool byGap = false;
     const float dlen = 0.0;
 #endif
-    for (int k = done ? ITEM_COUNT : 0; k < ITEM_COUNT; ++k) {
-        int i = byGap ? k : ITEM_COUNT - 1 - k;  // else the farthest at the stack's bottom
-        ChcItem it = items[ITEM_BASE + i];
-        if (byGap && it.gap > hit.t * dlen) break;
+    // the record's items, then its merged kept pairs (GPU-driven builds only): one loop, one stack
+    int total = ITEM_COUNT + KEPT_COUNT;
+    for (int k = done ? total : 0; k < total; ++k) {
+        bool own = k < ITEM_COUNT;
+        if (done && !own) break;  // a finished any-hit ray: no kept pair counts it (nor would the survivors' draw)
+        int i = own ? (byGap ? k : ITEM_COUNT - 1 - k) : k - ITEM_COUNT;  // else the farthest at the stack's bottom
+        ChcItem it = items[own ? ITEM_BASE + i : KEPT_BASE + i];
+        if (byGap && it.gap > hit.t * dlen) {
+            if (!own) break;
+            k = ITEM_COUNT - 1;  // on with the kept pairs
+            continue;
+        }
         float te;
         if (intersectBox(r, it.bmin, it.bmax, tmin, hit.t, te)) {
             ++entered;
-            if (it.p2 >= 0) enteredMask |= 1u << uint(i);  // a counted pair (chcrt.py _due_slots)
+            if (it.p2 >= 0) {  // a counted pair (chcrt.py _due_slots)
+                if (own) enteredMask |= 1u << uint(i);
+                else keptMask |= 1u << uint(i);
+            }
             if (it.count > 0) {  // a scheduled BVH leaf: intersect it now
                 if (visitLeaf(r, it.ref, it.count, tmin, hit) && any) done = true;
             } else {
@@ -174,6 +206,13 @@ void main() {
         int slot = items[ITEM_BASE + i].p2;
         if (slot >= 0) atomicAdd(chcPassed[slot], 1u);
     }
+    while (keptMask != 0u) {  // a kept pair entered before the ray's final nearest hit
+        int i = findLSB(keptMask);
+        keptMask &= keptMask - 1u;
+        ChcItem it = items[KEPT_BASE + i];
+        float te;
+        if (it.p2 >= 0 && (handOver || intersectBox(r, it.bmin, it.bmax, tmin, hit.t, te))) atomicAdd(chcPassed[it.p2], 1u);
+    }
 #endif
     if (handOver) {
         if (imageAtomicExchange(resumeSlot, px, -2) != -2) atomicAdd(unfinished, 1);
@@ -190,8 +229,8 @@ void main() {
 #endif
     // the scheduled subtree that holds the hit triangle (for the subtree_id overlay)
     int sub = -1;
-    for (int i = 0; i < (countOverlays != 0 ? ITEM_COUNT : 0); ++i) {
-        ChcItem it = items[ITEM_BASE + i];
+    for (int i = 0; i < (countOverlays != 0 ? ITEM_COUNT + KEPT_COUNT : 0); ++i) {
+        ChcItem it = items[i < ITEM_COUNT ? ITEM_BASE + i : KEPT_BASE + i - ITEM_COUNT];
         if (hit.id >= it.p0 && hit.id < it.p0 + it.p1) sub = it.id;
     }
     outT = hit.t;

@@ -9,15 +9,24 @@
 // of every ray's entry distance; a relative margin covers the rounding. With coneCull, a box that
 // lies beside every ray of the tile (outside its direction cone, or behind a side plane:
 // chc_tilecone.glsl) is dropped too.
+//
+// mergeKept (device fronts, cull tiles = finest tiles): the cull runs before the visible pairs' draw,
+// and a tile with exactly one visible record and at most maxItems kept pairs gets no survivors'
+// record: its kept range goes into its tile plan (keptBase, keptCount), and the visible record's
+// fragments test those pairs after their own (chc_intersect.frag), one fragment per ray instead
+// of two. The reach is then what the rays had before the visible pairs (their tmax): a weaker cull,
+// but each ray still stops at the first kept box beyond its own nearest hit.
 layout(local_size_x = 64) in;
 #include "chc_tilecone.glsl"
-#include "chc_records.glsl"
+#include "chc_front.glsl"
 layout(std430, binding = BIND_CHC_ITEMS) readonly buffer ChcItems { ChcItem items[]; };
 layout(std430, binding = BIND_CHC_QUERIES) readonly buffer ChcQueries { ChcDraw queries[]; };
 layout(std430, binding = BIND_CHC_TILES) readonly buffer ChcTiles { TileBound tiles[]; };
 layout(std430, binding = BIND_CHC_DRAWS) writeonly buffer ChcSurvivors { ChcDraw survivors[]; };
 // the kept boxes (the candidates' binding point: candidates are uploaded after the query draw)
 layout(std430, binding = BIND_CHC_CANDIDATES) buffer ChcKeptBoxes { ChcItem kept[]; };
+// mergeKept: the finest tiles' plans (chc_front_plan.comp), where a merged tile's kept range goes
+layout(std430, binding = BIND_FR_TILES) buffer TilePlans { ChcTilePlan plans[]; };
 layout(std430, binding = BIND_CHC_INDIRECT) buffer ChcIndirect { uint cmdCount; uint cmdInstances; uint cmdFirst;
                                                                  uint cmdBase; };
 // slots pixelSlot .. pixelSlot + 2 of the query counts: pair tests x pixels and records drawn (stats),
@@ -30,6 +39,8 @@ uniform int cull;  // 0: keep every box (ChcrtParams.coarse_cull off)
 uniform int sortByGap;  // 0: no gaps (-1: no ray stops early), kept in input order (ChcrtParams.gap_order off)
 
 uniform int coneCull;  // 1: also drop boxes beside the tile's rays: cone and side planes (ChcrtParams.cone_cull)
+uniform int keptOffset;  // kept pairs go to kept[keptOffset + ...] (records and plans hold that index)
+uniform int mergeKept;  // 1: merge into single-record tiles' visible records (cull tile i = finest tile i)
 
 float gapOf(ChcItem it, TileBound t) { return tileGap(it.bmin, it.bmax, t); }
 
@@ -52,6 +63,7 @@ void main() {
     // the kept pairs sorted by gap, nearest first (insertion sort; a tile keeps at most lca_pairs or so),
     // so that a ray stops testing a record's boxes at the first one beyond its nearest hit
     // (chc_intersect.frag)
+    base += keptOffset;
     int j = base;
     for (int k = 0; k < q.info.y; ++k) {
         ChcItem it = items[q.info.x + k];
@@ -60,6 +72,12 @@ void main() {
         int m = j++;
         while (m > base && kept[m - 1].gap > it.gap) { kept[m] = kept[m - 1]; --m; }
         kept[m] = it;
+    }
+    if (mergeKept != 0 && plans[i].nrec == 1 && nb <= maxItems) {
+        plans[i].keptBase = base;
+        plans[i].keptCount = nb;
+        atomicAdd(chcPassed[pixelSlot], uint(q.rect.z * q.rect.w * nb));  // query tests (overlay)
+        return;
     }
     for (int b = 0; b < nb; b += maxItems) {  // records of at most maxItems pairs (the shader's bound)
         int m = min(maxItems, nb - b);

@@ -2,7 +2,16 @@
 // the pixel rectangle of record i as two triangles (edges on pixel boundaries, so every pixel
 // centre of the tile is covered exactly once) and hands its item range and query slot to the
 // fragment shader. Replaces one scissored draw (and one occlusion query object) per record.
+// GPU-driven pass with mergeKept (device fronts): a visible record (query slot 0) also hands over
+// the kept invisible pairs the cull merged into its tile (chc_querycull.comp; info.w = finest tile).
 #include "chc_records.glsl"
+#ifdef CHC_COUNT_ITEMS
+#include "chc_front.glsl"
+layout(std430, binding = BIND_FR_TILES) readonly buffer TilePlans { ChcTilePlan plans[]; };
+uniform int mergeKept;
+flat out int vKeptBase;
+flat out int vKeptCount;
+#endif
 layout(std430, binding = BIND_CHC_DRAWS) readonly buffer ChcDraws { ChcDraw draws[]; };
 uniform ivec2 raySize;
 flat out int vItemBase;
@@ -16,4 +25,12 @@ void main() {
     vItemBase = d.info.x;
     vItemCount = d.info.y;
     vQuery = d.info.z;
+#ifdef CHC_COUNT_ITEMS
+    vKeptBase = 0;
+    vKeptCount = 0;
+    if (mergeKept != 0 && d.info.z == 0) {  // a branch, not a select: no plan buffer is read otherwise
+        vKeptBase = plans[d.info.w].keptBase;
+        vKeptCount = plans[d.info.w].keptCount;
+    }
+#endif
 }

@@ -78,6 +78,7 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -218,6 +219,11 @@ class ChcrtParams:
                                "the front in a fixed chain of dispatches and indirect draws, with nothing read "
                                "back in the pass (statistics arrive after the frame); False: the host plans the "
                                "records and reads the counts back at the end of every pass")
+    merge_kept: bool = param(True, "device fronts (with cull_sublevels=0): the cull runs before the visible pairs' "
+                             "draw, and a tile with one visible record and at most max_batch kept invisible pairs "
+                             "tests them in that record's fragments, after its visible pairs (one fragment per ray "
+                             "instead of two; its cull reaches as far as the rays' tmax); other tiles keep the "
+                             "survivors' draw")
     hit_hint: bool = param(True, "temporal: each ray first tests the triangle its pixel hit in this front's previous "
                            "pass (a shadow cache for every ray type): an any-hit ray that hits it is done, a "
                            "closest-hit ray traverses with its distance as tmax (exact); not with a GPU budget, nor in "
@@ -382,6 +388,12 @@ class ChcrtBackend:
         # no loop limit (not llvmpipe): no ray is handed over, the finisher never reads its counter
         visits = (max_visits(self.finisher.max_leaf, stack, items_loops, limit=self.finisher.limit)
                   if self.finisher.limit is not None else len(self.nt.left) + 1)
+        # the counting program's visible records may carry as many kept pairs again (merge_kept): more
+        # items on the stack, and a second item loop whose insertions go twice as deep
+        stack_g = stack + self.p.max_batch
+        items_loops_g = items_loops + self.p.max_batch * (self.finisher.max_leaf + 2 * self.p.max_batch + 2)
+        visits_g = (max_visits(self.finisher.max_leaf, stack_g, items_loops_g, limit=self.finisher.limit)
+                    if self.finisher.limit is not None else visits)
         self.prog_isect = progs.get("fullscreen.vert", "chc_intersect.frag",
                                     {"CHC_MAX_ITEMS": self.p.max_batch, "STACK_SIZE": stack, "CHC_MAX_VISITS": visits,
                                      **iwd})
@@ -396,8 +408,8 @@ class ChcrtBackend:
         self.vao_isect_b = self.ctx.vertex_array(self.prog_isect_b, [])
         # GPU-driven: the same intersection, counting box entries into the pairs' slots (the queries)
         self.prog_isect_g = progs.get("chc_tile.vert", "chc_intersect.frag",
-                                      {"CHC_MAX_ITEMS": self.p.max_batch, "CHC_BATCHED": 1, "STACK_SIZE": stack,
-                                       "CHC_MAX_VISITS": visits, "CHC_COUNT_ITEMS": 1, **iwd})
+                                      {"CHC_MAX_ITEMS": self.p.max_batch, "CHC_BATCHED": 1, "STACK_SIZE": stack_g,
+                                       "CHC_MAX_VISITS": visits_g, "CHC_COUNT_ITEMS": 1, **iwd})
         self.vao_isect_g = self.ctx.vertex_array(self.prog_isect_g, [])
         for prog in (self.prog_init, self.prog_query, self.prog_isect, self.prog_gather, self.prog_query_b,
                      self.prog_isect_b, self.prog_isect_g):
@@ -635,6 +647,7 @@ class _Pass:
         self.gpu = be.gpu_driven and front.frames > 0
         self.culled = False  # this pass's queries went through the coarse cull (stats read late)
         self.n_survivor_groups = 0
+        self.survivor_items: moderngl.Buffer | None = None  # the survivors' items (None: be.kept_boxes)
         self.lca_pairs: np.ndarray | None = None  # GPU-driven: slots of visible pairs drawn through an LCA
         self.untested: np.ndarray | None = None  # GPU-driven: invisible pairs only covered by LCA traversals
         self.bounds = np.zeros((0, 2, 4), np.int64)  # the last _run_queries' passing bounds per query and box
@@ -1018,6 +1031,8 @@ class _Pass:
         prog["useHint"] = int(self.hint is not None and not self.overlays)
         if prog.get("gapOrder", None) is not None:
             prog["gapOrder"] = int(self.p.gap_order)
+        if prog.get("mergeKept", None) is not None:
+            prog["mergeKept"] = 0  # set by the draw of a device front's visible records (merge_kept)
 
     # -- Algorithm 1 --------------------------------------------------------------------------------
     def run(self) -> dict[str, float]:
@@ -1257,16 +1272,17 @@ class _Pass:
             if not full:  # a full-BVH pass counted nothing: the front stays as it is
                 self._refine(visible, invisible, cnt[:nslots])
 
-    def _queries_and_traversal(self, full: bool, cull) -> None:
+    def _queries_and_traversal(self, full: bool, cull: Callable[[], None] | None) -> None:
         """Phases 2 and 3 of a GPU-driven pass: `cull` (the invisible pairs some ray may still enter,
         into the survivors' records) and their intersection; or, for incoherent rays (`full`), the
-        whole BVH for every ray. Incoherent rays: nearly every tile would traverse from (about) the
+        whole BVH for every ray (`cull` None: the cull ran before the visible records, merge_kept).
+        Incoherent rays: nearly every tile would traverse from (about) the
         root; the glsl traversal does exactly that, without the per-tile records. (chcrt's own shader
         from the root with the hit hint: the same nodes per diffuse ray, 31.0 against 31.5, and no
         faster: the hint bounds a closest-hit ray that front-to-back order finds early.)"""
         prof = self.be.bc.profiler
         with prof.phase("chc:2-queries"):
-            if not full:
+            if not full and cull is not None:
                 cull()
             self._sync()
         with prof.phase("chc:3-traversal"):
@@ -1284,8 +1300,11 @@ class _Pass:
         records (with gap_order in closest-hit passes: 2 dispatches, then one indirect draw), the cull
         (2 dispatches) and the survivors (one indirect draw), the pass's counts, the refinement (4
         dispatches). Nothing is uploaded or read back; the same launches whatever the tiles, pairs and
-        subtrees. A pass that traces the whole BVH (its first pass said so: full_bvh, or its last
-        plan: the device front's `full`) only plans, to refresh what the host decides from."""
+        subtrees. With merge_kept the cull runs before the visible records (on the same tile bounds
+        as their gap order: one dispatch fewer) and most tiles' kept pairs ride in their visible
+        record (chc_querycull.comp). A pass that traces the whole BVH (its first pass said so:
+        full_bvh, or its last plan: the device front's `full`) only plans, to refresh what the host
+        decides from."""
         be, f, p = self.be, self.front, self.p
         prof = be.bc.profiler
         dv = be.device_fronts()
@@ -1304,6 +1323,7 @@ class _Pass:
         while sub > 0 and min(self.size) >> (level + sub) < 4:
             sub -= 1
         report = self.pinfo.report
+        merge = p.merge_kept and sub == 0 and not full
         common = dict(ray_slots=COUNT_SLOTS, frame=self.frame_number(), max_level=level, threshold=self.threshold,
                       requery_interval=p.requery_interval, seed=p.seed, report=report)
         with prof.phase("chc:1-intersect-visible"):
@@ -1319,11 +1339,17 @@ class _Pass:
             self._bind()
             self._init(zeroed=True)
             be.gpu_counts.bind_to_storage_buffer(BIND_CHC_QUERY_COUNTS, COUNT_BYTES, 4 * (capacity + 3))
+            if merge:
+                self._tile_bounds(level, n_tiles)  # after the init draw's bestBits: the rays' tmax
+                self.stats["draws"] += 1
+                iostats.gl_draw()
+                self._cull_device(dv, dev, level, sub, merge=True)
             if not full:
-                self._draw_device_visible(dv, level, n_tiles)
+                self._draw_device_visible(dv, level, n_tiles, bounds_ready=merge, merge=merge)
             self._sync()
         self.n_survivor_groups = 1  # the survivors' count is the device's: their draw is indirect
-        self._queries_and_traversal(full, lambda: self._cull_device(dv, dev, level, sub))
+        self.survivor_items = dv.vis_items if merge else None  # None: be.kept_boxes, as the cull leaves it
+        self._queries_and_traversal(full, None if merge else lambda: self._cull_device(dv, dev, level, sub))
         with prof.phase("chc:4-final-intersect"):
             dv.pass_end(be.gpu_counts, ray_slots=COUNT_SLOTS, capacity=capacity, report=report)
             self.stats["draws"] += 1
@@ -1333,32 +1359,41 @@ class _Pass:
                 self.stats["draws"] += 4
         self.rays_read = True  # counted on the device, reported by end_frame
 
-    def _draw_device_visible(self, dv: DeviceFronts, level: int, n_tiles: int) -> None:
+    def _draw_device_visible(self, dv: DeviceFronts, level: int, n_tiles: int, bounds_ready: bool = False,
+                             merge: bool = False) -> None:
         """The visible records the device planned, in one indirect instanced draw (instances: the
-        records); closest-hit passes first sort each record's items by gap (gap_order_visible)."""
+        records); closest-hit passes first sort each record's items by gap (gap_order_visible), on
+        the tile bounds of the init draw (computed here unless `bounds_ready`). `merge`: the records
+        carry their tiles' merged kept pairs (merge_kept)."""
         be, ctx, p = self.be, self.ctx, self.p
         dv.vis_items.bind_to_storage_buffer(BIND_CHC_ITEMS)
         dv.records.bind_to_storage_buffer(BIND_CHC_DRAWS)
+        dv.tiles.bind_to_storage_buffer(FRONT_SSBO["BIND_FR_TILES"])  # the merged kept ranges
         if p.gap_order and p.gap_order_visible and not self.any_hit:
-            self._tile_bounds(level, n_tiles)  # after the init draw's bestBits
+            if not bounds_ready:
+                self._tile_bounds(level, n_tiles)  # after the init draw's bestBits
             dv.args.bind_to_storage_buffer(BIND_CHC_INDIRECT, 0, 16)
             be.visorder_dev["coneCull"] = int(p.cone_cull)
             be.visorder_dev.run_indirect(dv.args, ARGS_VISORDER)
             ctx.memory_barrier(moderngl.SHADER_STORAGE_BARRIER_BIT | moderngl.COMMAND_BARRIER_BIT)
-            self.stats["draws"] += 2
-            iostats.gl_draw(2)
-        self._draw_records_indirect(dv.args)
+            n = 1 if bounds_ready else 2
+            self.stats["draws"] += n
+            iostats.gl_draw(n)
+        self._draw_records_indirect(dv.args, merge_kept=merge)
 
-    def _cull_device(self, dv: DeviceFronts, dev, level: int, sub: int) -> None:
+    def _cull_device(self, dv: DeviceFronts, dev, level: int, sub: int, merge: bool = False) -> None:
         """The invisible items the device planned, culled per cull tile (chc_tilebounds.comp, then
         chc_querycull.comp over the ranges chc_front_plan.comp wrote) into the survivors' records and
-        their indirect draw command; buffers sized for the device's item capacity."""
+        their indirect draw command; buffers sized for the device's item capacity. `merge`
+        (merge_kept, before the visible records, on the tile bounds already computed): the kept
+        items go after the visible ones in dv.vis_items, and single-record tiles' kept ranges into
+        their tile plans instead of survivors' records."""
         be, ctx, p = self.be, self.ctx, self.p
         cl = level + sub
         n_cull = 1 << (2 * cl)
         kept = (dv.inv_cap << (2 * sub)) * ITEM_DTYPE.itemsize
         recs = ((dv.inv_cap + (1 << (2 * level))) << (2 * sub)) * DRAW_DTYPE.itemsize
-        if be.kept_boxes.size < kept:
+        if not merge and be.kept_boxes.size < kept:
             be.kept_boxes.release()
             be.kept_boxes = ctx.buffer(reserve=kept)
         if be.survivors.size < recs:
@@ -1366,10 +1401,14 @@ class _Pass:
             be.survivors = ctx.buffer(reserve=recs)
         dv.inv_items.bind_to_storage_buffer(BIND_CHC_ITEMS)
         dv.cull.bind_to_storage_buffer(BIND_CHC_QUERIES)
-        be.kept_boxes.bind_to_storage_buffer(BIND_CHC_CANDIDATES)
+        (dv.vis_items if merge else be.kept_boxes).bind_to_storage_buffer(BIND_CHC_CANDIDATES)
+        dv.tiles.bind_to_storage_buffer(FRONT_SSBO["BIND_FR_TILES"])
         be.survivors.bind_to_storage_buffer(BIND_CHC_DRAWS)
         be.query_indirect.bind_to_storage_buffer(BIND_CHC_INDIRECT)
-        self._tile_bounds(cl, n_cull)  # after the visible pairs' bestBits
+        if not merge:
+            self._tile_bounds(cl, n_cull)  # after the visible pairs' bestBits
+        be.querycull["keptOffset"] = dv.kept_offset if merge else 0
+        be.querycull["mergeKept"] = int(merge)
         be.querycull["nQueries"] = n_cull
         be.querycull["maxItems"] = p.max_batch
         be.querycull["pixelSlot"] = dev.capacity
@@ -1378,8 +1417,9 @@ class _Pass:
         be.querycull["coneCull"] = int(p.cone_cull)
         be.querycull.run(-(-n_cull // 64))
         ctx.memory_barrier(moderngl.COMMAND_BARRIER_BIT | moderngl.SHADER_STORAGE_BARRIER_BIT)
-        self.stats["draws"] += 2
-        iostats.gl_draw(2)
+        n = 1 if merge else 2
+        self.stats["draws"] += n
+        iostats.gl_draw(n)
 
     def _due_slots(self, visible: np.ndarray, sl: np.ndarray) -> np.ndarray:
         """Count slots of visible-pair items (index into `visible`, -1 = not counted): with
@@ -1523,13 +1563,15 @@ class _Pass:
         if not self.n_survivor_groups:
             return
         be = self.be
-        be.kept_boxes.bind_to_storage_buffer(BIND_CHC_ITEMS)
+        (self.survivor_items or be.kept_boxes).bind_to_storage_buffer(BIND_CHC_ITEMS)
         be.survivors.bind_to_storage_buffer(BIND_CHC_DRAWS)
         self._draw_records_indirect(be.query_indirect)
 
-    def _draw_records_indirect(self, command: moderngl.Buffer) -> None:
+    def _draw_records_indirect(self, command: moderngl.Buffer, merge_kept: bool = False) -> None:
         """The records bound at BIND_CHC_DRAWS (items at BIND_CHC_ITEMS) in one indirect instanced
-        draw of the counting intersection program, its draw command at the start of `command`."""
+        draw of the counting intersection program, its draw command at the start of `command`;
+        `merge_kept`: visible records also test their tiles' merged kept pairs (the tile plans at
+        BIND_FR_TILES)."""
         ctx, be = self.ctx, self.be
         ctx.enable(moderngl.DEPTH_TEST)
         ctx.depth_func = "<"
@@ -1539,6 +1581,7 @@ class _Pass:
         prog = be.prog_isect_g
         prog["raySize"] = tuple(self.size)
         self._isect_uniforms(prog)
+        prog["mergeKept"] = int(merge_kept)
         be.vao_isect_g.render_indirect(command, moderngl.TRIANGLES, count=1)
         self.stats["draws"] += 1
         self.stats["intersect_draws"] += 1

@@ -212,7 +212,8 @@ class DeviceFronts:
         if items > min(self.vis_cap, self.inv_cap):
             self.vis_cap = self.inv_cap = max(items, self.vis_cap)
             self.rec_cap = self.vis_cap + self.tiles_cap
-            self._replace("vis_items", self.vis_cap * 64)
+            # visible items, then (merge_kept) the cull's kept invisible items at kept_offset
+            self._replace("vis_items", (self.vis_cap + self.inv_cap) * 64)
             self._replace("inv_items", self.inv_cap * 64)
             self._replace("tmp", (self.vis_cap + self.inv_cap) * 8)
             self._replace("records", self.rec_cap * 32)
@@ -222,6 +223,12 @@ class DeviceFronts:
         if cull_tiles > self.cull_cap:
             self.cull_cap = _pow2(cull_tiles)
             self._replace("cull", self.cull_cap * 32)
+
+    @property
+    def kept_offset(self) -> int:
+        """Where, in vis_items, the cull writes the kept invisible items of a merging pass (merge_kept):
+        the visible records and the merged kept pairs are read from one buffer."""
+        return self.vis_cap
 
     def _replace(self, name: str, nbytes: int) -> None:
         old = getattr(self, name)
