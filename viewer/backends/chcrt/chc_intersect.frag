@@ -45,14 +45,14 @@ layout(location = 2) out int outSub;
 #endif
 layout(r32i, binding = BIND_IMG_RESUME) uniform coherent iimage2D resumeSlot;  // gl_traversal.py ResumableTraversal
 layout(std430, binding = BIND_RESUME_COUNTERS) buffer ResumeCounters { int unfinished; int allocated; };
-#ifdef CHC_COUNT_ITEMS
+#if defined(CHC_COUNT_ITEMS) && defined(CHC_MERGE_KEPT)
 flat in int vKeptBase;
 flat in int vKeptCount;
 #define KEPT_BASE vKeptBase
 #define KEPT_COUNT vKeptCount
 #else
 #define KEPT_BASE 0
-#define KEPT_COUNT 0
+#define KEPT_COUNT 0  // without merge_kept the loops below are the record's own items only
 #endif
 #ifdef CHC_COUNT_ITEMS
 // GPU-driven pass: the intersection is the query. A ray that enters an item's box before its
@@ -123,12 +123,15 @@ void main() {
     // the record's items, then its merged kept pairs (GPU-driven builds only): one loop, one stack
     int total = ITEM_COUNT + KEPT_COUNT;
     for (int k = done ? total : 0; k < total; ++k) {
-        bool own = k < ITEM_COUNT;
-        if (done && !own) break;  // a finished any-hit ray: no kept pair counts it (nor would the survivors' draw)
+        bool own = KEPT_COUNT == 0 || k < ITEM_COUNT;  // (a constant without merge_kept: the loop folds to the own items')
+        // an any-hit ray finished by now tests and counts no kept pair (its survivors' fragment would
+        // have been discarded); one finished later, in the traversal, counts those it entered before
+        // that hit
+        if (done && !own) break;
         int i = own ? (byGap ? k : ITEM_COUNT - 1 - k) : k - ITEM_COUNT;  // else the farthest at the stack's bottom
         ChcItem it = items[own ? ITEM_BASE + i : KEPT_BASE + i];
         if (byGap && it.gap > hit.t * dlen) {
-            if (!own) break;
+            if (!own || KEPT_COUNT == 0) break;
             k = ITEM_COUNT - 1;  // on with the kept pairs
             continue;
         }

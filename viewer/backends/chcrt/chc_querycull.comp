@@ -18,15 +18,19 @@
 // but each ray still stops at the first kept box beyond its own nearest hit.
 layout(local_size_x = 64) in;
 #include "chc_tilecone.glsl"
-#include "chc_front.glsl"
+#include "chc_records.glsl"
 layout(std430, binding = BIND_CHC_ITEMS) readonly buffer ChcItems { ChcItem items[]; };
 layout(std430, binding = BIND_CHC_QUERIES) readonly buffer ChcQueries { ChcDraw queries[]; };
 layout(std430, binding = BIND_CHC_TILES) readonly buffer ChcTiles { TileBound tiles[]; };
 layout(std430, binding = BIND_CHC_DRAWS) writeonly buffer ChcSurvivors { ChcDraw survivors[]; };
 // the kept boxes (the candidates' binding point: candidates are uploaded after the query draw)
 layout(std430, binding = BIND_CHC_CANDIDATES) buffer ChcKeptBoxes { ChcItem kept[]; };
+#ifdef CHC_MERGE_KEPT
 // mergeKept: the finest tiles' plans (chc_front_plan.comp), where a merged tile's kept range goes
+#include "chc_front.glsl"
 layout(std430, binding = BIND_FR_TILES) buffer TilePlans { ChcTilePlan plans[]; };
+uniform int mergeKept;  // 1: merge into single-record tiles' visible records (cull tile i = finest tile i)
+#endif
 layout(std430, binding = BIND_CHC_INDIRECT) buffer ChcIndirect { uint cmdCount; uint cmdInstances; uint cmdFirst;
                                                                  uint cmdBase; };
 // slots pixelSlot .. pixelSlot + 2 of the query counts: pair tests x pixels and records drawn (stats),
@@ -40,7 +44,6 @@ uniform int sortByGap;  // 0: no gaps (-1: no ray stops early), kept in input or
 
 uniform int coneCull;  // 1: also drop boxes beside the tile's rays: cone and side planes (ChcrtParams.cone_cull)
 uniform int keptOffset;  // kept pairs go to kept[keptOffset + ...] (records and plans hold that index)
-uniform int mergeKept;  // 1: merge into single-record tiles' visible records (cull tile i = finest tile i)
 
 float gapOf(ChcItem it, TileBound t) { return tileGap(it.bmin, it.bmax, t); }
 
@@ -73,12 +76,14 @@ void main() {
         while (m > base && kept[m - 1].gap > it.gap) { kept[m] = kept[m - 1]; --m; }
         kept[m] = it;
     }
+#ifdef CHC_MERGE_KEPT
     if (mergeKept != 0 && plans[i].nrec == 1 && nb <= maxItems) {
         plans[i].keptBase = base;
         plans[i].keptCount = nb;
         atomicAdd(chcPassed[pixelSlot], uint(q.rect.z * q.rect.w * nb));  // query tests (overlay)
         return;
     }
+#endif
     for (int b = 0; b < nb; b += maxItems) {  // records of at most maxItems pairs (the shader's bound)
         int m = min(maxItems, nb - b);
         survivors[atomicAdd(cmdInstances, 1u)] = ChcDraw(q.rect, ivec4(base + b, m, 1, 0));

@@ -22,6 +22,15 @@ layout(std430, binding = BIND_CHC_INDIRECT) readonly buffer VisCmd { uint vCount
 uniform int nRecords;
 #define N_RECORDS nRecords
 #endif
+#if defined(CHC_RECORDS_IN_BUFFER) && defined(CHC_MERGE_KEPT)
+// merge_kept: a record whose tile carries merged kept pairs (chc_querycull.comp, run before) still
+// draws when none of its own items is left: its fragments test the kept pairs
+#include "chc_front.glsl"
+layout(std430, binding = BIND_FR_TILES) readonly buffer TilePlans { ChcTilePlan plans[]; };
+#define KEPT_PAIRS(tile) plans[tile].keptCount
+#else
+#define KEPT_PAIRS(tile) 0
+#endif
 uniform int coneCull;
 
 void main() {
@@ -43,6 +52,6 @@ void main() {
     }
     if (kept < d.info.y) {
         draws[i].info.y = kept;
-        if (kept == 0) draws[i].rect.zw = ivec2(0);
+        if (kept == 0 && KEPT_PAIRS(d.info.w) == 0) draws[i].rect.zw = ivec2(0);
     }
 }

@@ -376,8 +376,19 @@ class ChcrtBackend:
         wd = {**self.work.defines, **BINDINGS}
         # subtrees found visible by the GPU-driven pass, and lowest common ancestors, can be as high as the tree
         stack = self.p.max_batch + max(self.p.max_subtree_height, int(self.nt.height[0]), 1) + 2
-        iwd = {**wd, "LEAF_CACHE": int(self.p.leaf_cache)}  # intersection programs only
+        # GPU-driven steady state (ChcrtParams.gpu_driven); device fronts are made on the first steady
+        # pass (ChcrtParams.device_front): their SSBO binding points go up to 33, a driver with fewer
+        # keeps the host-planned fronts. merge_kept needs device fronts: only then do the counting
+        # intersection, the cull and the visible order carry its code (CHC_MERGE_KEPT)
         self.cache = self._make_cache(bc)
+        self.batched = self.p.query_mode == "batched"
+        self.gpu_driven = self.p.gpu_driven and self.batched and self.cache is None
+        bindings = int(self.ctx.info.get("GL_MAX_SHADER_STORAGE_BUFFER_BINDINGS", 0) or 0)
+        self.device_front = (self.gpu_driven and self.p.device_front and self.p.merge_tiles and self.p.lca_invisible
+                             and bindings > max(FRONT_SSBO.values()))
+        self.merge_kept = self.device_front and self.p.merge_kept
+        merge_defs = {"CHC_MERGE_KEPT": 1} if self.merge_kept else {}
+        iwd = {**wd, "LEAF_CACHE": int(self.p.leaf_cache)}  # intersection programs only
         if self.cache is not None:
             iwd["CHC_OOC"] = 1
         self.prog_init = progs.get("fullscreen.vert", "chc_init.frag", BINDINGS)
@@ -390,15 +401,16 @@ class ChcrtBackend:
                   if self.finisher.limit is not None else len(self.nt.left) + 1)
         # the counting program's visible records may carry as many kept pairs again (merge_kept): more
         # items on the stack, and a second item loop whose insertions go twice as deep
-        stack_g = stack + self.p.max_batch
-        items_loops_g = items_loops + self.p.max_batch * (self.finisher.max_leaf + 2 * self.p.max_batch + 2)
-        visits_g = (max_visits(self.finisher.max_leaf, stack_g, items_loops_g, limit=self.finisher.limit)
-                    if self.finisher.limit is not None else visits)
+        stack_g, visits_g = stack, visits
+        if self.merge_kept:
+            stack_g = stack + self.p.max_batch
+            items_loops_g = items_loops + self.p.max_batch * (self.finisher.max_leaf + 2 * self.p.max_batch + 2)
+            visits_g = (max_visits(self.finisher.max_leaf, stack_g, items_loops_g, limit=self.finisher.limit)
+                        if self.finisher.limit is not None else visits)
         self.prog_isect = progs.get("fullscreen.vert", "chc_intersect.frag",
                                     {"CHC_MAX_ITEMS": self.p.max_batch, "STACK_SIZE": stack, "CHC_MAX_VISITS": visits,
                                      **iwd})
         self.prog_gather = progs.get("fullscreen.vert", "chc_gather.frag", BINDINGS)
-        self.batched = self.p.query_mode == "batched"
         self.prog_query_b = progs.get("chc_tile.vert", "chc_query.frag",
                                       {"CHC_MAX_ITEMS": MAX_BOXES, "CHC_BATCHED": 1, **wd})
         self.prog_isect_b = progs.get("chc_tile.vert", "chc_intersect.frag",
@@ -409,7 +421,7 @@ class ChcrtBackend:
         # GPU-driven: the same intersection, counting box entries into the pairs' slots (the queries)
         self.prog_isect_g = progs.get("chc_tile.vert", "chc_intersect.frag",
                                       {"CHC_MAX_ITEMS": self.p.max_batch, "CHC_BATCHED": 1, "STACK_SIZE": stack_g,
-                                       "CHC_MAX_VISITS": visits_g, "CHC_COUNT_ITEMS": 1, **iwd})
+                                       "CHC_MAX_VISITS": visits_g, "CHC_COUNT_ITEMS": 1, **iwd, **merge_defs})
         self.vao_isect_g = self.ctx.vertex_array(self.prog_isect_g, [])
         for prog in (self.prog_init, self.prog_query, self.prog_isect, self.prog_gather, self.prog_query_b,
                      self.prog_isect_b, self.prog_isect_g):
@@ -425,16 +437,9 @@ class ChcrtBackend:
         self.query_counts = StreamBuffer(self.ctx, 4, BIND_CHC_QUERY_COUNTS)
         self.count_buf = self.ctx.buffer(reserve=4 * COUNT_SLOTS)
         self._zero_counts = bytes(4 * COUNT_SLOTS)
-        # GPU-driven steady state (ChcrtParams.gpu_driven)
-        self.gpu_driven = self.p.gpu_driven and self.batched and self.cache is None
         self.tilebounds = compute_shader(self.ctx, "chc_tilebounds.comp", BINDINGS, (HERE,))
-        self.querycull = compute_shader(self.ctx, "chc_querycull.comp", BINDINGS, (HERE,))
+        self.querycull = compute_shader(self.ctx, "chc_querycull.comp", {**BINDINGS, **merge_defs}, (HERE,))
         self.visorder = compute_shader(self.ctx, "chc_visorder.comp", BINDINGS, (HERE,))
-        # device fronts: made on the first steady pass (ChcrtParams.device_front)
-        # (their SSBO binding points go up to 33: a driver with fewer keeps the host-planned fronts)
-        bindings = int(self.ctx.info.get("GL_MAX_SHADER_STORAGE_BUFFER_BINDINGS", 0) or 0)
-        self.device_front = (self.gpu_driven and self.p.device_front and self.p.merge_tiles and self.p.lca_invisible
-                             and bindings > max(FRONT_SSBO.values()))
         self.devfronts: DeviceFronts | None = None
         self.visorder_dev: moderngl.ComputeShader | None = None
         self.tilebounds["rayOrigin"] = 0
@@ -496,8 +501,9 @@ class ChcrtBackend:
         """The device fronts' shared buffers and programs (made on first use)."""
         if self.devfronts is None:
             self.devfronts = DeviceFronts(self.ctx, self.nt, BINDINGS)
+            merge_defs = {"CHC_MERGE_KEPT": 1} if self.merge_kept else {}
             self.visorder_dev = compute_shader(self.ctx, "chc_visorder.comp",
-                                               {**BINDINGS, "CHC_RECORDS_IN_BUFFER": 1}, (HERE,))
+                                               {**BINDINGS, "CHC_RECORDS_IN_BUFFER": 1, **merge_defs}, (HERE,))
         return self.devfronts
 
     def begin_frame(self, frame_index: int) -> None:
@@ -1323,7 +1329,7 @@ class _Pass:
         while sub > 0 and min(self.size) >> (level + sub) < 4:
             sub -= 1
         report = self.pinfo.report
-        merge = p.merge_kept and sub == 0 and not full
+        merge = be.merge_kept and sub == 0 and not full
         common = dict(ray_slots=COUNT_SLOTS, frame=self.frame_number(), max_level=level, threshold=self.threshold,
                       requery_interval=p.requery_interval, seed=p.seed, report=report)
         with prof.phase("chc:1-intersect-visible"):
@@ -1408,7 +1414,8 @@ class _Pass:
         if not merge:
             self._tile_bounds(cl, n_cull)  # after the visible pairs' bestBits
         be.querycull["keptOffset"] = dv.kept_offset if merge else 0
-        be.querycull["mergeKept"] = int(merge)
+        if be.merge_kept:
+            be.querycull["mergeKept"] = int(merge)
         be.querycull["nQueries"] = n_cull
         be.querycull["maxItems"] = p.max_batch
         be.querycull["pixelSlot"] = dev.capacity
@@ -1563,6 +1570,8 @@ class _Pass:
         if not self.n_survivor_groups:
             return
         be = self.be
+        # the survivors read bestBits as the visible records left it (with merge_kept no dispatch in between)
+        self.ctx.memory_barrier(moderngl.SHADER_IMAGE_ACCESS_BARRIER_BIT)
         (self.survivor_items or be.kept_boxes).bind_to_storage_buffer(BIND_CHC_ITEMS)
         be.survivors.bind_to_storage_buffer(BIND_CHC_DRAWS)
         self._draw_records_indirect(be.query_indirect)
@@ -1581,7 +1590,8 @@ class _Pass:
         prog = be.prog_isect_g
         prog["raySize"] = tuple(self.size)
         self._isect_uniforms(prog)
-        prog["mergeKept"] = int(merge_kept)
+        if prog.get("mergeKept", None) is not None:
+            prog["mergeKept"] = int(merge_kept)
         be.vao_isect_g.render_indirect(command, moderngl.TRIANGLES, count=1)
         self.stats["draws"] += 1
         self.stats["intersect_draws"] += 1

@@ -56,7 +56,12 @@ NODE_DTYPE = np.dtype([("bmin", "<f4", 3), ("ref", "<i4"), ("bmax", "<f4", 3), (
 PAIR_DTYPE = np.dtype([("node", "<i4"), ("tile", "<i4"), ("parent", "<i4"), ("child", "<i4"),
                        ("kids", "<i4"), ("offset", "<i4"), ("pixels", "<i4"), ("age", "<i4")])
 assert NODE_DTYPE.itemsize == 64 and PAIR_DTYPE.itemsize == 32
+# per finest tile, one pass's plan (chc_front.glsl ChcTilePlan; read back by tests only)
+TILE_PLAN_DTYPE = np.dtype([(name, "<i4") for name in (
+    "cv", "ci", "lo", "hi", "heavy", "lca", "visBase", "visCount", "invBase", "invCount", "visFill", "invFill",
+    "recBase", "nrec", "keptBase", "keptCount")])
 TILE_BYTES = 64
+assert TILE_PLAN_DTYPE.itemsize == TILE_BYTES
 META_INTS = 16
 META_N, META_OVERFLOW, META_HEAVY, META_COPIES, META_WANTED, META_TILES = range(6)
 DISCARD_SLOT = 1  # the statistics of a pass nobody reports (PassInfo.report) go here; fronts from slot 2
