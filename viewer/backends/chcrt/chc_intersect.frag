@@ -45,7 +45,10 @@ layout(location = 2) out int outSub;
 #endif
 layout(r32i, binding = BIND_IMG_RESUME) uniform coherent iimage2D resumeSlot;  // gl_traversal.py ResumableTraversal
 layout(std430, binding = BIND_RESUME_COUNTERS) buffer ResumeCounters { int unfinished; int allocated; };
-#if defined(CHC_COUNT_ITEMS) && defined(CHC_MERGE_KEPT)
+#ifdef CHC_MERGE_KEPT  // (chcrt.py sets it for the counting intersection only)
+#ifndef CHC_COUNT_ITEMS
+#error "chc_intersect.frag: CHC_MERGE_KEPT needs CHC_COUNT_ITEMS"
+#endif
 flat in int vKeptBase;
 flat in int vKeptCount;
 #define KEPT_BASE vKeptBase

@@ -5,7 +5,7 @@
 // GPU-driven pass with mergeKept (device fronts): a visible record (query slot 0) also hands over
 // the kept invisible pairs the cull merged into its tile (chc_querycull.comp; info.w = finest tile).
 #include "chc_records.glsl"
-#if defined(CHC_COUNT_ITEMS) && defined(CHC_MERGE_KEPT)
+#ifdef CHC_MERGE_KEPT  // (chcrt.py sets it for the counting intersection only)
 #include "chc_front.glsl"
 layout(std430, binding = BIND_FR_TILES) readonly buffer TilePlans { ChcTilePlan plans[]; };
 uniform int mergeKept;
@@ -25,7 +25,7 @@ void main() {
     vItemBase = d.info.x;
     vItemCount = d.info.y;
     vQuery = d.info.z;
-#if defined(CHC_COUNT_ITEMS) && defined(CHC_MERGE_KEPT)
+#ifdef CHC_MERGE_KEPT  // (chcrt.py sets it for the counting intersection only)
     vKeptBase = 0;
     vKeptCount = 0;
     if (mergeKept != 0 && d.info.z == 0) {  // a branch, not a select: no plan buffer is read otherwise

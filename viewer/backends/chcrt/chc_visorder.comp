@@ -22,7 +22,7 @@ layout(std430, binding = BIND_CHC_INDIRECT) readonly buffer VisCmd { uint vCount
 uniform int nRecords;
 #define N_RECORDS nRecords
 #endif
-#if defined(CHC_RECORDS_IN_BUFFER) && defined(CHC_MERGE_KEPT)
+#ifdef CHC_MERGE_KEPT  // (chcrt.py sets it for the device fronts' variant only)
 // merge_kept: a record whose tile carries merged kept pairs (chc_querycull.comp, run before) still
 // draws when none of its own items is left: its fragments test the kept pairs
 #include "chc_front.glsl"

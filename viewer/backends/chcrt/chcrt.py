@@ -387,7 +387,7 @@ class ChcrtBackend:
         self.device_front = (self.gpu_driven and self.p.device_front and self.p.merge_tiles and self.p.lca_invisible
                              and bindings > max(FRONT_SSBO.values()))
         self.merge_kept = self.device_front and self.p.merge_kept
-        merge_defs = {"CHC_MERGE_KEPT": 1} if self.merge_kept else {}
+        self.merge_defs = {"CHC_MERGE_KEPT": 1} if self.merge_kept else {}
         iwd = {**wd, "LEAF_CACHE": int(self.p.leaf_cache)}  # intersection programs only
         if self.cache is not None:
             iwd["CHC_OOC"] = 1
@@ -421,7 +421,7 @@ class ChcrtBackend:
         # GPU-driven: the same intersection, counting box entries into the pairs' slots (the queries)
         self.prog_isect_g = progs.get("chc_tile.vert", "chc_intersect.frag",
                                       {"CHC_MAX_ITEMS": self.p.max_batch, "CHC_BATCHED": 1, "STACK_SIZE": stack_g,
-                                       "CHC_MAX_VISITS": visits_g, "CHC_COUNT_ITEMS": 1, **iwd, **merge_defs})
+                                       "CHC_MAX_VISITS": visits_g, "CHC_COUNT_ITEMS": 1, **iwd, **self.merge_defs})
         self.vao_isect_g = self.ctx.vertex_array(self.prog_isect_g, [])
         for prog in (self.prog_init, self.prog_query, self.prog_isect, self.prog_gather, self.prog_query_b,
                      self.prog_isect_b, self.prog_isect_g):
@@ -438,7 +438,7 @@ class ChcrtBackend:
         self.count_buf = self.ctx.buffer(reserve=4 * COUNT_SLOTS)
         self._zero_counts = bytes(4 * COUNT_SLOTS)
         self.tilebounds = compute_shader(self.ctx, "chc_tilebounds.comp", BINDINGS, (HERE,))
-        self.querycull = compute_shader(self.ctx, "chc_querycull.comp", {**BINDINGS, **merge_defs}, (HERE,))
+        self.querycull = compute_shader(self.ctx, "chc_querycull.comp", {**BINDINGS, **self.merge_defs}, (HERE,))
         self.visorder = compute_shader(self.ctx, "chc_visorder.comp", BINDINGS, (HERE,))
         self.devfronts: DeviceFronts | None = None
         self.visorder_dev: moderngl.ComputeShader | None = None
@@ -501,9 +501,8 @@ class ChcrtBackend:
         """The device fronts' shared buffers and programs (made on first use)."""
         if self.devfronts is None:
             self.devfronts = DeviceFronts(self.ctx, self.nt, BINDINGS)
-            merge_defs = {"CHC_MERGE_KEPT": 1} if self.merge_kept else {}
             self.visorder_dev = compute_shader(self.ctx, "chc_visorder.comp",
-                                               {**BINDINGS, "CHC_RECORDS_IN_BUFFER": 1, **merge_defs}, (HERE,))
+                                               {**BINDINGS, "CHC_RECORDS_IN_BUFFER": 1, **self.merge_defs}, (HERE,))
         return self.devfronts
 
     def begin_frame(self, frame_index: int) -> None:
