@@ -586,13 +586,14 @@ FRONT_STATS = ("visible_pairs", "invisible_pairs", "inner_pairs", "queries", "su
                "batches", "full_bvh_passes")
 
 
-def _walk(ctx, params: str, effects: str, frames: int = 6):
-    """chcrt frames along a longer city walk (the fronts split, merge and re-query), captured."""
+def _walk(ctx, params: str, effects: str, frames: int = 6, backend: str = "chcrt"):
+    """chcrt (or `backend`) frames along a longer city walk (the fronts split, merge and re-query),
+    captured."""
     scene, bvh, path = _load("city")
     cam0 = path[0]
     cams = [Camera(cam0.position + np.array([0.9 * i, 0.25 * i, -2.5 * i]), cam0.orientation, cam0.fov_y)
             for i in range(frames)]
-    r = Renderer(ctx, scene, bvh, SIZE, "chcrt", parse_effects(effects), {"chcrt": params})
+    r = Renderer(ctx, scene, bvh, SIZE, backend, parse_effects(effects), {"chcrt": params})
     try:
         return [r.render(cam, capture=True) for cam in cams]
     finally:
@@ -743,3 +744,51 @@ def test_device_front_unreported_pass_counts_nothing(gl_ctx):
         r.release()
     assert quiet.get("rays", 0) == 0 and quiet.get("visible_pairs", 0) == 0, quiet
     assert loud["rays"] > 0 and loud["visible_pairs"] > 0, loud
+
+
+def test_full_bvh_passes_count_their_work(gl_ctx, monkeypatch):
+    """The work counters (RTWALK_COUNT_WORK=1) include the glsl traversal chcrt falls back to: a
+    chcrt pass that traces the whole BVH (every tile over lca_pairs=1) reports glsl's nodes, box and
+    triangle tests, not zero (the tuning study's tests per ray once read 0 for such passes). A
+    regular GPU-driven pass counts fewer nodes than glsl's full traversal."""
+    monkeypatch.setenv("RTWALK_COUNT_WORK", "1")
+    scene, bvh, path = _load("city")
+    stats = {}
+    for label, backend, params in [("glsl", "glsl", ""), ("full", "chcrt", "lca_pairs=1,lca_primary=true"),
+                                   ("chcrt", "chcrt", "")]:
+        r = Renderer(gl_ctx, scene, bvh, SIZE, backend, parse_effects("primary,ao:1"), {"chcrt": params})
+        try:
+            stats[label] = [r.render(cam).backend_stats for cam in path[:3]]
+        finally:
+            r.release()
+    for g, f, c in zip(stats["glsl"], stats["full"], stats["chcrt"], strict=True):
+        assert f["full_bvh_passes"] > 0 and c["full_bvh_passes"] == 0
+        for key in ("work_invocations", "work_nodes", "work_box_tests", "work_tri_tests"):
+            assert g[key] > 0 and f[key] == g[key], (key, g[key], f[key])
+    steady = stats["chcrt"][-1]
+    assert 0 < steady["work_nodes"] < stats["glsl"][-1]["work_nodes"], steady
+
+
+@pytest.mark.parametrize("passes,wave", [(1, 5.5), (4, 5.5), (4, 0.0)])
+def test_cold_refinement_goes_on_after_its_budget(passes, wave, gl_ctx):
+    """cold_full_bvh: a front's first pass that runs out of query budget (cold_query_budget) traces
+    the whole BVH, and with cold_passes > 1 the front's next passes go on refining from where it
+    stopped until the front is complete and moves to the device (a deep BVH, city 10 M, needs that:
+    its first pass's refinement alone costs more than the budget). With cold_passes=1, or when the
+    refinement cost more query fragments per ray and wave than cold_wave_queries (incoherent rays),
+    every pass stays on the full traversal. Every frame keeps glsl's hits."""
+    scene, bvh, _ = _load("city")
+    params = f"cold_query_budget=8,cold_passes={passes},cold_wave_queries={wave}"
+    frames = _walk(gl_ctx, params, "primary,ao:1")
+    ref = _walk(gl_ctx, "", "primary,ao:1", backend="glsl")
+    for k, (a, b) in enumerate(zip(ref, frames, strict=True)):
+        for pa, pb in zip(a.captured, b.captured, strict=True):
+            _check_exact(pa, pb, f"city {params} frame {k} {pa.ray_type.label}", scene.triangles)
+    full = [b.backend_stats["full_bvh_passes"] for b in frames]
+    device = [b.backend_stats["device_front_passes"] for b in frames]
+    assert full[0] == 2, full  # both fronts stopped on the budget in their first pass
+    if passes == 1 or wave == 0:
+        assert all(n == 2 for n in full) and not any(device), (full, device)
+    else:
+        assert full[-1] == 0 and device[-1] == 2, (full, device)  # refined to the end, then GPU-driven
+        assert sum(n > 0 for n in full) <= passes, full

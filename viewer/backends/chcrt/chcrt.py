@@ -55,8 +55,10 @@ counted per pair, read once after the pass, and the front is refined for the nex
 tile with many pairs traverses the lowest common ancestor of all of them instead (its invisible
 pairs are then not queried), and a pass where most tiles do that runs a full traversal
 (`lca_pairs`, `lca_subtrees`, `full_bvh_fraction`): incoherent rays cost about what glsl costs. A
-front's first pass stops refining when its queries cost more than a traversal (`cold_full_bvh`);
-that front then stays on full traversals.
+front's first pass stops refining when its queries cost more than a traversal (`cold_full_bvh`) and
+traces the whole BVH; its next pass goes on refining from there with a fresh budget, so a deep BVH
+(city 10 M) gets its front over a few frames (`cold_passes`). A front whose tiles would mostly take
+the LCA fallback (incoherent rays), or that stopped `cold_passes` times, stays on full traversals.
 
 Gap order (`gap_order`, `gap_order_visible`): in the GPU-driven pass each record's items are sorted on
 the device by a lower bound of their distance from the tile's ray origins, and a ray stops testing
@@ -201,6 +203,15 @@ class ChcrtParams:
     cold_query_budget: float = param(48.0, "cold_full_bvh: query fragments per active ray after which a front's "
                                      "first pass stops refining (a full traversal tests about 50-60 boxes per ray; "
                                      "0 = no budget)")
+    cold_passes: int = param(2, "cold_full_bvh: a pass that stopped refining on cold_query_budget, its rays still "
+                             "coherent (cold_wave_queries), traces the whole BVH, and the front's next pass goes "
+                             "on refining with a fresh budget; after this many such stops every pass traces the "
+                             "whole BVH (1 = at the first)")
+    cold_wave_queries: float = param(5.5, "cold_full_bvh: a front stopped by cold_query_budget counts as coherent "
+                                     "(cold_passes) while its refinement cost at most this many query fragments "
+                                     "per active ray and wave (one BVH level; a traversal tests about 2 boxes per "
+                                     "level): camera and AO rays of city 10 M cost 3.8-4.1, diffuse rays of "
+                                     "city 150 k 6.9-8.2 (640x360)")
     gap_order: bool = param(True, "GPU-driven: the cull writes each tile's invisible pairs nearest first (by a lower "
                             "bound of their distance from the tile's ray origins), and a ray stops testing them at "
                             "the first one beyond its nearest hit (exact)")
@@ -242,7 +253,7 @@ class ChcrtParams:
                 and self.max_subtree_height >= 1
                 and self.max_subtree_tris >= 1 and self.requery_interval >= 1 and self.schedule_batch >= 1
                 and self.visible_threshold >= 0 and self.lca_subtrees >= 0 and self.lca_pairs >= 0
-                and self.cold_query_budget >= 0
+                and self.cold_query_budget >= 0 and self.cold_passes >= 1 and self.cold_wave_queries >= 0
                 and 0 <= self.cull_sublevels <= 4 and 0 <= self.full_bvh_fraction <= 1):
             raise RtwalkError(f"{source}: t_q, t_q_primary and min_tile_fraction must be > 0, thresholds >= 0, "
                               "counts >= 1, cull_sublevels in 0..4, full_bvh_fraction in 0..1")
@@ -393,8 +404,9 @@ class ChcrtBackend:
             iwd["CHC_OOC"] = 1
         self.prog_init = progs.get("fullscreen.vert", "chc_init.frag", BINDINGS)
         self.prog_query = progs.get("fullscreen.vert", "chc_query.frag", {"CHC_MAX_ITEMS": MAX_BOXES, **wd})
-        # rays that would reach llvmpipe's loop limit are finished by the glsl resumable traversal
-        self.finisher = ResumableTraversal(bc)
+        # rays that would reach llvmpipe's loop limit are finished by the glsl resumable traversal;
+        # it counts into the same work counters (full-BVH passes and resumed rays are work too)
+        self.finisher = ResumableTraversal(bc, self.work)
         items_loops = self.p.max_batch * (self.finisher.max_leaf + self.p.max_batch + 2)  # scheduled items, sort
         # no loop limit (not llvmpipe): no ray is handed over, the finisher never reads its counter
         visits = (max_visits(self.finisher.max_leaf, stack, items_loops, limit=self.finisher.limit)
@@ -649,12 +661,13 @@ class _Pass:
         self.t_q = self.p.t_q * (self.p.t_q_primary if ray_type == RayType.PRIMARY else 1.0)
         self.overlays = bool(self.p.overdraw_overlay and be.overlays_enabled)
         # GPU-driven steady state: a front's first pass runs the synchronous algorithm (builds the front)
-        self.gpu = be.gpu_driven and front.frames > 0
+        self.gpu = be.gpu_driven and front.frames > 0 and not front.cold
         self.culled = False  # this pass's queries went through the coarse cull (stats read late)
         self.n_survivor_groups = 0
         self.survivor_items: moderngl.Buffer | None = None  # the survivors' items (None: be.kept_boxes)
         self.lca_pairs: np.ndarray | None = None  # GPU-driven: slots of visible pairs drawn through an LCA
         self.untested: np.ndarray | None = None  # GPU-driven: invisible pairs only covered by LCA traversals
+        self.refine_from = 0  # query fragments spent before the synchronous refinement (cold_query_budget)
         self.bounds = np.zeros((0, 2, 4), np.int64)  # the last _run_queries' passing bounds per query and box
         # hit_hint: the front's last hit triangle per pixel (None: first pass, or hints off)
         self.hint = be.hints.get(self.pinfo.key) if be.use_hints else None
@@ -1070,8 +1083,8 @@ class _Pass:
             self.stats["inner_pairs"] = int((f.state[: f.n] == INNER).sum())
         self.stats["gpu_driven"] = int(self.gpu)
         self.stats["device_front_passes"] = int(f.device is not None)
-        if be.device_front and self.p.temporal and f.device is None and not f.full_bvh:
-            # the front's first pass is done: it moves to the device now (one upload, in the cold frame)
+        if be.device_front and self.p.temporal and f.device is None and not (f.full_bvh or f.cold):
+            # the front's synchronous refinement is done: it moves to the device now (one upload)
             f.device = be.device_fronts().attach(f, 1 << (2 * f.max_level))
         return {k: float(v) for k, v in self.stats.items()}
 
@@ -1134,6 +1147,7 @@ class _Pass:
             scheduled: list[np.ndarray] = []
             n_sched = 0
             full = False  # cold_full_bvh: the refinement stopped, every ray takes the full traversal
+            self.refine_from = self.stats["query_pixels"]  # the budget counts the refinement's queries
             while True:
                 if len(wave):
                     term, obj, _ = f.classify(wave, self.nt, self.t_q, p.max_subtree_height,
@@ -1153,8 +1167,13 @@ class _Pass:
                     scheduled, n_sched = [], 0
                 if len(pending) == 0:
                     break
-                if self._incoherent():
-                    full = f.full_bvh = True
+                why = self._incoherent()
+                if why:
+                    # this pass traces the whole BVH; a front stopped by its budget goes on refining
+                    # in its next pass (cold_passes), an incoherent one stays on full traversals
+                    full = True
+                    f.cold_stops += why == "budget"
+                    f.full_bvh = why == "incoherent" or f.cold_stops >= p.cold_passes
                     break
                 self.stats["query_waves"] += 1
                 res = self._run_queries([np.array([i]) for i in pending], pclip)
@@ -1167,10 +1186,12 @@ class _Pass:
                 pclip = np.zeros((0, 4), np.int64)
             self._sync()
 
+        f.cold = full and not f.full_bvh  # refined to the end (or given up): later passes are GPU-driven
         with prof.phase("chc:4-final-intersect"):
             if full:
                 # the hits found so far are replaced by the full traversal's (exact); the front keeps
-                # what was refined, its untested pairs invisible: the next pass goes full-BVH too
+                # what was refined, its untested pairs invisible (the next pass queries them, or, with
+                # full_bvh, goes full-BVH too)
                 self.be.finisher.run(self.rays, self.pinfo, self.hits)
                 self.stats["full_bvh_passes"] = 1
                 self.stats["draws"] += 1
@@ -1179,21 +1200,30 @@ class _Pass:
             self._read_ray_count()
             self._sync()
 
-    def _incoherent(self) -> bool:
-        """cold_full_bvh: have the queries cost more than a full traversal (cold_query_budget), or
-        would the GPU-driven pass trace the whole BVH with the front as it stands (at least
-        full_bvh_fraction of the finest tiles over lca_pairs pairs or lca_subtrees visible ones, as
-        in _tile_plan)? Only for a front's first pass (the GPU-driven pass follows it)."""
+    def _incoherent(self) -> str | None:
+        """cold_full_bvh, before each wave of a front's synchronous refinement (the GPU-driven pass
+        follows it): "incoherent" when the GPU-driven pass would trace the whole BVH with the front as
+        it stands (at least full_bvh_fraction of the finest tiles over lca_pairs pairs or lca_subtrees
+        visible ones, as in _tile_plan); when this pass's refinement has cost more than a full
+        traversal (cold_query_budget; the refinement's queries only, so that a pass that goes on
+        with a front stopped before gets as far again whatever its re-queries of the known pairs
+        cost), "budget" if it cost at most cold_wave_queries per ray and wave (coherent rays in a
+        deep BVH: the front's next pass goes on), else "incoherent"; None: refine on."""
         p, f = self.p, self.front
-        if not (p.cold_full_bvh and self.be.gpu_driven and f.frames == 0 and p.lca_invisible and p.merge_tiles
+        if not (p.cold_full_bvh and self.be.gpu_driven and f.cold and p.lca_invisible and p.merge_tiles
                 and p.full_bvh_fraction > 0 and (p.lca_pairs > 0 or p.lca_subtrees > 0)):
-            return False
-        self._read_ray_count()
-        if p.cold_query_budget > 0 and self.stats["query_pixels"] > p.cold_query_budget * max(self.stats["rays"], 1):
-            return True
+            return None
         vis, inv = f.leaves(VISIBLE), f.leaves(INVISIBLE)
         heavy = self._heavy_tiles(self._per_finest_tile(vis), self._per_finest_tile(inv))
-        return bool(heavy.mean() >= p.full_bvh_fraction)
+        if heavy.mean() >= p.full_bvh_fraction:
+            return "incoherent"
+        self._read_ray_count()
+        spent = self.stats["query_pixels"] - self.refine_from
+        rays = max(self.stats["rays"], 1)
+        if p.cold_query_budget > 0 and spent > p.cold_query_budget * rays:
+            waves = max(self.stats["query_waves"], 1)
+            return "budget" if spent <= p.cold_wave_queries * rays * waves else "incoherent"
+        return None
 
     def _heavy_tiles(self, cv: np.ndarray, ci: np.ndarray) -> np.ndarray:
         """Per finest tile (visible pair counts `cv`, invisible `ci`): does it traverse the lowest

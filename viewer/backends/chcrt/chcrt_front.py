@@ -142,7 +142,12 @@ class PairFront:
         self.n = 0
         self.dead = 0
         self.frames = 0  # passes traced with this front
-        # incoherent rays: the first pass stopped refining (chcrt cold_full_bvh); every pass traces the
+        # the front's synchronous refinement is unfinished: its first pass, and every pass after one that
+        # stopped refining on its query budget (chcrt cold_full_bvh, cold_passes), run the synchronous
+        # algorithm and go on refining from where the last one stopped
+        self.cold = True
+        self.cold_stops = 0  # synchronous passes that stopped refining on their query budget
+        # incoherent rays: a synchronous pass found them so (chcrt cold_full_bvh); every pass traces the
         # whole BVH, the front is not refined further
         self.full_bvh = False
         # the front's copy on the device once its first pass is done (chcrt_devfront.DeviceFront); the
