@@ -792,3 +792,5 @@ def test_cold_refinement_goes_on_after_its_budget(passes, wave, gl_ctx):
     else:
         assert full[-1] == 0 and device[-1] == 2, (full, device)  # refined to the end, then GPU-driven
         assert sum(n > 0 for n in full) <= passes, full
+        # no front is on the device while its refinement goes on
+        assert all(d == 0 for n, d in zip(full, device, strict=True) if n > 0), (full, device)

@@ -46,9 +46,10 @@ places each instance on its tile); query fragments make the depth test's compari
 against bestBits and count into their query's slot with an atomic add, read back once per wave.
 Same query results (bestBits can only be stale towards passing), far fewer draws and waits.
 
-GPU-driven steady state (``gpu_driven``, default; docs/backends/chcrt-submission.md). Only a front's first pass runs
-the algorithm above. Every later pass is a fixed number of launches: the visible pairs (one draw,
-all subtrees over a finest tile in one record), per finest tile the rays' origin box and reach (one
+GPU-driven steady state (``gpu_driven``, default; docs/backends/chcrt-submission.md). Only a front's
+first pass (and, for a deep BVH, the few after it until its refinement completes: ``cold_passes``)
+runs the algorithm above. Every later pass is a fixed number of launches: the visible pairs (one
+draw, all subtrees over a finest tile in one record), per finest tile the rays' origin box and reach (one
 dispatch), the invisible pairs some ray may still enter (one dispatch) and their intersection (one
 indirect draw). The intersection is the query: box entries before the nearest hit so far are
 counted per pair, read once after the pass, and the front is refined for the next frame. A finest
@@ -56,9 +57,11 @@ tile with many pairs traverses the lowest common ancestor of all of them instead
 pairs are then not queried), and a pass where most tiles do that runs a full traversal
 (`lca_pairs`, `lca_subtrees`, `full_bvh_fraction`): incoherent rays cost about what glsl costs. A
 front's first pass stops refining when its queries cost more than a traversal (`cold_full_bvh`) and
-traces the whole BVH; its next pass goes on refining from there with a fresh budget, so a deep BVH
-(city 10 M) gets its front over a few frames (`cold_passes`). A front whose tiles would mostly take
-the LCA fallback (incoherent rays), or that stopped `cold_passes` times, stays on full traversals.
+traces the whole BVH; if that refinement was coherent (`cold_wave_queries`), its next pass goes on
+refining from there with a fresh budget, so a deep BVH (city 10 M) gets its front in two frames
+(`cold_passes`). A front whose tiles would mostly take the LCA fallback, or whose refinement cost
+too much per BVH level (incoherent rays), or that stopped `cold_passes` times, stays on full
+traversals.
 
 Gap order (`gap_order`, `gap_order_visible`): in the GPU-driven pass each record's items are sorted on
 the device by a lower bound of their distance from the tile's ray origins, and a ray stops testing
@@ -169,10 +172,11 @@ class ChcrtParams:
     seed: int = param(1, "random phase of the visible-leaf re-queries")
     temporal: bool = param(True,
                            "False: every frame starts cold from (screen, root) (measures what temporal coherence buys)")
-    gpu_driven: bool = param(True, "GPU-driven steady state (query_mode=batched, no GPU budget): after a front's "
-                             "first pass, its invisible pairs are queried in one instanced draw, a compute pass "
-                             "turns the passing queries into one indirect intersection draw, and the counts are "
-                             "read once at the end of the pass; False: the synchronous algorithm every pass")
+    gpu_driven: bool = param(True, "GPU-driven steady state (query_mode=batched, no GPU budget): once a front's "
+                             "synchronous refinement is done (its first pass, or cold_passes), its invisible "
+                             "pairs are queried in one instanced draw, a compute pass turns the passing queries "
+                             "into one indirect intersection draw, and the counts are read once at the end of "
+                             "the pass; False: the synchronous algorithm every pass")
     lca_subtrees: int = param(24, "a tile with more visible subtrees than this traverses their lowest common "
                               "ancestor instead (0 = never)")
     merge_tiles: bool = param(True, "GPU-driven: a pixel's visible subtrees of all tile levels in one record")
@@ -195,14 +199,17 @@ class ChcrtParams:
                               "visit glsl's ~27 nodes against ~14 below their pairs")
     coarse_cull: bool = param(True, "GPU-driven: a compute pass culls the queries whose boxes lie beyond the "
                               "farthest distance any ray of their tile may still reach")
-    cold_full_bvh: bool = param(True, "a front's first (synchronous) pass stops refining once so many finest tiles "
-                                "are over the LCA limits that the GPU-driven pass would trace the whole BVH "
+    cold_full_bvh: bool = param(True, "a front's synchronous refinement stops once so many finest tiles are over "
+                                "the LCA limits that the GPU-driven pass would trace the whole BVH "
                                 "(full_bvh_fraction), or once its query fragments exceed cold_query_budget per "
-                                "ray, and traces every ray with the full traversal instead; the front's later "
-                                "passes do the same (incoherent rays) until the fronts are reset")
-    cold_query_budget: float = param(48.0, "cold_full_bvh: query fragments per active ray after which a front's "
-                                     "first pass stops refining (a full traversal tests about 50-60 boxes per ray; "
-                                     "0 = no budget)")
+                                "ray, and the pass traces every ray with the full traversal instead; the front's "
+                                "later passes do the same (incoherent rays) until the fronts are reset, unless "
+                                "only the budget stopped a coherent refinement (cold_wave_queries): then the next "
+                                "pass refines on (cold_passes)")
+    cold_query_budget: float = param(48.0, "cold_full_bvh: query fragments per active ray of a synchronous pass's "
+                                     "refinement (its waves; the re-queries of the pairs known are not counted) "
+                                     "after which it stops refining (a full traversal tests about 50-60 boxes per "
+                                     "ray; 0 = no budget)")
     cold_passes: int = param(2, "cold_full_bvh: a pass that stopped refining on cold_query_budget, its rays still "
                              "coherent (cold_wave_queries), traces the whole BVH, and the front's next pass goes "
                              "on refining with a fresh budget; after this many such stops every pass traces the "
@@ -225,11 +232,12 @@ class ChcrtParams:
     count_due_only: bool = param(True, "GPU-driven: only the visible pairs whose re-query is due this frame count "
                                  "the rays that enter them (the others' counts are never read; each count is a "
                                  "shader atomic per entered pair and ray); False: every visible pair counts")
-    device_front: bool = param(True, "GPU-driven (with merge_tiles and lca_invisible): after its first pass a front "
-                               "lives on the device, and each pass plans its records, culls, draws and refines "
-                               "the front in a fixed chain of dispatches and indirect draws, with nothing read "
-                               "back in the pass (statistics arrive after the frame); False: the host plans the "
-                               "records and reads the counts back at the end of every pass")
+    device_front: bool = param(True, "GPU-driven (with merge_tiles and lca_invisible): once its synchronous "
+                               "refinement is done (its first pass, or cold_passes) a front lives on the device, "
+                               "and each pass plans its records, culls, draws and refines the front in a fixed "
+                               "chain of dispatches and indirect draws, with nothing read back in the pass "
+                               "(statistics arrive after the frame); False: the host plans the records and reads "
+                               "the counts back at the end of every pass")
     merge_kept: bool = param(True, "device fronts (with cull_sublevels=0): the cull runs before the visible pairs' "
                              "draw, and a tile with one visible record and at most max_batch kept invisible pairs "
                              "tests them in that record's fragments, after its visible pairs (one fragment per ray "
@@ -660,7 +668,8 @@ class _Pass:
         # the split rule's t_q of this front (times t_q_primary for camera rays)
         self.t_q = self.p.t_q * (self.p.t_q_primary if ray_type == RayType.PRIMARY else 1.0)
         self.overlays = bool(self.p.overdraw_overlay and be.overlays_enabled)
-        # GPU-driven steady state: a front's first pass runs the synchronous algorithm (builds the front)
+        # GPU-driven steady state: a front's first pass (and its next ones while its refinement is
+        # unfinished, cold_passes) runs the synchronous algorithm (builds the front)
         self.gpu = be.gpu_driven and front.frames > 0 and not front.cold
         self.culled = False  # this pass's queries went through the coarse cull (stats read late)
         self.n_survivor_groups = 0
@@ -1281,7 +1290,7 @@ class _Pass:
             iostats.to_device(4 * (nslots + 3))
             be.gpu_counts.bind_to_storage_buffer(BIND_CHC_QUERY_COUNTS, COUNT_BYTES, 4 * (nslots + 3))
             inv_copies = None
-            full = f.full_bvh  # the front's first pass found its rays incoherent (cold_full_bvh)
+            full = f.full_bvh  # its synchronous refinement found the rays incoherent (cold_full_bvh)
             if full:
                 pass
             elif self.p.lca_invisible and self.p.merge_tiles:
@@ -1337,15 +1346,15 @@ class _Pass:
         dispatches). Nothing is uploaded or read back; the same launches whatever the tiles, pairs and
         subtrees. With merge_kept the cull runs before the visible records (on the same tile bounds
         as their gap order: one dispatch fewer) and most tiles' kept pairs ride in their visible
-        record (chc_querycull.comp). A pass that traces the whole BVH (its first pass said so:
-        full_bvh, or its last plan: the device front's `full`) only plans, to refresh what the host
+        record (chc_querycull.comp). A pass that traces the whole BVH (its synchronous refinement
+        said so: full_bvh, or its last plan: the device front's `full`) only plans, to refresh what the host
         decides from."""
         be, f, p = self.be, self.front, self.p
         prof = be.bc.profiler
         dv = be.device_fronts()
         level = f.max_level
         n_tiles = 1 << (2 * level)
-        dev = f.device  # attached at the end of its first pass, unless that pass traced the whole BVH
+        dev = f.device  # attached once its refinement was done, unless it found the rays incoherent
         if dev is None and not f.full_bvh:
             dev = f.device = dv.attach(f, n_tiles)
         full = f.full_bvh or dev.full

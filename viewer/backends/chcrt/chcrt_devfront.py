@@ -243,7 +243,8 @@ class DeviceFronts:
 
     # -- fronts -------------------------------------------------------------------------------------
     def attach(self, f: PairFront, tiles: int) -> DeviceFront:
-        """Upload host front `f` (after its first pass) into a new device front; one upload, once."""
+        """Upload host front `f` (once its synchronous refinement is done) into a new device front; one
+        upload, once."""
         if not self.free_slots:
             self._grow_meta()
         slot = self.free_slots.pop()

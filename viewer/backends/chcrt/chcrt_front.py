@@ -150,7 +150,7 @@ class PairFront:
         # incoherent rays: a synchronous pass found them so (chcrt cold_full_bvh); every pass traces the
         # whole BVH, the front is not refined further
         self.full_bvh = False
-        # the front's copy on the device once its first pass is done (chcrt_devfront.DeviceFront); the
+        # the front's copy on the device once its refinement is done (chcrt_devfront.DeviceFront); the
         # arrays here are then no longer updated
         self.device: object | None = None
         self._append(np.zeros(1, np.int8), np.zeros(1, np.int32), np.zeros(1, np.int32),
