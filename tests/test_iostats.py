@@ -146,11 +146,17 @@ def test_panel_and_bench_summary_show_the_counters():
     c = IoCounts(bytes_to_device=4 * 100, bytes_to_host=32 * 100, host_syncs=7, cl_launches=9, gl_draws=2)
     lines = io_lines(c, (10, 10))
     assert "4.0 B/px" in lines[0] and "32.0 B/px" in lines[1] and "host syncs 7" in lines[2]
-    rows = [{"gpu_ms": {"a": 1.0}, "wall_ms": 2.0, "rays": {}, "mrays_per_s": {"all": 0.0},
-             "io": IoCounts(bytes_to_device=b).as_dict()} for b in (999, 400, 600)]
+    rows = [{"gpu_ms": {"a": t}, "wall_ms": 2.0, "rays": {"primary": 1}, "mrays_per_s": {"all": 0.0, "primary": 0.0},
+             "trace_ms": t, "trace_ms_by_ray": {"primary": t},
+             "io": IoCounts(bytes_to_device=b).as_dict()} for b, t in ((999, 90.0), (400, 7.0), (600, 3.0), (500, 5.0))]
     s = summarize(rows)
     assert s["io_mean"]["bytes_to_device"] == 500  # steady frames: the first is left out
+    # steady times: the median of the frames after the first (a cold frame would skew a mean)
+    assert s["steady_frames"] == 3 and s["steady_trace_ms_median"] == 5.0, s
+    assert s["steady_trace_ms_by_ray_median"] == {"primary": 5.0} and s["steady_frame_gpu_ms_median"] == 5.0
+    assert s["frame_gpu_ms_mean"] == 26.25
     out = pyio.StringIO()
     print_summary({"summary": s, "size": [10, 10], "scene_name": "x", "triangles": 1, "backend": "b",
                    "device": {"renderer": "r"}}, out)
     assert "I/O per steady frame: to device 0.00 MB (5.0 B/px)" in out.getvalue()
+    assert "steady (median of the 3 frames after the first): GPU 5.0 ms, trace 5.0 ms (primary 5.0)" in out.getvalue()

@@ -208,6 +208,11 @@ def _mean(values) -> float:
     return float(np.mean(vals)) if vals else float("nan")
 
 
+def _median(values) -> float:
+    vals = [v for v in values if v is not None and np.isfinite(v)]
+    return float(np.median(vals)) if vals else float("nan")
+
+
 def summarize(records: list[dict]) -> dict:
     phases = sorted({p for r in records for p in r["gpu_ms"]})
     rays = sorted({p for r in records for p in r["rays"]})
@@ -220,6 +225,15 @@ def summarize(records: list[dict]) -> dict:
     steady = [r["io"] for r in records[1:] if "io" in r] or [r["io"] for r in records if "io" in r]
     if steady:  # steady frames: the first one also uploads, builds and compiles
         s["io_mean"] = {k: _mean(io[k] for io in steady) for k in steady[0]}
+    # steady times: medians over the frames after the first, which may still build a backend's
+    # temporal state (the warm-up frame before it builds most of it) and so is no steady frame
+    later = [r for r in records[1:] if "trace_ms" in r]
+    if later:
+        s["steady_frames"] = len(later)
+        s["steady_frame_gpu_ms_median"] = _median(sum(r["gpu_ms"].values()) for r in later)
+        s["steady_trace_ms_median"] = _median(r["trace_ms"] for r in later)
+        s["steady_trace_ms_by_ray_median"] = {p: _median(r.get("trace_ms_by_ray", {}).get(p) for r in later)
+                                              for p in rays}
     checked = [r for r in records if "error" in r]
     if checked:
         s["error"] = {}
@@ -243,6 +257,11 @@ def print_summary(report: dict, out=None) -> None:
     print(f"\n{report['scene_name']} ({report['triangles']:,} tris)  backend={report['backend']}  "
           f"{w}x{h}  {s['frames']} frames  device: {report['device']['renderer']}", file=out)
     print(f"  frame: GPU {s['frame_gpu_ms_mean']:.1f} ms   wall {s['wall_ms_mean']:.1f} ms", file=out)
+    if "steady_frames" in s:
+        by_ray = ", ".join(f"{p} {v:.1f}" for p, v in s["steady_trace_ms_by_ray_median"].items())
+        print(f"  steady (median of the {s['steady_frames']} frames after the first): GPU "
+              f"{s['steady_frame_gpu_ms_median']:.1f} ms, trace {s['steady_trace_ms_median']:.1f} ms"
+              + (f" ({by_ray})" if by_ray else ""), file=out)
     print(f"  {'phase':<22}{'GPU ms':>10}", file=out)
     for p, v in s["gpu_ms_mean"].items():
         print(f"  {p:<22}{v:>10.2f}", file=out)
