@@ -286,8 +286,9 @@ def test_panel_and_annotations_draw_headless(chc, gl_ctx, city):
     hist, vtx, _ = draw_views(r, cam, ("query_overdraw", "subtree_batches", "final"))
     assert min(vtx.values()) > 1000
     names, table = hist.phase_table()
-    assert names == ["chc:1-intersect-visible", "chc:2-queries", "chc:3-traversal", "chc:4-final-intersect"]
-    assert table.shape == (4, 3) and (table >= 0).all()
+    assert names == ["chc:0-setup", "chc:1-intersect-visible", "chc:2-queries", "chc:3-traversal",
+                     "chc:4-final-intersect"]
+    assert table.shape == (5, 3) and (table >= 0).all()
 
 
 @pytest.mark.parametrize("view, traced", [("depth", "none"), ("triangle_id", "none"), ("shadows", "shadows"),

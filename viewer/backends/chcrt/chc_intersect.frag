@@ -5,7 +5,8 @@
 // writes depth 0 and is finished.
 //
 // Scheduled BVH leaves the ray enters are intersected first; the inner subtree roots it enters
-// start on the traversal stack, sorted so that the nearest is on top, and ONE traverseBVH-style
+// start on the traversal stack, sorted so that the nearest is on top (closest-hit rays; an any-hit
+// ray's in the order entered), and ONE traverseBVH-style
 // loop (intersect.glsl: same node order, nearer child first) runs over all of them.
 //
 // Loop limit: Mesa llvmpipe silently ends shader loops after 65,535 loop back-edges per invocation,
@@ -148,8 +149,10 @@ void main() {
             if (it.count > 0) {  // a scheduled BVH leaf: intersect it now
                 if (visitLeaf(r, it.ref, it.count, tmin, hit) && any) done = true;
             } else {
+                // nearest entry on top for closest-hit rays; an any-hit ray may take its subtrees in
+                // any order, and skipping the insertion is 3-4 % of an AO pass's draw on llvmpipe
                 int j = sp;
-                while (j > 0 && stackT[j - 1] < te) { stackT[j] = stackT[j - 1]; stackNode[j] = stackNode[j - 1]; --j; }
+                while (!any && j > 0 && stackT[j - 1] < te) { stackT[j] = stackT[j - 1]; stackNode[j] = stackNode[j - 1]; --j; }
                 stackT[j] = te;
                 stackNode[j] = it.ref;
                 ++sp;

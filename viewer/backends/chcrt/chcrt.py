@@ -3,6 +3,9 @@ culling for ray tracing, with the rasterizer's occlusion queries.
 
 Query pairs are (screen tile, BVH node) (see chcrt_front.py). Per pass (Algorithm 1 of the paper):
 
+0. ``chc:0-setup`` (the GPU-driven pass on a device front only): the device plans the pass, the
+   init draw clears the hit buffers and counts the rays, and (merge_kept) the tile bounds and the
+   cull of the invisible pairs run; what follows is the records' draws.
 1. ``chc:1-intersect-visible``: clear, then intersect the pairs that were visible last frame
    (their scheduled subtrees, batched by tile, up to `max_batch` per draw). This primes the
    depth buffer with this frame's rays and geometry, so everything after it stays exact.
@@ -365,7 +368,7 @@ class _Targets:
                 obj.release()
 
 
-PHASES = ("chc:1-intersect-visible", "chc:2-queries", "chc:3-traversal", "chc:4-final-intersect")
+PHASES = ("chc:0-setup", "chc:1-intersect-visible", "chc:2-queries", "chc:3-traversal", "chc:4-final-intersect")
 COUNTERS = ("queries", "multi_queries", "failed_multi_queries", "visible_pairs", "invisible_pairs",
             "subtrees_scheduled", "draws", "rays", "upload_bvh_mb", "upload_geom_mb")
 
@@ -713,6 +716,7 @@ class _Pass:
         fbo.depth_mask = True
         ctx.enable(moderngl.DEPTH_TEST)
         ctx.depth_func = "1"
+        self.be.prog_init["countOverlays"] = int(self.overlays)
         self.be.quad.render(self.be.prog_init)  # draws through FullscreenQuad are counted there
         # the next draws prune with bestBits and count into the images and SSBOs this one reset:
         # without the barrier a GPU may run them on last pass's values (llvmpipe runs in order)
@@ -1370,7 +1374,7 @@ class _Pass:
         merge = be.merge_kept and sub == 0 and not full
         common = dict(ray_slots=COUNT_SLOTS, frame=self.frame_number(), max_level=level, threshold=self.threshold,
                       requery_interval=p.requery_interval, seed=p.seed, report=report)
-        with prof.phase("chc:1-intersect-visible"):
+        with prof.phase("chc:0-setup"):
             if dev is None:
                 dv.clear(be.gpu_counts, be.query_indirect, ray_slots=COUNT_SLOTS, capacity=0)
                 self.stats["draws"] += 1
@@ -1388,6 +1392,8 @@ class _Pass:
                 self.stats["draws"] += 1
                 iostats.gl_draw()
                 self._cull_device(dv, dev, level, sub, merge=True)
+            self._sync()
+        with prof.phase("chc:1-intersect-visible"):
             if not full:
                 self._draw_device_visible(dv, level, n_tiles, bounds_ready=merge, merge=merge)
             self._sync()
