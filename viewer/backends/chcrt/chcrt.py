@@ -622,12 +622,15 @@ class ChcrtBackend:
         self.work.begin()
         self.finisher.bind_flags(size)
         stats = tr.run()
-        fin = self.finisher.run(rays, pinfo, hits, resume_only=True)
+        # the rays handed over at the loop limit, and the hint copy: tracing work, timed with the
+        # pass's last phase (phases of one name add up) rather than left to the next phase's wait
+        with self.bc.profiler.phase("chc:4-final-intersect"):
+            fin = self.finisher.run(rays, pinfo, hits, resume_only=True)
+            if self.use_hints:
+                self._keep_hint(key, hits)
         stats["resumed_rays"] = fin["resumed_rays"]
         stats["continuation_draws"] = fin["draws"]
         stats.update(self.work.end())
-        if self.use_hints:
-            self._keep_hint(key, hits)
         front.frames += 1
         self.last_stats = stats
         return TraceResult(stats=stats, overlays={"query_overdraw": self.targets.overdraw,
