@@ -418,7 +418,9 @@ class ChcrtBackend:
         # rays that would reach llvmpipe's loop limit are finished by the glsl resumable traversal;
         # it counts into the same work counters (full-BVH passes and resumed rays are work too)
         self.finisher = ResumableTraversal(bc, self.work)
-        items_loops = self.p.max_batch * (self.finisher.max_leaf + self.p.max_batch + 2)  # scheduled items, sort
+        # per scheduled item: the item loop, its stack insertion, its leaf's triangles and the entered
+        # leaves' loop after the item loop
+        items_loops = self.p.max_batch * (self.finisher.max_leaf + self.p.max_batch + 3)
         # no loop limit (not llvmpipe): no ray is handed over, the finisher never reads its counter
         visits = (max_visits(self.finisher.max_leaf, stack, items_loops, limit=self.finisher.limit)
                   if self.finisher.limit is not None else len(self.nt.left) + 1)
@@ -427,7 +429,7 @@ class ChcrtBackend:
         stack_g, visits_g = stack, visits
         if self.merge_kept:
             stack_g = stack + self.p.max_batch
-            items_loops_g = items_loops + self.p.max_batch * (self.finisher.max_leaf + 2 * self.p.max_batch + 2)
+            items_loops_g = items_loops + self.p.max_batch * (self.finisher.max_leaf + 2 * self.p.max_batch + 3)
             visits_g = (max_visits(self.finisher.max_leaf, stack_g, items_loops_g, limit=self.finisher.limit)
                         if self.finisher.limit is not None else visits)
         self.prog_isect = progs.get("fullscreen.vert", "chc_intersect.frag",
