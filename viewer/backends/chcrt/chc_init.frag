@@ -1,6 +1,6 @@
 // CHC+RT: start of a pass. Clears the hit buffer and the subtree overlay (colour outputs), the
-// overdraw and batch overlays (while overlays are on) and bestBits (images), sets the depth (1 = active ray, 0 = no ray) and counts
-// active rays.
+// overdraw and batch overlays (while overlays are on) and bestBits (images), sets the depth
+// (1 = active ray, 0 = no ray) and counts active rays.
 #include "chc_common.glsl"
 layout(std430, binding = BIND_CHC_COUNT) buffer ChcCount { uint chcActive[]; };
 uniform int countOverlays;  // the overlay images are only written (and so cleared) while overlays are on

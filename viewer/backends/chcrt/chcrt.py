@@ -6,9 +6,10 @@ Query pairs are (screen tile, BVH node) (see chcrt_front.py). Per pass (Algorith
 0. ``chc:0-setup`` (the GPU-driven pass on a device front only): the device plans the pass, the
    init draw clears the hit buffers and counts the rays, and (merge_kept) the tile bounds and the
    cull of the invisible pairs run; what follows is the records' draws.
-1. ``chc:1-intersect-visible``: clear, then intersect the pairs that were visible last frame
-   (their scheduled subtrees, batched by tile, up to `max_batch` per draw). This primes the
-   depth buffer with this frame's rays and geometry, so everything after it stays exact.
+1. ``chc:1-intersect-visible``: clear (device fronts: in phase 0), then intersect the pairs that
+   were visible last frame (their scheduled subtrees, batched by tile, up to `max_batch` per draw).
+   This primes the depth buffer with this frame's rays and geometry, so everything after it stays
+   exact.
 2. ``chc:2-queries``: query the pairs that were invisible last frame; the invisible pairs of one
    tile share multi-queries (up to `max_multi` pairs per draw; a failed multi-query is repeated
    pair by pair). Visible leaves are re-queried every `requery_interval` frames (random phase).
@@ -20,7 +21,9 @@ Query pairs are (screen tile, BVH node) (see chcrt_front.py). Per pass (Algorith
    boxes lie inside its own box of the parent's query (a child tile: inside both), and the nearest
    hits only shrink, so no pixel outside can pass (same counts, far fewer query fragments:
    sibenik's cold 320x180 frame 78.3M -> 28.7M, its CPU time 9.3-9.7 s -> 5.3-5.5 s).
-4. ``chc:4-final-intersect``: the remaining scheduled pairs.
+4. ``chc:4-final-intersect``: the remaining scheduled pairs (device fronts: the pass's counts and
+   the refinement); in every pass also the rays handed over at llvmpipe's loop limit and the copy
+   of the hit hints.
 
 Then invisibility is pulled up one level (siblings that are all invisible are merged).
 
@@ -35,7 +38,8 @@ distance (shared edges, coplanar overlaps), where the winner depends on the visi
 glsl too. Any-hit rays agree on hit/miss (which occluder is reported depends on the order).
 See chc_intersect.frag for llvmpipe's loop limit and how rays that would reach it are finished.
 
-Overlays (TraceResult.overlays, R32I at the ray-batch size, overwritten by the next pass):
+Overlays (TraceResult.overlays, R32I at the ray-batch size, overwritten by the next pass while
+overlays are wanted, `overlays_enabled`; left as they are otherwise):
 ``query_overdraw`` (query fragments per pixel, imageAtomicAdd) and ``subtree_id`` (canonical BVH
 node of the scheduled subtree that produced the pixel's hit, -1 for none). Counters: see
 ``_Pass.stats`` (the spec's eight plus per-tile batch counts, waves, re-queries, pull-ups).
@@ -626,10 +630,13 @@ class ChcrtBackend:
         stats = tr.run()
         # the rays handed over at the loop limit, and the hint copy: tracing work, timed with the
         # pass's last phase (phases of one name add up) rather than left to the next phase's wait
-        with self.bc.profiler.phase("chc:4-final-intersect"):
+        if self.finisher.limit is None and not self.use_hints:  # nothing to hand over, no hints: no phase
             fin = self.finisher.run(rays, pinfo, hits, resume_only=True)
-            if self.use_hints:
-                self._keep_hint(key, hits)
+        else:
+            with self.bc.profiler.phase("chc:4-final-intersect"):
+                fin = self.finisher.run(rays, pinfo, hits, resume_only=True)
+                if self.use_hints:
+                    self._keep_hint(key, hits)
         stats["resumed_rays"] = fin["resumed_rays"]
         stats["continuation_draws"] = fin["draws"]
         stats.update(self.work.end())
@@ -721,7 +728,8 @@ class _Pass:
         fbo.depth_mask = True
         ctx.enable(moderngl.DEPTH_TEST)
         ctx.depth_func = "1"
-        self.be.prog_init["countOverlays"] = int(self.overlays)
+        # the overlay images are cleared whenever the renderer wants overlays (shown, even if uncounted)
+        self.be.prog_init["countOverlays"] = int(self.be.overlays_enabled)
         self.be.quad.render(self.be.prog_init)  # draws through FullscreenQuad are counted there
         # the next draws prune with bestBits and count into the images and SSBOs this one reset:
         # without the barrier a GPU may run them on last pass's values (llvmpipe runs in order)
