@@ -173,13 +173,22 @@ void traverseBVH(RayPre r, int root, float tmin, bool anyHit, inout Hit hit) {
         float tl, tr;
         bool hl = intersectBox(r, nd.lmin, nd.lmax, tmin, hit.t, tl);
         bool hr = intersectBox(r, nd.rmin, nd.rmax, tmin, hit.t, tr);
-        if (hl && nd.left < 0) {
-            hl = false;
-            if (intersectLeaf(r, ~nd.left, nd.lcount, tmin, hit) && anyHit) return;
-        }
-        if (hr && nd.right < 0) {
-            hr = false;
-            if (intersectLeaf(r, ~nd.right, nd.rcount, tmin, hit) && anyHit) return;
+        // both entered leaf children in ONE triangle loop: a SIMD group then waits for its longest
+        // sum, not for its longest left leaf and then its longest right one
+        int lc = hl && nd.left < 0 ? nd.lcount : 0;
+        int rc = hr && nd.right < 0 ? nd.rcount : 0;
+        hl = hl && nd.left >= 0;
+        hr = hr && nd.right >= 0;
+        for (int i = 0; i < lc + rc; ++i) {
+            int slot = i < lc ? ~nd.left + i : ~nd.right + (i - lc);
+            Tri tri = tris[slot];
+            WORK(workTri);
+            float th; vec2 bh;
+            if (intersectTriangle(r, tri.v0, tri.v1, tri.v2, tmin, hit.t, th, bh)) {
+                hit.t = th;
+                hit.id = slot;
+                if (anyHit) return;
+            }
         }
         hl = hl && tl <= hit.t;
         hr = hr && tr <= hit.t;
