@@ -160,6 +160,32 @@ bool intersectLeaf(RayPre r, int first, int count, float tmin, inout Hit hit) {
     return found;
 }
 
+// The entered leaf children of node `nd` (hl, hr: their boxes were entered), in ONE triangle loop:
+// a SIMD group then waits for its longest sum, not for its longest left leaf and then its longest
+// right one (city-near 1280x720 on llvmpipe: glsl 0.8x its time). Clears hl / hr for leaf children
+// (nothing to push); with anyHit it stops at the first hit. Returns true if a triangle was hit.
+bool intersectLeafChildren(RayPre r, Node nd, inout bool hl, inout bool hr, float tmin, bool anyHit,
+                           inout Hit hit) {
+    int lc = hl && nd.left < 0 ? nd.lcount : 0;
+    int rc = hr && nd.right < 0 ? nd.rcount : 0;
+    hl = hl && nd.left >= 0;
+    hr = hr && nd.right >= 0;
+    bool found = false;
+    for (int i = 0; i < lc + rc; ++i) {
+        int slot = i < lc ? ~nd.left + i : ~nd.right + (i - lc);
+        Tri tri = tris[slot];
+        WORK(workTri);
+        float t; vec2 b;
+        if (intersectTriangle(r, tri.v0, tri.v1, tri.v2, tmin, hit.t, t, b)) {
+            hit.t = t;
+            hit.id = slot;
+            found = true;
+            if (anyHit) break;
+        }
+    }
+    return found;
+}
+
 // Stack traversal of the subtree rooted at inner node `root` (nearer child first). With anyHit
 // it stops at the first hit (shadow and AO rays). hit.t must hold tmax on entry.
 void traverseBVH(RayPre r, int root, float tmin, bool anyHit, inout Hit hit) {
@@ -173,23 +199,7 @@ void traverseBVH(RayPre r, int root, float tmin, bool anyHit, inout Hit hit) {
         float tl, tr;
         bool hl = intersectBox(r, nd.lmin, nd.lmax, tmin, hit.t, tl);
         bool hr = intersectBox(r, nd.rmin, nd.rmax, tmin, hit.t, tr);
-        // both entered leaf children in ONE triangle loop: a SIMD group then waits for its longest
-        // sum, not for its longest left leaf and then its longest right one
-        int lc = hl && nd.left < 0 ? nd.lcount : 0;
-        int rc = hr && nd.right < 0 ? nd.rcount : 0;
-        hl = hl && nd.left >= 0;
-        hr = hr && nd.right >= 0;
-        for (int i = 0; i < lc + rc; ++i) {
-            int slot = i < lc ? ~nd.left + i : ~nd.right + (i - lc);
-            Tri tri = tris[slot];
-            WORK(workTri);
-            float th; vec2 bh;
-            if (intersectTriangle(r, tri.v0, tri.v1, tri.v2, tmin, hit.t, th, bh)) {
-                hit.t = th;
-                hit.id = slot;
-                if (anyHit) return;
-            }
-        }
+        if (intersectLeafChildren(r, nd, hl, hr, tmin, anyHit, hit) && anyHit) return;
         hl = hl && tl <= hit.t;
         hr = hr && tr <= hit.t;
         if (hl && hr) {

@@ -65,25 +65,8 @@ void main() {
         float tl, tr;
         bool hl = intersectBox(r, nd.lmin, nd.lmax, tmin, hit.t, tl);
         bool hr = intersectBox(r, nd.rmin, nd.rmax, tmin, hit.t, tr);
-        // both entered leaf children in ONE triangle loop: a SIMD group then waits for its longest
-        // sum, not for its longest left leaf and then its longest right one
-        int lc = hl && nd.left < 0 ? nd.lcount : 0;
-        int rc = hr && nd.right < 0 ? nd.rcount : 0;
-        hl = hl && nd.left >= 0;
-        hr = hr && nd.right >= 0;
-        bool leafHit = false;
-        for (int i = 0; i < lc + rc; ++i) {
-            int slot = i < lc ? ~nd.left + i : ~nd.right + (i - lc);
-            Tri tri = tris[slot];
-            WORK(workTri);
-            float th; vec2 bh;
-            if (intersectTriangle(r, tri.v0, tri.v1, tri.v2, tmin, hit.t, th, bh)) {
-                hit = Hit(th, slot);
-                leafHit = true;
-                if (any) break;
-            }
-        }
-        if (leafHit && any) { done = true; break; }
+        // both entered leaf children in one triangle loop (intersect.glsl)
+        if (intersectLeafChildren(r, nd, hl, hr, tmin, any, hit) && any) { done = true; break; }
         hl = hl && tl <= hit.t;
         hr = hr && tr <= hit.t;
         if (hl && hr) {
