@@ -1,16 +1,20 @@
 // CHC+RT intersection: the pixels of a tile traverse up to CHC_MAX_ITEMS scheduled subtrees (BVH
-// inner nodes, or leaves), nearest box entry first, with a stack bounded by the subtree height
-// (STACK_SIZE = batch size + maximum subtree height). The hit is output through the depth test
-// (LESS on key(t)), so only a hit nearer than the pixel's current one is written; an any-hit ray
-// writes depth 0 and is finished.
+// inner nodes, or leaves) with a stack bounded by the subtree height (STACK_SIZE = the maximum
+// subtree height, or the tree's, + 2). The hit is output through the depth test (LESS on key(t)), so
+// only a hit nearer than the pixel's current one is written; an any-hit ray writes depth 0 and is
+// finished.
 //
-// Scheduled BVH leaves the ray enters are intersected after the item loop, before the traversal (a
-// triangle loop inside the item loop made every lane of a SIMD group wait for the lanes that entered
-// a leaf: the visible records' draw of city-near primary+ao:4 at 1280x720 took 6 % longer on
-// llvmpipe, median of five alternated pairs of runs). The inner subtree roots it enters start on the
-// traversal stack, sorted so that the nearest is on top (closest-hit rays; an any-hit ray's in the
-// order entered), and ONE traverseBVH-style loop (intersect.glsl: same node order, nearer child
-// first) runs over all of them.
+// The item loop only tests the items' boxes and marks the entered ones in bit masks. Scheduled BVH
+// leaves the ray enters are intersected after it, before the traversal (a triangle loop inside the
+// item loop made every lane of a SIMD group wait for the lanes that entered a leaf: the visible
+// records' draw of city-near primary+ao:4 at 1280x720 took 6 % longer on llvmpipe, median of five
+// alternated pairs of runs). The inner subtree roots it entered are then taken one by one from their
+// mask, in the record's order (closest-hit passes: by gap, near to far; own items before merged kept
+// pairs), by ONE traverseBVH-style loop (intersect.glsl: same node order, nearer child first) that
+// starts the next root whenever its stack runs empty. Nothing of the items goes on the stack: an
+// insertion sort by entry distance there (per-lane indices: scatters and gathers on llvmpipe) cost
+// 8-9 % of the visible records' draw against this order (city-near 1280x720, primary and ao:4, two
+// alternated pairs of runs); a root whose box now lies beyond the hit costs one node visit.
 //
 // Loop limit: Mesa llvmpipe silently ends shader loops after 65,535 loop back-edges per invocation,
 // one counter shared by every loop of the shader (per SIMD vector of fragments); once it is spent,
@@ -67,6 +71,16 @@ flat in int vKeptCount;
 layout(std430, binding = BIND_CHC_QUERY_COUNTS) buffer ChcQueryCounts { uint chcPassed[]; };
 #endif
 
+// The next entered inner subtree root of a record (own items first, then its merged kept pairs),
+// taken off its mask; -1 when there is none left.
+int nextRoot(inout uint own, inout uint kept, int ownBase, int keptBase) {
+    if ((own | kept) == 0u) return -1;
+    bool o = own != 0u;
+    int i = findLSB(o ? own : kept);
+    if (o) own &= own - 1u; else kept &= kept - 1u;
+    return items[o ? ownBase + i : keptBase + i].ref;
+}
+
 void main() {
     ivec2 px = ivec2(gl_FragCoord.xy);
     if (countOverlays != 0) imageAtomicAdd(batchSubtrees, px, ITEM_COUNT + KEPT_COUNT);
@@ -117,6 +131,7 @@ void main() {
     uint enteredMask = 0u;  // counted items whose box the ray entered (counted after the traversal)
     uint keptMask = 0u;  // the same for the merged kept pairs
     uint leafMask = 0u, leafKept = 0u;  // entered BVH leaves among the items (own, kept)
+    uint rootOwn = 0u, rootKept = 0u;  // entered inner subtree roots (own, kept), traversed in item order
 #ifdef CHC_COUNT_ITEMS
     // gap_order: a record holds its items sorted by gap, a lower bound of the distance from every ray
     // origin of the tile to the box (invisible pairs: chc_querycull.comp; visible: chc_visorder.comp):
@@ -128,13 +143,13 @@ void main() {
     const bool byGap = false;
     const float dlen = 0.0;
 #endif
-    // the record's items, then its merged kept pairs (GPU-driven builds only): one loop, one stack
+    // the record's items, then its merged kept pairs (GPU-driven builds only): one loop, one set of masks
     int total = ITEM_COUNT + KEPT_COUNT;
     for (int k = done ? total : 0; k < total; ++k) {
         bool own = KEPT_COUNT == 0 || k < ITEM_COUNT;  // (a constant without merge_kept: the loop folds to the own items')
         // (an any-hit ray finished by its hint tests no item; one finished later, in a leaf or the
         // traversal, counts the kept pairs it entered before that hit)
-        int i = own ? (byGap ? k : ITEM_COUNT - 1 - k) : k - ITEM_COUNT;  // else the farthest at the stack's bottom
+        int i = own ? k : k - ITEM_COUNT;
         ChcItem it = items[own ? ITEM_BASE + i : KEPT_BASE + i];
         if (byGap && it.gap > hit.t * dlen) {
             if (!own || KEPT_COUNT == 0) break;
@@ -152,13 +167,8 @@ void main() {
                 if (own) leafMask |= 1u << uint(i);
                 else leafKept |= 1u << uint(i);
             } else {
-                // nearest entry on top for closest-hit rays; an any-hit ray may take its subtrees in
-                // any order, and skipping the insertion is 3-4 % of an AO pass's draw on llvmpipe
-                int j = sp;
-                while (!any && j > 0 && stackT[j - 1] < te) { stackT[j] = stackT[j - 1]; stackNode[j] = stackNode[j - 1]; --j; }
-                stackT[j] = te;
-                stackNode[j] = it.ref;
-                ++sp;
+                if (own) rootOwn |= 1u << uint(i);
+                else rootKept |= 1u << uint(i);
             }
         }
     }
@@ -171,12 +181,8 @@ void main() {
         ChcItem it = items[o ? ITEM_BASE + i : KEPT_BASE + i];
         if (visitLeaf(r, it.ref, it.count, tmin, hit) && any) done = true;
     }
-    if (done) sp = 0;
-    int ni = -1;
-    while (sp > 0 && ni < 0) {
-        --sp;
-        if (stackT[sp] <= hit.t) ni = stackNode[sp];
-    }
+    if (done) { rootOwn = 0u; rootKept = 0u; }
+    int ni = nextRoot(rootOwn, rootKept, ITEM_BASE, KEPT_BASE);
     int visits = 0;
     bool handOver = false;
     while (ni >= 0) {
@@ -221,7 +227,10 @@ void main() {
                 --sp;
                 if (stackT[sp] <= hit.t) { ni = stackNode[sp]; found = true; break; }
             }
-            if (!found) break;
+            if (!found) {  // this subtree is done: the next entered root
+                ni = nextRoot(rootOwn, rootKept, ITEM_BASE, KEPT_BASE);
+                if (ni < 0) break;
+            }
         }
     }
 #ifdef CHC_COUNT_ITEMS

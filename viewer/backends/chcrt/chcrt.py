@@ -400,8 +400,9 @@ class ChcrtBackend:
         progs = bc.programs.with_path(HERE)
         self.work = WorkCounters(self.ctx)
         wd = {**self.work.defines, **BINDINGS}
-        # subtrees found visible by the GPU-driven pass, and lowest common ancestors, can be as high as the tree
-        stack = self.p.max_batch + max(self.p.max_subtree_height, int(self.nt.height[0]), 1) + 2
+        # one subtree at a time is on the traversal stack (chc_intersect.frag); subtrees found visible by
+        # the GPU-driven pass, and lowest common ancestors, can be as high as the tree
+        stack = max(self.p.max_subtree_height, int(self.nt.height[0]), 1) + 2
         # GPU-driven steady state (ChcrtParams.gpu_driven); device fronts are made on the first steady
         # pass (ChcrtParams.device_front): their SSBO binding points go up to 33, a driver with fewer
         # keeps the host-planned fronts. merge_kept needs device fronts: only then do the counting
@@ -422,19 +423,17 @@ class ChcrtBackend:
         # rays that would reach llvmpipe's loop limit are finished by the glsl resumable traversal;
         # it counts into the same work counters (full-BVH passes and resumed rays are work too)
         self.finisher = ResumableTraversal(bc, self.work)
-        # per scheduled item: the item loop, its stack insertion, its leaf's triangles and the entered
-        # leaves' loop after the item loop
-        items_loops = self.p.max_batch * (self.finisher.max_leaf + self.p.max_batch + 3)
+        # per scheduled item: the item loop, its leaf's triangles and the entered leaves' loop after the
+        # item loop, and the query counts' loop
+        items_loops = self.p.max_batch * (self.finisher.max_leaf + 3)
         # no loop limit (not llvmpipe): no ray is handed over, the finisher never reads its counter
         visits = (max_visits(self.finisher.max_leaf, stack, items_loops, limit=self.finisher.limit)
                   if self.finisher.limit is not None else len(self.nt.left) + 1)
-        # the counting program's visible records may carry as many kept pairs again (merge_kept): more
-        # items on the stack, and a second item loop whose insertions go twice as deep
-        stack_g, visits_g = stack, visits
+        # the counting program's visible records may carry as many kept pairs again (merge_kept): the
+        # item loops run twice as long
+        visits_g = visits
         if self.merge_kept:
-            stack_g = stack + self.p.max_batch
-            items_loops_g = items_loops + self.p.max_batch * (self.finisher.max_leaf + 2 * self.p.max_batch + 3)
-            visits_g = (max_visits(self.finisher.max_leaf, stack_g, items_loops_g, limit=self.finisher.limit)
+            visits_g = (max_visits(self.finisher.max_leaf, stack, 2 * items_loops, limit=self.finisher.limit)
                         if self.finisher.limit is not None else visits)
         self.prog_isect = progs.get("fullscreen.vert", "chc_intersect.frag",
                                     {"CHC_MAX_ITEMS": self.p.max_batch, "STACK_SIZE": stack, "CHC_MAX_VISITS": visits,
@@ -449,7 +448,7 @@ class ChcrtBackend:
         self.vao_isect_b = self.ctx.vertex_array(self.prog_isect_b, [])
         # GPU-driven: the same intersection, counting box entries into the pairs' slots (the queries)
         self.prog_isect_g = progs.get("chc_tile.vert", "chc_intersect.frag",
-                                      {"CHC_MAX_ITEMS": self.p.max_batch, "CHC_BATCHED": 1, "STACK_SIZE": stack_g,
+                                      {"CHC_MAX_ITEMS": self.p.max_batch, "CHC_BATCHED": 1, "STACK_SIZE": stack,
                                        "CHC_MAX_VISITS": visits_g, "CHC_COUNT_ITEMS": 1, **iwd, **self.merge_defs})
         self.vao_isect_g = self.ctx.vertex_array(self.prog_isect_g, [])
         for prog in (self.prog_init, self.prog_query, self.prog_isect, self.prog_gather, self.prog_query_b,
