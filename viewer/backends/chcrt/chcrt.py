@@ -927,9 +927,9 @@ class _Pass:
                            f.tx[pairs].astype(np.int64), f.ty[pairs].astype(np.int64))
         sl = np.full(len(pairs), -1, np.int64) if slots is None else np.asarray(slots, np.int64)
         if self.gpu:
-            # the GPU-driven pass never splits a tile into batches (the shader sorts a ray's subtrees
-            # itself); merged, a pixel's subtrees of every tile level are one record: one fragment
-            # traverses them all with one stack and one shrinking tmax
+            # the GPU-driven pass never splits a tile into batches (closest-hit passes order a
+            # record's items by gap on the device: chc_visorder.comp); merged, a pixel's subtrees of
+            # every tile level are one record: one fragment traverses them all with one shrinking tmax
             if self.p.merge_tiles:
                 nd, lvl, tx, ty, sl = _to_finest_tiles(nd, lvl, tx, ty, sl)
             keys = np.zeros(len(nd))
