@@ -144,18 +144,22 @@ bool intersectBox(RayPre r, vec3 bmin, vec3 bmax, float tmin, float tmax, out fl
 
 struct Hit { float t; int id; };
 
+// The triangle in `slot` against the ray, between tmin and the hit so far: a nearer hit replaces
+// `hit` (and returns true). The one triangle test of every loop over leaves.
+bool intersectSlot(RayPre r, int slot, float tmin, inout Hit hit) {
+    Tri tri = tris[slot];
+    WORK(workTri);
+    float t; vec2 b;
+    if (!intersectTriangle(r, tri.v0, tri.v1, tri.v2, tmin, hit.t, t, b)) return false;
+    hit = Hit(t, slot);
+    return true;
+}
+
 // Intersect `count` triangles starting at slot `first`; updates hit, returns true if any was hit.
 bool intersectLeaf(RayPre r, int first, int count, float tmin, inout Hit hit) {
     bool found = false;
     for (int i = 0; i < count; ++i) {
-        Tri tri = tris[first + i];
-        WORK(workTri);
-        float t; vec2 b;
-        if (intersectTriangle(r, tri.v0, tri.v1, tri.v2, tmin, hit.t, t, b)) {
-            hit.t = t;
-            hit.id = first + i;
-            found = true;
-        }
+        if (intersectSlot(r, first + i, tmin, hit)) found = true;
     }
     return found;
 }
@@ -173,12 +177,7 @@ bool intersectLeafChildren(RayPre r, Node nd, inout bool hl, inout bool hr, floa
     bool found = false;
     for (int i = 0; i < lc + rc; ++i) {
         int slot = i < lc ? ~nd.left + i : ~nd.right + (i - lc);
-        Tri tri = tris[slot];
-        WORK(workTri);
-        float t; vec2 b;
-        if (intersectTriangle(r, tri.v0, tri.v1, tri.v2, tmin, hit.t, t, b)) {
-            hit.t = t;
-            hit.id = slot;
+        if (intersectSlot(r, slot, tmin, hit)) {
             found = true;
             if (anyHit) break;
         }

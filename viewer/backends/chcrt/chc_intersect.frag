@@ -114,15 +114,7 @@ void main() {
     bool done = false;
     if (useHint != 0 && best == floatBitsToInt(dt.w)) {
         int h = texelFetch(hintId, px, 0).r;
-        if (h >= 0) {
-            Tri tri = tris[h];
-            WORK(workTri);
-            float th; vec2 bh;
-            if (intersectTriangle(r, tri.v0, tri.v1, tri.v2, tmin, hit.t, th, bh)) {
-                hit = Hit(th, h);
-                done = any;
-            }
-        }
+        if (h >= 0 && intersectSlot(r, h, tmin, hit)) done = any;
     }
     int stackNode[STACK_SIZE];
     float stackT[STACK_SIZE];

@@ -23,14 +23,7 @@ bool flushLeaves(RayPre r, float tmin, inout Hit hit) {
         if (k == leafCount[c]) { k = 0; ++c; }  // leaf counts are >= 1: one step suffices
         int slot = leafFirst[c] + k;
         ++k;
-        Tri tri = tris[slot];
-        WORK(workTri);
-        float t; vec2 b;
-        if (intersectTriangle(r, tri.v0, tri.v1, tri.v2, tmin, hit.t, t, b)) {
-            hit.t = t;
-            hit.id = slot;
-            found = true;
-        }
+        if (intersectSlot(r, slot, tmin, hit)) found = true;
     }
     nLeaves = 0;
     leafTotal = 0;
