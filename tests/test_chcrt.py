@@ -121,10 +121,17 @@ def _glsl_frames(ctx, name: str, effects: str) -> list:
     return _GLSL_FRAMES[key]
 
 
+def _front_params(params: str) -> str:
+    """`params` with the work probe off unless they set it: these tests check the fronts' own path in
+    every steady pass, and the probe may send a test scene's passes through the whole BVH (its own
+    tests below set it)."""
+    return params if "work_probe" in params else ",".join(p for p in ("work_probe=0", params) if p)
+
+
 def _render_both(ctx, name: str, effects: str = ALL, params: str = ""):
     scene, bvh, path = _load(name)
     ref = _glsl_frames(ctx, name, effects)
-    rc = Renderer(ctx, scene, bvh, SIZE, "chcrt", parse_effects(effects), {"chcrt": params})
+    rc = Renderer(ctx, scene, bvh, SIZE, "chcrt", parse_effects(effects), {"chcrt": _front_params(params)})
     try:
         return [(a, rc.render(cam, capture=True)) for a, cam in zip(ref, path, strict=True)], scene, bvh
     finally:
@@ -572,8 +579,9 @@ def test_submission_does_not_grow_with_the_image(gl_ctx):
     on them), and min_tile_fraction=0.0009 gives the same 1,024 finest tiles (level 5) as 1280x720
     did, at a quarter of the pixels (the test took 26 s of the suite at 1280x720)."""
     assert max_tile_level((640, 360), 0.0009) == max_tile_level((320, 180), 0.015) + 2  # 16x the tiles
-    small, small_syncs = _submission_counts(gl_ctx, (320, 180), "")
-    big, big_syncs = _submission_counts(gl_ctx, (640, 360), "min_tile_fraction=0.0009")
+    # (the work probe off: the fronts' own passes at both sizes, not a whole-BVH pass at one of them)
+    small, small_syncs = _submission_counts(gl_ctx, (320, 180), "work_probe=0")
+    big, big_syncs = _submission_counts(gl_ctx, (640, 360), "work_probe=0,min_tile_fraction=0.0009")
     assert 0 < big <= 1.3 * small, (small, big)
     # the frame's waits (the profiler's per-phase finishes on llvmpipe, the G-buffer and shade passes,
     # chcrt's one count read per pass) are a fixed number: 16x the tiles adds none
@@ -593,7 +601,7 @@ def _walk(ctx, params: str, effects: str, frames: int = 6, backend: str = "chcrt
     cam0 = path[0]
     cams = [Camera(cam0.position + np.array([0.9 * i, 0.25 * i, -2.5 * i]), cam0.orientation, cam0.fov_y)
             for i in range(frames)]
-    r = Renderer(ctx, scene, bvh, SIZE, backend, parse_effects(effects), {"chcrt": params})
+    r = Renderer(ctx, scene, bvh, SIZE, backend, parse_effects(effects), {"chcrt": _front_params(params)})
     try:
         return [r.render(cam, capture=True) for cam in cams]
     finally:
@@ -657,7 +665,7 @@ def test_merged_kept_pairs_are_always_drawn(gl_ctx):
 
     scene, bvh, path = _load("city")
     cam0 = path[0]
-    r = Renderer(gl_ctx, scene, bvh, SIZE, "chcrt", parse_effects("primary"), {"chcrt": ""})
+    r = Renderer(gl_ctx, scene, bvh, SIZE, "chcrt", parse_effects("primary"), {"chcrt": "work_probe=0"})
     kept_only = merged_tiles = 0
     try:
         n_tiles = 1 << (2 * r.backend.tile_level(SIZE))
@@ -755,7 +763,7 @@ def test_full_bvh_passes_count_their_work(gl_ctx, monkeypatch):
     scene, bvh, path = _load("city")
     stats = {}
     for label, backend, params in [("glsl", "glsl", ""), ("full", "chcrt", "lca_pairs=1,lca_primary=true"),
-                                   ("chcrt", "chcrt", "")]:
+                                   ("chcrt", "chcrt", "work_probe=0")]:
         r = Renderer(gl_ctx, scene, bvh, SIZE, backend, parse_effects("primary,ao:1"), {"chcrt": params})
         try:
             stats[label] = [r.render(cam).backend_stats for cam in path[:3]]
@@ -794,3 +802,61 @@ def test_cold_refinement_goes_on_after_its_budget(passes, wave, gl_ctx):
         assert sum(n > 0 for n in full) <= passes, full
         # no front is on the device while its refinement goes on
         assert all(d == 0 for n, d in zip(full, device, strict=True) if n > 0), (full, device)
+
+
+def test_work_probe_counts_what_both_traversals_do(gl_ctx, monkeypatch):
+    """work_probe, sampling every pixel (work_probe_stride=1): the full traversal's side
+    (chc_probe.comp) counts exactly what the glsl backend's own shader counts for the same rays
+    (RTWALK_COUNT_WORK=1: box and triangle tests plus one per ray), and the front's side exactly
+    what chcrt's work counters count for its pass (plus one per fragment)."""
+    monkeypatch.setenv("RTWALK_COUNT_WORK", "1")
+    scene, bvh, path = _load("city")
+    stats = {}
+    for backend in ("glsl", "chcrt"):
+        r = Renderer(gl_ctx, scene, bvh, SIZE, backend, parse_effects("primary"),
+                     {"chcrt": "work_probe=8,work_probe_stride=1"})
+        try:
+            stats[backend] = [r.render(cam).backend_stats for cam in path[:2]]
+        finally:
+            r.release()
+    g, c = stats["glsl"][1], stats["chcrt"][1]  # frame 1: the front's first device pass measures
+    assert "work_probe_rays" not in stats["chcrt"][0]  # the cold (synchronous) pass does not
+    assert c["work_probe_passes"] == 1 and c["resumed_rays"] == 0 and g["work_invocations"] > 0
+    assert c["work_probe_rays"] == g["work_invocations"], (c, g)
+    assert c["work_probe_full"] == g["work_invocations"] + g["work_box_tests"] + g["work_tri_tests"], (c, g)
+    assert c["work_probe_front"] == c["work_invocations"] + c["work_box_tests"] + c["work_tri_tests"], c
+    assert c["work_probe_ratio"] == pytest.approx(c["work_probe_front"] / c["work_probe_full"])
+
+
+@pytest.mark.parametrize("limit", [0.001, 100.0])
+def test_work_probe_sends_fronts_that_save_nothing_through_the_whole_bvh(limit, gl_ctx):
+    """A front measured to do more than work_ratio_full(_any) of the full traversal's work traces
+    the whole BVH (exact: glsl's traversal) until its next measurement, and the pass before that
+    measurement runs the front again to bring it up to date; under the limit nothing changes. With
+    work_probe=4: measurements at a front's device passes 0, 3, 7, ...; the warm-up at 2, 6, ..."""
+    scene, bvh, _ = _load("city")
+    params = f"work_probe=4,work_ratio_full={limit},work_ratio_full_any={limit}"
+    frames = _walk(gl_ctx, params, "primary,ao:1", frames=7)
+    ref = _walk(gl_ctx, "", "primary,ao:1", frames=7, backend="glsl")
+    for k, (a, b) in enumerate(zip(ref, frames, strict=True)):
+        for pa, pb in zip(a.captured, b.captured, strict=True):
+            _check_exact(pa, pb, f"city {params} frame {k} {pa.ray_type.label}", scene.triangles)
+    probes = [b.backend_stats["work_probe_passes"] for b in frames]
+    wasted = [b.backend_stats["wasted_front_passes"] for b in frames]
+    n = probes[1]  # the device fronts (frame 0 builds them synchronously)
+    assert n >= 1 and probes == [0, n, 0, 0, n, 0, 0], probes
+    assert frames[1].backend_stats["work_probe_fronts"] == n
+    if limit < 1:
+        assert wasted == [0, 0, n, 0, 0, n, n], wasted
+        assert all(frames[k].backend_stats["full_bvh_passes"] >= n for k in (2, 5, 6))
+    else:
+        assert not any(wasted), wasted
+
+
+def test_work_probe_params_checked():
+    from viewer.backends.chcrt.chcrt import ChcrtParams
+    from viewer.errors import RtwalkError
+
+    for bad in ({"work_probe": -1}, {"work_probe_stride": 0}, {"work_ratio_full": 0.0}, {"work_ratio_full_any": -1.0}):
+        with pytest.raises(RtwalkError):
+            ChcrtParams(**bad).validate()

@@ -15,10 +15,16 @@
 
 // Work counters (diagnostics, RTWALK_COUNT_WORK=1): per invocation, then one atomicAdd each into
 // slots [base, base+4) of workTotals: invocations, nodes fetched, box tests, triangle tests.
-#ifdef COUNT_WORK
+// WORK_PROBE keeps the per-invocation counts without workFlush's sums, for a shader that reports
+// them itself (chcrt's work probe, ChcrtParams.work_probe).
+#if defined(COUNT_WORK) || defined(WORK_PROBE)
 uint workNode = 0u, workBox = 0u, workTri = 0u;
-layout(std430, binding = BIND_WORK) buffer WorkCounters { uint workTotals[16]; };
 #define WORK(v) (v += 1u)
+#else
+#define WORK(v)
+#endif
+#ifdef COUNT_WORK
+layout(std430, binding = BIND_WORK) buffer WorkCounters { uint workTotals[16]; };
 void workFlush(int base) {
     atomicAdd(workTotals[base], 1u);
     atomicAdd(workTotals[base + 1], workNode);
@@ -26,7 +32,6 @@ void workFlush(int base) {
     atomicAdd(workTotals[base + 3], workTri);
 }
 #else
-#define WORK(v)
 void workFlush(int base) {}
 #endif
 

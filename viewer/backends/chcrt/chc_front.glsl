@@ -47,6 +47,10 @@ struct ChcTilePlan { int cv; int ci; int lo; int hi; int heavy; int lca; int vis
 #define META_WANTED 4     // pairs the last refinement wanted (kept + new children), refused ones included
 #define META_TILES 5      // finest tiles of the last plan
 #define META_N_OLD 6      // pairs before the last refinement (chc_front_write.comp's bound)
+// work probe of the front's last pass (ChcrtParams.work_probe; zeroed by each pass's first dispatch):
+#define META_PROBE_FRONT 7  // box + triangle tests (+ 1 per fragment) of the sampled rays in this pass
+#define META_PROBE_FULL 8   // the same rays' box + triangle tests (+ 1 per ray) in a full traversal
+#define META_PROBE_RAYS 9   // the sampled rays (active ones)
 
 // slot 0 of META: the frame's statistics, summed over its device passes (chcrt_devfront.STAT_NAMES)
 #define STAT_RAYS 0

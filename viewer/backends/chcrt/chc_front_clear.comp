@@ -2,7 +2,8 @@
 // plans (the triangle range starts empty), the ray-count slots the init draw counts into, and the
 // pass's extra count slots (query pixels, records drawn, kept pairs) after the pairs' slots, and the
 // survivors' indirect draw command. The
-// pairs' own count slots are zeroed by chc_front_count.comp; the front's overflow bits are reset.
+// pairs' own count slots are zeroed by chc_front_count.comp; the front's overflow bits and work probe
+// are reset.
 // Nothing crosses the host.
 layout(local_size_x = 64) in;
 #include "chc_front.glsl"
@@ -28,7 +29,12 @@ void main() {
     if (i < raySlots) counts[i] = 0u;
     if (i < 3) counts[raySlots + capacity + i] = 0u;
     if (i == 0) {
-        if (frontSlot > 0) meta[16 * frontSlot + META_OVERFLOW] = 0;  // this pass's overflows only
+        if (frontSlot > 0) {
+            meta[16 * frontSlot + META_OVERFLOW] = 0;  // this pass's overflows only
+            meta[16 * frontSlot + META_PROBE_FRONT] = 0;  // and its work probe (if it runs one)
+            meta[16 * frontSlot + META_PROBE_FULL] = 0;
+            meta[16 * frontSlot + META_PROBE_RAYS] = 0;
+        }
         cmd[0] = 6u; cmd[1] = 0u; cmd[2] = 0u; cmd[3] = 0u;
     }
 }

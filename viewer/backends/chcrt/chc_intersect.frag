@@ -70,6 +70,15 @@ flat in int vKeptCount;
 // nearest hit so far (the query's pass condition) counts into the item's pair slot (p2 >= 0).
 layout(std430, binding = BIND_CHC_QUERY_COUNTS) buffer ChcQueryCounts { uint chcPassed[]; };
 #endif
+#ifdef WORK_PROBE
+// work probe (chcrt.py, ChcrtParams.work_probe): on the sampled pixels (chc_probe.glsl), what this
+// fragment did is summed into the front's META row, which chc_probe.comp fills with what the full
+// traversal does for the same rays
+#include "chc_probe.glsl"
+uniform int probeStride;
+uniform int probeBase;  // META index of the front's META_PROBE_FRONT
+layout(std430, binding = BIND_FR_META) buffer ChcMeta { int chcMeta[]; };
+#endif
 
 // The next entered inner subtree root of a record (own items first, then its merged kept pairs),
 // taken off its mask; -1 when there is none left.
@@ -249,6 +258,10 @@ void main() {
     workFlush(0);
 #ifdef COUNT_WORK
     atomicAdd(workTotals[8], entered);
+#endif
+#ifdef WORK_PROBE
+    // one unit per box and triangle test, and one for the fragment (its ray set-up)
+    if (probePixel(px, probeStride)) atomicAdd(chcMeta[probeBase], int(workBox + workTri) + 1);
 #endif
     if (hit.id < 0) discard;
 #ifdef CHC_OOC

@@ -77,6 +77,12 @@ Cone cull (`cone_cull`): the same dispatch bounds each tile's ray directions (a 
 planes, chc_tilecone.glsl), and boxes beside every ray of the tile are dropped from the records.
 Primary-ray fronts are deeper (`t_q_primary`) and never take the LCA fallback (`lca_primary`).
 
+Work probe (`work_probe`): a device front's pass now and then sums, on a sparse grid of pixels, the box
+and triangle tests its draws do, and one dispatch (chc_probe.comp) those of the full traversal for
+the same rays; read with the front's META row after the frame, a front that saves too little
+(`work_ratio_full`, `work_ratio_full_any`: far views, Sibenik's nave) traces the whole BVH until its
+next measurement.
+
 Hit hints (`hit_hint`): every ray first tests the triangle its pixel hit in the front's previous
 pass (copied on the device after each pass): any-hit rays that hit it are done, closest-hit rays
 start with its distance as tmax. Exact: a hint hit is a real hit, and the traversal still finds
@@ -100,7 +106,14 @@ import numpy as np
 from viewer import iostats
 from viewer.backends.base import BackendContext, TraceResult, WorkCounters
 from viewer.backends.chcrt.chcrt_cache import MB, CachePlan, SubtreeCache
-from viewer.backends.chcrt.chcrt_devfront import ARGS_VISORDER, FRONT_SSBO, DeviceFronts
+from viewer.backends.chcrt.chcrt_devfront import (
+    ARGS_VISORDER,
+    FRONT_SSBO,
+    META_INTS,
+    META_PROBE_FRONT,
+    DeviceFront,
+    DeviceFronts,
+)
 from viewer.backends.chcrt.chcrt_front import INNER, INVISIBLE, VISIBLE, NodeTables, PairFront
 from viewer.backends.gl_traversal import ResumableTraversal, max_visits
 from viewer.backends.interface import BackendInfo, OverlaySpec, param
@@ -250,6 +263,22 @@ class ChcrtParams:
                              "tests them in that record's fragments, after its visible pairs (one fragment per ray "
                              "instead of two; its cull reaches as far as the rays' tmax); other tiles keep the "
                              "survivors' draw")
+    work_probe: int = param(16, "device fronts: every this many passes (and at a front's first device pass) the "
+                            "pass measures its work on a sparse grid of rays (box and triangle tests, "
+                            "work_probe_stride) against the full traversal's for the same rays; a front that "
+                            "saves too little (work_ratio_full) traces the whole BVH until a later measurement, "
+                            "two passes of the front before it, says otherwise (0 = never measure)")
+    work_probe_stride: int = param(8, "work_probe: the sampled pixels are runs of 8 neighbours in a row (a SIMD "
+                                   "group's), every this many runs of every this many rows (8: 1/64 of the rays)")
+    work_ratio_full: float = param(0.8, "work_probe, closest-hit rays: a front whose rays do more than this "
+                                   "fraction of the full traversal's box and triangle tests saves no time, and "
+                                   "traces the whole BVH instead (llvmpipe, the table2 frames at 640x360: city-near's "
+                                   "camera rays at 0.60 run 0.92-1.07x glsl (0.62 and 1.2x at 1280x720), city-far's at "
+                                   "0.93 0.68x, sibenik's at 0.96 0.81x)")
+    work_ratio_full_any: float = param(0.65, "work_probe, any-hit rays (shadows, AO): the same limit (the same "
+                                       "frames: city-near's AO at 0.44-0.51 runs 1.1-1.2x glsl; sponza's at 0.82-0.88 "
+                                       "0.53x, conference's at 0.81-0.84 0.63x, city-far's at 0.92-1.01 0.84x, "
+                                       "sibenik's at 0.99-1.02 0.78x)")
     hit_hint: bool = param(True, "temporal: each ray first tests the triangle its pixel hit in this front's previous "
                            "pass (a shadow cache for every ray type): an any-hit ray that hits it is done, a "
                            "closest-hit ray traverses with its distance as tmax (exact); not with a GPU budget, nor in "
@@ -269,9 +298,11 @@ class ChcrtParams:
                 and self.max_subtree_tris >= 1 and self.requery_interval >= 1 and self.schedule_batch >= 1
                 and self.visible_threshold >= 0 and self.lca_subtrees >= 0 and self.lca_pairs >= 0
                 and self.cold_query_budget >= 0 and self.cold_passes >= 1 and self.cold_wave_queries >= 0
-                and 0 <= self.cull_sublevels <= 4 and 0 <= self.full_bvh_fraction <= 1):
-            raise RtwalkError(f"{source}: t_q, t_q_primary and min_tile_fraction must be > 0, thresholds >= 0, "
-                              "counts >= 1, cull_sublevels in 0..4, full_bvh_fraction in 0..1")
+                and 0 <= self.cull_sublevels <= 4 and 0 <= self.full_bvh_fraction <= 1
+                and self.work_probe >= 0 and self.work_probe_stride >= 1 and self.work_ratio_full > 0
+                and self.work_ratio_full_any > 0):
+            raise RtwalkError(f"{source}: t_q, t_q_primary, min_tile_fraction and work_ratio_full(_any) must be > 0, "
+                              "thresholds >= 0, counts >= 1, cull_sublevels in 0..4, full_bvh_fraction in 0..1")
 
 
 def _to_finest_tiles(nd: np.ndarray, lvl: np.ndarray, tx: np.ndarray, ty: np.ndarray, sl: np.ndarray,
@@ -447,10 +478,15 @@ class ChcrtBackend:
         self.vao_query_b = self.ctx.vertex_array(self.prog_query_b, [])
         self.vao_isect_b = self.ctx.vertex_array(self.prog_isect_b, [])
         # GPU-driven: the same intersection, counting box entries into the pairs' slots (the queries)
-        self.prog_isect_g = progs.get("chc_tile.vert", "chc_intersect.frag",
-                                      {"CHC_MAX_ITEMS": self.p.max_batch, "CHC_BATCHED": 1, "STACK_SIZE": stack,
-                                       "CHC_MAX_VISITS": visits_g, "CHC_COUNT_ITEMS": 1, **iwd, **self.merge_defs})
+        isect_g = {"CHC_MAX_ITEMS": self.p.max_batch, "CHC_BATCHED": 1, "STACK_SIZE": stack,
+                   "CHC_MAX_VISITS": visits_g, "CHC_COUNT_ITEMS": 1, **iwd, **self.merge_defs}
+        self.prog_isect_g = progs.get("chc_tile.vert", "chc_intersect.frag", isect_g)
         self.vao_isect_g = self.ctx.vertex_array(self.prog_isect_g, [])
+        # work_probe: the same program measuring its work, and the full traversal of the same rays
+        # (made with the device fronts)
+        self._probe_defines = ({**isect_g, "WORK_PROBE": 1}, {**wd, "STACK_SIZE": stack})
+        self.probe: tuple[moderngl.Program, moderngl.VertexArray, moderngl.ComputeShader] | None = None
+        self.steady_warm = False  # the steady passes' programs were drawn once, empty (_Pass.prewarm)
         for prog in (self.prog_init, self.prog_query, self.prog_isect, self.prog_gather, self.prog_query_b,
                      self.prog_isect_b, self.prog_isect_g):
             prog["rayOrigin"] = 0
@@ -524,6 +560,22 @@ class ChcrtBackend:
         copy_texture(tex, hits.id)
         iostats.gl_draw()
 
+    def probe_programs(self) -> tuple[moderngl.Program, moderngl.VertexArray, moderngl.ComputeShader]:
+        """work_probe: the counting intersection that sums its work on the sampled pixels (with its
+        VAO), and chc_probe.comp (the full traversal of the same rays); made with the device fronts."""
+        if self.probe is None:
+            isect, full = self._probe_defines
+            prog = self.bc.programs.with_path(HERE).get("chc_tile.vert", "chc_intersect.frag", isect)
+            for name, unit in (("rayOrigin", 0), ("rayDir", 1), ("hintId", HINT_UNIT)):
+                if prog.get(name, None) is not None:
+                    prog[name] = unit
+            prog["depthScale"] = self.depth_scale
+            comp = compute_shader(self.ctx, "chc_probe.comp", full, (HERE,))
+            comp["rayOrigin"] = 0
+            comp["rayDir"] = 1
+            self.probe = (prog, self.ctx.vertex_array(prog, []), comp)
+        return self.probe
+
     # -- Backend protocol ----------------------------------------------------------------------
     def device_fronts(self) -> DeviceFronts:
         """The device fronts' shared buffers and programs (made on first use)."""
@@ -531,6 +583,8 @@ class ChcrtBackend:
             self.devfronts = DeviceFronts(self.ctx, self.nt, BINDINGS)
             self.visorder_dev = compute_shader(self.ctx, "chc_visorder.comp",
                                                {**BINDINGS, "CHC_RECORDS_IN_BUFFER": 1, **self.merge_defs}, (HERE,))
+            if self.p.work_probe > 0:
+                self.probe_programs()  # compiled with the first front's upload, not in a steady pass
         return self.devfronts
 
     def begin_frame(self, frame_index: int) -> None:
@@ -549,9 +603,19 @@ class ChcrtBackend:
             return {}
         stats, rows = self.devfronts.end_frame()
         frac = self.p.full_bvh_fraction
+        probed = {"work_probe_fronts": 0.0, "work_probe_rays": 0.0, "work_probe_front": 0.0, "work_probe_full": 0.0}
         for slot, row in rows.items():
             dev = self.devfronts.fronts[slot]
             dev.full = frac > 0 and row.tiles > 0 and row.heavy_tiles >= frac * row.tiles
+            if dev.measured and row.probe_rays > 0 and row.probe_full > 0:
+                # work_probe: the front's pass measured its work against the full traversal's
+                dev.measured = False
+                dev.wasteful = row.probe_front > dev.work_ratio_full * row.probe_full
+                for k, v in zip(probed, (1, row.probe_rays, row.probe_front, row.probe_full), strict=True):
+                    probed[k] += v
+        if probed["work_probe_fronts"]:
+            stats.update(probed)
+            stats["work_probe_ratio"] = probed["work_probe_front"] / probed["work_probe_full"]
         return stats
 
     def release(self) -> None:
@@ -560,6 +624,10 @@ class ChcrtBackend:
             self.targets = None
         for sb in (self.items, self.draws, self.query_counts, self.all_queries):
             sb.buf.release()
+        if self.probe is not None:
+            self.probe[1].release()
+            self.probe[2].release()
+            self.probe = None
         for obj in (self.vao_isect_g, self.gpu_counts, self.tilebounds,
                     self.querycull, self.survivors, self.query_indirect, self.tile_bounds, self.kept_boxes):
             obj.release()
@@ -628,14 +696,20 @@ class ChcrtBackend:
         self.finisher.bind_flags(size)
         stats = tr.run()
         # the rays handed over at the loop limit, and the hint copy: tracing work, timed with the
-        # pass's last phase (phases of one name add up) rather than left to the next phase's wait
+        # pass's last phase (phases of one name add up) rather than left to the next phase's wait. A
+        # GPU-driven pass that traced the whole BVH ran no chcrt draw: nothing was handed over, and
+        # the finisher's counter is not read again
+        handed_over = not (stats["gpu_driven"] and stats["full_bvh_passes"])
+        nothing = {"draws": 0, "resumed_rays": 0}
         if self.finisher.limit is None and not self.use_hints:  # nothing to hand over, no hints: no phase
             fin = self.finisher.run(rays, pinfo, hits, resume_only=True)
         else:
             with self.bc.profiler.phase("chc:4-final-intersect"):
-                fin = self.finisher.run(rays, pinfo, hits, resume_only=True)
+                fin = self.finisher.run(rays, pinfo, hits, resume_only=True) if handed_over else nothing
                 if self.use_hints:
                     self._keep_hint(key, hits)
+        if front.device is not None and not self.steady_warm:
+            tr.prewarm(self.hints.get(key))
         stats["resumed_rays"] = fin["resumed_rays"]
         stats["continuation_draws"] = fin["draws"]
         stats.update(self.work.end())
@@ -675,7 +749,7 @@ class _Pass:
                                      "tile_batches_3plus", "query_waves", "pull_ups", "phase1_subtrees",
                                      "query_pixels", "requeries", "batches", "upload_bvh_mb", "upload_geom_mb",
                                      "lca_tiles", "gpu_driven", "newly_visible_queries", "query_records_drawn",
-                                     "full_bvh_passes")}
+                                     "full_bvh_passes", "work_probe_passes", "wasted_front_passes")}
         self.rep: tuple[np.ndarray, np.ndarray] | None = None  # representative rays per finest tile
         self.rays_read = False
         self.threshold = int(self.p.visible_threshold)
@@ -688,6 +762,7 @@ class _Pass:
         self.culled = False  # this pass's queries went through the coarse cull (stats read late)
         self.n_survivor_groups = 0
         self.survivor_items: moderngl.Buffer | None = None  # the survivors' items (None: be.kept_boxes)
+        self.probe_base = -1  # work_probe: META index the pass's draws sum their work into (-1: no probe)
         self.lca_pairs: np.ndarray | None = None  # GPU-driven: slots of visible pairs drawn through an LCA
         self.untested: np.ndarray | None = None  # GPU-driven: invisible pairs only covered by LCA traversals
         self.refine_from = 0  # query fragments spent before the synchronous refinement (cold_query_budget)
@@ -1364,7 +1439,8 @@ class _Pass:
         as their gap order: one dispatch fewer) and most tiles' kept pairs ride in their visible
         record (chc_querycull.comp). A pass that traces the whole BVH (its synchronous refinement
         said so: full_bvh, or its last plan: the device front's `full`) only plans, to refresh what the host
-        decides from."""
+        decides from; one whose front saved too little when last measured (work_probe) does not plan.
+        A measuring pass (work_probe) adds one dispatch and draws the probe build of the intersection."""
         be, f, p = self.be, self.front, self.p
         prof = be.bc.profiler
         dv = be.device_fronts()
@@ -1374,6 +1450,13 @@ class _Pass:
         if dev is None and not f.full_bvh:
             dev = f.device = dv.attach(f, n_tiles)
         full = f.full_bvh or dev.full
+        probe = wasted = False
+        if dev is not None:
+            probe, wasted = self._probe_plan(dev, full)
+            full = full or wasted
+            dev.passes += 1
+            dev.work_ratio_full = p.work_ratio_full_any if self.any_hit else p.work_ratio_full
+            self.stats["wasted_front_passes"] = int(wasted)
         capacity = 0 if dev is None else dev.capacity
         need = COUNT_BYTES + 4 * (capacity + 3)
         if be.gpu_counts.size < need:
@@ -1387,8 +1470,11 @@ class _Pass:
         common = dict(ray_slots=COUNT_SLOTS, frame=self.frame_number(), max_level=level, threshold=self.threshold,
                       requery_interval=p.requery_interval, seed=p.seed, report=report)
         with prof.phase("chc:0-setup"):
-            if dev is None:
-                dv.clear(be.gpu_counts, be.query_indirect, ray_slots=COUNT_SLOTS, capacity=0)
+            if dev is None or wasted:
+                # no front, or one that saves too little (work_probe): nothing to plan (the front's
+                # META keeps its last plan for the host's decisions), only the pass's counts zeroed
+                dv.clear(be.gpu_counts, be.query_indirect, ray_slots=COUNT_SLOTS, capacity=capacity,
+                         slot=0 if dev is None else dev.slot)
                 self.stats["draws"] += 1
             else:
                 primary_only = self.ray_type == RayType.PRIMARY and not p.lca_primary
@@ -1399,6 +1485,8 @@ class _Pass:
             self._bind()
             self._init(zeroed=True)
             be.gpu_counts.bind_to_storage_buffer(BIND_CHC_QUERY_COUNTS, COUNT_BYTES, 4 * (capacity + 3))
+            if probe:
+                self._probe_full(dv, dev)
             if merge:
                 self._tile_bounds(level, n_tiles)  # after the init draw's bestBits: the rays' tmax
                 self.stats["draws"] += 1
@@ -1632,6 +1720,70 @@ class _Pass:
         be.survivors.bind_to_storage_buffer(BIND_CHC_DRAWS)
         self._draw_records_indirect(be.query_indirect)
 
+    def _probe_plan(self, dev: DeviceFront, full: bool) -> tuple[bool, bool]:
+        """work_probe, for a device front's pass: (does this pass measure its work, does it trace the
+        whole BVH because its front saved too little when last measured). A front measures at its
+        first device pass and then every work_probe passes; one found wasteful traces the whole BVH
+        in between, except in the pass before a measurement, which brings its front up to date (a
+        whole-BVH pass refines nothing), so that the measurement sees a current front."""
+        k, n = dev.passes, self.p.work_probe
+        if n <= 0 or full:
+            return False, False
+        probe = k == 0 or k % n == n - 1
+        warm_up = n > 1 and k % n == n - 2
+        return probe, dev.wasteful and not (probe or warm_up)
+
+    def prewarm(self, hint: moderngl.Texture | None) -> None:
+        """Draw the steady passes' intersection programs (the counting one and, with work_probe, its
+        probe build and chc_probe.comp) once with nothing to do (an indirect draw and dispatch of
+        zero) in the GL state of a steady pass (its targets, ray and hint textures), after the pass
+        that moved the first front to the device. A driver that compiles a program's machine code
+        at its first draw in a new state (llvmpipe: 150-250 ms for chc_intersect.frag) does so
+        here, in that cold frame, not in the first steady pass."""
+        be, ctx = self.be, self.ctx
+        vaos = [be.vao_isect_g]
+        comps = []
+        if be.p.work_probe > 0:
+            _, vao, comp = be.probe_programs()
+            vaos.append(vao)
+            comps.append(comp)
+        self.hint = hint
+        self._bind()
+        zero = ctx.buffer(bytes(20))
+        iostats.to_device(20)
+        ctx.enable(moderngl.DEPTH_TEST)
+        ctx.depth_func = "<"
+        self.hit_fbo.use()
+        self.hit_fbo.scissor = None
+        for vao in vaos:
+            vao.render_indirect(zero, moderngl.TRIANGLES, count=1)
+        for comp in comps:
+            comp.run_indirect(zero)
+        ctx.disable(moderngl.DEPTH_TEST)
+        zero.release()
+        iostats.gl_draw(len(vaos) + len(comps))
+        be.steady_warm = True
+
+    def _probe_full(self, dv: DeviceFronts, dev: DeviceFront) -> None:
+        """work_probe: the sampled rays through the whole BVH (chc_probe.comp), their work into the
+        front's META row; the pass's intersection draws add theirs (the WORK_PROBE program)."""
+        be = self.be
+        comp = be.probe_programs()[2]
+        stride = int(self.p.work_probe_stride)
+        w, h = (int(v) for v in self.size)
+        runs = -(-w // (8 * stride)) * -(-(h - stride // 2) // stride)  # runs of 8 pixels (chc_probe.comp)
+        comp["raySize"] = (w, h)
+        comp["probeStride"] = stride
+        comp["probeBase"] = dev.slot * META_INTS + META_PROBE_FRONT
+        comp["anyHit"] = int(self.any_hit)
+        dv.meta.bind_to_storage_buffer(FRONT_SSBO["BIND_FR_META"])
+        comp.run(-(-runs // 8))
+        self.stats["draws"] += 1
+        iostats.gl_draw()
+        self.stats["work_probe_passes"] = 1
+        self.probe_base = dev.slot * META_INTS + META_PROBE_FRONT
+        dev.measured = True  # end_frame reads it
+
     def _draw_records_indirect(self, command: moderngl.Buffer, merge_kept: bool = False) -> None:
         """The records bound at BIND_CHC_DRAWS (items at BIND_CHC_ITEMS) in one indirect instanced
         draw of the counting intersection program, its draw command at the start of `command`;
@@ -1643,12 +1795,17 @@ class _Pass:
         fbo = self.hit_fbo
         fbo.use()
         fbo.scissor = None
-        prog = be.prog_isect_g
+        prog, vao = be.prog_isect_g, be.vao_isect_g
+        if self.probe_base >= 0:  # work_probe: this pass sums its work on the sampled pixels
+            prog, vao, _ = be.probe_programs()
+            prog["probeStride"] = int(self.p.work_probe_stride)
+            prog["probeBase"] = self.probe_base
+            be.device_fronts().meta.bind_to_storage_buffer(FRONT_SSBO["BIND_FR_META"])
         prog["raySize"] = tuple(self.size)
         self._isect_uniforms(prog)
         if prog.get("mergeKept", None) is not None:
             prog["mergeKept"] = int(merge_kept)
-        be.vao_isect_g.render_indirect(command, moderngl.TRIANGLES, count=1)
+        vao.render_indirect(command, moderngl.TRIANGLES, count=1)
         self.stats["draws"] += 1
         self.stats["intersect_draws"] += 1
         iostats.gl_draw()

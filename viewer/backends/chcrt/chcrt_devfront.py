@@ -64,6 +64,7 @@ TILE_BYTES = 64
 assert TILE_PLAN_DTYPE.itemsize == TILE_BYTES
 META_INTS = 16
 META_N, META_OVERFLOW, META_HEAVY, META_COPIES, META_WANTED, META_TILES = range(6)
+META_PROBE_FRONT, META_PROBE_FULL, META_PROBE_RAYS = 7, 8, 9  # the last pass's work probe (chc_front.glsl)
 DISCARD_SLOT = 1  # the statistics of a pass nobody reports (PassInfo.report) go here; fronts from slot 2
 # slot 0 of META, summed over the frame's device passes (chc_front.glsl STAT_*)
 STAT_NAMES = ("rays", "query_pixels", "query_records_drawn", "visible_pairs", "invisible_pairs", "inner_pairs",
@@ -137,6 +138,9 @@ class FrontMeta:
     copies: int
     wanted: int
     tiles: int
+    probe_front: int = 0  # work probe of the front's last pass, if it ran one (probe_rays > 0): box +
+    probe_full: int = 0  # triangle tests of the sampled rays through the front and through the whole BVH
+    probe_rays: int = 0
 
 
 class DeviceFront:
@@ -149,6 +153,12 @@ class DeviceFront:
         # its last plan sent full_bvh_fraction of the tiles to their ancestor: the passes trace the whole
         # BVH and only plan (chcrt.py sets it after each frame from META_HEAVY / META_TILES)
         self.full = False
+        # work_probe (chcrt.py): device passes so far, and whether the last measurement found that the
+        # front saves too little work (its passes then trace the whole BVH between measurements)
+        self.passes = 0
+        self.wasteful = False
+        self.work_ratio_full = 1.0  # the limit of its rays' type (ChcrtParams.work_ratio_full(_any))
+        self.measured = False  # a pass measured since the last end_frame (its META row has the probe)
         self.bufs = [ctx.buffer(reserve=capacity * PAIR_DTYPE.itemsize) for _ in range(2)]
         self.cur = 0
         if len(records):
@@ -390,7 +400,8 @@ class DeviceFronts:
         for slot, dev in self.fronts.items():
             r = raw[slot]
             rows[slot] = FrontMeta(int(r[META_N]), int(r[META_OVERFLOW]), int(r[META_HEAVY]), int(r[META_COPIES]),
-                                   int(r[META_WANTED]), int(r[META_TILES]))
+                                   int(r[META_WANTED]), int(r[META_TILES]), int(r[META_PROBE_FRONT]),
+                                   int(r[META_PROBE_FULL]), int(r[META_PROBE_RAYS]))
             m = rows[slot]
             if m.overflow & 1 or PAIR_HEADROOM * max(m.wanted, m.n) > dev.capacity:
                 dev.grow(self.ctx, _pow2(PAIR_GROWTH * max(m.wanted, m.n)))
