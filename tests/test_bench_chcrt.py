@@ -210,3 +210,20 @@ def test_ooc_coherence_bad_input(capsys, args, needle):
     assert rc == 2, err
     lines = [ln for ln in err.strip().splitlines() if ln.startswith("rtwalk: error")]
     assert len(lines) == 1 and needle in lines[0], err
+
+
+def test_table2_counts_whole_bvh_passes(tmp_path):
+    """table2 reports, per row, chcrt's passes per steady frame that traced the whole BVH and how many
+    of them its work probe chose (a limit no front can meet sends every front there between its
+    measurements; none without the probe)."""
+    rows = {}
+    for probe in ("work_probe=4,work_ratio_full=0.001,work_ratio_full_any=0.001", "work_probe=0"):
+        out = tmp_path / probe.split(",")[0].replace("=", "")
+        rc = main(["bench-chcrt", "--quick", "--study", "table2", "--sizes", SIZE, "--recordings", "city-near",
+                   "--effects", "primary", "--frames", "4", "--chcrt", probe, "--out", str(out), "--quiet"])
+        assert rc == 0
+        rows[probe] = _load(out, "table2")["rows"]
+        assert "chcrt whole-BVH passes" in (out / "table2.md").read_text()
+    on, off = (rows[k][0] for k in rows)
+    assert on["chcrt_wasted_passes"] > 0 and on["chcrt_full_bvh_passes"] >= on["chcrt_wasted_passes"], on
+    assert off["chcrt_wasted_passes"] == 0, off

@@ -366,13 +366,23 @@ class Table2Row:
     speedup_frame: float
     glsl_mrays_per_s: float
     chcrt_mrays_per_s: float
+    # chcrt's passes per steady frame that traced the whole BVH (incoherent rays, LCA limits, or a
+    # front its work probe found to save too little: the latter also in chcrt_wasted_passes)
+    chcrt_full_bvh_passes: float = 0.0
+    chcrt_wasted_passes: float = 0.0
 
     @staticmethod
     def of(g: RunResult, c: RunResult) -> Table2Row:
         gs, cs = g.best, c.best
+        steady = c.frames[1:] or c.frames
+
+        def per_frame(key: str) -> float:
+            return sum(f.get("backend_stats", {}).get(key, 0.0) for f in steady) / max(len(steady), 1)
+
         return Table2Row(g.recording, size_text(g.size), g.effect, gs.rays, gs.trace_ms, gs.wall_ms, cs.trace_ms,
                          cs.wall_ms, c.cold.trace_ms, c.cold.wall_ms, ratio(gs.trace_ms, cs.trace_ms),
-                         ratio(gs.wall_ms, cs.wall_ms), gs.mrays_per_s, cs.mrays_per_s)
+                         ratio(gs.wall_ms, cs.wall_ms), gs.mrays_per_s, cs.mrays_per_s,
+                         per_frame("full_bvh_passes"), per_frame("wasted_front_passes"))
 
 
 def study_table2(b: Bench) -> dict:
@@ -398,15 +408,18 @@ def study_table2(b: Bench) -> dict:
     md = [f"## Table 2 analog: glsl vs chcrt ({steady}; mean of frames 2..{o.frames} of {o.frames} consecutive)",
           "", f"Device: {b.device_text}. Trace = sum of the GPU tracing phases (trace:* / chc:*); frame = "
           "wall time of the whole frame. Cold = first frame after a reset (chcrt builds its fronts). "
-          "Speedup = glsl / chcrt (> 1: chcrt faster).", ""]
+          "Speedup = glsl / chcrt (> 1: chcrt faster). Whole-BVH passes = chcrt's passes per steady frame "
+          "that traced the whole BVH (in brackets: because the work probe found their front saving too little).",
+          ""]
     md.append(md_table(
         ["recording", "size", "effect", "rays/frame", "glsl trace ms", "glsl frame ms", "chcrt trace ms",
          "chcrt frame ms", "chcrt cold trace ms", "chcrt cold frame ms", "speedup trace", "speedup frame",
-         "glsl Mrays/s", "chcrt Mrays/s"],
+         "glsl Mrays/s", "chcrt Mrays/s", "chcrt whole-BVH passes"],
         [[r.recording, r.size, r.effect, fmt(r.rays_per_frame, 0), fmt(r.glsl_trace_ms), fmt(r.glsl_frame_ms),
           fmt(r.chcrt_trace_ms), fmt(r.chcrt_frame_ms), fmt(r.chcrt_cold_trace_ms), fmt(r.chcrt_cold_frame_ms),
           fmt(r.speedup_trace, 2), fmt(r.speedup_frame, 2), fmt(r.glsl_mrays_per_s, 2),
-          fmt(r.chcrt_mrays_per_s, 2)] for r in rows]))
+          fmt(r.chcrt_mrays_per_s, 2), f"{r.chcrt_full_bvh_passes:.1f} ({r.chcrt_wasted_passes:.1f})"]
+         for r in rows]))
     md += notes_md(report["notes"])
     _plot_table2(rows, o.out / "table2.png", b.device["renderer"])
     return finish_study(o, "table2", report, "\n".join(md))
