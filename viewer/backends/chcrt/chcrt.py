@@ -1751,10 +1751,7 @@ class _Pass:
         self._bind()
         zero = ctx.buffer(bytes(20))
         iostats.to_device(20)
-        ctx.enable(moderngl.DEPTH_TEST)
-        ctx.depth_func = "<"
-        self.hit_fbo.use()
-        self.hit_fbo.scissor = None
+        self._use_hit_target()
         for vao in vaos:
             vao.render_indirect(zero, moderngl.TRIANGLES, count=1)
         for comp in comps:
@@ -1774,27 +1771,30 @@ class _Pass:
         runs = -(-w // (8 * stride)) * -(-(h - stride // 2) // stride)  # runs of 8 pixels (chc_probe.comp)
         comp["raySize"] = (w, h)
         comp["probeStride"] = stride
-        comp["probeBase"] = dev.slot * META_INTS + META_PROBE_FRONT
+        self.probe_base = dev.slot * META_INTS + META_PROBE_FRONT
+        comp["probeBase"] = self.probe_base
         comp["anyHit"] = int(self.any_hit)
         dv.meta.bind_to_storage_buffer(FRONT_SSBO["BIND_FR_META"])
         comp.run(-(-runs // 8))
         self.stats["draws"] += 1
         iostats.gl_draw()
         self.stats["work_probe_passes"] = 1
-        self.probe_base = dev.slot * META_INTS + META_PROBE_FRONT
         dev.measured = True  # end_frame reads it
+
+    def _use_hit_target(self) -> None:
+        """The intersection draws' target: the hit framebuffer, whole, through the depth test (LESS)."""
+        self.ctx.enable(moderngl.DEPTH_TEST)
+        self.ctx.depth_func = "<"
+        self.hit_fbo.use()
+        self.hit_fbo.scissor = None
 
     def _draw_records_indirect(self, command: moderngl.Buffer, merge_kept: bool = False) -> None:
         """The records bound at BIND_CHC_DRAWS (items at BIND_CHC_ITEMS) in one indirect instanced
         draw of the counting intersection program, its draw command at the start of `command`;
         `merge_kept`: visible records also test their tiles' merged kept pairs (the tile plans at
         BIND_FR_TILES)."""
-        ctx, be = self.ctx, self.be
-        ctx.enable(moderngl.DEPTH_TEST)
-        ctx.depth_func = "<"
-        fbo = self.hit_fbo
-        fbo.use()
-        fbo.scissor = None
+        be = self.be
+        self._use_hit_target()
         prog, vao = be.prog_isect_g, be.vao_isect_g
         if self.probe_base >= 0:  # work_probe: this pass sums its work on the sampled pixels
             prog, vao, _ = be.probe_programs()
