@@ -315,3 +315,31 @@ def test_gbuffer_near_camera_matches_primary_rays(case, gl_ctx):
     assert bad <= max(2, n // 2000), (f"{case}: {int(empty.sum())} of {int(hit_ref.sum())} pixels with a "
                                       f"primary hit have no G-buffer triangle, {int(extra.sum())} extra, "
                                       f"{len(wrong_idx)} wrong ids")
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_scene_fetch_paths_return_the_same_bits(backend, monkeypatch):
+    """The traversals read nodes and triangles through buffer textures (viewer.gl.scene, SCENE_TEXELS)
+    or straight from the storage buffers (scenes beyond the device's buffer-texture limit): both
+    paths return bitwise the same distances and ids, closest and any hit, on a soup of thin
+    triangles and a fan of needles."""
+    rng = np.random.default_rng(11)
+    centres = rng.uniform(-4, 4, (3000, 1, 3))
+    soup = (centres + rng.normal(0, 0.3, (3000, 3, 3)) * rng.uniform(0.01, 1, (3000, 1, 3))).astype(F32)
+    tris = np.concatenate([soup, closed_disk(2000) * F32(3)])
+    o = rng.uniform(-6, 6, (4096, 3)).astype(F32)
+    d = (rng.uniform(-4, 4, (4096, 3)) - o).astype(F32)
+    d[::4] = -o[::4]  # towards the fan's shared vertex
+    tmax = np.where(np.arange(4096) % 3 == 0, 0.5, np.inf).astype(F32)
+    from viewer import tracing
+
+    got = {}
+    for mode in ("ssbo", "texels"):
+        monkeypatch.setenv("RTWALK_SCENE_FETCH", mode)
+        got[mode] = [trace(backend, tris, o, d, 0.0, tmax, any_hit=a) for a in (False, True)]
+        # the scene just traced (tracing's cache: keyed by the triangles and the fetch path) took this path
+        assert {g.texels for k, (_, _, g, _) in tracing._CACHE.items() if k.endswith(mode)} == {mode == "texels"}
+    for (ts, ids), (tt, idt) in zip(got["ssbo"], got["texels"], strict=True):
+        assert np.array_equal(ts.view(np.uint32), tt.view(np.uint32))
+        assert np.array_equal(ids, idt)
+        assert (ids >= 0).sum() > 500  # the rays hit something

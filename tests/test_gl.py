@@ -16,12 +16,14 @@ SHADER_FILES = sorted(p for p in SHADER_DIR.iterdir() if p.suffix in (".glsl", "
 
 
 def test_binding_points_are_unique_per_namespace():
-    for table in (bindings.SSBO, bindings.IMAGE):
+    for table in (bindings.SSBO, bindings.IMAGE, bindings.TEXTURE):
         assert len(set(table.values())) == len(table), table
         assert all(k.startswith("BIND_") and v >= 0 for k, v in table.items())
     assert not set(bindings.SSBO) & set(bindings.IMAGE)
+    assert not (set(bindings.SSBO) | set(bindings.IMAGE)) & set(bindings.TEXTURE)
+    assert all(v >= 16 for v in bindings.TEXTURE.values())  # below 16: the passes' own units
     header = bindings.shader_header()
-    for name, value in {**bindings.SSBO, **bindings.IMAGE}.items():
+    for name, value in {**bindings.SSBO, **bindings.IMAGE, **bindings.TEXTURE}.items():
         assert f"#define {name} {value}\n" in header
         assert getattr(bindings, name) == value
 
@@ -30,7 +32,7 @@ def test_binding_points_are_unique_per_namespace():
 def test_shaders_name_binding_points(path):
     """No literal binding numbers in shaders: every `binding =` names a BIND_* of the table."""
     text = path.read_text()
-    known = {**bindings.SSBO, **bindings.IMAGE}
+    known = {**bindings.SSBO, **bindings.IMAGE, **bindings.TEXTURE}
     for m in re.finditer(r"binding\s*=\s*([A-Za-z0-9_]+)", text):
         assert m.group(1) in known, f"{path.name}: binding = {m.group(1)}"
 
@@ -255,3 +257,68 @@ def test_counted_reads_see_the_shader_writes_before_them(gl_ctx):
     finally:
         for obj in (vao, fbo, tex, buf, prog):
             obj.release()
+
+
+def test_texel_view_reads_the_buffer_bits(gl_ctx):
+    """A TexelView over a storage buffer (and over a range of it) gives a shader the buffer's bits,
+    NaN and infinity patterns included; a range the device cannot view is a one-line RtwalkError."""
+    from viewer.errors import RtwalkError
+    from viewer.gl.textures import TEXEL_BYTES, TexelView, texel_buffer_limit_cached
+
+    ctx = gl_ctx
+    rng = np.random.default_rng(3)
+    data = rng.integers(0, 2**32, size=(64, 4), dtype=np.uint64).astype(np.uint32)
+    data[0] = [0x7FC00001, 0x7F800000, 0xFF800000, 0x80000000]  # NaN payload, +inf, -inf, -0
+    buf = ctx.buffer(data.tobytes())
+    out = ctx.buffer(reserve=data.nbytes)
+    prog = ctx.compute_shader("""#version 450
+layout(local_size_x = 64) in;
+layout(binding = 20) uniform usamplerBuffer src;
+layout(std430, binding = 0) buffer Out { uvec4 o[]; };
+uniform int n;
+void main() { int i = int(gl_GlobalInvocationID.x); o[i] = i < n ? texelFetch(src, i) : uvec4(0xdeadu); }""")
+    view = TexelView(20)
+    try:
+        out.bind_to_storage_buffer(0)
+        view.attach(buf)
+        prog["n"] = 64
+        prog.run(1)
+        assert np.array_equal(np.frombuffer(out.read(), np.uint32).reshape(64, 4), data)
+        _, align = texel_buffer_limit_cached()
+        first = -(-align // TEXEL_BYTES)  # the first texel at an aligned offset
+        view.attach(buf, first * TEXEL_BYTES, 8 * TEXEL_BYTES)
+        prog["n"] = 8
+        prog.run(1)
+        got = np.frombuffer(out.read(), np.uint32).reshape(64, 4)
+        assert np.array_equal(got[:8], data[first:first + 8]) and (got[8:] == 0xDEAD).all()
+        with pytest.raises(RtwalkError, match="buffer texture"):
+            view.attach(buf, 4)  # not a multiple of the offset alignment
+        with pytest.raises(RtwalkError, match="buffer texture"):
+            view.attach(buf, 0, 0)
+    finally:
+        view.release()
+        for obj in (prog, out, buf):
+            obj.release()
+
+
+def test_scene_fetch_path_is_chosen_from_the_device_limit(gl_ctx, monkeypatch):
+    """Buffer textures (SCENE_TEXELS) when nodes and triangles fit the device's buffer-texture limit,
+    the SSBOs otherwise; RTWALK_SCENE_FETCH forces either, and a value it cannot honour is a one-line
+    error."""
+    from viewer.errors import RtwalkError
+    from viewer.gl import scene as gls
+
+    monkeypatch.delenv(gls.FETCH_ENV, raising=False)
+    assert gls.choose_texels(1000, 2000)
+    monkeypatch.setattr(gls, "texel_buffer_limit_cached", lambda: (3000, 16))  # 3 texels a triangle
+    assert gls.choose_texels(1000, 700) and not gls.choose_texels(1001, 700)
+    assert not gls.choose_texels(10, 751)  # 4 texels a node
+    monkeypatch.setenv(gls.FETCH_ENV, "ssbo")
+    assert not gls.choose_texels(10, 10)
+    monkeypatch.setenv(gls.FETCH_ENV, "texels")
+    assert gls.choose_texels(10, 10)
+    with pytest.raises(RtwalkError, match="exceed"):
+        gls.choose_texels(1001, 10)
+    monkeypatch.setenv(gls.FETCH_ENV, "fast")
+    with pytest.raises(RtwalkError, match="expected"):
+        gls.choose_texels(10, 10)

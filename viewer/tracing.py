@@ -10,6 +10,7 @@ builds, as the scene loader leaves them out: float32 edge functions need not can
 from __future__ import annotations
 
 import hashlib
+import os
 
 import moderngl
 import numpy as np
@@ -23,7 +24,7 @@ from viewer.effects import RayType
 from viewer.gl import io as glio
 from viewer.gl.context import shared_context
 from viewer.gl.programs import ProgramCache
-from viewer.gl.scene import GpuScene
+from viewer.gl.scene import FETCH_ENV, GpuScene
 from viewer.profiler import GpuProfiler
 from viewer.rays import HitBuffer, PassInfo, RayBatch
 from viewer.scene import Material, Scene
@@ -34,7 +35,8 @@ ROW = 1024  # rays are laid out in a texture ROW wide
 
 
 def _prepared(ctx: moderngl.Context, triangles: np.ndarray):
-    key = hashlib.sha1(triangles.tobytes()).hexdigest()
+    # (the fetch path is chosen when the scene is uploaded: RTWALK_SCENE_FETCH is part of the key)
+    key = hashlib.sha1(triangles.tobytes()).hexdigest() + os.environ.get(FETCH_ENV, "")
     hit = _CACHE.get(key)
     if hit is None:
         if len(_CACHE) > 8:

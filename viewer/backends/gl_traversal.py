@@ -95,7 +95,7 @@ class ResumableTraversal:
                            else len(bc.bvh.node_left) + 1)
         self.program = bc.programs.with_path(SHADER_DIR).get("fullscreen.vert", "trace_glsl.frag",
                                        {"STACK_SIZE": self.stack_size, "MAX_VISITS": self.max_visits,
-                                        **self.work.defines})
+                                        **self.work.defines, **bc.gpu_scene.trace_defines()})
         self.program["rayOrigin"] = 0
         self.program["rayDir"] = 1
         self.quad = FullscreenQuad(bc.ctx)

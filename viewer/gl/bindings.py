@@ -1,4 +1,4 @@
-"""The one table of SSBO and image binding points, for Python and GLSL alike.
+"""The one table of SSBO, image and fixed texture binding points, for Python and GLSL alike.
 
 Python binds with these constants; every shader gets them as `#define BIND_...` (shader_header(),
 injected by viewer.gl.programs after #version) and writes `layout(std430, binding = BIND_NODES)`
@@ -35,6 +35,14 @@ IMAGE: dict[str, int] = {
     "BIND_IMG_HIZ": 5,  # G-buffer occlusion culling: the level of the distance pyramid written
 }
 
+# texture units bound for the whole frame (buffer textures: viewer.gl.textures.TexelView; shaders
+# write `layout(binding = BIND_TEX_NODES) uniform usamplerBuffer ...`). Units below 16 are the
+# passes' and backends' own (moderngl `texture.use(n)`); moderngl keeps the last unit for itself.
+TEXTURE: dict[str, int] = {
+    "BIND_TEX_NODES": 28,  # BVH nodes, 4 texels a node (scene.glsl loadNode, SCENE_TEXELS)
+    "BIND_TEX_TRIS": 29,  # leaf-ordered triangles, 3 texels a triangle (scene.glsl loadTri, SCENE_TEXELS)
+}
+
 BIND_NODES = SSBO["BIND_NODES"]
 BIND_TRIS = SSBO["BIND_TRIS"]
 BIND_MATERIALS = SSBO["BIND_MATERIALS"]
@@ -49,6 +57,8 @@ BIND_CULL_VISIBLE = SSBO["BIND_CULL_VISIBLE"]
 BIND_CULL_CMDS = SSBO["BIND_CULL_CMDS"]
 BIND_CULL_STATS = SSBO["BIND_CULL_STATS"]
 BIND_IMG_HIZ = IMAGE["BIND_IMG_HIZ"]
+BIND_TEX_NODES = TEXTURE["BIND_TEX_NODES"]
+BIND_TEX_TRIS = TEXTURE["BIND_TEX_TRIS"]
 
 # SSBO binding points left to backends' own names (GL 4.5 drivers offer 80 or more: llvmpipe 80, NVIDIA 96)
 BACKEND_SSBO = (*range(4, 9), *range(12, 15), *range(20, 36))
@@ -61,11 +71,11 @@ def backend_bindings(ssbo: dict[str, int], image: dict[str, int]) -> dict[str, i
     for table, free in ((ssbo, BACKEND_SSBO), (image, BACKEND_IMAGE)):
         assert len(set(table.values())) == len(table), table
         for k, v in table.items():
-            assert k.startswith("BIND_") and k not in SSBO and k not in IMAGE and v in free, (k, v)
+            assert k.startswith("BIND_") and k not in SSBO and k not in IMAGE and k not in TEXTURE and v in free, (k, v)
     assert not set(ssbo) & set(image)
     return {**ssbo, **image}
 
 
 def shader_header() -> str:
     """`#define BIND_... N` lines for every binding point (inserted after #version)."""
-    return "".join(f"#define {k} {v}\n" for k, v in {**SSBO, **IMAGE}.items())
+    return "".join(f"#define {k} {v}\n" for k, v in {**SSBO, **IMAGE, **TEXTURE}.items())

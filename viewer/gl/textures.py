@@ -1,4 +1,5 @@
-"""Textures: float and integer render targets, read-back, and the 32-bit float depth texture."""
+"""Textures: float and integer render targets, read-back, the 32-bit float depth texture, and
+buffer textures over storage buffers (TexelView)."""
 
 from __future__ import annotations
 
@@ -37,13 +38,19 @@ _GL_TEXTURE_DEPTH_SIZE = 0x884A
 _GL_TEXTURE_DEPTH_TYPE = 0x8C16
 _GL_RED_INTEGER = 0x8D94
 _GL_INT = 0x1404
+_GL_TEXTURE_BUFFER = 0x8C2A
+_GL_RGBA32UI = 0x8D70
+_GL_MAX_TEXTURE_BUFFER_SIZE = 0x8C2B
+_GL_TEXTURE_BUFFER_OFFSET_ALIGNMENT = 0x919F
+TEXEL_BYTES = 16  # one RGBA32UI texel of a TexelView
 _gl_funcs: dict | None = None
 
 
 def _gl() -> dict:
     """A few core GL entry points through GLVND's libOpenGL (dispatches to the current context,
     EGL or GLX alike): moderngl has no way to ask for a DEPTH_COMPONENT32F texture, nor to copy an
-    integer texture (its copy_framebuffer leaves an R32I target unwritten)."""
+    integer texture (its copy_framebuffer leaves an R32I target unwritten), nor to make a buffer
+    texture."""
     global _gl_funcs
     if _gl_funcs is None:
         import ctypes
@@ -62,7 +69,9 @@ def _gl() -> dict:
         spec = {"glBindTexture": [u, u], "glTexImage2D": [u, i, i, i, i, i, u, u, vp],
                 "glGetIntegerv": [u, pi], "glGetTexLevelParameteriv": [u, i, u, pi],
                 "glCopyImageSubData": [u, u, i, i, i, i, u, u, i, i, i, i, i, i, i],
-                "glClearTexImage": [u, i, u, u, vp]}
+                "glClearTexImage": [u, i, u, u, vp], "glCreateTextures": [u, i, pi],
+                "glDeleteTextures": [i, pi], "glBindTextureUnit": [u, u],
+                "glTextureBufferRange": [u, u, u, ctypes.c_ssize_t, ctypes.c_ssize_t]}
         funcs: dict = {}
         for name, args in spec.items():
             f = getattr(lib, name)
@@ -143,3 +152,65 @@ class IntTextures:
         for tex in self.textures.values():
             tex.release()
         self.textures.clear()
+
+
+def texel_buffer_limit() -> tuple[int, int]:
+    """(GL_MAX_TEXTURE_BUFFER_SIZE in texels, GL_TEXTURE_BUFFER_OFFSET_ALIGNMENT in bytes) of the
+    current context."""
+    gl = _gl()
+    ct = gl["ctypes"]
+    texels, align = ct.c_int(0), ct.c_int(0)
+    gl["glGetIntegerv"](_GL_MAX_TEXTURE_BUFFER_SIZE, ct.byref(texels))
+    gl["glGetIntegerv"](_GL_TEXTURE_BUFFER_OFFSET_ALIGNMENT, ct.byref(align))
+    return int(texels.value), max(int(align.value), 1)
+
+
+class TexelView:
+    """A buffer texture (RGBA32UI, TEXEL_BYTES a texel) over a byte range of a storage buffer, bound
+    to one texture unit: a shader reads the buffer with texelFetch(usamplerBuffer) instead of an
+    SSBO load. Why: Mesa's llvmpipe (22.x) turns every SSBO load into a loop over the SIMD lanes
+    with a branch and a bounds check per lane and component, while a texel fetch is one gather; the
+    BVH traversals read their nodes and triangles, and CHC+RT its records' items, this way (on
+    llvmpipe glsl's camera and AO rays on city-near take 0.6x the time, docs/results/benchmarks.md).
+    On GPUs both paths go through the same caches. The shader declares
+    `layout(binding = UNIT) uniform usamplerBuffer name;` (moderngl cannot set such a uniform).
+
+    `attach` re-points the texture every time it is called (cheap state calls, no copy): a buffer
+    re-made or orphaned since stays correct."""
+
+    def __init__(self, unit: int):
+        self.unit = unit
+        self.name = 0
+
+    def attach(self, buf: moderngl.Buffer, offset: int = 0, size: int | None = None) -> None:
+        """View `size` bytes of `buf` from `offset` (default: to its end) and bind the view to the unit."""
+        gl = _gl()
+        ct = gl["ctypes"]
+        size = buf.size - offset if size is None else size
+        limit, align = texel_buffer_limit_cached()
+        if offset % align or size > limit * TEXEL_BYTES or size <= 0:
+            raise RtwalkError(f"buffer texture of {size} bytes at offset {offset}: this OpenGL device allows "
+                              f"{limit} texels of {TEXEL_BYTES} bytes at offsets that are multiples of {align}")
+        if not self.name:
+            n = ct.c_int(0)
+            gl["glCreateTextures"](_GL_TEXTURE_BUFFER, 1, ct.byref(n))
+            self.name = int(n.value)
+        gl["glTextureBufferRange"](self.name, _GL_RGBA32UI, buf.glo, offset, size)
+        gl["glBindTextureUnit"](self.unit, self.name)
+
+    def release(self) -> None:
+        if self.name:
+            gl = _gl()
+            gl["glDeleteTextures"](1, gl["ctypes"].byref(gl["ctypes"].c_int(self.name)))
+            self.name = 0
+
+
+_texel_limit: tuple[int, int] | None = None
+
+
+def texel_buffer_limit_cached() -> tuple[int, int]:
+    """texel_buffer_limit(), asked once per process (a device's limit does not change)."""
+    global _texel_limit
+    if _texel_limit is None:
+        _texel_limit = texel_buffer_limit()
+    return _texel_limit

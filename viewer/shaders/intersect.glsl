@@ -152,7 +152,7 @@ struct Hit { float t; int id; };
 // The triangle in `slot` against the ray, between tmin and the hit so far: a nearer hit replaces
 // `hit` (and returns true). The one triangle test of every loop over leaves.
 bool intersectSlot(RayPre r, int slot, float tmin, inout Hit hit) {
-    Tri tri = tris[slot];
+    Tri tri = loadTri(slot);
     WORK(workTri);
     float t; vec2 b;
     if (!intersectTriangle(r, tri.v0, tri.v1, tri.v2, tmin, hit.t, t, b)) return false;
@@ -198,7 +198,7 @@ void traverseBVH(RayPre r, int root, float tmin, bool anyHit, inout Hit hit) {
     int sp = 0;
     int ni = root;
     while (true) {
-        Node nd = nodes[ni];
+        Node nd = loadNode(ni);
         WORK(workNode);
         float tl, tr;
         bool hl = intersectBox(r, nd.lmin, nd.lmax, tmin, hit.t, tl);

@@ -38,6 +38,17 @@ layout(r32i, binding = BIND_IMG_CHC_BATCH) uniform coherent iimage2D batchSubtre
 
 #include "chc_records.glsl"
 layout(std430, binding = BIND_CHC_ITEMS) readonly buffer ChcItems { ChcItem items[]; };
+// The fragment shaders' item reads: through a buffer texture over the same buffer (chcrt.py
+// bind_items; 4 texels an item), the same bits: on llvmpipe an SSBO load is a loop over the SIMD
+// lanes, a texel fetch one gather (viewer/gl/textures.py TexelView), and every fragment of a record
+// reads its items. (Fields a caller does not use are not fetched: the compiler drops them.)
+layout(binding = BIND_TEX_CHC_ITEMS) uniform usamplerBuffer chcItemTexels;
+ChcItem loadItem(int k) {
+    uvec4 a = texelFetch(chcItemTexels, 4 * k), b = texelFetch(chcItemTexels, 4 * k + 1);
+    uvec4 c = texelFetch(chcItemTexels, 4 * k + 2), e = texelFetch(chcItemTexels, 4 * k + 3);
+    return ChcItem(uintBitsToFloat(a.xyz), int(a.w), uintBitsToFloat(b.xyz), int(b.w), int(c.x), int(c.y), int(c.z),
+                   int(c.w), uintBitsToFloat(e.x), int(e.y), int(e.z), int(e.w));
+}
 
 float chcDepth(float t) { return min(t * depthScale, 0.5); }
 float chcKey(float t) { return max(uintBitsToFloat(floatBitsToUint(chcDepth(t)) + 1u), 1e-30); }

@@ -87,7 +87,7 @@ int nextRoot(inout uint own, inout uint kept, int ownBase, int keptBase) {
     bool o = own != 0u;
     int i = findLSB(o ? own : kept);
     if (o) own &= own - 1u; else kept &= kept - 1u;
-    return items[o ? ownBase + i : keptBase + i].ref;
+    return loadItem(o ? ownBase + i : keptBase + i).ref;
 }
 
 void main() {
@@ -109,7 +109,7 @@ void main() {
     // (with merged kept pairs: the nearer of the two lists' first items)
     float dlen = length(dt.xyz) * (1.0 + 1e-4);
     const float inf = uintBitsToFloat(0x7f800000u);
-    float firstGap = min(ITEM_COUNT > 0 ? items[ITEM_BASE].gap : inf, KEPT_COUNT > 0 ? items[KEPT_BASE].gap : inf);
+    float firstGap = min(ITEM_COUNT > 0 ? loadItem(ITEM_BASE).gap : inf, KEPT_COUNT > 0 ? loadItem(KEPT_BASE).gap : inf);
     if (gapOrder != 0 && (ITEM_COUNT + KEPT_COUNT == 0 || firstGap > min(intBitsToFloat(best), dt.w) * dlen)) discard;
 #endif
     RayPre r = prepareRay(ot.xyz, dt.xyz);
@@ -151,7 +151,7 @@ void main() {
         // (an any-hit ray finished by its hint tests no item; one finished later, in a leaf or the
         // traversal, counts the kept pairs it entered before that hit)
         int i = own ? k : k - ITEM_COUNT;
-        ChcItem it = items[own ? ITEM_BASE + i : KEPT_BASE + i];
+        ChcItem it = loadItem(own ? ITEM_BASE + i : KEPT_BASE + i);
         if (byGap && it.gap > hit.t * dlen) {
             if (!own || KEPT_COUNT == 0) break;
             k = ITEM_COUNT - 1;  // on with the kept pairs
@@ -179,7 +179,7 @@ void main() {
         bool o = leafMask != 0u;
         int i = findLSB(o ? leafMask : leafKept);
         if (o) leafMask &= leafMask - 1u; else leafKept &= leafKept - 1u;
-        ChcItem it = items[o ? ITEM_BASE + i : KEPT_BASE + i];
+        ChcItem it = loadItem(o ? ITEM_BASE + i : KEPT_BASE + i);
         if (visitLeaf(r, it.ref, it.count, tmin, hit) && any) done = true;
     }
     if (done) { rootOwn = 0u; rootKept = 0u; }
@@ -192,7 +192,7 @@ void main() {
         // written inside this loop)
         if (visits == CHC_MAX_VISITS) { handOver = true; break; }
         ++visits;
-        Node nd = nodes[ni];
+        Node nd = loadNode(ni);
         WORK(workNode);
         float tl, tr;
         bool hl = intersectBox(r, nd.lmin, nd.lmax, tmin, hit.t, tl);
@@ -239,13 +239,13 @@ void main() {
     while (enteredMask != 0u) {
         int i = findLSB(enteredMask);
         enteredMask &= enteredMask - 1u;
-        int slot = items[ITEM_BASE + i].p2;
+        int slot = loadItem(ITEM_BASE + i).p2;
         if (slot >= 0) atomicAdd(chcPassed[slot], 1u);
     }
     while (keptMask != 0u) {  // a kept pair entered before the ray's final nearest hit
         int i = findLSB(keptMask);
         keptMask &= keptMask - 1u;
-        ChcItem it = items[KEPT_BASE + i];
+        ChcItem it = loadItem(KEPT_BASE + i);
         float te;
         if (it.p2 >= 0 && (handOver || intersectBox(r, it.bmin, it.bmax, tmin, hit.t, te))) atomicAdd(chcPassed[it.p2], 1u);
     }
@@ -270,7 +270,7 @@ void main() {
     // the scheduled subtree that holds the hit triangle (for the subtree_id overlay)
     int sub = -1;
     for (int i = 0; i < (countOverlays != 0 ? ITEM_COUNT + KEPT_COUNT : 0); ++i) {
-        ChcItem it = items[i < ITEM_COUNT ? ITEM_BASE + i : KEPT_BASE + i - ITEM_COUNT];
+        ChcItem it = loadItem(i < ITEM_COUNT ? ITEM_BASE + i : KEPT_BASE + i - ITEM_COUNT);
         if (hit.id >= it.p0 && hit.id < it.p0 + it.p1) sub = it.id;
     }
     outT = hit.t;

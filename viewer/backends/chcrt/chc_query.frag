@@ -34,7 +34,7 @@ void main() {
     uint passedBoxes = 0u;  // bit 0: the first box, bit 1: any other
 #endif
     for (int i = 0; i < ITEM_COUNT; ++i) {
-        ChcItem it = items[ITEM_BASE + i];
+        ChcItem it = loadItem(ITEM_BASE + i);
         float te;
         if (intersectBox(r, it.bmin, it.bmax, ot.w, dt.w, te)) {
             entry = min(entry, te);

@@ -123,7 +123,7 @@ from viewer.gl import io as glio
 from viewer.gl.bindings import BIND_NODES, BIND_TRIS, backend_bindings
 from viewer.gl.buffers import StreamBuffer
 from viewer.gl.programs import FullscreenQuad, compute_shader
-from viewer.gl.textures import copy_texture, float_depth_texture, float_texture, int_texture
+from viewer.gl.textures import TexelView, copy_texture, float_depth_texture, float_texture, int_texture
 from viewer.rays import HitBuffer, PassInfo, RayBatch
 from viewer.screen_tiles import max_tile_level, tile_rects
 
@@ -141,7 +141,10 @@ SSBO = {"BIND_CHC_ITEMS": 5,  # (tile, node) items of a batch draw
 IMAGE = {"BIND_IMG_CHC_BEST": 0,  # packed closest hit per pixel
          "BIND_IMG_CHC_OVERDRAW": 1,  # query fragments per pixel (overlay)
          "BIND_IMG_CHC_BATCH": 2}  # subtrees in the pixel's batches (overlay)
-BINDINGS = backend_bindings({**SSBO, **FRONT_SSBO}, IMAGE)  # with the device fronts' (chcrt_devfront.py)
+HINT_UNIT = 2  # texture unit of the hit hints (rays: units 0 and 1)
+ITEM_UNIT = 3  # texture unit of the items' buffer texture (chc_common.glsl loadItem)
+# with the device fronts' (chcrt_devfront.py), and the items' texture unit
+BINDINGS = {**backend_bindings({**SSBO, **FRONT_SSBO}, IMAGE), "BIND_TEX_CHC_ITEMS": ITEM_UNIT}
 (BIND_CHC_ITEMS, BIND_CHC_COUNT, BIND_CHC_DRAWS, BIND_CHC_QUERY_COUNTS, BIND_CHC_CANDIDATES, BIND_CHC_INDIRECT,
  BIND_CHC_QUERIES, BIND_CHC_TILES) = SSBO.values()
 BIND_IMG_CHC_BEST, BIND_IMG_CHC_OVERDRAW, BIND_IMG_CHC_BATCH = IMAGE.values()
@@ -157,7 +160,6 @@ COUNT_SLOTS = 64
 COUNT_BYTES = 4 * COUNT_SLOTS  # GPU-driven counts buffer: ray counts, then query counts from this offset
 MAX_BOXES = 48  # boxes per query draw (max_multi pairs x 2 child boxes)
 MAX_LEAF_CACHE = 16
-HINT_UNIT = 2  # texture unit of the hit hints (rays: units 0 and 1)
 TILE_BOUND_BYTES = 112  # chc_tilecone.glsl TileBound: origin box + reach, direction cone, side planes
 
 
@@ -430,7 +432,7 @@ class ChcrtBackend:
         self.depth_scale = float(np.float32(math.ldexp(1.0, -e)))  # exact power of two
         progs = bc.programs.with_path(HERE)
         self.work = WorkCounters(self.ctx)
-        wd = {**self.work.defines, **BINDINGS}
+        wd = {**self.work.defines, **BINDINGS, **bc.gpu_scene.trace_defines()}
         # one subtree at a time is on the traversal stack (chc_intersect.frag); subtrees found visible by
         # the GPU-driven pass, and lowest common ancestors, can be as high as the tree
         stack = max(self.p.max_subtree_height, int(self.nt.height[0]), 1) + 2
@@ -497,6 +499,7 @@ class ChcrtBackend:
                 prog["depthScale"] = self.depth_scale
         self.quad = FullscreenQuad(self.ctx)
         self.items = StreamBuffer(self.ctx, ITEM_DTYPE.itemsize, BIND_CHC_ITEMS)
+        self.item_texels = TexelView(ITEM_UNIT)  # what the fragment shaders read items through (bind_items)
         self.draws = StreamBuffer(self.ctx, DRAW_DTYPE.itemsize, BIND_CHC_DRAWS)
         self.query_counts = StreamBuffer(self.ctx, 4, BIND_CHC_QUERY_COUNTS)
         self.count_buf = self.ctx.buffer(reserve=4 * COUNT_SLOTS)
@@ -577,6 +580,12 @@ class ChcrtBackend:
         return self.probe
 
     # -- Backend protocol ----------------------------------------------------------------------
+    def bind_items(self, buf: moderngl.Buffer) -> None:
+        """`buf` as the items of the next draws and dispatches: the SSBO at BIND_CHC_ITEMS (compute
+        passes) and the buffer texture the fragment shaders read them through (loadItem)."""
+        buf.bind_to_storage_buffer(BIND_CHC_ITEMS)
+        self.item_texels.attach(buf)
+
     def device_fronts(self) -> DeviceFronts:
         """The device fronts' shared buffers and programs (made on first use)."""
         if self.devfronts is None:
@@ -624,6 +633,7 @@ class ChcrtBackend:
             self.targets = None
         for sb in (self.items, self.draws, self.query_counts, self.all_queries):
             sb.buf.release()
+        self.item_texels.release()
         if self.probe is not None:
             self.probe[1].release()
             self.probe[2].release()
@@ -776,6 +786,7 @@ class _Pass:
         be.bc.gpu_scene.bind()
         if be.cache is not None:  # out-of-core: the intersection reads nodes and triangles from the cache
             be.cache.bind(BIND_NODES, BIND_TRIS)
+            be.bc.gpu_scene.bind_texels(be.cache.nodes_buf, be.cache.tris_buf)
             be.cache.begin_pass()
         self.rays.origin.use(0)
         self.rays.direction.use(1)
@@ -864,6 +875,7 @@ class _Pass:
         items["bmax"] = bmax
         items["id"] = f.node[pairs][owner]
         _upload(self.be.items, items)
+        self.be.bind_items(self.be.items.buf)
         first = np.cumsum(sizes) - sizes
         rects = f.rects(pairs[first]).astype(np.int64)
         if clip is not None:
@@ -1044,6 +1056,7 @@ class _Pass:
         from the tile's ray origins on the GPU before the draw (_order_by_gap)."""
         mb = self.p.max_batch
         _upload(self.be.items, self._subtree_items(nd, sl))
+        self.be.bind_items(self.be.items.buf)
         # batches: per tile, consecutive runs of at most max_batch subtrees (nearest first)
         nbatch = -(-(ends - starts) // mb)
         tile_of = np.repeat(np.arange(len(starts)), nbatch)
@@ -1516,7 +1529,7 @@ class _Pass:
         the tile bounds of the init draw (computed here unless `bounds_ready`). `merge`: the records
         carry their tiles' merged kept pairs (merge_kept)."""
         be, ctx, p = self.be, self.ctx, self.p
-        dv.vis_items.bind_to_storage_buffer(BIND_CHC_ITEMS)
+        be.bind_items(dv.vis_items)
         dv.records.bind_to_storage_buffer(BIND_CHC_DRAWS)
         dv.tiles.bind_to_storage_buffer(FRONT_SSBO["BIND_FR_TILES"])  # the merged kept ranges
         if p.gap_order and p.gap_order_visible and not self.any_hit:
@@ -1549,7 +1562,7 @@ class _Pass:
         if be.survivors.size < recs:
             be.survivors.release()
             be.survivors = ctx.buffer(reserve=recs)
-        dv.inv_items.bind_to_storage_buffer(BIND_CHC_ITEMS)
+        be.bind_items(dv.inv_items)
         dv.cull.bind_to_storage_buffer(BIND_CHC_QUERIES)
         (dv.vis_items if merge else be.kept_boxes).bind_to_storage_buffer(BIND_CHC_CANDIDATES)
         dv.tiles.bind_to_storage_buffer(FRONT_SSBO["BIND_FR_TILES"])
@@ -1610,6 +1623,7 @@ class _Pass:
             return
         order = np.argsort(tile, kind="stable")
         _upload(be.items, self._subtree_items(nd[order], sl[order]))
+        be.bind_items(be.items.buf)
         counts = np.bincount(tile, minlength=ntiles)
         sub = int(self.p.cull_sublevels)
         while sub > 0 and min(self.size) >> (level + sub) < 4:
@@ -1716,7 +1730,7 @@ class _Pass:
         be = self.be
         # the survivors read bestBits as the visible records left it (with merge_kept no dispatch in between)
         self.ctx.memory_barrier(moderngl.SHADER_IMAGE_ACCESS_BARRIER_BIT)
-        (self.survivor_items or be.kept_boxes).bind_to_storage_buffer(BIND_CHC_ITEMS)
+        be.bind_items(self.survivor_items or be.kept_boxes)
         be.survivors.bind_to_storage_buffer(BIND_CHC_DRAWS)
         self._draw_records_indirect(be.query_indirect)
 

@@ -60,7 +60,7 @@ void main() {
     // traverseBVH (intersect.glsl) with a visit budget: nearer child first, any-hit stops at a hit
     bool done = false;
     for (int visits = 0; visits < MAX_VISITS; ++visits) {
-        Node nd = nodes[ni];
+        Node nd = loadNode(ni);
         WORK(workNode);
         float tl, tr;
         bool hl = intersectBox(r, nd.lmin, nd.lmax, tmin, hit.t, tl);
