@@ -55,9 +55,10 @@ class GBufferPass(SizedTargets):
         self.gpu_scene = gpu_scene
         self.depth_scale = depth_scale
         self.diagonal = scene_diagonal
-        self.program = programs.get("gbuffer.vert", "gbuffer.frag", geometry="gbuffer.geom")
-        self.fill = programs.get("fullscreen.vert", "gbuffer_fill.frag")
-        self.resolve = programs.get("fullscreen.vert", "gbuffer_fill.frag", {"RESOLVE": 1})
+        fetch = gpu_scene.trace_defines()  # how the shaders read the triangles (scene.glsl loadTri)
+        self.program = programs.get("gbuffer.vert", "gbuffer.frag", fetch, geometry="gbuffer.geom")
+        self.fill = programs.get("fullscreen.vert", "gbuffer_fill.frag", fetch)
+        self.resolve = programs.get("fullscreen.vert", "gbuffer_fill.frag", {"RESOLVE": 1, **fetch})
         self._quad = FullscreenQuad(ctx)  # the resolve's draw (counted by viewer.gl.io)
         self.vao = ctx.vertex_array(self.program, [])
         self._programs = programs
@@ -112,7 +113,7 @@ class GBufferPass(SizedTargets):
 
     def _preview_program(self) -> tuple[moderngl.Program, moderngl.VertexArray]:
         if self._preview is None:
-            prog = self._programs.get("gbuffer.vert", "gbuffer.frag", {"PREVIEW": 1})
+            prog = self._programs.get("gbuffer.vert", "gbuffer.frag", {"PREVIEW": 1, **self.gpu_scene.trace_defines()})
             self._preview = prog, self.ctx.vertex_array(prog, [])
         return self._preview
 

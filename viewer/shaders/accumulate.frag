@@ -28,7 +28,7 @@ vec3 radianceAlong(vec3 o, vec3 d, float t, int id) {
     vec3 p = o + d * t;
     vec3 n = triNormal(id);
     if (dot(n, d) > 0.0) n = -n;
-    return shadeSecondaryHit(p, n, materials[tris[id].mat].rgb);
+    return shadeSecondaryHit(p, n, materials[loadTri(id).mat].rgb);
 }
 
 void main() {

@@ -35,7 +35,7 @@ void main() {
 #endif
     vec3 d = primaryDir(gl_FragCoord.xy);
 #ifdef PREVIEW
-    Tri tri = tris[id];
+    Tri tri = loadTri(id);
     vec3 n = normalize(cross(tri.v1 - tri.v0, tri.v2 - tri.v0));
     float dn = dot(d, n);
     float t = dn != 0.0 ? max(dot(tri.v0 - camPos, n) / dn, 0.0) : 0.0;

@@ -51,7 +51,7 @@ void emitVertex(vec4 position, Tri tri) {
 // at w = wmin = c * planeDistance / 2 (Sutherland-Hodgman) loses nothing that is on screen. Returns
 // the polygon's corner count (0: nothing on screen, or only t = 0 hits; at most 4), all with w >= wmin.
 int clippedPolygon(out dvec3 poly[4]) {
-    Tri tri = tris[vTri[0]];
+    Tri tri = loadTri(vTri[0]);
     dvec3 cp = dvec3(camPos);
     dvec3 a = dvec3(tri.v0) - cp, b = dvec3(tri.v1) - cp, c = dvec3(tri.v2) - cp;
     dvec3 n = cross(b - a, c - a);
@@ -106,7 +106,7 @@ bool coverageRect(dvec3 poly[4], int k, out vec4 rect) {
 // test), without changing any outcome. The G-buffer's overdraw stops costing a shader run each
 // (llvmpipe: 1.3-1.5x faster at 1280x720 on city-near).
 float depthLowerBound() {
-    Tri tri = tris[vTri[0]];
+    Tri tri = loadTri(vTri[0]);
     dvec3 cp = dvec3(camPos), F = dvec3(camForward);
     dvec3 a = dvec3(tri.v0) - cp, b = dvec3(tri.v1) - cp, c = dvec3(tri.v2) - cp;
     double w = min(min(dot(a, F), dot(b, F)), dot(c, F));
@@ -146,7 +146,7 @@ bool emitExpanded(vec3 a, vec3 b, vec3 c) {
         corners[i] = h / max(max(abs(h.x), abs(h.y)), h.z);  // homogeneous, scaled to unit size
     }
     float z = depthLowerBound();
-    Tri tri = tris[vTri[0]];
+    Tri tri = loadTri(vTri[0]);
     for (int i = 0; i < 3; ++i) emitVertex(vec4(corners[i].xy, z * corners[i].z, corners[i].z), tri);
     EndPrimitive();
     return true;
@@ -157,7 +157,7 @@ void emitRect(dvec3 poly[4], int k) {
     if (!coverageRect(poly, k, r)) return;
     vec2 c[4] = vec2[4](r.xy, vec2(r.z, r.y), vec2(r.x, r.w), r.zw);
     float z = depthLowerBound();
-    Tri tri = tris[vTri[0]];
+    Tri tri = loadTri(vTri[0]);
     for (int i = 0; i < 4; ++i) emitVertex(vec4(c[i], z, 1.0), tri);
     EndPrimitive();
 }

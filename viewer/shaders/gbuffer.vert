@@ -6,13 +6,22 @@
 // load is 12 per-lane gathers on llvmpipe. gl_VertexID counts from the draw's `first`, unlike
 // gl_PrimitiveID, which restarts in each draw of a culled multi-draw. Positions are made
 // camera-relative before projection.
+// With SCENE_TEXELS (viewer/gl/scene.py) the corner is one texel of the triangles' buffer texture.
+#ifdef SCENE_TEXELS
+layout(binding = BIND_TEX_TRIS) uniform usamplerBuffer triTexels;  // 3 texels a Tri
+#else
 layout(std430, binding = BIND_TRIS) readonly buffer TriWords { float triWords[]; };
+#endif
 uniform mat4 viewProjRel;  // projection * view rotation (camera at origin)
 uniform vec3 camPosV;
 flat out int vTri;
 void main() {
     vTri = gl_VertexID / 3;
+#ifdef SCENE_TEXELS
+    vec3 p = uintBitsToFloat(texelFetch(triTexels, gl_VertexID).xyz);  // texel 3 * vTri + corner
+#else
     int w = 12 * vTri + 4 * (gl_VertexID - 3 * vTri);
     vec3 p = vec3(triWords[w], triWords[w + 1], triWords[w + 2]);
+#endif
     gl_Position = viewProjRel * vec4(p - camPosV, 1.0);
 }

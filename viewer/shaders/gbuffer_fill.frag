@@ -33,7 +33,7 @@ void main() {
     int id = texelFetch(hitId, px, 0).r;
     if (id < 0) discard;
 #endif
-    Tri tri = tris[id];
+    Tri tri = loadTri(id);
     vec3 d = primaryDir(gl_FragCoord.xy);
     float t; vec2 b;
     if (!intersectTriangle(prepareRay(camPos, d), tri.v0, tri.v1, tri.v2, 0.0, 1e30, t, b)) {

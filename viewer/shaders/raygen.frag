@@ -38,7 +38,7 @@ void main() {
     } else {
         int id = texelFetch(gId, px, 0).r;
         if (id >= 0) {
-            Tri tri = tris[id];
+            Tri tri = loadTri(id);
             vec3 n = normalize(cross(tri.v1 - tri.v0, tri.v2 - tri.v0));
             float tHit; vec2 b;
             precise vec3 p;  // no fused multiply-adds (docs/numerics.md)
