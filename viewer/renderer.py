@@ -106,8 +106,9 @@ class Renderer:
         with allocation_guard(size):
             self.gbuffer = GBufferPass(ctx, self.programs, self.gpu_scene, size, self.depth_scale, self.diagonal)
             self.gbuffer.set_bvh(bvh)
-            self.raygen = RayGenPass(ctx, self.programs, self.quad)
-            self.accumulate = AccumulatePass(ctx, self.programs, self.quad, size)
+            fetch = self.gpu_scene.trace_defines()
+            self.raygen = RayGenPass(ctx, self.programs, self.quad, fetch)
+            self.accumulate = AccumulatePass(ctx, self.programs, self.quad, size, fetch)
             self.shade = ShadePass(ctx, self.programs, self.quad, size)
             self.rays = RayBatch(ctx, size)
             self.hits = HitBuffer(ctx, size)

@@ -16,10 +16,11 @@ ACCUMULATED = (RayType.SHADOW, RayType.SOFT, RayType.AO, RayType.DIFFUSE, RayTyp
 
 class AccumulatePass(SizedTargets):
     def __init__(self, ctx: moderngl.Context, programs: ProgramCache, quad: FullscreenQuad,
-                 size: tuple[int, int]):
+                 size: tuple[int, int], defines: dict[str, object] | None = None):
+        """`defines`: the scene's fetch path (GpuScene.trace_defines)."""
         self.ctx = ctx
         self.quad = quad
-        self.program = programs.get("fullscreen.vert", "accumulate.frag")
+        self.program = programs.get("fullscreen.vert", "accumulate.frag", defines)
         for i, name in enumerate(["gPos", "gNormal", "rayOrigin", "rayDir", "hitT", "hitId"]):
             self.program[name] = i
         self.resize(size)

@@ -16,9 +16,11 @@ from viewer.rays import RayBatch
 class RayGenPass:
     MAX_COUNTERS = 8
 
-    def __init__(self, ctx: moderngl.Context, programs: ProgramCache, quad: FullscreenQuad):
+    def __init__(self, ctx: moderngl.Context, programs: ProgramCache, quad: FullscreenQuad,
+                 defines: dict[str, object] | None = None):
+        """`defines`: the scene's fetch path (GpuScene.trace_defines)."""
         self.ctx = ctx
-        self.program = programs.get("fullscreen.vert", "raygen.frag")
+        self.program = programs.get("fullscreen.vert", "raygen.frag", defines)
         self.program["gId"] = 0
         self.quad = quad
         self.counters = ctx.buffer(reserve=4 * self.MAX_COUNTERS)
