@@ -37,6 +37,7 @@ _GL_FLOAT = 0x1406
 _GL_TEXTURE_DEPTH_SIZE = 0x884A
 _GL_TEXTURE_DEPTH_TYPE = 0x8C16
 _GL_RED_INTEGER = 0x8D94
+_GL_RED = 0x1903
 _GL_INT = 0x1404
 _GL_TEXTURE_BUFFER = 0x8C2A
 _GL_RGBA32UI = 0x8D70
@@ -127,6 +128,17 @@ def clear_int_texture(tex: moderngl.Texture, value: int = -1) -> None:
     gl = _gl()
     v = gl["ctypes"].c_int32(int(value))
     gl["glClearTexImage"](tex.glo, 0, _GL_RED_INTEGER, _GL_INT, gl["ctypes"].byref(v))
+
+
+def clear_float_texture(tex: moderngl.Texture, value: float) -> None:
+    """Every texel of level 0 of a one-component float texture (R32F, or a float depth texture) set
+    to `value` (glClearTexImage: no framebuffer, no draw)."""
+    if tex.dtype != "f4" or tex.components != 1:
+        raise RtwalkError("clear_float_texture: not a one-component float texture")
+    gl = _gl()
+    v = gl["ctypes"].c_float(float(value))
+    fmt = _GL_DEPTH_COMPONENT if tex.depth else _GL_RED
+    gl["glClearTexImage"](tex.glo, 0, fmt, _GL_FLOAT, gl["ctypes"].byref(v))
 
 
 class IntTextures:

@@ -7,6 +7,10 @@
 // tile's rays, so any rays give valid planes), which let the cull and the gap order drop boxes that
 // no ray of the tile can enter (chc_tilecone.glsl). One work group per tile; a tile without an
 // active ray gets maxDist = -1.
+// initRays (a device front's pass that merges its kept pairs, without overlays): this dispatch is
+// also the pass's init draw (chc_init.frag), whose other work the host does with texture clears:
+// every pixel's bestBits is set from its ray (tmax bits, -1 = no ray), and the tile's active rays
+// are counted with one atomic per invocation (64 a tile) instead of one per pixel.
 layout(local_size_x = 64) in;
 layout(r32i, binding = BIND_IMG_CHC_BEST) uniform coherent iimage2D bestBits;
 uniform sampler2D rayOrigin;
@@ -15,6 +19,8 @@ uniform ivec2 raySize;
 uniform int level;  // the finest tile level: 2^level x 2^level tiles
 #include "chc_tilecone.glsl"
 layout(std430, binding = BIND_CHC_TILES) writeonly buffer ChcTiles { TileBound tiles[]; };
+layout(std430, binding = BIND_CHC_COUNT) buffer ChcCount { uint chcActive[]; };  // chc_init.frag's ray counts
+uniform int initRays;
 shared vec3 sMin[64];
 shared vec3 sMax[64];
 shared float sDist[64];
@@ -50,10 +56,20 @@ void main() {
     ivec2 first = lo + ivec2(int(li) & 7, int(li) >> 3);
     for (int y = first.y; y < hi.y; y += 8) for (int x = first.x; x < hi.x; x += 8) {
         ivec2 px = ivec2(x, y);
-        int best = imageLoad(bestBits, px).r;
-        if (best < 0) continue;  // no ray, or an any-hit ray that is done
-        vec4 o = texelFetch(rayOrigin, px, 0);
-        vec4 d = texelFetch(rayDir, px, 0);
+        vec4 o, d;
+        int best;
+        if (initRays != 0) {
+            o = texelFetch(rayOrigin, px, 0);
+            d = texelFetch(rayDir, px, 0);
+            best = d.w > o.w ? floatBitsToInt(d.w) : -1;  // as chc_init.frag
+            imageStore(bestBits, px, ivec4(best));
+            if (best < 0) continue;
+        } else {
+            best = imageLoad(bestBits, px).r;
+            if (best < 0) continue;  // no ray, or an any-hit ray that is done
+            o = texelFetch(rayOrigin, px, 0);
+            d = texelFetch(rayDir, px, 0);
+        }
         omin = min(omin, o.xyz);
         omax = max(omax, o.xyz);
         dmax = max(dmax, intBitsToFloat(best) * length(d.xyz));
@@ -66,6 +82,7 @@ void main() {
         vec4 sd = vec4(dot(sn[0], d.xyz), dot(sn[1], d.xyz), dot(sn[2], d.xyz), dot(sn[3], d.xyz)) / length(d.xyz);
         smin = min(smin, sd);
     }
+    if (initRays != 0 && nActive > 0.0) atomicAdd(chcActive[li], uint(nActive));  // (slots: chcrt.COUNT_SLOTS = 64)
     sMin[li] = omin; sMax[li] = omax; sDist[li] = dmax; sCount[li] = nActive; sAngle[li] = s2max;
     sSide[li] = smin;
     barrier();

@@ -123,7 +123,15 @@ from viewer.gl import io as glio
 from viewer.gl.bindings import BIND_NODES, BIND_TRIS, backend_bindings
 from viewer.gl.buffers import StreamBuffer
 from viewer.gl.programs import FullscreenQuad, compute_shader
-from viewer.gl.textures import TexelView, copy_texture, float_depth_texture, float_texture, int_texture
+from viewer.gl.textures import (
+    TexelView,
+    clear_float_texture,
+    clear_int_texture,
+    copy_texture,
+    float_depth_texture,
+    float_texture,
+    int_texture,
+)
 from viewer.rays import HitBuffer, PassInfo, RayBatch
 from viewer.screen_tiles import max_tile_level, tile_rects
 
@@ -821,6 +829,17 @@ class _Pass:
         ctx.memory_barrier(moderngl.SHADER_IMAGE_ACCESS_BARRIER_BIT | moderngl.SHADER_STORAGE_BARRIER_BIT)
         self.stats["draws"] += 1
 
+    def _clear_hits(self) -> None:
+        """The init draw's clears without the draw (a device pass whose tile bounds initialise the
+        rays): hits none (t = inf, id -1), no hit subtree, depth 1 everywhere (a pixel without a ray
+        keeps it: every intersection draw discards on its bestBits first). Overlay images are
+        not touched (overlays take the init draw)."""
+        tg, hits = self.tg, self.hits
+        clear_float_texture(hits.t, float("inf"))
+        clear_int_texture(hits.id, -1)
+        clear_int_texture(tg.subtree, -1)
+        clear_float_texture(tg.depth, 1.0)
+
     def _gather(self) -> None:
         """Representative rays per finest tile, for the front-to-back order of subtrees."""
         tg = self.tg
@@ -1110,10 +1129,11 @@ class _Pass:
         self.stats["intersect_draws"] += draws
         self.stats["draws"] += draws
 
-    def _tile_bounds(self, level: int, tiles: int) -> None:
+    def _tile_bounds(self, level: int, tiles: int, init_rays: bool = False) -> None:
         """The ray-origin box and farthest reach of each of the `tiles` tiles of `level`
         (chc_tilebounds.comp, one dispatch) into be.tile_bounds (grown when too small), after the
-        image writes of the draw before it (bestBits)."""
+        image writes of the draw before it (bestBits); `init_rays`: there was no init draw
+        (_clear_hits), this dispatch sets bestBits from the rays and counts them."""
         be, ctx = self.be, self.ctx
         if be.tile_bounds.size < TILE_BOUND_BYTES * tiles:
             be.tile_bounds.release()
@@ -1122,8 +1142,10 @@ class _Pass:
         ctx.memory_barrier(moderngl.SHADER_IMAGE_ACCESS_BARRIER_BIT)
         be.tilebounds["raySize"] = tuple(self.size)
         be.tilebounds["level"] = level
+        be.tilebounds["initRays"] = int(init_rays)
         be.tilebounds.run(tiles)
-        ctx.memory_barrier(moderngl.SHADER_STORAGE_BARRIER_BIT)
+        ctx.memory_barrier(moderngl.SHADER_STORAGE_BARRIER_BIT
+                           | (moderngl.SHADER_IMAGE_ACCESS_BARRIER_BIT if init_rays else 0))
 
     def _order_by_gap(self, nrec: int) -> None:
         """gap_order, before the visible pairs' draw: the ray origin box of every finest tile
@@ -1496,12 +1518,18 @@ class _Pass:
                         cull_sub=sub, count_due_only=p.count_due_only, full=full, **common)
                 self.stats["draws"] += 3 if full else 5
             self._bind()
-            self._init(zeroed=True)
+            # merged kept pairs without overlays: the tile bounds below set bestBits and count the
+            # rays, texture clears do the rest of the init draw (chc_tilebounds.comp initRays)
+            fused = merge and not be.overlays_enabled
+            if fused:
+                self._clear_hits()
+            else:
+                self._init(zeroed=True)
             be.gpu_counts.bind_to_storage_buffer(BIND_CHC_QUERY_COUNTS, COUNT_BYTES, 4 * (capacity + 3))
             if probe:
                 self._probe_full(dv, dev)
             if merge:
-                self._tile_bounds(level, n_tiles)  # after the init draw's bestBits: the rays' tmax
+                self._tile_bounds(level, n_tiles, init_rays=fused)  # (else after the init draw's bestBits)
                 self.stats["draws"] += 1
                 iostats.gl_draw()
                 self._cull_device(dv, dev, level, sub, merge=True)
