@@ -46,8 +46,8 @@ layout(binding = BIND_TEX_CHC_ITEMS) uniform usamplerBuffer chcItemTexels;
 ChcItem loadItem(int k) {
     uvec4 a = texelFetch(chcItemTexels, 4 * k), b = texelFetch(chcItemTexels, 4 * k + 1);
     uvec4 c = texelFetch(chcItemTexels, 4 * k + 2), e = texelFetch(chcItemTexels, 4 * k + 3);
-    return ChcItem(uintBitsToFloat(a.xyz), int(a.w), uintBitsToFloat(b.xyz), int(b.w), int(c.x), int(c.y), int(c.z),
-                   int(c.w), uintBitsToFloat(e.x), int(e.y), int(e.z), int(e.w));
+    return ChcItem(uintBitsToFloat(a.xyz), int(a.w), uintBitsToFloat(b.xyz), int(b.w), uintBitsToFloat(c.x), int(c.y),
+                   int(c.z), int(c.w), int(e.x), int(e.y), int(e.z), int(e.w));
 }
 
 float chcDepth(float t) { return min(t * depthScale, 0.5); }

@@ -159,8 +159,9 @@ BIND_IMG_CHC_BEST, BIND_IMG_CHC_OVERDRAW, BIND_IMG_CHC_BATCH = IMAGE.values()
 
 # gap: written by chc_querycull.comp for the invisible pairs' items (a lower bound of the distance from
 # every ray origin of the tile to the box, world units); 0 in host-made items
+# (chc_records.glsl ChcItem: p2 = the pair's count slot, p0/p1 = its triangle range, id = its node)
 ITEM_DTYPE = np.dtype([("bmin", "<f4", 3), ("ref", "<i4"), ("bmax", "<f4", 3), ("count", "<i4"),
-                       ("id", "<i4"), ("pad", "<i4", 3), ("gap", "<f4"), ("pad2", "<i4", 3)])
+                       ("gap", "<f4"), ("p2", "<i4"), ("p0", "<i4"), ("p1", "<i4"), ("id", "<i4"), ("pad2", "<i4", 3)])
 assert ITEM_DTYPE.itemsize == 64
 DRAW_DTYPE = np.dtype([("rect", "<i4", 4), ("info", "<i4", 4)])  # x, y, w, h; item base, count, query slot
 QUERY_MODES = ("batched", "hw")
@@ -1162,8 +1163,8 @@ class _Pass:
         iostats.gl_draw(2)
 
     def _subtree_items(self, nd: np.ndarray, slots: np.ndarray | None = None) -> np.ndarray:
-        """Intersection items of scheduled subtrees (canonical BVH nodes `nd`); pad[2] = the count
-        slot of the pair (GPU-driven), -1 for none."""
+        """Intersection items of scheduled subtrees (canonical BVH nodes `nd`); p2 = the count slot
+        of the pair (GPU-driven), -1 for none."""
         nt = self.nt
         items = np.zeros(len(nd), ITEM_DTYPE)
         items["bmin"] = nt.box_min[nd]
@@ -1171,9 +1172,9 @@ class _Pass:
         items["ref"] = nt.gpu_ref[nd] if self.be.cache is None else self.be.cache.item_refs(nd)
         items["count"] = nt.gpu_count[nd]
         items["id"] = nd
-        items["pad"][:, 0] = self.be.bvh_first[nd]
-        items["pad"][:, 1] = nt.count[nd]
-        items["pad"][:, 2] = -1 if slots is None else slots
+        items["p0"] = self.be.bvh_first[nd]
+        items["p1"] = nt.count[nd]
+        items["p2"] = -1 if slots is None else slots
         return items
 
     def _isect_uniforms(self, prog: moderngl.Program) -> None:
