@@ -846,6 +846,8 @@ def test_work_probe_sends_fronts_that_save_nothing_through_the_whole_bvh(limit, 
     n = probes[1]  # the device fronts (frame 0 builds them synchronously)
     assert n >= 1 and probes == [0, n, 0, 0, n, 0, 0], probes
     assert frames[1].backend_stats["work_probe_fronts"] == n
+    for b in frames:  # counted by the init draw, the tile bounds or (whole-BVH passes) chc_count_rays.comp
+        assert b.backend_stats["rays"] == sum(b.rays.values())
     if limit < 1:
         assert wasted == [0, 0, n, 0, 0, n, n], wasted
         assert all(frames[k].backend_stats["full_bvh_passes"] >= n for k in (2, 5, 6))

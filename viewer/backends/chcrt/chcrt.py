@@ -514,6 +514,9 @@ class ChcrtBackend:
         self.count_buf = self.ctx.buffer(reserve=4 * COUNT_SLOTS)
         self._zero_counts = bytes(4 * COUNT_SLOTS)
         self.tilebounds = compute_shader(self.ctx, "chc_tilebounds.comp", BINDINGS, (HERE,))
+        self.count_rays = compute_shader(self.ctx, "chc_count_rays.comp", BINDINGS, (HERE,))
+        self.count_rays["rayOrigin"] = 0
+        self.count_rays["rayDir"] = 1
         self.querycull = compute_shader(self.ctx, "chc_querycull.comp", {**BINDINGS, **self.merge_defs}, (HERE,))
         self.visorder = compute_shader(self.ctx, "chc_visorder.comp", BINDINGS, (HERE,))
         self.devfronts: DeviceFronts | None = None
@@ -647,7 +650,7 @@ class ChcrtBackend:
             self.probe[1].release()
             self.probe[2].release()
             self.probe = None
-        for obj in (self.vao_isect_g, self.gpu_counts, self.tilebounds,
+        for obj in (self.vao_isect_g, self.gpu_counts, self.tilebounds, self.count_rays,
                     self.querycull, self.survivors, self.query_indirect, self.tile_bounds, self.kept_boxes):
             obj.release()
         self._clear_fronts()
@@ -829,6 +832,16 @@ class _Pass:
         # without the barrier a GPU may run them on last pass's values (llvmpipe runs in order)
         ctx.memory_barrier(moderngl.SHADER_IMAGE_ACCESS_BARRIER_BIT | moderngl.SHADER_STORAGE_BARRIER_BIT)
         self.stats["draws"] += 1
+
+    def _count_rays(self) -> None:
+        """The pass's active rays into the ray-count slots (chc_count_rays.comp, one dispatch), in
+        place of the init draw of a pass that traces the whole BVH."""
+        w, h = self.size
+        self.be.count_rays["raySize"] = (w, h)
+        self.be.count_rays.run(-(-(-(-w // 8) * -(-h // 8)) // 64))
+        self.ctx.memory_barrier(moderngl.SHADER_STORAGE_BARRIER_BIT)
+        self.stats["draws"] += 1
+        iostats.gl_draw()
 
     def _clear_hits(self) -> None:
         """The init draw's clears without the draw (a device pass whose tile bounds initialise the
@@ -1519,11 +1532,14 @@ class _Pass:
                         cull_sub=sub, count_due_only=p.count_due_only, full=full, **common)
                 self.stats["draws"] += 3 if full else 5
             self._bind()
-            # merged kept pairs without overlays: the tile bounds below set bestBits and count the
-            # rays, texture clears do the rest of the init draw (chc_tilebounds.comp initRays)
+            # without overlays, the init draw is left out: with merged kept pairs the tile bounds
+            # below set bestBits and count the rays, texture clears do the rest (chc_tilebounds.comp
+            # initRays); a whole-BVH pass only counts its rays (the glsl traversal writes every hit)
             fused = merge and not be.overlays_enabled
             if fused:
                 self._clear_hits()
+            elif full and not be.overlays_enabled:
+                self._count_rays()
             else:
                 self._init(zeroed=True)
             be.gpu_counts.bind_to_storage_buffer(BIND_CHC_QUERY_COUNTS, COUNT_BYTES, 4 * (capacity + 3))
