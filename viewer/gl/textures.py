@@ -183,7 +183,7 @@ class TexelView:
     SSBO load. Why: Mesa's llvmpipe (22.x) turns every SSBO load into a loop over the SIMD lanes
     with a branch and a bounds check per lane and component, while a texel fetch is one gather; the
     BVH traversals read their nodes and triangles, and CHC+RT its records' items, this way (on
-    llvmpipe glsl's camera and AO rays on city-near take 0.6x the time, docs/results/benchmarks.md).
+    llvmpipe glsl traces 1.7-2x the rays a second on city-near and sponza, docs/results/benchmarks.md).
     On GPUs both paths go through the same caches. The shader declares
     `layout(binding = UNIT) uniform usamplerBuffer name;` (moderngl cannot set such a uniform).
 
