@@ -730,8 +730,11 @@ class ChcrtBackend:
                 fin = self.finisher.run(rays, pinfo, hits, resume_only=True) if handed_over else nothing
                 if self.use_hints:
                     self._keep_hint(key, hits)
-        if front.device is not None and not self.steady_warm:
-            tr.prewarm(self.hints.get(key))
+        # the steady passes' programs made and run once, empty, in the first pass of a front that goes
+        # (or may go, after more cold passes) to the device: frame 1, not a steady frame
+        if self.device_front and not self.steady_warm and not front.full_bvh:
+            with self.bc.profiler.phase("chc:0-setup"):  # tracing work of this (cold) frame
+                tr.prewarm(self.hints.get(key))
         stats["resumed_rays"] = fin["resumed_rays"]
         stats["continuation_draws"] = fin["draws"]
         stats.update(self.work.end())
@@ -1794,28 +1797,43 @@ class _Pass:
         return probe, dev.wasteful and not (probe or warm_up)
 
     def prewarm(self, hint: moderngl.Texture | None) -> None:
-        """Draw the steady passes' intersection programs (the counting one and, with work_probe, its
-        probe build and chc_probe.comp) once with nothing to do (an indirect draw and dispatch of
-        zero) in the GL state of a steady pass (its targets, ray and hint textures), after the pass
-        that moved the first front to the device. A driver that compiles a program's machine code
-        at its first draw in a new state (llvmpipe: 150-250 ms for chc_intersect.frag) does so
-        here, in that cold frame, not in the first steady pass."""
+        """Make the device fronts' programs and draw or dispatch every program of the steady passes
+        (the device fronts' ten, the tile bounds, cull, visible order and ray count, the counting
+        intersection and, with work_probe, its probe build and chc_probe.comp) once with nothing to
+        do (an indirect draw or dispatch of zero) in the GL state of a steady pass (its targets, ray
+        and hint textures), after the first pass of a front headed for the device. A driver
+        compiles a program when it is linked (GL) and, llvmpipe, its machine code at its first draw
+        or dispatch in a new state (150-250 ms for chc_intersect.frag; with no shader cache on disk,
+        a fresh machine, about 1.5 s for all of them: conference-walk's first device pass took
+        1,761 ms); both happen here, in that cold frame, not in a steady one."""
         be, ctx = self.be, self.ctx
+        dv = be.device_fronts()
         vaos = [be.vao_isect_g]
-        comps = []
+        comps = [be.tilebounds, be.querycull, be.count_rays, be.visorder_dev]
         if be.p.work_probe > 0:
             _, vao, comp = be.probe_programs()
             vaos.append(vao)
             comps.append(comp)
         self.hint = hint
         self._bind()
-        zero = ctx.buffer(bytes(20))
-        iostats.to_device(20)
+        # every texture the steady draws sample bound as they will be: llvmpipe keys a program's
+        # machine code by its samplers' formats and targets too (an unbound item unit: a second compile)
+        be.bind_items(dv.vis_items)
+        zero = ctx.buffer(bytes(DRAW_DTYPE.itemsize))  # an indirect dispatch of zero; one empty record
+        one = ctx.buffer(np.array([6, 1, 0, 0], np.uint32).tobytes())  # 6 vertices, 1 instance
+        iostats.to_device(DRAW_DTYPE.itemsize + 16)
         self._use_hit_target()
+        # an indirect draw, as the steady passes draw, of one record with an empty rectangle: no
+        # fragment, but a driver that skips an indirect draw of zero before choosing its machine
+        # code (llvmpipe) compiles it here
+        zero.bind_to_storage_buffer(BIND_CHC_DRAWS)
         for vao in vaos:
-            vao.render_indirect(zero, moderngl.TRIANGLES, count=1)
+            vao.program["mergeKept"] = 0
+            vao.render_indirect(one, moderngl.TRIANGLES, count=1)
+        one.release()
         for comp in comps:
             comp.run_indirect(zero)
+        dv.prewarm(zero)
         ctx.disable(moderngl.DEPTH_TEST)
         zero.release()
         iostats.gl_draw(len(vaos) + len(comps))

@@ -208,6 +208,14 @@ class DeviceFronts:
         self.passes = 0  # device passes since the last end_frame
         self.ensure(tiles=64, pairs=MIN_CAPACITY, cull_tiles=64)  # every binding exists from the start
 
+    def prewarm(self, zero: moderngl.Buffer) -> None:
+        """Dispatch every program once with no work (`zero`: an indirect dispatch of 0 groups): a
+        driver that compiles a compute shader's machine code at its first dispatch (llvmpipe) does
+        so now, not in the first pass that plans on the device."""
+        for prog in self.prog.values():
+            prog.run_indirect(zero)
+        iostats.gl_draw(len(self.prog))
+
     # -- buffers ----------------------------------------------------------------------------------
     def set_nodes(self, nt: NodeTables) -> None:
         """(Re)upload the node table: on creation and when the scene's boxes moved (a refit)."""
