@@ -523,7 +523,8 @@ def test_view_overlays_under_xvfb(tmp_path):
     fr = log["frames"]
     assert log["rc"] == 0 and len(fr) == 9
     assert all(f["error"] == "GL_NO_ERROR" for f in fr), fr
-    assert fr[0]["view"] == "query_overdraw" and fr[0]["source"] == ["primary", 0] and fr[0]["phases"] == 4
+    # the cold pass's four phases, and chc:0-setup: the steady passes' programs compiled (chcrt prewarm)
+    assert fr[0]["view"] == "query_overdraw" and fr[0]["source"] == ["primary", 0] and fr[0]["phases"] == 5
     assert fr[1]["pass"] == ["shadows", 0] and fr[1]["source"] == ["shadows", 0]  # O twice
     assert fr[2]["view"] == "subtree_batches" and fr[2]["source"] == ["shadows", 0]
     assert fr[4]["view"] == "final" and fr[4]["source"] is None  # nothing copied in the final view
