@@ -56,20 +56,17 @@ void main() {
     ivec2 first = lo + ivec2(int(li) & 7, int(li) >> 3);
     for (int y = first.y; y < hi.y; y += 8) for (int x = first.x; x < hi.x; x += 8) {
         ivec2 px = ivec2(x, y);
-        vec4 o, d;
+        // (the ray is read outside the branch: llvmpipe runs both sides of a branch on a uniform)
+        vec4 o = texelFetch(rayOrigin, px, 0);
+        vec4 d = texelFetch(rayDir, px, 0);
         int best;
         if (initRays != 0) {
-            o = texelFetch(rayOrigin, px, 0);
-            d = texelFetch(rayDir, px, 0);
             best = d.w > o.w ? floatBitsToInt(d.w) : -1;  // as chc_init.frag
             imageStore(bestBits, px, ivec4(best));
-            if (best < 0) continue;
         } else {
             best = imageLoad(bestBits, px).r;
-            if (best < 0) continue;  // no ray, or an any-hit ray that is done
-            o = texelFetch(rayOrigin, px, 0);
-            d = texelFetch(rayDir, px, 0);
         }
+        if (best < 0) continue;  // no ray, or an any-hit ray that is done
         omin = min(omin, o.xyz);
         omax = max(omax, o.xyz);
         dmax = max(dmax, intBitsToFloat(best) * length(d.xyz));
