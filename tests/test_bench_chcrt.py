@@ -154,6 +154,9 @@ def test_tuning_sweep_counts_work(quick_run):
                                                    + r["tri_tests_per_ray"])
         # the same rays hit the same triangles: triangle tests differ only by the traversal order
         assert r["tri_tests_per_ray"] > 0
+    for r in rows:  # lane groups pay at least every lane's own work, the wider ones more
+        assert 0 < r["nodes_per_ray"] <= r["simd8_nodes_per_ray"] <= r["simd32_nodes_per_ray"], r
+        assert 0 < r["tri_tests_per_ray"] <= r["simd8_tri_per_ray"] <= r["simd32_tri_per_ray"], r
     assert b["queries"] <= a["queries"]
     assert tuning_configs("t_q=1|2;requery_interval=3|8") == [
         "t_q=1,requery_interval=3", "t_q=1,requery_interval=8", "t_q=2,requery_interval=3", "t_q=2,requery_interval=8"]

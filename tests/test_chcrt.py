@@ -775,6 +775,30 @@ def test_full_bvh_passes_count_their_work(gl_ctx, monkeypatch):
             assert g[key] > 0 and f[key] == g[key], (key, g[key], f[key])
     steady = stats["chcrt"][-1]
     assert 0 < steady["work_nodes"] < stats["glsl"][-1]["work_nodes"], steady
+    # the per-pixel images (lane statistics) hold the same nodes and triangle tests as the totals,
+    # and lane groups of 8 and 32 pixels (nested: a 8x4 group is four 4x2 ones) pay at least them
+    for frame in (*stats["glsl"], *stats["full"], *stats["chcrt"]):
+        for key in ("nodes", "tri_tests"):
+            assert frame[f"work_pixel_{key}"] == frame[f"work_{key}"], (key, frame)
+            assert frame[f"work_{key}"] <= frame[f"work_simd8_{key}"] <= frame[f"work_simd32_{key}"], (key, frame)
+
+
+def test_lane_group_work_matches_a_loop_over_the_groups():
+    """lane_group_work against plain Python loops over the lane groups, on an odd-sized screen whose
+    edge groups are partly off it (idle lanes)."""
+    from viewer.backends.base import lane_group_work
+
+    rng = np.random.default_rng(5)
+    per_pixel = rng.integers(0, 50, size=(13, 22))
+    for gw, gh in ((4, 2), (8, 4), (1, 1), (3, 5)):
+        want = 0
+        for y0 in range(0, 13, gh):
+            for x0 in range(0, 22, gw):
+                want += gw * gh * max(int(per_pixel[y, x]) for y in range(y0, min(y0 + gh, 13))
+                                      for x in range(x0, min(x0 + gw, 22)))
+        assert lane_group_work(per_pixel, (gw, gh)) == want, (gw, gh)
+    assert lane_group_work(per_pixel, (1, 1)) == per_pixel.sum()
+    assert lane_group_work(np.full((4, 8), 3), (4, 2)) == 3 * 32  # equally busy lanes: nothing wasted
 
 
 @pytest.mark.parametrize("passes,wave", [(1, 5.5), (4, 5.5), (4, 0.0)])

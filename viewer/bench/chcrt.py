@@ -798,6 +798,13 @@ class TuningRow:
     query_box_tests_per_ray: float
     tri_tests_per_ray: float
     tests_per_ray: float  # all ray/box and ray/triangle tests
+    nodes_per_ray: float  # intersection: BVH nodes fetched
+    # what SIMD lane groups pay (base.lane_group_work: every lane waits for its group's busiest):
+    # nodes and triangle tests per ray with groups of 8 (llvmpipe) and 32 (a GPU warp) pixels
+    simd8_nodes_per_ray: float
+    simd32_nodes_per_ray: float
+    simd8_tri_per_ray: float
+    simd32_tri_per_ray: float
 
 
 def study_tuning(b: Bench) -> dict:
@@ -825,7 +832,9 @@ def study_tuning(b: Bench) -> dict:
 
                 box, qbox, tri = per_ray("box_tests"), per_ray("query_box_tests"), per_ray("tri_tests")
                 rows.append(TuningRow(effect, spec.label, run.best.trace_ms, run.best.wall_ms, st.get("queries", 0.0),
-                                      per_ray("query_fragments"), box, qbox, tri, box + qbox + tri))
+                                      per_ray("query_fragments"), box, qbox, tri, box + qbox + tri, per_ray("nodes"),
+                                      per_ray("simd8_nodes"), per_ray("simd32_nodes"), per_ray("simd8_tri_tests"),
+                                      per_ray("simd32_tri_tests")))
                 runs.append(asdict(run))
     finally:
         b.done()
@@ -838,12 +847,17 @@ def study_tuning(b: Bench) -> dict:
     report.update(rows=[asdict(r) for r in rows], runs=runs)
     md = [f"## chcrt parameter sweep ({path.stem}, {size_text(size)}, steady state of {o.frames} consecutive frames)",
           "", f"Device: {b.device_text}. Work counters per traced ray (RTWALK_COUNT_WORK=1; counting adds "
-          "time to both backends). 'tests' = ray/box + ray/triangle tests of intersection and queries.", ""]
+          "time to both backends). 'tests' = ray/box + ray/triangle tests of intersection and queries. "
+          "'lanes 8 / 32': the intersection's nodes and triangle tests as SIMD groups of 8 (llvmpipe) and 32 (a "
+          "GPU warp) neighbouring pixels pay them, every lane waiting for its group's busiest.", ""]
     md.append(md_table(["effect", "config", "trace ms", "queries/frame", "query frags/ray", "isect box/ray",
-                        "query box/ray", "tri/ray", "tests/ray"],
+                        "query box/ray", "tri/ray", "tests/ray", "nodes/ray", "nodes/ray, lanes 8 / 32",
+                        "tri/ray, lanes 8 / 32"],
                        [[r.effect, r.params, fmt(r.trace_ms), fmt(r.queries, 0), fmt(r.query_fragments_per_ray, 2),
                          fmt(r.box_tests_per_ray, 1), fmt(r.query_box_tests_per_ray, 1),
-                         fmt(r.tri_tests_per_ray, 2), fmt(r.tests_per_ray, 1)] for r in rows]))
+                         fmt(r.tri_tests_per_ray, 2), fmt(r.tests_per_ray, 1), fmt(r.nodes_per_ray, 1),
+                         f"{fmt(r.simd8_nodes_per_ray, 1)} / {fmt(r.simd32_nodes_per_ray, 1)}",
+                         f"{fmt(r.simd8_tri_per_ray, 2)} / {fmt(r.simd32_tri_per_ray, 2)}"] for r in rows]))
     md += notes_md(report["notes"])
     _plot_tuning(rows, o.out / "tuning.png", b.device["renderer"])
     return finish_study(o, "tuning", report, "\n".join(md))

@@ -33,6 +33,8 @@ SSBO: dict[str, int] = {
 IMAGE: dict[str, int] = {
     "BIND_IMG_RESUME": 4,  # glsl resumable traversal: resume slot per pixel (-1 finished)
     "BIND_IMG_HIZ": 5,  # G-buffer occlusion culling: the level of the distance pyramid written
+    "BIND_IMG_WORK_NODES": 6,  # shader work counters per pixel: BVH nodes (RTWALK_COUNT_WORK=1, intersect.glsl)
+    "BIND_IMG_WORK_TRIS": 7,  # shader work counters per pixel: triangle tests
 }
 
 # texture units bound for the whole frame (buffer textures: viewer.gl.textures.TexelView; shaders
@@ -57,6 +59,8 @@ BIND_CULL_VISIBLE = SSBO["BIND_CULL_VISIBLE"]
 BIND_CULL_CMDS = SSBO["BIND_CULL_CMDS"]
 BIND_CULL_STATS = SSBO["BIND_CULL_STATS"]
 BIND_IMG_HIZ = IMAGE["BIND_IMG_HIZ"]
+BIND_IMG_WORK_NODES = IMAGE["BIND_IMG_WORK_NODES"]
+BIND_IMG_WORK_TRIS = IMAGE["BIND_IMG_WORK_TRIS"]
 BIND_TEX_NODES = TEXTURE["BIND_TEX_NODES"]
 BIND_TEX_TRIS = TEXTURE["BIND_TEX_TRIS"]
 

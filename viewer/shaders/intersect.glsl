@@ -14,7 +14,8 @@
 #endif
 
 // Work counters (diagnostics, RTWALK_COUNT_WORK=1): per invocation, then one atomicAdd each into
-// slots [base, base+4) of workTotals: invocations, nodes fetched, box tests, triangle tests.
+// slots [base, base+4) of workTotals: invocations, nodes fetched, box tests, triangle tests
+// (workFlushPixel: also per pixel).
 // WORK_PROBE keeps the per-invocation counts without workFlush's sums, for a shader that reports
 // them itself (chcrt's work probe, ChcrtParams.work_probe).
 #if defined(COUNT_WORK) || defined(WORK_PROBE)
@@ -25,14 +26,26 @@ uint workNode = 0u, workBox = 0u, workTri = 0u;
 #endif
 #ifdef COUNT_WORK
 layout(std430, binding = BIND_WORK) buffer WorkCounters { uint workTotals[16]; };
+// The same nodes and triangle tests per pixel (the ray traced there, summed over the draws that
+// trace it): what a SIMD group of neighbouring pixels waits for is its busiest lane, so
+// WorkCounters (viewer/backends/base.py) reads these to count the work of lane groups as well.
+layout(r32i, binding = BIND_IMG_WORK_NODES) uniform coherent iimage2D workPixelNodes;
+layout(r32i, binding = BIND_IMG_WORK_TRIS) uniform coherent iimage2D workPixelTris;
 void workFlush(int base) {
     atomicAdd(workTotals[base], 1u);
     atomicAdd(workTotals[base + 1], workNode);
     atomicAdd(workTotals[base + 2], workBox);
     atomicAdd(workTotals[base + 3], workTri);
 }
+// workFlush of a ray traced at pixel px (the intersection shaders)
+void workFlushPixel(int base, ivec2 px) {
+    workFlush(base);
+    imageAtomicAdd(workPixelNodes, px, int(workNode));
+    imageAtomicAdd(workPixelTris, px, int(workTri));
+}
 #else
 void workFlush(int base) {}
+void workFlushPixel(int base, ivec2 px) {}
 #endif
 
 struct RayPre {

@@ -255,7 +255,7 @@ void main() {
         done = true;  // traced again from the root: the leaf cache needs no flush
     }
     if (!done && flushLeaves(r, tmin, hit) && any) done = true;  // the leaf cache's last leaves
-    workFlush(0);
+    workFlushPixel(0, px);
 #ifdef COUNT_WORK
     atomicAdd(workTotals[8], entered);
 #endif

@@ -714,7 +714,7 @@ class ChcrtBackend:
             front = PairFront(size, max_level, self.rng, self.p.requery_interval)
             self.fronts[key] = front
         tr = _Pass(self, front, rays, ray_type, hits, pinfo)
-        self.work.begin()
+        self.work.begin(size)
         self.finisher.bind_flags(size)
         stats = tr.run()
         # the rays handed over at the loop limit, and the hint copy: tracing work, timed with the

@@ -28,7 +28,7 @@ class GlslBackend(StatelessBackend):
 
     def trace(self, rays: RayBatch, pinfo: PassInfo, hits: HitBuffer) -> TraceResult:
         self.traversal.bind_flags(hits.size)
-        self.work.begin()
+        self.work.begin(hits.size)
         with self.bc.profiler.phase(f"trace:{pinfo.ray_type.label}"):
             stats = self.traversal.run(rays, pinfo, hits)
         return TraceResult(stats={**stats, **self.work.end()})

@@ -110,5 +110,5 @@ void main() {
         imageStore(resumeSlot, px, ivec4(-1));
     }
     if (hit.id >= 0) { outT = hit.t; outId = hit.id; }
-    workFlush(0);
+    workFlushPixel(0, px);
 }
