@@ -405,9 +405,10 @@ class Renderer:
         self.update_geometry()
         cam_u = camera_uniforms(camera, self.size)
         light_u = light_uniforms(self.scene, s.ambient)
-        for prog in (self.raygen.program, self.accumulate.program, self.shade.program):
-            apply(prog, cam_u)
-            apply(prog, light_u)
+        self.raygen.set_frame_uniforms({**cam_u, **light_u})
+        self.accumulate.set_frame_uniforms({**cam_u, **light_u})
+        apply(self.shade.program, cam_u)
+        apply(self.shade.program, light_u)
         self.backend.overlays_enabled = self.overlays_wanted  # diagnostics cost time: only when shown or saved
         self.frame_path = frame_path(self.backend, overlays=self.overlays_wanted)
         # a device frame's per-frame builds (begin_frame) are timed by queue markers too: no waits

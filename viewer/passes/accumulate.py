@@ -9,6 +9,7 @@ from viewer.gl.programs import FullscreenQuad, ProgramCache
 from viewer.gl.textures import float_texture
 from viewer.passes.gbuffer import GBufferPass
 from viewer.passes.targets import SizedTargets
+from viewer.passes.uniforms import apply
 from viewer.rays import HitBuffer, RayBatch
 
 ACCUMULATED = (RayType.SHADOW, RayType.SOFT, RayType.AO, RayType.DIFFUSE, RayType.REFLECT)
@@ -20,10 +21,27 @@ class AccumulatePass(SizedTargets):
         """`defines`: the scene's fetch path (GpuScene.trace_defines)."""
         self.ctx = ctx
         self.quad = quad
-        self.program = programs.get("fullscreen.vert", "accumulate.frag", defines)
-        for i, name in enumerate(["gPos", "gNormal", "rayOrigin", "rayDir", "hitT", "hitId"]):
-            self.program[name] = i
+        self.programs = programs
+        self.defines = dict(defines or {})
+        self._programs: dict[RayType, moderngl.Program] = {}  # made on first use, one per effect
+        self.frame_uniforms: dict = {}  # camera and lights of the frame (set_frame_uniforms)
         self.resize(size)
+
+    def program(self, ray_type: RayType) -> moderngl.Program:
+        """The accumulation of `ray_type`'s effect (accumulate.frag with ACC_EFFECT: one program per
+        effect)."""
+        prog = self._programs.get(ray_type)
+        if prog is None:
+            defines = {**self.defines, "ACC_EFFECT": int(ray_type)}
+            prog = self.programs.get("fullscreen.vert", "accumulate.frag", defines)
+            for i, name in enumerate(["gPos", "gNormal", "rayOrigin", "rayDir", "hitT", "hitId"]):
+                prog[name] = i
+            self._programs[ray_type] = prog
+        return prog
+
+    def set_frame_uniforms(self, values: dict) -> None:
+        """The frame's camera and light uniforms, set on each program as it accumulates."""
+        self.frame_uniforms = values
 
     def create_targets(self, size: tuple[int, int]) -> None:
         self.textures = {r: float_texture(self.ctx, size, 4) for r in ACCUMULATED}
@@ -35,8 +53,8 @@ class AccumulatePass(SizedTargets):
 
     def add(self, ray_type: RayType, rays: RayBatch, hits: HitBuffer, gbuffer: GBufferPass,
             light_index: int, weight: float) -> None:
-        p = self.program
-        p["effect"] = int(ray_type)
+        p = self.program(ray_type)
+        apply(p, self.frame_uniforms)
         p["lightIndex"] = int(light_index)
         p["weight"] = float(weight)
         for i, tex in enumerate([gbuffer.position, gbuffer.normal, rays.origin, rays.direction, hits.t, hits.id]):

@@ -10,6 +10,7 @@ from viewer.gl import io as glio
 from viewer.gl.bindings import BIND_COUNTERS
 from viewer.gl.programs import FullscreenQuad, ProgramCache
 from viewer.passes.gbuffer import GBufferPass
+from viewer.passes.uniforms import apply
 from viewer.rays import RayBatch
 
 
@@ -20,16 +21,31 @@ class RayGenPass:
                  defines: dict[str, object] | None = None):
         """`defines`: the scene's fetch path (GpuScene.trace_defines)."""
         self.ctx = ctx
-        self.program = programs.get("fullscreen.vert", "raygen.frag", defines)
-        self.program["gId"] = 0
+        self.programs = programs
+        self.defines = dict(defines or {})
+        self._programs: dict[RayType, moderngl.Program] = {}  # made on first use, one per ray type
+        self.frame_uniforms: dict = {}  # camera and lights of the frame (set_frame_uniforms)
         self.quad = quad
         self.counters = ctx.buffer(reserve=4 * self.MAX_COUNTERS)
         self._zero = bytes(4 * self.MAX_COUNTERS)
 
+    def program(self, ray_type: RayType) -> moderngl.Program:
+        """The ray generation of `ray_type` (raygen.frag with RAY_TYPE: one program per type)."""
+        prog = self._programs.get(ray_type)
+        if prog is None:
+            prog = self.programs.get("fullscreen.vert", "raygen.frag", {**self.defines, "RAY_TYPE": int(ray_type)})
+            prog["gId"] = 0
+            self._programs[ray_type] = prog
+        return prog
+
+    def set_frame_uniforms(self, values: dict) -> None:
+        """The frame's camera and light uniforms, set on each program as it generates rays."""
+        self.frame_uniforms = values
+
     def generate(self, rays: RayBatch, gbuffer: GBufferPass, ray_type: RayType, sample: int,
                  light_index: int, ray_length: float, perturb_rad: float) -> None:
-        p = self.program
-        p["rayType"] = int(ray_type)
+        p = self.program(ray_type)
+        apply(p, self.frame_uniforms)
         p["lightIndex"] = int(light_index)
         p["sampleUV"] = halton2(sample)
         p["perturbAngle"] = float(perturb_rad)

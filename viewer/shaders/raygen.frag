@@ -14,7 +14,13 @@
 #define RAY_DIFFUSE 4
 #define RAY_REFLECT 5
 
-uniform int rayType;
+// One program per ray type (RAY_TYPE = viewer.effects.RayType, passes/raygen.py): with a uniform,
+// a SIMD driver that runs both sides of a branch on a uniform (llvmpipe) ran every type's code for
+// every pixel, the secondary rays' triangle test in the camera rays' pass too.
+#ifndef RAY_TYPE
+#error "raygen.frag: RAY_TYPE (the ray type, viewer.effects.RayType) must be defined"
+#endif
+const int rayType = RAY_TYPE;
 uniform int lightIndex;
 uniform vec2 sampleUV;      // this pass's Halton point, shared by every pixel
 uniform float perturbAngle; // radians, per-pixel random rotation of at most this angle
