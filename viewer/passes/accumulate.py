@@ -21,22 +21,22 @@ class AccumulatePass(SizedTargets):
         """`defines`: the scene's fetch path (GpuScene.trace_defines)."""
         self.ctx = ctx
         self.quad = quad
-        self.programs = programs
+        self.program_cache = programs
         self.defines = dict(defines or {})
-        self._programs: dict[RayType, moderngl.Program] = {}  # made on first use, one per effect
+        self._by_type: dict[RayType, moderngl.Program] = {}  # made on first use, one per effect
         self.frame_uniforms: dict = {}  # camera and lights of the frame (set_frame_uniforms)
         self.resize(size)
 
     def program(self, ray_type: RayType) -> moderngl.Program:
         """The accumulation of `ray_type`'s effect (accumulate.frag with ACC_EFFECT: one program per
         effect)."""
-        prog = self._programs.get(ray_type)
+        prog = self._by_type.get(ray_type)
         if prog is None:
             defines = {**self.defines, "ACC_EFFECT": int(ray_type)}
-            prog = self.programs.get("fullscreen.vert", "accumulate.frag", defines)
+            prog = self.program_cache.get("fullscreen.vert", "accumulate.frag", defines)
             for i, name in enumerate(["gPos", "gNormal", "rayOrigin", "rayDir", "hitT", "hitId"]):
                 prog[name] = i
-            self._programs[ray_type] = prog
+            self._by_type[ray_type] = prog
         return prog
 
     def set_frame_uniforms(self, values: dict) -> None:

@@ -21,9 +21,9 @@ class RayGenPass:
                  defines: dict[str, object] | None = None):
         """`defines`: the scene's fetch path (GpuScene.trace_defines)."""
         self.ctx = ctx
-        self.programs = programs
+        self.program_cache = programs
         self.defines = dict(defines or {})
-        self._programs: dict[RayType, moderngl.Program] = {}  # made on first use, one per ray type
+        self._by_type: dict[RayType, moderngl.Program] = {}  # made on first use, one per ray type
         self.frame_uniforms: dict = {}  # camera and lights of the frame (set_frame_uniforms)
         self.quad = quad
         self.counters = ctx.buffer(reserve=4 * self.MAX_COUNTERS)
@@ -31,11 +31,11 @@ class RayGenPass:
 
     def program(self, ray_type: RayType) -> moderngl.Program:
         """The ray generation of `ray_type` (raygen.frag with RAY_TYPE: one program per type)."""
-        prog = self._programs.get(ray_type)
+        prog = self._by_type.get(ray_type)
         if prog is None:
-            prog = self.programs.get("fullscreen.vert", "raygen.frag", {**self.defines, "RAY_TYPE": int(ray_type)})
+            prog = self.program_cache.get("fullscreen.vert", "raygen.frag", {**self.defines, "RAY_TYPE": int(ray_type)})
             prog["gId"] = 0
-            self._programs[ray_type] = prog
+            self._by_type[ray_type] = prog
         return prog
 
     def set_frame_uniforms(self, values: dict) -> None:
