@@ -405,8 +405,9 @@ class Renderer:
         self.update_geometry()
         cam_u = camera_uniforms(camera, self.size)
         light_u = light_uniforms(self.scene, s.ambient)
-        self.raygen.set_frame_uniforms({**cam_u, **light_u})
-        self.accumulate.set_frame_uniforms({**cam_u, **light_u})
+        frame_u = {**cam_u, **light_u}
+        self.raygen.set_frame_uniforms(frame_u)
+        self.accumulate.set_frame_uniforms(frame_u)
         apply(self.shade.program, cam_u)
         apply(self.shade.program, light_u)
         self.backend.overlays_enabled = self.overlays_wanted  # diagnostics cost time: only when shown or saved
