@@ -273,8 +273,11 @@ def test_aggressive_mode_only_loses_hits(gl_ctx):
 
 
 def test_static_camera_second_frame_needs_fewer_queries(gl_ctx):
+    # (one front per AO sample: with share_sample_fronts the first frame's second sample already
+    # starts from the first sample's front, see test_sample_passes_share_one_front)
     scene, bvh, path = _load("city")
-    r = Renderer(gl_ctx, scene, bvh, SIZE, "chcrt", parse_effects("primary,shadows,ao:2"))
+    r = Renderer(gl_ctx, scene, bvh, SIZE, "chcrt", parse_effects("primary,shadows,ao:2"),
+                 {"chcrt": "share_sample_fronts=0"})
     try:
         first = r.render(path[0]).backend_stats
         second = r.render(path[0]).backend_stats
@@ -616,7 +619,9 @@ def test_device_front_is_the_host_front(extra, gl_ctx):
     (both list a tile's pairs in the same order). Also in aggressive mode and with sub-tile culls.
     (merge_kept off: the host front has no merged kept pairs, whose counts take the ray's final hit.)"""
     effects = "primary,ao:2,diffuse:1"
-    base = "requery_interval=1,merge_kept=0" + ("," + extra if extra else "")
+    # (share_sample_fronts off: the host front refines after every sample pass, a shared device front
+    # once a frame)
+    base = "requery_interval=1,merge_kept=0,share_sample_fronts=0" + ("," + extra if extra else "")
     host = _walk(gl_ctx, base + ",device_front=0", effects)
     dev = _walk(gl_ctx, base, effects)
     assert sum(b.backend_stats.get("device_front_passes", 0) for b in dev) > 0
@@ -654,6 +659,41 @@ def test_merged_kept_pairs_keep_the_hits(gl_ctx):
                 assert np.array_equal(a.t.view(np.int32), b.t.view(np.int32)), (i, a.ray_type)
                 assert np.mean(a.tri == b.tri) > 0.999, (i, a.ray_type)  # ties at equal t may differ
     assert 4 * records["on"] < records["off"], records
+
+
+def test_sample_passes_share_one_front(gl_ctx):
+    """share_sample_fronts: an any-hit effect's sample passes share one front, and on device fronts
+    only the first of them in a frame plans and refines it. The others take its plan (one dispatch
+    instead of five) and skip the refinement (four), with their own tile bounds, cull and draws, so
+    they still answer exactly as the glsl baseline (conservative mode) and as one front per sample
+    does; the frame's submission is 8 launches a shared pass smaller; one front instead of four."""
+    effects = "primary,shadows,ao:4"
+    own = _walk(gl_ctx, "share_sample_fronts=0", effects)
+    shared = _walk(gl_ctx, "", effects)
+    ref = _walk(gl_ctx, "", effects, backend="glsl")
+    passes = 0
+    for i, (o, s, g) in enumerate(zip(own, shared, ref, strict=True)):
+        for a, b, c in zip(o.captured, s.captured, g.captured, strict=True):
+            assert a.ray_type == b.ray_type == c.ray_type
+            if a.ray_type.any_hit:  # which triangle depends on the order
+                assert np.array_equal(b.tri >= 0, c.tri >= 0), (i, a.ray_type)
+                assert np.array_equal(a.tri >= 0, b.tri >= 0), (i, a.ray_type)
+            else:
+                assert np.array_equal(b.t.view(np.int32), c.t.view(np.int32)), (i, a.ray_type)
+        n = s.backend_stats.get("shared_plan_passes", 0)
+        assert o.backend_stats.get("shared_plan_passes", 0) == 0
+        if i >= 2:  # steady (frame 0 builds the fronts, frame 1 attaches them to the device)
+            assert n == 3, (i, s.backend_stats)  # AO samples 1-3; the one shadow pass plans its own
+            assert o.io.gl_draws - s.io.gl_draws == 8 * n, (i, o.io, s.io)
+        passes += n
+    assert passes > 0
+    scene, bvh, path = _load("city")
+    r = Renderer(gl_ctx, scene, bvh, SIZE, "chcrt", parse_effects("ao:4"))
+    try:
+        r.render(path[0])
+        assert len(r.backend.fronts) == 1
+    finally:
+        r.release()
 
 
 def test_merged_kept_pairs_are_always_drawn(gl_ctx):

@@ -57,6 +57,10 @@ void main() {
     int i = int(gl_GlobalInvocationID.x);  // cull tile i = ty * 2^level + tx (chc_tilebounds.comp)
     if (i >= nQueries) return;
     ChcDraw q = queries[i];  // the cull tile's rectangle; info.x, info.y = its finest tile's pair items
+#ifdef CHC_MERGE_KEPT
+    // (a pass that takes an earlier pass's plan, share_sample_fronts, finds that pass's merged range)
+    if (mergeKept != 0) plans[i].keptCount = 0;
+#endif
     TileBound t = tiles[i];
     if (q.info.y == 0 || t.omax.w <= 0.0 || t.omin.w < 0.0) return;  // no ray here may still hit
     int nb = 0;

@@ -44,7 +44,8 @@ overlays are wanted, `overlays_enabled`; left as they are otherwise):
 node of the scheduled subtree that produced the pixel's hit, -1 for none). Counters: see
 ``_Pass.stats`` (the spec's eight plus per-tile batch counts, waves, re-queries, pull-ups).
 
-Temporal state: one pair hierarchy per pass key (ray type, sample, light: PassInfo.key).
+Temporal state: one pair hierarchy per pass key (ray type, sample, light: PassInfo.key); with
+share_sample_fronts one per any-hit effect and light (ChcrtBackend.front_key), hit hints per pass key.
 
 Query modes. ``query_mode=hw`` (the paper's): every query is one scissored draw inside one hardware
 occlusion query, every intersection batch one scissored draw. ``query_mode=batched`` (default): a
@@ -290,6 +291,11 @@ class ChcrtParams:
                                        "frames: city-near's AO at 0.44-0.51 runs 1.1-1.2x glsl; sponza's at 0.82-0.88 "
                                        "0.53x, conference's at 0.81-0.84 0.63x, city-far's at 0.92-1.01 0.84x, "
                                        "sibenik's at 0.99-1.02 0.78x)")
+    share_sample_fronts: bool = param(True, "any-hit passes (AO samples, a light's soft-shadow samples) share "
+                                      "one front per effect and light; on device fronts the first of them in a "
+                                      "frame plans and refines it, the others take that plan and run only their "
+                                      "tile bounds, cull and draws (exact: the cull still covers every invisible "
+                                      "pair for their rays); False: one front per sample")
     hit_hint: bool = param(True, "temporal: each ray first tests the triangle its pixel hit in this front's previous "
                            "pass (a shadow cache for every ray type): an any-hit ray that hits it is done, a "
                            "closest-hit ray traverses with its distance as tmax (exact); not with a GPU budget, nor in "
@@ -557,6 +563,8 @@ class ChcrtBackend:
 
     def _clear_fronts(self) -> None:
         """Forget every front (on the device too) and its hit hints."""
+        if self.devfronts is not None:
+            self.devfronts.last_plan = None
         for f in self.fronts.values():
             if f.device is not None and self.devfronts is not None:
                 self.devfronts.detach(f.device)
@@ -699,6 +707,14 @@ class ChcrtBackend:
     def tile_level(self, size: tuple[int, int]) -> int:
         return max_tile_level(size, self.p.min_tile_fraction)
 
+    def front_key(self, pinfo: PassInfo) -> tuple[int, int, int]:
+        """The pair front a pass uses: its own (PassInfo.key), or with share_sample_fronts, for any-hit
+        passes, the one of its effect's sample 0 (the samples' rays have the same origins and the
+        same distribution of directions). Hit hints stay per pass key."""
+        if self.p.share_sample_fronts and pinfo.ray_type.any_hit:
+            return int(pinfo.ray_type), 0, int(pinfo.light)
+        return pinfo.key
+
     def trace(self, rays: RayBatch, pinfo: PassInfo, hits: HitBuffer) -> TraceResult:
         ray_type = pinfo.ray_type
         size = tuple(rays.size)
@@ -709,10 +725,11 @@ class ChcrtBackend:
             self.targets = _Targets(self.ctx, size, max_level)
             self._clear_fronts()
         key = pinfo.key
-        front = self.fronts.get(key)
+        front_key = self.front_key(pinfo)
+        front = self.fronts.get(front_key)
         if front is None:
             front = PairFront(size, max_level, self.rng, self.p.requery_interval)
-            self.fronts[key] = front
+            self.fronts[front_key] = front
         tr = _Pass(self, front, rays, ray_type, hits, pinfo)
         self.work.begin(size)
         self.finisher.bind_flags(size)
@@ -774,7 +791,8 @@ class _Pass:
                                      "tile_batches_3plus", "query_waves", "pull_ups", "phase1_subtrees",
                                      "query_pixels", "requeries", "batches", "upload_bvh_mb", "upload_geom_mb",
                                      "lca_tiles", "gpu_driven", "newly_visible_queries", "query_records_drawn",
-                                     "full_bvh_passes", "work_probe_passes", "wasted_front_passes")}
+                                     "full_bvh_passes", "work_probe_passes", "wasted_front_passes",
+                                     "shared_plan_passes")}
         self.rep: tuple[np.ndarray, np.ndarray] | None = None  # representative rays per finest tile
         self.rays_read = False
         self.threshold = int(self.p.visible_threshold)
@@ -1503,27 +1521,44 @@ class _Pass:
         if dev is None and not f.full_bvh:
             dev = f.device = dv.attach(f, n_tiles)
         full = f.full_bvh or dev.full
+        sub = int(p.cull_sublevels)
+        while sub > 0 and min(self.size) >> (level + sub) < 4:
+            sub -= 1
+        # share_sample_fronts: a later sample pass of this front in this frame takes the plan its
+        # first one left in the device fronts' buffers (no other plan since)
+        plan_key = None if dev is None else (dev.slot, self.frame_number(), tuple(self.size), level, sub)
+        reuse = (p.share_sample_fronts and self.any_hit and not full and plan_key is not None
+                 and dv.last_plan == plan_key)
         probe = wasted = False
         if dev is not None:
-            probe, wasted = self._probe_plan(dev, full)
+            frame = self.frame_number()
+            if p.share_sample_fronts and self.any_hit and dev.decided_frame == frame:
+                wasted = dev.decided_wasted  # a later sample pass: the frame's first decided (no probe)
+            else:
+                probe, wasted = self._probe_plan(dev, full)
+                dev.decided_frame, dev.decided_wasted = frame, wasted
+                dev.passes += 1
             full = full or wasted
-            dev.passes += 1
             dev.work_ratio_full = p.work_ratio_full_any if self.any_hit else p.work_ratio_full
             self.stats["wasted_front_passes"] = int(wasted)
+        self.stats["shared_plan_passes"] = int(reuse)
         capacity = 0 if dev is None else dev.capacity
         need = COUNT_BYTES + 4 * (capacity + 3)
         if be.gpu_counts.size < need:
             be.gpu_counts.release()
             be.gpu_counts = self.ctx.buffer(reserve=1 << (need - 1).bit_length())
-        sub = int(p.cull_sublevels)
-        while sub > 0 and min(self.size) >> (level + sub) < 4:
-            sub -= 1
         report = self.pinfo.report
         merge = be.merge_kept and sub == 0 and not full
         common = dict(ray_slots=COUNT_SLOTS, frame=self.frame_number(), max_level=level, threshold=self.threshold,
                       requery_interval=p.requery_interval, seed=p.seed, report=report)
         with prof.phase("chc:0-setup"):
-            if dev is None or wasted:
+            if reuse:
+                # the plan stands (records, items, tile plans, arguments): only the pass's counts
+                # and the survivors' command zeroed (no tile plan, no front META touched); the cull
+                # below still covers every invisible pair for this pass's rays
+                dv.clear(be.gpu_counts, be.query_indirect, ray_slots=COUNT_SLOTS, capacity=capacity, slot=0)
+                self.stats["draws"] += 1
+            elif dev is None or wasted:
                 # no front, or one that saves too little (work_probe): nothing to plan (the front's
                 # META keeps its last plan for the host's decisions), only the pass's counts zeroed
                 dv.clear(be.gpu_counts, be.query_indirect, ray_slots=COUNT_SLOTS, capacity=capacity,
@@ -1534,6 +1569,7 @@ class _Pass:
                 dv.plan(dev, be.gpu_counts, be.query_indirect, size=tuple(self.size), max_batch=p.max_batch,
                         lca_pairs=p.lca_pairs, lca_subtrees=p.lca_subtrees, heavy_allowed=not primary_only,
                         cull_sub=sub, count_due_only=p.count_due_only, full=full, **common)
+                dv.last_plan = None if full else plan_key
                 self.stats["draws"] += 3 if full else 5
             self._bind()
             # without overlays, the init draw is left out: with merged kept pairs the tile bounds
@@ -1565,7 +1601,7 @@ class _Pass:
         with prof.phase("chc:4-final-intersect"):
             dv.pass_end(be.gpu_counts, ray_slots=COUNT_SLOTS, capacity=capacity, report=report)
             self.stats["draws"] += 1
-            if not full:
+            if not (full or reuse):  # (a shared plan's front was refined by the pass that planned it)
                 dv.refine(dev, be.gpu_counts, t_q=self.t_q, max_height=p.max_subtree_height,
                           max_tris=p.max_subtree_tris, **common)
                 self.stats["draws"] += 4

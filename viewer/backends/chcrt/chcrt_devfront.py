@@ -159,6 +159,10 @@ class DeviceFront:
         self.wasteful = False
         self.work_ratio_full = 1.0  # the limit of its rays' type (ChcrtParams.work_ratio_full(_any))
         self.measured = False  # a pass measured since the last end_frame (its META row has the probe)
+        # share_sample_fronts (chcrt.py): the frame whose first pass of this front made the work probe's
+        # decision, and whether that pass traced the whole BVH (the frame's later sample passes follow it)
+        self.decided_frame = -1
+        self.decided_wasted = False
         self.bufs = [ctx.buffer(reserve=capacity * PAIR_DTYPE.itemsize) for _ in range(2)]
         self.cur = 0
         if len(records):
@@ -206,6 +210,10 @@ class DeviceFronts:
         self.tiles_cap = self.vis_cap = self.inv_cap = self.rec_cap = self.flags_cap = self.cull_cap = 0
         self.tiles = self.vis_items = self.inv_items = self.tmp = self.records = self.flags = self.cull = None
         self.passes = 0  # device passes since the last end_frame
+        # what the plan in the buffers (tile plans, items, records, arguments) was made for: (front
+        # slot, frame, ray-batch size, tile level, cull sublevels), set by chcrt.py after a plan that
+        # is not `full`; any other plan resets it (share_sample_fronts)
+        self.last_plan: tuple | None = None
         self.ensure(tiles=64, pairs=MIN_CAPACITY, cull_tiles=64)  # every binding exists from the start
 
     def prewarm(self, zero: moderngl.Buffer) -> None:
@@ -348,6 +356,7 @@ class DeviceFronts:
         traces the whole BVH only refreshes the front's META (three dispatches, no statistics), so
         the host can decide again after the frame (the front does not change on such passes, but
         the aggressive mode's choice of pairs to test does)."""
+        self.last_plan = None  # (set again by the caller for this plan)
         n_tiles = 1 << (2 * max_level)
         n_cull = 1 << (2 * (max_level + cull_sub))
         self.ensure(tiles=n_tiles, pairs=dev.capacity, cull_tiles=n_cull)
