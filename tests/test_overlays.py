@@ -35,10 +35,8 @@ def city():
 
 @pytest.fixture(scope="module")
 def chc(gl_ctx, city):
-    """A chcrt renderer that has rendered two frames (temporal state in place). The work probe off:
-    at this size its measurement may send a front's passes through the whole BVH, which have no
-    overlays (test_chcrt.py tests the probe)."""
-    r = Renderer(gl_ctx, city.scene, city.bvh, SIZE, "chcrt", parse_effects(EFFECTS), {"chcrt": "work_probe=0"})
+    """A chcrt renderer that has rendered two frames (temporal state in place)."""
+    r = Renderer(gl_ctx, city.scene, city.bvh, SIZE, "chcrt", parse_effects(EFFECTS))
     cam = city.scene.default_camera
     r.render(cam)
     r.render(cam)
