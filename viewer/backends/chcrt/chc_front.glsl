@@ -27,6 +27,11 @@ struct ChcTilePlan { int cv; int ci; int lo; int hi; int heavy; int lca; int vis
                      int invBase; int invCount; int visFill; int invFill; int recBase; int nrec; int keptBase;
                      int keptCount; };
 
+// chc_front_clear.comp writes, in the plan's argument buffer (ARGS_PAIRS in chcrt_devfront.py), the
+// dispatch of the pass's per-pair steps (count, scatter, refine, merge, write): a work group per 64
+// of the front's pairs as it stands (META_N), not per 64 of its capacity (kept at 8x)
+#define ARG_PAIRS 176
+
 #define CHC_INVISIBLE 0
 #define CHC_VISIBLE 1
 #define CHC_INNER 2

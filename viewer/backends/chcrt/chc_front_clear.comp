@@ -3,7 +3,7 @@
 // pass's extra count slots (query pixels, records drawn, kept pairs) after the pairs' slots, and the
 // survivors' indirect draw command. The
 // pairs' own count slots are zeroed by chc_front_count.comp; the front's overflow bits and work probe
-// are reset.
+// are reset, and the per-pair steps' dispatch is sized (ARG_PAIRS).
 // Nothing crosses the host.
 layout(local_size_x = 64) in;
 #include "chc_front.glsl"
@@ -12,6 +12,7 @@ layout(std430, binding = BIND_FR_COUNTS) writeonly buffer Counts { uint counts[]
 layout(std430, binding = BIND_FR_META) buffer Meta { int meta[]; };
 // the survivors' indirect draw (chc_querycull.comp adds its instances)
 layout(std430, binding = BIND_FR_SURVIVOR_CMD) writeonly buffer SurvivorCmd { uint cmd[4]; };
+layout(std430, binding = BIND_FR_ARGS) writeonly buffer Args { uint args[]; };
 uniform int nTiles;
 uniform int frontSlot;  // 0: no front (a full-BVH pass)
 uniform int capacity;  // pair slots: the pass's extra slots follow them
@@ -30,6 +31,11 @@ void main() {
     if (i < 3) counts[raySlots + capacity + i] = 0u;
     if (i == 0) {
         if (frontSlot > 0) {
+            // the per-pair steps' dispatch: the front's pairs now (the scan of the refinement changes
+            // META_N last, and the write after it reads the old count)
+            args[ARG_PAIRS] = uint(max((meta[16 * frontSlot + META_N] + 63) / 64, 1));
+            args[ARG_PAIRS + 1] = 1u;
+            args[ARG_PAIRS + 2] = 1u;
             meta[16 * frontSlot + META_OVERFLOW] = 0;  // this pass's overflows only
             meta[16 * frontSlot + META_PROBE_FRONT] = 0;  // and its work probe (if it runs one)
             meta[16 * frontSlot + META_PROBE_FULL] = 0;

@@ -75,6 +75,7 @@ STAT_NAMES = ("rays", "query_pixels", "query_records_drawn", "visible_pairs", "i
 # dispatches of chc_visorder.comp at 512 and chc_front_items.comp at 768, the item totals at 1024
 ARGS_BYTES = 4 * 264
 ARGS_VISORDER, ARGS_ITEMS = 512, 768
+ARGS_PAIRS = 704  # the per-pair steps' dispatch, written by chc_front_clear.comp (chc_front.glsl ARG_PAIRS)
 MIN_CAPACITY = 4096
 # a refinement can make a front up to 5x larger (each ray-space split adds four children): a front's
 # capacity is kept at 8x what it holds or wanted, and grows when 5x no longer fits
@@ -341,6 +342,7 @@ class DeviceFronts:
         survivors' draw command: the first dispatch of every device pass, also of a full-BVH one."""
         counts.bind_to_storage_buffer(B["BIND_FR_COUNTS"])
         survivor_cmd.bind_to_storage_buffer(B["BIND_FR_SURVIVOR_CMD"])
+        self.args.bind_to_storage_buffer(B["BIND_FR_ARGS"])
         self.tiles.bind_to_storage_buffer(B["BIND_FR_TILES"])
         self.meta.bind_to_storage_buffer(B["BIND_FR_META"])
         self.passes += 1
@@ -365,13 +367,13 @@ class DeviceFronts:
                       visCap=self.vis_cap, seed=int(seed), statBase=self.stat_base(report and not full))
         self._bind(dev, counts)
         self.clear(counts, survivor_cmd, ray_slots=ray_slots, capacity=dev.capacity, slot=dev.slot, n_tiles=n_tiles)
-        self._run("count", -(-dev.capacity // 64), **common)
+        self._run_indirect("count", ARGS_PAIRS, **common)  # (sized by the clear for the front's pairs)
         self._run("plan", 1, nTiles=n_tiles, raySize=tuple(size), maxBatch=int(max_batch), lcaPairs=int(lca_pairs),
                   lcaSubtrees=int(lca_subtrees), heavyAllowed=int(heavy_allowed), invCap=self.inv_cap,
                   recCap=self.rec_cap, cullSub=int(cull_sub), **common)
         if full:
             return
-        self._run("scatter", -(-dev.capacity // 64), **common)
+        self._run_indirect("scatter", ARGS_PAIRS, **common)
         self._run_indirect("items", ARGS_ITEMS, countDueOnly=int(count_due_only), **common)
 
     def pass_end(self, counts: moderngl.Buffer, *, ray_slots: int, capacity: int, report: bool = True) -> None:
@@ -391,11 +393,12 @@ class DeviceFronts:
         common = dict(capacity=dev.capacity, raySlots=ray_slots, frontSlot=dev.slot, maxLevel=max_level,
                       threshold=int(threshold), frame=int(frame), requeryInterval=int(requery_interval),
                       seed=int(seed), statBase=self.stat_base(report))
-        groups = -(-dev.capacity // 64)
-        self._run("refine", groups, tQ=float(t_q), maxHeight=int(max_height), maxTris=int(max_tris), **common)
-        self._run("merge", groups, **common)
+        # (a work group per 64 pairs of the front as its pass's plan found it: ARGS_PAIRS)
+        self._run_indirect("refine", ARGS_PAIRS, tQ=float(t_q), maxHeight=int(max_height), maxTris=int(max_tris),
+                           **common)
+        self._run_indirect("merge", ARGS_PAIRS, **common)
         self._run("scan", 1, **common)
-        self._run("write", groups, **common)
+        self._run_indirect("write", ARGS_PAIRS, **common)
         dev.cur = 1 - dev.cur
 
     # -- frame --------------------------------------------------------------------------------------
