@@ -858,9 +858,8 @@ class _Pass:
         """The pass's active rays into the ray-count slots (chc_count_rays.comp, one dispatch), in
         place of the init draw of a pass that traces the whole BVH."""
         w, h = self.size
-        blocks = -(-w // 8) * -(-h // 8)  # 8x8 pixel blocks, one an invocation, 64 a work group
         self.be.count_rays["raySize"] = (w, h)
-        self.be.count_rays.run(-(-blocks // 64))
+        self.be.count_rays.run(-(-w // 64), -(-h // 64))  # a work group per 64x64 pixel region
         self.ctx.memory_barrier(moderngl.SHADER_STORAGE_BARRIER_BIT)
         self.stats["draws"] += 1
         iostats.gl_draw()
