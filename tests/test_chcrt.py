@@ -662,14 +662,15 @@ def test_merged_kept_pairs_keep_the_hits(gl_ctx):
 
 
 def test_sample_passes_share_one_front(gl_ctx):
-    """share_sample_fronts: an any-hit effect's sample passes share one front, and on device fronts
-    only the first of them in a frame plans and refines it. The others take its plan (one dispatch
-    instead of five) and skip the refinement (four), with their own tile bounds, cull and draws, so
-    they still answer exactly as the glsl baseline (conservative mode) and as one front per sample
-    does; the frame's submission is 8 launches a shared pass smaller; one front instead of four."""
-    effects = "primary,shadows,ao:4"
-    own = _walk(gl_ctx, "share_sample_fronts=0", effects)
-    shared = _walk(gl_ctx, "", effects)
+    """share_sample_fronts: an effect's sample passes share one front, and on device fronts only the
+    first of them in a frame refines it (four launches fewer for each other one); any-hit ones also
+    take its plan (one dispatch instead of five: four more), with their own tile bounds, cull and
+    draws. They still answer exactly as the glsl baseline (conservative mode) and as one front per
+    sample does; one front for ao:4 instead of four."""
+    effects = "primary,shadows,ao:4,diffuse:2"
+    keep = "full_bvh_fraction=0"  # (the diffuse rays' front stays on the device, not on full traversals)
+    own = _walk(gl_ctx, keep + ",share_sample_fronts=0", effects)
+    shared = _walk(gl_ctx, keep, effects)
     ref = _walk(gl_ctx, "", effects, backend="glsl")
     passes = 0
     for i, (o, s, g) in enumerate(zip(own, shared, ref, strict=True)):
@@ -680,12 +681,15 @@ def test_sample_passes_share_one_front(gl_ctx):
                 assert np.array_equal(a.tri >= 0, b.tri >= 0), (i, a.ray_type)
             else:
                 assert np.array_equal(b.t.view(np.int32), c.t.view(np.int32)), (i, a.ray_type)
-        n = s.backend_stats.get("shared_plan_passes", 0)
-        assert o.backend_stats.get("shared_plan_passes", 0) == 0
+        fronts = s.backend_stats.get("shared_front_passes", 0)
+        plans = s.backend_stats.get("shared_plan_passes", 0)
+        assert o.backend_stats.get("shared_front_passes", 0) == 0
         if i >= 2:  # steady (frame 0 builds the fronts, frame 1 attaches them to the device)
-            assert n == 3, (i, s.backend_stats)  # AO samples 1-3; the one shadow pass plans its own
-            assert o.io.gl_draws - s.io.gl_draws == 8 * n, (i, o.io, s.io)
-        passes += n
+            # AO samples 1-3 (shared plans) and diffuse sample 1; the one shadow pass is its front's first
+            assert (fronts, plans) == (4, 3), (i, s.backend_stats)
+            assert o.backend_stats["full_bvh_passes"] == s.backend_stats["full_bvh_passes"] == 0
+            assert o.io.gl_draws - s.io.gl_draws == 4 * fronts + 4 * plans, (i, o.io, s.io)
+        passes += fronts
     assert passes > 0
     scene, bvh, path = _load("city")
     r = Renderer(gl_ctx, scene, bvh, SIZE, "chcrt", parse_effects("ao:4"))
@@ -782,9 +786,11 @@ def test_device_front_unreported_pass_counts_nothing(gl_ctx):
     try:
         r.render(path[0])  # the cold pass: the front moves to the device
         be = r.backend
+        be.begin_frame(be.frame + 1)  # (each its own frame: a shared front refines once a frame)
         be.trace(r.rays, PassInfo(RayType.PRIMARY, report=False), r.hits)
         gl_ctx.finish()
         quiet = be.end_frame()
+        be.begin_frame(be.frame + 1)
         be.trace(r.rays, PassInfo(RayType.PRIMARY), r.hits)
         gl_ctx.finish()
         loud = be.end_frame()

@@ -45,7 +45,7 @@ node of the scheduled subtree that produced the pixel's hit, -1 for none). Count
 ``_Pass.stats`` (the spec's eight plus per-tile batch counts, waves, re-queries, pull-ups).
 
 Temporal state: one pair hierarchy per pass key (ray type, sample, light: PassInfo.key); with
-share_sample_fronts one per any-hit effect and light (ChcrtBackend.front_key), hit hints per pass key.
+share_sample_fronts one per effect and light (ChcrtBackend.front_key), hit hints per pass key.
 
 Query modes. ``query_mode=hw`` (the paper's): every query is one scissored draw inside one hardware
 occlusion query, every intersection batch one scissored draw. ``query_mode=batched`` (default): a
@@ -291,11 +291,13 @@ class ChcrtParams:
                                        "frames: city-near's AO at 0.44-0.51 runs 1.1-1.2x glsl; sponza's at 0.82-0.88 "
                                        "0.53x, conference's at 0.81-0.84 0.63x, city-far's at 0.92-1.01 0.84x, "
                                        "sibenik's at 0.99-1.02 0.78x)")
-    share_sample_fronts: bool = param(True, "any-hit passes (AO samples, a light's soft-shadow samples) share "
-                                      "one front per effect and light; on device fronts the first of them in a "
-                                      "frame plans and refines it, the others take that plan and run only their "
-                                      "tile bounds, cull and draws (exact: the cull still covers every invisible "
-                                      "pair for their rays); False: one front per sample")
+    share_sample_fronts: bool = param(True, "the sample passes of an effect (AO, diffuse, a light's soft "
+                                      "shadows) share one front; on device fronts only the first of them in a "
+                                      "frame measures (work_probe) and refines it; later any-hit ones also take its "
+                                      "plan and run only their tile bounds, cull and draws, later closest-hit ones "
+                                      "plan again (their visible order sorts the items for their own rays); exact "
+                                      "either way (the cull still covers every invisible pair for each pass's "
+                                      "rays); False: one front per sample")
     hit_hint: bool = param(True, "temporal: each ray first tests the triangle its pixel hit in this front's previous "
                            "pass (a shadow cache for every ray type): an any-hit ray that hits it is done, a "
                            "closest-hit ray traverses with its distance as tmax (exact); not with a GPU budget, nor in "
@@ -708,10 +710,10 @@ class ChcrtBackend:
         return max_tile_level(size, self.p.min_tile_fraction)
 
     def front_key(self, pinfo: PassInfo) -> tuple[int, int, int]:
-        """The pair front a pass uses: its own (PassInfo.key), or with share_sample_fronts, for any-hit
-        passes, the one of its effect's sample 0 (the samples' rays have the same origins and the
-        same distribution of directions). Hit hints stay per pass key."""
-        if self.p.share_sample_fronts and pinfo.ray_type.any_hit:
+        """The pair front a pass uses: its own (PassInfo.key), or with share_sample_fronts the one of
+        its effect's sample 0 (the samples' rays have the same origins and the same distribution of
+        directions). Hit hints stay per pass key."""
+        if self.p.share_sample_fronts:
             return int(pinfo.ray_type), 0, int(pinfo.light)
         return pinfo.key
 
@@ -792,7 +794,7 @@ class _Pass:
                                      "query_pixels", "requeries", "batches", "upload_bvh_mb", "upload_geom_mb",
                                      "lca_tiles", "gpu_driven", "newly_visible_queries", "query_records_drawn",
                                      "full_bvh_passes", "work_probe_passes", "wasted_front_passes",
-                                     "shared_plan_passes")}
+                                     "shared_front_passes", "shared_plan_passes")}
         self.rep: tuple[np.ndarray, np.ndarray] | None = None  # representative rays per finest tile
         self.rays_read = False
         self.threshold = int(self.p.visible_threshold)
@@ -1523,16 +1525,16 @@ class _Pass:
         sub = int(p.cull_sublevels)
         while sub > 0 and min(self.size) >> (level + sub) < 4:
             sub -= 1
-        # share_sample_fronts: a later sample pass of this front in this frame takes the plan its
-        # first one left in the device fronts' buffers (no other plan since)
-        plan_key = None if dev is None else (dev.slot, self.frame_number(), tuple(self.size), level, sub)
-        reuse = (p.share_sample_fronts and self.any_hit and not full and plan_key is not None
-                 and dv.last_plan == plan_key)
+        # share_sample_fronts: a later sample pass of a shared front in this frame; an any-hit one takes
+        # the plan the frame's first left in the device fronts' buffers (no other plan since)
+        frame = self.frame_number()
+        later = p.share_sample_fronts and dev is not None and dev.decided_frame == frame
+        plan_key = None if dev is None else (dev.slot, frame, tuple(self.size), level, sub)
+        reuse = later and self.any_hit and not full and dv.last_plan == plan_key
         probe = wasted = False
         if dev is not None:
-            frame = self.frame_number()
-            if p.share_sample_fronts and self.any_hit and dev.decided_frame == frame:
-                wasted = dev.decided_wasted  # a later sample pass: the frame's first decided (no probe)
+            if later:
+                wasted = dev.decided_wasted  # the frame's first pass decided (no probe)
             elif dev.passes == 0 and be.use_hints and self.hint is None:
                 # the front's first measurement waits for a pass with hit hints (a shared front's first
                 # device pass can be a sample's first pass, in the frame that built it): without them
@@ -1546,7 +1548,8 @@ class _Pass:
             full = full or wasted
             dev.work_ratio_full = p.work_ratio_full_any if self.any_hit else p.work_ratio_full
             self.stats["wasted_front_passes"] = int(wasted)
-        self.stats["shared_plan_passes"] = int(reuse)
+        self.stats["shared_front_passes"] = int(later)  # (its refinement left to the frame's first pass)
+        self.stats["shared_plan_passes"] = int(reuse)  # (its plan too)
         capacity = 0 if dev is None else dev.capacity
         need = COUNT_BYTES + 4 * (capacity + 3)
         if be.gpu_counts.size < need:
@@ -1606,7 +1609,7 @@ class _Pass:
         with prof.phase("chc:4-final-intersect"):
             dv.pass_end(be.gpu_counts, ray_slots=COUNT_SLOTS, capacity=capacity, report=report)
             self.stats["draws"] += 1
-            if not (full or reuse):  # (a shared plan's front was refined by the pass that planned it)
+            if not (full or later):  # (a shared front: refined by its frame's first pass)
                 dv.refine(dev, be.gpu_counts, t_q=self.t_q, max_height=p.max_subtree_height,
                           max_tris=p.max_subtree_tris, **common)
                 self.stats["draws"] += 4
