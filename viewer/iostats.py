@@ -23,7 +23,7 @@ API:
 from __future__ import annotations
 
 import time
-from dataclasses import asdict, dataclass, fields
+from dataclasses import asdict, dataclass, fields, replace
 
 
 @dataclass
@@ -89,8 +89,9 @@ class timed_sync:
 
 
 def current() -> IoCounts:
-    """The counts so far in this frame (a copy)."""
-    return IoCounts(**asdict(_counts))
+    """The counts so far in this frame (a copy; every field is a number, so a shallow one: the
+    profiler takes one before and after every phase, and asdict's deep copy cost 0.05 ms each)."""
+    return replace(_counts)
 
 
 def begin_frame() -> None:
