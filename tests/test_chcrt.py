@@ -898,19 +898,25 @@ def test_work_probe_counts_what_both_traversals_do(gl_ctx, monkeypatch):
     assert c["work_probe_ratio"] == pytest.approx(c["work_probe_front"] / c["work_probe_full"])
 
 
+def _walk_exact(ctx, params: str, effects: str, frames: int):
+    """chcrt's frames of the city walk (_walk), each pass checked against glsl's (_check_exact)."""
+    scene, _, _ = _load("city")
+    out = _walk(ctx, params, effects, frames=frames)
+    ref = _walk(ctx, "", effects, frames=frames, backend="glsl")
+    for k, (a, b) in enumerate(zip(ref, out, strict=True)):
+        for pa, pb in zip(a.captured, b.captured, strict=True):
+            _check_exact(pa, pb, f"city {params} frame {k} {pa.ray_type.label}", scene.triangles)
+    return out
+
+
 @pytest.mark.parametrize("limit", [0.001, 100.0])
 def test_work_probe_sends_fronts_that_save_nothing_through_the_whole_bvh(limit, gl_ctx):
     """A front measured to do more than work_ratio_full(_any) of the full traversal's work traces
     the whole BVH (exact: glsl's traversal) until its next measurement, and the pass before that
     measurement runs the front again to bring it up to date; under the limit nothing changes. With
     work_probe=4: measurements at a front's device passes 0, 3, 7, ...; the warm-up at 2, 6, ..."""
-    scene, bvh, _ = _load("city")
     params = f"work_probe=4,work_ratio_full={limit},work_ratio_full_any={limit}"
-    frames = _walk(gl_ctx, params, "primary,ao:1", frames=7)
-    ref = _walk(gl_ctx, "", "primary,ao:1", frames=7, backend="glsl")
-    for k, (a, b) in enumerate(zip(ref, frames, strict=True)):
-        for pa, pb in zip(a.captured, b.captured, strict=True):
-            _check_exact(pa, pb, f"city {params} frame {k} {pa.ray_type.label}", scene.triangles)
+    frames = _walk_exact(gl_ctx, params, "primary,ao:1", 7)
     probes = [b.backend_stats["work_probe_passes"] for b in frames]
     wasted = [b.backend_stats["wasted_front_passes"] for b in frames]
     n = probes[1]  # the device fronts (frame 0 builds them synchronously)
@@ -931,13 +937,7 @@ def test_shared_front_measures_once_a_frame_with_hints(gl_ctx):
     none). Its first measurement waits for a pass with hit hints: in the frame that builds the front,
     sample 1's first device pass has none (it would measure more work than any later pass). With
     work_probe=4: measurements at the front's passes 0 and 3 (frames 1 and 4), a warm-up at 2."""
-    scene, _, _ = _load("city")
-    params = "work_probe=4,work_ratio_full_any=0.001"  # any front is wasteful
-    frames = _walk(gl_ctx, params, "ao:2", frames=7)
-    ref = _walk(gl_ctx, "", "ao:2", frames=7, backend="glsl")
-    for k, (a, b) in enumerate(zip(ref, frames, strict=True)):
-        for pa, pb in zip(a.captured, b.captured, strict=True):
-            _check_exact(pa, pb, f"city {params} frame {k} {pa.ray_type.label}", scene.triangles)
+    frames = _walk_exact(gl_ctx, "work_probe=4,work_ratio_full_any=0.001", "ao:2", 7)  # any front is wasteful
     probes = [b.backend_stats["work_probe_passes"] for b in frames]
     wasted = [b.backend_stats["wasted_front_passes"] for b in frames]
     shared = [b.backend_stats["shared_plan_passes"] for b in frames]
