@@ -522,6 +522,9 @@ class ChcrtBackend:
         self.count_buf = self.ctx.buffer(reserve=4 * COUNT_SLOTS)
         self._zero_counts = bytes(4 * COUNT_SLOTS)
         self.tilebounds = compute_shader(self.ctx, "chc_tilebounds.comp", BINDINGS, (HERE,))
+        # (the build that also initialises the rays: a device pass without an init draw)
+        self.tilebounds_init = compute_shader(self.ctx, "chc_tilebounds.comp", {**BINDINGS, "CHC_INIT_RAYS": 1},
+                                              (HERE,))
         self.count_rays = compute_shader(self.ctx, "chc_count_rays.comp", BINDINGS, (HERE,))
         self.count_rays["rayOrigin"] = 0
         self.count_rays["rayDir"] = 1
@@ -529,8 +532,9 @@ class ChcrtBackend:
         self.visorder = compute_shader(self.ctx, "chc_visorder.comp", BINDINGS, (HERE,))
         self.devfronts: DeviceFronts | None = None
         self.visorder_dev: moderngl.ComputeShader | None = None
-        self.tilebounds["rayOrigin"] = 0
-        self.tilebounds["rayDir"] = 1
+        for comp in (self.tilebounds, self.tilebounds_init):
+            comp["rayOrigin"] = 0
+            comp["rayDir"] = 1
         self.all_queries = StreamBuffer(self.ctx, DRAW_DTYPE.itemsize, BIND_CHC_QUERIES)
         self.survivors = self.ctx.buffer(reserve=DRAW_DTYPE.itemsize * 4096)
         self.kept_boxes = self.ctx.buffer(reserve=ITEM_DTYPE.itemsize * 4096)
@@ -660,7 +664,7 @@ class ChcrtBackend:
             self.probe[1].release()
             self.probe[2].release()
             self.probe = None
-        for obj in (self.vao_isect_g, self.gpu_counts, self.tilebounds, self.count_rays,
+        for obj in (self.vao_isect_g, self.gpu_counts, self.tilebounds, self.tilebounds_init, self.count_rays,
                     self.querycull, self.survivors, self.query_indirect, self.tile_bounds, self.kept_boxes):
             obj.release()
         self._clear_fronts()
@@ -1177,10 +1181,10 @@ class _Pass:
             be.tile_bounds = ctx.buffer(reserve=TILE_BOUND_BYTES * tiles)
         be.tile_bounds.bind_to_storage_buffer(BIND_CHC_TILES)
         ctx.memory_barrier(moderngl.SHADER_IMAGE_ACCESS_BARRIER_BIT)
-        be.tilebounds["raySize"] = tuple(self.size)
-        be.tilebounds["level"] = level
-        be.tilebounds["initRays"] = int(init_rays)
-        be.tilebounds.run(tiles)
+        comp = be.tilebounds_init if init_rays else be.tilebounds
+        comp["raySize"] = tuple(self.size)
+        comp["level"] = level
+        comp.run(tiles)
         ctx.memory_barrier(moderngl.SHADER_STORAGE_BARRIER_BIT
                            | (moderngl.SHADER_IMAGE_ACCESS_BARRIER_BIT if init_rays else 0))
 
@@ -1582,7 +1586,7 @@ class _Pass:
             self._bind()
             # without overlays, the init draw is left out: with merged kept pairs the tile bounds
             # below set bestBits and count the rays, texture clears do the rest (chc_tilebounds.comp
-            # initRays); a whole-BVH pass only counts its rays (the glsl traversal writes every hit)
+            # CHC_INIT_RAYS); a whole-BVH pass only counts its rays (the glsl traversal writes every hit)
             fused = merge and not be.overlays_enabled
             if fused:
                 self._clear_hits()
@@ -1854,7 +1858,7 @@ class _Pass:
         be, ctx = self.be, self.ctx
         dv = be.device_fronts()
         vaos = [be.vao_isect_g]
-        comps = [be.tilebounds, be.querycull, be.count_rays, be.visorder_dev]
+        comps = [be.tilebounds, be.tilebounds_init, be.querycull, be.count_rays, be.visorder_dev]
         if be.p.work_probe > 0:
             _, vao, comp = be.probe_programs()
             vaos.append(vao)
