@@ -12,7 +12,7 @@
 // every pixel's bestBits is set from its ray (tmax bits, -1 = no ray), and the tile's active rays
 // are counted with one atomic per invocation (64 a tile) instead of one per pixel. A build of its
 // own, not a uniform: llvmpipe runs both sides of a branch on a uniform, and the image load of the
-// other side cost 12 % of the dispatch (1.78-1.89 -> 1.58-1.63 ms a dispatch at 640x360).
+// other side cost 7 % of the dispatch (1.525 -> 1.417 ms at 640x360, docs/results/chcrt.md).
 layout(local_size_x = 64) in;
 layout(r32i, binding = BIND_IMG_CHC_BEST) uniform coherent iimage2D bestBits;
 uniform sampler2D rayOrigin;
