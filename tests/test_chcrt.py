@@ -704,8 +704,8 @@ def test_merged_kept_pairs_are_always_drawn(gl_ctx):
     """A tile's merged kept pairs ride in its visible record, so that record must draw even when the
     cone cull (chc_visorder.comp) leaves none of its own items: after every pass each tile with
     merged kept pairs has a drawn record, and the walk does produce records kept only for them."""
-    from viewer.backends.chcrt.chcrt import DRAW_DTYPE
     from viewer.backends.chcrt.chcrt_devfront import TILE_PLAN_DTYPE
+    from viewer.backends.chcrt.chcrt_layout import DRAW_DTYPE
 
     scene, bvh, path = _load("city")
     cam0 = path[0]
@@ -949,7 +949,7 @@ def test_shared_front_measures_once_a_frame_with_hints(gl_ctx):
 
 
 def test_work_probe_params_checked():
-    from viewer.backends.chcrt.chcrt import ChcrtParams
+    from viewer.backends.chcrt.chcrt_params import ChcrtParams
     from viewer.errors import RtwalkError
 
     for bad in ({"work_probe": -1}, {"work_probe_stride": 0}, {"work_ratio_full": 0.0}, {"work_ratio_full_any": -1.0}):

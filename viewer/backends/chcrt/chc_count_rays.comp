@@ -1,9 +1,9 @@
-// CHC+RT: the active rays of a device pass that traces the whole BVH (chcrt.py _count_rays), in
+// CHC+RT: the active rays of a device pass that traces the whole BVH (chcrt_pass.py _count_rays), in
 // place of the init draw: the glsl traversal writes every pixel's hit itself, and nothing reads
 // the depth or the best-hit bits, so only the ray count (the pass's `rays`) is left of it.
 // Work group i counts the 64x64 pixel region i; its invocations are an 8x8 grid that steps over the
 // region 8 pixels at a time, so a SIMD vector reads a row of neighbouring pixels, and each adds its
-// count with one atomic into ray-count slot gl_LocalInvocationIndex (chcrt.COUNT_SLOTS = 64). (One
+// count with one atomic into ray-count slot gl_LocalInvocationIndex (chcrt_layout.COUNT_SLOTS = 64). (One
 // invocation per 8x8 block, its vectors reading eight blocks at once, took 1.06 ms a pass at 640x360
 // on llvmpipe; a work group per 8x8 block 2.3 ms: llvmpipe pays per work group.)
 layout(local_size_x = 8, local_size_y = 8) in;

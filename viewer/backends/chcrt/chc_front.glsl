@@ -100,7 +100,7 @@ ivec4 tileRect(int level, int tx, int ty, ivec2 size) {
     return ivec4(lo, hi - lo);
 }
 
-// the intersection item of canonical node `node` (chcrt.py _subtree_items): its box, what the
+// the intersection item of canonical node `node` (chcrt_pass.py _subtree_items): its box, what the
 // traversal starts from, its triangle range for the subtree overlay and the pair's count slot
 ChcItem nodeItem(ChcNode nd, int node, int slot) {
     return ChcItem(nd.bmin, nd.ref, nd.bmax, nd.gcount, 0.0, slot, nd.first, nd.count, node, 0, 0, 0);

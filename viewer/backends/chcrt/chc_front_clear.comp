@@ -16,7 +16,7 @@ layout(std430, binding = BIND_FR_ARGS) writeonly buffer Args { uint args[]; };
 uniform int nTiles;
 uniform int frontSlot;  // 0: no front (a full-BVH pass)
 uniform int capacity;  // pair slots: the pass's extra slots follow them
-uniform int raySlots;  // ray-count slots at the start of the counts buffer (chcrt.COUNT_SLOTS)
+uniform int raySlots;  // ray-count slots at the start of the counts buffer (chcrt_layout.COUNT_SLOTS)
 
 void main() {
     int i = int(gl_GlobalInvocationID.x);

@@ -1,6 +1,6 @@
 // CHC+RT device front, plan step 1 (over the front's pairs, ARG_PAIRS): zero each pair's count slot
 // and scratch flags; every leaf pair to test this pass (visible, or invisible; in aggressive mode
-// an invisible pair only while fresh or due for its re-query, as chcrt.py filters it) is counted
+// an invisible pair only while fresh or due for its re-query, as chcrt_pass_gpu.py _due_slots filters it) is counted
 // on each finest tile it covers (a pair of level L covers 4^(maxLevel - L) of them), and widens the
 // triangle range of those tiles (their lowest common ancestor, chc_front_plan.comp).
 layout(local_size_x = 64) in;

@@ -2,7 +2,7 @@
 // takes its rank among its tile's list (by pair index: the order no longer depends on the scatter's
 // atomics, so records and traversal order are the same in every run) and writes its intersection
 // item there, with its count slot: the pair itself, or -1 for a visible pair whose re-query is not
-// due (countDueOnly, chcrt.py _due_slots). Heavy tiles' ancestor items were written by the plan.
+// due (countDueOnly, chcrt_pass_gpu.py _due_slots). Heavy tiles' ancestor items were written by the plan.
 layout(local_size_x = 64) in;
 #include "chc_front.glsl"
 layout(std430, binding = BIND_FR_NODES) readonly buffer Nodes { ChcNode nodes[]; };

@@ -1,6 +1,6 @@
 // CHC+RT device front, plan step 2 (one work group): per finest tile, whether it traverses the
 // lowest common ancestor of all its pairs (a "heavy" tile: over lcaSubtrees visible pairs or
-// lcaPairs pairs in all, chcrt.py _heavy_tiles) and that ancestor (the deepest node whose triangle
+// lcaPairs pairs in all, chcrt_pass.py _heavy_tiles) and that ancestor (the deepest node whose triangle
 // range holds the tile's), where its items go in the visible and invisible item lists (prefix sums
 // in tile order), its visible records (at most maxBatch items each, in tile order), the cull tiles'
 // ranges over the invisible items, and the indirect draw and dispatch arguments of the pass. Items
@@ -123,7 +123,7 @@ void main() {
         tp.visFill = 0; tp.invFill = 0;
         if (h) {
             tp.lca = lowestCommonAncestor(tp.lo, tp.hi);
-            visItems[vb] = nodeItem(nodes[tp.lca], tp.lca, -1);  // not counted (chcrt.py _tile_plan)
+            visItems[vb] = nodeItem(nodes[tp.lca], tp.lca, -1);  // not counted (chcrt_pass_gpu.py _tile_plan)
             tmp[vb] = ivec2(-1, t);  // chc_front_items.comp: nothing to place here
         }
         ivec4 rect = tileRect(maxLevel, t % side, t / side, raySize);

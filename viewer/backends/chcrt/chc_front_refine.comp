@@ -1,5 +1,5 @@
 // CHC+RT device front, refinement step 1 (after the pass's draws; over the pair capacity): this
-// pass's counts applied to the front for the next pass, as chcrt.py _refine does on the host. An
+// pass's counts applied to the front for the next pass, as chcrt_pass_gpu.py _refine does on the host. An
 // invisible pair that was tested and that more than `threshold` rays entered becomes visible when the
 // split rule terminates it, else inner (its children are made by chc_front_write.comp and tested next
 // pass); one that no ray entered ages. A visible leaf whose re-query is due and that no ray entered

@@ -3,7 +3,7 @@
 // that is not heavy: the visible pairs in the tile's visible range, the invisible ones in its invisible
 // range (after visCap), in any order (chc_front_items.comp orders them). Flags: an invisible pair
 // listed somewhere was tested (its count decides it); a visible pair over a heavy tile was covered
-// by that tile's ancestor traversal (its own count is then not its own, chcrt.py lca_covered).
+// by that tile's ancestor traversal (its own count is then not its own, chcrt_pass_gpu.py lca_covered).
 layout(local_size_x = 64) in;
 #include "chc_front.glsl"
 layout(std430, binding = BIND_FR_PAIRS) readonly buffer Pairs { ChcPair pairs[]; };

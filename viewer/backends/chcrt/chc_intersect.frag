@@ -71,7 +71,7 @@ flat in int vKeptCount;
 layout(std430, binding = BIND_CHC_QUERY_COUNTS) buffer ChcQueryCounts { uint chcPassed[]; };
 #endif
 #ifdef WORK_PROBE
-// work probe (chcrt.py, ChcrtParams.work_probe): on the sampled pixels (chc_probe.glsl), what this
+// work probe (chcrt_pass_device.py, ChcrtParams.work_probe): on the sampled pixels (chc_probe.glsl), what this
 // fragment did is summed into the front's META row, which chc_probe.comp fills with what the full
 // traversal does for the same rays
 #include "chc_probe.glsl"
@@ -160,7 +160,7 @@ void main() {
         float te;
         if (intersectBox(r, it.bmin, it.bmax, tmin, hit.t, te)) {
             ++entered;
-            if (it.p2 >= 0) {  // a counted pair (chcrt.py _due_slots)
+            if (it.p2 >= 0) {  // a counted pair (chcrt_pass_gpu.py _due_slots)
                 if (own) enteredMask |= 1u << uint(i);
                 else keptMask |= 1u << uint(i);
             }

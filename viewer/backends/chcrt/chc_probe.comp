@@ -1,4 +1,4 @@
-// CHC+RT work probe, the baseline's side (chcrt.py, ChcrtParams.work_probe): the rays of the sampled
+// CHC+RT work probe, the baseline's side (chcrt_pass_device.py, ChcrtParams.work_probe): the rays of the sampled
 // pixels (chc_probe.glsl) traverse the whole BVH as the full-BVH pass would (traverseBVH: the glsl
 // backend's order), and their box and triangle tests (plus one per ray, its set-up) and their
 // number are added to the front's META row. Nothing else is written; one invocation per sampled

@@ -12,7 +12,7 @@
 // bounds per box (min x, min y, max x, max y of the pixels whose ray enters the box before its
 // nearest hit; 8 slots per query from boundsBase: the first box, then all others): a descendant
 // pair queries boxes inside one of this query's boxes, so only pixels that passed that box here can
-// pass there (chcrt.py draws the children's queries over these bounds only).
+// pass there (chcrt_pass_sync.py draws the children's queries over these bounds only).
 #include "chc_common.glsl"
 uniform int countOverdraw;
 #ifdef CHC_BATCHED

@@ -1,4 +1,4 @@
-// The CHC+RT draw records and their items, as chcrt.py writes them (ITEM_DTYPE, DRAW_DTYPE): one
+// The CHC+RT draw records and their items, as chcrt_layout.py declares them (ITEM_DTYPE, DRAW_DTYPE): one
 // declaration for every shader that reads or writes them.
 // A box with a payload: query boxes (ref/count unused) or scheduled subtrees (GPU inner-node index,
 // or first triangle + count for a BVH leaf; id = canonical node index and p0/p1 = the subtree's

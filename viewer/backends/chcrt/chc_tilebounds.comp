@@ -80,7 +80,7 @@ void main() {
         smin = min(smin, sd);
     }
 #ifdef CHC_INIT_RAYS
-    if (nActive > 0.0) atomicAdd(chcActive[li], uint(nActive));  // (slots: chcrt.COUNT_SLOTS = 64)
+    if (nActive > 0.0) atomicAdd(chcActive[li], uint(nActive));  // (slots: chcrt_layout.COUNT_SLOTS = 64)
 #endif
     sMin[li] = omin; sMax[li] = omax; sDist[li] = dmax; sCount[li] = nActive; sAngle[li] = s2max;
     sSide[li] = smin;

@@ -15,7 +15,7 @@ end; entries it overwrites are evicted from the cache (out-of-core again). The t
 their leaf-order slot in the `id` field, which the shader reports as the hit (CHC_OOC).
 
 Pure NumPy host side plus the two GL buffers; the draw scheduling (cached subtrees first, the
-rest after their upload) is in chcrt._Pass.
+rest after their upload) is in chcrt_pass.ChcrtPass.
 """
 
 from __future__ import annotations

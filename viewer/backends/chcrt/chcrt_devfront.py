@@ -10,7 +10,7 @@ chain of compute dispatches and indirect draws, whatever the tiles, pairs and su
                                   cull ranges, indirect draw / dispatch arguments (one work group)
           chc_front_scatter.comp  per leaf pair: listed on every tile it covers that is not heavy
           chc_front_items.comp    per listed pair (indirect): its item, in pair order within its tile
-  (chcrt.py draws: the visible records, the tiles' ray bounds, the cull, the survivors)
+  (chcrt_pass_device.py draws: the visible records, the tiles' ray bounds, the cull, the survivors)
   pass    chc_front_passend.comp  the pass's ray and query counts into the frame's statistics
   refine  chc_front_refine.comp   the counts applied (visible / invisible / split), as _refine
           chc_front_merge.comp    invisibility pulled up one level, as PairFront.pull_up(1)
@@ -43,7 +43,7 @@ from viewer.gl.programs import compute_shader
 
 HERE = Path(__file__).resolve().parent
 
-# the device fronts' SSBO binding points (part of chcrt.py's BINDINGS table, checked there)
+# the device fronts' SSBO binding points (part of chcrt_layout.py's BINDINGS table, checked there)
 FRONT_SSBO = {"BIND_FR_NODES": 20, "BIND_FR_PAIRS": 21, "BIND_FR_PAIRS_OUT": 22, "BIND_FR_TILES": 23,
               "BIND_FR_COUNTS": 24, "BIND_FR_FLAGS": 25, "BIND_FR_META": 26, "BIND_FR_TMP": 27,
               "BIND_FR_VIS_ITEMS": 28, "BIND_FR_INV_ITEMS": 29, "BIND_FR_RECORDS": 30, "BIND_FR_CULL": 31,
@@ -154,13 +154,13 @@ class DeviceFront:
         # its last plan sent full_bvh_fraction of the tiles to their ancestor: the passes trace the whole
         # BVH and only plan (chcrt.py sets it after each frame from META_HEAVY / META_TILES)
         self.full = False
-        # work_probe (chcrt.py): device passes so far, and whether the last measurement found that the
+        # work_probe (chcrt_pass_device.py): device passes so far, and whether the last measurement found that the
         # front saves too little work (its passes then trace the whole BVH between measurements)
         self.passes = 0
         self.wasteful = False
         self.work_ratio_full = 1.0  # the limit of its rays' type (ChcrtParams.work_ratio_full(_any))
         self.measured = False  # a pass measured since the last end_frame (its META row has the probe)
-        # share_sample_fronts (chcrt.py): the frame whose first pass of this front made the work probe's
+        # share_sample_fronts (chcrt_pass_device.py): the frame whose first pass of this front made the work probe's
         # decision, and whether that pass traced the whole BVH (the frame's later sample passes follow it)
         self.decided_frame = -1
         self.decided_wasted = False
@@ -194,7 +194,7 @@ class DeviceFronts:
     buffer, and the dispatches of a pass (see the module docstring)."""
 
     def __init__(self, ctx: moderngl.Context, nt: NodeTables, bindings: dict[str, int]):
-        """`bindings`: the backend's binding table (chcrt.BINDINGS, FRONT_SSBO included)."""
+        """`bindings`: the backend's binding table (chcrt_layout.BINDINGS, FRONT_SSBO included)."""
         self.ctx = ctx
         defines = dict(bindings)
         names = ("clear", "count", "plan", "scatter", "items", "passend", "refine", "merge", "scan", "write")
@@ -212,7 +212,7 @@ class DeviceFronts:
         self.tiles = self.vis_items = self.inv_items = self.tmp = self.records = self.flags = self.cull = None
         self.passes = 0  # device passes since the last end_frame
         # what the plan in the buffers (tile plans, items, records, arguments) was made for: (front
-        # slot, frame, ray-batch size, tile level, cull sublevels), set by chcrt.py after a plan that
+        # slot, frame, ray-batch size, tile level, cull sublevels), set by chcrt_pass_device.py after a plan that
         # is not `full`; any other plan resets it (share_sample_fronts)
         self.last_plan: tuple | None = None
         self.ensure(tiles=64, pairs=MIN_CAPACITY, cull_tiles=64)  # every binding exists from the start

@@ -356,3 +356,18 @@ class PairFront:
         alive = np.flatnonzero(st != DEAD)
         nonroot = alive[alive != 0]
         assert (st[self.parent[nonroot]] == INNER).all()
+
+
+def to_finest_tiles(nd: np.ndarray, lvl: np.ndarray, tx: np.ndarray, ty: np.ndarray, sl: np.ndarray,
+                     top: int | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Each (node, tile) copied onto the tiles of level `top` (default: the deepest present) that its
+    tile covers (a tile of level L is exactly its four children of level L + 1)."""
+    top = int(lvl.max()) if top is None else top
+    sh = top - lvl
+    copies = np.left_shift(1, 2 * sh)
+    idx = np.repeat(np.arange(len(nd)), copies)
+    k = np.arange(len(idx)) - np.repeat(np.cumsum(copies) - copies, copies)
+    s = sh[idx]
+    side = np.left_shift(1, s)
+    return (nd[idx], np.full(len(idx), top, np.int64), (tx[idx] << s) + k % side, (ty[idx] << s) + k // side,
+            sl[idx])

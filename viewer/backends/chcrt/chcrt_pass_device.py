@@ -1,0 +1,287 @@
+"""chcrt, the GPU-driven pass on a device-resident front (chcrt_devfront.py): a fixed number of
+launches, nothing read back within the pass; and the work probe that decides whether a front still
+pays. Mixed into ChcrtPass (chcrt_pass.py), whose state and shared steps it uses."""
+
+from __future__ import annotations
+
+import moderngl
+import numpy as np
+
+from viewer import iostats
+from viewer.backends.chcrt.chcrt_devfront import (
+    ARGS_VISORDER,
+    FRONT_SSBO,
+    META_INTS,
+    META_PROBE_FRONT,
+    DeviceFront,
+    DeviceFronts,
+)
+from viewer.backends.chcrt.chcrt_layout import (
+    BIND_CHC_CANDIDATES,
+    BIND_CHC_DRAWS,
+    BIND_CHC_INDIRECT,
+    BIND_CHC_QUERIES,
+    BIND_CHC_QUERY_COUNTS,
+    COUNT_BYTES,
+    COUNT_SLOTS,
+    DRAW_DTYPE,
+    ITEM_DTYPE,
+)
+from viewer.effects import RayType
+
+
+class DeviceFrontSteps:
+    """The GPU-driven pass with the front on the device."""
+
+    def _run_device(self) -> None:
+        """The GPU-driven pass on a device front (chcrt_devfront.py): plan (5 dispatches), the visible
+        records (with gap_order in closest-hit passes: 2 dispatches, then one indirect draw), the cull
+        (2 dispatches) and the survivors (one indirect draw), the pass's counts, the refinement (4
+        dispatches). Nothing is uploaded or read back; the same launches whatever the tiles, pairs and
+        subtrees. With merge_kept the cull runs before the visible records (on the same tile bounds
+        as their gap order: one dispatch fewer) and most tiles' kept pairs ride in their visible
+        record (chc_querycull.comp). A pass that traces the whole BVH (its synchronous refinement
+        said so: full_bvh, or its last plan: the device front's `full`) only plans, to refresh what the host
+        decides from; one whose front saved too little when last measured (work_probe) does not plan.
+        A measuring pass (work_probe) adds one dispatch and draws the probe build of the intersection."""
+        be, f, p = self.be, self.front, self.p
+        prof = be.bc.profiler
+        dv = be.device_fronts()
+        level = f.max_level
+        n_tiles = 1 << (2 * level)
+        dev = f.device  # attached once its refinement was done, unless it found the rays incoherent
+        if dev is None and not f.full_bvh:
+            dev = f.device = dv.attach(f, n_tiles)
+        full = f.full_bvh or dev.full
+        sub = int(p.cull_sublevels)
+        while sub > 0 and min(self.size) >> (level + sub) < 4:
+            sub -= 1
+        # share_sample_fronts: a later sample pass of a shared front in this frame; an any-hit one takes
+        # the plan the frame's first left in the device fronts' buffers (no other plan since)
+        frame = self.frame_number()
+        later = p.share_sample_fronts and dev is not None and dev.decided_frame == frame
+        plan_key = None if dev is None else (dev.slot, frame, tuple(self.size), level, sub)
+        reuse = later and self.any_hit and not full and dv.last_plan == plan_key
+        probe = wasted = False
+        if dev is not None:
+            if later:
+                wasted = dev.decided_wasted  # the frame's first pass decided (no probe)
+            elif dev.passes == 0 and be.use_hints and self.hint is None:
+                # the front's first measurement waits for a pass with hit hints (a shared front's first
+                # device pass can be a sample's first pass, in the frame that built it): without them
+                # its rays do more work than in every later pass (city-near ao:20 at 640x360: 0.73 of
+                # the full traversal's tests, against 0.46 a frame later)
+                dev.decided_frame, dev.decided_wasted = frame, False
+            else:
+                probe, wasted = self._probe_plan(dev, full)
+                dev.decided_frame, dev.decided_wasted = frame, wasted
+                dev.passes += 1
+            full = full or wasted
+            dev.work_ratio_full = p.work_ratio_full_any if self.any_hit else p.work_ratio_full
+            self.stats["wasted_front_passes"] = int(wasted)
+        self.stats["shared_front_passes"] = int(later)  # (its refinement left to the frame's first pass)
+        self.stats["shared_plan_passes"] = int(reuse)  # (its plan too)
+        capacity = 0 if dev is None else dev.capacity
+        need = COUNT_BYTES + 4 * (capacity + 3)
+        if be.gpu_counts.size < need:
+            be.gpu_counts.release()
+            be.gpu_counts = self.ctx.buffer(reserve=1 << (need - 1).bit_length())
+        report = self.pinfo.report
+        merge = be.merge_kept and sub == 0 and not full
+        common = dict(ray_slots=COUNT_SLOTS, frame=self.frame_number(), max_level=level, threshold=self.threshold,
+                      requery_interval=p.requery_interval, seed=p.seed, report=report)
+        with prof.phase("chc:0-setup"):
+            if reuse:
+                # the plan stands (records, items, tile plans, arguments): only the pass's counts
+                # and the survivors' command zeroed (no tile plan, no front META touched); the cull
+                # below still covers every invisible pair for this pass's rays
+                dv.clear(be.gpu_counts, be.query_indirect, ray_slots=COUNT_SLOTS, capacity=capacity, slot=0)
+                self.stats["draws"] += 1
+            elif dev is None or wasted:
+                # no front, or one that saves too little (work_probe): nothing to plan (the front's
+                # META keeps its last plan for the host's decisions), only the pass's counts zeroed
+                dv.clear(be.gpu_counts, be.query_indirect, ray_slots=COUNT_SLOTS, capacity=capacity,
+                         slot=0 if dev is None else dev.slot)
+                self.stats["draws"] += 1
+            else:
+                primary_only = self.ray_type == RayType.PRIMARY and not p.lca_primary
+                dv.plan(dev, be.gpu_counts, be.query_indirect, size=tuple(self.size), max_batch=p.max_batch,
+                        lca_pairs=p.lca_pairs, lca_subtrees=p.lca_subtrees, heavy_allowed=not primary_only,
+                        cull_sub=sub, count_due_only=p.count_due_only, full=full, **common)
+                dv.last_plan = None if full else plan_key
+                self.stats["draws"] += 3 if full else 5
+            self._bind()
+            # without overlays, the init draw is left out: with merged kept pairs the tile bounds
+            # below set bestBits and count the rays, texture clears do the rest (chc_tilebounds.comp
+            # CHC_INIT_RAYS); a whole-BVH pass only counts its rays (the glsl traversal writes every hit)
+            fused = merge and not be.overlays_enabled
+            if fused:
+                self._clear_hits()
+            elif full and not be.overlays_enabled:
+                self._count_rays()
+            else:
+                self._init(zeroed=True)
+            be.gpu_counts.bind_to_storage_buffer(BIND_CHC_QUERY_COUNTS, COUNT_BYTES, 4 * (capacity + 3))
+            if probe:
+                self._probe_full(dv, dev)
+            if merge:
+                self._tile_bounds(level, n_tiles, init_rays=fused)  # (else after the init draw's bestBits)
+                self.stats["draws"] += 1
+                iostats.gl_draw()
+                self._cull_device(dv, dev, level, sub, merge=True)
+            self._sync()
+        with prof.phase("chc:1-intersect-visible"):
+            if not full:
+                self._draw_device_visible(dv, level, n_tiles, bounds_ready=merge, merge=merge)
+            self._sync()
+        self.n_survivor_groups = 1  # the survivors' count is the device's: their draw is indirect
+        self.survivor_items = dv.vis_items if merge else None  # None: be.kept_boxes, as the cull leaves it
+        self._queries_and_traversal(full, None if merge else lambda: self._cull_device(dv, dev, level, sub))
+        with prof.phase("chc:4-final-intersect"):
+            dv.pass_end(be.gpu_counts, ray_slots=COUNT_SLOTS, capacity=capacity, report=report)
+            self.stats["draws"] += 1
+            if not (full or later):  # (a shared front: refined by its frame's first pass)
+                dv.refine(dev, be.gpu_counts, t_q=self.t_q, max_height=p.max_subtree_height,
+                          max_tris=p.max_subtree_tris, **common)
+                self.stats["draws"] += 4
+        self.rays_read = True  # counted on the device, reported by end_frame
+
+    def _draw_device_visible(self, dv: DeviceFronts, level: int, n_tiles: int, bounds_ready: bool = False,
+                             merge: bool = False) -> None:
+        """The visible records the device planned, in one indirect instanced draw (instances: the
+        records); closest-hit passes first sort each record's items by gap (gap_order_visible), on
+        the tile bounds of the init draw (computed here unless `bounds_ready`). `merge`: the records
+        carry their tiles' merged kept pairs (merge_kept)."""
+        be, ctx, p = self.be, self.ctx, self.p
+        be.bind_items(dv.vis_items)
+        dv.records.bind_to_storage_buffer(BIND_CHC_DRAWS)
+        dv.tiles.bind_to_storage_buffer(FRONT_SSBO["BIND_FR_TILES"])  # the merged kept ranges
+        if p.gap_order and p.gap_order_visible and not self.any_hit:
+            if not bounds_ready:
+                self._tile_bounds(level, n_tiles)  # after the init draw's bestBits
+            dv.args.bind_to_storage_buffer(BIND_CHC_INDIRECT, 0, 16)
+            be.visorder_dev["coneCull"] = int(p.cone_cull)
+            be.visorder_dev.run_indirect(dv.args, ARGS_VISORDER)
+            ctx.memory_barrier(moderngl.SHADER_STORAGE_BARRIER_BIT | moderngl.COMMAND_BARRIER_BIT)
+            n = 1 if bounds_ready else 2
+            self.stats["draws"] += n
+            iostats.gl_draw(n)
+        self._draw_records_indirect(dv.args, merge_kept=merge)
+
+    def _cull_device(self, dv: DeviceFronts, dev, level: int, sub: int, merge: bool = False) -> None:
+        """The invisible items the device planned, culled per cull tile (chc_tilebounds.comp, then
+        chc_querycull.comp over the ranges chc_front_plan.comp wrote) into the survivors' records and
+        their indirect draw command; buffers sized for the device's item capacity. `merge`
+        (merge_kept, before the visible records, on the tile bounds already computed): the kept
+        items go after the visible ones in dv.vis_items, and single-record tiles' kept ranges into
+        their tile plans instead of survivors' records."""
+        be, ctx, p = self.be, self.ctx, self.p
+        cl = level + sub
+        n_cull = 1 << (2 * cl)
+        kept = (dv.inv_cap << (2 * sub)) * ITEM_DTYPE.itemsize
+        recs = ((dv.inv_cap + (1 << (2 * level))) << (2 * sub)) * DRAW_DTYPE.itemsize
+        if not merge and be.kept_boxes.size < kept:
+            be.kept_boxes.release()
+            be.kept_boxes = ctx.buffer(reserve=kept)
+        if be.survivors.size < recs:
+            be.survivors.release()
+            be.survivors = ctx.buffer(reserve=recs)
+        be.bind_items(dv.inv_items)
+        dv.cull.bind_to_storage_buffer(BIND_CHC_QUERIES)
+        (dv.vis_items if merge else be.kept_boxes).bind_to_storage_buffer(BIND_CHC_CANDIDATES)
+        dv.tiles.bind_to_storage_buffer(FRONT_SSBO["BIND_FR_TILES"])
+        be.survivors.bind_to_storage_buffer(BIND_CHC_DRAWS)
+        be.query_indirect.bind_to_storage_buffer(BIND_CHC_INDIRECT)
+        if not merge:
+            self._tile_bounds(cl, n_cull)  # after the visible pairs' bestBits
+        be.querycull["keptOffset"] = dv.kept_offset if merge else 0
+        if be.merge_kept:
+            be.querycull["mergeKept"] = int(merge)
+        be.querycull["nQueries"] = n_cull
+        be.querycull["maxItems"] = p.max_batch
+        be.querycull["pixelSlot"] = dev.capacity
+        be.querycull["cull"] = int(p.coarse_cull)
+        be.querycull["sortByGap"] = int(p.gap_order)
+        be.querycull["coneCull"] = int(p.cone_cull)
+        be.querycull.run(-(-n_cull // 64))
+        ctx.memory_barrier(moderngl.COMMAND_BARRIER_BIT | moderngl.SHADER_STORAGE_BARRIER_BIT)
+        n = 1 if merge else 2
+        self.stats["draws"] += n
+        iostats.gl_draw(n)
+
+    def _probe_plan(self, dev: DeviceFront, full: bool) -> tuple[bool, bool]:
+        """work_probe, for a device front's pass: (does this pass measure its work, does it trace the
+        whole BVH because its front saved too little when last measured). A front measures at its
+        first device pass with hit hints and then every work_probe passes (a shared front: passes
+        counted once a frame, _run_device); one found wasteful traces the whole BVH in between,
+        except in the pass before a measurement, which brings its front up to date (a whole-BVH pass
+        refines nothing), so that the measurement sees a current front."""
+        k, n = dev.passes, self.p.work_probe
+        if n <= 0 or full:
+            return False, False
+        probe = k == 0 or k % n == n - 1
+        warm_up = n > 1 and k % n == n - 2
+        return probe, dev.wasteful and not (probe or warm_up)
+
+    def prewarm(self, hint: moderngl.Texture | None) -> None:
+        """Make the device fronts' programs and draw or dispatch every program of the steady passes
+        (the device fronts' ten, the tile bounds, cull, visible order and ray count, the counting
+        intersection and, with work_probe, its probe build and chc_probe.comp) once with nothing to
+        do (an indirect draw or dispatch of zero) in the GL state of a steady pass (its targets, ray
+        and hint textures), after the first pass of a front headed for the device. A driver
+        compiles a program when it is linked (GL) and, llvmpipe, its machine code at its first draw
+        or dispatch in a new state (150-250 ms for chc_intersect.frag; with no shader cache on disk,
+        a fresh machine, about 1.5 s for all of them: conference-walk's first device pass took
+        1,761 ms); both happen here, in that cold frame, not in a steady one."""
+        be, ctx = self.be, self.ctx
+        dv = be.device_fronts()
+        vaos = [be.vao_isect_g]
+        comps = [be.tilebounds, be.tilebounds_init, be.querycull, be.count_rays, be.visorder_dev]
+        if be.p.work_probe > 0:
+            _, vao, comp = be.probe_programs()
+            vaos.append(vao)
+            comps.append(comp)
+        self.hint = hint
+        self._bind()
+        # every texture the steady draws sample bound as they will be: llvmpipe keys a program's
+        # machine code by its samplers' formats and targets too (an unbound item unit: a second compile)
+        be.bind_items(dv.vis_items)
+        zero = ctx.buffer(bytes(DRAW_DTYPE.itemsize))  # an indirect dispatch of zero; one empty record
+        one = ctx.buffer(np.array([6, 1, 0, 0], np.uint32).tobytes())  # 6 vertices, 1 instance
+        iostats.to_device(DRAW_DTYPE.itemsize + 16)
+        self._use_hit_target()
+        # an indirect draw, as the steady passes draw, of one record with an empty rectangle: no
+        # fragment, but a driver that skips an indirect draw of zero before choosing its machine
+        # code (llvmpipe) compiles it here
+        zero.bind_to_storage_buffer(BIND_CHC_DRAWS)
+        for vao in vaos:
+            vao.program["mergeKept"] = 0
+            vao.render_indirect(one, moderngl.TRIANGLES, count=1)
+        one.release()
+        for comp in comps:
+            comp.run_indirect(zero)
+        dv.prewarm(zero)
+        ctx.disable(moderngl.DEPTH_TEST)
+        zero.release()
+        iostats.gl_draw(len(vaos) + len(comps))
+        be.steady_warm = True
+
+    def _probe_full(self, dv: DeviceFronts, dev: DeviceFront) -> None:
+        """work_probe: the sampled rays through the whole BVH (chc_probe.comp), their work into the
+        front's META row; the pass's intersection draws add theirs (the WORK_PROBE program)."""
+        be = self.be
+        comp = be.probe_programs()[2]
+        stride = int(self.p.work_probe_stride)
+        w, h = (int(v) for v in self.size)
+        runs = -(-w // (8 * stride)) * -(-(h - stride // 2) // stride)  # runs of 8 pixels (chc_probe.comp)
+        comp["raySize"] = (w, h)
+        comp["probeStride"] = stride
+        self.probe_base = dev.slot * META_INTS + META_PROBE_FRONT
+        comp["probeBase"] = self.probe_base
+        comp["anyHit"] = int(self.any_hit)
+        dv.meta.bind_to_storage_buffer(FRONT_SSBO["BIND_FR_META"])
+        comp.run(-(-runs // 8))
+        self.stats["draws"] += 1
+        iostats.gl_draw()
+        self.stats["work_probe_passes"] = 1
+        dev.measured = True  # end_frame reads it
