@@ -257,12 +257,13 @@ def options_from_args(args: argparse.Namespace) -> StudyOptions:
 
 # ----------------------------------------------------------------------------------------- estimate
 
-# Steady-state microseconds per ray and cold-frame factors (first frame after a reset), fitted to
-# city-near at 320x180 and 640x360 on the machine this was written on (2 cores, Mesa llvmpipe,
-# shared with other jobs). Only for the up-front estimate; tqdm shows the real rate.
-COST = {"glsl": CostModel({"primary": 1.0, "ao": 1.2, "diffuse": 1.6}, 1.2),
-        "chcrt": CostModel({"primary": 1.3, "ao": 2.2, "diffuse": 3.2}, 2.5,
-                           cold_factor={"primary": 2.7, "ao": 2.6, "diffuse": 3.4}, cold_default=3.0,
+# Steady-state microseconds per ray and cold-frame factors (first frame after a reset): the means
+# over the five Table 2 recordings at 1920x1080 (`--study table2 --sizes 1920x1080 --effects
+# primary,ao:4 --frames 8`, 2 cores, Mesa llvmpipe, 2026-11-29); diffuse scaled from AO by the
+# ratio of the first fit. Only for the up-front estimate; tqdm shows the real rate.
+COST = {"glsl": CostModel({"primary": 0.26, "ao": 0.23, "diffuse": 0.31}, 0.26),
+        "chcrt": CostModel({"primary": 0.24, "ao": 0.22, "diffuse": 0.32}, 0.26,
+                           cold_factor={"primary": 6.0, "ao": 2.4, "diffuse": 3.4}, cold_default=3.0,
                            scales_aggressive=True)}
 _MICRO_S = 10.0
 

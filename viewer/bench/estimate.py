@@ -1,8 +1,10 @@
 """Up-front time estimate of a benchmark command: a per-ray cost model per backend.
 
 Only for the plan printed before a long run (and `--dry-run`); tqdm shows the real rate. The
-pixel and fixed costs below were fitted to city-near at 320x180 and 640x360 on a 2-core machine
-with Mesa llvmpipe, shared with other jobs; the per-ray costs are given by each study.
+pixel and fixed costs below were fitted to the Table 2 recordings (city-near, city-far,
+sibenik-walk, sponza-walk, conference-walk) at 1920x1080 and city-near at 640x360 on a 2-core
+machine with Mesa llvmpipe (2026-11-29; the first fit, two sessions of speed-ups earlier,
+over-estimated those runs 6-7x); the per-ray costs are given by each study.
 """
 
 from __future__ import annotations
@@ -11,8 +13,8 @@ import json
 from dataclasses import dataclass, field
 from pathlib import Path
 
-US_PER_PIXEL_FRAME = 1.7  # G-buffer + shading
-US_PER_PIXEL_PASS = 0.26  # ray generation + accumulation, per sample pass
+US_PER_PIXEL_FRAME = 0.35  # G-buffer + shading (a steady frame's wall time minus its tracing)
+US_PER_PIXEL_PASS = 0.03  # ray generation + accumulation, per sample pass
 RUN_FIXED_S = 0.5  # renderer, shader variants
 SCENE_LOAD_S = {"builtin": 1.0, "file": 6.0}
 

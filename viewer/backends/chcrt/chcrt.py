@@ -104,10 +104,7 @@ import numpy as np
 from viewer import iostats
 from viewer.backends.base import BackendContext, TraceResult, WorkCounters
 from viewer.backends.chcrt.chcrt_cache import MB, CachePlan, SubtreeCache
-from viewer.backends.chcrt.chcrt_devfront import (
-    FRONT_SSBO,
-    DeviceFronts,
-)
+from viewer.backends.chcrt.chcrt_devfront import FRONT_SSBO, DeviceFronts
 from viewer.backends.chcrt.chcrt_front import NodeTables, PairFront
 from viewer.backends.chcrt.chcrt_layout import (
     BIND_CHC_DRAWS,
@@ -131,13 +128,7 @@ from viewer.backends.gl_traversal import ResumableTraversal, max_visits
 from viewer.backends.interface import BackendInfo, OverlaySpec
 from viewer.gl.buffers import StreamBuffer
 from viewer.gl.programs import FullscreenQuad, compute_shader
-from viewer.gl.textures import (
-    TexelView,
-    copy_texture,
-    float_depth_texture,
-    float_texture,
-    int_texture,
-)
+from viewer.gl.textures import TexelView, copy_texture, float_depth_texture, float_texture, int_texture
 from viewer.rays import HitBuffer, PassInfo, RayBatch
 from viewer.screen_tiles import max_tile_level
 

@@ -7,9 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from viewer.backends.chcrt.chcrt_devfront import (
-    FRONT_SSBO,
-)
+from viewer.backends.chcrt.chcrt_devfront import FRONT_SSBO
 from viewer.gl.bindings import backend_bindings
 
 HERE = Path(__file__).resolve().parent  # the chc_* shaders

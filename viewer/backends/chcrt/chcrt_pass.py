@@ -13,9 +13,7 @@ import numpy as np
 
 from viewer import iostats
 from viewer.backends.chcrt.chcrt_cache import MB
-from viewer.backends.chcrt.chcrt_devfront import (
-    FRONT_SSBO,
-)
+from viewer.backends.chcrt.chcrt_devfront import FRONT_SSBO
 from viewer.backends.chcrt.chcrt_front import INNER, INVISIBLE, VISIBLE, PairFront, to_finest_tiles
 from viewer.backends.chcrt.chcrt_layout import (
     BIND_CHC_COUNT,
@@ -36,10 +34,7 @@ from viewer.backends.chcrt.chcrt_pass_sync import SyncSteps
 from viewer.effects import RayType
 from viewer.gl import io as glio
 from viewer.gl.bindings import BIND_NODES, BIND_TRIS
-from viewer.gl.textures import (
-    clear_float_texture,
-    clear_int_texture,
-)
+from viewer.gl.textures import clear_float_texture, clear_int_texture
 from viewer.rays import HitBuffer, PassInfo, RayBatch
 from viewer.screen_tiles import tile_rects
 
