@@ -61,11 +61,13 @@ class DeviceFrontSteps:
         frame = self.frame_number()
         later = p.share_sample_fronts and dev is not None and dev.decided_frame == frame
         plan_key = None if dev is None else (dev.slot, frame, tuple(self.size), level, sub)
-        reuse = later and self.any_hit and not full and dv.last_plan == plan_key
         probe = wasted = False
         if dev is not None:
             if later:
-                wasted = dev.decided_wasted  # the frame's first pass decided (no probe)
+                # the frame's first pass decided (no probe); a front found wasteful when last measured
+                # sends the frame's other samples through the whole BVH even while its first pass brings
+                # it up to date or measures it (warm_up, probe: that one pass is enough for either)
+                wasted = dev.decided_wasted or dev.wasteful
             elif dev.passes == 0 and be.use_hints and self.hint is None:
                 # the front's first measurement waits for a pass with hit hints (a shared front's first
                 # device pass can be a sample's first pass, in the frame that built it): without them
@@ -79,6 +81,7 @@ class DeviceFrontSteps:
             full = full or wasted
             dev.work_ratio_full = p.work_ratio_full_any if self.any_hit else p.work_ratio_full
             self.stats["wasted_front_passes"] = int(wasted)
+        reuse = later and self.any_hit and not full and dv.last_plan == plan_key
         self.stats["shared_front_passes"] = int(later)  # (its refinement left to the frame's first pass)
         self.stats["shared_plan_passes"] = int(reuse)  # (its plan too)
         capacity = 0 if dev is None else dev.capacity
