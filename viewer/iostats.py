@@ -94,6 +94,12 @@ def current() -> IoCounts:
     return replace(_counts)
 
 
+def launches_and_syncs() -> tuple[int, int]:
+    """(cl_launches, host_syncs) so far in this frame: what the profiler takes before and after
+    every phase (a chcrt frame has a dozen phases a pass), without copying the counts."""
+    return _counts.cl_launches, _counts.host_syncs
+
+
 def begin_frame() -> None:
     global _counts, _frame_t0, _sync_s
     _counts = IoCounts()

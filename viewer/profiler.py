@@ -85,14 +85,14 @@ class GpuProfiler:
     @contextmanager
     def _io(self, name: str):
         """Adds the launches and host syncs issued inside the block to io_by_phase[name]."""
-        c0 = iostats.current()
+        launches0, syncs0 = iostats.launches_and_syncs()
         try:
             yield
         finally:
-            c1 = iostats.current()
+            launches1, syncs1 = iostats.launches_and_syncs()
             d = self.io_by_phase.setdefault(name, {"cl_launches": 0, "host_syncs": 0})
-            d["cl_launches"] += c1.cl_launches - c0.cl_launches
-            d["host_syncs"] += c1.host_syncs - c0.host_syncs
+            d["cl_launches"] += launches1 - launches0
+            d["host_syncs"] += syncs1 - syncs0
 
     @contextmanager
     def phase(self, name: str):
