@@ -24,6 +24,7 @@ from viewer.bench.plots import figure, finish, stacked
 from viewer.bench.report import write_json
 from viewer.effects import EffectSettings
 from viewer.errors import RtwalkError
+from viewer.gl.limits import host_time_label
 from viewer.interrupt import deferred_interrupt
 from viewer.reference import REFERENCE_BACKEND
 from viewer.renderer import Renderer
@@ -282,7 +283,7 @@ def print_summary(report: dict, out=None) -> None:
               f"({io['bytes_to_device'] / px:.1f} B/px), to host {io['bytes_to_host'] / 1e6:.2f} MB "
               f"({io['bytes_to_host'] / px:.1f} B/px), host syncs {io['host_syncs']:.0f}, CL launches "
               f"{io['cl_launches']:.0f}, GL draws {io['gl_draws']:.0f}, GL queries {io['gl_queries']:.0f}, "
-              f"host time {io['python_ms']:.1f} ms", file=out)
+              f"{host_time_label(report['device']['renderer'])} {io['python_ms']:.1f} ms", file=out)
     if "image_mae_mean" in s:
         print(f"  image vs Embree: mean abs error {s['image_mae_mean']:.3f}/255, min PSNR "
               f"{s['image_psnr_min_db']:.1f} dB", file=out)

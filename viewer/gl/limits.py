@@ -35,9 +35,20 @@ def max_target_side(ctx: moderngl.Context) -> int:
     return min(sides) if sides else 16384
 
 
+def is_software_renderer(renderer: str | None) -> bool:
+    """A GL_RENDERER string of a CPU rasterizer (its "device" memory is the host's, and its draws
+    and dispatches run on the host's cores)."""
+    return any(name in str(renderer or "").lower() for name in SOFTWARE_RENDERERS)
+
+
 def shares_system_memory(ctx: moderngl.Context) -> bool:
-    renderer = str(ctx.info.get("GL_RENDERER", "")).lower()
-    return any(name in renderer for name in SOFTWARE_RENDERERS)
+    return is_software_renderer(ctx.info.get("GL_RENDERER"))
+
+
+def host_time_label(renderer: str | None) -> str:
+    """How to name iostats' python_ms on this device: on a CPU rasterizer it also holds the
+    rendering that draws and dispatches run on the host, so it is not the host's own time."""
+    return "host time (with the CPU rasterizer's rendering)" if is_software_renderer(renderer) else "host time"
 
 
 def check_target_size(ctx: moderngl.Context, size: tuple[int, int], what: str = "--size") -> None:

@@ -22,6 +22,7 @@ from typing import Protocol
 import numpy as np
 
 from viewer.camera import Camera
+from viewer.gl.limits import host_time_label
 
 PANEL_WIDTH = 340
 HISTORY = 120
@@ -221,7 +222,7 @@ def draw_panel(host, width: float, height: float) -> None:  # noqa: C901 (a flat
     # -- backend phases and counters (CHC+RT paper, Figure 8) ------------------------------------
     if imgui.collapsing_header("Backend phases, counters & I/O"):
         if host.last_report is not None:  # what crosses between host and device (viewer.iostats)
-            _draw_io(host.last_report, r.size)
+            _draw_io(host.last_report, r.size, r.ctx.info.get("GL_RENDERER"))
         _draw_phase_chart(hist)
         _draw_counters(host.last_report, hist, r.backend.info.counters)
 
@@ -344,17 +345,18 @@ def _draw_params(backend) -> None:
 # --------------------------------------------------------------------------- backend phases, counters
 
 
-def io_lines(io, size: tuple[int, int]) -> list[str]:
+def io_lines(io, size: tuple[int, int], renderer: str | None = None) -> list[str]:
     """The "I/O per frame" lines: what crossed between host and devices and what the host
-    submitted (viewer.iostats), bytes also per pixel."""
+    submitted (viewer.iostats), bytes also per pixel; `renderer` (GL_RENDERER) names the host time."""
     px = max(size[0] * size[1], 1)
     return [f"to device {_mib(io.bytes_to_device)} ({io.bytes_to_device / px:.1f} B/px)",
             f"to host   {_mib(io.bytes_to_host)} ({io.bytes_to_host / px:.1f} B/px)",
             f"host syncs {io.host_syncs}, CL launches {io.cl_launches}",
-            f"GL draws {io.gl_draws}, GL queries {io.gl_queries}, host {io.python_ms:.1f} ms"]
+            f"GL draws {io.gl_draws}, GL queries {io.gl_queries}",
+            f"{host_time_label(renderer)} {io.python_ms:.1f} ms"]
 
 
-def _draw_io(rep, size: tuple[int, int]) -> None:
+def _draw_io(rep, size: tuple[int, int], renderer: str | None) -> None:
     from imgui_bundle import imgui
 
     io = getattr(rep, "io", None)
@@ -362,7 +364,7 @@ def _draw_io(rep, size: tuple[int, int]) -> None:
         return
     imgui.separator()
     imgui.text("I/O per frame")
-    for line in io_lines(io, size):
+    for line in io_lines(io, size, renderer):
         imgui.text(line)
 
 
