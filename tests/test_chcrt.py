@@ -944,10 +944,26 @@ def test_shared_front_measures_once_a_frame_with_hints(gl_ctx):
     wasted = [b.backend_stats["wasted_front_passes"] for b in frames]
     shared = [b.backend_stats["shared_plan_passes"] for b in frames]
     assert probes == [0, 1, 0, 0, 1, 0, 0], probes
+    # ... and the measurements arrive: the later sample pass keeps the front's META row
+    assert [b.backend_stats.get("work_probe_fronts", 0) for b in frames] == [0, 1, 0, 0, 1, 0, 0]
     assert wasted == [0, 0, 2, 1, 1, 2, 2], wasted
     # (frame 0: sample 0 builds the front synchronously, sample 1 plans its first device pass; frame 1:
     # sample 1 shares the plan of the first measurement; a whole-BVH pass plans nothing to share)
     assert shared == [0, 1, 0, 0, 0, 0, 0], shared
+
+
+def test_shared_closest_hit_front_keeps_its_measurement(gl_ctx):
+    """A shared closest-hit front's later sample pass plans again (its own visible order): that plan
+    must keep what the frame's first pass measured (the work probe) in the front's META row, or the
+    front is never measured. Diffuse fronts kept on the device (no cold or LCA switch to the whole
+    BVH), any front wasteful: measured at frames 1 and 4, whole-BVH samples as designed, exact."""
+    params = "work_probe=4,work_ratio_full=0.001,cold_full_bvh=0,lca_pairs=100000,full_bvh_fraction=1"
+    frames = _walk_exact(gl_ctx, params, "diffuse:2", 7)
+    st = [b.backend_stats for b in frames]
+    assert [s["device_front_passes"] for s in st[1:]] == [2] * 6  # (frame 0 builds the front)
+    assert [s["work_probe_passes"] for s in st] == [0, 1, 0, 0, 1, 0, 0]
+    assert [s.get("work_probe_fronts", 0) for s in st] == [0, 1, 0, 0, 1, 0, 0]
+    assert [s["wasted_front_passes"] for s in st] == [0, 0, 2, 1, 1, 2, 2]
 
 
 def test_work_probe_params_checked():

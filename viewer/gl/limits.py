@@ -48,7 +48,7 @@ def shares_system_memory(ctx: moderngl.Context) -> bool:
 def host_time_label(renderer: str | None) -> str:
     """How to name iostats' python_ms on this device: on a CPU rasterizer it also holds the
     rendering that draws and dispatches run on the host, so it is not the host's own time."""
-    return "host time (with the CPU rasterizer's rendering)" if is_software_renderer(renderer) else "host time"
+    return "host time (incl. CPU rendering)" if is_software_renderer(renderer) else "host time"
 
 
 def check_target_size(ctx: moderngl.Context, size: tuple[int, int], what: str = "--size") -> None:

@@ -3,7 +3,9 @@
 // pass's extra count slots (query pixels, records drawn, kept pairs) after the pairs' slots, and the
 // survivors' indirect draw command. The
 // pairs' own count slots are zeroed by chc_front_count.comp; the front's overflow bits and work probe
-// are reset, and the per-pair steps' dispatch is sized (ARG_PAIRS).
+// are reset (resetMeta: by the frame's first pass of the front only, so that a shared front's later
+// sample passes keep what the first one measured and found), and the per-pair steps' dispatch is
+// sized (ARG_PAIRS).
 // Nothing crosses the host.
 layout(local_size_x = 64) in;
 #include "chc_front.glsl"
@@ -17,6 +19,7 @@ uniform int nTiles;
 uniform int frontSlot;  // 0: no front (a full-BVH pass)
 uniform int capacity;  // pair slots: the pass's extra slots follow them
 uniform int raySlots;  // ray-count slots at the start of the counts buffer (chcrt_layout.COUNT_SLOTS)
+uniform int resetMeta;  // 1: zero the front's overflow bits and work probe (0: a later sample pass)
 
 void main() {
     int i = int(gl_GlobalInvocationID.x);
@@ -36,10 +39,12 @@ void main() {
             args[ARG_PAIRS] = uint(max((meta[16 * frontSlot + META_N] + 63) / 64, 1));
             args[ARG_PAIRS + 1] = 1u;
             args[ARG_PAIRS + 2] = 1u;
-            meta[16 * frontSlot + META_OVERFLOW] = 0;  // this pass's overflows only
-            meta[16 * frontSlot + META_PROBE_FRONT] = 0;  // and its work probe (if it runs one)
-            meta[16 * frontSlot + META_PROBE_FULL] = 0;
-            meta[16 * frontSlot + META_PROBE_RAYS] = 0;
+            if (resetMeta != 0) {
+                meta[16 * frontSlot + META_OVERFLOW] = 0;  // this frame's overflows only
+                meta[16 * frontSlot + META_PROBE_FRONT] = 0;  // and its work probe (if it runs one)
+                meta[16 * frontSlot + META_PROBE_FULL] = 0;
+                meta[16 * frontSlot + META_PROBE_RAYS] = 0;
+            }
         }
         cmd[0] = 6u; cmd[1] = 0u; cmd[2] = 0u; cmd[3] = 0u;
     }

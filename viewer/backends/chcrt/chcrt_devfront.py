@@ -12,7 +12,8 @@ chain of compute dispatches and indirect draws, whatever the tiles, pairs and su
           chc_front_items.comp    per listed pair (indirect): its item, in pair order within its tile
   (chcrt_pass_device.py draws: the visible records, the tiles' ray bounds, the cull, the survivors)
   pass    chc_front_passend.comp  the pass's ray and query counts into the frame's statistics
-  refine  chc_front_refine.comp   the counts applied (visible / invisible / split), as _refine
+  refine  chc_front_refine.comp   the counts applied (visible / invisible / split), as ChcrtPass._refine
+                                  (chcrt_pass_gpu.py)
           chc_front_merge.comp    invisibility pulled up one level, as PairFront.pull_up(1)
           chc_front_scan.comp     the next front's numbering (one work group)
           chc_front_write.comp    the next front written to the other buffer (ping-pong)
@@ -154,8 +155,9 @@ class DeviceFront:
         # its last plan sent full_bvh_fraction of the tiles to their ancestor: the passes trace the whole
         # BVH and only plan (chcrt.py sets it after each frame from META_HEAVY / META_TILES)
         self.full = False
-        # work_probe (chcrt_pass_device.py): device passes so far, and whether the last measurement found that the
-        # front saves too little work (its passes then trace the whole BVH between measurements)
+        # work_probe: device passes so far (chcrt_pass_device.py), and whether the last measurement found
+        # that the front saves too little work (set by chcrt.py end_frame: its passes then trace the whole
+        # BVH between measurements)
         self.passes = 0
         self.wasteful = False
         self.work_ratio_full = 1.0  # the limit of its rays' type (ChcrtParams.work_ratio_full(_any))
@@ -336,9 +338,10 @@ class DeviceFronts:
         return 0 if report else DISCARD_SLOT * META_INTS
 
     def clear(self, counts: moderngl.Buffer, survivor_cmd: moderngl.Buffer, *, ray_slots: int, capacity: int,
-              slot: int = 0, n_tiles: int = 0) -> None:
+              slot: int = 0, n_tiles: int = 0, reset_meta: bool = True) -> None:
         """Zero the pass's count slots (`capacity` pair slots after `ray_slots` ray slots, then the
-        pass's three), `n_tiles` tiles' plans, front `slot`'s overflow bits (0: no front) and the
+        pass's three), `n_tiles` tiles' plans, front `slot`'s overflow bits and work probe (0: no
+        front; `reset_meta` False: kept, a shared front's later sample pass in the frame) and the
         survivors' draw command: the first dispatch of every device pass, also of a full-BVH one."""
         counts.bind_to_storage_buffer(B["BIND_FR_COUNTS"])
         survivor_cmd.bind_to_storage_buffer(B["BIND_FR_SURVIVOR_CMD"])
@@ -347,17 +350,18 @@ class DeviceFronts:
         self.meta.bind_to_storage_buffer(B["BIND_FR_META"])
         self.passes += 1
         self._run("clear", -(-max(n_tiles, ray_slots, 3) // 64), nTiles=n_tiles, capacity=capacity,
-                  raySlots=ray_slots, frontSlot=slot)
+                  raySlots=ray_slots, frontSlot=slot, resetMeta=int(reset_meta))
 
     def plan(self, dev: DeviceFront, counts: moderngl.Buffer, survivor_cmd: moderngl.Buffer, *, ray_slots: int,
              frame: int, max_level: int, size: tuple[int, int], threshold: int, requery_interval: int,
              max_batch: int, lca_pairs: int, lca_subtrees: int, heavy_allowed: bool, cull_sub: int,
-             count_due_only: bool, seed: int, report: bool = True, full: bool = False) -> None:
+             count_due_only: bool, seed: int, report: bool = True, full: bool = False,
+             reset_meta: bool = True) -> None:
         """Plan: the pass's visible items and records, invisible items and cull ranges, and the
         indirect arguments (ARGS_*), from the front as it stands. Five dispatches. `full`: a pass that
         traces the whole BVH only refreshes the front's META (three dispatches, no statistics), so
         the host can decide again after the frame (the front does not change on such passes, but
-        the aggressive mode's choice of pairs to test does)."""
+        the aggressive mode's choice of pairs to test does). `reset_meta`: as clear's."""
         self.last_plan = None  # (set again by the caller for this plan)
         n_tiles = 1 << (2 * max_level)
         n_cull = 1 << (2 * (max_level + cull_sub))
@@ -366,7 +370,8 @@ class DeviceFronts:
                       threshold=int(threshold), frame=int(frame), requeryInterval=int(requery_interval),
                       visCap=self.vis_cap, seed=int(seed), statBase=self.stat_base(report and not full))
         self._bind(dev, counts)
-        self.clear(counts, survivor_cmd, ray_slots=ray_slots, capacity=dev.capacity, slot=dev.slot, n_tiles=n_tiles)
+        self.clear(counts, survivor_cmd, ray_slots=ray_slots, capacity=dev.capacity, slot=dev.slot, n_tiles=n_tiles,
+                   reset_meta=reset_meta)
         self._run_indirect("count", ARGS_PAIRS, **common)  # (sized by the clear for the front's pairs)
         self._run("plan", 1, nTiles=n_tiles, raySize=tuple(size), maxBatch=int(max_batch), lcaPairs=int(lca_pairs),
                   lcaSubtrees=int(lca_subtrees), heavyAllowed=int(heavy_allowed), invCap=self.inv_cap,

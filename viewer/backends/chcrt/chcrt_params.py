@@ -131,7 +131,8 @@ class ChcrtParams:
                                        "sibenik's at 0.99-1.02 0.78x)")
     share_sample_fronts: bool = param(True, "the sample passes of an effect (AO, diffuse, a light's soft "
                                       "shadows) share one front; on device fronts only the first of them in a "
-                                      "frame measures (work_probe) and refines it; later any-hit ones also take its "
+                                      "frame measures (work_probe) and refines it (a front found wasteful: the "
+                                      "later ones trace the whole BVH meanwhile); later any-hit ones also take its "
                                       "plan and run only their tile bounds, cull and draws, later closest-hit ones "
                                       "plan again (their visible order sorts the items for their own rays); exact "
                                       "either way (the cull still covers every invisible pair for each pass's "

@@ -67,7 +67,7 @@ class DeviceFrontSteps:
                 # the frame's first pass decided (no probe); a front found wasteful when last measured
                 # sends the frame's other samples through the whole BVH even while its first pass brings
                 # it up to date or measures it (warm_up, probe: that one pass is enough for either)
-                wasted = dev.decided_wasted or dev.wasteful
+                wasted = not full and (dev.decided_wasted or dev.wasteful)
             elif dev.passes == 0 and be.use_hints and self.hint is None:
                 # the front's first measurement waits for a pass with hit hints (a shared front's first
                 # device pass can be a sample's first pass, in the frame that built it): without them
@@ -103,14 +103,16 @@ class DeviceFrontSteps:
             elif dev is None or wasted:
                 # no front, or one that saves too little (work_probe): nothing to plan (the front's
                 # META keeps its last plan for the host's decisions), only the pass's counts zeroed
+                # (a later sample pass keeps the front's META row: what the frame's first pass measured
+                # and the overflows it found, read after the frame)
                 dv.clear(be.gpu_counts, be.query_indirect, ray_slots=COUNT_SLOTS, capacity=capacity,
-                         slot=0 if dev is None else dev.slot)
+                         slot=0 if dev is None or later else dev.slot)
                 self.stats["draws"] += 1
             else:
                 primary_only = self.ray_type == RayType.PRIMARY and not p.lca_primary
                 dv.plan(dev, be.gpu_counts, be.query_indirect, size=tuple(self.size), max_batch=p.max_batch,
                         lca_pairs=p.lca_pairs, lca_subtrees=p.lca_subtrees, heavy_allowed=not primary_only,
-                        cull_sub=sub, count_due_only=p.count_due_only, full=full, **common)
+                        cull_sub=sub, count_due_only=p.count_due_only, full=full, reset_meta=not later, **common)
                 dv.last_plan = None if full else plan_key
                 self.stats["draws"] += 3 if full else 5
             self._bind()

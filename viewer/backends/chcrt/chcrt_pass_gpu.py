@@ -1,6 +1,7 @@
-"""chcrt, the GPU-driven pass on a host front (device_front=0): the host plans the records, the
-device culls and counts, the host reads the counts once and refines the front. Mixed into ChcrtPass
-(chcrt_pass.py), whose state and shared steps it uses."""
+"""chcrt, the GPU-driven pass on a host front (no device fronts: device_front=0, or a device that
+cannot hold them): the host plans the records, the device culls and counts, the host reads the
+counts once and refines the front. Mixed into ChcrtPass (chcrt_pass.py), whose state and shared
+steps it uses."""
 
 from __future__ import annotations
 

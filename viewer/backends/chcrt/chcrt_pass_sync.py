@@ -300,7 +300,7 @@ class SyncSteps:
         """cold_full_bvh, before each wave of a front's synchronous refinement (the GPU-driven pass
         follows it): "incoherent" when the GPU-driven pass would trace the whole BVH with the front as
         it stands (at least full_bvh_fraction of the finest tiles over lca_pairs pairs or lca_subtrees
-        visible ones, as in _tile_plan); when this pass's refinement has cost more than a full
+        visible ones, as in _tile_plan, chcrt_pass_gpu.py); when this pass's refinement has cost more than a full
         traversal (cold_query_budget; the refinement's queries only, so that a pass that goes on
         with a front stopped before gets as far again whatever its re-queries of the known pairs
         cost), "budget" if it cost at most cold_wave_queries per ray and wave (coherent rays in a
