@@ -973,3 +973,53 @@ def test_work_probe_params_checked():
     for bad in ({"work_probe": -1}, {"work_probe_stride": 0}, {"work_ratio_full": 0.0}, {"work_ratio_full_any": -1.0}):
         with pytest.raises(RtwalkError):
             ChcrtParams(**bad).validate()
+
+
+def test_tile_bounds_are_the_same_bits_for_every_group_size(gl_ctx):
+    """chc_tilebounds.comp runs 8 invocations a tile on a CPU rasterizer and 64 on a GPU
+    (chcrt_layout.tile_bounds_group): both builds (and 16, 32) give every tile the same bounds, ray
+    count and bestBits bits on the same rays, with and without CHC_INIT_RAYS, so the GPU's build is
+    checked where no GPU is."""
+    from viewer.backends.chcrt import chcrt_layout as L
+    from viewer.gl.programs import compute_shader
+
+    scene, bvh, path = _load("city")
+    r = Renderer(gl_ctx, scene, bvh, (200, 120), "chcrt", parse_effects("ao:1"))
+    try:
+        for cam in path[:3]:
+            r.render(cam)  # (rays of the last AO pass stay in r.rays; bestBits as its pass left them)
+        be = r.backend
+        level = be.tile_level((200, 120))
+        tiles = 1 << (2 * level)
+        best0 = np.frombuffer(be.targets.best.read(), np.int32).copy()
+        outs = {}
+        for init in (0, 1):
+            for group in (8, 16, 32, 64):
+                defs = {**L.BINDINGS, "TILE_BOUNDS_GROUP": group, **({"CHC_INIT_RAYS": 1} if init else {})}
+                comp = compute_shader(gl_ctx, "chc_tilebounds.comp", defs, (L.HERE,))
+                be.targets.best.write(best0.tobytes())
+                r.rays.origin.use(0)
+                r.rays.direction.use(1)
+                be.targets.best.bind_to_image(L.BIND_IMG_CHC_BEST, read=True, write=True)
+                be.tile_bounds.bind_to_storage_buffer(L.BIND_CHC_TILES)
+                be.gpu_counts.write(bytes(L.COUNT_BYTES))
+                be.gpu_counts.bind_to_storage_buffer(L.BIND_CHC_COUNT, 0, L.COUNT_BYTES)
+                comp["rayOrigin"], comp["rayDir"] = 0, 1
+                comp["raySize"], comp["level"] = (200, 120), level
+                comp.run(tiles)
+                gl_ctx.finish()
+                counts = np.frombuffer(be.gpu_counts.read(size=L.COUNT_BYTES), np.uint32)
+                outs[init, group] = (be.tile_bounds.read(size=tiles * L.TILE_BOUND_BYTES),
+                                     int(counts.sum()), be.targets.best.read())
+                comp.release()
+        for init in (0, 1):
+            ref = outs[init, 64]
+            bounds = np.frombuffer(ref[0], np.float32).reshape(tiles, -1)
+            assert (bounds[:, 7] > 0).any()  # some tile has active rays (omax.w)
+            for group in (8, 16, 32):
+                assert outs[init, group][0] == ref[0], (init, group)
+                assert outs[init, group][2] == ref[2], (init, group)
+                if init:
+                    assert outs[init, group][1] == ref[1] > 0, (init, group)
+    finally:
+        r.release()

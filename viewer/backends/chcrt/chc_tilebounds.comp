@@ -5,15 +5,24 @@
 // half angle: the largest angle of an active ray's direction from it; any axis gives a valid cone)
 // and four side planes (spanned by the tile's corner rays, each with the least n . d/|d| of the
 // tile's rays, so any rays give valid planes), which let the cull and the gap order drop boxes that
-// no ray of the tile can enter (chc_tilecone.glsl). One work group per tile; a tile without an
-// active ray gets maxDist = -1.
+// no ray of the tile can enter (chc_tilecone.glsl). One work group of TILE_BOUNDS_GROUP invocations
+// per tile (chcrt_layout.tile_bounds_group: 64 on a GPU; 8 on a CPU rasterizer, one of llvmpipe's
+// 256-bit SIMD vectors, where fewer reduction rounds made a dispatch at 640x360 0.99 ms instead of
+// 1.51, medians of 120 alternated dispatches); a tile without an active ray gets maxDist = -1.
 // CHC_INIT_RAYS (a device front's pass that merges its kept pairs, without overlays): this dispatch
 // is also the pass's init draw (chc_init.frag), whose other work the host does with texture clears:
 // every pixel's bestBits is set from its ray (tmax bits, -1 = no ray), and the tile's active rays
-// are counted with one atomic per invocation (64 a tile) instead of one per pixel. A build of its
+// are counted with one atomic per invocation instead of one per pixel. A build of its
 // own, not a uniform: llvmpipe runs both sides of a branch on a uniform, and the image load of the
 // other side cost 7 % of the dispatch (1.525 -> 1.417 ms at 640x360, docs/results/chcrt.md).
-layout(local_size_x = 64) in;
+#ifndef TILE_BOUNDS_GROUP
+#define TILE_BOUNDS_GROUP 64
+#endif
+#if TILE_BOUNDS_GROUP % 8 != 0 || TILE_BOUNDS_GROUP > 64
+#error "chc_tilebounds.comp: TILE_BOUNDS_GROUP must be 8, 16, ... 64 (rows of 8; 64 ray-count slots)"
+#endif
+#define TB_ROWS (TILE_BOUNDS_GROUP / 8)
+layout(local_size_x = TILE_BOUNDS_GROUP) in;
 layout(r32i, binding = BIND_IMG_CHC_BEST) uniform coherent iimage2D bestBits;
 uniform sampler2D rayOrigin;
 uniform sampler2D rayDir;
@@ -22,12 +31,12 @@ uniform int level;  // the finest tile level: 2^level x 2^level tiles
 #include "chc_tilecone.glsl"
 layout(std430, binding = BIND_CHC_TILES) writeonly buffer ChcTiles { TileBound tiles[]; };
 layout(std430, binding = BIND_CHC_COUNT) buffer ChcCount { uint chcActive[]; };  // chc_init.frag's ray counts
-shared vec3 sMin[64];
-shared vec3 sMax[64];
-shared float sDist[64];
-shared float sCount[64];
-shared float sAngle[64];
-shared vec4 sSide[64];
+shared vec3 sMin[TILE_BOUNDS_GROUP];
+shared vec3 sMax[TILE_BOUNDS_GROUP];
+shared float sDist[TILE_BOUNDS_GROUP];
+shared float sCount[TILE_BOUNDS_GROUP];
+shared float sAngle[TILE_BOUNDS_GROUP];
+shared vec4 sSide[TILE_BOUNDS_GROUP];
 void main() {
     int n = 1 << level;
     int tx = int(gl_WorkGroupID.x) % n, ty = int(gl_WorkGroupID.x) / n;
@@ -52,10 +61,10 @@ void main() {
         if (dot(sn[i], axis) < 0.0) sn[i] = -sn[i];
     }
     vec4 smin = vec4(0.0);
-    // invocation li walks the pixels lo + (li % 8, li / 8) + 8 (i, j): no integer division per pixel
-    // (llvmpipe does vector integer division lane by lane)
+    // invocation li walks the pixels lo + (li % 8, li / 8) + (8 i, TB_ROWS j): no integer division per
+    // pixel (llvmpipe does vector integer division lane by lane)
     ivec2 first = lo + ivec2(int(li) & 7, int(li) >> 3);
-    for (int y = first.y; y < hi.y; y += 8) for (int x = first.x; x < hi.x; x += 8) {
+    for (int y = first.y; y < hi.y; y += TB_ROWS) for (int x = first.x; x < hi.x; x += 8) {
         ivec2 px = ivec2(x, y);
         // (the ray is read outside the branch: llvmpipe runs both sides of a branch on a uniform)
         vec4 o = texelFetch(rayOrigin, px, 0);
@@ -80,12 +89,12 @@ void main() {
         smin = min(smin, sd);
     }
 #ifdef CHC_INIT_RAYS
-    if (nActive > 0.0) atomicAdd(chcActive[li], uint(nActive));  // (slots: chcrt_layout.COUNT_SLOTS = 64)
+    if (nActive > 0.0) atomicAdd(chcActive[li], uint(nActive));  // (slots: chcrt_layout.COUNT_SLOTS = 64 >= the group)
 #endif
     sMin[li] = omin; sMax[li] = omax; sDist[li] = dmax; sCount[li] = nActive; sAngle[li] = s2max;
     sSide[li] = smin;
     barrier();
-    for (uint s = 32u; s > 0u; s >>= 1) {
+    for (uint s = uint(TILE_BOUNDS_GROUP / 2); s > 0u; s >>= 1) {
         if (li < s) {
             sMin[li] = min(sMin[li], sMin[li + s]);
             sMax[li] = max(sMax[li], sMax[li + s]);

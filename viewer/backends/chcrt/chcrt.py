@@ -121,6 +121,7 @@ from viewer.backends.chcrt.chcrt_layout import (
     ITEM_UNIT,
     MAX_BOXES,
     TILE_BOUND_BYTES,
+    tile_bounds_group,
 )
 from viewer.backends.chcrt.chcrt_params import ChcrtParams
 from viewer.backends.chcrt.chcrt_pass import ChcrtPass
@@ -268,9 +269,10 @@ class ChcrtBackend:
         self.query_counts = StreamBuffer(self.ctx, 4, BIND_CHC_QUERY_COUNTS)
         self.count_buf = self.ctx.buffer(reserve=4 * COUNT_SLOTS)
         self._zero_counts = bytes(4 * COUNT_SLOTS)
-        self.tilebounds = compute_shader(self.ctx, "chc_tilebounds.comp", BINDINGS, (HERE,))
+        tb_defs = {**BINDINGS, "TILE_BOUNDS_GROUP": tile_bounds_group(self.ctx.info.get("GL_RENDERER"))}
+        self.tilebounds = compute_shader(self.ctx, "chc_tilebounds.comp", tb_defs, (HERE,))
         # (the build that also initialises the rays: a device pass without an init draw)
-        self.tilebounds_init = compute_shader(self.ctx, "chc_tilebounds.comp", {**BINDINGS, "CHC_INIT_RAYS": 1},
+        self.tilebounds_init = compute_shader(self.ctx, "chc_tilebounds.comp", {**tb_defs, "CHC_INIT_RAYS": 1},
                                               (HERE,))
         self.count_rays = compute_shader(self.ctx, "chc_count_rays.comp", BINDINGS, (HERE,))
         self.count_rays["rayOrigin"] = 0
