@@ -18,11 +18,20 @@
 #ifndef TILE_BOUNDS_GROUP
 #define TILE_BOUNDS_GROUP 64
 #endif
-#if TILE_BOUNDS_GROUP % 8 != 0 || TILE_BOUNDS_GROUP > 64
-#error "chc_tilebounds.comp: TILE_BOUNDS_GROUP must be 8, 16, ... 64 (rows of 8; 64 ray-count slots)"
+#if TILE_BOUNDS_GROUP != 8 && TILE_BOUNDS_GROUP != 16 && TILE_BOUNDS_GROUP != 32 && TILE_BOUNDS_GROUP != 64
+#error "chc_tilebounds.comp: TILE_BOUNDS_GROUP must be 8, 16, 32 or 64 (rows of 8; 64 ray-count slots)"
 #endif
 #define TB_ROWS (TILE_BOUNDS_GROUP / 8)
-layout(local_size_x = TILE_BOUNDS_GROUP) in;
+// (literal sizes, as tests/test_portability.py checks them against NVIDIA's limits)
+#if TILE_BOUNDS_GROUP == 8
+layout(local_size_x = 8) in;
+#elif TILE_BOUNDS_GROUP == 16
+layout(local_size_x = 16) in;
+#elif TILE_BOUNDS_GROUP == 32
+layout(local_size_x = 32) in;
+#else
+layout(local_size_x = 64) in;
+#endif
 layout(r32i, binding = BIND_IMG_CHC_BEST) uniform coherent iimage2D bestBits;
 uniform sampler2D rayOrigin;
 uniform sampler2D rayDir;
@@ -31,12 +40,12 @@ uniform int level;  // the finest tile level: 2^level x 2^level tiles
 #include "chc_tilecone.glsl"
 layout(std430, binding = BIND_CHC_TILES) writeonly buffer ChcTiles { TileBound tiles[]; };
 layout(std430, binding = BIND_CHC_COUNT) buffer ChcCount { uint chcActive[]; };  // chc_init.frag's ray counts
-shared vec3 sMin[TILE_BOUNDS_GROUP];
-shared vec3 sMax[TILE_BOUNDS_GROUP];
-shared float sDist[TILE_BOUNDS_GROUP];
-shared float sCount[TILE_BOUNDS_GROUP];
-shared float sAngle[TILE_BOUNDS_GROUP];
-shared vec4 sSide[TILE_BOUNDS_GROUP];
+shared vec3 sMin[64];  // (64: the largest group; a smaller one uses the first entries)
+shared vec3 sMax[64];
+shared float sDist[64];
+shared float sCount[64];
+shared float sAngle[64];
+shared vec4 sSide[64];
 void main() {
     int n = 1 << level;
     int tx = int(gl_WorkGroupID.x) % n, ty = int(gl_WorkGroupID.x) / n;
