@@ -46,7 +46,7 @@ layout(binding = BIND_TEX_CHC_ITEMS) uniform usamplerBuffer chcItemTexels;
 ChcItem loadItem(int k) {
     uvec4 a = texelFetch(chcItemTexels, 4 * k), b = texelFetch(chcItemTexels, 4 * k + 1);
     uvec4 c = texelFetch(chcItemTexels, 4 * k + 2), e = texelFetch(chcItemTexels, 4 * k + 3);
-    return ChcItem(uintBitsToFloat(a.xyz), int(a.w), uintBitsToFloat(b.xyz), int(b.w), uintBitsToFloat(c.x), int(c.y),
+    return ChcItem(uintBitsToFloat(a.xyz), uintBitsToFloat(a.w), uintBitsToFloat(b.xyz), int(b.w), int(c.x), int(c.y),
                    int(c.z), int(c.w), int(e.x), int(e.y), int(e.z), int(e.w));
 }
 

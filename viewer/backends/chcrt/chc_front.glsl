@@ -103,5 +103,5 @@ ivec4 tileRect(int level, int tx, int ty, ivec2 size) {
 // the intersection item of canonical node `node` (chcrt_pass.py _subtree_items): its box, what the
 // traversal starts from, its triangle range for the subtree overlay and the pair's count slot
 ChcItem nodeItem(ChcNode nd, int node, int slot) {
-    return ChcItem(nd.bmin, nd.ref, nd.bmax, nd.gcount, 0.0, slot, nd.first, nd.count, node, 0, 0, 0);
+    return ChcItem(nd.bmin, 0.0, nd.bmax, nd.gcount, nd.ref, slot, nd.first, nd.count, node, 0, 0, 0);
 }

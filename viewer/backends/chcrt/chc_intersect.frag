@@ -129,7 +129,7 @@ void main() {
     float stackT[STACK_SIZE];
     int sp = 0;
     uint entered = 0u;
-    uint enteredMask = 0u;  // counted items whose box the ray entered (counted after the traversal)
+    uint enteredMask = 0u;  // items whose box the ray entered (the counted ones count after the traversal)
     uint keptMask = 0u;  // the same for the merged kept pairs
     uint leafMask = 0u, leafKept = 0u;  // entered BVH leaves among the items (own, kept)
     uint rootOwn = 0u, rootKept = 0u;  // entered inner subtree roots (own, kept), traversed in item order
@@ -160,10 +160,10 @@ void main() {
         float te;
         if (intersectBox(r, it.bmin, it.bmax, tmin, hit.t, te)) {
             ++entered;
-            if (it.p2 >= 0) {  // a counted pair (chcrt_pass_gpu.py _due_slots)
-                if (own) enteredMask |= 1u << uint(i);
-                else keptMask |= 1u << uint(i);
-            }
+            // (whether the pair is counted, p2 >= 0, is read after the traversal for the entered
+            // items only: the loop reads two texels an item, chc_records.glsl)
+            if (own) enteredMask |= 1u << uint(i);
+            else keptMask |= 1u << uint(i);
             if (it.count > 0) {  // a scheduled BVH leaf: intersected after the loop
                 if (own) leafMask |= 1u << uint(i);
                 else leafKept |= 1u << uint(i);
@@ -239,7 +239,7 @@ void main() {
     while (enteredMask != 0u) {
         int i = findLSB(enteredMask);
         enteredMask &= enteredMask - 1u;
-        int slot = loadItem(ITEM_BASE + i).p2;
+        int slot = loadItem(ITEM_BASE + i).p2;  // (chcrt_pass_gpu.py _due_slots; -1: not counted)
         if (slot >= 0) atomicAdd(chcPassed[slot], 1u);
     }
     while (keptMask != 0u) {  // a kept pair entered before the ray's final nearest hit

@@ -36,8 +36,8 @@ BIND_IMG_CHC_BEST, BIND_IMG_CHC_OVERDRAW, BIND_IMG_CHC_BATCH = IMAGE.values()
 # gap: written by chc_querycull.comp for the invisible pairs' items (a lower bound of the distance from
 # every ray origin of the tile to the box, world units); 0 in host-made items
 # (chc_records.glsl ChcItem: p2 = the pair's count slot, p0/p1 = its triangle range, id = its node)
-ITEM_DTYPE = np.dtype([("bmin", "<f4", 3), ("ref", "<i4"), ("bmax", "<f4", 3), ("count", "<i4"),
-                       ("gap", "<f4"), ("p2", "<i4"), ("p0", "<i4"), ("p1", "<i4"), ("id", "<i4"), ("pad2", "<i4", 3)])
+ITEM_DTYPE = np.dtype([("bmin", "<f4", 3), ("gap", "<f4"), ("bmax", "<f4", 3), ("count", "<i4"),
+                       ("ref", "<i4"), ("p2", "<i4"), ("p0", "<i4"), ("p1", "<i4"), ("id", "<i4"), ("pad2", "<i4", 3)])
 assert ITEM_DTYPE.itemsize == 64
 DRAW_DTYPE = np.dtype([("rect", "<i4", 4), ("info", "<i4", 4)])  # x, y, w, h; item base, count, query slot
 COUNT_SLOTS = 64
