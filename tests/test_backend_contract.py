@@ -154,6 +154,32 @@ def test_renderer_traces_with_the_fake_backend(fake, tiny):
     assert rep.trace_ms > 0 and set(rep.trace_ms_by_ray) == set(rep.rays)
 
 
+def test_samples_that_share_origins_share_them(gl_ctx, tiny):
+    """RayType.samples_share_origins is a promise backends build on (chcrt's AO samples share one
+    cull): the sample passes of AO and diffuse give every pixel the same origin, tmin, tmax and
+    activity, bit for bit, and other directions; soft shadows' samples (other tmax) do not."""
+    r = Renderer(gl_ctx, tiny.scene, tiny.bvh, SIZE, "fake", parse_effects("soft:2,ao:3,diffuse:2"),
+                 {"fake": "tile_level=2"})
+    try:
+        rep = r.render(tiny.scene.default_camera, capture=True)
+    finally:
+        r.release()
+    by_type: dict[RayType, list] = {}
+    for cp in rep.captured:
+        by_type.setdefault(cp.ray_type, []).append(cp.rays)
+    assert set(by_type) == {RayType.SOFT, RayType.AO, RayType.DIFFUSE}
+    for ray_type, batches in by_type.items():
+        first = batches[0]
+        assert first.active.sum() > 100, ray_type
+        same = all(np.array_equal(b.origins.view(np.int32), first.origins.view(np.int32))
+                   and np.array_equal(b.tmin.view(np.int32), first.tmin.view(np.int32))
+                   and np.array_equal(b.tmax.view(np.int32), first.tmax.view(np.int32)) for b in batches[1:])
+        assert same == ray_type.samples_share_origins, ray_type
+        for b in batches[1:] if same else []:
+            moved = (b.directions != first.directions).any(axis=1)[first.active]
+            assert moved.mean() > 0.9, ray_type
+
+
 def test_overlay_views_show_what_the_backend_wrote(fake):
     r, cam = fake
     seen = record_overlays(r)

@@ -664,9 +664,10 @@ def test_merged_kept_pairs_keep_the_hits(gl_ctx):
 def test_sample_passes_share_one_front(gl_ctx):
     """share_sample_fronts: an effect's sample passes share one front, and on device fronts only the
     first of them in a frame refines it (four launches fewer for each other one); any-hit ones also
-    take its plan (one dispatch instead of five: four more), with their own tile bounds, cull and
-    draws. They still answer exactly as the glsl baseline (conservative mode) and as one front per
-    sample does; one front for ao:4 instead of four."""
+    take its plan (one dispatch instead of five: four more), and AO's, whose samples share their
+    origins, its cull by reach too (its rays' bestBits copied instead of their tile bounds and cull:
+    one more, less the first pass's copy). They still answer exactly as the glsl baseline
+    (conservative mode) and as one front per sample does; one front for ao:4 instead of four."""
     effects = "primary,shadows,ao:4,diffuse:2"
     keep = "full_bvh_fraction=0"  # (the diffuse rays' front stays on the device, not on full traversals)
     own = _walk(gl_ctx, keep + ",share_sample_fronts=0", effects)
@@ -683,12 +684,15 @@ def test_sample_passes_share_one_front(gl_ctx):
                 assert np.array_equal(b.t.view(np.int32), c.t.view(np.int32)), (i, a.ray_type)
         fronts = s.backend_stats.get("shared_front_passes", 0)
         plans = s.backend_stats.get("shared_plan_passes", 0)
+        culls = s.backend_stats.get("shared_cull_passes", 0)
         assert o.backend_stats.get("shared_front_passes", 0) == 0
+        assert o.backend_stats.get("shared_cull_passes", 0) == 0
         if i >= 2:  # steady (frame 0 builds the fronts, frame 1 attaches them to the device)
-            # AO samples 1-3 (shared plans) and diffuse sample 1; the one shadow pass is its front's first
-            assert (fronts, plans) == (4, 3), (i, s.backend_stats)
+            # AO samples 1-3 (shared plans and culls) and diffuse sample 1; the one shadow pass is its
+            # front's first
+            assert (fronts, plans, culls) == (4, 3, 3), (i, s.backend_stats)
             assert o.backend_stats["full_bvh_passes"] == s.backend_stats["full_bvh_passes"] == 0
-            assert o.io.gl_draws - s.io.gl_draws == 4 * fronts + 4 * plans, (i, o.io, s.io)
+            assert o.io.gl_draws - s.io.gl_draws == 4 * fronts + 4 * plans + culls - 1, (i, o.io, s.io)
         passes += fronts
     assert passes > 0
     scene, bvh, path = _load("city")

@@ -141,6 +141,9 @@ class _Targets:
         self.size = size
         self.depth = float_depth_texture(ctx, size)
         self.best = int_texture(ctx, size)
+        # bestBits as the tile bounds set it from the rays (tmax bits, -1 = no ray), for later samples
+        # whose rays share their origins and reach (ChcrtPass._run_device)
+        self.best_init = int_texture(ctx, size)
         self.overdraw = int_texture(ctx, size)
         self.subtree = int_texture(ctx, size)
         self.batch = int_texture(ctx, size)
@@ -164,7 +167,7 @@ class _Targets:
         return self.hit_fbo
 
     def release(self) -> None:
-        for obj in (self.hit_fbo, self.query_fbo, self.gather_fbo, self.depth, self.best, self.overdraw,
+        for obj in (self.hit_fbo, self.query_fbo, self.gather_fbo, self.depth, self.best, self.best_init, self.overdraw,
                     self.subtree, self.batch, self.gather_o, self.gather_d):
             if obj is not None:
                 obj.release()

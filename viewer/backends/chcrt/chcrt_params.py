@@ -98,7 +98,8 @@ class ChcrtParams:
     cone_cull: bool = param(True, "GPU-driven: per tile a cone around its rays' directions and four side planes "
                             "(camera rays: the tile's frustum); the cull drops invisible pairs and, with "
                             "gap_order_visible, the visible pairs' records drop items whose box lies outside them "
-                            "(no ray of the tile can enter it; exact)")
+                            "(no ray of the tile can enter it; exact); not in the cull of rays whose samples "
+                            "share a cull (share_sample_fronts)")
     count_due_only: bool = param(True, "GPU-driven: only the visible pairs whose re-query is due this frame count "
                                  "the rays that enter them (the others' counts are never read; each count is a "
                                  "shader atomic per entered pair and ray); False: every visible pair counts")
@@ -133,9 +134,11 @@ class ChcrtParams:
                                       "shadows) share one front; on device fronts only the first of them in a "
                                       "frame measures (work_probe) and refines it (a front found wasteful: the "
                                       "later ones trace the whole BVH meanwhile); later any-hit ones also take its "
-                                      "plan and run only their tile bounds, cull and draws, later closest-hit ones "
+                                      "plan and run only their tile bounds, cull and draws (AO, whose samples share "
+                                      "their origins and reach: the first pass culls by reach alone and the later "
+                                      "ones take its cull and its rays' bestBits too), later closest-hit ones "
                                       "plan again (their visible order sorts the items for their own rays); exact "
-                                      "either way (the cull still covers every invisible pair for each pass's "
+                                      "either way (the cull covers every invisible pair for each pass's "
                                       "rays); False: one front per sample")
     hit_hint: bool = param(True, "temporal: each ray first tests the triangle its pixel hit in this front's previous "
                            "pass (a shadow cache for every ray type): an any-hit ray that hits it is done, a "

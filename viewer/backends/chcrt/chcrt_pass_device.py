@@ -28,6 +28,7 @@ from viewer.backends.chcrt.chcrt_layout import (
     ITEM_DTYPE,
 )
 from viewer.effects import RayType
+from viewer.gl.textures import copy_texture
 
 
 class DeviceFrontSteps:
@@ -91,14 +92,30 @@ class DeviceFrontSteps:
             be.gpu_counts = self.ctx.buffer(reserve=1 << (need - 1).bit_length())
         report = self.pinfo.report
         merge = be.merge_kept and sub == 0 and not full
+        # without overlays, the init draw is left out: with merged kept pairs the tile bounds
+        # below set bestBits and count the rays, texture clears do the rest (chc_tilebounds.comp
+        # CHC_INIT_RAYS); a whole-BVH pass only counts its rays (the glsl traversal writes every hit)
+        fused = merge and not be.overlays_enabled
+        # any-hit rays whose samples share origins, tmax and activity (RayType.samples_share_origins,
+        # AO) cull their tiles' invisible pairs by reach alone (their directions fill a hemisphere:
+        # without the cone and side planes city-near's AO was no slower, docs/results/chcrt.md), so the
+        # cull of the frame's first pass holds for the later samples that take its plan: they keep
+        # its outputs, its rays' bestBits and ray counts instead of their own tile bounds and cull
+        by_reach = (fused and self.any_hit and p.share_sample_fronts and self.ray_type.samples_share_origins
+                    and dev is not None)
+        cull_key = (plan_key, capacity, be.gpu_counts.glo)
+        take_cull = reuse and by_reach and self.cull_taken == cull_key
+        self.cull_by_reach = by_reach
         common = dict(ray_slots=COUNT_SLOTS, frame=self.frame_number(), max_level=level, threshold=self.threshold,
                       requery_interval=p.requery_interval, seed=p.seed, report=report)
         with prof.phase("chc:0-setup"):
             if reuse:
                 # the plan stands (records, items, tile plans, arguments): only the pass's counts
                 # and the survivors' command zeroed (no tile plan, no front META touched); the cull
-                # below still covers every invisible pair for this pass's rays
-                dv.clear(be.gpu_counts, be.query_indirect, ray_slots=COUNT_SLOTS, capacity=capacity, slot=0)
+                # below still covers every invisible pair for this pass's rays (take_cull: the first
+                # pass's cull, by reach, covers them; its outputs, ray counts and command stay)
+                dv.clear(be.gpu_counts, be.query_indirect, ray_slots=COUNT_SLOTS, capacity=capacity, slot=0,
+                         keep_cull=take_cull)
                 self.stats["draws"] += 1
             elif dev is None or wasted:
                 # no front, or one that saves too little (work_probe): nothing to plan (the front's
@@ -116,10 +133,6 @@ class DeviceFrontSteps:
                 dv.last_plan = None if full else plan_key
                 self.stats["draws"] += 3 if full else 5
             self._bind()
-            # without overlays, the init draw is left out: with merged kept pairs the tile bounds
-            # below set bestBits and count the rays, texture clears do the rest (chc_tilebounds.comp
-            # CHC_INIT_RAYS); a whole-BVH pass only counts its rays (the glsl traversal writes every hit)
-            fused = merge and not be.overlays_enabled
             if fused:
                 self._clear_hits()
             elif full and not be.overlays_enabled:
@@ -129,10 +142,21 @@ class DeviceFrontSteps:
             be.gpu_counts.bind_to_storage_buffer(BIND_CHC_QUERY_COUNTS, COUNT_BYTES, 4 * (capacity + 3))
             if probe:
                 self._probe_full(dv, dev)
-            if merge:
+            if take_cull:
+                # the first pass's bestBits from its rays: these rays have the same tmax and activity
+                copy_texture(self.tg.best, self.tg.best_init)
+                self.stats["draws"] += 1
+                self.stats["shared_cull_passes"] = 1
+                iostats.gl_draw()
+            elif merge:
                 self._tile_bounds(level, n_tiles, init_rays=fused)  # (else after the init draw's bestBits)
                 self.stats["draws"] += 1
                 iostats.gl_draw()
+                if by_reach:  # kept for the later samples (a copy after image stores: every barrier)
+                    self.ctx.memory_barrier(moderngl.ALL_BARRIER_BITS)
+                    copy_texture(self.tg.best_init, self.tg.best)
+                    self.stats["draws"] += 1
+                    iostats.gl_draw()
                 self._cull_device(dv, dev, level, sub, merge=True)
             self._sync()
         with prof.phase("chc:1-intersect-visible"):
@@ -149,6 +173,8 @@ class DeviceFrontSteps:
                 dv.refine(dev, be.gpu_counts, t_q=self.t_q, max_height=p.max_subtree_height,
                           max_tris=p.max_subtree_tris, **common)
                 self.stats["draws"] += 4
+        if by_reach:  # the cull's outputs stand as it left them (ChcrtPass.run resets this first)
+            dv.cull_key = cull_key
         self.rays_read = True  # counted on the device, reported by end_frame
 
     def _draw_device_visible(self, dv: DeviceFronts, level: int, n_tiles: int, bounds_ready: bool = False,
@@ -207,7 +233,7 @@ class DeviceFrontSteps:
         be.querycull["pixelSlot"] = dev.capacity
         be.querycull["cull"] = int(p.coarse_cull)
         be.querycull["sortByGap"] = int(p.gap_order)
-        be.querycull["coneCull"] = int(p.cone_cull)
+        be.querycull["coneCull"] = int(p.cone_cull and not self.cull_by_reach)
         be.querycull.run(-(-n_cull // 64))
         ctx.memory_barrier(moderngl.COMMAND_BARRIER_BIT | moderngl.SHADER_STORAGE_BARRIER_BIT)
         n = 1 if merge else 2
