@@ -954,6 +954,10 @@ def test_shared_front_measures_once_a_frame_with_hints(gl_ctx):
     # (frame 0: sample 0 builds the front synchronously, sample 1 plans its first device pass; frame 1:
     # sample 1 shares the plan of the first measurement; a whole-BVH pass plans nothing to share)
     assert shared == [0, 1, 0, 0, 0, 0, 0], shared
+    # a whole-BVH sample pass keeps the ray counts the frame's first pass left (AO's samples share
+    # their rays' activity) instead of counting again; the statistics still count every ray
+    assert [b.backend_stats.get("shared_ray_counts", 0) for b in frames] == [0, 0, 1, 1, 1, 1, 1]
+    assert [b.backend_stats["rays"] for b in frames] == [sum(b.rays.values()) for b in frames]
 
 
 def test_shared_closest_hit_front_keeps_its_measurement(gl_ctx):

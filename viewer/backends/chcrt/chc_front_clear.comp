@@ -2,7 +2,8 @@
 // plans (the triangle range starts empty), the ray-count slots the init draw counts into, and the
 // pass's extra count slots (query pixels, records drawn, kept pairs) after the pairs' slots, and the
 // survivors' indirect draw command (keepCull: a later sample pass that takes its frame's first pass's
-// cull keeps the ray counts, the three slots and the command that pass left, chcrt_pass_device.py). The
+// cull keeps the ray counts, the three slots and the command that pass left; keepRays: one whose rays
+// an earlier pass of the frame counted keeps the ray counts; chcrt_pass_device.py). The
 // pairs' own count slots are zeroed by chc_front_count.comp; the front's overflow bits and work probe
 // are reset (resetMeta: by the frame's first pass of the front only, so that a shared front's later
 // sample passes keep what the first one measured and found), and the per-pair steps' dispatch is
@@ -22,6 +23,7 @@ uniform int capacity;  // pair slots: the pass's extra slots follow them
 uniform int raySlots;  // ray-count slots at the start of the counts buffer (chcrt_layout.COUNT_SLOTS)
 uniform int resetMeta;  // 1: zero the front's overflow bits and work probe (0: a later sample pass)
 uniform int keepCull;  // 1: keep the ray counts, the pass's three slots and the survivors' command
+uniform int keepRays;  // 1: keep the ray counts
 
 void main() {
     int i = int(gl_GlobalInvocationID.x);
@@ -32,7 +34,7 @@ void main() {
         t.recBase = 0; t.nrec = 0; t.keptBase = 0; t.keptCount = 0;
         tiles[i] = t;
     }
-    if (i < raySlots && keepCull == 0) counts[i] = 0u;
+    if (i < raySlots && keepCull == 0 && keepRays == 0) counts[i] = 0u;
     if (i < 3 && keepCull == 0) counts[raySlots + capacity + i] = 0u;
     if (i == 0) {
         if (frontSlot > 0) {

@@ -222,6 +222,9 @@ class DeviceFronts:
         # later samples with the same origins (chcrt_pass_device.py); every chcrt pass takes it and
         # resets it first, and only a pass that leaves those outputs as they are sets it again
         self.cull_key: tuple | None = None
+        # the same for the ray counts in the counts buffer's ray slots (a later sample whose rays share
+        # their origins and activity traces the whole BVH: it keeps them instead of counting again)
+        self.rays_key: tuple | None = None
         self.ensure(tiles=64, pairs=MIN_CAPACITY, cull_tiles=64)  # every binding exists from the start
 
     def prewarm(self, zero: moderngl.Buffer) -> None:
@@ -343,13 +346,14 @@ class DeviceFronts:
         return 0 if report else DISCARD_SLOT * META_INTS
 
     def clear(self, counts: moderngl.Buffer, survivor_cmd: moderngl.Buffer, *, ray_slots: int, capacity: int,
-              slot: int = 0, n_tiles: int = 0, reset_meta: bool = True, keep_cull: bool = False) -> None:
+              slot: int = 0, n_tiles: int = 0, reset_meta: bool = True, keep_cull: bool = False,
+              keep_rays: bool = False) -> None:
         """Zero the pass's count slots (`capacity` pair slots after `ray_slots` ray slots, then the
         pass's three), `n_tiles` tiles' plans, front `slot`'s overflow bits and work probe (0: no
         front; `reset_meta` False: kept, a shared front's later sample pass in the frame) and the
         survivors' draw command: the first dispatch of every device pass, also of a full-BVH one.
         `keep_cull`: the ray slots, the three and the command stay (a pass that takes the cull
-        cull_key names)."""
+        cull_key names); `keep_rays`: the ray slots stay (rays_key)."""
         counts.bind_to_storage_buffer(B["BIND_FR_COUNTS"])
         survivor_cmd.bind_to_storage_buffer(B["BIND_FR_SURVIVOR_CMD"])
         self.args.bind_to_storage_buffer(B["BIND_FR_ARGS"])
@@ -357,7 +361,8 @@ class DeviceFronts:
         self.meta.bind_to_storage_buffer(B["BIND_FR_META"])
         self.passes += 1
         self._run("clear", -(-max(n_tiles, ray_slots, 3) // 64), nTiles=n_tiles, capacity=capacity,
-                  raySlots=ray_slots, frontSlot=slot, resetMeta=int(reset_meta), keepCull=int(keep_cull))
+                  raySlots=ray_slots, frontSlot=slot, resetMeta=int(reset_meta), keepCull=int(keep_cull),
+                  keepRays=int(keep_rays))
 
     def plan(self, dev: DeviceFront, counts: moderngl.Buffer, survivor_cmd: moderngl.Buffer, *, ray_slots: int,
              frame: int, max_level: int, size: tuple[int, int], threshold: int, requery_interval: int,

@@ -81,6 +81,7 @@ class ChcrtPass(SyncSteps, GpuDrivenSteps, DeviceFrontSteps):
         self.n_survivor_groups = 0
         self.survivor_items: moderngl.Buffer | None = None  # the survivors' items (None: be.kept_boxes)
         self.cull_taken: tuple | None = None  # the cull in the device fronts' buffers (run)
+        self.rays_taken: tuple | None = None  # the rays counted in them (run)
         self.cull_by_reach = False  # device fronts: this pass culls by reach alone (_run_device)
         self.probe_base = -1  # work_probe: META index the pass's draws sum their work into (-1: no probe)
         self.lca_pairs: np.ndarray | None = None  # GPU-driven: slots of visible pairs drawn through an LCA
@@ -365,9 +366,10 @@ class ChcrtPass(SyncSteps, GpuDrivenSteps, DeviceFrontSteps):
         be, f = self.be, self.front
         # the cull a later sample may take (DeviceFronts.cull_key): whatever this pass does next, it
         # names the buffers' cull again only if it leaves them as they are
-        self.cull_taken = None
+        self.cull_taken = self.rays_taken = None
         if be.devfronts is not None:
             self.cull_taken, be.devfronts.cull_key = be.devfronts.cull_key, None
+            self.rays_taken, be.devfronts.rays_key = be.devfronts.rays_key, None
         self._sync()  # diagnostics: do not charge the ray generation to phase 1
         try:
             if self.gpu and be.device_front:

@@ -106,6 +106,12 @@ class DeviceFrontSteps:
         cull_key = (plan_key, capacity, be.gpu_counts.glo)
         take_cull = reuse and by_reach and self.cull_taken == cull_key
         self.cull_by_reach = by_reach
+        # a whole-BVH pass counts its rays only for the statistics: one whose samples share their
+        # activity keeps the counts an earlier pass of the frame left (rays_key) instead
+        shares = self.ray_type.samples_share_origins
+        rays_key = (self.frame_number(), int(self.ray_type), tuple(self.size), be.gpu_counts.glo)
+        keep_rays = (shares and self.rays_taken == rays_key and not reuse and (dev is None or wasted)
+                     and not be.overlays_enabled)
         common = dict(ray_slots=COUNT_SLOTS, frame=self.frame_number(), max_level=level, threshold=self.threshold,
                       requery_interval=p.requery_interval, seed=p.seed, report=report)
         with prof.phase("chc:0-setup"):
@@ -123,7 +129,7 @@ class DeviceFrontSteps:
                 # (a later sample pass keeps the front's META row: what the frame's first pass measured
                 # and the overflows it found, read after the frame)
                 dv.clear(be.gpu_counts, be.query_indirect, ray_slots=COUNT_SLOTS, capacity=capacity,
-                         slot=0 if dev is None or later else dev.slot)
+                         slot=0 if dev is None or later else dev.slot, keep_rays=keep_rays)
                 self.stats["draws"] += 1
             else:
                 primary_only = self.ray_type == RayType.PRIMARY and not p.lca_primary
@@ -136,7 +142,10 @@ class DeviceFrontSteps:
             if fused:
                 self._clear_hits()
             elif full and not be.overlays_enabled:
-                self._count_rays()
+                if keep_rays:
+                    self.stats["shared_ray_counts"] = 1
+                else:
+                    self._count_rays()
             else:
                 self._init(zeroed=True)
             be.gpu_counts.bind_to_storage_buffer(BIND_CHC_QUERY_COUNTS, COUNT_BYTES, 4 * (capacity + 3))
@@ -175,6 +184,8 @@ class DeviceFrontSteps:
                 self.stats["draws"] += 4
         if by_reach:  # the cull's outputs stand as it left them (ChcrtPass.run resets this first)
             dv.cull_key = cull_key
+        if shares:  # the ray slots hold this pass's rays' counts (counted, or kept: the same rays)
+            dv.rays_key = rays_key
         self.rays_read = True  # counted on the device, reported by end_frame
 
     def _draw_device_visible(self, dv: DeviceFronts, level: int, n_tiles: int, bounds_ready: bool = False,
