@@ -26,9 +26,10 @@ class RayType(IntEnum):
     @property
     def samples_share_origins(self) -> bool:
         """Every sample pass of this effect in a frame gives a pixel's ray the same origin, tmin, tmax
-        and activity, only another direction (shaders/raygen.frag: AO and diffuse rays leave the
-        pixel's offset G-buffer point with the effect's ray length). A backend may share per-pixel
-        work that reads no direction among a frame's samples (chcrt: the cull of its tiles by reach)."""
+        and activity, only another direction (shaders/raygen.frag and cl/kernels/frame.cl: AO and
+        diffuse rays leave the pixel's offset G-buffer point with the effect's ray length). A backend
+        may share among a frame's samples the per-pixel work that reads no direction (say, culling
+        screen tiles by the rays' reach)."""
         return self in (RayType.AO, RayType.DIFFUSE)
 
     @property
