@@ -761,6 +761,57 @@ def test_device_front_frame_crosses_nothing(gl_ctx, monkeypatch):
     assert h.host_syncs == g.host_syncs + 6 and h.bytes_to_device > 0  # the host plan: a count read per pass
 
 
+@pytest.mark.parametrize("params", ["", "device_front=0"])
+def test_items_written_on_the_device_are_fenced_for_texel_fetches(params, gl_ctx, monkeypatch):
+    """The intersection reads its items through a buffer texture (chc_common.glsl loadItem), and
+    compute shaders write them (the device fronts' plan, the cull, the visible order): GL makes
+    such texel fetches see storage writes only after glMemoryBarrier with
+    GL_TEXTURE_FETCH_BARRIER_BIT (llvmpipe sees them anyway, an NVIDIA driver need not). Every
+    counting intersection draw after one of those dispatches has that barrier between them, on
+    device fronts and on host-planned GPU-driven passes."""
+    import moderngl
+
+    events: list[tuple[str, int]] = []  # (what, program id or barrier bits)
+
+    def recording(method, kind: str):
+        def wrapped(self, *a, **k):
+            if kind == "barrier":
+                events.append((kind, int(a[0] if a else k.get("barrier", moderngl.ALL_BARRIER_BITS))))
+            else:
+                events.append((kind, id(self)))
+            return method(self, *a, **k)
+        return wrapped
+
+    for cls, name, kind in ((moderngl.ComputeShader, "run", "dispatch"),
+                            (moderngl.ComputeShader, "run_indirect", "dispatch"),
+                            (moderngl.VertexArray, "render", "draw"), (moderngl.VertexArray, "render_indirect", "draw"),
+                            (moderngl.Context, "memory_barrier", "barrier")):
+        monkeypatch.setattr(cls, name, recording(getattr(cls, name), kind))
+    scene, bvh, path = _load("city")
+    r = Renderer(gl_ctx, scene, bvh, SIZE, "chcrt", parse_effects("primary,ao:2"), {"chcrt": _front_params(params)})
+    try:
+        for cam in path[:3]:
+            r.render(cam)
+        be = r.backend
+        writers = {id(p) for p in (be.querycull, be.visorder, be.visorder_dev) if p is not None}
+        if be.devfronts is not None:
+            writers |= {id(p) for p in be.devfronts.prog.values()}
+        isect = id(be.vao_isect_g)
+    finally:
+        r.release()
+    fenced, draws, after_writes = True, 0, 0
+    for i, (kind, what) in enumerate(events):
+        if kind == "dispatch" and what in writers:
+            fenced = False
+        elif kind == "barrier" and what & moderngl.TEXTURE_FETCH_BARRIER_BIT:
+            fenced = True
+        elif kind == "draw" and what == isect:
+            draws += 1
+            after_writes += int(any(k == "dispatch" and w in writers for k, w in events[:i]))
+            assert fenced, (i, events[max(0, i - 8):i + 1])
+    assert draws > 0 and after_writes > 0, (draws, after_writes)
+
+
 def test_device_front_overflow_stays_exact(gl_ctx, monkeypatch):
     """Fronts and items over their device capacity: splits are refused (the pair's subtree is
     intersected whole) and every tile traverses its lowest common ancestor, both exact; the overflow

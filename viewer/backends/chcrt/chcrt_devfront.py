@@ -328,7 +328,10 @@ class DeviceFronts:
         self._barrier()
 
     def _barrier(self) -> None:
-        self.ctx.memory_barrier(moderngl.SHADER_STORAGE_BARRIER_BIT | moderngl.COMMAND_BARRIER_BIT)
+        # (the fragment shaders read the items through a buffer texture: texel fetches see storage
+        # writes only after a barrier that names them; GL 4.5 glMemoryBarrier)
+        self.ctx.memory_barrier(moderngl.SHADER_STORAGE_BARRIER_BIT | moderngl.COMMAND_BARRIER_BIT
+                                | moderngl.TEXTURE_FETCH_BARRIER_BIT)
         iostats.gl_draw()
 
     def _bind(self, dev: DeviceFront, counts: moderngl.Buffer) -> None:

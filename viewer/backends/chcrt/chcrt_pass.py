@@ -332,7 +332,7 @@ class ChcrtPass(SyncSteps, GpuDrivenSteps, DeviceFrontSteps):
         be.visorder["nRecords"] = nrec
         be.visorder["coneCull"] = int(self.p.cone_cull)
         be.visorder.run(-(-nrec // 64))
-        ctx.memory_barrier(moderngl.SHADER_STORAGE_BARRIER_BIT)
+        ctx.memory_barrier(moderngl.SHADER_STORAGE_BARRIER_BIT | moderngl.TEXTURE_FETCH_BARRIER_BIT)
         self.stats["draws"] += 2
         iostats.gl_draw(2)
 

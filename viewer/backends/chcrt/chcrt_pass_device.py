@@ -204,7 +204,8 @@ class DeviceFrontSteps:
             dv.args.bind_to_storage_buffer(BIND_CHC_INDIRECT, 0, 16)
             be.visorder_dev["coneCull"] = int(p.cone_cull)
             be.visorder_dev.run_indirect(dv.args, ARGS_VISORDER)
-            ctx.memory_barrier(moderngl.SHADER_STORAGE_BARRIER_BIT | moderngl.COMMAND_BARRIER_BIT)
+            ctx.memory_barrier(moderngl.SHADER_STORAGE_BARRIER_BIT | moderngl.COMMAND_BARRIER_BIT
+                               | moderngl.TEXTURE_FETCH_BARRIER_BIT)
             n = 1 if bounds_ready else 2
             self.stats["draws"] += n
             iostats.gl_draw(n)
@@ -246,7 +247,8 @@ class DeviceFrontSteps:
         be.querycull["sortByGap"] = int(p.gap_order)
         be.querycull["coneCull"] = int(p.cone_cull and not self.cull_by_reach)
         be.querycull.run(-(-n_cull // 64))
-        ctx.memory_barrier(moderngl.COMMAND_BARRIER_BIT | moderngl.SHADER_STORAGE_BARRIER_BIT)
+        ctx.memory_barrier(moderngl.COMMAND_BARRIER_BIT | moderngl.SHADER_STORAGE_BARRIER_BIT
+                           | moderngl.TEXTURE_FETCH_BARRIER_BIT)
         n = 1 if merge else 2
         self.stats["draws"] += n
         iostats.gl_draw(n)

@@ -156,7 +156,8 @@ class GpuDrivenSteps:
         be.querycull["sortByGap"] = int(self.p.gap_order)
         be.querycull["coneCull"] = int(self.p.cone_cull)
         be.querycull.run(-(-nsub // 64))
-        ctx.memory_barrier(moderngl.COMMAND_BARRIER_BIT | moderngl.SHADER_STORAGE_BARRIER_BIT)
+        ctx.memory_barrier(moderngl.COMMAND_BARRIER_BIT | moderngl.SHADER_STORAGE_BARRIER_BIT
+                           | moderngl.TEXTURE_FETCH_BARRIER_BIT)
         self.stats["draws"] += 2
         iostats.gl_draw(2)
 
