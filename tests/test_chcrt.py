@@ -762,16 +762,22 @@ def test_device_front_frame_crosses_nothing(gl_ctx, monkeypatch):
 
 
 @pytest.mark.parametrize("params", ["", "device_front=0"])
-def test_items_written_on_the_device_are_fenced_for_texel_fetches(params, gl_ctx, monkeypatch):
-    """The intersection reads its items through a buffer texture (chc_common.glsl loadItem), and
-    compute shaders write them (the device fronts' plan, the cull, the visible order): GL makes
-    such texel fetches see storage writes only after glMemoryBarrier with
-    GL_TEXTURE_FETCH_BARRIER_BIT (llvmpipe sees them anyway, an NVIDIA driver need not). Every
-    counting intersection draw after one of those dispatches has that barrier between them, on
-    device fronts and on host-planned GPU-driven passes."""
+def test_device_writes_are_fenced_before_fetches_and_copies(params, gl_ctx, monkeypatch):
+    """What llvmpipe forgives and GL does not, in chcrt's pass sequence:
+    - the intersection reads its items through a buffer texture (chc_common.glsl loadItem), and
+      compute shaders write them (the device fronts' plan, the cull, the visible order): a texel
+      fetch sees storage writes only after glMemoryBarrier(GL_TEXTURE_FETCH_BARRIER_BIT);
+    - bestBits is written by shader image stores and atomics (tile bounds, intersection) and by
+      copies (an AO sample takes the first pass's, glCopyImageSubData): a copy is ordered after
+      shader writes only by GL_TEXTURE_UPDATE_BARRIER_BIT.
+    Checked on the recorded dispatches, draws, copies and barriers of a short walk, without the loop
+    limit (RTWALK_LOOP_LIMIT=none, as on a GPU: no counter read, whose barrier hides a missing one)."""
     import moderngl
 
-    events: list[tuple[str, int]] = []  # (what, program id or barrier bits)
+    import viewer.backends.chcrt.chcrt_pass_device as pass_device
+
+    monkeypatch.setenv("RTWALK_LOOP_LIMIT", "none")
+    events: list[tuple[str, int]] = []  # (what, program or texture id, or barrier bits)
 
     def recording(method, kind: str):
         def wrapped(self, *a, **k):
@@ -787,29 +793,46 @@ def test_items_written_on_the_device_are_fenced_for_texel_fetches(params, gl_ctx
                             (moderngl.VertexArray, "render", "draw"), (moderngl.VertexArray, "render_indirect", "draw"),
                             (moderngl.Context, "memory_barrier", "barrier")):
         monkeypatch.setattr(cls, name, recording(getattr(cls, name), kind))
+    copy = pass_device.copy_texture
+
+    def recorded_copy(dst, src):
+        events.append(("copy", id(dst)))
+        copy(dst, src)
+
+    monkeypatch.setattr(pass_device, "copy_texture", recorded_copy)
     scene, bvh, path = _load("city")
-    r = Renderer(gl_ctx, scene, bvh, SIZE, "chcrt", parse_effects("primary,ao:2"), {"chcrt": _front_params(params)})
+    r = Renderer(gl_ctx, scene, bvh, SIZE, "chcrt", parse_effects("primary,ao:3"), {"chcrt": _front_params(params)})
     try:
-        for cam in path[:3]:
+        for cam in path[:4]:
             r.render(cam)
         be = r.backend
-        writers = {id(p) for p in (be.querycull, be.visorder, be.visorder_dev) if p is not None}
+        item_writers = {id(p) for p in (be.querycull, be.visorder, be.visorder_dev) if p is not None}
         if be.devfronts is not None:
-            writers |= {id(p) for p in be.devfronts.prog.values()}
+            item_writers |= {id(p) for p in be.devfronts.prog.values()}
+        image_writers = {id(be.tilebounds), id(be.tilebounds_init), id(be.vao_isect_g)}
         isect = id(be.vao_isect_g)
     finally:
         r.release()
-    fenced, draws, after_writes = True, 0, 0
+    items_fenced = images_fenced = True
+    counted = {"isect": 0, "isect after item writes": 0, "copies after image writes": 0}
     for i, (kind, what) in enumerate(events):
-        if kind == "dispatch" and what in writers:
-            fenced = False
-        elif kind == "barrier" and what & moderngl.TEXTURE_FETCH_BARRIER_BIT:
-            fenced = True
+        if kind == "dispatch" and what in item_writers:
+            items_fenced = False
+        if what in image_writers and kind in ("dispatch", "draw"):
+            images_fenced = False
+        if kind == "barrier":
+            items_fenced |= bool(what & moderngl.TEXTURE_FETCH_BARRIER_BIT)
+            images_fenced |= bool(what & moderngl.TEXTURE_UPDATE_BARRIER_BIT)
         elif kind == "draw" and what == isect:
-            draws += 1
-            after_writes += int(any(k == "dispatch" and w in writers for k, w in events[:i]))
-            assert fenced, (i, events[max(0, i - 8):i + 1])
-    assert draws > 0 and after_writes > 0, (draws, after_writes)
+            counted["isect"] += 1
+            counted["isect after item writes"] += int(any(k == "dispatch" and w in item_writers for k, w in events[:i]))
+            assert items_fenced, (i, events[max(0, i - 8):i + 1])
+        elif kind == "copy":
+            counted["copies after image writes"] += int(any(w in image_writers for _, w in events[:i]))
+            assert images_fenced, (i, events[max(0, i - 8):i + 1])
+    assert counted["isect"] > 0 and counted["isect after item writes"] > 0, counted
+    if not params:  # (AO's later samples take the first's bestBits on device fronts)
+        assert counted["copies after image writes"] > 0, counted
 
 
 def test_device_front_overflow_stays_exact(gl_ctx, monkeypatch):

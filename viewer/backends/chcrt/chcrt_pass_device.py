@@ -153,6 +153,8 @@ class DeviceFrontSteps:
                 self._probe_full(dv, dev)
             if take_cull:
                 # the first pass's bestBits from its rays: these rays have the same tmax and activity
+                # (a copy after the previous pass's image atomics on bestBits: ordered by the barrier)
+                self.ctx.memory_barrier(moderngl.TEXTURE_UPDATE_BARRIER_BIT)
                 copy_texture(self.tg.best, self.tg.best_init)
                 self.stats["draws"] += 1
                 self.stats["shared_cull_passes"] = 1
