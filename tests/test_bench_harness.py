@@ -85,7 +85,7 @@ def _room_path(tmp_path):
 
 
 def test_harness_drives_an_unknown_backend(probe_registered, tmp_path, gl_ctx):
-    from viewer.bench.harness import Harness, RunSpec
+    from viewer.bench.harness import WARMUP_FRAMES, Harness, RunSpec
 
     path = _room_path(tmp_path)
     h = Harness(frames=3, first_frame=1, quiet=True, ctx=gl_ctx)
@@ -95,11 +95,12 @@ def test_harness_drives_an_unknown_backend(probe_registered, tmp_path, gl_ctx):
              RunSpec("probe b", "primary+shadows", "probe", "label=b,repeat=3",
                      sink=lambda k, n, img: images.append((k, n)))]
     glsl, a, b = h.run_many(path, (48, 27), specs)
-    # each configuration warmed up on the first frame and reset once; then every configuration
-    # renders frame n before any renders frame n+1
+    # each configuration warmed up on the first WARMUP_FRAMES frames (here all three) and reset once;
+    # then every configuration renders frame n before any renders frame n+1
     ev = [(e, label) for e, label, _ in LOG]
-    assert ev[:4] == [("frame", "a"), ("reset", "a"), ("frame", "b"), ("reset", "b")]  # warm-up, reset
-    assert ev[4:] == [("frame", "a"), ("frame", "b")] * 3  # then interleaved, frame by frame
+    warm = [("frame", "a")] * 3 + [("reset", "a")] + [("frame", "b")] * 3 + [("reset", "b")]
+    assert WARMUP_FRAMES == 3 and ev[:8] == warm  # warm-up, reset
+    assert ev[8:] == [("frame", "a"), ("frame", "b")] * 3  # then interleaved, frame by frame
     assert a.frame_numbers == b.frame_numbers == glsl.frame_numbers == [1, 2, 3]
     assert images == [(0, 1), (1, 2), (2, 3)]
     for run in (a, b):

@@ -22,9 +22,10 @@ implementation. Studies (``--study``, comma list or ``all``):
 Every study writes ``<study>.json`` (all per-frame numbers, the parameters, the device),
 ``<study>.md`` and ``<study>.png`` into ``--out``.
 
-Timing protocol of one run: a warm-up frame with one sample per effect (compiles the shader
-variants; the context's very first timer query reads as unknown on llvmpipe), reset of the
-backend's temporal state, then N consecutive frames from the first frame. The first is the cold
+Timing protocol of one run: three warm-up frames with at most two samples per effect (they compile
+the shader variants of the cold and the steady passes, viewer.bench.harness.WARMUP_FRAMES; the
+context's very first timer query reads as unknown on llvmpipe), reset of the backend's temporal
+state, then N consecutive frames from the first frame. The first is the cold
 frame; the mean of the rest is the steady state. Configurations compared with each other
 (glsl and chcrt of a Table 2 row, the thresholds of Table 4, the overhead variants) are
 interleaved frame by frame, each with its own renderer, so load from other jobs hits them alike.

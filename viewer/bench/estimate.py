@@ -35,12 +35,13 @@ class CostModel:
 def estimate_frame_s(model: CostModel, effect: str, size: tuple[int, int], cold: bool = False,
                      aggressive: float = 1.0, warm_up: bool = False) -> float:
     """Model of one frame's wall time (seconds) from rays per pass and a per-ray cost."""
-    from viewer.bench.harness import effect_settings
+    from viewer.bench.harness import WARMUP_SAMPLES, effect_settings
     from viewer.effects import EFFECT_NAMES
 
     s = effect_settings(effect)
     if warm_up:
-        s.soft_samples = s.ao_samples = s.diffuse_samples = 1
+        for name in ("soft_samples", "ao_samples", "diffuse_samples"):
+            setattr(s, name, min(getattr(s, name), WARMUP_SAMPLES))
     px = size[0] * size[1]
     total_us = px * US_PER_PIXEL_FRAME
     for name in EFFECT_NAMES:
@@ -57,8 +58,12 @@ def estimate_frame_s(model: CostModel, effect: str, size: tuple[int, int], cold:
 
 
 def run_estimate(model: CostModel, effect: str, size: tuple[int, int], frames: int, aggressive: float = 1.0) -> float:
-    """One harness run: fixed cost, warm-up frame, cold frame, steady frames."""
+    """One harness run: fixed cost, warm-up frames (the first cold), cold frame, steady frames."""
+    from viewer.bench.harness import WARMUP_FRAMES
+
+    warm = min(WARMUP_FRAMES, frames)
     return (RUN_FIXED_S + estimate_frame_s(model, effect, size, True, aggressive, warm_up=True)
+            + (warm - 1) * estimate_frame_s(model, effect, size, False, aggressive, warm_up=True)
             + estimate_frame_s(model, effect, size, True, aggressive)
             + (frames - 1) * estimate_frame_s(model, effect, size, False, aggressive))
 

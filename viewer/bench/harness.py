@@ -21,8 +21,19 @@ import numpy as np
 from viewer.backends.interface import params_text
 from viewer.errors import RtwalkError
 
+# Warm-up of every run: the first frames of the run's path (at most two samples an effect), then a
+# reset of the backend's temporal state. Three frames, because a backend with temporal state may
+# reach its steady passes only in its third frame (a structure built on the host, then moved to the
+# device, then used), and the driver compiles what those passes draw when they first draw it: with
+# Mesa's shader cache cold (a fresh machine, a changed shader) one warm-up frame left 250-500 ms of
+# llvmpipe compiles in the first timed frames (Table 2's city-near at 640x360 with
+# MESA_SHADER_CACHE_DISABLE=true: chcrt's camera rays took 247 and 163 ms in timed frames 1 and 2
+# against 50 ms steady, its AO 490 and 201 against 180). Two samples, because an effect's later
+# sample passes may take other paths than its first.
+WARMUP_FRAMES, WARMUP_SAMPLES = 3, 2
 TRACE_PREFIX = "trace:"  # the renderer's per-ray-type tracing phases (backends without own phases)
-PROTOCOL = ("warm-up frame (one sample per effect), backend reset; then consecutive frames: the first is the cold "
+PROTOCOL = (f"{WARMUP_FRAMES} warm-up frames (at most {WARMUP_SAMPLES} samples per effect), backend reset; then "
+            "consecutive frames: the first is the cold "
             "frame, the mean of the rest the steady state; configurations compared in one table are interleaved "
             "frame by frame")
 
@@ -245,11 +256,13 @@ class Harness:
             for spec in specs:
                 options = {spec.backend: spec.params} if spec.params else None
                 warm = effect_settings(spec.effect)
-                warm.soft_samples = warm.ao_samples = warm.diffuse_samples = 1  # every pass kind, once
+                for name in ("soft_samples", "ao_samples", "diffuse_samples"):
+                    setattr(warm, name, min(getattr(warm, name), WARMUP_SAMPLES))
                 r = Renderer(self.ctx, prep.scene, prep.bvh, size, spec.backend, warm, options)
                 renderers.append(r)
-                r.set_scene_time(rec.scene_time_for_frame(frames[0]))
-                r.render(rec.camera_for_frame(frames[0]))
+                for n in frames[:WARMUP_FRAMES]:
+                    r.set_scene_time(rec.scene_time_for_frame(n))
+                    r.render(rec.camera_for_frame(n))
                 r.settings = effect_settings(spec.effect)
                 r.backend.reset()
             for k, n in enumerate(frames):
