@@ -35,13 +35,10 @@ class CostModel:
 def estimate_frame_s(model: CostModel, effect: str, size: tuple[int, int], cold: bool = False,
                      aggressive: float = 1.0, warm_up: bool = False) -> float:
     """Model of one frame's wall time (seconds) from rays per pass and a per-ray cost."""
-    from viewer.bench.harness import WARMUP_SAMPLES, effect_settings
+    from viewer.bench.harness import effect_settings, warmup_settings
     from viewer.effects import EFFECT_NAMES
 
-    s = effect_settings(effect)
-    if warm_up:
-        for name in ("soft_samples", "ao_samples", "diffuse_samples"):
-            setattr(s, name, min(getattr(s, name), WARMUP_SAMPLES))
+    s = warmup_settings(effect) if warm_up else effect_settings(effect)
     px = size[0] * size[1]
     total_us = px * US_PER_PIXEL_FRAME
     for name in EFFECT_NAMES:

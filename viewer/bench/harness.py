@@ -109,6 +109,14 @@ def effect_settings(effect: str):
     return s
 
 
+def warmup_settings(effect: str):
+    """The warm-up frames' effects: `effect` with at most WARMUP_SAMPLES samples each."""
+    s = effect_settings(effect)
+    for name in ("soft_samples", "ao_samples", "diffuse_samples"):
+        setattr(s, name, min(getattr(s, name), WARMUP_SAMPLES))
+    return s
+
+
 def load_average() -> list[float] | None:
     try:
         return [round(v, 2) for v in os.getloadavg()]
@@ -255,10 +263,7 @@ class Harness:
         try:
             for spec in specs:
                 options = {spec.backend: spec.params} if spec.params else None
-                warm = effect_settings(spec.effect)
-                for name in ("soft_samples", "ao_samples", "diffuse_samples"):
-                    setattr(warm, name, min(getattr(warm, name), WARMUP_SAMPLES))
-                r = Renderer(self.ctx, prep.scene, prep.bvh, size, spec.backend, warm, options)
+                r = Renderer(self.ctx, prep.scene, prep.bvh, size, spec.backend, warmup_settings(spec.effect), options)
                 renderers.append(r)
                 for n in frames[:WARMUP_FRAMES]:
                     r.set_scene_time(rec.scene_time_for_frame(n))
