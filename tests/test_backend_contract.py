@@ -180,6 +180,35 @@ def test_samples_that_share_origins_share_them(gl_ctx, tiny):
             assert moved.mean() > 0.9, ray_type
 
 
+def test_passes_carry_their_ray_count_on_the_device(gl_ctx, tiny):
+    """PassInfo.ray_count, which a backend may copy instead of counting its rays again (chcrt's
+    whole-BVH passes do): for every pass of a frame it holds that pass's active rays when the
+    backend traces them, and the frame's counts per ray type are their sums."""
+    from viewer.gl import io as glio
+
+    r = Renderer(gl_ctx, tiny.scene, tiny.bvh, SIZE, "fake", parse_effects("primary,soft:2,ao:3,diffuse:2"))
+    seen: list[int] = []
+    trace = r.backend.trace
+
+    def counting_trace(rays, pinfo, hits):
+        assert pinfo.ray_count is not None, pinfo
+        c = pinfo.ray_count
+        seen.append(int(np.frombuffer(glio.read(c.buffer, size=4, offset=c.offset), np.uint32)[0]))
+        return trace(rays, pinfo, hits)
+
+    r.backend.trace = counting_trace
+    try:
+        rep = r.render(tiny.scene.default_camera, capture=True)
+    finally:
+        r.release()
+    assert seen == [int(cp.rays.active.sum()) for cp in rep.captured]
+    assert min(seen) > 0 and len(set(seen)) > 1, seen
+    totals: dict[str, int] = {}
+    for cp, n in zip(rep.captured, seen, strict=True):
+        totals[cp.ray_type.label] = totals.get(cp.ray_type.label, 0) + n
+    assert rep.rays == totals
+
+
 def test_overlay_views_show_what_the_backend_wrote(fake):
     r, cam = fake
     seen = record_overlays(r)

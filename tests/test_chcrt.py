@@ -907,6 +907,40 @@ def test_full_bvh_passes_count_their_work(gl_ctx, monkeypatch):
             assert frame[f"work_{key}"] <= frame[f"work_simd8_{key}"] <= frame[f"work_simd32_{key}"], (key, frame)
 
 
+@pytest.mark.parametrize("given", [True, False])
+def test_whole_bvh_passes_take_the_ray_generations_count(given, gl_ctx, monkeypatch):
+    """A device pass that traces the whole BVH counts its rays only for the statistics: it copies the
+    ray generation's count (PassInfo.ray_count) into its ray slots instead of a dispatch that reads
+    every ray (chc_count_rays.comp), and rays without such a count (`given` False) are counted by
+    that dispatch; either way the statistics count every ray."""
+    import moderngl
+
+    from viewer.passes.raygen import RayGenPass
+
+    if not given:
+        generate = RayGenPass.generate
+        monkeypatch.setattr(RayGenPass, "generate", lambda self, *a, **k: (generate(self, *a, **k), None)[1])
+    dispatched: list[int] = []
+    run = moderngl.ComputeShader.run
+    monkeypatch.setattr(moderngl.ComputeShader, "run",
+                        lambda self, *a, **k: (dispatched.append(id(self)), run(self, *a, **k))[1])
+    scene, bvh, path = _load("city")
+    cam0 = path[0]
+    params = "work_probe=4,work_ratio_full=0.001,work_ratio_full_any=0.001"
+    r = Renderer(gl_ctx, scene, bvh, SIZE, "chcrt", parse_effects("primary,ao:2"), {"chcrt": params})
+    try:
+        frames = [r.render(Camera(cam0.position + np.array([0.9 * i, 0.25 * i, -2.5 * i]), cam0.orientation,
+                                  cam0.fov_y)) for i in range(6)]
+        counter = id(r.backend.count_rays)
+        counts = dispatched.count(counter)
+    finally:
+        r.release()
+    assert sum(b.backend_stats.get("wasted_front_passes", 0) for b in frames) > 0
+    for b in frames:
+        assert b.backend_stats["rays"] == sum(b.rays.values())
+    assert (counts == 0) if given else (counts > 0), counts
+
+
 def test_lane_group_work_matches_a_loop_over_the_groups():
     """lane_group_work against plain Python loops over the lane groups, on an odd-sized screen whose
     edge groups are partly off it (idle lanes)."""

@@ -8,7 +8,7 @@ backends stage them (`RayBatch.read()`, `HitBuffer.write()`, or viewer.cl's mapp
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import moderngl
 import numpy as np
@@ -19,15 +19,27 @@ from viewer.gl.textures import float_texture, int_texture, read_texture
 
 
 @dataclass(frozen=True)
+class DeviceCount:
+    """A uint32 on the device: `offset` bytes into `buffer`."""
+
+    buffer: moderngl.Buffer
+    offset: int
+
+
+@dataclass(frozen=True)
 class PassInfo:
     """One sample pass of one effect. `light` indexes scene.point_lights for SHADOW passes and
-    scene.rect_lights for SOFT passes (0 otherwise); `weight` is the pass's accumulation weight."""
+    scene.rect_lights for SOFT passes (0 otherwise); `weight` is the pass's accumulation weight.
+    `ray_count`: where the ray generation counted this pass's active rays (tmax > tmin) on the
+    device, when it did (a backend that needs the count copies it instead of counting again);
+    None for rays that came from elsewhere."""
 
     ray_type: RayType
     sample: int = 0
     light: int = 0
     weight: float = 1.0
     report: bool = True  # False: nobody reports this pass's statistics (the traced G-buffer's rays)
+    ray_count: DeviceCount | None = field(default=None, compare=False)
 
     @property
     def any_hit(self) -> bool:

@@ -474,10 +474,11 @@ class Renderer:
         overlay_done = False
         for ray_type, sample, light, weight in passes:
             with prof.phase("raygen"):
-                self.raygen.generate(self.rays, self.gbuffer, ray_type, sample, light,
-                                     lengths.get(ray_type, 0.0), np.radians(s.perturb_deg))
+                count = self.raygen.generate(self.rays, self.gbuffer, ray_type, sample, light,
+                                             lengths.get(ray_type, 0.0), np.radians(s.perturb_deg))
             prof.label = ray_type.label
-            result = self.backend.trace(self.rays, PassInfo(ray_type, sample, light, weight), self.hits)
+            pinfo = PassInfo(ray_type, sample, light, weight, ray_count=count)
+            result = self.backend.trace(self.rays, pinfo, self.hits)
             prof.label = None
             self.backend_overlays = tuple(result.overlays)
             if source is not None and not overlay_done and (ray_type, sample) == source:

@@ -37,6 +37,8 @@ _GL_FLOAT = 0x1406
 _GL_TEXTURE_DEPTH_SIZE = 0x884A
 _GL_TEXTURE_DEPTH_TYPE = 0x8C16
 _GL_RED_INTEGER = 0x8D94
+_GL_R32UI = 0x8236
+_GL_UNSIGNED_INT = 0x1405
 _GL_RED = 0x1903
 _GL_INT = 0x1404
 _GL_TEXTURE_BUFFER = 0x8C2A
@@ -72,7 +74,8 @@ def _gl() -> dict:
                 "glCopyImageSubData": [u, u, i, i, i, i, u, u, i, i, i, i, i, i, i],
                 "glClearTexImage": [u, i, u, u, vp], "glCreateTextures": [u, i, pi],
                 "glDeleteTextures": [i, pi], "glBindTextureUnit": [u, u],
-                "glTextureBufferRange": [u, u, u, ctypes.c_ssize_t, ctypes.c_ssize_t]}
+                "glTextureBufferRange": [u, u, u, ctypes.c_ssize_t, ctypes.c_ssize_t],
+                "glClearNamedBufferSubData": [u, u, ctypes.c_ssize_t, ctypes.c_ssize_t, u, u, vp]}
         funcs: dict = {}
         for name, args in spec.items():
             f = getattr(lib, name)
@@ -128,6 +131,17 @@ def clear_int_texture(tex: moderngl.Texture, value: int = -1) -> None:
     gl = _gl()
     v = gl["ctypes"].c_int32(int(value))
     gl["glClearTexImage"](tex.glo, 0, _GL_RED_INTEGER, _GL_INT, gl["ctypes"].byref(v))
+
+
+def clear_uint_buffer(buf: moderngl.Buffer, count: int, offset: int = 0) -> None:
+    """`count` uint32s of `buf` from byte `offset` set to 0 on the device (glClearNamedBufferSubData:
+    no host data, no draw)."""
+    if count <= 0:
+        return
+    gl = _gl()
+    zero = gl["ctypes"].c_uint32(0)
+    gl["glClearNamedBufferSubData"](buf.glo, _GL_R32UI, int(offset), 4 * int(count), _GL_RED_INTEGER,
+                                    _GL_UNSIGNED_INT, gl["ctypes"].byref(zero))
 
 
 def clear_float_texture(tex: moderngl.Texture, value: float) -> None:

@@ -9,13 +9,20 @@ from viewer.effects import RayType, halton2
 from viewer.gl import io as glio
 from viewer.gl.bindings import BIND_COUNTERS
 from viewer.gl.programs import FullscreenQuad, ProgramCache
+from viewer.gl.textures import clear_uint_buffer
 from viewer.passes.gbuffer import GBufferPass
 from viewer.passes.uniforms import apply
-from viewer.rays import RayBatch
+from viewer.rays import DeviceCount, RayBatch
 
 
 class RayGenPass:
-    MAX_COUNTERS = 8
+    """Counts each pass's active rays on the device, in its own uint32 slot (the pass's index since
+    reset_count, up to MAX_PASS_SLOTS; later passes share the last slot): read_counts sums them per
+    ray type after the frame, and a backend may copy a pass's count (PassInfo.ray_count) instead of
+    counting the rays again."""
+
+    MAX_PASS_SLOTS = 1024
+    RAY_TYPES = 8  # read_counts' length
 
     def __init__(self, ctx: moderngl.Context, programs: ProgramCache, quad: FullscreenQuad,
                  defines: dict[str, object] | None = None):
@@ -26,8 +33,9 @@ class RayGenPass:
         self._by_type: dict[RayType, moderngl.Program] = {}  # made on first use, one per ray type
         self.frame_uniforms: dict = {}  # camera and lights of the frame (set_frame_uniforms)
         self.quad = quad
-        self.counters = ctx.buffer(reserve=4 * self.MAX_COUNTERS)
-        self._zero = bytes(4 * self.MAX_COUNTERS)
+        self.counters = ctx.buffer(reserve=4 * self.MAX_PASS_SLOTS)
+        clear_uint_buffer(self.counters, self.MAX_PASS_SLOTS)
+        self.slot_types: list[RayType] = []  # the ray type of every pass since reset_count
 
     def program(self, ray_type: RayType) -> moderngl.Program:
         """The ray generation of `ray_type` (raygen.frag with RAY_TYPE: one program per type)."""
@@ -43,8 +51,13 @@ class RayGenPass:
         self.frame_uniforms = values
 
     def generate(self, rays: RayBatch, gbuffer: GBufferPass, ray_type: RayType, sample: int,
-                 light_index: int, ray_length: float, perturb_rad: float) -> None:
+                 light_index: int, ray_length: float, perturb_rad: float) -> DeviceCount | None:
+        """The pass's rays into `rays`; returns where their count is (None: in the shared last slot,
+        with other passes')."""
+        slot = min(len(self.slot_types), self.MAX_PASS_SLOTS - 1)
+        self.slot_types.append(ray_type)
         p = self.program(ray_type)
+        p["countSlot"] = slot
         apply(p, self.frame_uniforms)
         p["lightIndex"] = int(light_index)
         p["sampleUV"] = halton2(sample)
@@ -56,9 +69,21 @@ class RayGenPass:
         rays.fbo.use()
         self.ctx.disable(self.ctx.BLEND | self.ctx.DEPTH_TEST)
         self.quad.render(p)
+        return DeviceCount(self.counters, 4 * slot) if slot < self.MAX_PASS_SLOTS - 1 else None
 
     def reset_count(self) -> None:
-        glio.write(self.counters, self._zero)
+        """Zero the slots of the passes since the last reset (on the device)."""
+        clear_uint_buffer(self.counters, min(len(self.slot_types), self.MAX_PASS_SLOTS))
+        self.slot_types = []
 
     def read_counts(self) -> np.ndarray:
-        return np.frombuffer(glio.read(self.counters), np.uint32).astype(np.int64)
+        """int64 (RAY_TYPES,): active rays per ray type over the passes since reset_count (one read
+        of their slots)."""
+        out = np.zeros(self.RAY_TYPES, np.int64)
+        n = min(len(self.slot_types), self.MAX_PASS_SLOTS)
+        if n == 0:
+            return out
+        counts = np.frombuffer(glio.read(self.counters, size=4 * n), np.uint32).astype(np.int64)
+        for k, ray_type in enumerate(self.slot_types[:n]):
+            out[int(ray_type)] += counts[k]
+        return out

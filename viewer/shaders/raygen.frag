@@ -28,6 +28,7 @@ uniform float rayLength;    // AO / diffuse ray length
 uniform uint stream;        // decorrelates the per-pixel random numbers of different ray types
 uniform isampler2D gId;
 
+uniform int countSlot;      // this pass's active-ray counter (passes/raygen.py RayGenPass)
 layout(std430, binding = BIND_COUNTERS) buffer Counters { uint counters[]; };
 layout(location = 0) out vec4 outOrigin;
 layout(location = 1) out vec4 outDir;
@@ -83,7 +84,7 @@ void main() {
             }
         }
     }
-    if (tmax > 0.0) atomicAdd(counters[rayType], 1u);
+    if (tmax > 0.0) atomicAdd(counters[countSlot], 1u);  // (tmin is 0: active = tmax > tmin)
     outOrigin = vec4(o, tmin);
     outDir = vec4(d, tmax);
 }

@@ -132,8 +132,18 @@ class ChcrtPass(SyncSteps, GpuDrivenSteps, DeviceFrontSteps):
         self.stats["draws"] += 1
 
     def _count_rays(self) -> None:
-        """The pass's active rays into the ray-count slots (chc_count_rays.comp, one dispatch), in
-        place of the init draw of a pass that traces the whole BVH."""
+        """The pass's active rays into the ray-count slots (zeroed on the device), in place of the
+        init draw of a pass that traces the whole BVH: the ray generation's count copied into slot
+        0 where it made one (PassInfo.ray_count: a 4-byte copy instead of a dispatch that reads
+        every ray, 0.7 ms at 640x360 on llvmpipe), else chc_count_rays.comp."""
+        count = self.pinfo.ray_count
+        if count is not None:
+            # (after the ray generation's atomics and the slots' zeroing: shader writes, then a copy)
+            self.ctx.memory_barrier(moderngl.BUFFER_UPDATE_BARRIER_BIT)
+            self.ctx.copy_buffer(self.be.gpu_counts, count.buffer, 4, read_offset=count.offset, write_offset=0)
+            self.stats["draws"] += 1
+            iostats.gl_draw()
+            return
         w, h = self.size
         self.be.count_rays["raySize"] = (w, h)
         self.be.count_rays.run(-(-w // 64), -(-h // 64))  # a work group per 64x64 pixel region
