@@ -180,33 +180,43 @@ def test_samples_that_share_origins_share_them(gl_ctx, tiny):
             assert moved.mean() > 0.9, ray_type
 
 
-def test_passes_carry_their_ray_count_on_the_device(gl_ctx, tiny):
+@pytest.mark.parametrize("slots", [None, 12])
+def test_passes_carry_their_ray_count_on_the_device(slots, gl_ctx, tiny, monkeypatch):
     """PassInfo.ray_count, which a backend may copy instead of counting its rays again (chcrt's
     whole-BVH passes do): for every pass of a frame it holds that pass's active rays when the
-    backend traces them, and the frame's counts per ray type are their sums."""
+    backend traces them, and the frame's counts per ray type are their sums; with fewer slots than
+    passes (`slots`: 12, of which 8 are shared per ray type) the later passes have none, and the
+    counts per type still add up, over two frames."""
     from viewer.gl import io as glio
+    from viewer.passes.raygen import RayGenPass
 
+    if slots is not None:
+        monkeypatch.setattr(RayGenPass, "MAX_PASS_SLOTS", slots)
     r = Renderer(gl_ctx, tiny.scene, tiny.bvh, SIZE, "fake", parse_effects("primary,soft:2,ao:3,diffuse:2"))
-    seen: list[int] = []
+    seen: list[int | None] = []
     trace = r.backend.trace
 
     def counting_trace(rays, pinfo, hits):
-        assert pinfo.ray_count is not None, pinfo
         c = pinfo.ray_count
-        seen.append(int(np.frombuffer(glio.read(c.buffer, size=4, offset=c.offset), np.uint32)[0]))
+        seen.append(None if c is None else int(np.frombuffer(glio.read(c.buffer, size=4, offset=c.offset),
+                                                             np.uint32)[0]))
         return trace(rays, pinfo, hits)
 
     r.backend.trace = counting_trace
     try:
-        rep = r.render(tiny.scene.default_camera, capture=True)
+        for _ in range(2):
+            seen.clear()
+            rep = r.render(tiny.scene.default_camera, capture=True)
+            active = [int(cp.rays.active.sum()) for cp in rep.captured]
+            own = len(active) if slots is None else slots - RayGenPass.RAY_TYPES
+            assert seen == active[:own] + [None] * (len(active) - own), (seen, active)
+            assert min(active) > 0 and len(set(active)) > 1, active
+            totals: dict[str, int] = {}
+            for cp, n in zip(rep.captured, active, strict=True):
+                totals[cp.ray_type.label] = totals.get(cp.ray_type.label, 0) + n
+            assert rep.rays == totals
     finally:
         r.release()
-    assert seen == [int(cp.rays.active.sum()) for cp in rep.captured]
-    assert min(seen) > 0 and len(set(seen)) > 1, seen
-    totals: dict[str, int] = {}
-    for cp, n in zip(rep.captured, seen, strict=True):
-        totals[cp.ray_type.label] = totals.get(cp.ray_type.label, 0) + n
-    assert rep.rays == totals
 
 
 def test_overlay_views_show_what_the_backend_wrote(fake):

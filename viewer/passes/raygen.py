@@ -17,12 +17,12 @@ from viewer.rays import DeviceCount, RayBatch
 
 class RayGenPass:
     """Counts each pass's active rays on the device, in its own uint32 slot (the pass's index since
-    reset_count, up to MAX_PASS_SLOTS; later passes share the last slot): read_counts sums them per
-    ray type after the frame, and a backend may copy a pass's count (PassInfo.ray_count) instead of
-    counting the rays again."""
+    reset_count; passes beyond MAX_PASS_SLOTS - RAY_TYPES share one slot per ray type, the last
+    RAY_TYPES): read_counts sums them per ray type after the frame, and a backend may copy a pass's
+    own count (PassInfo.ray_count) instead of counting the rays again."""
 
     MAX_PASS_SLOTS = 1024
-    RAY_TYPES = 8  # read_counts' length
+    RAY_TYPES = 8  # read_counts' length, and the shared slots
 
     def __init__(self, ctx: moderngl.Context, programs: ProgramCache, quad: FullscreenQuad,
                  defines: dict[str, object] | None = None):
@@ -52,9 +52,11 @@ class RayGenPass:
 
     def generate(self, rays: RayBatch, gbuffer: GBufferPass, ray_type: RayType, sample: int,
                  light_index: int, ray_length: float, perturb_rad: float) -> DeviceCount | None:
-        """The pass's rays into `rays`; returns where their count is (None: in the shared last slot,
-        with other passes')."""
-        slot = min(len(self.slot_types), self.MAX_PASS_SLOTS - 1)
+        """The pass's rays into `rays`; returns where their count is (None: in a slot shared with
+        other passes of its type)."""
+        shared = self.MAX_PASS_SLOTS - self.RAY_TYPES
+        own = len(self.slot_types) < shared
+        slot = len(self.slot_types) if own else shared + int(ray_type)
         self.slot_types.append(ray_type)
         p = self.program(ray_type)
         p["countSlot"] = slot
@@ -69,21 +71,29 @@ class RayGenPass:
         rays.fbo.use()
         self.ctx.disable(self.ctx.BLEND | self.ctx.DEPTH_TEST)
         self.quad.render(p)
-        return DeviceCount(self.counters, 4 * slot) if slot < self.MAX_PASS_SLOTS - 1 else None
+        return DeviceCount(self.counters, 4 * slot) if own else None
+
+    def _slots_used(self) -> int:
+        """Slots the passes since reset_count wrote: their own, or every slot once they overflowed."""
+        n = len(self.slot_types)
+        return n if n <= self.MAX_PASS_SLOTS - self.RAY_TYPES else self.MAX_PASS_SLOTS
 
     def reset_count(self) -> None:
         """Zero the slots of the passes since the last reset (on the device)."""
-        clear_uint_buffer(self.counters, min(len(self.slot_types), self.MAX_PASS_SLOTS))
+        clear_uint_buffer(self.counters, self._slots_used())
         self.slot_types = []
 
     def read_counts(self) -> np.ndarray:
         """int64 (RAY_TYPES,): active rays per ray type over the passes since reset_count (one read
         of their slots)."""
         out = np.zeros(self.RAY_TYPES, np.int64)
-        n = min(len(self.slot_types), self.MAX_PASS_SLOTS)
-        if n == 0:
+        used = self._slots_used()
+        if used == 0:
             return out
-        counts = np.frombuffer(glio.read(self.counters, size=4 * n), np.uint32).astype(np.int64)
-        for k, ray_type in enumerate(self.slot_types[:n]):
+        counts = np.frombuffer(glio.read(self.counters, size=4 * used), np.uint32).astype(np.int64)
+        shared = self.MAX_PASS_SLOTS - self.RAY_TYPES
+        for k, ray_type in enumerate(self.slot_types[:shared]):
             out[int(ray_type)] += counts[k]
+        if used == self.MAX_PASS_SLOTS:
+            out += counts[shared:]
         return out
