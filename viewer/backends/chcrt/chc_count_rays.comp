@@ -1,6 +1,7 @@
 // CHC+RT: the active rays of a device pass that traces the whole BVH (chcrt_pass.py _count_rays), in
 // place of the init draw: the glsl traversal writes every pixel's hit itself, and nothing reads
-// the depth or the best-hit bits, so only the ray count (the pass's `rays`) is left of it.
+// the depth or the best-hit bits, so only the ray count (the pass's `rays`) is left of it. Only for
+// rays the ray generation did not count (PassInfo.ray_count None): its count is copied otherwise.
 // Work group i counts the 64x64 pixel region i; its invocations are an 8x8 grid that steps over the
 // region 8 pixels at a time, so a SIMD vector reads a row of neighbouring pixels, and each adds its
 // count with one atomic into ray-count slot gl_LocalInvocationIndex (chcrt_layout.COUNT_SLOTS = 64). (One
