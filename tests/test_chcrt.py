@@ -637,15 +637,17 @@ def test_device_front_is_the_host_front(extra, gl_ctx):
     assert moved > 0  # the fronts did change on the device
 
 
-def test_merged_kept_pairs_keep_the_hits(gl_ctx):
-    """merge_kept: single-record tiles test their kept invisible pairs in the visible record's
-    fragments instead of a survivors' draw. The same closest hits bit for bit, and the same any-hit
-    answers, as the survivors' draw on every frame of the walk (the fronts may differ: a merged
-    kept pair counts a ray entering it before the ray's final hit), and almost no survivors' records
-    are left to draw."""
+@pytest.mark.parametrize("extra", ["", "max_batch=4"])
+def test_merged_kept_pairs_keep_the_hits(extra, gl_ctx):
+    """merge_kept: tiles test their kept invisible pairs in their last visible record's fragments
+    instead of a survivors' draw. The same closest hits bit for bit, and the same any-hit answers,
+    as the survivors' draw on every frame of the walk (the fronts may differ: a merged kept pair
+    counts a ray entering it before the ray's final hit), and almost no survivors' records are left
+    to draw. Also where small records (max_batch=4) give most tiles several (the same hits; there
+    many tiles keep more pairs than a record holds and draw them as survivors)."""
     effects = "primary,ao:2,diffuse:1"
-    off = _walk(gl_ctx, "merge_kept=0", effects)
-    on = _walk(gl_ctx, "", effects)
+    off = _walk(gl_ctx, ",".join(filter(None, ["merge_kept=0", extra])), effects)
+    on = _walk(gl_ctx, extra, effects)
     records = {"off": 0.0, "on": 0.0}
     for i, (a_rep, b_rep) in enumerate(zip(off, on, strict=True)):
         if i > 0:  # steady frames (the first builds the fronts synchronously)
@@ -658,7 +660,7 @@ def test_merged_kept_pairs_keep_the_hits(gl_ctx):
             else:
                 assert np.array_equal(a.t.view(np.int32), b.t.view(np.int32)), (i, a.ray_type)
                 assert np.mean(a.tri == b.tri) > 0.999, (i, a.ray_type)  # ties at equal t may differ
-    assert 4 * records["on"] < records["off"], records
+    assert 4 * records["on"] < records["off"] or extra, records
 
 
 def test_sample_passes_share_one_front(gl_ctx):
@@ -704,17 +706,20 @@ def test_sample_passes_share_one_front(gl_ctx):
         r.release()
 
 
-def test_merged_kept_pairs_are_always_drawn(gl_ctx):
-    """A tile's merged kept pairs ride in its visible record, so that record must draw even when the
-    cone cull (chc_visorder.comp) leaves none of its own items: after every pass each tile with
-    merged kept pairs has a drawn record, and the walk does produce records kept only for them."""
+@pytest.mark.parametrize("extra", ["", ",max_batch=4"])
+def test_merged_kept_pairs_are_always_drawn(extra, gl_ctx):
+    """A tile's merged kept pairs ride in its last visible record (chc_front.glsl keptCarrier), so
+    that record must draw even when the cone cull (chc_visorder.comp) leaves none of its own items:
+    after every pass each tile with merged kept pairs has its carrier drawn, and the walk does
+    produce records kept only for them; with small records (max_batch=4), also in tiles of several
+    records."""
     from viewer.backends.chcrt.chcrt_devfront import TILE_PLAN_DTYPE
     from viewer.backends.chcrt.chcrt_layout import DRAW_DTYPE
 
     scene, bvh, path = _load("city")
     cam0 = path[0]
-    r = Renderer(gl_ctx, scene, bvh, SIZE, "chcrt", parse_effects("primary"), {"chcrt": "work_probe=0"})
-    kept_only = merged_tiles = 0
+    r = Renderer(gl_ctx, scene, bvh, SIZE, "chcrt", parse_effects("primary"), {"chcrt": "work_probe=0" + extra})
+    kept_only = merged_tiles = multi = 0
     try:
         n_tiles = 1 << (2 * r.backend.tile_level(SIZE))
         for i in range(8):
@@ -726,13 +731,20 @@ def test_merged_kept_pairs_are_always_drawn(gl_ctx):
             rec = np.frombuffer(dv.records.read(size=max(n, 1) * DRAW_DTYPE.itemsize), DRAW_DTYPE)[:n]
             plans = np.frombuffer(dv.tiles.read(size=n_tiles * TILE_PLAN_DTYPE.itemsize), TILE_PLAN_DTYPE)
             merged = np.flatnonzero(plans["keptCount"] > 0)
-            drawn = rec["info"][:, 3][(rec["rect"][:, 2] > 0) & (rec["rect"][:, 3] > 0)]
-            assert np.isin(merged, drawn).all(), (i, np.setdiff1d(merged, drawn))
+            carrier = plans["recBase"][merged] + plans["nrec"][merged] - 1
+            assert (plans["nrec"][merged] > 0).all() and (carrier < n).all(), i
+            assert np.array_equal(rec["info"][carrier, 3], merged), i  # the tile's own record
+            drawn = (rec["rect"][:, 2] > 0) & (rec["rect"][:, 3] > 0)
+            assert drawn[carrier].all(), (i, merged[~drawn[carrier]])
             merged_tiles += len(merged)
-            kept_only += int(np.sum((rec["info"][:, 1] == 0) & (plans["keptCount"][rec["info"][:, 3]] > 0)))
+            multi += int(np.sum(plans["nrec"][merged] > 1))
+            is_carrier = np.zeros(n, bool)
+            is_carrier[carrier] = True
+            kept_only += int(np.sum((rec["info"][:, 1] == 0) & is_carrier))
     finally:
         r.release()
     assert merged_tiles > 0 and kept_only > 0, (merged_tiles, kept_only)
+    assert multi > 0 or not extra, multi
 
 
 def test_device_front_frame_crosses_nothing(gl_ctx, monkeypatch):

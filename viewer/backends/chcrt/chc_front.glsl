@@ -21,11 +21,17 @@ struct ChcPair { int node; int tile; int parent; int child; int kids; int offset
 // end), whether it traverses their lowest common ancestor (heavy) and which (lca), its items in the
 // visible and invisible item lists (base, count; a heavy tile: one visible item, no invisible one),
 // the scatter cursors, its visible records (base, count) and the invisible items the cull kept for it
-// and merged into its one visible record (chc_querycull.comp mergeKept: keptBase indexes the item
+// and merged into its last visible record (chc_querycull.comp mergeKept: keptBase indexes the item
 // buffer of the visible draw; keptCount 0 = none merged).
 struct ChcTilePlan { int cv; int ci; int lo; int hi; int heavy; int lca; int visBase; int visCount;
                      int invBase; int invCount; int visFill; int invFill; int recBase; int nrec; int keptBase;
                      int keptCount; };
+
+// Whether visible record `record` (its index in the visible draw's records = its instance) carries
+// its tile's merged kept pairs: the tile's last record, which holds the fewest of its own items
+// (chc_front_plan.comp fills records of maxBatch items in order), so that own and kept items each
+// stay within the intersection's 32-bit masks.
+bool keptCarrier(ChcTilePlan tp, int record) { return tp.nrec > 0 && record == tp.recBase + tp.nrec - 1; }
 
 // chc_front_clear.comp writes, in the plan's argument buffer (ARGS_PAIRS in chcrt_devfront.py), the
 // dispatch of the pass's per-pair steps (count, scatter, refine, merge, write): a work group per 64

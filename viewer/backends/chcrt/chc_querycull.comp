@@ -11,11 +11,15 @@
 // chc_tilecone.glsl) is dropped too.
 //
 // mergeKept (device fronts, cull tiles = finest tiles): the cull runs before the visible pairs' draw,
-// and a tile with exactly one visible record and at most maxItems kept pairs gets no survivors'
-// record: its kept range goes into its tile plan (keptBase, keptCount), and the visible record's
-// fragments test those pairs after their own (chc_intersect.frag), one fragment per ray instead
-// of two. The reach is then what the rays had before the visible pairs (their tmax): a weaker cull,
-// but each ray still stops at the first kept box beyond its own nearest hit.
+// and a tile with a visible record and at most maxItems kept pairs gets no survivors' record: its
+// kept range goes into its tile plan (keptBase, keptCount), and the fragments of its last visible
+// record (its carrier, chc_front.glsl keptCarrier: the one with the fewest own items) test those
+// pairs after their own (chc_intersect.frag), one fragment per ray instead of two. The reach is
+// then what the rays had before the visible pairs (their tmax): a weaker cull, but each ray still
+// stops at the first kept box beyond its nearest hit so far. (In a tile of several records that
+// hit need not include the other records' hits, whose fragments may run at the same time: a kept
+// pair may count rays that another record's hit occludes, as a visible pair of such a tile
+// already may; the counts can only keep more pairs visible, the hits stay exact.)
 layout(local_size_x = 64) in;
 #include "chc_tilecone.glsl"
 #include "chc_records.glsl"
@@ -29,7 +33,7 @@ layout(std430, binding = BIND_CHC_CANDIDATES) buffer ChcKeptBoxes { ChcItem kept
 // mergeKept: the finest tiles' plans (chc_front_plan.comp), where a merged tile's kept range goes
 #include "chc_front.glsl"
 layout(std430, binding = BIND_FR_TILES) buffer TilePlans { ChcTilePlan plans[]; };
-uniform int mergeKept;  // 1: merge into single-record tiles' visible records (cull tile i = finest tile i)
+uniform int mergeKept;  // 1: merge into tiles' last visible records (cull tile i = finest tile i)
 #endif
 layout(std430, binding = BIND_CHC_INDIRECT) buffer ChcIndirect { uint cmdCount; uint cmdInstances; uint cmdFirst;
                                                                  uint cmdBase; };
@@ -81,7 +85,7 @@ void main() {
         kept[m] = it;
     }
 #ifdef CHC_MERGE_KEPT
-    if (mergeKept != 0 && plans[i].nrec == 1 && nb <= maxItems) {
+    if (mergeKept != 0 && plans[i].nrec >= 1 && nb <= maxItems) {
         plans[i].keptBase = base;
         plans[i].keptCount = nb;
         atomicAdd(chcPassed[pixelSlot], uint(q.rect.z * q.rect.w * nb));  // query tests (overlay)

@@ -2,8 +2,9 @@
 // the pixel rectangle of record i as two triangles (edges on pixel boundaries, so every pixel
 // centre of the tile is covered exactly once) and hands its item range and query slot to the
 // fragment shader. Replaces one scissored draw (and one occlusion query object) per record.
-// GPU-driven pass with mergeKept (device fronts): a visible record (query slot 0) also hands over
-// the kept invisible pairs the cull merged into its tile (chc_querycull.comp; info.w = finest tile).
+// GPU-driven pass with mergeKept (device fronts): a visible record (query slot 0) that carries its
+// tile's merged kept invisible pairs (chc_querycull.comp; info.w = finest tile; keptCarrier) also
+// hands them over.
 #include "chc_records.glsl"
 #ifdef CHC_MERGE_KEPT  // (chcrt.py sets it for the counting intersection only)
 #include "chc_front.glsl"
@@ -29,8 +30,11 @@ void main() {
     vKeptBase = 0;
     vKeptCount = 0;
     if (mergeKept != 0 && d.info.z == 0) {  // a branch, not a select: no plan buffer is read otherwise
-        vKeptBase = plans[d.info.w].keptBase;
-        vKeptCount = plans[d.info.w].keptCount;
+        ChcTilePlan tp = plans[d.info.w];
+        if (keptCarrier(tp, gl_InstanceID)) {
+            vKeptBase = tp.keptBase;
+            vKeptCount = tp.keptCount;
+        }
     }
 #endif
 }

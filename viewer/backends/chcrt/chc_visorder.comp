@@ -23,13 +23,14 @@ uniform int nRecords;
 #define N_RECORDS nRecords
 #endif
 #ifdef CHC_MERGE_KEPT  // (chcrt.py sets it for the device fronts' variant only)
-// merge_kept: a record whose tile carries merged kept pairs (chc_querycull.comp, run before) still
-// draws when none of its own items is left: its fragments test the kept pairs
+// merge_kept: a record that carries its tile's merged kept pairs (chc_querycull.comp, run before;
+// chc_front.glsl keptCarrier) still draws when none of its own items is left: its fragments test
+// the kept pairs
 #include "chc_front.glsl"
 layout(std430, binding = BIND_FR_TILES) readonly buffer TilePlans { ChcTilePlan plans[]; };
-#define KEPT_PAIRS(tile) plans[tile].keptCount
+#define KEPT_PAIRS(tile, record) (keptCarrier(plans[tile], record) ? plans[tile].keptCount : 0)
 #else
-#define KEPT_PAIRS(tile) 0
+#define KEPT_PAIRS(tile, record) 0
 #endif
 uniform int coneCull;
 
@@ -52,6 +53,6 @@ void main() {
     }
     if (kept < d.info.y) {
         draws[i].info.y = kept;
-        if (kept == 0 && KEPT_PAIRS(d.info.w) == 0) draws[i].rect.zw = ivec2(0);
+        if (kept == 0 && KEPT_PAIRS(d.info.w, i) == 0) draws[i].rect.zw = ivec2(0);
     }
 }

@@ -110,10 +110,10 @@ class ChcrtParams:
                                "(statistics arrive after the frame); False: the host plans the records and reads "
                                "the counts back at the end of every pass")
     merge_kept: bool = param(True, "device fronts (with cull_sublevels=0): the cull runs before the visible pairs' "
-                             "draw, and a tile with one visible record and at most max_batch kept invisible pairs "
-                             "tests them in that record's fragments, after its visible pairs (one fragment per ray "
-                             "instead of two; its cull reaches as far as the rays' tmax); other tiles keep the "
-                             "survivors' draw")
+                             "draw, and a tile with a visible record and at most max_batch kept invisible pairs "
+                             "tests them in its last visible record's fragments, after that record's visible "
+                             "pairs (one fragment per ray instead of two; its cull reaches as far as the rays' "
+                             "tmax); other tiles keep the survivors' draw")
     work_probe: int = param(16, "device fronts: every this many passes (and at a front's first device pass) the "
                             "pass measures its work on a sparse grid of rays (box and triangle tests, "
                             "work_probe_stride) against the full traversal's for the same rays; a front that "

@@ -218,8 +218,8 @@ class DeviceFrontSteps:
         chc_querycull.comp over the ranges chc_front_plan.comp wrote) into the survivors' records and
         their indirect draw command; buffers sized for the device's item capacity. `merge`
         (merge_kept, before the visible records, on the tile bounds already computed): the kept
-        items go after the visible ones in dv.vis_items, and single-record tiles' kept ranges into
-        their tile plans instead of survivors' records."""
+        items go after the visible ones in dv.vis_items, and the kept ranges of tiles with a visible
+        record into their tile plans (their last record carries them) instead of survivors' records."""
         be, ctx, p = self.be, self.ctx, self.p
         cl = level + sub
         n_cull = 1 << (2 * cl)
