@@ -90,12 +90,16 @@ class ResumableTraversal:
         self.stack_size = int(bc.gpu_scene.stack_size)
         bc.gpu_scene.require_nodes()  # the tree this traversal reads (made on first use)
         self.limit = loop_limit(bc.ctx)
-        # without a loop limit every ray finishes in its first draw: a ray visits each node at most once
+        # without a loop limit every ray finishes in its first draw (a ray visits each node at most
+        # once): the programs leave the resume code out (RESUMABLE 0, also for the backends whose
+        # shaders hand rays over: resume_defines), and nothing is bound, zeroed or read for it
+        self.resumable = self.limit is not None
+        self.resume_defines = {"RESUMABLE": int(self.resumable)}
         self.max_visits = (max_visits(self.max_leaf, self.stack_size, limit=self.limit) if self.limit is not None
                            else len(bc.bvh.node_left) + 1)
         self.program = bc.programs.with_path(SHADER_DIR).get("fullscreen.vert", "trace_glsl.frag",
                                        {"STACK_SIZE": self.stack_size, "MAX_VISITS": self.max_visits,
-                                        **self.work.defines, **bc.gpu_scene.trace_defines()})
+                                        **self.resume_defines, **self.work.defines, **bc.gpu_scene.trace_defines()})
         self.program["rayOrigin"] = 0
         self.program["rayDir"] = 1
         self.quad = FullscreenQuad(bc.ctx)
@@ -118,13 +122,20 @@ class ResumableTraversal:
         return self.slots
 
     def bind_flags(self, size: tuple[int, int]) -> None:
-        """Bind the slot image and zeroed counters (before the draws that may flag pixels)."""
+        """Bind the slot image and zeroed counters (before the draws that may flag pixels); nothing
+        where no ray is ever handed over (no loop limit: the programs have no resume code). The
+        copy follows the last pass's counter read, whose barrier fenced that pass's shader writes."""
+        if not self.resumable:
+            return
         self._slot_image(size).bind_to_image(BIND_IMG_RESUME, read=True, write=True)
         self.bc.ctx.copy_buffer(self.counters, self._zeros)
         self.counters.bind_to_storage_buffer(BIND_RESUME_COUNTERS)
 
     def _read_counters(self) -> tuple[int, int]:
-        self.bc.ctx.memory_barrier(moderngl.BUFFER_UPDATE_BARRIER_BIT)
+        # (the counters for this read; the saved states and slots for the next draws, also the next
+        # pass's: every read waits for the draws anyway, so the other bits cost nothing more)
+        self.bc.ctx.memory_barrier(moderngl.BUFFER_UPDATE_BARRIER_BIT | moderngl.SHADER_STORAGE_BARRIER_BIT
+                                   | moderngl.SHADER_IMAGE_ACCESS_BARRIER_BIT)
         unfinished, allocated = np.frombuffer(glio.read(self.counters), np.int32)
         return int(unfinished), int(allocated)
 

@@ -73,7 +73,9 @@ def install() -> None:
             cls.__setitem__ = _setitem
 
 
-def mark(obj: Any, *sources: str | None) -> Any:
-    """`obj` (a Program or ComputeShader) with the uniform names its sources declare."""
-    obj.extra = {"declared_uniforms": declared_uniforms(*sources)}
+def mark(obj: Any, *sources: str | None, name: str = "") -> Any:
+    """`obj` (a Program or ComputeShader) with the uniform names its sources declare, its sources
+    (what tests/gl_hazards.py reads the storage blocks' and images' access qualifiers from) and
+    the name of its shader files."""
+    obj.extra = {"declared_uniforms": declared_uniforms(*sources), "sources": sources, "name": name}
     return obj

@@ -96,7 +96,7 @@ class ProgramCache:
                 prog = self.ctx.program(vertex_shader=srcs[0], fragment_shader=srcs[1], geometry_shader=srcs[2])
             except moderngl.Error as exc:
                 raise RuntimeError(f"shader {vertex}/{fragment} failed to compile:\n{exc}") from exc
-            inactive.mark(prog, *srcs)
+            inactive.mark(prog, *srcs, name="/".join(filter(None, (vertex, fragment, geometry))))
             self._programs[key] = prog
         return prog
 
@@ -111,7 +111,7 @@ def compute_shader(ctx: moderngl.Context, name: str, defines: dict[str, object] 
                    search: Sequence[Path | str] = ()) -> moderngl.ComputeShader:
     """A compute shader from a file (load_shader_source), with its declared uniform names."""
     src = load_shader_source(name, defines, search)
-    return inactive.mark(ctx.compute_shader(src), src)
+    return inactive.mark(ctx.compute_shader(src), src, name=name)
 
 
 class FullscreenQuad:

@@ -7,7 +7,10 @@
 //    any-hit ray that is finished: nothing passes).
 //  * bestBits (r32i image) mirrors the best t as float bits (-1 = inactive / finished). It only
 //    prunes traversal: the hit buffer is written through the depth test, so a stale read costs
-//    work, never correctness.
+//    work, never correctness. Within a pass it only falls (imageAtomicMin), so its draws need no
+//    barrier between them ("hazards: monotone", tests/gl_hazards.py); a pass's first values are
+//    stores (the init draw, chc_tilebounds.comp's CHC_INIT_RAYS build, a copy), with barriers on
+//    both sides: the last pass's atomics must not land on the new pass's values.
 #include "scene.glsl"
 #include "intersect.glsl"
 
@@ -32,7 +35,7 @@ uniform int itemCount;
 #define ITEM_COUNT itemCount
 #endif
 
-layout(r32i, binding = BIND_IMG_CHC_BEST) uniform coherent iimage2D bestBits;
+layout(r32i, binding = BIND_IMG_CHC_BEST) uniform coherent iimage2D bestBits;  // hazards: monotone
 layout(r32i, binding = BIND_IMG_CHC_OVERDRAW) uniform coherent iimage2D overdraw;
 layout(r32i, binding = BIND_IMG_CHC_BATCH) uniform coherent iimage2D batchSubtrees;  // overlay: subtrees in the pixel's batches
 

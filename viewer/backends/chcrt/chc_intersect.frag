@@ -51,8 +51,13 @@ layout(location = 2) out int outSub;
 #ifndef CHC_MAX_VISITS
 #define CHC_MAX_VISITS 2048
 #endif
+#ifndef RESUMABLE
+#define RESUMABLE 1
+#endif
+#if RESUMABLE  // (0 without a loop limit: CHC_MAX_VISITS exceeds the tree's nodes, nothing is handed over)
 layout(r32i, binding = BIND_IMG_RESUME) uniform coherent iimage2D resumeSlot;  // gl_traversal.py ResumableTraversal
 layout(std430, binding = BIND_RESUME_COUNTERS) buffer ResumeCounters { int unfinished; int allocated; };
+#endif
 #ifdef CHC_MERGE_KEPT  // (chcrt.py sets it for the counting intersection only)
 #ifndef CHC_COUNT_ITEMS
 #error "chc_intersect.frag: CHC_MERGE_KEPT needs CHC_COUNT_ITEMS"
@@ -250,10 +255,12 @@ void main() {
         if (it.p2 >= 0 && (handOver || intersectBox(r, it.bmin, it.bmax, tmin, hit.t, te))) atomicAdd(chcPassed[it.p2], 1u);
     }
 #endif
+#if RESUMABLE
     if (handOver) {
         if (imageAtomicExchange(resumeSlot, px, -2) != -2) atomicAdd(unfinished, 1);
         done = true;  // traced again from the root: the leaf cache needs no flush
     }
+#endif
     if (!done && flushLeaves(r, tmin, hit) && any) done = true;  // the leaf cache's last leaves
     workFlushPixel(0, px);
 #ifdef COUNT_WORK

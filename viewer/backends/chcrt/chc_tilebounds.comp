@@ -32,7 +32,7 @@ layout(local_size_x = 32) in;
 #else
 layout(local_size_x = 64) in;
 #endif
-layout(r32i, binding = BIND_IMG_CHC_BEST) uniform coherent iimage2D bestBits;
+layout(r32i, binding = BIND_IMG_CHC_BEST) uniform coherent iimage2D bestBits;  // hazards: monotone (chc_common.glsl)
 uniform sampler2D rayOrigin;
 uniform sampler2D rayDir;
 uniform ivec2 raySize;

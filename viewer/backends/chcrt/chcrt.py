@@ -224,6 +224,7 @@ class ChcrtBackend:
         # rays that would reach llvmpipe's loop limit are finished by the glsl resumable traversal;
         # it counts into the same work counters (full-BVH passes and resumed rays are work too)
         self.finisher = ResumableTraversal(bc, self.work)
+        iwd.update(self.finisher.resume_defines)  # (no hand-over code where no ray is handed over)
         # per scheduled item: the item loop, its leaf's triangles and the entered leaves' loop after the
         # item loop, and the query counts' loop
         items_loops = self.p.max_batch * (self.finisher.max_leaf + 3)

@@ -125,6 +125,8 @@ class ChcrtPass(SyncSteps, GpuDrivenSteps, DeviceFrontSteps):
         ctx.depth_func = "1"
         # the overlay images are cleared whenever the renderer wants overlays (shown, even if uncounted)
         self.be.prog_init["countOverlays"] = int(self.be.overlays_enabled)
+        # its stores land after the last pass's image atomics (bestBits, overlay counts), not under them
+        ctx.memory_barrier(moderngl.SHADER_IMAGE_ACCESS_BARRIER_BIT)
         self.be.quad.render(self.be.prog_init)  # draws through FullscreenQuad are counted there
         # the next draws prune with bestBits and count into the images and SSBOs this one reset:
         # without the barrier a GPU may run them on last pass's values (llvmpipe runs in order)

@@ -304,9 +304,13 @@ class DeviceFrontSteps:
             vao.program["mergeKept"] = 0
             vao.render_indirect(one, moderngl.TRIANGLES, count=1)
         one.release()
+        ctx.memory_barrier(moderngl.ALL_BARRIER_BITS)  # (see below)
         for comp in comps:
             comp.run_indirect(zero)
         dv.prewarm(zero)
+        # (nothing above ran an invocation that writes, but GL cannot know: the next pass starts
+        # fenced, as tests/gl_hazards.py checks)
+        ctx.memory_barrier(moderngl.ALL_BARRIER_BITS)
         ctx.disable(moderngl.DEPTH_TEST)
         zero.release()
         iostats.gl_draw(len(vaos) + len(comps))

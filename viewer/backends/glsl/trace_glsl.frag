@@ -7,10 +7,15 @@
 // and the stack size so that the worst case over a SIMD vector stays below that limit. A ray
 // that is not finished saves its traversal (next node, stack, current hit) in a resume slot, and
 // the backend draws again for the unfinished rays (resume = 1) until none is left.
+// RESUMABLE 0 (no loop limit, a GPU: MAX_VISITS exceeds the tree's nodes, every ray finishes in
+// its first draw) leaves that machinery out: no slot image, counters or saved states are touched.
 #include "scene.glsl"
 #include "intersect.glsl"
 #ifndef MAX_VISITS
 #define MAX_VISITS 2048
+#endif
+#ifndef RESUMABLE
+#define RESUMABLE 1
 #endif
 #define STATE_STRIDE (4 + 2 * STACK_SIZE)
 uniform sampler2D rayOrigin;
@@ -18,22 +23,26 @@ uniform sampler2D rayDir;
 uniform int anyHit;
 uniform int resume;    // 0: every ray from the root; 1: only the unfinished rays, from their state
 uniform int capacity;  // resume slots in ResumeState
+#if RESUMABLE
 // per pixel: -1 finished (the state between traces), >= 0 its resume slot, -2 unfinished without
 // a slot (the buffer was full: it restarts from the root once the buffer has grown)
 layout(r32i, binding = BIND_IMG_RESUME) uniform coherent iimage2D resumeSlot;
 layout(std430, binding = BIND_RESUME_COUNTERS) buffer ResumeCounters { int unfinished; int allocated; };
 // slot s: next node, stack size, hit t (bits), hit id, then (node, entry t bits) per stack entry
 layout(std430, binding = BIND_RESUME_STATE) buffer ResumeState { int state[]; };
+#endif
 layout(location = 0) out float outT;
 layout(location = 1) out int outId;
 
 void main() {
     ivec2 px = ivec2(gl_FragCoord.xy);
     int slot = -1;
+#if RESUMABLE
     if (resume != 0) {
         slot = imageLoad(resumeSlot, px).r;
         if (slot == -1) discard;  // finished in an earlier draw: keep its hit
     }
+#endif
     vec4 ot = texelFetch(rayOrigin, px, 0);
     vec4 dt = texelFetch(rayDir, px, 0);
     outT = uintBitsToFloat(0x7f800000u);
@@ -47,6 +56,7 @@ void main() {
     float stackT[STACK_SIZE];
     int sp = 0;
     int ni = 0;
+#if RESUMABLE
     if (slot >= 0) {
         int base = slot * STATE_STRIDE;
         ni = state[base];
@@ -57,6 +67,7 @@ void main() {
             stackT[i] = intBitsToFloat(state[base + 5 + 2 * i]);
         }
     }
+#endif
     // traverseBVH (intersect.glsl) with a visit budget: nearer child first, any-hit stops at a hit
     bool done = false;
     for (int visits = 0; visits < MAX_VISITS; ++visits) {
@@ -88,6 +99,7 @@ void main() {
             if (!found) { done = true; break; }
         }
     }
+#if RESUMABLE
     if (!done) {
         atomicAdd(unfinished, 1);
         if (slot < 0) {
@@ -109,6 +121,7 @@ void main() {
     } else if (resume != 0) {
         imageStore(resumeSlot, px, ivec4(-1));
     }
+#endif
     if (hit.id >= 0) { outT = hit.t; outId = hit.id; }
     workFlushPixel(0, px);
 }
