@@ -9,6 +9,8 @@ from viewer.errors import RtwalkError
 
 QUERY_MODES = ("batched", "hw")
 MAX_LEAF_CACHE = 16
+OOC_SUBTREE_TRIS = 4096  # out of core: the largest subtree, one cache entry (max_subtree_tris = 0)
+NO_TRI_BOUND = (1 << 31) - 1  # in core: no triangle bound (an int32 for the shaders' uniform)
 
 
 @dataclass
@@ -19,7 +21,9 @@ class ChcrtParams:
                                "are culled: cone_cull); other fronts keep t_q (AO: a deeper front goes full-BVH)")
     min_tile_fraction: float = param(0.015, "smallest tile, fraction of the screen (paper: 200x200 at 1080p)")
     max_subtree_height: int = param(24, "scheduled subtrees: traversal stack bound (paper: 24)")
-    max_subtree_tris: int = param(4096, "scheduled subtrees: triangle bound")
+    max_subtree_tris: int = param(0, "scheduled subtrees: triangle bound; 0 = auto (subtree_tri_bound): "
+                                  f"{OOC_SUBTREE_TRIS} out of core (a subtree is one cache entry), none in core "
+                                  "(the height bound and the split rule end the cut)")
     requery_interval: int = param(3, "n: visible leaves are re-queried every n frames")
     schedule_batch: int = param(16, "m: newly visible leaves are intersected in batches of m")
     max_batch: int = param(24, "subtree roots per intersection draw")
@@ -145,6 +149,22 @@ class ChcrtParams:
                            "closest-hit ray traverses with its distance as tmax (exact); not with a GPU budget, nor in "
                            "a pass captured for the overlays")
 
+    @property
+    def out_of_core(self) -> bool:
+        return self.gpu_budget_mb > 0 or self.gpu_budget_fraction > 0
+
+    @property
+    def subtree_tri_bound(self) -> int:
+        """The scheduled subtrees' triangle bound: max_subtree_tris, or (0) OOC_SUBTREE_TRIS out of
+        core and none in core. Why none in core: the bound forces the cut below subtrees the split
+        rule would keep, and on a large scene that multiplies a tile's pairs; with 4096, city 10 M's
+        AO fronts had over lca_pairs pairs in 98 % of their tiles and traced the whole BVH (chcrt
+        0.97x glsl, primary+ao:4 at 640x360; 1.21x without a bound, 1.22x with 32,768, 1.11x with
+        8,192; city 1 M, 3 M and the test scenes unchanged or better: docs/results/chcrt.md)."""
+        if self.max_subtree_tris > 0:
+            return self.max_subtree_tris
+        return OOC_SUBTREE_TRIS if self.out_of_core else NO_TRI_BOUND
+
     def validate(self, source: str = "chcrt") -> None:
         if not (1 <= self.max_batch <= 24 and 1 <= self.max_multi <= 24):
             raise RtwalkError(f"{source}: max_batch and max_multi must be in 1..24")
@@ -156,7 +176,7 @@ class ChcrtParams:
             raise RtwalkError(f"{source}: query_mode must be one of {', '.join(QUERY_MODES)}")
         if not (self.t_q > 0 and self.t_q_primary > 0 and 0 < self.min_tile_fraction <= 1
                 and self.max_subtree_height >= 1
-                and self.max_subtree_tris >= 1 and self.requery_interval >= 1 and self.schedule_batch >= 1
+                and self.max_subtree_tris >= 0 and self.requery_interval >= 1 and self.schedule_batch >= 1
                 and self.visible_threshold >= 0 and self.lca_subtrees >= 0 and self.lca_pairs >= 0
                 and self.cold_query_budget >= 0 and self.cold_passes >= 1 and self.cold_wave_queries >= 0
                 and 0 <= self.cull_sublevels <= 4 and 0 <= self.full_bvh_fraction <= 1
