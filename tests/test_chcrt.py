@@ -706,7 +706,7 @@ def test_sample_passes_share_one_front(gl_ctx):
         r.release()
 
 
-@pytest.mark.parametrize("extra", ["", ",max_batch=4"])
+@pytest.mark.parametrize("extra", ["", "max_batch=4"])
 def test_merged_kept_pairs_are_always_drawn(extra, gl_ctx):
     """A tile's merged kept pairs ride in its last visible record (chc_front.glsl keptCarrier), so
     that record must draw even when the cone cull (chc_visorder.comp) leaves none of its own items:
@@ -718,7 +718,8 @@ def test_merged_kept_pairs_are_always_drawn(extra, gl_ctx):
 
     scene, bvh, path = _load("city")
     cam0 = path[0]
-    r = Renderer(gl_ctx, scene, bvh, SIZE, "chcrt", parse_effects("primary"), {"chcrt": "work_probe=0" + extra})
+    r = Renderer(gl_ctx, scene, bvh, SIZE, "chcrt", parse_effects("primary"),
+                 {"chcrt": ",".join(filter(None, ["work_probe=0", extra]))})
     kept_only = merged_tiles = multi = 0
     try:
         n_tiles = 1 << (2 * r.backend.tile_level(SIZE))

@@ -304,7 +304,7 @@ class DeviceFrontSteps:
             vao.program["mergeKept"] = 0
             vao.render_indirect(one, moderngl.TRIANGLES, count=1)
         one.release()
-        ctx.memory_barrier(moderngl.ALL_BARRIER_BITS)  # (see below)
+        ctx.memory_barrier(moderngl.ALL_BARRIER_BITS)  # (the empty draws wrote nothing either: as below)
         for comp in comps:
             comp.run_indirect(zero)
         dv.prewarm(zero)
