@@ -96,7 +96,8 @@ HOST_DEFINES = {"chc_intersect.frag": {"CHC_MAX_ITEMS": 24}, "raygen.frag": {"RA
 
 def _variants(path: Path) -> list[dict]:
     """Defines for the shader as it is built: none, and every `#ifdef X` / `#if X > N` it (or an
-    include) tests switched on at once (X = 1, or N + 1 for a comparison)."""
+    include) tests switched on at once (X = 1, or N + 1 for a comparison); and with that, every
+    bare `#if X` switch (on by default, e.g. RESUMABLE) off."""
     base = {**_folder_bindings(path.parent), **HOST_DEFINES.get(path.name, {})}
     src = load_shader_source(path.name, base, (path.parent,))
     flags = {m: 1 for m in re.findall(r"^\s*#\s*ifdef\s+(\w+)", src, re.M)}
@@ -104,7 +105,9 @@ def _variants(path: Path) -> list[dict]:
     flags.update({m: int(n) + 1 for m, n, nxt in re.findall(r"^\s*#\s*if\s+(\w+)\s*>\s*(\d+).*\n\s*(\S*)", src, re.M)
                   if nxt != "#error"})
     flags = {k: v for k, v in flags.items() if not k.startswith("GL_") and not k.endswith("_GLSL")}
-    return [base, {**base, **flags}] if flags else [base]
+    out = [base, {**base, **flags}] if flags else [base]
+    off = {m: 0 for m in re.findall(r"^\s*#\s*if\s+(\w+)\s*$", src, re.M)}
+    return [*out, {**out[-1], **off}] if off else out
 
 
 @pytest.mark.skipif(GLSLANG is None, reason="glslangValidator not installed (apt-get install glslang-tools)")
