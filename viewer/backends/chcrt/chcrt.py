@@ -317,7 +317,7 @@ class ChcrtBackend:
             budget = int(p.gpu_budget_mb * MB)
         else:
             budget = int(p.gpu_budget_fraction * CachePlan.scene_bytes_of(bvh))
-        return SubtreeCache(self.ctx, bvh, scene.triangles, scene.material_ids, budget, p.subtree_tri_bound,
+        return SubtreeCache(self.ctx, bvh, scene.triangles, scene.material_ids, budget, p.subtree_tri_bound(),
                             p.max_subtree_height)
 
     def _clear_fronts(self) -> None:

@@ -5,6 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from viewer.backends.interface import param
+from viewer.effects import RayType
 from viewer.errors import RtwalkError
 
 QUERY_MODES = ("batched", "hw")
@@ -22,8 +23,9 @@ class ChcrtParams:
     min_tile_fraction: float = param(0.015, "smallest tile, fraction of the screen (paper: 200x200 at 1080p)")
     max_subtree_height: int = param(24, "scheduled subtrees: traversal stack bound (paper: 24)")
     max_subtree_tris: int = param(0, "scheduled subtrees: triangle bound; 0 = auto (subtree_tri_bound): "
-                                  f"{OOC_SUBTREE_TRIS} out of core (a subtree is one cache entry), none in core "
-                                  "(the height bound and the split rule end the cut)")
+                                  f"{OOC_SUBTREE_TRIS} out of core (a subtree is one cache entry) and for shadow "
+                                  "rays, none for the other rays in core (the height bound and the split rule end "
+                                  "the cut)")
     requery_interval: int = param(3, "n: visible leaves are re-queried every n frames")
     schedule_batch: int = param(16, "m: newly visible leaves are intersected in batches of m")
     max_batch: int = param(24, "subtree roots per intersection draw")
@@ -153,17 +155,20 @@ class ChcrtParams:
     def out_of_core(self) -> bool:
         return self.gpu_budget_mb > 0 or self.gpu_budget_fraction > 0
 
-    @property
-    def subtree_tri_bound(self) -> int:
-        """The scheduled subtrees' triangle bound: max_subtree_tris, or (0) OOC_SUBTREE_TRIS out of
-        core and none in core. Why none in core: the bound forces the cut below subtrees the split
-        rule would keep, and on a large scene that multiplies a tile's pairs; with 4096, city 10 M's
-        AO fronts had over lca_pairs pairs in 98 % of their tiles and traced the whole BVH (chcrt
-        0.97x glsl, primary+ao:4 at 640x360; 1.21x without a bound, 1.22x with 32,768, 1.11x with
-        8,192; city 1 M, 3 M and the test scenes unchanged or better: docs/results/chcrt.md)."""
+    def subtree_tri_bound(self, ray_type: RayType | None = None) -> int:
+        """The triangle bound of the subtrees a front of `ray_type` schedules (None: any front's):
+        max_subtree_tris, or (0) OOC_SUBTREE_TRIS out of core and for shadow rays (hard and soft),
+        and none for the other rays in core. Why none: the bound forces the cut below subtrees the
+        split rule would keep, and on a large scene that multiplies a tile's pairs; with 4096, city
+        10 M's AO fronts had over lca_pairs pairs in 98 % of their tiles and traced the whole BVH
+        (chcrt 0.97x glsl, primary+ao:4 at 640x360; 1.21x without a bound, 1.22x with 32,768, 1.11x
+        with 8,192; city 1 M, 3 M and the test scenes unchanged or better). Rays towards a light
+        were faster with the bound there (hard shadows 31 against 37 ms, soft 60 against 71;
+        docs/results/chcrt.md)."""
         if self.max_subtree_tris > 0:
             return self.max_subtree_tris
-        return OOC_SUBTREE_TRIS if self.out_of_core else NO_TRI_BOUND
+        to_light = ray_type in (RayType.SHADOW, RayType.SOFT)
+        return OOC_SUBTREE_TRIS if self.out_of_core or to_light else NO_TRI_BOUND
 
     def validate(self, source: str = "chcrt") -> None:
         if not (1 <= self.max_batch <= 24 and 1 <= self.max_multi <= 24):

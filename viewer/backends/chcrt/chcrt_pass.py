@@ -73,6 +73,7 @@ class ChcrtPass(SyncSteps, GpuDrivenSteps, DeviceFrontSteps):
         self.threshold = int(self.p.visible_threshold)
         # the split rule's t_q of this front (times t_q_primary for camera rays)
         self.t_q = self.p.t_q * (self.p.t_q_primary if ray_type == RayType.PRIMARY else 1.0)
+        self.tri_bound = self.p.subtree_tri_bound(ray_type)  # (the front's scheduled subtrees)
         self.overlays = bool(self.p.overdraw_overlay and be.overlays_enabled)
         # GPU-driven steady state: a front's first pass (and its next ones while its refinement is
         # unfinished, cold_passes) runs the synchronous algorithm (builds the front)

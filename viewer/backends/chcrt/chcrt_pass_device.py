@@ -182,7 +182,7 @@ class DeviceFrontSteps:
             self.stats["draws"] += 1
             if not (full or later):  # (a shared front: refined by its frame's first pass)
                 dv.refine(dev, be.gpu_counts, t_q=self.t_q, max_height=p.max_subtree_height,
-                          max_tris=p.subtree_tri_bound, **common)
+                          max_tris=self.tri_bound, **common)
                 self.stats["draws"] += 4
         if by_reach:  # the cull's outputs stand as it left them (ChcrtPass.run resets this first)
             dv.cull_key = cull_key

@@ -243,7 +243,7 @@ class GpuDrivenSteps:
             f.age[visible[due]] = 0
             f.pixels[visible[due]] = cv[due]
         if len(wave):
-            term, obj, _ = f.classify(wave, self.nt, self.t_q, p.max_subtree_height, p.subtree_tri_bound)
+            term, obj, _ = f.classify(wave, self.nt, self.t_q, p.max_subtree_height, self.tri_bound)
             f.state[wave[term]] = VISIBLE
             split = wave[~term]
             if len(split):

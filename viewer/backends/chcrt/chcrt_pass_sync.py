@@ -247,7 +247,7 @@ class SyncSteps:
             while True:
                 if len(wave):
                     term, obj, _ = f.classify(wave, self.nt, self.t_q, p.max_subtree_height,
-                                              p.subtree_tri_bound)
+                                              self.tri_bound)
                     done = wave[term]
                     f.state[done] = VISIBLE
                     if len(done):
