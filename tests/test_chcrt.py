@@ -1152,3 +1152,20 @@ def test_tile_bounds_are_the_same_bits_for_every_group_size(gl_ctx):
                     assert outs[init, group][1] == ref[1] > 0, (init, group)
     finally:
         r.release()
+
+
+def test_subtree_triangle_bound_by_ray_type_and_budget():
+    """max_subtree_tris=0 (auto): out of core every front's subtrees fit a cache entry (4096
+    triangles); in core only shadow-ray fronts keep that bound, the others have none; a number
+    given is every front's bound."""
+    from viewer.backends.chcrt.chcrt_params import NO_TRI_BOUND, OOC_SUBTREE_TRIS, ChcrtParams
+
+    auto = ChcrtParams()
+    bounded = {t for t in RayType if auto.subtree_tri_bound(t) == OOC_SUBTREE_TRIS}
+    assert bounded == {RayType.SHADOW, RayType.SOFT}
+    assert {auto.subtree_tri_bound(t) for t in RayType if t not in bounded} == {NO_TRI_BOUND}
+    ooc = ChcrtParams(gpu_budget_fraction=0.2)
+    assert {ooc.subtree_tri_bound(t) for t in RayType} | {ooc.subtree_tri_bound()} == {OOC_SUBTREE_TRIS}
+    given = ChcrtParams(max_subtree_tris=777)
+    assert {given.subtree_tri_bound(t) for t in RayType} | {given.subtree_tri_bound()} == {777}
+    assert NO_TRI_BOUND < 2**31  # (a GLSL int uniform: chc_front_refine.comp maxTris)
