@@ -626,14 +626,23 @@ def test_device_front_is_the_host_front(extra, gl_ctx):
     dev = _walk(gl_ctx, base, effects)
     assert sum(b.backend_stats.get("device_front_passes", 0) for b in dev) > 0
     assert sum(b.backend_stats.get("device_front_passes", 0) for b in host) == 0
+    # A pixel that several records of one draw cover counts their pairs against the nearest hit so
+    # far (bestBits), so the counts depend on the order those fragments run in: llvmpipe shades a
+    # draw's primitives in order, a GPU overlaps them. Elsewhere the fronts may drift apart, and only
+    # the hits must agree (chcrt's exactness: _check_exact, ties certified).
+    in_order = "llvmpipe" in str(gl_ctx.info.get("GL_RENDERER", "")).lower()
+    triangles = _load("city")[0].triangles
     moved = 0
     for i, (h, d) in enumerate(zip(host, dev, strict=True)):
-        for k in FRONT_STATS:
+        for k in FRONT_STATS if in_order else ():
             assert h.backend_stats.get(k, 0) == d.backend_stats.get(k, 0), (i, k, h.backend_stats, d.backend_stats)
         moved += d.backend_stats.get("newly_visible_queries", 0) + d.backend_stats.get("pull_ups", 0)
         for a, b in zip(h.captured, d.captured, strict=True):
-            same = np.array_equal(a.tri, b.tri) and np.array_equal(a.t.view(np.int32), b.t.view(np.int32))
-            assert same, (i, a.ray_type)
+            if in_order:
+                same = np.array_equal(a.tri, b.tri) and np.array_equal(a.t.view(np.int32), b.t.view(np.int32))
+                assert same, (i, a.ray_type)
+            else:
+                _check_exact(a, b, f"device front {extra} frame {i} {a.ray_type.label}", triangles)
     assert moved > 0  # the fronts did change on the device
 
 

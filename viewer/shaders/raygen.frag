@@ -46,7 +46,11 @@ void main() {
         int id = texelFetch(gId, px, 0).r;
         if (id >= 0) {
             Tri tri = loadTri(id);
-            vec3 n = normalize(cross(tri.v1 - tri.v0, tri.v2 - tri.v0));
+            // (a sliver whose float cross product vanishes has no normal here: any plane through the
+            // hit point serves, and one facing the viewer keeps the offset and the rays defined)
+            vec3 c = cross(tri.v1 - tri.v0, tri.v2 - tri.v0);
+            float cl = length(c);
+            vec3 n = cl > 0.0 && !isinf(cl) ? c / cl : -dPrim;
             float tHit; vec2 b;
             precise vec3 p;  // no fused multiply-adds (docs/numerics.md)
             if (intersectTriangle(prepareRay(camPos, dPrim), tri.v0, tri.v1, tri.v2, 0.0, 1e30, tHit, b)) {

@@ -54,15 +54,19 @@ void main() {
     uint li = gl_LocalInvocationIndex;
     vec3 omin = vec3(3.0e38), omax = vec3(-3.0e38);
     float dmax = -1.0, nActive = 0.0;
-    vec3 ac = texelFetch(rayDir, (lo + hi) >> 1, 0).xyz;
+    // (the probes' pixels clamped into the tile and the texture: an empty tile, hi == lo, reads a
+    // defined texel, though its bounds are unused: nActive 0)
+    ivec2 last = max(min(hi, textureSize(rayDir, 0)) - 1, ivec2(0));
+    ivec2 lo0 = min(lo, last), hi1 = clamp(hi - 1, lo0, last);
+    vec3 ac = texelFetch(rayDir, min((lo + hi) >> 1, hi1), 0).xyz;
     float al = length(ac);
     bool coneOk = al > 0.0 && !isinf(al) && !isnan(al);
     vec3 axis = coneOk ? ac / al : vec3(0.0, 0.0, 1.0);
     float s2max = coneOk ? 0.0 : 2.0;
     // the side planes: spanned by the tile's corner rays, normals towards the axis (chc_tilecone.glsl)
-    vec3 e00 = texelFetch(rayDir, lo, 0).xyz, e11 = texelFetch(rayDir, hi - 1, 0).xyz;
-    vec3 e10 = texelFetch(rayDir, ivec2(hi.x - 1, lo.y), 0).xyz;
-    vec3 e01 = texelFetch(rayDir, ivec2(lo.x, hi.y - 1), 0).xyz;
+    vec3 e00 = texelFetch(rayDir, lo0, 0).xyz, e11 = texelFetch(rayDir, hi1, 0).xyz;
+    vec3 e10 = texelFetch(rayDir, ivec2(hi1.x, lo0.y), 0).xyz;
+    vec3 e01 = texelFetch(rayDir, ivec2(lo0.x, hi1.y), 0).xyz;
     vec3 sn[4] = vec3[4](cross(e00, e01), cross(e11, e10), cross(e10, e00), cross(e01, e11));
     for (int i = 0; i < 4; ++i) {
         float l = length(sn[i]);
@@ -87,7 +91,10 @@ void main() {
         if (best < 0) continue;  // no ray, or an any-hit ray that is done
         omin = min(omin, o.xyz);
         omax = max(omax, o.xyz);
-        dmax = max(dmax, intBitsToFloat(best) * length(d.xyz));
+        // (min and max of a NaN are undefined in GLSL, NVIDIA returns the other operand: a NaN reach
+        // or side bound, a zero or non-finite direction, is replaced before them: no reach bound, no plane)
+        float reach = intBitsToFloat(best) * length(d.xyz);
+        dmax = isnan(reach) ? uintBitsToFloat(0x7f800000u) : max(dmax, reach);
         nActive += 1.0;
         // the largest sin^2 of the angle from the axis (a direction at or beyond 90 degrees: no cone);
         // the sine from the cross product stays accurate at small angles (1 - cos does not)
@@ -95,7 +102,7 @@ void main() {
         float s2 = dot(cr, cr) / dot(d.xyz, d.xyz);
         s2max = (dot(d.xyz, axis) > 0.0 && !isnan(s2)) ? max(s2max, s2) : 2.0;
         vec4 sd = vec4(dot(sn[0], d.xyz), dot(sn[1], d.xyz), dot(sn[2], d.xyz), dot(sn[3], d.xyz)) / length(d.xyz);
-        smin = min(smin, sd);
+        smin = mix(min(smin, sd), vec4(-2.0), isnan(sd));  // -2: below every cosine, "no plane"
     }
 #ifdef CHC_INIT_RAYS
     if (nActive > 0.0) atomicAdd(chcActive[li], uint(nActive));  // (slots: chcrt_layout.COUNT_SLOTS = 64 >= the group)
@@ -118,8 +125,8 @@ void main() {
         float s2 = sAngle[0];
         float a = s2 < 1.0 ? asin(sqrt(s2)) : 4.0;  // the half angle (radians), 4 = no cone
         vec4 sm = sSide[0];
-        // a NaN bound (a zero direction): no plane
-        for (int i = 0; i < 4; ++i) if (isnan(sm[i])) { sn[i] = vec3(0.0); sm[i] = 0.0; }
+        // a side some ray has no bound for (a zero or non-finite direction): no plane
+        for (int i = 0; i < 4; ++i) if (!(sm[i] >= -1.5)) { sn[i] = vec3(0.0); sm[i] = 0.0; }
         tiles[gl_WorkGroupID.x] = TileBound(vec4(sMin[0], sDist[0]), vec4(sMax[0], sCount[0]), vec4(axis, a),
                                             vec4[4](vec4(sn[0], sm.x), vec4(sn[1], sm.y), vec4(sn[2], sm.z),
                                                     vec4(sn[3], sm.w)));
