@@ -50,7 +50,7 @@ void main() {
             // hit point serves, and one facing the viewer keeps the offset and the rays defined)
             vec3 c = cross(tri.v1 - tri.v0, tri.v2 - tri.v0);
             float cl = length(c);
-            vec3 n = cl > 0.0 && !isinf(cl) ? c / cl : -dPrim;
+            vec3 n = cl > 0.0 && !isinf(cl) ? normalize(c) : -dPrim;  // (normalize: the bits as before)
             float tHit; vec2 b;
             precise vec3 p;  // no fused multiply-adds (docs/numerics.md)
             if (intersectTriangle(prepareRay(camPos, dPrim), tri.v0, tri.v1, tri.v2, 0.0, 1e30, tHit, b)) {

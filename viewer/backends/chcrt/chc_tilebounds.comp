@@ -54,8 +54,8 @@ void main() {
     uint li = gl_LocalInvocationIndex;
     vec3 omin = vec3(3.0e38), omax = vec3(-3.0e38);
     float dmax = -1.0, nActive = 0.0;
-    // (the probes' pixels clamped into the tile and the texture: an empty tile, hi == lo, reads a
-    // defined texel, though its bounds are unused: nActive 0)
+    // (the axis's and the corners' pixels clamped into the tile and the texture: an empty tile,
+    // hi == lo, reads a defined texel, though its bounds are unused: nActive 0)
     ivec2 last = max(min(hi, textureSize(rayDir, 0)) - 1, ivec2(0));
     ivec2 lo0 = min(lo, last), hi1 = clamp(hi - 1, lo0, last);
     vec3 ac = texelFetch(rayDir, min((lo + hi) >> 1, hi1), 0).xyz;
