@@ -146,7 +146,10 @@ class OcclusionCuller:
         (position if depth is None else depth[0]).use(HIZ_TEXTURE_UNIT)
         tri_id.use(HIZ_TEXTURE_UNIT + 1)
         hiz.use(HIZ_TEXTURE_UNIT + 2)
-        red["gPosition" if depth is None else "gDepth"] = HIZ_TEXTURE_UNIT
+        # both samplers on the one source's unit (the other is unread): a sampler left on unit 0 would
+        # see whatever the frame's last pass bound there, and llvmpipe keys a program's machine code
+        # by its samplers' textures (frame 1 compiled hiz.comp again: 50 ms without a shader cache)
+        red["gPosition"] = red["gDepth"] = HIZ_TEXTURE_UNIT
         red["fromDepth"] = int(depth is not None)
         if depth is not None:
             red["depthScale"] = float(depth[1])
