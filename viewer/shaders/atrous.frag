@@ -59,7 +59,8 @@ void main() {
     ivec2 size = textureSize(src, 0);
     if (mode == 0) {
         float d = texelFetch(gPos, px, 0).w;
-        float grad = fwidth(d);  // before any return: derivatives need the whole 2x2 quad
+        float grad = fwidthFine(d);  // before any return: derivatives need the whole 2x2 quad (fine: the
+        // same on every driver, fwidth may be either)
         if (kept(px)) {  // marked by a negative variance: later steps skip it with one fetch
             outColor = vec4(0.0, 0.0, 0.0, -1.0);
             outGuide = vec4(0.0);

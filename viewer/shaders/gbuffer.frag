@@ -48,6 +48,6 @@ void main() {
     float t; vec2 b;
     if (!intersectTriangle(prepareRay(camPos, d), gV0, gV1, gV2, 0.0, 1e30, t, b)) discard;
     outId = id;
-    gl_FragDepth = t / (t + depthScale);
+    gl_FragDepth = divRounded(t, t + depthScale);  // (correctly rounded: the same depths, so the same order, on every device)
 #endif
 }

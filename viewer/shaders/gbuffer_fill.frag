@@ -50,6 +50,6 @@ void main() {
     outAlbedo = materials[tri.mat];
 #ifndef RESOLVE
     outId = id;
-    gl_FragDepth = t / (t + depthScale);
+    gl_FragDepth = divRounded(t, t + depthScale);  // (correctly rounded: the same depths, so the same order, on every device)
 #endif
 }
