@@ -51,6 +51,10 @@ bool hidden(vec3 lo, vec3 hi) {
         fmax = max(fmax, f);
     }
     if (zmin <= 1e-4 * extent) return false;  // reaches the camera plane: its projection is unbounded
+    // (clamped before the conversion: a box near the camera plane at a narrow field of view projects
+    // beyond the int range, where float -> int is undefined: x86 gives INT_MIN, a wrong rectangle)
+    fmin = clamp(fmin, vec2(-1e9), vec2(1e9));
+    fmax = clamp(fmax, vec2(-1e9), vec2(1e9));
     ivec2 p0 = ivec2(floor(fmin - 0.5)) - 1, p1 = ivec2(ceil(fmax - 0.5)) + 1;
     ivec2 size0 = ivec2(viewport);
     p0 = clamp(p0, ivec2(0), size0 - 1);
