@@ -7,6 +7,7 @@ from __future__ import annotations
 import json
 import math
 
+import numpy as np
 import pytest
 
 from viewer.cli import main
@@ -230,3 +231,37 @@ def test_table2_counts_whole_bvh_passes(tmp_path):
     on, off = (rows[k][0] for k in rows)
     assert on["chcrt_wasted_passes"] > 0 and on["chcrt_full_bvh_passes"] >= on["chcrt_wasted_passes"], on
     assert off["chcrt_wasted_passes"] == 0, off
+    # ... and per steady frame along the path (frames 2..4), averaging to the row's figures
+    assert len(on["frame_numbers"]) == len(on["chcrt_full_bvh_by_frame"]) == len(on["glsl_trace_by_frame"]) == 3
+    assert np.mean(on["chcrt_full_bvh_by_frame"]) == pytest.approx(on["chcrt_full_bvh_passes"])
+    assert np.mean(on["chcrt_trace_by_frame"]) == pytest.approx(on["chcrt_trace_ms"])
+
+
+def test_table2_path_windows_and_plot(tmp_path):
+    """table2 along a path: the speedup in windows of consecutive frames is the ratio of the
+    windows' summed trace times (not a mean of per-frame ratios), listed in the Markdown for paths of
+    PATH_MIN_FRAMES frames or more, and the plot draws it frame by frame."""
+    from viewer.bench.chcrt import PATH_MIN_FRAMES, PATH_WINDOWS, Table2Row, _path_md, _plot_table2
+
+    n = 2 * PATH_WINDOWS + 1
+    frames = list(range(1, n + 1))
+    glsl = [10.0] * n
+    chcrt = [5.0 if k < n // 2 else 20.0 for k in range(n)]  # 2x faster, then 2x slower (whole-BVH)
+    full = [0.0 if k < n // 2 else 1.0 for k in range(n)]
+    row = Table2Row("walk", "64x36", "primary", 1.0, 10.0, 11.0, 12.0, 13.0, 14.0, 15.0, 0.8, 0.8, 1.0, 1.0,
+                    0.5, 0.5, frames, glsl, chcrt, full)
+    win = row.windows(PATH_WINDOWS)
+    assert len(win) == PATH_WINDOWS and win[0][:2] == (1, 2) and win[-1][1] == n
+    assert win[0][2] == pytest.approx(2.0) and win[0][3] == 0.0
+    assert win[-1][2] == pytest.approx(0.5) and win[-1][3] == 1.0
+    a, b = win[PATH_WINDOWS // 2][:2]  # the window across the switch: summed times, not mean ratios
+    ks = range(a - 1, b)
+    assert win[PATH_WINDOWS // 2][2] == pytest.approx(sum(glsl[k] for k in ks) / sum(chcrt[k] for k in ks))
+    md = "\n".join(_path_md([row]))
+    assert "Along the path" in md and "1-2: 2.00 (0.0)" in md and ": 0.50 (1.0)" in md
+    short = Table2Row(*[getattr(row, f) for f in list(row.__dataclass_fields__)[:16]],
+                      frames[:PATH_MIN_FRAMES - 1], glsl[:PATH_MIN_FRAMES - 1], chcrt[:PATH_MIN_FRAMES - 1],
+                      full[:PATH_MIN_FRAMES - 1])
+    assert _path_md([short]) == []
+    _plot_table2([row, short], tmp_path / "t2.png", "test device")
+    assert (tmp_path / "t2.png").stat().st_size > 1000

@@ -372,6 +372,13 @@ class Table2Row:
     # front its work probe found to save too little: the latter also in chcrt_wasted_passes)
     chcrt_full_bvh_passes: float = 0.0
     chcrt_wasted_passes: float = 0.0
+    # along the path, per steady frame (the same frames for both: they run interleaved): the frame
+    # numbers, glsl's and chcrt's trace ms and chcrt's whole-BVH passes (where the queries cost more
+    # than they save shows as a stretch of speedup below 1, often with whole-BVH passes)
+    frame_numbers: list[int] = field(default_factory=list)
+    glsl_trace_by_frame: list[float] = field(default_factory=list)
+    chcrt_trace_by_frame: list[float] = field(default_factory=list)
+    chcrt_full_bvh_by_frame: list[float] = field(default_factory=list)
 
     @staticmethod
     def of(g: RunResult, c: RunResult) -> Table2Row:
@@ -384,7 +391,23 @@ class Table2Row:
         return Table2Row(g.recording, size_text(g.size), g.effect, gs.rays, gs.trace_ms, gs.wall_ms, cs.trace_ms,
                          cs.wall_ms, c.cold.trace_ms, c.cold.wall_ms, ratio(gs.trace_ms, cs.trace_ms),
                          ratio(gs.wall_ms, cs.wall_ms), gs.mrays_per_s, cs.mrays_per_s,
-                         per_frame("full_bvh_passes"), per_frame("wasted_front_passes"))
+                         per_frame("full_bvh_passes"), per_frame("wasted_front_passes"),
+                         list(g.frame_numbers[1:]), [float(f["trace_ms"]) for f in g.frames[1:]],
+                         [float(f["trace_ms"]) for f in c.frames[1:]],
+                         [float(f.get("backend_stats", {}).get("full_bvh_passes", 0.0)) for f in c.frames[1:]])
+
+    def windows(self, n: int) -> list[tuple[int, int, float, float]]:
+        """The steady frames in `n` consecutive windows: (first frame, last frame, glsl / chcrt trace
+        time over the window, chcrt's whole-BVH passes per frame)."""
+        k = len(self.frame_numbers)
+        out = []
+        for w in range(min(n, k)):
+            a, b = w * k // n, (w + 1) * k // n
+            if b > a:
+                out.append((self.frame_numbers[a], self.frame_numbers[b - 1],
+                            ratio(sum(self.glsl_trace_by_frame[a:b]), sum(self.chcrt_trace_by_frame[a:b])),
+                            sum(self.chcrt_full_bvh_by_frame[a:b]) / (b - a)))
+        return out
 
 
 def study_table2(b: Bench) -> dict:
@@ -422,19 +445,71 @@ def study_table2(b: Bench) -> dict:
           fmt(r.speedup_trace, 2), fmt(r.speedup_frame, 2), fmt(r.glsl_mrays_per_s, 2),
           fmt(r.chcrt_mrays_per_s, 2), f"{r.chcrt_full_bvh_passes:.1f} ({r.chcrt_wasted_passes:.1f})"]
          for r in rows]))
+    md += _path_md(rows)
     md += notes_md(report["notes"])
     _plot_table2(rows, o.out / "table2.png", b.device["renderer"])
     return finish_study(o, "table2", report, "\n".join(md))
 
 
+PATH_WINDOWS = 9  # table2's Markdown: the speedup along a path of at least PATH_MIN_FRAMES, in windows
+PATH_MIN_FRAMES = 18
+
+
+def _path_md(rows: list[Table2Row]) -> list[str]:
+    """The speedup along each path in PATH_WINDOWS windows of consecutive frames (whole-BVH passes
+    per frame in brackets), for runs long enough to have a path."""
+    rows = [r for r in rows if len(r.frame_numbers) >= PATH_MIN_FRAMES]
+    if not rows:
+        return []
+    md = ["", f"### Along the path: speedup trace in {PATH_WINDOWS} windows of consecutive steady frames "
+              "(chcrt's whole-BVH passes per frame in brackets; per frame: the JSON rows and the plot)", ""]
+    table = []
+    for r in rows:
+        cells = [f"{a}-{b}: {fmt(sp, 2)} ({full:.1f})" for a, b, sp, full in r.windows(PATH_WINDOWS)]
+        table.append([r.recording, r.size, r.effect, *cells])
+    width = max(len(t) for t in table)
+    md.append(md_table(["recording", "size", "effect", *[f"window {i + 1}" for i in range(width - 3)]],
+                       [t + [""] * (width - len(t)) for t in table]))
+    return md
+
+
 def _plot_table2(rows: list[Table2Row], path: Path, device: str) -> None:
+    """The steady means (bars) and, below, the speedup frame by frame along each path (thin) and
+    over a running window of up to 9 frames (a cross: a frame where chcrt traced some pass through
+    the whole BVH)."""
     labels = [f"{r.recording} {r.size} {r.effect}" for r in rows]
-    fig, axes = figure(1, 2, size=(12, 1.2 + 0.32 * len(rows)), sharey=True)
-    barh(axes[0], labels, {"glsl": [r.glsl_trace_ms for r in rows], "chcrt": [r.chcrt_trace_ms for r in rows]},
+    bar_h = 1.2 + 0.32 * len(rows)
+    fig = figure(1, 1, size=(12, bar_h + 3.2))[0]
+    fig.clf()
+    grid = fig.add_gridspec(2, 2, height_ratios=(bar_h, 3.2))
+    ax0 = fig.add_subplot(grid[0, 0])
+    ax1 = fig.add_subplot(grid[0, 1], sharey=ax0)
+    barh(ax0, labels, {"glsl": [r.glsl_trace_ms for r in rows], "chcrt": [r.chcrt_trace_ms for r in rows]},
          "steady trace ms (log)", log=True)
-    barh(axes[1], labels, {"trace": [r.speedup_trace for r in rows], "frame": [r.speedup_frame for r in rows]},
+    barh(ax1, labels, {"trace": [r.speedup_trace for r in rows], "frame": [r.speedup_frame for r in rows]},
          "speedup glsl / chcrt", ref=1.0)
-    axes[1].invert_yaxis()  # shared y axis: inverted once by each call
+    ax1.invert_yaxis()  # shared y axis: inverted once by each call
+    ax2 = fig.add_subplot(grid[1, :])
+    for r, label in zip(rows, labels, strict=True):
+        g, c = np.asarray(r.glsl_trace_by_frame), np.asarray(r.chcrt_trace_by_frame)
+        sp = [ratio(a, b) for a, b in zip(g, c, strict=True)]
+        line = ax2.plot(r.frame_numbers, sp, lw=0.6, alpha=0.4)[0]
+        # and over a running window of up to 9 frames (summed times: one slow frame is one frame)
+        k = max(1, min(9, len(sp) // 10))
+        if k > 1:
+            kern = np.ones(k)
+            run = np.convolve(g, kern, "valid") / np.convolve(c, kern, "valid")
+            ax2.plot(r.frame_numbers[k // 2:k // 2 + len(run)], run, lw=1.4, color=line.get_color(), label=label)
+        else:
+            line.set_label(label)
+        full = [i for i, f in enumerate(r.chcrt_full_bvh_by_frame) if f > 0]
+        ax2.plot([r.frame_numbers[i] for i in full], [sp[i] for i in full], "x", ms=3, color=line.get_color())
+    ax2.axhline(1.0, color="k", lw=0.8)
+    ax2.set_xlabel("frame")
+    ax2.set_ylabel("speedup trace (glsl / chcrt)")
+    ax2.grid(alpha=0.3)
+    if rows:
+        ax2.legend(fontsize=7)
     finish(fig, path, f"CHC+RT Table 2 analog - {device}")
 
 
