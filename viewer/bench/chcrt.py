@@ -52,7 +52,7 @@ from viewer.bench.estimate import CostModel, format_estimate, run_estimate, scen
 from viewer.bench.gl_micro import MicroResult, micro_overheads
 from viewer.bench.harness import PROTOCOL, Harness, RunResult, RunSpec, effect_settings, is_trace_phase, load_average
 from viewer.bench.partial import keep_partial
-from viewer.bench.plots import barh, figure, finish, points, stacked
+from viewer.bench.plots import barh, figure, finish, points, pyplot, stacked
 from viewer.bench.report import fmt, md_table, notes_md, ratio, size_text
 from viewer.errors import RtwalkError
 from viewer.paths import RECORDINGS, resolve_recording
@@ -479,8 +479,7 @@ def _plot_table2(rows: list[Table2Row], path: Path, device: str) -> None:
     the whole BVH)."""
     labels = [f"{r.recording} {r.size} {r.effect}" for r in rows]
     bar_h = 1.2 + 0.32 * len(rows)
-    fig = figure(1, 1, size=(12, bar_h + 3.2))[0]
-    fig.clf()
+    fig = pyplot().figure(figsize=(12, bar_h + 3.2), dpi=110)
     grid = fig.add_gridspec(2, 2, height_ratios=(bar_h, 3.2))
     ax0 = fig.add_subplot(grid[0, 0])
     ax1 = fig.add_subplot(grid[0, 1], sharey=ax0)
