@@ -499,8 +499,8 @@ def _plot_table2(rows: list[Table2Row], path: Path, device: str) -> None:
             kern = np.ones(k)
             run = np.convolve(g, kern, "valid") / np.convolve(c, kern, "valid")
             ax2.plot(r.frame_numbers[k // 2:k // 2 + len(run)], run, lw=1.4, color=line.get_color(), label=label)
-        else:
-            line.set_label(label)
+        else:  # (too few frames for a running window: the frames themselves, drawn plainly)
+            line.set(label=label, alpha=1.0, lw=1.2)
         full = [i for i, f in enumerate(r.chcrt_full_bvh_by_frame) if f > 0]
         ax2.plot([r.frame_numbers[i] for i in full], [sp[i] for i in full], "x", ms=3, color=line.get_color())
     ax2.axhline(1.0, color="k", lw=0.8)
