@@ -389,6 +389,11 @@ def _bench_modules() -> list:
             if p.name not in BACKEND_STUDIES]
 
 
+# string literal tokens: Python 3.12 splits an f-string into FSTRING_START/MIDDLE/END (PEP 701),
+# where 3.11 gives one STRING
+STRING_TOKENS = {tokenize.STRING} | ({tokenize.FSTRING_MIDDLE} if hasattr(tokenize, "FSTRING_MIDDLE") else set())
+
+
 def backend_names_in(source: str, names: list[str]) -> list[tuple[int, str]]:
     """(line, token) of every identifier or string literal naming a backend: an identifier equal
     to a name or with it as a '_'-separated part, a string with the name as a word (not a file
@@ -405,7 +410,7 @@ def backend_names_in(source: str, names: list[str]) -> list[tuple[int, str]]:
         if tok.type == tokenize.NAME and not keyword.iskeyword(tok.string):
             if any(n == tok.string or n in tok.string.split("_") for n in names):
                 found.append((tok.start[0], tok.string))
-        elif tok.type == tokenize.STRING and tok.start[0] not in doc_lines and words.search(tok.string):
+        elif tok.type in STRING_TOKENS and tok.start[0] not in doc_lines and words.search(tok.string):
             found.append((tok.start[0], tok.string))
     return found
 

@@ -79,7 +79,7 @@ def test_in_process_render_leaves_the_shared_context_working(gl_ctx, tmp_path):
     def clear_and_read() -> list[int]:
         fbo = gl_ctx.simple_framebuffer((4, 4))
         fbo.use()
-        gl_ctx.clear(0.25, 0.5, 0.75, 1.0)
+        gl_ctx.clear(64 / 255, 128 / 255, 191 / 255, 1.0)  # exact in 8 bits: no device's rounding of a tie
         px = np.frombuffer(fbo.read(components=4), np.uint8)[:4].tolist()
         fbo.release()
         return px
@@ -439,6 +439,7 @@ def test_bench_grids_huge_size_is_one_line(gl_ctx, monkeypatch):
         raise AssertionError("the scene was built before the size was checked")
 
     monkeypatch.setattr(viewer.sysmem, "available_bytes", lambda: 1 << 30)
+    monkeypatch.setenv("RTWALK_GL_MEMORY_MIB", "1024")  # the same on a GPU, whose video memory is counted
     monkeypatch.setattr(gf, "scene_mixed", never)
     assert_one_line_error(run_cli("bench-grids", "--scene", "mixed", "--size", "16384x16384"), "16384x16384")
 
@@ -454,6 +455,7 @@ def test_huge_bench_size_before_the_scene(gl_ctx, monkeypatch, tmp_path, args):
         raise AssertionError("the scene was loaded before the size was checked")
 
     monkeypatch.setattr(viewer.sysmem, "available_bytes", lambda: 1 << 30)
+    monkeypatch.setenv("RTWALK_GL_MEMORY_MIB", "1024")  # the same on a GPU, whose video memory is counted
     for name in ("prepare_scene", "prepare_scene_for_recording"):
         monkeypatch.setattr(viewer.session, name, never)
     extra = ["--out", str(tmp_path / "o")] if args[0] != "bench-denoise" else []
@@ -886,19 +888,22 @@ def test_sigint_keeps_the_frames_done(tmp_path, signame):
 
 def test_huge_size_is_one_line(tmp_path):
     """--size 16384x16384: refused before allocation (here: the targets' memory estimate against a
-    16 GiB address-space limit), one line, exit 2."""
+    16 GiB address-space limit on a CPU rasterizer, RTWALK_GL_MEMORY_MIB's 16 GiB on a GPU), one
+    line, exit 2."""
+    import os
     import resource
 
     def limit():
         resource.setrlimit(resource.RLIMIT_AS, (16 << 30, 16 << 30))
 
+    env = {**os.environ, "RTWALK_GL_MEMORY_MIB": "16384"}
     proc = run_cli("render", "room", "--size", "16384x16384", "--effects", "primary", "-o", str(tmp_path / "x.png"),
-                   timeout=180, subprocess=True, preexec_fn=limit)
+                   timeout=180, subprocess=True, preexec_fn=limit, env=env)
     assert_one_line_error(proc, "16384x16384")
     assert not (tmp_path / "x.png").exists()
     assert "BVH" not in proc.stderr + proc.stdout  # refused before the scene was loaded (it was after)
     proc = run_cli("bench", _never_loaded(tmp_path), "--recording", "recordings/city-near.json", "--size",
-                   "16384x16384", "--out", str(tmp_path / "b"), timeout=180, subprocess=True, preexec_fn=limit)
+                   "16384x16384", "--out", str(tmp_path / "b"), timeout=180, subprocess=True, preexec_fn=limit, env=env)
     assert_one_line_error(proc, "16384x16384")
     assert "never-loaded" not in proc.stderr
 
@@ -922,6 +927,21 @@ def test_target_limits_and_allocation_errors(gl_ctx, monkeypatch):
         monkeypatch.setattr(sysmem, "available_bytes", lambda: 64 * 36 * limits.TARGET_BYTES_PER_PIXEL - 1)
         with pytest.raises(RtwalkError, match="can be allocated"):
             limits.check_target_size(gl_ctx, (64, 36))
+        monkeypatch.undo()
+    else:  # a GPU: the free video memory, where the driver tells it, within the device's whole memory
+        free = limits.video_memory_free(gl_ctx)
+        assert free is None or 0 < free < 1 << 50, free
+    # the env cap, on every device
+    monkeypatch.setenv("RTWALK_GL_MEMORY_MIB", "1")
+    assert limits.gl_memory_available(gl_ctx) == 1 << 20
+    limits.check_target_size(gl_ctx, (64, 36))  # 64 x 36 x 180 B < 1 MiB
+    with pytest.raises(RtwalkError, match="can be allocated"):
+        limits.check_target_size(gl_ctx, (128, 128))
+    for bad in ("x", "0", "-5"):
+        monkeypatch.setenv("RTWALK_GL_MEMORY_MIB", bad)
+        with pytest.raises(RtwalkError, match="RTWALK_GL_MEMORY_MIB"):
+            limits.gl_memory_available(gl_ctx)
+    monkeypatch.delenv("RTWALK_GL_MEMORY_MIB")
     with pytest.raises(RtwalkError) as exc:
         with limits.allocation_guard((9000, 9000)):
             raise moderngl.Error("the framebuffer is not complete")

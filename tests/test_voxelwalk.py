@@ -49,14 +49,23 @@ def reference():
 EC = "mode=ec,primary=ec"
 
 
+def _big_chunk() -> int:
+    """The largest chunk this OpenCL device's local memory holds (256 on PoCL, 128 on NVIDIA's 48 KiB)."""
+    from viewer.backends.voxelwalk.engine import largest_chunk
+    from viewer.cl import cl_context
+    from viewer.cl.limits import local_mem
+
+    return largest_chunk(local_mem(cl_context())) or 16
+
+
 @pytest.mark.parametrize("params", ["mode=ivw", "mode=ec", EC, f"{EC},sort=global", f"{EC},cells=0",
-                                    f"{EC},cells=3,chunk=16", f"{EC},chunk=256,resolution=4",
+                                    f"{EC},cells=3,chunk=16", f"{EC},chunk=BIG,resolution=4",
                                     f"{EC},chunk=16,resolution=40", "mode=ivw,resolution=300",
                                     f"{EC},resolution=1", f"{EC},sort=global,resolution=1"])
 def test_modes_match_embree(monkeypatch, reference, params):
     from viewer.tracing import trace_rays
 
-    monkeypatch.setenv("RTWALK_VOXELWALK", params)
+    monkeypatch.setenv("RTWALK_VOXELWALK", params.replace("BIG", str(_big_chunk())))
     tris, rays, (t0, i0), (ta, ia) = reference
     t1, i1 = trace_rays(tris, *rays, backend="voxelwalk")
     assert ((i0 >= 0) == (i1 >= 0)).all()
@@ -77,8 +86,8 @@ def test_ec_is_deterministic_across_chunk_sizes(monkeypatch):
     tris = np.concatenate([base, base])  # triangle k and k + len(base) coincide
     o, d, lo, hi = _rays(3000, seed=5)
     out = []
-    for params in (f"{EC},chunk=16", f"{EC},chunk=256", f"{EC},sort=global,chunk=64", f"{EC},cells=0,chunk=64",
-                   f"{EC},cells=4,chunk=32", "mode=ivw"):
+    for params in (f"{EC},chunk=16", f"{EC},chunk={_big_chunk()}", f"{EC},sort=global,chunk=64",
+                   f"{EC},cells=0,chunk=64", f"{EC},cells=4,chunk=32", "mode=ivw"):
         monkeypatch.setenv("RTWALK_VOXELWALK", params)
         out.append(trace_rays(tris, o, d, lo, hi, backend="voxelwalk"))
     for t, i in out[1:]:

@@ -62,6 +62,7 @@ from viewer.backends.cl_geometry import GeometryBackend
 from viewer.backends.interface import BackendInfo, OverlaySpec, param
 from viewer.backends.ugrid import top_density
 from viewer.backends.voxelwalk.engine import (
+    CHUNKS,
     EC_INLINE_MAX,
     EC_SORTS,
     EC_TAIL,
@@ -77,7 +78,6 @@ from viewer.rays import HitBuffer, PassInfo, RayBatch
 __all__ = ["VoxelwalkParams", "VoxelwalkBackend", "VoxelWalker", "PassStats", "tile_divergence"]
 
 MODES = ("ivw", "ec")
-CHUNKS = (16, 32, 64, 128, 256)
 
 
 @dataclass

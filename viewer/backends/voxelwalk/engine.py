@@ -54,14 +54,24 @@ def tile_partition(local_mem: int, wg: int) -> int:
     return max(p, wg)
 
 
+CHUNKS = (16, 32, 64, 128, 256)  # the chunk sizes (work-group sizes) the EC kernels accept
+
+
+def largest_chunk(local_bytes: int) -> int | None:
+    """The largest chunk whose smallest ec_tile partition fits `local_bytes` of local memory (None:
+    not even 16)."""
+    fits = [c for c in CHUNKS if (TILE_BYTES_PER_RAY + 172) * c <= local_bytes]
+    return fits[-1] if fits else None
+
+
 def check_tile_local(local_bytes: int, wg: int) -> None:
     """RtwalkError (one line) when even the smallest ec_tile partition (one ray per work-item) does
     not fit the device's local memory: chunk=256 needs 62 KiB, NVIDIA's OpenCL offers 48 KiB (the
     build would fail with "too much shared data"; PoCL has megabytes)."""
     need = TILE_BYTES_PER_RAY * wg + 172 * wg
     if need > local_bytes:
-        fits = [c for c in (16, 32, 64, 128, 256) if (TILE_BYTES_PER_RAY + 172) * c <= local_bytes]
-        hint = f"choose chunk <= {fits[-1]}" if fits else "this device cannot run it"
+        fits = largest_chunk(local_bytes)
+        hint = f"choose chunk <= {fits}" if fits else "this device cannot run it"
         raise RtwalkError(f"voxelwalk chunk={wg}: the EC tile kernel needs {need / 1024:.1f} KiB of local memory "
                           f"per work-group, the OpenCL device has {local_bytes / 1024:.1f} KiB; {hint}")
 
