@@ -735,8 +735,8 @@ def test_merged_kept_pairs_are_always_drawn(extra, gl_ctx):
         for i in range(8):
             r.render(Camera(cam0.position + np.array([0.9 * i, 0.25 * i, -2.5 * i]), cam0.orientation, cam0.fov_y))
             dv = r.backend.devfronts
-            if dv is None:
-                continue
+            if dv is None or dv.last_plan is None:
+                continue  # no plan of a front in the buffers this frame: they hold nothing written
             n = int(np.frombuffer(dv.args.read(size=8), np.uint32)[1])
             rec = np.frombuffer(dv.records.read(size=max(n, 1) * DRAW_DTYPE.itemsize), DRAW_DTYPE)[:n]
             plans = np.frombuffer(dv.tiles.read(size=n_tiles * TILE_PLAN_DTYPE.itemsize), TILE_PLAN_DTYPE)
@@ -932,9 +932,9 @@ def test_full_bvh_passes_count_their_work(gl_ctx, monkeypatch):
 @pytest.mark.parametrize("given", [True, False])
 def test_whole_bvh_passes_take_the_ray_generations_count(given, gl_ctx, monkeypatch):
     """A device pass that traces the whole BVH counts its rays only for the statistics: it copies the
-    ray generation's count (PassInfo.ray_count) into its ray slots instead of a dispatch that reads
-    every ray (chc_count_rays.comp), and rays without such a count (`given` False) are counted by
-    that dispatch; either way the statistics count every ray."""
+    ray generation's count (PassInfo.ray_count) into its ray slots with one invocation of
+    chc_count_rays.comp instead of a dispatch that reads every ray, and rays without such a count
+    (`given` False) are counted by that dispatch; either way the statistics count every ray."""
     import moderngl
 
     from viewer.passes.raygen import RayGenPass
@@ -942,10 +942,10 @@ def test_whole_bvh_passes_take_the_ray_generations_count(given, gl_ctx, monkeypa
     if not given:
         generate = RayGenPass.generate
         monkeypatch.setattr(RayGenPass, "generate", lambda self, *a, **k: (generate(self, *a, **k), None)[1])
-    dispatched: list[int] = []
+    dispatched: list[tuple[int, tuple]] = []  # (program, work groups)
     run = moderngl.ComputeShader.run
     monkeypatch.setattr(moderngl.ComputeShader, "run",
-                        lambda self, *a, **k: (dispatched.append(id(self)), run(self, *a, **k))[1])
+                        lambda self, *a, **k: (dispatched.append((id(self), a)), run(self, *a, **k))[1])
     scene, bvh, path = _load("city")
     cam0 = path[0]
     params = "work_probe=4,work_ratio_full=0.001,work_ratio_full_any=0.001"
@@ -954,13 +954,14 @@ def test_whole_bvh_passes_take_the_ray_generations_count(given, gl_ctx, monkeypa
         frames = [r.render(Camera(cam0.position + np.array([0.9 * i, 0.25 * i, -2.5 * i]), cam0.orientation,
                                   cam0.fov_y)) for i in range(6)]
         counter = id(r.backend.count_rays)
-        counts = dispatched.count(counter)
+        groups = [a for prog, a in dispatched if prog == counter]
     finally:
         r.release()
     assert sum(b.backend_stats.get("wasted_front_passes", 0) for b in frames) > 0
     for b in frames:
         assert b.backend_stats["rays"] == sum(b.rays.values())
-    assert (counts == 0) if given else (counts > 0), counts
+    copies = [a for a in groups if tuple(a) == (1, 1)]  # (SIZE is more than one 64x64 region)
+    assert groups and ((len(copies) == len(groups)) if given else not copies), groups
 
 
 def test_lane_group_work_matches_a_loop_over_the_groups():

@@ -33,7 +33,7 @@ from viewer.backends.chcrt.chcrt_pass_gpu import GpuDrivenSteps
 from viewer.backends.chcrt.chcrt_pass_sync import SyncSteps
 from viewer.effects import RayType
 from viewer.gl import io as glio
-from viewer.gl.bindings import BIND_NODES, BIND_TRIS
+from viewer.gl.bindings import BIND_COUNTERS, BIND_NODES, BIND_TRIS
 from viewer.gl.textures import clear_float_texture, clear_int_texture
 from viewer.rays import HitBuffer, PassInfo, RayBatch
 from viewer.screen_tiles import tile_rects
@@ -136,20 +136,22 @@ class ChcrtPass(SyncSteps, GpuDrivenSteps, DeviceFrontSteps):
 
     def _count_rays(self) -> None:
         """The pass's active rays into the ray-count slots (zeroed on the device), in place of the
-        init draw of a pass that traces the whole BVH: the ray generation's count copied into slot
-        0 where it made one (PassInfo.ray_count: a 4-byte copy instead of a dispatch that reads
-        every ray, 0.7 ms at 640x360 on llvmpipe), else chc_count_rays.comp."""
+        init draw of a pass that traces the whole BVH, by chc_count_rays.comp: one invocation copies
+        the ray generation's count into slot 0 where it made one (PassInfo.ray_count; instead of
+        reading every ray, 0.7 ms at 640x360 on llvmpipe), else it counts the rays. (Not a buffer
+        copy: on NVIDIA that one made the host wait for the GPU in every pass, chc_count_rays.comp.)"""
         count = self.pinfo.ray_count
-        if count is not None:
-            # (after the ray generation's atomics and the slots' zeroing: shader writes, then a copy)
-            self.ctx.memory_barrier(moderngl.BUFFER_UPDATE_BARRIER_BIT)
-            self.ctx.copy_buffer(self.be.gpu_counts, count.buffer, 4, read_offset=count.offset, write_offset=0)
-            self.stats["draws"] += 1
-            iostats.gl_draw()
-            return
+        prog = self.be.count_rays
         w, h = self.size
-        self.be.count_rays["raySize"] = (w, h)
-        self.be.count_rays.run(-(-w // 64), -(-h // 64))  # a work group per 64x64 pixel region
+        prog["raySize"] = (w, h)
+        prog["copySlot"] = -1 if count is None else count.offset // 4
+        if count is not None:
+            # (after the ray generation's atomics and the slots' zeroing: shader writes, then a read)
+            self.ctx.memory_barrier(moderngl.SHADER_STORAGE_BARRIER_BIT)
+            count.buffer.bind_to_storage_buffer(BIND_COUNTERS)
+            prog.run(1, 1)
+        else:
+            prog.run(-(-w // 64), -(-h // 64))  # a work group per 64x64 pixel region
         self.ctx.memory_barrier(moderngl.SHADER_STORAGE_BARRIER_BIT)
         self.stats["draws"] += 1
         iostats.gl_draw()
