@@ -628,7 +628,7 @@ class Renderer:
     def release(self) -> None:
         for backend in self._backends.values():
             backend.release()
-        for obj in (self.gbuffer, self.accumulate, self.shade, self.rays, self.hits, self.gpu_scene):
+        for obj in (self.gbuffer, self.raygen, self.accumulate, self.shade, self.rays, self.hits, self.gpu_scene):
             obj.release()
         if self._overlay is not None:
             self._overlay.release()

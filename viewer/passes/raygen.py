@@ -35,6 +35,7 @@ class RayGenPass:
         self.quad = quad
         self.counters = ctx.buffer(reserve=4 * self.MAX_PASS_SLOTS)
         clear_uint_buffer(self.counters, self.MAX_PASS_SLOTS)
+        self.readback = glio.ReadBack(ctx, 4 * self.MAX_PASS_SLOTS)  # the host reads the counts here
         self.slot_types: list[RayType] = []  # the ray type of every pass since reset_count
 
     def program(self, ray_type: RayType) -> moderngl.Program:
@@ -83,6 +84,10 @@ class RayGenPass:
         clear_uint_buffer(self.counters, self._slots_used())
         self.slot_types = []
 
+    def release(self) -> None:
+        self.counters.release()
+        self.readback.release()
+
     def read_counts(self) -> np.ndarray:
         """int64 (RAY_TYPES,): active rays per ray type over the passes since reset_count (one read
         of their slots)."""
@@ -90,7 +95,7 @@ class RayGenPass:
         used = self._slots_used()
         if used == 0:
             return out
-        counts = np.frombuffer(glio.read(self.counters, size=4 * used), np.uint32).astype(np.int64)
+        counts = np.frombuffer(self.readback.read(self.counters, 4 * used), np.uint32).astype(np.int64)
         shared = self.MAX_PASS_SLOTS - self.RAY_TYPES
         for k, ray_type in enumerate(self.slot_types[:shared]):
             out[int(ray_type)] += counts[k]
