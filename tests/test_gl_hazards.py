@@ -43,7 +43,7 @@ def _backends() -> list:
     return params
 
 
-def _walk(ctx, backend: str, overlays: bool) -> None:
+def _walk(ctx, backend: str, overlays: bool) -> np.ndarray:
     """Four frames of the city-near recording (the first builds, the later ones are steady), and
     the image read back."""
     ps = prepared_scene("city")
@@ -53,9 +53,37 @@ def _walk(ctx, backend: str, overlays: bool) -> None:
         r.capture_overlays = overlays
         for n in range(60, 64):
             r.render(rec.camera_for_frame(n))
-        r.read_image()
+        return r.read_image()
     finally:
         r.release()
+
+
+POISON = b"\x77"  # 0x77777777: 5.1e33 as a float, a large positive int
+
+
+def _poison_new_memory(monkeypatch) -> dict[str, int]:
+    """Every GL buffer and 2D texture made without data starts filled with POISON bytes instead of
+    what the driver leaves there (llvmpipe: often zeros or the last freed block; an NVIDIA GPU:
+    whatever was there, text once). Returns the counts of poisoned buffers and textures made."""
+    buffer, texture = moderngl.Context.buffer, moderngl.Context.texture
+    itemsize = {"f1": 1, "u1": 1, "i1": 1, "f2": 2, "u2": 2, "i2": 2, "f4": 4, "u4": 4, "i4": 4}
+    made = {"buffers": 0, "textures": 0}
+
+    def poisoned_buffer(self, data=None, reserve=0, dynamic=False):
+        if data is None and isinstance(reserve, int) and reserve > 0:
+            data, reserve = POISON * reserve, 0
+            made["buffers"] += 1
+        return buffer(self, data, reserve=reserve, dynamic=dynamic)
+
+    def poisoned_texture(self, size, components, data=None, samples=0, alignment=1, dtype="f1", **kw):
+        if data is None and samples == 0 and dtype in itemsize:
+            data = POISON * (size[0] * size[1] * components * itemsize[dtype])
+            made["textures"] += 1
+        return texture(self, size, components, data, samples=samples, alignment=alignment, dtype=dtype, **kw)
+
+    monkeypatch.setattr(moderngl.Context, "buffer", poisoned_buffer)
+    monkeypatch.setattr(moderngl.Context, "texture", poisoned_texture)
+    return made
 
 
 @pytest.mark.parametrize("loop_limit", ["none", "llvmpipe"])
@@ -72,6 +100,22 @@ def test_shader_writes_are_fenced(backend, overlays, loop_limit, gl_ctx, monkeyp
     assert not rec.unknown_programs, rec.unknown_programs
     assert sum(rec.commands.values()) > 20, rec.commands  # the walk was recorded
     assert not rec.hazards, "\n".join(sorted({str(h) for h in rec.hazards}))
+
+
+@pytest.mark.parametrize("backend", _backends())
+def test_no_frame_reads_memory_nothing_wrote(backend, gl_ctx, monkeypatch):
+    """A walk with every new buffer and texture full of POISON draws the same image, bit for bit,
+    as one with the driver's fresh memory: no pass reads what nothing wrote (a GPU's fresh memory
+    holds garbage where llvmpipe's mostly held zeros; on an H200 a test read a plan buffer no pass
+    had written). The loop limit is off, as on a GPU."""
+    monkeypatch.setenv("RTWALK_LOOP_LIMIT", "none")
+    clean = _walk(gl_ctx, backend, overlays=False)
+    made = _poison_new_memory(monkeypatch)
+    poisoned = _walk(gl_ctx, backend, overlays=False)
+    assert made["buffers"] > 0 and made["textures"] > 0, made  # the poison reached the frame's memory
+    assert clean.mean() > 1.0  # something was drawn
+    differ = np.flatnonzero((clean != poisoned).any(axis=-1))
+    assert differ.size == 0, f"{differ.size} of {clean.shape[0] * clean.shape[1]} pixels differ"
 
 
 # ------------------------------------------------------------------------------ the recorder itself
