@@ -43,17 +43,16 @@ def _backends() -> list:
     return params
 
 
-def _walk(ctx, backend: str, overlays: bool) -> np.ndarray:
-    """Four frames of the city-near recording (the first builds, the later ones are steady), and
-    the image read back."""
+def _walk(ctx, backend: str, overlays: bool) -> tuple[np.ndarray, list[dict[str, int]]]:
+    """Four frames of the city-near recording (the first builds, the later ones are steady): the
+    image read back, and each frame's ray counts."""
     ps = prepared_scene("city")
     rec = load_recording(REPO / "recordings" / "city-near.json")
     r = Renderer(ctx, ps.scene, ps.bvh, SIZE, backend, parse_effects(EFFECTS))
     try:
         r.capture_overlays = overlays
-        for n in range(60, 64):
-            r.render(rec.camera_for_frame(n))
-        return r.read_image()
+        rays = [r.render(rec.camera_for_frame(n)).rays for n in range(60, 64)]
+        return r.read_image(), rays
     finally:
         r.release()
 
@@ -105,17 +104,18 @@ def test_shader_writes_are_fenced(backend, overlays, loop_limit, gl_ctx, monkeyp
 @pytest.mark.parametrize("backend", _backends())
 def test_no_frame_reads_memory_nothing_wrote(backend, gl_ctx, monkeypatch):
     """A walk with every new buffer and texture full of POISON draws the same image, bit for bit,
-    as one with the driver's fresh memory: no pass reads what nothing wrote (a GPU's fresh memory
-    holds garbage where llvmpipe's mostly held zeros; on an H200 a test read a plan buffer no pass
-    had written). The loop limit is off, as on a GPU."""
+    and counts the same rays as one with the driver's fresh memory: no pass reads what nothing
+    wrote (a GPU's fresh memory holds garbage where llvmpipe's mostly held zeros; on an H200 a test
+    read a plan buffer no pass had written). The loop limit is off, as on a GPU."""
     monkeypatch.setenv("RTWALK_LOOP_LIMIT", "none")
-    clean = _walk(gl_ctx, backend, overlays=False)
+    clean, clean_rays = _walk(gl_ctx, backend, overlays=False)
     made = _poison_new_memory(monkeypatch)
-    poisoned = _walk(gl_ctx, backend, overlays=False)
+    poisoned, poisoned_rays = _walk(gl_ctx, backend, overlays=False)
     assert made["buffers"] > 0 and made["textures"] > 0, made  # the poison reached the frame's memory
     assert clean.mean() > 1.0  # something was drawn
     differ = np.flatnonzero((clean != poisoned).any(axis=-1))
     assert differ.size == 0, f"{differ.size} of {clean.shape[0] * clean.shape[1]} pixels differ"
+    assert poisoned_rays == clean_rays
 
 
 # ------------------------------------------------------------------------------ the recorder itself

@@ -164,3 +164,6 @@ def test_panel_and_bench_summary_show_the_counters():
                    "device": {"renderer": "r"}}, out)
     assert "I/O per steady frame: to device 0.00 MB (5.0 B/px)" in out.getvalue()
     assert "steady (median of the 3 frames after the first): GPU 5.0 ms, trace 5.0 ms (primary 5.0)" in out.getvalue()
+    # per phase: the mean over every frame (the cold one's 90 ms in it) beside the steady median
+    assert s["steady_gpu_ms_median"] == {"a": 5.0}
+    assert any(line.split() == ["a", "26.25", "5.00"] for line in out.getvalue().splitlines()), out.getvalue()
