@@ -265,3 +265,22 @@ def test_table2_path_windows_and_plot(tmp_path):
     assert _path_md([short]) == []
     _plot_table2([row, short], tmp_path / "t2.png", "test device")
     assert (tmp_path / "t2.png").stat().st_size > 1000
+
+
+def test_stages_study_runs_each_backend_in_both_stages(tmp_path):
+    """--study stages: glsl and chcrt in the fragment and the compute stage, interleaved; each row has
+    the four trace times and the ratios the Markdown table shows (no speed asserted), and the runs
+    carry the stage parameters they were made with."""
+    rc = main(["bench-chcrt", "--quick", "--study", "stages", "--sizes", SIZE, "--recordings", "city-near",
+               "--effects", "primary", "--frames", "3", "--out", str(tmp_path), "--quiet"])
+    assert rc == 0
+    data = _load(tmp_path, "stages")
+    (row,) = data["rows"]
+    times = [row[k] for k in ("glsl_fragment_ms", "glsl_compute_ms", "chcrt_fragment_ms", "chcrt_compute_ms")]
+    assert all(t > 0 for t in times), row
+    assert row["glsl_compute_speedup"] == pytest.approx(times[0] / times[1])
+    assert row["chcrt_speedup_compute"] == pytest.approx(times[1] / times[3])
+    assert row["chcrt_speedup_best"] == pytest.approx(min(times[:2]) / min(times[2:]))
+    params = [run["params"] or "" for run in data["runs"]]
+    assert "stage=compute" in params[1] and "visible_stage=compute" in params[3], params
+    assert "chcrt vs glsl, compute" in (tmp_path / "stages.md").read_text()

@@ -210,9 +210,10 @@ def test_missing_egl_is_one_line(monkeypatch):
     (["--backend", "chcrt", "--backend-params", "nosuch=1"], "nosuch"),
     (["--backend", "chcrt", "--backend-params", "t_q=fast"], "t_q"),
     (["--backend", "chcrt", "--backend-params", "max_batch=99"], "max_batch"),
-    (["--backend", "glsl", "--backend-params", "t_q=1"], "--backend-params"),
+    (["--backend", "embree", "--backend-params", "t_q=1"], "--backend-params"),
     (["--backend", "magic", "--backend-params", "t_q=1"], "magic"),
-], ids=["unknown-key", "bad-value", "out-of-range", "no-params", "unknown-backend"])
+    (["--backend", "glsl", "--backend-params", "stage=vertex"], "stage"),
+], ids=["unknown-key", "bad-value", "out-of-range", "no-params", "unknown-backend", "bad-stage"])
 def test_backend_params_fail_before_the_scene(tmp_path, monkeypatch, command, args, needle):
     """The backend and its parameters are checked before anything is loaded: the scene named here
     does not exist, and the error is still about the parameters."""

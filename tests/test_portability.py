@@ -90,7 +90,9 @@ def _folder_bindings(folder: Path) -> dict:
 
 
 # defines some shaders are never built without (their defaults are for another shader of the file set)
-HOST_DEFINES = {"chc_intersect.frag": {"CHC_MAX_ITEMS": 24}, "raygen.frag": {"RAY_TYPE": 3},
+HOST_DEFINES = {"chc_intersect.frag": {"CHC_MAX_ITEMS": 24},
+                "chc_visible.comp": {"CHC_MAX_ITEMS": 24, "CHC_COUNT_ITEMS": 1},
+                "raygen.frag": {"RAY_TYPE": 3},
                 "accumulate.frag": {"ACC_EFFECT": 3}}
 
 

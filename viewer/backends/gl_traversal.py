@@ -1,4 +1,4 @@
-"""The resumable full BVH traversal shared by the GL backends (trace_glsl.frag).
+"""The resumable full BVH traversal shared by the GL backends (trace_glsl_body.glsl).
 
 Long traversals are finished, never cut short: llvmpipe silently ends shader loops after 65,535
 loop back-edges per invocation, so each ray visits at most `max_visits` BVH nodes per draw; an
@@ -11,6 +11,12 @@ Only Mesa's CPU rasterizers have that limit (`loop_limit`). Elsewhere (an NVIDIA
 visit every node in one draw (`max_visits` = the tree's nodes), so no ray is ever unfinished and the
 counter is never read: a pass then costs no host wait. RTWALK_LOOP_LIMIT=N|none overrides the choice
 (tests run the unlimited path on llvmpipe with short traversals).
+
+Two stages run the same traversal, with the same bits (`STAGES`): a full-screen fragment draw
+(trace_glsl.frag, hits through the framebuffer) or a compute dispatch (trace_glsl.comp, hits into an
+SSBO, then one full-screen draw, trace_resolve.frag, writes them into the HitBuffer). A GPU may run
+compute shaders on many more of its processors than fragment shaders: an NVIDIA H100 or H200 has
+its graphics pipeline on a few of them (docs/device-limits.md).
 """
 
 from __future__ import annotations
@@ -21,11 +27,13 @@ from pathlib import Path
 import moderngl
 import numpy as np
 
+from viewer import iostats
 from viewer.backends.base import BackendContext, WorkCounters
 from viewer.errors import RtwalkError
 from viewer.gl import io as glio
-from viewer.gl.bindings import BIND_IMG_RESUME, BIND_RESUME_COUNTERS, BIND_RESUME_STATE
-from viewer.gl.programs import FullscreenQuad
+from viewer.gl import limits
+from viewer.gl.bindings import BIND_IMG_RESUME, BIND_RESUME_COUNTERS, BIND_RESUME_STATE, BIND_TRACE_HITS
+from viewer.gl.programs import FullscreenQuad, compute_shader
 from viewer.gl.textures import int_texture
 from viewer.rays import HitBuffer, PassInfo, RayBatch
 
@@ -35,6 +43,9 @@ SIMD_WIDTH = 16  # fragments per llvmpipe shader invocation, assumed wide (8 wit
 
 
 LOOP_LIMIT_ENV = "RTWALK_LOOP_LIMIT"
+#: where the traversal runs: a full-screen fragment draw, or a compute dispatch (module docstring)
+STAGES = ("fragment", "compute")
+GROUP = 8  # the compute stage's work groups: GROUP x GROUP pixels (trace_glsl.comp local_size)
 
 
 def loop_limit_env() -> tuple[bool, int | None]:
@@ -74,16 +85,28 @@ def max_visits(max_leaf: int, stack_size: int, other_loops: int = 0, limit: int 
     return max(64, min(4096, budget // per_visit))
 
 
+def visit_cost(max_leaf: int, loops: int) -> int:
+    """`loops` loop back-edges of a SIMD vector in node visits as max_visits counts them (at least
+    one): what a shader that runs other loops between its traversals charges to its visit budget."""
+    per_visit = 1 + 2 * max_leaf + SIMD_WIDTH
+    return max(1, -(-int(loops) // per_visit))
+
+
 class ResumableTraversal:
     """Full BVH traversal of every ray (trace_glsl.frag) that finishes long traversals in further draws.
 
     Also finishes rays another GL backend gave up on: its shader marks such a pixel -2 in the slot
     image (image unit BIND_IMG_RESUME) and counts it once in ResumeCounters.unfinished (SSBO
     BIND_RESUME_COUNTERS) after `bind_flags`; `run(..., resume_only=True)` then traces exactly
-    those rays from the root and overwrites their hits."""
+    those rays from the root and overwrites their hits.
 
-    def __init__(self, bc: BackendContext, work: WorkCounters | None = None):
+    `stage`: "fragment" or "compute" (STAGES): the same hits either way."""
+
+    def __init__(self, bc: BackendContext, work: WorkCounters | None = None, stage: str = "fragment"):
+        if stage not in STAGES:
+            raise RtwalkError(f"traversal stage {stage!r}: choose from {', '.join(STAGES)}")
         self.bc = bc
+        self.stage = stage
         self.work = work or WorkCounters(bc.ctx, enabled=False)
         hist = getattr(bc.bvh.stats, "leaf_size_histogram", None) or {1: 1}
         self.max_leaf = max(int(k) for k in hist)
@@ -97,11 +120,18 @@ class ResumableTraversal:
         self.resume_defines = {"RESUMABLE": int(self.resumable)}
         self.max_visits = (max_visits(self.max_leaf, self.stack_size, limit=self.limit) if self.limit is not None
                            else len(bc.bvh.node_left) + 1)
-        self.program = bc.programs.with_path(SHADER_DIR).get("fullscreen.vert", "trace_glsl.frag",
-                                       {"STACK_SIZE": self.stack_size, "MAX_VISITS": self.max_visits,
-                                        **self.resume_defines, **self.work.defines, **bc.gpu_scene.trace_defines()})
+        defines = {"STACK_SIZE": self.stack_size, "MAX_VISITS": self.max_visits, **self.resume_defines,
+                   **self.work.defines, **bc.gpu_scene.trace_defines()}
+        programs = bc.programs.with_path(SHADER_DIR)
+        if stage == "compute":
+            self.program = compute_shader(bc.ctx, "trace_glsl.comp", defines, (SHADER_DIR,))
+            self.resolve = programs.get("fullscreen.vert", "trace_resolve.frag")
+        else:
+            self.program = programs.get("fullscreen.vert", "trace_glsl.frag", defines)
+            self.resolve = None
         self.program["rayOrigin"] = 0
         self.program["rayDir"] = 1
+        self.hit_words: moderngl.Buffer | None = None  # compute stage: 2 words per pixel (trace_glsl.comp)
         self.quad = FullscreenQuad(bc.ctx)
         self.counters = bc.ctx.buffer(reserve=8)
         self._zeros = bc.ctx.buffer(bytes(8))  # copied on the GPU: zeroing the counters sends nothing per pass
@@ -169,13 +199,23 @@ class ResumableTraversal:
         rays.origin.use(0)
         rays.direction.use(1)
         self.program["anyHit"] = int(pinfo.any_hit)
-        hits.fbo.use()
-        ctx.disable(ctx.BLEND | ctx.DEPTH_TEST)
+        compute = self.resolve is not None
+        if compute:
+            self._bind_hit_words(hits.size)
+        else:
+            hits.fbo.use()
+            ctx.disable(ctx.BLEND | ctx.DEPTH_TEST)
         while True:
             self.state.bind_to_storage_buffer(BIND_RESUME_STATE)
             self.program["resume"] = int(draws > 0 or resume_only)
             self.program["capacity"] = self.capacity
-            self.quad.render(self.program)
+            if compute:
+                self.program["firstDispatch"] = int(draws == 0)
+                w, h = hits.size
+                self.program.run(-(-w // GROUP), -(-h // GROUP))
+                iostats.gl_draw()
+            else:
+                self.quad.render(self.program)
             draws += 1
             if self.limit is None:  # every ray finished in this draw (max_visits covers the tree): no read
                 break
@@ -193,10 +233,39 @@ class ResumableTraversal:
                 glio.write(self.counters, np.array([0, used], np.int32).tobytes())
             else:
                 glio.write(self.counters, np.array([0, allocated], np.int32).tobytes())
+        if compute:
+            self._resolve(hits)
         return {"draws": draws, "resumed_rays": resumed,
                 "continuation_draws": draws - (0 if resume_only else 1)}
 
+    def _bind_hit_words(self, size: tuple[int, int]) -> None:
+        """The compute stage's hit words for `size`, bound; the dispatches write them after every
+        earlier access to the hits (the resolve draw's reads of the last pass included)."""
+        nbytes = 8 * size[0] * size[1]
+        if self.hit_words is None or self.hit_words.size < nbytes:
+            limits.check_storage_block(self.bc.ctx, nbytes, f"the compute traversal's hits at {size[0]}x{size[1]}")
+            if self.hit_words is not None:
+                self.hit_words.release()
+            self.hit_words = self.bc.ctx.buffer(reserve=nbytes)
+        self.bc.ctx.memory_barrier(moderngl.SHADER_STORAGE_BARRIER_BIT)
+        self.hit_words.bind_to_storage_buffer(BIND_TRACE_HITS)
+        self.program["raySize"] = tuple(int(v) for v in size)
+
+    def _resolve(self, hits: HitBuffer) -> None:
+        """The compute stage's hits into the HitBuffer (trace_resolve.frag), after the dispatches'
+        writes; the draw leaves the attachments as a fragment stage's draw would."""
+        ctx = self.bc.ctx
+        ctx.memory_barrier(moderngl.SHADER_STORAGE_BARRIER_BIT)
+        self.hit_words.bind_to_storage_buffer(BIND_TRACE_HITS)
+        self.resolve["width"] = int(hits.size[0])
+        hits.fbo.use()
+        ctx.disable(ctx.BLEND | ctx.DEPTH_TEST)
+        self.quad.render(self.resolve)
+
     def release(self) -> None:
+        if self.hit_words is not None:
+            self.hit_words.release()
+            self.hit_words = None
         for obj in (self.counters, self._zeros, self.state, self.slots):
             if obj is not None:
                 obj.release()

@@ -16,6 +16,8 @@ implementation. Studies (``--study``, comma list or ``all``):
   (bench/chcrt_ooc.py).
 - ``coherence`` (paper Table 5 / Figure 10, section 5.3): glsl and chcrt at per-pixel sample rotations
   of 0 / 18 / 36 / 180 degrees, times and images side by side (bench/chcrt_coherence.py).
+- ``stages``: glsl and chcrt with their ray traversals in fragment or compute shaders, over table2's
+  rows (bench/chcrt_stages.py): what a GPU whose graphics pipeline has few processors gains.
 - ``overhead``: GL per-draw / per-query costs measured on the same context (synthetic), and
   batching / multi-query / query-mode variants of a real chcrt run.
 
@@ -48,6 +50,7 @@ from viewer.backends.interface import params_text
 from viewer.bench.chcrt_coherence import study_coherence
 from viewer.bench.chcrt_common import chc_phases, finish_study, join_params, save_png
 from viewer.bench.chcrt_ooc import study_ooc
+from viewer.bench.chcrt_stages import study_stages
 from viewer.bench.estimate import CostModel, format_estimate, run_estimate, scenes_estimate
 from viewer.bench.gl_micro import MicroResult, micro_overheads
 from viewer.bench.harness import PROTOCOL, Harness, RunResult, RunSpec, effect_settings, is_trace_phase, load_average
@@ -57,8 +60,9 @@ from viewer.bench.report import fmt, md_table, notes_md, ratio, size_text
 from viewer.errors import RtwalkError
 from viewer.paths import RECORDINGS, resolve_recording
 
-STUDIES = ("table2", "table4", "phases", "overhead", "tuning", "ooc", "coherence")
-EXPLICIT_ONLY = ("ooc", "coherence")  # not part of "all" (a 10M-triangle scene; 16 runs): ask for them by name
+STUDIES = ("table2", "table4", "phases", "overhead", "tuning", "ooc", "coherence", "stages")
+EXPLICIT_ONLY = ("ooc", "coherence", "stages")  # not part of "all" (a 10M-triangle scene; 16 runs; not a
+# paper table): ask for them by name
 DEFAULT_RECORDINGS = ("city-near", "city-far", "sponza-walk", "sibenik-walk", "conference-walk")
 PHASE_COUNTERS = ("queries", "multi_queries", "failed_multi_queries", "subtrees_scheduled", "draws",
                   "intersect_draws")
@@ -251,8 +255,9 @@ def options_from_args(args: argparse.Namespace) -> StudyOptions:
         n = load_recording(path).frame_count()
         if o.first_frame is not None and o.first_frame >= n:
             raise RtwalkError(f"--first-frame {o.first_frame} is outside {path.name}'s frames 0..{n - 1}")
-    if "table2" in studies and not o.recordings:
-        raise RtwalkError("table2: none of the recordings' scenes are present")
+    for study in ("table2", "stages"):
+        if study in studies and not o.recordings:
+            raise RtwalkError(f"{study}: none of the recordings' scenes are present")
     return o
 
 
@@ -313,6 +318,10 @@ def estimate(o: StudyOptions) -> dict[str, float]:
         n = len(o.ooc_fractions) + 1
         out["ooc"] = sum(n * _run_estimate("chcrt", e, o.sizes[0], o.ooc_frames) * 1.5
                          for e in o.ooc_effects) * len(o.ooc_recordings) + 8e-6 * o.ooc_scene_size
+    if "stages" in o.studies:  # table2's rows, each configuration in both stages
+        out["stages"] = sum(2 * (_run_estimate("glsl", e, size, o.frames) + _run_estimate("chcrt", e, size, o.frames))
+                            for _ in o.recordings for size in o.sizes for e in o.effects)
+        scene_recs.update(o.recordings)
     if "coherence" in o.studies:
         out["coherence"] = len(o.coherence_recordings) * len(o.perturbs) * sum(
             _run_estimate("chcrt", e, o.sizes[0], o.frames) + _run_estimate("glsl", e, o.sizes[0], o.frames)
@@ -954,7 +963,7 @@ def _plot_tuning(rows: list[TuningRow], path: Path, device: str) -> None:
 STUDY_FUNCS: dict[str, Callable[[Bench], dict]] = {"table2": study_table2, "table4": study_table4,
                                                     "phases": study_phases, "overhead": study_overhead,
                                                     "tuning": study_tuning, "ooc": study_ooc,
-                                                    "coherence": study_coherence}
+                                                    "coherence": study_coherence, "stages": study_stages}
 
 
 def run_studies(o: StudyOptions, out=None) -> list[dict]:

@@ -27,6 +27,7 @@ SSBO: dict[str, int] = {
     "BIND_CULL_VISIBLE": 17,  # G-buffer occlusion culling: visible last frame, per cut node
     "BIND_CULL_CMDS": 18,  # G-buffer occlusion culling: the indirect draw commands written
     "BIND_CULL_STATS": 19,  # G-buffer occlusion culling: triangles and nodes drawn per phase
+    "BIND_TRACE_HITS": 36,  # glsl traversal, compute stage: hits per pixel before the resolve draw
 }
 
 # image units (imageLoad/imageStore/imageAtomic*)
@@ -54,6 +55,7 @@ BIND_MICRO = SSBO["BIND_MICRO"]
 BIND_RESUME_COUNTERS = SSBO["BIND_RESUME_COUNTERS"]
 BIND_RESUME_STATE = SSBO["BIND_RESUME_STATE"]
 BIND_IMG_RESUME = IMAGE["BIND_IMG_RESUME"]
+BIND_TRACE_HITS = SSBO["BIND_TRACE_HITS"]
 BIND_CULL_NODES = SSBO["BIND_CULL_NODES"]
 BIND_CULL_VISIBLE = SSBO["BIND_CULL_VISIBLE"]
 BIND_CULL_CMDS = SSBO["BIND_CULL_CMDS"]

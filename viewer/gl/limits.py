@@ -119,6 +119,16 @@ def check_target_size(ctx: moderngl.Context, size: tuple[int, int], what: str = 
                           f"{sysmem.gib(avail)} can be allocated here; choose a smaller size")
 
 
+def check_storage_block(ctx: moderngl.Context, nbytes: int, what: str) -> None:
+    """RtwalkError (one line) when a shader storage block of `nbytes` is larger than this device lets a
+    shader address (GL_MAX_SHADER_STORAGE_BLOCK_SIZE: 128 MiB on llvmpipe, the spec's minimum)."""
+    cap = int(ctx.info.get("GL_MAX_SHADER_STORAGE_BLOCK_SIZE", 0) or 0)
+    if cap and nbytes > cap:
+        raise RtwalkError(f"{what}: {sysmem.gib(nbytes)} in one storage block, this OpenGL device addresses at "
+                          f"most {sysmem.gib(cap)} ({ctx.info.get('GL_RENDERER', 'unknown renderer')}); "
+                          "choose a smaller size")
+
+
 @contextmanager
 def allocation_guard(size: tuple[int, int], what: str = "--size"):
     """Turn moderngl's allocation failures (incomplete framebuffer, out of memory) while creating

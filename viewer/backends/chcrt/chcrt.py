@@ -111,6 +111,7 @@ from viewer.backends.chcrt.chcrt_layout import (
     BIND_CHC_ITEMS,
     BIND_CHC_QUERIES,
     BIND_CHC_QUERY_COUNTS,
+    BIND_CHC_VIS_HITS,
     BINDINGS,
     COUNT_BYTES,
     COUNT_SLOTS,
@@ -125,9 +126,10 @@ from viewer.backends.chcrt.chcrt_layout import (
 )
 from viewer.backends.chcrt.chcrt_params import ChcrtParams
 from viewer.backends.chcrt.chcrt_pass import ChcrtPass
-from viewer.backends.gl_traversal import ResumableTraversal, max_visits
+from viewer.backends.gl_traversal import ResumableTraversal, max_visits, visit_cost
 from viewer.backends.interface import BackendInfo, OverlaySpec
 from viewer.gl.buffers import StreamBuffer
+from viewer.gl.limits import check_storage_block
 from viewer.gl.programs import FullscreenQuad, compute_shader
 from viewer.gl.textures import TexelView, copy_texture, float_depth_texture, float_texture, int_texture
 from viewer.rays import HitBuffer, PassInfo, RayBatch
@@ -223,7 +225,7 @@ class ChcrtBackend:
         self.prog_query = progs.get("fullscreen.vert", "chc_query.frag", {"CHC_MAX_ITEMS": MAX_BOXES, **wd})
         # rays that would reach llvmpipe's loop limit are finished by the glsl resumable traversal;
         # it counts into the same work counters (full-BVH passes and resumed rays are work too)
-        self.finisher = ResumableTraversal(bc, self.work)
+        self.finisher = ResumableTraversal(bc, self.work, stage=self.p.full_bvh_stage)
         iwd.update(self.finisher.resume_defines)  # (no hand-over code where no ray is handed over)
         # per scheduled item: the item loop, its leaf's triangles and the entered leaves' loop after the
         # item loop, and the query counts' loop
@@ -257,6 +259,19 @@ class ChcrtBackend:
         # (made with the device fronts)
         self._probe_defines = ({**isect_g, "WORK_PROBE": 1}, {**wd, "STACK_SIZE": stack})
         self.probe: tuple[moderngl.Program, moderngl.VertexArray, moderngl.ComputeShader] | None = None
+        # visible_stage=compute (chc_visible.comp, made on first use): the counting intersection with
+        # one invocation per pixel over its tile's records, under ONE loop budget where the loop limit
+        # applies: each record charges its item loops (and the overlay's loop over them) in node visits
+        vis = {k: v for k, v in isect_g.items() if k != "CHC_BATCHED"}
+        if self.finisher.limit is not None:
+            record_loops = (2 if self.merge_kept else 1) * items_loops + 2 * self.p.max_batch
+            vis["CHC_MAX_VISITS"] = max_visits(self.finisher.max_leaf, stack, limit=self.finisher.limit)
+            vis["CHC_RECORD_VISITS"] = visit_cost(self.finisher.max_leaf, record_loops)
+        self._visible_defines = vis
+        self.visible: dict[bool, moderngl.ComputeShader] = {}  # by WORK_PROBE
+        self.visible_hits: moderngl.Buffer | None = None  # 3 words a pixel (chc_visible.comp VisHits)
+        self.prog_visible_resolve = progs.get("fullscreen.vert", "chc_visible_resolve.frag", BINDINGS)
+        self.prog_visible_resolve["depthScale"] = self.depth_scale
         self.steady_warm = False  # the steady passes' programs were drawn once, empty (ChcrtPass.prewarm)
         for prog in (self.prog_init, self.prog_query, self.prog_isect, self.prog_gather, self.prog_query_b,
                      self.prog_isect_b, self.prog_isect_g):
@@ -358,6 +373,28 @@ class ChcrtBackend:
             self.probe = (prog, self.ctx.vertex_array(prog, []), comp)
         return self.probe
 
+    def visible_program(self, probe: bool) -> moderngl.ComputeShader:
+        """visible_stage=compute: chc_visible.comp, with WORK_PROBE when `probe` (made on first use)."""
+        comp = self.visible.get(probe)
+        if comp is None:
+            defines = {**self._visible_defines, "WORK_PROBE": 1} if probe else self._visible_defines
+            comp = compute_shader(self.ctx, "chc_visible.comp", defines, (HERE,))
+            for name, unit in (("rayOrigin", 0), ("rayDir", 1), ("hintId", HINT_UNIT)):
+                comp[name] = unit
+            comp["depthScale"] = self.depth_scale
+            self.visible[probe] = comp
+        return comp
+
+    def bind_visible_hits(self, size: tuple[int, int]) -> None:
+        """visible_stage=compute: the per-pixel hit words for rays of `size`, bound (grown on demand)."""
+        nbytes = 12 * int(size[0]) * int(size[1])
+        if self.visible_hits is None or self.visible_hits.size < nbytes:
+            check_storage_block(self.ctx, nbytes, f"chcrt visible_stage=compute at {size[0]}x{size[1]}")
+            if self.visible_hits is not None:
+                self.visible_hits.release()
+            self.visible_hits = self.ctx.buffer(reserve=nbytes)
+        self.visible_hits.bind_to_storage_buffer(BIND_CHC_VIS_HITS)
+
     # -- Backend protocol ----------------------------------------------------------------------
     def bind_items(self, buf: moderngl.Buffer) -> None:
         """`buf` as the items of the next draws and dispatches: the SSBO at BIND_CHC_ITEMS (compute
@@ -417,6 +454,12 @@ class ChcrtBackend:
             self.probe[1].release()
             self.probe[2].release()
             self.probe = None
+        for comp in self.visible.values():
+            comp.release()
+        self.visible.clear()
+        if self.visible_hits is not None:
+            self.visible_hits.release()
+            self.visible_hits = None
         for obj in (self.vao_isect_g, self.gpu_counts, self.tilebounds, self.tilebounds_init, self.count_rays,
                     self.querycull, self.survivors, self.query_indirect, self.tile_bounds, self.kept_boxes):
             obj.release()

@@ -21,7 +21,8 @@ SSBO = {"BIND_CHC_ITEMS": 5,  # (tile, node) items of a batch draw
         "BIND_CHC_CANDIDATES": 4,  # GPU-driven: the invisible pairs the cull kept (items)
         "BIND_CHC_INDIRECT": 12,  # GPU-driven: the indirect draw command being built
         "BIND_CHC_QUERIES": 13,  # GPU-driven: every query record of the pass, before the coarse cull
-        "BIND_CHC_TILES": 14}  # GPU-driven: per finest tile, ray origin box and farthest reach
+        "BIND_CHC_TILES": 14,  # GPU-driven: per finest tile, ray origin box and farthest reach
+        "BIND_CHC_VIS_HITS": 34}  # visible_stage=compute: hits per pixel before the resolve draw
 IMAGE = {"BIND_IMG_CHC_BEST": 0,  # packed closest hit per pixel
          "BIND_IMG_CHC_OVERDRAW": 1,  # query fragments per pixel (overlay)
          "BIND_IMG_CHC_BATCH": 2}  # subtrees in the pixel's batches (overlay)
@@ -30,7 +31,7 @@ ITEM_UNIT = 3  # texture unit of the items' buffer texture (chc_common.glsl load
 # with the device fronts' (chcrt_devfront.py), and the items' texture unit
 BINDINGS = {**backend_bindings({**SSBO, **FRONT_SSBO}, IMAGE), "BIND_TEX_CHC_ITEMS": ITEM_UNIT}
 (BIND_CHC_ITEMS, BIND_CHC_COUNT, BIND_CHC_DRAWS, BIND_CHC_QUERY_COUNTS, BIND_CHC_CANDIDATES, BIND_CHC_INDIRECT,
- BIND_CHC_QUERIES, BIND_CHC_TILES) = SSBO.values()
+ BIND_CHC_QUERIES, BIND_CHC_TILES, BIND_CHC_VIS_HITS) = SSBO.values()
 BIND_IMG_CHC_BEST, BIND_IMG_CHC_OVERDRAW, BIND_IMG_CHC_BATCH = IMAGE.values()
 
 # gap: written by chc_querycull.comp for the invisible pairs' items (a lower bound of the distance from

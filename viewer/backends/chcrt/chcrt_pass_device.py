@@ -211,7 +211,41 @@ class DeviceFrontSteps:
             n = 1 if bounds_ready else 2
             self.stats["draws"] += n
             iostats.gl_draw(n)
-        self._draw_records_indirect(dv.args, merge_kept=merge)
+        if p.visible_stage == "compute":
+            self._dispatch_visible(level, merge)
+        else:
+            self._draw_records_indirect(dv.args, merge_kept=merge)
+
+    def _dispatch_visible(self, level: int, merge: bool) -> None:
+        """visible_stage=compute: the visible records the device planned (records at BIND_CHC_DRAWS,
+        tile plans at BIND_FR_TILES, items bound) in one dispatch, an invocation per pixel over its
+        finest tile's records (chc_visible.comp), then one full-screen draw that writes the hits
+        through the depth test (chc_visible_resolve.frag). `merge`: the tiles' last records carry
+        their merged kept pairs."""
+        be, ctx = self.be, self.ctx
+        w, h = (int(v) for v in self.size)
+        comp = be.visible_program(self.probe_base >= 0)
+        if self.probe_base >= 0:  # work_probe: this pass sums its work on the sampled pixels
+            comp["probeStride"] = int(self.p.work_probe_stride)
+            comp["probeBase"] = self.probe_base
+            be.device_fronts().meta.bind_to_storage_buffer(FRONT_SSBO["BIND_FR_META"])
+        be.bind_visible_hits((w, h))
+        self._isect_uniforms(comp)
+        comp["raySize"] = (w, h)
+        comp["maxLevel"] = int(level)
+        comp["mergeKept"] = int(merge)
+        # (the ray set-up's images and buffers were written by dispatches that each end with a barrier)
+        comp.run(-(-w // 8), -(-h // 8))
+        # the hit words -> the resolve draw; bestBits' atomics -> the survivors' loads (their own barrier)
+        ctx.memory_barrier(moderngl.SHADER_STORAGE_BARRIER_BIT)
+        self._use_hit_target()
+        prog = be.prog_visible_resolve
+        prog["anyHit"] = int(self.any_hit)
+        prog["width"] = w
+        be.quad.render(prog)
+        self.stats["draws"] += 2
+        self.stats["intersect_draws"] += 1
+        iostats.gl_draw()  # (the dispatch; the quad counts its draw)
 
     def _cull_device(self, dv: DeviceFronts, dev, level: int, sub: int, merge: bool = False) -> None:
         """The invisible items the device planned, culled per cull tile (chc_tilebounds.comp, then
@@ -287,6 +321,8 @@ class DeviceFrontSteps:
             _, vao, comp = be.probe_programs()
             vaos.append(vao)
             comps.append(comp)
+        if be.p.visible_stage == "compute":
+            comps += [be.visible_program(False), *([be.visible_program(True)] if be.p.work_probe > 0 else [])]
         self.hint = hint
         self._bind()
         # every texture the steady draws sample bound as they will be: llvmpipe keys a program's

@@ -1,4 +1,5 @@
-"""The GLSL baseline: a full-screen fragment shader traverses the whole BVH for every ray.
+"""The GLSL baseline: every ray traverses the whole BVH from the root, in a full-screen fragment
+draw or a compute dispatch (`stage`).
 
 The traversal itself (resumed in further draws when llvmpipe's loop limit would cut it short) is
 viewer.backends.gl_traversal.ResumableTraversal, shared with chcrt.
@@ -6,21 +7,36 @@ viewer.backends.gl_traversal.ResumableTraversal, shared with chcrt.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 from viewer.backends.base import BackendContext, StatelessBackend, TraceResult, WorkCounters
-from viewer.backends.gl_traversal import ResumableTraversal
-from viewer.backends.interface import BackendInfo
+from viewer.backends.gl_traversal import STAGES, ResumableTraversal
+from viewer.backends.interface import BackendInfo, param
+from viewer.errors import RtwalkError
 from viewer.rays import HitBuffer, PassInfo, RayBatch
+
+
+@dataclass
+class GlslParams:
+    stage: str = param("fragment", "where the traversal runs: 'fragment' (a full-screen draw, hits through the "
+                       "framebuffer) or 'compute' (a dispatch of 8x8-pixel groups, hits through a buffer and one "
+                       "full-screen copy); the same hits. A GPU may run compute shaders on many more of its "
+                       "processors (an NVIDIA H100/H200: the graphics pipeline is on a few)")
+
+    def validate(self, source: str) -> None:
+        if self.stage not in STAGES:
+            raise RtwalkError(f"{source}: stage={self.stage!r}: choose from {', '.join(STAGES)}")
 
 
 class GlslBackend(StatelessBackend):
     info = BackendInfo("glsl", "full BVH traversal from the root per ray (CHC+RT Table 2 'GLSL' baseline)",
-                       counters=("draws", "resumed_rays"))
+                       params=GlslParams, counters=("draws", "resumed_rays"))
 
-    def __init__(self, bc: BackendContext, params: None = None):
+    def __init__(self, bc: BackendContext, params: GlslParams | None = None):
         self.bc = bc
-        self.params = params
+        self.params = params or GlslParams()
         self.work = WorkCounters(bc.ctx)
-        self.traversal = ResumableTraversal(bc, self.work)
+        self.traversal = ResumableTraversal(bc, self.work, stage=self.params.stage)
 
     @property
     def max_visits(self) -> int:

@@ -1,0 +1,95 @@
+// CHC+RT intersection, the compute stage (ChcrtParams.visible_stage = compute): the visible records
+// of a device front's GPU-driven pass, one invocation per pixel (work groups of 8x8 pixels) instead of
+// one fragment per (record, pixel). The invocation finds its finest tile's plan (chc_front_plan.comp
+// wrote its records, in tile order), sets its ray up once, and runs the tile's records in their
+// order (chc_intersect_record.glsl, as the fragment stage does), the nearest hit so far carried from
+// record to record. Why: a GPU may run compute shaders on many more of its processors than
+// fragment shaders (an NVIDIA H100/H200 has its graphics pipeline on a few), and a pixel's ray is
+// fetched, set up and tested against its hint once, not once per record.
+// Output: 3 words per pixel (row-major) in VisHits: t's bits, the triangle id (-1: no hit found
+// here), the scheduled subtree that holds it (overlay); chc_visible_resolve.frag writes them through
+// the depth test, as the fragment stage's draw would. bestBits takes the hit as in that stage.
+// Loop limit (RESUMABLE): the records of one invocation share llvmpipe's back-edge budget, so each
+// record first charges CHC_RECORD_VISITS node visits' worth of its item loops to `visits`
+// (chcrt.py), and the ray is handed over once CHC_MAX_VISITS is reached, as in one record.
+#undef CHC_BATCHED  // (the records are read here: no instanced draw hands them over as vertex outputs)
+#include "chc_intersect_record.glsl"
+#include "chc_front.glsl"
+#ifndef CHC_COUNT_ITEMS
+#error "chc_visible.comp: the counting intersection's build (CHC_COUNT_ITEMS)"
+#endif
+layout(local_size_x = 8, local_size_y = 8) in;
+layout(std430, binding = BIND_FR_TILES) readonly buffer TilePlans { ChcTilePlan plans[]; };
+layout(std430, binding = BIND_CHC_DRAWS) readonly buffer ChcDraws { ChcDraw draws[]; };
+layout(std430, binding = BIND_CHC_VIS_HITS) writeonly buffer VisHits { uint visHits[]; };
+uniform ivec2 raySize;
+uniform int maxLevel;   // the finest tiles' quadtree level (tile = ty * 2^level + tx)
+uniform int mergeKept;  // 1: a tile's last record carries its merged kept pairs (chc_querycull.comp)
+#ifndef CHC_RECORD_VISITS
+#define CHC_RECORD_VISITS 0
+#endif
+
+// the finest tile holding pixel coordinate x of an image `size` wide (tileRect's inverse: tile t
+// covers [(t * size) >> level, ((t + 1) * size) >> level))
+int tileOf(int x, int size, int level) { return (((x + 1) << level) - 1) / size; }
+
+void main() {
+    ivec2 px = ivec2(gl_GlobalInvocationID.xy);
+    if (any(greaterThanEqual(px, raySize))) return;
+    int w = 3 * (px.y * raySize.x + px.x);
+    int side = 1 << maxLevel;
+    ChcTilePlan tp = plans[tileOf(px.y, raySize.y, maxLevel) * side + tileOf(px.x, raySize.x, maxLevel)];
+    int r0 = tp.recBase, r1 = tp.recBase + tp.nrec;
+    // the overlays count every record's subtrees at every pixel of it, as its fragments do
+    for (int k = r0; k < (countOverlays != 0 ? r1 : r0); ++k) {
+        bool kept = mergeKept != 0 && keptCarrier(tp, k);
+        countRecordOverlays(px, draws[k].info.y, kept ? tp.keptCount : 0, 0);
+    }
+    int best = imageLoad(bestBits, px).r;
+    visHits[w + 1] = uint(-1);
+    if (best < 0 || r0 == r1) return;
+    vec4 ot = texelFetch(rayOrigin, px, 0);
+    vec4 dt = texelFetch(rayDir, px, 0);
+    float dlen = length(dt.xyz) * (1.0 + 1e-4);
+    RayPre r = prepareRay(ot.xyz, dt.xyz);
+    float tmin = ot.w;
+    bool any = anyHit != 0;
+    Hit hit = Hit(min(intBitsToFloat(best), dt.w), -1);
+    bool done = testHint(px, best == floatBitsToInt(dt.w), r, tmin, any, hit);
+    int visits = 0;
+    for (int k = r0; k < r1 && !done; ++k) {
+        ChcDraw d = draws[k];
+        int kb = 0, kc = 0;
+        if (mergeKept != 0 && keptCarrier(tp, k)) { kb = tp.keptBase; kc = tp.keptCount; }
+        if (recordBeyond(d.info.x, d.info.y, kb, kc, hit.t * dlen)) continue;
+#if RESUMABLE
+        if (visits + CHC_RECORD_VISITS > CHC_MAX_VISITS) {  // the budget cannot take this record's loops:
+            // the ray is traced again from the root after the pass (the pairs of the records left
+            // out count nothing for it: the front may refine less, the hits stay exact)
+            if (imageAtomicExchange(resumeSlot, px, -2) != -2) atomicAdd(unfinished, 1);
+            break;
+        }
+#endif
+        visits += CHC_RECORD_VISITS;
+        intersectRecord(px, d.info.x, d.info.y, kb, kc, r, tmin, dlen, any, hit, done, visits);
+    }
+    workFlushPixel(0, px);
+#ifdef WORK_PROBE
+    // one unit per box and triangle test, and one for the invocation (its ray set-up)
+    if (probePixel(px, probeStride)) atomicAdd(chcMeta[probeBase], int(workBox + workTri) + 1);
+#endif
+    if (hit.id < 0) return;
+#ifdef CHC_OOC
+    hit.id = tris[hit.id].id;  // out-of-core: cache slot -> the triangle's leaf-order slot
+#endif
+    int sub = -1;
+    for (int k = r0; k < (countOverlays != 0 ? r1 : r0); ++k) {
+        bool kept = mergeKept != 0 && keptCarrier(tp, k);
+        int s = subtreeOfHit(hit.id, draws[k].info.x, draws[k].info.y, kept ? tp.keptBase : 0, kept ? tp.keptCount : 0);
+        if (s >= 0) sub = s;
+    }
+    imageAtomicMin(bestBits, px, any ? -1 : floatBitsToInt(hit.t));
+    visHits[w] = floatBitsToUint(hit.t);
+    visHits[w + 1] = uint(hit.id);
+    visHits[w + 2] = uint(sub);
+}
