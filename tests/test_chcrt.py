@@ -341,7 +341,7 @@ def test_trace_rays_entry_point_matches_glsl():
     from viewer.tracing import trace_rays
 
     # random rays inside a small city: many subtrees per tile and per ray (this caught a Mesa
-    # llvmpipe miscompilation of repeated traversal loops, see backends/chcrt/chc_intersect.frag)
+    # llvmpipe miscompilation of repeated traversal loops, see backends/chcrt/chc_intersect_record.glsl)
     tris = make_city(20_000, 1).triangles
     n = 50_000
     rng = np.random.default_rng(1)

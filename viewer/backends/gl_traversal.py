@@ -5,7 +5,8 @@ loop back-edges per invocation, so each ray visits at most `max_visits` BVH node
 unfinished ray saves its traversal state and further draws continue the unfinished rays until an
 atomic counter says none is left (stats: resumed_rays, continuation_draws). The glsl backend traces
 every ray with it; chcrt finishes the rays its own shader gave up on. A module of its own so that no
-backend imports another. Its shader, trace_glsl.frag, lives in the glsl backend's folder.
+backend imports another. Its shaders (trace_glsl_body.glsl, run by trace_glsl.frag or trace_glsl.comp) live
+in the glsl backend's folder.
 
 Only Mesa's CPU rasterizers have that limit (`loop_limit`). Elsewhere (an NVIDIA GPU) a ray may
 visit every node in one draw (`max_visits` = the tree's nodes), so no ray is ever unfinished and the
@@ -37,7 +38,7 @@ from viewer.gl.programs import FullscreenQuad, compute_shader
 from viewer.gl.textures import int_texture
 from viewer.rays import HitBuffer, PassInfo, RayBatch
 
-SHADER_DIR = Path(__file__).resolve().parent / "glsl"  # trace_glsl.frag lives in the glsl backend's folder
+SHADER_DIR = Path(__file__).resolve().parent / "glsl"  # trace_glsl_* live in the glsl backend's folder
 LOOP_LIMIT = 65_535  # llvmpipe: loop back-edges per shader invocation, shared by all loops
 SIMD_WIDTH = 16  # fragments per llvmpipe shader invocation, assumed wide (8 with 256-bit vectors)
 
@@ -93,7 +94,7 @@ def visit_cost(max_leaf: int, loops: int) -> int:
 
 
 class ResumableTraversal:
-    """Full BVH traversal of every ray (trace_glsl.frag) that finishes long traversals in further draws.
+    """Full BVH traversal of every ray (trace_glsl_body.glsl) that finishes long traversals in further draws.
 
     Also finishes rays another GL backend gave up on: its shader marks such a pixel -2 in the slot
     image (image unit BIND_IMG_RESUME) and counts it once in ResumeCounters.unfinished (SSBO

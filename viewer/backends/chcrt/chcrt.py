@@ -36,7 +36,7 @@ stale image read only costs work. Conservative mode (visible_threshold = 0) ther
 the glsl baseline's nearest hit, bit for bit in t, except on ties: two triangles at the same true
 distance (shared edges, coplanar overlaps), where the winner depends on the visiting order in
 glsl too. Any-hit rays agree on hit/miss (which occluder is reported depends on the order).
-See chc_intersect.frag for llvmpipe's loop limit and how rays that would reach it are finished.
+See chc_intersect_record.glsl for llvmpipe's loop limit and how rays that would reach it are finished.
 
 Overlays (TraceResult.overlays, R32I at the ray-batch size, overwritten by the next pass while
 overlays are wanted, `overlays_enabled`; left as they are otherwise):
@@ -203,7 +203,7 @@ class ChcrtBackend:
         progs = bc.programs.with_path(HERE)
         self.work = WorkCounters(self.ctx)
         wd = {**self.work.defines, **BINDINGS, **bc.gpu_scene.trace_defines()}
-        # one subtree at a time is on the traversal stack (chc_intersect.frag); subtrees found visible by
+        # one subtree at a time is on the traversal stack (chc_intersect_record.glsl); subtrees found visible by
         # the GPU-driven pass, and lowest common ancestors, can be as high as the tree
         stack = max(self.p.max_subtree_height, int(self.nt.height[0]), 1) + 2
         # GPU-driven steady state (ChcrtParams.gpu_driven); device fronts are made on the first steady

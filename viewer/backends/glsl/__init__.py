@@ -1,5 +1,6 @@
 """glsl: the full-BVH GLSL baseline, a backend folder with its code (glsl.py) and its shader
-(trace_glsl.frag, run by viewer.backends.gl_traversal, which chcrt shares)."""
+(trace_glsl_body.glsl, a fragment or a compute stage, run by viewer.backends.gl_traversal, which chcrt
+shares)."""
 
 from viewer.backends.glsl.glsl import GlslBackend
 
