@@ -111,7 +111,7 @@ def test_harness_drives_an_unknown_backend(probe_registered, tmp_path, gl_ctx):
             assert f["trace_gpu_ms"] > 0
         assert run.steady.frames == 2 and run.cold.frames == 1
     assert a.params == "label=a,repeat=1" and b.params == "label=b,repeat=3"
-    assert glsl.params == "stage=fragment"  # a backend's effective parameters, its defaults included
+    assert glsl.params == "stage=auto"  # a backend's effective parameters, its defaults included
     # counters per pass summed per frame: b has two passes (primary, shadows) of 3 draws each
     assert a.steady.counters["probe_draws"] == 1.0
     assert b.steady.counters["probe_draws"] == 6.0

@@ -186,3 +186,55 @@ def test_chcrt_visible_records_take_either_stage(case, gl_ctx, monkeypatch):
     if case == "overlays":
         assert {"query_overdraw", "subtree_id", "batch_subtrees"} <= set(ov_c)
         assert ov_c["batch_subtrees"].any() and ov_c["query_overdraw"].any() and (ov_c["subtree_id"] >= 0).any()
+
+
+def test_auto_takes_the_fragment_stage_on_a_software_rasterizer_and_the_probes_choice_elsewhere(gl_ctx, monkeypatch):
+    """stage=auto (viewer.gl.stages): llvmpipe's fragment stage traces faster, so a software rasterizer
+    takes it without a probe; another device takes compute only where the probe measured it
+    COMPUTE_MARGIN times faster, and measures once per context. The backends report what they ran."""
+    import viewer.gl.stages as stages
+    from viewer.backends.chcrt.chcrt_params import ChcrtParams
+    from viewer.backends.glsl.glsl import GlslParams
+    from viewer.errors import RtwalkError
+
+    assert GlslParams().stage == ChcrtParams().visible_stage == ChcrtParams().full_bvh_stage == "auto"
+    with pytest.raises(RtwalkError, match="stage"):
+        GlslParams(stage="vertex").validate("--backend-params")
+    calls = []
+
+    def probe(ctx):
+        calls.append(ctx)
+        return probes.pop(0)
+
+    monkeypatch.setattr(stages, "measure_stages", probe)
+    probes = []
+    if stages.is_software_renderer(gl_ctx.info["GL_RENDERER"]):
+        assert stages.resolve_stage(gl_ctx, "auto") == "fragment" and not calls  # no probe on a CPU rasterizer
+    for stage in stages.STAGES:  # an explicit stage is taken as it is
+        assert stages.resolve_stage(gl_ctx, stage) == stage
+
+    class Ctx:  # a hardware device, as far as the choice can tell
+        info = {"GL_RENDERER": "NVIDIA H200/PCIe/SSE2"}
+        extra = None
+
+    hw = Ctx()
+    probes = [stages.StageProbe(fragment_ms=31.0, compute_ms=1.0, iterations=64)]
+    assert stages.resolve_stage(hw, "auto") == "compute" and stages.resolve_stage(hw, "auto") == "compute"
+    assert len(calls) == 1  # measured once per context
+    other = Ctx()
+    probes = [stages.StageProbe(fragment_ms=3.0, compute_ms=2.0, iterations=64)]
+    assert stages.resolve_stage(other, "auto") == "fragment"  # faster, but not by the margin
+    # what glsl and chcrt ran is in their statistics
+    reports, _ = _walk(gl_ctx, "auto", "primary", frames=range(118, 119))
+    expected = int(stages.resolve_stage(gl_ctx, "auto") == "compute")
+    assert reports[-1].backend_stats["compute_stage"] == expected
+
+
+def test_the_probe_measures_both_stages(gl_ctx):
+    """measure_stages on this device: positive times for the same work, sized up until it takes
+    PROBE_MIN_MS (or the iteration cap), and a choice; nothing left bound that a frame would read."""
+    from viewer.gl.stages import PROBE_MAX_ITERATIONS, PROBE_MIN_MS, STAGES, measure_stages
+
+    probe = measure_stages(gl_ctx)
+    assert probe.fragment_ms > 0 and probe.compute_ms > 0 and probe.choice in STAGES
+    assert max(probe.fragment_ms, probe.compute_ms) >= PROBE_MIN_MS or probe.iterations >= PROBE_MAX_ITERATIONS

@@ -17,7 +17,8 @@ Two stages run the same traversal, with the same bits (`STAGES`): a full-screen 
 (trace_glsl.frag, hits through the framebuffer) or a compute dispatch (trace_glsl.comp, hits into an
 SSBO, then one full-screen draw, trace_resolve.frag, writes them into the HitBuffer). A GPU may run
 compute shaders on many more of its processors than fragment shaders: an NVIDIA H100 or H200 has
-its graphics pipeline on a few of them (docs/device-limits.md).
+its graphics pipeline on a few of them (docs/device-limits.md). The backends choose it
+(viewer.gl.stages.resolve_stage: `auto` follows the device).
 """
 
 from __future__ import annotations
@@ -35,6 +36,7 @@ from viewer.gl import io as glio
 from viewer.gl import limits
 from viewer.gl.bindings import BIND_IMG_RESUME, BIND_RESUME_COUNTERS, BIND_RESUME_STATE, BIND_TRACE_HITS
 from viewer.gl.programs import FullscreenQuad, compute_shader
+from viewer.gl.stages import STAGES
 from viewer.gl.textures import int_texture
 from viewer.rays import HitBuffer, PassInfo, RayBatch
 
@@ -44,8 +46,6 @@ SIMD_WIDTH = 16  # fragments per llvmpipe shader invocation, assumed wide (8 wit
 
 
 LOOP_LIMIT_ENV = "RTWALK_LOOP_LIMIT"
-#: where the traversal runs: a full-screen fragment draw, or a compute dispatch (module docstring)
-STAGES = ("fragment", "compute")
 GROUP = 8  # the compute stage's work groups: GROUP x GROUP pixels (trace_glsl.comp local_size)
 
 

@@ -28,6 +28,7 @@ SSBO: dict[str, int] = {
     "BIND_CULL_CMDS": 18,  # G-buffer occlusion culling: the indirect draw commands written
     "BIND_CULL_STATS": 19,  # G-buffer occlusion culling: triangles and nodes drawn per phase
     "BIND_TRACE_HITS": 36,  # glsl traversal, compute stage: hits per pixel before the resolve draw
+    "BIND_STAGE_PROBE": 37,  # the fragment-or-compute probe's output (viewer/gl/stages.py)
 }
 
 # image units (imageLoad/imageStore/imageAtomic*)
@@ -56,6 +57,7 @@ BIND_RESUME_COUNTERS = SSBO["BIND_RESUME_COUNTERS"]
 BIND_RESUME_STATE = SSBO["BIND_RESUME_STATE"]
 BIND_IMG_RESUME = IMAGE["BIND_IMG_RESUME"]
 BIND_TRACE_HITS = SSBO["BIND_TRACE_HITS"]
+BIND_STAGE_PROBE = SSBO["BIND_STAGE_PROBE"]
 BIND_CULL_NODES = SSBO["BIND_CULL_NODES"]
 BIND_CULL_VISIBLE = SSBO["BIND_CULL_VISIBLE"]
 BIND_CULL_CMDS = SSBO["BIND_CULL_CMDS"]

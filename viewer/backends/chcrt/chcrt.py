@@ -131,6 +131,7 @@ from viewer.backends.interface import BackendInfo, OverlaySpec
 from viewer.gl.buffers import StreamBuffer
 from viewer.gl.limits import check_storage_block
 from viewer.gl.programs import FullscreenQuad, compute_shader
+from viewer.gl.stages import resolve_stage
 from viewer.gl.textures import TexelView, copy_texture, float_depth_texture, float_texture, int_texture
 from viewer.rays import HitBuffer, PassInfo, RayBatch
 from viewer.screen_tiles import max_tile_level
@@ -225,7 +226,9 @@ class ChcrtBackend:
         self.prog_query = progs.get("fullscreen.vert", "chc_query.frag", {"CHC_MAX_ITEMS": MAX_BOXES, **wd})
         # rays that would reach llvmpipe's loop limit are finished by the glsl resumable traversal;
         # it counts into the same work counters (full-BVH passes and resumed rays are work too)
-        self.finisher = ResumableTraversal(bc, self.work, stage=self.p.full_bvh_stage)
+        self.full_bvh_stage = resolve_stage(self.ctx, self.p.full_bvh_stage)  # (auto: what this device runs faster)
+        self.visible_stage = resolve_stage(self.ctx, self.p.visible_stage)
+        self.finisher = ResumableTraversal(bc, self.work, stage=self.full_bvh_stage)
         iwd.update(self.finisher.resume_defines)  # (no hand-over code where no ray is handed over)
         # per scheduled item: the item loop, its leaf's triangles and the entered leaves' loop after the
         # item loop, and the query counts' loop
@@ -556,6 +559,8 @@ class ChcrtBackend:
                 tr.prewarm(self.hints.get(key))
         stats["resumed_rays"] = fin["resumed_rays"]
         stats["continuation_draws"] = fin["draws"]
+        stats["visible_compute"] = int(self.visible_stage == "compute")  # (the stages auto chose here)
+        stats["full_bvh_compute"] = int(self.full_bvh_stage == "compute")
         stats.update(self.work.end())
         front.frames += 1
         self.last_stats = stats

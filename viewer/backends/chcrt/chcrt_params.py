@@ -4,10 +4,10 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from viewer.backends.gl_traversal import STAGES
 from viewer.backends.interface import param
 from viewer.effects import RayType
 from viewer.errors import RtwalkError
+from viewer.gl.stages import STAGE_CHOICES
 
 QUERY_MODES = ("batched", "hw")
 MAX_LEAF_CACHE = 16
@@ -68,9 +68,9 @@ class ChcrtParams:
                                      "tiles would traverse an LCA (incoherent rays), the pass traces every ray "
                                      "through the whole BVH with the glsl traversal instead, and the front is left "
                                      "as it is (0 = never)")
-    full_bvh_stage: str = param("fragment", "where the glsl traversal runs in chcrt's whole-BVH passes and for the "
-                                "rays handed over at the loop limit: 'fragment' or 'compute' (glsl's `stage`; the "
-                                "same hits)")
+    full_bvh_stage: str = param("auto", "where the glsl traversal runs in chcrt's whole-BVH passes and for the "
+                                "rays handed over at the loop limit: 'fragment', 'compute' or 'auto' (glsl's `stage`; "
+                                "the same hits)")
     lca_pairs: int = param(64, "GPU-driven with lca_invisible: a finest tile with more visible + invisible pairs "
                            "than this traverses their lowest common ancestor (0 = no limit)")
     lca_primary: bool = param(False, "GPU-driven: primary-ray passes take the LCA fallback too (lca_pairs, "
@@ -124,12 +124,12 @@ class ChcrtParams:
                              "tests them in its last visible record's fragments, after that record's visible "
                              "pairs (one fragment per ray instead of two; its cull reaches as far as the rays' "
                              "tmax); other tiles keep the survivors' draw")
-    visible_stage: str = param("fragment", "device fronts: where the visible records are intersected: 'fragment' (one "
-                               "instanced draw, a fragment per record and pixel) or 'compute' (one dispatch, an "
+    visible_stage: str = param("auto", "device fronts: where the visible records are intersected: 'fragment' (one "
+                               "instanced draw, a fragment per record and pixel), 'compute' (one dispatch, an "
                                "invocation per pixel over its tile's records, the ray set up once; then one "
-                               "full-screen draw writes the hits through the depth test). The same hits. A GPU may "
-                               "run compute shaders on many more of its processors (an NVIDIA H100/H200: the "
-                               "graphics pipeline is on a few); llvmpipe runs the fragment stage faster")
+                               "full-screen draw writes the hits through the depth test; the same hits) or 'auto' "
+                               "(glsl's `stage`: fragment on a software rasterizer, which runs it faster, else compute "
+                               "where a probe finds compute shaders 2x faster, as on an NVIDIA H100/H200)")
     work_probe: int = param(16, "device fronts: every this many passes (and at a front's first device pass) the "
                             "pass measures its work on a sparse grid of rays (box and triangle tests, "
                             "work_probe_stride) against the full traversal's for the same rays; a front that "
@@ -187,8 +187,8 @@ class ChcrtParams:
             raise RtwalkError(f"{source}: gpu_budget_mb must be >= 0 and gpu_budget_fraction in 0..1")
         if not 0 <= self.leaf_cache <= MAX_LEAF_CACHE:
             raise RtwalkError(f"{source}: leaf_cache must be in 0..{MAX_LEAF_CACHE}")
-        if self.full_bvh_stage not in STAGES or self.visible_stage not in STAGES:
-            raise RtwalkError(f"{source}: full_bvh_stage and visible_stage must be one of {', '.join(STAGES)}")
+        if self.full_bvh_stage not in STAGE_CHOICES or self.visible_stage not in STAGE_CHOICES:
+            raise RtwalkError(f"{source}: full_bvh_stage and visible_stage must be one of {', '.join(STAGE_CHOICES)}")
         if self.query_mode not in QUERY_MODES:
             raise RtwalkError(f"{source}: query_mode must be one of {', '.join(QUERY_MODES)}")
         if not (self.t_q > 0 and self.t_q_primary > 0 and 0 < self.min_tile_fraction <= 1

@@ -211,7 +211,7 @@ class DeviceFrontSteps:
             n = 1 if bounds_ready else 2
             self.stats["draws"] += n
             iostats.gl_draw(n)
-        if p.visible_stage == "compute":
+        if be.visible_stage == "compute":
             self._dispatch_visible(level, merge)
         else:
             self._draw_records_indirect(dv.args, merge_kept=merge)
@@ -321,7 +321,7 @@ class DeviceFrontSteps:
             _, vao, comp = be.probe_programs()
             vaos.append(vao)
             comps.append(comp)
-        if be.p.visible_stage == "compute":
+        if be.visible_stage == "compute":
             comps += [be.visible_program(False), *([be.visible_program(True)] if be.p.work_probe > 0 else [])]
         self.hint = hint
         self._bind()

@@ -10,22 +10,24 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from viewer.backends.base import BackendContext, StatelessBackend, TraceResult, WorkCounters
-from viewer.backends.gl_traversal import STAGES, ResumableTraversal
+from viewer.backends.gl_traversal import ResumableTraversal
 from viewer.backends.interface import BackendInfo, param
 from viewer.errors import RtwalkError
+from viewer.gl.stages import STAGE_CHOICES, resolve_stage
 from viewer.rays import HitBuffer, PassInfo, RayBatch
 
 
 @dataclass
 class GlslParams:
-    stage: str = param("fragment", "where the traversal runs: 'fragment' (a full-screen draw, hits through the "
-                       "framebuffer) or 'compute' (a dispatch of 8x8-pixel groups, hits through a buffer and one "
-                       "full-screen copy); the same hits. A GPU may run compute shaders on many more of its "
-                       "processors (an NVIDIA H100/H200: the graphics pipeline is on a few)")
+    stage: str = param("auto", "where the traversal runs: 'fragment' (a full-screen draw, hits through the "
+                       "framebuffer), 'compute' (a dispatch of 8x8-pixel groups, hits through a buffer and one "
+                       "full-screen copy; the same hits) or 'auto': fragment on a software rasterizer, else compute "
+                       "where a probe finds compute shaders 2x faster (an NVIDIA H100/H200 runs fragment shaders "
+                       "on a few of its processors; viewer/gl/stages.py)")
 
     def validate(self, source: str) -> None:
-        if self.stage not in STAGES:
-            raise RtwalkError(f"{source}: stage={self.stage!r}: choose from {', '.join(STAGES)}")
+        if self.stage not in STAGE_CHOICES:
+            raise RtwalkError(f"{source}: stage={self.stage!r}: choose from {', '.join(STAGE_CHOICES)}")
 
 
 class GlslBackend(StatelessBackend):
@@ -36,7 +38,8 @@ class GlslBackend(StatelessBackend):
         self.bc = bc
         self.params = params or GlslParams()
         self.work = WorkCounters(bc.ctx)
-        self.traversal = ResumableTraversal(bc, self.work, stage=self.params.stage)
+        self.stage = resolve_stage(bc.ctx, self.params.stage)
+        self.traversal = ResumableTraversal(bc, self.work, stage=self.stage)
 
     @property
     def max_visits(self) -> int:
@@ -47,6 +50,7 @@ class GlslBackend(StatelessBackend):
         self.work.begin(hits.size)
         with self.bc.profiler.phase(f"trace:{pinfo.ray_type.label}"):
             stats = self.traversal.run(rays, pinfo, hits)
+        stats["compute_stage"] = int(self.stage == "compute")  # (stage=auto: what it chose here)
         return TraceResult(stats={**stats, **self.work.end()})
 
     def scene_changed(self, bc: BackendContext) -> None:
