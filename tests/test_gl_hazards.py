@@ -101,6 +101,40 @@ def test_shader_writes_are_fenced(backend, overlays, loop_limit, gl_ctx, monkeyp
     assert not rec.hazards, "\n".join(sorted({str(h) for h in rec.hazards}))
 
 
+# the compute stages of the GL traversals (viewer/gl/stages.py), which `auto` takes on devices other
+# than a software rasterizer: their parameters, by backend
+COMPUTE_STAGES = {"glsl": "stage=compute", "chcrt": "visible_stage=compute,full_bvh_stage=compute"}
+
+
+@pytest.mark.parametrize("loop_limit", ["none", "llvmpipe"])
+@pytest.mark.parametrize("backend", sorted(COMPUTE_STAGES))
+def test_compute_stages_are_fenced(backend, loop_limit, gl_ctx, monkeypatch):
+    """The compute stages, which llvmpipe never takes by default, under the same recorder: their
+    dispatches, hit buffers and resolve draws need the barriers a GPU needs too."""
+    monkeypatch.setenv(backend_info(backend).env_var, COMPUTE_STAGES[backend])
+    if loop_limit == "none":
+        monkeypatch.setenv("RTWALK_LOOP_LIMIT", "none")
+    else:
+        monkeypatch.delenv("RTWALK_LOOP_LIMIT", raising=False)
+    rec = HazardRecorder()
+    with rec.installed(monkeypatch):
+        _walk(gl_ctx, backend, overlays=False)
+    assert not rec.unknown_programs, rec.unknown_programs
+    assert not rec.hazards, "\n".join(sorted({str(h) for h in rec.hazards}))
+
+
+@pytest.mark.parametrize("backend", sorted(COMPUTE_STAGES))
+def test_compute_stages_read_no_memory_nothing_wrote(backend, gl_ctx, monkeypatch):
+    """test_no_frame_reads_memory_nothing_wrote for the compute stages (their hit buffers are new
+    memory every renderer)."""
+    monkeypatch.setenv(backend_info(backend).env_var, COMPUTE_STAGES[backend])
+    monkeypatch.setenv("RTWALK_LOOP_LIMIT", "none")
+    clean, clean_rays = _walk(gl_ctx, backend, overlays=False)
+    _poison_new_memory(monkeypatch)
+    poisoned, poisoned_rays = _walk(gl_ctx, backend, overlays=False)
+    assert np.array_equal(clean, poisoned) and poisoned_rays == clean_rays
+
+
 @pytest.mark.parametrize("backend", _backends())
 def test_no_frame_reads_memory_nothing_wrote(backend, gl_ctx, monkeypatch):
     """A walk with every new buffer and texture full of POISON draws the same image, bit for bit,
