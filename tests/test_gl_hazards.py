@@ -89,13 +89,18 @@ def _poison_new_memory(monkeypatch) -> dict[str, int]:
 @pytest.mark.parametrize("overlays", [False, True], ids=["plain", "overlays"])
 @pytest.mark.parametrize("backend", _backends())
 def test_shader_writes_are_fenced(backend, overlays, loop_limit, gl_ctx, monkeypatch):
+    _assert_fenced_walk(gl_ctx, backend, overlays, loop_limit, monkeypatch)
+
+
+def _assert_fenced_walk(ctx, backend: str, overlays: bool, loop_limit: str, monkeypatch) -> None:
+    """The walk under the recorder, with llvmpipe's loop limit or none (as on a GPU): no hazard."""
     if loop_limit == "none":
         monkeypatch.setenv("RTWALK_LOOP_LIMIT", "none")
     else:
         monkeypatch.delenv("RTWALK_LOOP_LIMIT", raising=False)
     rec = HazardRecorder()
     with rec.installed(monkeypatch):
-        _walk(gl_ctx, backend, overlays)
+        _walk(ctx, backend, overlays)
     assert not rec.unknown_programs, rec.unknown_programs
     assert sum(rec.commands.values()) > 20, rec.commands  # the walk was recorded
     assert not rec.hazards, "\n".join(sorted({str(h) for h in rec.hazards}))
@@ -112,15 +117,7 @@ def test_compute_stages_are_fenced(backend, loop_limit, gl_ctx, monkeypatch):
     """The compute stages, which llvmpipe never takes by default, under the same recorder: their
     dispatches, hit buffers and resolve draws need the barriers a GPU needs too."""
     monkeypatch.setenv(backend_info(backend).env_var, COMPUTE_STAGES[backend])
-    if loop_limit == "none":
-        monkeypatch.setenv("RTWALK_LOOP_LIMIT", "none")
-    else:
-        monkeypatch.delenv("RTWALK_LOOP_LIMIT", raising=False)
-    rec = HazardRecorder()
-    with rec.installed(monkeypatch):
-        _walk(gl_ctx, backend, overlays=False)
-    assert not rec.unknown_programs, rec.unknown_programs
-    assert not rec.hazards, "\n".join(sorted({str(h) for h in rec.hazards}))
+    _assert_fenced_walk(gl_ctx, backend, False, loop_limit, monkeypatch)
 
 
 @pytest.mark.parametrize("backend", sorted(COMPUTE_STAGES))
