@@ -376,7 +376,8 @@ GENERIC = ["viewer/renderer.py", "viewer/cli.py", "viewer/cli_args.py", "viewer/
 # benchmark modules that are one backend's (or one paper's) studies and so may name backends; every
 # other module of viewer/bench is generic (an explicit list: a new study does not slip through by
 # its file name)
-BACKEND_STUDIES = {"chcrt.py", "chcrt_common.py", "chcrt_coherence.py", "chcrt_ooc.py", "chcrt_stages.py", "pgrid.py",
+BACKEND_STUDIES = {"chcrt.py", "chcrt_common.py", "chcrt_coherence.py", "chcrt_ooc.py", "chcrt_stages.py",
+                   "chcrt_coldstart.py", "pgrid.py",
                    "pgrid_studies.py", "voxelwalk.py", "voxels.py", "gl_micro.py", "grids_far.py", "bvh_trace.py",
                    "__init__.py"}  # the benchmark registry names the studies, as the backend registry does
 # names a generic module may use for something other than the backend: raw Embree (embreex) is the

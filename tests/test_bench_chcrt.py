@@ -284,3 +284,29 @@ def test_stages_study_runs_each_backend_in_both_stages(tmp_path):
     params = [run["params"] or "" for run in data["runs"]]
     assert "stage=compute" in params[1] and "visible_stage=compute" in params[3], params
     assert "chcrt vs glsl, compute" in (tmp_path / "stages.md").read_text()
+
+
+def test_coldstart_study_compares_both_cold_starts(tmp_path):
+    """--study coldstart: glsl and chcrt with each cold start, interleaved; the device cold start's
+    cold frame waits for fewer host syncs than the synchronous one's (its waves of queries), the
+    runs carry the cold start they were made with, and the settled frames are the ones after the
+    device front reported none settling (no speed asserted). The other studies take the paper's
+    synchronous cold start unless told otherwise."""
+    from viewer.bench.chcrt_coldstart import settled_after
+
+    rc = main(["bench-chcrt", "--quick", "--study", "coldstart", "--sizes", SIZE, "--recordings", "city-near",
+               "--effects", "primary", "--frames", "3", "--out", str(tmp_path), "--quiet"])
+    assert rc == 0
+    data = _load(tmp_path, "coldstart")
+    (row,) = data["rows"]
+    glsl, sync, device = data["runs"]
+    assert "cold_start=sync" in sync["params"] and "cold_start=device" in device["params"], data["runs"]
+    assert row["sync_cold_syncs"] > row["device_cold_syncs"], row
+    assert row["sync_cold_ms"] == sync["frames"][0]["trace_gpu_ms"]
+    k = settled_after(device["frames"])
+    assert row["settled_after"] == k
+    if k is None:  # (3 frames: a young front may not have settled) every later frame counts as settling
+        assert row["device_settling_ms"] == pytest.approx(np.mean([f["trace_gpu_ms"] for f in device["frames"][1:]]))
+    assert "cold_start=sync" in data["parameters"]["chcrt"]
+    assert settled_after([{"backend_stats": {"settling_fronts": s}} for s in (2, 1, 0, 0)]) == 3
+    assert settled_after([{"backend_stats": {"settling_fronts": 1}}]) is None

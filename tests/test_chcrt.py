@@ -99,6 +99,17 @@ _GLSL_FRAMES: dict = {}  # (scene, effects) -> the glsl reference frames (captur
 
 
 @pytest.fixture(scope="module", autouse=True)
+def _sync_cold_start():
+    """These tests count a front's passes from one refined by the paper's synchronous first pass
+    (ChcrtParams.cold_start=sync; a test that names cold_start overrides it). The device cold start,
+    the default where fronts live on the device, has its own tests below (test_device_cold_start_*),
+    and the registry-wide agreement, hard-case and image tests run it."""
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv("RTWALK_CHCRT", "cold_start=sync")
+        yield
+
+
+@pytest.fixture(scope="module", autouse=True)
 def _release_module_caches():
     """The scenes and reference frames cached here are dropped after this module (the session's
     peak memory is not this module's plus the next ones')."""
@@ -1179,3 +1190,85 @@ def test_subtree_triangle_bound_by_ray_type_and_budget():
     given = ChcrtParams(max_subtree_tris=777)
     assert {given.subtree_tri_bound(t) for t in RayType} | {given.subtree_tri_bound()} == {777}
     assert NO_TRI_BOUND < 2**31  # (a GLSL int uniform: chc_front_refine.comp maxTris)
+
+
+def test_device_cold_start_is_exact_every_ray_type(gl_ctx):
+    """cold_start=device: a new front is a device front from its first pass, (screen, root) refined a
+    level a pass; every pass of every ray type is exact while the fronts settle (glsl's hits), and no
+    pass runs the synchronous waves."""
+    frames, scene, _ = _render_both(gl_ctx, "city", params="cold_start=device")
+    for k, (a, b) in enumerate(frames):
+        for pa, pb in zip(a.captured, b.captured, strict=True):
+            _check_exact(pa, pb, f"city cold_start=device frame {k} {pa.ray_type.label} sample {pa.sample} "
+                         f"light {pa.light}", scene.triangles)
+        st = b.backend_stats
+        assert st["query_waves"] == 0 and st["multi_queries"] == 0, (k, st)
+        assert st["device_front_passes"] == st["gpu_driven"] > 0, (k, st)  # every chcrt pass, from frame 0
+        assert st["rays"] == sum(b.rays.values())
+    assert frames[0][1].backend_stats["settling_fronts"] > 0  # (a young front: it settles over later frames)
+
+
+def test_device_cold_start_waits_for_nothing(gl_ctx, monkeypatch):
+    """The cold frame of a device cold start waits and reads back exactly what a steady frame does
+    (timer phase timing: no per-phase finishes): glsl's host syncs, and one META read after the
+    frame's finish; the synchronous cold start waits for every wave of queries."""
+    monkeypatch.setenv("RTWALK_PHASE_TIMING", "timer")
+    scene, bvh, path = _load("city")
+    ios = {}
+    for label, backend, params in (("glsl", "glsl", ""), ("device", "chcrt", "cold_start=device"),
+                                   ("sync", "chcrt", "cold_start=sync")):
+        r = Renderer(gl_ctx, scene, bvh, SIZE, backend, parse_effects("primary,ao:2"), {"chcrt": params})
+        try:
+            ios[label] = [r.render(cam).io for cam in path[:2]]
+            if label == "device":
+                meta_bytes = r.backend.devfronts.meta_slots * 16 * 4
+        finally:
+            r.release()
+    (g0, g1), (d0, d1), (s0, _) = ios["glsl"], ios["device"], ios["sync"]
+    assert d0.host_syncs == d1.host_syncs == g0.host_syncs == g1.host_syncs, (g0, d0, d1)
+    assert d0.bytes_to_host - g0.bytes_to_host == meta_bytes == d1.bytes_to_host - g1.bytes_to_host
+    assert s0.host_syncs > d0.host_syncs + 2 and s0.bytes_to_host > d0.bytes_to_host, (s0, d0)
+
+
+def test_device_cold_front_settles_before_it_is_measured(gl_ctx):
+    """A device cold start's front refines a level a pass until a pass splits at most settle_splits
+    of its pairs (then `settling_fronts` drops); the work probe measures only settled fronts (a young
+    front, about the root, would measure as wasteful and stop refining). A static camera: the fronts
+    settle within the frames and then hold visible pairs."""
+    scene, bvh, path = _load("city")
+    params = _front_params("cold_start=device,work_probe=2")
+    r = Renderer(gl_ctx, scene, bvh, SIZE, "chcrt", parse_effects("primary,ao:1"), {"chcrt": params})
+    try:
+        st = [r.render(path[0]).backend_stats for _ in range(24)]
+    finally:
+        r.release()
+    settling = [s["settling_fronts"] for s in st]
+    assert settling[0] == 2 and settling[-1] == 0, settling
+    assert all(a >= b for a, b in zip(settling, settling[1:], strict=False)), settling  # fronts settle for good
+    first = settling.index(0) if 0 in settling else len(settling)
+    assert 2 <= first <= 20, settling  # a level a pass: not at once, but within the walk
+    probes = [s["work_probe_passes"] for s in st]
+    young = [k for k in range(1, len(st)) if settling[k - 1] == 2]  # both fronts settling before frame k
+    assert all(probes[k] == 0 for k in [0, *young]), (probes, settling)
+    assert sum(probes) > 0, probes  # measured once settled
+    assert st[-1]["visible_pairs"] > 0 and st[-1]["device_front_passes"] == 2
+
+
+def test_cold_start_resolves_where_fronts_live(gl_ctx):
+    """cold_start=auto takes the device where fronts live on the device and are kept between frames;
+    without device fronts, or with temporal=0, the synchronous passes; a bad value is one line."""
+    from viewer.backends.chcrt.chcrt_params import ChcrtParams
+    from viewer.errors import RtwalkError
+
+    scene, bvh, path = _load("city")
+    for params, want in (("cold_start=auto", True), ("cold_start=auto,temporal=0", False),
+                         ("cold_start=device,device_front=0", False), ("cold_start=sync", False)):
+        r = Renderer(gl_ctx, scene, bvh, SIZE, "chcrt", parse_effects("primary"), {"chcrt": params})
+        try:
+            assert r.backend.device_cold is want, params
+            st = r.render(path[0]).backend_stats
+            assert (st["query_waves"] == 0) is want, (params, st["query_waves"])
+        finally:
+            r.release()
+    with pytest.raises(RtwalkError, match="cold_start"):
+        ChcrtParams(cold_start="lazy").validate()

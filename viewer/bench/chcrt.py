@@ -18,6 +18,9 @@ implementation. Studies (``--study``, comma list or ``all``):
   of 0 / 18 / 36 / 180 degrees, times and images side by side (bench/chcrt_coherence.py).
 - ``stages``: glsl and chcrt with their ray traversals in fragment or compute shaders, over table2's
   rows (bench/chcrt_stages.py): what a GPU whose graphics pipeline has few processors gains.
+- ``coldstart``: glsl and chcrt with a new front refined by the host's synchronous waves or settling
+  on the device, over table2's rows (bench/chcrt_coldstart.py): the cold frame, the frames a device
+  front takes to settle, and the settled and whole-run means.
 - ``overhead``: GL per-draw / per-query costs measured on the same context (synthetic), and
   batching / multi-query / query-mode variants of a real chcrt run.
 
@@ -48,6 +51,7 @@ import numpy as np
 
 from viewer.backends.interface import params_text
 from viewer.bench.chcrt_coherence import study_coherence
+from viewer.bench.chcrt_coldstart import study_coldstart
 from viewer.bench.chcrt_common import chc_phases, finish_study, join_params, save_png
 from viewer.bench.chcrt_ooc import study_ooc
 from viewer.bench.chcrt_stages import study_stages
@@ -60,13 +64,14 @@ from viewer.bench.report import fmt, md_table, notes_md, ratio, size_text
 from viewer.errors import RtwalkError
 from viewer.paths import RECORDINGS, resolve_recording
 
-STUDIES = ("table2", "table4", "phases", "overhead", "tuning", "ooc", "coherence", "stages")
-EXPLICIT_ONLY = ("ooc", "coherence", "stages")  # not part of "all" (a 10M-triangle scene; 16 runs; not a
-# paper table): ask for them by name
+STUDIES = ("table2", "table4", "phases", "overhead", "tuning", "ooc", "coherence", "stages", "coldstart")
+# not part of "all" (a 10M-triangle scene; 16 runs; not paper tables): ask for them by name
+EXPLICIT_ONLY = ("ooc", "coherence", "stages", "coldstart")
 DEFAULT_RECORDINGS = ("city-near", "city-far", "sponza-walk", "sibenik-walk", "conference-walk")
 PHASE_COUNTERS = ("queries", "multi_queries", "failed_multi_queries", "subtrees_scheduled", "draws",
                   "intersect_draws")
 FORMAT = "rtwalk-bench-chcrt"
+STUDY_COLD_START = "cold_start=sync"  # unless --chcrt or RTWALK_CHCRT sets it (options_from_args)
 QUICK_SIZE = (96, 54)
 
 
@@ -162,6 +167,13 @@ def options_from_args(args: argparse.Namespace) -> StudyOptions:
         raise RtwalkError("--first-frame must be >= 0")
     chcrt = args.chcrt or ""
     effective_params(chcrt)  # bad --chcrt text fails here
+    if "cold_start" not in join_params(os.environ.get("RTWALK_CHCRT", ""), chcrt):
+        # the studies compare fronts as the paper builds them, settled by their first pass; a device cold
+        # start settles over its first frames, which a short run would mix into its steady state
+        # (--study coldstart compares the two)
+        chcrt = join_params(STUDY_COLD_START, chcrt)
+        notes.append(f"chcrt runs take {STUDY_COLD_START}, the paper's first pass (--chcrt cold_start=... sets "
+                     "another; --study coldstart runs both)")
     o = StudyOptions(studies=studies, sizes=sizes, recordings=recordings, frames=frames,
                      first_frame=args.first_frame, out=Path(args.out), chcrt=chcrt, quiet=bool(args.quiet),
                      quick=quick, notes=notes)
@@ -255,7 +267,7 @@ def options_from_args(args: argparse.Namespace) -> StudyOptions:
         n = load_recording(path).frame_count()
         if o.first_frame is not None and o.first_frame >= n:
             raise RtwalkError(f"--first-frame {o.first_frame} is outside {path.name}'s frames 0..{n - 1}")
-    for study in ("table2", "stages"):
+    for study in ("table2", "stages", "coldstart"):
         if study in studies and not o.recordings:
             raise RtwalkError(f"{study}: none of the recordings' scenes are present")
     return o
@@ -321,6 +333,10 @@ def estimate(o: StudyOptions) -> dict[str, float]:
     if "stages" in o.studies:  # table2's rows, each configuration in both stages
         out["stages"] = sum(2 * (_run_estimate("glsl", e, size, o.frames) + _run_estimate("chcrt", e, size, o.frames))
                             for _ in o.recordings for size in o.sizes for e in o.effects)
+        scene_recs.update(o.recordings)
+    if "coldstart" in o.studies:  # table2's rows: glsl and chcrt with each cold start
+        out["coldstart"] = sum(_run_estimate("glsl", e, size, o.frames) + 2 * _run_estimate("chcrt", e, size, o.frames)
+                               for _ in o.recordings for size in o.sizes for e in o.effects)
         scene_recs.update(o.recordings)
     if "coherence" in o.studies:
         out["coherence"] = len(o.coherence_recordings) * len(o.perturbs) * sum(
@@ -963,7 +979,8 @@ def _plot_tuning(rows: list[TuningRow], path: Path, device: str) -> None:
 STUDY_FUNCS: dict[str, Callable[[Bench], dict]] = {"table2": study_table2, "table4": study_table4,
                                                     "phases": study_phases, "overhead": study_overhead,
                                                     "tuning": study_tuning, "ooc": study_ooc,
-                                                    "coherence": study_coherence, "stages": study_stages}
+                                                    "coherence": study_coherence, "stages": study_stages,
+                                                    "coldstart": study_coldstart}
 
 
 def run_studies(o: StudyOptions, out=None) -> list[dict]:

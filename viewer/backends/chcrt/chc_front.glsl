@@ -62,6 +62,7 @@ bool keptCarrier(ChcTilePlan tp, int record) { return tp.nrec > 0 && record == t
 #define META_PROBE_FRONT 7  // box + triangle tests (+ 1 per fragment) of the sampled rays in this pass
 #define META_PROBE_FULL 8   // the same rays' box + triangle tests (+ 1 per ray) in a full traversal
 #define META_PROBE_RAYS 9   // the sampled rays (active ones)
+#define META_SPLITS 10      // pairs the frame's refinement of the front split (chcrt_params settle_splits)
 
 // slot 0 of META: the frame's statistics, summed over its device passes (chcrt_devfront.STAT_NAMES)
 #define STAT_RAYS 0
@@ -78,7 +79,7 @@ bool keptCarrier(ChcTilePlan tp, int record) { return tp.nrec > 0 && record == t
 #define STAT_QUERIES 11
 #define STAT_BATCHES 12
 #define STAT_PHASE1 13
-#define STAT_KEPT 14
+#define STAT_SPLITS 14  // pairs the refinements split (the fronts settling: ChcrtParams.cold_start)
 #define STAT_OVERFLOWS 15
 
 int pairState(ChcPair p) { return p.kids & 255; }

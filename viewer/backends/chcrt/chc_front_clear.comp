@@ -4,8 +4,8 @@
 // survivors' indirect draw command (keepCull: a later sample pass that takes its frame's first pass's
 // cull keeps the ray counts, the three slots and the command that pass left; keepRays: one whose rays
 // an earlier pass of the frame counted keeps the ray counts; chcrt_pass_device.py). The
-// pairs' own count slots are zeroed by chc_front_count.comp; the front's overflow bits and work probe
-// are reset (resetMeta: by the frame's first pass of the front only, so that a shared front's later
+// pairs' own count slots are zeroed by chc_front_count.comp; the front's overflow bits, work probe and
+// refinement's splits are reset (resetMeta: by the frame's first pass of the front only, so that a shared front's later
 // sample passes keep what the first one measured and found), and the per-pair steps' dispatch is
 // sized (ARG_PAIRS).
 // Nothing crosses the host.
@@ -21,7 +21,7 @@ uniform int nTiles;
 uniform int frontSlot;  // 0: no front (a full-BVH pass)
 uniform int capacity;  // pair slots: the pass's extra slots follow them
 uniform int raySlots;  // ray-count slots at the start of the counts buffer (chcrt_layout.COUNT_SLOTS)
-uniform int resetMeta;  // 1: zero the front's overflow bits and work probe (0: a later sample pass)
+uniform int resetMeta;  // 1: zero the front's overflow bits, work probe and splits (0: a later sample pass)
 uniform int keepCull;  // 1: keep the ray counts, the pass's three slots and the survivors' command
 uniform int keepRays;  // 1: keep the ray counts
 
@@ -48,6 +48,7 @@ void main() {
                 meta[16 * frontSlot + META_PROBE_FRONT] = 0;  // and its work probe (if it runs one)
                 meta[16 * frontSlot + META_PROBE_FULL] = 0;
                 meta[16 * frontSlot + META_PROBE_RAYS] = 0;
+                meta[16 * frontSlot + META_SPLITS] = 0;  // and its refinement's splits
             }
         }
         if (keepCull == 0) { cmd[0] = 6u; cmd[1] = 0u; cmd[2] = 0u; cmd[3] = 0u; }

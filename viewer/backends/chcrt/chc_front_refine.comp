@@ -58,6 +58,10 @@ void main() {
         p.age = 0;
         p.pixels = c;
     }
+    if (action != 0) {
+        atomicAdd(meta[16 * frontSlot + META_SPLITS], 1);
+        atomicAdd(meta[statBase + STAT_SPLITS], 1);
+    }
     p.kids = st | (pairKids(p) << 8);
     pairs[i] = p;
     flags[i].y = action;

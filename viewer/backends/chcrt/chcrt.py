@@ -71,6 +71,17 @@ refining from there with a fresh budget, so a deep BVH (city 10 M) gets its fron
 too much per BVH level (incoherent rays), or that stopped `cold_passes` times, stays on full
 traversals.
 
+Cold start (`cold_start`, default `auto`: `device` where fronts live on the device and are kept
+between frames). The synchronous first pass above waits for every wave of queries; on a GPU that
+made the cold frame the slowest of all (an H200: 163-183 ms for camera rays against 9.5 steady,
+12.3 s of queries at city 10 M). A device cold start skips it: the new front, (screen, root), goes
+to the device at its first pass, and every pass is the steady pass from then on, its counts
+refining the front one level a pass. Exact from the first pass (the root pair's survivors traverse
+the whole tree); its first passes cost about a whole-BVH traversal, and the front has settled when
+a pass splits at most `settle_splits` of its pairs (`settling_fronts` counts those that have not);
+the work probe waits for that. `cold_start=sync` runs the paper's first pass (the bench-chcrt
+studies take it unless told otherwise; `--study coldstart` compares the two).
+
 Gap order (`gap_order`, `gap_order_visible`): in the GPU-driven pass each record's items are sorted on
 the device by a lower bound of their distance from the tile's ray origins, and a ray stops testing
 them at the first one beyond its nearest hit (exact: such a box cannot be entered before the hit).
@@ -178,7 +189,7 @@ class _Targets:
 
 PHASES = ("chc:0-setup", "chc:1-intersect-visible", "chc:2-queries", "chc:3-traversal", "chc:4-final-intersect")
 COUNTERS = ("queries", "multi_queries", "failed_multi_queries", "visible_pairs", "invisible_pairs",
-            "subtrees_scheduled", "draws", "rays", "upload_bvh_mb", "upload_geom_mb")
+            "subtrees_scheduled", "draws", "rays", "upload_bvh_mb", "upload_geom_mb", "settling_fronts")
 
 
 class ChcrtBackend:
@@ -218,6 +229,10 @@ class ChcrtBackend:
         self.device_front = (self.gpu_driven and self.p.device_front and self.p.merge_tiles and self.p.lca_invisible
                              and bindings > max(FRONT_SSBO.values()))
         self.merge_kept = self.device_front and self.p.merge_kept
+        # cold_start: a new front starts on the device and settles over its first passes (no waits), or is
+        # refined by the paper's synchronous passes (without device fronts or temporal fronts, always)
+        self.device_cold = self.device_front and (self.p.cold_start == "device"
+                                                  or (self.p.cold_start == "auto" and self.p.temporal))
         self.merge_defs = {"CHC_MERGE_KEPT": 1} if self.merge_kept else {}
         iwd = {**wd, "LEAF_CACHE": int(self.p.leaf_cache)}  # intersection programs only
         if self.cache is not None:
@@ -431,16 +446,21 @@ class ChcrtBackend:
             return {}
         stats, rows = self.devfronts.end_frame()
         frac = self.p.full_bvh_fraction
+        settling = 0
         probed = {"work_probe_fronts": 0.0, "work_probe_rays": 0.0, "work_probe_front": 0.0, "work_probe_full": 0.0}
         for slot, row in rows.items():
             dev = self.devfronts.fronts[slot]
             dev.full = frac > 0 and row.tiles > 0 and row.heavy_tiles >= frac * row.tiles
+            if not dev.settled and row.n > 0 and (dev.full or row.splits <= self.p.settle_splits * row.n):
+                dev.settled = True  # (a front that traces the whole BVH refines no more: settled too)
+            settling += int(not dev.settled)
             if dev.measured and row.probe_rays > 0 and row.probe_full > 0:
                 # work_probe: the front's pass measured its work against the full traversal's
                 dev.measured = False
                 dev.wasteful = row.probe_front > dev.work_ratio_full * row.probe_full
                 for k, v in zip(probed, (1, row.probe_rays, row.probe_front, row.probe_full), strict=True):
                     probed[k] += v
+        stats["settling_fronts"] = float(settling)  # device cold starts still refining a level a pass
         if probed["work_probe_fronts"]:
             stats.update(probed)
             stats["work_probe_ratio"] = probed["work_probe_front"] / probed["work_probe_full"]
@@ -534,6 +554,7 @@ class ChcrtBackend:
         front = self.fronts.get(front_key)
         if front is None:
             front = PairFront(size, max_level, self.rng, self.p.requery_interval)
+            front.cold = not self.device_cold  # (a device cold start: its first pass is a device pass)
             self.fronts[front_key] = front
         tr = ChcrtPass(self, front, rays, ray_type, hits, pinfo)
         self.work.begin(size)

@@ -66,11 +66,12 @@ assert TILE_PLAN_DTYPE.itemsize == TILE_BYTES
 META_INTS = 16
 META_N, META_OVERFLOW, META_HEAVY, META_COPIES, META_WANTED, META_TILES = range(6)
 META_PROBE_FRONT, META_PROBE_FULL, META_PROBE_RAYS = 7, 8, 9  # the last pass's work probe (chc_front.glsl)
+META_SPLITS = 10  # pairs the frame's refinement of the front split (a settling front: ChcrtParams.settle_splits)
 DISCARD_SLOT = 1  # the statistics of a pass nobody reports (PassInfo.report) go here; fronts from slot 2
 # slot 0 of META, summed over the frame's device passes (chc_front.glsl STAT_*)
 STAT_NAMES = ("rays", "query_pixels", "query_records_drawn", "visible_pairs", "invisible_pairs", "inner_pairs",
               "lca_tiles", "requeries", "newly_visible_queries", "pull_ups", "subtrees_scheduled", "queries",
-              "batches", "phase1_subtrees", "", "front_overflows")
+              "batches", "phase1_subtrees", "front_splits", "front_overflows")
 # chc_front_plan.comp's arguments: the visible records' draw command at byte 0 (moderngl's
 # render_indirect counts `first` in 20-byte steps whatever the command, so only 0 is used), the
 # dispatches of chc_visorder.comp at 512 and chc_front_items.comp at 768, the item totals at 1024
@@ -143,15 +144,19 @@ class FrontMeta:
     probe_front: int = 0  # work probe of the front's last pass, if it ran one (probe_rays > 0): box +
     probe_full: int = 0  # triangle tests of the sampled rays through the front and through the whole BVH
     probe_rays: int = 0
+    splits: int = 0  # pairs the front's refinement split in the frame (its first pass's, shared fronts)
 
 
 class DeviceFront:
     """One front's pairs on the device: two PAIR_DTYPE buffers (the current one and the next), its
     capacity in pairs and its META slot."""
 
-    def __init__(self, ctx: moderngl.Context, slot: int, capacity: int, records: np.ndarray):
+    def __init__(self, ctx: moderngl.Context, slot: int, capacity: int, records: np.ndarray, settled: bool = True):
         self.slot = slot
         self.capacity = capacity
+        # a front that started on the device (ChcrtParams.cold_start) is settling until a pass splits at most
+        # settle_splits of its pairs (chcrt.py end_frame); one refined by the synchronous passes has settled
+        self.settled = settled
         # its last plan sent full_bvh_fraction of the tiles to their ancestor: the passes trace the whole
         # BVH and only plan (chcrt.py sets it after each frame from META_HEAVY / META_TILES)
         self.full = False
@@ -279,16 +284,19 @@ class DeviceFronts:
         setattr(self, name, self.ctx.buffer(reserve=max(nbytes, 16)))
 
     # -- fronts -------------------------------------------------------------------------------------
-    def attach(self, f: PairFront, tiles: int) -> DeviceFront:
-        """Upload host front `f` (once its synchronous refinement is done) into a new device front; one
-        upload, once."""
+    def attach(self, f: PairFront, tiles: int, settled: bool = True) -> DeviceFront:
+        """Upload host front `f` into a new device front, once its synchronous refinement is done, or
+        as it starts, (screen, root), where the device refines it from the first pass (`settled`
+        False: ChcrtParams.cold_start); one upload, once."""
         if not self.free_slots:
             self._grow_meta()
         slot = self.free_slots.pop()
         rec = pack_front(f)
-        dev = DeviceFront(self.ctx, slot, _pow2(max(MIN_CAPACITY, PAIR_GROWTH * len(rec))), rec)
+        dev = DeviceFront(self.ctx, slot, _pow2(max(MIN_CAPACITY, PAIR_GROWTH * len(rec))), rec, settled)
         row = np.zeros(META_INTS, np.int32)
         row[META_N] = len(rec)
+        # (after the shaders' writes to META: other fronts' passes of this frame, before a device cold start)
+        glio.host_barrier(self.ctx)
         self.meta.write(row.tobytes(), offset=slot * META_INTS * 4)
         iostats.to_device(row.nbytes)
         self.ensure(tiles=tiles, copies=leaf_copies(f), pairs=dev.capacity)
@@ -441,7 +449,7 @@ class DeviceFronts:
             r = raw[slot]
             rows[slot] = FrontMeta(int(r[META_N]), int(r[META_OVERFLOW]), int(r[META_HEAVY]), int(r[META_COPIES]),
                                    int(r[META_WANTED]), int(r[META_TILES]), int(r[META_PROBE_FRONT]),
-                                   int(r[META_PROBE_FULL]), int(r[META_PROBE_RAYS]))
+                                   int(r[META_PROBE_FULL]), int(r[META_PROBE_RAYS]), int(r[META_SPLITS]))
             m = rows[slot]
             if m.overflow & 1 or PAIR_HEADROOM * max(m.wanted, m.n) > dev.capacity:
                 dev.grow(self.ctx, _pow2(PAIR_GROWTH * max(m.wanted, m.n)))

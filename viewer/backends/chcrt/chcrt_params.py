@@ -10,6 +10,7 @@ from viewer.errors import RtwalkError
 from viewer.gl.stages import STAGE_CHOICES
 
 QUERY_MODES = ("batched", "hw")
+COLD_STARTS = ("auto", "sync", "device")
 MAX_LEAF_CACHE = 16
 OOC_SUBTREE_TRIS = 4096  # out of core: the largest subtree, one cache entry (max_subtree_tris = 0)
 NO_TRI_BOUND = (1 << 31) - 1  # in core: no triangle bound (an int32 for the shaders' uniform)
@@ -79,6 +80,20 @@ class ChcrtParams:
                               "visit glsl's ~27 nodes against ~14 below their pairs")
     coarse_cull: bool = param(True, "GPU-driven: a compute pass culls the queries whose boxes lie beyond the "
                               "farthest distance any ray of their tile may still reach")
+    cold_start: str = param("auto", "how a new front gets its pairs: 'sync' (the paper's Algorithm 1: the front's "
+                            "first passes refine it from (screen, root) through waves of queries whose results "
+                            "the host waits for within the pass), 'device' (with device fronts, else as sync: "
+                            "the front starts on the device as (screen, root) and each pass refines it one level "
+                            "from its own counts, as a steady pass does: no wait, no read, the same launches as a "
+                            "steady pass; every pass is exact, and the first ones cost about a whole-BVH "
+                            "traversal until the front has settled; the work probe waits for that) or 'auto' "
+                            "(device where fronts live on the device (device_front) and are kept between frames "
+                            "(temporal), else sync)")
+    settle_splits: float = param(0.05, "cold_start=device: a front has settled once a pass splits at most this "
+                                 "fraction of its pairs; the work probe measures settled fronts only (a young one "
+                                 "would look wasteful). A young front splits 7-29 % of its pairs a pass, a settled "
+                                 "one 1-4 % while the camera moves (city-near and sibenik-walk, camera rays and "
+                                 "AO at 640x360)")
     cold_full_bvh: bool = param(True, "a front's synchronous refinement stops once so many finest tiles are over "
                                 "the LCA limits that the GPU-driven pass would trace the whole BVH "
                                 "(full_bvh_fraction), or once its query fragments exceed cold_query_budget per "
@@ -189,6 +204,8 @@ class ChcrtParams:
             raise RtwalkError(f"{source}: leaf_cache must be in 0..{MAX_LEAF_CACHE}")
         if self.full_bvh_stage not in STAGE_CHOICES or self.visible_stage not in STAGE_CHOICES:
             raise RtwalkError(f"{source}: full_bvh_stage and visible_stage must be one of {', '.join(STAGE_CHOICES)}")
+        if self.cold_start not in COLD_STARTS:
+            raise RtwalkError(f"{source}: cold_start must be one of {', '.join(COLD_STARTS)}")
         if self.query_mode not in QUERY_MODES:
             raise RtwalkError(f"{source}: query_mode must be one of {', '.join(QUERY_MODES)}")
         if not (self.t_q > 0 and self.t_q_primary > 0 and 0 < self.min_tile_fraction <= 1
@@ -198,6 +215,7 @@ class ChcrtParams:
                 and self.cold_query_budget >= 0 and self.cold_passes >= 1 and self.cold_wave_queries >= 0
                 and 0 <= self.cull_sublevels <= 4 and 0 <= self.full_bvh_fraction <= 1
                 and self.work_probe >= 0 and self.work_probe_stride >= 1 and self.work_ratio_full > 0
-                and self.work_ratio_full_any > 0):
+                and self.work_ratio_full_any > 0 and 0 <= self.settle_splits <= 1):
             raise RtwalkError(f"{source}: t_q, t_q_primary, min_tile_fraction and work_ratio_full(_any) must be > 0, "
-                              "thresholds >= 0, counts >= 1, cull_sublevels in 0..4, full_bvh_fraction in 0..1")
+                              "thresholds >= 0, counts >= 1, cull_sublevels in 0..4, full_bvh_fraction and "
+                              "settle_splits in 0..1")

@@ -76,8 +76,9 @@ class ChcrtPass(SyncSteps, GpuDrivenSteps, DeviceFrontSteps):
         self.tri_bound = self.p.subtree_tri_bound(ray_type)  # (the front's scheduled subtrees)
         self.overlays = bool(self.p.overdraw_overlay and be.overlays_enabled)
         # GPU-driven steady state: a front's first pass (and its next ones while its refinement is
-        # unfinished, cold_passes) runs the synchronous algorithm (builds the front)
-        self.gpu = be.gpu_driven and front.frames > 0 and not front.cold
+        # unfinished, cold_passes) runs the synchronous algorithm (builds the front), unless the front
+        # starts on the device (ChcrtParams.cold_start: front.cold is False from the start)
+        self.gpu = be.gpu_driven and (front.frames > 0 or be.device_cold) and not front.cold
         self.culled = False  # this pass's queries went through the coarse cull (stats read late)
         self.n_survivor_groups = 0
         self.survivor_items: moderngl.Buffer | None = None  # the survivors' items (None: be.kept_boxes)

@@ -52,7 +52,8 @@ class DeviceFrontSteps:
         n_tiles = 1 << (2 * level)
         dev = f.device  # attached once its refinement was done, unless it found the rays incoherent
         if dev is None and not f.full_bvh:
-            dev = f.device = dv.attach(f, n_tiles)
+            # (at its first pass: a device cold start, (screen, root), settling from this pass on)
+            dev = f.device = dv.attach(f, n_tiles, settled=f.frames > 0)
         full = f.full_bvh or dev.full
         sub = int(p.cull_sublevels)
         while sub > 0 and min(self.size) >> (level + sub) < 4:
@@ -69,11 +70,13 @@ class DeviceFrontSteps:
                 # sends the frame's other samples through the whole BVH even while its first pass brings
                 # it up to date or measures it (warm_up, probe: that one pass is enough for either)
                 wasted = not full and (dev.decided_wasted or dev.wasteful)
-            elif dev.passes == 0 and be.use_hints and self.hint is None:
+            elif (dev.passes == 0 and be.use_hints and self.hint is None) or not dev.settled:
                 # the front's first measurement waits for a pass with hit hints (a shared front's first
                 # device pass can be a sample's first pass, in the frame that built it): without them
                 # its rays do more work than in every later pass (city-near ao:20 at 640x360: 0.73 of
-                # the full traversal's tests, against 0.46 a frame later)
+                # the full traversal's tests, against 0.46 a frame later); and for a settled front (a
+                # device cold start's young front does the full traversal's work and more: city-near's
+                # AO front measured 0.70 in its first pass, then traced the whole BVH unrefined)
                 dev.decided_frame, dev.decided_wasted = frame, False
             else:
                 probe, wasted = self._probe_plan(dev, full)
