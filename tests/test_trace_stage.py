@@ -242,3 +242,29 @@ def test_the_probe_measures_both_stages(gl_ctx):
     probe = measure_stages(gl_ctx)
     assert probe.fragment_ms > 0 and probe.compute_ms > 0 and probe.choice in STAGES
     assert max(probe.fragment_ms, probe.compute_ms) >= PROBE_MIN_MS or probe.iterations >= PROBE_MAX_ITERATIONS
+
+
+@pytest.mark.parametrize("limit", ["none", "llvmpipe"])
+def test_chcrt_compute_stage_leaves_no_pair_to_a_fragment_draw(limit, gl_ctx, monkeypatch):
+    """visible_stage=compute: the invisible pairs the cull keeps and no visible record carries (tiles
+    without a visible record, or with more than max_batch kept pairs: the survivors' records of the
+    fragment stage) are traced by the same dispatch, after the tile's records, in the survivors'
+    order: no survivors' record is drawn, and the hits are the fragment stage's bit for bit, with
+    and without llvmpipe's loop limit (the records and the kept chunks share its budget). A device
+    cold start's young fronts are all such pairs."""
+    if limit == "none":
+        monkeypatch.setenv("RTWALK_LOOP_LIMIT", "none")
+    else:
+        monkeypatch.delenv("RTWALK_LOOP_LIMIT", raising=False)
+    out = {stage: _chcrt_walk(gl_ctx, f"cold_start=device,work_probe=0,visible_stage={stage}", overlays=False)
+           for stage in STAGES}
+    frag, comp = out["fragment"][0], out["compute"][0]
+    drawn_f = [rep.backend_stats["query_records_drawn"] for rep in frag]
+    drawn_c = [rep.backend_stats["query_records_drawn"] for rep in comp]
+    assert min(drawn_f) > 0 and drawn_c == [0] * len(comp), (drawn_f, drawn_c)
+    for a, b in zip(frag, comp, strict=True):
+        assert a.rays == b.rays
+        for pa, pb in zip(a.captured, b.captured, strict=True):
+            assert np.array_equal(pa.tri, pb.tri), (pa.ray_type, int((pa.tri != pb.tri).sum()))
+            assert np.array_equal(pa.t.view(np.int32), pb.t.view(np.int32)), pa.ray_type
+    assert np.array_equal(out["fragment"][2], out["compute"][2])

@@ -20,6 +20,9 @@
 // hit need not include the other records' hits, whose fragments may run at the same time: a kept
 // pair may count rays that another record's hit occludes, as a visible pair of such a tile
 // already may; the counts can only keep more pairs visible, the hits stay exact.)
+// mergeAll (mergeKept with the visible records in a compute dispatch, chc_visible.comp): every tile's kept
+// range goes into its plan, and that dispatch traces it after the tile's records, in chunks of
+// maxItems: no survivors' record, so no pair is intersected in a fragment shader.
 layout(local_size_x = 64) in;
 #include "chc_tilecone.glsl"
 #include "chc_records.glsl"
@@ -34,6 +37,8 @@ layout(std430, binding = BIND_CHC_CANDIDATES) buffer ChcKeptBoxes { ChcItem kept
 #include "chc_front.glsl"
 layout(std430, binding = BIND_FR_TILES) buffer TilePlans { ChcTilePlan plans[]; };
 uniform int mergeKept;  // 1: merge into tiles' last visible records (cull tile i = finest tile i)
+uniform int mergeAll;  // 1 (with mergeKept; visible_stage=compute): every tile's kept range goes into its plan,
+                       // whatever its records and its count: chc_visible.comp traces it after the records
 #endif
 layout(std430, binding = BIND_CHC_INDIRECT) buffer ChcIndirect { uint cmdCount; uint cmdInstances; uint cmdFirst;
                                                                  uint cmdBase; };
@@ -85,7 +90,7 @@ void main() {
         kept[m] = it;
     }
 #ifdef CHC_MERGE_KEPT
-    if (mergeKept != 0 && plans[i].nrec >= 1 && nb <= maxItems) {
+    if (mergeKept != 0 && ((plans[i].nrec >= 1 && nb <= maxItems) || mergeAll != 0)) {
         plans[i].keptBase = base;
         plans[i].keptCount = nb;
         atomicAdd(chcPassed[pixelSlot], uint(q.rect.z * q.rect.w * nb));  // query tests (overlay)

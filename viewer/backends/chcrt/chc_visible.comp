@@ -12,6 +12,9 @@
 // Loop limit (RESUMABLE): the records of one invocation share llvmpipe's back-edge budget, so each
 // record first charges CHC_RECORD_VISITS node visits' worth of its item loops to `visits`
 // (chcrt.py), and the ray is handed over once CHC_MAX_VISITS is reached, as in one record.
+// keptAfter (chc_querycull.comp mergeAll): the kept invisible pairs the cull did not merge into a tile's
+// last record come after its records, in chunks of keptChunk (the survivors' records), so that no pair is
+// left to a fragment draw: a device cold start's young front has only such pairs.
 #undef CHC_BATCHED  // (the records are read here: no instanced draw hands them over as vertex outputs)
 #include "chc_intersect_record.glsl"
 #include "chc_front.glsl"
@@ -25,6 +28,9 @@ layout(std430, binding = BIND_CHC_VIS_HITS) writeonly buffer VisHits { uint visH
 uniform ivec2 raySize;
 uniform int maxLevel;   // the finest tiles' quadtree level (tile = ty * 2^level + tx)
 uniform int mergeKept;  // 1: a tile's last record carries its merged kept pairs (chc_querycull.comp)
+uniform int keptAfter;  // 1 (with mergeKept): a tile's kept range that its last record does not carry is traced
+                        // after its records, in chunks of keptChunk items, as the survivors' records would be
+uniform int keptChunk;  // (chc_querycull.comp mergeAll; = its maxItems)
 #ifndef CHC_RECORD_VISITS
 #define CHC_RECORD_VISITS 0
 #endif
@@ -41,13 +47,20 @@ void main() {
     ChcTilePlan tp = plans[tileOf(px.y, raySize.y, maxLevel) * side + tileOf(px.x, raySize.x, maxLevel)];
     int r0 = tp.recBase, r1 = tp.recBase + tp.nrec;
     // the overlays count every record's subtrees at every pixel of it, as its fragments do
+    // kept pairs ride in the tile's last record where the cull merged them into it (a tile with records
+    // and at most keptChunk kept pairs, chc_querycull.comp), else they come after the records (keptAfter),
+    // in the order in which the fragment stage's survivors' draw would trace them: the same hits, also
+    // the same occluder for any-hit rays
+    bool carried = mergeKept != 0 && (keptAfter == 0 || (tp.nrec >= 1 && tp.keptCount <= keptChunk));
+    int nk = mergeKept != 0 && !carried ? tp.keptCount : 0;
     for (int k = r0; k < (countOverlays != 0 ? r1 : r0); ++k) {
-        bool kept = mergeKept != 0 && keptCarrier(tp, k);
+        bool kept = carried && keptCarrier(tp, k);
         countRecordOverlays(px, draws[k].info.y, kept ? tp.keptCount : 0, 0);
     }
+    for (int b = 0; b < (countOverlays != 0 ? nk : 0); b += keptChunk) countRecordOverlays(px, min(keptChunk, nk - b), 0, 1);
     int best = imageLoad(bestBits, px).r;
     visHits[w + 1] = uint(-1);
-    if (best < 0 || r0 == r1) return;
+    if (best < 0 || (r0 == r1 && nk == 0)) return;
     vec4 ot = texelFetch(rayOrigin, px, 0);
     vec4 dt = texelFetch(rayDir, px, 0);
     float dlen = length(dt.xyz) * (1.0 + 1e-4);
@@ -60,7 +73,7 @@ void main() {
     for (int k = r0; k < r1 && !done; ++k) {
         ChcDraw d = draws[k];
         int kb = 0, kc = 0;
-        if (mergeKept != 0 && keptCarrier(tp, k)) { kb = tp.keptBase; kc = tp.keptCount; }
+        if (carried && keptCarrier(tp, k)) { kb = tp.keptBase; kc = tp.keptCount; }
         if (recordBeyond(d.info.x, d.info.y, kb, kc, hit.t * dlen)) continue;
 #if RESUMABLE
         if (visits + CHC_RECORD_VISITS > CHC_MAX_VISITS) {  // the budget cannot take this record's loops:
@@ -73,6 +86,18 @@ void main() {
         visits += CHC_RECORD_VISITS;
         intersectRecord(px, d.info.x, d.info.y, kb, kc, r, tmin, dlen, any, hit, done, visits);
     }
+    for (int b = 0; b < nk && !done; b += keptChunk) {  // (sorted by gap across the tile: a chunk beyond
+        int m = min(keptChunk, nk - b);                   // the nearest hit leaves the rest beyond it too)
+        if (recordBeyond(tp.keptBase + b, m, 0, 0, hit.t * dlen)) break;
+#if RESUMABLE
+        if (visits + CHC_RECORD_VISITS > CHC_MAX_VISITS) {
+            if (imageAtomicExchange(resumeSlot, px, -2) != -2) atomicAdd(unfinished, 1);
+            break;
+        }
+#endif
+        visits += CHC_RECORD_VISITS;
+        intersectRecord(px, tp.keptBase + b, m, 0, 0, r, tmin, dlen, any, hit, done, visits);
+    }
     workFlushPixel(0, px);
 #ifdef WORK_PROBE
     // one unit per box and triangle test, and one for the invocation (its ray set-up)
@@ -84,8 +109,12 @@ void main() {
 #endif
     int sub = -1;
     for (int k = r0; k < (countOverlays != 0 ? r1 : r0); ++k) {
-        bool kept = mergeKept != 0 && keptCarrier(tp, k);
+        bool kept = carried && keptCarrier(tp, k);
         int s = subtreeOfHit(hit.id, draws[k].info.x, draws[k].info.y, kept ? tp.keptBase : 0, kept ? tp.keptCount : 0);
+        if (s >= 0) sub = s;
+    }
+    if (countOverlays != 0 && nk > 0) {
+        int s = subtreeOfHit(hit.id, tp.keptBase, nk, 0, 0);
         if (s >= 0) sub = s;
     }
     imageAtomicMin(bestBits, px, any ? -1 : floatBitsToInt(hit.t));

@@ -237,6 +237,8 @@ class DeviceFrontSteps:
         comp["raySize"] = (w, h)
         comp["maxLevel"] = int(level)
         comp["mergeKept"] = int(merge)
+        comp["keptAfter"] = int(merge)  # every tile's kept pairs after its records (the cull's mergeAll)
+        comp["keptChunk"] = int(self.p.max_batch)
         # (the ray set-up's images and buffers were written by dispatches that each end with a barrier)
         comp.run(-(-w // 8), -(-h // 8))
         # the hit words -> the resolve draw; bestBits' atomics -> the survivors' loads (their own barrier)
@@ -279,6 +281,9 @@ class DeviceFrontSteps:
         be.querycull["keptOffset"] = dv.kept_offset if merge else 0
         if be.merge_kept:
             be.querycull["mergeKept"] = int(merge)
+            # visible_stage=compute: every tile's kept pairs go to the compute dispatch, none to the survivors'
+            # fragment draw (_dispatch_visible)
+            be.querycull["mergeAll"] = int(merge and be.visible_stage == "compute")
         be.querycull["nQueries"] = n_cull
         be.querycull["maxItems"] = p.max_batch
         be.querycull["pixelSlot"] = dev.capacity
