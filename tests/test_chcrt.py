@@ -430,6 +430,36 @@ def test_front_split_rule_subdivide_pull_up_and_compact():
     assert f.n == 1 and f.state[0] == INVISIBLE and not (f.state[: f.n] == DEAD).any()
 
 
+@pytest.mark.parametrize("max_pairs", [1, 6, 64, 100_000])
+def test_presplit_keeps_the_partition_within_its_budget(max_pairs):
+    """A device cold start's front, split by the rule as if every pair were entered (PairFront.presplit):
+    within its pair budget, its leaves all invisible and untested, partitioning (screen x scene); with
+    room enough, every pair the rule would terminate is reached (the same leaves as refining down to
+    termination)."""
+    from viewer.procedural import make_city
+
+    bvh = build_bvh(make_city(3000, 1).triangles)
+    nt = NodeTables.from_bvh(bvh)
+    f = PairFront((64, 64), 2, np.random.default_rng(0), 3)
+    waves = f.presplit(nt, 0.5, 8, 1000, max_pairs)
+    f.check(nt)
+    assert f.n <= max(max_pairs, 1) and (waves > 0) == (max_pairs >= 6)
+    leaves = f.leaves(INVISIBLE)
+    assert len(leaves) + len(f.leaves(INNER)) == f.n and (f.pixels[leaves] == 0).all() and (f.age[leaves] == 0).all()
+    for tx in range(4):
+        for ty in range(4):
+            cover = np.zeros(bvh.stats.triangles, int)
+            for i in leaves:
+                lv = int(f.level[i])
+                if (tx >> (2 - lv)) == f.tx[i] and (ty >> (2 - lv)) == f.ty[i]:
+                    a = bvh.node_first[f.node[i]]
+                    cover[a:a + bvh.node_count[f.node[i]]] += 1
+            assert (cover == 1).all()
+    if max_pairs == 100_000:
+        term, _, _ = f.classify(leaves, nt, 0.5, 8, 1000)
+        assert term.all()
+
+
 def test_multi_query_groups_follow_chcpp():
     from viewer.procedural import make_city
 

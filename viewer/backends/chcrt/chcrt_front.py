@@ -284,6 +284,24 @@ class PairFront:
             out.append(c)
         return np.concatenate(out) if out else np.zeros(0, np.int64)
 
+    def presplit(self, nt: NodeTables, t_q: float, max_height: int, max_tris: int, max_pairs: int) -> int:
+        """A new front's first levels, split on the host by the split rule (classify) as if every pair
+        were entered by rays, wave by wave while the front would stay within `max_pairs` pairs; its
+        leaves stay invisible and untested (the device pass tests them: ChcrtParams.cold_start_pairs).
+        Returns the waves split. Why: a device cold start refines a level a pass from its counts, and
+        the first levels are the ones every view enters (the screen's coarse tiles, the tree's top)."""
+        assert self.n == 1, "presplit: a new front, (screen, root)"
+        wave = np.zeros(1, np.int64)
+        waves = 0
+        while len(wave):
+            term, obj, _ = self.classify(wave, nt, t_q, max_height, max_tris)
+            split, obj = wave[~term], obj[~term]
+            if len(split) == 0 or self.n + int(np.where(obj, 2, 4).sum()) > max_pairs:
+                break
+            wave = self.subdivide(split, obj, nt)
+            waves += 1
+        return waves
+
     def pull_up(self, min_age: int = 0) -> int:
         """Merge inner pairs whose children are all invisible leaves into one invisible leaf.
 

@@ -52,7 +52,11 @@ class DeviceFrontSteps:
         n_tiles = 1 << (2 * level)
         dev = f.device  # attached once its refinement was done, unless it found the rays incoherent
         if dev is None and not f.full_bvh:
-            # (at its first pass: a device cold start, (screen, root), settling from this pass on)
+            if f.frames == 0 and p.cold_start_pairs > 0:
+                # a device cold start: its first levels split on the host, as if every pair were entered
+                self.stats["presplit_waves"] = f.presplit(self.nt, self.t_q, p.max_subtree_height, self.tri_bound,
+                                                          p.cold_start_pairs * n_tiles)
+            # (at its first pass: a device cold start, settling from this pass on)
             dev = f.device = dv.attach(f, n_tiles, settled=f.frames > 0)
         full = f.full_bvh or dev.full
         sub = int(p.cull_sublevels)
