@@ -2,9 +2,10 @@
 
 A chcrt front starts as (screen, root). The paper's Algorithm 1 (`cold_start=sync`) refines it in
 the front's first passes through waves of occlusion queries whose results the host waits for
-within the pass; on the device (`cold_start=device`) every pass is a steady pass from the first:
-it refines the front one level from its own counts, with nothing read back, and the front settles
-over its first frames (ChcrtParams.settle_splits). Per recording x size x effect (table2's
+within the pass; on the device (`cold_start=device`; its first levels split as if every pair were
+entered, ChcrtParams.cold_start_pairs) every pass is a steady pass from the first: it refines the
+front one level from its own counts, with nothing read back, and the front settles over its first
+frames (ChcrtParams.settle_splits). Per recording x size x effect (table2's
 options), glsl and chcrt with both cold starts, interleaved frame by frame over the run's frames
 (ask for enough of them for the front to settle: 24 or more): the cold frame (trace ms, host
 syncs, bytes read back, Python ms), the frames the device front took to settle and their mean,

@@ -5,9 +5,9 @@
 // cull keeps the ray counts, the three slots and the command that pass left; keepRays: one whose rays
 // an earlier pass of the frame counted keeps the ray counts; chcrt_pass_device.py). The
 // pairs' own count slots are zeroed by chc_front_count.comp; the front's overflow bits, work probe and
-// refinement's splits are reset (resetMeta: by the frame's first pass of the front only, so that a shared front's later
-// sample passes keep what the first one measured and found), and the per-pair steps' dispatch is
-// sized (ARG_PAIRS).
+// refinement's splits are reset (resetMeta: by the frame's first pass of the front only, so that a
+// shared front's later sample passes keep what the first one measured and found), and the per-pair
+// steps' dispatch is sized (ARG_PAIRS).
 // Nothing crosses the host.
 layout(local_size_x = 64) in;
 #include "chc_front.glsl"

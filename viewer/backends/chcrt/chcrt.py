@@ -74,10 +74,12 @@ traversals.
 Cold start (`cold_start`, default `auto`: `device` where fronts live on the device and are kept
 between frames). The synchronous first pass above waits for every wave of queries; on a GPU that
 made the cold frame the slowest of all (an H200: 163-183 ms for camera rays against 9.5 steady,
-12.3 s of queries at city 10 M). A device cold start skips it: the new front, (screen, root), goes
-to the device at its first pass, and every pass is the steady pass from then on, its counts
-refining the front one level a pass. Exact from the first pass (the root pair's survivors traverse
-the whole tree); its first passes cost about a whole-BVH traversal, and the front has settled when
+12.3 s of queries at city 10 M). A device cold start skips it: the new front, (screen, root) split
+on the host by the split rule as if every pair were entered for its first levels (within
+`cold_start_pairs` pairs per finest tile), goes to the device at its first pass, and every pass is
+the steady pass from then on, its counts refining the front one level a pass. Exact from the first
+pass (the cull keeps every pair some ray may enter); its first passes cost about a whole-BVH
+traversal, and the front has settled when
 a pass splits at most `settle_splits` of its pairs (`settling_fronts` counts those that have not);
 the work probe waits for that. `cold_start=sync` runs the paper's first pass (the bench-chcrt
 studies take it unless told otherwise; `--study coldstart` compares the two).

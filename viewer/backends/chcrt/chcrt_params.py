@@ -83,7 +83,7 @@ class ChcrtParams:
     cold_start: str = param("auto", "how a new front gets its pairs: 'sync' (the paper's Algorithm 1: the front's "
                             "first passes refine it from (screen, root) through waves of queries whose results "
                             "the host waits for within the pass), 'device' (with device fronts, else as sync: "
-                            "the front starts on the device as (screen, root) and each pass refines it one level "
+                            "the front starts on the device (cold_start_pairs) and each pass refines it one level "
                             "from its own counts, as a steady pass does: no wait, no read, the same launches as a "
                             "steady pass; every pass is exact, and the first ones cost about a whole-BVH "
                             "traversal until the front has settled; the work probe waits for that) or 'auto' "
@@ -93,12 +93,13 @@ class ChcrtParams:
                                   "host by the split rule as if every pair were entered, level by level while it "
                                   "holds at most this many pairs per finest tile (0: it starts as (screen, root)); "
                                   "those levels are the ones every view enters, and pairs no ray enters are culled "
-                                  "and pulled up (city-near at 640x360: settled after 5-7 frames instead of 12-14)")
+                                  "and pulled up (settled after 2-9 frames instead of 9-16: city-near, sibenik-walk, "
+                                  "city 10 M)")
     settle_splits: float = param(0.05, "cold_start=device: a front has settled once a pass splits at most this "
                                  "fraction of its pairs; the work probe measures settled fronts only (a young one "
                                  "would look wasteful). A young front splits 7-29 % of its pairs a pass, a settled "
                                  "one 1-4 % while the camera moves (city-near and sibenik-walk, camera rays and "
-                                 "AO at 640x360)")
+                                 "AO at 640x360, cold_start_pairs=0)")
     cold_full_bvh: bool = param(True, "a front's synchronous refinement stops once so many finest tiles are over "
                                 "the LCA limits that the GPU-driven pass would trace the whole BVH "
                                 "(full_bvh_fraction), or once its query fragments exceed cold_query_budget per "

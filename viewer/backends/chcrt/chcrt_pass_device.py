@@ -78,9 +78,10 @@ class DeviceFrontSteps:
                 # the front's first measurement waits for a pass with hit hints (a shared front's first
                 # device pass can be a sample's first pass, in the frame that built it): without them
                 # its rays do more work than in every later pass (city-near ao:20 at 640x360: 0.73 of
-                # the full traversal's tests, against 0.46 a frame later); and for a settled front (a
-                # device cold start's young front does the full traversal's work and more: city-near's
-                # AO front measured 0.70 in its first pass, then traced the whole BVH unrefined)
+                # the full traversal's tests, against 0.46 a frame later); and no front is measured
+                # before it has settled (a device cold start's young front does the full traversal's
+                # work and more: city-near's AO front measured 0.70 in its first pass, then traced the
+                # whole BVH, unrefined, until its next measurement)
                 dev.decided_frame, dev.decided_wasted = frame, False
             else:
                 probe, wasted = self._probe_plan(dev, full)
@@ -241,7 +242,7 @@ class DeviceFrontSteps:
         comp["raySize"] = (w, h)
         comp["maxLevel"] = int(level)
         comp["mergeKept"] = int(merge)
-        comp["keptAfter"] = int(merge)  # every tile's kept pairs after its records (the cull's mergeAll)
+        comp["keptAfter"] = int(merge)  # the kept pairs no record carries, after the records (the cull's mergeAll)
         comp["keptChunk"] = int(self.p.max_batch)
         # (the ray set-up's images and buffers were written by dispatches that each end with a barrier)
         comp.run(-(-w // 8), -(-h // 8))
@@ -285,8 +286,8 @@ class DeviceFrontSteps:
         be.querycull["keptOffset"] = dv.kept_offset if merge else 0
         if be.merge_kept:
             be.querycull["mergeKept"] = int(merge)
-            # visible_stage=compute: every tile's kept pairs go to the compute dispatch, none to the survivors'
-            # fragment draw (_dispatch_visible)
+            # visible_stage=compute: every tile's kept pairs go to the tile plans for the compute dispatch
+            # (_dispatch_visible), none to the survivors' fragment draw
             be.querycull["mergeAll"] = int(merge and be.visible_stage == "compute")
         be.querycull["nQueries"] = n_cull
         be.querycull["maxItems"] = p.max_batch
