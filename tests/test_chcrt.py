@@ -388,6 +388,21 @@ def test_tiles_partition_the_screen_and_levels():
         assert (cover == 1).all()
 
 
+def _assert_leaves_partition(f: PairFront, bvh, leaves: np.ndarray) -> None:
+    """Leaf pairs `leaves` partition (screen x scene): on every finest tile, the leaves over it cover
+    each triangle (leaf order) exactly once."""
+    top = f.max_level
+    for tx in range(1 << top):
+        for ty in range(1 << top):
+            cover = np.zeros(bvh.stats.triangles, int)
+            for i in leaves:
+                shift = top - int(f.level[i])
+                if (tx >> shift) == f.tx[i] and (ty >> shift) == f.ty[i]:
+                    a = bvh.node_first[f.node[i]]
+                    cover[a:a + bvh.node_count[f.node[i]]] += 1
+            assert (cover == 1).all()
+
+
 def test_front_split_rule_subdivide_pull_up_and_compact():
     from viewer.procedural import make_city
 
@@ -408,16 +423,7 @@ def test_front_split_rule_subdivide_pull_up_and_compact():
     # the rule: terminated pairs are small relative to their tile, or BVH leaves
     nd = f.node[vis]
     assert (nt.is_leaf[nd] | (nt.area_ratio[nd] <= 0.5 / 16)).all()
-    # leaves partition (screen x scene): per tile, the leaf nodes' triangle ranges tile [0, N)
-    for tx in range(4):
-        for ty in range(4):
-            cover = np.zeros(bvh.stats.triangles, int)
-            for i in vis:
-                lv = int(f.level[i])
-                if (tx >> (2 - lv)) == f.tx[i] and (ty >> (2 - lv)) == f.ty[i]:
-                    a = bvh.node_first[f.node[i]]
-                    cover[a:a + bvh.node_count[f.node[i]]] += 1
-            assert (cover == 1).all()
+    _assert_leaves_partition(f, bvh, vis)
     # everything invisible: pulled up one level per call, down to the root
     f.state[vis] = INVISIBLE
     calls = 0
@@ -446,15 +452,7 @@ def test_presplit_keeps_the_partition_within_its_budget(max_pairs):
     assert f.n <= max(max_pairs, 1) and (waves > 0) == (max_pairs >= 6)
     leaves = f.leaves(INVISIBLE)
     assert len(leaves) + len(f.leaves(INNER)) == f.n and (f.pixels[leaves] == 0).all() and (f.age[leaves] == 0).all()
-    for tx in range(4):
-        for ty in range(4):
-            cover = np.zeros(bvh.stats.triangles, int)
-            for i in leaves:
-                lv = int(f.level[i])
-                if (tx >> (2 - lv)) == f.tx[i] and (ty >> (2 - lv)) == f.ty[i]:
-                    a = bvh.node_first[f.node[i]]
-                    cover[a:a + bvh.node_count[f.node[i]]] += 1
-            assert (cover == 1).all()
+    _assert_leaves_partition(f, bvh, leaves)
     if max_pairs == 100_000:
         term, _, _ = f.classify(leaves, nt, 0.5, 8, 1000)
         assert term.all()

@@ -19,8 +19,7 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
-from viewer.bench.chcrt_common import finish_study, join_params
-from viewer.bench.harness import RunSpec
+from viewer.bench.chcrt_common import finish_study, table2_rows
 from viewer.bench.plots import figure, finish
 from viewer.bench.report import fmt, md_table, notes_md, ratio, size_text
 
@@ -85,21 +84,12 @@ def study_coldstart(b) -> dict:
     rows: list[ColdStartRow] = []
     runs = []
     series = []
-    b.progress("coldstart", len(o.recordings) * len(o.sizes) * len(o.effects) * len(CONFIGS) * o.frames)
-    try:
-        for path in o.recordings:
-            for size in o.sizes:
-                for effect in o.effects:
-                    specs = [RunSpec(label, effect, backend,
-                                     join_params(o.chcrt, params) if backend == "chcrt" else params)
-                             for label, backend, params in CONFIGS]
-                    g, s, d = results = b.run_many(path, size, specs)
-                    runs += [asdict(r) for r in results]
-                    rows.append(_row(path.stem, size, effect, g.frames, s.frames, d.frames))
-                    series.append((f"{path.stem} {size_text(size)} {effect}",
-                                   [[f["trace_gpu_ms"] for f in r.frames] for r in results], rows[-1].settled_after))
-    finally:
-        b.done()
+    for path, size, effect, results in table2_rows(b, "coldstart", CONFIGS, config_wins=True):
+        g, s, d = results
+        runs += [asdict(r) for r in results]
+        rows.append(_row(path.stem, size, effect, g.frames, s.frames, d.frames))
+        series.append((f"{path.stem} {size_text(size)} {effect}",
+                       [[f["trace_gpu_ms"] for f in r.frames] for r in results], rows[-1].settled_after))
     report = b.header("coldstart", o, {"recordings": [p.stem for p in o.recordings], "effects": o.effects,
                                        "configs": [list(c) for c in CONFIGS]})
     report.update(rows=[asdict(r) for r in rows], runs=runs)

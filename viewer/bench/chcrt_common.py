@@ -3,10 +3,12 @@ them from here, so no study module imports another)."""
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
 
+from viewer.bench.harness import RunResult, RunSpec
 from viewer.bench.report import write_study
 
 _CHC_PHASES: tuple[str, ...] = ()
@@ -15,6 +17,26 @@ _CHC_PHASES: tuple[str, ...] = ()
 def join_params(*texts: str | None) -> str:
     """chcrt parameter texts joined in order (a later key wins when parsed)."""
     return ",".join(t.strip().strip(",") for t in texts if t and t.strip().strip(","))
+
+
+def table2_rows(b, study: str, configs: tuple[tuple[str, str, str | None], ...], config_wins: bool = False
+                ) -> Iterator[tuple[Path, tuple[int, int], str, list[RunResult]]]:
+    """Table 2's rows (recording x size x effect of the options `b.o`), each running `configs`
+    ((label, backend, parameters)) interleaved frame by frame, with progress: yields (recording,
+    size, effect, one RunResult per config). A chcrt config's parameters join --chcrt's: the
+    config's win where `config_wins` (what the study compares), else --chcrt's (the user's)."""
+    o = b.o
+    b.progress(study, len(o.recordings) * len(o.sizes) * len(o.effects) * len(configs) * o.frames)
+    try:
+        for path in o.recordings:
+            for size in o.sizes:
+                for effect in o.effects:
+                    specs = [RunSpec(label, effect, backend, params if backend != "chcrt" else
+                                     join_params(o.chcrt, params) if config_wins else join_params(params, o.chcrt))
+                             for label, backend, params in configs]
+                    yield path, size, effect, b.run_many(path, size, specs)
+    finally:
+        b.done()
 
 
 def save_png(path: Path, img: np.ndarray) -> None:

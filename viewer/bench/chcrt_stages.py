@@ -13,8 +13,7 @@ from __future__ import annotations
 
 from dataclasses import asdict, dataclass
 
-from viewer.bench.chcrt_common import finish_study, join_params
-from viewer.bench.harness import RunSpec
+from viewer.bench.chcrt_common import finish_study, table2_rows
 from viewer.bench.plots import figure, finish
 from viewer.bench.report import fmt, md_table, notes_md, ratio, size_text
 
@@ -48,22 +47,12 @@ def study_stages(b) -> dict:
     o = b.o
     rows: list[StagesRow] = []
     runs = []
-    b.progress("stages", len(o.recordings) * len(o.sizes) * len(o.effects) * len(CONFIGS) * o.frames)
-    try:
-        for path in o.recordings:
-            for size in o.sizes:
-                for effect in o.effects:
-                    specs = [RunSpec(label, effect, backend,
-                                     join_params(params, o.chcrt) if backend == "chcrt" else params)
-                             for label, backend, params in CONFIGS]
-                    results = b.run_many(path, size, specs)
-                    runs += [asdict(r) for r in results]
-                    gf, gc, cf, cc = (r.best.trace_ms for r in results)
-                    rows.append(StagesRow(path.stem, size_text(size), effect, results[0].best.rays, gf, gc, cf, cc,
-                                          ratio(gf, gc), ratio(cf, cc), ratio(gf, cf), ratio(gc, cc),
-                                          ratio(min(gf, gc), min(cf, cc))))
-    finally:
-        b.done()
+    for path, size, effect, results in table2_rows(b, "stages", CONFIGS):
+        runs += [asdict(r) for r in results]
+        gf, gc, cf, cc = (r.best.trace_ms for r in results)
+        rows.append(StagesRow(path.stem, size_text(size), effect, results[0].best.rays, gf, gc, cf, cc,
+                              ratio(gf, gc), ratio(cf, cc), ratio(gf, cf), ratio(gc, cc),
+                              ratio(min(gf, gc), min(cf, cc))))
     report = b.header("stages", o, {"recordings": [p.stem for p in o.recordings], "effects": o.effects,
                                     "configs": [list(c) for c in CONFIGS]})
     report.update(rows=[asdict(r) for r in rows], runs=runs)
