@@ -53,11 +53,12 @@ void main() {
     // the same occluder for any-hit rays
     bool carried = mergeKept != 0 && (keptAfter == 0 || (tp.nrec >= 1 && tp.keptCount <= keptChunk));
     int nk = mergeKept != 0 && !carried ? tp.keptCount : 0;
+    int chunk = max(keptChunk, 1);  // (a loop step of 0 would never end)
     for (int k = r0; k < (countOverlays != 0 ? r1 : r0); ++k) {
         bool kept = carried && keptCarrier(tp, k);
         countRecordOverlays(px, draws[k].info.y, kept ? tp.keptCount : 0, 0);
     }
-    for (int b = 0; b < (countOverlays != 0 ? nk : 0); b += keptChunk) countRecordOverlays(px, min(keptChunk, nk - b), 0, 1);
+    for (int b = 0; b < (countOverlays != 0 ? nk : 0); b += chunk) countRecordOverlays(px, min(chunk, nk - b), 0, 1);
     int best = imageLoad(bestBits, px).r;
     visHits[w + 1] = uint(-1);
     if (best < 0 || (r0 == r1 && nk == 0)) return;
@@ -86,8 +87,8 @@ void main() {
         visits += CHC_RECORD_VISITS;
         intersectRecord(px, d.info.x, d.info.y, kb, kc, r, tmin, dlen, any, hit, done, visits);
     }
-    for (int b = 0; b < nk && !done; b += keptChunk) {  // (sorted by gap across the tile: a chunk beyond
-        int m = min(keptChunk, nk - b);                   // the nearest hit leaves the rest beyond it too)
+    for (int b = 0; b < nk && !done; b += chunk) {  // (sorted by gap across the tile: a chunk beyond
+        int m = min(chunk, nk - b);                   // the nearest hit leaves the rest beyond it too)
         if (recordBeyond(tp.keptBase + b, m, 0, 0, hit.t * dlen)) break;
 #if RESUMABLE
         if (visits + CHC_RECORD_VISITS > CHC_MAX_VISITS) {
