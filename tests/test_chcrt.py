@@ -1282,6 +1282,33 @@ def test_device_cold_front_settles_before_it_is_measured(gl_ctx):
     assert st[-1]["visible_pairs"] > 0 and st[-1]["device_front_passes"] == 2
 
 
+@pytest.mark.parametrize("params", ["work_ratio_full_any=0.001", "work_ratio_full_any=100",
+                                    "work_ratio_full_any=0.001,settle_probe=0"])
+def test_settling_shared_front_is_measured_every_frame(params, gl_ctx):
+    """settle_probe: a device cold start's front shared by sample passes (ao:2) is presumed wasteful
+    until measured, so its later sample passes trace the whole BVH (frames 0 and 1); its first pass
+    in each frame still runs and refines it, and measures it while it settles from the first frame
+    with hit hints (frame 1); the later samples follow the last measurement (a limit of 100: none
+    is wasteful from frame 2). Without settle_probe no settling pass measures or traces the whole
+    BVH. Exact every pass (_walk_exact)."""
+    frames = _walk_exact(gl_ctx, f"cold_start=device,work_probe=16,{params}", "ao:2", 6)
+    st = [b.backend_stats for b in frames]
+    settling = [s["settling_fronts"] for s in st]
+    probes = [s["work_probe_passes"] for s in st]
+    wasted = [s["wasted_front_passes"] for s in st]
+    young = [k for k in range(1, len(st)) if settling[k - 1] > 0]  # the front settling as frame k starts
+    assert 2 in young, settling  # (a front that settles later than frame 1: the measurements are seen)
+    assert all(s["device_front_passes"] == 2 for s in st)  # both samples on the device front, every frame
+    if "settle_probe=0" in params:
+        assert all(probes[k] == wasted[k] == 0 for k in [0, *young]), (probes, wasted, settling)
+        return
+    assert probes[0] == 0 and all(probes[k] == 1 for k in young), (probes, settling)
+    assert wasted[:2] == [1, 1], wasted  # presumed wasteful: sample 1 through the whole BVH
+    want = 1 if "0.001" in params else 0
+    assert all(wasted[k] == want for k in young if k >= 2), (wasted, settling)
+    assert settling[-1] <= settling[0], settling  # the front still settles: its first pass refines it
+
+
 def test_cold_start_resolves_where_fronts_live(gl_ctx):
     """cold_start=auto takes the device where fronts live on the device and are kept between frames;
     without device fronts, or with temporal=0, the synchronous passes; a bad value is one line."""

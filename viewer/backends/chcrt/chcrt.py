@@ -81,7 +81,10 @@ the steady pass from then on, its counts refining the front one level a pass. Ex
 pass (the cull keeps every pair some ray may enter); its first passes cost about a whole-BVH
 traversal, and the front has settled when
 a pass splits at most `settle_splits` of its pairs (`settling_fronts` counts those that have not);
-the work probe waits for that. `cold_start=sync` runs the paper's first pass (the bench-chcrt
+the work probe's decisions wait for that. A settling front shared by sample passes
+(`settle_probe`) is presumed wasteful until measured: the frame's first pass runs and refines it,
+and measures it from the first frame with hit hints, and the later samples trace the whole BVH
+while the last measurement says so. `cold_start=sync` runs the paper's first pass (the bench-chcrt
 studies take it unless told otherwise; `--study coldstart` compares the two).
 
 Gap order (`gap_order`, `gap_order_visible`): in the GPU-driven pass each record's items are sorted on

@@ -171,6 +171,9 @@ class DeviceFront:
         # decision, and whether that pass traced the whole BVH (the frame's later sample passes follow it)
         self.decided_frame = -1
         self.decided_wasted = False
+        # a later sample pass of a frame shared this front (ChcrtParams.settle_probe: a settling front is
+        # measured every frame only where later passes can follow the measurement)
+        self.shared = False
         self.bufs = [ctx.buffer(reserve=capacity * PAIR_DTYPE.itemsize) for _ in range(2)]
         self.cur = 0
         if len(records):

@@ -100,6 +100,11 @@ class ChcrtParams:
                                  "would look wasteful). A young front splits 7-29 % of its pairs a pass, a settled "
                                  "one 1-4 % while the camera moves (city-near and sibenik-walk, camera rays and "
                                  "AO at 640x360, cold_start_pairs=0)")
+    settle_probe: bool = param(True, "cold_start=device with share_sample_fronts and work_probe: while a front "
+                               "shared by several sample passes (AO, diffuse, soft shadows) settles, the frame's "
+                               "first pass measures its work every frame and still runs and refines it; the "
+                               "later samples trace the whole BVH while the last measurement found the young "
+                               "front wasteful (False: every pass runs the settling front)")
     cold_full_bvh: bool = param(True, "a front's synchronous refinement stops once so many finest tiles are over "
                                 "the LCA limits that the GPU-driven pass would trace the whole BVH "
                                 "(full_bvh_fraction), or once its query fragments exceed cold_query_budget per "

@@ -58,6 +58,9 @@ class DeviceFrontSteps:
                                                           p.cold_start_pairs * n_tiles)
             # (at its first pass: a device cold start, settling from this pass on)
             dev = f.device = dv.attach(f, n_tiles, settled=f.frames > 0)
+            # settle_probe: the young front is presumed wasteful until measured (its later sample passes
+            # trace the whole BVH; it starts about the root, where its rays do the full traversal's work)
+            dev.wasteful = not dev.settled and p.settle_probe and p.work_probe > 0
         full = f.full_bvh or dev.full
         sub = int(p.cull_sublevels)
         while sub > 0 and min(self.size) >> (level + sub) < 4:
@@ -69,12 +72,21 @@ class DeviceFrontSteps:
         plan_key = None if dev is None else (dev.slot, frame, tuple(self.size), level, sub)
         probe = wasted = False
         if dev is not None:
+            no_hint = be.use_hints and self.hint is None
             if later:
                 # the frame's first pass decided (no probe); a front found wasteful when last measured
                 # sends the frame's other samples through the whole BVH even while its first pass brings
                 # it up to date or measures it (warm_up, probe: that one pass is enough for either)
                 wasted = not full and (dev.decided_wasted or dev.wasteful)
-            elif (dev.passes == 0 and be.use_hints and self.hint is None) or not dev.settled:
+                dev.shared = True
+            elif (not dev.settled and dev.shared and p.settle_probe and p.work_probe > 0 and not full
+                  and not no_hint):
+                # settle_probe: a settling front shared by later sample passes is measured in the
+                # frame's first pass, which still runs and refines it (the front settles only through
+                # its own passes); the later samples of the next frame follow that measurement
+                probe = True
+                dev.decided_frame, dev.decided_wasted = frame, False
+            elif (dev.passes == 0 and no_hint) or not dev.settled:
                 # the front's first measurement waits for a pass with hit hints (a shared front's first
                 # device pass can be a sample's first pass, in the frame that built it): without them
                 # its rays do more work than in every later pass (city-near ao:20 at 640x360: 0.73 of
