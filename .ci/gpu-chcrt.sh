@@ -56,6 +56,9 @@ step hints 60 rtwalk bench-chcrt --study table2 --recordings city-near.json --si
   for b in glsl chcrt; do
     echo "=== city10m $b"
     grep -h -E "steady|chc:|I/O|trace" "$OUT/city10m-$b.log" 2>/dev/null | head -12
+    # rays per frame and type (an H200 once reported chcrt's first frame with twice glsl's AO rays)
+    python3 -c 'import json, sys; print([f["rays"] for f in json.load(open(sys.argv[1]))["frames"]])' \
+      "$W/city10m/$b.json" 2>/dev/null
   done
   cat "$OUT/steps.log"
 } | tee "$OUT/summary.txt"
